@@ -1,0 +1,7 @@
+//! shotpilot-sim: the simulated world the shotpilot daemon flies in.
+//!
+//! A PX4-like multicopter with a 2-axis gimbal camera, a procedurally
+//! textured 3D scene rendered through a pinhole + radial-tangential camera,
+//! a MAVLink 2 autopilot and an MJPEG video server. This crate never
+//! depends on `shotpilot`: its camera projection is its own code, an
+//! independent check on the daemon's camera model.

@@ -1,0 +1,1 @@
+//! (in progress on its own branch)

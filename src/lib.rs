@@ -1,0 +1,52 @@
+//! shotpilot: a ground-control-station daemon for camera drones.
+//!
+//! It watches a drone's live video, builds a map with monocular visual SLAM,
+//! finds the camera pose that takes the photograph an operator describes, and
+//! sends the drone there as a MAVLink mission.
+//!
+//! ```text
+//!  image-transmission receiver          Pixhawk (3DR radio serial) / SITL (UDP)
+//!    HTTP MJPEG / snapshot                       MAVLink 2
+//!           |                                        ^   |
+//!    video/ ingest (async)                 vehicle/ link actor (async)
+//!           | latest-frame slot                      |   | telemetry (watch)
+//!           v                                        |   v
+//!    slam/ tracking thread --keyframes--> slam/ mapping thread
+//!      ORB -> match -> PnP       (bounded ch)   triangulate, local BA, cull
+//!           \                                     /
+//!            +-------> Map (keyframes, points, BoW database) <----+
+//!                               | read-only snapshots
+//!   operator --HTTP--> api/ --> shot/ : anchors -> homography -> desired shot
+//!                                       -> BoW query -> PnP -> target pose
+//!                                             |
+//!                               geo/ : map frame -> NED -> lat/lon/alt
+//!                                             |
+//!                               mission/ : target -> items -> upload -> ACK
+//! ```
+//!
+//! | module | what it holds |
+//! |---|---|
+//! | [`config`] | the typed tree of `config.toml` |
+//! | [`camera`] | pinhole + radial-tangential distortion |
+//! | [`video`] | frame sources: datasets (TUM, EuRoC) |
+//! | [`eval`] | TUM trajectories, association, Umeyama alignment, ATE/RPE, plots |
+//! | [`features`] | image pyramid, FAST, orientation, rBRIEF (ORB) |
+//! | [`matching`] | Hamming matching: brute force, by projection |
+//! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
+//! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
+//! | [`vehicle`] | MAVLink link actor, transports, telemetry |
+//! | [`mission`] | mission planning (pure) and upload protocol |
+//!
+//! The synchronous core never imports tokio or axum; I/O lives in
+//! `vehicle`, `video` (live sources) and `mission::upload`.
+
+pub mod camera;
+pub mod config;
+pub mod eval;
+pub mod features;
+pub mod geometry;
+pub mod matching;
+pub mod mission;
+pub mod optimize;
+pub mod vehicle;
+pub mod video;
