@@ -1,0 +1,175 @@
+//! Mission upload and download through the link actor against the in-test
+//! fake autopilot: clean, lossy (seeded drops and duplicates both ways),
+//! rejected, cancelled, timed out.
+
+mod link_support;
+
+use std::time::{Duration, Instant};
+
+use link_support::{FakeConfig, HOME, Habit, start_fake};
+use mavlink::dialects::common::MavMissionResult;
+use shotpilot::mission::plan::{self, Flavour, Home, Target};
+use shotpilot::mission::upload::{self, MissionError, Stage, item_from_wire, same_mission};
+use shotpilot::vehicle::{self, LinkError, Params};
+use tokio_util::sync::CancellationToken;
+
+fn home() -> Home {
+    Home { lat_deg: HOME.0, lon_deg: HOME.1, alt_amsl_m: HOME.2 }
+}
+
+fn target(k: usize) -> Target {
+    Target {
+        lat_deg: HOME.0 + 0.0004 + 1e-6 * k as f64,
+        lon_deg: HOME.1 - 0.0003,
+        alt_m: 20.0 + k as f64 * 0.5,
+        yaw_deg: (k * 7) as f64,
+        gimbal_pitch_deg: -35.0,
+        photo: true,
+    }
+}
+
+fn link_params(url: String) -> Params {
+    Params { url, ..Params::default() }
+}
+
+fn flavour(h: Habit) -> Flavour {
+    match h {
+        Habit::Px4 => Flavour::Px4,
+        Habit::ArduPilot => Flavour::ArduPilot,
+    }
+}
+
+async fn upload_and_verify(habit: Habit) -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let (addr, fake) = start_fake(FakeConfig::clean(habit), &cancel);
+    let (link, _task) = vehicle::spawn(link_params(format!("udpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let items = plan::plan(&target(0), &home(), flavour(habit), &plan::Params::default())?;
+    let report = link.upload_mission(items.clone()).await?;
+    assert_eq!(usize::from(report.items), items.len());
+    assert_eq!(report.retries, 0, "clean link");
+    let received: Vec<_> = fake.lock().expect("lock").received.iter().map(item_from_wire).collect();
+    assert!(same_mission(&items, &received, false), "the vehicle holds exactly the planned items");
+    let down = link.download_mission().await?;
+    assert!(same_mission(&items, &down.items, habit == Habit::ArduPilot));
+    if habit == Habit::ArduPilot {
+        assert!(!down.items[0].same_content(&items[0]) || items[0].z == HOME.2 as f32);
+    }
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clean_upload_px4() -> anyhow::Result<()> {
+    upload_and_verify(Habit::Px4).await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clean_upload_ardupilot() -> anyhow::Result<()> {
+    upload_and_verify(Habit::ArduPilot).await
+}
+
+/// `n` uploads through 30 % loss each way plus 5 % duplicates; each one
+/// downloaded and compared. Returns the upload times, seconds.
+async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>> {
+    let cancel = CancellationToken::new();
+    let cfg = FakeConfig {
+        drop_in: 0.3,
+        drop_out: 0.3,
+        duplicate: 0.05,
+        seed,
+        ..FakeConfig::clean(habit)
+    };
+    let (addr, fake) = start_fake(cfg, &cancel);
+    let p = Params { link_lost_after_ms: 6000, ..link_params(format!("udpout:{addr}")) };
+    let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
+    link.wait_for_vehicle(Duration::from_secs(10)).await?;
+    let mut times = Vec::with_capacity(n);
+    let mut retries = 0;
+    for k in 0..n {
+        let items = plan::plan(&target(k), &home(), flavour(habit), &plan::Params::default())?;
+        let t0 = Instant::now();
+        let report = link
+            .upload_mission(items.clone())
+            .await
+            .map_err(|e| anyhow::anyhow!("upload {k}: {e}; vehicle {:?}", *link.telemetry.vehicle.borrow()))?;
+        times.push(t0.elapsed().as_secs_f64());
+        retries += report.retries;
+        let down = link.download_mission().await.map_err(|e| anyhow::anyhow!("download {k}: {e}"))?;
+        assert!(same_mission(&items, &down.items, habit == Habit::ArduPilot), "upload {k} reads back different");
+    }
+    let (dropped, dup, uploads) = {
+        let s = fake.lock().expect("lock");
+        (s.dropped, s.duplicated, s.uploads)
+    };
+    assert_eq!(uploads as usize, n);
+    assert!(dropped > 0 && dup > 0);
+    let mut sorted = times.clone();
+    sorted.sort_by(f64::total_cmp);
+    println!(
+        "{habit:?}: {n}/{n} uploads of {} items verified; median {:.2} s, max {:.2} s; {retries} retries; fake dropped {dropped}, duplicated {dup}",
+        plan::plan(&target(0), &home(), flavour(habit), &plan::Params::default())?.len(),
+        sorted[n / 2],
+        sorted[n - 1],
+    );
+    cancel.cancel();
+    Ok(times)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lossy_uploads_px4() -> anyhow::Result<()> {
+    lossy_run(Habit::Px4, 10, 7).await.map(|_| ())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lossy_uploads_ardupilot() -> anyhow::Result<()> {
+    lossy_run(Habit::ArduPilot, 10, 11).await.map(|_| ())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "slow: 2 x 50 lossy uploads; run with --ignored for the figures"]
+async fn lossy_uploads_50_each() -> anyhow::Result<()> {
+    lossy_run(Habit::Px4, 50, 101).await?;
+    lossy_run(Habit::ArduPilot, 50, 202).await?;
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn vehicle_rejection_is_typed() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let cfg = FakeConfig { final_result: Some(MavMissionResult::MAV_MISSION_NO_SPACE), ..FakeConfig::clean(Habit::Px4) };
+    let (addr, _fake) = start_fake(cfg, &cancel);
+    let (link, _task) = vehicle::spawn(link_params(format!("udpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let items = plan::plan(&target(0), &home(), Flavour::Px4, &plan::Params::default())?;
+    let n = items.len() as u16;
+    assert_eq!(link.upload_mission(items).await, Err(LinkError::Mission(MissionError::NoSpace { count: n })));
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_and_timeout() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    // a vehicle that hears nothing: heartbeats come, requests never do
+    let cfg = FakeConfig { drop_in: 1.0, ..FakeConfig::clean(Habit::Px4) };
+    let (addr, _fake) = start_fake(cfg, &cancel);
+    let fast = upload::Params { retry_timeout_ms: 100, max_retries: 3 };
+    let (link, _task) = vehicle::spawn(link_params(format!("udpout:{addr}")), fast, cancel.clone())?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let items = plan::plan(&target(0), &home(), Flavour::Px4, &plan::Params::default())?;
+    let t0 = Instant::now();
+    let r = link.upload_mission(items.clone()).await;
+    let waited = t0.elapsed().as_secs_f64();
+    assert_eq!(r, Err(LinkError::Mission(MissionError::Timeout { stage: Stage::FirstRequest, retries: 3 })));
+    assert!(waited > 0.35 && waited < 1.0, "4 timeouts of 0.1 s took {waited:.2} s");
+    // cancel while running
+    let l2 = link.clone();
+    let running = tokio::spawn(async move { l2.upload_mission(items).await });
+    tokio::time::sleep(Duration::from_millis(150)).await;
+    assert_eq!(link.cancel_transfer().await, Ok(true));
+    assert_eq!(running.await?, Err(LinkError::Mission(MissionError::Cancelled)));
+    assert_eq!(link.cancel_transfer().await, Ok(false));
+    cancel.cancel();
+    Ok(())
+}
