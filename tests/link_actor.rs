@@ -81,7 +81,7 @@ async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
     // a new vehicle process on the same port: the link comes back
     let cfg = FakeConfig::clean(Habit::ArduPilot);
     let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
-    tokio::spawn(link_support::run_fake(addr, cfg, state, cancel.child_token()));
+    tokio::spawn(link_support::run_fake(format!("udpin:{addr}"), cfg, state, cancel.child_token()));
     link.wait_for_vehicle(Duration::from_secs(4)).await?;
     cancel.cancel();
     Ok(())

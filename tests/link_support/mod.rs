@@ -96,11 +96,12 @@ enum Rx {
     Receiving { count: u16, next: u16, items: Vec<MISSION_ITEM_INT_DATA>, last_rx: Instant, tries: u32 },
 }
 
-/// Runs the fake autopilot on `udpin:ADDR` until `cancel`.
-pub async fn run_fake(addr: String, cfg: FakeConfig, state: Arc<Mutex<FakeState>>, cancel: CancellationToken) {
-    let mut conn = match mavlink::connect_async::<MavMessage>(&format!("udpin:{addr}")).await {
+/// Runs the fake autopilot on a mavlink-crate address (`udpin:ADDR`,
+/// `serial:PATH:BAUD`) until `cancel`, or until its serial device vanishes.
+pub async fn run_fake(url: String, cfg: FakeConfig, state: Arc<Mutex<FakeState>>, cancel: CancellationToken) {
+    let mut conn = match mavlink::connect_async::<MavMessage>(&url).await {
         Ok(c) => c,
-        Err(e) => panic!("fake autopilot cannot bind {addr}: {e}"),
+        Err(e) => panic!("fake autopilot cannot open {url}: {e}"),
     };
     conn.set_protocol_version(cfg.version);
     conn.set_allow_recv_any_version(true);
@@ -173,8 +174,12 @@ pub async fn run_fake(addr: String, cfg: FakeConfig, state: Arc<Mutex<FakeState>
                     }
                 }
             }
-            r = conn.recv() => {
-                let Ok((h, msg)) = r else { continue };
+            r = conn.try_recv() => {
+                let (h, msg) = match r {
+                    Ok(x) => x,
+                    Err(mavlink::error::MessageReadError::Io(_)) => return,
+                    Err(_) => continue,
+                };
                 if rng.random_bool(cfg.drop_in) {
                     state.lock().map(|mut s| s.dropped += 1).ok();
                     continue;
@@ -334,6 +339,6 @@ pub fn free_udp_port() -> u16 {
 pub fn start_fake(cfg: FakeConfig, cancel: &CancellationToken) -> (String, Arc<Mutex<FakeState>>) {
     let addr = format!("127.0.0.1:{}", free_udp_port());
     let state = Arc::new(Mutex::new(FakeState::default()));
-    tokio::spawn(run_fake(addr.clone(), cfg, state.clone(), cancel.child_token()));
+    tokio::spawn(run_fake(format!("udpin:{addr}"), cfg, state.clone(), cancel.child_token()));
     (addr, state)
 }
