@@ -25,7 +25,11 @@ fn params(url: String) -> Params {
 async fn tracks_vehicle_and_caches_telemetry() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let (addr, fake) = start_fake(FakeConfig::clean(Habit::Px4), &cancel);
-    let (link, task) = vehicle::spawn(params(format!("udpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    let (link, task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
     assert_eq!(v.system_id, Some(1));
     assert_eq!(v.flavour, Some(Flavour::Px4));
@@ -33,17 +37,23 @@ async fn tracks_vehicle_and_caches_telemetry() -> anyhow::Result<()> {
     assert!(!v.armed);
     assert!(v.connected);
     let mut gp = link.telemetry.global_position.clone();
-    let pos = tokio::time::timeout(Duration::from_secs(3), gp.wait_for(|p| p.is_some())).await??.expect("some");
+    let pos = tokio::time::timeout(Duration::from_secs(3), gp.wait_for(|p| p.is_some()))
+        .await??
+        .expect("some");
     assert!((pos.value.lat_deg - HOME.0).abs() < 1e-6);
     assert!((pos.value.rel_alt_m - 10.0).abs() < 1e-9);
     assert_eq!(pos.value.vel_ned_m_s, [1.0, -0.5, 0.0]);
     assert_eq!(pos.value.heading_deg, Some(90.0));
     assert!(pos.received.elapsed() < Duration::from_secs(2));
     let mut att = link.telemetry.attitude.clone();
-    let a = tokio::time::timeout(Duration::from_secs(3), att.wait_for(|p| p.is_some())).await??.expect("some");
+    let a = tokio::time::timeout(Duration::from_secs(3), att.wait_for(|p| p.is_some()))
+        .await??
+        .expect("some");
     assert_eq!(a.value.yaw_rad, 1.5);
     let mut home = link.telemetry.home.clone();
-    let h = tokio::time::timeout(Duration::from_secs(3), home.wait_for(|p| p.is_some())).await??.expect("some");
+    let h = tokio::time::timeout(Duration::from_secs(3), home.wait_for(|p| p.is_some()))
+        .await??
+        .expect("some");
     assert!((h.value.alt_amsl_m - HOME.2).abs() < 1e-3);
     // heartbeats at 1 Hz reach the vehicle; telemetry rates were requested once
     let hb0 = fake.lock().expect("lock").gcs_heartbeats;
@@ -52,10 +62,21 @@ async fn tracks_vehicle_and_caches_telemetry() -> anyhow::Result<()> {
         let s = fake.lock().expect("lock");
         (s.gcs_heartbeats, s.commands.clone())
     };
-    assert!((2..=4).contains(&(hb1 - hb0)), "{} heartbeats in 3 s", hb1 - hb0);
-    let intervals: Vec<_> = cmds.iter().filter(|(c, _)| *c == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL).collect();
+    assert!(
+        (2..=4).contains(&(hb1 - hb0)),
+        "{} heartbeats in 3 s",
+        hb1 - hb0
+    );
+    let intervals: Vec<_> = cmds
+        .iter()
+        .filter(|(c, _)| *c == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
+        .collect();
     assert_eq!(intervals.len(), 6, "{cmds:?}");
-    assert_eq!(cmds.len(), 6, "nothing else (no arming, no mode change) is sent on its own: {cmds:?}");
+    assert_eq!(
+        cmds.len(),
+        6,
+        "nothing else (no arming, no mode change) is sent on its own: {cmds:?}"
+    );
     cancel.cancel();
     tokio::time::timeout(Duration::from_secs(2), task).await??;
     Ok(())
@@ -66,7 +87,11 @@ async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let fake_cancel = CancellationToken::new();
     let (addr, _fake) = start_fake(FakeConfig::clean(Habit::ArduPilot), &fake_cancel);
-    let (link, _task) = vehicle::spawn(params(format!("udpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
     assert_eq!(v.flavour, Some(Flavour::ArduPilot));
     assert_eq!(v.mode, "LOITER");
@@ -77,11 +102,20 @@ async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
     let after = t0.elapsed().as_secs_f64();
     // lost 1.5 s after the last heartbeat, which came up to 1 s before the fake stopped
     assert!(after > 0.4 && after < 1.7, "lost after {after:.2} s");
-    assert_eq!(link.arm(true).await, Err(LinkError::NoVehicle), "no commands to a lost vehicle");
+    assert_eq!(
+        link.arm(true).await,
+        Err(LinkError::NoVehicle),
+        "no commands to a lost vehicle"
+    );
     // a new vehicle process on the same port: the link comes back
     let cfg = FakeConfig::clean(Habit::ArduPilot);
     let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
-    tokio::spawn(link_support::run_fake(format!("udpin:{addr}"), cfg, state, cancel.child_token()));
+    tokio::spawn(link_support::run_fake(
+        format!("udpin:{addr}"),
+        cfg,
+        state,
+        cancel.child_token(),
+    ));
     link.wait_for_vehicle(Duration::from_secs(4)).await?;
     cancel.cancel();
     Ok(())
@@ -95,7 +129,11 @@ async fn accepts_mavlink1_vehicle() -> anyhow::Result<()> {
         ..FakeConfig::clean(Habit::ArduPilot)
     };
     let (addr, _fake) = start_fake(cfg, &cancel);
-    let (link, _task) = vehicle::spawn(params(format!("udpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
     assert_eq!(v.flavour, Some(Flavour::ArduPilot));
     let mut gp = link.telemetry.global_position.clone();
@@ -108,13 +146,21 @@ async fn accepts_mavlink1_vehicle() -> anyhow::Result<()> {
 async fn operator_commands_are_acknowledged() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let (addr, fake) = start_fake(FakeConfig::clean(Habit::Px4), &cancel);
-    let (link, _task) = vehicle::spawn(params(format!("udpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     link.wait_for_vehicle(Duration::from_secs(5)).await?;
     link.arm(true).await?;
     link.set_mode(FlightMode::Mission).await?;
     link.start_mission().await?;
     let cmds = fake.lock().expect("lock").commands.clone();
-    let ops: Vec<_> = cmds.iter().filter(|(c, _)| *c != MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL).cloned().collect();
+    let ops: Vec<_> = cmds
+        .iter()
+        .filter(|(c, _)| *c != MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
+        .cloned()
+        .collect();
     assert_eq!(
         ops,
         [
@@ -138,7 +184,8 @@ async fn reconnects_when_tcp_peer_goes_away() -> anyhow::Result<()> {
     // a vehicle that accepts, sends two heartbeats and hangs up, twice
     let server = tokio::spawn(async move {
         for _ in 0..2 {
-            let conn = mavlink::connect_async::<MavMessage>(&format!("tcpin:{server_addr}")).await?;
+            let conn =
+                mavlink::connect_async::<MavMessage>(&format!("tcpin:{server_addr}")).await?;
             let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
                 custom_mode: 0,
                 mavtype: MavType::MAV_TYPE_QUADROTOR,
@@ -147,7 +194,11 @@ async fn reconnects_when_tcp_peer_goes_away() -> anyhow::Result<()> {
                 system_status: MavState::MAV_STATE_ACTIVE,
                 mavlink_version: 3,
             });
-            let h = MavHeader { system_id: 7, component_id: 1, sequence: 0 };
+            let h = MavHeader {
+                system_id: 7,
+                component_id: 1,
+                sequence: 0,
+            };
             for _ in 0..2 {
                 conn.send(&h, &hb).await?;
                 tokio::time::sleep(Duration::from_millis(100)).await;
@@ -156,12 +207,18 @@ async fn reconnects_when_tcp_peer_goes_away() -> anyhow::Result<()> {
         anyhow::Ok(())
     });
     // the link starts before the server listens: first attempts fail, backoff retries
-    let (link, _task) = vehicle::spawn(params(format!("tcpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        params(format!("tcpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
     assert_eq!(v.system_id, Some(7));
     assert!(v.armed);
     let mut rx = link.telemetry.vehicle.clone();
-    let v = tokio::time::timeout(Duration::from_secs(5), rx.wait_for(|v| v.connections >= 2)).await??.clone();
+    let v = tokio::time::timeout(Duration::from_secs(5), rx.wait_for(|v| v.connections >= 2))
+        .await??
+        .clone();
     assert!(v.connections >= 2);
     server.await??;
     cancel.cancel();

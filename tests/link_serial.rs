@@ -43,7 +43,12 @@ async fn upload_over_pty_at_57600_and_reconnect() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let state = std::sync::Arc::new(std::sync::Mutex::new(FakeState::default()));
     let fake_url = format!("serial:{}:57600", vehicle_dev.display());
-    tokio::spawn(run_fake(fake_url.clone(), FakeConfig::clean(Habit::Px4), state.clone(), cancel.child_token()));
+    tokio::spawn(run_fake(
+        fake_url.clone(),
+        FakeConfig::clean(Habit::Px4),
+        state.clone(),
+        cancel.child_token(),
+    ));
 
     let p = Params {
         url: format!("serial:{}:57600", gcs_dev.display()),
@@ -56,13 +61,29 @@ async fn upload_over_pty_at_57600_and_reconnect() -> anyhow::Result<()> {
     let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
     assert_eq!(v.flavour, Some(Flavour::Px4));
     assert_eq!(v.connections, 1);
-    let home = Home { lat_deg: 47.397742, lon_deg: 8.545594, alt_amsl_m: 488.0 };
-    let t = Target { lat_deg: 47.3980, lon_deg: 8.5458, alt_m: 15.0, yaw_deg: 10.0, gimbal_pitch_deg: -60.0, photo: true };
+    let home = Home {
+        lat_deg: 47.397742,
+        lon_deg: 8.545594,
+        alt_amsl_m: 488.0,
+    };
+    let t = Target {
+        lat_deg: 47.3980,
+        lon_deg: 8.5458,
+        alt_m: 15.0,
+        yaw_deg: 10.0,
+        gimbal_pitch_deg: -60.0,
+        photo: true,
+    };
     let items = plan::plan(&t, &home, Flavour::Px4, &plan::Params::default())?;
     let r = link.upload_mission(items.clone()).await?;
     let d = link.download_mission().await?;
     assert!(same_mission(&items, &d.items, false));
-    println!("serial pty 57600: upload of {} items {:.2} ms, download {:.2} ms", r.items, r.seconds * 1e3, d.seconds * 1e3);
+    println!(
+        "serial pty 57600: upload of {} items {:.2} ms, download {:.2} ms",
+        r.items,
+        r.seconds * 1e3,
+        d.seconds * 1e3
+    );
 
     // the device vanishes ...
     socat.kill()?;
@@ -71,10 +92,18 @@ async fn upload_over_pty_at_57600_and_reconnect() -> anyhow::Result<()> {
     tokio::time::timeout(Duration::from_secs(5), rx.wait_for(|v| !v.connected)).await??;
     // ... and comes back under the same name, with a new vehicle process on it
     let mut socat = socat_pair(dir.path())?;
-    tokio::spawn(run_fake(fake_url, FakeConfig::clean(Habit::Px4), state, cancel.child_token()));
-    let v = tokio::time::timeout(Duration::from_secs(8), rx.wait_for(|v| v.connected && v.connections >= 2 && !v.link_lost))
-        .await??
-        .clone();
+    tokio::spawn(run_fake(
+        fake_url,
+        FakeConfig::clean(Habit::Px4),
+        state,
+        cancel.child_token(),
+    ));
+    let v = tokio::time::timeout(
+        Duration::from_secs(8),
+        rx.wait_for(|v| v.connected && v.connections >= 2 && !v.link_lost),
+    )
+    .await??
+    .clone();
     assert!(v.connections >= 2);
     let r = link.upload_mission(items).await?;
     assert_eq!(usize::from(r.items), 3);

@@ -31,10 +31,22 @@ fn python() -> String {
 }
 
 /// Starts the pymavlink vehicle; returns once its socket is bound.
-fn start_peer(port: u16, key: Option<&str>, seconds: f64, serve_upload: bool) -> anyhow::Result<(Child, BufReader<std::process::ChildStdout>)> {
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/peers/pymavlink_vehicle.py");
+fn start_peer(
+    port: u16,
+    key: Option<&str>,
+    seconds: f64,
+    serve_upload: bool,
+) -> anyhow::Result<(Child, BufReader<std::process::ChildStdout>)> {
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/peers/pymavlink_vehicle.py"
+    );
     let mut cmd = Command::new(python());
-    cmd.arg(script).arg("--port").arg(port.to_string()).arg("--seconds").arg(seconds.to_string());
+    cmd.arg(script)
+        .arg("--port")
+        .arg(port.to_string())
+        .arg("--seconds")
+        .arg(seconds.to_string());
     if let Some(k) = key {
         cmd.arg("--key").arg(k);
     }
@@ -42,7 +54,10 @@ fn start_peer(port: u16, key: Option<&str>, seconds: f64, serve_upload: bool) ->
         cmd.arg("--serve-upload");
     }
     let mut child = cmd.stdout(Stdio::piped()).spawn()?;
-    let stdout = child.stdout.take().ok_or_else(|| anyhow::anyhow!("no stdout"))?;
+    let stdout = child
+        .stdout
+        .take()
+        .ok_or_else(|| anyhow::anyhow!("no stdout"))?;
     let mut reader = BufReader::new(stdout);
     let mut line = String::new();
     reader.read_line(&mut line)?;
@@ -50,7 +65,10 @@ fn start_peer(port: u16, key: Option<&str>, seconds: f64, serve_upload: bool) ->
     Ok((child, reader))
 }
 
-fn finish_peer(mut child: Child, mut reader: BufReader<std::process::ChildStdout>) -> anyhow::Result<serde_json::Value> {
+fn finish_peer(
+    mut child: Child,
+    mut reader: BufReader<std::process::ChildStdout>,
+) -> anyhow::Result<serde_json::Value> {
     let mut line = String::new();
     reader.read_line(&mut line)?;
     child.wait()?;
@@ -60,7 +78,11 @@ fn finish_peer(mut child: Child, mut reader: BufReader<std::process::ChildStdout
 fn link_params(port: u16, key: Option<&str>) -> Params {
     Params {
         url: format!("udpout:127.0.0.1:{port}"),
-        signing: key.map(|k| Signing { key_hex: k.into(), link_id: 3, allow_unsigned: false }),
+        signing: key.map(|k| Signing {
+            key_hex: k.into(),
+            link_id: 3,
+            allow_unsigned: false,
+        }),
         ..Params::default()
     }
 }
@@ -71,11 +93,26 @@ async fn pymavlink_decodes_heartbeat_and_items() -> anyhow::Result<()> {
     let port = free_udp_port();
     let (child, reader) = start_peer(port, None, 10.0, true)?;
     let cancel = CancellationToken::new();
-    let (link, _task) = vehicle::spawn(link_params(port, None), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        link_params(port, None),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     let v = link.wait_for_vehicle(Duration::from_secs(6)).await?;
     assert_eq!(v.flavour, Some(Flavour::Px4));
-    let home = Home { lat_deg: 47.397742, lon_deg: 8.545594, alt_amsl_m: 488.0 };
-    let target = Target { lat_deg: 47.3981, lon_deg: 8.5452, alt_m: 22.5, yaw_deg: 135.0, gimbal_pitch_deg: -40.0, photo: true };
+    let home = Home {
+        lat_deg: 47.397742,
+        lon_deg: 8.545594,
+        alt_amsl_m: 488.0,
+    };
+    let target = Target {
+        lat_deg: 47.3981,
+        lon_deg: 8.5452,
+        alt_m: 22.5,
+        yaw_deg: 135.0,
+        gimbal_pitch_deg: -40.0,
+        photo: true,
+    };
     let items = plan::plan(&target, &home, Flavour::Px4, &plan::Params::default())?;
     link.upload_mission(items.clone()).await?;
     let out = tokio::task::spawn_blocking(move || finish_peer(child, reader)).await??;
@@ -88,7 +125,9 @@ async fn pymavlink_decodes_heartbeat_and_items() -> anyhow::Result<()> {
     assert_eq!(hb["autopilot"], 8, "MAV_AUTOPILOT_INVALID");
     assert_eq!(hb["system_status"], 4, "MAV_STATE_ACTIVE");
     assert_eq!(hb["mavlink_version"], 3);
-    let got = out["items"].as_array().ok_or_else(|| anyhow::anyhow!("no items: {out}"))?;
+    let got = out["items"]
+        .as_array()
+        .ok_or_else(|| anyhow::anyhow!("no items: {out}"))?;
     assert_eq!(got.len(), items.len());
     for (g, i) in got.iter().zip(&items) {
         assert_eq!(g["seq"], i.seq);
@@ -105,7 +144,13 @@ async fn pymavlink_decodes_heartbeat_and_items() -> anyhow::Result<()> {
             if p.is_nan() {
                 assert!(g["params"][k].is_null());
             } else {
-                assert_eq!(g["params"][k].as_f64(), Some(f64::from(p)), "item {} param{}", i.seq, k + 1);
+                assert_eq!(
+                    g["params"][k].as_f64(),
+                    Some(f64::from(p)),
+                    "item {} param{}",
+                    i.seq,
+                    k + 1
+                );
             }
         }
     }
@@ -118,7 +163,11 @@ async fn signed_frames_verify_with_the_right_key() -> anyhow::Result<()> {
     let port = free_udp_port();
     let (child, reader) = start_peer(port, Some(KEY), 4.0, false)?;
     let cancel = CancellationToken::new();
-    let (link, _task) = vehicle::spawn(link_params(port, Some(KEY)), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        link_params(port, Some(KEY)),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     // pymavlink signs its heartbeats with the same key: we accept them
     let v = link.wait_for_vehicle(Duration::from_secs(4)).await?;
     assert_eq!(v.system_id, Some(1));
@@ -126,7 +175,11 @@ async fn signed_frames_verify_with_the_right_key() -> anyhow::Result<()> {
     cancel.cancel();
     let n = out["heartbeats"].as_u64().unwrap_or(0);
     assert!(n >= 2, "{out}");
-    assert_eq!(out["signed_heartbeats"].as_u64(), Some(n), "every heartbeat signed and verified: {out}");
+    assert_eq!(
+        out["signed_heartbeats"].as_u64(),
+        Some(n),
+        "every heartbeat signed and verified: {out}"
+    );
     assert_eq!(out["badsig"], 0);
     Ok(())
 }
@@ -137,14 +190,24 @@ async fn signed_frames_are_rejected_with_a_wrong_key() -> anyhow::Result<()> {
     let port = free_udp_port();
     let (child, reader) = start_peer(port, Some(WRONG), 4.0, false)?;
     let cancel = CancellationToken::new();
-    let (link, _task) = vehicle::spawn(link_params(port, Some(KEY)), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        link_params(port, Some(KEY)),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     // the vehicle's frames carry the wrong key: we never accept it
     let r = link.wait_for_vehicle(Duration::from_secs(3)).await;
     assert!(matches!(r, Err(LinkError::Timeout { .. })), "{r:?}");
     let out = tokio::task::spawn_blocking(move || finish_peer(child, reader)).await??;
     cancel.cancel();
-    assert_eq!(out["heartbeats"], 0, "pymavlink accepted none of ours: {out}");
-    assert!(out["badsig"].as_u64().unwrap_or(0) >= 2, "and counted them as bad signatures: {out}");
+    assert_eq!(
+        out["heartbeats"], 0,
+        "pymavlink accepted none of ours: {out}"
+    );
+    assert!(
+        out["badsig"].as_u64().unwrap_or(0) >= 2,
+        "and counted them as bad signatures: {out}"
+    );
     Ok(())
 }
 
@@ -156,7 +219,11 @@ async fn unsigned_frames_are_rejected_by_a_signing_peer() -> anyhow::Result<()> 
     let port = free_udp_port();
     let (child, reader) = start_peer(port, Some(KEY), 3.0, false)?;
     let cancel = CancellationToken::new();
-    let (_link, _task) = vehicle::spawn(link_params(port, None), upload::Params::default(), cancel.clone())?;
+    let (_link, _task) = vehicle::spawn(
+        link_params(port, None),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     let out = tokio::task::spawn_blocking(move || finish_peer(child, reader)).await??;
     cancel.cancel();
     assert_eq!(out["heartbeats"], 0, "{out}");

@@ -29,40 +29,63 @@ fn python() -> String {
 
 async fn mavsdk_receives(flavour: Flavour) -> anyhow::Result<()> {
     let port = free_udp_port();
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/peers/mavsdk_autopilot.py");
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/peers/mavsdk_autopilot.py"
+    );
     let mut child = Command::new(python())
         .arg(script)
         .arg("--port")
         .arg(port.to_string())
         .stdout(Stdio::piped())
         .spawn()?;
-    let stdout = child.stdout.take().ok_or_else(|| anyhow::anyhow!("no stdout"))?;
+    let stdout = child
+        .stdout
+        .take()
+        .ok_or_else(|| anyhow::anyhow!("no stdout"))?;
     let mut reader = BufReader::new(stdout);
     let mut line = String::new();
     reader.read_line(&mut line)?;
     anyhow::ensure!(line.trim() == "ready", "peer said {line:?}");
 
     let cancel = CancellationToken::new();
-    let p = Params { url: format!("udpout:127.0.0.1:{port}"), ..Params::default() };
+    let p = Params {
+        url: format!("udpout:127.0.0.1:{port}"),
+        ..Params::default()
+    };
     let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
     let v = link.wait_for_vehicle(Duration::from_secs(8)).await?;
-    let home = Home { lat_deg: -35.363261, lon_deg: 149.165230, alt_amsl_m: 584.0 };
-    let target = Target { lat_deg: -35.36290, lon_deg: 149.16550, alt_m: 30.0, yaw_deg: 200.0, gimbal_pitch_deg: -25.0, photo: true };
+    let home = Home {
+        lat_deg: -35.363261,
+        lon_deg: 149.165230,
+        alt_amsl_m: 584.0,
+    };
+    let target = Target {
+        lat_deg: -35.36290,
+        lon_deg: 149.16550,
+        alt_m: 30.0,
+        yaw_deg: 200.0,
+        gimbal_pitch_deg: -25.0,
+        photo: true,
+    };
     let items = plan::plan(&target, &home, flavour, &plan::Params::default())?;
     let report = link.upload_mission(items.clone()).await?;
     line.clear();
-    let out: serde_json::Value = tokio::task::spawn_blocking(move || -> anyhow::Result<serde_json::Value> {
-        reader.read_line(&mut line)?;
-        child.wait()?;
-        Ok(serde_json::from_str(&line)?)
-    })
-    .await??;
+    let out: serde_json::Value =
+        tokio::task::spawn_blocking(move || -> anyhow::Result<serde_json::Value> {
+            reader.read_line(&mut line)?;
+            child.wait()?;
+            Ok(serde_json::from_str(&line)?)
+        })
+        .await??;
     cancel.cancel();
     println!(
         "MAVSDK autopilot (sys {:?}, comp {}): {:?} plan of {} items uploaded in {:.3} s, {} retries",
         v.system_id, v.component_id, flavour, report.items, report.seconds, report.retries
     );
-    let got = out["items"].as_array().ok_or_else(|| anyhow::anyhow!("MAVSDK got no mission: {out}"))?;
+    let got = out["items"]
+        .as_array()
+        .ok_or_else(|| anyhow::anyhow!("MAVSDK got no mission: {out}"))?;
     assert_eq!(got.len(), items.len(), "{out}");
     for (g, i) in got.iter().zip(&items) {
         assert_eq!(g["seq"], i.seq);
@@ -77,7 +100,13 @@ async fn mavsdk_receives(flavour: Flavour) -> anyhow::Result<()> {
             if p.is_nan() {
                 assert!(g["params"][k].is_null(), "item {} param{}", i.seq, k + 1);
             } else {
-                assert_eq!(g["params"][k].as_f64(), Some(f64::from(p)), "item {} param{}", i.seq, k + 1);
+                assert_eq!(
+                    g["params"][k].as_f64(),
+                    Some(f64::from(p)),
+                    "item {} param{}",
+                    i.seq,
+                    k + 1
+                );
             }
         }
         if i.z.is_nan() {

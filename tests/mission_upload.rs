@@ -14,7 +14,11 @@ use shotpilot::vehicle::{self, LinkError, Params};
 use tokio_util::sync::CancellationToken;
 
 fn home() -> Home {
-    Home { lat_deg: HOME.0, lon_deg: HOME.1, alt_amsl_m: HOME.2 }
+    Home {
+        lat_deg: HOME.0,
+        lon_deg: HOME.1,
+        alt_amsl_m: HOME.2,
+    }
 }
 
 fn target(k: usize) -> Target {
@@ -29,7 +33,10 @@ fn target(k: usize) -> Target {
 }
 
 fn link_params(url: String) -> Params {
-    Params { url, ..Params::default() }
+    Params {
+        url,
+        ..Params::default()
+    }
 }
 
 fn flavour(h: Habit) -> Flavour {
@@ -42,14 +49,32 @@ fn flavour(h: Habit) -> Flavour {
 async fn upload_and_verify(habit: Habit) -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let (addr, fake) = start_fake(FakeConfig::clean(habit), &cancel);
-    let (link, _task) = vehicle::spawn(link_params(format!("udpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        link_params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     link.wait_for_vehicle(Duration::from_secs(5)).await?;
-    let items = plan::plan(&target(0), &home(), flavour(habit), &plan::Params::default())?;
+    let items = plan::plan(
+        &target(0),
+        &home(),
+        flavour(habit),
+        &plan::Params::default(),
+    )?;
     let report = link.upload_mission(items.clone()).await?;
     assert_eq!(usize::from(report.items), items.len());
     assert_eq!(report.retries, 0, "clean link");
-    let received: Vec<_> = fake.lock().expect("lock").received.iter().map(item_from_wire).collect();
-    assert!(same_mission(&items, &received, false), "the vehicle holds exactly the planned items");
+    let received: Vec<_> = fake
+        .lock()
+        .expect("lock")
+        .received
+        .iter()
+        .map(item_from_wire)
+        .collect();
+    assert!(
+        same_mission(&items, &received, false),
+        "the vehicle holds exactly the planned items"
+    );
     let down = link.download_mission().await?;
     assert!(same_mission(&items, &down.items, habit == Habit::ArduPilot));
     if habit == Habit::ArduPilot {
@@ -81,22 +106,38 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
         ..FakeConfig::clean(habit)
     };
     let (addr, fake) = start_fake(cfg, &cancel);
-    let p = Params { link_lost_after_ms: 6000, ..link_params(format!("udpout:{addr}")) };
+    let p = Params {
+        link_lost_after_ms: 6000,
+        ..link_params(format!("udpout:{addr}"))
+    };
     let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
     link.wait_for_vehicle(Duration::from_secs(10)).await?;
     let mut times = Vec::with_capacity(n);
     let mut retries = 0;
     for k in 0..n {
-        let items = plan::plan(&target(k), &home(), flavour(habit), &plan::Params::default())?;
+        let items = plan::plan(
+            &target(k),
+            &home(),
+            flavour(habit),
+            &plan::Params::default(),
+        )?;
         let t0 = Instant::now();
-        let report = link
-            .upload_mission(items.clone())
-            .await
-            .map_err(|e| anyhow::anyhow!("upload {k}: {e}; vehicle {:?}", *link.telemetry.vehicle.borrow()))?;
+        let report = link.upload_mission(items.clone()).await.map_err(|e| {
+            anyhow::anyhow!(
+                "upload {k}: {e}; vehicle {:?}",
+                *link.telemetry.vehicle.borrow()
+            )
+        })?;
         times.push(t0.elapsed().as_secs_f64());
         retries += report.retries;
-        let down = link.download_mission().await.map_err(|e| anyhow::anyhow!("download {k}: {e}"))?;
-        assert!(same_mission(&items, &down.items, habit == Habit::ArduPilot), "upload {k} reads back different");
+        let down = link
+            .download_mission()
+            .await
+            .map_err(|e| anyhow::anyhow!("download {k}: {e}"))?;
+        assert!(
+            same_mission(&items, &down.items, habit == Habit::ArduPilot),
+            "upload {k} reads back different"
+        );
     }
     let (dropped, dup, uploads) = {
         let s = fake.lock().expect("lock");
@@ -108,7 +149,13 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
     sorted.sort_by(f64::total_cmp);
     println!(
         "{habit:?}: {n}/{n} uploads of {} items verified; median {:.2} s, max {:.2} s; {retries} retries; fake dropped {dropped}, duplicated {dup}",
-        plan::plan(&target(0), &home(), flavour(habit), &plan::Params::default())?.len(),
+        plan::plan(
+            &target(0),
+            &home(),
+            flavour(habit),
+            &plan::Params::default()
+        )?
+        .len(),
         sorted[n / 2],
         sorted[n - 1],
     );
@@ -137,13 +184,23 @@ async fn lossy_uploads_50_each() -> anyhow::Result<()> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn vehicle_rejection_is_typed() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
-    let cfg = FakeConfig { final_result: Some(MavMissionResult::MAV_MISSION_NO_SPACE), ..FakeConfig::clean(Habit::Px4) };
+    let cfg = FakeConfig {
+        final_result: Some(MavMissionResult::MAV_MISSION_NO_SPACE),
+        ..FakeConfig::clean(Habit::Px4)
+    };
     let (addr, _fake) = start_fake(cfg, &cancel);
-    let (link, _task) = vehicle::spawn(link_params(format!("udpout:{addr}")), upload::Params::default(), cancel.clone())?;
+    let (link, _task) = vehicle::spawn(
+        link_params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
     link.wait_for_vehicle(Duration::from_secs(5)).await?;
     let items = plan::plan(&target(0), &home(), Flavour::Px4, &plan::Params::default())?;
     let n = items.len() as u16;
-    assert_eq!(link.upload_mission(items).await, Err(LinkError::Mission(MissionError::NoSpace { count: n })));
+    assert_eq!(
+        link.upload_mission(items).await,
+        Err(LinkError::Mission(MissionError::NoSpace { count: n }))
+    );
     cancel.cancel();
     Ok(())
 }
@@ -152,23 +209,42 @@ async fn vehicle_rejection_is_typed() -> anyhow::Result<()> {
 async fn cancel_and_timeout() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     // a vehicle that hears nothing: heartbeats come, requests never do
-    let cfg = FakeConfig { drop_in: 1.0, ..FakeConfig::clean(Habit::Px4) };
+    let cfg = FakeConfig {
+        drop_in: 1.0,
+        ..FakeConfig::clean(Habit::Px4)
+    };
     let (addr, _fake) = start_fake(cfg, &cancel);
-    let fast = upload::Params { retry_timeout_ms: 100, max_retries: 3 };
-    let (link, _task) = vehicle::spawn(link_params(format!("udpout:{addr}")), fast, cancel.clone())?;
+    let fast = upload::Params {
+        retry_timeout_ms: 100,
+        max_retries: 3,
+    };
+    let (link, _task) =
+        vehicle::spawn(link_params(format!("udpout:{addr}")), fast, cancel.clone())?;
     link.wait_for_vehicle(Duration::from_secs(5)).await?;
     let items = plan::plan(&target(0), &home(), Flavour::Px4, &plan::Params::default())?;
     let t0 = Instant::now();
     let r = link.upload_mission(items.clone()).await;
     let waited = t0.elapsed().as_secs_f64();
-    assert_eq!(r, Err(LinkError::Mission(MissionError::Timeout { stage: Stage::FirstRequest, retries: 3 })));
-    assert!(waited > 0.35 && waited < 1.0, "4 timeouts of 0.1 s took {waited:.2} s");
+    assert_eq!(
+        r,
+        Err(LinkError::Mission(MissionError::Timeout {
+            stage: Stage::FirstRequest,
+            retries: 3
+        }))
+    );
+    assert!(
+        waited > 0.35 && waited < 1.0,
+        "4 timeouts of 0.1 s took {waited:.2} s"
+    );
     // cancel while running
     let l2 = link.clone();
     let running = tokio::spawn(async move { l2.upload_mission(items).await });
     tokio::time::sleep(Duration::from_millis(150)).await;
     assert_eq!(link.cancel_transfer().await, Ok(true));
-    assert_eq!(running.await?, Err(LinkError::Mission(MissionError::Cancelled)));
+    assert_eq!(
+        running.await?,
+        Err(LinkError::Mission(MissionError::Cancelled))
+    );
     assert_eq!(link.cancel_transfer().await, Ok(false));
     cancel.cancel();
     Ok(())

@@ -358,7 +358,7 @@ pub fn check_target(target: &Target, home: &Home, fence: &Fence) -> Result<(), P
         "longitude in [-180, 180]",
     )?;
     let distance = distance_m(home.lat_deg, home.lon_deg, target.lat_deg, target.lon_deg);
-    if !(distance <= fence.radius_m) {
+    if distance.is_nan() || distance > fence.radius_m {
         return Err(PlanError::OutsideFence {
             distance_m: distance,
             radius_m: fence.radius_m,

@@ -224,7 +224,7 @@ pub struct Peers {
 
 impl Peers {
     /// Whether a message came from the vehicle.
-    fn from_target(&self, header: &MavHeader) -> bool {
+    fn is_from_target(&self, header: &MavHeader) -> bool {
         header.system_id == u32::from(self.target_system)
             && (self.target_component == 0 || header.component_id == self.target_component)
     }
@@ -476,7 +476,7 @@ impl Uploader {
         now: Instant,
         out: &mut Vec<MavMessage>,
     ) {
-        if self.state == UpState::Done || !self.peers.from_target(header) {
+        if self.state == UpState::Done || !self.peers.is_from_target(header) {
             return;
         }
         match msg {
@@ -693,7 +693,7 @@ impl Downloader {
         now: Instant,
         out: &mut Vec<MavMessage>,
     ) {
-        if self.state == DownState::Done || !self.peers.from_target(header) {
+        if self.state == DownState::Done || !self.peers.is_from_target(header) {
             return;
         }
         match (self.state, msg) {
@@ -1256,7 +1256,7 @@ mod tests {
             param2: 2.0,
             param3: 0.0,
             param4: 90.0,
-            x: 47.123_456_7,
+            x: 47.123_456,
             y: 8.5,
             z: 30.0,
             seq: 3,
@@ -1273,7 +1273,7 @@ mod tests {
         assert_eq!(i.command, 16);
         assert_eq!(i.frame, 3);
         // f32 holds ~7 significant digits: the latitude survives to ~4e-6 deg
-        assert!((f64::from(i.x) / 1e7 - 47.123_456_7).abs() < 5e-6);
+        assert!((f64::from(i.x) / 1e7 - 47.123_456).abs() < 5e-6);
         assert_eq!(i.y, 85_000_000);
     }
 }

@@ -106,7 +106,7 @@ pub fn spawn(
 
 enum IoEvent {
     Connected(Arc<Connection>),
-    Frame(MavHeader, MavMessage),
+    Frame(MavHeader, Box<MavMessage>),
     Lost(String),
     ConnectFailed(String),
 }
@@ -149,7 +149,7 @@ impl IoTask {
                         };
                         match r {
                             Ok((h, m)) => {
-                                if self.tx.send(IoEvent::Frame(h, m)).await.is_err() {
+                                if self.tx.send(IoEvent::Frame(h, Box::new(m))).await.is_err() {
                                     return;
                                 }
                             }
@@ -412,7 +412,7 @@ impl Actor {
                 warn!(%reason, "link lost; reconnecting");
             }
             IoEvent::ConnectFailed(reason) => debug!(%reason, "connect failed"),
-            IoEvent::Frame(h, m) => self.on_frame(h, m).await,
+            IoEvent::Frame(h, m) => self.on_frame(h, *m).await,
         }
     }
 

@@ -93,12 +93,23 @@ pub const HOME: (f64, f64, f64) = (47.397742, 8.545594, 488.0);
 
 enum Rx {
     Idle,
-    Receiving { count: u16, next: u16, items: Vec<MISSION_ITEM_INT_DATA>, last_rx: Instant, tries: u32 },
+    Receiving {
+        count: u16,
+        next: u16,
+        items: Vec<MISSION_ITEM_INT_DATA>,
+        last_rx: Instant,
+        tries: u32,
+    },
 }
 
 /// Runs the fake autopilot on a mavlink-crate address (`udpin:ADDR`,
 /// `serial:PATH:BAUD`) until `cancel`, or until its serial device vanishes.
-pub async fn run_fake(url: String, cfg: FakeConfig, state: Arc<Mutex<FakeState>>, cancel: CancellationToken) {
+pub async fn run_fake(
+    url: String,
+    cfg: FakeConfig,
+    state: Arc<Mutex<FakeState>>,
+    cancel: CancellationToken,
+) {
     let mut conn = match mavlink::connect_async::<MavMessage>(&url).await {
         Ok(c) => c,
         Err(e) => panic!("fake autopilot cannot open {url}: {e}"),
@@ -107,7 +118,11 @@ pub async fn run_fake(url: String, cfg: FakeConfig, state: Arc<Mutex<FakeState>>
     conn.set_allow_recv_any_version(true);
     let conn = Arc::new(conn);
     let mut rng = StdRng::seed_from_u64(cfg.seed);
-    let header = MavHeader { system_id: u32::from(cfg.system_id), component_id: 1, sequence: 0 };
+    let header = MavHeader {
+        system_id: u32::from(cfg.system_id),
+        component_id: 1,
+        sequence: 0,
+    };
     let mut mission: Vec<MISSION_ITEM_INT_DATA> = Vec::new();
     let mut rx = Rx::Idle;
     let mut gcs: Option<(u8, u8)> = None;
@@ -150,7 +165,7 @@ pub async fn run_fake(url: String, cfg: FakeConfig, state: Arc<Mutex<FakeState>>
                     time_boot_ms: t_ms, roll: 0.01, pitch: -0.02, yaw: 1.5,
                     rollspeed: 0.0, pitchspeed: 0.0, yawspeed: 0.0,
                 }));
-                if t_ms % 1000 == 0 {
+                if t_ms.is_multiple_of(1000) {
                     out.push(MavMessage::HOME_POSITION(HOME_POSITION_DATA {
                         latitude: (HOME.0 * 1e7) as i32,
                         longitude: (HOME.1 * 1e7) as i32,
@@ -161,16 +176,16 @@ pub async fn run_fake(url: String, cfg: FakeConfig, state: Arc<Mutex<FakeState>>
             }
             _ = tick.tick() => {
                 // the vehicle side re-requests on its own timeout
-                if let (Rx::Receiving { next, last_rx, tries, .. }, Some((gs, gc))) = (&mut rx, gcs) {
-                    if last_rx.elapsed() >= cfg.rerequest {
-                        *tries += 1;
-                        *last_rx = Instant::now();
-                        if *tries > 20 {
-                            out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_ERROR));
-                            rx = Rx::Idle;
-                        } else {
-                            out.push(request(cfg.habit, gs, gc, *next));
-                        }
+                if let (Rx::Receiving { next, last_rx, tries, .. }, Some((gs, gc))) = (&mut rx, gcs)
+                    && last_rx.elapsed() >= cfg.rerequest
+                {
+                    *tries += 1;
+                    *last_rx = Instant::now();
+                    if *tries > 20 {
+                        out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_ERROR));
+                        rx = Rx::Idle;
+                    } else {
+                        out.push(request(cfg.habit, gs, gc, *next));
                     }
                 }
             }
@@ -339,6 +354,11 @@ pub fn free_udp_port() -> u16 {
 pub fn start_fake(cfg: FakeConfig, cancel: &CancellationToken) -> (String, Arc<Mutex<FakeState>>) {
     let addr = format!("127.0.0.1:{}", free_udp_port());
     let state = Arc::new(Mutex::new(FakeState::default()));
-    tokio::spawn(run_fake(format!("udpin:{addr}"), cfg, state.clone(), cancel.child_token()));
+    tokio::spawn(run_fake(
+        format!("udpin:{addr}"),
+        cfg,
+        state.clone(),
+        cancel.child_token(),
+    ));
     (addr, state)
 }
