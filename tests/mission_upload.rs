@@ -6,7 +6,7 @@ mod link_support;
 
 use std::time::{Duration, Instant};
 
-use link_support::{FakeConfig, HOME, Habit, start_fake};
+use link_support::{FakeConfig, HOME, Habit, Radio, start_fake, start_radio};
 use mavlink::dialects::common::MavMissionResult;
 use shotpilot::mission::plan::{self, Flavour, Home, Target};
 use shotpilot::mission::upload::{self, MissionError, Stage, item_from_wire, same_mission};
@@ -94,18 +94,24 @@ async fn clean_upload_ardupilot() -> anyhow::Result<()> {
     upload_and_verify(Habit::ArduPilot).await
 }
 
-/// `n` uploads through 30 % loss each way plus 5 % duplicates; each one
-/// downloaded and compared. Returns the upload times, seconds.
+/// `n` uploads through a bad radio (30 % datagram loss each way, 1e-4
+/// corrupted bytes, 57600 baud) to a fake that also duplicates 5 % of what
+/// it sends; each upload downloaded and compared. Prints the figures.
 async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>> {
     let cancel = CancellationToken::new();
     let cfg = FakeConfig {
-        drop_in: 0.3,
-        drop_out: 0.3,
         duplicate: 0.05,
         seed,
         ..FakeConfig::clean(habit)
     };
-    let (addr, fake) = start_fake(cfg, &cancel);
+    let (fake_addr, fake) = start_fake(cfg, &cancel);
+    let radio = Radio {
+        drop: 0.3,
+        corrupt_per_byte: 1e-4,
+        baud: 57600,
+        seed: seed ^ 0xabcdef,
+    };
+    let (addr, radio_stats) = start_radio(fake_addr, radio, &cancel).await;
     let p = Params {
         link_lost_after_ms: 6000,
         ..link_params(format!("udpout:{addr}"))
@@ -114,6 +120,7 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
     link.wait_for_vehicle(Duration::from_secs(10)).await?;
     let mut times = Vec::with_capacity(n);
     let mut retries = 0;
+    let mut down_times = Vec::with_capacity(n);
     for k in 0..n {
         let items = plan::plan(
             &target(k),
@@ -134,21 +141,34 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
             .download_mission()
             .await
             .map_err(|e| anyhow::anyhow!("download {k}: {e}"))?;
+        down_times.push(down.seconds);
         assert!(
             same_mission(&items, &down.items, habit == Habit::ArduPilot),
             "upload {k} reads back different"
         );
     }
-    let (dropped, dup, uploads) = {
+    let (uploads, dup) = {
         let s = fake.lock().expect("lock");
-        (s.dropped, s.duplicated, s.uploads)
+        (s.uploads, s.duplicated)
+    };
+    let (fwd, dropped, corrupted, bytes) = {
+        let s = radio_stats.lock().expect("lock");
+        (s.forwarded, s.dropped, s.corrupted, s.bytes)
     };
     assert_eq!(uploads as usize, n);
-    assert!(dropped > 0 && dup > 0);
-    let mut sorted = times.clone();
-    sorted.sort_by(f64::total_cmp);
+    assert!(dropped > 0);
+    let loss = dropped as f64 / (dropped + fwd) as f64;
+    assert!((loss - 0.3).abs() < 0.05, "radio loss {loss:.3}");
+    let med = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        (v[v.len() / 2], v[v.len() - 1])
+    };
+    let (up_med, up_max) = med(&mut times.clone());
+    let (down_med, down_max) = med(&mut down_times);
     println!(
-        "{habit:?}: {n}/{n} uploads of {} items verified; median {:.2} s, max {:.2} s; {retries} retries; fake dropped {dropped}, duplicated {dup}",
+        "{habit:?}: {n}/{n} uploads of {} items verified by download; upload median {up_med:.2} s, max {up_max:.2} s; \
+         download median {down_med:.2} s, max {down_max:.2} s; {retries} upload retries; radio dropped {dropped} of {} datagrams \
+         ({:.1} %), corrupted {corrupted} bytes of {bytes}; fake duplicated {dup}",
         plan::plan(
             &target(0),
             &home(),
@@ -156,8 +176,8 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
             &plan::Params::default()
         )?
         .len(),
-        sorted[n / 2],
-        sorted[n - 1],
+        dropped + fwd,
+        100.0 * loss,
     );
     cancel.cancel();
     Ok(times)
@@ -165,12 +185,12 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn lossy_uploads_px4() -> anyhow::Result<()> {
-    lossy_run(Habit::Px4, 10, 7).await.map(|_| ())
+    lossy_run(Habit::Px4, 5, 7).await.map(|_| ())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn lossy_uploads_ardupilot() -> anyhow::Result<()> {
-    lossy_run(Habit::ArduPilot, 10, 11).await.map(|_| ())
+    lossy_run(Habit::ArduPilot, 5, 11).await.map(|_| ())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

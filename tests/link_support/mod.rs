@@ -362,3 +362,130 @@ pub fn start_fake(cfg: FakeConfig, cancel: &CancellationToken) -> (String, Arc<M
     ));
     (addr, state)
 }
+
+/// A bad radio between two UDP peers: drops datagrams, flips bits, and
+/// serialises bytes at a baud rate (8N1: 10 bits a byte), each direction
+/// with its own seeded generator.
+#[derive(Debug, Clone, Copy)]
+pub struct Radio {
+    /// Probability of dropping a datagram.
+    pub drop: f64,
+    /// Probability of corrupting each byte (one random bit flipped).
+    pub corrupt_per_byte: f64,
+    /// Line rate, bits per second (0: unlimited).
+    pub baud: u32,
+    /// Seed.
+    pub seed: u64,
+}
+
+/// Counters of a radio proxy.
+#[derive(Debug, Default)]
+pub struct RadioStats {
+    /// Datagrams forwarded.
+    pub forwarded: u64,
+    /// Datagrams dropped.
+    pub dropped: u64,
+    /// Bytes corrupted.
+    pub corrupted: u64,
+    /// Bytes forwarded.
+    pub bytes: u64,
+}
+
+/// Starts a radio proxy: the ground station talks to the returned address,
+/// the proxy talks to `vehicle` (a UDP address).
+pub async fn start_radio(
+    vehicle: String,
+    radio: Radio,
+    cancel: &CancellationToken,
+) -> (String, Arc<Mutex<RadioStats>>) {
+    use tokio::net::UdpSocket;
+    let gcs_side = Arc::new(UdpSocket::bind("127.0.0.1:0").await.expect("bind"));
+    let veh_side = Arc::new(UdpSocket::bind("127.0.0.1:0").await.expect("bind"));
+    veh_side.connect(&vehicle).await.expect("connect");
+    let addr = gcs_side.local_addr().expect("addr").to_string();
+    let stats = Arc::new(Mutex::new(RadioStats::default()));
+    let gcs_peer: Arc<Mutex<Option<std::net::SocketAddr>>> = Arc::new(Mutex::new(None));
+
+    async fn pump(
+        from: Arc<tokio::net::UdpSocket>,
+        to: Arc<tokio::net::UdpSocket>,
+        up: bool,
+        gcs_peer: Arc<Mutex<Option<std::net::SocketAddr>>>,
+        radio: Radio,
+        seed: u64,
+        stats: Arc<Mutex<RadioStats>>,
+        cancel: CancellationToken,
+    ) {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let mut buf = vec![0u8; 65536];
+        let mut busy_until = Instant::now();
+        loop {
+            let r = tokio::select! {
+                _ = cancel.cancelled() => return,
+                r = from.recv_from(&mut buf) => r,
+            };
+            let Ok((n, src)) = r else { continue };
+            if up {
+                gcs_peer.lock().map(|mut p| *p = Some(src)).ok();
+            }
+            if rng.random_bool(radio.drop) {
+                stats.lock().map(|mut s| s.dropped += 1).ok();
+                continue;
+            }
+            let mut data = buf[..n].to_vec();
+            let mut corrupted = 0;
+            for b in data.iter_mut() {
+                if rng.random_bool(radio.corrupt_per_byte) {
+                    *b ^= 1 << rng.random_range(0..8);
+                    corrupted += 1;
+                }
+            }
+            if radio.baud > 0 {
+                let air = Duration::from_secs_f64(n as f64 * 10.0 / f64::from(radio.baud));
+                busy_until = busy_until.max(Instant::now()) + air;
+                tokio::select! {
+                    _ = cancel.cancelled() => return,
+                    _ = tokio::time::sleep_until(busy_until) => {}
+                }
+            }
+            let sent = if up {
+                to.send(&data).await
+            } else {
+                let peer = gcs_peer.lock().ok().and_then(|p| *p);
+                match peer {
+                    Some(p) => to.send_to(&data, p).await,
+                    None => continue,
+                }
+            };
+            if sent.is_ok() {
+                if let Ok(mut s) = stats.lock() {
+                    s.forwarded += 1;
+                    s.corrupted += corrupted;
+                    s.bytes += n as u64;
+                }
+            }
+        }
+    }
+
+    tokio::spawn(pump(
+        gcs_side.clone(),
+        veh_side.clone(),
+        true,
+        gcs_peer.clone(),
+        radio,
+        radio.seed,
+        stats.clone(),
+        cancel.child_token(),
+    ));
+    tokio::spawn(pump(
+        veh_side,
+        gcs_side,
+        false,
+        gcs_peer,
+        radio,
+        radio.seed.wrapping_add(0x9e37_79b9),
+        stats.clone(),
+        cancel.child_token(),
+    ));
+    (addr, stats)
+}
