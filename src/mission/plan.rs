@@ -141,7 +141,7 @@ pub enum GimbalCommand {
 
 /// A circular geofence around home with an altitude band.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct Fence {
     /// Largest horizontal distance from home, metres.
     pub radius_m: f64,

@@ -406,6 +406,7 @@ pub async fn start_radio(
     let stats = Arc::new(Mutex::new(RadioStats::default()));
     let gcs_peer: Arc<Mutex<Option<std::net::SocketAddr>>> = Arc::new(Mutex::new(None));
 
+    #[allow(clippy::too_many_arguments)]
     async fn pump(
         from: Arc<tokio::net::UdpSocket>,
         to: Arc<tokio::net::UdpSocket>,
@@ -457,12 +458,12 @@ pub async fn start_radio(
                     None => continue,
                 }
             };
-            if sent.is_ok() {
-                if let Ok(mut s) = stats.lock() {
-                    s.forwarded += 1;
-                    s.corrupted += corrupted;
-                    s.bytes += n as u64;
-                }
+            if sent.is_ok()
+                && let Ok(mut s) = stats.lock()
+            {
+                s.forwarded += 1;
+                s.corrupted += corrupted;
+                s.bytes += n as u64;
             }
         }
     }
