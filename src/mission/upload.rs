@@ -1276,4 +1276,222 @@ mod tests {
         assert!((f64::from(i.x) / 1e7 - 47.123_456).abs() < 5e-6);
         assert_eq!(i.y, 85_000_000);
     }
+
+    /// A pure model of an autopilot's side of the upload for the seeded
+    /// discrete-event runs below: PX4 asks with MISSION_REQUEST_INT and
+    /// re-ACKs a repeated last item; ArduPilot asks with the legacy
+    /// MISSION_REQUEST and answers unexpected items with INVALID_SEQUENCE.
+    struct ModelVehicle {
+        ardupilot: bool,
+        count: Option<u16>,
+        items: Vec<MISSION_ITEM_INT_DATA>,
+        stored: Vec<MISSION_ITEM_INT_DATA>,
+        last_rx: Duration,
+        tries: u32,
+    }
+
+    impl ModelVehicle {
+        const REREQUEST: Duration = Duration::from_millis(250);
+
+        fn request(&self, seq: u16) -> MavMessage {
+            if self.ardupilot {
+                req_legacy(seq)
+            } else {
+                req_int(seq)
+            }
+        }
+
+        fn on_message(&mut self, m: &MavMessage, t: Duration, out: &mut Vec<MavMessage>) {
+            match m {
+                MavMessage::MISSION_COUNT(c) => match self.count {
+                    None => {
+                        self.count = Some(c.count);
+                        self.items.clear();
+                        self.last_rx = t;
+                        self.tries = 0;
+                        out.push(self.request(0));
+                    }
+                    Some(_) if self.items.is_empty() => out.push(self.request(0)),
+                    Some(_) => {}
+                },
+                MavMessage::MISSION_ITEM_INT(i) => match self.count {
+                    Some(n) if usize::from(i.seq) == self.items.len() => {
+                        self.items.push(i.clone());
+                        self.last_rx = t;
+                        self.tries = 0;
+                        if self.items.len() == usize::from(n) {
+                            self.stored = std::mem::take(&mut self.items);
+                            self.count = None;
+                            out.push(vack(MavMissionResult::MAV_MISSION_ACCEPTED));
+                        } else {
+                            out.push(self.request(self.items.len() as u16));
+                        }
+                    }
+                    Some(_) => {
+                        if self.ardupilot {
+                            out.push(vack(MavMissionResult::MAV_MISSION_INVALID_SEQUENCE));
+                        }
+                    }
+                    None => {
+                        if !self.stored.is_empty() && usize::from(i.seq) + 1 == self.stored.len() {
+                            out.push(vack(MavMissionResult::MAV_MISSION_ACCEPTED));
+                        }
+                    }
+                },
+                _ => {}
+            }
+        }
+
+        fn deadline(&self) -> Option<Duration> {
+            self.count.map(|_| self.last_rx + Self::REREQUEST)
+        }
+
+        fn on_timeout(&mut self, t: Duration, out: &mut Vec<MavMessage>) {
+            self.tries += 1;
+            self.last_rx = t;
+            if self.tries > 20 {
+                self.count = None;
+                out.push(vack(MavMissionResult::MAV_MISSION_ERROR));
+            } else {
+                out.push(self.request(self.items.len() as u16));
+            }
+        }
+    }
+
+    /// One upload through a seeded lossy channel (latency 20-60 ms, `loss`
+    /// each way, 5 % duplicates) on a virtual clock. Returns the outcome,
+    /// the virtual duration and what the vehicle stored.
+    fn lossy_upload(
+        ardupilot: bool,
+        loss: f64,
+        seed: u64,
+    ) -> (
+        Result<UploadReport, MissionError>,
+        Duration,
+        Vec<MISSION_ITEM_INT_DATA>,
+    ) {
+        use rand::rngs::StdRng;
+        use rand::{Rng, SeedableRng};
+        use std::cmp::Reverse;
+        use std::collections::BinaryHeap;
+
+        let mut rng = StdRng::seed_from_u64(seed);
+        let base = Instant::now();
+        let planned = items();
+        let mut out = Vec::new();
+        let mut up = Uploader::new(
+            &planned,
+            peers(),
+            MavMissionType::MAV_MISSION_TYPE_MISSION,
+            Params::default(),
+            base,
+            &mut out,
+        )
+        .expect("valid");
+        let mut veh = ModelVehicle {
+            ardupilot,
+            count: None,
+            items: Vec::new(),
+            stored: Vec::new(),
+            last_rx: Duration::ZERO,
+            tries: 0,
+        };
+        // (arrival time, tie-break, to vehicle?, message)
+        let mut heap: BinaryHeap<Reverse<(Duration, u64, bool, usize)>> = BinaryHeap::new();
+        let mut msgs: Vec<MavMessage> = Vec::new();
+        let mut n = 0u64;
+        let mut send = |t: Duration,
+                        to_vehicle: bool,
+                        batch: &mut Vec<MavMessage>,
+                        heap: &mut BinaryHeap<Reverse<(Duration, u64, bool, usize)>>,
+                        msgs: &mut Vec<MavMessage>,
+                        rng: &mut StdRng| {
+            for m in batch.drain(..) {
+                let copies = if rng.random_bool(0.05) { 2 } else { 1 };
+                for _ in 0..copies {
+                    if rng.random_bool(loss) {
+                        continue;
+                    }
+                    let latency = Duration::from_millis(rng.random_range(20..60));
+                    msgs.push(m.clone());
+                    n += 1;
+                    heap.push(Reverse((t + latency, n, to_vehicle, msgs.len() - 1)));
+                }
+            }
+        };
+        let mut t = Duration::ZERO;
+        send(t, true, &mut out, &mut heap, &mut msgs, &mut rng);
+        while !up.is_done() {
+            assert!(t < Duration::from_secs(300), "seed {seed}: no end");
+            let gcs_d = up.deadline().map(|d| d - base).unwrap_or(Duration::MAX);
+            let veh_d = veh.deadline().unwrap_or(Duration::MAX);
+            let msg_d = heap
+                .peek()
+                .map(|Reverse((a, ..))| *a)
+                .unwrap_or(Duration::MAX);
+            let mut batch = Vec::new();
+            if msg_d <= gcs_d && msg_d <= veh_d {
+                let Some(Reverse((at, _, to_vehicle, idx))) = heap.pop() else {
+                    break;
+                };
+                t = at;
+                if to_vehicle {
+                    veh.on_message(&msgs[idx], t, &mut batch);
+                    send(t, false, &mut batch, &mut heap, &mut msgs, &mut rng);
+                } else {
+                    up.on_message(&vh(), &msgs[idx], base + t, &mut batch);
+                    send(t, true, &mut batch, &mut heap, &mut msgs, &mut rng);
+                }
+            } else if gcs_d <= veh_d {
+                t = gcs_d;
+                up.on_timeout(base + t, &mut batch);
+                send(t, true, &mut batch, &mut heap, &mut msgs, &mut rng);
+            } else {
+                t = veh_d;
+                veh.on_timeout(t, &mut batch);
+                send(t, false, &mut batch, &mut heap, &mut msgs, &mut rng);
+            }
+        }
+        let outcome = up.take_outcome().expect("finished");
+        (outcome, t, veh.stored)
+    }
+
+    #[test]
+    fn seeded_lossy_uploads_complete_and_deliver_exact_items() {
+        let planned = items();
+        for ardupilot in [false, true] {
+            let mut times = Vec::new();
+            let mut retries = 0;
+            for seed in 0..300 {
+                let (outcome, t, stored) = lossy_upload(ardupilot, 0.3, seed);
+                let report =
+                    outcome.unwrap_or_else(|e| panic!("ardupilot={ardupilot} seed {seed}: {e}"));
+                retries += report.retries;
+                let got: Vec<MissionItem> = stored.iter().map(item_from_wire).collect();
+                assert!(
+                    same_mission(&planned, &got, false),
+                    "seed {seed}: vehicle holds other items"
+                );
+                times.push(t.as_secs_f64());
+            }
+            times.sort_by(f64::total_cmp);
+            let (median, max) = (times[times.len() / 2], times[times.len() - 1]);
+            println!(
+                "ardupilot={ardupilot}: 300/300 seeded uploads, virtual median {median:.2} s, max {max:.2} s, {retries} retries"
+            );
+            // 5 items, 30 % loss each way: a few round trips of 40-120 ms plus
+            // 250-400 ms timeouts; these bounds would catch a stall or a
+            // retry storm.
+            assert!(
+                median < 2.5 && max < 12.0,
+                "median {median:.2} s, max {max:.2} s"
+            );
+            assert!(retries > 0);
+        }
+        // and a clean channel never retries
+        let (outcome, t, _) = lossy_upload(false, 0.0, 1);
+        let r = outcome.expect("clean");
+        assert_eq!(r.retries, 0);
+        assert!(t < Duration::from_millis(700), "{t:?}");
+    }
 }
