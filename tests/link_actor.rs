@@ -50,6 +50,13 @@ async fn tracks_vehicle_and_caches_telemetry() -> anyhow::Result<()> {
         .await??
         .expect("some");
     assert_eq!(a.value.yaw_rad, 1.5);
+    let mut gimbal = link.telemetry.gimbal.clone();
+    let g = tokio::time::timeout(Duration::from_secs(3), gimbal.wait_for(|p| p.is_some()))
+        .await??
+        .expect("some");
+    assert!((g.value.pitch_deg + 30.0).abs() < 1e-3, "{:?}", g.value);
+    assert!(g.value.roll_deg.abs() < 1e-3 && g.value.yaw_deg.abs() < 1e-3);
+    assert!(!g.value.yaw_absolute);
     let mut home = link.telemetry.home.clone();
     let h = tokio::time::timeout(Duration::from_secs(3), home.wait_for(|p| p.is_some()))
         .await??

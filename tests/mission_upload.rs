@@ -202,6 +202,50 @@ async fn lossy_uploads_50_each() -> anyhow::Result<()> {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn progress_from_mission_current_and_item_reached() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let (addr, fake) = start_fake(FakeConfig::clean(Habit::Px4), &cancel);
+    let (link, _task) = vehicle::spawn(
+        link_params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let items = plan::plan(&target(0), &home(), Flavour::Px4, &plan::Params::default())?;
+    let n = items.len() as u16;
+    link.upload_mission(items).await?;
+    let mut rx = link.telemetry.progress.clone();
+    let p = tokio::time::timeout(
+        Duration::from_secs(3),
+        rx.wait_for(|p| p.is_some_and(|p| p.value.total == Some(n))),
+    )
+    .await??
+    .expect("some");
+    assert_eq!(
+        p.value.state,
+        Some(2),
+        "not started: nothing flies by itself"
+    );
+    assert_eq!(p.value.last_reached, None);
+    // the operator starts it: items are reached in order up to the last
+    link.start_mission().await?;
+    let p = tokio::time::timeout(
+        Duration::from_secs(5),
+        rx.wait_for(|p| p.is_some_and(|p| p.value.last_reached == Some(n - 1))),
+    )
+    .await??
+    .expect("some");
+    assert_eq!(p.value.total, Some(n));
+    let cmds = fake.lock().expect("lock").commands.clone();
+    assert!(
+        cmds.iter()
+            .any(|(c, _)| *c == mavlink::dialects::common::MavCmd::MAV_CMD_MISSION_START)
+    );
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn vehicle_rejection_is_typed() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let cfg = FakeConfig {

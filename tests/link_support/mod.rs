@@ -134,6 +134,8 @@ pub async fn run_fake(
         Habit::ArduPilot => MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
     };
     let mut t_ms: u32 = 0;
+    // mission execution: the current item while flying (None on the ground)
+    let mut flying: Option<u16> = None;
     loop {
         let mut out: Vec<MavMessage> = Vec::new();
         tokio::select! {
@@ -165,6 +167,27 @@ pub async fn run_fake(
                     time_boot_ms: t_ms, roll: 0.01, pitch: -0.02, yaw: 1.5,
                     rollspeed: 0.0, pitchspeed: 0.0, yawspeed: 0.0,
                 }));
+                // gimbal pitched 30 deg down: q = (cos(-15 deg), 0, sin(-15 deg), 0)
+                let h = (-15f32).to_radians();
+                out.push(MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(GIMBAL_DEVICE_ATTITUDE_STATUS_DATA {
+                    time_boot_ms: t_ms,
+                    q: [h.cos(), 0.0, h.sin(), 0.0],
+                    flags: GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME,
+                    ..Default::default()
+                }));
+                // flying a mission: one item every 200 ms
+                if let Some(seq) = flying && t_ms.is_multiple_of(200) {
+                    out.push(MavMessage::MISSION_ITEM_REACHED(MISSION_ITEM_REACHED_DATA { seq }));
+                    flying = (usize::from(seq) + 1 < mission.len()).then_some(seq + 1);
+                }
+                if t_ms.is_multiple_of(500) {
+                    out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA {
+                        seq: flying.unwrap_or(0),
+                        total: mission.len() as u16,
+                        mission_state: if flying.is_some() { MissionState::MISSION_STATE_ACTIVE } else { MissionState::MISSION_STATE_NOT_STARTED },
+                        ..Default::default()
+                    }));
+                }
                 if t_ms.is_multiple_of(1000) {
                     out.push(MavMessage::HOME_POSITION(HOME_POSITION_DATA {
                         latitude: (HOME.0 * 1e7) as i32,
@@ -207,6 +230,9 @@ pub async fn run_fake(
                     }
                     MavMessage::COMMAND_LONG(c) if c.target_system == cfg.system_id => {
                         state.lock().map(|mut s| s.commands.push((c.command, c.param1))).ok();
+                        if c.command == MavCmd::MAV_CMD_MISSION_START && !mission.is_empty() {
+                            flying = Some(0);
+                        }
                         out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
                             command: c.command,
                             result: MavResult::MAV_RESULT_ACCEPTED,
