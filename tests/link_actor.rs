@@ -74,16 +74,21 @@ async fn tracks_vehicle_and_caches_telemetry() -> anyhow::Result<()> {
         "{} heartbeats in 3 s",
         hb1 - hb0
     );
-    let intervals: Vec<_> = cmds
-        .iter()
-        .filter(|(c, _)| *c == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
-        .collect();
-    assert_eq!(intervals.len(), 6, "{cmds:?}");
-    assert_eq!(
-        cmds.len(),
-        6,
-        "nothing else (no arming, no mode change) is sent on its own: {cmds:?}"
+    // the six streams were asked for once when the vehicle appeared ...
+    let ids: Vec<f32> = cmds.iter().take(6).map(|(_, id)| *id).collect();
+    assert_eq!(ids, [33.0, 32.0, 30.0, 242.0, 285.0, 42.0], "{cmds:?}");
+    // ... and only LOCAL_POSITION_NED, which this vehicle never sends, is
+    // asked for again (5 s later); nothing else (no arming, no mode change)
+    // is ever sent on the link's own initiative
+    tokio::time::sleep(Duration::from_millis(3000)).await;
+    let cmds = fake.lock().expect("lock").commands.clone();
+    assert!(
+        cmds.iter()
+            .all(|(c, _)| *c == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL),
+        "{cmds:?}"
     );
+    assert!(cmds.len() >= 7, "{cmds:?}");
+    assert!(cmds[6..].iter().all(|(_, id)| *id == 32.0), "{cmds:?}");
     cancel.cancel();
     tokio::time::timeout(Duration::from_secs(2), task).await??;
     Ok(())
@@ -145,6 +150,43 @@ async fn accepts_mavlink1_vehicle() -> anyhow::Result<()> {
     assert_eq!(v.flavour, Some(Flavour::ArduPilot));
     let mut gp = link.telemetry.global_position.clone();
     tokio::time::timeout(Duration::from_secs(3), gp.wait_for(|p| p.is_some())).await??;
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mission_upload_over_mavlink1_both_ways() -> anyhow::Result<()> {
+    use shotpilot::mission::plan::{self, Home, Target};
+    let cancel = CancellationToken::new();
+    let cfg = FakeConfig {
+        version: MavlinkVersion::V1,
+        ..FakeConfig::clean(Habit::ArduPilot)
+    };
+    let (addr, fake) = start_fake(cfg, &cancel);
+    let p = Params {
+        mavlink1: true,
+        ..params(format!("udpout:{addr}"))
+    };
+    let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let home = Home {
+        lat_deg: HOME.0,
+        lon_deg: HOME.1,
+        alt_amsl_m: HOME.2,
+    };
+    let t = Target {
+        lat_deg: HOME.0 + 0.0002,
+        lon_deg: HOME.1,
+        alt_m: 12.0,
+        yaw_deg: 90.0,
+        gimbal_pitch_deg: -45.0,
+        photo: true,
+    };
+    let items = plan::plan(&t, &home, Flavour::ArduPilot, &plan::Params::default())?;
+    link.upload_mission(items.clone()).await?;
+    let d = link.download_mission().await?;
+    assert!(upload::same_mission(&items, &d.items, true));
+    assert_eq!(fake.lock().expect("lock").uploads, 1);
     cancel.cancel();
     Ok(())
 }

@@ -8,7 +8,7 @@ use mavlink::dialects::common::{
     MavModeFlag, MavResult, MavState, MavType,
 };
 use mavlink::error::MessageReadError;
-use mavlink::{AsyncMavConnection, MavHeader, MavlinkVersion};
+use mavlink::{AsyncMavConnection, MavHeader, MavlinkVersion, Message};
 use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
@@ -25,6 +25,10 @@ use crate::mission::{Download, Flavour, UploadReport};
 
 const CMD_QUEUE: usize = 32;
 const IO_QUEUE: usize = 256;
+/// How often missing telemetry streams are asked for again.
+const RATE_RECHECK: Duration = Duration::from_secs(5);
+/// How many times, after the vehicle appears.
+const RATE_ROUNDS: u32 = 5;
 
 /// Starts the link actor. Fails at once on a bad URL or signing key; the
 /// connection itself is (re)tried in the background.
@@ -92,6 +96,8 @@ pub fn spawn(
         transfer: None,
         command: None,
         next_heartbeat: now,
+        rates_requested: None,
+        rate_rounds: 0,
         out: Vec::new(),
         params,
     };
@@ -305,6 +311,8 @@ struct Actor {
     transfer: Option<Transfer>,
     command: Option<PendingCommand>,
     next_heartbeat: Instant,
+    rates_requested: Option<Instant>,
+    rate_rounds: u32,
     out: Vec<MavMessage>,
 }
 
@@ -386,6 +394,15 @@ impl Actor {
         let header = self.header();
         if let Some(conn) = &self.conn {
             for m in self.out.drain(..) {
+                // MAVLink 1 has 8-bit message ids (and the crate panics on
+                // larger ones): such messages cannot go out on a v1 link.
+                if self.params.mavlink1 && m.message_id() > 255 {
+                    warn!(
+                        id = m.message_id(),
+                        "message id does not fit MAVLink 1; not sent"
+                    );
+                    continue;
+                }
                 if let Err(e) = conn.send(&header, &m).await {
                     debug!(error = %e, "send failed");
                 }
@@ -598,12 +615,39 @@ impl Actor {
                 ?flavour,
                 "vehicle heard"
             );
-            self.request_rates(sys, h.component_id);
+            self.rate_rounds = 0;
+            self.request_rates(sys, h.component_id, now, false);
+            self.flush().await;
+        } else if self.rate_rounds < RATE_ROUNDS
+            && self
+                .rates_requested
+                .is_some_and(|t| now.saturating_duration_since(t) >= RATE_RECHECK)
+        {
+            // A request lost on a bad radio leaves a stream at the vehicle's
+            // default rate: ask again for the streams that are not arriving.
+            self.rate_rounds += 1;
+            self.request_rates(sys, h.component_id, now, true);
             self.flush().await;
         }
     }
 
-    fn request_rates(&mut self, sys: u8, comp: u8) {
+    /// When each requested stream last arrived.
+    fn last_received(&self, id: u32) -> Option<Instant> {
+        match id {
+            msg_id::GLOBAL_POSITION_INT => self.gp.borrow().map(|s| s.received),
+            msg_id::LOCAL_POSITION_NED => self.lp.borrow().map(|s| s.received),
+            msg_id::ATTITUDE => self.att.borrow().map(|s| s.received),
+            msg_id::HOME_POSITION => self.home.borrow().map(|s| s.received),
+            msg_id::GIMBAL_DEVICE_ATTITUDE_STATUS => self.gimbal.borrow().map(|s| s.received),
+            msg_id::MISSION_CURRENT => self.progress.borrow().map(|s| s.received),
+            _ => None,
+        }
+    }
+
+    /// Sends SET_MESSAGE_INTERVAL for every configured stream, or with
+    /// `only_stale` for those not received within three periods (at least 3 s).
+    fn request_rates(&mut self, sys: u8, comp: u8, now: Instant, only_stale: bool) {
+        self.rates_requested = Some(now);
         let r = self.params.rates;
         for (id, hz) in [
             (msg_id::GLOBAL_POSITION_INT, r.global_position_hz),
@@ -615,6 +659,15 @@ impl Actor {
         ] {
             if !(hz > 0.0 && hz.is_finite()) {
                 continue;
+            }
+            if only_stale {
+                let window = Duration::from_secs_f32((3.0 / hz).max(3.0));
+                if self
+                    .last_received(id)
+                    .is_some_and(|t| now.saturating_duration_since(t) < window)
+                {
+                    continue;
+                }
             }
             self.out.push(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
                 param1: id as f32,

@@ -330,6 +330,9 @@ pub async fn run_fake(
             }
         }
         for m in out {
+            if cfg.version == MavlinkVersion::V1 && mavlink::Message::message_id(&m) > 255 {
+                continue; // no 16-bit message ids in MAVLink 1
+            }
             if rng.random_bool(cfg.drop_out) {
                 state.lock().map(|mut s| s.dropped += 1).ok();
                 continue;
