@@ -472,6 +472,7 @@ mod mission_cli {
                     "seconds": report.seconds,
                     "retries": report.retries,
                     "repeats": report.repeats,
+                    "ack_lost_verified_by_download": report.verified_by_download,
                     "flavour": flavour,
                     "vehicle_system_id": v.system_id,
                     "verified": verified.map(|v| v.0),

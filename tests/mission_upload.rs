@@ -120,6 +120,7 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
     link.wait_for_vehicle(Duration::from_secs(10)).await?;
     let mut times = Vec::with_capacity(n);
     let mut retries = 0;
+    let mut read_backs = 0u32;
     let mut down_times = Vec::with_capacity(n);
     for k in 0..n {
         let items = plan::plan(
@@ -137,6 +138,7 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
         })?;
         times.push(t0.elapsed().as_secs_f64());
         retries += report.retries;
+        read_backs += u32::from(report.verified_by_download);
         let down = link
             .download_mission()
             .await
@@ -167,7 +169,7 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
     let (down_med, down_max) = med(&mut down_times);
     println!(
         "{habit:?}: {n}/{n} uploads of {} items verified by download; upload median {up_med:.2} s, max {up_max:.2} s; \
-         download median {down_med:.2} s, max {down_max:.2} s; {retries} upload retries; radio dropped {dropped} of {} datagrams \
+         download median {down_med:.2} s, max {down_max:.2} s; {retries} upload retries, {read_backs} final ACKs lost and confirmed by read-back; radio dropped {dropped} of {} datagrams \
          ({:.1} %), corrupted {corrupted} bytes of {bytes}; fake duplicated {dup}",
         plan::plan(
             &target(0),
@@ -245,6 +247,58 @@ async fn progress_from_mission_current_and_item_reached() -> anyhow::Result<()> 
     Ok(())
 }
 
+/// The vehicle stores the mission but its final ACK is lost: PX4 answers
+/// the repeated last item with a new ACK, ArduPilot stays silent and the
+/// link confirms the upload by reading the mission back.
+async fn lost_final_ack(habit: Habit) -> anyhow::Result<upload::UploadReport> {
+    let cancel = CancellationToken::new();
+    let cfg = FakeConfig {
+        lose_final_ack: true,
+        ..FakeConfig::clean(habit)
+    };
+    let (addr, fake) = start_fake(cfg, &cancel);
+    let (link, _task) = vehicle::spawn(
+        link_params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let items = plan::plan(
+        &target(0),
+        &home(),
+        flavour(habit),
+        &plan::Params::default(),
+    )?;
+    let report = link.upload_mission(items).await?;
+    assert_eq!(fake.lock().expect("lock").uploads, 1);
+    cancel.cancel();
+    Ok(report)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lost_final_ack_px4_reacks_repeated_last_item() -> anyhow::Result<()> {
+    let r = lost_final_ack(Habit::Px4).await?;
+    assert!(!r.verified_by_download);
+    assert_eq!(r.retries, 1, "one resend of the last item brought the ACK");
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lost_final_ack_ardupilot_is_confirmed_by_read_back() -> anyhow::Result<()> {
+    let r = lost_final_ack(Habit::ArduPilot).await?;
+    assert!(r.verified_by_download);
+    let p = upload::Params::default();
+    assert!(r.retries >= p.final_ack_retries);
+    // three resend timeouts and a clean read-back
+    let min = (p.final_ack_retries + 1) as f64 * p.retry_timeout_ms as f64 / 1e3;
+    assert!(
+        r.seconds >= min && r.seconds < min + 1.0,
+        "{:.2} s",
+        r.seconds
+    );
+    Ok(())
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn vehicle_rejection_is_typed() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
@@ -281,6 +335,7 @@ async fn cancel_and_timeout() -> anyhow::Result<()> {
     let fast = upload::Params {
         retry_timeout_ms: 100,
         max_retries: 3,
+        final_ack_retries: 3,
     };
     let (link, _task) =
         vehicle::spawn(link_params(format!("udpout:{addr}")), fast, cancel.clone())?;

@@ -20,8 +20,8 @@ use super::{
     LocalPosition, MissionProgress, Params, Stamped, Telemetry, VehicleState, ardupilot_mode_name,
     mode_params, px4_mode_name, quat_to_euler_deg,
 };
-use crate::mission::upload::{self, Downloader, Peers, Uploader};
-use crate::mission::{Download, Flavour, UploadReport};
+use crate::mission::upload::{self, Downloader, MissionError, Peers, Uploader, same_mission};
+use crate::mission::{Download, Flavour, MissionItem, UploadReport};
 
 const CMD_QUEUE: usize = 32;
 const IO_QUEUE: usize = 256;
@@ -190,17 +190,59 @@ impl IoTask {
     }
 }
 
+/// Why a download runs.
+enum DownPurpose {
+    /// The operator asked for the mission.
+    Reply(oneshot::Sender<Result<Download, LinkError>>),
+    /// An upload's final ACK was lost: the read-back decides.
+    Verify {
+        items: Vec<MissionItem>,
+        skip_home: bool,
+        report: UploadReport,
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+    },
+}
+
 enum Transfer {
     Up {
         machine: Uploader,
+        items: Vec<MissionItem>,
+        skip_home: bool,
         reply: oneshot::Sender<Result<UploadReport, LinkError>>,
         span: Span,
     },
     Down {
         machine: Downloader,
-        reply: oneshot::Sender<Result<Download, LinkError>>,
+        purpose: DownPurpose,
         span: Span,
     },
+}
+
+/// What finishing a transfer leads to.
+enum Next {
+    Nothing,
+    /// Read the mission back to confirm an upload whose final ACK was lost.
+    Verify {
+        items: Vec<MissionItem>,
+        skip_home: bool,
+        report: UploadReport,
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+        span: Span,
+    },
+}
+
+fn log_upload(span: &Span, outcome: &Result<UploadReport, MissionError>) {
+    span.in_scope(|| match outcome {
+        Ok(r) => info!(
+            items = r.items,
+            retries = r.retries,
+            repeats = r.repeats,
+            seconds = r.seconds,
+            verified_by_download = r.verified_by_download,
+            "mission uploaded"
+        ),
+        Err(e) => warn!(error = %e, "mission upload failed"),
+    });
 }
 
 impl Transfer {
@@ -247,44 +289,86 @@ impl Transfer {
         }
     }
 
-    fn deliver(self) {
+    /// Sends the outcome of a finished transfer to whoever waits for it, or
+    /// asks for a read-back when an upload's final ACK is missing and
+    /// `may_verify`.
+    fn deliver(self, now: Instant, may_verify: bool) -> Next {
         match self {
             Self::Up {
                 mut machine,
+                items,
+                skip_home,
                 reply,
                 span,
-            } => {
-                if let Some(outcome) = machine.take_outcome() {
-                    span.in_scope(|| match &outcome {
-                        Ok(r) => info!(
-                            items = r.items,
-                            retries = r.retries,
-                            repeats = r.repeats,
-                            seconds = r.seconds,
-                            "mission uploaded"
-                        ),
-                        Err(e) => warn!(error = %e, "mission upload failed"),
-                    });
-                    let _ = reply.send(outcome.map_err(LinkError::from));
+            } => match machine.take_outcome() {
+                Some(Err(MissionError::NoFinalAck { .. })) if may_verify => {
+                    span.in_scope(|| warn!("final MISSION_ACK missing; reading the mission back"));
+                    Next::Verify {
+                        items,
+                        skip_home,
+                        report: machine.report_at(now),
+                        reply,
+                        span,
+                    }
                 }
-            }
+                Some(outcome) => {
+                    log_upload(&span, &outcome);
+                    let _ = reply.send(outcome.map_err(LinkError::from));
+                    Next::Nothing
+                }
+                None => Next::Nothing,
+            },
             Self::Down {
                 mut machine,
-                reply,
+                purpose,
                 span,
             } => {
-                if let Some(outcome) = machine.take_outcome() {
-                    span.in_scope(|| match &outcome {
-                        Ok(d) => info!(
-                            items = d.items.len(),
-                            retries = d.retries,
-                            seconds = d.seconds,
-                            "mission downloaded"
-                        ),
-                        Err(e) => warn!(error = %e, "mission download failed"),
-                    });
-                    let _ = reply.send(outcome.map_err(LinkError::from));
+                let Some(outcome) = machine.take_outcome() else {
+                    return Next::Nothing;
+                };
+                match purpose {
+                    DownPurpose::Reply(reply) => {
+                        span.in_scope(|| match &outcome {
+                            Ok(d) => info!(
+                                items = d.items.len(),
+                                retries = d.retries,
+                                seconds = d.seconds,
+                                "mission downloaded"
+                            ),
+                            Err(e) => warn!(error = %e, "mission download failed"),
+                        });
+                        let _ = reply.send(outcome.map_err(LinkError::from));
+                    }
+                    DownPurpose::Verify {
+                        items,
+                        skip_home,
+                        report,
+                        reply,
+                    } => {
+                        let result = match outcome {
+                            Ok(d) if same_mission(&items, &d.items, skip_home) => {
+                                Ok(UploadReport {
+                                    seconds: report.seconds + d.seconds,
+                                    retries: report.retries + d.retries,
+                                    verified_by_download: true,
+                                    ..report
+                                })
+                            }
+                            Ok(d) => Err(MissionError::ReadBackDiffers {
+                                uploaded: report.items,
+                                downloaded: d.items.len(),
+                            }),
+                            Err(MissionError::Cancelled) => Err(MissionError::Cancelled),
+                            Err(_) => Err(MissionError::NoFinalAck {
+                                count: report.items,
+                                retries: report.retries,
+                            }),
+                        };
+                        log_upload(&span, &result);
+                        let _ = reply.send(result.map_err(LinkError::from));
+                    }
                 }
+                Next::Nothing
             }
         }
     }
@@ -357,7 +441,7 @@ impl Actor {
         if let Some(mut t) = self.transfer.take() {
             t.cancel(Instant::now(), &mut self.out);
             self.flush().await;
-            t.deliver();
+            t.deliver(Instant::now(), false);
         }
         info!("link actor stopped");
     }
@@ -686,10 +770,40 @@ impl Actor {
     }
 
     fn deliver_if_done(&mut self) {
-        if self.transfer.as_ref().is_some_and(Transfer::is_done)
-            && let Some(t) = self.transfer.take()
+        if !self.transfer.as_ref().is_some_and(Transfer::is_done) {
+            return;
+        }
+        let Some(t) = self.transfer.take() else {
+            return;
+        };
+        let now = Instant::now();
+        let peers = self.peers().map(|(p, _)| p);
+        if let Next::Verify {
+            items,
+            skip_home,
+            report,
+            reply,
+            span,
+        } = t.deliver(now, peers.is_some())
+            && let Some(peers) = peers
         {
-            t.deliver();
+            let machine = Downloader::new(
+                peers,
+                MavMissionType::MAV_MISSION_TYPE_MISSION,
+                self.transfer_params,
+                now,
+                &mut self.out,
+            );
+            self.transfer = Some(Transfer::Down {
+                machine,
+                purpose: DownPurpose::Verify {
+                    items,
+                    skip_home,
+                    report,
+                    reply,
+                },
+                span,
+            });
         }
     }
 
@@ -814,10 +928,11 @@ impl Actor {
                     }));
                     return;
                 }
-                let Some((peers, _)) = self.peers() else {
+                let Some((peers, vehicle)) = self.peers() else {
                     let _ = reply.send(Err(LinkError::NoVehicle));
                     return;
                 };
+                let flavour = vehicle.flavour;
                 let span = info_span!(
                     "mission_upload",
                     items = items.len(),
@@ -836,6 +951,8 @@ impl Actor {
                         span.in_scope(|| info!("MISSION_COUNT sent"));
                         self.transfer = Some(Transfer::Up {
                             machine,
+                            items,
+                            skip_home: flavour == Some(Flavour::ArduPilot),
                             reply,
                             span,
                         });
@@ -866,7 +983,7 @@ impl Actor {
                 );
                 self.transfer = Some(Transfer::Down {
                     machine,
-                    reply,
+                    purpose: DownPurpose::Reply(reply),
                     span,
                 });
             }
@@ -874,7 +991,7 @@ impl Actor {
                 let running = match self.transfer.take() {
                     Some(mut t) => {
                         t.cancel(now, &mut self.out);
-                        t.deliver();
+                        t.deliver(now, false);
                         true
                     }
                     None => false,

@@ -50,6 +50,8 @@ pub struct FakeConfig {
     pub final_result: Option<MavMissionResult>,
     /// Send heartbeats at all.
     pub heartbeats: bool,
+    /// Drop the first final ACCEPTED of each upload.
+    pub lose_final_ack: bool,
 }
 
 impl FakeConfig {
@@ -63,9 +65,11 @@ impl FakeConfig {
             duplicate: 0.0,
             seed: 1,
             version: MavlinkVersion::V2,
-            rerequest: Duration::from_millis(300),
+            // ArduPilot re-requests after 1 s (plus stream slowdown); PX4 sooner
+            rerequest: Duration::from_millis(if habit == Habit::ArduPilot { 1000 } else { 300 }),
             final_result: None,
             heartbeats: true,
+            lose_final_ack: false,
         }
     }
 }
@@ -248,6 +252,11 @@ pub async fn run_fake(
                             continue;
                         }
                         match &mut rx {
+                            // ArduPilot restarts an upload on a new COUNT from the same GCS
+                            Rx::Receiving { .. } if cfg.habit == Habit::ArduPilot => {
+                                rx = Rx::Receiving { count: c.count, next: 0, items: Vec::new(), last_rx: Instant::now(), tries: 0 };
+                                out.push(request(cfg.habit, gs, gc, 0));
+                            }
                             Rx::Receiving { count, next, last_rx, .. } if *count == c.count && *next == 0 => {
                                 // our first request was lost: ask again
                                 *last_rx = Instant::now();
@@ -279,7 +288,9 @@ pub async fn run_fake(
                                     *tries = 0;
                                     if *next == *count {
                                         let result = cfg.final_result.unwrap_or(MavMissionResult::MAV_MISSION_ACCEPTED);
-                                        out.push(ack(gs, gc, result));
+                                        if !cfg.lose_final_ack {
+                                            out.push(ack(gs, gc, result));
+                                        }
                                         if result == MavMissionResult::MAV_MISSION_ACCEPTED {
                                             mission = std::mem::take(items);
                                             if let Ok(mut s) = state.lock() {
@@ -301,8 +312,9 @@ pub async fn run_fake(
                                 }
                             }
                             Rx::Idle => {
-                                // a repeated last item after completion: ACK again
-                                if !mission.is_empty() && usize::from(item.seq) + 1 == mission.len() {
+                                // a repeated last item after completion: PX4
+                                // ACKs again, ArduPilot has dropped the transfer
+                                if cfg.habit == Habit::Px4 && !mission.is_empty() && usize::from(item.seq) + 1 == mission.len() {
                                     out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_ACCEPTED));
                                 }
                             }
