@@ -15,6 +15,11 @@
 //! - when the final `MISSION_ACK` is late, re-send the last item: the
 //!   autopilot answers a repeated last item with a new ACK;
 //! - give up after `max_retries` timeouts in a row without progress;
+//! - once every item went out and something was re-sent, a generic
+//!   `MAV_MISSION_ERROR` is ambiguous (PX4 answers a stale repeated item
+//!   with it after storing the mission) and ends in
+//!   [`MissionError::NoFinalAck`], which the link actor resolves by
+//!   reading the mission back, as it does a lost final ACK;
 //! - every other `MAV_MISSION_RESULT` ends the upload with its own
 //!   [`MissionError`] variant; an ACCEPTED that arrives before the last item
 //!   was sent is stale (a previous transfer's) and is ignored.
@@ -158,7 +163,8 @@ pub enum MissionError {
         retries: u32,
     },
     /// Every item was sent but the final ACK never came, through
-    /// `retries` resends of the last item. The vehicle may hold the mission:
+    /// `retries` resends of the last item (or a generic error came that may
+    /// answer a stale repeated item). The vehicle may hold the mission:
     /// reading it back decides.
     #[error("all {count} items sent, no final MISSION_ACK after {retries} resends of the last")]
     NoFinalAck {
@@ -550,6 +556,20 @@ impl Uploader {
                         }
                     }
                     MavMissionResult::MAV_MISSION_INVALID_SEQUENCE => self.report.ignored += 1,
+                    // Once every item went out and something was sent twice,
+                    // a generic error may be PX4 answering a stale repeated
+                    // item after it stored the mission (while its ACCEPTED
+                    // was lost): reading the mission back decides.
+                    MavMissionResult::MAV_MISSION_ERROR
+                        if self.sent.last().copied().unwrap_or(false)
+                            && (self.report.repeats > 0 || self.report.retries > 0) =>
+                    {
+                        let err = MissionError::NoFinalAck {
+                            count,
+                            retries: self.report.retries,
+                        };
+                        self.finish(Err(err), now);
+                    }
                     other => {
                         let last = self.last_seq();
                         if let Some(err) = MissionError::from_result(other, last, count) {
@@ -1195,6 +1215,43 @@ mod tests {
     }
 
     #[test]
+    fn generic_error_after_repeats_is_ambiguous() {
+        let t0 = Instant::now();
+        // all items out, one of them twice: a generic error may answer the
+        // stale copy after the vehicle stored the mission
+        let (mut up, _) = start(t0);
+        let mut out = Vec::new();
+        for s in [0, 1, 2, 2, 3, 4] {
+            up.on_message(&vh(), &req_int(s), t0, &mut out);
+        }
+        up.on_message(
+            &vh(),
+            &vack(MavMissionResult::MAV_MISSION_ERROR),
+            t0,
+            &mut out,
+        );
+        assert!(matches!(
+            up.take_outcome(),
+            Some(Err(MissionError::NoFinalAck { count: 5, .. }))
+        ));
+        // a clean transfer's error is the vehicle's verdict
+        let (mut up, _) = start(t0);
+        for s in 0..5 {
+            up.on_message(&vh(), &req_int(s), t0, &mut out);
+        }
+        up.on_message(
+            &vh(),
+            &vack(MavMissionResult::MAV_MISSION_ERROR),
+            t0,
+            &mut out,
+        );
+        assert_eq!(
+            up.take_outcome(),
+            Some(Err(MissionError::VehicleError { last_seq: Some(4) }))
+        );
+    }
+
+    #[test]
     fn cancel_sends_ack_cancelled() {
         let t0 = Instant::now();
         let (mut up, _) = start(t0);
@@ -1405,11 +1462,15 @@ mod tests {
                     None => {
                         // PX4 ACKs a repeated last item again; ArduPilot
                         // has dropped the transfer and says nothing.
-                        if !self.ardupilot
-                            && !self.stored.is_empty()
-                            && usize::from(i.seq) + 1 == self.stored.len()
-                        {
-                            out.push(vack(MavMissionResult::MAV_MISSION_ACCEPTED));
+                        if !self.ardupilot {
+                            if !self.stored.is_empty()
+                                && usize::from(i.seq) + 1 == self.stored.len()
+                            {
+                                out.push(vack(MavMissionResult::MAV_MISSION_ACCEPTED));
+                            } else {
+                                // PX4: "no transfer in progress"
+                                out.push(vack(MavMissionResult::MAV_MISSION_ERROR));
+                            }
                         }
                     }
                 },
@@ -1566,7 +1627,7 @@ mod tests {
             if ardupilot {
                 assert!((50..=130).contains(&no_final_ack), "{no_final_ack}");
             } else {
-                assert!(no_final_ack < 30, "{no_final_ack}");
+                assert!(no_final_ack < 40, "{no_final_ack}");
             }
             // 5 items, 30 % loss each way: a few round trips of 40-120 ms plus
             // 250-400 ms timeouts; these bounds would catch a stall or a
