@@ -12,8 +12,9 @@
 //!   (or broadcast), for our `mission_type`;
 //! - ignore `MAV_MISSION_INVALID_SEQUENCE` (ArduPilot sends it for the
 //!   duplicate items that the retries above produce);
-//! - when the final `MISSION_ACK` is late, re-send the last item: the
-//!   autopilot answers a repeated last item with a new ACK;
+//! - when the final `MISSION_ACK` is late, re-send the last item: PX4
+//!   answers a repeated last item with a new ACK (ArduPilot with an error,
+//!   see below);
 //! - give up after `max_retries` timeouts in a row without progress;
 //! - once every item went out and something was re-sent, a generic
 //!   `MAV_MISSION_ERROR` is ambiguous (PX4 answers a stale repeated item
@@ -61,8 +62,8 @@ pub struct Params {
     pub max_retries: u32,
     /// Resends of the last item while the final ACK is missing, before the
     /// upload ends with [`MissionError::NoFinalAck`] (the link actor then
-    /// reads the mission back: ArduPilot does not answer a repeated last
-    /// item once it has stored the mission, PX4 ACKs it again).
+    /// reads the mission back: ArduPilot answers a repeated last item with
+    /// an error once it has stored the mission, PX4 ACKs it again).
     pub final_ack_retries: u32,
 }
 
@@ -1460,17 +1461,16 @@ mod tests {
                         }
                     }
                     None => {
-                        // PX4 ACKs a repeated last item again; ArduPilot
-                        // has dropped the transfer and says nothing.
-                        if !self.ardupilot {
-                            if !self.stored.is_empty()
-                                && usize::from(i.seq) + 1 == self.stored.len()
-                            {
-                                out.push(vack(MavMissionResult::MAV_MISSION_ACCEPTED));
-                            } else {
-                                // PX4: "no transfer in progress"
-                                out.push(vack(MavMissionResult::MAV_MISSION_ERROR));
-                            }
+                        // PX4 ACKs a repeated last item again; otherwise
+                        // PX4 says "no transfer in progress", and ArduPilot
+                        // answers every item outside an upload so.
+                        if !self.ardupilot
+                            && !self.stored.is_empty()
+                            && usize::from(i.seq) + 1 == self.stored.len()
+                        {
+                            out.push(vack(MavMissionResult::MAV_MISSION_ACCEPTED));
+                        } else {
+                            out.push(vack(MavMissionResult::MAV_MISSION_ERROR));
                         }
                     }
                 },

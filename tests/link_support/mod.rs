@@ -314,13 +314,12 @@ pub async fn run_fake(
                             Rx::Idle => {
                                 // a repeated last item after completion: PX4
                                 // ACKs again, ArduPilot has dropped the transfer
-                                if cfg.habit == Habit::Px4 {
-                                    if !mission.is_empty() && usize::from(item.seq) + 1 == mission.len() {
-                                        out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_ACCEPTED));
-                                    } else {
-                                        // PX4: "no transfer in progress"
-                                        out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_ERROR));
-                                    }
+                                if cfg.habit == Habit::Px4 && !mission.is_empty() && usize::from(item.seq) + 1 == mission.len() {
+                                    out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_ACCEPTED));
+                                } else {
+                                    // PX4 "no transfer in progress"; ArduPilot
+                                    // answers every item outside an upload so
+                                    out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_ERROR));
                                 }
                             }
                         }
