@@ -98,6 +98,7 @@ pub fn spawn(
         next_heartbeat: now,
         rates_requested: None,
         rate_rounds: 0,
+        connect_failure_logged: false,
         out: Vec::new(),
         params,
     };
@@ -397,6 +398,7 @@ struct Actor {
     next_heartbeat: Instant,
     rates_requested: Option<Instant>,
     rate_rounds: u32,
+    connect_failure_logged: bool,
     out: Vec<MavMessage>,
 }
 
@@ -425,17 +427,19 @@ impl Actor {
         loop {
             let wake = self.next_wake();
             tokio::select! {
+                // Timers first: a busy link must not starve heartbeats and
+                // protocol timeouts.
                 biased;
                 _ = cancel.cancelled() => break,
-                ev = io_rx.recv() => match ev {
-                    Some(ev) => self.on_io(ev).await,
-                    None => break,
-                },
+                _ = tokio::time::sleep_until(tokio::time::Instant::from_std(wake)) => self.on_wake().await,
                 cmd = cmd_rx.recv() => match cmd {
                     Some(c) => self.on_command(c).await,
                     None => break,
                 },
-                _ = tokio::time::sleep_until(tokio::time::Instant::from_std(wake)) => self.on_wake().await,
+                ev = io_rx.recv() => match ev {
+                    Some(ev) => self.on_io(ev).await,
+                    None => break,
+                },
             }
         }
         if let Some(mut t) = self.transfer.take() {
@@ -500,6 +504,7 @@ impl Actor {
         match ev {
             IoEvent::Connected(conn) => {
                 self.conn = Some(conn);
+                self.connect_failure_logged = false;
                 self.vehicle.send_modify(|v| {
                     v.connected = true;
                     v.connections += 1;
@@ -512,7 +517,15 @@ impl Actor {
                 self.vehicle.send_modify(|v| v.connected = false);
                 warn!(%reason, "link lost; reconnecting");
             }
-            IoEvent::ConnectFailed(reason) => debug!(%reason, "connect failed"),
+            IoEvent::ConnectFailed(reason) => {
+                // Say it once per outage; the retries go on with backoff.
+                if !self.connect_failure_logged {
+                    warn!(url = %self.params.url, %reason, "cannot open the link; retrying with backoff");
+                    self.connect_failure_logged = true;
+                } else {
+                    debug!(%reason, "connect failed");
+                }
+            }
             IoEvent::Frame(h, m) => self.on_frame(h, *m).await,
         }
     }
