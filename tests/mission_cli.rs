@@ -115,3 +115,59 @@ async fn upload_and_download_json() -> anyhow::Result<()> {
     cancel.cancel();
     Ok(())
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn start_is_an_explicit_operator_action() -> anyhow::Result<()> {
+    use mavlink::dialects::common::MavCmd;
+    let cancel = CancellationToken::new();
+    let (addr, fake) = start_fake(FakeConfig::clean(Habit::Px4), &cancel);
+    let url = format!("udpout:{addr}");
+    let target = format!("{},{},30,45,-20", HOME.0 + 0.0005, HOME.1 + 0.0005);
+    let u = url.clone();
+    let out = tokio::task::spawn_blocking(move || {
+        shotpilot()
+            .args([
+                "mission", "upload", "--link", &u, "--target", &target, "--json",
+            ])
+            .output()
+    })
+    .await??;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let operator = |cmds: &[(MavCmd, f32)]| -> Vec<MavCmd> {
+        cmds.iter()
+            .map(|(c, _)| *c)
+            .filter(|c| *c != MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
+            .collect()
+    };
+    assert!(
+        operator(&fake.lock().expect("lock").commands).is_empty(),
+        "an upload never arms, changes mode or starts"
+    );
+    let out = tokio::task::spawn_blocking(move || {
+        shotpilot()
+            .args(["mission", "start", "--link", &url, "--arm", "--json"])
+            .output()
+    })
+    .await??;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+    assert_eq!(j["result"], "started");
+    assert_eq!(
+        operator(&fake.lock().expect("lock").commands),
+        [
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            MavCmd::MAV_CMD_MISSION_START
+        ]
+    );
+    cancel.cancel();
+    Ok(())
+}
