@@ -17,10 +17,11 @@
 //!   see below);
 //! - give up after `max_retries` timeouts in a row without progress;
 //! - once every item went out and something was re-sent, a generic
-//!   `MAV_MISSION_ERROR` is ambiguous (PX4 answers a stale repeated item
-//!   with it after storing the mission) and ends in
-//!   [`MissionError::NoFinalAck`], which the link actor resolves by
-//!   reading the mission back, as it does a lost final ACK;
+//!   `MAV_MISSION_ERROR` is ambiguous (ArduPilot answers every item after
+//!   it stored the mission so, PX4 a stale one) and is ignored; a final ACK
+//!   still missing after `final_ack_retries` resends ends in
+//!   [`MissionError::NoFinalAck`], which the link actor settles by reading
+//!   the mission back;
 //! - every other `MAV_MISSION_RESULT` ends the upload with its own
 //!   [`MissionError`] variant; an ACCEPTED that arrives before the last item
 //!   was sent is stale (a previous transfer's) and is ignored.
@@ -293,6 +294,8 @@ pub struct Download {
     pub items: Vec<MissionItem>,
     /// Timeouts that made us re-request.
     pub retries: u32,
+    /// Stale error ACKs ignored (answers to an earlier upload's repeats).
+    pub ignored: u32,
     /// Wall time, seconds.
     pub seconds: f64,
 }
@@ -558,18 +561,16 @@ impl Uploader {
                     }
                     MavMissionResult::MAV_MISSION_INVALID_SEQUENCE => self.report.ignored += 1,
                     // Once every item went out and something was sent twice,
-                    // a generic error may be PX4 answering a stale repeated
-                    // item after it stored the mission (while its ACCEPTED
-                    // was lost): reading the mission back decides.
+                    // a generic error is most likely the autopilot answering
+                    // a repeated item after it stored the mission (ArduPilot
+                    // always, PX4 for a stale one), possibly while its
+                    // ACCEPTED was lost. Keep waiting: the timeouts end in
+                    // NoFinalAck and the read-back decides.
                     MavMissionResult::MAV_MISSION_ERROR
                         if self.sent.last().copied().unwrap_or(false)
                             && (self.report.repeats > 0 || self.report.retries > 0) =>
                     {
-                        let err = MissionError::NoFinalAck {
-                            count,
-                            retries: self.report.retries,
-                        };
-                        self.finish(Err(err), now);
+                        self.report.ignored += 1;
                     }
                     other => {
                         let last = self.last_seq();
@@ -656,6 +657,7 @@ pub struct Downloader {
     deadline: Instant,
     consecutive_timeouts: u32,
     retries: u32,
+    ignored: u32,
     outcome: Option<Result<Download, MissionError>>,
 }
 
@@ -678,6 +680,7 @@ impl Downloader {
             deadline: now + params.timeout(),
             consecutive_timeouts: 0,
             retries: 0,
+            ignored: 0,
             outcome: None,
         };
         out.push(d.request_list());
@@ -706,9 +709,11 @@ impl Downloader {
         let seconds = now.saturating_duration_since(self.started).as_secs_f64();
         let items = std::mem::take(&mut self.items);
         let retries = self.retries;
+        let ignored = self.ignored;
         self.outcome = Some(result.map(|()| Download {
             items,
             retries,
+            ignored,
             seconds,
         }));
     }
@@ -814,8 +819,18 @@ impl Downloader {
                     _ => 0,
                 };
                 let last = self.items.len().checked_sub(1).map(|s| s as u16);
-                if let Some(err) = MissionError::from_result(a.mavtype, last, count) {
-                    self.finish(Err(err), now);
+                match a.mavtype {
+                    // Stale answers to an upload's repeated items (ArduPilot
+                    // sends both for items outside or out of sequence) can
+                    // arrive after it ended; a download that is refused
+                    // shows as DENIED or as timeouts.
+                    MavMissionResult::MAV_MISSION_ERROR
+                    | MavMissionResult::MAV_MISSION_INVALID_SEQUENCE => self.ignored += 1,
+                    other => {
+                        if let Some(err) = MissionError::from_result(other, last, count) {
+                            self.finish(Err(err), now);
+                        }
+                    }
                 }
             }
             _ => {}
@@ -1231,6 +1246,12 @@ mod tests {
             t0,
             &mut out,
         );
+        assert!(!up.is_done(), "ambiguous: keep waiting");
+        let mut now = t0;
+        while !up.is_done() {
+            now += Duration::from_millis(Params::default().retry_timeout_ms);
+            up.on_timeout(now, &mut out);
+        }
         assert!(matches!(
             up.take_outcome(),
             Some(Err(MissionError::NoFinalAck { count: 5, .. }))

@@ -324,6 +324,12 @@ pub async fn run_fake(
                             }
                         }
                     }
+                    // ArduPilot refuses downloads while an upload runs
+                    MavMessage::MISSION_REQUEST_LIST(_) | MavMessage::MISSION_REQUEST_INT(_)
+                        if cfg.habit == Habit::ArduPilot && matches!(rx, Rx::Receiving { .. }) =>
+                    {
+                        out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_DENIED));
+                    }
                     MavMessage::MISSION_REQUEST_LIST(l) if l.target_system == cfg.system_id => {
                         out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
                             count: mission.len() as u16,
