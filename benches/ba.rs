@@ -49,7 +49,11 @@ fn to_kornia(p: &BaProblem) -> KProblem {
             )
         })
         .collect();
-    let points = p.points.iter().map(|x| Vec3F64::new(x.x, x.y, x.z)).collect();
+    let points = p
+        .points
+        .iter()
+        .map(|x| Vec3F64::new(x.x, x.y, x.z))
+        .collect();
     let obs = p
         .observations
         .iter()
@@ -62,8 +66,22 @@ fn to_kornia(p: &BaProblem) -> KProblem {
         })
         .collect();
     let i = p.intrinsics;
-    let cam = PinholeCamera { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy, k1: 0.0, k2: 0.0, p1: 0.0, p2: 0.0 };
-    KProblem { poses, points, obs, cam }
+    let cam = PinholeCamera {
+        fx: i.fx,
+        fy: i.fy,
+        cx: i.cx,
+        cy: i.cy,
+        k1: 0.0,
+        k2: 0.0,
+        p1: 0.0,
+        p2: 0.0,
+    };
+    KProblem {
+        poses,
+        points,
+        obs,
+        cam,
+    }
 }
 
 /// Writes kornia's result back into our problem type to score it the same way.
@@ -72,7 +90,15 @@ fn from_kornia(template: &BaProblem, poses: &[Pose3d], points: &[Vec3F64]) -> Ba
     for (bp, kp) in out.poses.iter_mut().zip(poses) {
         let r = &kp.rotation;
         let m = nalgebra::Matrix3::new(
-            r.col(0).x, r.col(1).x, r.col(2).x, r.col(0).y, r.col(1).y, r.col(2).y, r.col(0).z, r.col(1).z, r.col(2).z,
+            r.col(0).x,
+            r.col(1).x,
+            r.col(2).x,
+            r.col(0).y,
+            r.col(1).y,
+            r.col(2).y,
+            r.col(0).z,
+            r.col(1).z,
+            r.col(2).z,
         );
         let t = &kp.translation;
         bp.cam_from_world = Isometry3::from_parts(
@@ -90,31 +116,54 @@ const ITERS: usize = 10;
 
 fn lm_fixed(iters: usize) -> LmParams {
     // Tolerances at zero: exactly `iters` steps are tried.
-    LmParams { max_iterations: iters, gradient_tolerance: 0.0, step_tolerance: 0.0, cost_tolerance: 0.0, ..LmParams::default() }
+    LmParams {
+        max_iterations: iters,
+        gradient_tolerance: 0.0,
+        step_tolerance: 0.0,
+        cost_tolerance: 0.0,
+        ..LmParams::default()
+    }
 }
 
 fn kparams(iters: usize) -> KBaParams {
-    KBaParams { max_iterations: iters, cost_tolerance: 0.0, gradient_tolerance: 0.0, ..KBaParams::default() }
+    KBaParams {
+        max_iterations: iters,
+        cost_tolerance: 0.0,
+        gradient_tolerance: 0.0,
+        ..KBaParams::default()
+    }
 }
 
 fn report_once(scene: &geometry_support::BaScene) {
     let truth_rmse = reprojection_rmse(&scene.truth, None);
     let start_rmse = reprojection_rmse(&scene.perturbed, None);
-    eprintln!("BA scene: 10 kf (2 fixed), 2000 points, 8000 obs; RMSE at truth {truth_rmse:.4} px, perturbed {start_rmse:.2} px");
+    eprintln!(
+        "BA scene: 10 kf (2 fixed), 2000 points, 8000 obs; RMSE at truth {truth_rmse:.4} px, perturbed {start_rmse:.2} px"
+    );
 
     let mut p = scene.perturbed.clone();
     let t = Instant::now();
     let s = bundle_adjust_lm(&mut p, RobustKernel::None, &lm_fixed(ITERS)).expect("ours");
     let ours_t = t.elapsed().as_secs_f64();
     let ours_rmse = reprojection_rmse(&p, None);
-    eprintln!("ours  plain LM      {ITERS} it: {:8.2} ms ({:.3} ms/it), final RMSE {ours_rmse:.4} px, accepted {}", ours_t * 1e3, ours_t * 1e3 / ITERS as f64, s.accepted);
+    eprintln!(
+        "ours  plain LM      {ITERS} it: {:8.2} ms ({:.3} ms/it), final RMSE {ours_rmse:.4} px, accepted {}",
+        ours_t * 1e3,
+        ours_t * 1e3 / ITERS as f64,
+        s.accepted
+    );
 
     let mut p = scene.perturbed.clone();
     let t = Instant::now();
     let rep = local_bundle_adjustment(&mut p, &BaParams::default()).expect("ours local");
     let local_t = t.elapsed().as_secs_f64();
     let it = rep.first_pass.iterations + rep.second_pass.map_or(0, |s| s.iterations);
-    eprintln!("ours  local BA (5 Huber + 10): {:8.2} ms total, {it} it, final RMSE {:.4} px, {} outliers", local_t * 1e3, rep.final_rmse_px, rep.n_outliers);
+    eprintln!(
+        "ours  local BA (5 Huber + 10): {:8.2} ms total, {it} it, final RMSE {:.4} px, {} outliers",
+        local_t * 1e3,
+        rep.final_rmse_px,
+        rep.n_outliers
+    );
 
     let k = to_kornia(&scene.perturbed);
     let t = Instant::now();
@@ -126,7 +175,10 @@ fn report_once(scene: &geometry_support::BaScene) {
             let krmse = reprojection_rmse(&kp, None);
             eprintln!(
                 "kornia bundle_adjust_schur {ITERS} it: {:8.2} ms ({:.3} ms/it), iterations {}, final RMSE {krmse:.4} px; time ratio kornia/ours {:.2}",
-                ks_t * 1e3, ks_t * 1e3 / r.iterations.max(1) as f64, r.iterations, ks_t / ours_t
+                ks_t * 1e3,
+                ks_t * 1e3 / r.iterations.max(1) as f64,
+                r.iterations,
+                ks_t / ours_t
             );
         }
         Err(e) => eprintln!("kornia bundle_adjust_schur failed: {e}"),
@@ -140,7 +192,9 @@ fn report_once(scene: &geometry_support::BaScene) {
             let krmse = reprojection_rmse(&kp, None);
             eprintln!(
                 "kornia bundle_adjust (generic) {ITERS} it: {:8.2} ms, iterations {}, final RMSE {krmse:.4} px; time ratio kornia/ours {:.2}",
-                kg_t * 1e3, r.iterations, kg_t / ours_t
+                kg_t * 1e3,
+                r.iterations,
+                kg_t / ours_t
             );
         }
         Err(e) => eprintln!("kornia bundle_adjust failed: {e}"),
@@ -166,7 +220,16 @@ fn bench_ba(c: &mut Criterion) {
     });
     let k = to_kornia(&scene.perturbed);
     g.bench_function("kornia_bundle_adjust_schur_10_iterations", |b| {
-        b.iter(|| bundle_adjust_schur(black_box(&k.poses), &k.points, &k.obs, &k.cam, &kparams(ITERS)).is_ok())
+        b.iter(|| {
+            bundle_adjust_schur(
+                black_box(&k.poses),
+                &k.points,
+                &k.obs,
+                &k.cam,
+                &kparams(ITERS),
+            )
+            .is_ok()
+        })
     });
     g.finish();
 }

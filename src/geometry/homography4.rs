@@ -178,7 +178,12 @@ mod tests {
             Point2::new(2.0, 2.0),
         ];
         match homography_from_4(&good, &collinear) {
-            Err(GeometryError::Collinear { side: "destination", i: 0, j: 1, k: 3 }) => {}
+            Err(GeometryError::Collinear {
+                side: "destination",
+                i: 0,
+                j: 1,
+                k: 3,
+            }) => {}
             other => panic!("{other:?}"),
         }
         let collapsed = [
@@ -192,6 +197,9 @@ mod tests {
             Err(GeometryError::Collapsed { side: "source", .. })
         ));
         let nan = [Point2::new(f64::NAN, 0.0), good[1], good[2], good[3]];
-        assert!(matches!(homography_from_4(&nan, &good), Err(GeometryError::NonFinite)));
+        assert!(matches!(
+            homography_from_4(&nan, &good),
+            Err(GeometryError::NonFinite)
+        ));
     }
 }

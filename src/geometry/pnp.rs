@@ -37,7 +37,7 @@ pub struct PnpParams {
     pub min_inliers: usize,
     /// Huber threshold of the refinement, pixels.
     pub huber_px: f64,
-    /// Refinement rounds (refine, re-collect inliers).
+    /// Refinement rounds at most (refine, re-collect inliers, until stable).
     pub refine_rounds: usize,
     /// LM iterations per refinement round.
     pub refine_iterations: usize,
@@ -53,7 +53,7 @@ impl Default for PnpParams {
             max_iterations: 1000,
             min_inliers: 10,
             huber_px: 5.991f64.sqrt(),
-            refine_rounds: 2,
+            refine_rounds: 4,
             refine_iterations: 10,
         }
     }
@@ -172,8 +172,16 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> ([RotTr
     let d1 = m12 * a23 - m23 * a12;
     let d2 = m13 * a23 - m23 * a13;
     // det(D1 + γ·D2) = c3·γ³ + c2·γ² + c1·γ + c0
-    let (p0, p1, p2) = (d1.column(0).into_owned(), d1.column(1).into_owned(), d1.column(2).into_owned());
-    let (q0, q1, q2) = (d2.column(0).into_owned(), d2.column(1).into_owned(), d2.column(2).into_owned());
+    let (p0, p1, p2) = (
+        d1.column(0).into_owned(),
+        d1.column(1).into_owned(),
+        d1.column(2).into_owned(),
+    );
+    let (q0, q1, q2) = (
+        d2.column(0).into_owned(),
+        d2.column(1).into_owned(),
+        d2.column(2).into_owned(),
+    );
     let c0 = det_cols(&p0, &p1, &p2);
     let c3 = det_cols(&q0, &q1, &q2);
     let c1 = det_cols(&q0, &p1, &p2) + det_cols(&p0, &q1, &p2) + det_cols(&p0, &p1, &q2);
@@ -186,7 +194,11 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> ([RotTr
         let eig = d0.symmetric_eigen();
         // Order eigenvalues by magnitude; the smallest is ~0.
         let mut idx = [0usize, 1, 2];
-        idx.sort_by(|&i, &j| eig.eigenvalues[j].abs().total_cmp(&eig.eigenvalues[i].abs()));
+        idx.sort_by(|&i, &j| {
+            eig.eigenvalues[j]
+                .abs()
+                .total_cmp(&eig.eigenvalues[i].abs())
+        });
         let (s1, s2) = (eig.eigenvalues[idx[0]], eig.eigenvalues[idx[1]]);
         if s1 * s2 < 0.0 {
             chosen = Some((
@@ -251,7 +263,15 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> ([RotTr
 }
 
 /// Gauss-Newton on the three law-of-cosines equations.
-fn refine_lambdas(l: &mut Vector3<f64>, b12: f64, b13: f64, b23: f64, a12: f64, a13: f64, a23: f64) {
+fn refine_lambdas(
+    l: &mut Vector3<f64>,
+    b12: f64,
+    b13: f64,
+    b23: f64,
+    a12: f64,
+    a13: f64,
+    a23: f64,
+) {
     for _ in 0..5 {
         let (l1, l2, l3) = (l.x, l.y, l.z);
         let r = Vector3::new(
@@ -362,9 +382,18 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
     let mut candidates: Vec<Vector4<f64>> = Vec::with_capacity(3);
     // N = 4 approximation (betas 11, 12, 13, 14).
     if let Some(b) = lsq(&[0, 1, 3, 6]) {
-        let (b1, sgn) = if b[0] < 0.0 { ((-b[0]).sqrt(), -1.0) } else { (b[0].sqrt(), 1.0) };
+        let (b1, sgn) = if b[0] < 0.0 {
+            ((-b[0]).sqrt(), -1.0)
+        } else {
+            (b[0].sqrt(), 1.0)
+        };
         if b1 > 0.0 {
-            candidates.push(Vector4::new(b1, sgn * b[1] / b1, sgn * b[2] / b1, sgn * b[3] / b1));
+            candidates.push(Vector4::new(
+                b1,
+                sgn * b[1] / b1,
+                sgn * b[2] / b1,
+                sgn * b[3] / b1,
+            ));
         }
     }
     // N = 2 approximation (betas 11, 12, 22).
@@ -397,12 +426,15 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
     let mut pwv = Vec::with_capacity(n);
     for mut beta in candidates {
         gauss_newton_betas(&l, &rho, &mut beta);
-        let cc: [Vector3<f64>; 4] =
-            std::array::from_fn(|j| v[0][j] * beta[0] + v[1][j] * beta[1] + v[2][j] * beta[2] + v[3][j] * beta[3]);
+        let cc: [Vector3<f64>; 4] = std::array::from_fn(|j| {
+            v[0][j] * beta[0] + v[1][j] * beta[1] + v[2][j] * beta[2] + v[3][j] * beta[3]
+        });
         pc.clear();
         pwv.clear();
         for (al, &i) in alphas.iter().zip(idx) {
-            pc.push(Point3::from(cc[0] * al[0] + cc[1] * al[1] + cc[2] * al[2] + cc[3] * al[3]));
+            pc.push(Point3::from(
+                cc[0] * al[0] + cc[1] * al[1] + cc[2] * al[2] + cc[3] * al[3],
+            ));
             pwv.push(pw[i]);
         }
         // Points must lie in front: flip the global sign if needed.
@@ -412,7 +444,9 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
                 p.coords = -p.coords;
             }
         }
-        let Ok(sim) = umeyama(&pwv, &pc, false) else { continue };
+        let Ok(sim) = umeyama(&pwv, &pc, false) else {
+            continue;
+        };
         let r = sim.rotation.to_rotation_matrix().into_inner();
         let t = sim.translation;
         let mut err = 0.0;
@@ -466,7 +500,14 @@ fn gauss_newton_betas(l: &SMatrix<f64, 6, 10>, rho: &SVector<f64, 6>, beta: &mut
 
 /// Counts inliers of a pose (and fills `mask`): in front of the camera and
 /// squared normalised reprojection error ≤ `th2`.
-fn count_inliers(r: &Matrix3<f64>, t: &Vector3<f64>, pw: &[Point3<f64>], xn: &[Point2<f64>], th2: f64, mask: &mut [bool]) -> usize {
+fn count_inliers(
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    pw: &[Point3<f64>],
+    xn: &[Point2<f64>],
+    th2: f64,
+    mask: &mut [bool],
+) -> usize {
     let mut n = 0;
     for ((p, x), m) in pw.iter().zip(xn).zip(mask.iter_mut()) {
         let q = r * p.coords + t;
@@ -517,7 +558,10 @@ pub fn solve_pnp_ransac(
     if n < needed {
         return Err(GeometryError::NotEnoughPoints { found: n, needed });
     }
-    if !all_finite3(points_world) || !all_finite2(obs_normalized) || !(focal_px.is_finite() && focal_px > 0.0) {
+    if !all_finite3(points_world)
+        || !all_finite2(obs_normalized)
+        || !(focal_px.is_finite() && focal_px > 0.0)
+    {
         return Err(GeometryError::NonFinite);
     }
     let th2 = params.inlier_chi2 * params.sigma_px * params.sigma_px / (focal_px * focal_px);
@@ -534,7 +578,11 @@ pub fn solve_pnp_ransac(
     let mut max_iter = params.max_iterations;
     let mut it = 0;
     let log_fail = (1.0 - params.confidence).max(1e-300).ln();
-    while it < max_iter.max(params.min_iterations).min(params.max_iterations) {
+    while it
+        < max_iter
+            .max(params.min_iterations)
+            .min(params.max_iterations)
+    {
         it += 1;
         for k in 0..3 {
             let j = rng.random_range(k..n);
@@ -542,7 +590,11 @@ pub fn solve_pnp_ransac(
         }
         let (i0, i1, i2) = (pool[0], pool[1], pool[2]);
         let y = [bearings[i0], bearings[i1], bearings[i2]];
-        let x = [points_world[i0].coords, points_world[i1].coords, points_world[i2].coords];
+        let x = [
+            points_world[i0].coords,
+            points_world[i1].coords,
+            points_world[i2].coords,
+        ];
         let (sols, ns) = p3p_lambda_twist(&y, &x);
         for (r, t) in sols.iter().take(ns) {
             let c = count_inliers(r, t, points_world, obs_normalized, th2, &mut mask);
@@ -552,7 +604,11 @@ pub fn solve_pnp_ransac(
                 std::mem::swap(&mut mask, &mut best_mask);
                 let w = best_n as f64 / n as f64;
                 let denom = (1.0 - w * w * w).max(1e-300).ln();
-                let need = if denom < 0.0 { (log_fail / denom).ceil() } else { 0.0 };
+                let need = if denom < 0.0 {
+                    (log_fail / denom).ceil()
+                } else {
+                    0.0
+                };
                 max_iter = if need.is_finite() && need < params.max_iterations as f64 {
                     need as usize
                 } else {
@@ -565,7 +621,10 @@ pub fn solve_pnp_ransac(
         return Err(GeometryError::TooFewInliers { found: 0, needed });
     };
     if best_n < needed {
-        return Err(GeometryError::TooFewInliers { found: best_n, needed });
+        return Err(GeometryError::TooFewInliers {
+            found: best_n,
+            needed,
+        });
     }
     // EPnP on the consensus set; keep it if it does at least as well.
     let inl: Vec<usize> = (0..n).filter(|&i| best_mask[i]).collect();
@@ -598,20 +657,41 @@ pub fn solve_pnp_ransac(
         max_iterations: params.refine_iterations,
         ..LmParams::default()
     };
+    // Refine on the inliers, re-collect them, and repeat until the set is
+    // stable: the pose returned is then the Huber/ML pose of the mask
+    // returned.
+    let kernel = RobustKernel::Huber {
+        delta: params.huber_px / params.sigma_px,
+    };
     for _ in 0..params.refine_rounds {
-        let (p, _) = refine_pose(pose, &obs, &best_mask, &intr, RobustKernel::Huber { delta: params.huber_px / params.sigma_px }, &lm);
+        let (p, _) = refine_pose(pose, &obs, &best_mask, &intr, kernel, &lm);
         let r = p.rotation.to_rotation_matrix().into_inner();
-        let c = count_inliers(&r, &p.translation.vector, points_world, obs_normalized, th2, &mut mask);
-        if c + 2 >= best_n {
-            pose = p;
-            best_n = c;
-            std::mem::swap(&mut mask, &mut best_mask);
-        } else {
+        let c = count_inliers(
+            &r,
+            &p.translation.vector,
+            points_world,
+            obs_normalized,
+            th2,
+            &mut mask,
+        );
+        // The refined pose is the better estimate; a collapse of the
+        // consensus (a diverged refinement) is the only reason to refuse it.
+        if c * 10 < best_n * 9 {
+            break;
+        }
+        pose = p;
+        best_n = c;
+        let stable = mask == best_mask;
+        std::mem::swap(&mut mask, &mut best_mask);
+        if stable {
             break;
         }
     }
     if best_n < needed {
-        return Err(GeometryError::TooFewInliers { found: best_n, needed });
+        return Err(GeometryError::TooFewInliers {
+            found: best_n,
+            needed,
+        });
     }
     Ok(PnpResult {
         cam_from_world: pose,
@@ -640,7 +720,12 @@ mod tests {
             Point3::new(0.1, 1.4, 5.5),
             Point3::new(0.9, -0.1, 3.2),
         ];
-        (pose, pts.into_iter().map(|p| pose.inverse_transform_point(&p)).collect())
+        (
+            pose,
+            pts.into_iter()
+                .map(|p| pose.inverse_transform_point(&p))
+                .collect(),
+        )
     }
 
     #[test]
@@ -651,7 +736,9 @@ mod tests {
         let x: [Vector3<f64>; 3] = std::array::from_fn(|i| pw[i].coords);
         let (sols, n) = p3p_lambda_twist(&y, &x);
         assert!(n >= 1);
-        let ok = sols.iter().take(n).any(|(r, t)| (r - r_true).norm() < 1e-8 && (t - pose.translation.vector).norm() < 1e-8);
+        let ok = sols.iter().take(n).any(|(r, t)| {
+            (r - r_true).norm() < 1e-8 && (t - pose.translation.vector).norm() < 1e-8
+        });
         assert!(ok, "{:?}", &sols[..n]);
         // Every returned solution reproduces the three bearings.
         for (r, t) in sols.iter().take(n) {
@@ -684,7 +771,9 @@ mod tests {
         assert_eq!(n, 3);
         let mut v = r.to_vec();
         v.sort_by(f64::total_cmp);
-        assert!((v[0] + 3.0).abs() < 1e-12 && (v[1] - 1.0).abs() < 1e-12 && (v[2] - 4.0).abs() < 1e-12);
+        assert!(
+            (v[0] + 3.0).abs() < 1e-12 && (v[1] - 1.0).abs() < 1e-12 && (v[2] - 4.0).abs() < 1e-12
+        );
         let (r, n) = cubic_roots(1.0, 0.0, 1.0, -2.0); // (x-1)(x²+x+2)
         assert_eq!(n, 1);
         assert!((r[0] - 1.0).abs() < 1e-12);

@@ -6,9 +6,7 @@
 //! `T ← Exp(δ) · T`, so for `p' = T·p` the derivative at `δ = 0` is
 //! `∂p'/∂δ = [ I₃ | -[p']ₓ ]`.
 
-use nalgebra::{
-    Isometry3, Matrix3, Point3, Translation3, UnitQuaternion, Vector3, Vector6,
-};
+use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
 
 /// The skew-symmetric matrix `[v]ₓ` with `[v]ₓ·w = v × w`.
 #[inline]
@@ -167,7 +165,11 @@ mod tests {
         assert!((back - p).norm() < 1e-12);
         let id = s.compose(&s.inverse());
         assert!((id.scale - 1.0).abs() < 1e-12 && id.translation.norm() < 1e-12);
-        let s2 = Sim3::new(UnitQuaternion::from_euler_angles(-0.1, 0.4, 0.2), Vector3::new(0.0, 1.0, 2.0), 0.5);
+        let s2 = Sim3::new(
+            UnitQuaternion::from_euler_angles(-0.1, 0.4, 0.2),
+            Vector3::new(0.0, 1.0, 2.0),
+            0.5,
+        );
         let lhs = (s * s2).transform_point(&p);
         let rhs = s.transform_point(&s2.transform_point(&p));
         assert!((lhs - rhs).norm() < 1e-12);

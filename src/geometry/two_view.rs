@@ -27,8 +27,8 @@
 //! callers rescale, e.g. to unit median depth.
 
 use nalgebra::{
-    Isometry3, Matrix3, Point2, Point3, Rotation3, SMatrix, SVector, Translation3,
-    UnitQuaternion, Vector3,
+    Isometry3, Matrix3, Point2, Point3, Rotation3, SMatrix, SVector, Translation3, UnitQuaternion,
+    Vector3,
 };
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
@@ -178,7 +178,9 @@ fn compute_h21(p1: &[[f64; 2]], p2: &[[f64; 2]], idx: &[usize]) -> Option<Matrix
         ata += r1 * r1.transpose() + r2 * r2.transpose();
     }
     let h = smallest_eigvec9(ata)?;
-    Some(Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]))
+    Some(Matrix3::new(
+        h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8],
+    ))
 }
 
 /// Normalised 8-point fundamental matrix `x2ᵀ·F·x1 = 0`, rank 2 enforced.
@@ -316,7 +318,12 @@ fn project(k: &Matrix3<f64>, p: &Vector3<f64>) -> (f64, f64) {
 
 /// ORB-SLAM's `CheckRT`: triangulate, then parallax, cheirality and
 /// reprojection checks. Returns the hypothesis with its counts.
-fn check_rt(ctx: &CheckCtx<'_>, r: Matrix3<f64>, t: Vector3<f64>, cos_buf: &mut Vec<f64>) -> Hypothesis {
+fn check_rt(
+    ctx: &CheckCtx<'_>,
+    r: Matrix3<f64>,
+    t: Vector3<f64>,
+    cos_buf: &mut Vec<f64>,
+) -> Hypothesis {
     let n = ctx.inliers.len();
     let mut points = vec![None; n];
     let o2 = -(r.transpose() * t); // camera-2 centre in camera-1 frame
@@ -564,7 +571,15 @@ pub fn initialize_two_view(
         if idx_buf.len() >= 8 {
             if let Some(h21) = compute_h21(&pn1, &pn2, &idx_buf).map(|hn| t2_inv * hn * t1) {
                 if let Some(h12) = h21.try_inverse() {
-                    let s = score_homography(&h21, &h12, &px1, &px2, inv_sigma2, params.chi2_two_dof, &mut cur);
+                    let s = score_homography(
+                        &h21,
+                        &h12,
+                        &px1,
+                        &px2,
+                        inv_sigma2,
+                        params.chi2_two_dof,
+                        &mut cur,
+                    );
                     if s > best_sh {
                         best_sh = s;
                         best_h = Some(h21);
@@ -577,7 +592,15 @@ pub fn initialize_two_view(
         idx_buf.extend((0..n).filter(|&i| best_f_in[i]));
         if idx_buf.len() >= 8 {
             if let Some(f21) = compute_f21(&pn1, &pn2, &idx_buf).map(|fn_| t2_t * fn_ * t1) {
-                let s = score_fundamental(&f21, &px1, &px2, inv_sigma2, params.chi2_one_dof, params.chi2_two_dof, &mut cur);
+                let s = score_fundamental(
+                    &f21,
+                    &px1,
+                    &px2,
+                    inv_sigma2,
+                    params.chi2_one_dof,
+                    params.chi2_two_dof,
+                    &mut cur,
+                );
                 if s > best_sf {
                     best_sf = s;
                     best_f = Some(f21);
@@ -760,8 +783,14 @@ fn refine_two_view(
     let inv_sigma2 = 1.0 / (params.sigma_px * params.sigma_px);
     let mut prob = BaProblem {
         poses: vec![
-            BaPose { cam_from_world: Isometry3::identity(), fixed: true },
-            BaPose { cam_from_world: *cam2_from_cam1, fixed: false },
+            BaPose {
+                cam_from_world: Isometry3::identity(),
+                fixed: true,
+            },
+            BaPose {
+                cam_from_world: *cam2_from_cam1,
+                fixed: false,
+            },
         ],
         points: Vec::new(),
         observations: Vec::new(),
@@ -774,15 +803,25 @@ fn refine_two_view(
             prob.points.push(*p);
             which.push(i);
             for (pose, px) in [(0usize, px1[i]), (1usize, px2[i])] {
-                prob.observations.push(Observation { pose, point: j, uv: Point2::new(px[0], px[1]), inv_sigma2 });
+                prob.observations.push(Observation {
+                    pose,
+                    point: j,
+                    uv: Point2::new(px[0], px[1]),
+                    inv_sigma2,
+                });
             }
         }
     }
     if prob.points.len() < params.min_triangulated {
         return;
     }
-    let lm = LmParams { max_iterations: params.refine_iterations, ..LmParams::default() };
-    let kernel = RobustKernel::Huber { delta: params.chi2_two_dof.sqrt() };
+    let lm = LmParams {
+        max_iterations: params.refine_iterations,
+        ..LmParams::default()
+    };
+    let kernel = RobustKernel::Huber {
+        delta: params.chi2_two_dof.sqrt(),
+    };
     if bundle_adjust_lm(&mut prob, kernel, &lm).is_err() {
         return;
     }
@@ -792,7 +831,10 @@ fn refine_two_view(
         return;
     }
     let scale = 1.0 / norm;
-    let refined = Isometry3::from_parts(Translation3::from(t * scale), prob.poses[1].cam_from_world.rotation);
+    let refined = Isometry3::from_parts(
+        Translation3::from(t * scale),
+        prob.poses[1].cam_from_world.rotation,
+    );
     let th2 = params.reprojection_chi2 * params.sigma_px * params.sigma_px;
     for (j, &i) in which.iter().enumerate() {
         let p = Point3::from(prob.points[j].coords * scale);
@@ -824,9 +866,9 @@ mod tests {
         let hyps = decompose_h(&(a * 1.7)).unwrap();
         assert_eq!(hyps.len(), 8);
         let tn = t.normalize();
-        let found = hyps.iter().any(|(rh, th)| {
-            (rh - r).norm() < 1e-9 && (th - tn).norm() < 1e-9
-        });
+        let found = hyps
+            .iter()
+            .any(|(rh, th)| (rh - r).norm() < 1e-9 && (th - tn).norm() < 1e-9);
         assert!(found, "{hyps:?}");
     }
 
@@ -838,6 +880,9 @@ mod tests {
         let t = Vector3::new(-0.4, 0.2, 0.9).normalize();
         let e = crate::geometry::se3::skew(&t) * r;
         let hyps = decompose_e(&(e * -3.0)).unwrap();
-        assert!(hyps.iter().any(|(rh, th)| (rh - r).norm() < 1e-9 && (th - t).norm() < 1e-9));
+        assert!(
+            hyps.iter()
+                .any(|(rh, th)| (rh - r).norm() < 1e-9 && (th - t).norm() < 1e-9)
+        );
     }
 }

@@ -106,7 +106,13 @@ mod tests {
             1.7,
         );
         let src: Vec<Point3<f64>> = (0..50)
-            .map(|_| Point3::new(rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)))
+            .map(|_| {
+                Point3::new(
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(-2.0..2.0),
+                )
+            })
             .collect();
         let dst: Vec<Point3<f64>> = src.iter().map(|p| truth.transform_point(p)).collect();
         let est = umeyama(&src, &dst, true).unwrap();
@@ -114,7 +120,10 @@ mod tests {
         assert!(est.rotation.angle_to(&truth.rotation) < 1e-10);
         assert!((est.translation - truth.translation).norm() < 1e-10);
 
-        let rigid = Sim3 { scale: 1.0, ..truth };
+        let rigid = Sim3 {
+            scale: 1.0,
+            ..truth
+        };
         let dst2: Vec<Point3<f64>> = src.iter().map(|p| rigid.transform_point(p)).collect();
         let est2 = umeyama(&src, &dst2, false).unwrap();
         assert_eq!(est2.scale, 1.0);
@@ -125,11 +134,26 @@ mod tests {
     #[test]
     fn refuses_bad_input() {
         let p = [Point3::new(0.0, 0.0, 0.0), Point3::new(1.0, 0.0, 0.0)];
-        assert!(matches!(umeyama(&p, &p, true), Err(GeometryError::NotEnoughPoints { found: 2, needed: 3 })));
+        assert!(matches!(
+            umeyama(&p, &p, true),
+            Err(GeometryError::NotEnoughPoints {
+                found: 2,
+                needed: 3
+            })
+        ));
         let same = [Point3::new(1.0, 1.0, 1.0); 4];
-        assert!(matches!(umeyama(&same, &same, true), Err(GeometryError::Collapsed { .. })));
+        assert!(matches!(
+            umeyama(&same, &same, true),
+            Err(GeometryError::Collapsed { .. })
+        ));
         let line: Vec<Point3<f64>> = (0..5).map(|i| Point3::new(i as f64, 0.0, 0.0)).collect();
-        assert!(matches!(umeyama(&line, &line, true), Err(GeometryError::Degenerate { .. })));
-        assert!(matches!(umeyama(&line, &line[..4], true), Err(GeometryError::LengthMismatch { .. })));
+        assert!(matches!(
+            umeyama(&line, &line, true),
+            Err(GeometryError::Degenerate { .. })
+        ));
+        assert!(matches!(
+            umeyama(&line, &line[..4], true),
+            Err(GeometryError::LengthMismatch { .. })
+        ));
     }
 }

@@ -23,7 +23,9 @@
 
 use faer::prelude::Solve;
 use faer::{Col, Mat, Side};
-use nalgebra::{Isometry3, Matrix2x3, Matrix3, Matrix6, Matrix6x3, Point2, Point3, Vector2, Vector3, Vector6};
+use nalgebra::{
+    Isometry3, Matrix2x3, Matrix3, Matrix6, Matrix6x3, Point2, Point3, Vector2, Vector3, Vector6,
+};
 
 use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt};
 use super::{Intrinsics, OptimizeError, RobustKernel, valid_obs};
@@ -158,7 +160,12 @@ struct BaLs<'a> {
 }
 
 impl<'a> BaLs<'a> {
-    fn new(problem: &'a mut BaProblem, active: Vec<bool>, kernel: RobustKernel, min_depth: f64) -> Self {
+    fn new(
+        problem: &'a mut BaProblem,
+        active: Vec<bool>,
+        kernel: RobustKernel,
+        min_depth: f64,
+    ) -> Self {
         let mut free = vec![None; problem.poses.len()];
         let mut n_free = 0;
         for (f, p) in free.iter_mut().zip(&problem.poses) {
@@ -316,7 +323,11 @@ impl LeastSquares for BaLs<'_> {
             let obs_j = &self.by_point[self.by_point_start[j]..self.by_point_start[j + 1]];
             let gpj = self.g_p[j];
             for &ka in obs_j {
-                let Some(fa) = self.lin[ka].live.then(|| self.free[self.problem.observations[ka].pose]).flatten() else {
+                let Some(fa) = self.lin[ka]
+                    .live
+                    .then(|| self.free[self.problem.observations[ka].pose])
+                    .flatten()
+                else {
                     continue;
                 };
                 let y = self.lin[ka].wblock * cinv;
@@ -327,7 +338,11 @@ impl LeastSquares for BaLs<'_> {
                     self.rhs[6 * fa + r] += yg[r];
                 }
                 for &kb in obs_j {
-                    let Some(fb) = self.lin[kb].live.then(|| self.free[self.problem.observations[kb].pose]).flatten() else {
+                    let Some(fb) = self.lin[kb]
+                        .live
+                        .then(|| self.free[self.problem.observations[kb].pose])
+                        .flatten()
+                    else {
                         continue;
                     };
                     if fb < fa {
@@ -473,7 +488,11 @@ pub fn reprojection_rmse(problem: &BaProblem, mask: Option<&[bool]>) -> f64 {
         sum += (problem.intrinsics.project(&pc) - o.uv).norm_squared();
         n += 1;
     }
-    if n == 0 { 0.0 } else { (sum / (2 * n) as f64).sqrt() }
+    if n == 0 {
+        0.0
+    } else {
+        (sum / (2 * n) as f64).sqrt()
+    }
 }
 
 fn validate(problem: &BaProblem) -> Result<(), OptimizeError> {
@@ -485,14 +504,20 @@ fn validate(problem: &BaProblem) -> Result<(), OptimizeError> {
     }
     for (i, p) in problem.points.iter().enumerate() {
         if !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite()) {
-            return Err(OptimizeError::InvalidInput { what: "point", index: i });
+            return Err(OptimizeError::InvalidInput {
+                what: "point",
+                index: i,
+            });
         }
     }
     for (i, p) in problem.poses.iter().enumerate() {
         let t = &p.cam_from_world.translation.vector;
         let q = &p.cam_from_world.rotation;
         if !(t.iter().all(|v| v.is_finite()) && q.coords.iter().all(|v| v.is_finite())) {
-            return Err(OptimizeError::InvalidInput { what: "pose", index: i });
+            return Err(OptimizeError::InvalidInput {
+                what: "pose",
+                index: i,
+            });
         }
     }
     for (k, o) in problem.observations.iter().enumerate() {
@@ -530,7 +555,10 @@ fn validate(problem: &BaProblem) -> Result<(), OptimizeError> {
 ///
 /// Errors: [`OptimizeError::IndexOutOfRange`], [`OptimizeError::InvalidInput`],
 /// [`OptimizeError::NothingToOptimize`].
-pub fn local_bundle_adjustment(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, OptimizeError> {
+pub fn local_bundle_adjustment(
+    problem: &mut BaProblem,
+    params: &BaParams,
+) -> Result<BaReport, OptimizeError> {
     validate(problem)?;
     let initial_rmse_px = reprojection_rmse(problem, None);
     let nobs = problem.observations.len();
@@ -548,12 +576,19 @@ pub fn local_bundle_adjustment(problem: &mut BaProblem, params: &BaParams) -> Re
         problem
             .observations
             .iter()
-            .map(|o| obs_chi2(problem, o, params.min_depth).is_some_and(|c| c <= params.outlier_chi2))
+            .map(|o| {
+                obs_chi2(problem, o, params.min_depth).is_some_and(|c| c <= params.outlier_chi2)
+            })
             .collect()
     };
     let mut inliers = classify(problem);
     let second_pass = if params.second_pass_iterations > 0 {
-        let mut ls = BaLs::new(problem, inliers.clone(), RobustKernel::None, params.min_depth);
+        let mut ls = BaLs::new(
+            problem,
+            inliers.clone(),
+            RobustKernel::None,
+            params.min_depth,
+        );
         let s = levenberg_marquardt(
             &mut ls,
             &LmParams {
@@ -616,7 +651,13 @@ mod tests {
             })
             .collect();
         let points: Vec<Point3<f64>> = (0..6)
-            .map(|j| Point3::new(-1.0 + 0.4 * j as f64, 0.3 * (j % 3) as f64 - 0.3, 4.0 + 0.5 * (j % 2) as f64))
+            .map(|j| {
+                Point3::new(
+                    -1.0 + 0.4 * j as f64,
+                    0.3 * (j % 3) as f64 - 0.3,
+                    4.0 + 0.5 * (j % 2) as f64,
+                )
+            })
             .collect();
         let mut observations = Vec::new();
         for (i, p) in poses.iter().enumerate() {
@@ -625,10 +666,20 @@ mod tests {
                 let mut uv = intr.project(&pc);
                 uv.x += ((i * 7 + j * 3) % 5) as f64 - 2.0;
                 uv.y += ((i * 3 + j * 5) % 7) as f64 - 3.0;
-                observations.push(Observation { pose: i, point: j, uv, inv_sigma2: 1.0 + 0.1 * j as f64 });
+                observations.push(Observation {
+                    pose: i,
+                    point: j,
+                    uv,
+                    inv_sigma2: 1.0 + 0.1 * j as f64,
+                });
             }
         }
-        let mut problem = BaProblem { poses, points, observations, intrinsics: intr };
+        let mut problem = BaProblem {
+            poses,
+            points,
+            observations,
+            intrinsics: intr,
+        };
         let base = problem.clone();
         // Residual vector (weighted by sqrt(inv_sigma2)) as a function of the
         // free parameters [δc(pose1), δc(pose2), δp(0..6)].
@@ -644,7 +695,10 @@ mod tests {
             }
             let mut out = nalgebra::DVector::zeros(2 * p.observations.len());
             for (k, o) in p.observations.iter().enumerate() {
-                let pc = p.poses[o.pose].cam_from_world.transform_point(&p.points[o.point]).coords;
+                let pc = p.poses[o.pose]
+                    .cam_from_world
+                    .transform_point(&p.points[o.point])
+                    .coords;
                 let r = (intr.project(&pc) - o.uv) * o.inv_sigma2.sqrt();
                 out[2 * k] = r.x;
                 out[2 * k + 1] = r.y;

@@ -98,7 +98,10 @@ pub struct LmSummary {
 }
 
 /// Minimises a [`LeastSquares`] problem in place.
-pub fn levenberg_marquardt<P: LeastSquares + ?Sized>(problem: &mut P, params: &LmParams) -> LmSummary {
+pub fn levenberg_marquardt<P: LeastSquares + ?Sized>(
+    problem: &mut P,
+    params: &LmParams,
+) -> LmSummary {
     let (mut cost, mut gmax) = problem.linearize();
     let initial_cost = cost;
     let mut lambda = params.initial_lambda;
@@ -186,11 +189,17 @@ mod tests {
         }
         fn solve_damped(&mut self, lambda: f64) -> Option<(f64, f64)> {
             let mut a = self.h;
-            let d = Vector2::new(self.h[(0, 0)].clamp(1e-6, 1e32), self.h[(1, 1)].clamp(1e-6, 1e32));
+            let d = Vector2::new(
+                self.h[(0, 0)].clamp(1e-6, 1e32),
+                self.h[(1, 1)].clamp(1e-6, 1e32),
+            );
             a[(0, 0)] += lambda * d.x;
             a[(1, 1)] += lambda * d.y;
             self.step = a.cholesky()?.solve(&(-self.g));
-            let pred = 0.5 * self.step.dot(&(d.component_mul(&self.step) * lambda - self.g));
+            let pred = 0.5
+                * self
+                    .step
+                    .dot(&(d.component_mul(&self.step) * lambda - self.g));
             Some((pred, self.step.norm()))
         }
         fn apply_step(&mut self) {
@@ -224,7 +233,11 @@ mod tests {
                 ..LmParams::default()
             },
         );
-        assert!((p.x - Vector2::new(1.0, 1.0)).norm() < 1e-6, "{:?} {s:?}", p.x);
+        assert!(
+            (p.x - Vector2::new(1.0, 1.0)).norm() < 1e-6,
+            "{:?} {s:?}",
+            p.x
+        );
         assert!(s.final_cost < 1e-12);
         assert!(s.accepted > 3);
     }

@@ -245,7 +245,8 @@ pub fn optimize_pose(
     }
     for (i, o) in obs.iter().enumerate() {
         let p = &o.p_world;
-        if !valid_obs(&o.uv, o.inv_sigma2) || !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite())
+        if !valid_obs(&o.uv, o.inv_sigma2)
+            || !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite())
         {
             return Err(OptimizeError::InvalidInput {
                 what: "observation",
@@ -381,7 +382,11 @@ mod tests {
             UnitQuaternion::from_euler_angles(0.1, 0.05, -0.02),
         );
         let rep = optimize_pose(init, &obs, &k, &PoseParams::default()).unwrap();
-        let dr = rep.cam_from_world.rotation.angle_to(&truth.rotation).to_degrees();
+        let dr = rep
+            .cam_from_world
+            .rotation
+            .angle_to(&truth.rotation)
+            .to_degrees();
         let dt = (rep.cam_from_world.translation.vector - truth.translation.vector).norm();
         assert!(dr < 0.1 && dt < 0.02, "{dr} deg, {dt} m");
         // Every injected outlier is caught; few inliers lost.

@@ -106,11 +106,19 @@ struct Sim3Ls<'a> {
 }
 
 /// Chi2 of both directions of one match (`None` for behind the camera).
-fn match_chi2(s12: &Sim3, s21: &Sim3, intr: &Intrinsics, m: &Sim3Match, min_depth: f64) -> (Option<f64>, Option<f64>) {
+fn match_chi2(
+    s12: &Sim3,
+    s21: &Sim3,
+    intr: &Intrinsics,
+    m: &Sim3Match,
+    min_depth: f64,
+) -> (Option<f64>, Option<f64>) {
     let q1 = s12.transform_point(&m.x2_cam2).coords;
-    let c1 = (q1.z > min_depth).then(|| (intr.project(&q1) - m.uv1).norm_squared() * m.inv_sigma2_1);
+    let c1 =
+        (q1.z > min_depth).then(|| (intr.project(&q1) - m.uv1).norm_squared() * m.inv_sigma2_1);
     let q2 = s21.transform_point(&m.x1_cam1).coords;
-    let c2 = (q2.z > min_depth).then(|| (intr.project(&q2) - m.uv2).norm_squared() * m.inv_sigma2_2);
+    let c2 =
+        (q2.z > min_depth).then(|| (intr.project(&q2) - m.uv2).norm_squared() * m.inv_sigma2_2);
     (c1, c2)
 }
 
@@ -118,21 +126,31 @@ fn match_chi2(s12: &Sim3, s21: &Sim3, intr: &Intrinsics, m: &Sim3Match, min_dept
 pub fn sim3_left_update(s: &Sim3, d: &Vec7) -> Sim3 {
     let dq = UnitQuaternion::from_scaled_axis(Vector3::new(d[3], d[4], d[5]));
     let es = d[6].exp();
-    Sim3::new(dq * s.rotation, dq * s.translation * es + Vector3::new(d[0], d[1], d[2]), s.scale * es)
+    Sim3::new(
+        dq * s.rotation,
+        dq * s.translation * es + Vector3::new(d[0], d[1], d[2]),
+        s.scale * es,
+    )
 }
 
 const BEHIND_CHI2: f64 = 1e4;
 
 impl Sim3Ls<'_> {
     /// Residuals and Jacobians of one match (direction 1→ then 2).
-    fn terms(&self, m: &Sim3Match, s21: &Sim3, lin_r: &nalgebra::Matrix3<f64>) -> [Option<(nalgebra::Vector2<f64>, Mat2x7, f64)>; 2] {
+    fn terms(
+        &self,
+        m: &Sim3Match,
+        s21: &Sim3,
+        lin_r: &nalgebra::Matrix3<f64>,
+    ) -> [Option<(nalgebra::Vector2<f64>, Mat2x7, f64)>; 2] {
         let mut out = [None, None];
         let q1 = self.s12.transform_point(&m.x2_cam2).coords;
         if q1.z > self.min_depth {
             let r = self.intr.project(&q1) - m.uv1;
             let jp = self.intr.project_jacobian(&q1);
             let mut dq = SMatrix::<f64, 3, 7>::zeros();
-            dq.fixed_view_mut::<3, 3>(0, 0).copy_from(&nalgebra::Matrix3::identity());
+            dq.fixed_view_mut::<3, 3>(0, 0)
+                .copy_from(&nalgebra::Matrix3::identity());
             dq.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-skew(&q1)));
             dq.fixed_view_mut::<3, 1>(0, 6).copy_from(&q1);
             out[0] = Some((r, jp * dq, m.inv_sigma2_1));
@@ -143,7 +161,8 @@ impl Sim3Ls<'_> {
             let jp: Matrix2x3<f64> = self.intr.project_jacobian(&q2);
             let x1 = m.x1_cam1.coords;
             let mut dg = SMatrix::<f64, 3, 7>::zeros();
-            dg.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-nalgebra::Matrix3::identity()));
+            dg.fixed_view_mut::<3, 3>(0, 0)
+                .copy_from(&(-nalgebra::Matrix3::identity()));
             dg.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew(&x1));
             dg.fixed_view_mut::<3, 1>(0, 6).copy_from(&(-x1));
             // (1/s)·Rᵀ = linear part of S⁻¹
@@ -199,7 +218,10 @@ impl LeastSquares for Sim3Ls<'_> {
             return None;
         }
         self.step = step;
-        Some((0.5 * step.dot(&(d.component_mul(&step) * lambda - self.g)), step.norm()))
+        Some((
+            0.5 * step.dot(&(d.component_mul(&step) * lambda - self.g)),
+            step.norm(),
+        ))
     }
 
     fn apply_step(&mut self) {
@@ -247,19 +269,34 @@ pub fn optimize_sim3(
         });
     }
     if !intr.is_valid() {
-        return Err(OptimizeError::InvalidInput { what: "intrinsics", index: 0 });
+        return Err(OptimizeError::InvalidInput {
+            what: "intrinsics",
+            index: 0,
+        });
     }
     for (i, m) in matches.iter().enumerate() {
         let fin = |p: &Point3<f64>| p.x.is_finite() && p.y.is_finite() && p.z.is_finite();
-        if !(fin(&m.x1_cam1) && fin(&m.x2_cam2) && valid_obs(&m.uv1, m.inv_sigma2_1) && valid_obs(&m.uv2, m.inv_sigma2_2)) {
-            return Err(OptimizeError::InvalidInput { what: "match", index: i });
+        if !(fin(&m.x1_cam1)
+            && fin(&m.x2_cam2)
+            && valid_obs(&m.uv1, m.inv_sigma2_1)
+            && valid_obs(&m.uv2, m.inv_sigma2_2))
+        {
+            return Err(OptimizeError::InvalidInput {
+                what: "match",
+                index: i,
+            });
         }
     }
     if !(s12_init.scale.is_finite() && s12_init.scale > 0.0) {
-        return Err(OptimizeError::InvalidInput { what: "initial scale", index: 0 });
+        return Err(OptimizeError::InvalidInput {
+            what: "initial scale",
+            index: 0,
+        });
     }
     let mut active = vec![true; matches.len()];
-    let huber = RobustKernel::Huber { delta: params.chi2_threshold.sqrt() };
+    let huber = RobustKernel::Huber {
+        delta: params.chi2_threshold.sqrt(),
+    };
     let run = |s: Sim3, active: &[bool], kernel: RobustKernel, iters: usize| {
         let mut ls = Sim3Ls {
             matches,
@@ -274,7 +311,13 @@ pub fn optimize_sim3(
             g: Vec7::zeros(),
             step: Vec7::zeros(),
         };
-        let sum = levenberg_marquardt(&mut ls, &LmParams { max_iterations: iters, ..params.lm.clone() });
+        let sum = levenberg_marquardt(
+            &mut ls,
+            &LmParams {
+                max_iterations: iters,
+                ..params.lm.clone()
+            },
+        );
         (ls.s12, sum)
     };
     let (s1, first_pass) = run(*s12_init, &active, huber, params.first_pass_iterations);
@@ -283,7 +326,8 @@ pub fn optimize_sim3(
         let mut bad = 0;
         for (m, a) in matches.iter().zip(active.iter_mut()) {
             let (c1, c2) = match_chi2(s, &s21, intr, m, params.min_depth);
-            let ok = c1.is_some_and(|c| c <= params.chi2_threshold) && c2.is_some_and(|c| c <= params.chi2_threshold);
+            let ok = c1.is_some_and(|c| c <= params.chi2_threshold)
+                && c2.is_some_and(|c| c <= params.chi2_threshold);
             if !ok {
                 bad += usize::from(*a);
             }
@@ -292,12 +336,22 @@ pub fn optimize_sim3(
         bad
     };
     let n_bad = classify(&s1, &mut active);
-    let iters = if n_bad > 0 { params.second_pass_iterations_after_drop } else { params.second_pass_iterations };
+    let iters = if n_bad > 0 {
+        params.second_pass_iterations_after_drop
+    } else {
+        params.second_pass_iterations
+    };
     // ORB-SLAM keeps the Huber kernel in the second pass.
     let (s2, second_pass) = run(s1, &active, huber, iters);
     classify(&s2, &mut active);
     let n_inliers = active.iter().filter(|&&a| a).count();
-    Ok(Sim3Report { s12: s2, inliers: active, n_inliers, first_pass, second_pass })
+    Ok(Sim3Report {
+        s12: s2,
+        inliers: active,
+        n_inliers,
+        first_pass,
+        second_pass,
+    })
 }
 
 #[cfg(test)]
@@ -306,12 +360,21 @@ mod tests {
     use rand::{Rng, SeedableRng, rngs::SmallRng};
 
     fn intr() -> Intrinsics {
-        Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 }
+        Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+        }
     }
 
     #[test]
     fn jacobians_match_finite_differences() {
-        let s = Sim3::new(UnitQuaternion::from_euler_angles(0.1, -0.2, 0.05), Vector3::new(0.3, -0.1, 0.2), 1.3);
+        let s = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.1, -0.2, 0.05),
+            Vector3::new(0.3, -0.1, 0.2),
+            1.3,
+        );
         let m = Sim3Match {
             x1_cam1: Point3::new(0.2, 0.1, 3.0),
             x2_cam2: Point3::new(-0.3, 0.2, 2.5),
@@ -351,19 +414,33 @@ mod tests {
             let fd2 = (a2 - b2) / 2e-7;
             let j1 = terms[0].unwrap().1.column(k).into_owned();
             let j2 = terms[1].unwrap().1.column(k).into_owned();
-            assert!((fd1 - j1).norm() < 1e-4 * (1.0 + j1.norm()), "col {k}: {fd1} vs {j1}");
-            assert!((fd2 - j2).norm() < 1e-4 * (1.0 + j2.norm()), "col {k}: {fd2} vs {j2}");
+            assert!(
+                (fd1 - j1).norm() < 1e-4 * (1.0 + j1.norm()),
+                "col {k}: {fd1} vs {j1}"
+            );
+            assert!(
+                (fd2 - j2).norm() < 1e-4 * (1.0 + j2.norm()),
+                "col {k}: {fd2} vs {j2}"
+            );
         }
     }
 
     #[test]
     fn recovers_sim3_and_drops_bad_matches() {
         let mut rng = SmallRng::seed_from_u64(11);
-        let truth = Sim3::new(UnitQuaternion::from_euler_angles(0.05, 0.2, -0.1), Vector3::new(0.5, -0.2, 0.3), 0.8);
+        let truth = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.05, 0.2, -0.1),
+            Vector3::new(0.5, -0.2, 0.3),
+            0.8,
+        );
         let k = intr();
         let mut ms = Vec::new();
         for i in 0..150 {
-            let x1 = Point3::new(rng.random_range(-2.0..2.0), rng.random_range(-1.5..1.5), rng.random_range(3.0..7.0));
+            let x1 = Point3::new(
+                rng.random_range(-2.0..2.0),
+                rng.random_range(-1.5..1.5),
+                rng.random_range(3.0..7.0),
+            );
             let x2 = truth.inverse().transform_point(&x1);
             let mut uv1 = k.project(&x1.coords);
             let mut uv2 = k.project(&x2.coords);
@@ -372,9 +449,20 @@ mod tests {
             if i % 10 == 0 {
                 uv2.x += 40.0;
             }
-            ms.push(Sim3Match { x1_cam1: x1, x2_cam2: x2, uv1, uv2, inv_sigma2_1: 1.0, inv_sigma2_2: 1.0 });
+            ms.push(Sim3Match {
+                x1_cam1: x1,
+                x2_cam2: x2,
+                uv1,
+                uv2,
+                inv_sigma2_1: 1.0,
+                inv_sigma2_2: 1.0,
+            });
         }
-        let init = Sim3::new(UnitQuaternion::from_euler_angles(0.08, 0.17, -0.12), Vector3::new(0.6, -0.1, 0.2), 0.9);
+        let init = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.08, 0.17, -0.12),
+            Vector3::new(0.6, -0.1, 0.2),
+            0.9,
+        );
         let rep = optimize_sim3(&init, &ms, &k, &Sim3Params::default()).unwrap();
         assert!((rep.s12.scale - 0.8).abs() < 0.01, "{}", rep.s12.scale);
         assert!(rep.s12.rotation.angle_to(&truth.rotation).to_degrees() < 0.2);
