@@ -230,17 +230,17 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> ([RotTr
         let qc = a23 * (w1 * w1 + b13 * w1 + 1.0) - a13;
         let (taus, nt) = quadratic_roots(qa, qb, qc);
         for &tau in taus.iter().take(nt) {
-            if !(tau > 0.0) {
+            if tau.is_nan() || tau <= 0.0 {
                 continue;
             }
             let den = tau * tau + b23 * tau + 1.0;
-            if !(den > 0.0) {
+            if den.is_nan() || den <= 0.0 {
                 continue;
             }
             let l3 = (a23 / den).sqrt();
             let l2 = tau * l3;
             let l1 = w0 * l2 + w1 * l3;
-            if !(l1 > 0.0) {
+            if l1.is_nan() || l1 <= 0.0 {
                 continue;
             }
             let mut l = Vector3::new(l1, l2, l3);
@@ -322,7 +322,7 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
     let mut ctrl = [c0; 4];
     for k in 0..3 {
         let sd = (eig.eigenvalues[k].max(0.0) / n as f64).sqrt();
-        if !(sd > 1e-12 * (1.0 + c0.norm())) {
+        if sd.is_nan() || sd <= 1e-12 * (1.0 + c0.norm()) {
             return None; // planar-degenerate along an axis is handled by PCA > 0; a line is not.
         }
         ctrl[k + 1] = c0 + eig.eigenvectors.column(k) * sd;
@@ -560,7 +560,8 @@ pub fn solve_pnp_ransac(
     }
     if !all_finite3(points_world)
         || !all_finite2(obs_normalized)
-        || !(focal_px.is_finite() && focal_px > 0.0)
+        || !focal_px.is_finite()
+        || focal_px <= 0.0
     {
         return Err(GeometryError::NonFinite);
     }

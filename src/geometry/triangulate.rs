@@ -54,7 +54,7 @@ pub fn triangulate(
     let l = chol.l_dirty();
     let dmin = l[(0, 0)].min(l[(1, 1)]).min(l[(2, 2)]);
     let dmax = l[(0, 0)].max(l[(1, 1)]).max(l[(2, 2)]);
-    if !(dmin > 1e-6 * dmax) || !p.iter().all(|v| v.is_finite()) {
+    if dmin.is_nan() || dmin <= 1e-6 * dmax || !p.iter().all(|v| v.is_finite()) {
         return None;
     }
     Some(Point3::from(p))
@@ -89,7 +89,7 @@ pub fn triangulate_cam1(
     let l = chol.l_dirty();
     let dmin = l[(0, 0)].min(l[(1, 1)]).min(l[(2, 2)]);
     let dmax = l[(0, 0)].max(l[(1, 1)]).max(l[(2, 2)]);
-    if !(dmin > 1e-6 * dmax) {
+    if dmin.is_nan() || dmin <= 1e-6 * dmax {
         return None;
     }
     let p = chol.solve(&atb);

@@ -329,7 +329,7 @@ fn check_rt(
     let o2 = -(r.transpose() * t); // camera-2 centre in camera-1 frame
     cos_buf.clear();
     let mut n_good = 0usize;
-    for i in 0..n {
+    for (i, slot) in points.iter_mut().enumerate() {
         if !ctx.inliers[i] {
             continue;
         }
@@ -354,18 +354,18 @@ fn check_rt(
         }
         let (u1, v1) = project(ctx.k, &p1);
         let e1 = (u1 - ctx.px1[i][0]).powi(2) + (v1 - ctx.px1[i][1]).powi(2);
-        if !(e1 <= ctx.th2) {
+        if e1.is_nan() || e1 > ctx.th2 {
             continue;
         }
         let (u2, v2) = project(ctx.k, &p2);
         let e2 = (u2 - ctx.px2[i][0]).powi(2) + (v2 - ctx.px2[i][1]).powi(2);
-        if !(e2 <= ctx.th2) {
+        if e2.is_nan() || e2 > ctx.th2 {
             continue;
         }
         cos_buf.push(cos_par);
         n_good += 1;
         if cos_par < ctx.cos_with_depth {
-            points[i] = Some(p);
+            *slot = Some(p);
         }
     }
     let parallax_deg = if cos_buf.is_empty() {
@@ -391,7 +391,7 @@ fn decompose_e(e: &Matrix3<f64>) -> Option<[(Matrix3<f64>, Vector3<f64>); 4]> {
     let (u, vt) = (svd.u?, svd.v_t?);
     let t = u.column(2).into_owned();
     let tn = t.norm();
-    if !(tn > 0.0) {
+    if tn.is_nan() || tn <= 0.0 {
         return None;
     }
     let t = t / tn;
@@ -568,44 +568,46 @@ pub fn initialize_two_view(
     for _ in 0..params.refit_rounds {
         idx_buf.clear();
         idx_buf.extend((0..n).filter(|&i| best_h_in[i]));
-        if idx_buf.len() >= 8 {
-            if let Some(h21) = compute_h21(&pn1, &pn2, &idx_buf).map(|hn| t2_inv * hn * t1) {
-                if let Some(h12) = h21.try_inverse() {
-                    let s = score_homography(
-                        &h21,
-                        &h12,
-                        &px1,
-                        &px2,
-                        inv_sigma2,
-                        params.chi2_two_dof,
-                        &mut cur,
-                    );
-                    if s > best_sh {
-                        best_sh = s;
-                        best_h = Some(h21);
-                        std::mem::swap(&mut cur, &mut best_h_in);
-                    }
-                }
+        let h_fit = (idx_buf.len() >= 8)
+            .then(|| compute_h21(&pn1, &pn2, &idx_buf))
+            .flatten()
+            .map(|hn| t2_inv * hn * t1);
+        if let Some((h21, h12)) = h_fit.and_then(|h| h.try_inverse().map(|hi| (h, hi))) {
+            let s = score_homography(
+                &h21,
+                &h12,
+                &px1,
+                &px2,
+                inv_sigma2,
+                params.chi2_two_dof,
+                &mut cur,
+            );
+            if s > best_sh {
+                best_sh = s;
+                best_h = Some(h21);
+                std::mem::swap(&mut cur, &mut best_h_in);
             }
         }
         idx_buf.clear();
         idx_buf.extend((0..n).filter(|&i| best_f_in[i]));
-        if idx_buf.len() >= 8 {
-            if let Some(f21) = compute_f21(&pn1, &pn2, &idx_buf).map(|fn_| t2_t * fn_ * t1) {
-                let s = score_fundamental(
-                    &f21,
-                    &px1,
-                    &px2,
-                    inv_sigma2,
-                    params.chi2_one_dof,
-                    params.chi2_two_dof,
-                    &mut cur,
-                );
-                if s > best_sf {
-                    best_sf = s;
-                    best_f = Some(f21);
-                    std::mem::swap(&mut cur, &mut best_f_in);
-                }
+        let f_fit = (idx_buf.len() >= 8)
+            .then(|| compute_f21(&pn1, &pn2, &idx_buf))
+            .flatten()
+            .map(|fn_| t2_t * fn_ * t1);
+        if let Some(f21) = f_fit {
+            let s = score_fundamental(
+                &f21,
+                &px1,
+                &px2,
+                inv_sigma2,
+                params.chi2_one_dof,
+                params.chi2_two_dof,
+                &mut cur,
+            );
+            if s > best_sf {
+                best_sf = s;
+                best_f = Some(f21);
+                std::mem::swap(&mut cur, &mut best_f_in);
             }
         }
     }

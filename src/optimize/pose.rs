@@ -246,7 +246,9 @@ pub fn optimize_pose(
     for (i, o) in obs.iter().enumerate() {
         let p = &o.p_world;
         if !valid_obs(&o.uv, o.inv_sigma2)
-            || !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite())
+            || !p.x.is_finite()
+            || !p.y.is_finite()
+            || !p.z.is_finite()
         {
             return Err(OptimizeError::InvalidInput {
                 what: "observation",

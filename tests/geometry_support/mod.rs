@@ -76,8 +76,8 @@ pub fn ba_scene(
         );
         let pw = mid.inverse_transform_point(&Point3::from(pc));
         let mut obs = Vec::with_capacity(obs_per_point);
-        for k in first..first + obs_per_point {
-            let q = poses[k].cam_from_world.transform_point(&pw).coords;
+        for (k, kf) in poses.iter().enumerate().skip(first).take(obs_per_point) {
+            let q = kf.cam_from_world.transform_point(&pw).coords;
             if q.z < 0.5 {
                 break;
             }
