@@ -5,6 +5,7 @@ use nalgebra::Point2;
 
 use super::brief::{BlurScratch, Steerer, gaussian_blur};
 use super::fast::{Corner, FastScratch, Rect, detect};
+use super::noise::estimate_noise_sigma_masked;
 use super::orientation::Disc;
 use super::pyramid::{ResizeScratch, level_size, level_to_level0, resize_bilinear};
 use super::quadtree::{QuadScratch, distribute};
@@ -37,6 +38,8 @@ struct Shared<'a> {
     h0: usize,
     camera: Option<&'a Camera>,
     mask: Option<&'a [u8]>,
+    /// Fallback FAST threshold for this image.
+    low_threshold: u8,
 }
 
 /// ORB extractor with ORB-SLAM's detection, distribution and description.
@@ -172,7 +175,15 @@ impl OrbExtractor {
         out.descriptors.clear();
         let (w0, h0) = (img.width() as usize, img.height() as usize);
         self.build_pyramid(img.as_raw(), w0, h0);
+        let low_threshold = if self.params.noise_threshold_factor > 0.0 {
+            let sigma = estimate_noise_sigma_masked(img.as_raw(), mask, w0, h0, 2, 4);
+            let t = (self.params.noise_threshold_factor * sigma).round();
+            (t.clamp(0.0, 255.0) as u8).clamp(self.params.min_th_fast, self.params.ini_th_fast)
+        } else {
+            self.params.min_th_fast
+        };
         let shared = Shared {
+            low_threshold,
             params: &self.params,
             disc: &self.disc,
             steerer: &self.steerer,
@@ -357,7 +368,7 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         let j = ((c.y as usize - area.y0) / ch).min(n_rows - 1);
         level.cell_counts[j * n_cols + i] += 1;
     }
-    if p.min_th_fast < p.ini_th_fast {
+    if sh.low_threshold < p.ini_th_fast {
         // Horizontal runs of empty cells are scanned as one rectangle: the
         // same corners, fewer partial SIMD chunks and row set-ups.
         for j in 0..n_rows {
@@ -377,7 +388,7 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
                     x1: (area.x0 + i * cw).min(area.x1),
                     y1: (area.y0 + (j + 1) * ch).min(area.y1),
                 };
-                detect(&level.image, w, h, run, p.min_th_fast, &mut level.fast, &mut level.corners);
+                detect(&level.image, w, h, run, sh.low_threshold, &mut level.fast, &mut level.corners);
             }
         }
     }
