@@ -25,6 +25,7 @@ struct Level {
     cell_counts: Vec<u32>,
     quad: QuadScratch,
     selected: Vec<u32>,
+    selected2: Vec<u32>,
     keypoints: Vec<KeyPoint>,
     descriptors: Vec<Descriptor>,
 }
@@ -354,6 +355,7 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         y1: h - edge,
     };
     detect(&level.image, w, h, area, p.ini_th_fast, &mut level.fast, &mut level.corners);
+    let mut n_strong = level.corners.len();
 
     // Cells where the first threshold found nothing get the second.
     let (aw, ah) = (area.x1 - area.x0, area.y1 - area.y0);
@@ -398,20 +400,38 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
     if let Some(mask) = sh.mask {
         let r = (p.patch_size / 2 + 3) as f32 * sx.max(sy);
         let (w0, h0) = (sh.w0, sh.h0);
+        let mut i = 0;
+        let mut kept_strong = 0;
         level.corners.retain(|c| {
             let x = level_to_level0(c.x as f32, w0, w);
             let y = level_to_level0(c.y as f32, h0, h);
-            patch_unmasked(mask, w0, h0, x, y, r)
+            let keep = patch_unmasked(mask, w0, h0, x, y, r);
+            kept_strong += (keep && i < n_strong) as usize;
+            i += 1;
+            keep
         });
+        n_strong = kept_strong;
     }
 
-    distribute(
-        &level.corners,
-        (area.x0 as f32, area.y0 as f32, area.x1 as f32, area.y1 as f32),
-        quota,
-        &mut level.quad,
-        &mut level.selected,
-    );
+    let region = (area.x0 as f32, area.y0 as f32, area.x1 as f32, area.y1 as f32);
+    if p.fallback_fills_only {
+        // The quadtree spreads the first-threshold corners; fallback corners
+        // (from cells where the first threshold found nothing) get a quadtree
+        // of their own over what is left of the level's quota.
+        let (strong, weak) = level.corners.split_at(n_strong);
+        distribute(strong, region, quota, &mut level.quad, &mut level.selected);
+        let missing = quota.saturating_sub(level.selected.len());
+        if missing > 0 && !weak.is_empty() {
+            let first = level.selected.len();
+            distribute(weak, region, missing, &mut level.quad, &mut level.selected2);
+            level
+                .selected
+                .extend(level.selected2.iter().map(|&i| i + n_strong as u32));
+            debug_assert!(level.selected[first..].iter().all(|&i| (i as usize) < level.corners.len()));
+        }
+    } else {
+        distribute(&level.corners, region, quota, &mut level.quad, &mut level.selected);
+    }
     if level.selected.is_empty() {
         return;
     }

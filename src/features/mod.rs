@@ -123,6 +123,13 @@ pub struct Params {
     /// ([`noise::estimate_noise_sigma`]); so noise does not turn flat cells
     /// into random corners. 0 disables (ORB-SLAM's fixed `min_th_fast`).
     pub noise_threshold_factor: f32,
+    /// When true, the quadtree first spreads the corners found with
+    /// `ini_th_fast` over the level's quota, and the fallback corners (cells
+    /// where `ini_th_fast` found nothing) only fill what is left of it, with
+    /// a quadtree of their own. When false, all corners share one quadtree
+    /// (ORB-SLAM), which spreads more but lets weak, less repeatable fallback
+    /// corners displace strong ones.
+    pub fallback_fills_only: bool,
 }
 
 impl Default for Params {
@@ -139,6 +146,7 @@ impl Default for Params {
             level_weight_exponent: 1.0,
             threads: 1,
             noise_threshold_factor: 4.0,
+            fallback_fills_only: true,
         }
     }
 }
