@@ -317,6 +317,66 @@ fn patch_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) -> 
     })
 }
 
+/// The detection cells of a level.
+struct CellGrid {
+    area: Rect,
+    n_cols: usize,
+    n_rows: usize,
+    cw: usize,
+    ch: usize,
+}
+
+/// Detect with the fallback threshold in the cells where the first found
+/// nothing (`level.cell_counts`), appending to `level.corners`. Horizontal
+/// runs of empty cells are scanned as one rectangle: the same corners, fewer
+/// partial SIMD chunks and row set-ups.
+#[inline(always)]
+fn detect_fallback(level: &mut Level, g: &CellGrid, threshold: u8) {
+    let (w, h) = (level.w, level.h);
+    for j in 0..g.n_rows {
+        let mut i = 0;
+        while i < g.n_cols {
+            if level.cell_counts[j * g.n_cols + i] != 0 {
+                i += 1;
+                continue;
+            }
+            let first = i;
+            while i < g.n_cols && level.cell_counts[j * g.n_cols + i] == 0 {
+                i += 1;
+            }
+            let run = Rect {
+                x0: g.area.x0 + first * g.cw,
+                y0: g.area.y0 + j * g.ch,
+                x1: (g.area.x0 + i * g.cw).min(g.area.x1),
+                y1: (g.area.y0 + (j + 1) * g.ch).min(g.area.y1),
+            };
+            detect(&level.image, w, h, run, threshold, &mut level.fast, &mut level.corners);
+        }
+    }
+}
+
+/// Drop the corners from index `from` on whose patch (radius in level-0
+/// pixels: half the patch plus 3, times the level `scale`) reaches a masked
+/// pixel.
+#[inline(always)]
+fn mask_filter(level: &mut Level, from: usize, scale: f32, sh: &Shared) {
+    let Some(mask) = sh.mask else {
+        return;
+    };
+    let r = (sh.params.patch_size / 2 + 3) as f32 * scale;
+    let (w0, h0, w, h) = (sh.w0, sh.h0, level.w, level.h);
+    let mut i = 0;
+    level.corners.retain(|c| {
+        i += 1;
+        if i <= from {
+            return true;
+        }
+        let x = level_to_level0(c.x as f32, w0, w);
+        let y = level_to_level0(c.y as f32, h0, h);
+        patch_unmasked(mask, w0, h0, x, y, r)
+    });
+}
+
 /// Work of one level: detection, distribution, orientation, description.
 /// Runs the AVX2 build of the same code when the CPU has it.
 fn process_level(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
@@ -355,14 +415,12 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         y1: h - edge,
     };
     detect(&level.image, w, h, area, p.ini_th_fast, &mut level.fast, &mut level.corners);
-    let mut n_strong = level.corners.len();
 
     // Cells where the first threshold found nothing get the second.
     let (aw, ah) = (area.x1 - area.x0, area.y1 - area.y0);
     let n_cols = (aw / p.cell_size).max(1);
     let n_rows = (ah / p.cell_size).max(1);
-    let cw = aw.div_ceil(n_cols);
-    let ch = ah.div_ceil(n_rows);
+    let (cw, ch) = (aw.div_ceil(n_cols), ah.div_ceil(n_rows));
     level.cell_counts.clear();
     level.cell_counts.resize(n_cols * n_rows, 0);
     for c in &level.corners {
@@ -370,66 +428,47 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         let j = ((c.y as usize - area.y0) / ch).min(n_rows - 1);
         level.cell_counts[j * n_cols + i] += 1;
     }
-    if sh.low_threshold < p.ini_th_fast {
-        // Horizontal runs of empty cells are scanned as one rectangle: the
-        // same corners, fewer partial SIMD chunks and row set-ups.
-        for j in 0..n_rows {
-            let mut i = 0;
-            while i < n_cols {
-                if level.cell_counts[j * n_cols + i] != 0 {
-                    i += 1;
-                    continue;
-                }
-                let first = i;
-                while i < n_cols && level.cell_counts[j * n_cols + i] == 0 {
-                    i += 1;
-                }
-                let run = Rect {
-                    x0: area.x0 + first * cw,
-                    y0: area.y0 + j * ch,
-                    x1: (area.x0 + i * cw).min(area.x1),
-                    y1: (area.y0 + (j + 1) * ch).min(area.y1),
-                };
-                detect(&level.image, w, h, run, sh.low_threshold, &mut level.fast, &mut level.corners);
-            }
-        }
-    }
-
-    let sx = sh.w0 as f32 / w as f32;
-    let sy = sh.h0 as f32 / h as f32;
-    if let Some(mask) = sh.mask {
-        let r = (p.patch_size / 2 + 3) as f32 * sx.max(sy);
-        let (w0, h0) = (sh.w0, sh.h0);
-        let mut i = 0;
-        let mut kept_strong = 0;
-        level.corners.retain(|c| {
-            let x = level_to_level0(c.x as f32, w0, w);
-            let y = level_to_level0(c.y as f32, h0, h);
-            let keep = patch_unmasked(mask, w0, h0, x, y, r);
-            kept_strong += (keep && i < n_strong) as usize;
-            i += 1;
-            keep
-        });
-        n_strong = kept_strong;
-    }
+    let grid = CellGrid {
+        area,
+        n_cols,
+        n_rows,
+        cw,
+        ch,
+    };
+    let scale = (sh.w0 as f32 / w as f32).max(sh.h0 as f32 / h as f32);
+    mask_filter(level, 0, scale, sh);
+    let n_strong = level.corners.len();
 
     let region = (area.x0 as f32, area.y0 as f32, area.x1 as f32, area.y1 as f32);
+    let has_fallback = sh.low_threshold < p.ini_th_fast;
     if p.fallback_fills_only {
         // The quadtree spreads the first-threshold corners; fallback corners
-        // (from cells where the first threshold found nothing) get a quadtree
-        // of their own over what is left of the level's quota.
-        let (strong, weak) = level.corners.split_at(n_strong);
-        distribute(strong, region, quota, &mut level.quad, &mut level.selected);
+        // (from cells where the first threshold found nothing) are detected
+        // only when those cannot fill the level's quota, and get a quadtree
+        // of their own over what is left of it.
+        distribute(&level.corners, region, quota, &mut level.quad, &mut level.selected);
         let missing = quota.saturating_sub(level.selected.len());
-        if missing > 0 && !weak.is_empty() {
-            let first = level.selected.len();
-            distribute(weak, region, missing, &mut level.quad, &mut level.selected2);
-            level
-                .selected
-                .extend(level.selected2.iter().map(|&i| i + n_strong as u32));
-            debug_assert!(level.selected[first..].iter().all(|&i| (i as usize) < level.corners.len()));
+        if missing > 0 && has_fallback {
+            detect_fallback(level, &grid, sh.low_threshold);
+            mask_filter(level, n_strong, scale, sh);
+            if level.corners.len() > n_strong {
+                distribute(
+                    &level.corners[n_strong..],
+                    region,
+                    missing,
+                    &mut level.quad,
+                    &mut level.selected2,
+                );
+                level
+                    .selected
+                    .extend(level.selected2.iter().map(|&i| i + n_strong as u32));
+            }
         }
     } else {
+        if has_fallback {
+            detect_fallback(level, &grid, sh.low_threshold);
+            mask_filter(level, n_strong, scale, sh);
+        }
         distribute(&level.corners, region, quota, &mut level.quad, &mut level.selected);
     }
     if level.selected.is_empty() {
