@@ -177,7 +177,7 @@ impl OrbExtractor {
         let (w0, h0) = (img.width() as usize, img.height() as usize);
         self.build_pyramid(img.as_raw(), w0, h0);
         let low_threshold = if self.params.noise_threshold_factor > 0.0 {
-            let sigma = estimate_noise_sigma_masked(img.as_raw(), mask, w0, h0, 2, 4);
+            let sigma = estimate_noise_sigma_masked(img.as_raw(), mask, w0, h0, 3, 6);
             let t = (self.params.noise_threshold_factor * sigma).round();
             (t.clamp(0.0, 255.0) as u8).clamp(self.params.min_th_fast, self.params.ini_th_fast)
         } else {

@@ -87,6 +87,8 @@ pub fn resize_bilinear(
     }
     scratch.row.clear();
     scratch.row.resize(sw + 1, 0);
+    // Every pair `row[i], row[i + 1]` read by the gather lies inside `row`.
+    let tables_ok = scratch.xofs.iter().all(|&i| i >= 0 && (i as usize) < sw);
     let row = &mut scratch.row;
     let last = sw - 1;
     for (y, out) in dst.chunks_exact_mut(dw).enumerate() {
@@ -105,7 +107,11 @@ pub fn resize_bilinear(
         }
         row[sw] = row[last];
         // Horizontal gather.
-        let done = hgather(row, &scratch.xofs, &scratch.xw, out);
+        let done = if tables_ok {
+            hgather(row, &scratch.xofs, &scratch.xw, out)
+        } else {
+            0
+        };
         for ((o, &ofs), &wp) in out[done..]
             .iter_mut()
             .zip(&scratch.xofs[done..])
@@ -120,13 +126,15 @@ pub fn resize_bilinear(
 }
 
 /// Horizontal pass with AVX2 gathers, 8 columns at a time; returns how many
-/// leading columns it wrote (0 without AVX2).
+/// leading columns it wrote (0 without AVX2). The caller guarantees
+/// `0 <= xofs[i] < row.len() - 1` for every `i`.
 #[inline(always)]
 fn hgather(row: &[u16], xofs: &[i32], xw: &[u32], out: &mut [u8]) -> usize {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: AVX2 is present (checked just above).
+            // SAFETY: AVX2 is present (checked just above); the offsets are
+            // inside `row`, as this function's caller guarantees.
             return unsafe { hgather_avx2(row, xofs, xw, out) };
         }
     }
@@ -134,22 +142,20 @@ fn hgather(row: &[u16], xofs: &[i32], xw: &[u32], out: &mut [u8]) -> usize {
     0
 }
 
+/// # Safety
+/// The CPU supports AVX2, and `0 <= xofs[i] < row.len() - 1` for every `i`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn hgather_avx2(row: &[u16], xofs: &[i32], xw: &[u32], out: &mut [u8]) -> usize {
+unsafe fn hgather_avx2(row: &[u16], xofs: &[i32], xw: &[u32], out: &mut [u8]) -> usize {
     use std::arch::x86_64::*;
     let n = out.len().min(xofs.len()).min(xw.len()) / 8 * 8;
-    // Every gathered pair `row[i], row[i + 1]` must lie inside `row`.
-    if xofs[..n].iter().any(|&i| i < 0 || i as usize + 1 >= row.len()) {
-        return 0;
-    }
     let base = row.as_ptr() as *const i32;
     let round = _mm256_set1_epi32(1 << 13);
     let mut x = 0;
     while x < n {
         // SAFETY: `x + 8 <= n` bounds the loads and stores; the gathered
         // 4-byte reads at byte offsets `2 i` cover `row[i]` and `row[i + 1]`,
-        // inside `row` (checked above).
+        // inside `row` (the caller's guarantee, checked in `resize_bilinear`).
         unsafe {
             let idx = _mm256_loadu_si256(xofs.as_ptr().add(x) as *const __m256i);
             let wts = _mm256_loadu_si256(xw.as_ptr().add(x) as *const __m256i);
