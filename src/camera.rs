@@ -188,7 +188,10 @@ impl Camera {
         }
         if self.fx <= 0.0 || self.fy <= 0.0 {
             return Err(CameraError::Invalid {
-                reason: format!("focal lengths must be positive (fx {}, fy {})", self.fx, self.fy),
+                reason: format!(
+                    "focal lengths must be positive (fx {}, fy {})",
+                    self.fx, self.fy
+                ),
             });
         }
         Ok(())
@@ -383,7 +386,11 @@ mod tests {
                 let mut e = Vector2::zeros();
                 e[c] = h;
                 let fd = (d.distort(n + e) - d.distort(n - e)) / (2.0 * h);
-                assert!((fd - j.column(c)).norm() < 1e-6, "column {c}: {fd} vs {}", j.column(c));
+                assert!(
+                    (fd - j.column(c)).norm() < 1e-6,
+                    "column {c}: {fd} vs {}",
+                    j.column(c)
+                );
             }
         }
     }
@@ -404,7 +411,13 @@ mod tests {
 
     #[test]
     fn project_matches_hand_computation() {
-        let cam = Camera::new(640, 480, [500.0, 510.0, 320.0, 240.0], Distortion::default()).unwrap();
+        let cam = Camera::new(
+            640,
+            480,
+            [500.0, 510.0, 320.0, 240.0],
+            Distortion::default(),
+        )
+        .unwrap();
         let px = cam.project(&Vector3::new(0.2, -0.1, 2.0)).unwrap();
         assert!((px.x - 370.0).abs() < 1e-12 && (px.y - 214.5).abs() < 1e-12);
         assert!(cam.project(&Vector3::new(0.0, 0.0, -1.0)).is_none());
@@ -422,10 +435,14 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.txt");
         std::fs::write(&p, "# comment\n535.4 539.2 x 247.6 0 0 0 0 0\n").unwrap();
-        let e = Camera::from_calib_file(&p, 640, 480).unwrap_err().to_string();
+        let e = Camera::from_calib_file(&p, 640, 480)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("calib.txt:2") && e.contains("`x`"), "{e}");
         std::fs::write(&p, "535.4 539.2 1\n").unwrap();
-        let e = Camera::from_calib_file(&p, 640, 480).unwrap_err().to_string();
+        let e = Camera::from_calib_file(&p, 640, 480)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("calib.txt:1") && e.contains("found 3"), "{e}");
         std::fs::write(&p, "# nothing\n").unwrap();
         assert!(matches!(
@@ -433,7 +450,9 @@ mod tests {
             Err(CameraError::Empty { .. })
         ));
         let missing = dir.path().join("nope.txt");
-        let e = Camera::from_calib_file(&missing, 640, 480).unwrap_err().to_string();
+        let e = Camera::from_calib_file(&missing, 640, 480)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("nope.txt"), "{e}");
     }
 }
