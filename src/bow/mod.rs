@@ -38,7 +38,7 @@ mod vector;
 mod vocabulary;
 
 pub use database::{Candidate, CandidateParams, KeyFrameDatabase, KeyFrameId, QueryResult};
-pub use io::{FILE_MAGIC, FILE_VERSION};
+pub use io::{FILE_MAGIC, FILE_VERSION, checksum};
 pub use train::{TrainParams, TrainProgress};
 pub use vector::{BowVector, FeatureVector, NodeId, WordId};
 pub use vocabulary::{Scoring, Vocabulary, Weighting};

@@ -275,7 +275,10 @@ impl Vocabulary {
     }
 
     /// The children of a node (empty for a leaf or out of range).
-    pub fn children(&self, node: NodeId) -> impl ExactSizeIterator<Item = NodeId> + use<> {
+    pub fn children(
+        &self,
+        node: NodeId,
+    ) -> impl DoubleEndedIterator<Item = NodeId> + ExactSizeIterator + use<> {
         let n = node.0 as usize;
         let (f, c) = match (self.first_child.get(n), self.child_count.get(n)) {
             (Some(&f), Some(&c)) => (f, u32::from(c)),
@@ -358,28 +361,76 @@ impl Vocabulary {
             Some((level, fv)) => {
                 fv.pairs.clear();
                 fv.pairs.reserve(descriptors.len());
+                self.descend_batch(descriptors, level, &mut bow.entries, Some(&mut fv.pairs));
+                fv.sort();
+            }
+            None => self.descend_batch(descriptors, 0, &mut bow.entries, None),
+        }
+        bow.sort_merge(self.weighting.accumulates());
+        bow.normalize_l1();
+    }
+
+    /// Walk every descriptor down the tree, appending `(word, weight)` and,
+    /// when asked, `(node at level, feature index)` for words of non-zero
+    /// weight. Uses the CPU's popcount instruction when it has one.
+    fn descend_batch(
+        &self,
+        descriptors: &[Descriptor],
+        level: u32,
+        words: &mut Vec<(WordId, f32)>,
+        nodes: Option<&mut Vec<(NodeId, u32)>>,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("popcnt") {
+            // SAFETY: the CPU supports the `popcnt` feature the callee is
+            // compiled for (checked on the line above).
+            unsafe { self.descend_batch_popcnt(descriptors, level, words, nodes) };
+            return;
+        }
+        self.descend_batch_body(descriptors, level, words, nodes);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "popcnt")]
+    fn descend_batch_popcnt(
+        &self,
+        descriptors: &[Descriptor],
+        level: u32,
+        words: &mut Vec<(WordId, f32)>,
+        nodes: Option<&mut Vec<(NodeId, u32)>>,
+    ) {
+        self.descend_batch_body(descriptors, level, words, nodes);
+    }
+
+    #[inline(always)]
+    fn descend_batch_body(
+        &self,
+        descriptors: &[Descriptor],
+        level: u32,
+        words: &mut Vec<(WordId, f32)>,
+        nodes: Option<&mut Vec<(NodeId, u32)>>,
+    ) {
+        match nodes {
+            Some(nodes) => {
                 for (i, d) in descriptors.iter().enumerate() {
                     let (w, node) = self.descend(d, level);
                     let weight = self.word_weight[w as usize];
                     if weight > 0.0 {
-                        bow.entries.push((WordId(w), weight));
-                        fv.pairs.push((NodeId(node), i as u32));
+                        words.push((WordId(w), weight));
+                        nodes.push((NodeId(node), i as u32));
                     }
                 }
-                fv.sort();
             }
             None => {
                 for d in descriptors {
                     let (w, _) = self.descend(d, 0);
                     let weight = self.word_weight[w as usize];
                     if weight > 0.0 {
-                        bow.entries.push((WordId(w), weight));
+                        words.push((WordId(w), weight));
                     }
                 }
             }
         }
-        bow.sort_merge(self.weighting.accumulates());
-        bow.normalize_l1();
     }
 
     /// Score two BoW vectors with the vocabulary's scoring.
