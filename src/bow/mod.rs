@@ -45,10 +45,11 @@ pub use vocabulary::{Scoring, Vocabulary, Weighting};
 
 use std::path::PathBuf;
 
-/// A 256-bit binary descriptor (ORB's rBRIEF), four little-endian 64-bit words.
-pub(crate) type Descriptor = [u64; 4];
+pub(crate) use crate::features::Descriptor;
 
-/// Hamming distance between two 256-bit descriptors.
+/// Hamming distance between two 256-bit descriptors; the same as
+/// [`crate::features::hamming`], but always inlined so that the vocabulary's
+/// popcount-enabled descent compiles it to `popcnt`.
 #[inline(always)]
 pub(crate) fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
     (a[0] ^ b[0]).count_ones()
