@@ -43,14 +43,17 @@ fn image(world: &[Descriptor], pos: usize, rng: &mut SmallRng) -> Vec<Descriptor
         .collect()
 }
 
-fn trained_vocabulary(world: &[Descriptor]) -> Vocabulary {
+fn trained_vocabulary(world: &[Descriptor], levels: u32) -> Vocabulary {
     let mut rng = SmallRng::seed_from_u64(2);
     let images: Vec<Vec<Descriptor>> = (0..60).map(|i| image(world, i * 19, &mut rng)).collect();
     let t = Instant::now();
-    let voc = Vocabulary::train(&images, &TrainParams::default(), &mut |_| {})
-        .expect("training on synthetic data");
+    let params = TrainParams {
+        levels,
+        ..TrainParams::default()
+    };
+    let voc = Vocabulary::train(&images, &params, &mut |_| {}).expect("training on synthetic data");
     eprintln!(
-        "trained k=10 L=6 on 60 x 1000 descriptors in {:.2} s: {} nodes, {} words, {} bytes",
+        "trained k=10 L={levels} on 60 x 1000 descriptors in {:.2} s: {} nodes, {} words, {} bytes",
         t.elapsed().as_secs_f64(),
         voc.node_count(),
         voc.word_count(),
@@ -95,7 +98,7 @@ fn full_tree_text() -> Vec<u8> {
 
 fn bench_bow(c: &mut Criterion) {
     let w = world(1);
-    let voc = trained_vocabulary(&w);
+    let voc = trained_vocabulary(&w, 6);
     let mut rng = SmallRng::seed_from_u64(3);
     let query_img = image(&w, 517, &mut rng);
 
@@ -146,36 +149,84 @@ fn bench_bow(c: &mut Criterion) {
     g.sample_size(30);
 
     // Keyframe database: 1000 keyframes along the trajectory; the query is
-    // an image between two keyframes.
-    let mut db = KeyFrameDatabase::new(voc.word_count());
-    for i in 0..1000u64 {
-        let img = image(&w, i as usize, &mut rng);
-        db.add(KeyFrameId(i), voc.transform(&img)).expect("add");
-    }
-    let q = voc.transform(&query_img);
-    let top = db.query(&q, 10);
-    eprintln!(
-        "query top-3 of 1000 keyframes for position 517: {:?}",
-        &top[..3.min(top.len())]
-    );
-    g.bench_function("db_query_top10_1000kf", |b| {
-        b.iter(|| black_box(db.query(black_box(&q), 10)))
-    });
-    let params = CandidateParams::default();
-    let covisible = |id: KeyFrameId, out: &mut Vec<KeyFrameId>| {
-        // The ten nearest keyframes along the trajectory.
-        let i = id.0 as i64;
-        for d in [1i64, -1, 2, -2, 3, -3, 4, -4, 5, -5] {
-            if (0..1000).contains(&(i + d)) {
-                out.push(KeyFrameId((i + d) as u64));
-            }
+    // an image between two keyframes. With the L = 6 vocabulary (60 000
+    // words) and with an L = 4 one (about 10 000 words: longer inverted
+    // lists, the shipped default's shape).
+    let voc4 = trained_vocabulary(&w, 4);
+    for (name, v) in [("L6", &voc), ("L4", &voc4)] {
+        let mut db = KeyFrameDatabase::new(v.word_count());
+        for i in 0..1000u64 {
+            let img = image(&w, i as usize, &mut rng);
+            db.add(KeyFrameId(i), v.transform(&img)).expect("add");
         }
-    };
-    let cands = db.detect_candidates(&q, &params, |_| false, covisible);
-    eprintln!("covisibility-grouped candidates: {cands:?}");
-    g.bench_function("db_detect_candidates_1000kf", |b| {
-        b.iter(|| black_box(db.detect_candidates(black_box(&q), &params, |_| false, covisible)))
+        let q = v.transform(&query_img);
+        let top = db.query(&q, 10);
+        eprintln!(
+            "{name}: query top-3 of 1000 keyframes for position 517: {:?}",
+            &top[..3.min(top.len())]
+        );
+        g.bench_function(format!("db_query_top10_1000kf_{name}"), |b| {
+            b.iter(|| black_box(db.query(black_box(&q), 10)))
+        });
+        let params = CandidateParams::default();
+        let covisible = |id: KeyFrameId, out: &mut Vec<KeyFrameId>| {
+            // The ten nearest keyframes along the trajectory.
+            let i = id.0 as i64;
+            for d in [1i64, -1, 2, -2, 3, -3, 4, -4, 5, -5] {
+                if (0..1000).contains(&(i + d)) {
+                    out.push(KeyFrameId((i + d) as u64));
+                }
+            }
+        };
+        let cands = db.detect_candidates(&q, &params, |_| false, covisible);
+        eprintln!("{name}: covisibility-grouped candidates: {cands:?}");
+        g.bench_function(format!("db_detect_candidates_1000kf_{name}"), |b| {
+            b.iter(|| black_box(db.detect_candidates(black_box(&q), &params, |_| false, covisible)))
+        });
+    }
+    g.bench_function("transform_1000_trained_k10_L4", |b| {
+        b.iter(|| black_box(voc4.transform(black_box(&query_img))))
     });
+
+    // Real ORB descriptors (TUM fr3/teddy, when ../shared/data is present):
+    // a k = 10, L = 4 vocabulary trained on 20 frames, transform of a frame.
+    if let Some(teddy) = ["../shared/data", "../../shared/data"]
+        .iter()
+        .map(|r| {
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join(r)
+                .join("tum_fr3_teddy_100")
+        })
+        .find(|p| p.is_dir())
+    {
+        let ds = shotpilot::video::dataset::Dataset::open(&teddy).expect("teddy");
+        let mut orb =
+            shotpilot::features::OrbExtractor::new(shotpilot::features::Params::default())
+                .expect("orb");
+        let descs: Vec<Vec<Descriptor>> = (0..ds.len())
+            .step_by(5)
+            .map(|i| {
+                orb.extract(&ds.frame(i).expect("frame").image, None)
+                    .descriptors
+            })
+            .collect();
+        let params = TrainParams {
+            levels: 4,
+            ..TrainParams::default()
+        };
+        let real = Vocabulary::train(&descs, &params, &mut |_| {}).expect("train");
+        let frame = orb
+            .extract(&ds.frame(52).expect("frame").image, None)
+            .descriptors;
+        eprintln!(
+            "teddy: k=10 L=4 vocabulary of {} words; frame 52 has {} descriptors",
+            real.word_count(),
+            frame.len()
+        );
+        g.bench_function("transform_teddy_frame_k10_L4", |b| {
+            b.iter(|| black_box(real.transform_with_features(black_box(&frame), 2)))
+        });
+    }
     g.finish();
 }
 

@@ -74,11 +74,11 @@ struct Entry {
     bow: BowVector,
 }
 
-/// Per-query accumulators, one per slot.
-struct Accumulator {
-    score: Vec<f32>,
-    common: Vec<u32>,
-    touched: Vec<u32>,
+/// Per-query accumulator of one slot: partial L1 score and words in common.
+#[derive(Debug, Clone, Copy, Default)]
+struct Acc {
+    score: f32,
+    common: u32,
 }
 
 /// Inverted index over the BoW vectors of a set of keyframes.
@@ -175,27 +175,34 @@ impl KeyFrameDatabase {
         self.by_id.clear();
     }
 
-    fn accumulate(&self, query: &BowVector) -> Accumulator {
-        let n = self.slots.len();
-        let mut acc = Accumulator {
-            score: vec![0.0; n],
-            common: vec![0; n],
-            touched: Vec::new(),
-        };
+    /// Walk the inverted lists of the query's words, accumulating per slot
+    /// the L1 score `sum min(q_w, v_w)` and the number of common words.
+    fn accumulate(&self, query: &BowVector) -> Vec<Acc> {
+        let mut acc = vec![Acc::default(); self.slots.len()];
         for &(w, q) in &query.entries {
             let Some(list) = self.inverted.get(w.0 as usize) else {
                 continue;
             };
             for p in list {
-                let s = p.slot as usize;
-                if acc.common[s] == 0 {
-                    acc.touched.push(p.slot);
+                // Slots in postings always index `slots` (kept by add/remove).
+                if let Some(a) = acc.get_mut(p.slot as usize) {
+                    a.common += 1;
+                    a.score += q.min(p.weight);
                 }
-                acc.common[s] += 1;
-                acc.score[s] += q.min(p.weight);
             }
         }
         acc
+    }
+
+    /// Slots sharing at least one word, with their live entry.
+    fn touched<'a>(&'a self, acc: &'a [Acc]) -> impl Iterator<Item = (u32, &'a Entry, Acc)> + 'a {
+        acc.iter()
+            .zip(&self.slots)
+            .enumerate()
+            .filter_map(|(s, (a, e))| match e {
+                Some(e) if a.common > 0 => Some((s as u32, e, *a)),
+                _ => None,
+            })
     }
 
     /// The `max_results` keyframes most similar to `query` (L1 score), best
@@ -203,15 +210,11 @@ impl KeyFrameDatabase {
     /// Ties are broken by increasing keyframe id.
     pub fn query(&self, query: &BowVector, max_results: usize) -> Vec<QueryResult> {
         let acc = self.accumulate(query);
-        let mut results: Vec<QueryResult> = acc
-            .touched
-            .iter()
-            .filter_map(|&s| {
-                let e = self.slots[s as usize].as_ref()?;
-                Some(QueryResult {
-                    id: e.id,
-                    score: acc.score[s as usize],
-                })
+        let mut results: Vec<QueryResult> = self
+            .touched(&acc)
+            .map(|(_, e, a)| QueryResult {
+                id: e.id,
+                score: a.score,
             })
             .collect();
         let order =
@@ -255,17 +258,14 @@ impl KeyFrameDatabase {
     ) -> Vec<Candidate> {
         let acc = self.accumulate(query);
         // Step 1: words in common, then scores.
-        let mut sharing: Vec<u32> = Vec::with_capacity(acc.touched.len());
+        let mut sharing: Vec<(u32, Acc)> = Vec::new();
         let mut max_common = 0u32;
-        for &s in &acc.touched {
-            let Some(e) = self.slots[s as usize].as_ref() else {
-                continue;
-            };
+        for (s, e, a) in self.touched(&acc) {
             if excluded(e.id) {
                 continue;
             }
-            max_common = max_common.max(acc.common[s as usize]);
-            sharing.push(s);
+            max_common = max_common.max(a.common);
+            sharing.push((s, a));
         }
         if sharing.is_empty() {
             return Vec::new();
@@ -274,10 +274,9 @@ impl KeyFrameDatabase {
         // Score of each scored candidate slot, negative when not a candidate.
         let mut cand_score = vec![-1.0f32; self.slots.len()];
         let mut scored: Vec<u32> = Vec::new();
-        for &s in &sharing {
-            let (common, score) = (acc.common[s as usize], acc.score[s as usize]);
-            if common as f32 > min_common && score >= params.min_score {
-                cand_score[s as usize] = score;
+        for &(s, a) in &sharing {
+            if a.common as f32 > min_common && a.score >= params.min_score {
+                cand_score[s as usize] = a.score;
                 scored.push(s);
             }
         }
