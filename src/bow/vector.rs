@@ -114,9 +114,8 @@ impl BowVector {
     pub(crate) fn normalize_l1(&mut self) {
         let sum: f64 = self.entries.iter().map(|e| f64::from(e.1.abs())).sum();
         if sum > 0.0 {
-            let inv = (1.0 / sum) as f32;
             for e in &mut self.entries {
-                e.1 *= inv;
+                e.1 = (f64::from(e.1) / sum) as f32;
             }
         }
     }

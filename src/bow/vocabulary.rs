@@ -77,6 +77,10 @@ impl Scoring {
     }
 }
 
+/// Largest word weight accepted (idf weights are `ln(N / n)`, below 25 for
+/// any realistic training set): keeps sums of weights far from overflow.
+pub(crate) const MAX_WORD_WEIGHT: f32 = 1e6;
+
 /// Marks a node that is not a leaf in `node_word`.
 pub(crate) const NO_WORD: u32 = u32::MAX;
 
@@ -201,10 +205,13 @@ impl Vocabulary {
                 return Err(bad(node, "leaf without a word"));
             }
         }
-        if let Some(w) = word_weight.iter().position(|x| !x.is_finite() || *x < 0.0) {
+        if let Some(w) = word_weight
+            .iter()
+            .position(|x| !(0.0..=MAX_WORD_WEIGHT).contains(x))
+        {
             return Err(bad(
                 word_node[w] as usize,
-                "word weight negative or not finite",
+                "word weight outside 0 ..= 1e6 (or not a number)",
             ));
         }
         Ok(Self {
