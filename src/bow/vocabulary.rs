@@ -81,6 +81,9 @@ impl Scoring {
 /// any realistic training set): keeps sums of weights far from overflow.
 pub(crate) const MAX_WORD_WEIGHT: f32 = 1e6;
 
+/// The bytes of the default vocabulary (see [`Vocabulary::builtin`]).
+const BUILTIN_VOCABULARY: &[u8] = include_bytes!("default_k10_L4.bowvoc");
+
 /// Marks a node that is not a leaf in `node_word`.
 pub(crate) const NO_WORD: u32 = u32::MAX;
 
@@ -226,6 +229,13 @@ impl Vocabulary {
             word_node,
             word_weight,
         })
+    }
+
+    /// The vocabulary shipped with shotpilot, embedded in the library.
+    ///
+    #[doc = include_str!("default_vocabulary.md")]
+    pub fn builtin() -> Result<Vocabulary, BowError> {
+        Vocabulary::from_bytes(BUILTIN_VOCABULARY)
     }
 
     /// Branching factor `k`.
@@ -504,6 +514,15 @@ mod tests {
             &[(NodeId(2), 1), (NodeId(3), 0), (NodeId(3), 2)]
         );
         assert!(v.transform(&[]).is_empty());
+    }
+
+    #[test]
+    fn builtin_vocabulary_loads() {
+        let v = Vocabulary::builtin().expect("embedded vocabulary");
+        assert_eq!((v.branching(), v.levels()), (10, 4));
+        assert_eq!((v.node_count(), v.word_count()), (11_111, 10_000));
+        assert_eq!(v.weighting(), Weighting::TfIdf);
+        assert!(v.word_weight.iter().all(|&w| w > 0.0 && w < 10.0));
     }
 
     #[test]
