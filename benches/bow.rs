@@ -188,8 +188,14 @@ fn bench_bow(c: &mut Criterion) {
         b.iter(|| black_box(voc4.transform(black_box(&query_img))))
     });
 
-    // Real ORB descriptors (TUM fr3/teddy, when ../shared/data is present):
-    // a k = 10, L = 4 vocabulary trained on 20 frames, transform of a frame.
+    // The built-in vocabulary (k = 10, L = 4, embedded): load time, and
+    // the transform of a real frame (TUM fr3/teddy frame 52, 1000 ORB
+    // features, when ../shared/data is present).
+    let builtin = Vocabulary::builtin().expect("builtin");
+    let builtin_bytes = builtin.to_bytes();
+    g.bench_function("load_bytes_builtin_k10_L4", |b| {
+        b.iter(|| black_box(Vocabulary::from_bytes(black_box(&builtin_bytes)).expect("load")))
+    });
     if let Some(teddy) = ["../shared/data", "../../shared/data"]
         .iter()
         .map(|r| {
@@ -203,28 +209,15 @@ fn bench_bow(c: &mut Criterion) {
         let mut orb =
             shotpilot::features::OrbExtractor::new(shotpilot::features::Params::default())
                 .expect("orb");
-        let descs: Vec<Vec<Descriptor>> = (0..ds.len())
-            .step_by(5)
-            .map(|i| {
-                orb.extract(&ds.frame(i).expect("frame").image, None)
-                    .descriptors
-            })
-            .collect();
-        let params = TrainParams {
-            levels: 4,
-            ..TrainParams::default()
-        };
-        let real = Vocabulary::train(&descs, &params, &mut |_| {}).expect("train");
         let frame = orb
             .extract(&ds.frame(52).expect("frame").image, None)
             .descriptors;
-        eprintln!(
-            "teddy: k=10 L=4 vocabulary of {} words; frame 52 has {} descriptors",
-            real.word_count(),
-            frame.len()
-        );
-        g.bench_function("transform_teddy_frame_k10_L4", |b| {
-            b.iter(|| black_box(real.transform_with_features(black_box(&frame), 2)))
+        eprintln!("teddy frame 52: {} descriptors", frame.len());
+        g.bench_function("transform_teddy_frame_builtin_k10_L4", |b| {
+            b.iter(|| black_box(builtin.transform(black_box(&frame))))
+        });
+        g.bench_function("transform_with_features_teddy_frame_builtin_k10_L4", |b| {
+            b.iter(|| black_box(builtin.transform_with_features(black_box(&frame), 2)))
         });
     }
     g.finish();

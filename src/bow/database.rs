@@ -87,12 +87,26 @@ struct Acc {
 /// accumulate the L1 score `sum_w min(q_w, v_w)` word by word through the
 /// inverted lists, so they only touch keyframes that share a word with the
 /// query.
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct KeyFrameDatabase {
     inverted: Vec<Vec<Posting>>,
     slots: Vec<Option<Entry>>,
     free: Vec<u32>,
     by_id: HashMap<KeyFrameId, u32>,
+}
+
+/// The sizes only: the index holds a posting per keyframe word.
+impl std::fmt::Debug for KeyFrameDatabase {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("KeyFrameDatabase")
+            .field("keyframes", &self.len())
+            .field("words", &self.inverted.len())
+            .field(
+                "postings",
+                &self.inverted.iter().map(Vec::len).sum::<usize>(),
+            )
+            .finish()
+    }
 }
 
 impl KeyFrameDatabase {

@@ -104,7 +104,7 @@ pub(crate) struct Parts {
 /// contiguous nodes `first_child[n] .. first_child[n] + child_count[n]`, and
 /// every child has a larger id than its parent (so descent always ends).
 /// Leaves (no children) are the words.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Clone, PartialEq)]
 pub struct Vocabulary {
     pub(crate) k: u32,
     pub(crate) levels: u32,
@@ -122,6 +122,20 @@ pub struct Vocabulary {
     pub(crate) word_node: Vec<u32>,
     /// Per word: its weight (idf for TF-IDF).
     pub(crate) word_weight: Vec<f32>,
+}
+
+/// The shape only: a vocabulary has up to millions of nodes.
+impl std::fmt::Debug for Vocabulary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Vocabulary")
+            .field("k", &self.k)
+            .field("levels", &self.levels)
+            .field("weighting", &self.weighting)
+            .field("scoring", &self.scoring)
+            .field("nodes", &self.node_count())
+            .field("words", &self.word_count())
+            .finish()
+    }
 }
 
 impl Vocabulary {
