@@ -168,9 +168,12 @@ impl Vocabulary {
         let n_images = images.len();
         let mut images_with_word = vec![0u32; voc.word_count()];
         let mut last_image = vec![u32::MAX; voc.word_count()];
+        let mut words = Vec::new();
         for (i, img) in images.iter().enumerate() {
-            for d in img.as_ref() {
-                let (w, _) = voc.word_of(d);
+            words.clear();
+            // All weights are 1 here, so every descriptor yields its word.
+            voc.descend_batch(img.as_ref(), 0, &mut words, None);
+            for &(w, _) in &words {
                 let w = w.0 as usize;
                 if last_image[w] != i as u32 {
                     last_image[w] = i as u32;
@@ -224,8 +227,36 @@ impl Clusterer {
     }
 
     /// Split `members` (indices into `all`) into at most `k` non-empty
-    /// clusters, returned with their centroids in seeding order.
+    /// clusters, returned with their centroids in seeding order. Uses the
+    /// CPU's popcount instruction when it has one.
     fn cluster(
+        &mut self,
+        all: &[Descriptor],
+        members: &[u32],
+        rng: &mut StdRng,
+    ) -> Vec<(Descriptor, Vec<u32>)> {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("popcnt") {
+            // SAFETY: the CPU supports the `popcnt` feature the callee is
+            // compiled for (checked on the line above).
+            return unsafe { self.cluster_popcnt(all, members, rng) };
+        }
+        self.cluster_body(all, members, rng)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "popcnt")]
+    fn cluster_popcnt(
+        &mut self,
+        all: &[Descriptor],
+        members: &[u32],
+        rng: &mut StdRng,
+    ) -> Vec<(Descriptor, Vec<u32>)> {
+        self.cluster_body(all, members, rng)
+    }
+
+    #[inline(always)]
+    fn cluster_body(
         &mut self,
         all: &[Descriptor],
         members: &[u32],
@@ -317,6 +348,7 @@ impl Clusterer {
     /// probability proportional to the squared Hamming distance to the
     /// nearest center so far. Stops early when every descriptor coincides
     /// with a center.
+    #[inline(always)]
     fn seed_kmeanspp(
         &mut self,
         all: &[Descriptor],

@@ -404,7 +404,7 @@ impl Vocabulary {
     /// Walk every descriptor down the tree, appending `(word, weight)` and,
     /// when asked, `(node at level, feature index)` for words of non-zero
     /// weight. Uses the CPU's popcount instruction when it has one.
-    fn descend_batch(
+    pub(crate) fn descend_batch(
         &self,
         descriptors: &[Descriptor],
         level: u32,
