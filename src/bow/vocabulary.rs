@@ -84,6 +84,9 @@ pub(crate) const MAX_WORD_WEIGHT: f32 = 1e6;
 /// The bytes of the default vocabulary (see [`Vocabulary::builtin`]).
 const BUILTIN_VOCABULARY: &[u8] = include_bytes!("default_k10_L4.bowvoc");
 
+/// Descriptors walked down the tree together by the batch transform.
+const LANES: usize = 4;
+
 /// Marks a node that is not a leaf in `node_word`.
 pub(crate) const NO_WORD: u32 = u32::MAX;
 
@@ -439,28 +442,64 @@ impl Vocabulary {
         descriptors: &[Descriptor],
         level: u32,
         words: &mut Vec<(WordId, f32)>,
-        nodes: Option<&mut Vec<(NodeId, u32)>>,
+        mut nodes: Option<&mut Vec<(NodeId, u32)>>,
     ) {
-        match nodes {
-            Some(nodes) => {
-                for (i, d) in descriptors.iter().enumerate() {
-                    let (w, node) = self.descend(d, level);
-                    let weight = self.word_weight[w as usize];
-                    if weight > 0.0 {
-                        words.push((WordId(w), weight));
-                        nodes.push((NodeId(node), i as u32));
-                    }
+        let mut emit = |i: usize, w: u32, node: u32| {
+            let weight = self.word_weight[w as usize];
+            if weight > 0.0 {
+                words.push((WordId(w), weight));
+                if let Some(nodes) = nodes.as_deref_mut() {
+                    nodes.push((NodeId(node), i as u32));
                 }
             }
-            None => {
-                for d in descriptors {
-                    let (w, _) = self.descend(d, 0);
-                    let weight = self.word_weight[w as usize];
-                    if weight > 0.0 {
-                        words.push((WordId(w), weight));
+        };
+        // Groups of LANES descriptors descend together, level by level: their
+        // memory accesses are independent, so a large tree's cache misses
+        // overlap instead of queueing.
+        let mut chunks = descriptors.chunks_exact(LANES);
+        let mut base = 0usize;
+        for chunk in &mut chunks {
+            let mut node = [0usize; LANES];
+            let mut at_level = [0u32; LANES];
+            let mut depth = 0u32;
+            loop {
+                let mut moved = false;
+                for lane in 0..LANES {
+                    let count = self.child_count[node[lane]] as usize;
+                    if count == 0 {
+                        continue;
+                    }
+                    moved = true;
+                    let first = self.first_child[node[lane]] as usize;
+                    let children = &self.descriptors[first..first + count];
+                    let d = &chunk[lane];
+                    let mut best = 0usize;
+                    let mut best_dist = u32::MAX;
+                    for (c, child) in children.iter().enumerate() {
+                        let dist = hamming(d, child);
+                        if dist < best_dist {
+                            best_dist = dist;
+                            best = c;
+                        }
+                    }
+                    node[lane] = first + best;
+                    if depth < level {
+                        at_level[lane] = node[lane] as u32;
                     }
                 }
+                if !moved {
+                    break;
+                }
+                depth += 1;
             }
+            for lane in 0..LANES {
+                emit(base + lane, self.node_word[node[lane]], at_level[lane]);
+            }
+            base += LANES;
+        }
+        for (k, d) in chunks.remainder().iter().enumerate() {
+            let (w, node) = self.descend(d, level);
+            emit(base + k, w, node);
         }
     }
 
@@ -528,6 +567,40 @@ mod tests {
             &[(NodeId(2), 1), (NodeId(3), 0), (NodeId(3), 2)]
         );
         assert!(v.transform(&[]).is_empty());
+    }
+
+    #[test]
+    fn batch_descent_agrees_with_single_descent() {
+        use rand::rngs::SmallRng;
+        use rand::{Rng, SeedableRng};
+        let mut rng = SmallRng::seed_from_u64(4);
+        let images: Vec<Vec<Descriptor>> = (0..3)
+            .map(|_| (0..400).map(|_| rng.random()).collect())
+            .collect();
+        let params = crate::bow::TrainParams {
+            k: 5,
+            levels: 4,
+            seed: 1,
+            max_iterations: 10,
+        };
+        let v = Vocabulary::train(&images, &params, &mut |_| {}).expect("train");
+        // 103 descriptors: 25 groups of 4 and a remainder of 3.
+        let probe: Vec<Descriptor> = (0..103).map(|_| rng.random()).collect();
+        let mut words = Vec::new();
+        let mut nodes = Vec::new();
+        v.descend_batch(&probe, 2, &mut words, Some(&mut nodes));
+        let single: Vec<(u32, u32)> = probe
+            .iter()
+            .map(|d| v.descend(d, 2))
+            .filter(|&(w, _)| v.word_weight[w as usize] > 0.0)
+            .collect();
+        let batch: Vec<(u32, u32)> = words
+            .iter()
+            .zip(&nodes)
+            .map(|(w, n)| (w.0.0, n.0.0))
+            .collect();
+        assert!(single.len() > 50);
+        assert_eq!(batch, single);
     }
 
     #[test]
