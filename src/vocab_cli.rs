@@ -9,7 +9,7 @@ use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
-use shotpilot::bow::{TrainParams, Vocabulary};
+use shotpilot::bow::{TrainParams, TrainPhase, Vocabulary};
 use shotpilot::features::{self, OrbExtractor};
 use shotpilot::video::dataset::{Dataset, DatasetError, load_gray};
 
@@ -196,12 +196,12 @@ fn train(a: TrainArgs) -> Result<()> {
         max_iterations: a.max_iterations,
     };
     let t1 = Instant::now();
-    let mut pb = bar(1, "clustering");
-    let mut phase = "clustering";
+    let mut pb = bar(1, TrainPhase::Clustering.name());
+    let mut phase = TrainPhase::Clustering;
     let voc = Vocabulary::train(&images, &params, &mut |p| {
         if p.phase != phase {
             pb.finish_and_clear();
-            pb = bar(p.total, p.phase);
+            pb = bar(p.total, p.phase.name());
             phase = p.phase;
         }
         pb.set_length(p.total);

@@ -39,7 +39,7 @@ mod vocabulary;
 
 pub use database::{Candidate, CandidateParams, KeyFrameDatabase, KeyFrameId, QueryResult};
 pub use io::{FILE_MAGIC, FILE_VERSION, checksum};
-pub use train::{TrainParams, TrainProgress};
+pub use train::{TrainParams, TrainPhase, TrainProgress};
 pub use vector::{BowVector, FeatureVector, NodeId, WordId};
 pub use vocabulary::{Scoring, Vocabulary, Weighting};
 

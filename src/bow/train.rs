@@ -34,12 +34,30 @@ impl Default for TrainParams {
     }
 }
 
+/// The phases of a training run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TrainPhase {
+    /// Building the tree; units are descriptor-levels.
+    Clustering,
+    /// Counting the images each word occurs in; units are images.
+    Weighting,
+}
+
+impl TrainPhase {
+    /// A short lower-case name.
+    pub fn name(self) -> &'static str {
+        match self {
+            TrainPhase::Clustering => "clustering",
+            TrainPhase::Weighting => "weighting",
+        }
+    }
+}
+
 /// Progress of a training run, reported through the caller's callback.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct TrainProgress {
-    /// `"clustering"` (units: descriptor-levels) or `"weighting"` (units:
-    /// images).
-    pub phase: &'static str,
+    /// The phase running.
+    pub phase: TrainPhase,
     /// Units done.
     pub done: u64,
     /// Units in the phase (for clustering an upper bound, `descriptors * L`,
@@ -114,7 +132,7 @@ impl Vocabulary {
         let clustering_total = total as u64 * u64::from(params.levels);
         let mut done = 0u64;
         progress(TrainProgress {
-            phase: "clustering",
+            phase: TrainPhase::Clustering,
             done,
             total: clustering_total,
         });
@@ -142,7 +160,7 @@ impl Vocabulary {
                 }
             }
             progress(TrainProgress {
-                phase: "clustering",
+                phase: TrainPhase::Clustering,
                 done,
                 total: clustering_total,
             });
@@ -181,7 +199,7 @@ impl Vocabulary {
                 }
             }
             progress(TrainProgress {
-                phase: "weighting",
+                phase: TrainPhase::Weighting,
                 done: i as u64 + 1,
                 total: n_images as u64,
             });
