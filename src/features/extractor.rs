@@ -167,13 +167,7 @@ impl OrbExtractor {
         Ok(())
     }
 
-    fn run(
-        &mut self,
-        img: &GrayImage,
-        mask: Option<&[u8]>,
-        camera: Option<&Camera>,
-        out: &mut Features,
-    ) {
+    fn run(&mut self, img: &GrayImage, mask: Option<&[u8]>, camera: Option<&Camera>, out: &mut Features) {
         out.keypoints.clear();
         out.descriptors.clear();
         let (w0, h0) = (img.width() as usize, img.height() as usize);
@@ -251,9 +245,7 @@ impl OrbExtractor {
                 level.w = w0;
                 level.h = h0;
                 level.image.clear();
-                level
-                    .image
-                    .extend_from_slice(&raw[..(w0 * h0).min(raw.len())]);
+                level.image.extend_from_slice(&raw[..(w0 * h0).min(raw.len())]);
                 level.image.resize(w0 * h0, 0);
                 continue;
             }
@@ -262,15 +254,7 @@ impl OrbExtractor {
             let dst = &mut rest[0];
             dst.w = w;
             dst.h = h;
-            resize_bilinear(
-                &src.image,
-                src.w,
-                src.h,
-                &mut dst.image,
-                w,
-                h,
-                &mut self.resize,
-            );
+            resize_bilinear(&src.image, src.w, src.h, &mut dst.image, w, h, &mut self.resize);
         }
     }
 }
@@ -317,8 +301,7 @@ fn patch_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) -> 
         if px < 0.0 || py < 0.0 || px >= w0 as f32 || py >= h0 as f32 {
             return false;
         }
-        mask.get(py as usize * w0 + px as usize)
-            .is_some_and(|&m| m != 0)
+        mask.get(py as usize * w0 + px as usize).is_some_and(|&m| m != 0)
     })
 }
 
@@ -359,15 +342,7 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         x1: w - edge,
         y1: h - edge,
     };
-    detect(
-        &level.image,
-        w,
-        h,
-        area,
-        p.ini_th_fast,
-        &mut level.fast,
-        &mut level.corners,
-    );
+    detect(&level.image, w, h, area, p.ini_th_fast, &mut level.fast, &mut level.corners);
 
     // Cells where the first threshold found nothing get the second.
     let (aw, ah) = (area.x1 - area.x0, area.y1 - area.y0);
@@ -392,15 +367,7 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
                         x1: (area.x0 + (i + 1) * cw).min(area.x1),
                         y1: (area.y0 + (j + 1) * ch).min(area.y1),
                     };
-                    detect(
-                        &level.image,
-                        w,
-                        h,
-                        cell,
-                        p.min_th_fast,
-                        &mut level.fast,
-                        &mut level.corners,
-                    );
+                    detect(&level.image, w, h, cell, p.min_th_fast, &mut level.fast, &mut level.corners);
                 }
             }
         }
@@ -420,12 +387,7 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
 
     distribute(
         &level.corners,
-        (
-            area.x0 as f32,
-            area.y0 as f32,
-            area.x1 as f32,
-            area.y1 as f32,
-        ),
+        (area.x0 as f32, area.y0 as f32, area.x1 as f32, area.y1 as f32),
         quota,
         &mut level.quad,
         &mut level.selected,
@@ -478,10 +440,7 @@ mod tests {
         }
         let q = features_per_level(1000, 8, 1.2, 2.0);
         assert_eq!(q.iter().sum::<usize>(), 1000);
-        assert!(
-            (q[1] as f32 / q[0] as f32 - 1.0 / 1.44).abs() < 0.02,
-            "{q:?}"
-        );
+        assert!((q[1] as f32 / q[0] as f32 - 1.0 / 1.44).abs() < 0.02, "{q:?}");
         let q = features_per_level(100, 4, 1.2, 0.0);
         assert_eq!(q, vec![25, 25, 25, 25]);
     }

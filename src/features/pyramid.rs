@@ -105,12 +105,7 @@ pub fn resize_bilinear(
             debug_assert!(i < sw);
             // SAFETY: `source_pos` returns offsets below `sw - 1` (or 0 when
             // `sw < 2`), and `row` holds `sw + 1` values.
-            let (a, b) = unsafe {
-                (
-                    *row.get_unchecked(i) as u32,
-                    *row.get_unchecked(i + 1) as u32,
-                )
-            };
+            let (a, b) = unsafe { (*row.get_unchecked(i) as u32, *row.get_unchecked(i + 1) as u32) };
             let v = a * (256 - wx as u32) + b * wx as u32;
             *o = ((v + (1 << 15)) >> 16) as u8;
         }
