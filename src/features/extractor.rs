@@ -5,6 +5,7 @@ use nalgebra::Point2;
 
 use super::brief::{BlurScratch, Steerer, gaussian_blur};
 use super::fast::{Corner, FastScratch, Rect, detect};
+use super::noise::estimate_noise_sigma_masked;
 use super::orientation::Disc;
 use super::pyramid::{ResizeScratch, level_size, level_to_level0, resize_bilinear};
 use super::quadtree::{QuadScratch, distribute};
@@ -24,6 +25,7 @@ struct Level {
     cell_counts: Vec<u32>,
     quad: QuadScratch,
     selected: Vec<u32>,
+    selected2: Vec<u32>,
     keypoints: Vec<KeyPoint>,
     descriptors: Vec<Descriptor>,
 }
@@ -37,6 +39,8 @@ struct Shared<'a> {
     h0: usize,
     camera: Option<&'a Camera>,
     mask: Option<&'a [u8]>,
+    /// Fallback FAST threshold for this image.
+    low_threshold: u8,
 }
 
 /// ORB extractor with ORB-SLAM's detection, distribution and description.
@@ -172,7 +176,15 @@ impl OrbExtractor {
         out.descriptors.clear();
         let (w0, h0) = (img.width() as usize, img.height() as usize);
         self.build_pyramid(img.as_raw(), w0, h0);
+        let low_threshold = if self.params.noise_threshold_factor > 0.0 {
+            let sigma = estimate_noise_sigma_masked(img.as_raw(), mask, w0, h0, 2, 4);
+            let t = (self.params.noise_threshold_factor * sigma).round();
+            (t.clamp(0.0, 255.0) as u8).clamp(self.params.min_th_fast, self.params.ini_th_fast)
+        } else {
+            self.params.min_th_fast
+        };
         let shared = Shared {
+            low_threshold,
             params: &self.params,
             disc: &self.disc,
             steerer: &self.steerer,
@@ -343,6 +355,7 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         y1: h - edge,
     };
     detect(&level.image, w, h, area, p.ini_th_fast, &mut level.fast, &mut level.corners);
+    let mut n_strong = level.corners.len();
 
     // Cells where the first threshold found nothing get the second.
     let (aw, ah) = (area.x1 - area.x0, area.y1 - area.y0);
@@ -357,18 +370,27 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         let j = ((c.y as usize - area.y0) / ch).min(n_rows - 1);
         level.cell_counts[j * n_cols + i] += 1;
     }
-    if p.min_th_fast < p.ini_th_fast {
+    if sh.low_threshold < p.ini_th_fast {
+        // Horizontal runs of empty cells are scanned as one rectangle: the
+        // same corners, fewer partial SIMD chunks and row set-ups.
         for j in 0..n_rows {
-            for i in 0..n_cols {
-                if level.cell_counts[j * n_cols + i] == 0 {
-                    let cell = Rect {
-                        x0: area.x0 + i * cw,
-                        y0: area.y0 + j * ch,
-                        x1: (area.x0 + (i + 1) * cw).min(area.x1),
-                        y1: (area.y0 + (j + 1) * ch).min(area.y1),
-                    };
-                    detect(&level.image, w, h, cell, p.min_th_fast, &mut level.fast, &mut level.corners);
+            let mut i = 0;
+            while i < n_cols {
+                if level.cell_counts[j * n_cols + i] != 0 {
+                    i += 1;
+                    continue;
                 }
+                let first = i;
+                while i < n_cols && level.cell_counts[j * n_cols + i] == 0 {
+                    i += 1;
+                }
+                let run = Rect {
+                    x0: area.x0 + first * cw,
+                    y0: area.y0 + j * ch,
+                    x1: (area.x0 + i * cw).min(area.x1),
+                    y1: (area.y0 + (j + 1) * ch).min(area.y1),
+                };
+                detect(&level.image, w, h, run, sh.low_threshold, &mut level.fast, &mut level.corners);
             }
         }
     }
@@ -378,20 +400,38 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
     if let Some(mask) = sh.mask {
         let r = (p.patch_size / 2 + 3) as f32 * sx.max(sy);
         let (w0, h0) = (sh.w0, sh.h0);
+        let mut i = 0;
+        let mut kept_strong = 0;
         level.corners.retain(|c| {
             let x = level_to_level0(c.x as f32, w0, w);
             let y = level_to_level0(c.y as f32, h0, h);
-            patch_unmasked(mask, w0, h0, x, y, r)
+            let keep = patch_unmasked(mask, w0, h0, x, y, r);
+            kept_strong += (keep && i < n_strong) as usize;
+            i += 1;
+            keep
         });
+        n_strong = kept_strong;
     }
 
-    distribute(
-        &level.corners,
-        (area.x0 as f32, area.y0 as f32, area.x1 as f32, area.y1 as f32),
-        quota,
-        &mut level.quad,
-        &mut level.selected,
-    );
+    let region = (area.x0 as f32, area.y0 as f32, area.x1 as f32, area.y1 as f32);
+    if p.fallback_fills_only {
+        // The quadtree spreads the first-threshold corners; fallback corners
+        // (from cells where the first threshold found nothing) get a quadtree
+        // of their own over what is left of the level's quota.
+        let (strong, weak) = level.corners.split_at(n_strong);
+        distribute(strong, region, quota, &mut level.quad, &mut level.selected);
+        let missing = quota.saturating_sub(level.selected.len());
+        if missing > 0 && !weak.is_empty() {
+            let first = level.selected.len();
+            distribute(weak, region, missing, &mut level.quad, &mut level.selected2);
+            level
+                .selected
+                .extend(level.selected2.iter().map(|&i| i + n_strong as u32));
+            debug_assert!(level.selected[first..].iter().all(|&i| (i as usize) < level.corners.len()));
+        }
+    } else {
+        distribute(&level.corners, region, quota, &mut level.quad, &mut level.selected);
+    }
     if level.selected.is_empty() {
         return;
     }

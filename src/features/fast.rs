@@ -87,9 +87,15 @@ fn longest_run(rows: &[&[u8]; 7], xs: usize, bound: &[u8; L], brighter: bool, be
     let mut m = [[0u8; L]; 16];
     for (k, &(dx, dy)) in CIRCLE.iter().enumerate() {
         let p = load(rows[(dy + 3) as usize], (xs as i32 + dx) as usize);
+        // 0xff where the pixel lies beyond the bound: a saturating
+        // difference is non-zero exactly there.
         for i in 0..L {
-            let set = if brighter { p[i] > bound[i] } else { p[i] < bound[i] };
-            m[k][i] = if set { 0xff } else { 0 };
+            let d = if brighter {
+                p[i].saturating_sub(bound[i])
+            } else {
+                bound[i].saturating_sub(p[i])
+            };
+            m[k][i] = if d == 0 { 0 } else { 0xff };
         }
     }
     let mut run = [0u8; L];

@@ -15,6 +15,7 @@
 //! | [`pyramid`] | bilinear downscaling between pyramid levels |
 //! | [`fast`] | FAST-9 detection with score and 3x3 non-maximum suppression |
 //! | [`quadtree`] | ORB-SLAM's quadtree distribution |
+//! | [`noise`] | noise level, for the noise-adaptive fallback threshold |
 //! | [`orientation`] | intensity-centroid angle |
 //! | [`brief`] | Gaussian blur and steered BRIEF |
 //! | [`pattern`] | the learned ORB test pattern |
@@ -25,6 +26,7 @@ pub mod brief;
 pub mod eval;
 pub mod extractor;
 pub mod fast;
+pub mod noise;
 pub mod orientation;
 pub mod pattern;
 pub mod pyramid;
@@ -115,6 +117,19 @@ pub struct Params {
     pub level_weight_exponent: f32,
     /// Worker threads for one image (1 or 2): levels are split among them.
     pub threads: usize,
+    /// Noise-adaptive fallback threshold: the threshold used in cells where
+    /// `ini_th_fast` finds nothing is `max(min_th_fast, k * noise)`, capped at
+    /// `ini_th_fast`, with `noise` the image's estimated noise deviation
+    /// ([`noise::estimate_noise_sigma`]); so noise does not turn flat cells
+    /// into random corners. 0 disables (ORB-SLAM's fixed `min_th_fast`).
+    pub noise_threshold_factor: f32,
+    /// When true, the quadtree first spreads the corners found with
+    /// `ini_th_fast` over the level's quota, and the fallback corners (cells
+    /// where `ini_th_fast` found nothing) only fill what is left of it, with
+    /// a quadtree of their own. When false, all corners share one quadtree
+    /// (ORB-SLAM), which spreads more but lets weak, less repeatable fallback
+    /// corners displace strong ones.
+    pub fallback_fills_only: bool,
 }
 
 impl Default for Params {
@@ -130,6 +145,8 @@ impl Default for Params {
             patch_size: 31,
             level_weight_exponent: 1.0,
             threads: 1,
+            noise_threshold_factor: 4.0,
+            fallback_fills_only: true,
         }
     }
 }
@@ -206,6 +223,13 @@ impl Params {
                 "level_weight_exponent",
                 self.level_weight_exponent.to_string(),
                 "must be in [0, 4]",
+            );
+        }
+        if !(0.0..=50.0).contains(&self.noise_threshold_factor) {
+            return bad(
+                "noise_threshold_factor",
+                self.noise_threshold_factor.to_string(),
+                "must be in [0, 50]",
             );
         }
         if self.threads == 0 || self.threads > 2 {

@@ -28,11 +28,16 @@ pub fn level_to_level0(v: f32, extent0: usize, extent_level: usize) -> f32 {
     (v + 0.5) * (extent0 as f32 / extent_level as f32) - 0.5
 }
 
+/// Interpolation weights are fixed point with this unit (7 bits), so that a
+/// vertically blended value (`<= 255 * 128`) fits a signed 16-bit lane.
+const WEIGHT_ONE: u16 = 128;
+
 /// Reusable tables and row buffer of [`resize_bilinear`].
 #[derive(Debug, Default, Clone)]
 pub struct ResizeScratch {
-    xofs: Vec<u32>,
-    xw: Vec<u16>,
+    xofs: Vec<i32>,
+    /// Weight pairs `(1 - w) | w << 16` per destination column.
+    xw: Vec<u32>,
     row: Vec<u16>,
 }
 
@@ -43,9 +48,9 @@ fn source_pos(d: usize, ratio: f64, src_extent: usize) -> (usize, u16) {
     }
     let i = f.floor() as usize;
     if i >= src_extent - 1 {
-        return (src_extent - 2, 256);
+        return (src_extent - 2, WEIGHT_ONE);
     }
-    let w = ((f - i as f64) * 256.0).round() as u16;
+    let w = ((f - i as f64) * WEIGHT_ONE as f64).round() as u16;
     (i, w)
 }
 
@@ -77,8 +82,8 @@ pub fn resize_bilinear(
     scratch.xw.clear();
     for x in 0..dw {
         let (i, w) = source_pos(x, rx, sw);
-        scratch.xofs.push(i as u32);
-        scratch.xw.push(w);
+        scratch.xofs.push(i as i32);
+        scratch.xw.push((WEIGHT_ONE - w) as u32 | (w as u32) << 16);
     }
     scratch.row.clear();
     scratch.row.resize(sw + 1, 0);
@@ -93,23 +98,74 @@ pub fn resize_bilinear(
             r0
         };
         let wy1 = wy;
-        let wy0 = 256 - wy;
-        // Vertical blend of two whole rows: value * 256 fits u16.
+        let wy0 = WEIGHT_ONE - wy;
+        // Vertical blend of two whole rows: value * 128 fits i16.
         for ((o, &a), &b) in row[..sw].iter_mut().zip(r0).zip(r1) {
             *o = a as u16 * wy0 + b as u16 * wy1;
         }
         row[sw] = row[last];
         // Horizontal gather.
-        for ((o, &ofs), &wx) in out.iter_mut().zip(&scratch.xofs).zip(&scratch.xw) {
+        let done = hgather(row, &scratch.xofs, &scratch.xw, out);
+        for ((o, &ofs), &wp) in out[done..]
+            .iter_mut()
+            .zip(&scratch.xofs[done..])
+            .zip(&scratch.xw[done..])
+        {
             let i = ofs as usize;
-            debug_assert!(i < sw);
-            // SAFETY: `source_pos` returns offsets below `sw - 1` (or 0 when
-            // `sw < 2`), and `row` holds `sw + 1` values.
-            let (a, b) = unsafe { (*row.get_unchecked(i) as u32, *row.get_unchecked(i + 1) as u32) };
-            let v = a * (256 - wx as u32) + b * wx as u32;
-            *o = ((v + (1 << 15)) >> 16) as u8;
+            let (a, b) = (row[i] as u32, row[i + 1] as u32);
+            let v = a * (wp & 0xffff) + b * (wp >> 16);
+            *o = ((v + (1 << 13)) >> 14) as u8;
         }
     }
+}
+
+/// Horizontal pass with AVX2 gathers, 8 columns at a time; returns how many
+/// leading columns it wrote (0 without AVX2).
+#[inline(always)]
+fn hgather(row: &[u16], xofs: &[i32], xw: &[u32], out: &mut [u8]) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 is present (checked just above).
+            return unsafe { hgather_avx2(row, xofs, xw, out) };
+        }
+    }
+    let _ = (row, xofs, xw, out);
+    0
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn hgather_avx2(row: &[u16], xofs: &[i32], xw: &[u32], out: &mut [u8]) -> usize {
+    use std::arch::x86_64::*;
+    let n = out.len().min(xofs.len()).min(xw.len()) / 8 * 8;
+    // Every gathered pair `row[i], row[i + 1]` must lie inside `row`.
+    if xofs[..n].iter().any(|&i| i < 0 || i as usize + 1 >= row.len()) {
+        return 0;
+    }
+    let base = row.as_ptr() as *const i32;
+    let round = _mm256_set1_epi32(1 << 13);
+    let mut x = 0;
+    while x < n {
+        // SAFETY: `x + 8 <= n` bounds the loads and stores; the gathered
+        // 4-byte reads at byte offsets `2 i` cover `row[i]` and `row[i + 1]`,
+        // inside `row` (checked above).
+        unsafe {
+            let idx = _mm256_loadu_si256(xofs.as_ptr().add(x) as *const __m256i);
+            let wts = _mm256_loadu_si256(xw.as_ptr().add(x) as *const __m256i);
+            let pairs = _mm256_i32gather_epi32::<2>(base, idx);
+            let v = _mm256_srai_epi32::<14>(_mm256_add_epi32(_mm256_madd_epi16(pairs, wts), round));
+            let v16 = _mm256_packus_epi32(v, v);
+            let v8 = _mm256_packus_epi16(v16, v16);
+            let lo = _mm_cvtsi128_si32(_mm256_castsi256_si128(v8));
+            let hi = _mm_cvtsi128_si32(_mm256_extracti128_si256::<1>(v8));
+            let dst = out.as_mut_ptr().add(x);
+            std::ptr::write_unaligned(dst as *mut i32, lo);
+            std::ptr::write_unaligned(dst.add(4) as *mut i32, hi);
+        }
+        x += 8;
+    }
+    n
 }
 
 #[cfg(test)]
