@@ -5,3 +5,6 @@
 //! a MAVLink 2 autopilot and an MJPEG video server. This crate never
 //! depends on `shotpilot`: its camera projection is its own code, an
 //! independent check on the daemon's camera model.
+
+pub mod geodesy;
+pub mod vehicle;
