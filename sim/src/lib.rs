@@ -6,5 +6,6 @@
 //! depends on `shotpilot`: its camera projection is its own code, an
 //! independent check on the daemon's camera model.
 
+pub mod autopilot;
 pub mod geodesy;
 pub mod vehicle;

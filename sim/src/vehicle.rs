@@ -262,7 +262,7 @@ impl Vehicle {
             } => {
                 let v = self.position_velocity(&p_ned, max_speed);
                 let yr = match yaw {
-                    Some(y) => (p.yaw_gain * wrap_pi(y - self.yaw)),
+                    Some(y) => p.yaw_gain * wrap_pi(y - self.yaw),
                     None => 0.0,
                 };
                 (v, yr, false)
