@@ -8,4 +8,5 @@
 
 pub mod autopilot;
 pub mod geodesy;
+pub mod link;
 pub mod vehicle;
