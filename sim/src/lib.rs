@@ -9,4 +9,5 @@
 pub mod autopilot;
 pub mod geodesy;
 pub mod link;
+pub mod script;
 pub mod vehicle;

@@ -247,6 +247,15 @@ impl Vehicle {
         }
     }
 
+    /// Put the gimbal at an attitude at once (scripted starts, before the
+    /// first frame), clamped to its ranges.
+    pub fn snap_gimbal(&mut self, pitch_deg: f64, yaw_deg: f64) {
+        self.set_gimbal_target(pitch_deg, yaw_deg);
+        self.gimbal_pitch = self.gimbal_target_pitch;
+        self.gimbal_yaw = self.gimbal_target_yaw;
+        self.gimbal_rate = (0.0, 0.0);
+    }
+
     /// Advance the model by `dt` seconds.
     pub fn step(&mut self, dt: f64) {
         if !(dt > 0.0) || !dt.is_finite() {
