@@ -5,3 +5,9 @@
 //! a MAVLink 2 autopilot and an MJPEG video server. This crate never
 //! depends on `shotpilot`: its camera projection is its own code, an
 //! independent check on the daemon's camera model.
+
+// World, camera, renderer, paths, datasets and video (simworld).
+pub mod camera;
+pub mod render;
+pub mod texture;
+pub mod world;
