@@ -6,8 +6,15 @@
 //! depends on `shotpilot`: its camera projection is its own code, an
 //! independent check on the daemon's camera model.
 
+// Vehicle, autopilot, link, scripts and the app (simvehicle).
 pub mod autopilot;
 pub mod geodesy;
 pub mod link;
 pub mod script;
 pub mod vehicle;
+
+// World, camera, renderer, paths, datasets and video (simworld).
+pub mod camera;
+pub mod render;
+pub mod texture;
+pub mod world;
