@@ -7,6 +7,7 @@
 //! independent check on the daemon's camera model.
 
 // Vehicle, autopilot, link, scripts and the app (simvehicle).
+pub mod app;
 pub mod autopilot;
 pub mod geodesy;
 pub mod link;
