@@ -129,17 +129,32 @@ impl SimConfig {
             })
         };
         if !(self.video_fps > 0.0 && self.video_fps <= 120.0) {
-            return bad("video_fps", self.video_fps.to_string(), "must be in (0, 120]");
+            return bad(
+                "video_fps",
+                self.video_fps.to_string(),
+                "must be in (0, 120]",
+            );
         }
         if !(self.step_hz >= 10.0 && self.step_hz <= 1000.0) {
             return bad("step_hz", self.step_hz.to_string(), "must be in [10, 1000]");
         }
         if !(1..=100).contains(&self.jpeg_quality) {
-            return bad("jpeg_quality", self.jpeg_quality.to_string(), "must be 1-100");
+            return bad(
+                "jpeg_quality",
+                self.jpeg_quality.to_string(),
+                "must be 1-100",
+            );
         }
-        for (name, p) in [("drop up", self.radio.up.drop), ("drop down", self.radio.down.drop)] {
+        for (name, p) in [
+            ("drop up", self.radio.up.drop),
+            ("drop down", self.radio.down.drop),
+        ] {
             if !(0.0..=1.0).contains(&p) {
-                return bad("radio", format!("{name} {p}"), "probability must be in [0, 1]");
+                return bad(
+                    "radio",
+                    format!("{name} {p}"),
+                    "probability must be in [0, 1]",
+                );
             }
         }
         Ok(())
@@ -305,7 +320,9 @@ pub async fn run_with(
             let dir = config.capture_dir.clone();
             let q = config.jpeg_quality;
             let tx = cap_tx.clone();
-            let noise = config.sensor_noise.then_some(config.seed ^ 0xCA9 ^ req.index as u64);
+            let noise = config
+                .sensor_noise
+                .then_some(config.seed ^ 0xCA9 ^ req.index as u64);
             tokio::task::spawn_blocking(move || {
                 let url = match write_capture(&renderer, &req, &dir, q, noise) {
                     Ok(p) => Some(format!("file://{}", p.display())),
@@ -327,7 +344,8 @@ pub async fn run_with(
         while frame_done_rx.try_recv().is_ok() {
             render_in_flight = false;
         }
-        if t + 1e-9 >= next_frame_t {
+        let want_frames = video_tx.receiver_count() > 0 || config.truth_dir.is_some();
+        if want_frames && t + 1e-9 >= next_frame_t {
             next_frame_t += frame_dt;
             if next_frame_t < t {
                 next_frame_t = t + frame_dt;
@@ -343,7 +361,9 @@ pub async fn run_with(
                 let tx = video_tx.clone();
                 let done = frame_done_tx.clone();
                 let q = config.jpeg_quality;
-                let noise = config.sensor_noise.then_some(config.seed ^ seq.wrapping_mul(0x9E37_79B9));
+                let noise = config
+                    .sensor_noise
+                    .then_some(config.seed ^ seq.wrapping_mul(0x9E37_79B9));
                 let capture_time = unix_at_boot + t;
                 tokio::task::spawn_blocking(move || {
                     let img = match noise {

@@ -106,7 +106,11 @@ struct Cli {
     truth_dir: Option<PathBuf>,
 
     /// Home position as LAT,LON,ALT (degrees, degrees, metres AMSL).
-    #[arg(long, default_value = "47.397742,8.545594,488.0", value_name = "LAT,LON,ALT")]
+    #[arg(
+        long,
+        default_value = "47.397742,8.545594,488.0",
+        value_name = "LAT,LON,ALT"
+    )]
     home: String,
 
     /// Stop after this many seconds (default: run until Ctrl-C).

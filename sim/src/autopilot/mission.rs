@@ -26,7 +26,10 @@
 //! - Download: MISSION_REQUEST_LIST -> MISSION_COUNT, then each
 //!   MISSION_REQUEST_INT / MISSION_REQUEST is answered by MISSION_ITEM_INT /
 //!   MISSION_ITEM; the partner's MISSION_ACK ends it. MISSION_COUNT is
-//!   re-sent every retry period until the first request arrives.
+//!   re-sent every retry period until the first request arrives. If the
+//!   partner's final ACK is lost, a MISSION_COUNT from the same partner
+//!   ends the download and starts its upload (another partner gets
+//!   MAV_MISSION_ERROR, busy).
 //! - Fence and rally plans are not supported: their lists download empty,
 //!   an empty upload is accepted, anything else is MAV_MISSION_UNSUPPORTED.
 //!
@@ -646,9 +649,14 @@ impl MissionProtocol {
                 }
                 return;
             }
-            Transfer::Sending { .. } => {
-                out.push(ack(from, MavMissionResult::MAV_MISSION_ERROR, MISSION));
-                return;
+            Transfer::Sending { peer, .. } => {
+                if *peer != from {
+                    out.push(ack(from, MavMissionResult::MAV_MISSION_ERROR, MISSION));
+                    return;
+                }
+                // The download partner has moved on (its final ACK was
+                // lost): the download is over, the upload starts.
+                self.transfer = Transfer::Idle;
             }
         }
         let ardu = self.params.flavour == Flavour::ArduPilot;

@@ -589,3 +589,38 @@ fn ardupilot_seq_0_is_home() {
         MavMissionResult::MAV_MISSION_ACCEPTED
     );
 }
+
+#[test]
+fn upload_from_the_download_partner_ends_a_download_whose_ack_was_lost() {
+    let mut p = px4();
+    upload(&mut p, 0.0, &[wp(0)]);
+    p.handle(
+        1.0,
+        GCS,
+        &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+            target_system: 1,
+            target_component: 1,
+            mission_type: MISSION,
+        }),
+    );
+    p.handle(
+        1.1,
+        GCS,
+        &MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+            seq: 0,
+            target_system: 1,
+            target_component: 1,
+            mission_type: MISSION,
+        }),
+    );
+    assert!(p.busy());
+    // Another station is refused while the download runs...
+    let out = p.handle(1.2, OTHER, &count(2));
+    assert_eq!(
+        out.iter().find_map(ack_code),
+        Some(MavMissionResult::MAV_MISSION_ERROR)
+    );
+    // ...but the download partner's new upload goes ahead.
+    let out = p.handle(1.3, GCS, &count(2));
+    assert_eq!(request_seq(&out[0]), Some((0, false)));
+}
