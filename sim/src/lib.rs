@@ -8,6 +8,8 @@
 
 // World, camera, renderer, paths, datasets and video (simworld).
 pub mod camera;
+pub mod dataset;
+pub mod paths;
 pub mod render;
 pub mod texture;
 pub mod world;
