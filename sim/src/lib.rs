@@ -12,4 +12,5 @@ pub mod dataset;
 pub mod paths;
 pub mod render;
 pub mod texture;
+pub mod video;
 pub mod world;

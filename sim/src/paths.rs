@@ -13,7 +13,7 @@
 //! World frame: local NED at home (see `world.rs`); camera axes x right,
 //! y down, z forward.
 
-use std::f64::consts::{PI, TAU};
+use std::f64::consts::TAU;
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, Matrix3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
