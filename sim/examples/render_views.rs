@@ -17,6 +17,12 @@ fn look_at(eye: Point3<f64>, target: Point3<f64>) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::from(eye.coords), q)
 }
 
+/// CPU time of this thread, nanoseconds (Linux schedstat), if available.
+fn thread_cpu_ns() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    s.split_whitespace().next()?.parse().ok()
+}
+
 fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
@@ -74,11 +80,19 @@ fn main() -> anyhow::Result<()> {
     ];
     for (name, eye, target) in views {
         let pose = look_at(eye, target);
-        let t0 = Instant::now();
         let img = renderer.render_noisy(&pose, 7);
-        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        let reps = 10;
+        let c0 = thread_cpu_ns();
+        let t0 = Instant::now();
+        for _ in 0..reps {
+            std::hint::black_box(renderer.render_noisy(&pose, 7));
+        }
+        let ms = t0.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let cpu_ms = c0
+            .zip(thread_cpu_ns())
+            .map_or(f64::NAN, |(a, b)| (b - a) as f64 * 1e-6 / reps as f64);
         img.save(out.join(format!("{name}.png")))?;
-        println!("{name}: {ms:.1} ms");
+        println!("{name}: {ms:.1} ms wall, {cpu_ms:.1} ms cpu per frame");
     }
     Ok(())
 }

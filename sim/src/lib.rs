@@ -16,6 +16,9 @@ pub mod vehicle;
 
 // World, camera, renderer, paths, datasets and video (simworld).
 pub mod camera;
+pub mod dataset;
+pub mod paths;
 pub mod render;
 pub mod texture;
+pub mod video;
 pub mod world;

@@ -244,10 +244,46 @@ impl Canvas {
 
 /// One level of a mip chain.
 #[derive(Debug, Clone)]
+///
+/// Texels are stored in 8x8 blocks (one 64-byte cache line each), so a
+/// bilinear footprint usually touches one line whichever way the image row
+/// crosses the texture.
 struct Level {
     size: usize,
     mask: i32,
+    /// log2 of the block side (3, or less for tiny levels).
+    block_shift: u32,
+    /// log2 of the number of blocks across.
+    blocks_shift: u32,
     data: Vec<u8>,
+}
+
+impl Level {
+    fn from_linear(size: usize, linear: &[f32]) -> Level {
+        let shift = size.trailing_zeros();
+        let block_shift = shift.min(3);
+        let mut level = Level {
+            size,
+            mask: size as i32 - 1,
+            block_shift,
+            blocks_shift: shift - block_shift,
+            data: vec![0u8; size * size],
+        };
+        for y in 0..size {
+            for x in 0..size {
+                let a = level.addr(x, y);
+                level.data[a] = (linear[y * size + x] + 0.5) as u8;
+            }
+        }
+        level
+    }
+
+    #[inline(always)]
+    fn addr(&self, x: usize, y: usize) -> usize {
+        let b = self.block_shift;
+        let bm = (1usize << b) - 1;
+        ((((y >> b) << self.blocks_shift) + (x >> b)) << (2 * b)) | ((y & bm) << b) | (x & bm)
+    }
 }
 
 /// A square, wrapping, mip-mapped 8-bit texture.
@@ -264,11 +300,7 @@ impl MipTexture {
         let mut current: Vec<f32> = canvas.data.iter().map(|v| v.clamp(0.0, 255.0)).collect();
         let mut levels = Vec::new();
         loop {
-            levels.push(Level {
-                size,
-                mask: size as i32 - 1,
-                data: current.iter().map(|v| (v + 0.5) as u8).collect(),
-            });
+            levels.push(Level::from_linear(size, &current));
             if size == 1 {
                 break;
             }
@@ -306,7 +338,7 @@ impl MipTexture {
     /// Level 0 texel at integer coordinates (wrapping).
     pub fn texel(&self, x: i32, y: i32) -> u8 {
         match self.levels.first() {
-            Some(l) => l.data[((y & l.mask) as usize) * l.size + (x & l.mask) as usize],
+            Some(l) => l.data[l.addr((x & l.mask) as usize, (y & l.mask) as usize)],
             None => 0,
         }
     }
@@ -320,16 +352,15 @@ impl MipTexture {
         let fx = x - x0 as f32;
         let fy = y - y0 as f32;
         let m = level.mask;
-        let n = level.size;
         let xa = (x0 & m) as usize;
         let xb = ((x0 + 1) & m) as usize;
-        let ya = ((y0 & m) as usize) * n;
-        let yb = (((y0 + 1) & m) as usize) * n;
+        let ya = (y0 & m) as usize;
+        let yb = ((y0 + 1) & m) as usize;
         let d = &level.data;
-        let a = d[ya + xa] as f32;
-        let b = d[ya + xb] as f32;
-        let c = d[yb + xa] as f32;
-        let e = d[yb + xb] as f32;
+        let a = d[level.addr(xa, ya)] as f32;
+        let b = d[level.addr(xb, ya)] as f32;
+        let c = d[level.addr(xa, yb)] as f32;
+        let e = d[level.addr(xb, yb)] as f32;
         let top = a + (b - a) * fx;
         let bottom = c + (e - c) * fx;
         top + (bottom - top) * fy
@@ -352,7 +383,9 @@ impl MipTexture {
         match self.levels.first() {
             Some(l) => Canvas {
                 size: l.size,
-                data: l.data.iter().map(|&v| v as f32).collect(),
+                data: (0..l.size * l.size)
+                    .map(|i| l.data[l.addr(i % l.size, i / l.size)] as f32)
+                    .collect(),
             },
             None => Canvas::new(1, self.mean),
         }

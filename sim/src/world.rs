@@ -86,6 +86,11 @@ pub struct WorldParams {
     pub detail_gain_a: f32,
     /// Gain of the second detail layer.
     pub detail_gain_b: f32,
+    /// Detail layers start fading out at this mip level of their own...
+    pub detail_fade_start_lod: f32,
+    /// ...and are gone (not sampled) from this one: their features are
+    /// then smaller than a pixel and the base textures carry the view.
+    pub detail_fade_end_lod: f32,
 }
 
 impl Default for WorldParams {
@@ -111,6 +116,8 @@ impl Default for WorldParams {
             ambient: 0.45,
             detail_gain_a: 0.55,
             detail_gain_b: 0.4,
+            detail_fade_start_lod: 2.5,
+            detail_fade_end_lod: 3.5,
         }
     }
 }
@@ -293,8 +300,10 @@ pub(crate) struct Textures {
     pub roof_inv_texel: f32,
     pub detail_a: MipTexture,
     pub detail_a_inv_texel: f32,
+    pub detail_a_log2_inv_texel: f32,
     pub detail_b: MipTexture,
     pub detail_b_inv_texel: f32,
+    pub detail_b_log2_inv_texel: f32,
     /// cos, sin of the second detail layer's rotation.
     pub detail_b_rot: (f32, f32),
 }
@@ -468,20 +477,23 @@ impl World {
     #[inline(always)]
     pub(crate) fn detail(&self, u: f32, v: f32, lod_m: f32) -> f32 {
         let tx = &self.textures;
+        let fade_end = self.params.detail_fade_end_lod;
+        let fade_k = 1.0 / (fade_end - self.params.detail_fade_start_lod).max(1e-3);
         let mut out = 0.0;
-        let sa = tx.detail_a_inv_texel;
-        let lod_a = lod_m + crate::texture::fast_log2(sa);
-        if let Some(lod) = tx.detail_a.lod_from(lod_a) {
-            out += (tx.detail_a.sample_lod(u * sa, v * sa, lod) - tx.detail_a.mean())
-                * self.params.detail_gain_a;
-            let sb = tx.detail_b_inv_texel;
-            let lod_b = lod_m + crate::texture::fast_log2(sb);
-            if let Some(lod) = tx.detail_b.lod_from(lod_b) {
+        let lod_a = lod_m + tx.detail_a_log2_inv_texel;
+        if lod_a < fade_end {
+            let sa = tx.detail_a_inv_texel;
+            let w = ((fade_end - lod_a) * fade_k).min(1.0) * self.params.detail_gain_a;
+            let lod = lod_a.max(0.0);
+            out += (tx.detail_a.sample_lod(u * sa, v * sa, lod) - tx.detail_a.mean()) * w;
+            let lod_b = lod_m + tx.detail_b_log2_inv_texel;
+            if lod_b < fade_end {
+                let sb = tx.detail_b_inv_texel;
+                let w = ((fade_end - lod_b) * fade_k).min(1.0) * self.params.detail_gain_b;
                 let (c, s) = tx.detail_b_rot;
                 let ub = (c * u - s * v) * sb;
                 let vb = (s * u + c * v) * sb;
-                out += (tx.detail_b.sample_lod(ub, vb, lod) - tx.detail_b.mean())
-                    * self.params.detail_gain_b;
+                out += (tx.detail_b.sample_lod(ub, vb, lod_b.max(0.0)) - tx.detail_b.mean()) * w;
             }
         }
         out
@@ -821,8 +833,11 @@ fn make_textures(
         roof_inv_texel: (p.roof_texture_size as f64 / p.roof_extent_m) as f32,
         detail_a,
         detail_a_inv_texel: (p.detail_texture_size as f64 / p.detail_extent_m) as f32,
+        detail_a_log2_inv_texel: (p.detail_texture_size as f64 / p.detail_extent_m).log2() as f32,
         detail_b,
         detail_b_inv_texel: (p.detail_texture_size as f64 / (p.detail_extent_m * PHI)) as f32,
+        detail_b_log2_inv_texel: (p.detail_texture_size as f64 / (p.detail_extent_m * PHI)).log2()
+            as f32,
         detail_b_rot: (rot.cos(), rot.sin()),
     }
 }
