@@ -10,18 +10,17 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use image::GrayImage;
-use image::codecs::jpeg::JpegEncoder;
 use mavlink::dialects::common::MavMessage;
-use nalgebra::Isometry3;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
 use crate::autopilot::{Autopilot, AutopilotParams, CaptureRequest, Flavour};
 use crate::camera::SimCamera;
+use crate::dataset::TruthWriter;
 use crate::link::{Endpoint, LinkError, LinkParams, LinkStats, RadioParams, spawn_link};
 use crate::render::{RenderParams, Renderer};
 use crate::script::{Script, ScriptKind, ScriptParams};
+use crate::video::{VideoFrame, serve_video, try_encode_jpeg};
 use crate::world::World;
 
 /// Errors that stop the simulator.
@@ -161,19 +160,6 @@ impl SimConfig {
     }
 }
 
-/// One encoded video frame and when it was captured.
-#[derive(Debug, Clone)]
-pub struct EncodedFrame {
-    /// JPEG bytes.
-    pub jpeg: Vec<u8>,
-    /// Capture time, Unix seconds.
-    pub capture_time_unix_s: f64,
-    /// Frame number.
-    pub seq: u64,
-    /// The camera pose it was rendered from (local NED).
-    pub world_from_cam: Isometry3<f64>,
-}
-
 /// What a finished run reports.
 #[derive(Debug, Clone, Default)]
 pub struct RunSummary {
@@ -195,13 +181,6 @@ fn unix_now() -> f64 {
         .map_or(0.0, |d| d.as_secs_f64())
 }
 
-/// JPEG-encode a grey image.
-pub fn encode_jpeg(img: &GrayImage, quality: u8) -> Result<Vec<u8>, image::ImageError> {
-    let mut buf = Vec::with_capacity(64 * 1024);
-    JpegEncoder::new_with_quality(&mut buf, quality).encode_image(img)?;
-    Ok(buf)
-}
-
 fn write_capture(
     renderer: &Renderer,
     req: &CaptureRequest,
@@ -219,7 +198,7 @@ fn write_capture(
         source,
     })?;
     let path = dir.join(format!("IMG_{:04}.jpg", req.index));
-    let jpeg = encode_jpeg(&img, quality).map_err(|e| SimError::Io {
+    let jpeg = try_encode_jpeg(&img, quality).map_err(|e| SimError::Io {
         what: "encoding",
         path: path.clone(),
         source: std::io::Error::other(e.to_string()),
@@ -232,26 +211,49 @@ fn write_capture(
     Ok(std::path::absolute(&path).unwrap_or(path))
 }
 
-/// The handles a running simulator offers (for in-process use and tests).
-#[derive(Debug, Clone)]
-pub struct SimHandles {
-    /// The latest video frame.
-    pub video: watch::Receiver<Option<Arc<EncodedFrame>>>,
-}
-
-/// Run the simulator until `cancel` fires.
+/// Run the simulator until `cancel` fires, serving video on
+/// `config.video_listen` (if set).
 pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSummary, SimError> {
-    let (video_tx, _video_rx) = watch::channel(None);
+    let (video_tx, video_rx) = watch::channel(None);
+    if let Some(addr) = config.video_listen {
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|source| SimError::Io {
+                what: "binding the video server on",
+                path: PathBuf::from(addr.to_string()),
+                source,
+            })?;
+        let c = cancel.clone();
+        tokio::spawn(async move {
+            if let Err(e) = serve_video(listener, video_rx, c).await {
+                tracing::error!("video server: {e}");
+            }
+        });
+    } else {
+        drop(video_rx);
+    }
     run_with(config, cancel, video_tx).await
 }
 
-/// [`run`], publishing video frames on `video_tx`.
+/// [`run`] without its video server: frames are published on `video_tx`
+/// (rendered only while someone holds a receiver, or truth is written).
+/// The shotpilot daemon uses this to run the world in-process.
 pub async fn run_with(
     config: SimConfig,
     cancel: CancellationToken,
-    video_tx: watch::Sender<Option<Arc<EncodedFrame>>>,
+    video_tx: watch::Sender<Option<Arc<VideoFrame>>>,
 ) -> Result<RunSummary, SimError> {
     config.validate()?;
+    let mut truth = match &config.truth_dir {
+        Some(dir) => Some(
+            TruthWriter::create(dir, &config.camera).map_err(|e| SimError::Io {
+                what: "creating truth files in",
+                path: dir.clone(),
+                source: std::io::Error::other(e.to_string()),
+            })?,
+        ),
+        None => None,
+    };
     let world = Arc::new(World::generate(config.seed));
     let renderer = Arc::new(Renderer::new(world.clone(), config.camera, config.render));
     let mut link = spawn_link(
@@ -350,13 +352,24 @@ pub async fn run_with(
             if next_frame_t < t {
                 next_frame_t = t + frame_dt;
             }
+            let wfc = ap.vehicle().world_from_cam();
+            let capture_time = unix_at_boot + t;
+            if let Some(w) = &mut truth
+                && let Err(e) = w.write_pose(capture_time, &wfc)
+            {
+                tracing::warn!("truth: {e}");
+            }
             if render_in_flight {
                 summary.frames_skipped += 1;
             } else {
                 render_in_flight = true;
                 summary.frames += 1;
                 let seq = summary.frames - 1;
-                let wfc = ap.vehicle().world_from_cam();
+                if let Some(w) = &mut truth
+                    && let Err(e) = w.write_frame(seq, capture_time, &wfc)
+                {
+                    tracing::warn!("truth: {e}");
+                }
                 let renderer = renderer.clone();
                 let tx = video_tx.clone();
                 let done = frame_done_tx.clone();
@@ -364,22 +377,16 @@ pub async fn run_with(
                 let noise = config
                     .sensor_noise
                     .then_some(config.seed ^ seq.wrapping_mul(0x9E37_79B9));
-                let capture_time = unix_at_boot + t;
                 tokio::task::spawn_blocking(move || {
                     let img = match noise {
                         Some(s) => renderer.render_noisy(&wfc, s),
                         None => renderer.render(&wfc),
                     };
-                    match encode_jpeg(&img, q) {
-                        Ok(jpeg) => {
-                            tx.send_replace(Some(Arc::new(EncodedFrame {
-                                jpeg,
-                                capture_time_unix_s: capture_time,
-                                seq,
-                                world_from_cam: wfc,
-                            })));
+                    match VideoFrame::encode(&img, q, capture_time, seq) {
+                        Ok(frame) => {
+                            tx.send_replace(Some(Arc::new(frame)));
                         }
-                        Err(e) => tracing::warn!("jpeg: {e}"),
+                        Err(e) => tracing::warn!("video frame: {e}"),
                     }
                     let _ = done.blocking_send(());
                 });

@@ -583,10 +583,10 @@ async fn open_transport(ep: &Endpoint, cancel: CancellationToken) -> Result<Tran
                             }
                         },
                         out = out_rx.recv() => match out {
-                            Some(bytes) => if let Some(p) = peer {
-                                if let Err(e) = sock.send_to(&bytes, p).await {
-                                    tracing::debug!("udp send to {p}: {e}");
-                                }
+                            Some(bytes) => if let Some(p) = peer
+                                && let Err(e) = sock.send_to(&bytes, p).await
+                            {
+                                tracing::debug!("udp send to {p}: {e}");
                             },
                             None => break,
                         },

@@ -8,8 +8,12 @@ use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use shotpilot_sim::app::{SimConfig, run};
 use shotpilot_sim::autopilot::Flavour;
+use shotpilot_sim::camera::SimCamera;
+use shotpilot_sim::dataset::render_dataset;
 use shotpilot_sim::geodesy::Geodetic;
 use shotpilot_sim::link::{Endpoint, RadioDirParams, RadioParams};
+use shotpilot_sim::paths::PathSpec;
+use shotpilot_sim::render::RenderParams;
 use shotpilot_sim::script::ScriptKind;
 use tokio_util::sync::CancellationToken;
 
@@ -46,9 +50,9 @@ struct Cli {
     #[arg(long, default_value = "udpout:127.0.0.1:14550", value_name = "URL")]
     mavlink: String,
 
-    /// Address of the MJPEG video server (GET /video is the
-    /// multipart/x-mixed-replace stream, GET /snapshot.jpg one frame);
-    /// "off" disables it.
+    /// Address of the MJPEG video server (GET /video.mjpg is the
+    /// multipart/x-mixed-replace stream with each frame's capture time in an
+    /// X-Timestamp header, GET /snapshot.jpg one frame); "off" disables it.
     #[arg(long, default_value = "127.0.0.1:8554", value_name = "ADDR")]
     video_listen: String,
 
@@ -207,10 +211,21 @@ fn main() -> Result<()> {
         .init();
     let cli = Cli::parse();
     if let Some(Command::Render { path, frames, out }) = &cli.command {
-        anyhow::bail!(
-            "render --path {path} --frames {frames} --out {}: not available in this build",
-            out.display()
+        let spec: PathSpec = path.parse().unwrap_or(PathSpec::Explore);
+        let noise = if cli.no_noise {
+            0.0
+        } else {
+            RenderParams::default().noise_sigma
+        };
+        let report = render_dataset(spec, *frames, out, cli.seed, SimCamera::default(), noise)
+            .with_context(|| format!("rendering {path} into {}", out.display()))?;
+        println!(
+            "{} frames in {} ({:.1} frames/s)",
+            report.frames,
+            out.display(),
+            report.render_fps()
         );
+        return Ok(());
     }
     let config = config_from(&cli)?;
     let rt = tokio::runtime::Builder::new_multi_thread()

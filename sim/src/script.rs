@@ -361,11 +361,9 @@ mod tests {
     use super::*;
     use crate::autopilot::AutopilotParams;
 
-    fn fly(
-        kind: ScriptKind,
-        params: ScriptParams,
-        seconds: f64,
-    ) -> (Autopilot, Script, Vec<(f64, Vector3<f64>, f64, f64)>) {
+    type Trace = Vec<(f64, Vector3<f64>, f64, f64)>;
+
+    fn fly(kind: ScriptKind, params: ScriptParams, seconds: f64) -> (Autopilot, Script, Trace) {
         let mut ap = Autopilot::new(AutopilotParams::default(), 0.0);
         let mut s = Script::new(kind, params, &|x, y, _r| {
             if x.abs() < 5.0 && y.abs() < 5.0 {

@@ -258,7 +258,7 @@ impl Vehicle {
 
     /// Advance the model by `dt` seconds.
     pub fn step(&mut self, dt: f64) {
-        if !(dt > 0.0) || !dt.is_finite() {
+        if dt.is_nan() || dt <= 0.0 || !dt.is_finite() {
             return;
         }
         let p = self.params;
@@ -531,9 +531,10 @@ mod tests {
 
     #[test]
     fn camera_axes_follow_yaw_and_gimbal() {
-        let mut p = VehicleParams::default();
-        p.camera_offset_body = [0.0; 3];
-        let mut v = Vehicle::new(p);
+        let mut v = Vehicle::new(VehicleParams {
+            camera_offset_body: [0.0; 3],
+            ..Default::default()
+        });
         v.teleport(Vector3::new(1.0, 2.0, -10.0), std::f64::consts::FRAC_PI_2);
         // Level gimbal, yaw east: camera z (forward) is east, x (right) is
         // south, y (down) is down.

@@ -509,10 +509,8 @@ impl MissionProtocol {
                     return Err(MAV_MISSION_INVALID_PARAM3);
                 }
             }
-            MAV_CMD_CONDITION_YAW => {
-                if !(p[0].is_finite() && (-360.0..=360.0).contains(&p[0])) {
-                    return Err(MAV_MISSION_INVALID_PARAM1);
-                }
+            MAV_CMD_CONDITION_YAW if !(p[0].is_finite() && (-360.0..=360.0).contains(&p[0])) => {
+                return Err(MAV_MISSION_INVALID_PARAM1);
             }
             _ => {}
         }
@@ -526,30 +524,30 @@ impl MissionProtocol {
             MavMessage::MISSION_COUNT(m) if self.addressed_to_us(m.target_system) => {
                 self.on_count(now, from, m, &mut out)
             }
-            MavMessage::MISSION_ITEM_INT(m) if self.addressed_to_us(m.target_system) => {
-                if m.mission_type == MISSION {
-                    self.int_mode = true;
-                    self.on_item(now, from, MissionItem::from_int(m), &mut out);
-                }
+            MavMessage::MISSION_ITEM_INT(m)
+                if self.addressed_to_us(m.target_system) && m.mission_type == MISSION =>
+            {
+                self.int_mode = true;
+                self.on_item(now, from, MissionItem::from_int(m), &mut out);
             }
-            MavMessage::MISSION_ITEM(m) if self.addressed_to_us(m.target_system) => {
-                if m.mission_type == MISSION {
-                    self.int_mode = false;
-                    self.on_item(now, from, MissionItem::from_float(m), &mut out);
-                }
+            MavMessage::MISSION_ITEM(m)
+                if self.addressed_to_us(m.target_system) && m.mission_type == MISSION =>
+            {
+                self.int_mode = false;
+                self.on_item(now, from, MissionItem::from_float(m), &mut out);
             }
             MavMessage::MISSION_REQUEST_LIST(m) if self.addressed_to_us(m.target_system) => {
                 self.on_request_list(now, from, m.mission_type, &mut out)
             }
-            MavMessage::MISSION_REQUEST_INT(m) if self.addressed_to_us(m.target_system) => {
-                if m.mission_type == MISSION {
-                    self.on_request(now, from, m.seq, true, &mut out)
-                }
+            MavMessage::MISSION_REQUEST_INT(m)
+                if self.addressed_to_us(m.target_system) && m.mission_type == MISSION =>
+            {
+                self.on_request(now, from, m.seq, true, &mut out)
             }
-            MavMessage::MISSION_REQUEST(m) if self.addressed_to_us(m.target_system) => {
-                if m.mission_type == MISSION {
-                    self.on_request(now, from, m.seq, false, &mut out)
-                }
+            MavMessage::MISSION_REQUEST(m)
+                if self.addressed_to_us(m.target_system) && m.mission_type == MISSION =>
+            {
+                self.on_request(now, from, m.seq, false, &mut out)
             }
             MavMessage::MISSION_ACK(m) if self.addressed_to_us(m.target_system) => {
                 if let Transfer::Sending { peer, .. } = self.transfer

@@ -518,10 +518,11 @@ impl Autopilot {
     }
 
     fn for_us(&self, target_system: u8, target_component: u8) -> bool {
-        (target_system == 0 || target_system == self.params.system_id)
-            && matches!(target_component, 0 | 100 | 154)
-            || target_component == self.params.component_id
-                && (target_system == 0 || target_system == self.params.system_id)
+        let system = target_system == 0 || target_system == self.params.system_id;
+        // The autopilot answers for itself and for its camera and gimbal.
+        let component = matches!(target_component, 0 | 100 | 154)
+            || target_component == self.params.component_id;
+        system && component
     }
 
     /// Handle one received message; returns the replies.

@@ -321,10 +321,8 @@ fn flies_a_mission_with_takeoff_waypoints_gimbal_capture_and_rtl() {
                     }
                     reached.push(r.seq)
                 }
-                MavMessage::MISSION_CURRENT(c) => {
-                    if currents.last() != Some(&c.seq) {
-                        currents.push(c.seq)
-                    }
+                MavMessage::MISSION_CURRENT(c) if currents.last() != Some(&c.seq) => {
+                    currents.push(c.seq)
                 }
                 _ => {}
             }

@@ -232,7 +232,8 @@ fn unsupported_command_is_acked() {
 
 #[test]
 fn bad_params_are_acked_with_the_parameter_code() {
-    let cases: Vec<(Box<dyn Fn(&mut MISSION_ITEM_INT_DATA)>, MavMissionResult)> = vec![
+    type Edit = Box<dyn Fn(&mut MISSION_ITEM_INT_DATA)>;
+    let cases: Vec<(Edit, MavMissionResult)> = vec![
         (
             Box::new(|m| m.param1 = -1.0),
             MavMissionResult::MAV_MISSION_INVALID_PARAM1,
