@@ -88,6 +88,9 @@ pub struct SimConfig {
     pub render: RenderParams,
     /// Add sensor noise to frames.
     pub sensor_noise: bool,
+    /// Video frames rendered at the same time (on blocking threads); a
+    /// frame falling due while this many are rendering is skipped.
+    pub max_renders_in_flight: usize,
 }
 
 impl Default for SimConfig {
@@ -108,6 +111,7 @@ impl Default for SimConfig {
             camera: SimCamera::default(),
             render: RenderParams::default(),
             sensor_noise: true,
+            max_renders_in_flight: 2,
         }
     }
 }
@@ -289,8 +293,11 @@ pub async fn run_with(
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(dt));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
     let (cap_tx, mut cap_rx) = mpsc::channel::<(CaptureRequest, Option<String>)>(64);
-    let (frame_done_tx, mut frame_done_rx) = mpsc::channel::<()>(4);
-    let mut render_in_flight = false;
+    let (frame_done_tx, mut frame_done_rx) = mpsc::channel::<()>(16);
+    let mut renders_in_flight = 0usize;
+    // Frames may finish out of order when two render at once: only a newer
+    // frame replaces the published one.
+    let newest_published = Arc::new(std::sync::atomic::AtomicU64::new(0));
     let mut next_frame_t = 0.0;
     let mut summary = RunSummary::default();
     let mut k: u64 = 0;
@@ -344,7 +351,7 @@ pub async fn run_with(
             send(&link, vec![msg]);
         }
         while frame_done_rx.try_recv().is_ok() {
-            render_in_flight = false;
+            renders_in_flight = renders_in_flight.saturating_sub(1);
         }
         let want_frames = video_tx.receiver_count() > 0 || config.truth_dir.is_some();
         if want_frames && t + 1e-9 >= next_frame_t {
@@ -359,10 +366,10 @@ pub async fn run_with(
             {
                 tracing::warn!("truth: {e}");
             }
-            if render_in_flight {
+            if renders_in_flight >= config.max_renders_in_flight.max(1) {
                 summary.frames_skipped += 1;
             } else {
-                render_in_flight = true;
+                renders_in_flight += 1;
                 summary.frames += 1;
                 let seq = summary.frames - 1;
                 if let Some(w) = &mut truth
@@ -373,6 +380,7 @@ pub async fn run_with(
                 let renderer = renderer.clone();
                 let tx = video_tx.clone();
                 let done = frame_done_tx.clone();
+                let newest = newest_published.clone();
                 let q = config.jpeg_quality;
                 let noise = config
                     .sensor_noise
@@ -384,7 +392,15 @@ pub async fn run_with(
                     };
                     match VideoFrame::encode(&img, q, capture_time, seq) {
                         Ok(frame) => {
-                            tx.send_replace(Some(Arc::new(frame)));
+                            tx.send_if_modified(|slot| {
+                                use std::sync::atomic::Ordering;
+                                if seq == 0 || newest.fetch_max(seq, Ordering::AcqRel) < seq {
+                                    *slot = Some(Arc::new(frame));
+                                    true
+                                } else {
+                                    false
+                                }
+                            });
                         }
                         Err(e) => tracing::warn!("video frame: {e}"),
                     }

@@ -1026,4 +1026,60 @@ mod tests {
         assert!(matches!(m, MavMessage::MISSION_COUNT(ref c) if c.count == 3));
         cancel.cancel();
     }
+
+    #[tokio::test]
+    async fn tcpin_link_with_a_client_and_a_bandwidth_cap() {
+        let cancel = CancellationToken::new();
+        let port = {
+            let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+            l.local_addr().expect("addr").port()
+        };
+        let link = spawn_link(
+            LinkParams {
+                endpoint: Endpoint::TcpIn(format!("127.0.0.1:{port}")),
+                radio: RadioParams {
+                    down: RadioDirParams {
+                        baud: Some(9600),
+                        max_queue_bytes: 1 << 20,
+                        ..Default::default()
+                    },
+                    ..Default::default()
+                },
+                system_id: 1,
+                component_id: 1,
+            },
+            cancel.clone(),
+        )
+        .await
+        .expect("link");
+        let mut client = tokio::net::TcpStream::connect(("127.0.0.1", port))
+            .await
+            .expect("connect");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        // 48 heartbeats of 21 bytes = 1008 bytes: 1.05 s at 960 bytes/s.
+        let t0 = tokio::time::Instant::now();
+        for _ in 0..48 {
+            link.to_link.send(hb()).await.expect("send");
+        }
+        let mut p = FrameParser::new();
+        let mut n = 0;
+        let mut buf = [0u8; 1024];
+        while n < 48 {
+            let k = tokio::time::timeout(Duration::from_secs(3), client.read(&mut buf))
+                .await
+                .expect("timeout")
+                .expect("read");
+            assert!(k > 0, "closed");
+            p.push(&buf[..k]);
+            while p.next_frame().is_some() {
+                n += 1;
+            }
+        }
+        let secs = t0.elapsed().as_secs_f64();
+        assert!(
+            (0.95..1.6).contains(&secs),
+            "{secs} s for 1008 bytes at 9600 baud"
+        );
+        cancel.cancel();
+    }
 }
