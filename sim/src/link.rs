@@ -444,11 +444,7 @@ pub fn decode_frame(frame: &[u8]) -> Result<(MavHeader, MavMessage, MavlinkVersi
         let len = usize::from(frame[1]);
         let id = u32::from(frame[5]);
         let payload = frame.get(6..6 + len).ok_or_else(too_short)?;
-        let msg =
-            MavMessage::parse(MavlinkVersion::V1, id, payload).map_err(|e| LinkError::Decode {
-                msg_id: id,
-                reason: e.to_string(),
-            })?;
+        let msg = parse_payload(MavlinkVersion::V1, id, payload)?;
         let header = MavHeader {
             system_id: u32::from(frame[3]),
             component_id: frame[4],
@@ -470,11 +466,7 @@ pub fn decode_frame(frame: &[u8]) -> Result<(MavHeader, MavMessage, MavlinkVersi
         };
         let component_id = frame[hdr - 4];
         let payload = frame.get(hdr..hdr + len).ok_or_else(too_short)?;
-        let msg =
-            MavMessage::parse(MavlinkVersion::V2, id, payload).map_err(|e| LinkError::Decode {
-                msg_id: id,
-                reason: e.to_string(),
-            })?;
+        let msg = parse_payload(MavlinkVersion::V2, id, payload)?;
         Ok((
             MavHeader {
                 system_id,
@@ -484,6 +476,61 @@ pub fn decode_frame(frame: &[u8]) -> Result<(MavHeader, MavMessage, MavlinkVersi
             msg,
             MavlinkVersion::V2,
         ))
+    }
+}
+
+/// Placeholder for a mission item's command the dialect does not know: a
+/// reserved user command, which the autopilot refuses with
+/// MAV_MISSION_UNSUPPORTED.
+pub const UNKNOWN_COMMAND_PLACEHOLDER: u16 = 31014; // MAV_CMD_USER_5
+/// Placeholder for a mission item's frame the dialect does not know: a
+/// reserved frame, refused with MAV_MISSION_UNSUPPORTED_FRAME.
+pub const UNKNOWN_FRAME_PLACEHOLDER: u8 = 19; // MAV_FRAME_RESERVED_19
+
+/// Parse a payload. A MISSION_ITEM(_INT) whose command or frame is not in
+/// the dialect (the crate cannot represent it) has the field replaced by a
+/// reserved placeholder, so the autopilot can refuse the item with the
+/// right MISSION_ACK code instead of never hearing of it.
+fn parse_payload(
+    version: MavlinkVersion,
+    id: u32,
+    payload: &[u8],
+) -> Result<MavMessage, LinkError> {
+    use mavlink::error::ParserError;
+    const MISSION_ITEM: u32 = 39;
+    const MISSION_ITEM_INT: u32 = 73;
+    // Both layouts put the command at bytes 30-31 and the frame at 34.
+    const COMMAND_OFFSET: usize = 30;
+    const FRAME_OFFSET: usize = 34;
+    let err = |e: ParserError| LinkError::Decode {
+        msg_id: id,
+        reason: e.to_string(),
+    };
+    match MavMessage::parse(version, id, payload) {
+        Ok(m) => Ok(m),
+        Err(ParserError::InvalidEnum { .. }) if id == MISSION_ITEM || id == MISSION_ITEM_INT => {
+            let mut buf = [0u8; 40];
+            let n = payload.len().min(buf.len()).max(FRAME_OFFSET + 1);
+            let k = payload.len().min(buf.len());
+            buf[..k].copy_from_slice(&payload[..k]);
+            for _ in 0..3 {
+                match MavMessage::parse(version, id, &buf[..n]) {
+                    Ok(m) => return Ok(m),
+                    Err(ParserError::InvalidEnum { enum_type, value }) => match enum_type {
+                        "MavCmd" => buf[COMMAND_OFFSET..COMMAND_OFFSET + 2]
+                            .copy_from_slice(&UNKNOWN_COMMAND_PLACEHOLDER.to_le_bytes()),
+                        "MavFrame" => buf[FRAME_OFFSET] = UNKNOWN_FRAME_PLACEHOLDER,
+                        _ => return Err(err(ParserError::InvalidEnum { enum_type, value })),
+                    },
+                    Err(e) => return Err(err(e)),
+                }
+            }
+            Err(LinkError::Decode {
+                msg_id: id,
+                reason: "enum fields could not be repaired".into(),
+            })
+        }
+        Err(e) => Err(err(e)),
     }
 }
 
@@ -1081,5 +1128,32 @@ mod tests {
             "{secs} s for 1008 bytes at 9600 baud"
         );
         cancel.cancel();
+    }
+
+    #[test]
+    fn mission_item_with_an_unknown_command_or_frame_decodes_to_placeholders() {
+        use mavlink::dialects::common::{MISSION_ITEM_INT_DATA, MavCmd, MavFrame};
+        let item = MavMessage::MISSION_ITEM_INT(MISSION_ITEM_INT_DATA {
+            seq: 4,
+            command: MavCmd::MAV_CMD_NAV_WAYPOINT,
+            frame: MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT,
+            z: 12.0,
+            ..Default::default()
+        });
+        let mut f = encode_v2(header(0), &item);
+        // Patch the command to 9999 and the frame to 99, then fix the CRC.
+        let hdr = 10;
+        f[hdr + 30..hdr + 32].copy_from_slice(&9999u16.to_le_bytes());
+        f[hdr + 34] = 99;
+        let end = hdr + usize::from(f[1]);
+        let crc = calculate_crc(&f[1..end], MavMessage::extra_crc(73));
+        f[end..end + 2].copy_from_slice(&crc.to_le_bytes());
+        let (_, m, _) = decode_frame(&f).expect("decodes");
+        let MavMessage::MISSION_ITEM_INT(m) = m else {
+            panic!("{m:?}")
+        };
+        assert_eq!(m.command as u32, u32::from(UNKNOWN_COMMAND_PLACEHOLDER));
+        assert_eq!(m.frame as u32, u32::from(UNKNOWN_FRAME_PLACEHOLDER));
+        assert_eq!((m.seq, m.z), (4, 12.0));
     }
 }

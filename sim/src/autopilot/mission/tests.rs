@@ -625,3 +625,26 @@ fn upload_from_the_download_partner_ends_a_download_whose_ack_was_lost() {
     let out = p.handle(1.3, GCS, &count(2));
     assert_eq!(request_seq(&out[0]), Some((0, false)));
 }
+
+/// The link maps commands and frames unknown to the dialect to reserved
+/// placeholders; they are refused with the proper codes.
+#[test]
+fn link_placeholders_for_unknown_commands_and_frames_are_refused() {
+    let mut p = px4();
+    let mut m = wp(0);
+    m.command = MavCmd::MAV_CMD_USER_5;
+    p.handle(0.0, GCS, &count(1));
+    let out = p.handle(0.0, GCS, &int(m));
+    assert_eq!(
+        out.iter().find_map(ack_code),
+        Some(MavMissionResult::MAV_MISSION_UNSUPPORTED)
+    );
+    let mut m = wp(0);
+    m.frame = MavFrame::MAV_FRAME_RESERVED_19;
+    p.handle(1.0, GCS, &count(1));
+    let out = p.handle(1.0, GCS, &int(m));
+    assert_eq!(
+        out.iter().find_map(ack_code),
+        Some(MavMissionResult::MAV_MISSION_UNSUPPORTED_FRAME)
+    );
+}
