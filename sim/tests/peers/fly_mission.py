@@ -90,6 +90,12 @@ def main():
         (1, frame, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 2.0, 1.0, 0.0, 90.0, a[0], a[1], 15.0),
         (2, frame, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 1.0, 0.0, float("nan"), b[0], b[1], 15.0),
     ]
+    ardupilot = hb.autopilot == m2.MAV_AUTOPILOT_ARDUPILOTMEGA
+    if ardupilot:
+        # ArduPilot: item 0 is home (its content is replaced by the vehicle).
+        items = [(0, m2.MAV_FRAME_GLOBAL, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 0.0, 0.0, 0.0,
+                  int(round(lat0 * 1e7)), int(round(lon0 * 1e7)), home.altitude / 1000.0)] + [
+            (it[0] + 1,) + it[1:] for it in items]
     t_up = time.time()
     conn.mav.mission_count_send(conn.target_system, conn.target_component, len(items), m2.MAV_MISSION_TYPE_MISSION)
     requests = []
@@ -128,8 +134,12 @@ def main():
                 and feq(it.param1, ref[5]) and feq(it.param2, ref[6]) and feq(it.param3, ref[7]) and feq(it.param4, ref[8])
                 and it.x == ref[9] and it.y == ref[10] and feq(it.z, ref[11]))
 
-    identical = len(got) == len(items) and all(same(g, r) for g, r in zip(got, items))
+
+    first = 1 if ardupilot else 0
+    identical = len(got) == len(items) and all(same(g, r) for g, r in zip(got[first:], items[first:]))
     summary["download"] = {"count": len(got), "identical": identical}
+    if ardupilot and got:
+        summary["download"]["seq0_home"] = [got[0].x, got[0].y, got[0].z]
     if not identical:
         print(json.dumps({"ok": False, **summary}))
         return 1
@@ -174,7 +184,8 @@ def main():
             "final": trace[-1][1:],
             "every_5s": [r for i, r in enumerate(trace) if i % 25 == 0],
         }
-    ok = done and reached == [0, 1, 2] and arm == 0 and start == 0
+    want = [1, 2, 3] if ardupilot else [0, 1, 2]
+    ok = done and reached == want and arm == 0 and start == 0
     summary["ok"] = ok
     print(json.dumps(summary))
     return 0 if ok else 1
