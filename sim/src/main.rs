@@ -38,7 +38,21 @@ enum ScriptArg {
 /// camera over a procedurally textured scene, speaking MAVLink 2 and
 /// serving its camera as MJPEG.
 #[derive(Debug, Parser)]
-#[command(name = "shotpilot-sim", version, about, long_about = None)]
+#[command(
+    name = "shotpilot-sim",
+    version,
+    about,
+    long_about = None,
+    after_long_help = "World frame: the local NED tangent plane at --home (x north, y east, z down, \
+metres, ground at z = 0); camera poses are world_from_cam with camera axes x right, y down, \
+z forward. The render world uses the same frame (the fixed transform is the identity).\n\n\
+Examples:\n  shotpilot-sim --script explore --truth-dir truth\n  \
+shotpilot-sim --mavlink udpin:0.0.0.0:14550 --drop 0.3 --baud 57600 --latency-ms 80\n  \
+shotpilot-sim --mavlink serial:/dev/pts/3:57600 --flavour ardupilot\n  \
+shotpilot-sim render --path orbit --frames 600 --out dataset\n\n\
+A ground station (QGroundControl, MAVProxy, pymavlink) listening on UDP 14550 sees the vehicle \
+with the default --mavlink."
+)]
 struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
@@ -91,7 +105,7 @@ struct Cli {
     latency_ms: f64,
 
     /// Seed of the world, sensor noise and the bad radio.
-    #[arg(long, default_value_t = 1, value_name = "N")]
+    #[arg(long, default_value_t = 1, value_name = "N", global = true)]
     seed: u64,
 
     /// A scripted operator flies the vehicle (without one the vehicle waits
@@ -122,7 +136,7 @@ struct Cli {
     duration: Option<f64>,
 
     /// Render frames without sensor noise.
-    #[arg(long)]
+    #[arg(long, global = true)]
     no_noise: bool,
 }
 
