@@ -12,6 +12,8 @@ use serde_json::json;
 use shotpilot::config::Config;
 use shotpilot::eval::{self, AlignMode, Trajectory};
 
+mod vocab_cli;
+
 /// shotpilot: a ground-control-station daemon for camera drones.
 ///
 /// It builds a map of the scene with monocular visual SLAM from the drone's
@@ -45,6 +47,9 @@ enum Command {
     /// positions and the relative pose error are reported. The figures agree
     /// with `evo_ape tum GT EST -as`.
     Eval(EvalArgs),
+    /// Bag-of-words vocabularies: train one from images, import ORB-SLAM's
+    /// ORBvoc.txt, describe one.
+    Vocab(vocab_cli::VocabArgs),
     /// Plan, upload, download and start missions (the MAVLink link to the drone).
     #[command(subcommand)]
     Mission(MissionCommand),
@@ -211,6 +216,7 @@ fn run(cli: Cli) -> Result<()> {
     let config = load_config(cli.config.as_deref())?;
     match cli.command {
         Command::Eval(args) => cmd_eval(args),
+        Command::Vocab(args) => vocab_cli::run(args),
         Command::Mission(cmd) => mission_cli::run(cmd, &config),
     }
 }
