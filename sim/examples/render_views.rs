@@ -73,15 +73,24 @@ fn main() -> anyhow::Result<()> {
             Point3::new(60.0, 20.0, -8.0),
         ),
         (
+            "sky",
+            Point3::new(0.0, 0.0, -50.0),
+            Point3::new(1.0, 0.0, -100.0),
+        ),
+        (
             "high_far",
             Point3::new(-150.0, -100.0, -60.0),
             Point3::new(0.0, 0.0, 0.0),
         ),
     ];
+    let only = std::env::var("SIM_VIEW").ok();
     for (name, eye, target) in views {
+        if only.as_deref().is_some_and(|o| o != name) {
+            continue;
+        }
         let pose = look_at(eye, target);
         let img = renderer.render_noisy(&pose, 7);
-        let reps = 10;
+        let reps = if only.is_some() { 100 } else { 10 };
         let c0 = thread_cpu_ns();
         let t0 = Instant::now();
         for _ in 0..reps {

@@ -463,7 +463,7 @@ mod tests {
             );
             prev = pose;
         }
-        assert!(min_alt >= 9.9 && min_alt < 16.0, "min alt {min_alt}");
+        assert!((9.9..16.0).contains(&min_alt), "min alt {min_alt}");
         assert!(max_alt > 35.0, "max alt {max_alt}");
         assert!(
             max_rate < 40f64.to_radians(),

@@ -125,11 +125,7 @@ impl Renderer {
     /// renders black; pixels that cannot be undistorted render black).
     pub fn new(world: Arc<World>, camera: SimCamera, params: RenderParams) -> Renderer {
         let valid = camera.validate().is_ok();
-        let (width, height) = if valid {
-            (camera.width as usize, camera.height as usize)
-        } else {
-            (camera.width as usize, camera.height as usize)
-        };
+        let (width, height) = (camera.width as usize, camera.height as usize);
         let cam_params = CameraParams::default();
         let mut dirs: Vec<Option<[f64; 3]>> = Vec::with_capacity(width * height);
         for v in 0..height {
@@ -382,6 +378,7 @@ impl Renderer {
                 let mut t0 = f32::NEG_INFINITY;
                 let mut t1 = t_best;
                 let mut axis = 0usize;
+                #[allow(clippy::needless_range_loop)] // `a` also names the hit axis
                 for a in 0..3 {
                     let ta = b.rel_min[a] * inv[a];
                     let tb = b.rel_max[a] * inv[a];

@@ -426,7 +426,8 @@ impl MipTexture {
         let (Some(a), Some(b)) = (self.levels.get(l), self.levels.get(l + 1)) else {
             return self.mean;
         };
-        let sa = 1.0 / (1u32 << l) as f32;
+        // 2^-l, exactly, without a division.
+        let sa = f32::from_bits((127 - l as u32) << 23);
         let va = Self::bilinear(a, u * sa, v * sa);
         if f < 1.0 / 64.0 {
             return va;
