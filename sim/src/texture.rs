@@ -242,47 +242,29 @@ impl Canvas {
     }
 }
 
-/// One level of a mip chain.
+/// One level of a mip chain, row-major.
 #[derive(Debug, Clone)]
-///
-/// Texels are stored in 8x8 blocks (one 64-byte cache line each), so a
-/// bilinear footprint usually touches one line whichever way the image row
-/// crosses the texture.
 struct Level {
     size: usize,
     mask: i32,
-    /// log2 of the block side (3, or less for tiny levels).
-    block_shift: u32,
-    /// log2 of the number of blocks across.
-    blocks_shift: u32,
+    /// log2 of `size`.
+    shift: u32,
     data: Vec<u8>,
 }
 
 impl Level {
     fn from_linear(size: usize, linear: &[f32]) -> Level {
-        let shift = size.trailing_zeros();
-        let block_shift = shift.min(3);
-        let mut level = Level {
+        Level {
             size,
             mask: size as i32 - 1,
-            block_shift,
-            blocks_shift: shift - block_shift,
-            data: vec![0u8; size * size],
-        };
-        for y in 0..size {
-            for x in 0..size {
-                let a = level.addr(x, y);
-                level.data[a] = (linear[y * size + x] + 0.5) as u8;
-            }
+            shift: size.trailing_zeros(),
+            data: linear.iter().map(|v| (v + 0.5) as u8).collect(),
         }
-        level
     }
 
     #[inline(always)]
     fn addr(&self, x: usize, y: usize) -> usize {
-        let b = self.block_shift;
-        let bm = (1usize << b) - 1;
-        ((((y >> b) << self.blocks_shift) + (x >> b)) << (2 * b)) | ((y & bm) << b) | (x & bm)
+        (y << self.shift) | x
     }
 }
 
@@ -354,13 +336,13 @@ impl MipTexture {
         let m = level.mask;
         let xa = (x0 & m) as usize;
         let xb = ((x0 + 1) & m) as usize;
-        let ya = (y0 & m) as usize;
-        let yb = ((y0 + 1) & m) as usize;
+        let ya = ((y0 & m) as usize) << level.shift;
+        let yb = (((y0 + 1) & m) as usize) << level.shift;
         let d = &level.data;
-        let a = d[level.addr(xa, ya)] as f32;
-        let b = d[level.addr(xb, ya)] as f32;
-        let c = d[level.addr(xa, yb)] as f32;
-        let e = d[level.addr(xb, yb)] as f32;
+        let a = d[ya | xa] as f32;
+        let b = d[ya | xb] as f32;
+        let c = d[yb | xa] as f32;
+        let e = d[yb | xb] as f32;
         let top = a + (b - a) * fx;
         let bottom = c + (e - c) * fx;
         top + (bottom - top) * fy
