@@ -31,8 +31,9 @@ pub struct RenderParams {
     pub noise_sigma: f32,
     /// Added to the log2 of every footprint: > 0 blurs, < 0 sharpens (and aliases).
     pub lod_bias: f32,
-    /// Distance at which haze has taken half of the contrast, metres.
-    pub haze_distance_m: f32,
+    /// Haze grows linearly with distance and has taken all contrast at
+    /// this distance, metres (half of it at half the distance).
+    pub haze_range_m: f32,
     /// Grey level of the haze.
     pub haze_value: f32,
     /// Rays end here (beyond: haze), metres.
@@ -52,7 +53,7 @@ impl Default for RenderParams {
         Self {
             noise_sigma: 2.0,
             lod_bias: 0.0,
-            haze_distance_m: 1500.0,
+            haze_range_m: 3000.0,
             haze_value: 200.0,
             max_distance_m: 3000.0,
             sky_horizon: 215.0,
@@ -109,6 +110,7 @@ pub struct Renderer {
     rays: Vec<[f32; 4]>,
     tiles: Vec<Tile>,
     boxes: Vec<BoxF>,
+    inv_haze_range: f32,
 }
 
 #[inline(always)]
@@ -236,6 +238,7 @@ impl Renderer {
             rays,
             tiles,
             boxes,
+            inv_haze_range: 1.0 / params.haze_range_m.max(1e-3),
         }
     }
 
@@ -427,7 +430,7 @@ impl Renderer {
                 p.sky_horizon + (p.sky_zenith - p.sky_horizon) * up
             };
         };
-        let keep = 1.0 / (1.0 + t / p.haze_distance_m);
+        let keep = (1.0 - t * self.inv_haze_range).max(0.0);
         value * keep + p.haze_value * (1.0 - keep)
     }
 }
