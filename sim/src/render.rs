@@ -20,7 +20,7 @@ use image::GrayImage;
 use nalgebra::{Isometry3, Point2};
 
 use crate::camera::{Params as CameraParams, SimCamera};
-use crate::texture::{fast_log2, mix64};
+use crate::texture::{fast_log2, mix64, round_u8};
 use crate::world::{Face, World};
 
 /// Every tunable number of the renderer.
@@ -355,7 +355,7 @@ impl Renderer {
                     {
                         value += noise_sigma * gaussian(seed, i as u64);
                     }
-                    buf[i] = (value + 0.5).clamp(0.0, 255.0) as u8;
+                    buf[i] = round_u8(value);
                 }
             }
         }

@@ -25,6 +25,27 @@ pub(crate) fn fast_floor(x: f32) -> i32 {
     i - ((x < i as f32) as i32)
 }
 
+/// Integer part and fraction of `x` for bilinear weights, without the
+/// saturating float-to-int cast: `x = i + f` with `f` in [0, 1] (a tie may
+/// give `f = 1`, which bilinear interpolation tolerates). Exact for
+/// |x| < 2^22; larger values give a wrong but harmless index.
+#[inline(always)]
+pub(crate) fn split_floor(x: f32) -> (i32, f32) {
+    const MAGIC: f32 = 12_582_912.0; // 1.5 * 2^23: adding it rounds to an integer
+    let t = (x - 0.5) + MAGIC;
+    let i = (t.to_bits() as i32).wrapping_sub(MAGIC.to_bits() as i32);
+    (i, x - (t - MAGIC))
+}
+
+/// Rounds to the nearest grey level in 0..=255 without a saturating cast
+/// (NaN gives 0).
+#[inline(always)]
+pub(crate) fn round_u8(x: f32) -> u8 {
+    const MAGIC: f32 = 12_582_912.0;
+    let c = if x > 0.0 { x.min(255.0) } else { 0.0 };
+    ((c + MAGIC).to_bits().wrapping_sub(MAGIC.to_bits()) & 0xff) as u8
+}
+
 /// Piecewise-linear approximation of log2 for positive finite `x`
 /// (absolute error below 0.09), good enough to pick a mip level.
 #[inline(always)]
@@ -327,12 +348,8 @@ impl MipTexture {
 
     #[inline(always)]
     fn bilinear(level: &Level, u: f32, v: f32) -> f32 {
-        let x = u - 0.5;
-        let y = v - 0.5;
-        let x0 = fast_floor(x);
-        let y0 = fast_floor(y);
-        let fx = x - x0 as f32;
-        let fy = y - y0 as f32;
+        let (x0, fx) = split_floor(u - 0.5);
+        let (y0, fy) = split_floor(v - 0.5);
         let m = level.mask;
         let xa = (x0 & m) as usize;
         let xb = ((x0 + 1) & m) as usize;
@@ -408,13 +425,15 @@ impl MipTexture {
     /// lookup instead of two.
     #[inline(always)]
     pub fn sample_lod(&self, u: f32, v: f32, lod: f32) -> f32 {
-        let l = lod as usize;
-        let f = lod - l as f32;
+        // A negative level (only for lod < 0, which callers clamp away)
+        // becomes a huge index and reads as the mean.
+        let (l, f) = split_floor(lod);
+        let l = l as usize;
         let (Some(a), Some(b)) = (self.levels.get(l), self.levels.get(l + 1)) else {
             return self.mean;
         };
         // 2^-l, exactly, without a division.
-        let sa = f32::from_bits((127 - l as u32) << 23);
+        let sa = f32::from_bits((127 - (l as u32 & 63)) << 23);
         if f <= BLEND_MARGIN {
             return Self::bilinear(a, u * sa, v * sa);
         }
@@ -435,6 +454,44 @@ pub const BLEND_MARGIN: f32 = 0.25;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn round_u8_rounds_and_clamps() {
+        assert_eq!(round_u8(-3.0), 0);
+        assert_eq!(round_u8(f32::NAN), 0);
+        assert_eq!(round_u8(0.4), 0);
+        assert_eq!(round_u8(0.6), 1);
+        assert_eq!(round_u8(127.49), 127);
+        assert_eq!(round_u8(254.7), 255);
+        assert_eq!(round_u8(1e9), 255);
+        for i in 0..=255u8 {
+            assert_eq!(round_u8(i as f32 + 0.3), i);
+        }
+    }
+
+    #[test]
+    fn split_floor_splits() {
+        for &x in &[
+            -3.7f32,
+            -1.0,
+            -0.2,
+            0.0,
+            0.3,
+            1.0,
+            2.5,
+            5.999,
+            1234.5,
+            -100_000.25,
+            4_000_000.75,
+        ] {
+            let (i, f) = split_floor(x);
+            assert!((0.0..=1.0).contains(&f), "{x}: {f}");
+            assert!(
+                (i as f64 + f as f64 - x as f64).abs() < 1e-3,
+                "{x}: {i} {f}"
+            );
+        }
+    }
 
     #[test]
     fn fast_math_is_close() {
