@@ -123,7 +123,7 @@ impl Default for WorldParams {
             detail_gain_a: 0.55,
             detail_gain_b: 0.4,
             detail_gain_close: 0.45,
-            close_detail_start_lod: -0.5,
+            close_detail_start_lod: -1.0,
             detail_fade_start_lod: 2.5,
             detail_fade_end_lod: 3.5,
         }
