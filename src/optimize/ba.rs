@@ -326,7 +326,7 @@ impl LeastSquares for BaLs<'_> {
                 self.c_inv[j] = Matrix3::zeros();
                 continue;
             }
-            let cinv = c.cholesky()?.inverse();
+            let cinv = inverse_spd3(&c)?;
             self.c_inv[j] = cinv;
             let obs_j = &self.by_point[self.by_point_start[j]..self.by_point_start[j + 1]];
             let gpj = self.g_p[j];
@@ -457,6 +457,26 @@ impl LeastSquares for BaLs<'_> {
         }
         n2.sqrt()
     }
+}
+
+/// Inverse of a symmetric positive-definite 3×3 matrix by cofactors;
+/// `None` unless all leading minors are positive.
+#[inline]
+fn inverse_spd3(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
+    let (a, b, c) = (m[(0, 0)], m[(0, 1)], m[(0, 2)]);
+    let (d, e, f) = (m[(1, 1)], m[(1, 2)], m[(2, 2)]);
+    let c00 = d * f - e * e;
+    let c01 = c * e - b * f;
+    let c02 = b * e - c * d;
+    let det = a * c00 + b * c01 + c * c02;
+    let minor2 = a * d - b * b;
+    if a <= 0.0 || minor2 <= 0.0 || det <= 0.0 || !det.is_finite() {
+        return None;
+    }
+    let c11 = a * f - c * c;
+    let c12 = b * c - a * e;
+    let inv = 1.0 / det;
+    Some(Matrix3::new(c00, c01, c02, c01, c11, c12, c02, c12, minor2) * inv)
 }
 
 /// Chi2 of one observation, `None` when the point is behind the camera.
@@ -634,6 +654,15 @@ pub fn bundle_adjust_lm(
 mod tests {
     use super::*;
     use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn spd3_inverse_is_an_inverse_and_refuses_indefinite() {
+        let m = Matrix3::new(4.0, 1.0, 0.5, 1.0, 3.0, -0.2, 0.5, -0.2, 2.0);
+        let inv = inverse_spd3(&m).unwrap();
+        assert!((m * inv - Matrix3::identity()).norm() < 1e-12);
+        let bad = Matrix3::new(1.0, 2.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 1.0);
+        assert!(inverse_spd3(&bad).is_none());
+    }
 
     /// The Schur solve equals a dense solve of the full damped system, and
     /// the analytic Jacobians match finite differences through it.
