@@ -220,5 +220,51 @@ fn bench_ba(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_ba);
+/// Motion-only BA of one frame: 300 map points, 1 px noise, 20 % outliers,
+/// ORB-SLAM's 4 rounds x 10 iterations.
+fn bench_pose_only(c: &mut Criterion) {
+    use rand::{Rng, SeedableRng, rngs::SmallRng};
+    use shotpilot::optimize::{Intrinsics, PoseObservation, PoseParams, optimize_pose};
+    let mut rng = SmallRng::seed_from_u64(5);
+    let intr = Intrinsics {
+        fx: 500.0,
+        fy: 500.0,
+        cx: 320.0,
+        cy: 240.0,
+    };
+    let truth = Isometry3::from_parts(
+        Translation3::new(0.2, -0.1, 0.5),
+        UnitQuaternion::from_euler_angles(0.05, 0.1, -0.08),
+    );
+    let obs: Vec<PoseObservation> = (0..300)
+        .map(|i| {
+            let pc = Vector3::new(
+                rng.random_range(-4.0..4.0),
+                rng.random_range(-3.0..3.0),
+                rng.random_range(4.0..12.0),
+            );
+            let mut uv = intr.project(&pc);
+            uv.x += geometry_support::gauss(&mut rng);
+            uv.y += geometry_support::gauss(&mut rng);
+            if i % 5 == 0 {
+                uv.x += rng.random_range(10.0..50.0);
+            }
+            PoseObservation {
+                p_world: truth.inverse_transform_point(&Point3::from(pc)),
+                uv,
+                inv_sigma2: 1.0,
+            }
+        })
+        .collect();
+    let init = Isometry3::from_parts(
+        Translation3::new(0.3, -0.15, 0.4),
+        UnitQuaternion::from_euler_angles(0.07, 0.08, -0.06),
+    );
+    let params = PoseParams::default();
+    c.bench_function("pose_only_300_obs_20pct_outliers", |b| {
+        b.iter(|| optimize_pose(black_box(init), black_box(&obs), &intr, &params).expect("pose"))
+    });
+}
+
+criterion_group!(benches, bench_ba, bench_pose_only);
 criterion_main!(benches);
