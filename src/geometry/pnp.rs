@@ -565,6 +565,39 @@ fn count_inliers(
     n
 }
 
+/// As [`count_inliers`], but gives up (`None`) as soon as the hypothesis
+/// can no longer beat `best` inliers: most RANSAC hypotheses are wrong and
+/// are dropped after about `n - best` points.
+#[allow(clippy::too_many_arguments)]
+fn count_inliers_beating(
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    pw: &[Point3<f64>],
+    xn: &[Point2<f64>],
+    th2: f64,
+    best: usize,
+    mask: &mut [bool],
+) -> Option<usize> {
+    let n = pw.len();
+    let mut c = 0;
+    for (i, ((p, x), m)) in pw.iter().zip(xn).zip(mask.iter_mut()).enumerate() {
+        let q = r * p.coords + t;
+        let ok = q.z > 0.0 && {
+            let iz = 1.0 / q.z;
+            let dx = q.x * iz - x.x;
+            let dy = q.y * iz - x.y;
+            dx * dx + dy * dy <= th2
+        };
+        *m = ok;
+        c += usize::from(ok);
+        // Points left after this one: n - i - 1.
+        if c + (n - i - 1) <= best {
+            return None;
+        }
+    }
+    Some(c)
+}
+
 fn to_iso(r: &Matrix3<f64>, t: &Vector3<f64>) -> Isometry3<f64> {
     Isometry3::from_parts(
         Translation3::from(*t),
@@ -640,7 +673,11 @@ pub fn solve_pnp_ransac(
         ];
         let (sols, ns) = p3p_lambda_twist(&y, &x);
         for (r, t) in sols.iter().take(ns) {
-            let c = count_inliers(r, t, points_world, obs_normalized, th2, &mut mask);
+            let Some(c) =
+                count_inliers_beating(r, t, points_world, obs_normalized, th2, best_n, &mut mask)
+            else {
+                continue;
+            };
             if c > best_n {
                 best_n = c;
                 best_rt = Some((*r, *t));
