@@ -465,19 +465,17 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
     }
     let mut best: Option<(f64, RotTrans)> = None;
     let mut pc = Vec::with_capacity(n);
-    let mut pwv = Vec::with_capacity(n);
+    let pwv: Vec<Point3<f64>> = idx.iter().map(|&i| pw[i]).collect();
     for mut beta in candidates {
         gauss_newton_betas(&l, &rho, &mut beta);
         let cc: [Vector3<f64>; 4] = std::array::from_fn(|j| {
             v[0][j] * beta[0] + v[1][j] * beta[1] + v[2][j] * beta[2] + v[3][j] * beta[3]
         });
         pc.clear();
-        pwv.clear();
-        for (al, &i) in alphas.iter().zip(idx) {
+        for al in &alphas {
             pc.push(Point3::from(
                 cc[0] * al[0] + cc[1] * al[1] + cc[2] * al[2] + cc[3] * al[3],
             ));
-            pwv.push(pw[i]);
         }
         // Points must lie in front: flip the global sign if needed.
         let neg = pc.iter().filter(|p| p.z < 0.0).count();
@@ -494,7 +492,9 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
         let mut err = 0.0;
         for &i in idx {
             let q = r * pw[i].coords + t;
-            err += ((q.x / q.z - xn[i].x).powi(2) + (q.y / q.z - xn[i].y).powi(2)).sqrt();
+            let iz = 1.0 / q.z;
+            // Sum of squared errors: the selection needs an order, not a mean.
+            err += (q.x * iz - xn[i].x).powi(2) + (q.y * iz - xn[i].y).powi(2);
         }
         if err.is_finite() && best.as_ref().is_none_or(|(e, _)| err < *e) {
             best = Some((err, (r, t)));
