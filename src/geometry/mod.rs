@@ -29,6 +29,8 @@ pub struct Params {
     pub two_view: TwoViewParams,
     /// PnP RANSAC and refinement.
     pub pnp: PnpParams,
+    /// Checks on newly triangulated map points.
+    pub triangulation: TriangulationChecks,
 }
 
 /// Errors of the geometry module. Counts are carried so callers can log and
