@@ -38,11 +38,6 @@ pub fn se3_exp(delta: &Vector6<f64>) -> Isometry3<f64> {
     )
 }
 
-/// Rotation angle (radians) of `a⁻¹·b`: the geodesic distance on SO(3).
-pub fn rotation_angle_between(a: &UnitQuaternion<f64>, b: &UnitQuaternion<f64>) -> f64 {
-    a.angle_to(b)
-}
-
 /// A similarity transform `p ↦ s·R·p + t` (Sim(3)).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Sim3 {
