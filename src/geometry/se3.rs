@@ -8,6 +8,16 @@
 
 use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
 
+/// The unit quaternion of a (nearly) orthonormal rotation matrix. nalgebra's
+/// `from_rotation_matrix` assumes an exact rotation and returns a quaternion
+/// off unit length otherwise (seen at 3 % after a noisy solve), which then
+/// makes quaternion and matrix forms of the same pose disagree; this
+/// renormalises.
+pub fn quaternion_from_matrix(r: &Matrix3<f64>) -> UnitQuaternion<f64> {
+    let q = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(*r));
+    UnitQuaternion::new_normalize(q.into_inner())
+}
+
 /// The skew-symmetric matrix `[v]ₓ` with `[v]ₓ·w = v × w`.
 #[inline]
 pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {

@@ -804,7 +804,7 @@ pub fn initialize_two_view(
             needed: min_good,
         });
     }
-    let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(best.r));
+    let rot = crate::geometry::se3::quaternion_from_matrix(&best.r);
     let mut cam2_from_cam1 = Isometry3::from_parts(Translation3::from(best.t), rot);
     let mut points = best.points;
     if params.refine_iterations > 0 {
