@@ -58,6 +58,12 @@ enum Command {
     /// frame, placed relative to its reference keyframe after the final
     /// optimisation) and DIR/keyframes.txt, both in the TUM format.
     Slam(SlamArgs),
+    /// Bag-of-words vocabularies: train one from images, import ORB-SLAM's
+    /// ORBvoc.txt, describe one.
+    Vocab(vocab_cli::VocabArgs),
+    /// Plan, upload, download and start missions (the MAVLink link to the drone).
+    #[command(subcommand)]
+    Mission(MissionCommand),
 }
 
 #[derive(Args, Debug)]
@@ -96,12 +102,6 @@ struct SlamArgs {
     /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     json: bool,
-    /// Bag-of-words vocabularies: train one from images, import ORB-SLAM's
-    /// ORBvoc.txt, describe one.
-    Vocab(vocab_cli::VocabArgs),
-    /// Plan, upload, download and start missions (the MAVLink link to the drone).
-    #[command(subcommand)]
-    Mission(MissionCommand),
 }
 
 #[derive(Subcommand, Debug)]
