@@ -50,5 +50,6 @@ pub mod geometry;
 pub mod matching;
 pub mod mission;
 pub mod optimize;
+pub mod slam;
 pub mod vehicle;
 pub mod video;
