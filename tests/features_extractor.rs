@@ -16,7 +16,10 @@ fn texture(w: u32, h: u32, seed: u64) -> GrayImage {
         *v = 60.0 + 0.1 * x + 0.05 * y;
     }
     for _ in 0..900 {
-        let (cx, cy) = (rng.random_range(0.0..w as f32), rng.random_range(0.0..h as f32));
+        let (cx, cy) = (
+            rng.random_range(0.0..w as f32),
+            rng.random_range(0.0..h as f32),
+        );
         let r = rng.random_range(2.0..14.0f32);
         let a = rng.random_range(-90.0..90.0f32);
         let (x0, x1) = ((cx - r).max(0.0) as u32, ((cx + r) as u32 + 1).min(w));
@@ -30,7 +33,9 @@ fn texture(w: u32, h: u32, seed: u64) -> GrayImage {
             }
         }
     }
-    GrayImage::from_fn(w, h, |x, y| image::Luma([f[(y * w + x) as usize].clamp(0.0, 255.0) as u8]))
+    GrayImage::from_fn(w, h, |x, y| {
+        image::Luma([f[(y * w + x) as usize].clamp(0.0, 255.0) as u8])
+    })
 }
 
 fn extractor(n: usize, threads: usize) -> OrbExtractor {
@@ -86,12 +91,26 @@ fn rotated_image_gives_the_same_descriptors() {
     dists.sort_unstable();
     // The same corners are found (the pyramid is exactly rotation-equivariant
     // for a square image) ...
-    assert!(pairs as f32 > 0.8 * a.len() as f32, "{pairs} of {} re-found", a.len());
+    assert!(
+        pairs as f32 > 0.8 * a.len() as f32,
+        "{pairs} of {} re-found",
+        a.len()
+    );
     // ... with the orientation turned by 90 degrees ...
-    assert!(angle_ok as f32 > 0.9 * pairs as f32, "{angle_ok} of {pairs} angles");
+    assert!(
+        angle_ok as f32 > 0.9 * pairs as f32,
+        "{angle_ok} of {pairs} angles"
+    );
     // ... and descriptors within a few bits for most of them.
-    assert!(close as f32 > 0.85 * pairs as f32, "{close} of {pairs} within 20 bits");
-    assert!(dists[dists.len() / 2] <= 6, "median distance {}", dists[dists.len() / 2]);
+    assert!(
+        close as f32 > 0.85 * pairs as f32,
+        "{close} of {pairs} within 20 bits"
+    );
+    assert!(
+        dists[dists.len() / 2] <= 6,
+        "median distance {}",
+        dists[dists.len() / 2]
+    );
 }
 
 /// Bright 40 px squares on a dark background: every corner of every square
@@ -122,8 +141,7 @@ fn octave_coordinates_map_to_level_zero() {
     let f = ex.extract(&img, None);
     let scales = ex.scale_factors().to_vec();
     let mut checked_levels = 0;
-    for l in 0..scales.len() {
-        let s = scales[l];
+    for (l, &s) in scales.iter().enumerate() {
         let errs: Vec<(f32, f32)> = f
             .keypoints
             .iter()
@@ -146,14 +164,27 @@ fn octave_coordinates_map_to_level_zero() {
         let max = errs.iter().map(|e| e.0.hypot(e.1)).fold(0.0, f32::max);
         // Each keypoint lies within about one level pixel of a true corner,
         // and the offsets of the four corner kinds cancel: no scaling bias.
-        eprintln!("level {l}: {} keypoints, bias ({mean_dx:.2}, {mean_dy:.2}), max {max:.2}", errs.len());
+        eprintln!(
+            "level {l}: {} keypoints, bias ({mean_dx:.2}, {mean_dy:.2}), max {max:.2}",
+            errs.len()
+        );
         assert!(max < 2.5 * s + 0.5, "level {l}: max error {max}");
-        assert!(mean_dx.abs() < 0.3 * s && mean_dy.abs() < 0.3 * s, "level {l}: bias ({mean_dx}, {mean_dy})");
+        assert!(
+            mean_dx.abs() < 0.3 * s && mean_dy.abs() < 0.3 * s,
+            "level {l}: bias ({mean_dx}, {mean_dy})"
+        );
         // The reported size is the patch diameter at that level.
-        let k = f.keypoints.iter().find(|k| k.octave as usize == l).map(|k| k.size);
+        let k = f
+            .keypoints
+            .iter()
+            .find(|k| k.octave as usize == l)
+            .map(|k| k.size);
         assert_eq!(k, Some(31.0 * s));
     }
-    assert!(checked_levels >= 6, "only {checked_levels} levels had corners");
+    assert!(
+        checked_levels >= 6,
+        "only {checked_levels} levels had corners"
+    );
 }
 
 #[test]
@@ -173,7 +204,14 @@ fn identical_input_gives_identical_output() {
 #[test]
 fn degenerate_images_give_few_features_and_no_panic() {
     let mut ex = extractor(1000, 2);
-    for (w, h, most) in [(0, 0, 0), (1, 1, 0), (7, 3, 0), (38, 38, 0), (40, 40, 2), (64, 64, 30)] {
+    for (w, h, most) in [
+        (0, 0, 0),
+        (1, 1, 0),
+        (7, 3, 0),
+        (38, 38, 0),
+        (40, 40, 2),
+        (64, 64, 30),
+    ] {
         let f = ex.extract(&texture(w.max(1), h.max(1), 3), None);
         assert!(f.len() <= most, "{w}x{h}: {}", f.len());
         let f = ex.extract(&GrayImage::new(w, h), None);
@@ -214,12 +252,19 @@ fn masked_pixels_never_yield_features() {
         }
     }
     let mut ex = extractor(1000, 1);
-    let f = ex.extract_masked(&filled, &mask, None).expect("sizes agree");
+    let f = ex
+        .extract_masked(&filled, &mask, None)
+        .expect("sizes agree");
     assert!(f.len() > 300, "{}", f.len());
     for k in &f.keypoints {
         // The whole patch (radius 15 level pixels, 18 with margin) stays left of the fill.
         let reach = 18.0 * ex.scale_factors()[k.octave as usize];
-        assert!(k.x + reach < 420.5, "keypoint at {} octave {}", k.x, k.octave);
+        assert!(
+            k.x + reach < 420.5,
+            "keypoint at {} octave {}",
+            k.x,
+            k.octave
+        );
     }
     let small = GrayImage::new(10, 10);
     assert!(matches!(

@@ -68,20 +68,29 @@ fn homography_pairs_against_opencv() {
     let dir = tempfile::tempdir().expect("temp dir");
     eval::write_pairs(dir.path(), &pairs).expect("pairs written");
     let python = std::env::var("SHOTPILOT_PYTHON").unwrap_or_else(|_| "python3".into());
-    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("benches/peers/orb_pairs_opencv.py");
+    let script =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("benches/peers/orb_pairs_opencv.py");
     let st = Command::new(&python)
         .arg(&script)
         .arg(dir.path())
         .status()
         .expect("python runs");
     assert!(st.success(), "OpenCV peer failed");
-    let cv = eval::read_peer_features(&dir.path().join("opencv_features.json")).expect("peer output");
+    let cv =
+        eval::read_peer_features(&dir.path().join("opencv_features.json")).expect("peer output");
     assert_eq!(cv.len(), pairs.len());
     let wp = WarpParams::default();
     let theirs: Vec<PairMetrics> = pairs
         .iter()
         .zip(&cv)
-        .map(|(p, (a, b))| eval::evaluate_pair(p, (&a.keypoints, &a.descriptors), (&b.keypoints, &b.descriptors), &wp))
+        .map(|(p, (a, b))| {
+            eval::evaluate_pair(
+                p,
+                (&a.keypoints, &a.descriptors),
+                (&b.keypoints, &b.descriptors),
+                &wp,
+            )
+        })
         .collect();
     let cv = eval::mean_metrics(&theirs);
     let m = ours(&pairs);

@@ -88,8 +88,8 @@ pub fn gaussian_blur(src: &[u8], w: usize, h: usize, dst: &mut Vec<u8>, scratch:
                 drow[x] = ((128 + border_tap(vrow, x as isize, w)) >> 8) as u8;
             }
         } else {
-            for x in 0..w {
-                drow[x] = ((128 + border_tap(vrow, x as isize, w)) >> 8) as u8;
+            for (x, d) in drow.iter_mut().enumerate() {
+                *d = ((128 + border_tap(vrow, x as isize, w)) >> 8) as u8;
             }
         }
     }
@@ -129,7 +129,14 @@ impl Steerer {
     /// keypoint [`PATTERN_REACH`] pixels inside the level; tests that fall
     /// outside read 0.
     #[inline(always)]
-    pub fn describe(&self, blur: &[u8], w: usize, x: usize, y: usize, angle_deg: f32) -> Descriptor {
+    pub fn describe(
+        &self,
+        blur: &[u8],
+        w: usize,
+        x: usize,
+        y: usize,
+        angle_deg: f32,
+    ) -> Descriptor {
         let (sin, cos) = angle_deg.to_radians().sin_cos();
         // Rotation in 16.16 fixed point; rounding half up, clamped to the reach
         // so every read below stays inside the window checked here.
@@ -138,11 +145,10 @@ impl Steerer {
         let reach = PATTERN_REACH as i32;
         let wi = w as i32;
         let mut offs = [0i32; 512];
-        for i in 0..512 {
-            let (px, py) = (self.px[i], self.py[i]);
+        for ((o, &px), &py) in offs.iter_mut().zip(&self.px).zip(&self.py) {
             let u = ((px * ca - py * sa + 32768) >> 16).clamp(-reach, reach);
             let v = ((px * sa + py * ca + 32768) >> 16).clamp(-reach, reach);
-            offs[i] = v * wi + u;
+            *o = v * wi + u;
         }
         let mut vals = [0u8; 512];
         let r = PATTERN_REACH;
