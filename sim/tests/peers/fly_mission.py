@@ -53,6 +53,9 @@ def main():
     ap.add_argument("--listen", default="udpin:127.0.0.1:14550")
     ap.add_argument("--trace", default=None)
     ap.add_argument("--timeout", type=float, default=180.0)
+    ap.add_argument("--capture", action="store_true",
+                    help="add a gimbal pitch -90 and an IMAGE_START_CAPTURE after waypoint 1 and check "
+                         "CAMERA_IMAGE_CAPTURED and the file")
     args = ap.parse_args()
 
     conn = mavutil.mavlink_connection(args.listen, source_system=255, source_component=190)
@@ -90,6 +93,11 @@ def main():
         (1, frame, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 2.0, 1.0, 0.0, 90.0, a[0], a[1], 15.0),
         (2, frame, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 1.0, 0.0, float("nan"), b[0], b[1], 15.0),
     ]
+    if args.capture:
+        items = items[:2] + [
+            (2, m2.MAV_FRAME_MISSION, m2.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, 0, 1, -90.0, 0.0, float("nan"), float("nan"), 0, 0, 0.0),
+            (3, m2.MAV_FRAME_MISSION, m2.MAV_CMD_IMAGE_START_CAPTURE, 0, 1, 0.0, 0.0, 1.0, 0.0, 0, 0, 0.0),
+        ] + [(4,) + items[2][1:]]
     ardupilot = hb.autopilot == m2.MAV_AUTOPILOT_ARDUPILOTMEGA
     if ardupilot:
         # ArduPilot: item 0 is home (its content is replaced by the vehicle).
@@ -154,7 +162,8 @@ def main():
     reached = []
     done = False
     while time.time() - t_start < args.timeout and not done:
-        msg = wait(conn, ["GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "MISSION_ITEM_REACHED", "MISSION_CURRENT"], 1.0)
+        msg = wait(conn, ["GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "MISSION_ITEM_REACHED", "MISSION_CURRENT",
+                          "CAMERA_IMAGE_CAPTURED"], 1.0)
         if msg is None:
             continue
         t = msg.get_type()
@@ -164,6 +173,13 @@ def main():
             if msg.seq not in reached:
                 reached.append(msg.seq)
                 summary.setdefault("reached_at_s", {})[msg.seq] = round(time.time() - t_start, 2)
+        elif t == "CAMERA_IMAGE_CAPTURED":
+            url = msg.file_url if isinstance(msg.file_url, str) else msg.file_url.decode(errors="replace")
+            path = url[len("file://"):] if url.startswith("file://") else url
+            summary.setdefault("captures", []).append({
+                "index": msg.image_index, "result": msg.capture_result, "file": path,
+                "exists": os.path.exists(path), "bytes": os.path.getsize(path) if os.path.exists(path) else 0,
+                "relative_alt_m": msg.relative_alt / 1000.0, "q": [round(v, 4) for v in msg.q]})
         elif t == "MISSION_CURRENT":
             if getattr(msg, "mission_state", 0) == m2.MISSION_STATE_COMPLETE:
                 done = True
@@ -184,8 +200,11 @@ def main():
             "final": trace[-1][1:],
             "every_5s": [r for i, r in enumerate(trace) if i % 25 == 0],
         }
-    want = [1, 2, 3] if ardupilot else [0, 1, 2]
+    want = list(range(len(items)))[1:] if ardupilot else list(range(len(items)))
     ok = done and reached == want and arm == 0 and start == 0
+    if args.capture:
+        caps = summary.get("captures", [])
+        ok = ok and len(caps) == 1 and caps[0]["exists"] and caps[0]["result"] == 1
     summary["ok"] = ok
     print(json.dumps(summary))
     return 0 if ok else 1
