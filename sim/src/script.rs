@@ -253,12 +253,11 @@ impl Script {
                 .fold(level.alt_m, f64::max)
         };
         let n = pts.len();
-        for i in 1..n {
+        for (i, &(q, level)) in pts.iter().enumerate().skip(1) {
             let mut alt = seg_alt(i);
             if i + 1 < n {
                 alt = alt.max(seg_alt(i + 1));
             }
-            let (q, level) = pts[i];
             legs.push(Leg {
                 to: Vector3::new(q.0, q.1, -alt),
                 yaw: level.yaw_deg.to_radians(),
