@@ -24,7 +24,8 @@
 //! MAV_RESULT_UNSUPPORTED.
 //!
 //! Mission execution (mode AUTO.MISSION / ArduPilot AUTO, armed): items run
-//! from the current one. NAV_TAKEOFF climbs over the current position;
+//! from the current one. NAV_TAKEOFF climbs over the current position (and
+//! is reached at once by a vehicle already flying higher);
 //! NAV_WAYPOINT flies to the point (param2 acceptance radius, default 2 m,
 //! 0.8 m vertically; param4 yaw, NaN = face the direction of travel),
 //! waits for the yaw, reports MISSION_ITEM_REACHED, then holds param1
@@ -1181,10 +1182,14 @@ impl Autopilot {
         let (sp, complete) = match self.exec.phase {
             Phase::Instant => (self.hold_or_idle(), true),
             Phase::Takeoff { z } => {
+                // As PX4: reached once at or above the takeoff altitude (a
+                // vehicle already flying higher does not descend).
+                let z = if self.vehicle.landed() { z } else { z.min(p.z) };
                 let target = Vector3::new(p.x, p.y, z);
-                let done = (p.z - z).abs() <= self.params.altitude_acceptance_m;
+                let done = p.z <= z + self.params.altitude_acceptance_m;
                 if done {
-                    self.hold_point = Some((Vector3::new(p.x, p.y, z), self.vehicle.yaw()));
+                    self.hold_point =
+                        Some((Vector3::new(p.x, p.y, p.z.min(z)), self.vehicle.yaw()));
                 }
                 (
                     Setpoint::Position {

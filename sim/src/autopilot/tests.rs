@@ -549,3 +549,38 @@ fn ardupilot_mission_starts_after_home_and_condition_yaw_turns() {
     assert!((y - 135.0).abs() < 2.5, "{y}");
     assert!((s.ap.vehicle().p_ned() - Vector3::new(10.0, 0.0, -8.0)).norm() < 2.0);
 }
+
+#[test]
+fn takeoff_item_is_reached_at_once_when_already_higher() {
+    let mut s = Sim::new(Flavour::Px4);
+    s.command(
+        MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    );
+    s.command(
+        MavCmd::MAV_CMD_NAV_TAKEOFF,
+        [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 488.0 + 20.0],
+    );
+    s.run(12.0);
+    assert!((s.ap.vehicle().p_ned().z + 20.0).abs() < 0.3);
+    s.upload(vec![item(
+        0,
+        MavCmd::MAV_CMD_NAV_TAKEOFF,
+        REL,
+        [0.0; 4],
+        0,
+        0,
+        8.0,
+    )]);
+    s.command(MavCmd::MAV_CMD_MISSION_START, [0.0; 7]);
+    let out = s.run(2.0);
+    assert!(
+        out.iter()
+            .any(|(_, m)| matches!(m, MavMessage::MISSION_ITEM_REACHED(r) if r.seq == 0))
+    );
+    assert!(
+        (s.ap.vehicle().p_ned().z + 20.0).abs() < 0.3,
+        "descended: {}",
+        s.ap.vehicle().p_ned()
+    );
+}
