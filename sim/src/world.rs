@@ -86,6 +86,12 @@ pub struct WorldParams {
     pub detail_gain_a: f32,
     /// Gain of the second detail layer.
     pub detail_gain_b: f32,
+    /// Gain of the close-up layer (the second detail texture at a quarter
+    /// scale), which fades in when the first layer is magnified.
+    pub detail_gain_close: f32,
+    /// Mip level of the first detail layer below which (magnified) the
+    /// close-up layer starts to fade in.
+    pub close_detail_start_lod: f32,
     /// Detail layers start fading out at this mip level of their own...
     pub detail_fade_start_lod: f32,
     /// ...and are gone (not sampled) from this one: their features are
@@ -116,6 +122,8 @@ impl Default for WorldParams {
             ambient: 0.45,
             detail_gain_a: 0.55,
             detail_gain_b: 0.4,
+            detail_gain_close: 0.45,
+            close_detail_start_lod: -0.5,
             detail_fade_start_lod: 2.5,
             detail_fade_end_lod: 3.5,
         }
@@ -306,6 +314,8 @@ pub(crate) struct Textures {
     pub detail_b_log2_inv_texel: f32,
     /// cos, sin of the second detail layer's rotation.
     pub detail_b_rot: (f32, f32),
+    /// cos, sin of the close-up layer's rotation.
+    pub detail_close_rot: (f32, f32),
 }
 
 /// The scene: boxes on a ground plane, with their textures.
@@ -494,6 +504,19 @@ impl World {
                 let ub = (c * u - s * v) * sb;
                 let vb = (s * u + c * v) * sb;
                 out += (tx.detail_b.sample_lod(ub, vb, lod_b.max(0.0)) - tx.detail_b.mean()) * w;
+            }
+            // Very close (the first layer magnified): the second layer's
+            // texture again at a quarter of its scale, turned another way,
+            // fading in as the first one blurs.
+            let close_start = self.params.close_detail_start_lod;
+            if lod_a < close_start {
+                let w = ((close_start - lod_a) * fade_k).min(1.0) * self.params.detail_gain_close;
+                let sc = tx.detail_b_inv_texel * 4.0;
+                let (c, s) = tx.detail_close_rot;
+                let uc = (c * u - s * v) * sc;
+                let vc = (s * u + c * v) * sc;
+                let lod_c = (lod_m + tx.detail_b_log2_inv_texel + 2.0).max(0.0);
+                out += (tx.detail_b.sample_lod(uc, vc, lod_c) - tx.detail_b.mean()) * w;
             }
         }
         out
@@ -821,6 +844,7 @@ fn make_textures(
         detail_texture(p.detail_texture_size, seed ^ 0xB0B)
     });
     let rot = 35.0f32.to_radians();
+    let close_rot = 101.0f32.to_radians();
     Textures {
         ground,
         ground_inv_texel,
@@ -839,6 +863,7 @@ fn make_textures(
         detail_b_log2_inv_texel: (p.detail_texture_size as f64 / (p.detail_extent_m * PHI)).log2()
             as f32,
         detail_b_rot: (rot.cos(), rot.sin()),
+        detail_close_rot: (close_rot.cos(), close_rot.sin()),
     }
 }
 
