@@ -16,6 +16,10 @@ import time
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from lossy_upload import download as robust_download  # noqa: E402
+from lossy_upload import upload as robust_upload  # noqa: E402
+
 m2 = mavutil.mavlink
 
 
@@ -104,37 +108,19 @@ def main():
         items = [(0, m2.MAV_FRAME_GLOBAL, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 0.0, 0.0, 0.0,
                   int(round(lat0 * 1e7)), int(round(lon0 * 1e7)), home.altitude / 1000.0)] + [
             (it[0] + 1,) + it[1:] for it in items]
+    # Upload with QGC-like retries (lossy_upload.py): re-send MISSION_COUNT
+    # until requested, answer every request, re-send the last item until ACKed.
     t_up = time.time()
-    conn.mav.mission_count_send(conn.target_system, conn.target_component, len(items), m2.MAV_MISSION_TYPE_MISSION)
-    requests = []
-    result = None
-    while time.time() - t_up < 10:
-        msg = wait(conn, ["MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"], 2.0)
-        if msg is None:
-            break
-        if msg.get_type() == "MISSION_ACK":
-            result = msg.type
-            break
-        requests.append((msg.get_type(), msg.seq))
-        it = items[msg.seq]
-        conn.mav.mission_item_int_send(conn.target_system, conn.target_component, *it, m2.MAV_MISSION_TYPE_MISSION)
+    ok_up, why, secs, stats = robust_upload(conn, items, 1.5, 5)
+    result = m2.MAV_MISSION_ACCEPTED if ok_up else why
+    requests = stats
     summary["upload"] = {"result": result, "requests": requests, "seconds": round(time.time() - t_up, 3)}
     if result != m2.MAV_MISSION_ACCEPTED:
         print(json.dumps({"ok": False, **summary}))
         return 1
 
-    # Download it back.
-    conn.mav.mission_request_list_send(conn.target_system, conn.target_component, m2.MAV_MISSION_TYPE_MISSION)
-    cnt = wait(conn, ["MISSION_COUNT"], 3.0)
-    got = []
-    for seq in range(cnt.count if cnt else 0):
-        conn.mav.mission_request_int_send(conn.target_system, conn.target_component, seq, m2.MAV_MISSION_TYPE_MISSION)
-        it = wait(conn, ["MISSION_ITEM_INT"], 2.0, lambda m, s=seq: m.seq == s)
-        if it is None:
-            break
-        got.append(it)
-    conn.mav.mission_ack_send(conn.target_system, conn.target_component, m2.MAV_MISSION_ACCEPTED, m2.MAV_MISSION_TYPE_MISSION)
-
+    # Download it back (re-requesting on timeout).
+    got = robust_download(conn, 1.5, 10) or []
     def same(it, ref):
         def feq(x, y):
             return (math.isnan(x) and math.isnan(y)) or x == y
