@@ -11,7 +11,9 @@
 //! ATTITUDE 10, GLOBAL_POSITION_INT 5, LOCAL_POSITION_NED 5,
 //! GIMBAL_DEVICE_ATTITUDE_STATUS 5, HOME_POSITION 0.5. MAV_CMD_SET_MESSAGE_INTERVAL
 //! changes them (-1 stops a stream, 0 restores the default) and
-//! MAV_CMD_REQUEST_MESSAGE sends one at once.
+//! MAV_CMD_REQUEST_MESSAGE sends one at once. The ArduPilot flavour also
+//! honours the legacy REQUEST_DATA_STREAM (groups ALL, EXTENDED_STATUS,
+//! POSITION, EXTRA1, EXTRA3).
 //!
 //! Commands answered with COMMAND_ACK: COMPONENT_ARM_DISARM, DO_SET_MODE
 //! (PX4 custom modes main_mode << 16 | sub_mode << 24, or ArduPilot copter
@@ -562,6 +564,12 @@ impl Autopilot {
             out.push(cmd_ack(from, c.command, result));
             return out;
         }
+        if let MavMessage::REQUEST_DATA_STREAM(r) = msg
+            && self.for_us(r.target_system, r.target_component)
+        {
+            self.request_data_stream(r.req_stream_id as u32, r.req_message_rate, r.start_stop);
+            return out;
+        }
         let replies = self.mission.handle(self.now, from, msg);
         if !replies.is_empty() {
             self.gcs.get_or_insert(from);
@@ -764,6 +772,31 @@ impl Autopilot {
                 MavResult::MAV_RESULT_ACCEPTED
             }
             _ => MavResult::MAV_RESULT_UNSUPPORTED,
+        }
+    }
+
+    /// The legacy REQUEST_DATA_STREAM (ArduPilot ground stations send it;
+    /// PX4 ignores it): a stream group at a rate in Hz, or off.
+    fn request_data_stream(&mut self, stream: u32, rate_hz: u16, start: u8) {
+        if self.params.flavour != Flavour::ArduPilot {
+            return;
+        }
+        // ArduPilot's groups, restricted to the messages we produce.
+        let ids: &[u32] = match stream {
+            0 => &[1, 24, 42, 30, 33, 32, 285, 2],
+            2 => &[1, 24, 42],
+            6 => &[33, 32],
+            10 => &[30],
+            12 => &[2, 285],
+            _ => &[],
+        };
+        for s in self.streams.iter_mut().filter(|s| ids.contains(&s.id)) {
+            s.interval = if start == 0 || rate_hz == 0 {
+                None
+            } else {
+                Some(1.0 / f64::from(rate_hz))
+            };
+            s.next = self.now;
         }
     }
 

@@ -584,3 +584,28 @@ fn takeoff_item_is_reached_at_once_when_already_higher() {
         s.ap.vehicle().p_ned()
     );
 }
+
+#[test]
+fn ardupilot_honours_request_data_stream_and_px4_ignores_it() {
+    use mavlink::Message;
+    use mavlink::dialects::common::{MavDataStream, REQUEST_DATA_STREAM_DATA};
+    let req = MavMessage::REQUEST_DATA_STREAM(REQUEST_DATA_STREAM_DATA {
+        req_message_rate: 20,
+        target_system: 1,
+        target_component: 1,
+        req_stream_id: MavDataStream::MAV_DATA_STREAM_POSITION,
+        start_stop: 1,
+    });
+    let count = |msgs: &[(f64, MavMessage)], id: u32| {
+        msgs.iter().filter(|(_, m)| m.message_id() == id).count()
+    };
+    let mut a = Sim::new(Flavour::ArduPilot);
+    a.send(req.clone());
+    let out = a.run(5.0);
+    assert!((99..=101).contains(&count(&out, 33)), "{}", count(&out, 33));
+    assert!((99..=101).contains(&count(&out, 32)));
+    let mut p = Sim::new(Flavour::Px4);
+    p.send(req);
+    let out = p.run(5.0);
+    assert!((24..=26).contains(&count(&out, 33)));
+}
