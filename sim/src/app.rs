@@ -232,6 +232,7 @@ fn write_capture(
 /// Run the simulator until `cancel` fires, serving video on
 /// `config.video_listen` (if set).
 pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSummary, SimError> {
+    config.validate()?;
     let (video_tx, video_rx) = watch::channel(None);
     if let Some(addr) = config.video_listen {
         let listener = tokio::net::TcpListener::bind(addr)
