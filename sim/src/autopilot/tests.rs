@@ -609,3 +609,41 @@ fn ardupilot_honours_request_data_stream_and_px4_ignores_it() {
     let out = p.run(5.0);
     assert!((24..=26).contains(&count(&out, 33)));
 }
+
+#[test]
+fn mount_control_moves_the_gimbal_and_the_status_reports_it() {
+    let mut s = Sim::new(Flavour::Px4);
+    let r = s.command(
+        MavCmd::MAV_CMD_DO_MOUNT_CONTROL,
+        [-45.0, 0.0, 30.0, 0.0, 0.0, 0.0, 2.0],
+    );
+    assert_eq!(r, MavResult::MAV_RESULT_ACCEPTED);
+    s.run(1.0);
+    let (pitch, yaw) = s.ap.vehicle().gimbal_angles();
+    assert!((pitch.to_degrees() + 45.0).abs() < 1e-6 && (yaw.to_degrees() - 30.0).abs() < 1e-6);
+    let Some(MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(g)) = s.ap.build(285) else {
+        panic!()
+    };
+    let q = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        f64::from(g.q[0]),
+        f64::from(g.q[1]),
+        f64::from(g.q[2]),
+        f64::from(g.q[3]),
+    ));
+    let (_, p, y) = q.euler_angles();
+    assert!((p.to_degrees() + 45.0).abs() < 1e-3 && (y.to_degrees() - 30.0).abs() < 1e-3);
+    // Earth-frame yaw (YAW_LOCK flag) is converted to body-relative.
+    s.ap.vehicle_mut()
+        .teleport(Vector3::new(0.0, 0.0, 0.0), 90f64.to_radians());
+    s.command(
+        MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+        [-10.0, 120.0, f32::NAN, f32::NAN, 16.0, 0.0, 0.0],
+    );
+    s.run(2.0);
+    let (_, yaw) = s.ap.vehicle().gimbal_angles();
+    assert!(
+        (yaw.to_degrees() - 30.0).abs() < 1e-6,
+        "{}",
+        yaw.to_degrees()
+    );
+}
