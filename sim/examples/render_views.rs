@@ -39,7 +39,11 @@ fn main() -> anyhow::Result<()> {
         world.boxes.len()
     );
     let t0 = Instant::now();
-    let renderer = Renderer::new(world, SimCamera::default(), RenderParams::default());
+    let params = RenderParams {
+        edge_antialias: std::env::var("SIM_NO_AA").is_err(),
+        ..RenderParams::default()
+    };
+    let renderer = Renderer::new(world, SimCamera::default(), params);
     println!("renderer prepared in {:.2} s", t0.elapsed().as_secs_f64());
     let mut views = vec![
         (

@@ -325,7 +325,7 @@ mod tests {
     #[test]
     fn dataset_layout_and_ground_truth_round_trip() {
         let dir = tempfile::tempdir().unwrap();
-        let world = Arc::new(World::generate_with(2, &WorldParams::small()).unwrap());
+        let world = Arc::new(World::generate_with(2, &WorldParams::tiny()).unwrap());
         let cam = SimCamera {
             width: 160,
             height: 120,
@@ -392,7 +392,7 @@ mod tests {
             ),
         )
         .unwrap();
-        let world = Arc::new(World::generate_with(3, &WorldParams::small()).unwrap());
+        let world = Arc::new(World::generate_with(3, &WorldParams::tiny()).unwrap());
         let spec: PathSpec = traj.to_str().unwrap().parse().unwrap();
         let path = CameraPath::from_spec(&spec, &world, PathParams::default()).unwrap();
         let cam = SimCamera {

@@ -431,7 +431,7 @@ mod tests {
     }
 
     fn check_explore(seed: u64) {
-        let w = World::generate_with(seed, &WorldParams::small()).unwrap();
+        let w = World::generate_with(seed, &WorldParams::tiny()).unwrap();
         let path = CameraPath::explore(&w, Params::default());
         assert!(path.duration() >= 60.0);
         let dt = 1.0 / 30.0;

@@ -47,7 +47,8 @@ pub struct RenderParams {
     /// Side of the square culling tiles, pixels.
     pub tile_size: usize,
     /// Re-shade pixels on geometric edges (a change of box, face, ground
-    /// or sky) with 2x2 sub-pixel rays, so silhouettes are anti-aliased.
+    /// or sky) with sub-pixel rays (2x2, or 2 along the one axis the edge
+    /// is crossed on), so silhouettes are anti-aliased.
     pub edge_antialias: bool,
 }
 
@@ -402,13 +403,20 @@ impl Renderer {
                     continue;
                 }
                 let differs = |j: usize| ids[j] != id && ids[j] != INVALID_ID;
-                let edge = (x + 1 < w && differs(i + 1))
-                    || (x > 0 && differs(i - 1))
-                    || (y + 1 < h && differs(i + w))
-                    || (y > 0 && differs(i - w));
-                if !edge {
-                    continue;
-                }
+                let across_x = (x + 1 < w && differs(i + 1)) || (x > 0 && differs(i - 1));
+                let across_y = (y + 1 < h && differs(i + w)) || (y > 0 && differs(i - w));
+                // An edge crossed along one axis only needs sub-samples along
+                // that axis (a 2x2 grid would sample the same two columns or rows).
+                const GRID: [(f32, f32); 4] =
+                    [(-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)];
+                const ALONG_X: [(f32, f32); 2] = [(-0.25, 0.0), (0.25, 0.0)];
+                const ALONG_Y: [(f32, f32); 2] = [(0.0, -0.25), (0.0, 0.25)];
+                let offsets: &[(f32, f32)] = match (across_x, across_y) {
+                    (true, true) => &GRID,
+                    (true, false) => &ALONG_X,
+                    (false, true) => &ALONG_Y,
+                    (false, false) => continue,
+                };
                 let Some(&(a, b)) = ranges.get((y / ts) * tiles_x + x / ts) else {
                     continue;
                 };
@@ -434,12 +442,7 @@ impl Renderer {
                 let dv = step(yu, yd, ((yd - yu) / w) as f32);
                 let ray = self.rays[i];
                 let mut sum = 0.0;
-                for (ox, oy) in [
-                    (-0.25f32, -0.25f32),
-                    (0.25, -0.25),
-                    (-0.25, 0.25),
-                    (0.25, 0.25),
-                ] {
+                for &(ox, oy) in offsets {
                     let c = [
                         ray[0] + du[0] * ox + dv[0] * oy,
                         ray[1] + du[1] * ox + dv[1] * oy,
@@ -447,10 +450,10 @@ impl Renderer {
                     ];
                     let n = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
                     let d = rot(&r, [c[0] / n, c[1] / n, c[2] / n]);
-                    // A sub-pixel covers a quarter of the pixel: half the footprint.
+                    // A sub-pixel is half the pixel across: half the footprint.
                     sum += self.shade(o, d, ray[3] - 1.0, cands).0;
                 }
-                buf[i] = round_u8(0.25 * sum + noise(i));
+                buf[i] = round_u8(sum / offsets.len() as f32 + noise(i));
             }
         }
     }

@@ -123,7 +123,7 @@ impl Default for WorldParams {
             detail_gain_a: 0.55,
             detail_gain_b: 0.4,
             detail_gain_close: 0.45,
-            close_detail_start_lod: -0.5,
+            close_detail_start_lod: -1.0,
             detail_fade_start_lod: 2.5,
             detail_fade_end_lod: 3.5,
         }
@@ -139,6 +139,19 @@ impl WorldParams {
             facade_texture_size: 512,
             roof_texture_size: 256,
             detail_texture_size: 256,
+            ..Self::default()
+        }
+    }
+
+    /// The same layout with 64-texel textures: for tests about geometry
+    /// and paths, where texture detail does not matter.
+    pub fn tiny() -> Self {
+        Self {
+            ground_texture_size: 64,
+            far_texture_size: 64,
+            facade_texture_size: 64,
+            roof_texture_size: 64,
+            detail_texture_size: 64,
             ..Self::default()
         }
     }
@@ -1246,7 +1259,7 @@ mod tests {
 
     #[test]
     fn generation_is_deterministic_and_respects_the_layout_rules() {
-        let p = WorldParams::small();
+        let p = WorldParams::tiny();
         let a = World::generate_with(5, &p).unwrap();
         let b = World::generate_with(5, &p).unwrap();
         let c = World::generate_with(6, &p).unwrap();
@@ -1289,7 +1302,7 @@ mod tests {
 
     #[test]
     fn ray_cast_hits_ground_and_boxes() {
-        let w = World::generate_with(1, &WorldParams::small()).unwrap();
+        let w = World::generate_with(1, &WorldParams::tiny()).unwrap();
         let o = Point3::new(0.0, 0.0, -20.0);
         let hit = w.ray_cast(&o, &Vector3::new(0.0, 0.0, 1.0), 1e4).unwrap();
         assert_eq!(hit.surface, Surface::Ground);
