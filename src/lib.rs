@@ -34,12 +34,14 @@
 //! | [`matching`] | Hamming matching: brute force, by projection |
 //! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
 //! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
+//! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
 //! | [`vehicle`] | MAVLink link actor, transports, telemetry |
 //! | [`mission`] | mission planning (pure) and upload protocol |
 //!
 //! The synchronous core never imports tokio or axum; I/O lives in
 //! `vehicle`, `video` (live sources) and `mission::upload`.
 
+pub mod bow;
 pub mod camera;
 pub mod config;
 pub mod eval;
@@ -48,5 +50,6 @@ pub mod geometry;
 pub mod matching;
 pub mod mission;
 pub mod optimize;
+pub mod slam;
 pub mod vehicle;
 pub mod video;
