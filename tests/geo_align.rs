@@ -176,7 +176,7 @@ fn orientations_refine_the_rotation() {
             Translation3::from(inv.transform_point(p).coords),
             inv.rotation * ned_from_cam_rot,
         );
-        with.add_keyframe(i as u64, &map_from_cam, &ned_from_cam, i as f64)
+        with.add_keyframe(i as u64, &map_from_cam, &ned_from_cam, None, i as f64)
             .unwrap();
         without
             .add_pair(

@@ -31,6 +31,7 @@ fn state(p: Vector3<f64>, heading_deg: f64, pitch_deg: f64) -> VehicleState {
     VehicleState {
         time: 0.0,
         p_ned: p,
+        v_ned: Vector3::zeros(),
         ned_from_body: UnitQuaternion::from_euler_angles(0.0, 0.0, heading_deg.to_radians()),
         gimbal: GimbalAngles {
             pitch: pitch_deg.to_radians(),
@@ -147,6 +148,7 @@ fn map_to_ned_to_wgs84_to_ned_round_trips() {
             rms_m: 0.0,
             max_residual_m: 0.0,
             rotation_rms_deg: None,
+            time_offset_s: None,
             pairs: 0,
             inliers: 0,
             iterations: 0,
@@ -190,6 +192,7 @@ fn map_to_ned_to_wgs84_to_ned_round_trips() {
             &VehicleState {
                 time: 0.0,
                 p_ned: back,
+                v_ned: Vector3::zeros(),
                 ned_from_body: UnitQuaternion::from_euler_angles(0.0, 0.0, t.yaw_deg.to_radians()),
                 gimbal: GimbalAngles {
                     pitch: t.gimbal_pitch_deg.to_radians(),

@@ -12,7 +12,7 @@ fn filled(params: HistoryParams) -> TelemetryHistory {
     // yaw sweeping across +-180.
     for i in 0..=50 {
         let t = i as f64 * 0.2;
-        h.push_position_ned(t, Vector3::new(3.0 * t, -1.0 * t, -10.0 - 0.5 * t))
+        h.push_position_ned(t, Vector3::new(3.0 * t, -t, -10.0 - 0.5 * t))
             .unwrap();
         h.push_gimbal(
             t,
@@ -40,7 +40,7 @@ fn interpolates_position_linearly_attitude_by_slerp_and_angles_the_short_way() {
     let h = filled(HistoryParams::default());
     for t in [0.0, 0.05, 0.33, 1.0, 4.71, 9.99, 10.0] {
         let s = h.lookup(t).unwrap();
-        let p = Vector3::new(3.0 * t, -1.0 * t, -10.0 - 0.5 * t);
+        let p = Vector3::new(3.0 * t, -t, -10.0 - 0.5 * t);
         assert!((s.p_ned - p).norm() < 1e-12, "t={t}");
         // Constant-rate rotation about a fixed axis: slerp is exact.
         assert!(s.ned_from_body.angle_to(&attitude(t)) < 1e-9, "t={t}");

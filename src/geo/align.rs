@@ -17,7 +17,10 @@
 //!    adaptive iteration count `log(1-p)/log(1-w³)`;
 //! 3. a least-squares Umeyama refit on the inliers, repeated until the inlier
 //!    set is stable;
-//! 4. optionally, when pairs carry orientations (`ned ← cam` from telemetry,
+//! 4. when pairs carry velocities, the time offset between capture times and
+//!    telemetry (`p(t + e) ≈ p(t) + v·e`, alternated with Umeyama) and a
+//!    refit on the corrected positions;
+//! 5. optionally, when pairs carry orientations (`ned ← cam` from telemetry,
 //!    `map ← cam` from SLAM), a Levenberg-Marquardt refinement of the Sim(3)
 //!    over position and rotation residuals of the inliers together.
 //!
@@ -72,6 +75,14 @@ pub struct AlignParams {
     pub orientation_sigma_deg: f64,
     /// LM settings of the refinement.
     pub lm: LmParams,
+    /// Estimate the offset between capture times and the telemetry clock
+    /// from pairs carrying a velocity (see [`Pair::v_ned`]).
+    pub estimate_time_offset: bool,
+    /// Largest offset estimated, seconds.
+    pub max_time_offset_s: f64,
+    /// Estimate the offset only when the pairs' velocities vary by at least
+    /// this much (standard deviation about their mean), m/s.
+    pub min_velocity_spread_m_s: f64,
 }
 
 impl Default for AlignParams {
@@ -95,6 +106,9 @@ impl Default for AlignParams {
                 max_iterations: 20,
                 ..LmParams::default()
             },
+            estimate_time_offset: true,
+            max_time_offset_s: 0.5,
+            min_velocity_spread_m_s: 1.0,
         }
     }
 }
@@ -112,6 +126,9 @@ pub struct Pair {
     pub time: f64,
     /// Orientations `(map ← cam, ned ← cam)` when known.
     pub orientations: Option<(UnitQuaternion<f64>, UnitQuaternion<f64>)>,
+    /// The camera's NED velocity at `time` (m/s) when known: lets the fit
+    /// estimate a time offset.
+    pub v_ned: Option<Vector3<f64>>,
 }
 
 /// The spread of a set of positions: eigenvalues of their covariance,
@@ -149,6 +166,9 @@ pub struct AlignQuality {
     /// RMS of the inliers' rotation residuals, degrees (when orientations
     /// were used).
     pub rotation_rms_deg: Option<f64>,
+    /// Estimated offset of the capture times on the telemetry clock,
+    /// seconds (positive: the given capture times are late), when estimated.
+    pub time_offset_s: Option<f64>,
     /// Pairs held.
     pub pairs: usize,
     /// Inliers used by the final fit.
@@ -241,20 +261,25 @@ impl Georeference {
             p_ned,
             time,
             orientations: None,
+            v_ned: None,
         })
     }
 
     /// Adds (or replaces) a keyframe with its full camera poses in the map
-    /// and in NED, so the fit can be refined with orientations.
+    /// and in NED, so the fit can be refined with orientations, and the
+    /// camera's NED velocity when known ([`crate::geo::VehicleState::v_ned`]),
+    /// so it can estimate the time offset.
     pub fn add_keyframe(
         &mut self,
         kf_id: u64,
         map_from_cam: &Isometry3<f64>,
         ned_from_cam: &Isometry3<f64>,
+        v_ned: Option<Vector3<f64>>,
         time: f64,
     ) -> Result<(), GeoError> {
         if !(map_from_cam.rotation.coords.iter().all(|v| v.is_finite())
-            && ned_from_cam.rotation.coords.iter().all(|v| v.is_finite()))
+            && ned_from_cam.rotation.coords.iter().all(|v| v.is_finite())
+            && v_ned.is_none_or(|v| v.iter().all(|x| x.is_finite())))
         {
             return Err(GeoError::NonFinite {
                 what: "keyframe orientation",
@@ -266,6 +291,7 @@ impl Georeference {
             p_ned: ned_from_cam.translation.vector.into(),
             time,
             orientations: Some((map_from_cam.rotation, ned_from_cam.rotation)),
+            v_ned,
         })
     }
 
@@ -439,43 +465,36 @@ pub fn fit_pairs(
         });
     };
 
-    // Refit on the inliers until the set is stable.
-    let mut mask: Vec<bool> = pairs.iter().map(|p| residual(&model, p) < th).collect();
-    for _ in 0..params.refit_rounds.max(1) {
-        let count = mask.iter().filter(|m| **m).count();
-        if count < min_inliers {
-            return Err(GeoError::TooFewInliers {
-                found: count,
-                needed: min_inliers,
-                pairs: n,
-            });
+    let mut mask = refit(pairs, &mut model, th, min_inliers, params.refit_rounds)?;
+
+    // Time offset between the capture times and the telemetry clock.
+    let mut time_offset_s = None;
+    let corrected: Vec<Pair>;
+    let pairs: &[Pair] = if params.estimate_time_offset {
+        match estimate_time_offset(pairs, &mask, &mut model, params) {
+            Some(e) => {
+                time_offset_s = Some(e);
+                corrected = pairs
+                    .iter()
+                    .map(|p| Pair {
+                        p_ned: p.p_ned - p.v_ned.unwrap_or_else(Vector3::zeros) * e,
+                        ..*p
+                    })
+                    .collect();
+                mask = refit(&corrected, &mut model, th, min_inliers, params.refit_rounds)?;
+                &corrected
+            }
+            None => pairs,
         }
-        let (src, dst): (Vec<_>, Vec<_>) = pairs
-            .iter()
-            .zip(&mask)
-            .filter(|(_, m)| **m)
-            .map(|(p, _)| (p.p_map, p.p_ned))
-            .unzip();
-        model = umeyama(&src, &dst, true)?;
-        let next: Vec<bool> = pairs.iter().map(|p| residual(&model, p) < th).collect();
-        if next == mask {
-            break;
-        }
-        mask = next;
-    }
+    } else {
+        pairs
+    };
     let inliers: Vec<&Pair> = pairs
         .iter()
         .zip(&mask)
         .filter(|(_, m)| **m)
         .map(|(p, _)| p)
         .collect();
-    if inliers.len() < min_inliers {
-        return Err(GeoError::TooFewInliers {
-            found: inliers.len(),
-            needed: min_inliers,
-            pairs: n,
-        });
-    }
     let spread_m2 = spread(inliers.iter().map(|p| p.p_ned));
     check_motion(spread_m2, params)?;
 
@@ -506,6 +525,7 @@ pub fn fit_pairs(
             rms_m: (sum2 / inliers.len() as f64).sqrt(),
             max_residual_m: max_r,
             rotation_rms_deg,
+            time_offset_s,
             pairs: n,
             inliers: inliers.len(),
             iterations,
@@ -513,6 +533,113 @@ pub fn fit_pairs(
         },
         inlier_ids: inliers.iter().map(|p| p.kf_id).collect(),
     })
+}
+
+/// Least-squares refits on the inliers until the inlier set is stable;
+/// returns the final inlier mask.
+fn refit(
+    pairs: &[Pair],
+    model: &mut Sim3,
+    th: f64,
+    min_inliers: usize,
+    rounds: usize,
+) -> Result<Vec<bool>, GeoError> {
+    let n = pairs.len();
+    let mut mask: Vec<bool> = pairs.iter().map(|p| residual(model, p) < th).collect();
+    for _ in 0..rounds.max(1) {
+        let count = mask.iter().filter(|m| **m).count();
+        if count < min_inliers {
+            return Err(GeoError::TooFewInliers {
+                found: count,
+                needed: min_inliers,
+                pairs: n,
+            });
+        }
+        let (src, dst): (Vec<_>, Vec<_>) = pairs
+            .iter()
+            .zip(&mask)
+            .filter(|(_, m)| **m)
+            .map(|(p, _)| (p.p_map, p.p_ned))
+            .unzip();
+        *model = umeyama(&src, &dst, true)?;
+        let next: Vec<bool> = pairs.iter().map(|p| residual(model, p) < th).collect();
+        if next == mask {
+            break;
+        }
+        mask = next;
+    }
+    let count = mask.iter().filter(|m| **m).count();
+    if count < min_inliers {
+        return Err(GeoError::TooFewInliers {
+            found: count,
+            needed: min_inliers,
+            pairs: n,
+        });
+    }
+    Ok(mask)
+}
+
+/// Estimates the offset `e` (seconds) by which the capture times are late
+/// on the telemetry clock, from the inliers carrying a velocity: the NED
+/// position looked up at a late time is `p(t + e) ≈ p(t) + v·e`, so `e` and
+/// the Sim(3) minimise `Σ|S(m_i) - (p_i - v_i·e)|²`. Alternates the
+/// closed-form `e` for a fixed rotation and scale (velocities and residuals
+/// centred, since the translation absorbs a common shift) with Umeyama on
+/// the corrected positions. `None` when too few inliers carry a velocity or
+/// the velocities vary too little to separate `e` from the translation.
+fn estimate_time_offset(
+    pairs: &[Pair],
+    mask: &[bool],
+    model: &mut Sim3,
+    params: &AlignParams,
+) -> Option<f64> {
+    let used: Vec<(&Pair, Vector3<f64>)> = pairs
+        .iter()
+        .zip(mask)
+        .filter(|(_, m)| **m)
+        .filter_map(|(p, _)| p.v_ned.map(|v| (p, v)))
+        .collect();
+    if used.len() < params.min_pairs.max(3) {
+        return None;
+    }
+    let inv_n = 1.0 / used.len() as f64;
+    let v_mean = used.iter().map(|(_, v)| *v).sum::<Vector3<f64>>() * inv_n;
+    let v_var = used
+        .iter()
+        .map(|(_, v)| (v - v_mean).norm_squared())
+        .sum::<f64>()
+        * inv_n;
+    if v_var.sqrt() < params.min_velocity_spread_m_s {
+        return None;
+    }
+    let limit = params.max_time_offset_s.abs();
+    let mut e = 0.0;
+    let mut trial = *model;
+    for _ in 0..20 {
+        let q: Vec<Vector3<f64>> = used
+            .iter()
+            .map(|(p, _)| trial.transform_point(&p.p_map) - p.p_ned)
+            .collect();
+        let q_mean = q.iter().sum::<Vector3<f64>>() * inv_n;
+        let num: f64 = used
+            .iter()
+            .zip(&q)
+            .map(|((_, v), q)| (v - v_mean).dot(&(q - q_mean)))
+            .sum();
+        let next = (-num / (v_var * used.len() as f64)).clamp(-limit, limit);
+        let (src, dst): (Vec<_>, Vec<_>) = used
+            .iter()
+            .map(|(p, v)| (p.p_map, p.p_ned - v * next))
+            .unzip();
+        trial = umeyama(&src, &dst, true).ok()?;
+        let done = (next - e).abs() < 1e-6;
+        e = next;
+        if done {
+            break;
+        }
+    }
+    *model = trial;
+    Some(e)
 }
 
 type Mat7 = SMatrix<f64, 7, 7>;

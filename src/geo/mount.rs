@@ -187,6 +187,7 @@ mod tests {
         VehicleState {
             time: 0.0,
             p_ned: Vector3::new(10.0, -5.0, -20.0),
+            v_ned: Vector3::zeros(),
             ned_from_body: UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
             gimbal: GimbalAngles { pitch, yaw: gyaw },
         }

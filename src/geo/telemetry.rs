@@ -67,6 +67,9 @@ pub struct VehicleState {
     pub time: f64,
     /// Position of the vehicle's reference point, local NED metres.
     pub p_ned: Vector3<f64>,
+    /// Velocity, local NED m/s: the slope of the position samples around
+    /// the time (zero when the time falls on a sample at the history's end).
+    pub v_ned: Vector3<f64>,
     /// Body attitude: world (NED) ← body.
     pub ned_from_body: UnitQuaternion<f64>,
     /// Gimbal angles relative to the body.
@@ -131,9 +134,10 @@ impl<T: Copy> Stream<T> {
         }
     }
 
-    /// The two samples around `t` and the fraction of the way from the first
-    /// to the second.
-    fn bracket(&self, t: f64, max_gap: f64) -> Result<(T, T, f64), GeoError> {
+    /// The two samples around `t`, the fraction of the way from the first
+    /// to the second, and the time between them (0 when `t` falls on the
+    /// last sample).
+    fn bracket(&self, t: f64, max_gap: f64) -> Result<(T, T, f64, f64), GeoError> {
         let (Some(first), Some(last)) = (self.samples.front(), self.samples.back()) else {
             return Err(GeoError::EmptyHistory { stream: self.name });
         };
@@ -154,8 +158,8 @@ impl<T: Copy> Stream<T> {
         let i = self.samples.partition_point(|(ts, _)| *ts <= t);
         // t >= first, so i >= 1; t <= last, so i == len only when t == last.
         let (t0, a) = self.samples[i - 1];
-        if t0 == t || i == self.samples.len() {
-            return Ok((a, a, 0.0));
+        if i == self.samples.len() {
+            return Ok((a, a, 0.0, 0.0));
         }
         let (t1, b) = self.samples[i];
         if t1 - t0 > max_gap {
@@ -167,7 +171,7 @@ impl<T: Copy> Stream<T> {
                 max_gap_s: max_gap,
             });
         }
-        Ok((a, b, (t - t0) / (t1 - t0)))
+        Ok((a, b, (t - t0) / (t1 - t0), t1 - t0))
     }
 }
 
@@ -286,10 +290,15 @@ impl TelemetryHistory {
     pub fn lookup(&self, t: f64) -> Result<VehicleState, GeoError> {
         finite_time(t)?;
         let gap = self.params.max_gap_s;
-        let (p0, p1, a) = self.positions.bracket(t, gap)?;
-        let (q0, q1, b) = self.attitudes.bracket(t, gap)?;
-        let (g0, g1, c) = self.gimbals.bracket(t, gap)?;
+        let (p0, p1, a, dt) = self.positions.bracket(t, gap)?;
+        let (q0, q1, b, _) = self.attitudes.bracket(t, gap)?;
+        let (g0, g1, c, _) = self.gimbals.bracket(t, gap)?;
         let p_ned = p0.lerp(&p1, a);
+        let v_ned = if dt > 0.0 {
+            (p1 - p0) / dt
+        } else {
+            Vector3::zeros()
+        };
         // Shortest-path slerp (q and -q are the same rotation); falls back to
         // normalised lerp when the two are (almost) equal.
         let q1 = if q0.coords.dot(&q1.coords) < 0.0 {
@@ -307,6 +316,7 @@ impl TelemetryHistory {
         Ok(VehicleState {
             time: t,
             p_ned,
+            v_ned,
             ned_from_body,
             gimbal,
         })
