@@ -282,3 +282,50 @@ fn refuses_when_the_pairs_do_not_agree() {
     }
     assert!(matches!(geo.fit(), Err(GeoError::TooFewInliers { .. })));
 }
+
+#[test]
+fn estimates_a_time_offset_from_keyframe_velocities() {
+    let t = truth();
+    let inv = t.inverse();
+    let mut rng = SmallRng::seed_from_u64(17);
+    // Lanes flown back and forth at 4 m/s; the NED positions were looked up
+    // 0.12 s late: p(t + 0.12) = p(t) + v·0.12.
+    let offset = 0.12;
+    let mut geo = Georeference::new(AlignParams::default());
+    let mut plain = Georeference::new(AlignParams {
+        estimate_time_offset: false,
+        ..AlignParams::default()
+    });
+    let ned = flight(150);
+    for (i, p) in ned.iter().enumerate() {
+        let u = i as f64 / 150.0;
+        let lane = (u * 6.0).floor() as i64;
+        let v = Vector3::new(if lane % 2 == 0 { 4.0 } else { -4.0 }, 0.0, 0.0);
+        let looked_up =
+            p + v * offset + Vector3::new(gauss(&mut rng), gauss(&mut rng), gauss(&mut rng)) * 0.02;
+        let map_from_cam = Isometry3::from_parts(
+            Translation3::from(inv.transform_point(p).coords),
+            UnitQuaternion::identity(),
+        );
+        let ned_from_cam = Isometry3::from_parts(Translation3::from(looked_up.coords), t.rotation);
+        geo.add_keyframe(i as u64, &map_from_cam, &ned_from_cam, Some(v), i as f64)
+            .unwrap();
+        plain
+            .add_pair(i as u64, inv.transform_point(p), looked_up, i as f64)
+            .unwrap();
+    }
+    let a = geo.fit().unwrap();
+    let b = plain.fit().unwrap();
+    let e = a.quality.time_offset_s.expect("estimated");
+    println!(
+        "time offset {e:.4} s (truth {offset}): rms {:.3} m, {} / {} inliers; without: rms {:.3} m, {} inliers",
+        a.quality.rms_m, a.quality.inliers, a.quality.pairs, b.quality.rms_m, b.quality.inliers
+    );
+    assert!((e - offset).abs() < 0.005, "{e}");
+    assert!(a.quality.rms_m < 0.06, "{}", a.quality.rms_m);
+    assert_eq!(a.quality.inliers, 150);
+    // Without the estimate the lanes flown one way disagree with the others
+    // by 2·|v|·e = 0.96 m: about half of them are lost.
+    assert!(b.quality.inliers < 110, "{}", b.quality.inliers);
+    assert!((a.ned_from_map.scale / t.scale - 1.0).abs() < 1e-3);
+}

@@ -80,6 +80,9 @@ pub struct AlignParams {
     pub estimate_time_offset: bool,
     /// Largest offset estimated, seconds.
     pub max_time_offset_s: f64,
+    /// The first offset estimate uses the pairs within this multiple of the
+    /// inlier threshold of the RANSAC model.
+    pub time_offset_search_factor: f64,
     /// Estimate the offset only when the pairs' velocities vary by at least
     /// this much (standard deviation about their mean), m/s.
     pub min_velocity_spread_m_s: f64,
@@ -108,6 +111,7 @@ impl Default for AlignParams {
             },
             estimate_time_offset: true,
             max_time_offset_s: 0.5,
+            time_offset_search_factor: 4.0,
             min_velocity_spread_m_s: 1.0,
         }
     }
@@ -465,30 +469,34 @@ pub fn fit_pairs(
         });
     };
 
-    let mut mask = refit(pairs, &mut model, th, min_inliers, params.refit_rounds)?;
-
-    // Time offset between the capture times and the telemetry clock.
+    // Time offset between the capture times and the telemetry clock: a
+    // first estimate on the pairs within a loose threshold of the RANSAC
+    // model (an offset moves pairs by |v|·e, possibly beyond the inlier
+    // threshold), a refit on the corrected positions, then a second estimate
+    // on the strict inliers and a last refit.
     let mut time_offset_s = None;
-    let corrected: Vec<Pair>;
-    let pairs: &[Pair] = if params.estimate_time_offset {
-        match estimate_time_offset(pairs, &mask, &mut model, params) {
-            Some(e) => {
-                time_offset_s = Some(e);
-                corrected = pairs
-                    .iter()
-                    .map(|p| Pair {
-                        p_ned: p.p_ned - p.v_ned.unwrap_or_else(Vector3::zeros) * e,
-                        ..*p
-                    })
-                    .collect();
-                mask = refit(&corrected, &mut model, th, min_inliers, params.refit_rounds)?;
-                &corrected
+    let mut corrected: Vec<Pair> = Vec::new();
+    if params.estimate_time_offset {
+        let loose = th * params.time_offset_search_factor.max(1.0);
+        let mask: Vec<bool> = pairs.iter().map(|p| residual(&model, p) < loose).collect();
+        let mut trial = model;
+        if let Some(e1) = estimate_time_offset(pairs, &mask, &mut trial, params) {
+            let shifted = shift_pairs(pairs, e1);
+            if let Ok(mask) = refit(&shifted, &mut trial, th, min_inliers, params.refit_rounds)
+                && let Some(e2) = estimate_time_offset(pairs, &mask, &mut trial, params)
+            {
+                time_offset_s = Some(e2);
+                corrected = shift_pairs(pairs, e2);
+                model = trial;
             }
-            None => pairs,
         }
+    }
+    let pairs: &[Pair] = if time_offset_s.is_some() {
+        &corrected
     } else {
         pairs
     };
+    let mask = refit(pairs, &mut model, th, min_inliers, params.refit_rounds)?;
     let inliers: Vec<&Pair> = pairs
         .iter()
         .zip(&mask)
@@ -499,13 +507,11 @@ pub fn fit_pairs(
     check_motion(spread_m2, params)?;
 
     let mut rotation_rms_deg = None;
-    let oriented: Vec<&Pair> = inliers
-        .iter()
-        .copied()
-        .filter(|p| p.orientations.is_some())
-        .collect();
-    if params.refine_with_orientations && oriented.len() >= 3 {
-        let mut problem = Refinement::new(&oriented, model, params);
+    let oriented = inliers.iter().filter(|p| p.orientations.is_some()).count();
+    if params.refine_with_orientations && oriented >= 3 {
+        // Every inlier's position, and the orientations of those that have
+        // one.
+        let mut problem = Refinement::new(&inliers, model, params);
         levenberg_marquardt(&mut problem, &params.lm);
         if problem.sim.scale.is_finite() && problem.sim.scale > 0.0 {
             model = problem.sim;
@@ -533,6 +539,17 @@ pub fn fit_pairs(
         },
         inlier_ids: inliers.iter().map(|p| p.kf_id).collect(),
     })
+}
+
+/// The pairs with their NED positions moved back by `v·e`.
+fn shift_pairs(pairs: &[Pair], e: f64) -> Vec<Pair> {
+    pairs
+        .iter()
+        .map(|p| Pair {
+            p_ned: p.p_ned - p.v_ned.unwrap_or_else(Vector3::zeros) * e,
+            ..*p
+        })
+        .collect()
 }
 
 /// Least-squares refits on the inliers until the inlier set is stable;
@@ -684,13 +701,16 @@ impl<'a> Refinement<'a> {
         }
     }
 
+    /// RMS rotation residual over the pairs that carry orientations.
     fn rotation_rms(&self) -> f64 {
-        let s: f64 = self
+        let (s, n) = self
             .pairs
             .iter()
-            .map(|p| self.rot_residual(p).norm_squared())
-            .sum();
-        (s / self.pairs.len().max(1) as f64).sqrt()
+            .filter(|p| p.orientations.is_some())
+            .fold((0.0, 0usize), |(s, n), p| {
+                (s + self.rot_residual(p).norm_squared(), n + 1)
+            });
+        (s / n.max(1) as f64).sqrt()
     }
 }
 
@@ -713,12 +733,14 @@ impl LeastSquares for Refinement<'_> {
             g += j.transpose() * e * self.w_pos;
             cost += 0.5 * self.w_pos * e.norm_squared();
             // Rotation residual: d Log(Exp(ω)·E)/dω ≈ I near the optimum.
-            let r = self.rot_residual(p);
-            for a in 0..3 {
-                h[(3 + a, 3 + a)] += self.w_rot;
-                g[3 + a] += self.w_rot * r[a];
+            if p.orientations.is_some() {
+                let r = self.rot_residual(p);
+                for a in 0..3 {
+                    h[(3 + a, 3 + a)] += self.w_rot;
+                    g[3 + a] += self.w_rot * r[a];
+                }
+                cost += 0.5 * self.w_rot * r.norm_squared();
             }
-            cost += 0.5 * self.w_rot * r.norm_squared();
         }
         self.h = h;
         self.g = g;
