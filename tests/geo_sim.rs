@@ -10,8 +10,8 @@
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 use shotpilot::geo::{
-    AlignParams, Geodetic, Georeference, GimbalAngles, HistoryParams, LeverArmFrame, LocalFrame,
-    MountParams, TelemetryHistory, VehicleState, convert_target, ned_from_cam,
+    AlignParams, Geo, Geodetic, GimbalAngles, HistoryParams, LeverArmFrame, LocalFrame,
+    MountParams, Params, VehicleState, ned_from_cam,
 };
 use shotpilot::geometry::Sim3;
 use shotpilot_sim::vehicle::{Setpoint, Vehicle, VehicleParams};
@@ -151,7 +151,15 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
     let mut v = Vehicle::new(params);
     v.teleport(Vector3::new(-30.0, -24.0, -12.0), 0.0);
     v.snap_gimbal(-30.0, 0.0);
-    let mut history = TelemetryHistory::new(HistoryParams::default());
+    let mut geo = Geo::new(Params {
+        history: HistoryParams::default(),
+        mount: mount.clone(),
+        align: AlignParams {
+            estimate_time_offset: estimate_offset,
+            ..AlignParams::default()
+        },
+    });
+    geo.set_home(to_geo(&params.home)).unwrap();
     // The true map <- ned (a monocular map of arbitrary scale and frame).
     let ned_from_map = Sim3::new(
         UnitQuaternion::from_euler_angles(1.2, -0.4, -2.0),
@@ -159,10 +167,6 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
         9.5,
     );
     let map_from_ned = ned_from_map.inverse();
-    let mut geo = Georeference::new(AlignParams {
-        estimate_time_offset: estimate_offset,
-        ..AlignParams::default()
-    });
     let jitter = |rng: &mut SmallRng| {
         clocks.telemetry_delay_s + (rng.random_range(0.0..1.0) - 0.5) * clocks.telemetry_jitter_s
     };
@@ -170,7 +174,8 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
     let mut pending: Vec<(f64, Isometry3<f64>)> = Vec::new();
     let mut cam_err2 = (0.0, 0.0, 0usize);
     let mut kf_id = 0u64;
-    let mut last_kf = f64::NEG_INFINITY;
+    // The first keyframe comes after the first telemetry (t >= 1.5 s).
+    let mut last_kf = 0.5;
     let mut t = 0.0;
     let mut step_i = 0u64;
     for (p, yaw, pitch) in waypoints() {
@@ -188,7 +193,7 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
             // Telemetry at the simulator's rates and quantisation.
             if step_i.is_multiple_of(10) {
                 let (roll, pitch) = v.roll_pitch();
-                history
+                geo.history_mut()
                     .push_attitude_euler(
                         t + jitter(&mut rng),
                         roll as f32 as f64,
@@ -204,11 +209,10 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
                     lon_deg: (g.lon_deg * 1e7).round() / 1e7,
                     alt_m: (g.alt_m * 1e3).round() / 1e3,
                 };
-                history
-                    .push_position_geodetic(t + jitter(&mut rng), &q, &frame)
+                geo.push_position_geodetic(t + jitter(&mut rng), &q)
                     .unwrap();
                 let (gp, gy) = v.gimbal_angles();
-                history
+                geo.history_mut()
                     .push_gimbal(
                         t + jitter(&mut rng),
                         GimbalAngles {
@@ -218,25 +222,17 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
                     )
                     .unwrap();
             }
-            if step_i.is_multiple_of(7) {
-                pending.push((t, v.world_from_cam()));
+            if step_i.is_multiple_of(10) {
+                geo.retry_pending();
             }
-            // Process frames whose (estimated) capture time telemetry covers.
-            pending.retain(|(t_true, truth)| {
-                let t_est = t_true + clocks.latency_error_s;
-                let Ok(state) = history.lookup(t_est) else {
-                    return t - t_true < 2.0; // keep waiting, drop when stale
-                };
-                let ours = ned_from_cam(&state, &mount);
-                let e = (ours.translation.vector - truth.translation.vector).norm();
-                let r = ours.rotation.angle_to(&truth.rotation);
-                cam_err2.0 += e * e;
-                cam_err2.1 += r * r;
-                cam_err2.2 += 1;
-                if *t_true - last_kf >= 1.0 {
-                    last_kf = *t_true;
-                    // The keyframe's map pose: truth through map <- ned with
-                    // SLAM-like noise (3 cm, 0.3 deg in world units).
+            if step_i.is_multiple_of(7) {
+                let truth = v.world_from_cam();
+                pending.push((t, truth));
+                if t - last_kf >= 1.0 {
+                    last_kf = t;
+                    // A keyframe: its map pose is the truth through
+                    // map <- ned with SLAM-like noise (3 cm, 0.3 deg in
+                    // world units), its capture time the estimate.
                     let c = truth.translation.vector
                         + Vector3::new(gauss(&mut rng), gauss(&mut rng), gauss(&mut rng)) * 0.03;
                     let rn = UnitQuaternion::from_scaled_axis(
@@ -247,14 +243,34 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
                         Translation3::from(map_from_ned.transform_point(&Point3::from(c)).coords),
                         map_from_ned.rotation * rn * truth.rotation,
                     );
-                    geo.add_keyframe(kf_id, &map_from_cam, &ours, Some(state.v_ned), *t_true)
+                    geo.add_keyframe(kf_id, &map_from_cam, t + clocks.latency_error_s)
                         .unwrap();
                     kf_id += 1;
                 }
+            }
+            // Process frames whose (estimated) capture time telemetry covers.
+            pending.retain(|(t_true, truth)| {
+                let t_est = t_true + clocks.latency_error_s;
+                let Ok(state) = geo.history().lookup(t_est) else {
+                    return t - t_true < 2.0; // keep waiting, drop when stale
+                };
+                let ours = ned_from_cam(&state, &mount);
+                let e = (ours.translation.vector - truth.translation.vector).norm();
+                let r = ours.rotation.angle_to(&truth.rotation);
+                cam_err2.0 += e * e;
+                cam_err2.1 += r * r;
+                cam_err2.2 += 1;
                 false
             });
         }
     }
+    geo.retry_pending();
+    assert_eq!(geo.dropped(), 0);
+    assert!(
+        geo.pending() <= 1,
+        "{} keyframes still waiting",
+        geo.pending()
+    );
     let fit = geo.fit().expect("the explore flight fixes the alignment");
     let scale_err = (fit.ned_from_map.scale / ned_from_map.scale - 1.0).abs();
 
@@ -299,7 +315,8 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
             ),
             map_from_ned.rotation * truth_cam.rotation,
         );
-        let target = convert_target(&fit, &map_from_cam, &frame, &mount)
+        let target = geo
+            .target(&map_from_cam)
             .unwrap_or_else(|e| panic!("target {i}: {e}"));
         let g = shot.geodetic();
         let back = frame.geodetic_to_ned(&Geodetic {

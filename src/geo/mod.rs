@@ -12,6 +12,8 @@
 //! * [`align`]: the robust map → NED Sim(3) from keyframe pairs (Umeyama in
 //!   seeded RANSAC, refit, optional orientation refinement), with its
 //!   quality and refusals;
+//! * [`pipeline`]: [`Geo`], the parts wired as the daemon uses them
+//!   (keyframes wait for the telemetry of their capture time);
 //! * [`target`]: a target `map ← cam` as latitude/longitude/altitude/yaw/
 //!   gimbal pitch, with the roll a 2-axis gimbal cannot reproduce.
 //!
@@ -22,12 +24,14 @@
 
 pub mod align;
 pub mod mount;
+pub mod pipeline;
 pub mod target;
 pub mod telemetry;
 pub mod wgs84;
 
 pub use align::{AlignParams, AlignQuality, GeoAlignment, Georeference, Pair};
 pub use mount::{GimbalSolution, LeverArmFrame, MountParams, ned_from_cam, solve_gimbal};
+pub use pipeline::{Geo, KeyframeStatus};
 pub use target::{GeoTarget, convert_target, target_from_ned};
 pub use telemetry::{GimbalAngles, HistoryParams, TelemetryHistory, VehicleState, capture_time};
 pub use wgs84::{Geodetic, LocalFrame};
@@ -147,6 +151,9 @@ pub enum GeoError {
         /// Highest pitch, degrees.
         max_deg: f64,
     },
+    /// Home is not known yet (no HOME_POSITION).
+    #[error("home position not known yet")]
+    NoHome,
     /// The least-squares alignment failed.
     #[error(transparent)]
     Geometry(#[from] GeometryError),
