@@ -207,3 +207,32 @@ fn map_to_ned_to_wgs84_to_ned_round_trips() {
     assert!(worst_m < 1e-6, "position round trip {worst_m} m");
     assert!(worst_deg < 1e-6, "orientation round trip {worst_deg} deg");
 }
+
+#[test]
+fn params_read_from_toml_with_defaults_for_the_rest() {
+    let p: shotpilot::geo::Params = toml::from_str(
+        r#"
+        [history]
+        video_latency_s = 0.18
+        [mount]
+        lever_arm_body_m = [0.12, 0.0, 0.05]
+        lever_arm_frame = "heading"
+        pitch_min_deg = -100.0
+        [align]
+        inlier_threshold_m = 0.8
+        "#,
+    )
+    .unwrap();
+    assert_eq!(p.history.video_latency_s, 0.18);
+    assert_eq!(
+        p.history.max_gap_s,
+        shotpilot::geo::HistoryParams::default().max_gap_s
+    );
+    assert_eq!(p.mount.lever_arm_body_m, [0.12, 0.0, 0.05]);
+    assert_eq!(
+        p.mount.lever_arm_frame,
+        shotpilot::geo::LeverArmFrame::Heading
+    );
+    assert_eq!(p.align.inlier_threshold_m, 0.8);
+    assert!(toml::from_str::<shotpilot::geo::Params>("[align]\nbogus = 1").is_err());
+}

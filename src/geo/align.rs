@@ -36,7 +36,8 @@ use crate::geometry::{Sim3, umeyama};
 use crate::optimize::lm::{LeastSquares, LmParams, levenberg_marquardt};
 
 /// Tunables of the alignment.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct AlignParams {
     /// RANSAC seed.
     pub seed: u64,
@@ -73,7 +74,8 @@ pub struct AlignParams {
     /// Standard deviation of a camera orientation, degrees (weights the
     /// refinement).
     pub orientation_sigma_deg: f64,
-    /// LM settings of the refinement.
+    /// LM settings of the refinement (not configurable from files).
+    #[serde(skip)]
     pub lm: LmParams,
     /// Estimate the offset between capture times and the telemetry clock
     /// from pairs carrying a velocity (see [`Pair::v_ned`]).

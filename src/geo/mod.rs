@@ -38,8 +38,10 @@ pub use wgs84::{Geodetic, LocalFrame};
 
 use crate::geometry::GeometryError;
 
-/// Every tunable number of the geo module.
-#[derive(Debug, Clone, Default, PartialEq)]
+/// Every tunable number of the geo module (deserialisable as a config
+/// section; every field optional).
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct Params {
     /// Telemetry history and time alignment.
     pub history: HistoryParams,

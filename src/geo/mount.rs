@@ -38,7 +38,8 @@ pub enum LeverArmFrame {
 }
 
 /// Every number of the mounting.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct MountParams {
     /// Optical centre in the body frame (forward, right, down), metres.
     pub lever_arm_body_m: [f64; 3],

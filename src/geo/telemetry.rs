@@ -19,7 +19,8 @@ use super::GeoError;
 use super::wgs84::{Geodetic, LocalFrame};
 
 /// Tunables of the history.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct HistoryParams {
     /// Samples kept per stream; the oldest are dropped beyond it.
     pub capacity: usize,
