@@ -47,12 +47,68 @@ enum Command {
     /// positions and the relative pose error are reported. The figures agree
     /// with `evo_ape tum GT EST -as`.
     Eval(EvalArgs),
+
+    /// Run monocular SLAM on a recorded sequence.
+    ///
+    /// DATASET is a folder in the TUM layout (rgb.txt, calib.txt, optional
+    /// groundtruth.txt; also what `shotpilot-sim render` writes) or the
+    /// EuRoC ASL layout (mav0/cam0). Prints per-stage timing, counts and,
+    /// when ground truth is at hand, the ATE after Sim(3) alignment (as
+    /// `eval` does). With `--out`, writes DIR/trajectory.txt (every tracked
+    /// frame, placed relative to its reference keyframe after the final
+    /// optimisation) and DIR/keyframes.txt, both in the TUM format.
+    Slam(SlamArgs),
     /// Bag-of-words vocabularies: train one from images, import ORB-SLAM's
     /// ORBvoc.txt, describe one.
     Vocab(vocab_cli::VocabArgs),
     /// Plan, upload, download and start missions (the MAVLink link to the drone).
     #[command(subcommand)]
     Mission(MissionCommand),
+    /// Extract ORB features from every frame of a dataset and report the
+    /// time per frame.
+    ///
+    /// All frames are decoded first; then each is timed alone (after 3
+    /// untimed warm-up extractions), reporting the median and 95th
+    /// percentile milliseconds per frame and the mean number of keypoints.
+    Features(FeaturesArgs),
+}
+
+#[derive(Args, Debug)]
+struct SlamArgs {
+    /// Dataset folder (TUM or EuRoC layout).
+    dataset: PathBuf,
+    /// Folder for trajectory.txt and keyframes.txt (created if missing).
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Ground truth (TUM format); default: the dataset's own, if any.
+    #[arg(long, value_name = "FILE")]
+    gt: Option<PathBuf>,
+    /// Run local mapping after each keyframe on the same thread, so runs
+    /// repeat exactly (and frames are not paced).
+    #[arg(long)]
+    sequential: bool,
+    /// Replay speed relative to the frame timestamps (two-thread mode);
+    /// 0 feeds frames as fast as tracking takes them.
+    #[arg(long, default_value_t = 1.0, value_name = "X")]
+    speed: f64,
+    /// Save the map to this file at the end.
+    #[arg(long, value_name = "FILE")]
+    save_map: Option<PathBuf>,
+    /// ORB features per frame.
+    #[arg(long, default_value_t = 1000, value_name = "N")]
+    features: usize,
+    /// Use only the first N frames.
+    #[arg(long, value_name = "N")]
+    max_frames: Option<usize>,
+    /// Seed of the randomised steps (RANSAC).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    seed: u64,
+    /// Largest timestamp difference when pairing with the ground truth, seconds.
+    #[arg(long, default_value_t = 0.02, value_name = "S")]
+    max_dt: f64,
+    /// Print exactly one JSON object on stdout instead of text.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Subcommand, Debug)]
@@ -151,6 +207,25 @@ struct StartArgs {
 }
 
 #[derive(Args, Debug)]
+struct FeaturesArgs {
+    /// Dataset folder (TUM or EuRoC layout).
+    #[arg(value_name = "DATASET")]
+    dataset: PathBuf,
+    /// Features wanted per frame.
+    #[arg(long = "features", default_value_t = 1000, value_name = "N")]
+    n_features: usize,
+    /// Threads per frame (1 or 2; the pyramid levels are split among them).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    threads: usize,
+    /// Passes over the dataset; the figures are over all timed frames.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    repeat: usize,
+    /// Print exactly one JSON object on stdout instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
 struct EvalArgs {
     /// Ground-truth trajectory (TUM format).
     #[arg(long, value_name = "FILE")]
@@ -174,6 +249,8 @@ struct EvalArgs {
     #[arg(long)]
     json: bool,
 }
+
+mod cli;
 
 fn init_logging(filter: &str) {
     let env = tracing_subscriber::EnvFilter::try_from_default_env()
@@ -216,8 +293,10 @@ fn run(cli: Cli) -> Result<()> {
     let config = load_config(cli.config.as_deref())?;
     match cli.command {
         Command::Eval(args) => cmd_eval(args),
+        Command::Slam(args) => cli::slam::run(args),
         Command::Vocab(args) => vocab_cli::run(args),
         Command::Mission(cmd) => mission_cli::run(cmd, &config),
+        Command::Features(args) => cmd_features(args),
     }
 }
 
@@ -552,4 +631,50 @@ mod mission_cli {
         }
         Ok(())
     }
+}
+
+fn cmd_features(args: FeaturesArgs) -> Result<()> {
+    use shotpilot::features::{OrbExtractor, Params, eval as feval};
+    let ds = shotpilot::video::dataset::Dataset::open(&args.dataset)
+        .with_context(|| format!("opening {}", args.dataset.display()))?;
+    let frames = ds
+        .frames()
+        .map(|f| f.map(|f| f.image))
+        .collect::<Result<Vec<_>, _>>()?;
+    let params = Params {
+        n_features: args.n_features,
+        threads: args.threads,
+        ..Params::default()
+    };
+    let mut ex = OrbExtractor::new(params)?;
+    let mut all = Vec::with_capacity(frames.len() * args.repeat.max(1));
+    for _ in 0..args.repeat.max(1) {
+        all.extend(feval::time_frames(&mut ex, &frames, Some(&ds.camera), 3));
+    }
+    let r = feval::summarize(&all);
+    if args.json {
+        let out = json!({
+            "dataset": args.dataset,
+            "frames": frames.len(),
+            "timed": r.frames,
+            "features": args.n_features,
+            "threads": args.threads,
+            "median_ms": r.median_ms,
+            "p95_ms": r.p95_ms,
+            "mean_keypoints": r.mean_keypoints,
+        });
+        println!("{out}");
+    } else {
+        println!(
+            "{} frames x {}: median {:.3} ms, p95 {:.3} ms per frame, {:.1} keypoints (features {}, threads {})",
+            frames.len(),
+            args.repeat.max(1),
+            r.median_ms,
+            r.p95_ms,
+            r.mean_keypoints,
+            args.n_features,
+            args.threads
+        );
+    }
+    Ok(())
 }

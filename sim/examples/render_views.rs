@@ -39,9 +39,13 @@ fn main() -> anyhow::Result<()> {
         world.boxes.len()
     );
     let t0 = Instant::now();
-    let renderer = Renderer::new(world, SimCamera::default(), RenderParams::default());
+    let params = RenderParams {
+        edge_antialias: std::env::var("SIM_NO_AA").is_err(),
+        ..RenderParams::default()
+    };
+    let renderer = Renderer::new(world, SimCamera::default(), params);
     println!("renderer prepared in {:.2} s", t0.elapsed().as_secs_f64());
-    let views = [
+    let mut views = vec![
         (
             "top_60m",
             Point3::new(0.0, 0.0, -60.0),
@@ -73,15 +77,48 @@ fn main() -> anyhow::Result<()> {
             Point3::new(60.0, 20.0, -8.0),
         ),
         (
+            "sky",
+            Point3::new(0.0, 0.0, -50.0),
+            Point3::new(1.0, 0.0, -100.0),
+        ),
+        (
             "high_far",
             Point3::new(-150.0, -100.0, -60.0),
             Point3::new(0.0, 0.0, 0.0),
         ),
     ];
+    // Facade close-ups: 2 m and 5 m in front of the tallest building's south wall.
+    if let Some(b) = renderer
+        .world()
+        .boxes
+        .iter()
+        .filter(|b| b.kind == shotpilot_sim::world::BoxKind::Building)
+        .max_by(|a, b| a.height().total_cmp(&b.height()))
+    {
+        let y = 0.5 * (b.min.y + b.max.y);
+        let z = 0.5 * b.min.z;
+        for (name, d) in [("wall_2m", 2.0), ("wall_5m", 5.0)] {
+            views.push((
+                name,
+                Point3::new(b.min.x - d, y, z),
+                Point3::new(b.min.x, y + 0.3, z + 0.2),
+            ));
+        }
+    }
+    let only = std::env::var("SIM_VIEW").ok();
     for (name, eye, target) in views {
+        if only.as_deref().is_some_and(|o| o != name) {
+            continue;
+        }
         let pose = look_at(eye, target);
         let img = renderer.render_noisy(&pose, 7);
-        let reps = 10;
+        let centre_hit = renderer.world().ray_cast(
+            &Point3::from(pose.translation.vector),
+            &(pose.rotation * Vector3::z()),
+            1e4,
+        );
+        let dist = centre_hit.map_or(f64::INFINITY, |h| h.t);
+        let reps = if only.is_some() { 100 } else { 10 };
         let c0 = thread_cpu_ns();
         let t0 = Instant::now();
         for _ in 0..reps {
@@ -92,7 +129,9 @@ fn main() -> anyhow::Result<()> {
             .zip(thread_cpu_ns())
             .map_or(f64::NAN, |(a, b)| (b - a) as f64 * 1e-6 / reps as f64);
         img.save(out.join(format!("{name}.png")))?;
-        println!("{name}: {ms:.1} ms wall, {cpu_ms:.1} ms cpu per frame");
+        println!(
+            "{name}: {ms:.1} ms wall, {cpu_ms:.1} ms cpu per frame, centre ray hits at {dist:.1} m"
+        );
     }
     Ok(())
 }

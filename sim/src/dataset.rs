@@ -325,7 +325,7 @@ mod tests {
     #[test]
     fn dataset_layout_and_ground_truth_round_trip() {
         let dir = tempfile::tempdir().unwrap();
-        let world = Arc::new(World::generate_with(2, &WorldParams::small()).unwrap());
+        let world = Arc::new(World::generate_with(2, &WorldParams::tiny()).unwrap());
         let cam = SimCamera {
             width: 160,
             height: 120,
@@ -375,6 +375,63 @@ mod tests {
             vec![115.0, 115.0, 79.5, 59.5, -0.05, 0.01, 0.0005, -0.0003, 0.0]
         );
         assert!(dir.path().join("render_info.json").exists());
+    }
+
+    #[test]
+    fn a_tum_file_path_renders_over_its_time_span() {
+        let dir = tempfile::tempdir().unwrap();
+        let traj = dir.path().join("traj.txt");
+        let a = look_at(Point3::new(-20.0, 0.0, -15.0), Point3::new(0.0, 0.0, 0.0));
+        let b = look_at(Point3::new(-10.0, 10.0, -20.0), Point3::new(0.0, 0.0, 0.0));
+        std::fs::write(
+            &traj,
+            format!(
+                "{}\n{}\n",
+                crate::paths::tum_line(100.0, &a),
+                crate::paths::tum_line(102.0, &b)
+            ),
+        )
+        .unwrap();
+        let world = Arc::new(World::generate_with(3, &WorldParams::tiny()).unwrap());
+        let spec: PathSpec = traj.to_str().unwrap().parse().unwrap();
+        let path = CameraPath::from_spec(&spec, &world, PathParams::default()).unwrap();
+        let cam = SimCamera {
+            width: 64,
+            height: 48,
+            fx: 46.0,
+            fy: 46.0,
+            cx: 31.5,
+            cy: 23.5,
+            ..SimCamera::default()
+        };
+        let renderer = Renderer::new(
+            world,
+            cam,
+            RenderParams {
+                noise_sigma: 0.0,
+                ..RenderParams::default()
+            },
+        );
+        let out = dir.path().join("out");
+        let report = render_path_dataset(&renderer, &path, 3, &out, 0, &spec).unwrap();
+        assert_eq!(report.time_span_s, (100.0, 102.0));
+        let gt = read_tum(&out.join("groundtruth.txt")).unwrap();
+        assert_eq!(
+            gt.iter().map(|g| g.0).collect::<Vec<_>>(),
+            vec![100.0, 101.0, 102.0]
+        );
+        assert!((gt[2].1.translation.vector - b.translation.vector).norm() < 1e-5);
+        // Noise-free frames equal a direct render.
+        let img = image::open(out.join("rgb/101.000000.png"))
+            .unwrap()
+            .to_luma8();
+        assert_eq!(img, renderer.render(&path.world_from_cam(101.0)));
+        // A missing file is a typed error.
+        let missing: PathSpec = "/nonexistent/traj.txt".parse().unwrap();
+        assert!(matches!(
+            CameraPath::from_spec(&missing, renderer.world(), PathParams::default()),
+            Err(PathError::Io { .. })
+        ));
     }
 
     #[test]

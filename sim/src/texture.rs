@@ -25,6 +25,27 @@ pub(crate) fn fast_floor(x: f32) -> i32 {
     i - ((x < i as f32) as i32)
 }
 
+/// Integer part and fraction of `x` for bilinear weights, without the
+/// saturating float-to-int cast: `x = i + f` with `f` in [0, 1] (a tie may
+/// give `f = 1`, which bilinear interpolation tolerates). Exact for
+/// |x| < 2^22; larger values give a wrong but harmless index.
+#[inline(always)]
+pub(crate) fn split_floor(x: f32) -> (i32, f32) {
+    const MAGIC: f32 = 12_582_912.0; // 1.5 * 2^23: adding it rounds to an integer
+    let t = (x - 0.5) + MAGIC;
+    let i = (t.to_bits() as i32).wrapping_sub(MAGIC.to_bits() as i32);
+    (i, x - (t - MAGIC))
+}
+
+/// Rounds to the nearest grey level in 0..=255 without a saturating cast
+/// (NaN gives 0).
+#[inline(always)]
+pub(crate) fn round_u8(x: f32) -> u8 {
+    const MAGIC: f32 = 12_582_912.0;
+    let c = if x > 0.0 { x.min(255.0) } else { 0.0 };
+    ((c + MAGIC).to_bits().wrapping_sub(MAGIC.to_bits()) & 0xff) as u8
+}
+
 /// Piecewise-linear approximation of log2 for positive finite `x`
 /// (absolute error below 0.09), good enough to pick a mip level.
 #[inline(always)]
@@ -242,47 +263,29 @@ impl Canvas {
     }
 }
 
-/// One level of a mip chain.
+/// One level of a mip chain, row-major.
 #[derive(Debug, Clone)]
-///
-/// Texels are stored in 8x8 blocks (one 64-byte cache line each), so a
-/// bilinear footprint usually touches one line whichever way the image row
-/// crosses the texture.
 struct Level {
     size: usize,
     mask: i32,
-    /// log2 of the block side (3, or less for tiny levels).
-    block_shift: u32,
-    /// log2 of the number of blocks across.
-    blocks_shift: u32,
+    /// log2 of `size`.
+    shift: u32,
     data: Vec<u8>,
 }
 
 impl Level {
     fn from_linear(size: usize, linear: &[f32]) -> Level {
-        let shift = size.trailing_zeros();
-        let block_shift = shift.min(3);
-        let mut level = Level {
+        Level {
             size,
             mask: size as i32 - 1,
-            block_shift,
-            blocks_shift: shift - block_shift,
-            data: vec![0u8; size * size],
-        };
-        for y in 0..size {
-            for x in 0..size {
-                let a = level.addr(x, y);
-                level.data[a] = (linear[y * size + x] + 0.5) as u8;
-            }
+            shift: size.trailing_zeros(),
+            data: linear.iter().map(|v| (v + 0.5) as u8).collect(),
         }
-        level
     }
 
     #[inline(always)]
     fn addr(&self, x: usize, y: usize) -> usize {
-        let b = self.block_shift;
-        let bm = (1usize << b) - 1;
-        ((((y >> b) << self.blocks_shift) + (x >> b)) << (2 * b)) | ((y & bm) << b) | (x & bm)
+        (y << self.shift) | x
     }
 }
 
@@ -345,22 +348,18 @@ impl MipTexture {
 
     #[inline(always)]
     fn bilinear(level: &Level, u: f32, v: f32) -> f32 {
-        let x = u - 0.5;
-        let y = v - 0.5;
-        let x0 = fast_floor(x);
-        let y0 = fast_floor(y);
-        let fx = x - x0 as f32;
-        let fy = y - y0 as f32;
+        let (x0, fx) = split_floor(u - 0.5);
+        let (y0, fy) = split_floor(v - 0.5);
         let m = level.mask;
         let xa = (x0 & m) as usize;
         let xb = ((x0 + 1) & m) as usize;
-        let ya = (y0 & m) as usize;
-        let yb = ((y0 + 1) & m) as usize;
+        let ya = ((y0 & m) as usize) << level.shift;
+        let yb = (((y0 + 1) & m) as usize) << level.shift;
         let d = &level.data;
-        let a = d[level.addr(xa, ya)] as f32;
-        let b = d[level.addr(xb, ya)] as f32;
-        let c = d[level.addr(xa, yb)] as f32;
-        let e = d[level.addr(xb, yb)] as f32;
+        let a = d[ya | xa] as f32;
+        let b = d[ya | xb] as f32;
+        let c = d[yb | xa] as f32;
+        let e = d[yb | xb] as f32;
         let top = a + (b - a) * fx;
         let bottom = c + (e - c) * fx;
         top + (bottom - top) * fy
@@ -418,27 +417,81 @@ impl MipTexture {
         }
     }
 
-    /// Trilinear sample at an explicit level of detail (see [`Self::lod`]).
+    /// Trilinear sample at an explicit level of detail (see [`Self::lod`]),
+    /// with a narrowed blend band ("brilinear"): within [`BLEND_MARGIN`] of
+    /// a level only that level is read, in between the two levels are
+    /// blended with a weight that still runs continuously from 0 to 1, so
+    /// there is no popping and about half the pixels need one bilinear
+    /// lookup instead of two.
     #[inline(always)]
     pub fn sample_lod(&self, u: f32, v: f32, lod: f32) -> f32 {
-        let l = lod as usize;
-        let f = lod - l as f32;
+        // A negative level (only for lod < 0, which callers clamp away)
+        // becomes a huge index and reads as the mean.
+        let (l, f) = split_floor(lod);
+        let l = l as usize;
         let (Some(a), Some(b)) = (self.levels.get(l), self.levels.get(l + 1)) else {
             return self.mean;
         };
-        let sa = 1.0 / (1u32 << l) as f32;
-        let va = Self::bilinear(a, u * sa, v * sa);
-        if f < 1.0 / 64.0 {
-            return va;
+        // 2^-l, exactly, without a division.
+        let sa = f32::from_bits((127 - (l as u32 & 63)) << 23);
+        if f <= BLEND_MARGIN {
+            return Self::bilinear(a, u * sa, v * sa);
         }
+        if f >= 1.0 - BLEND_MARGIN {
+            return Self::bilinear(b, u * sa * 0.5, v * sa * 0.5);
+        }
+        let w = (f - BLEND_MARGIN) * (1.0 / (1.0 - 2.0 * BLEND_MARGIN));
+        let va = Self::bilinear(a, u * sa, v * sa);
         let vb = Self::bilinear(b, u * sa * 0.5, v * sa * 0.5);
-        va + (vb - va) * f
+        va + (vb - va) * w
     }
 }
+
+/// Fraction of a mip level at each end where [`MipTexture::sample_lod`]
+/// reads a single level.
+pub const BLEND_MARGIN: f32 = 0.25;
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn round_u8_rounds_and_clamps() {
+        assert_eq!(round_u8(-3.0), 0);
+        assert_eq!(round_u8(f32::NAN), 0);
+        assert_eq!(round_u8(0.4), 0);
+        assert_eq!(round_u8(0.6), 1);
+        assert_eq!(round_u8(127.49), 127);
+        assert_eq!(round_u8(254.7), 255);
+        assert_eq!(round_u8(1e9), 255);
+        for i in 0..=255u8 {
+            assert_eq!(round_u8(i as f32 + 0.3), i);
+        }
+    }
+
+    #[test]
+    fn split_floor_splits() {
+        for &x in &[
+            -3.7f32,
+            -1.0,
+            -0.2,
+            0.0,
+            0.3,
+            1.0,
+            2.5,
+            5.999,
+            1234.5,
+            -100_000.25,
+            4_000_000.5,
+        ] {
+            let (i, f) = split_floor(x);
+            assert!((0.0..=1.0).contains(&f), "{x}: {f}");
+            assert!(
+                (i as f64 + f as f64 - x as f64).abs() < 1e-3,
+                "{x}: {i} {f}"
+            );
+        }
+    }
 
     #[test]
     fn fast_math_is_close() {

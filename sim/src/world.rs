@@ -86,6 +86,12 @@ pub struct WorldParams {
     pub detail_gain_a: f32,
     /// Gain of the second detail layer.
     pub detail_gain_b: f32,
+    /// Gain of the close-up layer (the second detail texture at a quarter
+    /// scale), which fades in when the first layer is magnified.
+    pub detail_gain_close: f32,
+    /// Mip level of the first detail layer below which (magnified) the
+    /// close-up layer starts to fade in.
+    pub close_detail_start_lod: f32,
     /// Detail layers start fading out at this mip level of their own...
     pub detail_fade_start_lod: f32,
     /// ...and are gone (not sampled) from this one: their features are
@@ -116,6 +122,8 @@ impl Default for WorldParams {
             ambient: 0.45,
             detail_gain_a: 0.55,
             detail_gain_b: 0.4,
+            detail_gain_close: 0.45,
+            close_detail_start_lod: -1.0,
             detail_fade_start_lod: 2.5,
             detail_fade_end_lod: 3.5,
         }
@@ -131,6 +139,19 @@ impl WorldParams {
             facade_texture_size: 512,
             roof_texture_size: 256,
             detail_texture_size: 256,
+            ..Self::default()
+        }
+    }
+
+    /// The same layout with 64-texel textures: for tests about geometry
+    /// and paths, where texture detail does not matter.
+    pub fn tiny() -> Self {
+        Self {
+            ground_texture_size: 64,
+            far_texture_size: 64,
+            facade_texture_size: 64,
+            roof_texture_size: 64,
+            detail_texture_size: 64,
             ..Self::default()
         }
     }
@@ -306,6 +327,8 @@ pub(crate) struct Textures {
     pub detail_b_log2_inv_texel: f32,
     /// cos, sin of the second detail layer's rotation.
     pub detail_b_rot: (f32, f32),
+    /// cos, sin of the close-up layer's rotation.
+    pub detail_close_rot: (f32, f32),
 }
 
 /// The scene: boxes on a ground plane, with their textures.
@@ -494,6 +517,19 @@ impl World {
                 let ub = (c * u - s * v) * sb;
                 let vb = (s * u + c * v) * sb;
                 out += (tx.detail_b.sample_lod(ub, vb, lod_b.max(0.0)) - tx.detail_b.mean()) * w;
+            }
+            // Very close (the first layer magnified): the second layer's
+            // texture again at a quarter of its scale, turned another way,
+            // fading in as the first one blurs.
+            let close_start = self.params.close_detail_start_lod;
+            if lod_a < close_start {
+                let w = ((close_start - lod_a) * fade_k).min(1.0) * self.params.detail_gain_close;
+                let sc = tx.detail_b_inv_texel * 4.0;
+                let (c, s) = tx.detail_close_rot;
+                let uc = (c * u - s * v) * sc;
+                let vc = (s * u + c * v) * sc;
+                let lod_c = (lod_m + tx.detail_b_log2_inv_texel + 2.0).max(0.0);
+                out += (tx.detail_b.sample_lod(uc, vc, lod_c) - tx.detail_b.mean()) * w;
             }
         }
         out
@@ -821,6 +857,7 @@ fn make_textures(
         detail_texture(p.detail_texture_size, seed ^ 0xB0B)
     });
     let rot = 35.0f32.to_radians();
+    let close_rot = 101.0f32.to_radians();
     Textures {
         ground,
         ground_inv_texel,
@@ -839,6 +876,7 @@ fn make_textures(
         detail_b_log2_inv_texel: (p.detail_texture_size as f64 / (p.detail_extent_m * PHI)).log2()
             as f32,
         detail_b_rot: (rot.cos(), rot.sin()),
+        detail_close_rot: (close_rot.cos(), close_rot.sin()),
     }
 }
 
@@ -1221,7 +1259,7 @@ mod tests {
 
     #[test]
     fn generation_is_deterministic_and_respects_the_layout_rules() {
-        let p = WorldParams::small();
+        let p = WorldParams::tiny();
         let a = World::generate_with(5, &p).unwrap();
         let b = World::generate_with(5, &p).unwrap();
         let c = World::generate_with(6, &p).unwrap();
@@ -1264,7 +1302,7 @@ mod tests {
 
     #[test]
     fn ray_cast_hits_ground_and_boxes() {
-        let w = World::generate_with(1, &WorldParams::small()).unwrap();
+        let w = World::generate_with(1, &WorldParams::tiny()).unwrap();
         let o = Point3::new(0.0, 0.0, -20.0);
         let hit = w.ray_cast(&o, &Vector3::new(0.0, 0.0, 1.0), 1e4).unwrap();
         assert_eq!(hit.surface, Surface::Ground);

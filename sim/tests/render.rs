@@ -37,11 +37,15 @@ fn blob_centroid(img: &image::GrayImage, guess: Point2<f64>, half: i64) -> Point
 
 #[test]
 fn ground_markers_render_where_the_camera_model_projects_them() {
-    // Full-resolution ground texture (6.25 cm texels), no detail layers, no noise.
+    // The default ground texel (6.25 cm) over a smaller area, no detail
+    // layers, no noise.
     let params = WorldParams {
+        ground_texture_size: 2048,
+        ground_extent_m: 128.0,
         detail_gain_a: 0.0,
         detail_gain_b: 0.0,
-        ..WorldParams::default()
+        detail_gain_close: 0.0,
+        ..WorldParams::tiny()
     };
     let mut world = World::generate_with(11, &params).unwrap();
     let markers = [
@@ -89,17 +93,17 @@ fn renders_repeat_for_a_seed_and_differ_between_seeds() {
     let cam = SimCamera::default();
     let pose = look_at(Point3::new(-40.0, 25.0, -25.0), Point3::new(0.0, 0.0, 0.0));
     let a = Renderer::new(
-        Arc::new(World::generate_with(5, &WorldParams::small()).unwrap()),
+        Arc::new(World::generate_with(5, &WorldParams::tiny()).unwrap()),
         cam,
         RenderParams::default(),
     );
     let b = Renderer::new(
-        Arc::new(World::generate_with(5, &WorldParams::small()).unwrap()),
+        Arc::new(World::generate_with(5, &WorldParams::tiny()).unwrap()),
         cam,
         RenderParams::default(),
     );
     let c = Renderer::new(
-        Arc::new(World::generate_with(6, &WorldParams::small()).unwrap()),
+        Arc::new(World::generate_with(6, &WorldParams::tiny()).unwrap()),
         cam,
         RenderParams::default(),
     );

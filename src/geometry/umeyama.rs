@@ -3,7 +3,7 @@
 //! between two point patterns", PAMI 1991): rotation from the SVD of the
 //! cross-covariance with the reflection fix, scale from the singular values.
 
-use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, Vector3};
 
 use super::{GeometryError, Sim3, all_finite3};
 
@@ -87,7 +87,7 @@ pub fn umeyama(
     } else {
         1.0
     };
-    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
+    let rotation = crate::geometry::se3::quaternion_from_matrix(&r);
     let translation = mu_d - rotation * mu_s * scale;
     Ok(Sim3::new(rotation, translation, scale))
 }
@@ -95,6 +95,7 @@ pub fn umeyama(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
     use rand::{Rng, SeedableRng, rngs::SmallRng};
 
     #[test]
