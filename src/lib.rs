@@ -42,6 +42,7 @@
 //! `vehicle`, `video` (live sources) and `mission::upload`.
 
 pub mod bow;
+pub mod api;
 pub mod camera;
 pub mod config;
 pub mod eval;
