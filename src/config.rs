@@ -51,6 +51,11 @@ pub enum ConfigError {
 pub struct Config {
     /// The camera that films the video the SLAM runs on.
     pub camera: CameraConfig,
+    /// `[link]`: the MAVLink link to the vehicle (transport URL, ids,
+    /// heartbeat, link-lost time, reconnect backoff, telemetry rates, signing).
+    pub link: crate::vehicle::Params,
+    /// `[mission]`: planner numbers, geofence, transfer timeouts and retries.
+    pub mission: crate::mission::Params,
 }
 
 /// `[camera]`: intrinsics of the drone's camera.
@@ -156,6 +161,46 @@ impl Config {
                 reason: e.to_string(),
             })?;
         }
+        let invalid =
+            |section: &'static str, key: &'static str, reason: String| ConfigError::Invalid {
+                path: path.to_owned(),
+                section,
+                key,
+                reason,
+            };
+        self.link
+            .url
+            .parse::<crate::vehicle::LinkUrl>()
+            .map_err(|e| invalid("link", "url", e.to_string()))?;
+        if let Some(s) = &self.link.signing {
+            s.key()
+                .map_err(|e| invalid("link.signing", "key_hex", e.to_string()))?;
+        }
+        if self.link.heartbeat_period_ms == 0 || self.link.link_lost_after_ms == 0 {
+            return Err(invalid(
+                "link",
+                "heartbeat_period_ms/link_lost_after_ms",
+                "must be positive".into(),
+            ));
+        }
+        let fence = &self.mission.plan.fence;
+        if !(fence.radius_m > 0.0 && fence.min_alt_m < fence.max_alt_m) {
+            return Err(invalid(
+                "mission.plan.fence",
+                "radius_m/min_alt_m/max_alt_m",
+                format!(
+                    "need radius_m > 0 and min_alt_m < max_alt_m, got {} m, {} m, {} m",
+                    fence.radius_m, fence.min_alt_m, fence.max_alt_m
+                ),
+            ));
+        }
+        if self.mission.transfer.retry_timeout_ms == 0 {
+            return Err(invalid(
+                "mission.transfer",
+                "retry_timeout_ms",
+                "must be positive".into(),
+            ));
+        }
         Ok(())
     }
 }
@@ -169,6 +214,34 @@ mod tests {
         let text = include_str!("../config.toml");
         let cfg = Config::from_toml(text, Path::new("config.toml")).unwrap();
         assert_eq!(cfg.camera, CameraConfig::default());
+        assert_eq!(cfg.link, crate::vehicle::Params::default());
+        assert_eq!(cfg.mission, crate::mission::Params::default());
+    }
+
+    #[test]
+    fn link_and_mission_sections_are_checked() {
+        let e = Config::from_toml("[link]\nurl = \"udp:1.2.3.4\"\n", Path::new("x.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("[link] url"), "{e}");
+        let e = Config::from_toml(
+            "[mission.plan.fence]\nmin_alt_m = 50.0\nmax_alt_m = 40.0\n",
+            Path::new("x.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("min_alt_m"), "{e}");
+        let e = Config::from_toml("[mission.transfer]\nretries = 3\n", Path::new("x.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("retries"), "{e}");
+        let cfg = Config::from_toml(
+            "[link]\nurl = \"serial:/dev/ttyUSB0:57600\"\n[link.signing]\nkey_hex = \"00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff\"\n",
+            Path::new("x.toml"),
+        )
+        .unwrap();
+        assert_eq!(cfg.link.url, "serial:/dev/ttyUSB0:57600");
+        assert_eq!(cfg.link.signing.map(|s| s.link_id), Some(0));
     }
 
     #[test]

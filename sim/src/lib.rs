@@ -5,3 +5,20 @@
 //! a MAVLink 2 autopilot and an MJPEG video server. This crate never
 //! depends on `shotpilot`: its camera projection is its own code, an
 //! independent check on the daemon's camera model.
+
+// Vehicle, autopilot, link, scripts and the app (simvehicle).
+pub mod app;
+pub mod autopilot;
+pub mod geodesy;
+pub mod link;
+pub mod script;
+pub mod vehicle;
+
+// World, camera, renderer, paths, datasets and video (simworld).
+pub mod camera;
+pub mod dataset;
+pub mod paths;
+pub mod render;
+pub mod texture;
+pub mod video;
+pub mod world;

@@ -1,4 +1,278 @@
-//! `shotpilot-sim`: run the simulated vehicle and camera.
-fn main() {
-    println!("shotpilot-sim {}", env!("CARGO_PKG_VERSION"));
+//! `shotpilot-sim`: run the simulated vehicle, gimbal camera and MAVLink
+//! autopilot (see `shotpilot-sim --help`).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand, ValueEnum};
+use shotpilot_sim::app::{SimConfig, run};
+use shotpilot_sim::autopilot::Flavour;
+use shotpilot_sim::camera::SimCamera;
+use shotpilot_sim::dataset::render_dataset;
+use shotpilot_sim::geodesy::Geodetic;
+use shotpilot_sim::link::{Endpoint, RadioDirParams, RadioParams};
+use shotpilot_sim::paths::PathSpec;
+use shotpilot_sim::render::RenderParams;
+use shotpilot_sim::script::ScriptKind;
+use tokio_util::sync::CancellationToken;
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum FlavourArg {
+    /// PX4: MAV_AUTOPILOT_PX4 heartbeat, PX4 custom modes, PX4 mission rules.
+    Px4,
+    /// ArduPilot copter: ARDUPILOTMEGA heartbeat, copter modes, seq 0 = home.
+    Ardupilot,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum ScriptArg {
+    /// Take off and survey the scene at several altitudes (SLAM parallax),
+    /// then hover and accept missions.
+    Explore,
+    /// Take off and hover over home.
+    Hover,
+}
+
+/// The simulated world for shotpilot: a PX4-like quadrotor with a gimbal
+/// camera over a procedurally textured scene, speaking MAVLink 2 and
+/// serving its camera as MJPEG.
+#[derive(Debug, Parser)]
+#[command(
+    name = "shotpilot-sim",
+    version,
+    about,
+    long_about = None,
+    after_long_help = "World frame: the local NED tangent plane at --home (x north, y east, z down, \
+metres, ground at z = 0); camera poses are world_from_cam with camera axes x right, y down, \
+z forward. The render world uses the same frame (the fixed transform is the identity).\n\n\
+Examples:\n  shotpilot-sim --script explore --truth-dir truth\n  \
+shotpilot-sim --mavlink udpin:0.0.0.0:14550 --drop 0.3 --baud 57600 --latency-ms 80\n  \
+shotpilot-sim --mavlink serial:/dev/pts/3:57600 --flavour ardupilot\n  \
+shotpilot-sim render --path orbit --frames 600 --out dataset\n\n\
+A ground station (QGroundControl, MAVProxy, pymavlink) listening on UDP 14550 sees the vehicle \
+with the default --mavlink."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+
+    /// MAVLink endpoint: udpout:HOST:PORT (send to a ground station, as PX4
+    /// SITL does to 14550), udpin:ADDR:PORT (listen, reply to the last
+    /// sender), tcpin:ADDR:PORT, tcpout:HOST:PORT or serial:/dev/DEVICE:BAUD
+    /// (a socat pty pair works).
+    #[arg(long, default_value = "udpout:127.0.0.1:14550", value_name = "URL")]
+    mavlink: String,
+
+    /// Address of the MJPEG video server (GET /video.mjpg is the
+    /// multipart/x-mixed-replace stream with each frame's capture time in an
+    /// X-Timestamp header, GET /snapshot.jpg one frame); "off" disables it.
+    #[arg(long, default_value = "127.0.0.1:8554", value_name = "ADDR")]
+    video_listen: String,
+
+    /// Video frames per second.
+    #[arg(long, default_value_t = 15.0, value_name = "N")]
+    video_fps: f64,
+
+    /// Which autopilot to imitate.
+    #[arg(long, value_enum, default_value = "px4")]
+    flavour: FlavourArg,
+
+    /// Bad radio: probability of dropping a whole MAVLink frame, each way.
+    #[arg(long, default_value_t = 0.0, value_name = "P")]
+    drop: f64,
+
+    /// Bad radio: drop probability ground -> vehicle (overrides --drop).
+    #[arg(long, value_name = "P")]
+    drop_up: Option<f64>,
+
+    /// Bad radio: drop probability vehicle -> ground (overrides --drop).
+    #[arg(long, value_name = "P")]
+    drop_down: Option<f64>,
+
+    /// Bad radio: probability of corrupting each byte, each way (the frame
+    /// then fails its CRC at the receiver).
+    #[arg(long, default_value_t = 0.0, value_name = "RATE")]
+    corrupt: f64,
+
+    /// Bad radio: bandwidth cap each way in baud (8N1: 57600 baud = 5760
+    /// bytes/s); frames queue and overflow a 4 KiB buffer. 0 = no cap.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    baud: u32,
+
+    /// Bad radio: added one-way latency, milliseconds.
+    #[arg(long, default_value_t = 0.0, value_name = "N")]
+    latency_ms: f64,
+
+    /// Seed of the world, sensor noise and the bad radio.
+    #[arg(long, default_value_t = 1, value_name = "N", global = true)]
+    seed: u64,
+
+    /// A scripted operator flies the vehicle (without one the vehicle waits
+    /// on the ground for a ground station).
+    #[arg(long, value_enum)]
+    script: Option<ScriptArg>,
+
+    /// Folder for IMAGE_START_CAPTURE / DO_DIGICAM_CONTROL pictures
+    /// (IMG_0000.jpg, ...).
+    #[arg(long, default_value = "captures", value_name = "DIR")]
+    capture_dir: PathBuf,
+
+    /// Folder for the ground truth of the video frames (TUM trajectory of
+    /// world_from_cam in local NED, frame times).
+    #[arg(long, value_name = "DIR")]
+    truth_dir: Option<PathBuf>,
+
+    /// Home position as LAT,LON,ALT (degrees, degrees, metres AMSL).
+    #[arg(
+        long,
+        default_value = "47.397742,8.545594,488.0",
+        value_name = "LAT,LON,ALT"
+    )]
+    home: String,
+
+    /// Stop after this many seconds (default: run until Ctrl-C).
+    #[arg(long, value_name = "S")]
+    duration: Option<f64>,
+
+    /// Render frames without sensor noise.
+    #[arg(long, global = true)]
+    no_noise: bool,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Render a TUM-layout dataset (rgb/, rgb.txt, calib.txt,
+    /// groundtruth.txt) along a camera path, without flying.
+    Render {
+        /// explore, orbit, or a TUM trajectory file (world_from_cam).
+        #[arg(long, default_value = "explore")]
+        path: String,
+        /// Number of frames.
+        #[arg(long, default_value_t = 600)]
+        frames: usize,
+        /// Output folder.
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+fn parse_home(s: &str) -> Result<Geodetic> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("--home {s:?}: expected LAT,LON,ALT"))?;
+    anyhow::ensure!(v.len() == 3, "--home {s:?}: expected three numbers");
+    anyhow::ensure!(
+        (-90.0..=90.0).contains(&v[0]) && (-180.0..=180.0).contains(&v[1]),
+        "--home {s:?}: latitude/longitude out of range"
+    );
+    Ok(Geodetic {
+        lat_deg: v[0],
+        lon_deg: v[1],
+        alt_m: v[2],
+    })
+}
+
+fn config_from(cli: &Cli) -> Result<SimConfig> {
+    let mut c = SimConfig::default();
+    c.mavlink = cli.mavlink.parse::<Endpoint>()?;
+    c.video_listen = if cli.video_listen == "off" {
+        None
+    } else {
+        Some(
+            cli.video_listen
+                .parse::<SocketAddr>()
+                .with_context(|| format!("--video-listen {:?}", cli.video_listen))?,
+        )
+    };
+    c.video_fps = cli.video_fps;
+    c.autopilot.flavour = match cli.flavour {
+        FlavourArg::Px4 => Flavour::Px4,
+        FlavourArg::Ardupilot => Flavour::ArduPilot,
+    };
+    let dir = |drop: f64| RadioDirParams {
+        drop,
+        corrupt: cli.corrupt,
+        latency_s: cli.latency_ms / 1000.0,
+        baud: (cli.baud > 0).then_some(cli.baud),
+        ..RadioDirParams::default()
+    };
+    c.radio = RadioParams {
+        up: dir(cli.drop_up.unwrap_or(cli.drop)),
+        down: dir(cli.drop_down.unwrap_or(cli.drop)),
+        seed: cli.seed,
+    };
+    c.seed = cli.seed;
+    c.script = cli.script.map(|s| match s {
+        ScriptArg::Explore => ScriptKind::Explore,
+        ScriptArg::Hover => ScriptKind::Hover,
+    });
+    c.capture_dir = cli.capture_dir.clone();
+    c.truth_dir = cli.truth_dir.clone();
+    c.autopilot.vehicle.home = parse_home(&cli.home)?;
+    c.sensor_noise = !cli.no_noise;
+    Ok(c)
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .init();
+    let cli = Cli::parse();
+    if let Some(Command::Render { path, frames, out }) = &cli.command {
+        let spec: PathSpec = path.parse().unwrap_or(PathSpec::Explore);
+        let noise = if cli.no_noise {
+            0.0
+        } else {
+            RenderParams::default().noise_sigma
+        };
+        let report = render_dataset(spec, *frames, out, cli.seed, SimCamera::default(), noise)
+            .with_context(|| format!("rendering {path} into {}", out.display()))?;
+        println!(
+            "{} frames in {} ({:.1} frames/s)",
+            report.frames,
+            out.display(),
+            report.render_fps()
+        );
+        return Ok(());
+    }
+    let config = config_from(&cli)?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("tokio runtime")?;
+    rt.block_on(async move {
+        let cancel = CancellationToken::new();
+        let c2 = cancel.clone();
+        let duration = cli.duration;
+        tokio::spawn(async move {
+            match duration {
+                Some(s) => {
+                    tokio::select! {
+                        _ = tokio::signal::ctrl_c() => {}
+                        _ = tokio::time::sleep(std::time::Duration::from_secs_f64(s.max(0.0))) => {}
+                    }
+                }
+                None => {
+                    let _ = tokio::signal::ctrl_c().await;
+                }
+            }
+            c2.cancel();
+        });
+        let summary = run(config, cancel).await?;
+        tracing::info!(
+            "done: {:.1} s simulated, {} frames ({} skipped), {} captures, link {:?}",
+            summary.sim_seconds,
+            summary.frames,
+            summary.frames_skipped,
+            summary.captures,
+            summary.link
+        );
+        Ok(())
+    })
 }

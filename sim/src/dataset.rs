@@ -1,0 +1,455 @@
+//! Writing rendered datasets in the TUM RGB-D layout, and live ground truth.
+//!
+//! A dataset folder holds:
+//!
+//! - `rgb/<timestamp>.png`: 8-bit grey frames;
+//! - `rgb.txt`: `timestamp rgb/<file>` per frame;
+//! - `calib.txt`: one line `fx fy cx cy k1 k2 p1 p2 k3` (OpenCV order);
+//! - `groundtruth.txt`: `timestamp tx ty tz qx qy qz qw`, the camera's
+//!   `world_from_cam` with the quaternion scalar last;
+//! - `render_info.json`: seed, path, camera and timing of the render.
+//!
+//! The world frame is the local NED frame at home (x north, y east, z down,
+//! metres); the headers of `rgb.txt` and `groundtruth.txt` say so.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use nalgebra::Isometry3;
+
+use crate::camera::{CameraError, SimCamera};
+use crate::paths::{CameraPath, Params as PathParams, PathError, PathSpec, tum_line};
+use crate::render::{RenderParams, Renderer};
+use crate::world::World;
+
+/// The header naming the frames, written atop trajectory files.
+pub const WORLD_FRAME_HEADER: &str = "# world frame: local NED at home (x north, y east, z down, metres); \
+poses are world_from_cam, camera axes x right, y down, z forward";
+
+/// Errors of dataset writing.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    /// A file or folder could not be written.
+    #[error("cannot write {path}: {source}")]
+    Io {
+        /// The file or folder.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// An image could not be encoded or saved.
+    #[error("cannot save image {path}: {source}")]
+    Image {
+        /// The file.
+        path: PathBuf,
+        /// The image error.
+        source: image::ImageError,
+    },
+    /// The camera path could not be built.
+    #[error(transparent)]
+    Path(#[from] PathError),
+    /// The camera is unusable.
+    #[error(transparent)]
+    Camera(#[from] CameraError),
+    /// Zero frames were asked for.
+    #[error("a dataset needs at least one frame")]
+    NoFrames,
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> DatasetError + '_ {
+    move |source| DatasetError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// What [`render_dataset`] did, with its timings.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct RenderReport {
+    /// Frames written.
+    pub frames: usize,
+    /// The dataset folder.
+    pub out_dir: PathBuf,
+    /// First and last timestamp, seconds of path time.
+    pub time_span_s: (f64, f64),
+    /// Seconds spent generating the world.
+    pub world_seconds: f64,
+    /// Wall-clock seconds spent rendering (excluding PNG encoding).
+    pub render_seconds: f64,
+    /// CPU seconds of the rendering thread spent rendering, when the OS reports them.
+    pub render_cpu_seconds: Option<f64>,
+    /// Wall-clock seconds spent encoding and writing files.
+    pub write_seconds: f64,
+}
+
+impl RenderReport {
+    /// Rendered frames per wall-clock second (rendering only).
+    pub fn render_fps(&self) -> f64 {
+        self.frames as f64 / self.render_seconds.max(1e-9)
+    }
+
+    /// Rendered frames per CPU second of the rendering thread.
+    pub fn render_fps_cpu(&self) -> Option<f64> {
+        self.render_cpu_seconds
+            .map(|s| self.frames as f64 / s.max(1e-9))
+    }
+}
+
+/// CPU time consumed by the calling thread, seconds (Linux
+/// `/proc/thread-self/schedstat`); `None` elsewhere.
+pub fn thread_cpu_seconds() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    let ns: u64 = s.split_whitespace().next()?.parse().ok()?;
+    Some(ns as f64 * 1e-9)
+}
+
+/// Renders `frames` frames spread evenly over the whole of `path` (its
+/// time span) in the default world for `seed`, and writes a TUM-layout
+/// dataset to `out_dir`. `noise_sigma` is the sensor noise in grey levels
+/// (0 for none); the noise of frame `i` is seeded from `seed` and `i`.
+pub fn render_dataset(
+    path: PathSpec,
+    frames: usize,
+    out_dir: &Path,
+    seed: u64,
+    camera: SimCamera,
+    noise_sigma: f32,
+) -> Result<RenderReport, DatasetError> {
+    camera.validate()?;
+    if frames == 0 {
+        return Err(DatasetError::NoFrames);
+    }
+    let t0 = Instant::now();
+    let world = Arc::new(World::generate(seed));
+    let world_seconds = t0.elapsed().as_secs_f64();
+    tracing::info!(
+        seed,
+        boxes = world.boxes.len(),
+        seconds = world_seconds,
+        "world generated"
+    );
+    let camera_path = CameraPath::from_spec(&path, &world, PathParams::default())?;
+    let params = RenderParams {
+        noise_sigma,
+        ..RenderParams::default()
+    };
+    let renderer = Renderer::new(world, camera, params);
+    let mut report = render_path_dataset(&renderer, &camera_path, frames, out_dir, seed, &path)?;
+    report.world_seconds = world_seconds;
+    Ok(report)
+}
+
+/// Renders `frames` frames spread evenly over `path` with `renderer` and
+/// writes the dataset (see [`render_dataset`]).
+pub fn render_path_dataset(
+    renderer: &Renderer,
+    path: &CameraPath,
+    frames: usize,
+    out_dir: &Path,
+    seed: u64,
+    spec: &PathSpec,
+) -> Result<RenderReport, DatasetError> {
+    if frames == 0 {
+        return Err(DatasetError::NoFrames);
+    }
+    let rgb_dir = out_dir.join("rgb");
+    std::fs::create_dir_all(&rgb_dir).map_err(io_err(&rgb_dir))?;
+    let camera = *renderer.camera();
+    let calib_path = out_dir.join("calib.txt");
+    std::fs::write(&calib_path, format!("{}\n", camera.calib_line()))
+        .map_err(io_err(&calib_path))?;
+    let rgb_txt = out_dir.join("rgb.txt");
+    let gt_txt = out_dir.join("groundtruth.txt");
+    let mut rgb = BufWriter::new(File::create(&rgb_txt).map_err(io_err(&rgb_txt))?);
+    let mut gt = BufWriter::new(File::create(&gt_txt).map_err(io_err(&gt_txt))?);
+    writeln!(rgb, "{WORLD_FRAME_HEADER}\n# timestamp filename").map_err(io_err(&rgb_txt))?;
+    writeln!(gt, "{WORLD_FRAME_HEADER}\n# timestamp tx ty tz qx qy qz qw")
+        .map_err(io_err(&gt_txt))?;
+
+    let noisy = renderer.params().noise_sigma > 0.0;
+    let mut img = image::GrayImage::new(camera.width, camera.height);
+    let (mut render_s, mut write_s, mut cpu_s) = (0.0, 0.0, Some(0.0));
+    let step = if frames > 1 {
+        path.duration() / (frames - 1) as f64
+    } else {
+        0.0
+    };
+    let mut first_last = (path.start(), path.start());
+    for i in 0..frames {
+        let t = path.start() + step * i as f64;
+        first_last.1 = t;
+        let world_from_cam = path.world_from_cam(t);
+        let c0 = thread_cpu_seconds();
+        let w0 = Instant::now();
+        let noise_seed = noisy
+            .then(|| crate::texture::mix64(seed ^ (i as u64).wrapping_mul(0x2545_f491_4f6c_dd1d)));
+        renderer.render_into(&world_from_cam, noise_seed, &mut img);
+        render_s += w0.elapsed().as_secs_f64();
+        cpu_s = match (cpu_s, c0, thread_cpu_seconds()) {
+            (Some(acc), Some(a), Some(b)) => Some(acc + (b - a)),
+            _ => None,
+        };
+        let w1 = Instant::now();
+        let name = format!("{t:.6}.png");
+        let file = rgb_dir.join(&name);
+        img.save(&file).map_err(|source| DatasetError::Image {
+            path: file.clone(),
+            source,
+        })?;
+        writeln!(rgb, "{t:.6} rgb/{name}").map_err(io_err(&rgb_txt))?;
+        writeln!(gt, "{}", tum_line(t, &world_from_cam)).map_err(io_err(&gt_txt))?;
+        write_s += w1.elapsed().as_secs_f64();
+        if (i + 1) % 50 == 0 || i + 1 == frames {
+            tracing::info!(
+                frame = i + 1,
+                of = frames,
+                render_fps = (i + 1) as f64 / render_s.max(1e-9),
+                "rendering"
+            );
+        }
+    }
+    rgb.flush().map_err(io_err(&rgb_txt))?;
+    gt.flush().map_err(io_err(&gt_txt))?;
+    let report = RenderReport {
+        frames,
+        out_dir: out_dir.to_path_buf(),
+        time_span_s: first_last,
+        world_seconds: 0.0,
+        render_seconds: render_s,
+        render_cpu_seconds: cpu_s,
+        write_seconds: write_s,
+    };
+    let info_path = out_dir.join("render_info.json");
+    let info = serde_json::json!({
+        "seed": seed,
+        "path": format!("{spec:?}"),
+        "camera": camera,
+        "noise_sigma": renderer.params().noise_sigma,
+        "world_frame": WORLD_FRAME_HEADER.trim_start_matches("# "),
+        "report": &report,
+    });
+    let text = serde_json::to_string_pretty(&info).map_err(|e| DatasetError::Io {
+        path: info_path.clone(),
+        source: std::io::Error::other(e),
+    })?;
+    std::fs::write(&info_path, text).map_err(io_err(&info_path))?;
+    Ok(report)
+}
+
+/// Appends live ground truth to a folder while the simulator runs:
+/// `groundtruth.txt` (the camera trajectory, TUM, world_from_cam),
+/// `frames.txt` (`seq capture_time_unix_s tx ty tz qx qy qz qw` per video
+/// frame) and `calib.txt`. Every line is flushed as it is written, so a
+/// reader sees it at once.
+#[derive(Debug)]
+pub struct TruthWriter {
+    dir: PathBuf,
+    trajectory: BufWriter<File>,
+    frames: BufWriter<File>,
+}
+
+impl TruthWriter {
+    /// Creates the folder (if needed) and the files, with their headers.
+    pub fn create(dir: &Path, camera: &SimCamera) -> Result<TruthWriter, DatasetError> {
+        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+        let calib = dir.join("calib.txt");
+        std::fs::write(&calib, format!("{}\n", camera.calib_line())).map_err(io_err(&calib))?;
+        let traj_path = dir.join("groundtruth.txt");
+        let frames_path = dir.join("frames.txt");
+        let mut trajectory = BufWriter::new(File::create(&traj_path).map_err(io_err(&traj_path))?);
+        let mut frames = BufWriter::new(File::create(&frames_path).map_err(io_err(&frames_path))?);
+        writeln!(
+            trajectory,
+            "{WORLD_FRAME_HEADER}\n# timestamp(unix s) tx ty tz qx qy qz qw"
+        )
+        .and_then(|_| trajectory.flush())
+        .map_err(io_err(&traj_path))?;
+        writeln!(
+            frames,
+            "{WORLD_FRAME_HEADER}\n# seq capture_time_unix_s tx ty tz qx qy qz qw"
+        )
+        .and_then(|_| frames.flush())
+        .map_err(io_err(&frames_path))?;
+        Ok(TruthWriter {
+            dir: dir.to_path_buf(),
+            trajectory,
+            frames,
+        })
+    }
+
+    /// The folder written to.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Appends a camera pose to `groundtruth.txt`.
+    pub fn write_pose(
+        &mut self,
+        timestamp: f64,
+        world_from_cam: &Isometry3<f64>,
+    ) -> Result<(), DatasetError> {
+        let path = self.dir.join("groundtruth.txt");
+        writeln!(self.trajectory, "{}", tum_line(timestamp, world_from_cam))
+            .and_then(|_| self.trajectory.flush())
+            .map_err(io_err(&path))
+    }
+
+    /// Appends a video frame's sequence number, capture time and camera pose to `frames.txt`.
+    pub fn write_frame(
+        &mut self,
+        seq: u64,
+        capture_time_unix_s: f64,
+        world_from_cam: &Isometry3<f64>,
+    ) -> Result<(), DatasetError> {
+        let path = self.dir.join("frames.txt");
+        writeln!(
+            self.frames,
+            "{seq} {}",
+            tum_line(capture_time_unix_s, world_from_cam)
+        )
+        .and_then(|_| self.frames.flush())
+        .map_err(io_err(&path))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::paths::{look_at, read_tum};
+    use crate::world::WorldParams;
+    use nalgebra::Point3;
+
+    #[test]
+    fn dataset_layout_and_ground_truth_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let world = Arc::new(World::generate_with(2, &WorldParams::tiny()).unwrap());
+        let cam = SimCamera {
+            width: 160,
+            height: 120,
+            fx: 115.0,
+            fy: 115.0,
+            cx: 79.5,
+            cy: 59.5,
+            ..SimCamera::default()
+        };
+        let renderer = Renderer::new(world.clone(), cam, RenderParams::default());
+        let path = CameraPath::orbit(PathParams::default());
+        let report =
+            render_path_dataset(&renderer, &path, 5, dir.path(), 2, &PathSpec::Orbit).unwrap();
+        assert_eq!(report.frames, 5);
+        assert_eq!(report.time_span_s, (0.0, 60.0));
+        let rgb = std::fs::read_to_string(dir.path().join("rgb.txt")).unwrap();
+        let lines: Vec<&str> = rgb.lines().filter(|l| !l.starts_with('#')).collect();
+        assert_eq!(lines.len(), 5);
+        assert_eq!(lines[1], "15.000000 rgb/15.000000.png");
+        let img = image::open(dir.path().join("rgb/15.000000.png"))
+            .unwrap()
+            .to_luma8();
+        assert_eq!(
+            img,
+            renderer.render_noisy(
+                &path.world_from_cam(15.0),
+                crate::texture::mix64(2 ^ 0x2545_f491_4f6c_dd1d)
+            )
+        );
+        let gt = read_tum(&dir.path().join("groundtruth.txt")).unwrap();
+        assert_eq!(gt.len(), 5);
+        let expected = path.world_from_cam(45.0);
+        assert!((gt[3].1.translation.vector - expected.translation.vector).norm() < 1e-5);
+        assert!(gt[3].1.rotation.angle_to(&expected.rotation) < 1e-8);
+        assert!(
+            std::fs::read_to_string(dir.path().join("groundtruth.txt"))
+                .unwrap()
+                .starts_with("# world frame: local NED")
+        );
+        let calib = std::fs::read_to_string(dir.path().join("calib.txt")).unwrap();
+        let vals: Vec<f64> = calib
+            .split_whitespace()
+            .map(|v| v.parse().unwrap())
+            .collect();
+        assert_eq!(
+            vals,
+            vec![115.0, 115.0, 79.5, 59.5, -0.05, 0.01, 0.0005, -0.0003, 0.0]
+        );
+        assert!(dir.path().join("render_info.json").exists());
+    }
+
+    #[test]
+    fn a_tum_file_path_renders_over_its_time_span() {
+        let dir = tempfile::tempdir().unwrap();
+        let traj = dir.path().join("traj.txt");
+        let a = look_at(Point3::new(-20.0, 0.0, -15.0), Point3::new(0.0, 0.0, 0.0));
+        let b = look_at(Point3::new(-10.0, 10.0, -20.0), Point3::new(0.0, 0.0, 0.0));
+        std::fs::write(
+            &traj,
+            format!(
+                "{}\n{}\n",
+                crate::paths::tum_line(100.0, &a),
+                crate::paths::tum_line(102.0, &b)
+            ),
+        )
+        .unwrap();
+        let world = Arc::new(World::generate_with(3, &WorldParams::tiny()).unwrap());
+        let spec: PathSpec = traj.to_str().unwrap().parse().unwrap();
+        let path = CameraPath::from_spec(&spec, &world, PathParams::default()).unwrap();
+        let cam = SimCamera {
+            width: 64,
+            height: 48,
+            fx: 46.0,
+            fy: 46.0,
+            cx: 31.5,
+            cy: 23.5,
+            ..SimCamera::default()
+        };
+        let renderer = Renderer::new(
+            world,
+            cam,
+            RenderParams {
+                noise_sigma: 0.0,
+                ..RenderParams::default()
+            },
+        );
+        let out = dir.path().join("out");
+        let report = render_path_dataset(&renderer, &path, 3, &out, 0, &spec).unwrap();
+        assert_eq!(report.time_span_s, (100.0, 102.0));
+        let gt = read_tum(&out.join("groundtruth.txt")).unwrap();
+        assert_eq!(
+            gt.iter().map(|g| g.0).collect::<Vec<_>>(),
+            vec![100.0, 101.0, 102.0]
+        );
+        assert!((gt[2].1.translation.vector - b.translation.vector).norm() < 1e-5);
+        // Noise-free frames equal a direct render.
+        let img = image::open(out.join("rgb/101.000000.png"))
+            .unwrap()
+            .to_luma8();
+        assert_eq!(img, renderer.render(&path.world_from_cam(101.0)));
+        // A missing file is a typed error.
+        let missing: PathSpec = "/nonexistent/traj.txt".parse().unwrap();
+        assert!(matches!(
+            CameraPath::from_spec(&missing, renderer.world(), PathParams::default()),
+            Err(PathError::Io { .. })
+        ));
+    }
+
+    #[test]
+    fn truth_writer_appends_readable_lines() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = TruthWriter::create(&dir.path().join("truth"), &SimCamera::default()).unwrap();
+        let a = look_at(Point3::new(1.0, 2.0, -30.0), Point3::new(0.0, 0.0, 0.0));
+        w.write_pose(1_700_000_000.25, &a).unwrap();
+        w.write_frame(7, 1_700_000_000.5, &a).unwrap();
+        // Flushed: readable before the writer is dropped.
+        let gt = read_tum(&dir.path().join("truth/groundtruth.txt")).unwrap();
+        assert_eq!(gt.len(), 1);
+        assert!((gt[0].0 - 1_700_000_000.25).abs() < 1e-6);
+        let frames = std::fs::read_to_string(dir.path().join("truth/frames.txt")).unwrap();
+        let last = frames.lines().last().unwrap();
+        assert!(
+            last.starts_with("7 1700000000.500000 1.000000 2.000000 -30.000000"),
+            "{last}"
+        );
+    }
+}

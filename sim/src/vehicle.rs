@@ -1,0 +1,584 @@
+//! Multicopter kinematics, a position/velocity/yaw controller with speed and
+//! acceleration limits, and a 2-axis gimbal carrying the camera.
+//!
+//! Frames (see ARCHITECTURE.md): the world is local NED at home (x north,
+//! y east, z down, ground at z = 0); the body is x forward, y right, z down;
+//! the camera is x right, y down, z forward. The gimbal is stabilised: the
+//! camera's orientation depends only on the body yaw and the gimbal's yaw
+//! (relative to the body) and pitch (positive up, -90 deg looks straight
+//! down), never on the body's roll and pitch.
+//!
+//! The model is kinematic with a first-order velocity loop: the position
+//! controller asks for a velocity whose magnitude is limited by the speed
+//! limit, a proportional gain and the braking distance sqrt(2 a d); the
+//! velocity loop asks for an acceleration (v_des - v) / tau, clamped to the
+//! acceleration limits, which is integrated. Roll and pitch are derived from
+//! the horizontal acceleration (tilt = atan(a / g)) for telemetry.
+
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+use crate::geodesy::{Geodetic, LocalFrame};
+
+/// Gravity, m/s^2.
+pub const GRAVITY: f64 = 9.806_65;
+
+/// Gimbal limits, all in degrees and degrees per second.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GimbalParams {
+    /// Lowest pitch (looking down), degrees.
+    pub pitch_min_deg: f64,
+    /// Highest pitch (looking up), degrees.
+    pub pitch_max_deg: f64,
+    /// Yaw range relative to the body, degrees.
+    pub yaw_min_deg: f64,
+    /// Yaw range relative to the body, degrees.
+    pub yaw_max_deg: f64,
+    /// Maximum slew rate on each axis, degrees per second.
+    pub max_rate_deg_s: f64,
+}
+
+impl Default for GimbalParams {
+    fn default() -> Self {
+        Self {
+            pitch_min_deg: -90.0,
+            pitch_max_deg: 30.0,
+            yaw_min_deg: -180.0,
+            yaw_max_deg: 180.0,
+            max_rate_deg_s: 90.0,
+        }
+    }
+}
+
+/// Every tunable number of the vehicle model.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VehicleParams {
+    /// Home position (origin of the local NED frame).
+    pub home: Geodetic,
+    /// Horizontal speed limit, m/s (PX4 MPC_XY_CRUISE).
+    pub max_speed_xy: f64,
+    /// Climb speed limit, m/s (PX4 MPC_Z_VEL_MAX_UP).
+    pub max_speed_up: f64,
+    /// Descent speed limit, m/s (PX4 MPC_Z_VEL_MAX_DN).
+    pub max_speed_down: f64,
+    /// Horizontal acceleration limit, m/s^2.
+    pub max_accel_xy: f64,
+    /// Vertical acceleration limit, m/s^2.
+    pub max_accel_z: f64,
+    /// Yaw rate limit, deg/s.
+    pub max_yaw_rate_deg_s: f64,
+    /// Position loop gain, 1/s.
+    pub position_gain: f64,
+    /// Yaw loop gain, 1/s.
+    pub yaw_gain: f64,
+    /// Velocity loop time constant, s.
+    pub velocity_tau_s: f64,
+    /// Fraction of the acceleration limit used when planning to brake.
+    pub braking_fraction: f64,
+    /// Landing descent speed, m/s (PX4 MPC_LAND_SPEED).
+    pub land_speed: f64,
+    /// Camera position in the body frame (forward, right, down), metres.
+    pub camera_offset_body: [f64; 3],
+    /// Gimbal limits.
+    pub gimbal: GimbalParams,
+}
+
+impl Default for VehicleParams {
+    fn default() -> Self {
+        Self {
+            home: Geodetic {
+                lat_deg: 47.397_742,
+                lon_deg: 8.545_594,
+                alt_m: 488.0,
+            },
+            max_speed_xy: 5.0,
+            max_speed_up: 3.0,
+            max_speed_down: 1.5,
+            max_accel_xy: 3.0,
+            max_accel_z: 3.0,
+            max_yaw_rate_deg_s: 60.0,
+            position_gain: 0.95,
+            yaw_gain: 2.0,
+            velocity_tau_s: 0.25,
+            braking_fraction: 0.7,
+            land_speed: 0.7,
+            camera_offset_body: [0.10, 0.0, 0.08],
+            gimbal: GimbalParams::default(),
+        }
+    }
+}
+
+/// What the controller is asked to do.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Setpoint {
+    /// Motors off (only meaningful on the ground; in the air the vehicle
+    /// falls under the vertical acceleration limit until it lands).
+    Idle,
+    /// Fly to a NED position, optionally turning to a yaw (radians), with an
+    /// optional speed limit below the vehicle's own.
+    Position {
+        /// Target, local NED metres.
+        p_ned: Vector3<f64>,
+        /// Target yaw, radians from north; `None` keeps the current yaw.
+        yaw: Option<f64>,
+        /// Optional horizontal speed limit, m/s.
+        max_speed: Option<f64>,
+    },
+    /// Fly a NED velocity with a yaw rate (rad/s).
+    Velocity {
+        /// Velocity, local NED m/s.
+        v_ned: Vector3<f64>,
+        /// Yaw rate, rad/s.
+        yaw_rate: f64,
+    },
+    /// Descend at the landing speed over the current horizontal position.
+    Land,
+}
+
+/// The simulated multicopter.
+#[derive(Debug, Clone)]
+pub struct Vehicle {
+    params: VehicleParams,
+    frame: LocalFrame,
+    setpoint: Setpoint,
+    p_ned: Vector3<f64>,
+    v_ned: Vector3<f64>,
+    a_ned: Vector3<f64>,
+    yaw: f64,
+    yaw_rate: f64,
+    landed: bool,
+    land_xy: Option<(f64, f64)>,
+    gimbal_pitch: f64,
+    gimbal_yaw: f64,
+    gimbal_target_pitch: f64,
+    gimbal_target_yaw: f64,
+    gimbal_rate: (f64, f64),
+}
+
+fn wrap_pi(a: f64) -> f64 {
+    let mut x = (a + std::f64::consts::PI) % std::f64::consts::TAU;
+    if x < 0.0 {
+        x += std::f64::consts::TAU;
+    }
+    x - std::f64::consts::PI
+}
+
+/// Move `x` toward `target` by at most `step`.
+fn slew(x: f64, target: f64, step: f64) -> f64 {
+    x + (target - x).clamp(-step, step)
+}
+
+/// The rotation taking camera axes (x right, y down, z forward) to body
+/// axes (x forward, y right, z down) for a gimbal at zero angles.
+fn body_from_cam_base() -> Rotation3<f64> {
+    Rotation3::from_matrix_unchecked(Matrix3::new(
+        0.0, 0.0, 1.0, //
+        1.0, 0.0, 0.0, //
+        0.0, 1.0, 0.0,
+    ))
+}
+
+impl Vehicle {
+    /// A vehicle landed at home, disarmed, yaw north, gimbal level.
+    pub fn new(params: VehicleParams) -> Self {
+        Self {
+            frame: LocalFrame::new(params.home),
+            params,
+            setpoint: Setpoint::Idle,
+            p_ned: Vector3::zeros(),
+            v_ned: Vector3::zeros(),
+            a_ned: Vector3::zeros(),
+            yaw: 0.0,
+            yaw_rate: 0.0,
+            landed: true,
+            land_xy: None,
+            gimbal_pitch: 0.0,
+            gimbal_yaw: 0.0,
+            gimbal_target_pitch: 0.0,
+            gimbal_target_yaw: 0.0,
+            gimbal_rate: (0.0, 0.0),
+        }
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &VehicleParams {
+        &self.params
+    }
+
+    /// The local tangent frame at home.
+    pub fn frame(&self) -> &LocalFrame {
+        &self.frame
+    }
+
+    /// Place the vehicle (tests, scripted starts). It is landed if z >= 0.
+    pub fn teleport(&mut self, p_ned: Vector3<f64>, yaw: f64) {
+        self.p_ned = Vector3::new(p_ned.x, p_ned.y, p_ned.z.min(0.0));
+        self.v_ned = Vector3::zeros();
+        self.a_ned = Vector3::zeros();
+        self.yaw = wrap_pi(yaw);
+        self.landed = self.p_ned.z >= 0.0;
+    }
+
+    /// Set what the controller does.
+    pub fn set_setpoint(&mut self, sp: Setpoint) {
+        if !matches!(sp, Setpoint::Land) {
+            self.land_xy = None;
+        }
+        self.setpoint = sp;
+    }
+
+    /// The current setpoint.
+    pub fn setpoint(&self) -> Setpoint {
+        self.setpoint
+    }
+
+    /// Point the gimbal (degrees; pitch positive up, yaw relative to the
+    /// body, positive right). Targets are clamped to the gimbal's ranges;
+    /// NaN leaves an axis unchanged.
+    pub fn set_gimbal_target(&mut self, pitch_deg: f64, yaw_deg: f64) {
+        let g = &self.params.gimbal;
+        if pitch_deg.is_finite() {
+            self.gimbal_target_pitch = pitch_deg
+                .clamp(g.pitch_min_deg, g.pitch_max_deg)
+                .to_radians();
+        }
+        if yaw_deg.is_finite() {
+            let y = wrap_pi(yaw_deg.to_radians()).to_degrees();
+            self.gimbal_target_yaw = y.clamp(g.yaw_min_deg, g.yaw_max_deg).to_radians();
+        }
+    }
+
+    /// Put the gimbal at an attitude at once (scripted starts, before the
+    /// first frame), clamped to its ranges.
+    pub fn snap_gimbal(&mut self, pitch_deg: f64, yaw_deg: f64) {
+        self.set_gimbal_target(pitch_deg, yaw_deg);
+        self.gimbal_pitch = self.gimbal_target_pitch;
+        self.gimbal_yaw = self.gimbal_target_yaw;
+        self.gimbal_rate = (0.0, 0.0);
+    }
+
+    /// Advance the model by `dt` seconds.
+    pub fn step(&mut self, dt: f64) {
+        if dt.is_nan() || dt <= 0.0 || !dt.is_finite() {
+            return;
+        }
+        let p = self.params;
+        let (v_des, yaw_rate_des, idle) = match self.setpoint {
+            Setpoint::Idle => (Vector3::zeros(), 0.0, true),
+            Setpoint::Position {
+                p_ned,
+                yaw,
+                max_speed,
+            } => {
+                let v = self.position_velocity(&p_ned, max_speed);
+                let yr = match yaw {
+                    Some(y) => p.yaw_gain * wrap_pi(y - self.yaw),
+                    None => 0.0,
+                };
+                (v, yr, false)
+            }
+            Setpoint::Velocity { v_ned, yaw_rate } => (v_ned, yaw_rate, false),
+            Setpoint::Land => {
+                let (x, y) = *self.land_xy.get_or_insert((self.p_ned.x, self.p_ned.y));
+                let mut v = self.position_velocity(&Vector3::new(x, y, self.p_ned.z), None);
+                v.z = p.land_speed;
+                (v, 0.0, false)
+            }
+        };
+        let max_yr = p.max_yaw_rate_deg_s.to_radians();
+        if idle && self.landed {
+            self.v_ned = Vector3::zeros();
+            self.a_ned = Vector3::zeros();
+            self.yaw_rate = 0.0;
+        } else {
+            let v_des = if idle {
+                // Motors off in the air: fall (limited by the vertical
+                // acceleration limit, a stand-in for a crash landing).
+                Vector3::new(0.0, 0.0, p.max_speed_down * 4.0)
+            } else {
+                v_des
+            };
+            let mut a = (v_des - self.v_ned) / p.velocity_tau_s.max(1e-3);
+            let a_xy = (a.x * a.x + a.y * a.y).sqrt();
+            if a_xy > p.max_accel_xy {
+                let s = p.max_accel_xy / a_xy;
+                a.x *= s;
+                a.y *= s;
+            }
+            a.z = a.z.clamp(-p.max_accel_z, p.max_accel_z);
+            self.a_ned = a;
+            self.v_ned += a * dt;
+            self.p_ned += self.v_ned * dt;
+            self.yaw_rate = yaw_rate_des.clamp(-max_yr, max_yr);
+            self.yaw = wrap_pi(self.yaw + self.yaw_rate * dt);
+            if self.p_ned.z >= 0.0 {
+                self.p_ned.z = 0.0;
+                if self.v_ned.z > 0.0 {
+                    self.v_ned.z = 0.0;
+                }
+                // Touching the ground while not climbing: landed.
+                let climbing = v_des.z < -0.05;
+                if !climbing {
+                    self.v_ned = Vector3::zeros();
+                    self.a_ned = Vector3::zeros();
+                    self.landed = true;
+                }
+            } else if self.p_ned.z < -0.05 {
+                self.landed = false;
+            }
+        }
+        // Gimbal.
+        let step = p.gimbal.max_rate_deg_s.to_radians() * dt;
+        let (op, oy) = (self.gimbal_pitch, self.gimbal_yaw);
+        self.gimbal_pitch = slew(self.gimbal_pitch, self.gimbal_target_pitch, step);
+        self.gimbal_yaw = slew(self.gimbal_yaw, self.gimbal_target_yaw, step);
+        self.gimbal_rate = ((self.gimbal_pitch - op) / dt, (self.gimbal_yaw - oy) / dt);
+    }
+
+    fn position_velocity(&self, target: &Vector3<f64>, max_speed: Option<f64>) -> Vector3<f64> {
+        let p = &self.params;
+        let e = target - self.p_ned;
+        let d_xy = (e.x * e.x + e.y * e.y).sqrt();
+        let vmax_xy = max_speed.map_or(p.max_speed_xy, |m| m.min(p.max_speed_xy).max(0.1));
+        let brake = |a: f64, d: f64| (2.0 * a * p.braking_fraction * d).sqrt();
+        let s_xy = vmax_xy
+            .min(p.position_gain * d_xy)
+            .min(brake(p.max_accel_xy, d_xy));
+        let mut v = if d_xy > 1e-9 {
+            Vector3::new(e.x / d_xy * s_xy, e.y / d_xy * s_xy, 0.0)
+        } else {
+            Vector3::zeros()
+        };
+        let d_z = e.z.abs();
+        let vmax_z = if e.z < 0.0 {
+            p.max_speed_up
+        } else {
+            p.max_speed_down
+        };
+        let s_z = vmax_z
+            .min(p.position_gain * d_z)
+            .min(brake(p.max_accel_z, d_z));
+        v.z = e.z.signum() * s_z;
+        v
+    }
+
+    /// Position, local NED metres.
+    pub fn p_ned(&self) -> Vector3<f64> {
+        self.p_ned
+    }
+    /// Velocity, local NED m/s.
+    pub fn v_ned(&self) -> Vector3<f64> {
+        self.v_ned
+    }
+    /// Commanded acceleration, local NED m/s^2.
+    pub fn a_ned(&self) -> Vector3<f64> {
+        self.a_ned
+    }
+    /// Yaw (heading), radians from north, in [-pi, pi).
+    pub fn yaw(&self) -> f64 {
+        self.yaw
+    }
+    /// Yaw rate, rad/s.
+    pub fn yaw_rate(&self) -> f64 {
+        self.yaw_rate
+    }
+    /// True when on the ground.
+    pub fn landed(&self) -> bool {
+        self.landed
+    }
+    /// Roll and pitch (radians) implied by the horizontal acceleration.
+    pub fn roll_pitch(&self) -> (f64, f64) {
+        let (s, c) = self.yaw.sin_cos();
+        let a_fwd = c * self.a_ned.x + s * self.a_ned.y;
+        let a_right = -s * self.a_ned.x + c * self.a_ned.y;
+        let roll = (a_right / GRAVITY).atan();
+        let pitch = -(a_fwd / GRAVITY).atan();
+        (roll, pitch)
+    }
+    /// Gimbal pitch and yaw (relative to the body), radians.
+    pub fn gimbal_angles(&self) -> (f64, f64) {
+        (self.gimbal_pitch, self.gimbal_yaw)
+    }
+    /// Gimbal pitch and yaw rates, rad/s.
+    pub fn gimbal_rates(&self) -> (f64, f64) {
+        self.gimbal_rate
+    }
+    /// True when the gimbal has reached its target within `tol_deg`.
+    pub fn gimbal_settled(&self, tol_deg: f64) -> bool {
+        let t = tol_deg.to_radians();
+        (self.gimbal_pitch - self.gimbal_target_pitch).abs() <= t
+            && (self.gimbal_yaw - self.gimbal_target_yaw).abs() <= t
+    }
+
+    /// Body attitude (roll, pitch, yaw) as a rotation world <- body.
+    pub fn world_from_body_rotation(&self) -> UnitQuaternion<f64> {
+        let (roll, pitch) = self.roll_pitch();
+        UnitQuaternion::from_euler_angles(roll, pitch, self.yaw)
+    }
+
+    /// Pose of the body: maps body coordinates to local NED.
+    pub fn world_from_body(&self) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::from(self.p_ned),
+            self.world_from_body_rotation(),
+        )
+    }
+
+    /// Gimbal attitude in the earth frame (zero roll, stabilised): the
+    /// rotation world <- gimbal, where the gimbal frame is body-like
+    /// (x along the optical axis, y right, z down).
+    pub fn world_from_gimbal_rotation(&self) -> UnitQuaternion<f64> {
+        UnitQuaternion::from_euler_angles(0.0, self.gimbal_pitch, self.yaw + self.gimbal_yaw)
+    }
+
+    /// Gimbal attitude relative to the body's yaw-only frame (the quaternion
+    /// GIMBAL_DEVICE_ATTITUDE_STATUS reports with the yaw in vehicle frame).
+    pub fn gimbal_rotation_in_vehicle_frame(&self) -> UnitQuaternion<f64> {
+        UnitQuaternion::from_euler_angles(0.0, self.gimbal_pitch, self.gimbal_yaw)
+    }
+
+    /// Pose of the camera (x right, y down, z forward) in local NED: the
+    /// pose the renderer draws from.
+    pub fn world_from_cam(&self) -> Isometry3<f64> {
+        let r = self.world_from_gimbal_rotation()
+            * UnitQuaternion::from_rotation_matrix(&body_from_cam_base());
+        let yaw_only = UnitQuaternion::from_euler_angles(0.0, 0.0, self.yaw);
+        let o = self.params.camera_offset_body;
+        let t = self.p_ned + yaw_only * Vector3::new(o[0], o[1], o[2]);
+        Isometry3::from_parts(Translation3::from(t), r)
+    }
+
+    /// Position in WGS84.
+    pub fn geodetic(&self) -> Geodetic {
+        self.frame.ned_to_geodetic(&self.p_ned)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(v: &mut Vehicle, seconds: f64, dt: f64, mut each: impl FnMut(&Vehicle)) {
+        let n = (seconds / dt).round() as usize;
+        for _ in 0..n {
+            v.step(dt);
+            each(v);
+        }
+    }
+
+    #[test]
+    fn reaches_a_position_without_breaking_speed_or_acceleration_limits() {
+        let mut v = Vehicle::new(VehicleParams::default());
+        v.teleport(Vector3::new(0.0, 0.0, -10.0), 0.0);
+        let target = Vector3::new(60.0, -30.0, -20.0);
+        v.set_setpoint(Setpoint::Position {
+            p_ned: target,
+            yaw: Some(1.0),
+            max_speed: None,
+        });
+        let p = *v.params();
+        let mut max_xy = 0.0f64;
+        let mut max_up = 0.0f64;
+        let mut prev = v.v_ned();
+        let mut max_a = 0.0f64;
+        run(&mut v, 40.0, 0.01, |v| {
+            let vel = v.v_ned();
+            max_xy = max_xy.max((vel.x * vel.x + vel.y * vel.y).sqrt());
+            max_up = max_up.max(-vel.z);
+            let dv = (vel - prev) / 0.01;
+            max_a = max_a.max((dv.x * dv.x + dv.y * dv.y).sqrt());
+            prev = vel;
+        });
+        assert!((v.p_ned() - target).norm() < 0.05, "{}", v.p_ned());
+        assert!(max_xy <= p.max_speed_xy + 1e-9 && max_xy > 0.9 * p.max_speed_xy);
+        assert!(max_up <= p.max_speed_up + 1e-9);
+        assert!(max_a <= p.max_accel_xy + 1e-6, "{max_a}");
+        assert!((v.yaw() - 1.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn takeoff_then_land_ends_landed_at_ground() {
+        let mut v = Vehicle::new(VehicleParams::default());
+        assert!(v.landed());
+        v.set_setpoint(Setpoint::Position {
+            p_ned: Vector3::new(0.0, 0.0, -5.0),
+            yaw: None,
+            max_speed: None,
+        });
+        run(&mut v, 10.0, 0.02, |_| {});
+        assert!(!v.landed());
+        assert!((v.p_ned().z + 5.0).abs() < 0.05);
+        v.set_setpoint(Setpoint::Land);
+        let mut max_down = 0.0f64;
+        run(&mut v, 15.0, 0.02, |v| max_down = max_down.max(v.v_ned().z));
+        assert!(v.landed());
+        assert_eq!(v.p_ned().z, 0.0);
+        assert!(max_down <= 0.7 + 1e-9);
+    }
+
+    #[test]
+    fn gimbal_is_rate_limited_and_clamped() {
+        let mut v = Vehicle::new(VehicleParams::default());
+        v.set_gimbal_target(-120.0, 0.0);
+        v.step(0.5);
+        assert!((v.gimbal_angles().0.to_degrees() + 45.0).abs() < 1e-9);
+        v.step(1.0);
+        assert!((v.gimbal_angles().0.to_degrees() + 90.0).abs() < 1e-9);
+        v.set_gimbal_target(f64::NAN, 30.0);
+        v.step(1.0);
+        assert!((v.gimbal_angles().0.to_degrees() + 90.0).abs() < 1e-9);
+        assert!((v.gimbal_angles().1.to_degrees() - 30.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn camera_axes_follow_yaw_and_gimbal() {
+        let mut v = Vehicle::new(VehicleParams {
+            camera_offset_body: [0.0; 3],
+            ..Default::default()
+        });
+        v.teleport(Vector3::new(1.0, 2.0, -10.0), std::f64::consts::FRAC_PI_2);
+        // Level gimbal, yaw east: camera z (forward) is east, x (right) is
+        // south, y (down) is down.
+        let r = v.world_from_cam().rotation;
+        assert!((r * Vector3::z() - Vector3::y()).norm() < 1e-12);
+        assert!((r * Vector3::x() + Vector3::x()).norm() < 1e-12);
+        assert!((r * Vector3::y() - Vector3::z()).norm() < 1e-12);
+        // Pitch -90: camera looks down, image up (-y) points east.
+        v.set_setpoint(Setpoint::Position {
+            p_ned: Vector3::new(1.0, 2.0, -10.0),
+            yaw: None,
+            max_speed: None,
+        });
+        v.set_gimbal_target(-90.0, 0.0);
+        v.step(2.0);
+        let r = v.world_from_cam().rotation;
+        assert!((r * Vector3::z() - Vector3::z()).norm() < 1e-9);
+        assert!((r * -Vector3::y() - Vector3::y()).norm() < 1e-9);
+        // A ground point below projects to the image centre.
+        let cam_from_world = v.world_from_cam().inverse();
+        let p_cam = cam_from_world * nalgebra::Point3::new(1.0, 2.0, 0.0);
+        assert!(p_cam.x.abs() < 1e-9 && p_cam.y.abs() < 1e-9 && (p_cam.z - 10.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn acceleration_tilts_the_body_forward() {
+        let mut v = Vehicle::new(VehicleParams::default());
+        v.teleport(Vector3::new(0.0, 0.0, -10.0), 0.0);
+        v.set_setpoint(Setpoint::Velocity {
+            v_ned: Vector3::new(5.0, 0.0, 0.0),
+            yaw_rate: 0.0,
+        });
+        v.step(0.05);
+        let (roll, pitch) = v.roll_pitch();
+        assert!(pitch < -0.2 && roll.abs() < 1e-9, "{roll} {pitch}");
+    }
+
+    #[test]
+    fn geodetic_position_moves_north_when_flying_north() {
+        let mut v = Vehicle::new(VehicleParams::default());
+        v.teleport(Vector3::new(100.0, 0.0, -20.0), 0.0);
+        let g = v.geodetic();
+        let h = v.params().home;
+        assert!((g.lat_deg - h.lat_deg - 100.0 / 111_200.0).abs() < 2e-5);
+        assert!((g.alt_m - h.alt_m - 20.0).abs() < 0.01);
+    }
+}

@@ -1,0 +1,104 @@
+//! End-to-end tests against the real `shotpilot-sim` binary with pymavlink
+//! peers (`sim/tests/peers/*.py`). They need Python with pymavlink: set
+//! `SHOTPILOT_PYTHON` (default `/work/venv/bin/python` if it exists, else
+//! `python3`) and run `cargo test -p shotpilot-sim --release -- --ignored`.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+fn python() -> PathBuf {
+    if let Ok(p) = std::env::var("SHOTPILOT_PYTHON") {
+        return PathBuf::from(p);
+    }
+    let venv = Path::new("/work/venv/bin/python");
+    if venv.exists() {
+        venv.to_path_buf()
+    } else {
+        PathBuf::from("python3")
+    }
+}
+
+fn free_udp_port() -> u16 {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+    s.local_addr().expect("addr").port()
+}
+
+struct Sim(Child);
+
+impl Drop for Sim {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn start_sim(port: u16, extra: &[&str]) -> Sim {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_shotpilot-sim"));
+    cmd.arg("--mavlink")
+        .arg(format!("udpout:127.0.0.1:{port}"))
+        .arg("--video-listen")
+        .arg("off")
+        .arg("--capture-dir")
+        .arg(dir.keep())
+        .args(extra)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    Sim(cmd.spawn().expect("start shotpilot-sim"))
+}
+
+fn run_peer(script: &str, port: u16, extra: &[&str], timeout: Duration) -> (bool, String) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/peers")
+        .join(script);
+    let mut child = Command::new(python())
+        .arg(path)
+        .arg("--listen")
+        .arg(format!("udpin:127.0.0.1:{port}"))
+        .args(extra)
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("start python");
+    let start = std::time::Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().expect("wait") {
+            let mut out = String::new();
+            if let Some(mut s) = child.stdout.take() {
+                use std::io::Read;
+                let _ = s.read_to_string(&mut out);
+            }
+            return (status.success(), out);
+        }
+        if start.elapsed() > timeout {
+            let _ = child.kill();
+            return (false, "timeout".into());
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+#[ignore = "needs pymavlink"]
+fn pymavlink_uploads_downloads_and_flies_a_three_item_mission() {
+    let port = free_udp_port();
+    let _sim = start_sim(port, &[]);
+    let (ok, out) = run_peer("fly_mission.py", port, &[], Duration::from_secs(200));
+    assert!(ok, "{out}");
+    assert!(out.contains("\"identical\": true"), "{out}");
+}
+
+#[test]
+#[ignore = "needs pymavlink"]
+fn qgc_like_upload_survives_30_percent_drop_each_way() {
+    let port = free_udp_port();
+    let _sim = start_sim(port, &["--drop", "0.3", "--seed", "21"]);
+    let (ok, out) = run_peer(
+        "lossy_upload.py",
+        port,
+        &["--tries", "10", "--items", "8", "--seed", "21"],
+        Duration::from_secs(400),
+    );
+    assert!(ok, "{out}");
+    assert!(out.contains("\"succeeded\": 10"), "{out}");
+}

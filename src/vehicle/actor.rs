@@ -1,0 +1,1090 @@
+//! The link actor: one task owns the connection and everything that talks on it.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use mavlink::dialects::common::{
+    COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavMissionType,
+    MavModeFlag, MavResult, MavState, MavType,
+};
+use mavlink::error::MessageReadError;
+use mavlink::{AsyncMavConnection, MavHeader, MavlinkVersion, Message};
+use tokio::sync::{mpsc, oneshot, watch};
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+use tracing::{Span, debug, info, info_span, warn};
+
+use super::transport::{self, Connection, LinkUrl};
+use super::{
+    Attitude, Command, GimbalAttitude, GlobalPosition, HomePosition, LinkError, LinkHandle,
+    LocalPosition, MissionProgress, Params, Stamped, Telemetry, VehicleState, ardupilot_mode_name,
+    mode_params, px4_mode_name, quat_to_euler_deg,
+};
+use crate::mission::upload::{self, Downloader, MissionError, Peers, Uploader, same_mission};
+use crate::mission::{Download, Flavour, MissionItem, UploadReport};
+
+const CMD_QUEUE: usize = 32;
+const IO_QUEUE: usize = 256;
+/// How often missing telemetry streams are asked for again.
+const RATE_RECHECK: Duration = Duration::from_secs(5);
+/// How many times, after the vehicle appears.
+const RATE_ROUNDS: u32 = 5;
+
+/// Starts the link actor. Fails at once on a bad URL or signing key; the
+/// connection itself is (re)tried in the background.
+pub fn spawn(
+    params: Params,
+    transfer: upload::Params,
+    cancel: CancellationToken,
+) -> Result<(LinkHandle, JoinHandle<()>), LinkError> {
+    let url: LinkUrl = params.url.parse()?;
+    if let Some(s) = &params.signing {
+        s.key()?;
+    }
+    let (cmd_tx, cmd_rx) = mpsc::channel(CMD_QUEUE);
+    let (io_tx, io_rx) = mpsc::channel(IO_QUEUE);
+    let vehicle = watch::channel(VehicleState {
+        link_lost: true,
+        ..VehicleState::default()
+    });
+    let gp = watch::channel(None);
+    let lp = watch::channel(None);
+    let att = watch::channel(None);
+    let home = watch::channel(None);
+    let gimbal = watch::channel(None);
+    let progress = watch::channel(None);
+    let handle = LinkHandle {
+        tx: cmd_tx,
+        telemetry: Telemetry {
+            vehicle: vehicle.1,
+            global_position: gp.1,
+            local_position: lp.1,
+            attitude: att.1,
+            home: home.1,
+            gimbal: gimbal.1,
+            progress: progress.1,
+        },
+    };
+    let version = if params.mavlink1 {
+        MavlinkVersion::V1
+    } else {
+        MavlinkVersion::V2
+    };
+    let io_cancel = cancel.child_token();
+    let io = IoTask {
+        url,
+        version,
+        signing: params.signing.clone(),
+        backoff_min: Duration::from_millis(params.reconnect_min_ms.max(1)),
+        backoff_max: Duration::from_millis(
+            params.reconnect_max_ms.max(params.reconnect_min_ms).max(1),
+        ),
+        tx: io_tx,
+        cancel: io_cancel.clone(),
+    };
+    let now = Instant::now();
+    let actor = Actor {
+        transfer_params: transfer,
+        conn: None,
+        vehicle: vehicle.0,
+        gp: gp.0,
+        lp: lp.0,
+        att: att.0,
+        home: home.0,
+        gimbal: gimbal.0,
+        progress: progress.0,
+        transfer: None,
+        command: None,
+        next_heartbeat: now,
+        rates_requested: None,
+        rate_rounds: 0,
+        connect_failure_logged: false,
+        out: Vec::new(),
+        params,
+    };
+    let task = tokio::spawn(async move {
+        let io_task = tokio::spawn(io.run());
+        actor.run(cmd_rx, io_rx, cancel).await;
+        io_cancel.cancel();
+        let _ = io_task.await;
+    });
+    Ok((handle, task))
+}
+
+enum IoEvent {
+    Connected(Arc<Connection>),
+    Frame(MavHeader, Box<MavMessage>),
+    Lost(String),
+    ConnectFailed(String),
+}
+
+/// Connects, reads, and reconnects with exponential backoff.
+struct IoTask {
+    url: LinkUrl,
+    version: MavlinkVersion,
+    signing: Option<transport::Signing>,
+    backoff_min: Duration,
+    backoff_max: Duration,
+    tx: mpsc::Sender<IoEvent>,
+    cancel: CancellationToken,
+}
+
+impl IoTask {
+    async fn run(self) {
+        let mut backoff = self.backoff_min;
+        loop {
+            let attempt = tokio::select! {
+                _ = self.cancel.cancelled() => return,
+                r = transport::connect(&self.url, self.version, self.signing.as_ref()) => r,
+            };
+            match attempt {
+                Ok(conn) => {
+                    backoff = self.backoff_min;
+                    let conn = Arc::new(conn);
+                    if self
+                        .tx
+                        .send(IoEvent::Connected(conn.clone()))
+                        .await
+                        .is_err()
+                    {
+                        return;
+                    }
+                    loop {
+                        let r = tokio::select! {
+                            _ = self.cancel.cancelled() => return,
+                            r = conn.try_recv() => r,
+                        };
+                        match r {
+                            Ok((h, m)) => {
+                                if self.tx.send(IoEvent::Frame(h, Box::new(m))).await.is_err() {
+                                    return;
+                                }
+                            }
+                            // A frame with a valid CRC that does not decode (unknown id, bad enum): skip.
+                            Err(MessageReadError::Parse(e)) => {
+                                debug!(error = %e, "undecodable frame")
+                            }
+                            Err(MessageReadError::Io(e)) => {
+                                let _ = self.tx.send(IoEvent::Lost(e.to_string())).await;
+                                break;
+                            }
+                        }
+                    }
+                }
+                Err(e) => {
+                    if self
+                        .tx
+                        .send(IoEvent::ConnectFailed(e.to_string()))
+                        .await
+                        .is_err()
+                    {
+                        return;
+                    }
+                }
+            }
+            tokio::select! {
+                _ = self.cancel.cancelled() => return,
+                _ = tokio::time::sleep(backoff) => {}
+            }
+            backoff = (backoff * 2).min(self.backoff_max);
+        }
+    }
+}
+
+/// Why a download runs.
+enum DownPurpose {
+    /// The operator asked for the mission.
+    Reply(oneshot::Sender<Result<Download, LinkError>>),
+    /// An upload's final ACK was lost: the read-back decides.
+    Verify {
+        items: Vec<MissionItem>,
+        skip_home: bool,
+        report: UploadReport,
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+    },
+}
+
+enum Transfer {
+    Up {
+        machine: Uploader,
+        items: Vec<MissionItem>,
+        skip_home: bool,
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+        span: Span,
+    },
+    Down {
+        machine: Downloader,
+        purpose: DownPurpose,
+        span: Span,
+    },
+}
+
+/// What finishing a transfer leads to.
+enum Next {
+    Nothing,
+    /// Read the mission back to confirm an upload whose final ACK was lost.
+    Verify {
+        items: Vec<MissionItem>,
+        skip_home: bool,
+        report: UploadReport,
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+        span: Span,
+    },
+}
+
+fn log_upload(span: &Span, outcome: &Result<UploadReport, MissionError>) {
+    span.in_scope(|| match outcome {
+        Ok(r) => info!(
+            items = r.items,
+            retries = r.retries,
+            repeats = r.repeats,
+            seconds = r.seconds,
+            verified_by_download = r.verified_by_download,
+            "mission uploaded"
+        ),
+        Err(e) => warn!(error = %e, "mission upload failed"),
+    });
+}
+
+impl Transfer {
+    fn on_message(
+        &mut self,
+        h: &MavHeader,
+        m: &MavMessage,
+        now: Instant,
+        out: &mut Vec<MavMessage>,
+    ) {
+        match self {
+            Self::Up { machine, span, .. } => span.in_scope(|| machine.on_message(h, m, now, out)),
+            Self::Down { machine, span, .. } => {
+                span.in_scope(|| machine.on_message(h, m, now, out))
+            }
+        }
+    }
+
+    fn on_timeout(&mut self, now: Instant, out: &mut Vec<MavMessage>) {
+        match self {
+            Self::Up { machine, .. } => machine.on_timeout(now, out),
+            Self::Down { machine, .. } => machine.on_timeout(now, out),
+        }
+    }
+
+    fn cancel(&mut self, now: Instant, out: &mut Vec<MavMessage>) {
+        match self {
+            Self::Up { machine, .. } => machine.cancel(now, out),
+            Self::Down { machine, .. } => machine.cancel(now, out),
+        }
+    }
+
+    fn deadline(&self) -> Option<Instant> {
+        match self {
+            Self::Up { machine, .. } => machine.deadline(),
+            Self::Down { machine, .. } => machine.deadline(),
+        }
+    }
+
+    fn is_done(&self) -> bool {
+        match self {
+            Self::Up { machine, .. } => machine.is_done(),
+            Self::Down { machine, .. } => machine.is_done(),
+        }
+    }
+
+    /// Sends the outcome of a finished transfer to whoever waits for it, or
+    /// asks for a read-back when an upload's final ACK is missing and
+    /// `may_verify`.
+    fn deliver(self, now: Instant, may_verify: bool) -> Next {
+        match self {
+            Self::Up {
+                mut machine,
+                items,
+                skip_home,
+                reply,
+                span,
+            } => match machine.take_outcome() {
+                Some(Err(MissionError::NoFinalAck { .. })) if may_verify => {
+                    span.in_scope(|| warn!("final MISSION_ACK missing; reading the mission back"));
+                    Next::Verify {
+                        items,
+                        skip_home,
+                        report: machine.report_at(now),
+                        reply,
+                        span,
+                    }
+                }
+                Some(outcome) => {
+                    log_upload(&span, &outcome);
+                    let _ = reply.send(outcome.map_err(LinkError::from));
+                    Next::Nothing
+                }
+                None => Next::Nothing,
+            },
+            Self::Down {
+                mut machine,
+                purpose,
+                span,
+            } => {
+                let Some(outcome) = machine.take_outcome() else {
+                    return Next::Nothing;
+                };
+                match purpose {
+                    DownPurpose::Reply(reply) => {
+                        span.in_scope(|| match &outcome {
+                            Ok(d) => info!(
+                                items = d.items.len(),
+                                retries = d.retries,
+                                seconds = d.seconds,
+                                "mission downloaded"
+                            ),
+                            Err(e) => warn!(error = %e, "mission download failed"),
+                        });
+                        let _ = reply.send(outcome.map_err(LinkError::from));
+                    }
+                    DownPurpose::Verify {
+                        items,
+                        skip_home,
+                        report,
+                        reply,
+                    } => {
+                        let result = match outcome {
+                            Ok(d) if same_mission(&items, &d.items, skip_home) => {
+                                Ok(UploadReport {
+                                    seconds: report.seconds + d.seconds,
+                                    retries: report.retries + d.retries,
+                                    verified_by_download: true,
+                                    ..report
+                                })
+                            }
+                            Ok(d) => Err(MissionError::ReadBackDiffers {
+                                uploaded: report.items,
+                                downloaded: d.items.len(),
+                            }),
+                            Err(MissionError::Cancelled) => Err(MissionError::Cancelled),
+                            Err(_) => Err(MissionError::NoFinalAck {
+                                count: report.items,
+                                retries: report.retries,
+                            }),
+                        };
+                        log_upload(&span, &result);
+                        let _ = reply.send(result.map_err(LinkError::from));
+                    }
+                }
+                Next::Nothing
+            }
+        }
+    }
+}
+
+struct PendingCommand {
+    data: COMMAND_LONG_DATA,
+    attempts: u32,
+    deadline: Instant,
+    reply: oneshot::Sender<Result<(), LinkError>>,
+}
+
+struct Actor {
+    params: Params,
+    transfer_params: upload::Params,
+    conn: Option<Arc<Connection>>,
+    vehicle: watch::Sender<VehicleState>,
+    gp: watch::Sender<Option<Stamped<GlobalPosition>>>,
+    lp: watch::Sender<Option<Stamped<LocalPosition>>>,
+    att: watch::Sender<Option<Stamped<Attitude>>>,
+    home: watch::Sender<Option<Stamped<HomePosition>>>,
+    gimbal: watch::Sender<Option<Stamped<GimbalAttitude>>>,
+    progress: watch::Sender<Option<Stamped<MissionProgress>>>,
+    transfer: Option<Transfer>,
+    command: Option<PendingCommand>,
+    next_heartbeat: Instant,
+    rates_requested: Option<Instant>,
+    rate_rounds: u32,
+    connect_failure_logged: bool,
+    out: Vec<MavMessage>,
+}
+
+/// Message ids for SET_MESSAGE_INTERVAL.
+mod msg_id {
+    pub const ATTITUDE: u32 = 30;
+    pub const LOCAL_POSITION_NED: u32 = 32;
+    pub const GLOBAL_POSITION_INT: u32 = 33;
+    pub const MISSION_CURRENT: u32 = 42;
+    pub const HOME_POSITION: u32 = 242;
+    pub const GIMBAL_DEVICE_ATTITUDE_STATUS: u32 = 285;
+}
+
+fn cmd_number(c: MavCmd) -> u16 {
+    c as u32 as u16
+}
+
+impl Actor {
+    async fn run(
+        mut self,
+        mut cmd_rx: mpsc::Receiver<Command>,
+        mut io_rx: mpsc::Receiver<IoEvent>,
+        cancel: CancellationToken,
+    ) {
+        info!(url = %self.params.url, "link actor started");
+        loop {
+            let wake = self.next_wake();
+            tokio::select! {
+                // Timers first: a busy link must not starve heartbeats and
+                // protocol timeouts.
+                biased;
+                _ = cancel.cancelled() => break,
+                _ = tokio::time::sleep_until(tokio::time::Instant::from_std(wake)) => self.on_wake().await,
+                cmd = cmd_rx.recv() => match cmd {
+                    Some(c) => self.on_command(c).await,
+                    None => break,
+                },
+                ev = io_rx.recv() => match ev {
+                    Some(ev) => self.on_io(ev).await,
+                    None => break,
+                },
+            }
+        }
+        if let Some(mut t) = self.transfer.take() {
+            t.cancel(Instant::now(), &mut self.out);
+            self.flush().await;
+            t.deliver(Instant::now(), false);
+        }
+        info!("link actor stopped");
+    }
+
+    fn next_wake(&self) -> Instant {
+        let mut wake = self.next_heartbeat;
+        let v = self.vehicle.borrow();
+        if let (Some(last), false) = (v.last_heartbeat, v.link_lost) {
+            wake = wake.min(last + Duration::from_millis(self.params.link_lost_after_ms));
+        }
+        if let Some(d) = self.transfer.as_ref().and_then(Transfer::deadline) {
+            wake = wake.min(d);
+        }
+        if let Some(c) = &self.command {
+            wake = wake.min(c.deadline);
+        }
+        wake
+    }
+
+    fn header(&self) -> MavHeader {
+        MavHeader {
+            system_id: u32::from(self.params.system_id),
+            component_id: self.params.component_id,
+            sequence: 0,
+        }
+    }
+
+    /// Sends everything queued in `out`. Without a connection the messages
+    /// are dropped: the protocol machines resend on their own timeouts.
+    async fn flush(&mut self) {
+        if self.out.is_empty() {
+            return;
+        }
+        let header = self.header();
+        if let Some(conn) = &self.conn {
+            for m in self.out.drain(..) {
+                // MAVLink 1 has 8-bit message ids (and the crate panics on
+                // larger ones): such messages cannot go out on a v1 link.
+                if self.params.mavlink1 && m.message_id() > 255 {
+                    warn!(
+                        id = m.message_id(),
+                        "message id does not fit MAVLink 1; not sent"
+                    );
+                    continue;
+                }
+                if let Err(e) = conn.send(&header, &m).await {
+                    debug!(error = %e, "send failed");
+                }
+            }
+        } else {
+            self.out.clear();
+        }
+    }
+
+    async fn on_io(&mut self, ev: IoEvent) {
+        match ev {
+            IoEvent::Connected(conn) => {
+                self.conn = Some(conn);
+                self.connect_failure_logged = false;
+                self.vehicle.send_modify(|v| {
+                    v.connected = true;
+                    v.connections += 1;
+                });
+                info!(url = %self.params.url, "link connected");
+                self.next_heartbeat = Instant::now();
+            }
+            IoEvent::Lost(reason) => {
+                self.conn = None;
+                self.vehicle.send_modify(|v| v.connected = false);
+                warn!(%reason, "link lost; reconnecting");
+            }
+            IoEvent::ConnectFailed(reason) => {
+                // Say it once per outage; the retries go on with backoff.
+                if !self.connect_failure_logged {
+                    warn!(url = %self.params.url, %reason, "cannot open the link; retrying with backoff");
+                    self.connect_failure_logged = true;
+                } else {
+                    debug!(%reason, "connect failed");
+                }
+            }
+            IoEvent::Frame(h, m) => self.on_frame(h, *m).await,
+        }
+    }
+
+    async fn on_frame(&mut self, h: MavHeader, m: MavMessage) {
+        let now = Instant::now();
+        if let MavMessage::HEARTBEAT(hb) = &m {
+            self.on_heartbeat(&h, hb, now).await;
+            return;
+        }
+        let tracked = self.vehicle.borrow().system_id;
+        if tracked.map(u32::from) != Some(h.system_id) {
+            return;
+        }
+        match &m {
+            MavMessage::GLOBAL_POSITION_INT(d) => {
+                let value = GlobalPosition {
+                    time_boot_ms: d.time_boot_ms,
+                    lat_deg: f64::from(d.lat) / 1e7,
+                    lon_deg: f64::from(d.lon) / 1e7,
+                    alt_amsl_m: f64::from(d.alt) / 1e3,
+                    rel_alt_m: f64::from(d.relative_alt) / 1e3,
+                    vel_ned_m_s: [
+                        f32::from(d.vx) / 100.0,
+                        f32::from(d.vy) / 100.0,
+                        f32::from(d.vz) / 100.0,
+                    ],
+                    heading_deg: (d.hdg != u16::MAX).then(|| f32::from(d.hdg) / 100.0),
+                };
+                self.gp.send_replace(Some(Stamped {
+                    value,
+                    received: now,
+                }));
+            }
+            MavMessage::LOCAL_POSITION_NED(d) => {
+                let value = LocalPosition {
+                    time_boot_ms: d.time_boot_ms,
+                    pos_ned_m: [d.x, d.y, d.z],
+                    vel_ned_m_s: [d.vx, d.vy, d.vz],
+                };
+                self.lp.send_replace(Some(Stamped {
+                    value,
+                    received: now,
+                }));
+            }
+            MavMessage::ATTITUDE(d) => {
+                let value = Attitude {
+                    time_boot_ms: d.time_boot_ms,
+                    roll_rad: d.roll,
+                    pitch_rad: d.pitch,
+                    yaw_rad: d.yaw,
+                };
+                self.att.send_replace(Some(Stamped {
+                    value,
+                    received: now,
+                }));
+            }
+            MavMessage::HOME_POSITION(d) => {
+                let value = HomePosition {
+                    lat_deg: f64::from(d.latitude) / 1e7,
+                    lon_deg: f64::from(d.longitude) / 1e7,
+                    alt_amsl_m: f64::from(d.altitude) / 1e3,
+                };
+                self.home.send_replace(Some(Stamped {
+                    value,
+                    received: now,
+                }));
+            }
+            MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(d) => {
+                use mavlink::dialects::common::GimbalDeviceFlags as F;
+                let (roll_deg, pitch_deg, yaw_deg) = quat_to_euler_deg(d.q);
+                let yaw_absolute = d.flags.contains(F::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME)
+                    || (!d
+                        .flags
+                        .contains(F::GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME)
+                        && d.flags.contains(F::GIMBAL_DEVICE_FLAGS_YAW_LOCK));
+                let value = GimbalAttitude {
+                    roll_deg,
+                    pitch_deg,
+                    yaw_deg,
+                    yaw_absolute,
+                };
+                self.gimbal.send_replace(Some(Stamped {
+                    value,
+                    received: now,
+                }));
+            }
+            // ArduPilot's legacy mounts still send it.
+            #[allow(deprecated)]
+            MavMessage::MOUNT_ORIENTATION(d) => {
+                let value = GimbalAttitude {
+                    roll_deg: d.roll,
+                    pitch_deg: d.pitch,
+                    yaw_deg: d.yaw,
+                    yaw_absolute: false,
+                };
+                self.gimbal.send_replace(Some(Stamped {
+                    value,
+                    received: now,
+                }));
+            }
+            MavMessage::MISSION_CURRENT(d) => {
+                let mut p = self.progress.borrow().map(|s| s.value).unwrap_or_default();
+                p.current_seq = Some(d.seq);
+                p.total = (d.total != u16::MAX && d.total != 0).then_some(d.total);
+                p.state = Some(d.mission_state as u8);
+                self.progress.send_replace(Some(Stamped {
+                    value: p,
+                    received: now,
+                }));
+            }
+            MavMessage::MISSION_ITEM_REACHED(d) => {
+                let mut p = self.progress.borrow().map(|s| s.value).unwrap_or_default();
+                p.last_reached = Some(d.seq);
+                self.progress.send_replace(Some(Stamped {
+                    value: p,
+                    received: now,
+                }));
+            }
+            MavMessage::COMMAND_ACK(a) => {
+                self.on_command_ack(a.command, a.result, a.target_system, now)
+            }
+            _ => {}
+        }
+        if let Some(t) = &mut self.transfer {
+            t.on_message(&h, &m, now, &mut self.out);
+            self.flush().await;
+            self.deliver_if_done();
+        }
+        self.flush().await;
+    }
+
+    async fn on_heartbeat(&mut self, h: &MavHeader, hb: &HEARTBEAT_DATA, now: Instant) {
+        let is_vehicle = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
+            && !matches!(
+                hb.mavtype,
+                MavType::MAV_TYPE_GCS
+                    | MavType::MAV_TYPE_GIMBAL
+                    | MavType::MAV_TYPE_CAMERA
+                    | MavType::MAV_TYPE_ONBOARD_CONTROLLER
+            );
+        let Ok(sys) = u8::try_from(h.system_id) else {
+            return;
+        };
+        if !is_vehicle || sys == self.params.system_id {
+            return;
+        }
+        let wanted = self.params.vehicle_system_id;
+        let tracked = self.vehicle.borrow().system_id;
+        if (wanted != 0 && sys != wanted) || tracked.is_some_and(|t| t != sys) {
+            return;
+        }
+        let flavour = match hb.autopilot {
+            MavAutopilot::MAV_AUTOPILOT_PX4 => Some(Flavour::Px4),
+            MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA => Some(Flavour::ArduPilot),
+            _ => None,
+        };
+        let mode = match flavour {
+            Some(Flavour::Px4) => px4_mode_name(hb.custom_mode),
+            Some(Flavour::ArduPilot) => ardupilot_mode_name(hb.custom_mode),
+            None => format!("{}", hb.custom_mode),
+        };
+        let mut appeared = false;
+        self.vehicle.send_modify(|v| {
+            appeared = v.system_id.is_none() || v.link_lost;
+            v.system_id = Some(sys);
+            v.component_id = h.component_id;
+            v.flavour = flavour;
+            v.autopilot = hb.autopilot as u8;
+            v.mav_type = hb.mavtype as u8;
+            v.base_mode = hb.base_mode.bits();
+            v.custom_mode = hb.custom_mode;
+            v.mode = mode;
+            v.armed = hb
+                .base_mode
+                .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+            v.link_lost = false;
+            v.last_heartbeat = Some(now);
+        });
+        if appeared {
+            info!(
+                system = sys,
+                component = h.component_id,
+                ?flavour,
+                "vehicle heard"
+            );
+            self.rate_rounds = 0;
+            self.request_rates(sys, h.component_id, now, false);
+            self.flush().await;
+        } else if self.rate_rounds < RATE_ROUNDS
+            && self
+                .rates_requested
+                .is_some_and(|t| now.saturating_duration_since(t) >= RATE_RECHECK)
+        {
+            // A request lost on a bad radio leaves a stream at the vehicle's
+            // default rate: ask again for the streams that are not arriving.
+            self.rate_rounds += 1;
+            self.request_rates(sys, h.component_id, now, true);
+            self.flush().await;
+        }
+    }
+
+    /// When each requested stream last arrived.
+    fn last_received(&self, id: u32) -> Option<Instant> {
+        match id {
+            msg_id::GLOBAL_POSITION_INT => self.gp.borrow().map(|s| s.received),
+            msg_id::LOCAL_POSITION_NED => self.lp.borrow().map(|s| s.received),
+            msg_id::ATTITUDE => self.att.borrow().map(|s| s.received),
+            msg_id::HOME_POSITION => self.home.borrow().map(|s| s.received),
+            msg_id::GIMBAL_DEVICE_ATTITUDE_STATUS => self.gimbal.borrow().map(|s| s.received),
+            msg_id::MISSION_CURRENT => self.progress.borrow().map(|s| s.received),
+            _ => None,
+        }
+    }
+
+    /// Sends SET_MESSAGE_INTERVAL for every configured stream, or with
+    /// `only_stale` for those not received within three periods (at least 3 s).
+    fn request_rates(&mut self, sys: u8, comp: u8, now: Instant, only_stale: bool) {
+        self.rates_requested = Some(now);
+        let r = self.params.rates;
+        for (id, hz) in [
+            (msg_id::GLOBAL_POSITION_INT, r.global_position_hz),
+            (msg_id::LOCAL_POSITION_NED, r.local_position_hz),
+            (msg_id::ATTITUDE, r.attitude_hz),
+            (msg_id::HOME_POSITION, r.home_position_hz),
+            (msg_id::GIMBAL_DEVICE_ATTITUDE_STATUS, r.gimbal_hz),
+            (msg_id::MISSION_CURRENT, r.mission_current_hz),
+        ] {
+            if !(hz > 0.0 && hz.is_finite()) {
+                continue;
+            }
+            if only_stale {
+                let window = Duration::from_secs_f32((3.0 / hz).max(3.0));
+                if self
+                    .last_received(id)
+                    .is_some_and(|t| now.saturating_duration_since(t) < window)
+                {
+                    continue;
+                }
+            }
+            self.out.push(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                param1: id as f32,
+                param2: (1e6 / hz).round(),
+                param3: 0.0,
+                param4: 0.0,
+                param5: 0.0,
+                param6: 0.0,
+                param7: 0.0, // response target: the requester
+                command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                target_system: sys,
+                target_component: comp,
+                confirmation: 0,
+            }));
+        }
+    }
+
+    fn deliver_if_done(&mut self) {
+        if !self.transfer.as_ref().is_some_and(Transfer::is_done) {
+            return;
+        }
+        let Some(t) = self.transfer.take() else {
+            return;
+        };
+        let now = Instant::now();
+        let peers = self.peers().map(|(p, _)| p);
+        if let Next::Verify {
+            items,
+            skip_home,
+            report,
+            reply,
+            span,
+        } = t.deliver(now, peers.is_some())
+            && let Some(peers) = peers
+        {
+            let machine = Downloader::new(
+                peers,
+                MavMissionType::MAV_MISSION_TYPE_MISSION,
+                self.transfer_params,
+                now,
+                &mut self.out,
+            );
+            self.transfer = Some(Transfer::Down {
+                machine,
+                purpose: DownPurpose::Verify {
+                    items,
+                    skip_home,
+                    report,
+                    reply,
+                },
+                span,
+            });
+        }
+    }
+
+    fn on_command_ack(
+        &mut self,
+        command: MavCmd,
+        result: MavResult,
+        target_system: u8,
+        now: Instant,
+    ) {
+        if target_system != 0 && target_system != self.params.system_id {
+            return;
+        }
+        let Some(pending) = &mut self.command else {
+            return;
+        };
+        if pending.data.command != command {
+            return;
+        }
+        let outcome = match result {
+            MavResult::MAV_RESULT_ACCEPTED => Ok(()),
+            MavResult::MAV_RESULT_IN_PROGRESS => {
+                pending.deadline = now + Duration::from_millis(self.params.command_timeout_ms);
+                return;
+            }
+            other => Err(LinkError::CommandRejected {
+                command: cmd_number(command),
+                result: format!("{other:?}"),
+            }),
+        };
+        if let Some(p) = self.command.take() {
+            info!(
+                command = cmd_number(command),
+                ok = outcome.is_ok(),
+                "command acknowledged"
+            );
+            let _ = p.reply.send(outcome);
+        }
+    }
+
+    async fn on_wake(&mut self) {
+        let now = Instant::now();
+        if now >= self.next_heartbeat {
+            self.out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: 0,
+                mavtype: MavType::MAV_TYPE_GCS,
+                autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+                base_mode: MavModeFlag::empty(),
+                system_status: MavState::MAV_STATE_ACTIVE,
+                mavlink_version: 3,
+            }));
+            let period = Duration::from_millis(self.params.heartbeat_period_ms.max(10));
+            self.next_heartbeat += period;
+            if self.next_heartbeat <= now {
+                self.next_heartbeat = now + period;
+            }
+        }
+        let lost_after = Duration::from_millis(self.params.link_lost_after_ms);
+        let lost = {
+            let v = self.vehicle.borrow();
+            !v.link_lost
+                && v.last_heartbeat
+                    .is_some_and(|t| now.saturating_duration_since(t) >= lost_after)
+        };
+        if lost {
+            self.vehicle.send_modify(|v| v.link_lost = true);
+            warn!(
+                after_ms = self.params.link_lost_after_ms,
+                "vehicle link lost: no heartbeat"
+            );
+        }
+        if let Some(t) = &mut self.transfer
+            && t.deadline().is_some_and(|d| d <= now)
+        {
+            t.on_timeout(now, &mut self.out);
+            self.deliver_if_done();
+        }
+        if self.command.as_ref().is_some_and(|c| c.deadline <= now)
+            && let Some(mut c) = self.command.take()
+        {
+            if c.attempts >= self.params.command_attempts.max(1) {
+                let _ = c.reply.send(Err(LinkError::CommandTimeout {
+                    command: cmd_number(c.data.command),
+                    attempts: c.attempts,
+                }));
+            } else {
+                c.attempts += 1;
+                c.data.confirmation = c.data.confirmation.saturating_add(1);
+                c.deadline = now + Duration::from_millis(self.params.command_timeout_ms);
+                self.out.push(MavMessage::COMMAND_LONG(c.data.clone()));
+                self.command = Some(c);
+            }
+        }
+        self.flush().await;
+    }
+
+    /// The vehicle's peers for a transfer, if one is heard.
+    fn peers(&self) -> Option<(Peers, VehicleState)> {
+        let v = self.vehicle.borrow().clone();
+        let sys = v.system_id?;
+        if v.link_lost {
+            return None;
+        }
+        Some((
+            Peers {
+                own_system: self.params.system_id,
+                own_component: self.params.component_id,
+                target_system: sys,
+                target_component: v.component_id,
+            },
+            v,
+        ))
+    }
+
+    async fn on_command(&mut self, cmd: Command) {
+        let now = Instant::now();
+        match cmd {
+            Command::UploadMission { items, reply } => {
+                if self.transfer.is_some() {
+                    let _ = reply.send(Err(LinkError::Busy {
+                        what: "mission transfer",
+                    }));
+                    return;
+                }
+                let Some((peers, vehicle)) = self.peers() else {
+                    let _ = reply.send(Err(LinkError::NoVehicle));
+                    return;
+                };
+                let flavour = vehicle.flavour;
+                let span = info_span!(
+                    "mission_upload",
+                    items = items.len(),
+                    vehicle = peers.target_system
+                );
+                let made = Uploader::new(
+                    &items,
+                    peers,
+                    MavMissionType::MAV_MISSION_TYPE_MISSION,
+                    self.transfer_params,
+                    now,
+                    &mut self.out,
+                );
+                match made {
+                    Ok(machine) => {
+                        span.in_scope(|| info!("MISSION_COUNT sent"));
+                        self.transfer = Some(Transfer::Up {
+                            machine,
+                            items,
+                            skip_home: flavour == Some(Flavour::ArduPilot),
+                            reply,
+                            span,
+                        });
+                    }
+                    Err(e) => {
+                        let _ = reply.send(Err(e.into()));
+                    }
+                }
+            }
+            Command::DownloadMission { reply } => {
+                if self.transfer.is_some() {
+                    let _ = reply.send(Err(LinkError::Busy {
+                        what: "mission transfer",
+                    }));
+                    return;
+                }
+                let Some((peers, _)) = self.peers() else {
+                    let _ = reply.send(Err(LinkError::NoVehicle));
+                    return;
+                };
+                let span = info_span!("mission_download", vehicle = peers.target_system);
+                let machine = Downloader::new(
+                    peers,
+                    MavMissionType::MAV_MISSION_TYPE_MISSION,
+                    self.transfer_params,
+                    now,
+                    &mut self.out,
+                );
+                self.transfer = Some(Transfer::Down {
+                    machine,
+                    purpose: DownPurpose::Reply(reply),
+                    span,
+                });
+            }
+            Command::CancelTransfer { reply } => {
+                let running = match self.transfer.take() {
+                    Some(mut t) => {
+                        t.cancel(now, &mut self.out);
+                        t.deliver(now, false);
+                        true
+                    }
+                    None => false,
+                };
+                let _ = reply.send(Ok(running));
+            }
+            Command::Arm { arm, reply } => {
+                info!(arm, "operator: arm/disarm");
+                self.start_command(
+                    MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+                    [if arm { 1.0 } else { 0.0 }, 0.0, 0.0],
+                    reply,
+                    now,
+                );
+            }
+            Command::SetMode { mode, reply } => {
+                info!(?mode, "operator: set mode");
+                let flavour = self.vehicle.borrow().flavour;
+                match flavour {
+                    Some(f) => {
+                        let (base, main, sub) = mode_params(f, mode);
+                        self.start_command(
+                            MavCmd::MAV_CMD_DO_SET_MODE,
+                            [base, main, sub],
+                            reply,
+                            now,
+                        );
+                    }
+                    None => {
+                        let autopilot = self.vehicle.borrow().autopilot;
+                        let _ = reply.send(Err(if self.vehicle.borrow().system_id.is_none() {
+                            LinkError::NoVehicle
+                        } else {
+                            LinkError::UnsupportedMode { mode, autopilot }
+                        }));
+                    }
+                }
+            }
+            Command::StartMission { reply } => {
+                info!("operator: start mission");
+                self.start_command(MavCmd::MAV_CMD_MISSION_START, [0.0, 0.0, 0.0], reply, now);
+            }
+        }
+        self.flush().await;
+    }
+
+    fn start_command(
+        &mut self,
+        command: MavCmd,
+        p: [f32; 3],
+        reply: oneshot::Sender<Result<(), LinkError>>,
+        now: Instant,
+    ) {
+        if self.command.is_some() {
+            let _ = reply.send(Err(LinkError::Busy { what: "command" }));
+            return;
+        }
+        let Some((peers, _)) = self.peers() else {
+            let _ = reply.send(Err(LinkError::NoVehicle));
+            return;
+        };
+        let data = COMMAND_LONG_DATA {
+            param1: p[0],
+            param2: p[1],
+            param3: p[2],
+            param4: 0.0,
+            param5: 0.0,
+            param6: 0.0,
+            param7: 0.0,
+            command,
+            target_system: peers.target_system,
+            target_component: peers.target_component,
+            confirmation: 0,
+        };
+        self.out.push(MavMessage::COMMAND_LONG(data.clone()));
+        self.command = Some(PendingCommand {
+            data,
+            attempts: 1,
+            deadline: now + Duration::from_millis(self.params.command_timeout_ms),
+            reply,
+        });
+    }
+}

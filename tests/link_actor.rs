@@ -1,0 +1,275 @@
+//! The link actor against the in-test fake autopilot over real UDP/TCP sockets.
+
+mod link_support;
+
+use std::time::Duration;
+
+use link_support::{FakeConfig, HOME, Habit, start_fake};
+use mavlink::MavlinkVersion;
+use mavlink::dialects::common::MavCmd;
+use shotpilot::mission::{Flavour, upload};
+use shotpilot::vehicle::{self, FlightMode, LinkError, Params};
+use tokio_util::sync::CancellationToken;
+
+fn params(url: String) -> Params {
+    Params {
+        url,
+        link_lost_after_ms: 1500,
+        reconnect_min_ms: 50,
+        reconnect_max_ms: 400,
+        ..Params::default()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tracks_vehicle_and_caches_telemetry() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let (addr, fake) = start_fake(FakeConfig::clean(Habit::Px4), &cancel);
+    let (link, task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    assert_eq!(v.system_id, Some(1));
+    assert_eq!(v.flavour, Some(Flavour::Px4));
+    assert_eq!(v.mode, "AUTO.LOITER");
+    assert!(!v.armed);
+    assert!(v.connected);
+    let mut gp = link.telemetry.global_position.clone();
+    let pos = tokio::time::timeout(Duration::from_secs(3), gp.wait_for(|p| p.is_some()))
+        .await??
+        .expect("some");
+    assert!((pos.value.lat_deg - HOME.0).abs() < 1e-6);
+    assert!((pos.value.rel_alt_m - 10.0).abs() < 1e-9);
+    assert_eq!(pos.value.vel_ned_m_s, [1.0, -0.5, 0.0]);
+    assert_eq!(pos.value.heading_deg, Some(90.0));
+    assert!(pos.received.elapsed() < Duration::from_secs(2));
+    let mut att = link.telemetry.attitude.clone();
+    let a = tokio::time::timeout(Duration::from_secs(3), att.wait_for(|p| p.is_some()))
+        .await??
+        .expect("some");
+    assert_eq!(a.value.yaw_rad, 1.5);
+    let mut gimbal = link.telemetry.gimbal.clone();
+    let g = tokio::time::timeout(Duration::from_secs(3), gimbal.wait_for(|p| p.is_some()))
+        .await??
+        .expect("some");
+    assert!((g.value.pitch_deg + 30.0).abs() < 1e-3, "{:?}", g.value);
+    assert!(g.value.roll_deg.abs() < 1e-3 && g.value.yaw_deg.abs() < 1e-3);
+    assert!(!g.value.yaw_absolute);
+    let mut home = link.telemetry.home.clone();
+    let h = tokio::time::timeout(Duration::from_secs(3), home.wait_for(|p| p.is_some()))
+        .await??
+        .expect("some");
+    assert!((h.value.alt_amsl_m - HOME.2).abs() < 1e-3);
+    // heartbeats at 1 Hz reach the vehicle; telemetry rates were requested once
+    let hb0 = fake.lock().expect("lock").gcs_heartbeats;
+    tokio::time::sleep(Duration::from_millis(3000)).await;
+    let (hb1, cmds) = {
+        let s = fake.lock().expect("lock");
+        (s.gcs_heartbeats, s.commands.clone())
+    };
+    assert!(
+        (2..=4).contains(&(hb1 - hb0)),
+        "{} heartbeats in 3 s",
+        hb1 - hb0
+    );
+    // the six streams were asked for once when the vehicle appeared ...
+    let ids: Vec<f32> = cmds.iter().take(6).map(|(_, id)| *id).collect();
+    assert_eq!(ids, [33.0, 32.0, 30.0, 242.0, 285.0, 42.0], "{cmds:?}");
+    // ... and only LOCAL_POSITION_NED, which this vehicle never sends, is
+    // asked for again (5 s later); nothing else (no arming, no mode change)
+    // is ever sent on the link's own initiative
+    tokio::time::sleep(Duration::from_millis(3000)).await;
+    let cmds = fake.lock().expect("lock").commands.clone();
+    assert!(
+        cmds.iter()
+            .all(|(c, _)| *c == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL),
+        "{cmds:?}"
+    );
+    assert!(cmds.len() >= 7, "{cmds:?}");
+    assert!(cmds[6..].iter().all(|(_, id)| *id == 32.0), "{cmds:?}");
+    cancel.cancel();
+    tokio::time::timeout(Duration::from_secs(2), task).await??;
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let fake_cancel = CancellationToken::new();
+    let (addr, _fake) = start_fake(FakeConfig::clean(Habit::ArduPilot), &fake_cancel);
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    assert_eq!(v.flavour, Some(Flavour::ArduPilot));
+    assert_eq!(v.mode, "LOITER");
+    fake_cancel.cancel();
+    let t0 = std::time::Instant::now();
+    let mut rx = link.telemetry.vehicle.clone();
+    tokio::time::timeout(Duration::from_secs(4), rx.wait_for(|v| v.link_lost)).await??;
+    let after = t0.elapsed().as_secs_f64();
+    // lost 1.5 s after the last heartbeat, which came up to 1 s before the fake stopped
+    assert!(after > 0.4 && after < 1.7, "lost after {after:.2} s");
+    assert_eq!(
+        link.arm(true).await,
+        Err(LinkError::NoVehicle),
+        "no commands to a lost vehicle"
+    );
+    // a new vehicle process on the same port: the link comes back
+    let cfg = FakeConfig::clean(Habit::ArduPilot);
+    let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
+    tokio::spawn(link_support::run_fake(
+        format!("udpin:{addr}"),
+        cfg,
+        state,
+        cancel.child_token(),
+    ));
+    link.wait_for_vehicle(Duration::from_secs(4)).await?;
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn accepts_mavlink1_vehicle() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let cfg = FakeConfig {
+        version: MavlinkVersion::V1,
+        ..FakeConfig::clean(Habit::ArduPilot)
+    };
+    let (addr, _fake) = start_fake(cfg, &cancel);
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    assert_eq!(v.flavour, Some(Flavour::ArduPilot));
+    let mut gp = link.telemetry.global_position.clone();
+    tokio::time::timeout(Duration::from_secs(3), gp.wait_for(|p| p.is_some())).await??;
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mission_upload_over_mavlink1_both_ways() -> anyhow::Result<()> {
+    use shotpilot::mission::plan::{self, Home, Target};
+    let cancel = CancellationToken::new();
+    let cfg = FakeConfig {
+        version: MavlinkVersion::V1,
+        ..FakeConfig::clean(Habit::ArduPilot)
+    };
+    let (addr, fake) = start_fake(cfg, &cancel);
+    let p = Params {
+        mavlink1: true,
+        ..params(format!("udpout:{addr}"))
+    };
+    let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let home = Home {
+        lat_deg: HOME.0,
+        lon_deg: HOME.1,
+        alt_amsl_m: HOME.2,
+    };
+    let t = Target {
+        lat_deg: HOME.0 + 0.0002,
+        lon_deg: HOME.1,
+        alt_m: 12.0,
+        yaw_deg: 90.0,
+        gimbal_pitch_deg: -45.0,
+        photo: true,
+    };
+    let items = plan::plan(&t, &home, Flavour::ArduPilot, &plan::Params::default())?;
+    link.upload_mission(items.clone()).await?;
+    let d = link.download_mission().await?;
+    assert!(upload::same_mission(&items, &d.items, true));
+    assert_eq!(fake.lock().expect("lock").uploads, 1);
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn operator_commands_are_acknowledged() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let (addr, fake) = start_fake(FakeConfig::clean(Habit::Px4), &cancel);
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    link.arm(true).await?;
+    link.set_mode(FlightMode::Mission).await?;
+    link.start_mission().await?;
+    let cmds = fake.lock().expect("lock").commands.clone();
+    let ops: Vec<_> = cmds
+        .iter()
+        .filter(|(c, _)| *c != MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
+        .cloned()
+        .collect();
+    assert_eq!(
+        ops,
+        [
+            (MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0),
+            (MavCmd::MAV_CMD_DO_SET_MODE, 1.0),
+            (MavCmd::MAV_CMD_MISSION_START, 0.0)
+        ]
+    );
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reconnects_when_tcp_peer_goes_away() -> anyhow::Result<()> {
+    use mavlink::dialects::common::*;
+    use mavlink::{AsyncMavConnection, MavHeader};
+    let port = link_support::free_udp_port();
+    let addr = format!("127.0.0.1:{port}");
+    let cancel = CancellationToken::new();
+    let server_addr = addr.clone();
+    // a vehicle that accepts, sends two heartbeats and hangs up, twice
+    let server = tokio::spawn(async move {
+        for _ in 0..2 {
+            let conn =
+                mavlink::connect_async::<MavMessage>(&format!("tcpin:{server_addr}")).await?;
+            let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: 0,
+                mavtype: MavType::MAV_TYPE_QUADROTOR,
+                autopilot: MavAutopilot::MAV_AUTOPILOT_PX4,
+                base_mode: MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED,
+                system_status: MavState::MAV_STATE_ACTIVE,
+                mavlink_version: 3,
+            });
+            let h = MavHeader {
+                system_id: 7,
+                component_id: 1,
+                sequence: 0,
+            };
+            for _ in 0..2 {
+                conn.send(&h, &hb).await?;
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+        anyhow::Ok(())
+    });
+    // the link starts before the server listens: first attempts fail, backoff retries
+    let (link, _task) = vehicle::spawn(
+        params(format!("tcpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    assert_eq!(v.system_id, Some(7));
+    assert!(v.armed);
+    let mut rx = link.telemetry.vehicle.clone();
+    let v = tokio::time::timeout(Duration::from_secs(5), rx.wait_for(|v| v.connections >= 2))
+        .await??
+        .clone();
+    assert!(v.connections >= 2);
+    server.await??;
+    cancel.cancel();
+    Ok(())
+}

@@ -1,0 +1,231 @@
+//! Wire compatibility with pymavlink, an independent MAVLink implementation:
+//! it decodes our heartbeat and mission items, and MAVLink 2 signing works
+//! with the right key and fails with a wrong one, in both directions.
+//!
+//! Needs `pymavlink` in the Python at `$SHOTPILOT_PYTHON` (default
+//! `/work/venv/bin/python`, else `python3`).
+
+mod link_support;
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use link_support::free_udp_port;
+use shotpilot::mission::plan::{self, Flavour, Home, Target};
+use shotpilot::mission::upload;
+use shotpilot::vehicle::{self, LinkError, Params, Signing};
+use tokio_util::sync::CancellationToken;
+
+const KEY: &str = "4f2c1b8a9d7e6f5041322314a5b6c7d8e9f00112233445566778899aabbccdde";
+const WRONG: &str = "4f2c1b8a9d7e6f5041322314a5b6c7d8e9f00112233445566778899aabbccddf";
+
+fn python() -> String {
+    std::env::var("SHOTPILOT_PYTHON").unwrap_or_else(|_| {
+        if std::path::Path::new("/work/venv/bin/python").exists() {
+            "/work/venv/bin/python".into()
+        } else {
+            "python3".into()
+        }
+    })
+}
+
+/// Starts the pymavlink vehicle; returns once its socket is bound.
+fn start_peer(
+    port: u16,
+    key: Option<&str>,
+    seconds: f64,
+    serve_upload: bool,
+) -> anyhow::Result<(Child, BufReader<std::process::ChildStdout>)> {
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/peers/pymavlink_vehicle.py"
+    );
+    let mut cmd = Command::new(python());
+    cmd.arg(script)
+        .arg("--port")
+        .arg(port.to_string())
+        .arg("--seconds")
+        .arg(seconds.to_string());
+    if let Some(k) = key {
+        cmd.arg("--key").arg(k);
+    }
+    if serve_upload {
+        cmd.arg("--serve-upload");
+    }
+    let mut child = cmd.stdout(Stdio::piped()).spawn()?;
+    let stdout = child
+        .stdout
+        .take()
+        .ok_or_else(|| anyhow::anyhow!("no stdout"))?;
+    let mut reader = BufReader::new(stdout);
+    let mut line = String::new();
+    reader.read_line(&mut line)?;
+    anyhow::ensure!(line.trim() == "ready", "peer said {line:?}");
+    Ok((child, reader))
+}
+
+fn finish_peer(
+    mut child: Child,
+    mut reader: BufReader<std::process::ChildStdout>,
+) -> anyhow::Result<serde_json::Value> {
+    let mut line = String::new();
+    reader.read_line(&mut line)?;
+    child.wait()?;
+    Ok(serde_json::from_str(&line)?)
+}
+
+fn link_params(port: u16, key: Option<&str>) -> Params {
+    Params {
+        url: format!("udpout:127.0.0.1:{port}"),
+        signing: key.map(|k| Signing {
+            key_hex: k.into(),
+            link_id: 3,
+            allow_unsigned: false,
+        }),
+        ..Params::default()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs pymavlink"]
+async fn pymavlink_decodes_heartbeat_and_items() -> anyhow::Result<()> {
+    let port = free_udp_port();
+    let (child, reader) = start_peer(port, None, 10.0, true)?;
+    let cancel = CancellationToken::new();
+    let (link, _task) = vehicle::spawn(
+        link_params(port, None),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    let v = link.wait_for_vehicle(Duration::from_secs(6)).await?;
+    assert_eq!(v.flavour, Some(Flavour::Px4));
+    let home = Home {
+        lat_deg: 47.397742,
+        lon_deg: 8.545594,
+        alt_amsl_m: 488.0,
+    };
+    let target = Target {
+        lat_deg: 47.3981,
+        lon_deg: 8.5452,
+        alt_m: 22.5,
+        yaw_deg: 135.0,
+        gimbal_pitch_deg: -40.0,
+        photo: true,
+    };
+    let items = plan::plan(&target, &home, Flavour::Px4, &plan::Params::default())?;
+    link.upload_mission(items.clone()).await?;
+    let out = tokio::task::spawn_blocking(move || finish_peer(child, reader)).await??;
+    cancel.cancel();
+
+    let hb = &out["first_heartbeat"];
+    assert_eq!(hb["sysid"], 255);
+    assert_eq!(hb["compid"], 190);
+    assert_eq!(hb["type"], 6, "MAV_TYPE_GCS");
+    assert_eq!(hb["autopilot"], 8, "MAV_AUTOPILOT_INVALID");
+    assert_eq!(hb["system_status"], 4, "MAV_STATE_ACTIVE");
+    assert_eq!(hb["mavlink_version"], 3);
+    let got = out["items"]
+        .as_array()
+        .ok_or_else(|| anyhow::anyhow!("no items: {out}"))?;
+    assert_eq!(got.len(), items.len());
+    for (g, i) in got.iter().zip(&items) {
+        assert_eq!(g["seq"], i.seq);
+        assert_eq!(g["command"], i.command);
+        assert_eq!(g["frame"], i.frame);
+        assert_eq!(g["x"], i.x);
+        assert_eq!(g["y"], i.y);
+        assert_eq!(g["target_system"], 1);
+        assert_eq!(g["target_component"], 1);
+        assert_eq!(g["mission_type"], 0);
+        assert_eq!(g["autocontinue"], 1);
+        for k in 0..4 {
+            let p = i.params[k];
+            if p.is_nan() {
+                assert!(g["params"][k].is_null());
+            } else {
+                assert_eq!(
+                    g["params"][k].as_f64(),
+                    Some(f64::from(p)),
+                    "item {} param{}",
+                    i.seq,
+                    k + 1
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs pymavlink"]
+async fn signed_frames_verify_with_the_right_key() -> anyhow::Result<()> {
+    let port = free_udp_port();
+    let (child, reader) = start_peer(port, Some(KEY), 4.0, false)?;
+    let cancel = CancellationToken::new();
+    let (link, _task) = vehicle::spawn(
+        link_params(port, Some(KEY)),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    // pymavlink signs its heartbeats with the same key: we accept them
+    let v = link.wait_for_vehicle(Duration::from_secs(4)).await?;
+    assert_eq!(v.system_id, Some(1));
+    let out = tokio::task::spawn_blocking(move || finish_peer(child, reader)).await??;
+    cancel.cancel();
+    let n = out["heartbeats"].as_u64().unwrap_or(0);
+    assert!(n >= 2, "{out}");
+    assert_eq!(
+        out["signed_heartbeats"].as_u64(),
+        Some(n),
+        "every heartbeat signed and verified: {out}"
+    );
+    assert_eq!(out["badsig"], 0);
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs pymavlink"]
+async fn signed_frames_are_rejected_with_a_wrong_key() -> anyhow::Result<()> {
+    let port = free_udp_port();
+    let (child, reader) = start_peer(port, Some(WRONG), 4.0, false)?;
+    let cancel = CancellationToken::new();
+    let (link, _task) = vehicle::spawn(
+        link_params(port, Some(KEY)),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    // the vehicle's frames carry the wrong key: we never accept it
+    let r = link.wait_for_vehicle(Duration::from_secs(3)).await;
+    assert!(matches!(r, Err(LinkError::Timeout { .. })), "{r:?}");
+    let out = tokio::task::spawn_blocking(move || finish_peer(child, reader)).await??;
+    cancel.cancel();
+    assert_eq!(
+        out["heartbeats"], 0,
+        "pymavlink accepted none of ours: {out}"
+    );
+    assert!(
+        out["badsig"].as_u64().unwrap_or(0) >= 2,
+        "and counted them as bad signatures: {out}"
+    );
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs pymavlink"]
+async fn unsigned_frames_are_rejected_by_a_signing_peer() -> anyhow::Result<()> {
+    // control: without a key on our side, our frames are unsigned, and a
+    // pymavlink vehicle that insists on signatures rejects them
+    let port = free_udp_port();
+    let (child, reader) = start_peer(port, Some(KEY), 3.0, false)?;
+    let cancel = CancellationToken::new();
+    let (_link, _task) = vehicle::spawn(
+        link_params(port, None),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    let out = tokio::task::spawn_blocking(move || finish_peer(child, reader)).await??;
+    cancel.cancel();
+    assert_eq!(out["heartbeats"], 0, "{out}");
+    Ok(())
+}
