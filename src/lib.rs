@@ -45,6 +45,7 @@ pub mod bow;
 pub mod api;
 pub mod camera;
 pub mod config;
+pub mod daemon;
 pub mod eval;
 pub mod features;
 pub mod geometry;
