@@ -52,5 +52,6 @@ pub mod geometry;
 pub mod matching;
 pub mod mission;
 pub mod optimize;
+pub mod slam;
 pub mod vehicle;
 pub mod video;

@@ -47,6 +47,17 @@ enum Command {
     /// positions and the relative pose error are reported. The figures agree
     /// with `evo_ape tum GT EST -as`.
     Eval(EvalArgs),
+
+    /// Run monocular SLAM on a recorded sequence.
+    ///
+    /// DATASET is a folder in the TUM layout (rgb.txt, calib.txt, optional
+    /// groundtruth.txt; also what `shotpilot-sim render` writes) or the
+    /// EuRoC ASL layout (mav0/cam0). Prints per-stage timing, counts and,
+    /// when ground truth is at hand, the ATE after Sim(3) alignment (as
+    /// `eval` does). With `--out`, writes DIR/trajectory.txt (every tracked
+    /// frame, placed relative to its reference keyframe after the final
+    /// optimisation) and DIR/keyframes.txt, both in the TUM format.
+    Slam(SlamArgs),
     /// Bag-of-words vocabularies: train one from images, import ORB-SLAM's
     /// ORBvoc.txt, describe one.
     Vocab(vocab_cli::VocabArgs),
@@ -69,6 +80,44 @@ struct RunArgs {
     #[arg(long)]
     no_sim: bool,
     /// Print the final summary as one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
+struct SlamArgs {
+    /// Dataset folder (TUM or EuRoC layout).
+    dataset: PathBuf,
+    /// Folder for trajectory.txt and keyframes.txt (created if missing).
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Ground truth (TUM format); default: the dataset's own, if any.
+    #[arg(long, value_name = "FILE")]
+    gt: Option<PathBuf>,
+    /// Run local mapping after each keyframe on the same thread, so runs
+    /// repeat exactly (and frames are not paced).
+    #[arg(long)]
+    sequential: bool,
+    /// Replay speed relative to the frame timestamps (two-thread mode);
+    /// 0 feeds frames as fast as tracking takes them.
+    #[arg(long, default_value_t = 1.0, value_name = "X")]
+    speed: f64,
+    /// Save the map to this file at the end.
+    #[arg(long, value_name = "FILE")]
+    save_map: Option<PathBuf>,
+    /// ORB features per frame.
+    #[arg(long, default_value_t = 1000, value_name = "N")]
+    features: usize,
+    /// Use only the first N frames.
+    #[arg(long, value_name = "N")]
+    max_frames: Option<usize>,
+    /// Seed of the randomised steps (RANSAC).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    seed: u64,
+    /// Largest timestamp difference when pairing with the ground truth, seconds.
+    #[arg(long, default_value_t = 0.02, value_name = "S")]
+    max_dt: f64,
+    /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     json: bool,
 }
@@ -193,6 +242,8 @@ struct EvalArgs {
     json: bool,
 }
 
+mod cli;
+
 fn init_logging(filter: &str) {
     let env = tracing_subscriber::EnvFilter::try_from_default_env()
         .or_else(|_| tracing_subscriber::EnvFilter::try_new(filter))
@@ -234,6 +285,7 @@ fn run(cli: Cli) -> Result<()> {
     let config = load_config(cli.config.as_deref())?;
     match cli.command {
         Command::Eval(args) => cmd_eval(args),
+        Command::Slam(args) => cli::slam::run(args),
         Command::Vocab(args) => vocab_cli::run(args),
         Command::Mission(cmd) => mission_cli::run(cmd, &config),
         Command::Run(args) => cmd_run(args, config, cli.config.as_deref()),

@@ -307,11 +307,13 @@ impl KeyFrameDatabase {
             let mut group = best_score;
             neighbours.clear();
             covisible(e.id, &mut neighbours);
-            for nb in neighbours.iter().take(params.covisible_neighbours) {
+            neighbours.truncate(params.covisible_neighbours);
+            for (j, nb) in neighbours.iter().enumerate() {
                 let Some(&ns) = self.by_id.get(nb) else {
                     continue;
                 };
-                if ns == s {
+                // The keyframe itself, or a neighbour listed twice, counts once.
+                if ns == s || neighbours[..j].contains(nb) {
                     continue;
                 }
                 let score = cand_score[ns as usize];
@@ -448,6 +450,19 @@ mod tests {
             3 => out.extend([KeyFrameId(2)]),
             _ => {}
         };
+        // A neighbour list naming a keyframe twice (or the keyframe itself)
+        // does not inflate the group.
+        let c = db.detect_candidates(
+            &q,
+            &CandidateParams::default(),
+            |_| false,
+            |id, out| {
+                if id.0 == 2 {
+                    out.extend([KeyFrameId(2), KeyFrameId(1), KeyFrameId(1), KeyFrameId(3)]);
+                }
+            },
+        );
+        assert!((c[0].group_score - 1.5).abs() < 1e-5, "{c:?}");
         let s_nine = q.l1_score(&nine(1)); // 9 * min(0.1, 1/18) = 0.5
         assert!((s_nine - 0.5).abs() < 1e-6);
         let params = CandidateParams::default();

@@ -24,8 +24,9 @@ impl BowVector {
     }
 
     /// Build a vector from `(word, value)` pairs in any order: values of
-    /// repeated words add up; zero and non-finite values are dropped; the
-    /// result is L1-normalised (an all-zero input gives an empty vector).
+    /// repeated words add up; values count by magnitude; zero and non-finite
+    /// values are dropped; the result is L1-normalised (an all-zero input
+    /// gives an empty vector).
     pub fn from_weights(pairs: impl IntoIterator<Item = (WordId, f32)>) -> Self {
         let mut v = Self {
             entries: pairs

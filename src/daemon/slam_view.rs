@@ -8,9 +8,11 @@ use std::time::Duration;
 
 use image::GrayImage;
 
+use crate::api::store::PoseJson;
 use crate::api::{KeyframeInfo, MapView, SlamStatus, SlamView};
 use crate::camera::Camera;
 use crate::config::Config;
+use crate::slam::{self, KeyFrameId, Map, Slam, TrackState};
 use crate::video::live::{Frame, RateMeter, unix_now};
 
 /// What processing one frame gave.
@@ -63,17 +65,173 @@ impl FrameProcessor for NoSlam {
     }
 }
 
-/// The processor for this build and configuration.
+/// The processor for this configuration: the SLAM, or [`NoSlam`] when
+/// `[slam] enabled = false` or the SLAM cannot start.
 pub fn make_processor(
     cfg: &Config,
-    _camera: Camera,
-    _shared: Arc<SlamShared>,
-    _map_file: PathBuf,
+    camera: Camera,
+    shared: Arc<SlamShared>,
+    map_file: PathBuf,
 ) -> Box<dyn FrameProcessor> {
-    if cfg.slam.enabled {
-        tracing::warn!("this build has no SLAM module yet: frames are taken but not tracked");
+    if !cfg.slam.enabled {
+        return Box::new(NoSlam);
     }
-    Box::new(NoSlam)
+    let (w, h) = (camera.width, camera.height);
+    match Slam::new(camera, slam::Params::default()) {
+        Ok(slam) => {
+            shared.set_source(Arc::new(SlamMapSource { map: slam.map() }));
+            Box::new(SlamProcessor {
+                slam,
+                map_file,
+                size: (w, h),
+                warned_size: false,
+            })
+        }
+        Err(e) => {
+            tracing::error!("SLAM cannot start: {e}");
+            Box::new(NoSlam)
+        }
+    }
+}
+
+/// The SLAM on the SLAM thread.
+pub struct SlamProcessor {
+    slam: Slam,
+    map_file: PathBuf,
+    size: (u32, u32),
+    warned_size: bool,
+}
+
+fn state_name(s: TrackState) -> &'static str {
+    match s {
+        TrackState::NotInitialized => "not_initialized",
+        TrackState::Tracking => "tracking",
+        TrackState::Lost => "lost",
+    }
+}
+
+impl FrameProcessor for SlamProcessor {
+    fn process(&mut self, frame: &Frame) -> ProcessOutcome {
+        if frame.image.dimensions() != self.size {
+            if !self.warned_size {
+                tracing::error!(
+                    frame = ?frame.image.dimensions(),
+                    camera = ?self.size,
+                    "video frame size differs from [camera] width/height: frames skipped"
+                );
+                self.warned_size = true;
+            }
+            return ProcessOutcome {
+                state: "bad_frame_size".into(),
+                ..Default::default()
+            };
+        }
+        let out = self
+            .slam
+            .process(frame.seq, frame.timestamp(), frame.image.clone());
+        let (keyframes, points) = {
+            let map = self.slam.map();
+            let m = map.lock().unwrap_or_else(|e| e.into_inner());
+            (m.keyframe_count(), m.point_count())
+        };
+        ProcessOutcome {
+            state: state_name(out.state).into(),
+            tracked: out.cam_from_world.is_some(),
+            inliers: out.inliers,
+            keyframes,
+            points,
+        }
+    }
+
+    fn finish(self: Box<Self>) -> Option<PathBuf> {
+        let run = self.slam.finish();
+        if run.map.keyframe_count() == 0 {
+            return None;
+        }
+        if let Some(dir) = self.map_file.parent() {
+            let _ = std::fs::create_dir_all(dir);
+        }
+        match slam::mapfile::save(&run.map, &self.map_file) {
+            Ok(()) => {
+                tracing::info!(
+                    path = %self.map_file.display(),
+                    keyframes = run.map.keyframe_count(),
+                    points = run.map.point_count(),
+                    "map saved"
+                );
+                Some(self.map_file)
+            }
+            Err(e) => {
+                tracing::error!("saving the map: {e}");
+                None
+            }
+        }
+    }
+}
+
+/// The SLAM's map as the API sees it.
+struct SlamMapSource {
+    map: Arc<Mutex<Map>>,
+}
+
+impl SlamMapSource {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Map> {
+        self.map.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+impl MapSource for SlamMapSource {
+    fn keyframes(&self) -> Vec<KeyframeInfo> {
+        let m = self.lock();
+        let mut v: Vec<KeyframeInfo> = m
+            .keyframes()
+            .map(|k| {
+                let (width, height) = k.image.as_ref().map_or((0, 0), |i| i.dimensions());
+                KeyframeInfo {
+                    id: k.id.0 as u64,
+                    timestamp: k.timestamp,
+                    world_from_cam: PoseJson::from_isometry(&k.cam_from_world.inverse()),
+                    width,
+                    height,
+                }
+            })
+            .collect();
+        v.sort_by_key(|k| k.id);
+        v
+    }
+
+    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>> {
+        let id = u32::try_from(id).ok()?;
+        self.lock().keyframe(KeyFrameId(id))?.image.clone()
+    }
+
+    fn map(&self, max_points: usize) -> MapView {
+        let m = self.lock();
+        let total = m.point_count();
+        let step = total.div_ceil(max_points.max(1)).max(1);
+        let points = m
+            .points()
+            .step_by(step)
+            .take(max_points)
+            .map(|p| {
+                [
+                    p.position.x as f32,
+                    p.position.y as f32,
+                    p.position.z as f32,
+                ]
+            })
+            .collect();
+        let mut kfs: Vec<_> = m
+            .keyframes()
+            .map(|k| (k.id.0, slam::center_of(&k.cam_from_world)))
+            .collect();
+        kfs.sort_by_key(|k| k.0);
+        MapView {
+            points,
+            total_points: total,
+            trajectory: kfs.into_iter().map(|(_, c)| [c.x, c.y, c.z]).collect(),
+        }
+    }
 }
 
 #[derive(Default)]

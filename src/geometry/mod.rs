@@ -18,7 +18,7 @@ pub mod umeyama;
 pub use homography4::homography_from_4;
 pub use pnp::{PnpParams, PnpResult, solve_pnp_ransac};
 pub use se3::Sim3;
-pub use triangulate::triangulate;
+pub use triangulate::{TriangulationChecks, TriangulationReject, triangulate, triangulate_checked};
 pub use two_view::{Model, TwoViewParams, TwoViewResult, initialize_two_view};
 pub use umeyama::umeyama;
 
@@ -29,6 +29,8 @@ pub struct Params {
     pub two_view: TwoViewParams,
     /// PnP RANSAC and refinement.
     pub pnp: PnpParams,
+    /// Checks on newly triangulated map points.
+    pub triangulation: TriangulationChecks,
 }
 
 /// Errors of the geometry module. Counts are carried so callers can log and

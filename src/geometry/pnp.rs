@@ -191,21 +191,8 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> ([RotTr
     let mut chosen = None;
     for &gamma in roots.iter().take(nr) {
         let d0 = d1 + d2 * gamma;
-        let eig = d0.symmetric_eigen();
-        // Order eigenvalues by magnitude; the smallest is ~0.
-        let mut idx = [0usize, 1, 2];
-        idx.sort_by(|&i, &j| {
-            eig.eigenvalues[j]
-                .abs()
-                .total_cmp(&eig.eigenvalues[i].abs())
-        });
-        let (s1, s2) = (eig.eigenvalues[idx[0]], eig.eigenvalues[idx[1]]);
-        if s1 * s2 < 0.0 {
-            chosen = Some((
-                eig.eigenvectors.column(idx[0]).into_owned(),
-                eig.eigenvectors.column(idx[1]).into_owned(),
-                (-s2 / s1).sqrt(),
-            ));
+        if let Some(c) = split_degenerate_conic(&d0) {
+            chosen = Some(c);
             break;
         }
     }
@@ -260,6 +247,42 @@ pub fn p3p_lambda_twist(y: &[Vector3<f64>; 3], x: &[Vector3<f64>; 3]) -> ([RotTr
         }
     }
     (sols, ns)
+}
+
+/// For a symmetric 3×3 `D` of rank 2 (one eigenvalue ~0), returns the
+/// eigenvectors of the two others and `s = √(-σ₂/σ₁)`, or `None` when they
+/// have the same sign (the conic `λᵀDλ = 0` is then not a line pair).
+/// Closed form: `σ₁,₂` are the roots of `σ² - tr(D)·σ + m₂ = 0` (`m₂` the sum
+/// of the principal 2×2 minors, since `det D = 0`), eigenvectors from the
+/// largest cross product of two rows of `D - σI`.
+fn split_degenerate_conic(d: &Matrix3<f64>) -> Option<(Vector3<f64>, Vector3<f64>, f64)> {
+    let tr = d[(0, 0)] + d[(1, 1)] + d[(2, 2)];
+    let m2 = d[(0, 0)] * d[(1, 1)] - d[(0, 1)] * d[(1, 0)] + d[(0, 0)] * d[(2, 2)]
+        - d[(0, 2)] * d[(2, 0)]
+        + d[(1, 1)] * d[(2, 2)]
+        - d[(1, 2)] * d[(2, 1)];
+    if m2 >= 0.0 {
+        return None;
+    }
+    let sq = (tr * tr - 4.0 * m2).sqrt();
+    let s1 = 0.5 * (tr + sq);
+    let s2 = 0.5 * (tr - sq);
+    let eigvec = |sigma: f64| -> Option<Vector3<f64>> {
+        let a = d - Matrix3::identity() * sigma;
+        let (r0, r1, r2) = (
+            a.row(0).transpose(),
+            a.row(1).transpose(),
+            a.row(2).transpose(),
+        );
+        let c = [r0.cross(&r1), r0.cross(&r2), r1.cross(&r2)];
+        let best = c
+            .iter()
+            .max_by(|x, y| x.norm_squared().total_cmp(&y.norm_squared()))?;
+        let n = best.norm();
+        (n > 0.0 && n.is_finite()).then(|| best / n)
+    };
+    let (u1, u2) = (eigvec(s1)?, eigvec(s2)?);
+    Some((u1, u2, (-s2 / s1).sqrt()))
 }
 
 /// Gauss-Newton on the three law-of-cosines equations.
@@ -330,21 +353,40 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
     let basis = Matrix3::from_columns(&[ctrl[1] - c0, ctrl[2] - c0, ctrl[3] - c0]);
     let binv = basis.try_inverse()?;
     let mut alphas = Vec::with_capacity(n);
-    let mut mtm = SMatrix::<f64, 12, 12>::zeros();
+    // MᵀM has 3×3 blocks (j, k) = Σ αⱼαₖ·[[1, 0, -u], [0, 1, -v], [-u, -v, u²+v²]]:
+    // accumulate the four sums per block pair instead of 24-wide outer products.
+    let mut acc = [[0.0f64; 4]; 10];
     for &i in idx {
         let a = binv * (pw[i].coords - c0);
         let al = Vector4::new(1.0 - a.x - a.y - a.z, a.x, a.y, a.z);
         alphas.push(al);
         let (u, v) = (xn[i].x, xn[i].y);
-        let mut r1 = SVector::<f64, 12>::zeros();
-        let mut r2 = SVector::<f64, 12>::zeros();
+        let w = u * u + v * v;
+        let mut p = 0;
         for j in 0..4 {
-            r1[3 * j] = al[j];
-            r1[3 * j + 2] = -al[j] * u;
-            r2[3 * j + 1] = al[j];
-            r2[3 * j + 2] = -al[j] * v;
+            for k in j..4 {
+                let aa = al[j] * al[k];
+                acc[p][0] += aa;
+                acc[p][1] += aa * u;
+                acc[p][2] += aa * v;
+                acc[p][3] += aa * w;
+                p += 1;
+            }
         }
-        mtm += r1 * r1.transpose() + r2 * r2.transpose();
+    }
+    let mut mtm = SMatrix::<f64, 12, 12>::zeros();
+    let mut p = 0;
+    for j in 0..4 {
+        for k in j..4 {
+            let [s, su, sv, sw] = acc[p];
+            p += 1;
+            let blk = Matrix3::new(s, 0.0, -su, 0.0, s, -sv, -su, -sv, sw);
+            mtm.fixed_view_mut::<3, 3>(3 * j, 3 * k).copy_from(&blk);
+            if k != j {
+                mtm.fixed_view_mut::<3, 3>(3 * k, 3 * j)
+                    .copy_from(&blk.transpose());
+            }
+        }
     }
     let e = mtm.symmetric_eigen();
     let mut order: [usize; 12] = std::array::from_fn(|i| i);
@@ -423,19 +465,17 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
     }
     let mut best: Option<(f64, RotTrans)> = None;
     let mut pc = Vec::with_capacity(n);
-    let mut pwv = Vec::with_capacity(n);
+    let pwv: Vec<Point3<f64>> = idx.iter().map(|&i| pw[i]).collect();
     for mut beta in candidates {
         gauss_newton_betas(&l, &rho, &mut beta);
         let cc: [Vector3<f64>; 4] = std::array::from_fn(|j| {
             v[0][j] * beta[0] + v[1][j] * beta[1] + v[2][j] * beta[2] + v[3][j] * beta[3]
         });
         pc.clear();
-        pwv.clear();
-        for (al, &i) in alphas.iter().zip(idx) {
+        for al in &alphas {
             pc.push(Point3::from(
                 cc[0] * al[0] + cc[1] * al[1] + cc[2] * al[2] + cc[3] * al[3],
             ));
-            pwv.push(pw[i]);
         }
         // Points must lie in front: flip the global sign if needed.
         let neg = pc.iter().filter(|p| p.z < 0.0).count();
@@ -452,7 +492,9 @@ pub fn epnp(pw: &[Point3<f64>], xn: &[Point2<f64>], idx: &[usize]) -> Option<Rot
         let mut err = 0.0;
         for &i in idx {
             let q = r * pw[i].coords + t;
-            err += ((q.x / q.z - xn[i].x).powi(2) + (q.y / q.z - xn[i].y).powi(2)).sqrt();
+            let iz = 1.0 / q.z;
+            // Sum of squared errors: the selection needs an order, not a mean.
+            err += (q.x * iz - xn[i].x).powi(2) + (q.y * iz - xn[i].y).powi(2);
         }
         if err.is_finite() && best.as_ref().is_none_or(|(e, _)| err < *e) {
             best = Some((err, (r, t)));
@@ -523,10 +565,43 @@ fn count_inliers(
     n
 }
 
+/// As [`count_inliers`], but gives up (`None`) as soon as the hypothesis
+/// can no longer beat `best` inliers: most RANSAC hypotheses are wrong and
+/// are dropped after about `n - best` points.
+#[allow(clippy::too_many_arguments)]
+fn count_inliers_beating(
+    r: &Matrix3<f64>,
+    t: &Vector3<f64>,
+    pw: &[Point3<f64>],
+    xn: &[Point2<f64>],
+    th2: f64,
+    best: usize,
+    mask: &mut [bool],
+) -> Option<usize> {
+    let n = pw.len();
+    let mut c = 0;
+    for (i, ((p, x), m)) in pw.iter().zip(xn).zip(mask.iter_mut()).enumerate() {
+        let q = r * p.coords + t;
+        let ok = q.z > 0.0 && {
+            let iz = 1.0 / q.z;
+            let dx = q.x * iz - x.x;
+            let dy = q.y * iz - x.y;
+            dx * dx + dy * dy <= th2
+        };
+        *m = ok;
+        c += usize::from(ok);
+        // Points left after this one: n - i - 1.
+        if c + (n - i - 1) <= best {
+            return None;
+        }
+    }
+    Some(c)
+}
+
 fn to_iso(r: &Matrix3<f64>, t: &Vector3<f64>) -> Isometry3<f64> {
     Isometry3::from_parts(
         Translation3::from(*t),
-        UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*r)),
+        crate::geometry::se3::quaternion_from_matrix(r),
     )
 }
 
@@ -598,7 +673,11 @@ pub fn solve_pnp_ransac(
         ];
         let (sols, ns) = p3p_lambda_twist(&y, &x);
         for (r, t) in sols.iter().take(ns) {
-            let c = count_inliers(r, t, points_world, obs_normalized, th2, &mut mask);
+            let Some(c) =
+                count_inliers_beating(r, t, points_world, obs_normalized, th2, best_n, &mut mask)
+            else {
+                continue;
+            };
             if c > best_n {
                 best_n = c;
                 best_rt = Some((*r, *t));

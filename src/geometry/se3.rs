@@ -8,6 +8,16 @@
 
 use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
 
+/// The unit quaternion of a (nearly) orthonormal rotation matrix. nalgebra's
+/// `from_rotation_matrix` assumes an exact rotation and returns a quaternion
+/// off unit length otherwise (seen at 3 % after a noisy solve), which then
+/// makes quaternion and matrix forms of the same pose disagree; this
+/// renormalises.
+pub fn quaternion_from_matrix(r: &Matrix3<f64>) -> UnitQuaternion<f64> {
+    let q = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(*r));
+    UnitQuaternion::new_normalize(q.into_inner())
+}
+
 /// The skew-symmetric matrix `[v]ₓ` with `[v]ₓ·w = v × w`.
 #[inline]
 pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
@@ -36,11 +46,6 @@ pub fn se3_exp(delta: &Vector6<f64>) -> Isometry3<f64> {
         Translation3::from(vmat * v),
         UnitQuaternion::from_scaled_axis(w),
     )
-}
-
-/// Rotation angle (radians) of `a⁻¹·b`: the geodesic distance on SO(3).
-pub fn rotation_angle_between(a: &UnitQuaternion<f64>, b: &UnitQuaternion<f64>) -> f64 {
-    a.angle_to(b)
 }
 
 /// A similarity transform `p ↦ s·R·p + t` (Sim(3)).

@@ -87,7 +87,7 @@ pub fn umeyama(
     } else {
         1.0
     };
-    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
+    let rotation = crate::geometry::se3::quaternion_from_matrix(&r);
     let translation = mu_d - rotation * mu_s * scale;
     Ok(Sim3::new(rotation, translation, scale))
 }

@@ -126,8 +126,8 @@ struct ObsLin {
     jc: nalgebra::Matrix2x6<f64>,
     /// `W_ij = Jcᵀ·w·Jp` (6×3).
     wblock: Matrix6x3<f64>,
-    /// `W_ij·C_j⁻¹` (filled in the solve).
-    y: Matrix6x3<f64>,
+    /// Free-pose index of the observing keyframe (`usize::MAX` if fixed).
+    free_pose: usize,
     /// Contributes derivatives (active and in front of the camera).
     live: bool,
 }
@@ -155,6 +155,7 @@ struct BaLs<'a> {
     step_p: Vec<Vector3<f64>>,
     old_poses: Vec<Isometry3<f64>>,
     old_points: Vec<Point3<f64>>,
+    sbuf: Vec<f64>,
     s: Mat<f64>,
     rhs: Col<f64>,
 }
@@ -193,7 +194,7 @@ impl<'a> BaLs<'a> {
             wr: Vector2::zeros(),
             jc: nalgebra::Matrix2x6::zeros(),
             wblock: Matrix6x3::zeros(),
-            y: Matrix6x3::zeros(),
+            free_pose: usize::MAX,
             live: false,
         };
         Self {
@@ -215,6 +216,7 @@ impl<'a> BaLs<'a> {
             step_p: vec![Vector3::zeros(); np],
             old_poses: problem.poses.iter().map(|p| p.cam_from_world).collect(),
             old_points: problem.points.clone(),
+            sbuf: Vec::new(),
             s: Mat::zeros(6 * n_free, 6 * n_free),
             rhs: Col::zeros(6 * n_free),
             problem,
@@ -247,6 +249,7 @@ impl LeastSquares for BaLs<'_> {
         for (k, o) in self.problem.observations.iter().enumerate() {
             let lin = &mut self.lin[k];
             lin.live = false;
+            lin.free_pose = self.free[o.pose].unwrap_or(usize::MAX);
             if !self.active[k] {
                 continue;
             }
@@ -294,15 +297,20 @@ impl LeastSquares for BaLs<'_> {
     fn solve_damped(&mut self, lambda: f64) -> Option<(f64, f64)> {
         let nf = self.n_free;
         let dim = 6 * nf;
-        self.s.fill(0.0);
+        // Upper block triangle of S, row-major, in a plain buffer (no
+        // bounds-checked faer indexing in the hot loop).
+        let sbuf = &mut self.sbuf;
+        sbuf.clear();
+        sbuf.resize(dim * dim, 0.0);
         self.rhs.fill(0.0);
         // Camera diagonal blocks, damped.
         for (fi, a) in self.a_blocks.iter().enumerate() {
             for r in 0..6 {
+                let row = (6 * fi + r) * dim + 6 * fi;
                 for c in 0..6 {
-                    self.s[(6 * fi + r, 6 * fi + c)] = a[(r, c)];
+                    sbuf[row + c] = a[(r, c)];
                 }
-                self.s[(6 * fi + r, 6 * fi + r)] += lambda * a[(r, r)].clamp(1e-6, 1e32);
+                sbuf[row + r] += lambda * a[(r, r)].clamp(1e-6, 1e32);
                 self.rhs[6 * fi + r] = -self.g_c[fi][r];
             }
         }
@@ -318,51 +326,47 @@ impl LeastSquares for BaLs<'_> {
                 self.c_inv[j] = Matrix3::zeros();
                 continue;
             }
-            let cinv = c.cholesky()?.inverse();
+            let cinv = inverse_spd3(&c)?;
             self.c_inv[j] = cinv;
             let obs_j = &self.by_point[self.by_point_start[j]..self.by_point_start[j + 1]];
             let gpj = self.g_p[j];
             for &ka in obs_j {
-                let Some(fa) = self.lin[ka]
-                    .live
-                    .then(|| self.free[self.problem.observations[ka].pose])
-                    .flatten()
-                else {
+                let la = &self.lin[ka];
+                let fa = la.free_pose;
+                if !la.live || fa == usize::MAX {
                     continue;
-                };
-                let y = self.lin[ka].wblock * cinv;
-                self.lin[ka].y = y;
-                // rhs_a -= Y·(-g_p) … i.e. rhs_a += Y·g_p
+                }
+                let y = la.wblock * cinv;
+                // rhs_a -= Y·(-g_p), i.e. rhs_a += Y·g_p
                 let yg = y * gpj;
                 for r in 0..6 {
                     self.rhs[6 * fa + r] += yg[r];
                 }
                 for &kb in obs_j {
-                    let Some(fb) = self.lin[kb]
-                        .live
-                        .then(|| self.free[self.problem.observations[kb].pose])
-                        .flatten()
-                    else {
-                        continue;
-                    };
-                    if fb < fa {
+                    let lb = &self.lin[kb];
+                    let fb = lb.free_pose;
+                    if !lb.live || fb == usize::MAX || fb < fa {
                         continue;
                     }
-                    let blk = y * self.lin[kb].wblock.transpose();
+                    let blk = y * lb.wblock.transpose();
                     for r in 0..6 {
-                        for c2 in 0..6 {
-                            self.s[(6 * fa + r, 6 * fb + c2)] -= blk[(r, c2)];
+                        let row = (6 * fa + r) * dim + 6 * fb;
+                        let dst = &mut sbuf[row..row + 6];
+                        for (c2, d) in dst.iter_mut().enumerate() {
+                            *d -= blk[(r, c2)];
                         }
                     }
                 }
             }
         }
-        // Mirror the upper block triangle into the lower one.
-        for r in 0..dim {
-            for c in 0..r {
-                self.s[(r, c)] = self.s[(c, r)];
+        let sbuf = &self.sbuf;
+        self.s = Mat::from_fn(dim, dim, |r, c| {
+            if r <= c {
+                sbuf[r * dim + c]
+            } else {
+                sbuf[c * dim + r]
             }
-        }
+        });
         if dim > 0 {
             let llt = self.s.llt(Side::Lower).ok()?;
             llt.solve_in_place(self.rhs.as_mut());
@@ -453,6 +457,26 @@ impl LeastSquares for BaLs<'_> {
         }
         n2.sqrt()
     }
+}
+
+/// Inverse of a symmetric positive-definite 3×3 matrix by cofactors;
+/// `None` unless all leading minors are positive.
+#[inline]
+fn inverse_spd3(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
+    let (a, b, c) = (m[(0, 0)], m[(0, 1)], m[(0, 2)]);
+    let (d, e, f) = (m[(1, 1)], m[(1, 2)], m[(2, 2)]);
+    let c00 = d * f - e * e;
+    let c01 = c * e - b * f;
+    let c02 = b * e - c * d;
+    let det = a * c00 + b * c01 + c * c02;
+    let minor2 = a * d - b * b;
+    if a <= 0.0 || minor2 <= 0.0 || det <= 0.0 || !det.is_finite() {
+        return None;
+    }
+    let c11 = a * f - c * c;
+    let c12 = b * c - a * e;
+    let inv = 1.0 / det;
+    Some(Matrix3::new(c00, c01, c02, c01, c11, c12, c02, c12, minor2) * inv)
 }
 
 /// Chi2 of one observation, `None` when the point is behind the camera.
@@ -630,6 +654,15 @@ pub fn bundle_adjust_lm(
 mod tests {
     use super::*;
     use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn spd3_inverse_is_an_inverse_and_refuses_indefinite() {
+        let m = Matrix3::new(4.0, 1.0, 0.5, 1.0, 3.0, -0.2, 0.5, -0.2, 2.0);
+        let inv = inverse_spd3(&m).unwrap();
+        assert!((m * inv - Matrix3::identity()).norm() < 1e-12);
+        let bad = Matrix3::new(1.0, 2.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 1.0);
+        assert!(inverse_spd3(&bad).is_none());
+    }
 
     /// The Schur solve equals a dense solve of the full damped system, and
     /// the analytic Jacobians match finite differences through it.

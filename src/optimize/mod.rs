@@ -79,12 +79,6 @@ pub enum OptimizeError {
     /// Every pose is fixed: nothing to optimise.
     #[error("every pose is fixed")]
     NothingToOptimize,
-    /// The linear system stayed unsolvable however much it was damped.
-    #[error("linear system could not be solved (lambda {lambda:e})")]
-    LinearSolveFailed {
-        /// The damping reached.
-        lambda: f64,
-    },
 }
 
 /// Pinhole intrinsics of undistorted pixels: `u = fx·x/z + cx`, `v = fy·y/z + cy`.

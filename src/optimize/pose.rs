@@ -351,6 +351,39 @@ mod tests {
         assert!((g_fd - p.g).norm() < 1e-5 * p.g.norm().max(1.0));
     }
 
+    /// The per-octave weights decide the classification: a 3.5 px error is
+    /// an outlier at octave 0 (chi2 12.25 > 5.991) and an inlier at octave 5
+    /// of a 1.2 pyramid (σ² = 1.2¹⁰ ≈ 6.19, chi2 ≈ 1.98).
+    #[test]
+    fn octave_weights_decide_outliers() {
+        let k = intr();
+        let truth = Isometry3::identity();
+        let mut obs = Vec::new();
+        for i in 0..60 {
+            let pc = Vector3::new(
+                -1.5 + 0.05 * i as f64,
+                ((i * 7) % 11) as f64 * 0.2 - 1.0,
+                4.0 + (i % 5) as f64,
+            );
+            obs.push(PoseObservation {
+                p_world: Point3::from(pc),
+                uv: k.project(&pc),
+                inv_sigma2: 1.0,
+            });
+        }
+        let mut probe_low = obs[0];
+        probe_low.uv.x += 3.5;
+        let mut probe_high = obs[1];
+        probe_high.uv.x += 3.5;
+        probe_high.inv_sigma2 = 1.0 / 1.2f64.powi(10);
+        obs[0] = probe_low;
+        obs[1] = probe_high;
+        let rep = optimize_pose(truth, &obs, &k, &PoseParams::default()).unwrap();
+        assert!(!rep.inliers[0], "octave-0 3.5 px error kept");
+        assert!(rep.inliers[1], "octave-5 3.5 px error rejected");
+        assert_eq!(rep.n_inliers, 59);
+    }
+
     #[test]
     fn recovers_pose_and_rejects_outliers() {
         let mut rng = SmallRng::seed_from_u64(3);

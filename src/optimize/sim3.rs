@@ -426,6 +426,49 @@ mod tests {
     }
 
     #[test]
+    fn fixed_scale_is_held() {
+        let truth = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.02, -0.1, 0.05),
+            Vector3::new(-0.3, 0.1, 0.2),
+            1.0,
+        );
+        let k = intr();
+        let mut rng = SmallRng::seed_from_u64(2);
+        let ms: Vec<Sim3Match> = (0..60)
+            .map(|_| {
+                let x1 = Point3::new(
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(-1.5..1.5),
+                    rng.random_range(3.0..7.0),
+                );
+                let x2 = truth.inverse().transform_point(&x1);
+                Sim3Match {
+                    x1_cam1: x1,
+                    x2_cam2: x2,
+                    uv1: k.project(&x1.coords),
+                    uv2: k.project(&x2.coords),
+                    inv_sigma2_1: 1.0,
+                    inv_sigma2_2: 1.0,
+                }
+            })
+            .collect();
+        let init = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.04, -0.08, 0.03),
+            Vector3::new(-0.2, 0.05, 0.25),
+            1.0,
+        );
+        let params = Sim3Params {
+            fix_scale: true,
+            ..Sim3Params::default()
+        };
+        let rep = optimize_sim3(&init, &ms, &k, &params).unwrap();
+        assert_eq!(rep.s12.scale, 1.0);
+        assert!(rep.s12.rotation.angle_to(&truth.rotation) < 1e-6);
+        assert!((rep.s12.translation - truth.translation).norm() < 1e-6);
+        assert_eq!(rep.n_inliers, 60);
+    }
+
+    #[test]
     fn recovers_sim3_and_drops_bad_matches() {
         let mut rng = SmallRng::seed_from_u64(11);
         let truth = Sim3::new(

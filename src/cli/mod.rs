@@ -1,0 +1,3 @@
+//! Bodies of the longer subcommands (the argument types live in `main.rs`).
+
+pub mod slam;

@@ -1,0 +1,213 @@
+//! `shotpilot slam`: run the SLAM on a dataset and report.
+
+use std::io::IsTerminal;
+use std::sync::Arc;
+use std::sync::mpsc::sync_channel;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use serde_json::json;
+
+use shotpilot::eval::{self, Trajectory};
+use shotpilot::slam::{self, Slam, TrackState};
+use shotpilot::video::dataset::Dataset;
+
+use crate::SlamArgs;
+
+/// Median and 95th percentile of a list of milliseconds.
+fn med_p95(v: &[f64]) -> (f64, f64) {
+    if v.is_empty() {
+        return (0.0, 0.0);
+    }
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let med = s[(s.len() - 1) / 2];
+    let p95 = s[((s.len() as f64 * 0.95).ceil() as usize).clamp(1, s.len()) - 1];
+    (med, p95)
+}
+
+pub fn run(args: SlamArgs) -> Result<()> {
+    let ds = Dataset::open(&args.dataset)?;
+    let n = args.max_frames.map_or(ds.len(), |m| m.min(ds.len()));
+    if n == 0 {
+        bail!("{}: no frames to process", args.dataset.display());
+    }
+    if !(args.speed >= 0.0 && args.speed.is_finite()) {
+        bail!("--speed must be a non-negative number, got {}", args.speed);
+    }
+    let gt = match &args.gt {
+        Some(p) => Some(Trajectory::read_tum(p)?),
+        None => ds.groundtruth.clone(),
+    };
+    let mut params = slam::Params::default();
+    params.sequential = args.sequential;
+    params.tracking.features.n_features = args.features;
+    params.tracking.init_features = args.features * 2;
+    params.tracking.seed = args.seed;
+    let mut system = Slam::new(ds.camera, params).context("starting the SLAM")?;
+
+    // Decode frames ahead on a reader thread (decoding is not tracking).
+    let (tx, rx) = sync_channel(8);
+    let reader_ds = ds.clone();
+    let reader = std::thread::Builder::new()
+        .name("frame-reader".into())
+        .spawn(move || {
+            for i in 0..n {
+                let f = reader_ds.frame(i);
+                let stop = f.is_err();
+                if tx.send(f).is_err() || stop {
+                    break;
+                }
+            }
+        })
+        .context("starting the frame reader")?;
+
+    let bar = if std::io::stderr().is_terminal() && !args.json {
+        let b = indicatif::ProgressBar::new(n as u64);
+        b.set_style(
+            indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut extract_ms = Vec::with_capacity(n);
+    let mut track_ms = Vec::with_capacity(n);
+    let mut tracked = 0usize;
+    let mut lost_frames = 0usize;
+    let start = Instant::now();
+    let mut t_first: Option<f64> = None;
+    for _ in 0..n {
+        let frame = rx.recv().context("frame reader stopped")??;
+        if !args.sequential && args.speed > 0.0 {
+            let t0 = *t_first.get_or_insert(frame.timestamp);
+            let due = Duration::from_secs_f64(((frame.timestamp - t0) / args.speed).max(0.0));
+            if let Some(wait) = due.checked_sub(start.elapsed()) {
+                std::thread::sleep(wait);
+            }
+        }
+        let out = system.process(frame.index as u64, frame.timestamp, Arc::new(frame.image));
+        extract_ms.push(out.extract_ms);
+        track_ms.push(out.track_ms);
+        match out.state {
+            TrackState::Tracking => tracked += 1,
+            TrackState::Lost => lost_frames += 1,
+            TrackState::NotInitialized => {}
+        }
+        if let Some(r) = &out.reason {
+            tracing::debug!(frame = frame.index, reason = %r, "frame not tracked");
+        }
+        bar.set_message(format!("{:?}", out.state));
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let _ = reader.join();
+    let wall_s = start.elapsed().as_secs_f64();
+    let run = system.finish();
+    let traj = run.trajectory();
+    let kf_traj = run.keyframe_trajectory();
+    let initialized = run.initialized_at.is_some();
+
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        traj.write_tum(&dir.join("trajectory.txt"))?;
+        kf_traj.write_tum(&dir.join("keyframes.txt"))?;
+    }
+    if let Some(path) = &args.save_map {
+        if initialized {
+            slam::mapfile::save(&run.map, path)?;
+            tracing::info!(path = %path.display(), keyframes = run.map.keyframe_count(), "map saved");
+        } else {
+            tracing::warn!("no map to save: not initialised");
+        }
+    }
+    let eval_params = eval::Params {
+        max_dt: args.max_dt,
+        ..Default::default()
+    };
+    let (ate, ate_kf) = match (&gt, initialized) {
+        (Some(gt), true) => (
+            eval::evaluate(gt, &traj, &eval_params).ok(),
+            eval::evaluate(gt, &kf_traj, &eval_params).ok(),
+        ),
+        _ => (None, None),
+    };
+    let (med_ex, p95_ex) = med_p95(&extract_ms);
+    let (med_tr, p95_tr) = med_p95(&track_ms);
+    let map_ms: Vec<f64> = run.mapping.iter().map(|r| r.total_ms).collect();
+    let ba_ms: Vec<f64> = run
+        .mapping
+        .iter()
+        .map(|r| r.ba_ms)
+        .filter(|v| *v > 0.0)
+        .collect();
+    let (med_map, p95_map) = med_p95(&map_ms);
+    let (med_ba, p95_ba) = med_p95(&ba_ms);
+    let reason = if initialized {
+        None
+    } else {
+        run.last_reason.clone()
+    };
+    if args.json {
+        let out = json!({
+            "dataset": args.dataset.display().to_string(),
+            "frames": n,
+            "initialized": initialized,
+            "initialized_at_frame": run.initialized_at,
+            "reason": reason,
+            "tracked_frames": traj.len(),
+            "lost_frames": lost_frames,
+            "keyframes": run.map.keyframe_count(),
+            "map_points": run.map.point_count(),
+            "median_extract_ms": med_ex,
+            "p95_extract_ms": p95_ex,
+            "median_track_ms": med_tr,
+            "p95_track_ms": p95_tr,
+            "median_mapping_ms": med_map,
+            "p95_mapping_ms": p95_map,
+            "median_local_ba_ms": med_ba,
+            "p95_local_ba_ms": p95_ba,
+            "wall_s": wall_s,
+            "ate_rmse_m": ate.as_ref().map(|e| e.ate.rmse),
+            "ate_max_m": ate.as_ref().map(|e| e.ate.max),
+            "ate_matched": ate.as_ref().map(|e| e.matched),
+            "ate_scale": ate.as_ref().map(|e| e.alignment.scale),
+            "ate_keyframes_rmse_m": ate_kf.as_ref().map(|e| e.ate.rmse),
+            "gt_path_length_m": gt.as_ref().map(|g| g.path_length()),
+            "sequential": args.sequential,
+        });
+        println!("{out}");
+    } else {
+        if !initialized {
+            println!(
+                "not initialised after {n} frames: {}",
+                reason.as_deref().unwrap_or("no reason recorded")
+            );
+            return Ok(());
+        }
+        println!(
+            "{n} frames: initialised at frame {}, {} tracked ({} counted while tracking, {lost_frames} lost), {} keyframes, {} map points, {wall_s:.2} s",
+            run.initialized_at.unwrap_or(0),
+            traj.len(),
+            tracked,
+            run.map.keyframe_count(),
+            run.map.point_count()
+        );
+        println!(
+            "per frame   extraction median {med_ex:.2} ms p95 {p95_ex:.2} ms | tracking (with extraction) median {med_tr:.2} ms p95 {p95_tr:.2} ms"
+        );
+        println!(
+            "per keyframe mapping median {med_map:.2} ms p95 {p95_map:.2} ms | local BA median {med_ba:.2} ms p95 {p95_ba:.2} ms"
+        );
+        match (&ate, &ate_kf) {
+            (Some(a), Some(k)) => println!(
+                "ATE (Sim(3)) all frames rmse {:.4} m max {:.4} m ({} matched) | keyframes rmse {:.4} m ({} matched)",
+                a.ate.rmse, a.ate.max, a.matched, k.ate.rmse, k.matched
+            ),
+            _ if gt.is_some() => println!("ATE: too few poses matched the ground truth"),
+            _ => {}
+        }
+    }
+    Ok(())
+}

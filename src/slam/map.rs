@@ -1,0 +1,897 @@
+//! The map: keyframes and map points in arenas with typed ids, observations
+//! kept both ways, the covisibility graph with weights and its spanning tree.
+//!
+//! Invariants (checked by [`Map::check_invariants`]):
+//! - a point lists keyframe `k` at keypoint `i` exactly when keyframe `k`'s
+//!   slot `i` holds that point;
+//! - no live object refers to an erased id;
+//! - covisibility weights are symmetric.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use image::GrayImage;
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use crate::camera::Camera;
+use crate::features::{Descriptor, KeyPoint, hamming};
+
+use super::grid::FeatureGrid;
+
+/// Id of a keyframe, unique for the life of a map (never reused).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct KeyFrameId(pub u32);
+
+/// Id of a map point, unique for the life of a map (never reused).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct PointId(pub u32);
+
+/// Scale information of the extractor that the map needs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScaleInfo {
+    /// Scale factor between levels.
+    pub scale_factor: f64,
+    /// Per level: `scale_factor^level`.
+    pub scale_factors: Vec<f64>,
+    /// Per level: `1 / sigma^2` of a keypoint's position (level 0: 1 px).
+    pub inv_level_sigma2: Vec<f64>,
+}
+
+impl ScaleInfo {
+    /// Scale factors for `n_levels` levels of `scale_factor`.
+    pub fn new(scale_factor: f64, n_levels: usize) -> Self {
+        let scale_factors: Vec<f64> = (0..n_levels.max(1))
+            .map(|l| scale_factor.powi(l as i32))
+            .collect();
+        let inv_level_sigma2 = scale_factors.iter().map(|s| 1.0 / (s * s)).collect();
+        ScaleInfo {
+            scale_factor,
+            scale_factors,
+            inv_level_sigma2,
+        }
+    }
+
+    /// Number of levels.
+    pub fn n_levels(&self) -> usize {
+        self.scale_factors.len()
+    }
+
+    /// The level at which a point at `dist` whose scale range ends at
+    /// `max_distance` should appear (ORB-SLAM's PredictScale).
+    pub fn predict_level(&self, max_distance: f64, dist: f64) -> usize {
+        let ratio = max_distance / dist.max(1e-9);
+        let level = (ratio.ln() / self.scale_factor.ln()).ceil();
+        if level.is_finite() {
+            (level.max(0.0) as usize).min(self.n_levels() - 1)
+        } else {
+            0
+        }
+    }
+}
+
+/// A keyframe: a frame kept in the map, with its features and pose.
+#[derive(Debug, Clone)]
+pub struct KeyFrame {
+    /// Its id.
+    pub id: KeyFrameId,
+    /// Index of the source frame in the input stream.
+    pub frame_index: u64,
+    /// Capture time, seconds.
+    pub timestamp: f64,
+    /// Pose: world to camera.
+    pub cam_from_world: Isometry3<f64>,
+    /// Keypoints (level-0 pixels, distorted and undistorted).
+    pub keypoints: Vec<KeyPoint>,
+    /// Descriptors, one per keypoint.
+    pub descriptors: Vec<Descriptor>,
+    /// Per keypoint: the map point it observes.
+    pub points: Vec<Option<PointId>>,
+    /// Keypoints by image cell (undistorted coordinates).
+    pub grid: FeatureGrid,
+    /// Covisible keyframes with the number of shared points (weight >= the
+    /// connection threshold), sorted by weight, largest first.
+    pub covisible: Vec<(KeyFrameId, u32)>,
+    /// Parent in the spanning tree (none for the first keyframe).
+    pub parent: Option<KeyFrameId>,
+    /// Children in the spanning tree.
+    pub children: Vec<KeyFrameId>,
+    /// The grayscale image (for the map file, the API and the desired shot).
+    pub image: Option<Arc<GrayImage>>,
+}
+
+impl KeyFrame {
+    /// The camera centre in world coordinates.
+    pub fn center(&self) -> Vector3<f64> {
+        self.cam_from_world.inverse().translation.vector
+    }
+
+    /// The pose as world_from_cam.
+    pub fn world_from_cam(&self) -> Isometry3<f64> {
+        self.cam_from_world.inverse()
+    }
+
+    /// Number of map points observed by at least `min_obs` keyframes.
+    pub fn tracked_points(&self, map: &Map, min_obs: usize) -> usize {
+        self.points
+            .iter()
+            .flatten()
+            .filter(|p| {
+                map.point(**p)
+                    .is_some_and(|mp| mp.observations.len() >= min_obs)
+            })
+            .count()
+    }
+
+    /// The best `n` covisible keyframes.
+    pub fn best_covisible(&self, n: usize) -> impl Iterator<Item = KeyFrameId> + '_ {
+        self.covisible.iter().take(n).map(|c| c.0)
+    }
+
+    /// Weight of the edge to `other` (0 when not connected).
+    pub fn weight(&self, other: KeyFrameId) -> u32 {
+        self.covisible
+            .iter()
+            .find(|c| c.0 == other)
+            .map_or(0, |c| c.1)
+    }
+}
+
+/// A 3D point of the map with the keyframes that observe it.
+#[derive(Debug, Clone)]
+pub struct MapPoint {
+    /// Its id.
+    pub id: PointId,
+    /// Position in the world.
+    pub position: Point3<f64>,
+    /// Observations: (keyframe, keypoint index in it).
+    pub observations: Vec<(KeyFrameId, u32)>,
+    /// The representative descriptor: the observation with the least median
+    /// distance to the others.
+    pub descriptor: Descriptor,
+    /// Mean viewing direction (unit, world frame), from the point to the cameras.
+    pub normal: Vector3<f64>,
+    /// Closest distance at which the point keeps its scale (scale invariance).
+    pub min_distance: f64,
+    /// Farthest distance at which the point keeps its scale.
+    pub max_distance: f64,
+    /// The keyframe that created it.
+    pub first_kf: KeyFrameId,
+    /// The keyframe used as reference for the scale range.
+    pub ref_kf: KeyFrameId,
+    /// Frames in whose view frustum it was.
+    pub visible: u32,
+    /// Frames in which it was matched.
+    pub found: u32,
+}
+
+impl MapPoint {
+    /// Share of the frames that saw it in view that also matched it.
+    pub fn found_ratio(&self) -> f64 {
+        self.found as f64 / self.visible.max(1) as f64
+    }
+
+    /// Keypoint index of this point in keyframe `kf`.
+    pub fn index_in(&self, kf: KeyFrameId) -> Option<u32> {
+        self.observations.iter().find(|o| o.0 == kf).map(|o| o.1)
+    }
+}
+
+/// A keyframe removed from the map, kept so frames that referred to it can
+/// still be placed: their pose goes through its parent.
+#[derive(Debug, Clone, Copy)]
+pub struct CulledKeyFrame {
+    /// Its parent when it was removed.
+    pub parent: KeyFrameId,
+    /// Its pose relative to the parent: cam_from_parent_cam.
+    pub cam_from_parent: Isometry3<f64>,
+}
+
+/// Keyframes, points and the graphs between them.
+#[derive(Debug, Clone)]
+pub struct Map {
+    /// The camera of every keyframe.
+    pub camera: Camera,
+    /// Extractor scale levels.
+    pub scale: ScaleInfo,
+    keyframes: Vec<Option<KeyFrame>>,
+    points: Vec<Option<MapPoint>>,
+    n_keyframes: usize,
+    n_points: usize,
+    /// Removed keyframes, for placing frames referring to them.
+    pub culled: HashMap<KeyFrameId, CulledKeyFrame>,
+    /// Keyframes with fewer shared points are not covisibility neighbours.
+    pub covisibility_threshold: u32,
+}
+
+impl Map {
+    /// An empty map.
+    pub fn new(camera: Camera, scale: ScaleInfo) -> Self {
+        Map {
+            camera,
+            scale,
+            keyframes: Vec::new(),
+            points: Vec::new(),
+            n_keyframes: 0,
+            n_points: 0,
+            culled: HashMap::new(),
+            covisibility_threshold: 15,
+        }
+    }
+
+    /// Rebuild a map from its parts (the map file): objects are placed at
+    /// their ids; ids must be unique and every reference must resolve.
+    pub fn from_parts(
+        camera: Camera,
+        scale: ScaleInfo,
+        covisibility_threshold: u32,
+        keyframes: Vec<KeyFrame>,
+        points: Vec<MapPoint>,
+        culled: Vec<(KeyFrameId, CulledKeyFrame)>,
+    ) -> Result<Map, String> {
+        let mut map = Map::new(camera, scale);
+        map.covisibility_threshold = covisibility_threshold;
+        let max_kf = keyframes
+            .iter()
+            .map(|k| k.id.0 as usize + 1)
+            .chain(culled.iter().map(|c| c.0.0 as usize + 1))
+            .max()
+            .unwrap_or(0);
+        let max_p = points
+            .iter()
+            .map(|p| p.id.0 as usize + 1)
+            .max()
+            .unwrap_or(0);
+        if max_kf > 10_000_000 || max_p > 100_000_000 {
+            return Err("ids out of range".into());
+        }
+        map.keyframes = vec![None; max_kf];
+        map.points = vec![None; max_p];
+        for kf in keyframes {
+            let slot = &mut map.keyframes[kf.id.0 as usize];
+            if slot.is_some() {
+                return Err(format!("keyframe id {} twice", kf.id.0));
+            }
+            *slot = Some(kf);
+            map.n_keyframes += 1;
+        }
+        for p in points {
+            let slot = &mut map.points[p.id.0 as usize];
+            if slot.is_some() {
+                return Err(format!("point id {} twice", p.id.0));
+            }
+            *slot = Some(p);
+            map.n_points += 1;
+        }
+        for (id, c) in culled {
+            map.culled.insert(id, c);
+        }
+        Ok(map)
+    }
+
+    /// Number of live keyframes.
+    pub fn keyframe_count(&self) -> usize {
+        self.n_keyframes
+    }
+
+    /// Number of live points.
+    pub fn point_count(&self) -> usize {
+        self.n_points
+    }
+
+    /// A live keyframe.
+    pub fn keyframe(&self, id: KeyFrameId) -> Option<&KeyFrame> {
+        self.keyframes.get(id.0 as usize).and_then(Option::as_ref)
+    }
+
+    /// A live keyframe, mutable.
+    pub fn keyframe_mut(&mut self, id: KeyFrameId) -> Option<&mut KeyFrame> {
+        self.keyframes
+            .get_mut(id.0 as usize)
+            .and_then(Option::as_mut)
+    }
+
+    /// A live point.
+    pub fn point(&self, id: PointId) -> Option<&MapPoint> {
+        self.points.get(id.0 as usize).and_then(Option::as_ref)
+    }
+
+    /// A live point, mutable.
+    pub fn point_mut(&mut self, id: PointId) -> Option<&mut MapPoint> {
+        self.points.get_mut(id.0 as usize).and_then(Option::as_mut)
+    }
+
+    /// All live keyframes, by id.
+    pub fn keyframes(&self) -> impl Iterator<Item = &KeyFrame> {
+        self.keyframes.iter().flatten()
+    }
+
+    /// All live points, by id.
+    pub fn points(&self) -> impl Iterator<Item = &MapPoint> {
+        self.points.iter().flatten()
+    }
+
+    /// The id the next keyframe will get.
+    pub fn next_keyframe_id(&self) -> KeyFrameId {
+        KeyFrameId(self.keyframes.len() as u32)
+    }
+
+    /// Insert a keyframe (its `id` is set here); its `points` slots are
+    /// taken as given and their observations are added to the points.
+    pub fn add_keyframe(&mut self, mut kf: KeyFrame) -> KeyFrameId {
+        let id = self.next_keyframe_id();
+        kf.id = id;
+        let slots: Vec<(u32, PointId)> = kf
+            .points
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| p.map(|p| (i as u32, p)))
+            .collect();
+        kf.points.iter_mut().for_each(|p| *p = None);
+        self.keyframes.push(Some(kf));
+        self.n_keyframes += 1;
+        for (i, p) in slots {
+            self.add_observation(p, id, i);
+        }
+        id
+    }
+
+    /// Insert a point with no observations yet.
+    pub fn add_point(
+        &mut self,
+        position: Point3<f64>,
+        descriptor: Descriptor,
+        first_kf: KeyFrameId,
+    ) -> PointId {
+        let id = PointId(self.points.len() as u32);
+        self.points.push(Some(MapPoint {
+            id,
+            position,
+            observations: Vec::with_capacity(4),
+            descriptor,
+            normal: Vector3::zeros(),
+            min_distance: 0.0,
+            max_distance: f64::INFINITY,
+            first_kf,
+            ref_kf: first_kf,
+            visible: 1,
+            found: 1,
+        }));
+        self.n_points += 1;
+        id
+    }
+
+    /// Record that keyframe `kf` sees point `p` at keypoint `idx` (both ways).
+    /// A slot already holding another point keeps it (returns false).
+    pub fn add_observation(&mut self, p: PointId, kf: KeyFrameId, idx: u32) -> bool {
+        let Some(mp) = self.point(p) else {
+            return false;
+        };
+        let existing = mp.index_in(kf);
+        let Some(k) = self.keyframe_mut(kf) else {
+            return false;
+        };
+        match k.points.get(idx as usize) {
+            None => return false,
+            Some(Some(q)) => return *q == p,
+            Some(None) => {}
+        }
+        k.points[idx as usize] = Some(p);
+        if let Some(old) = existing {
+            // Seen by this keyframe at another keypoint: one observation per
+            // keyframe, the newer wins.
+            if let Some(s) = k.points.get_mut(old as usize) {
+                *s = None;
+            }
+            if let Some(mp) = self.point_mut(p)
+                && let Some(o) = mp.observations.iter_mut().find(|o| o.0 == kf)
+            {
+                o.1 = idx;
+            }
+        } else if let Some(mp) = self.point_mut(p) {
+            mp.observations.push((kf, idx));
+        }
+        true
+    }
+
+    /// Remove the observation of `p` by `kf` (both ways). A point left with
+    /// fewer than 2 observations is erased. Returns true when it was erased.
+    pub fn erase_observation(&mut self, p: PointId, kf: KeyFrameId) -> bool {
+        let Some(mp) = self.point_mut(p) else {
+            return false;
+        };
+        let Some(pos) = mp.observations.iter().position(|o| o.0 == kf) else {
+            return false;
+        };
+        let (_, idx) = mp.observations.swap_remove(pos);
+        let remaining = mp.observations.len();
+        let ref_gone = mp.ref_kf == kf;
+        if ref_gone && let Some(first) = mp.observations.first() {
+            mp.ref_kf = first.0;
+        }
+        if let Some(k) = self.keyframe_mut(kf)
+            && let Some(s) = k.points.get_mut(idx as usize)
+            && *s == Some(p)
+        {
+            *s = None;
+        }
+        if remaining < 2 {
+            self.erase_point(p);
+            return true;
+        }
+        false
+    }
+
+    /// Erase a point and every reference to it.
+    pub fn erase_point(&mut self, p: PointId) {
+        let Some(slot) = self.points.get_mut(p.0 as usize) else {
+            return;
+        };
+        let Some(mp) = slot.take() else {
+            return;
+        };
+        self.n_points -= 1;
+        for (kf, idx) in mp.observations {
+            if let Some(k) = self.keyframe_mut(kf)
+                && let Some(s) = k.points.get_mut(idx as usize)
+                && *s == Some(p)
+            {
+                *s = None;
+            }
+        }
+    }
+
+    /// Replace point `old` by `new` everywhere (fusion of duplicates): the
+    /// observations of `old` move to `new` where the keyframe does not
+    /// already see `new`; `old` is erased.
+    pub fn replace_point(&mut self, old: PointId, new: PointId) {
+        if old == new || self.point(new).is_none() {
+            return;
+        }
+        let Some(mp_old) = self.points.get_mut(old.0 as usize).and_then(Option::take) else {
+            return;
+        };
+        self.n_points -= 1;
+        let (visible, found) = (mp_old.visible, mp_old.found);
+        for (kf, idx) in mp_old.observations {
+            let already = self.point(new).is_some_and(|m| m.index_in(kf).is_some());
+            if let Some(k) = self.keyframe_mut(kf)
+                && let Some(s) = k.points.get_mut(idx as usize)
+            {
+                *s = None;
+            }
+            if !already {
+                self.add_observation(new, kf, idx);
+            }
+        }
+        if let Some(mp) = self.point_mut(new) {
+            mp.visible += visible;
+            mp.found += found;
+        }
+        self.update_point_descriptor(new);
+        self.update_point_normal_and_depth(new);
+    }
+
+    /// Erase a keyframe: its observations are removed (points left with
+    /// fewer than 2 are erased), its children move to its parent, its
+    /// covisibility edges go, and its pose relative to its parent is kept in
+    /// [`Map::culled`]. The first keyframe (no parent) is never erased.
+    pub fn erase_keyframe(&mut self, id: KeyFrameId) -> bool {
+        let Some(kf) = self.keyframe(id) else {
+            return false;
+        };
+        let Some(parent) = kf.parent else {
+            return false;
+        };
+        let Some(parent_kf) = self.keyframe(parent) else {
+            return false;
+        };
+        let cam_from_parent = kf.cam_from_world * parent_kf.cam_from_world.inverse();
+        let children = kf.children.clone();
+        let covis: Vec<KeyFrameId> = kf.covisible.iter().map(|c| c.0).collect();
+        let observed: Vec<PointId> = kf.points.iter().flatten().copied().collect();
+        for p in observed {
+            self.erase_observation(p, id);
+        }
+        for c in covis {
+            if let Some(k) = self.keyframe_mut(c) {
+                k.covisible.retain(|e| e.0 != id);
+            }
+        }
+        // Children: re-parent to the erased keyframe's parent.
+        for c in &children {
+            if let Some(k) = self.keyframe_mut(*c) {
+                k.parent = Some(parent);
+            }
+        }
+        if let Some(p) = self.keyframe_mut(parent) {
+            p.children.retain(|c| *c != id);
+            p.children.extend(children.iter().copied());
+        }
+        self.culled.insert(
+            id,
+            CulledKeyFrame {
+                parent,
+                cam_from_parent,
+            },
+        );
+        self.keyframes[id.0 as usize] = None;
+        self.n_keyframes -= 1;
+        true
+    }
+
+    /// The pose (cam_from_world) of a keyframe, live or culled.
+    pub fn keyframe_pose(&self, id: KeyFrameId) -> Option<Isometry3<f64>> {
+        let mut id = id;
+        let mut chain = Isometry3::identity();
+        for _ in 0..100_000 {
+            if let Some(kf) = self.keyframe(id) {
+                return Some(chain * kf.cam_from_world);
+            }
+            let c = self.culled.get(&id)?;
+            chain *= c.cam_from_parent;
+            id = c.parent;
+        }
+        None
+    }
+
+    /// Recompute the covisibility edges of `id` from shared points, on both
+    /// ends, and give it a parent (its strongest neighbour) if it has none
+    /// and is not the first keyframe.
+    pub fn update_connections(&mut self, id: KeyFrameId) {
+        let Some(kf) = self.keyframe(id) else {
+            return;
+        };
+        let mut counts: HashMap<KeyFrameId, u32> = HashMap::new();
+        for p in kf.points.iter().flatten() {
+            if let Some(mp) = self.point(*p) {
+                for (other, _) in &mp.observations {
+                    if *other != id {
+                        *counts.entry(*other).or_insert(0) += 1;
+                    }
+                }
+            }
+        }
+        let first = self.keyframes().next().map(|k| k.id);
+        let had_parent = kf.parent.is_some();
+        if counts.is_empty() {
+            return;
+        }
+        let th = self.covisibility_threshold;
+        let (best_id, best_w) = counts
+            .iter()
+            .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
+            .map(|(k, w)| (*k, *w))
+            .unwrap_or((id, 0));
+        let mut edges: Vec<(KeyFrameId, u32)> = counts
+            .iter()
+            .filter(|e| *e.1 >= th)
+            .map(|(k, w)| (*k, *w))
+            .collect();
+        if edges.is_empty() {
+            edges.push((best_id, best_w));
+        }
+        edges.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        // Symmetric update on the other ends.
+        for (other, w) in counts {
+            let keep = w >= th || other == best_id;
+            if let Some(k) = self.keyframe_mut(other) {
+                k.covisible.retain(|e| e.0 != id);
+                if keep {
+                    let pos = k
+                        .covisible
+                        .partition_point(|e| e.1 > w || (e.1 == w && e.0 < id));
+                    k.covisible.insert(pos, (id, w));
+                }
+            }
+        }
+        if let Some(k) = self.keyframe_mut(id) {
+            // Edges that vanished on this side vanish on the other too.
+            let old: Vec<KeyFrameId> = k.covisible.iter().map(|e| e.0).collect();
+            k.covisible = edges.clone();
+            for o in old {
+                if !edges.iter().any(|e| e.0 == o)
+                    && let Some(ok) = self.keyframe_mut(o)
+                {
+                    ok.covisible.retain(|e| e.0 != id);
+                }
+            }
+        }
+        if !had_parent && Some(id) != first && best_id != id {
+            if let Some(k) = self.keyframe_mut(id) {
+                k.parent = Some(best_id);
+            }
+            if let Some(p) = self.keyframe_mut(best_id) {
+                p.children.push(id);
+            }
+        }
+    }
+
+    /// Choose the representative descriptor of a point: the one with the
+    /// least median Hamming distance to the point's other descriptors.
+    pub fn update_point_descriptor(&mut self, p: PointId) {
+        let Some(mp) = self.point(p) else {
+            return;
+        };
+        let descs: Vec<Descriptor> = mp
+            .observations
+            .iter()
+            .filter_map(|(kf, idx)| {
+                self.keyframe(*kf)
+                    .and_then(|k| k.descriptors.get(*idx as usize))
+                    .copied()
+            })
+            .collect();
+        if descs.is_empty() {
+            return;
+        }
+        let n = descs.len();
+        let mut best = (u32::MAX, 0usize);
+        let mut row = vec![0u32; n];
+        for i in 0..n {
+            for j in 0..n {
+                row[j] = hamming(&descs[i], &descs[j]);
+            }
+            row.sort_unstable();
+            let median = row[(n - 1) / 2];
+            if median < best.0 {
+                best = (median, i);
+            }
+        }
+        let d = descs[best.1];
+        if let Some(mp) = self.point_mut(p) {
+            mp.descriptor = d;
+        }
+    }
+
+    /// Recompute a point's mean viewing direction and scale-invariance range.
+    pub fn update_point_normal_and_depth(&mut self, p: PointId) {
+        let Some(mp) = self.point(p) else {
+            return;
+        };
+        let pos = mp.position.coords;
+        let mut normal = Vector3::zeros();
+        let mut n = 0;
+        for (kf, _) in &mp.observations {
+            if let Some(k) = self.keyframe(*kf) {
+                let v = pos - k.center();
+                let norm = v.norm();
+                if norm > 0.0 {
+                    normal += v / norm;
+                    n += 1;
+                }
+            }
+        }
+        let ref_kf = if self.keyframe(mp.ref_kf).is_some() {
+            mp.ref_kf
+        } else {
+            match mp.observations.first() {
+                Some(o) => o.0,
+                None => return,
+            }
+        };
+        let Some(rk) = self.keyframe(ref_kf) else {
+            return;
+        };
+        let Some(idx) = mp.index_in(ref_kf) else {
+            return;
+        };
+        let dist = (pos - rk.center()).norm();
+        let octave = rk
+            .keypoints
+            .get(idx as usize)
+            .map_or(0, |k| k.octave as usize);
+        let level_scale = self.scale.scale_factors.get(octave).copied().unwrap_or(1.0);
+        let top = self.scale.scale_factors.last().copied().unwrap_or(1.0);
+        let max_distance = dist * level_scale;
+        let min_distance = max_distance / top;
+        if let Some(mp) = self.point_mut(p) {
+            if n > 0 {
+                mp.normal = (normal / n as f64).normalize();
+            }
+            mp.ref_kf = ref_kf;
+            mp.max_distance = max_distance;
+            mp.min_distance = min_distance;
+        }
+    }
+
+    /// Median depth of the keyframe's points in its camera (None without points).
+    pub fn median_depth(&self, id: KeyFrameId) -> Option<f64> {
+        let kf = self.keyframe(id)?;
+        let mut depths: Vec<f64> = kf
+            .points
+            .iter()
+            .flatten()
+            .filter_map(|p| self.point(*p))
+            .map(|mp| (kf.cam_from_world * mp.position).z)
+            .collect();
+        if depths.is_empty() {
+            return None;
+        }
+        depths.sort_by(f64::total_cmp);
+        Some(depths[(depths.len() - 1) / 2])
+    }
+
+    /// Check the map's invariants; a description of the first violation.
+    pub fn check_invariants(&self) -> Result<(), String> {
+        let mut n_kf = 0;
+        for kf in self.keyframes() {
+            n_kf += 1;
+            if kf.points.len() != kf.keypoints.len() || kf.descriptors.len() != kf.keypoints.len() {
+                return Err(format!("keyframe {:?}: slot counts differ", kf.id));
+            }
+            for (i, p) in kf.points.iter().enumerate() {
+                if let Some(p) = p {
+                    let Some(mp) = self.point(*p) else {
+                        return Err(format!(
+                            "keyframe {:?} slot {i}: dangling point {:?}",
+                            kf.id, p
+                        ));
+                    };
+                    if mp.index_in(kf.id) != Some(i as u32) {
+                        return Err(format!(
+                            "keyframe {:?} slot {i}: point {:?} does not list it",
+                            kf.id, p
+                        ));
+                    }
+                }
+            }
+            for (o, w) in &kf.covisible {
+                let Some(other) = self.keyframe(*o) else {
+                    return Err(format!("keyframe {:?}: dangling covisible {:?}", kf.id, o));
+                };
+                if other.weight(kf.id) != *w {
+                    return Err(format!(
+                        "covisibility {:?}-{:?} asymmetric: {} vs {}",
+                        kf.id,
+                        o,
+                        w,
+                        other.weight(kf.id)
+                    ));
+                }
+            }
+            if let Some(p) = kf.parent {
+                let Some(pk) = self.keyframe(p) else {
+                    return Err(format!("keyframe {:?}: dangling parent {:?}", kf.id, p));
+                };
+                if !pk.children.contains(&kf.id) {
+                    return Err(format!(
+                        "keyframe {:?}: parent {:?} does not list it",
+                        kf.id, p
+                    ));
+                }
+            }
+            for c in &kf.children {
+                if self.keyframe(*c).and_then(|k| k.parent) != Some(kf.id) {
+                    return Err(format!(
+                        "keyframe {:?}: child {:?} has another parent",
+                        kf.id, c
+                    ));
+                }
+            }
+        }
+        if n_kf != self.n_keyframes {
+            return Err(format!("keyframe count {} != {}", n_kf, self.n_keyframes));
+        }
+        let mut n_p = 0;
+        for mp in self.points() {
+            n_p += 1;
+            for (kf, idx) in &mp.observations {
+                let Some(k) = self.keyframe(*kf) else {
+                    return Err(format!("point {:?}: dangling keyframe {:?}", mp.id, kf));
+                };
+                if k.points.get(*idx as usize).copied().flatten() != Some(mp.id) {
+                    return Err(format!(
+                        "point {:?}: keyframe {:?} slot {idx} does not hold it",
+                        mp.id, kf
+                    ));
+                }
+            }
+        }
+        if n_p != self.n_points {
+            return Err(format!("point count {} != {}", n_p, self.n_points));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Distortion;
+    use nalgebra::Translation3;
+
+    fn kf(n: usize, x: f64) -> KeyFrame {
+        KeyFrame {
+            id: KeyFrameId(0),
+            frame_index: 0,
+            timestamp: x,
+            cam_from_world: Isometry3::from_parts(
+                Translation3::new(-x, 0.0, 0.0),
+                Default::default(),
+            ),
+            keypoints: vec![KeyPoint::default(); n],
+            descriptors: vec![[0; 4]; n],
+            points: vec![None; n],
+            grid: FeatureGrid::default(),
+            covisible: Vec::new(),
+            parent: None,
+            children: Vec::new(),
+            image: None,
+        }
+    }
+
+    fn map_with(n_kf: usize, n_pts: usize) -> Map {
+        let cam = Camera::new(
+            640,
+            480,
+            [500.0, 500.0, 320.0, 240.0],
+            Distortion::default(),
+        )
+        .unwrap();
+        let mut m = Map::new(cam, ScaleInfo::new(1.2, 8));
+        m.covisibility_threshold = 2;
+        let ids: Vec<KeyFrameId> = (0..n_kf)
+            .map(|i| m.add_keyframe(kf(n_pts, i as f64 * 0.1)))
+            .collect();
+        for j in 0..n_pts {
+            let p = m.add_point(
+                Point3::new(j as f64 * 0.01, 0.0, 2.0),
+                [j as u64; 4],
+                ids[0],
+            );
+            for &k in &ids {
+                assert!(m.add_observation(p, k, j as u32));
+            }
+            m.update_point_normal_and_depth(p);
+        }
+        for &k in &ids {
+            m.update_connections(k);
+        }
+        m
+    }
+
+    #[test]
+    fn observations_stay_two_way_through_edits() {
+        let mut m = map_with(4, 10);
+        m.check_invariants().unwrap();
+        assert_eq!(m.keyframe(KeyFrameId(0)).unwrap().covisible.len(), 3);
+        assert_eq!(m.keyframe(KeyFrameId(2)).unwrap().weight(KeyFrameId(1)), 10);
+        // A slot already holding another point is not overwritten.
+        assert!(!m.add_observation(PointId(1), KeyFrameId(0), 0));
+        // Erasing observations down to one erases the point.
+        for k in 0..3 {
+            m.erase_observation(PointId(3), KeyFrameId(k));
+        }
+        assert!(m.point(PointId(3)).is_none());
+        m.check_invariants().unwrap();
+        // Fusion: point 4's observations move to point 5 where possible.
+        m.erase_observation(PointId(5), KeyFrameId(3));
+        m.replace_point(PointId(4), PointId(5));
+        assert!(m.point(PointId(4)).is_none());
+        assert_eq!(m.point(PointId(5)).unwrap().observations.len(), 4);
+        m.check_invariants().unwrap();
+        // Erasing a keyframe re-parents its children and leaves no dangling id.
+        let child_of_1: Vec<KeyFrameId> = m.keyframe(KeyFrameId(1)).unwrap().children.clone();
+        let pose_before = m.keyframe(KeyFrameId(1)).unwrap().cam_from_world;
+        assert!(m.erase_keyframe(KeyFrameId(1)));
+        m.check_invariants().unwrap();
+        for c in child_of_1 {
+            assert_ne!(m.keyframe(c).unwrap().parent, Some(KeyFrameId(1)));
+        }
+        // Its pose can still be recovered through its parent.
+        let pose_after = m.keyframe_pose(KeyFrameId(1)).unwrap();
+        assert!((pose_after.translation.vector - pose_before.translation.vector).norm() < 1e-12);
+        // The first keyframe is never erased.
+        assert!(!m.erase_keyframe(KeyFrameId(0)));
+        assert_eq!(m.keyframe_count(), 3);
+    }
+
+    #[test]
+    fn scale_prediction_matches_orb_slam() {
+        let s = ScaleInfo::new(1.2, 8);
+        assert_eq!(s.predict_level(10.0, 10.0), 0);
+        assert_eq!(s.predict_level(10.0, 10.0 / 1.2 / 1.2 * 1.01), 2);
+        assert_eq!(s.predict_level(10.0, 0.001), 7);
+        assert_eq!(s.predict_level(10.0, 20.0), 0);
+    }
+}

@@ -1,0 +1,559 @@
+//! The SLAM's descriptor matching: for initialisation (window search), by
+//! projection of map points into a frame, along epipolar lines for
+//! triangulation, and fusion of duplicate points. Hamming distance on ORB
+//! descriptors with ORB-SLAM's thresholds and rotation-consistency check.
+
+use nalgebra::{Isometry3, Matrix3, Point2, Point3, Vector3};
+
+use crate::camera::Camera;
+use crate::features::{Descriptor, KeyPoint, hamming};
+
+use super::grid::{Bounds, FeatureGrid};
+use super::map::{KeyFrameId, Map, PointId, ScaleInfo};
+
+/// Tunable numbers of the matcher.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MatcherParams {
+    /// Largest Hamming distance for a match by projection.
+    pub th_high: u32,
+    /// Largest Hamming distance for initialisation and triangulation.
+    pub th_low: u32,
+    /// Bins of the rotation-consistency histogram.
+    pub histo_bins: usize,
+}
+
+impl Default for MatcherParams {
+    fn default() -> Self {
+        MatcherParams {
+            th_high: 100,
+            th_low: 50,
+            histo_bins: 30,
+        }
+    }
+}
+
+/// ORB-SLAM's rotation-consistency filter: the orientation differences of
+/// the matches go in a histogram; matches outside the three largest bins
+/// (bins under a tenth of the largest do not count) are dropped. `rot` holds
+/// per candidate match `(match id, angle difference in degrees)`. Returns the
+/// ids to drop.
+pub fn rotation_outliers(rot: &[(usize, f32)], bins: usize) -> Vec<usize> {
+    if rot.is_empty() || bins == 0 {
+        return Vec::new();
+    }
+    let factor = bins as f32 / 360.0;
+    let mut hist: Vec<Vec<usize>> = vec![Vec::new(); bins];
+    for &(id, d) in rot {
+        let d = d.rem_euclid(360.0);
+        let b = ((d * factor).round() as usize) % bins;
+        hist[b].push(id);
+    }
+    let mut order: Vec<usize> = (0..bins).collect();
+    order.sort_by(|a, b| hist[*b].len().cmp(&hist[*a].len()));
+    let max1 = hist[order[0]].len();
+    let keep = |k: usize| -> Option<usize> {
+        let b = *order.get(k)?;
+        (hist[b].len() as f32 >= 0.1 * max1 as f32 && !hist[b].is_empty()).then_some(b)
+    };
+    let kept: Vec<usize> = [keep(0), keep(1), keep(2)].into_iter().flatten().collect();
+    let mut out = Vec::new();
+    for (b, ids) in hist.iter().enumerate() {
+        if !kept.contains(&b) {
+            out.extend(ids.iter().copied());
+        }
+    }
+    out
+}
+
+/// Matches between two frames for initialisation: every level-0 keypoint of
+/// the first is searched for within `window` pixels of `prev` (its position
+/// in the frame matched last) in the second. Returns, per keypoint of the
+/// first frame, the matched keypoint of the second.
+#[allow(clippy::too_many_arguments)]
+pub fn search_for_initialization(
+    kps1: &[KeyPoint],
+    desc1: &[Descriptor],
+    kps2: &[KeyPoint],
+    desc2: &[Descriptor],
+    grid2: &FeatureGrid,
+    prev: &[Point2<f64>],
+    window: f64,
+    params: &MatcherParams,
+) -> Vec<Option<usize>> {
+    let mut m12: Vec<Option<usize>> = vec![None; kps1.len()];
+    let mut m21_dist: Vec<(Option<usize>, u32)> = vec![(None, u32::MAX); kps2.len()];
+    let mut cand = Vec::new();
+    for (i1, k1) in kps1.iter().enumerate() {
+        if k1.octave > 0 {
+            continue;
+        }
+        let p = prev
+            .get(i1)
+            .copied()
+            .unwrap_or(Point2::new(k1.ux as f64, k1.uy as f64));
+        grid2.features_in_area(kps2, p.x, p.y, window, 0, 0, &mut cand);
+        let (mut best, mut best2, mut best_i) = (u32::MAX, u32::MAX, usize::MAX);
+        for &i2 in &cand {
+            let d = hamming(&desc1[i1], &desc2[i2]);
+            if m21_dist[i2].1 <= d {
+                continue;
+            }
+            if d < best {
+                best2 = best;
+                best = d;
+                best_i = i2;
+            } else if d < best2 {
+                best2 = d;
+            }
+        }
+        if best <= params.th_low && (best as f32) < 0.9 * best2 as f32 {
+            if let Some(old) = m21_dist[best_i].0 {
+                m12[old] = None;
+            }
+            m12[i1] = Some(best_i);
+            m21_dist[best_i] = (Some(i1), best);
+        }
+    }
+    // Rotation consistency.
+    let rot: Vec<(usize, f32)> = m12
+        .iter()
+        .enumerate()
+        .filter_map(|(i1, m)| m.map(|i2| (i1, kps1[i1].angle - kps2[i2].angle)))
+        .collect();
+    for i1 in rotation_outliers(&rot, params.histo_bins) {
+        m12[i1] = None;
+    }
+    m12
+}
+
+/// A map point prepared for projection into one frame.
+#[derive(Debug, Clone, Copy)]
+pub struct Projected {
+    /// The point.
+    pub id: PointId,
+    /// Undistorted pixel where it projects.
+    pub uv: Point2<f64>,
+    /// Predicted pyramid level.
+    pub level: usize,
+    /// Cosine between the viewing ray and the point's mean viewing direction.
+    pub view_cos: f64,
+}
+
+/// Whether a point is in the frustum of a camera (in front, inside the
+/// undistorted bounds, within its scale range, seen from within 60 degrees of
+/// its mean viewing direction). On success, where and at which level.
+pub fn project_point(
+    map: &Map,
+    id: PointId,
+    cam_from_world: &Isometry3<f64>,
+    center: &Vector3<f64>,
+    bounds: &Bounds,
+    min_view_cos: f64,
+) -> Option<Projected> {
+    let mp = map.point(id)?;
+    let pc = cam_from_world * mp.position;
+    if pc.z <= 0.0 {
+        return None;
+    }
+    let cam = &map.camera;
+    let u = cam.fx * pc.x / pc.z + cam.cx;
+    let v = cam.fy * pc.y / pc.z + cam.cy;
+    if !bounds.contains(u, v) {
+        return None;
+    }
+    let po = mp.position.coords - center;
+    let dist = po.norm();
+    if dist < 0.8 * mp.min_distance || dist > 1.2 * mp.max_distance {
+        return None;
+    }
+    let view_cos = po.dot(&mp.normal) / dist;
+    if view_cos < min_view_cos {
+        return None;
+    }
+    Some(Projected {
+        id,
+        uv: Point2::new(u, v),
+        level: map.scale.predict_level(mp.max_distance, dist),
+        view_cos,
+    })
+}
+
+/// What a search by projection needs of the frame it searches in.
+pub struct SearchTarget<'a> {
+    /// Keypoints.
+    pub keypoints: &'a [KeyPoint],
+    /// Descriptors.
+    pub descriptors: &'a [Descriptor],
+    /// Grid index of the keypoints.
+    pub grid: &'a FeatureGrid,
+    /// Already matched slots (skipped when `Some` and observed by a keyframe).
+    pub points: &'a [Option<PointId>],
+}
+
+/// Match projected local-map points into a frame (ORB-SLAM's
+/// SearchByProjection for the local map): radius `th` times the level scale,
+/// widened for oblique views; best match under `th_high` with a ratio test
+/// when the two best are on the same level. Returns (keypoint, point) pairs.
+pub fn search_local_points(
+    target: &SearchTarget<'_>,
+    projected: &[Projected],
+    map: &Map,
+    scale: &ScaleInfo,
+    th: f64,
+    params: &MatcherParams,
+) -> Vec<(usize, PointId)> {
+    let mut out = Vec::new();
+    let mut taken = vec![false; target.keypoints.len()];
+    let mut cand = Vec::new();
+    for pr in projected {
+        let Some(mp) = map.point(pr.id) else {
+            continue;
+        };
+        let r = if pr.view_cos > 0.998 { 2.5 } else { 4.0 } * th * scale.scale_factors[pr.level];
+        let lvl = pr.level as i32;
+        target.grid.features_in_area(
+            target.keypoints,
+            pr.uv.x,
+            pr.uv.y,
+            r,
+            lvl - 1,
+            lvl,
+            &mut cand,
+        );
+        let (mut best, mut best2) = (u32::MAX, u32::MAX);
+        let (mut best_lvl, mut best_lvl2) = (-1i32, -1i32);
+        let mut best_i = usize::MAX;
+        for &i in &cand {
+            if taken[i] {
+                continue;
+            }
+            if let Some(p) = target.points[i]
+                && map.point(p).is_some_and(|m| !m.observations.is_empty())
+            {
+                continue;
+            }
+            let d = hamming(&mp.descriptor, &target.descriptors[i]);
+            let o = target.keypoints[i].octave as i32;
+            if d < best {
+                best2 = best;
+                best_lvl2 = best_lvl;
+                best = d;
+                best_lvl = o;
+                best_i = i;
+            } else if d < best2 {
+                best_lvl2 = o;
+                best2 = d;
+            }
+        }
+        if best <= params.th_high {
+            if best_lvl == best_lvl2 && best as f32 > 0.8 * best2 as f32 {
+                continue;
+            }
+            taken[best_i] = true;
+            out.push((best_i, pr.id));
+        }
+    }
+    out
+}
+
+/// Match the points of the previous frame into the current one by
+/// projection with the predicted pose (ORB-SLAM's motion-model search):
+/// radius `th` times the keypoint's level scale, levels around the previous
+/// keypoint's, rotation-consistency check. `last` holds the previous frame's
+/// (keypoint, point) pairs. Returns (keypoint of current, point) pairs.
+#[allow(clippy::too_many_arguments)]
+pub fn search_last_frame(
+    target: &SearchTarget<'_>,
+    last_keypoints: &[KeyPoint],
+    last: &[(usize, PointId)],
+    map: &Map,
+    cam_from_world: &Isometry3<f64>,
+    bounds: &Bounds,
+    th: f64,
+    params: &MatcherParams,
+) -> Vec<(usize, PointId)> {
+    let cam = &map.camera;
+    let mut out: Vec<(usize, PointId)> = Vec::new();
+    let mut taken = vec![false; target.keypoints.len()];
+    let mut rot = Vec::new();
+    let mut cand = Vec::new();
+    let n_levels = map.scale.n_levels() as i32;
+    for &(li, pid) in last {
+        let Some(mp) = map.point(pid) else {
+            continue;
+        };
+        let pc = cam_from_world * mp.position;
+        if pc.z <= 0.0 {
+            continue;
+        }
+        let u = cam.fx * pc.x / pc.z + cam.cx;
+        let v = cam.fy * pc.y / pc.z + cam.cy;
+        if !bounds.contains(u, v) {
+            continue;
+        }
+        let Some(lk) = last_keypoints.get(li) else {
+            continue;
+        };
+        let lo = lk.octave as i32;
+        let r = th * map.scale.scale_factors[lk.octave as usize];
+        target.grid.features_in_area(
+            target.keypoints,
+            u,
+            v,
+            r,
+            (lo - 1).max(0),
+            (lo + 1).min(n_levels - 1),
+            &mut cand,
+        );
+        let (mut best, mut best_i) = (u32::MAX, usize::MAX);
+        for &i in &cand {
+            if taken[i] {
+                continue;
+            }
+            let d = hamming(&mp.descriptor, &target.descriptors[i]);
+            if d < best {
+                best = d;
+                best_i = i;
+            }
+        }
+        if best <= params.th_high {
+            taken[best_i] = true;
+            rot.push((out.len(), lk.angle - target.keypoints[best_i].angle));
+            out.push((best_i, pid));
+        }
+    }
+    let drop = rotation_outliers(&rot, params.histo_bins);
+    if !drop.is_empty() {
+        let mut keep = vec![true; out.len()];
+        for d in drop {
+            keep[d] = false;
+        }
+        let mut k = 0;
+        out.retain(|_| {
+            let r = keep[k];
+            k += 1;
+            r
+        });
+    }
+    out
+}
+
+/// The fundamental matrix from keyframe 2 to keyframe 1 (x1ᵀ F12 x2 = 0 in
+/// undistorted pixels).
+pub fn fundamental_12(
+    cam: &Camera,
+    cam1_from_world: &Isometry3<f64>,
+    cam2_from_world: &Isometry3<f64>,
+) -> Matrix3<f64> {
+    let c1_from_c2 = cam1_from_world * cam2_from_world.inverse();
+    let r = c1_from_c2.rotation.to_rotation_matrix().into_inner();
+    let t = c1_from_c2.translation.vector;
+    let tx = Matrix3::new(0.0, -t.z, t.y, t.z, 0.0, -t.x, -t.y, t.x, 0.0);
+    let k_inv = cam.k_inv();
+    k_inv.transpose() * tx * r * k_inv
+}
+
+/// Matches for triangulation between two keyframes: unmatched keypoints of
+/// the first against unmatched keypoints of the second, under `th_low`,
+/// with a ratio test, on the epipolar line (within the chi-square bound for
+/// the level) and away from the epipole; rotation-consistency check.
+/// Returns (index in kf1, index in kf2).
+#[allow(clippy::too_many_arguments)]
+pub fn search_for_triangulation(
+    map: &Map,
+    kf1: KeyFrameId,
+    kf2: KeyFrameId,
+    f12: &Matrix3<f64>,
+    params: &MatcherParams,
+) -> Vec<(usize, usize)> {
+    let (Some(k1), Some(k2)) = (map.keyframe(kf1), map.keyframe(kf2)) else {
+        return Vec::new();
+    };
+    let cam = &map.camera;
+    // Epipole of camera 1 in image 2.
+    let c1_in_2 = k2.cam_from_world * Point3::from(k1.center());
+    let (ex, ey) = if c1_in_2.z.abs() > 1e-12 {
+        (
+            cam.fx * c1_in_2.x / c1_in_2.z + cam.cx,
+            cam.fy * c1_in_2.y / c1_in_2.z + cam.cy,
+        )
+    } else {
+        (f64::INFINITY, f64::INFINITY)
+    };
+    let free2: Vec<usize> = (0..k2.keypoints.len())
+        .filter(|&i| k2.points[i].is_none())
+        .collect();
+    let mut matched2 = vec![false; k2.keypoints.len()];
+    let mut out = Vec::new();
+    let mut rot = Vec::new();
+    for i1 in 0..k1.keypoints.len() {
+        if k1.points[i1].is_some() {
+            continue;
+        }
+        let kp1 = &k1.keypoints[i1];
+        let d1 = &k1.descriptors[i1];
+        // Epipolar line in image 2: l2 = F12ᵀ x1.
+        let x1 = Vector3::new(kp1.ux as f64, kp1.uy as f64, 1.0);
+        let l = f12.transpose() * x1;
+        let den = l.x * l.x + l.y * l.y;
+        if den < 1e-18 {
+            continue;
+        }
+        let (mut best, mut best2, mut best_i) = (params.th_low + 1, u32::MAX, usize::MAX);
+        for &i2 in &free2 {
+            if matched2[i2] {
+                continue;
+            }
+            let d = hamming(d1, &k2.descriptors[i2]);
+            if d > params.th_low || d >= best2 {
+                continue;
+            }
+            let kp2 = &k2.keypoints[i2];
+            let (u2, v2) = (kp2.ux as f64, kp2.uy as f64);
+            let num = l.x * u2 + l.y * v2 + l.z;
+            let dist2 = num * num / den;
+            let sigma2 = 1.0 / map.scale.inv_level_sigma2[kp2.octave as usize];
+            if dist2 >= 3.84 * sigma2 {
+                continue;
+            }
+            let (dx, dy) = (ex - u2, ey - v2);
+            if dx * dx + dy * dy < 100.0 * map.scale.scale_factors[kp2.octave as usize] {
+                continue;
+            }
+            if d < best {
+                best2 = best;
+                best = d;
+                best_i = i2;
+            } else {
+                best2 = d;
+            }
+        }
+        if best_i != usize::MAX && (best as f32) < 0.9 * best2 as f32 {
+            matched2[best_i] = true;
+            rot.push((out.len(), kp1.angle - k2.keypoints[best_i].angle));
+            out.push((i1, best_i));
+        }
+    }
+    let drop = rotation_outliers(&rot, params.histo_bins);
+    if !drop.is_empty() {
+        let mut keep = vec![true; out.len()];
+        for d in drop {
+            keep[d] = false;
+        }
+        let mut k = 0;
+        out.retain(|_| {
+            let r = keep[k];
+            k += 1;
+            r
+        });
+    }
+    out
+}
+
+/// Project `points` into keyframe `kf` and fuse each with the keypoint it
+/// matches: a keypoint already holding another point is merged with it (the
+/// one with more observations stays), a free keypoint gains the observation.
+/// Returns the number of fusions.
+pub fn fuse(
+    map: &mut Map,
+    kf: KeyFrameId,
+    points: &[PointId],
+    th: f64,
+    bounds: &Bounds,
+    params: &MatcherParams,
+) -> usize {
+    let Some(k) = map.keyframe(kf) else {
+        return 0;
+    };
+    let cam_from_world = k.cam_from_world;
+    let center = k.center();
+    let mut actions: Vec<(PointId, usize)> = Vec::new();
+    let mut cand = Vec::new();
+    for &pid in points {
+        let Some(mp) = map.point(pid) else {
+            continue;
+        };
+        if mp.index_in(kf).is_some() {
+            continue;
+        }
+        let Some(pr) = project_point(map, pid, &cam_from_world, &center, bounds, 0.5) else {
+            continue;
+        };
+        let r = th * map.scale.scale_factors[pr.level];
+        k.grid
+            .features_in_area(&k.keypoints, pr.uv.x, pr.uv.y, r, 0, i32::MAX, &mut cand);
+        let (mut best, mut best_i) = (u32::MAX, usize::MAX);
+        for &i in &cand {
+            let kp = &k.keypoints[i];
+            let lvl = kp.octave as usize;
+            if lvl + 1 < pr.level || lvl > pr.level {
+                continue;
+            }
+            let (ex, ey) = (pr.uv.x - kp.ux as f64, pr.uv.y - kp.uy as f64);
+            if (ex * ex + ey * ey) * map.scale.inv_level_sigma2[lvl] > 5.99 {
+                continue;
+            }
+            let d = hamming(&mp.descriptor, &k.descriptors[i]);
+            if d < best {
+                best = d;
+                best_i = i;
+            }
+        }
+        if best <= params.th_low {
+            actions.push((pid, best_i));
+        }
+    }
+    let mut n = 0;
+    for (pid, i) in actions {
+        if map.point(pid).is_none() {
+            continue;
+        }
+        let existing = map
+            .keyframe(kf)
+            .and_then(|k| k.points.get(i).copied().flatten());
+        match existing {
+            Some(other) if other != pid => {
+                let (n_other, n_this) = (
+                    map.point(other).map_or(0, |m| m.observations.len()),
+                    map.point(pid).map_or(0, |m| m.observations.len()),
+                );
+                if n_other >= n_this {
+                    map.replace_point(pid, other);
+                } else {
+                    map.replace_point(other, pid);
+                }
+                n += 1;
+            }
+            Some(_) => {}
+            None => {
+                if map.add_observation(pid, kf, i as u32) {
+                    n += 1;
+                }
+            }
+        }
+    }
+    n
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rotation_filter_keeps_the_three_main_bins() {
+        let mut rot = Vec::new();
+        for i in 0..50 {
+            rot.push((i, 10.0));
+        }
+        for i in 50..70 {
+            rot.push((i, 22.0));
+        }
+        for i in 70..75 {
+            rot.push((i, 200.0));
+        }
+        rot.push((75, 300.0));
+        let drop = rotation_outliers(&rot, 30);
+        // Bins: 10deg (50), 22deg (20), 200deg (5), 300deg (1 < 10% of 50).
+        assert_eq!(drop, vec![75]);
+    }
+}

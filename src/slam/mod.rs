@@ -1,0 +1,289 @@
+//! Monocular visual SLAM: initialise, track and map on two threads.
+//!
+//! [`Slam`] owns the map (behind a mutex), the tracker (on the caller's
+//! thread) and the local mapper (on its own thread, fed keyframes over a
+//! bounded channel; or inline after each keyframe in sequential mode, so
+//! runs repeat exactly). Tracking never waits for mapping: it only inserts a
+//! keyframe when mapping is idle, and mapping solves its bundle adjustment
+//! outside the map lock.
+
+pub mod grid;
+pub mod map;
+pub mod mapfile;
+pub mod mapping;
+pub mod matcher;
+pub mod tracking;
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+
+use image::GrayImage;
+use nalgebra::Isometry3;
+
+use crate::camera::Camera;
+use crate::eval::{StampedPose, Trajectory};
+use crate::optimize::BaParams;
+
+pub use map::{KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
+pub use mapping::{LocalMapper, MappingParams, MappingReport};
+pub use tracking::{FrameOutcome, FrameRecord, TrackState, Tracker, TrackingParams};
+
+/// Errors of the SLAM.
+#[derive(Debug, thiserror::Error)]
+pub enum SlamError {
+    /// The feature extractor refused its parameters.
+    #[error(transparent)]
+    Features(#[from] crate::features::FeatureError),
+    /// The mapping thread could not be started.
+    #[error("cannot start the mapping thread: {0}")]
+    Thread(std::io::Error),
+    /// A map file could not be read or written.
+    #[error(transparent)]
+    MapFile(#[from] mapfile::MapFileError),
+}
+
+/// Every tunable of the SLAM.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Params {
+    /// Tracking.
+    pub tracking: TrackingParams,
+    /// Local mapping.
+    pub mapping: MappingParams,
+    /// Run mapping inline after each keyframe (repeatable runs).
+    pub sequential: bool,
+    /// Keyframes waiting for mapping at most.
+    pub keyframe_queue: usize,
+    /// Bundle adjustment over all keyframes when the run finishes.
+    pub final_ba: Option<BaParams>,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            tracking: TrackingParams::default(),
+            mapping: MappingParams::default(),
+            sequential: false,
+            keyframe_queue: 4,
+            final_ba: Some(BaParams {
+                first_pass_iterations: 15,
+                second_pass_iterations: 15,
+                ..BaParams::default()
+            }),
+        }
+    }
+}
+
+enum Mapping {
+    Inline(Box<LocalMapper>),
+    Thread {
+        tx: Option<SyncSender<KeyFrameId>>,
+        handle: Option<JoinHandle<LocalMapper>>,
+        busy: Arc<AtomicBool>,
+        queued: Arc<AtomicUsize>,
+    },
+}
+
+/// The SLAM system.
+pub struct Slam {
+    map: Arc<Mutex<Map>>,
+    tracker: Tracker,
+    mapping: Mapping,
+    params: Params,
+    frames: u64,
+}
+
+/// The result of a finished run.
+pub struct SlamRun {
+    /// The map after the final optimisation.
+    pub map: Map,
+    /// Pose records of every tracked frame.
+    pub records: Vec<FrameRecord>,
+    /// Mapping reports, one per keyframe processed.
+    pub mapping: Vec<MappingReport>,
+    /// Frame index of initialisation.
+    pub initialized_at: Option<u64>,
+    /// Frames given.
+    pub frames: u64,
+    /// The last reason for not tracking / not initialising.
+    pub last_reason: Option<String>,
+}
+
+impl SlamRun {
+    /// Every tracked frame's pose (world_from_cam), placed relative to its
+    /// reference keyframe as the map stands now.
+    pub fn trajectory(&self) -> Trajectory {
+        let mut poses = Vec::with_capacity(self.records.len());
+        for r in &self.records {
+            if let Some(ref_pose) = self.map.keyframe_pose(r.reference) {
+                let cam_from_world = r.cam_from_ref * ref_pose;
+                poses.push(StampedPose {
+                    t: r.timestamp,
+                    world_from_cam: cam_from_world.inverse(),
+                });
+            }
+        }
+        Trajectory { poses }
+    }
+
+    /// The live keyframes' poses (world_from_cam), by time.
+    pub fn keyframe_trajectory(&self) -> Trajectory {
+        let mut poses: Vec<StampedPose> = self
+            .map
+            .keyframes()
+            .map(|k| StampedPose {
+                t: k.timestamp,
+                world_from_cam: k.world_from_cam(),
+            })
+            .collect();
+        poses.sort_by(|a, b| a.t.total_cmp(&b.t));
+        Trajectory { poses }
+    }
+}
+
+impl Slam {
+    /// A SLAM for `camera`; starts the mapping thread unless sequential.
+    pub fn new(camera: Camera, params: Params) -> Result<Self, SlamError> {
+        let tracker = Tracker::new(camera, params.tracking.clone())?;
+        let map = Arc::new(Mutex::new(Map::new(camera, tracker.scale().clone())));
+        let bounds = grid::Bounds::of(&camera);
+        let mapper = LocalMapper::new(params.mapping.clone(), bounds);
+        let mapping = if params.sequential {
+            Mapping::Inline(Box::new(mapper))
+        } else {
+            let (tx, rx) = sync_channel::<KeyFrameId>(params.keyframe_queue.max(1));
+            let busy = Arc::new(AtomicBool::new(false));
+            let queued = Arc::new(AtomicUsize::new(0));
+            let handle = spawn_mapper(mapper, rx, map.clone(), busy.clone(), queued.clone())?;
+            Mapping::Thread {
+                tx: Some(tx),
+                handle: Some(handle),
+                busy,
+                queued,
+            }
+        };
+        Ok(Slam {
+            map,
+            tracker,
+            mapping,
+            params,
+            frames: 0,
+        })
+    }
+
+    /// The shared map (read it under the lock; the API takes snapshots).
+    pub fn map(&self) -> Arc<Mutex<Map>> {
+        self.map.clone()
+    }
+
+    /// State of tracking.
+    pub fn state(&self) -> TrackState {
+        self.tracker.state()
+    }
+
+    /// Track one frame (and map its keyframe inline in sequential mode).
+    pub fn process(&mut self, index: u64, timestamp: f64, image: Arc<GrayImage>) -> FrameOutcome {
+        self.frames += 1;
+        let idle = match &self.mapping {
+            Mapping::Inline(_) => true,
+            Mapping::Thread { busy, queued, .. } => {
+                !busy.load(Ordering::Acquire) && queued.load(Ordering::Acquire) == 0
+            }
+        };
+        let outcome = self.tracker.track(&self.map, index, timestamp, image, idle);
+        if let Some(kf) = outcome.new_keyframe {
+            match &mut self.mapping {
+                Mapping::Inline(mapper) => {
+                    mapper.process_keyframe(&self.map, kf, false);
+                }
+                Mapping::Thread { tx, queued, .. } => {
+                    if let Some(tx) = tx {
+                        queued.fetch_add(1, Ordering::AcqRel);
+                        match tx.try_send(kf) {
+                            Ok(()) => {}
+                            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
+                                queued.fetch_sub(1, Ordering::AcqRel);
+                                tracing::warn!(
+                                    kf = kf.0,
+                                    "mapping queue full; keyframe kept without local mapping"
+                                );
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        outcome
+    }
+
+    /// Stop mapping (it finishes its queue), run the final optimisation and
+    /// return the map and the frame records.
+    pub fn finish(mut self) -> SlamRun {
+        let reports = match &mut self.mapping {
+            Mapping::Inline(m) => std::mem::take(&mut m.reports),
+            Mapping::Thread { tx, handle, .. } => {
+                drop(tx.take());
+                match handle.take().map(|h| h.join()) {
+                    Some(Ok(m)) => m.reports,
+                    _ => Vec::new(),
+                }
+            }
+        };
+        let mut map = {
+            let guard = self.map.lock().unwrap_or_else(|e| e.into_inner());
+            guard.clone()
+        };
+        if let Some(ba) = &self.params.final_ba {
+            let kfs: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
+            if kfs.len() >= 2 {
+                let fixed = vec![kfs[0]];
+                if let Some(r) = tracking::run_bundle_adjustment(&mut map, &kfs, &fixed, ba) {
+                    tracing::info!(
+                        keyframes = kfs.len(),
+                        rmse_before = r.initial_rmse_px,
+                        rmse_after = r.final_rmse_px,
+                        outliers = r.n_outliers,
+                        first_pass = ?r.first_pass,
+                        "final bundle adjustment"
+                    );
+                }
+            }
+        }
+        SlamRun {
+            map,
+            records: self.tracker.records().to_vec(),
+            mapping: reports,
+            initialized_at: self.tracker.initialized_at(),
+            frames: self.frames,
+            last_reason: self.tracker.last_reason().map(str::to_owned),
+        }
+    }
+}
+
+fn spawn_mapper(
+    mut mapper: LocalMapper,
+    rx: Receiver<KeyFrameId>,
+    map: Arc<Mutex<Map>>,
+    busy: Arc<AtomicBool>,
+    queued: Arc<AtomicUsize>,
+) -> Result<JoinHandle<LocalMapper>, SlamError> {
+    std::thread::Builder::new()
+        .name("slam-mapping".into())
+        .spawn(move || {
+            while let Ok(kf) = rx.recv() {
+                busy.store(true, Ordering::Release);
+                queued.fetch_sub(1, Ordering::AcqRel);
+                let more = queued.load(Ordering::Acquire) > 0;
+                mapper.process_keyframe(&map, kf, more);
+                busy.store(false, Ordering::Release);
+            }
+            mapper
+        })
+        .map_err(SlamError::Thread)
+}
+
+/// A pose's camera centre, for logs.
+pub fn center_of(cam_from_world: &Isometry3<f64>) -> nalgebra::Vector3<f64> {
+    cam_from_world.inverse().translation.vector
+}
