@@ -68,13 +68,13 @@ impl SlamView for FakeSlam {
 struct LocalisingOnKf1(WarpOnly<Arc<FakeSlam>>);
 
 impl ShotComputer for LocalisingOnKf1 {
-    fn from_anchors(
+    fn shot_from_anchors(
         &self,
         kf: u64,
         a: &[[f64; 2]; 4],
         size: (u32, u32),
     ) -> Result<ShotComputation, ShotError> {
-        let mut c = self.0.from_anchors(kf, a, size)?;
+        let mut c = self.0.shot_from_anchors(kf, a, size)?;
         if kf == 1 {
             c.localisation = Ok(Localisation {
                 world_from_cam: PoseJson {
@@ -88,8 +88,8 @@ impl ShotComputer for LocalisingOnKf1 {
         }
         Ok(c)
     }
-    fn from_photo(&self, p: &GrayImage) -> Result<ShotComputation, ShotError> {
-        self.0.from_photo(p)
+    fn shot_from_photo(&self, p: &GrayImage) -> Result<ShotComputation, ShotError> {
+        self.0.shot_from_photo(p)
     }
 }
 

@@ -576,10 +576,11 @@ pub struct ShotRequest {
     pub height: Option<u32>,
 }
 
+/// A checked shot request: keyframe id, four anchors, optional output size.
+pub type ParsedShot = (u64, [[f64; 2]; 4], Option<(u32, u32)>);
+
 /// Parse and check a shot request body (also the fuzz target's entry).
-pub fn parse_shot_request(
-    body: &[u8],
-) -> Result<(u64, [[f64; 2]; 4], Option<(u32, u32)>), ApiError> {
+pub fn parse_shot_request(body: &[u8]) -> Result<ParsedShot, ApiError> {
     let req: ShotRequest = serde_json::from_slice(body)
         .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_json", e.to_string()))?;
     let anchors: [[f64; 2]; 4] = req.anchors.as_slice().try_into().map_err(|_| {
@@ -674,7 +675,7 @@ async fn create_shot(
                 (img.width(), img.height())
             }
         };
-        computer.from_anchors(kf, &anchors, size)
+        computer.shot_from_anchors(kf, &anchors, size)
     })
     .await
     .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))??;
@@ -714,7 +715,7 @@ async fn create_shot_from_photo(
         })?;
         let grey = img.to_luma8();
         let (w, h) = grey.dimensions();
-        computer.from_photo(&grey).map(|c| (c, w, h))
+        computer.shot_from_photo(&grey).map(|c| (c, w, h))
     })
     .await
     .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))??;

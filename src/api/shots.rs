@@ -46,14 +46,14 @@ pub struct ShotComputation {
 pub trait ShotComputer: Send + Sync {
     /// A shot described by four anchors on a keyframe; `size` is the
     /// desired picture's width and height, pixels.
-    fn from_anchors(
+    fn shot_from_anchors(
         &self,
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
         size: (u32, u32),
     ) -> Result<ShotComputation, ShotError>;
     /// A shot given as a photograph.
-    fn from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError>;
+    fn shot_from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError>;
 }
 
 /// Tunables of anchor validation.
@@ -189,7 +189,7 @@ pub struct WarpOnly<K> {
 }
 
 impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
-    fn from_anchors(
+    fn shot_from_anchors(
         &self,
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
@@ -213,7 +213,7 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         })
     }
 
-    fn from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError> {
+    fn shot_from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError> {
         if photo.width() < 32 || photo.height() < 32 {
             return Err(ShotError::BadImage {
                 reason: format!("{}x{} is too small", photo.width(), photo.height()),

@@ -102,29 +102,38 @@ fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimCo
     use shotpilot_sim::autopilot::Flavour;
     use shotpilot_sim::script::ScriptKind;
     let s = &cfg.sim;
-    let mut sc = shotpilot_sim::app::SimConfig::default();
-    sc.video_listen = Some(
-        s.video_listen
-            .parse()
-            .map_err(|e| DaemonError::Sim(format!("video_listen {:?}: {e}", s.video_listen)))?,
-    );
-    sc.mavlink = s
+    let video_listen = s
+        .video_listen
+        .parse()
+        .map_err(|e| DaemonError::Sim(format!("video_listen {:?}: {e}", s.video_listen)))?;
+    let mavlink = s
         .mavlink
         .parse()
         .map_err(|e| DaemonError::Sim(format!("mavlink {:?}: {e}", s.mavlink)))?;
-    sc.video_fps = s.video_fps;
-    sc.seed = s.seed;
-    sc.script = match s.script.as_str() {
+    let script = match s.script.as_str() {
         "explore" => Some(ScriptKind::Explore),
         "hover" => Some(ScriptKind::Hover),
         _ => None,
     };
-    sc.autopilot.flavour = if s.flavour == "ardupilot" {
+    let flavour = if s.flavour == "ardupilot" {
         Flavour::ArduPilot
     } else {
         Flavour::Px4
     };
-    sc.capture_dir = data_dir.join("captures");
+    let defaults = shotpilot_sim::app::SimConfig::default();
+    let sc = shotpilot_sim::app::SimConfig {
+        video_listen: Some(video_listen),
+        mavlink,
+        video_fps: s.video_fps,
+        seed: s.seed,
+        script,
+        autopilot: shotpilot_sim::autopilot::AutopilotParams {
+            flavour,
+            ..defaults.autopilot.clone()
+        },
+        capture_dir: data_dir.join("captures"),
+        ..defaults
+    };
     Ok(sc)
 }
 

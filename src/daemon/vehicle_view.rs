@@ -36,7 +36,7 @@ impl LinkVehicle {
 impl VehicleView for LinkVehicle {
     fn status(&self) -> Value {
         let v = self.link.telemetry.vehicle.borrow().clone();
-        let gp = self.link.telemetry.global_position.borrow().clone();
+        let gp = *self.link.telemetry.global_position.borrow();
         json!({
             "configured": true,
             "connected": v.connected && !v.link_lost,
@@ -87,7 +87,7 @@ impl VehicleView for LinkVehicle {
     }
 
     fn progress(&self) -> Value {
-        let p = self.link.telemetry.progress.borrow().clone();
+        let p = *self.link.telemetry.progress.borrow();
         match p {
             Some(p) => json!({
                 "current_seq": p.value.current_seq,
