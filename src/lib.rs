@@ -35,6 +35,7 @@
 //! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
 //! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
 //! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
+//! | [`geo`] | map ↔ NED ↔ WGS84: telemetry history, camera mounting, robust Sim(3), targets |
 //! | [`vehicle`] | MAVLink link actor, transports, telemetry |
 //! | [`mission`] | mission planning (pure) and upload protocol |
 //!
@@ -48,6 +49,7 @@ pub mod config;
 pub mod daemon;
 pub mod eval;
 pub mod features;
+pub mod geo;
 pub mod geometry;
 pub mod matching;
 pub mod mission;

@@ -69,6 +69,13 @@ enum Command {
     /// the bundled simulator in-process and prints the page's address.
     /// Ctrl-C or SIGTERM stops it cleanly (the map and shots are saved).
     Run(RunArgs),
+    /// Extract ORB features from every frame of a dataset and report the
+    /// time per frame.
+    ///
+    /// All frames are decoded first; then each is timed alone (after 3
+    /// untimed warm-up extractions), reporting the median and 95th
+    /// percentile milliseconds per frame and the mean number of keypoints.
+    Features(FeaturesArgs),
 }
 
 #[derive(Args, Debug)]
@@ -218,6 +225,25 @@ struct StartArgs {
 }
 
 #[derive(Args, Debug)]
+struct FeaturesArgs {
+    /// Dataset folder (TUM or EuRoC layout).
+    #[arg(value_name = "DATASET")]
+    dataset: PathBuf,
+    /// Features wanted per frame.
+    #[arg(long = "features", default_value_t = 1000, value_name = "N")]
+    n_features: usize,
+    /// Threads per frame (1 or 2; the pyramid levels are split among them).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    threads: usize,
+    /// Passes over the dataset; the figures are over all timed frames.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    repeat: usize,
+    /// Print exactly one JSON object on stdout instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
 struct EvalArgs {
     /// Ground-truth trajectory (TUM format).
     #[arg(long, value_name = "FILE")]
@@ -289,6 +315,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Vocab(args) => vocab_cli::run(args),
         Command::Mission(cmd) => mission_cli::run(cmd, &config),
         Command::Run(args) => cmd_run(args, config, cli.config.as_deref()),
+        Command::Features(args) => cmd_features(args),
     }
 }
 
@@ -697,4 +724,50 @@ mod mission_cli {
         }
         Ok(())
     }
+}
+
+fn cmd_features(args: FeaturesArgs) -> Result<()> {
+    use shotpilot::features::{OrbExtractor, Params, eval as feval};
+    let ds = shotpilot::video::dataset::Dataset::open(&args.dataset)
+        .with_context(|| format!("opening {}", args.dataset.display()))?;
+    let frames = ds
+        .frames()
+        .map(|f| f.map(|f| f.image))
+        .collect::<Result<Vec<_>, _>>()?;
+    let params = Params {
+        n_features: args.n_features,
+        threads: args.threads,
+        ..Params::default()
+    };
+    let mut ex = OrbExtractor::new(params)?;
+    let mut all = Vec::with_capacity(frames.len() * args.repeat.max(1));
+    for _ in 0..args.repeat.max(1) {
+        all.extend(feval::time_frames(&mut ex, &frames, Some(&ds.camera), 3));
+    }
+    let r = feval::summarize(&all);
+    if args.json {
+        let out = json!({
+            "dataset": args.dataset,
+            "frames": frames.len(),
+            "timed": r.frames,
+            "features": args.n_features,
+            "threads": args.threads,
+            "median_ms": r.median_ms,
+            "p95_ms": r.p95_ms,
+            "mean_keypoints": r.mean_keypoints,
+        });
+        println!("{out}");
+    } else {
+        println!(
+            "{} frames x {}: median {:.3} ms, p95 {:.3} ms per frame, {:.1} keypoints (features {}, threads {})",
+            frames.len(),
+            args.repeat.max(1),
+            r.median_ms,
+            r.p95_ms,
+            r.mean_keypoints,
+            args.n_features,
+            args.threads
+        );
+    }
+    Ok(())
 }

@@ -116,10 +116,56 @@ pub fn match_brute_force_into(
     }
     reverse.clear();
     reverse.resize(train.len(), (u32::MAX, u32::MAX));
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("popcnt")
+            && std::arch::is_x86_feature_detected!("avx2")
+        {
+            // SAFETY: the CPU has POPCNT and AVX2, checked just above.
+            unsafe { scan_fast(query, train, params, reverse, out) };
+            return finish(params, reverse, out);
+        }
+    }
+    scan(query, train, params, reverse, out);
+    finish(params, reverse, out)
+}
+
+fn finish(
+    params: &Params,
+    reverse: &[(u32, u32)],
+    out: &mut Vec<Match>,
+) -> Result<(), MatchingError> {
+    if params.cross_check {
+        out.retain(|m| reverse[m.train].1 as usize == m.query);
+    }
+    Ok(())
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "popcnt,avx2")]
+fn scan_fast(
+    query: &[Descriptor],
+    train: &[Descriptor],
+    params: &Params,
+    reverse: &mut [(u32, u32)],
+    out: &mut Vec<Match>,
+) {
+    scan(query, train, params, reverse, out)
+}
+
+/// The distance scan: best and second best per query, best query per train.
+#[inline(always)]
+fn scan(
+    query: &[Descriptor],
+    train: &[Descriptor],
+    params: &Params,
+    reverse: &mut [(u32, u32)],
+    out: &mut Vec<Match>,
+) {
     for (qi, q) in query.iter().enumerate() {
         let (mut best, mut second, mut best_t) = (u32::MAX, u32::MAX, 0usize);
         for (ti, (t, rev)) in train.iter().zip(reverse.iter_mut()).enumerate() {
-            let d = hamming(q, t);
+            let d = crate::features::hamming_portable(q, t);
             if d < best {
                 second = best;
                 best = d;
@@ -143,10 +189,6 @@ pub fn match_brute_force_into(
             distance: best,
         });
     }
-    if params.cross_check {
-        out.retain(|m| reverse[m.train].1 as usize == m.query);
-    }
-    Ok(())
 }
 
 /// Keypoints binned in a regular grid over an image region, for search by
@@ -196,9 +238,8 @@ impl FeatureGrid {
                 reason: "must be between 1 and 2^20 cells",
             });
         }
-        if !(max_x > min_x && max_y > min_y && min_x.is_finite() && max_x.is_finite())
-            || !(min_y.is_finite() && max_y.is_finite())
-        {
+        let finite = [min_x, min_y, max_x, max_y].iter().all(|v| v.is_finite());
+        if !finite || max_x <= min_x || max_y <= min_y {
             return Err(MatchingError::InvalidParams {
                 name: "bounds",
                 value: format!("[{min_x}, {max_x}) x [{min_y}, {max_y})"),
@@ -265,7 +306,7 @@ impl FeatureGrid {
         out: &mut Vec<usize>,
     ) {
         out.clear();
-        if self.cols == 0 || !(r > 0.0) || !x.is_finite() || !y.is_finite() {
+        if self.cols == 0 || r.is_nan() || r <= 0.0 || !x.is_finite() || !y.is_finite() {
             return;
         }
         let c0 = ((x - r - self.min_x) * self.inv_cell_w).floor();

@@ -151,12 +151,26 @@ impl SimConfig {
         for (name, p) in [
             ("drop up", self.radio.up.drop),
             ("drop down", self.radio.down.drop),
+            ("corrupt up", self.radio.up.corrupt),
+            ("corrupt down", self.radio.down.corrupt),
         ] {
             if !(0.0..=1.0).contains(&p) {
                 return bad(
                     "radio",
                     format!("{name} {p}"),
                     "probability must be in [0, 1]",
+                );
+            }
+        }
+        for (name, l) in [
+            ("latency up", self.radio.up.latency_s),
+            ("latency down", self.radio.down.latency_s),
+        ] {
+            if !(0.0..=60.0).contains(&l) {
+                return bad(
+                    "radio",
+                    format!("{name} {l}"),
+                    "latency must be in [0, 60] s",
                 );
             }
         }
@@ -218,6 +232,7 @@ fn write_capture(
 /// Run the simulator until `cancel` fires, serving video on
 /// `config.video_listen` (if set).
 pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSummary, SimError> {
+    config.validate()?;
     let (video_tx, video_rx) = watch::channel(None);
     if let Some(addr) = config.video_listen {
         let listener = tokio::net::TcpListener::bind(addr)

@@ -176,9 +176,7 @@ fn parse_home(s: &str) -> Result<Geodetic> {
 }
 
 fn config_from(cli: &Cli) -> Result<SimConfig> {
-    let mut c = SimConfig::default();
-    c.mavlink = cli.mavlink.parse::<Endpoint>()?;
-    c.video_listen = if cli.video_listen == "off" {
+    let video_listen = if cli.video_listen == "off" {
         None
     } else {
         Some(
@@ -187,11 +185,6 @@ fn config_from(cli: &Cli) -> Result<SimConfig> {
                 .with_context(|| format!("--video-listen {:?}", cli.video_listen))?,
         )
     };
-    c.video_fps = cli.video_fps;
-    c.autopilot.flavour = match cli.flavour {
-        FlavourArg::Px4 => Flavour::Px4,
-        FlavourArg::Ardupilot => Flavour::ArduPilot,
-    };
     let dir = |drop: f64| RadioDirParams {
         drop,
         corrupt: cli.corrupt,
@@ -199,21 +192,33 @@ fn config_from(cli: &Cli) -> Result<SimConfig> {
         baud: (cli.baud > 0).then_some(cli.baud),
         ..RadioDirParams::default()
     };
-    c.radio = RadioParams {
-        up: dir(cli.drop_up.unwrap_or(cli.drop)),
-        down: dir(cli.drop_down.unwrap_or(cli.drop)),
-        seed: cli.seed,
+    let defaults = SimConfig::default();
+    let mut autopilot = defaults.autopilot.clone();
+    autopilot.flavour = match cli.flavour {
+        FlavourArg::Px4 => Flavour::Px4,
+        FlavourArg::Ardupilot => Flavour::ArduPilot,
     };
-    c.seed = cli.seed;
-    c.script = cli.script.map(|s| match s {
-        ScriptArg::Explore => ScriptKind::Explore,
-        ScriptArg::Hover => ScriptKind::Hover,
-    });
-    c.capture_dir = cli.capture_dir.clone();
-    c.truth_dir = cli.truth_dir.clone();
-    c.autopilot.vehicle.home = parse_home(&cli.home)?;
-    c.sensor_noise = !cli.no_noise;
-    Ok(c)
+    autopilot.vehicle.home = parse_home(&cli.home)?;
+    Ok(SimConfig {
+        mavlink: cli.mavlink.parse::<Endpoint>()?,
+        video_listen,
+        video_fps: cli.video_fps,
+        radio: RadioParams {
+            up: dir(cli.drop_up.unwrap_or(cli.drop)),
+            down: dir(cli.drop_down.unwrap_or(cli.drop)),
+            seed: cli.seed,
+        },
+        seed: cli.seed,
+        script: cli.script.map(|s| match s {
+            ScriptArg::Explore => ScriptKind::Explore,
+            ScriptArg::Hover => ScriptKind::Hover,
+        }),
+        capture_dir: cli.capture_dir.clone(),
+        truth_dir: cli.truth_dir.clone(),
+        autopilot,
+        sensor_noise: !cli.no_noise,
+        ..defaults
+    })
 }
 
 fn main() -> Result<()> {

@@ -65,6 +65,9 @@ pub struct ScriptParams {
     pub levels: Vec<Level>,
     /// Distance at which a leg counts as done, m.
     pub leg_tolerance_m: f64,
+    /// Legs are flown in segments of about this length, each at its own
+    /// safe altitude, m.
+    pub segment_m: f64,
 }
 
 impl Default for ScriptParams {
@@ -75,8 +78,8 @@ impl Default for ScriptParams {
             half_extent_m: 30.0,
             passes: 3,
             speed: 2.5,
-            clearance_m: 6.0,
-            clearance_radius_m: 8.0,
+            clearance_m: 5.0,
+            clearance_radius_m: 6.0,
             start_delay_s: 2.0,
             levels: vec![
                 Level {
@@ -96,6 +99,7 @@ impl Default for ScriptParams {
                 },
             ],
             leg_tolerance_m: 0.5,
+            segment_m: 10.0,
         }
     }
 }
@@ -190,6 +194,9 @@ impl Script {
             gimbal_pitch_deg: first.gimbal_pitch_deg,
         });
         let passes = p.passes.max(2);
+        // The route after the climb: the lawn-mower corners of each level,
+        // then a last point west of home looking down at the scene.
+        let mut corners: Vec<((f64, f64), Level)> = Vec::new();
         for (li, level) in p.levels.iter().enumerate() {
             // Alternate the sweep direction per level: passes run east-west
             // on even levels, north-south on odd ones.
@@ -208,41 +215,61 @@ impl Script {
             if li % 2 == 1 {
                 pts.reverse();
             }
-            // The leg's altitude clears everything along it.
-            let leg_alt = |from: (f64, f64), to: (f64, f64)| {
-                let n = 10;
-                (0..=n)
-                    .map(|i| {
-                        let f = i as f64 / n as f64;
-                        let x = from.0 + (to.0 - from.0) * f;
-                        let y = from.1 + (to.1 - from.1) * f;
-                        safe_alt(x, y, level.alt_m)
-                    })
-                    .fold(level.alt_m, f64::max)
-            };
-            let mut prev = {
-                let l = legs.last().map(|l| l.to).unwrap_or_default();
-                (l.x, l.y)
-            };
-            for &pt in &pts {
-                let alt = leg_alt(prev, pt);
-                legs.push(Leg {
-                    to: Vector3::new(pt.0, pt.1, -alt),
-                    yaw: level.yaw_deg.to_radians(),
-                    gimbal_pitch_deg: level.gimbal_pitch_deg,
-                });
-                prev = pt;
+            corners.extend(pts.into_iter().map(|q| (q, *level)));
+        }
+        let last = p.levels.last().copied().unwrap_or(first);
+        corners.push((
+            (-h * 0.5, 0.0),
+            Level {
+                gimbal_pitch_deg: -45.0,
+                yaw_deg: 0.0,
+                ..last
+            },
+        ));
+        // Cut the route into segments of about `segment_m`. Each segment
+        // flies at its level's altitude unless a roof near it needs more;
+        // a point's altitude also covers the next segment, so the vehicle
+        // climbs before it reaches a building and descends after it.
+        let mut pts: Vec<((f64, f64), Level)> = vec![((0.0, 0.0), first)];
+        for &(c, level) in &corners {
+            let Some(&(prev, _)) = pts.last() else { break };
+            let len = (c.0 - prev.0).hypot(c.1 - prev.1);
+            let n = ((len / p.segment_m).ceil() as usize).max(1);
+            for i in 1..=n {
+                let f = i as f64 / n as f64;
+                pts.push((
+                    (prev.0 + (c.0 - prev.0) * f, prev.1 + (c.1 - prev.1) * f),
+                    level,
+                ));
             }
         }
-        // End over home, looking down at the scene centre from the last level.
-        let last = p.levels.last().copied().unwrap_or(first);
-        let prev = legs.last().map(|l| l.to).unwrap_or_default();
-        let alt = safe_alt(0.0, 0.0, last.alt_m).max(-prev.z);
-        legs.push(Leg {
-            to: Vector3::new(-h * 0.5, 0.0, -alt),
-            yaw: 0.0,
-            gimbal_pitch_deg: -45.0,
-        });
+        let seg_alt = |i: usize| -> f64 {
+            let (a, level) = pts[i - 1];
+            let (b, _) = pts[i];
+            let mid = ((a.0 + b.0) / 2.0, (a.1 + b.1) / 2.0);
+            [a, mid, b]
+                .iter()
+                .map(|q| safe_alt(q.0, q.1, level.alt_m))
+                .fold(level.alt_m, f64::max)
+        };
+        let n = pts.len();
+        for (i, &(q, level)) in pts.iter().enumerate().skip(1) {
+            let mut alt = seg_alt(i);
+            if i + 1 < n {
+                alt = alt.max(seg_alt(i + 1));
+            }
+            legs.push(Leg {
+                to: Vector3::new(q.0, q.1, -alt),
+                yaw: level.yaw_deg.to_radians(),
+                gimbal_pitch_deg: level.gimbal_pitch_deg,
+            });
+        }
+        // The climb over home also clears the first segment.
+        if n > 1
+            && let Some(l0) = legs.first_mut()
+        {
+            l0.to.z = l0.to.z.min(-seg_alt(1));
+        }
         legs
     }
 
@@ -444,8 +471,8 @@ mod tests {
         );
         assert!(s.finished());
         let p = ap.vehicle().p_ned();
-        // The 15 m building over home raises the hover height to 21 m.
-        assert!((p.z + 21.0).abs() < 0.6, "{p}");
+        // The 15 m building over home raises the hover height to 20 m.
+        assert!((p.z + 20.0).abs() < 0.6, "{p}");
         assert_eq!(ap.mode(), Mode::Hold);
         assert!(
             trace
@@ -470,5 +497,44 @@ mod tests {
         s.step(&mut ap, t + dt);
         assert!(s.finished());
         assert_eq!(ap.mode(), Mode::Hold);
+    }
+
+    /// In the default world the survey keeps clear of every roof and still
+    /// spends time low over open ground.
+    #[test]
+    fn explore_clears_the_roofs_of_the_default_world() {
+        let world = crate::world::World::generate(1);
+        let mut ap = Autopilot::new(AutopilotParams::default(), 0.0);
+        let mut s = Script::new(ScriptKind::Explore, ScriptParams::default(), &|x, y, r| {
+            world.max_height_near(x, y, r)
+        });
+        let (dt, mut t) = (0.02, 0.0);
+        let mut min_margin = f64::INFINITY;
+        let mut low = 0usize;
+        while t < 900.0 && !s.finished() {
+            t += dt;
+            s.step(&mut ap, t);
+            ap.step(t, dt);
+            let p = ap.vehicle().p_ned();
+            let roof = world.max_height_near(p.x, p.y, 1.0);
+            if roof > 0.0 {
+                min_margin = min_margin.min(-p.z - roof);
+            }
+            if -p.z < 16.0 && -p.z > 10.0 {
+                low += 1;
+            }
+        }
+        assert!(s.finished());
+        eprintln!(
+            "explore: {t:.0} s, {:.0} m path, closest roof {min_margin:.2} m, {:.0} s below 16 m",
+            s.length_m(),
+            low as f64 * dt
+        );
+        assert!(min_margin > 2.0, "came within {min_margin} m of a roof");
+        assert!(
+            low as f64 * dt > 20.0,
+            "only {} s below 16 m",
+            low as f64 * dt
+        );
     }
 }

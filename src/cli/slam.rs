@@ -39,8 +39,10 @@ pub fn run(args: SlamArgs) -> Result<()> {
         Some(p) => Some(Trajectory::read_tum(p)?),
         None => ds.groundtruth.clone(),
     };
-    let mut params = slam::Params::default();
-    params.sequential = args.sequential;
+    let mut params = slam::Params {
+        sequential: args.sequential,
+        ..Default::default()
+    };
     params.tracking.features.n_features = args.features;
     params.tracking.init_features = args.features * 2;
     params.tracking.seed = args.seed;

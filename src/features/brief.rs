@@ -88,8 +88,8 @@ pub fn gaussian_blur(src: &[u8], w: usize, h: usize, dst: &mut Vec<u8>, scratch:
                 drow[x] = ((128 + border_tap(vrow, x as isize, w)) >> 8) as u8;
             }
         } else {
-            for x in 0..w {
-                drow[x] = ((128 + border_tap(vrow, x as isize, w)) >> 8) as u8;
+            for (x, d) in drow.iter_mut().enumerate() {
+                *d = ((128 + border_tap(vrow, x as isize, w)) >> 8) as u8;
             }
         }
     }
@@ -105,6 +105,7 @@ fn border_tap(row: &[u8], x: isize, w: usize) -> u16 {
 /// The pattern as point lists, ready to rotate.
 #[derive(Debug, Clone)]
 pub struct Steerer {
+    /// First points of the 256 pairs, then the second points.
     px: [i32; 512],
     py: [i32; 512],
 }
@@ -114,10 +115,10 @@ impl Default for Steerer {
         let mut px = [0i32; 512];
         let mut py = [0i32; 512];
         for (i, p) in ORB_PATTERN.iter().enumerate() {
-            px[2 * i] = p[0] as i32;
-            py[2 * i] = p[1] as i32;
-            px[2 * i + 1] = p[2] as i32;
-            py[2 * i + 1] = p[3] as i32;
+            px[i] = p[0] as i32;
+            py[i] = p[1] as i32;
+            px[256 + i] = p[2] as i32;
+            py[256 + i] = p[3] as i32;
         }
         Steerer { px, py }
     }
@@ -140,21 +141,20 @@ impl Steerer {
         let (sin, cos) = angle_deg.to_radians().sin_cos();
         // Rotation in 16.16 fixed point; rounding half up, clamped to the reach
         // so every read below stays inside the window checked here.
-        let ca = (cos * 65536.0).round() as i32;
-        let sa = (sin * 65536.0).round() as i32;
+        let ca = (cos * 65536.0).round_ties_even() as i32;
+        let sa = (sin * 65536.0).round_ties_even() as i32;
         let reach = PATTERN_REACH as i32;
         let wi = w as i32;
         let mut offs = [0i32; 512];
-        for i in 0..512 {
-            let (px, py) = (self.px[i], self.py[i]);
+        for ((o, &px), &py) in offs.iter_mut().zip(&self.px).zip(&self.py) {
             let u = ((px * ca - py * sa + 32768) >> 16).clamp(-reach, reach);
             let v = ((px * sa + py * ca + 32768) >> 16).clamp(-reach, reach);
-            offs[i] = v * wi + u;
+            *o = v * wi + u;
         }
         let mut vals = [0u8; 512];
         let r = PATTERN_REACH;
+        let centre = (y * w + x) as isize;
         if x >= r && y >= r && x + r < w && (y + r) * w + x + r < blur.len() {
-            let centre = (y * w + x) as isize;
             for (v, &o) in vals.iter_mut().zip(&offs) {
                 let idx = (centre + o as isize) as usize;
                 // SAFETY: |u|, |v| <= r, so idx lies in
@@ -162,7 +162,6 @@ impl Steerer {
                 *v = unsafe { *blur.get_unchecked(idx) };
             }
         } else {
-            let centre = (y * w + x) as isize;
             for (v, &o) in vals.iter_mut().zip(&offs) {
                 let idx = centre + o as isize;
                 *v = usize::try_from(idx)
@@ -172,16 +171,54 @@ impl Steerer {
                     .unwrap_or(0);
             }
         }
-        let mut d: Descriptor = [0; 4];
-        for (word, chunk) in d.iter_mut().zip(vals.chunks_exact(128)) {
-            let mut bits = 0u64;
-            for (j, pair) in chunk.chunks_exact(2).enumerate() {
-                bits |= ((pair[0] < pair[1]) as u64) << j;
-            }
-            *word = bits;
-        }
-        d
+        let (first, second) = vals.split_at(256);
+        pack_less(first, second)
     }
+}
+
+/// Bit `i` set when `a[i] < b[i]`, for 256 values.
+#[inline(always)]
+fn pack_less(a: &[u8], b: &[u8]) -> Descriptor {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if a.len() >= 256 && b.len() >= 256 && std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            return unsafe { pack_less_avx2(a, b) };
+        }
+    }
+    let mut d: Descriptor = [0; 4];
+    for (k, word) in d.iter_mut().enumerate() {
+        let mut bits = 0u64;
+        for j in 0..64 {
+            bits |= ((a[64 * k + j] < b[64 * k + j]) as u64) << j;
+        }
+        *word = bits;
+    }
+    d
+}
+
+/// [`pack_less`] with AVX2 byte compares and move-masks.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn pack_less_avx2(a: &[u8], b: &[u8]) -> Descriptor {
+    use std::arch::x86_64::*;
+    let mut d: Descriptor = [0; 4];
+    let (a, b) = (&a[..256], &b[..256]);
+    let bias = _mm256_set1_epi8(i8::MIN);
+    for k in 0..8 {
+        // SAFETY: `32 k + 32 <= 256` bytes are read from each slice.
+        let (va, vb) = unsafe {
+            (
+                _mm256_loadu_si256(a.as_ptr().add(32 * k) as *const __m256i),
+                _mm256_loadu_si256(b.as_ptr().add(32 * k) as *const __m256i),
+            )
+        };
+        // Unsigned a < b as signed compare of the biased bytes.
+        let lt = _mm256_cmpgt_epi8(_mm256_xor_si256(vb, bias), _mm256_xor_si256(va, bias));
+        let m = _mm256_movemask_epi8(lt) as u32 as u64;
+        d[k / 2] |= m << (32 * (k % 2));
+    }
+    d
 }
 
 #[cfg(test)]
@@ -216,6 +253,16 @@ mod tests {
         assert_eq!(reflect101(5, 5), 3);
         assert_eq!(reflect101(7, 5), 1);
         assert_eq!(reflect101(-3, 2), 1);
+    }
+
+    #[test]
+    fn packing_agrees_with_the_scalar_rule() {
+        let a: Vec<u8> = (0..256).map(|i| ((i * 37) % 256) as u8).collect();
+        let b: Vec<u8> = (0..256).map(|i| ((i * 91 + 13) % 256) as u8).collect();
+        let d = pack_less(&a, &b);
+        for i in 0..256 {
+            assert_eq!((d[i / 64] >> (i % 64)) & 1 == 1, a[i] < b[i], "bit {i}");
+        }
     }
 
     #[test]

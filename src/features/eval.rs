@@ -10,6 +10,7 @@ use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
 use super::{Descriptor, Features, KeyPoint, OrbExtractor};
+use crate::camera::Camera;
 use crate::matching;
 use crate::video::dataset::Dataset;
 
@@ -72,27 +73,33 @@ pub struct TimingReport {
     pub mean_keypoints: f64,
 }
 
-/// Time `extractor` on every frame (after `warmup` untimed passes over the
-/// first frame), one timing per frame.
-pub fn time_extraction(
+/// Time `extractor` on every frame (after `warmup` untimed extractions of
+/// the first frame): milliseconds and keypoint count per frame.
+pub fn time_frames(
     extractor: &mut OrbExtractor,
     frames: &[GrayImage],
+    camera: Option<&Camera>,
     warmup: usize,
-) -> TimingReport {
+) -> Vec<(f64, usize)> {
     let mut feats = Features::default();
     if let Some(first) = frames.first() {
         for _ in 0..warmup {
-            let _ = extractor.extract_into(first, None, None, &mut feats);
+            let _ = extractor.extract_into(first, None, camera, &mut feats);
         }
     }
-    let mut ms = Vec::with_capacity(frames.len());
-    let mut kps = 0usize;
-    for f in frames {
-        let t = Instant::now();
-        let _ = extractor.extract_into(f, None, None, &mut feats);
-        ms.push(t.elapsed().as_secs_f64() * 1e3);
-        kps += feats.len();
-    }
+    frames
+        .iter()
+        .map(|f| {
+            let t = Instant::now();
+            let _ = extractor.extract_into(f, None, camera, &mut feats);
+            (t.elapsed().as_secs_f64() * 1e3, feats.len())
+        })
+        .collect()
+}
+
+/// Median, 95th percentile and mean keypoints of per-frame timings.
+pub fn summarize(timings: &[(f64, usize)]) -> TimingReport {
+    let mut ms: Vec<f64> = timings.iter().map(|t| t.0).collect();
     ms.sort_by(f64::total_cmp);
     let pick = |q: f64| -> f64 {
         if ms.is_empty() {
@@ -101,16 +108,26 @@ pub fn time_extraction(
         let i = ((ms.len() - 1) as f64 * q).round() as usize;
         ms[i.min(ms.len() - 1)]
     };
+    let kps: usize = timings.iter().map(|t| t.1).sum();
     TimingReport {
-        frames: frames.len(),
+        frames: timings.len(),
         median_ms: pick(0.5),
         p95_ms: pick(0.95),
-        mean_keypoints: if frames.is_empty() {
+        mean_keypoints: if timings.is_empty() {
             0.0
         } else {
-            kps as f64 / frames.len() as f64
+            kps as f64 / timings.len() as f64
         },
     }
+}
+
+/// [`time_frames`] without a camera, summarized.
+pub fn time_extraction(
+    extractor: &mut OrbExtractor,
+    frames: &[GrayImage],
+    warmup: usize,
+) -> TimingReport {
+    summarize(&time_frames(extractor, frames, None, warmup))
 }
 
 /// One synthetic view change: a homography about the image centre.

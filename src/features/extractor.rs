@@ -312,16 +312,17 @@ fn features_per_level(n: usize, levels: usize, scale: f32, exponent: f32) -> Vec
 /// `(x, y)` with radius `r` (level-0 pixels) is 0: the centre and 8 points on
 /// the patch circle are probed.
 fn patch_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) -> bool {
+    const D: f32 = std::f32::consts::FRAC_1_SQRT_2;
     const DIRS: [(f32, f32); 9] = [
         (0.0, 0.0),
         (1.0, 0.0),
-        (0.7071, 0.7071),
+        (D, D),
         (0.0, 1.0),
-        (-0.7071, 0.7071),
+        (-D, D),
         (-1.0, 0.0),
-        (-0.7071, -0.7071),
+        (-D, -D),
         (0.0, -1.0),
-        (0.7071, -0.7071),
+        (D, -D),
     ];
     DIRS.iter().all(|&(dx, dy)| {
         let px = (x + dx * r).round();

@@ -247,7 +247,10 @@ pub fn detect(
     scratch.pad.resize(7 * (L + 6), 0);
     for y in r.y0 - 1..r.y1 + 1 {
         let slot = y % 3;
-        scratch.scores[slot].fill(0);
+        // Clear the slot's previous row: only its corners were written.
+        for &x in &scratch.cands[slot] {
+            scratch.scores[slot][x as usize - sx0] = 0;
+        }
         scratch.cands[slot].clear();
         let rows: [&[u8]; 7] = std::array::from_fn(|k| &img[(y + k - 3) * w..(y + k - 3) * w + w]);
         let mut xs = sx0;

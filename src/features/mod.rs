@@ -39,8 +39,33 @@ pub use extractor::OrbExtractor;
 pub type Descriptor = [u64; 4];
 
 /// Hamming distance between two descriptors (number of differing bits).
+///
+/// Uses the CPU's popcount instruction: directly when the build targets it,
+/// else after a (cached) runtime check. Loops over many pairs are faster
+/// still inside a function compiled for it, as
+/// [`crate::matching::match_brute_force_into`] does.
 #[inline]
 pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
+    #[cfg(all(target_arch = "x86_64", not(target_feature = "popcnt")))]
+    {
+        if std::arch::is_x86_feature_detected!("popcnt") {
+            // SAFETY: the CPU has POPCNT, checked just above.
+            return unsafe { hamming_popcnt(a, b) };
+        }
+    }
+    hamming_portable(a, b)
+}
+
+#[cfg(all(target_arch = "x86_64", not(target_feature = "popcnt")))]
+#[target_feature(enable = "popcnt")]
+fn hamming_popcnt(a: &Descriptor, b: &Descriptor) -> u32 {
+    hamming_portable(a, b)
+}
+
+/// [`hamming`] as plain Rust (`count_ones`), inlined into callers compiled
+/// for the CPU.
+#[inline(always)]
+pub fn hamming_portable(a: &Descriptor, b: &Descriptor) -> u32 {
     (a[0] ^ b[0]).count_ones()
         + (a[1] ^ b[1]).count_ones()
         + (a[2] ^ b[2]).count_ones()
@@ -219,7 +244,7 @@ impl Params {
                 "must be in 19..=256",
             );
         }
-        if self.patch_size < 7 || self.patch_size > 31 || self.patch_size % 2 == 0 {
+        if self.patch_size < 7 || self.patch_size > 31 || self.patch_size.is_multiple_of(2) {
             return bad(
                 "patch_size",
                 self.patch_size.to_string(),

@@ -63,9 +63,37 @@ impl Disc {
             m10 += sum_u as i64;
             m01 += v as i64 * sum_v as i64;
         }
-        let a = (m01 as f32).atan2(m10 as f32).to_degrees();
-        if a < 0.0 { a + 360.0 } else { a }
+        atan2_deg(m01 as f32, m10 as f32)
     }
+}
+
+/// `atan2(y, x)` in degrees, `[0, 360)`, by a minimax polynomial (error below
+/// 0.001 degree); 0 for `(0, 0)`.
+#[inline(always)]
+pub fn atan2_deg(y: f32, x: f32) -> f32 {
+    let (ax, ay) = (x.abs(), y.abs());
+    let (mn, mx) = if ax < ay { (ax, ay) } else { (ay, ax) };
+    if mx.is_nan() || mx <= 0.0 {
+        return 0.0;
+    }
+    let t = mn / mx;
+    let s = t * t;
+    let mut r = t
+        * (0.999_977_26
+            + s * (-0.332_623_47
+                + s * (0.193_543_46
+                    + s * (-0.116_432_87 + s * (0.052_653_32 + s * -0.011_721_2)))));
+    if ay > ax {
+        r = std::f32::consts::FRAC_PI_2 - r;
+    }
+    if x < 0.0 {
+        r = std::f32::consts::PI - r;
+    }
+    let mut deg = r.to_degrees();
+    if y < 0.0 {
+        deg = 360.0 - deg;
+    }
+    if deg >= 360.0 { deg - 360.0 } else { deg }
 }
 
 #[cfg(test)]
@@ -85,6 +113,24 @@ mod tests {
                 assert_eq!(inside, inside_t, "u {u} v {v}");
             }
         }
+    }
+
+    #[test]
+    fn fast_atan2_is_accurate() {
+        for i in 0..3600 {
+            let a = (i as f32 * 0.1 + 0.03).to_radians();
+            for r in [1.0f32, 37.0, 1e5] {
+                let (y, x) = (r * a.sin(), r * a.cos());
+                let want = y.atan2(x).to_degrees().rem_euclid(360.0);
+                let got = atan2_deg(y, x);
+                let diff = (got - want).abs().min(360.0 - (got - want).abs());
+                assert!(diff < 1e-3, "{y} {x}: {got} vs {want}");
+                assert!((0.0..360.0).contains(&got));
+            }
+        }
+        assert_eq!(atan2_deg(0.0, 0.0), 0.0);
+        assert_eq!(atan2_deg(0.0, 5.0), 0.0);
+        assert!((atan2_deg(-1.0, 0.0) - 270.0).abs() < 1e-3);
     }
 
     #[test]

@@ -9,8 +9,7 @@
 //! thresholds are given in pixels and converted with `focal_px`.
 
 use nalgebra::{
-    Isometry3, Matrix3, Point2, Point3, Rotation3, SMatrix, SVector, Translation3, UnitQuaternion,
-    Vector3, Vector4,
+    Isometry3, Matrix3, Point2, Point3, SMatrix, SVector, Translation3, Vector3, Vector4,
 };
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
@@ -784,6 +783,7 @@ pub fn solve_pnp_ransac(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
 
     fn scene() -> (Isometry3<f64>, Vec<Point3<f64>>) {
         let pose = Isometry3::from_parts(

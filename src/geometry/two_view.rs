@@ -32,10 +32,7 @@
 //! The translation of the result has unit norm (monocular scale is free);
 //! callers rescale, e.g. to unit median depth.
 
-use nalgebra::{
-    Isometry3, Matrix3, Point2, Point3, Rotation3, SMatrix, SVector, Translation3, UnitQuaternion,
-    Vector3,
-};
+use nalgebra::{Isometry3, Matrix3, Point2, Point3, SMatrix, SVector, Translation3, Vector3};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
 use super::GeometryError;
@@ -917,6 +914,7 @@ fn refine_two_view(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
 
     #[test]
     fn faugeras_decomposition_contains_the_true_motion() {

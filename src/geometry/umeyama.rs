@@ -3,7 +3,7 @@
 //! between two point patterns", PAMI 1991): rotation from the SVD of the
 //! cross-covariance with the reflection fix, scale from the singular values.
 
-use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, Vector3};
 
 use super::{GeometryError, Sim3, all_finite3};
 
@@ -95,6 +95,7 @@ pub fn umeyama(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
     use rand::{Rng, SeedableRng, rngs::SmallRng};
 
     #[test]

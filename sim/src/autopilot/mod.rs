@@ -11,7 +11,9 @@
 //! ATTITUDE 10, GLOBAL_POSITION_INT 5, LOCAL_POSITION_NED 5,
 //! GIMBAL_DEVICE_ATTITUDE_STATUS 5, HOME_POSITION 0.5. MAV_CMD_SET_MESSAGE_INTERVAL
 //! changes them (-1 stops a stream, 0 restores the default) and
-//! MAV_CMD_REQUEST_MESSAGE sends one at once.
+//! MAV_CMD_REQUEST_MESSAGE sends one at once. The ArduPilot flavour also
+//! honours the legacy REQUEST_DATA_STREAM (groups ALL, EXTENDED_STATUS,
+//! POSITION, EXTRA1, EXTRA3).
 //!
 //! Commands answered with COMMAND_ACK: COMPONENT_ARM_DISARM, DO_SET_MODE
 //! (PX4 custom modes main_mode << 16 | sub_mode << 24, or ArduPilot copter
@@ -24,7 +26,8 @@
 //! MAV_RESULT_UNSUPPORTED.
 //!
 //! Mission execution (mode AUTO.MISSION / ArduPilot AUTO, armed): items run
-//! from the current one. NAV_TAKEOFF climbs over the current position;
+//! from the current one. NAV_TAKEOFF climbs over the current position (and
+//! is reached at once by a vehicle already flying higher);
 //! NAV_WAYPOINT flies to the point (param2 acceptance radius, default 2 m,
 //! 0.8 m vertically; param4 yaw, NaN = face the direction of travel),
 //! waits for the yaw, reports MISSION_ITEM_REACHED, then holds param1
@@ -561,6 +564,12 @@ impl Autopilot {
             out.push(cmd_ack(from, c.command, result));
             return out;
         }
+        if let MavMessage::REQUEST_DATA_STREAM(r) = msg
+            && self.for_us(r.target_system, r.target_component)
+        {
+            self.request_data_stream(r.req_stream_id as u32, r.req_message_rate, r.start_stop);
+            return out;
+        }
         let replies = self.mission.handle(self.now, from, msg);
         if !replies.is_empty() {
             self.gcs.get_or_insert(from);
@@ -763,6 +772,31 @@ impl Autopilot {
                 MavResult::MAV_RESULT_ACCEPTED
             }
             _ => MavResult::MAV_RESULT_UNSUPPORTED,
+        }
+    }
+
+    /// The legacy REQUEST_DATA_STREAM (ArduPilot ground stations send it;
+    /// PX4 ignores it): a stream group at a rate in Hz, or off.
+    fn request_data_stream(&mut self, stream: u32, rate_hz: u16, start: u8) {
+        if self.params.flavour != Flavour::ArduPilot {
+            return;
+        }
+        // ArduPilot's groups, restricted to the messages we produce.
+        let ids: &[u32] = match stream {
+            0 => &[1, 24, 42, 30, 33, 32, 285, 2],
+            2 => &[1, 24, 42],
+            6 => &[33, 32],
+            10 => &[30],
+            12 => &[2, 285],
+            _ => &[],
+        };
+        for s in self.streams.iter_mut().filter(|s| ids.contains(&s.id)) {
+            s.interval = if start == 0 || rate_hz == 0 {
+                None
+            } else {
+                Some(1.0 / f64::from(rate_hz))
+            };
+            s.next = self.now;
         }
     }
 
@@ -1181,10 +1215,14 @@ impl Autopilot {
         let (sp, complete) = match self.exec.phase {
             Phase::Instant => (self.hold_or_idle(), true),
             Phase::Takeoff { z } => {
+                // As PX4: reached once at or above the takeoff altitude (a
+                // vehicle already flying higher does not descend).
+                let z = if self.vehicle.landed() { z } else { z.min(p.z) };
                 let target = Vector3::new(p.x, p.y, z);
-                let done = (p.z - z).abs() <= self.params.altitude_acceptance_m;
+                let done = p.z <= z + self.params.altitude_acceptance_m;
                 if done {
-                    self.hold_point = Some((Vector3::new(p.x, p.y, z), self.vehicle.yaw()));
+                    self.hold_point =
+                        Some((Vector3::new(p.x, p.y, p.z.min(z)), self.vehicle.yaw()));
                 }
                 (
                     Setpoint::Position {

@@ -549,3 +549,101 @@ fn ardupilot_mission_starts_after_home_and_condition_yaw_turns() {
     assert!((y - 135.0).abs() < 2.5, "{y}");
     assert!((s.ap.vehicle().p_ned() - Vector3::new(10.0, 0.0, -8.0)).norm() < 2.0);
 }
+
+#[test]
+fn takeoff_item_is_reached_at_once_when_already_higher() {
+    let mut s = Sim::new(Flavour::Px4);
+    s.command(
+        MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    );
+    s.command(
+        MavCmd::MAV_CMD_NAV_TAKEOFF,
+        [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 488.0 + 20.0],
+    );
+    s.run(12.0);
+    assert!((s.ap.vehicle().p_ned().z + 20.0).abs() < 0.3);
+    s.upload(vec![item(
+        0,
+        MavCmd::MAV_CMD_NAV_TAKEOFF,
+        REL,
+        [0.0; 4],
+        0,
+        0,
+        8.0,
+    )]);
+    s.command(MavCmd::MAV_CMD_MISSION_START, [0.0; 7]);
+    let out = s.run(2.0);
+    assert!(
+        out.iter()
+            .any(|(_, m)| matches!(m, MavMessage::MISSION_ITEM_REACHED(r) if r.seq == 0))
+    );
+    assert!(
+        (s.ap.vehicle().p_ned().z + 20.0).abs() < 0.3,
+        "descended: {}",
+        s.ap.vehicle().p_ned()
+    );
+}
+
+#[test]
+fn ardupilot_honours_request_data_stream_and_px4_ignores_it() {
+    use mavlink::Message;
+    use mavlink::dialects::common::{MavDataStream, REQUEST_DATA_STREAM_DATA};
+    let req = MavMessage::REQUEST_DATA_STREAM(REQUEST_DATA_STREAM_DATA {
+        req_message_rate: 20,
+        target_system: 1,
+        target_component: 1,
+        req_stream_id: MavDataStream::MAV_DATA_STREAM_POSITION,
+        start_stop: 1,
+    });
+    let count = |msgs: &[(f64, MavMessage)], id: u32| {
+        msgs.iter().filter(|(_, m)| m.message_id() == id).count()
+    };
+    let mut a = Sim::new(Flavour::ArduPilot);
+    a.send(req.clone());
+    let out = a.run(5.0);
+    assert!((99..=101).contains(&count(&out, 33)), "{}", count(&out, 33));
+    assert!((99..=101).contains(&count(&out, 32)));
+    let mut p = Sim::new(Flavour::Px4);
+    p.send(req);
+    let out = p.run(5.0);
+    assert!((24..=26).contains(&count(&out, 33)));
+}
+
+#[test]
+fn mount_control_moves_the_gimbal_and_the_status_reports_it() {
+    let mut s = Sim::new(Flavour::Px4);
+    let r = s.command(
+        MavCmd::MAV_CMD_DO_MOUNT_CONTROL,
+        [-45.0, 0.0, 30.0, 0.0, 0.0, 0.0, 2.0],
+    );
+    assert_eq!(r, MavResult::MAV_RESULT_ACCEPTED);
+    s.run(1.0);
+    let (pitch, yaw) = s.ap.vehicle().gimbal_angles();
+    assert!((pitch.to_degrees() + 45.0).abs() < 1e-6 && (yaw.to_degrees() - 30.0).abs() < 1e-6);
+    let Some(MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(g)) = s.ap.build(285) else {
+        panic!()
+    };
+    let q = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        f64::from(g.q[0]),
+        f64::from(g.q[1]),
+        f64::from(g.q[2]),
+        f64::from(g.q[3]),
+    ));
+    let (_, p, y) = q.euler_angles();
+    assert!((p.to_degrees() + 45.0).abs() < 1e-3 && (y.to_degrees() - 30.0).abs() < 1e-3);
+    // Earth-frame yaw (YAW_LOCK flag) is converted to body-relative.
+    s.ap.vehicle_mut()
+        .teleport(Vector3::new(0.0, 0.0, 0.0), 90f64.to_radians());
+    s.command(
+        MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+        [-10.0, 120.0, f32::NAN, f32::NAN, 16.0, 0.0, 0.0],
+    );
+    s.run(2.0);
+    let (_, yaw) = s.ap.vehicle().gimbal_angles();
+    assert!(
+        (yaw.to_degrees() - 30.0).abs() < 1e-6,
+        "{}",
+        yaw.to_degrees()
+    );
+}

@@ -16,6 +16,10 @@ import time
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from lossy_upload import download as robust_download  # noqa: E402
+from lossy_upload import upload as robust_upload  # noqa: E402
+
 m2 = mavutil.mavlink
 
 
@@ -53,6 +57,9 @@ def main():
     ap.add_argument("--listen", default="udpin:127.0.0.1:14550")
     ap.add_argument("--trace", default=None)
     ap.add_argument("--timeout", type=float, default=180.0)
+    ap.add_argument("--capture", action="store_true",
+                    help="add a gimbal pitch -90 and an IMAGE_START_CAPTURE after waypoint 1 and check "
+                         "CAMERA_IMAGE_CAPTURED and the file")
     args = ap.parse_args()
 
     conn = mavutil.mavlink_connection(args.listen, source_system=255, source_component=190)
@@ -90,43 +97,30 @@ def main():
         (1, frame, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 2.0, 1.0, 0.0, 90.0, a[0], a[1], 15.0),
         (2, frame, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 1.0, 0.0, float("nan"), b[0], b[1], 15.0),
     ]
+    if args.capture:
+        items = items[:2] + [
+            (2, m2.MAV_FRAME_MISSION, m2.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, 0, 1, -90.0, 0.0, float("nan"), float("nan"), 0, 0, 0.0),
+            (3, m2.MAV_FRAME_MISSION, m2.MAV_CMD_IMAGE_START_CAPTURE, 0, 1, 0.0, 0.0, 1.0, 0.0, 0, 0, 0.0),
+        ] + [(4,) + items[2][1:]]
     ardupilot = hb.autopilot == m2.MAV_AUTOPILOT_ARDUPILOTMEGA
     if ardupilot:
         # ArduPilot: item 0 is home (its content is replaced by the vehicle).
         items = [(0, m2.MAV_FRAME_GLOBAL, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 0.0, 0.0, 0.0,
                   int(round(lat0 * 1e7)), int(round(lon0 * 1e7)), home.altitude / 1000.0)] + [
             (it[0] + 1,) + it[1:] for it in items]
+    # Upload with QGC-like retries (lossy_upload.py): re-send MISSION_COUNT
+    # until requested, answer every request, re-send the last item until ACKed.
     t_up = time.time()
-    conn.mav.mission_count_send(conn.target_system, conn.target_component, len(items), m2.MAV_MISSION_TYPE_MISSION)
-    requests = []
-    result = None
-    while time.time() - t_up < 10:
-        msg = wait(conn, ["MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"], 2.0)
-        if msg is None:
-            break
-        if msg.get_type() == "MISSION_ACK":
-            result = msg.type
-            break
-        requests.append((msg.get_type(), msg.seq))
-        it = items[msg.seq]
-        conn.mav.mission_item_int_send(conn.target_system, conn.target_component, *it, m2.MAV_MISSION_TYPE_MISSION)
+    ok_up, why, secs, stats = robust_upload(conn, items, 1.5, 5)
+    result = m2.MAV_MISSION_ACCEPTED if ok_up else why
+    requests = stats
     summary["upload"] = {"result": result, "requests": requests, "seconds": round(time.time() - t_up, 3)}
     if result != m2.MAV_MISSION_ACCEPTED:
         print(json.dumps({"ok": False, **summary}))
         return 1
 
-    # Download it back.
-    conn.mav.mission_request_list_send(conn.target_system, conn.target_component, m2.MAV_MISSION_TYPE_MISSION)
-    cnt = wait(conn, ["MISSION_COUNT"], 3.0)
-    got = []
-    for seq in range(cnt.count if cnt else 0):
-        conn.mav.mission_request_int_send(conn.target_system, conn.target_component, seq, m2.MAV_MISSION_TYPE_MISSION)
-        it = wait(conn, ["MISSION_ITEM_INT"], 2.0, lambda m, s=seq: m.seq == s)
-        if it is None:
-            break
-        got.append(it)
-    conn.mav.mission_ack_send(conn.target_system, conn.target_component, m2.MAV_MISSION_ACCEPTED, m2.MAV_MISSION_TYPE_MISSION)
-
+    # Download it back (re-requesting on timeout).
+    got = robust_download(conn, 1.5, 10) or []
     def same(it, ref):
         def feq(x, y):
             return (math.isnan(x) and math.isnan(y)) or x == y
@@ -154,7 +148,8 @@ def main():
     reached = []
     done = False
     while time.time() - t_start < args.timeout and not done:
-        msg = wait(conn, ["GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "MISSION_ITEM_REACHED", "MISSION_CURRENT"], 1.0)
+        msg = wait(conn, ["GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "MISSION_ITEM_REACHED", "MISSION_CURRENT",
+                          "CAMERA_IMAGE_CAPTURED"], 1.0)
         if msg is None:
             continue
         t = msg.get_type()
@@ -164,6 +159,13 @@ def main():
             if msg.seq not in reached:
                 reached.append(msg.seq)
                 summary.setdefault("reached_at_s", {})[msg.seq] = round(time.time() - t_start, 2)
+        elif t == "CAMERA_IMAGE_CAPTURED":
+            url = msg.file_url if isinstance(msg.file_url, str) else msg.file_url.decode(errors="replace")
+            path = url[len("file://"):] if url.startswith("file://") else url
+            summary.setdefault("captures", []).append({
+                "index": msg.image_index, "result": msg.capture_result, "file": path,
+                "exists": os.path.exists(path), "bytes": os.path.getsize(path) if os.path.exists(path) else 0,
+                "relative_alt_m": msg.relative_alt / 1000.0, "q": [round(v, 4) for v in msg.q]})
         elif t == "MISSION_CURRENT":
             if getattr(msg, "mission_state", 0) == m2.MISSION_STATE_COMPLETE:
                 done = True
@@ -184,8 +186,11 @@ def main():
             "final": trace[-1][1:],
             "every_5s": [r for i, r in enumerate(trace) if i % 25 == 0],
         }
-    want = [1, 2, 3] if ardupilot else [0, 1, 2]
+    want = list(range(len(items)))[1:] if ardupilot else list(range(len(items)))
     ok = done and reached == want and arm == 0 and start == 0
+    if args.capture:
+        caps = summary.get("captures", [])
+        ok = ok and len(caps) == 1 and caps[0]["exists"] and caps[0]["result"] == 1
     summary["ok"] = ok
     print(json.dumps(summary))
     return 0 if ok else 1

@@ -92,6 +92,8 @@ def upload(conn, items, timeout, retries):
             return False, "nack %d" % msg.type, time.time() - t0, stats
         got_request = True
         stats["requests_seen"] += 1
+        stats.setdefault("request_types", []).append(
+            ("INT" if msg.get_type() == "MISSION_REQUEST_INT" else "legacy", msg.seq))
         if 0 <= msg.seq < len(items):
             conn.mav.mission_item_int_send(ts, tc, *items[msg.seq], MISSION)
             stats["item_sends"] += 1
@@ -173,6 +175,7 @@ def main():
                 if not verified:
                     detail = "mismatch: got %d items, first bad %s" % (len(got), next(
                         (str((g.seq, g.command, g.x, g.y, g.z)) + " vs " + str(r) for g, r in zip(got, items) if not same(g, r)), None))
+        stats.pop("request_types", None)
         results.append({"try": k, "ok": ok and verified, "upload": why, "verified": verified,
                         "seconds": round(secs, 2), **stats, **({"detail": detail} if detail else {})})
         # Let stale retransmissions drain before the next try.

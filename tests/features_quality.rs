@@ -1,0 +1,104 @@
+//! Homography-warp evaluation of the extractor on real frames: teddy frames
+//! warped with known homographies (rotation 0-45 degrees, zoom 0.6-1.6, mild
+//! perspective, noise of 3 gray levels), 40 pairs. Measures repeatability,
+//! matching precision and recall (mutual nearest, ratio 0.8, distance <= 64,
+//! correct within 3 px) and spread (share of 16 x 12 cells holding a
+//! keypoint).
+//!
+//! Needs `../shared/data` (or `SHOTPILOT_DATA`); skips with a message when
+//! absent. The OpenCV comparison needs opencv-python-headless
+//! (`SHOTPILOT_PYTHON`, default `python3`).
+
+use std::path::PathBuf;
+use std::process::Command;
+
+use shotpilot::features::eval::{self, PairMetrics, WarpPair, WarpParams};
+use shotpilot::features::{OrbExtractor, Params};
+
+fn data_dir() -> Option<PathBuf> {
+    let dir = std::env::var_os("SHOTPILOT_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
+    let teddy = dir.join("tum_fr3_teddy_100");
+    if teddy.is_dir() {
+        Some(teddy)
+    } else {
+        eprintln!("skipped: {} not present", teddy.display());
+        None
+    }
+}
+
+fn pairs(teddy: &std::path::Path) -> Vec<WarpPair> {
+    let frames = eval::load_dataset_gray(teddy).expect("teddy frames load");
+    let frames: Vec<_> = frames.into_iter().step_by(10).collect();
+    assert_eq!(frames.len(), 10);
+    eval::make_pairs(&frames, 4, &WarpParams::default(), 42)
+}
+
+fn ours(pairs: &[WarpPair]) -> PairMetrics {
+    let mut ex = OrbExtractor::new(Params::default()).expect("valid defaults");
+    let all = eval::evaluate_extractor(&mut ex, pairs, &WarpParams::default()).expect("masks fit");
+    eval::mean_metrics(&all)
+}
+
+#[test]
+fn homography_pairs_reach_the_measured_quality() {
+    let Some(teddy) = data_dir() else {
+        return;
+    };
+    let pairs = pairs(&teddy);
+    let m = ours(&pairs);
+    eprintln!("ours: {m:?}");
+    // Measured: repeatability 0.801, precision 0.931, recall 0.444, spread
+    // 0.381 (OpenCV ORB on the same pairs: 0.815, 0.936, 0.443, 0.308).
+    assert!(m.n_a > 950.0 && m.n_b > 900.0, "{m:?}");
+    assert!(m.repeatability >= 0.78, "{m:?}");
+    assert!(m.precision >= 0.92, "{m:?}");
+    assert!(m.recall >= 0.43, "{m:?}");
+    assert!(m.spread >= 0.36, "{m:?}");
+}
+
+#[test]
+#[ignore = "needs opencv-python-headless and ../shared/data"]
+fn homography_pairs_against_opencv() {
+    let Some(teddy) = data_dir() else {
+        return;
+    };
+    let pairs = pairs(&teddy);
+    let dir = tempfile::tempdir().expect("temp dir");
+    eval::write_pairs(dir.path(), &pairs).expect("pairs written");
+    let python = std::env::var("SHOTPILOT_PYTHON").unwrap_or_else(|_| "python3".into());
+    let script =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("benches/peers/orb_pairs_opencv.py");
+    let st = Command::new(&python)
+        .arg(&script)
+        .arg(dir.path())
+        .status()
+        .expect("python runs");
+    assert!(st.success(), "OpenCV peer failed");
+    let cv =
+        eval::read_peer_features(&dir.path().join("opencv_features.json")).expect("peer output");
+    assert_eq!(cv.len(), pairs.len());
+    let wp = WarpParams::default();
+    let theirs: Vec<PairMetrics> = pairs
+        .iter()
+        .zip(&cv)
+        .map(|(p, (a, b))| {
+            eval::evaluate_pair(
+                p,
+                (&a.keypoints, &a.descriptors),
+                (&b.keypoints, &b.descriptors),
+                &wp,
+            )
+        })
+        .collect();
+    let cv = eval::mean_metrics(&theirs);
+    let m = ours(&pairs);
+    eprintln!("ours:   {m:?}\nopencv: {cv:?}");
+    assert!(m.spread > cv.spread, "spread");
+    assert!(m.recall >= cv.recall - 0.005, "recall");
+    // Within 2 points of OpenCV on repeatability and 1 on precision (measured
+    // 1.4 and 0.5 below): the spread ORB-SLAM wants costs a little of both.
+    assert!(m.repeatability >= cv.repeatability - 0.02, "repeatability");
+    assert!(m.precision >= cv.precision - 0.01, "precision");
+}
