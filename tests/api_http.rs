@@ -165,6 +165,7 @@ fn start(dir: &std::path::Path, token: Option<&str>, with_vehicle: bool) -> Serv
         }),
         actions: Default::default(),
         started_unix: unix_now(),
+        shutdown: Default::default(),
     };
     let listener = rt
         .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))

@@ -153,9 +153,27 @@ fn daemon_with_simulator_end_to_end() {
     assert_eq!(st, 200);
     assert!(image::load_from_memory(&snap).is_ok());
 
-    // Clean stop: the map is saved, the shot is on disk.
+    // Clean stop, even with endless responses open (events, video): the
+    // map is saved, the shot is on disk.
+    let mut open_streams = Vec::new();
+    for path in ["/api/v1/events", "/api/v1/video.mjpg"] {
+        let mut s = TcpStream::connect(addr).unwrap();
+        s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes())
+            .unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let mut buf = [0u8; 256];
+        assert!(s.read(&mut buf).unwrap() > 0, "{path} answers");
+        open_streams.push(s);
+    }
+    let t_stop = Instant::now();
     cancel.cancel();
-    let summary = rt.block_on(daemon).unwrap().unwrap();
+    let summary = rt
+        .block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })
+        .expect("the daemon stops with streams open")
+        .unwrap()
+        .unwrap();
+    eprintln!("stopped in {:.2} s", t_stop.elapsed().as_secs_f64());
+    drop(open_streams);
     eprintln!("summary: {}", serde_json::to_string(&summary).unwrap());
     let map_file = summary.map_file.expect("the map was saved");
     assert!(std::fs::metadata(&map_file).unwrap().len() > 1000);

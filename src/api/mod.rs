@@ -194,6 +194,9 @@ pub struct AppState {
     pub actions: Arc<tokio::sync::Mutex<()>>,
     /// Daemon start time, unix seconds.
     pub started_unix: f64,
+    /// Cancelled at shutdown: ends the endless responses (events, video)
+    /// so that the graceful shutdown does not wait for their clients.
+    pub shutdown: tokio_util::sync::CancellationToken,
 }
 
 /// An API error: status, machine code, message.
@@ -414,7 +417,10 @@ async fn events(
     let period = Duration::from_secs_f64(1.0 / st.params.events_hz.clamp(0.1, 50.0));
     let stream = futures_util::stream::unfold((st, true), move |(st, first)| async move {
         if !first {
-            tokio::time::sleep(period).await;
+            tokio::select! {
+                _ = st.shutdown.cancelled() => return None,
+                _ = tokio::time::sleep(period) => {}
+            }
         }
         let ev = Event::default()
             .event("status")
@@ -428,10 +434,12 @@ const RESERVE_BOUNDARY: &str = "shotpilotapi";
 
 async fn video_mjpeg(State(st): State<AppState>) -> Response {
     let rx = st.ingest.subscribe();
-    let stream = futures_util::stream::unfold(rx, |mut rx| async move {
+    let shutdown = st.shutdown.clone();
+    let stream = futures_util::stream::unfold((rx, shutdown), |(mut rx, shutdown)| async move {
         // The newest frame each time; a slow client skips frames.
-        if rx.changed().await.is_err() {
-            return None;
+        tokio::select! {
+            _ = shutdown.cancelled() => return None,
+            r = rx.changed() => r.ok()?,
         }
         let frame = rx.borrow_and_update().clone();
         let frame = frame?;
@@ -443,7 +451,10 @@ async fn video_mjpeg(State(st): State<AppState>) -> Response {
         .into_bytes();
         part.extend_from_slice(&frame.jpeg);
         part.extend_from_slice(b"\r\n");
-        Some((Ok::<_, std::convert::Infallible>(Bytes::from(part)), rx))
+        Some((
+            Ok::<_, std::convert::Infallible>(Bytes::from(part)),
+            (rx, shutdown),
+        ))
     });
     (
         [

@@ -233,6 +233,7 @@ pub async fn run(
         }),
         actions: Default::default(),
         started_unix: unix_now(),
+        shutdown: cancel.clone(),
     };
     let listener = tokio::net::TcpListener::bind(&cfg.server.bind)
         .await
