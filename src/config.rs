@@ -56,6 +56,164 @@ pub struct Config {
     pub link: crate::vehicle::Params,
     /// `[mission]`: planner numbers, geofence, transfer timeouts and retries.
     pub mission: crate::mission::Params,
+    /// `[video]`: where the live video comes from.
+    pub video: VideoConfig,
+    /// `[server]`: the HTTP API and the operator's page.
+    pub server: ServerConfig,
+    /// `[slam]`: the daemon's SLAM thread.
+    pub slam: SlamConfig,
+    /// `[sim]`: the simulator run in-process.
+    pub sim: SimSection,
+}
+
+/// How video frames are fetched.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VideoSource {
+    /// `multipart/x-mixed-replace` stream.
+    Mjpeg,
+    /// Poll a JPEG snapshot URL.
+    Snapshot,
+}
+
+/// `[video]`: the live video source.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct VideoConfig {
+    /// `mjpeg` or `snapshot`.
+    pub source: VideoSource,
+    /// The stream or snapshot URL (plain http://).
+    pub url: String,
+    /// Snapshot polling rate, Hz.
+    pub snapshot_hz: f64,
+    /// Connect timeout, ms.
+    pub connect_timeout_ms: u64,
+    /// A connection silent this long is reopened, ms.
+    pub read_timeout_ms: u64,
+    /// First reconnect delay, ms (doubles per failure).
+    pub reconnect_min_ms: u64,
+    /// Largest reconnect delay, ms.
+    pub reconnect_max_ms: u64,
+    /// Largest accepted JPEG, bytes.
+    pub max_frame_bytes: usize,
+}
+
+impl Default for VideoConfig {
+    fn default() -> Self {
+        let p = crate::video::mjpeg::Params::default();
+        Self {
+            source: VideoSource::Mjpeg,
+            url: "http://127.0.0.1:8554/video.mjpg".into(),
+            snapshot_hz: 5.0,
+            connect_timeout_ms: p.connect_timeout_ms,
+            read_timeout_ms: p.read_timeout_ms,
+            reconnect_min_ms: p.reconnect_min_ms,
+            reconnect_max_ms: p.reconnect_max_ms,
+            max_frame_bytes: p.max_part_bytes,
+        }
+    }
+}
+
+impl VideoConfig {
+    /// The client tunables.
+    pub fn params(&self) -> crate::video::mjpeg::Params {
+        crate::video::mjpeg::Params {
+            connect_timeout_ms: self.connect_timeout_ms,
+            read_timeout_ms: self.read_timeout_ms,
+            reconnect_min_ms: self.reconnect_min_ms,
+            reconnect_max_ms: self.reconnect_max_ms,
+            max_part_bytes: self.max_frame_bytes,
+            ..Default::default()
+        }
+    }
+}
+
+/// `[server]`: the HTTP API.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerConfig {
+    /// Listen address (`127.0.0.1:0` picks a free port).
+    pub bind: String,
+    /// Bearer token required on state-changing endpoints (unset: none).
+    pub token: Option<String>,
+    /// Largest request body, bytes.
+    pub body_limit_bytes: usize,
+    /// Where shots and the map are kept (relative to the config file).
+    pub data_dir: PathBuf,
+    /// Status events per second on `/api/v1/events`.
+    pub events_hz: f64,
+    /// Most map points `/api/v1/map` returns.
+    pub map_max_points: usize,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            bind: "127.0.0.1:8080".into(),
+            token: None,
+            body_limit_bytes: 8 << 20,
+            data_dir: PathBuf::from("data"),
+            events_hz: 2.0,
+            map_max_points: 20_000,
+        }
+    }
+}
+
+/// `[slam]`: the daemon's SLAM thread.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SlamConfig {
+    /// Run the SLAM on the live video.
+    pub enabled: bool,
+    /// Map file written on shutdown (relative to `server.data_dir`).
+    pub map_file: PathBuf,
+    /// Extra time spent per frame, ms (0: none; to test that a slow SLAM
+    /// never stalls the video).
+    pub artificial_delay_ms: u64,
+}
+
+impl Default for SlamConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            map_file: PathBuf::from("map.spmap"),
+            artificial_delay_ms: 0,
+        }
+    }
+}
+
+/// `[sim]`: the bundled simulator, started inside the daemon.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimSection {
+    /// Start the simulator.
+    pub enabled: bool,
+    /// Address of its MJPEG server (match `[video] url`).
+    pub video_listen: String,
+    /// Its video frame rate, frames per second.
+    pub video_fps: f64,
+    /// Its MAVLink endpoint (match `[link] url`).
+    pub mavlink: String,
+    /// World and noise seed.
+    pub seed: u64,
+    /// Scripted flight: `explore`, `hover` or `none`.
+    pub script: String,
+    /// Autopilot flavour: `px4` or `ardupilot`.
+    pub flavour: String,
+}
+
+impl Default for SimSection {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            video_listen: "127.0.0.1:8554".into(),
+            video_fps: 15.0,
+            mavlink: "udpout:127.0.0.1:14550".into(),
+            seed: 1,
+            script: "explore".into(),
+            flavour: "px4".into(),
+        }
+    }
 }
 
 /// `[camera]`: intrinsics of the drone's camera.
@@ -168,6 +326,59 @@ impl Config {
                 key,
                 reason,
             };
+        crate::video::mjpeg::HttpUrl::parse(&self.video.url)
+            .map_err(|e| invalid("video", "url", e.to_string()))?;
+        if !(self.video.snapshot_hz > 0.0 && self.video.snapshot_hz <= 200.0) {
+            return Err(invalid(
+                "video",
+                "snapshot_hz",
+                "must be in (0, 200]".into(),
+            ));
+        }
+        self.server
+            .bind
+            .parse::<std::net::SocketAddr>()
+            .map_err(|e| invalid("server", "bind", e.to_string()))?;
+        if self.server.body_limit_bytes < 1024 {
+            return Err(invalid(
+                "server",
+                "body_limit_bytes",
+                "must be at least 1024".into(),
+            ));
+        }
+        if self.server.token.as_deref().is_some_and(str::is_empty) {
+            return Err(invalid(
+                "server",
+                "token",
+                "empty; leave it unset for no token".into(),
+            ));
+        }
+        if !(self.server.events_hz > 0.0 && self.server.events_hz <= 50.0) {
+            return Err(invalid("server", "events_hz", "must be in (0, 50]".into()));
+        }
+        if self.sim.enabled {
+            self.sim
+                .video_listen
+                .parse::<std::net::SocketAddr>()
+                .map_err(|e| invalid("sim", "video_listen", e.to_string()))?;
+            if !["explore", "hover", "none"].contains(&self.sim.script.as_str()) {
+                return Err(invalid(
+                    "sim",
+                    "script",
+                    format!("{:?}: use explore, hover or none", self.sim.script),
+                ));
+            }
+            if !["px4", "ardupilot"].contains(&self.sim.flavour.as_str()) {
+                return Err(invalid(
+                    "sim",
+                    "flavour",
+                    format!("{:?}: use px4 or ardupilot", self.sim.flavour),
+                ));
+            }
+            if !(self.sim.video_fps > 0.0 && self.sim.video_fps <= 120.0) {
+                return Err(invalid("sim", "video_fps", "must be in (0, 120]".into()));
+            }
+        }
         self.link
             .url
             .parse::<crate::vehicle::LinkUrl>()
@@ -216,6 +427,26 @@ mod tests {
         assert_eq!(cfg.camera, CameraConfig::default());
         assert_eq!(cfg.link, crate::vehicle::Params::default());
         assert_eq!(cfg.mission, crate::mission::Params::default());
+        assert_eq!(cfg.video, VideoConfig::default());
+        assert_eq!(cfg.server, ServerConfig::default());
+        assert_eq!(cfg.slam, SlamConfig::default());
+        assert_eq!(cfg.sim, SimSection::default());
+    }
+
+    #[test]
+    fn daemon_sections_refuse_bad_values() {
+        for (text, needle) in [
+            ("[server]\nbind = \"nowhere\"\n", "bind"),
+            ("[video]\nurl = \"rtsp://cam/x\"\n", "url"),
+            ("[sim]\nscript = \"loop\"\n", "script"),
+            ("[server]\ntoken = \"\"\n", "token"),
+            ("[server]\nport = 1\n", "port"),
+        ] {
+            let e = Config::from_toml(text, Path::new("x.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(needle), "{text}: {e}");
+        }
     }
 
     #[test]

@@ -28,7 +28,7 @@
 //! |---|---|
 //! | [`config`] | the typed tree of `config.toml` |
 //! | [`camera`] | pinhole + radial-tangential distortion |
-//! | [`video`] | frame sources: datasets (TUM, EuRoC) |
+//! | [`video`] | frame sources: datasets (TUM, EuRoC), live MJPEG/snapshot over HTTP, latest-frame slots |
 //! | [`eval`] | TUM trajectories, association, Umeyama alignment, ATE/RPE, plots |
 //! | [`features`] | image pyramid, FAST, orientation, rBRIEF (ORB) |
 //! | [`matching`] | Hamming matching: brute force, by projection |
@@ -37,14 +37,18 @@
 //! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
 //! | [`geo`] | map ↔ NED ↔ WGS84: telemetry history, camera mounting, robust Sim(3), targets |
 //! | [`vehicle`] | MAVLink link actor, transports, telemetry |
+//! | [`api`] | the HTTP API (`/api/v1`), shot store, operator page |
+//! | [`daemon`] | `shotpilot run`: wires sim, video, SLAM, link and API; shutdown |
 //! | [`mission`] | mission planning (pure) and upload protocol |
 //!
 //! The synchronous core never imports tokio or axum; I/O lives in
 //! `vehicle`, `video` (live sources) and `mission::upload`.
 
 pub mod bow;
+pub mod api;
 pub mod camera;
 pub mod config;
+pub mod daemon;
 pub mod eval;
 pub mod features;
 pub mod geo;

@@ -1,0 +1,313 @@
+//! The daemon: wires the video ingest, the SLAM thread, the MAVLink link
+//! actor, the shot service and the HTTP API under one shutdown token, and
+//! (by default) runs the bundled simulator in-process.
+//!
+//! ```text
+//!  sim (in-process) --MJPEG/HTTP--> video reader task -> raw slot -> decode thread
+//!                                                                 -> frame slot
+//!  frame slot --newest frame--> SLAM thread (FrameProcessor) -> SlamShared (status, keyframes)
+//!  sim autopilot <--MAVLink/UDP--> link actor (LinkHandle)
+//!  HTTP API reads Ingest, SlamShared, LinkHandle; writes shots to data_dir
+//! ```
+//!
+//! Shutdown: the token is cancelled (Ctrl-C / SIGTERM in `main`); the
+//! reader and the server stop, the ingest slots are closed, the SLAM thread
+//! takes no further frame, finishes (mapping, map file) and is joined; the
+//! simulator stops last.
+
+pub mod slam_view;
+pub mod vehicle_view;
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use tokio::sync::oneshot;
+use tokio_util::sync::CancellationToken;
+
+use crate::api::shots::WarpOnly;
+use crate::api::store::ShotStore;
+use crate::api::{self, ApiParams, AppState, SlamView, VehicleView};
+use crate::config::{Config, VideoSource};
+use crate::video::live::{Closed, Frame, Ingest, unix_now};
+use crate::video::mjpeg;
+pub use slam_view::{FrameProcessor, ProcessOutcome, SlamShared};
+
+/// Errors that stop the daemon.
+#[derive(Debug, thiserror::Error)]
+pub enum DaemonError {
+    /// A listen address could not be bound.
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        /// The address.
+        addr: String,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The data directory could not be used.
+    #[error("data directory: {0}")]
+    Store(#[from] crate::api::store::StoreError),
+    /// The camera configuration is unusable.
+    #[error("camera: {0}")]
+    Camera(#[from] crate::camera::CameraError),
+    /// The simulator could not start.
+    #[error("simulator: {0}")]
+    Sim(String),
+    /// The MAVLink link could not start.
+    #[error("link: {0}")]
+    Link(String),
+    /// A thread could not be started.
+    #[error("cannot start the {what} thread: {source}")]
+    Thread {
+        /// Which thread.
+        what: &'static str,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The HTTP server failed.
+    #[error("HTTP server: {0}")]
+    Serve(std::io::Error),
+    /// The video URL is unusable.
+    #[error(transparent)]
+    Video(#[from] mjpeg::MjpegError),
+}
+
+/// What the daemon reports when it stops.
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    /// Seconds it ran.
+    pub run_s: f64,
+    /// Video counters at the end.
+    pub video: crate::video::live::CountersSnapshot,
+    /// SLAM status at the end.
+    pub slam: api::SlamStatus,
+    /// The map file written, if any.
+    pub map_file: Option<PathBuf>,
+    /// Shots in the store.
+    pub shots: usize,
+}
+
+/// Handles a running daemon gives its starter.
+#[derive(Debug, Clone)]
+pub struct Started {
+    /// The HTTP API's address.
+    pub api_addr: SocketAddr,
+}
+
+fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimConfig, DaemonError> {
+    use shotpilot_sim::autopilot::Flavour;
+    use shotpilot_sim::script::ScriptKind;
+    let s = &cfg.sim;
+    let video_listen = s
+        .video_listen
+        .parse()
+        .map_err(|e| DaemonError::Sim(format!("video_listen {:?}: {e}", s.video_listen)))?;
+    let mavlink = s
+        .mavlink
+        .parse()
+        .map_err(|e| DaemonError::Sim(format!("mavlink {:?}: {e}", s.mavlink)))?;
+    let script = match s.script.as_str() {
+        "explore" => Some(ScriptKind::Explore),
+        "hover" => Some(ScriptKind::Hover),
+        _ => None,
+    };
+    let flavour = if s.flavour == "ardupilot" {
+        Flavour::ArduPilot
+    } else {
+        Flavour::Px4
+    };
+    let defaults = shotpilot_sim::app::SimConfig::default();
+    let sc = shotpilot_sim::app::SimConfig {
+        video_listen: Some(video_listen),
+        mavlink,
+        video_fps: s.video_fps,
+        seed: s.seed,
+        script,
+        autopilot: shotpilot_sim::autopilot::AutopilotParams {
+            flavour,
+            ..defaults.autopilot.clone()
+        },
+        capture_dir: data_dir.join("captures"),
+        ..defaults
+    };
+    Ok(sc)
+}
+
+/// Run the daemon until `cancel` fires. `base_dir` resolves relative
+/// paths of the configuration; `started` receives the API address once
+/// it listens.
+pub async fn run(
+    cfg: Config,
+    base_dir: &Path,
+    cancel: CancellationToken,
+    started: Option<oneshot::Sender<Started>>,
+) -> Result<Summary, DaemonError> {
+    let t0 = Instant::now();
+    let data_dir = base_dir.join(&cfg.server.data_dir);
+    let store = Arc::new(ShotStore::open(&data_dir.join("shots"))?);
+    let camera = cfg.camera.camera(base_dir)?;
+
+    // The simulator, first, so the video and the link find it.
+    let sim_cancel = CancellationToken::new();
+    let sim_task = if cfg.sim.enabled {
+        let sc = sim_config(&cfg, &data_dir)?;
+        let c = sim_cancel.clone();
+        tracing::info!(video = %cfg.sim.video_listen, mavlink = %cfg.sim.mavlink, "starting the simulator in-process");
+        Some(tokio::spawn(
+            async move { shotpilot_sim::app::run(sc, c).await },
+        ))
+    } else {
+        None
+    };
+
+    // Video ingest: reader task -> decode thread -> frame slot.
+    let ingest = Arc::new(Ingest::new());
+    let decoder = ingest
+        .spawn_decoder()
+        .map_err(|source| DaemonError::Thread {
+            what: "decode",
+            source,
+        })?;
+    let video_cancel = cancel.child_token();
+    let vparams = cfg.video.params();
+    mjpeg::HttpUrl::parse(&cfg.video.url)?;
+    let reader = {
+        let (url, ing, c) = (cfg.video.url.clone(), ingest.clone(), video_cancel.clone());
+        let (source, hz) = (cfg.video.source, cfg.video.snapshot_hz);
+        tokio::spawn(async move {
+            let r = match source {
+                VideoSource::Mjpeg => mjpeg::run_mjpeg(&url, &vparams, ing, c).await,
+                VideoSource::Snapshot => mjpeg::run_snapshots(&url, hz, &vparams, ing, c).await,
+            };
+            if let Err(e) = r {
+                tracing::error!("video: {e}");
+            }
+        })
+    };
+
+    // SLAM thread.
+    let shared = Arc::new(SlamShared::new(cfg.slam.enabled));
+    let map_file = data_dir.join(&cfg.slam.map_file);
+    let processor = slam_view::make_processor(&cfg, camera, shared.clone(), map_file.clone());
+    let slam_thread = {
+        let (ing, sh) = (ingest.clone(), shared.clone());
+        let delay = Duration::from_millis(cfg.slam.artificial_delay_ms);
+        std::thread::Builder::new()
+            .name("slam".into())
+            .spawn(move || slam_loop(processor, &ing, &sh, delay))
+            .map_err(|source| DaemonError::Thread {
+                what: "slam",
+                source,
+            })?
+    };
+
+    // The MAVLink link actor.
+    let link_cancel = cancel.child_token();
+    let (link, link_task) =
+        crate::vehicle::spawn(cfg.link.clone(), cfg.mission.transfer, link_cancel.clone())
+            .map_err(|e| DaemonError::Link(e.to_string()))?;
+    let vehicle: Arc<dyn VehicleView> =
+        Arc::new(vehicle_view::LinkVehicle::new(link, cfg.mission.plan));
+
+    // The API.
+    let slam_view: Arc<dyn SlamView> = shared.clone();
+    let state = AppState {
+        ingest: ingest.clone(),
+        slam: slam_view.clone(),
+        vehicle: Some(vehicle),
+        shots: Arc::new(WarpOnly {
+            keyframes: slam_view,
+            params: Default::default(),
+        }),
+        store: store.clone(),
+        params: Arc::new(ApiParams {
+            token: cfg.server.token.clone(),
+            body_limit: cfg.server.body_limit_bytes,
+            map_max_points: cfg.server.map_max_points,
+            events_hz: cfg.server.events_hz,
+            ..Default::default()
+        }),
+        actions: Default::default(),
+        started_unix: unix_now(),
+        shutdown: cancel.clone(),
+    };
+    let listener = tokio::net::TcpListener::bind(&cfg.server.bind)
+        .await
+        .map_err(|source| DaemonError::Bind {
+            addr: cfg.server.bind.clone(),
+            source,
+        })?;
+    let api_addr = listener.local_addr().map_err(DaemonError::Serve)?;
+    tracing::info!("operator page: http://{api_addr}/");
+    if let Some(tx) = started {
+        let _ = tx.send(Started { api_addr });
+    }
+    let server_cancel = cancel.clone();
+    let served = axum::serve(listener, api::router(state))
+        .with_graceful_shutdown(async move { server_cancel.cancelled().await })
+        .await;
+
+    // Shutdown, in order.
+    tracing::info!("shutting down");
+    video_cancel.cancel();
+    let _ = reader.await;
+    ingest.close();
+    let summary_slam = tokio::task::spawn_blocking(move || {
+        let _ = decoder.join();
+        slam_thread.join().ok()
+    })
+    .await
+    .ok()
+    .flatten();
+    link_cancel.cancel();
+    let _ = link_task.await;
+    sim_cancel.cancel();
+    if let Some(t) = sim_task {
+        match t.await {
+            Ok(Ok(s)) => tracing::info!(
+                frames = s.frames,
+                skipped = s.frames_skipped,
+                "simulator stopped"
+            ),
+            Ok(Err(e)) => tracing::warn!("simulator: {e}"),
+            Err(e) => tracing::warn!("simulator task: {e}"),
+        }
+    }
+    served.map_err(DaemonError::Serve)?;
+    let wrote_map = summary_slam.flatten();
+    Ok(Summary {
+        run_s: t0.elapsed().as_secs_f64(),
+        video: ingest.counters.snapshot(),
+        slam: shared.status(),
+        map_file: wrote_map,
+        shots: store.list().len(),
+    })
+}
+
+/// The SLAM thread: take the newest frame, process it, publish the status;
+/// at the end let the processor finish (mapping, map file).
+fn slam_loop(
+    mut processor: Box<dyn FrameProcessor>,
+    ingest: &Ingest,
+    shared: &SlamShared,
+    delay: Duration,
+) -> Option<PathBuf> {
+    loop {
+        let frame: Arc<Frame> = match ingest.take_frame(Duration::from_millis(200)) {
+            Ok(Some(f)) => f,
+            Ok(None) => continue,
+            Err(Closed) => break,
+        };
+        let t = Instant::now();
+        let outcome = processor.process(&frame);
+        if !delay.is_zero() {
+            std::thread::sleep(delay);
+        }
+        shared.record(&frame, &outcome, t.elapsed().as_secs_f64() * 1e3);
+    }
+    processor.finish()
+}

@@ -1,0 +1,460 @@
+//! Live frames: the latest-value slot, the decoded [`Frame`], the ingest
+//! counters and the decode thread.
+//!
+//! The network reader puts each whole JPEG part into a raw [`Latest`] slot;
+//! a decode thread takes the newest part, decodes it to grey and puts the
+//! frame into the frame slot, which SLAM takes from. Every slot keeps only the
+//! newest value, so a slow decoder or a slow SLAM never stalls the reader:
+//! the values they did not take are counted as dropped.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use image::GrayImage;
+use serde::Serialize;
+use tokio::sync::watch;
+
+/// The slot was closed: no value will come any more.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("the frame slot is closed")]
+pub struct Closed;
+
+#[derive(Debug)]
+struct LatestState<T> {
+    value: Option<T>,
+    fresh: bool,
+    closed: bool,
+}
+
+/// A slot holding only the newest value. `put` never blocks on the
+/// consumer; `take_fresh` waits for a value not taken before.
+#[derive(Debug)]
+pub struct Latest<T> {
+    state: Mutex<LatestState<T>>,
+    cv: Condvar,
+}
+
+impl<T: Clone> Default for Latest<T> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<T: Clone> Latest<T> {
+    /// An empty, open slot.
+    pub fn new() -> Self {
+        Self {
+            state: Mutex::new(LatestState {
+                value: None,
+                fresh: false,
+                closed: false,
+            }),
+            cv: Condvar::new(),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, LatestState<T>> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Store `value` as the newest. Returns true when it replaced a value
+    /// nobody had taken (that value is dropped).
+    pub fn put(&self, value: T) -> bool {
+        let mut s = self.lock();
+        let replaced_unseen = s.fresh;
+        s.value = Some(value);
+        s.fresh = true;
+        drop(s);
+        self.cv.notify_all();
+        replaced_unseen
+    }
+
+    /// Wait up to `timeout` for a value not taken before and take it.
+    /// `Ok(None)` on timeout, `Err(Closed)` once the slot is closed.
+    pub fn take_fresh(&self, timeout: Duration) -> Result<Option<T>, Closed> {
+        let deadline = Instant::now() + timeout;
+        let mut s = self.lock();
+        loop {
+            if s.fresh {
+                s.fresh = false;
+                return Ok(s.value.clone());
+            }
+            if s.closed {
+                return Err(Closed);
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            s = self
+                .cv
+                .wait_timeout(s, deadline - now)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+    }
+
+    /// The newest value, taken or not, without marking it taken.
+    pub fn peek(&self) -> Option<T> {
+        self.lock().value.clone()
+    }
+
+    /// Close the slot: waiting consumers return `Err(Closed)` once the
+    /// fresh value (if any) is taken.
+    pub fn close(&self) {
+        self.lock().closed = true;
+        self.cv.notify_all();
+    }
+
+    /// Whether the slot was closed.
+    pub fn is_closed(&self) -> bool {
+        self.lock().closed
+    }
+}
+
+/// One whole JPEG as read from the network, not yet decoded.
+#[derive(Debug, Clone)]
+pub struct RawPart {
+    /// The JPEG bytes.
+    pub jpeg: Arc<Vec<u8>>,
+    /// Capture time from the `X-Timestamp` header, unix seconds.
+    pub capture_time: Option<f64>,
+    /// When the last byte arrived.
+    pub received: Instant,
+    /// The same instant as unix seconds.
+    pub received_unix: f64,
+}
+
+/// A decoded video frame.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    /// Ingest sequence number (counts decoded frames from 0).
+    pub seq: u64,
+    /// Capture time (`X-Timestamp`), unix seconds, when the source sent it.
+    pub capture_time: Option<f64>,
+    /// When the JPEG was completely received.
+    pub received: Instant,
+    /// The same instant as unix seconds.
+    pub received_unix: f64,
+    /// The JPEG as received (re-served by the API without re-encoding).
+    pub jpeg: Arc<Vec<u8>>,
+    /// The grey image.
+    pub image: Arc<GrayImage>,
+}
+
+impl Frame {
+    /// The best timestamp: the capture time, else the receive time.
+    pub fn timestamp(&self) -> f64 {
+        self.capture_time.unwrap_or(self.received_unix)
+    }
+}
+
+/// The current time as unix seconds.
+pub fn unix_now() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
+}
+
+/// Counters of the ingest, shared by the reader, the decoder and readers of
+/// the status.
+#[derive(Debug, Default)]
+pub struct Counters {
+    /// Whole parts (JPEG candidates) read from the network.
+    pub received: AtomicU64,
+    /// Parts decoded into frames.
+    pub decoded: AtomicU64,
+    /// Parts replaced in the raw slot before the decoder took them.
+    pub dropped_undecoded: AtomicU64,
+    /// Frames replaced in the frame slot before the consumer took them.
+    pub dropped_unconsumed: AtomicU64,
+    /// Frames the consumer took.
+    pub consumed: AtomicU64,
+    /// Bad data: malformed parts, truncated or undecodable JPEGs.
+    pub bad: AtomicU64,
+    /// Connections (re)opened.
+    pub connects: AtomicU64,
+    /// Connection or request failures.
+    pub errors: AtomicU64,
+    /// Bytes read from the network.
+    pub bytes: AtomicU64,
+}
+
+/// A copy of the counters at one moment.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct CountersSnapshot {
+    /// See [`Counters::received`].
+    pub received: u64,
+    /// See [`Counters::decoded`].
+    pub decoded: u64,
+    /// Parts and frames dropped because a newer one arrived first.
+    pub dropped: u64,
+    /// See [`Counters::dropped_undecoded`].
+    pub dropped_undecoded: u64,
+    /// See [`Counters::dropped_unconsumed`].
+    pub dropped_unconsumed: u64,
+    /// See [`Counters::consumed`].
+    pub consumed: u64,
+    /// See [`Counters::bad`].
+    pub bad: u64,
+    /// See [`Counters::connects`].
+    pub connects: u64,
+    /// See [`Counters::errors`].
+    pub errors: u64,
+    /// See [`Counters::bytes`].
+    pub bytes: u64,
+}
+
+impl Counters {
+    /// Read all counters.
+    pub fn snapshot(&self) -> CountersSnapshot {
+        let l = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let du = l(&self.dropped_undecoded);
+        let dc = l(&self.dropped_unconsumed);
+        CountersSnapshot {
+            received: l(&self.received),
+            decoded: l(&self.decoded),
+            dropped: du + dc,
+            dropped_undecoded: du,
+            dropped_unconsumed: dc,
+            consumed: l(&self.consumed),
+            bad: l(&self.bad),
+            connects: l(&self.connects),
+            errors: l(&self.errors),
+            bytes: l(&self.bytes),
+        }
+    }
+
+    pub(crate) fn inc(a: &AtomicU64) {
+        a.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// Frames per second over a sliding window.
+#[derive(Debug)]
+pub struct RateMeter {
+    window: Duration,
+    times: Mutex<VecDeque<Instant>>,
+}
+
+impl RateMeter {
+    /// A meter over `window`.
+    pub fn new(window: Duration) -> Self {
+        Self {
+            window,
+            times: Mutex::new(VecDeque::new()),
+        }
+    }
+
+    /// Record one event now.
+    pub fn tick(&self) {
+        let now = Instant::now();
+        let mut t = self.times.lock().unwrap_or_else(|e| e.into_inner());
+        t.push_back(now);
+        while t
+            .front()
+            .is_some_and(|f| now.duration_since(*f) > self.window)
+        {
+            t.pop_front();
+        }
+    }
+
+    /// Events per second over the window (0 with fewer than two events).
+    pub fn rate(&self) -> f64 {
+        let now = Instant::now();
+        let mut t = self.times.lock().unwrap_or_else(|e| e.into_inner());
+        while t
+            .front()
+            .is_some_and(|f| now.duration_since(*f) > self.window)
+        {
+            t.pop_front();
+        }
+        match (t.front(), t.back()) {
+            (Some(a), Some(b)) if t.len() >= 2 => {
+                let span = b.duration_since(*a).as_secs_f64();
+                if span > 0.0 {
+                    (t.len() - 1) as f64 / span
+                } else {
+                    0.0
+                }
+            }
+            _ => 0.0,
+        }
+    }
+}
+
+/// The shared state of one ingest pipeline: reader -> raw slot -> decoder
+/// -> frame slot (+ a watch for async observers such as the API).
+#[derive(Debug)]
+pub struct Ingest {
+    /// The counters.
+    pub counters: Counters,
+    /// Whole JPEGs waiting for the decoder.
+    pub raw: Latest<RawPart>,
+    /// Decoded frames waiting for the consumer (SLAM).
+    pub frames: Latest<Arc<Frame>>,
+    /// Received parts per second.
+    pub received_rate: RateMeter,
+    /// Decoded frames per second.
+    pub decoded_rate: RateMeter,
+    /// Consumed frames per second.
+    pub consumed_rate: RateMeter,
+    observers: watch::Sender<Option<Arc<Frame>>>,
+}
+
+impl Default for Ingest {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Ingest {
+    /// A fresh pipeline state.
+    pub fn new() -> Self {
+        let w = Duration::from_secs(2);
+        Self {
+            counters: Counters::default(),
+            raw: Latest::new(),
+            frames: Latest::new(),
+            received_rate: RateMeter::new(w),
+            decoded_rate: RateMeter::new(w),
+            consumed_rate: RateMeter::new(w),
+            observers: watch::channel(None).0,
+        }
+    }
+
+    /// Hand a whole JPEG to the decoder (never blocks on it).
+    pub fn push_raw(&self, part: RawPart) {
+        Counters::inc(&self.counters.received);
+        self.received_rate.tick();
+        if self.raw.put(part) {
+            Counters::inc(&self.counters.dropped_undecoded);
+        }
+    }
+
+    /// Take the newest decoded frame not taken before, waiting up to
+    /// `timeout`. For the one consumer (SLAM).
+    pub fn take_frame(&self, timeout: Duration) -> Result<Option<Arc<Frame>>, Closed> {
+        let f = self.frames.take_fresh(timeout)?;
+        if f.is_some() {
+            Counters::inc(&self.counters.consumed);
+            self.consumed_rate.tick();
+        }
+        Ok(f)
+    }
+
+    /// The newest decoded frame (for observers; does not consume it).
+    pub fn latest(&self) -> Option<Arc<Frame>> {
+        self.frames.peek()
+    }
+
+    /// A receiver that sees every new decoded frame (newest wins).
+    pub fn subscribe(&self) -> watch::Receiver<Option<Arc<Frame>>> {
+        self.observers.subscribe()
+    }
+
+    /// Close both slots: the decoder and the consumer stop.
+    pub fn close(&self) {
+        self.raw.close();
+        self.frames.close();
+    }
+
+    /// Decode one part and publish it. Returns false for bad data.
+    pub fn decode_and_publish(&self, part: &RawPart, seq: u64) -> bool {
+        match image::load_from_memory_with_format(&part.jpeg, image::ImageFormat::Jpeg) {
+            Ok(img) => {
+                let frame = Arc::new(Frame {
+                    seq,
+                    capture_time: part.capture_time,
+                    received: part.received,
+                    received_unix: part.received_unix,
+                    jpeg: part.jpeg.clone(),
+                    image: Arc::new(img.to_luma8()),
+                });
+                Counters::inc(&self.counters.decoded);
+                self.decoded_rate.tick();
+                if self.frames.put(frame.clone()) {
+                    Counters::inc(&self.counters.dropped_unconsumed);
+                }
+                self.observers.send_replace(Some(frame));
+                true
+            }
+            Err(e) => {
+                tracing::debug!("undecodable JPEG ({} bytes): {e}", part.jpeg.len());
+                Counters::inc(&self.counters.bad);
+                false
+            }
+        }
+    }
+
+    /// Start the decode thread: it decodes the newest raw part until the
+    /// raw slot is closed.
+    pub fn spawn_decoder(self: &Arc<Self>) -> std::io::Result<std::thread::JoinHandle<()>> {
+        let me = Arc::clone(self);
+        std::thread::Builder::new()
+            .name("jpeg-decode".into())
+            .spawn(move || {
+                let mut seq = 0u64;
+                loop {
+                    match me.raw.take_fresh(Duration::from_millis(500)) {
+                        Ok(Some(part)) => {
+                            if me.decode_and_publish(&part, seq) {
+                                seq += 1;
+                            }
+                        }
+                        Ok(None) => {}
+                        Err(Closed) => break,
+                    }
+                }
+            })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn latest_keeps_newest_and_counts_replaced() {
+        let s = Latest::new();
+        assert!(!s.put(1));
+        assert!(s.put(2));
+        assert_eq!(s.take_fresh(Duration::ZERO), Ok(Some(2)));
+        assert_eq!(s.take_fresh(Duration::from_millis(10)), Ok(None));
+        assert!(!s.put(3));
+        s.close();
+        assert_eq!(s.take_fresh(Duration::ZERO), Ok(Some(3)));
+        assert_eq!(s.take_fresh(Duration::ZERO), Err(Closed));
+        assert_eq!(s.peek(), Some(3));
+    }
+
+    #[test]
+    fn take_fresh_wakes_on_put_from_another_thread() {
+        let s = Arc::new(Latest::new());
+        let s2 = s.clone();
+        let t = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(30));
+            s2.put(7u32);
+        });
+        let t0 = Instant::now();
+        assert_eq!(s.take_fresh(Duration::from_secs(5)), Ok(Some(7)));
+        assert!(t0.elapsed() < Duration::from_secs(4));
+        t.join().unwrap();
+    }
+
+    #[test]
+    fn rate_meter_measures_rate() {
+        let m = RateMeter::new(Duration::from_secs(10));
+        assert_eq!(m.rate(), 0.0);
+        for _ in 0..11 {
+            m.tick();
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let r = m.rate();
+        // 10 intervals of >= 10 ms: at most 100/s, and sleeping is not
+        // slower than 4x on a loaded machine.
+        assert!(r > 25.0 && r <= 100.5, "{r}");
+    }
+}

@@ -1,0 +1,1269 @@
+//! MJPEG over HTTP (`multipart/x-mixed-replace`) and snapshot polling.
+//!
+//! The client is a plain HTTP/1.1 GET over a TCP stream (chunked or
+//! close-delimited bodies) feeding an incremental, allocation-light
+//! multipart parser ([`PartParser`]). The parser is tolerant: the boundary
+//! may be quoted, sent with or without its leading `--`, lines may end in
+//! CRLF or LF, parts may lack headers or `Content-Length` (then the JPEG's
+//! own start/end markers delimit it), and garbage between parts is skipped.
+//! A bad part is counted and skipped; a dropped connection is reopened
+//! with exponential backoff. The reader never waits for the decoder: whole
+//! JPEGs go into the ingest's latest-value slot ([`super::live::Ingest`]).
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio_util::sync::CancellationToken;
+
+use super::live::{Counters, Ingest, RawPart, unix_now};
+
+/// Errors of the HTTP video client.
+#[derive(Debug, thiserror::Error)]
+pub enum MjpegError {
+    /// The URL is not `http://host[:port]/path`.
+    #[error("bad video URL {url:?}: {reason}")]
+    BadUrl {
+        /// The URL.
+        url: String,
+        /// What is wrong.
+        reason: &'static str,
+    },
+    /// Connecting, writing or reading failed.
+    #[error("video {url}: {source}")]
+    Io {
+        /// The URL.
+        url: String,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// Nothing arrived within the timeout.
+    #[error("video {url}: no data for {ms} ms")]
+    Timeout {
+        /// The URL.
+        url: String,
+        /// The timeout, ms.
+        ms: u64,
+    },
+    /// The server's response is not usable.
+    #[error("video {url}: bad response: {reason}")]
+    BadResponse {
+        /// The URL.
+        url: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The server closed the stream.
+    #[error("video {url}: the server closed the stream")]
+    Closed {
+        /// The URL.
+        url: String,
+    },
+}
+
+/// Tunables of the HTTP video client.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Params {
+    /// Connect timeout, ms.
+    pub connect_timeout_ms: u64,
+    /// A connection that delivers no byte for this long is reopened, ms.
+    pub read_timeout_ms: u64,
+    /// First reconnect delay, ms (doubles per failure).
+    pub reconnect_min_ms: u64,
+    /// Largest reconnect delay, ms.
+    pub reconnect_max_ms: u64,
+    /// Largest accepted part (JPEG), bytes; longer data is discarded.
+    pub max_part_bytes: usize,
+    /// Largest response header block, bytes.
+    pub max_header_bytes: usize,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Self {
+            connect_timeout_ms: 3000,
+            read_timeout_ms: 5000,
+            reconnect_min_ms: 100,
+            reconnect_max_ms: 5000,
+            max_part_bytes: 16 << 20,
+            max_header_bytes: 16 << 10,
+        }
+    }
+}
+
+/// One part cut out of the stream.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Part {
+    /// The body bytes (a JPEG when the part is good).
+    pub body: Vec<u8>,
+    /// `X-Timestamp`, unix seconds.
+    pub timestamp: Option<f64>,
+    /// Whether the body was delimited by headers (false: by JPEG markers).
+    pub had_headers: bool,
+}
+
+/// What [`PartParser::next_part`] produces.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ParseEvent {
+    /// A whole part.
+    Part(Part),
+    /// Data that was skipped as unusable (bytes, reason).
+    Skipped {
+        /// How many bytes.
+        bytes: usize,
+        /// Why.
+        reason: &'static str,
+    },
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum State {
+    /// Looking for a boundary line (or a bare JPEG).
+    Seek,
+    /// After a boundary line: headers or a bare JPEG.
+    Headers,
+    /// In a body with a known length.
+    Body { len: usize, timestamp: Option<f64> },
+    /// In a body without a length: up to the next boundary, or the JPEG's
+    /// end marker when it starts with one.
+    OpenBody { timestamp: Option<f64> },
+}
+
+/// Incremental multipart/MJPEG parser: [`push`](Self::push) bytes, then call
+/// [`next_part`](Self::next_part) until it returns `None`.
+#[derive(Debug, Clone)]
+pub struct PartParser {
+    boundary: Option<Vec<u8>>,
+    buf: Vec<u8>,
+    pos: usize,
+    state: State,
+    max_part: usize,
+}
+
+/// Index of `needle` in `hay` (naive search with a first-byte skip; the
+/// needle is short and the haystack is scanned once per part).
+fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
+    if needle.is_empty() || hay.len() < needle.len() {
+        return None;
+    }
+    let first = needle[0];
+    let last_start = hay.len() - needle.len();
+    let mut i = 0;
+    while i <= last_start {
+        match hay[i..=last_start].iter().position(|&b| b == first) {
+            None => return None,
+            Some(off) => {
+                let j = i + off;
+                if &hay[j..j + needle.len()] == needle {
+                    return Some(j);
+                }
+                i = j + 1;
+            }
+        }
+    }
+    None
+}
+
+/// End (exclusive) of the JPEG starting at `buf[0]` (which must be an SOI),
+/// found by walking the marker segments up to the scan and then scanning
+/// the entropy-coded data for the EOI (FF D9; FF is byte-stuffed there, so
+/// an embedded thumbnail's EOI in an APP segment is never mistaken for it).
+/// `None` when the data is incomplete.
+pub fn jpeg_end(buf: &[u8]) -> Option<usize> {
+    if buf.len() < 2 || buf[0] != 0xFF || buf[1] != 0xD8 {
+        return None;
+    }
+    let mut i = 2;
+    // Marker segments before the (first) scan.
+    loop {
+        // Skip fill bytes.
+        while i < buf.len() && buf[i] == 0xFF && buf.get(i + 1) == Some(&0xFF) {
+            i += 1;
+        }
+        if i + 1 >= buf.len() {
+            return None;
+        }
+        if buf[i] != 0xFF {
+            // Not a marker where one must be: fall back to a plain search.
+            return find(&buf[i..], &[0xFF, 0xD9]).map(|k| i + k + 2);
+        }
+        let m = buf[i + 1];
+        match m {
+            0xD9 => return Some(i + 2),
+            0x01 | 0xD0..=0xD7 => {
+                i += 2;
+                continue;
+            }
+            _ => {}
+        }
+        if i + 3 >= buf.len() {
+            return None;
+        }
+        let len = u16::from_be_bytes([buf[i + 2], buf[i + 3]]) as usize;
+        if len < 2 {
+            return find(&buf[i..], &[0xFF, 0xD9]).map(|k| i + k + 2);
+        }
+        let seg_end = i + 2 + len;
+        if m == 0xDA {
+            i = seg_end;
+            break;
+        }
+        i = seg_end;
+    }
+    // Entropy-coded data (and possibly further scans): the first FF D9 that
+    // is a marker.
+    while i + 1 < buf.len() {
+        match buf[i..].iter().position(|&b| b == 0xFF) {
+            None => return None,
+            Some(off) => {
+                let j = i + off;
+                match buf.get(j + 1) {
+                    None => return None,
+                    Some(0xD9) => return Some(j + 2),
+                    Some(_) => i = j + 1,
+                }
+            }
+        }
+    }
+    None
+}
+
+/// The boundary from a `Content-Type` header value, unquoted and without a
+/// leading `--`.
+pub fn boundary_from_content_type(ct: &str) -> Option<String> {
+    for param in ct.split(';').skip(1) {
+        let (k, v) = match param.split_once('=') {
+            Some(kv) => kv,
+            None => continue,
+        };
+        if k.trim().eq_ignore_ascii_case("boundary") {
+            let v = v.trim().trim_matches('"');
+            let v = v.strip_prefix("--").unwrap_or(v);
+            if !v.is_empty() {
+                return Some(v.to_owned());
+            }
+        }
+    }
+    None
+}
+
+impl PartParser {
+    /// A parser for parts separated by `boundary` (given without `--`; None:
+    /// delimit by JPEG markers alone). `max_part` caps a part's size, bytes.
+    pub fn new(boundary: Option<&str>, max_part: usize) -> Self {
+        Self {
+            boundary: boundary.map(|b| b.as_bytes().to_vec()),
+            buf: Vec::with_capacity(1 << 16),
+            pos: 0,
+            state: State::Seek,
+            max_part: max_part.max(64),
+        }
+    }
+
+    /// Append received bytes.
+    pub fn push(&mut self, data: &[u8]) {
+        // Compact when the consumed prefix is large.
+        if self.pos > 0 && (self.pos >= self.buf.len() / 2 || self.pos > 1 << 20) {
+            self.buf.drain(..self.pos);
+            self.pos = 0;
+        }
+        self.buf.extend_from_slice(data);
+    }
+
+    /// Bytes buffered and not yet consumed.
+    pub fn buffered(&self) -> usize {
+        self.buf.len() - self.pos
+    }
+
+    /// Forget the buffered bytes (after a reconnect); returns how many.
+    pub fn reset(&mut self) -> usize {
+        let n = self.buffered();
+        self.buf.clear();
+        self.pos = 0;
+        self.state = State::Seek;
+        n
+    }
+
+    fn skip(&mut self, n: usize, reason: &'static str) -> Option<ParseEvent> {
+        self.pos += n;
+        Some(ParseEvent::Skipped { bytes: n, reason })
+    }
+
+    /// The next part or skipped run, or None when more bytes are needed.
+    pub fn next_part(&mut self) -> Option<ParseEvent> {
+        loop {
+            let data = &self.buf[self.pos..];
+            match self.state {
+                State::Seek => {
+                    let soi = find(data, &[0xFF, 0xD8, 0xFF]);
+                    let bnd = self.boundary.as_deref().and_then(|b| find(data, b));
+                    match (bnd, soi) {
+                        (Some(b), s) if s.is_none_or(|s| b < s) => {
+                            // The boundary line: the token, maybe "--", to LF.
+                            let after = b + self.boundary.as_ref().map_or(0, Vec::len);
+                            let Some(lf) = data[after..].iter().position(|&c| c == b'\n') else {
+                                if data.len() - after > 256 {
+                                    return self.skip(after, "boundary line without end");
+                                }
+                                return None;
+                            };
+                            self.pos += after + lf + 1;
+                            self.state = State::Headers;
+                            if b > 2 {
+                                // Something other than "--" or CRLF before it.
+                                let junk = data[..b].iter().filter(|c| !b"-\r\n".contains(c));
+                                if junk.count() > 0 {
+                                    return Some(ParseEvent::Skipped {
+                                        bytes: b,
+                                        reason: "data before the boundary",
+                                    });
+                                }
+                            }
+                        }
+                        (_, Some(s)) => {
+                            if s > 0 {
+                                let junk = data[..s].iter().any(|c| !b"-\r\n".contains(c));
+                                self.pos += s;
+                                self.state = State::OpenBody { timestamp: None };
+                                if junk && self.boundary.is_none() {
+                                    return Some(ParseEvent::Skipped {
+                                        bytes: s,
+                                        reason: "data before a JPEG",
+                                    });
+                                }
+                            } else {
+                                self.state = State::OpenBody { timestamp: None };
+                            }
+                        }
+                        _ => {
+                            // Keep a tail that may hold a split boundary/SOI.
+                            let keep = self.boundary.as_ref().map_or(2, |b| b.len() + 2);
+                            if data.len() > keep + 4096 {
+                                return self.skip(data.len() - keep, "no boundary or JPEG");
+                            }
+                            return None;
+                        }
+                    }
+                }
+                State::Headers => {
+                    if data.len() >= 2 && data[0] == 0xFF && data[1] == 0xD8 {
+                        self.state = State::OpenBody { timestamp: None };
+                        continue;
+                    }
+                    if data.len() < 2 {
+                        return None;
+                    }
+                    // Header block ends at an empty line (CRLFCRLF or LFLF,
+                    // or directly if the first line is empty).
+                    let end = if data.starts_with(b"\r\n") {
+                        Some((0, 2))
+                    } else if data.starts_with(b"\n") {
+                        Some((0, 1))
+                    } else {
+                        match (find(data, b"\r\n\r\n"), find(data, b"\n\n")) {
+                            (Some(a), Some(b)) if b + 1 < a => Some((b + 1, 1)),
+                            (Some(a), _) => Some((a + 2, 2)),
+                            (None, Some(b)) => Some((b + 1, 1)),
+                            (None, None) => None,
+                        }
+                    };
+                    let Some((hdr_end, sep)) = end else {
+                        if data.len() > 8192 {
+                            self.state = State::Seek;
+                            return self.skip(data.len(), "part headers too long");
+                        }
+                        return None;
+                    };
+                    let mut len = None;
+                    let mut timestamp = None;
+                    for line in data[..hdr_end].split(|&c| c == b'\n') {
+                        let line = std::str::from_utf8(line).unwrap_or("").trim();
+                        let Some((k, v)) = line.split_once(':') else {
+                            continue;
+                        };
+                        let k = k.trim();
+                        let v = v.trim();
+                        if k.eq_ignore_ascii_case("content-length") {
+                            len = v.parse::<usize>().ok();
+                        } else if k.eq_ignore_ascii_case("x-timestamp") {
+                            timestamp = v.parse::<f64>().ok().filter(|t| t.is_finite());
+                        }
+                    }
+                    self.pos += hdr_end + sep;
+                    self.state = match len {
+                        Some(l) if l <= self.max_part => State::Body { len: l, timestamp },
+                        Some(_) => {
+                            self.state = State::Seek;
+                            return Some(ParseEvent::Skipped {
+                                bytes: 0,
+                                reason: "part longer than the limit",
+                            });
+                        }
+                        None => State::OpenBody { timestamp },
+                    };
+                }
+                State::Body { len, timestamp } => {
+                    if data.len() < len {
+                        // A length that is a lie: a boundary inside shows it.
+                        if let Some(b) = self.boundary.as_deref()
+                            && let Some(k) = find(data, b)
+                            && k + b.len() + 2 < data.len()
+                        {
+                            self.state = State::Seek;
+                            return self.skip(k, "part shorter than its Content-Length");
+                        }
+                        return None;
+                    }
+                    let body = &data[..len];
+                    // Stop at a boundary inside the claimed length.
+                    if let Some(b) = self.boundary.as_deref()
+                        && let Some(k) = find(body, b)
+                        && !(body.starts_with(&[0xFF, 0xD8]) && jpeg_end(body) == Some(len))
+                    {
+                        self.state = State::Seek;
+                        return self.skip(k, "part shorter than its Content-Length");
+                    }
+                    let part = Part {
+                        body: body.to_vec(),
+                        timestamp,
+                        had_headers: true,
+                    };
+                    self.pos += len;
+                    self.state = State::Seek;
+                    return Some(ParseEvent::Part(part));
+                }
+                State::OpenBody { timestamp } => {
+                    let bnd = self.boundary.as_deref().and_then(|b| find(data, b));
+                    if data.starts_with(&[0xFF, 0xD8]) {
+                        // Delimit by the JPEG's own markers, unless a
+                        // boundary comes first (a truncated JPEG).
+                        let end = jpeg_end(data);
+                        match (end.filter(|&e| bnd.is_none_or(|b| e <= b)), bnd) {
+                            (Some(e), _) => {
+                                let part = Part {
+                                    body: data[..e].to_vec(),
+                                    timestamp,
+                                    had_headers: timestamp.is_some() || self.boundary.is_some(),
+                                };
+                                self.pos += e;
+                                self.state = State::Seek;
+                                return Some(ParseEvent::Part(part));
+                            }
+                            (_, Some(b)) => {
+                                self.state = State::Seek;
+                                return self.skip(b, "truncated JPEG");
+                            }
+                            (None, None) => {
+                                // A new SOI after the start means this one
+                                // was cut short.
+                                if let Some(k) = find(&data[2..], &[0xFF, 0xD8, 0xFF])
+                                    && jpeg_end(&data[..k + 2]).is_none()
+                                    && k > 0
+                                {
+                                    self.state = State::Seek;
+                                    return self.skip(k + 2, "truncated JPEG");
+                                }
+                                if data.len() > self.max_part {
+                                    self.state = State::Seek;
+                                    return self.skip(data.len(), "part longer than the limit");
+                                }
+                                return None;
+                            }
+                        }
+                    }
+                    match bnd {
+                        Some(b) => {
+                            let mut end = b;
+                            // Trim the delimiter's "--" and line break.
+                            while end > 0 && matches!(data[end - 1], b'-') {
+                                end -= 1;
+                            }
+                            while end > 0 && matches!(data[end - 1], b'\r' | b'\n') {
+                                end -= 1;
+                            }
+                            let part = Part {
+                                body: data[..end].to_vec(),
+                                timestamp,
+                                had_headers: true,
+                            };
+                            self.pos += b;
+                            self.state = State::Seek;
+                            return Some(ParseEvent::Part(part));
+                        }
+                        None => {
+                            if data.len() > self.max_part {
+                                self.state = State::Seek;
+                                return self.skip(data.len(), "part longer than the limit");
+                            }
+                            return None;
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A parsed `http://host[:port]/path` URL.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HttpUrl {
+    /// `host:port` to connect to.
+    pub authority: String,
+    /// Host (for the Host header).
+    pub host: String,
+    /// Path and query, starting with `/`.
+    pub path: String,
+}
+
+impl HttpUrl {
+    /// Parse a plain-HTTP URL.
+    pub fn parse(url: &str) -> Result<Self, MjpegError> {
+        let bad = |reason| MjpegError::BadUrl {
+            url: url.to_owned(),
+            reason,
+        };
+        let rest = url
+            .strip_prefix("http://")
+            .ok_or_else(|| bad("only http:// is supported (use a bridge for RTSP/HTTPS)"))?;
+        let (auth, path) = match rest.find('/') {
+            Some(i) => (&rest[..i], &rest[i..]),
+            None => (rest, "/"),
+        };
+        if auth.is_empty() {
+            return Err(bad("no host"));
+        }
+        if auth.contains('@') {
+            return Err(bad("credentials in the URL are not supported"));
+        }
+        let (host, authority) = if auth.starts_with('[') {
+            match auth.rfind("]:") {
+                Some(_) => (auth.to_owned(), auth.to_owned()),
+                None => (auth.to_owned(), format!("{auth}:80")),
+            }
+        } else {
+            match auth.rsplit_once(':') {
+                Some((h, p)) => {
+                    p.parse::<u16>().map_err(|_| bad("bad port"))?;
+                    (h.to_owned(), auth.to_owned())
+                }
+                None => (auth.to_owned(), format!("{auth}:80")),
+            }
+        };
+        Ok(Self {
+            authority,
+            host,
+            path: path.to_owned(),
+        })
+    }
+}
+
+/// De-chunker for `Transfer-Encoding: chunked` bodies.
+#[derive(Debug, Default)]
+struct Dechunk {
+    pending: Vec<u8>,
+    remaining: usize,
+    need_crlf: bool,
+    done: bool,
+}
+
+impl Dechunk {
+    /// Feed raw bytes; append decoded body bytes to `out`.
+    fn feed(&mut self, data: &[u8], out: &mut Vec<u8>) -> Result<(), &'static str> {
+        if self.done {
+            return Ok(());
+        }
+        self.pending.extend_from_slice(data);
+        let mut i = 0;
+        let p = &self.pending;
+        loop {
+            if self.remaining > 0 {
+                let n = self.remaining.min(p.len() - i);
+                out.extend_from_slice(&p[i..i + n]);
+                i += n;
+                self.remaining -= n;
+                if self.remaining > 0 {
+                    break;
+                }
+                self.need_crlf = true;
+            }
+            if self.need_crlf {
+                if p.len() - i < 1 {
+                    break;
+                }
+                if p[i] == b'\r' {
+                    if p.len() - i < 2 {
+                        break;
+                    }
+                    i += 2;
+                } else if p[i] == b'\n' {
+                    i += 1;
+                } else {
+                    return Err("missing CRLF after a chunk");
+                }
+                self.need_crlf = false;
+            }
+            let Some(lf) = p[i..].iter().position(|&c| c == b'\n') else {
+                if p.len() - i > 1024 {
+                    return Err("chunk size line too long");
+                }
+                break;
+            };
+            let line = std::str::from_utf8(&p[i..i + lf]).map_err(|_| "bad chunk size")?;
+            let size_str = line.trim().split(';').next().unwrap_or("").trim();
+            let size = usize::from_str_radix(size_str, 16).map_err(|_| "bad chunk size")?;
+            i += lf + 1;
+            if size == 0 {
+                self.done = true;
+                break;
+            }
+            self.remaining = size;
+        }
+        self.pending.drain(..i);
+        Ok(())
+    }
+}
+
+/// The body framing of a response.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Framing {
+    Chunked,
+    Length(usize),
+    Close,
+}
+
+/// A response head.
+#[derive(Debug)]
+struct Head {
+    status: u16,
+    content_type: Option<String>,
+    timestamp: Option<f64>,
+    framing: Framing,
+}
+
+fn parse_head(text: &str) -> Result<Head, String> {
+    let mut lines = text.lines();
+    let status_line = lines.next().ok_or("empty response")?;
+    let mut it = status_line.split_whitespace();
+    let proto = it.next().unwrap_or("");
+    if !proto.starts_with("HTTP/") {
+        return Err(format!("not HTTP: {status_line:?}"));
+    }
+    let status = it
+        .next()
+        .and_then(|s| s.parse::<u16>().ok())
+        .ok_or_else(|| format!("bad status line {status_line:?}"))?;
+    let mut head = Head {
+        status,
+        content_type: None,
+        timestamp: None,
+        framing: Framing::Close,
+    };
+    for line in lines {
+        let Some((k, v)) = line.split_once(':') else {
+            continue;
+        };
+        let (k, v) = (k.trim(), v.trim());
+        if k.eq_ignore_ascii_case("content-type") {
+            head.content_type = Some(v.to_owned());
+        } else if k.eq_ignore_ascii_case("transfer-encoding")
+            && v.to_ascii_lowercase().contains("chunked")
+        {
+            head.framing = Framing::Chunked;
+        } else if k.eq_ignore_ascii_case("content-length") && head.framing != Framing::Chunked {
+            if let Ok(n) = v.parse() {
+                head.framing = Framing::Length(n);
+            }
+        } else if k.eq_ignore_ascii_case("x-timestamp") {
+            head.timestamp = v.parse().ok().filter(|t: &f64| t.is_finite());
+        }
+    }
+    Ok(head)
+}
+
+/// An open HTTP response body.
+struct Body {
+    stream: TcpStream,
+    url: String,
+    framing: Framing,
+    dechunk: Dechunk,
+    delivered: usize,
+    read_timeout: Duration,
+    scratch: Vec<u8>,
+    /// Body bytes that arrived with the head, delivered first.
+    prefix: Vec<u8>,
+}
+
+impl Body {
+    /// Read the next body bytes into `out` (cleared first). `Ok(false)` at
+    /// the end of the body.
+    async fn read(&mut self, out: &mut Vec<u8>, counters: &Counters) -> Result<bool, MjpegError> {
+        out.clear();
+        if !self.prefix.is_empty() {
+            std::mem::swap(out, &mut self.prefix);
+            return Ok(true);
+        }
+        loop {
+            if self.dechunk.done {
+                return Ok(false);
+            }
+            if let Framing::Length(n) = self.framing
+                && self.delivered >= n
+            {
+                return Ok(false);
+            }
+            let n =
+                match tokio::time::timeout(self.read_timeout, self.stream.read(&mut self.scratch))
+                    .await
+                {
+                    Err(_) => {
+                        return Err(MjpegError::Timeout {
+                            url: self.url.clone(),
+                            ms: self.read_timeout.as_millis() as u64,
+                        });
+                    }
+                    Ok(Err(source)) => {
+                        return Err(MjpegError::Io {
+                            url: self.url.clone(),
+                            source,
+                        });
+                    }
+                    Ok(Ok(n)) => n,
+                };
+            if n == 0 {
+                return Ok(false);
+            }
+            counters
+                .bytes
+                .fetch_add(n as u64, std::sync::atomic::Ordering::Relaxed);
+            let data = &self.scratch[..n];
+            match self.framing {
+                Framing::Chunked => {
+                    self.dechunk
+                        .feed(data, out)
+                        .map_err(|r| MjpegError::BadResponse {
+                            url: self.url.clone(),
+                            reason: r.to_owned(),
+                        })?;
+                }
+                Framing::Length(len) => {
+                    let take = n.min(len - self.delivered);
+                    out.extend_from_slice(&data[..take]);
+                }
+                Framing::Close => out.extend_from_slice(data),
+            }
+            self.delivered += out.len();
+            if !out.is_empty() {
+                return Ok(true);
+            }
+        }
+    }
+}
+
+/// GET `url`; returns the response head and its body reader.
+async fn open(url: &HttpUrl, raw_url: &str, params: &Params) -> Result<(Head, Body), MjpegError> {
+    let io = |source| MjpegError::Io {
+        url: raw_url.to_owned(),
+        source,
+    };
+    let connect = TcpStream::connect(url.authority.as_str());
+    let mut stream =
+        tokio::time::timeout(Duration::from_millis(params.connect_timeout_ms), connect)
+            .await
+            .map_err(|_| MjpegError::Timeout {
+                url: raw_url.to_owned(),
+                ms: params.connect_timeout_ms,
+            })?
+            .map_err(io)?;
+    stream.set_nodelay(true).map_err(io)?;
+    let req = format!(
+        "GET {} HTTP/1.1\r\nHost: {}\r\nUser-Agent: shotpilot\r\nAccept: multipart/x-mixed-replace, image/jpeg, */*\r\nConnection: close\r\n\r\n",
+        url.path, url.host
+    );
+    stream.write_all(req.as_bytes()).await.map_err(io)?;
+    let read_timeout = Duration::from_millis(params.read_timeout_ms);
+    let mut head_buf = Vec::with_capacity(1024);
+    let mut scratch = vec![0u8; 64 << 10];
+    let (head_len, sep) = loop {
+        let n = tokio::time::timeout(read_timeout, stream.read(&mut scratch))
+            .await
+            .map_err(|_| MjpegError::Timeout {
+                url: raw_url.to_owned(),
+                ms: params.read_timeout_ms,
+            })?
+            .map_err(io)?;
+        if n == 0 {
+            return Err(MjpegError::Closed {
+                url: raw_url.to_owned(),
+            });
+        }
+        head_buf.extend_from_slice(&scratch[..n]);
+        if let Some(i) = find(&head_buf, b"\r\n\r\n") {
+            break (i, 4);
+        }
+        if let Some(i) = find(&head_buf, b"\n\n") {
+            break (i, 2);
+        }
+        if head_buf.len() > params.max_header_bytes {
+            return Err(MjpegError::BadResponse {
+                url: raw_url.to_owned(),
+                reason: "response headers too long".into(),
+            });
+        }
+    };
+    let text = String::from_utf8_lossy(&head_buf[..head_len]).into_owned();
+    let head = parse_head(&text).map_err(|reason| MjpegError::BadResponse {
+        url: raw_url.to_owned(),
+        reason,
+    })?;
+    if !(200..300).contains(&head.status) {
+        return Err(MjpegError::BadResponse {
+            url: raw_url.to_owned(),
+            reason: format!("HTTP status {}", head.status),
+        });
+    }
+    let mut body = Body {
+        stream,
+        url: raw_url.to_owned(),
+        framing: head.framing,
+        dechunk: Dechunk::default(),
+        delivered: 0,
+        read_timeout,
+        scratch,
+        prefix: Vec::new(),
+    };
+    // Body bytes that came with the head.
+    let rest = head_buf[head_len + sep..].to_vec();
+    let mut first = Vec::new();
+    match body.framing {
+        Framing::Chunked => {
+            body.dechunk
+                .feed(&rest, &mut first)
+                .map_err(|r| MjpegError::BadResponse {
+                    url: raw_url.to_owned(),
+                    reason: r.to_owned(),
+                })?;
+        }
+        Framing::Length(n) => first.extend_from_slice(&rest[..rest.len().min(n)]),
+        Framing::Close => first = rest,
+    }
+    body.delivered = first.len();
+    body.prefix = first;
+    Ok((head, body))
+}
+
+/// Read one MJPEG connection to its end, pushing whole parts into `ingest`.
+/// Returns how many parts it delivered.
+async fn read_stream(
+    url: &HttpUrl,
+    raw_url: &str,
+    params: &Params,
+    ingest: &Ingest,
+    cancel: &CancellationToken,
+    delivered: &mut u64,
+) -> Result<(), MjpegError> {
+    let (head, mut body) = open(url, raw_url, params).await?;
+    let ct = head.content_type.clone().unwrap_or_default();
+    let boundary = boundary_from_content_type(&ct);
+    if boundary.is_none() {
+        tracing::warn!(url = raw_url, content_type = %ct, "no multipart boundary: delimiting frames by JPEG markers");
+    }
+    let mut parser = PartParser::new(boundary.as_deref(), params.max_part_bytes);
+    let mut chunk = Vec::with_capacity(64 << 10);
+    loop {
+        let more = tokio::select! {
+            _ = cancel.cancelled() => return Ok(()),
+            r = body.read(&mut chunk, &ingest.counters) => r,
+        };
+        let more = match more {
+            Ok(m) => m,
+            Err(e) => {
+                if parser.buffered() > 0 {
+                    Counters::inc(&ingest.counters.bad);
+                }
+                return Err(e);
+            }
+        };
+        if !more {
+            // A part cut off by the end of the stream is bad data.
+            if parser.buffered() > 64 {
+                Counters::inc(&ingest.counters.bad);
+            }
+            return Err(MjpegError::Closed {
+                url: raw_url.to_owned(),
+            });
+        }
+        parser.push(&chunk);
+        while let Some(ev) = parser.next_part() {
+            match ev {
+                ParseEvent::Part(mut p) => {
+                    // A JPEG without its end marker is truncated (decoders
+                    // would fill the rest with grey): bad data.
+                    match jpeg_end(&p.body) {
+                        Some(end) => p.body.truncate(end),
+                        None => {
+                            Counters::inc(&ingest.counters.bad);
+                            continue;
+                        }
+                    }
+                    let now = Instant::now();
+                    ingest.push_raw(RawPart {
+                        jpeg: Arc::new(p.body),
+                        capture_time: p.timestamp,
+                        received: now,
+                        received_unix: unix_now(),
+                    });
+                    *delivered += 1;
+                }
+                ParseEvent::Skipped { bytes, reason } => {
+                    tracing::debug!(bytes, reason, "skipped MJPEG data");
+                    // Text between parts is framing noise, not bad data.
+                    if !reason.starts_with("data before") {
+                        Counters::inc(&ingest.counters.bad);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The reconnect delay after `failures` consecutive failures.
+pub fn backoff(params: &Params, failures: u32) -> Duration {
+    let ms = params
+        .reconnect_min_ms
+        .saturating_mul(1u64 << failures.min(20))
+        .min(params.reconnect_max_ms.max(params.reconnect_min_ms));
+    Duration::from_millis(ms)
+}
+
+/// Read the MJPEG stream at `url` into `ingest` until `cancel` fires,
+/// reconnecting with exponential backoff. Never returns early on bad data
+/// or lost connections; fails at once only on a malformed URL.
+pub async fn run_mjpeg(
+    url: &str,
+    params: &Params,
+    ingest: Arc<Ingest>,
+    cancel: CancellationToken,
+) -> Result<(), MjpegError> {
+    let parsed = HttpUrl::parse(url)?;
+    let mut failures = 0u32;
+    while !cancel.is_cancelled() {
+        Counters::inc(&ingest.counters.connects);
+        let mut delivered = 0;
+        match read_stream(&parsed, url, params, &ingest, &cancel, &mut delivered).await {
+            Ok(()) => break,
+            Err(e) => {
+                Counters::inc(&ingest.counters.errors);
+                tracing::warn!(frames = delivered, "{e}");
+            }
+        }
+        if delivered > 0 {
+            failures = 0;
+        }
+        let delay = backoff(params, failures);
+        failures = failures.saturating_add(1);
+        tokio::select! {
+            _ = cancel.cancelled() => break,
+            _ = tokio::time::sleep(delay) => {}
+        }
+    }
+    Ok(())
+}
+
+/// Fetch one snapshot: the whole body of a GET and its `X-Timestamp`.
+pub async fn fetch_snapshot(
+    url: &str,
+    params: &Params,
+    counters: &Counters,
+) -> Result<(Vec<u8>, Option<f64>), MjpegError> {
+    let parsed = HttpUrl::parse(url)?;
+    let (head, mut body) = open(&parsed, url, params).await?;
+    let mut all = Vec::new();
+    let mut chunk = Vec::new();
+    while body.read(&mut chunk, counters).await? {
+        all.extend_from_slice(&chunk);
+        if all.len() > params.max_part_bytes {
+            return Err(MjpegError::BadResponse {
+                url: url.to_owned(),
+                reason: "snapshot larger than the limit".into(),
+            });
+        }
+    }
+    if let Framing::Length(n) = head.framing
+        && all.len() < n
+    {
+        return Err(MjpegError::BadResponse {
+            url: url.to_owned(),
+            reason: format!("snapshot truncated at {} of {n} bytes", all.len()),
+        });
+    }
+    Ok((all, head.timestamp))
+}
+
+/// Poll the snapshot URL at `rate_hz` into `ingest` until `cancel` fires.
+/// Failures back off like the stream's reconnects.
+pub async fn run_snapshots(
+    url: &str,
+    rate_hz: f64,
+    params: &Params,
+    ingest: Arc<Ingest>,
+    cancel: CancellationToken,
+) -> Result<(), MjpegError> {
+    HttpUrl::parse(url)?;
+    let period = Duration::from_secs_f64(1.0 / rate_hz.clamp(0.01, 200.0));
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut failures = 0u32;
+    loop {
+        tokio::select! {
+            _ = cancel.cancelled() => return Ok(()),
+            _ = tick.tick() => {}
+        }
+        Counters::inc(&ingest.counters.connects);
+        let r = tokio::select! {
+            _ = cancel.cancelled() => return Ok(()),
+            r = fetch_snapshot(url, params, &ingest.counters) => r,
+        };
+        match r {
+            Ok((jpeg, ts)) if jpeg_end(&jpeg).is_some() => {
+                failures = 0;
+                ingest.push_raw(RawPart {
+                    jpeg: Arc::new(jpeg),
+                    capture_time: ts,
+                    received: Instant::now(),
+                    received_unix: unix_now(),
+                });
+            }
+            Ok(_) => Counters::inc(&ingest.counters.bad),
+            Err(e) => {
+                Counters::inc(&ingest.counters.errors);
+                tracing::warn!("{e}");
+                let delay = backoff(params, failures);
+                failures = failures.saturating_add(1);
+                tokio::select! {
+                    _ = cancel.cancelled() => return Ok(()),
+                    _ = tokio::time::sleep(delay) => {}
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A tiny JPEG-shaped byte string: SOI, an APP0 segment holding a fake
+    /// EOI, SOS, entropy data with a stuffed FF and an RST, EOI.
+    fn fake_jpeg(tag: u8) -> Vec<u8> {
+        let mut v = vec![0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x06, 0xFF, 0xD9, tag, 0x00];
+        v.extend_from_slice(&[0xFF, 0xDA, 0x00, 0x04, 0x01, 0x02]);
+        v.extend_from_slice(&[0x11, 0xFF, 0x00, 0x22, 0xFF, 0xD0, tag, 0x33]);
+        v.extend_from_slice(&[0xFF, 0xD9]);
+        v
+    }
+
+    fn parts(p: &mut PartParser) -> (Vec<Part>, usize) {
+        let mut out = Vec::new();
+        let mut skipped = 0;
+        while let Some(ev) = p.next_part() {
+            match ev {
+                ParseEvent::Part(x) => out.push(x),
+                ParseEvent::Skipped { .. } => skipped += 1,
+            }
+        }
+        (out, skipped)
+    }
+
+    #[test]
+    fn jpeg_end_walks_segments_and_skips_stuffed_bytes() {
+        let j = fake_jpeg(7);
+        assert_eq!(jpeg_end(&j), Some(j.len()));
+        for cut in 0..j.len() {
+            assert_eq!(jpeg_end(&j[..cut]), None, "cut {cut}");
+        }
+    }
+
+    #[test]
+    fn boundary_variants_from_content_type() {
+        let b = |s| boundary_from_content_type(s);
+        assert_eq!(
+            b("multipart/x-mixed-replace; boundary=frame").as_deref(),
+            Some("frame")
+        );
+        assert_eq!(
+            b("multipart/x-mixed-replace;boundary=\"--frame\"").as_deref(),
+            Some("frame")
+        );
+        assert_eq!(
+            b("multipart/x-mixed-replace; Boundary=--frame ; x=1").as_deref(),
+            Some("frame")
+        );
+        assert_eq!(b("image/jpeg"), None);
+    }
+
+    fn stream(boundary_line: &str, eol: &str, headers: bool, length: bool, n: u8) -> Vec<u8> {
+        let mut s = Vec::new();
+        for i in 0..n {
+            let j = fake_jpeg(i);
+            s.extend_from_slice(format!("{boundary_line}{eol}").as_bytes());
+            if headers {
+                s.extend_from_slice(format!("Content-Type: image/jpeg{eol}").as_bytes());
+                if length {
+                    s.extend_from_slice(format!("Content-Length: {}{eol}", j.len()).as_bytes());
+                }
+                s.extend_from_slice(format!("X-Timestamp: {}.5{eol}", 100 + i as u32).as_bytes());
+                s.extend_from_slice(eol.as_bytes());
+            }
+            s.extend_from_slice(&j);
+            s.extend_from_slice(eol.as_bytes());
+        }
+        s
+    }
+
+    #[test]
+    fn all_variants_yield_all_parts_fed_whole_and_byte_by_byte() {
+        for (line, eol, headers, length) in [
+            ("--frame", "\r\n", true, true),
+            ("--frame", "\n", true, true),
+            ("--frame", "\r\n", true, false),
+            ("--frame", "\n", true, false),
+            ("frame", "\r\n", true, true),
+            ("----frame", "\r\n", true, true),
+            ("--frame", "\r\n", false, false),
+        ] {
+            let data = stream(line, eol, headers, length, 5);
+            for bytewise in [false, true] {
+                let mut p = PartParser::new(Some("frame"), 1 << 20);
+                let mut got = Vec::new();
+                if bytewise {
+                    for b in &data {
+                        p.push(std::slice::from_ref(b));
+                        got.extend(parts(&mut p).0);
+                    }
+                } else {
+                    p.push(&data);
+                    got = parts(&mut p).0;
+                }
+                assert_eq!(
+                    got.len(),
+                    5,
+                    "{line:?} {eol:?} {headers} {length} {bytewise}"
+                );
+                for (i, part) in got.iter().enumerate() {
+                    assert_eq!(
+                        part.body,
+                        fake_jpeg(i as u8),
+                        "{line:?} {eol:?} {headers} {length}"
+                    );
+                    if headers {
+                        assert_eq!(part.timestamp, Some(100.5 + i as f64));
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn no_boundary_at_all_uses_jpeg_markers() {
+        let mut data = b"garbage".to_vec();
+        for i in 0..4 {
+            data.extend_from_slice(&fake_jpeg(i));
+            data.extend_from_slice(b"\r\n junk \r\n");
+        }
+        let mut p = PartParser::new(None, 1 << 20);
+        p.push(&data);
+        let (got, _) = parts(&mut p);
+        assert_eq!(got.len(), 4);
+        assert!(
+            got.iter()
+                .enumerate()
+                .all(|(i, g)| g.body == fake_jpeg(i as u8))
+        );
+    }
+
+    #[test]
+    fn wrong_content_length_and_truncated_jpeg_resync() {
+        let mut data = Vec::new();
+        let j0 = fake_jpeg(0);
+        // Length claims more than there is: the next boundary shows it.
+        data.extend_from_slice(
+            format!("--b\r\nContent-Length: {}\r\n\r\n", j0.len() + 40).as_bytes(),
+        );
+        data.extend_from_slice(&j0[..10]);
+        data.extend_from_slice(b"\r\n");
+        // A headerless truncated JPEG, then a good part.
+        data.extend_from_slice(b"--b\r\n");
+        data.extend_from_slice(&j0[..12]);
+        data.extend_from_slice(b"\r\n");
+        for i in 1..3 {
+            let j = fake_jpeg(i);
+            data.extend_from_slice(
+                format!("--b\r\nContent-Length: {}\r\n\r\n", j.len()).as_bytes(),
+            );
+            data.extend_from_slice(&j);
+            data.extend_from_slice(b"\r\n");
+        }
+        data.extend_from_slice(b"--b\r\n"); // so the length lie is visible
+        let mut p = PartParser::new(Some("b"), 1 << 20);
+        p.push(&data);
+        let (got, skipped) = parts(&mut p);
+        let good: Vec<_> = got
+            .iter()
+            .filter(|g| jpeg_end(&g.body) == Some(g.body.len()))
+            .collect();
+        assert_eq!(good.len(), 2, "{got:?}");
+        assert_eq!(good[0].body, fake_jpeg(1));
+        assert_eq!(good[1].body, fake_jpeg(2));
+        assert!(skipped >= 2, "{skipped}");
+    }
+
+    #[test]
+    fn oversized_part_is_skipped_and_parser_recovers() {
+        let mut data = b"--b\r\nContent-Length: 999999\r\n\r\n".to_vec();
+        let j = fake_jpeg(3);
+        data.extend_from_slice(format!("--b\r\nContent-Length: {}\r\n\r\n", j.len()).as_bytes());
+        data.extend_from_slice(&j);
+        let mut p = PartParser::new(Some("b"), 1000);
+        p.push(&data);
+        let (got, skipped) = parts(&mut p);
+        assert_eq!(got.len(), 1);
+        assert_eq!(got[0].body, j);
+        assert!(skipped >= 1);
+    }
+
+    #[test]
+    fn dechunk_decodes_split_chunks() {
+        let enc = b"5\r\nhello\r\n6;ext=1\r\n world\r\n0\r\n\r\n";
+        for split in 0..enc.len() {
+            let mut d = Dechunk::default();
+            let mut out = Vec::new();
+            d.feed(&enc[..split], &mut out)
+                .unwrap_or_else(|e| panic!("split {split} first: {e}"));
+            d.feed(&enc[split..], &mut out)
+                .unwrap_or_else(|e| panic!("split {split} second: {e}"));
+            assert_eq!(out, b"hello world", "split {split}");
+            assert!(d.done);
+        }
+    }
+
+    #[test]
+    fn urls_parse() {
+        let u = HttpUrl::parse("http://127.0.0.1:8554/video.mjpg").unwrap();
+        assert_eq!(u.authority, "127.0.0.1:8554");
+        assert_eq!(u.path, "/video.mjpg");
+        let u = HttpUrl::parse("http://cam").unwrap();
+        assert_eq!((u.authority.as_str(), u.path.as_str()), ("cam:80", "/"));
+        assert!(HttpUrl::parse("rtsp://cam/x").is_err());
+        assert!(HttpUrl::parse("http://cam:99999/").is_err());
+    }
+
+    #[test]
+    fn backoff_doubles_to_the_cap() {
+        let p = Params::default();
+        assert_eq!(backoff(&p, 0), Duration::from_millis(100));
+        assert_eq!(backoff(&p, 3), Duration::from_millis(800));
+        assert_eq!(backoff(&p, 30), Duration::from_millis(5000));
+    }
+}

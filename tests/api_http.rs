@@ -1,0 +1,613 @@
+//! The HTTP API over real sockets: every endpoint, the bad-input cases
+//! (each with its 4xx while the server keeps serving), and shots that
+//! survive a restart.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use image::{GrayImage, Luma};
+use serde_json::{Value, json};
+use shotpilot::api::shots::{ShotComputation, ShotComputer, ShotError, WarpOnly};
+use shotpilot::api::store::{Localisation, MissionRecord, PoseJson, Shot, ShotStore};
+use shotpilot::api::{
+    self, ApiParams, AppState, BoxFuture, KeyframeInfo, MapView, SlamStatus, SlamView,
+    VehicleError, VehicleView,
+};
+use shotpilot::video::live::{Ingest, RawPart, unix_now};
+
+fn kf_image() -> GrayImage {
+    GrayImage::from_fn(640, 480, |x, y| {
+        Luma([((x / 8 + y / 8) % 2 * 200 + (x % 50)) as u8])
+    })
+}
+
+struct FakeSlam {
+    img: Arc<GrayImage>,
+}
+
+impl SlamView for FakeSlam {
+    fn status(&self) -> SlamStatus {
+        SlamStatus {
+            available: true,
+            state: "tracking".into(),
+            keyframes: 2,
+            points: 3,
+            ..Default::default()
+        }
+    }
+    fn keyframes(&self) -> Vec<KeyframeInfo> {
+        (0..2)
+            .map(|id| KeyframeInfo {
+                id,
+                timestamp: id as f64,
+                world_from_cam: PoseJson {
+                    translation: [id as f64, 0.0, 0.0],
+                    rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+                },
+                width: 640,
+                height: 480,
+            })
+            .collect()
+    }
+    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>> {
+        (id < 2).then(|| self.img.clone())
+    }
+    fn map(&self, max_points: usize) -> MapView {
+        let pts = vec![[0.0f32, 1.0, 2.0]; 3];
+        MapView {
+            points: pts.into_iter().take(max_points).collect(),
+            total_points: 3,
+            trajectory: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
+        }
+    }
+}
+
+/// Warps like the real default, and localises shots on keyframe 1.
+struct LocalisingOnKf1(WarpOnly<Arc<FakeSlam>>);
+
+impl ShotComputer for LocalisingOnKf1 {
+    fn shot_from_anchors(
+        &self,
+        kf: u64,
+        a: &[[f64; 2]; 4],
+        size: (u32, u32),
+    ) -> Result<ShotComputation, ShotError> {
+        let mut c = self.0.shot_from_anchors(kf, a, size)?;
+        if kf == 1 {
+            c.localisation = Ok(Localisation {
+                world_from_cam: PoseJson {
+                    translation: [1.0, 2.0, -3.0],
+                    rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+                },
+                inliers: 80,
+                rms_error_px: 0.9,
+                keyframe_id: Some(1),
+            });
+        }
+        Ok(c)
+    }
+    fn shot_from_photo(&self, p: &GrayImage) -> Result<ShotComputation, ShotError> {
+        self.0.shot_from_photo(p)
+    }
+}
+
+#[derive(Default)]
+struct FakeVehicle {
+    uploads: Mutex<Vec<String>>,
+    started: Mutex<u32>,
+}
+
+impl VehicleView for FakeVehicle {
+    fn status(&self) -> Value {
+        json!({"configured": true, "connected": true})
+    }
+    fn upload_shot<'a>(
+        &'a self,
+        shot: &'a Shot,
+    ) -> BoxFuture<'a, Result<MissionRecord, VehicleError>> {
+        Box::pin(async move {
+            self.uploads.lock().unwrap().push(shot.id.clone());
+            Ok(MissionRecord {
+                state: "uploaded".into(),
+                items: 3,
+                uploaded_unix: unix_now(),
+                started_unix: None,
+                target_lat_lon_alt: None,
+                details: json!({}),
+            })
+        })
+    }
+    fn start_mission(&self) -> BoxFuture<'_, Result<(), VehicleError>> {
+        Box::pin(async move {
+            *self.started.lock().unwrap() += 1;
+            Ok(())
+        })
+    }
+    fn progress(&self) -> Value {
+        json!({"current_seq": 1})
+    }
+}
+
+struct Server {
+    addr: SocketAddr,
+    ingest: Arc<Ingest>,
+    vehicle: Arc<FakeVehicle>,
+    _rt: tokio::runtime::Runtime,
+}
+
+fn start(dir: &std::path::Path, token: Option<&str>, with_vehicle: bool) -> Server {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let slam = Arc::new(FakeSlam {
+        img: Arc::new(kf_image()),
+    });
+    let ingest = Arc::new(Ingest::new());
+    let vehicle = Arc::new(FakeVehicle::default());
+    let state = AppState {
+        ingest: ingest.clone(),
+        slam: slam.clone(),
+        vehicle: with_vehicle.then(|| vehicle.clone() as Arc<dyn VehicleView>),
+        shots: Arc::new(LocalisingOnKf1(WarpOnly {
+            keyframes: slam.clone(),
+            params: Default::default(),
+        })),
+        store: Arc::new(ShotStore::open(dir).unwrap()),
+        params: Arc::new(ApiParams {
+            token: token.map(str::to_owned),
+            body_limit: 1 << 20,
+            events_hz: 10.0,
+            ..Default::default()
+        }),
+        actions: Default::default(),
+        started_unix: unix_now(),
+        shutdown: Default::default(),
+    };
+    let listener = rt
+        .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
+        .unwrap();
+    let addr = listener.local_addr().unwrap();
+    rt.spawn(async move { axum::serve(listener, api::router(state)).await.unwrap() });
+    Server {
+        addr,
+        ingest,
+        vehicle,
+        _rt: rt,
+    }
+}
+
+/// One HTTP/1.1 request; returns status, lower-cased headers and body.
+fn http(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &[u8],
+) -> (u16, String, Vec<u8>) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    let mut req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Length: {}\r\n",
+        body.len()
+    );
+    for (k, v) in headers {
+        req.push_str(&format!("{k}: {v}\r\n"));
+    }
+    req.push_str("\r\n");
+    s.write_all(req.as_bytes()).unwrap();
+    // The server may answer (413) and close before the body is sent.
+    let _ = s.write_all(body);
+    let mut resp = Vec::new();
+    let _ = s.read_to_end(&mut resp);
+    let split = resp
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("a response head");
+    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
+    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    let mut body = resp[split + 4..].to_vec();
+    if head.contains("transfer-encoding: chunked") {
+        let mut out = Vec::new();
+        let mut i = 0;
+        loop {
+            let lf = body[i..].iter().position(|&c| c == b'\n').unwrap() + i;
+            let n =
+                usize::from_str_radix(String::from_utf8_lossy(&body[i..lf]).trim(), 16).unwrap();
+            if n == 0 {
+                break;
+            }
+            out.extend_from_slice(&body[lf + 1..lf + 1 + n]);
+            i = lf + 1 + n + 2;
+        }
+        body = out;
+    }
+    (status, head, body)
+}
+
+fn json_of(b: &[u8]) -> Value {
+    serde_json::from_slice(b).unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(b)))
+}
+
+fn assert_error(r: &(u16, String, Vec<u8>), status: u16, code: &str) {
+    assert_eq!(r.0, status, "{}", String::from_utf8_lossy(&r.2));
+    assert!(r.1.contains("content-type: application/json"), "{}", r.1);
+    let v = json_of(&r.2);
+    assert_eq!(v["error"]["code"], code, "{v}");
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .is_some_and(|m| !m.is_empty())
+    );
+}
+
+const TOKEN: &str = "s3cret";
+const AUTH: (&str, &str) = ("Authorization", "Bearer s3cret");
+const JSON_CT: (&str, &str) = ("Content-Type", "application/json");
+
+fn good_shot(kf: u64) -> Vec<u8> {
+    json!({"keyframe_id": kf, "anchors": [[100, 100], [300, 100], [300, 250], [100, 250]], "width": 200, "height": 150})
+        .to_string()
+        .into_bytes()
+}
+
+#[test]
+fn endpoints_and_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let srv = start(dir.path(), Some(TOKEN), true);
+    let a = srv.addr;
+
+    let r = http(a, "GET", "/api/v1/status", &[], b"");
+    assert_eq!(r.0, 200);
+    let st = json_of(&r.2);
+    assert_eq!(st["slam"]["state"], "tracking");
+    assert_eq!(st["video"]["counters"]["received"], 0);
+    assert_eq!(st["vehicle"]["connected"], true);
+
+    let r = http(a, "GET", "/api/v1/openapi.json", &[], b"");
+    assert_eq!(r.0, 200);
+    let doc = json_of(&r.2);
+    assert_eq!(doc["openapi"], "3.1.0");
+    assert!(doc["paths"]["/shots"]["post"].is_object());
+
+    let r = http(a, "GET", "/", &[], b"");
+    assert_eq!(r.0, 200);
+    assert!(String::from_utf8_lossy(&r.2).contains("<html"));
+
+    let kfs = json_of(&http(a, "GET", "/api/v1/keyframes", &[], b"").2);
+    assert_eq!(kfs["count"], 2);
+    let r = http(a, "GET", "/api/v1/keyframes/1/image.jpg", &[], b"");
+    assert_eq!(r.0, 200);
+    let img = image::load_from_memory(&r.2).unwrap();
+    assert_eq!((img.width(), img.height()), (640, 480));
+    assert_error(
+        &http(a, "GET", "/api/v1/keyframes/7/image.jpg", &[], b""),
+        404,
+        "not_found",
+    );
+    assert_error(
+        &http(a, "GET", "/api/v1/keyframes/x/image.jpg", &[], b""),
+        400,
+        "bad_id",
+    );
+    let m = json_of(&http(a, "GET", "/api/v1/map?max_points=2", &[], b"").2);
+    assert_eq!(m["points"].as_array().unwrap().len(), 2);
+    assert_eq!(m["total_points"], 3);
+    assert_error(
+        &http(a, "GET", "/api/v1/nothing", &[], b""),
+        404,
+        "not_found",
+    );
+
+    // Bad input on POST /shots.
+    assert_error(
+        &http(a, "POST", "/api/v1/shots", &[JSON_CT], &good_shot(0)),
+        401,
+        "unauthorized",
+    );
+    assert_error(
+        &http(
+            a,
+            "POST",
+            "/api/v1/shots",
+            &[JSON_CT, ("Authorization", "Bearer nope")],
+            &good_shot(0),
+        ),
+        401,
+        "unauthorized",
+    );
+    assert_error(
+        &http(
+            a,
+            "POST",
+            "/api/v1/shots",
+            &[AUTH, JSON_CT],
+            b"{\"keyframe_id\": 0, \"anch",
+        ),
+        400,
+        "bad_json",
+    );
+    let three =
+        json!({"keyframe_id": 0, "anchors": [[100, 100], [300, 100], [300, 250]]}).to_string();
+    assert_error(
+        &http(
+            a,
+            "POST",
+            "/api/v1/shots",
+            &[AUTH, JSON_CT],
+            three.as_bytes(),
+        ),
+        400,
+        "bad_anchors",
+    );
+    let bowtie =
+        json!({"keyframe_id": 0, "anchors": [[100, 100], [300, 100], [100, 250], [300, 250]]})
+            .to_string();
+    assert_error(
+        &http(
+            a,
+            "POST",
+            "/api/v1/shots",
+            &[AUTH, JSON_CT],
+            bowtie.as_bytes(),
+        ),
+        400,
+        "bad_anchors",
+    );
+    assert_error(
+        &http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(9)),
+        404,
+        "unknown_keyframe",
+    );
+    assert_error(
+        &http(
+            a,
+            "POST",
+            "/api/v1/shots",
+            &[AUTH, ("Content-Type", "text/plain")],
+            &good_shot(0),
+        ),
+        415,
+        "bad_content_type",
+    );
+    let big = vec![b' '; 50 << 20];
+    assert_error(
+        &http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &big),
+        413,
+        "body_too_large",
+    );
+    assert_error(
+        &http(
+            a,
+            "POST",
+            "/api/v1/shots/photo",
+            &[AUTH, ("Content-Type", "text/plain")],
+            b"hello",
+        ),
+        415,
+        "bad_content_type",
+    );
+    assert_error(
+        &http(
+            a,
+            "POST",
+            "/api/v1/shots/photo",
+            &[AUTH, ("Content-Type", "image/jpeg")],
+            b"not a jpeg at all",
+        ),
+        400,
+        "bad_image",
+    );
+    assert_error(
+        &http(a, "GET", "/api/v1/shots/shot-99", &[], b""),
+        404,
+        "not_found",
+    );
+    assert_error(
+        &http(a, "GET", "/api/v1/shots/../../etc", &[], b""),
+        404,
+        "not_found",
+    );
+    assert_error(
+        &http(a, "POST", "/api/v1/shots/shot-99/mission", &[AUTH], b""),
+        404,
+        "not_found",
+    );
+    // Still serving, nothing stored.
+    assert_eq!(http(a, "GET", "/api/v1/status", &[], b"").0, 200);
+    assert_eq!(
+        json_of(&http(a, "GET", "/api/v1/shots", &[], b"").2)["count"],
+        0
+    );
+
+    // A good shot on keyframe 0: created, warped, not localised -> 409 on mission.
+    let r = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(0));
+    assert_eq!(r.0, 201, "{}", String::from_utf8_lossy(&r.2));
+    let s0 = json_of(&r.2);
+    assert_eq!(s0["id"], "shot-1");
+    assert_eq!(s0["status"], "not_localised");
+    let r = http(a, "GET", "/api/v1/shots/shot-1/image.jpg", &[], b"");
+    assert_eq!(r.0, 200);
+    let warped = image::load_from_memory(&r.2).unwrap().to_luma8();
+    assert_eq!(warped.dimensions(), (200, 150));
+    // The crop of the keyframe at (100,100): compare means (JPEG both ways).
+    let src = kf_image();
+    let mut err = 0.0;
+    for y in 0..150 {
+        for x in 0..200 {
+            err += (warped.get_pixel(x, y).0[0] as f64
+                - src.get_pixel(100 + x, 100 + y).0[0] as f64)
+                .abs();
+        }
+    }
+    let mae = err / (200.0 * 150.0);
+    assert!(mae < 12.0, "mean abs difference to the crop {mae}");
+    assert_error(
+        &http(a, "POST", "/api/v1/shots/shot-1/mission", &[AUTH], b""),
+        409,
+        "not_localised",
+    );
+
+    // A photo shot.
+    let mut png = Vec::new();
+    kf_image()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    let r = http(
+        a,
+        "POST",
+        "/api/v1/shots/photo",
+        &[AUTH, ("Content-Type", "image/png")],
+        &png,
+    );
+    assert_eq!(r.0, 201, "{}", String::from_utf8_lossy(&r.2));
+    assert_eq!(json_of(&r.2)["source"]["kind"], "photo");
+
+    // A localised shot: upload, start, progress.
+    let r = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(1));
+    assert_eq!(r.0, 201);
+    let s = json_of(&r.2);
+    assert_eq!(s["status"], "localised");
+    let id = s["id"].as_str().unwrap().to_owned();
+    assert_error(
+        &http(
+            a,
+            "POST",
+            &format!("/api/v1/shots/{id}/start"),
+            &[AUTH],
+            b"",
+        ),
+        409,
+        "no_mission",
+    );
+    assert_error(
+        &http(a, "POST", &format!("/api/v1/shots/{id}/mission"), &[], b""),
+        401,
+        "unauthorized",
+    );
+    let r = http(
+        a,
+        "POST",
+        &format!("/api/v1/shots/{id}/mission"),
+        &[AUTH],
+        b"",
+    );
+    assert_eq!(r.0, 200, "{}", String::from_utf8_lossy(&r.2));
+    assert_eq!(json_of(&r.2)["mission"]["state"], "uploaded");
+    assert_eq!(*srv.vehicle.uploads.lock().unwrap(), vec![id.clone()]);
+    let r = http(
+        a,
+        "POST",
+        &format!("/api/v1/shots/{id}/start"),
+        &[AUTH],
+        b"",
+    );
+    assert_eq!(r.0, 200);
+    assert_eq!(json_of(&r.2)["mission"]["state"], "started");
+    assert_eq!(*srv.vehicle.started.lock().unwrap(), 1);
+    let p = json_of(&http(a, "GET", &format!("/api/v1/shots/{id}/progress"), &[], b"").2);
+    assert_eq!(p["progress"]["current_seq"], 1);
+    assert_eq!(
+        json_of(&http(a, "GET", "/api/v1/shots", &[], b"").2)["count"],
+        3
+    );
+}
+
+#[test]
+fn no_vehicle_is_503_and_shots_survive_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let srv = start(dir.path(), None, false);
+        // No token configured: POST needs none.
+        let r = http(srv.addr, "POST", "/api/v1/shots", &[JSON_CT], &good_shot(1));
+        assert_eq!(r.0, 201);
+        assert_error(
+            &http(srv.addr, "POST", "/api/v1/shots/shot-1/mission", &[], b""),
+            503,
+            "no_vehicle",
+        );
+        let r = http(srv.addr, "POST", "/api/v1/shots", &[JSON_CT], &good_shot(0));
+        assert_eq!(r.0, 201);
+    }
+    let srv = start(dir.path(), None, true);
+    let list = json_of(&http(srv.addr, "GET", "/api/v1/shots", &[], b"").2);
+    assert_eq!(list["count"], 2);
+    assert_eq!(list["shots"][0]["id"], "shot-1");
+    assert_eq!(list["shots"][0]["status"], "localised");
+    assert_eq!(
+        http(srv.addr, "GET", "/api/v1/shots/shot-2/image.jpg", &[], b"").0,
+        200
+    );
+    // Ids continue after the restart.
+    let r = http(srv.addr, "POST", "/api/v1/shots", &[JSON_CT], &good_shot(0));
+    assert_eq!(json_of(&r.2)["id"], "shot-3");
+}
+
+#[test]
+fn events_and_video_are_served() {
+    let dir = tempfile::tempdir().unwrap();
+    let srv = start(dir.path(), None, false);
+    // SSE: the first status event arrives at once.
+    let mut s = TcpStream::connect(srv.addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    s.write_all(b"GET /api/v1/events HTTP/1.1\r\nHost: x\r\n\r\n")
+        .unwrap();
+    let mut got = Vec::new();
+    let mut buf = [0u8; 4096];
+    while !String::from_utf8_lossy(&got).contains("\"slam\"") {
+        let n = s.read(&mut buf).unwrap();
+        assert!(n > 0);
+        got.extend_from_slice(&buf[..n]);
+    }
+    let text = String::from_utf8_lossy(&got);
+    assert!(
+        text.contains("text/event-stream") && text.contains("event: status"),
+        "{text}"
+    );
+
+    // Video: frames pushed into the ingest come out of /video.mjpg, read by
+    // the daemon's own MJPEG client.
+    srv.ingest.spawn_decoder().unwrap();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let reader = Arc::new(Ingest::new());
+    reader.spawn_decoder().unwrap();
+    let cancel = tokio_util::sync::CancellationToken::new();
+    let url = format!("http://{}/api/v1/video.mjpg", srv.addr);
+    let (r2, c2) = (reader.clone(), cancel.clone());
+    rt.spawn(
+        async move { shotpilot::video::mjpeg::run_mjpeg(&url, &Default::default(), r2, c2).await },
+    );
+    let mut jpeg = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new(&mut jpeg)
+        .encode_image(&kf_image())
+        .unwrap();
+    let jpeg = Arc::new(jpeg);
+    for i in 0..40 {
+        srv.ingest.push_raw(RawPart {
+            jpeg: jpeg.clone(),
+            capture_time: Some(100.0 + i as f64),
+            received: std::time::Instant::now(),
+            received_unix: unix_now(),
+        });
+        std::thread::sleep(Duration::from_millis(25));
+        if reader.counters.snapshot().decoded >= 5 {
+            break;
+        }
+    }
+    let c = reader.counters.snapshot();
+    assert!(c.decoded >= 5, "{c:?}");
+    let f = reader.latest().unwrap();
+    assert_eq!(f.image.dimensions(), (640, 480));
+    assert!(f.capture_time.unwrap() >= 100.0);
+    let snap = http(srv.addr, "GET", "/api/v1/snapshot.jpg", &[], b"");
+    assert_eq!(snap.0, 200);
+    assert_eq!(snap.2, *jpeg);
+    cancel.cancel();
+}

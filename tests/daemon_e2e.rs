@@ -1,0 +1,190 @@
+//! End to end: the daemon with the simulator in-process, driven over its
+//! HTTP API. SLAM reaches tracking, keyframes appear with images, the map
+//! grows, a shot posted by anchors is stored (and refused for upload while
+//! it is not localised), the vehicle is heard over MAVLink, and a
+//! cancellation stops everything cleanly with the map saved.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use serde_json::{Value, json};
+use shotpilot::config::Config;
+use tokio_util::sync::CancellationToken;
+
+fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn http(addr: SocketAddr, method: &str, path: &str, body: Option<&Value>) -> (u16, Vec<u8>) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let body = body.map(|b| b.to_string()).unwrap_or_default();
+    let req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer e2e\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+        body.len()
+    );
+    s.write_all(req.as_bytes()).unwrap();
+    let mut resp = Vec::new();
+    s.read_to_end(&mut resp).unwrap();
+    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
+    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
+    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    assert!(
+        !head.contains("transfer-encoding: chunked"),
+        "unexpected chunked response to {path}"
+    );
+    (status, resp[split + 4..].to_vec())
+}
+
+fn get_json(addr: SocketAddr, path: &str) -> Value {
+    let (st, b) = http(addr, "GET", path, None);
+    assert_eq!(st, 200, "{path}: {}", String::from_utf8_lossy(&b));
+    serde_json::from_slice(&b).unwrap()
+}
+
+#[test]
+fn daemon_with_simulator_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let video_port = free_tcp_port();
+    let mav_port = free_udp_port();
+    let mut cfg = Config::default();
+    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
+    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
+    cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
+    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
+    cfg.server.bind = "127.0.0.1:0".into();
+    cfg.server.token = Some("e2e".into());
+    cfg.validate(Path::new("test")).unwrap();
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let cancel = CancellationToken::new();
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let base = dir.path().to_owned();
+    let c = cancel.clone();
+    let daemon = rt.spawn(async move { shotpilot::daemon::run(cfg, &base, c, Some(tx)).await });
+    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let t0 = Instant::now();
+
+    // SLAM reaches tracking and makes keyframes.
+    let mut status = Value::Null;
+    while t0.elapsed() < Duration::from_secs(90) {
+        status = get_json(addr, "/api/v1/status");
+        let s = &status["slam"];
+        if s["state"] == "tracking"
+            && s["keyframes"].as_u64().unwrap_or(0) >= 5
+            && s["tracked"].as_u64().unwrap_or(0) >= 20
+        {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    let secs = t0.elapsed().as_secs_f64();
+    eprintln!("after {secs:.1} s: {status}");
+    assert_eq!(status["slam"]["state"], "tracking", "{status}");
+    assert!(status["slam"]["keyframes"].as_u64().unwrap() >= 5);
+    assert!(status["slam"]["points"].as_u64().unwrap() >= 200);
+    let v = &status["video"]["counters"];
+    assert!(v["decoded"].as_u64().unwrap() >= 20, "{v}");
+    assert_eq!(v["bad"], 0, "{v}");
+    assert!(
+        status["slam"]["latency_ms_median"]
+            .as_f64()
+            .is_some_and(|l| l > 0.0 && l < 5000.0)
+    );
+    // The vehicle is heard over MAVLink.
+    assert_eq!(status["vehicle"]["connected"], true, "{status}");
+
+    // Keyframes with images, and the map.
+    let kfs = get_json(addr, "/api/v1/keyframes");
+    let n = kfs["count"].as_u64().unwrap();
+    assert!(n >= 5);
+    let kf = &kfs["keyframes"][(n / 2) as usize];
+    let id = kf["id"].as_u64().unwrap();
+    let (st, jpeg) = http(
+        addr,
+        "GET",
+        &format!("/api/v1/keyframes/{id}/image.jpg"),
+        None,
+    );
+    assert_eq!(st, 200);
+    let img = image::load_from_memory(&jpeg).unwrap();
+    assert_eq!((img.width(), img.height()), (640, 480));
+    let map = get_json(addr, "/api/v1/map?max_points=500");
+    assert!(map["points"].as_array().unwrap().len() <= 500);
+    assert!(map["total_points"].as_u64().unwrap() >= 200);
+    assert_eq!(map["trajectory"].as_array().unwrap().len() as u64, n);
+
+    // A shot by anchors on that keyframe.
+    let shot = json!({"keyframe_id": id, "anchors": [[160, 120], [480, 120], [480, 360], [160, 360]], "width": 320, "height": 240});
+    let (st, b) = http(addr, "POST", "/api/v1/shots", Some(&shot));
+    assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+    let shot: Value = serde_json::from_slice(&b).unwrap();
+    let sid = shot["id"].as_str().unwrap().to_owned();
+    let (st, b) = http(addr, "GET", &format!("/api/v1/shots/{sid}/image.jpg"), None);
+    assert_eq!(st, 200);
+    assert_eq!(image::load_from_memory(&b).unwrap().width(), 320);
+    let (st, _) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
+    if shot["status"] == "localised" {
+        // Localised: the upload needs the georeference (409) or succeeds.
+        assert!(st == 200 || st == 409, "{st}");
+    } else {
+        assert_eq!(st, 409);
+    }
+    // Live video is re-served.
+    let (st, snap) = http(addr, "GET", "/api/v1/snapshot.jpg", None);
+    assert_eq!(st, 200);
+    assert!(image::load_from_memory(&snap).is_ok());
+
+    // Clean stop, even with endless responses open (events, video): the
+    // map is saved, the shot is on disk.
+    let mut open_streams = Vec::new();
+    for path in ["/api/v1/events", "/api/v1/video.mjpg"] {
+        let mut s = TcpStream::connect(addr).unwrap();
+        s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes())
+            .unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let mut buf = [0u8; 256];
+        assert!(s.read(&mut buf).unwrap() > 0, "{path} answers");
+        open_streams.push(s);
+    }
+    let t_stop = Instant::now();
+    cancel.cancel();
+    let summary = rt
+        .block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })
+        .expect("the daemon stops with streams open")
+        .unwrap()
+        .unwrap();
+    eprintln!("stopped in {:.2} s", t_stop.elapsed().as_secs_f64());
+    drop(open_streams);
+    eprintln!("summary: {}", serde_json::to_string(&summary).unwrap());
+    let map_file = summary.map_file.expect("the map was saved");
+    assert!(std::fs::metadata(&map_file).unwrap().len() > 1000);
+    let loaded = shotpilot::slam::mapfile::load(&map_file).unwrap();
+    assert!(loaded.keyframe_count() >= 5);
+    assert!(
+        dir.path()
+            .join("data/shots")
+            .join(format!("{sid}.json"))
+            .is_file()
+    );
+    assert_eq!(summary.shots, 1);
+    assert!(t0.elapsed() < Duration::from_secs(150));
+}

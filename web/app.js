@@ -1,0 +1,290 @@
+// shotpilot operator page: status, live video, map top view, keyframes,
+// anchor editor with a live perspective-warp preview, shot submit, mission
+// upload and start. Plain JS, no libraries.
+'use strict';
+
+const API = '/api/v1';
+const $ = (id) => document.getElementById(id);
+const state = {
+  keyframes: [], kf: null, kfImage: null, anchors: null, drag: -1,
+  shot: null, map: null, srcPixels: null,
+};
+
+// ---- token and requests -------------------------------------------------
+$('token').value = localStorage.getItem('shotpilot.token') || '';
+$('token').addEventListener('change', () => localStorage.setItem('shotpilot.token', $('token').value));
+
+async function api(method, path, body) {
+  const headers = {};
+  const tok = $('token').value.trim();
+  if (tok) headers['Authorization'] = 'Bearer ' + tok;
+  if (body !== undefined) headers['Content-Type'] = 'application/json';
+  const r = await fetch(API + path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  const text = await r.text();
+  let data = null;
+  try { data = text ? JSON.parse(text) : null; } catch (_) { data = { raw: text }; }
+  if (!r.ok) {
+    const msg = data && data.error ? `${data.error.code}: ${data.error.message}` : `HTTP ${r.status}`;
+    throw new Error(msg);
+  }
+  return data;
+}
+
+// ---- status (server-sent events) -----------------------------------------
+function showStatus(s) {
+  const v = s.video || {}, c = v.counters || {}, sl = s.slam || {}, ve = s.vehicle || {};
+  $('status').textContent =
+    `SLAM ${sl.state || '?'} · kf ${sl.keyframes ?? 0} · pts ${sl.points ?? 0} · inliers ${sl.last_inliers ?? 0}` +
+    ` | video ${(v.received_fps || 0).toFixed(1)} fps` +
+    ` | vehicle ${ve.configured === false ? 'none' : (ve.connected ? (ve.mode || 'connected') + (ve.armed ? ' ARMED' : '') : 'not connected')}`;
+  $('videostats').textContent =
+    `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
+    (v.width ? ` · ${v.width}x${v.height}` : '');
+  if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
+}
+function connectEvents() {
+  const es = new EventSource(API + '/events');
+  es.addEventListener('status', (e) => { try { showStatus(JSON.parse(e.data)); } catch (_) {} });
+  es.onerror = () => { $('status').textContent = 'daemon unreachable, retrying…'; };
+}
+
+// ---- map top view ---------------------------------------------------------
+// Camera axes x right, y down, z forward; the map frame is the first
+// camera's. Top view: x to the right, z upwards on the canvas.
+function drawMap() {
+  const cv = $('map'), g = cv.getContext('2d');
+  g.fillStyle = '#0b0d10'; g.fillRect(0, 0, cv.width, cv.height);
+  const m = state.map;
+  if (!m) return;
+  const target = state.shot && state.shot.localisation ? state.shot.localisation.world_from_cam.translation : null;
+  const xs = [], zs = [];
+  for (const p of m.points) { xs.push(p[0]); zs.push(p[2]); }
+  for (const t of m.trajectory) { xs.push(t[0]); zs.push(t[2]); }
+  if (target) { xs.push(target[0]); zs.push(target[2]); }
+  if (!xs.length) return;
+  const pct = (a, q) => { const s = [...a].sort((u, v) => u - v); return s[Math.floor(q * (s.length - 1))]; };
+  const x0 = pct(xs, 0.02), x1 = pct(xs, 0.98), z0 = pct(zs, 0.02), z1 = pct(zs, 0.98);
+  const span = Math.max(x1 - x0, z1 - z0, 1e-6) * 1.15;
+  const cx = (x0 + x1) / 2, cz = (z0 + z1) / 2, sc = Math.min(cv.width, cv.height) / span;
+  const P = (x, z) => [cv.width / 2 + (x - cx) * sc, cv.height / 2 - (z - cz) * sc];
+  g.fillStyle = '#8a9199';
+  for (const p of m.points) { const [u, v] = P(p[0], p[2]); g.fillRect(u, v, 1.5, 1.5); }
+  g.strokeStyle = '#4da3ff'; g.lineWidth = 2; g.beginPath();
+  m.trajectory.forEach((t, i) => { const [u, v] = P(t[0], t[2]); i ? g.lineTo(u, v) : g.moveTo(u, v); });
+  g.stroke();
+  if (target) {
+    const [u, v] = P(target[0], target[2]);
+    g.fillStyle = '#ff4d4d'; g.beginPath(); g.arc(u, v, 6, 0, 2 * Math.PI); g.fill();
+  }
+}
+async function refreshMap() {
+  try { state.map = await api('GET', '/map?max_points=5000'); drawMap(); } catch (_) {}
+}
+
+// ---- keyframes ------------------------------------------------------------
+let kfBusy = false;
+async function refreshKeyframes() {
+  if (kfBusy) return;
+  kfBusy = true;
+  try {
+    const r = await api('GET', '/keyframes');
+    const gal = $('gallery');
+    const have = new Set(state.keyframes.map((k) => k.id));
+    state.keyframes = r.keyframes;
+    $('kfcount').textContent = `(${r.count})`;
+    for (const kf of r.keyframes) {
+      if (have.has(kf.id)) continue;
+      const fig = document.createElement('figure');
+      fig.dataset.id = kf.id;
+      const img = document.createElement('img');
+      img.loading = 'lazy';
+      img.src = `${API}/keyframes/${kf.id}/image.jpg`;
+      const cap = document.createElement('figcaption');
+      cap.textContent = `#${kf.id}`;
+      fig.append(img, cap);
+      fig.addEventListener('click', () => chooseKeyframe(kf));
+      gal.append(fig);
+    }
+  } catch (_) {
+  } finally { kfBusy = false; }
+}
+
+function chooseKeyframe(kf) {
+  for (const f of document.querySelectorAll('.gallery figure')) f.classList.toggle('selected', f.dataset.id == kf.id);
+  const img = new Image();
+  img.onload = () => {
+    state.kf = kf; state.kfImage = img;
+    const ed = $('editor');
+    ed.width = img.naturalWidth; ed.height = img.naturalHeight;
+    const off = document.createElement('canvas');
+    off.width = img.naturalWidth; off.height = img.naturalHeight;
+    const og = off.getContext('2d');
+    og.drawImage(img, 0, 0);
+    state.srcPixels = og.getImageData(0, 0, off.width, off.height);
+    const w = img.naturalWidth, h = img.naturalHeight;
+    state.anchors = [[w * 0.25, h * 0.25], [w * 0.75, h * 0.25], [w * 0.75, h * 0.75], [w * 0.25, h * 0.75]];
+    $('submit').disabled = false;
+    $('editinfo').textContent = `keyframe #${kf.id} (${w}x${h})`;
+    drawEditor();
+  };
+  img.src = `${API}/keyframes/${kf.id}/image.jpg`;
+}
+
+// ---- anchor editor and preview ----------------------------------------------
+function drawEditor() {
+  const ed = $('editor'), g = ed.getContext('2d');
+  if (!state.kfImage) return;
+  g.drawImage(state.kfImage, 0, 0);
+  const a = state.anchors;
+  g.strokeStyle = '#ffd24d'; g.lineWidth = 2; g.beginPath();
+  a.forEach((p, i) => (i ? g.lineTo(p[0], p[1]) : g.moveTo(p[0], p[1])));
+  g.closePath(); g.stroke();
+  const names = ['TL', 'TR', 'BR', 'BL'];
+  a.forEach((p, i) => {
+    g.fillStyle = i === state.drag ? '#ff4d4d' : '#ffd24d';
+    g.beginPath(); g.arc(p[0], p[1], 7, 0, 2 * Math.PI); g.fill();
+    g.fillStyle = '#000'; g.font = '10px sans-serif'; g.fillText(names[i], p[0] - 6, p[1] + 3);
+  });
+  drawPreview();
+}
+
+// Homography H (3x3, row-major, h33 = 1) with dst ~ H src for four pairs.
+function homography4(src, dst) {
+  const A = [], b = [];
+  for (let i = 0; i < 4; i++) {
+    const [x, y] = src[i], [u, v] = dst[i];
+    A.push([x, y, 1, 0, 0, 0, -u * x, -u * y]); b.push(u);
+    A.push([0, 0, 0, x, y, 1, -v * x, -v * y]); b.push(v);
+  }
+  // Gaussian elimination with partial pivoting.
+  for (let c = 0; c < 8; c++) {
+    let p = c;
+    for (let r = c + 1; r < 8; r++) if (Math.abs(A[r][c]) > Math.abs(A[p][c])) p = r;
+    if (Math.abs(A[p][c]) < 1e-12) return null;
+    [A[c], A[p]] = [A[p], A[c]]; [b[c], b[p]] = [b[p], b[c]];
+    for (let r = c + 1; r < 8; r++) {
+      const f = A[r][c] / A[c][c];
+      for (let k = c; k < 8; k++) A[r][k] -= f * A[c][k];
+      b[r] -= f * b[c];
+    }
+  }
+  const h = new Array(8);
+  for (let r = 7; r >= 0; r--) {
+    let s = b[r];
+    for (let k = r + 1; k < 8; k++) s -= A[r][k] * h[k];
+    h[r] = s / A[r][r];
+  }
+  return [...h, 1];
+}
+
+function drawPreview() {
+  const pv = $('preview'), g = pv.getContext('2d');
+  const src = state.srcPixels;
+  if (!src) return;
+  const W = pv.width, H = pv.height;
+  const h = homography4([[0, 0], [W, 0], [W, H], [0, H]], state.anchors);
+  const out = g.createImageData(W, H);
+  if (h) {
+    const sw = src.width, sh = src.height, s = src.data, o = out.data;
+    for (let y = 0; y < H; y++) {
+      for (let x = 0; x < W; x++) {
+        const px = x + 0.5, py = y + 0.5;
+        const w = h[6] * px + h[7] * py + h[8];
+        const u = (h[0] * px + h[1] * py + h[2]) / w - 0.5;
+        const v = (h[3] * px + h[4] * py + h[5]) / w - 0.5;
+        const i = (y * W + x) * 4;
+        o[i + 3] = 255;
+        if (!(u >= 0 && v >= 0 && u <= sw - 1 && v <= sh - 1)) continue;
+        const x0 = Math.floor(u), y0 = Math.floor(v);
+        const x1 = Math.min(x0 + 1, sw - 1), y1 = Math.min(y0 + 1, sh - 1);
+        const ax = u - x0, ay = v - y0;
+        for (let ch = 0; ch < 3; ch++) {
+          const g00 = s[(y0 * sw + x0) * 4 + ch], g10 = s[(y0 * sw + x1) * 4 + ch];
+          const g01 = s[(y1 * sw + x0) * 4 + ch], g11 = s[(y1 * sw + x1) * 4 + ch];
+          o[i + ch] = (1 - ay) * ((1 - ax) * g00 + ax * g10) + ay * ((1 - ax) * g01 + ax * g11);
+        }
+      }
+    }
+  }
+  g.putImageData(out, 0, 0);
+}
+
+function editorPoint(ev) {
+  const ed = $('editor'), r = ed.getBoundingClientRect();
+  return [(ev.clientX - r.left) * ed.width / r.width, (ev.clientY - r.top) * ed.height / r.height];
+}
+$('editor').addEventListener('pointerdown', (ev) => {
+  if (!state.anchors) return;
+  const p = editorPoint(ev);
+  const ed = $('editor'), scale = ed.width / ed.getBoundingClientRect().width;
+  let best = -1, bd = 20 * scale;
+  state.anchors.forEach((a, i) => { const d = Math.hypot(a[0] - p[0], a[1] - p[1]); if (d < bd) { bd = d; best = i; } });
+  state.drag = best;
+  if (best >= 0) $('editor').setPointerCapture(ev.pointerId);
+  drawEditor();
+});
+$('editor').addEventListener('pointermove', (ev) => {
+  if (state.drag < 0) return;
+  state.anchors[state.drag] = editorPoint(ev);
+  drawEditor();
+});
+const endDrag = () => { state.drag = -1; drawEditor(); };
+$('editor').addEventListener('pointerup', endDrag);
+$('editor').addEventListener('pointercancel', endDrag);
+
+// ---- shot, mission -----------------------------------------------------------
+function showResult(obj, isError) {
+  const el = $('result');
+  el.classList.toggle('error', !!isError);
+  el.textContent = typeof obj === 'string' ? obj : JSON.stringify(obj, null, 2);
+}
+function showShot(s) {
+  state.shot = s;
+  const l = s.localisation;
+  const lines = [`shot ${s.id}: ${s.status}`];
+  if (l) {
+    const t = l.world_from_cam.translation;
+    lines.push(`camera at (${t.map((v) => v.toFixed(3)).join(', ')})`, `inliers ${l.inliers}, rms error ${l.rms_error_px.toFixed(2)} px`);
+  } else if (s.reason) lines.push(`reason: ${s.reason}`);
+  if (s.mission) lines.push(`mission: ${s.mission.state}, ${s.mission.items} items`);
+  showResult(lines.join('\n'));
+  if (s.has_image) $('shotimg').src = `${API}/shots/${s.id}/image.jpg?t=${Date.now()}`;
+  $('upload').disabled = !l;
+  $('start').disabled = !s.mission;
+  drawMap();
+}
+$('submit').addEventListener('click', async () => {
+  if (!state.kf) return;
+  $('submit').disabled = true;
+  showResult('submitting…');
+  try {
+    const a = state.anchors.map((p) => [Math.round(p[0] * 10) / 10, Math.round(p[1] * 10) / 10]);
+    showShot(await api('POST', '/shots', { keyframe_id: state.kf.id, anchors: a }));
+  } catch (e) { showResult(String(e.message || e), true); }
+  $('submit').disabled = false;
+});
+$('upload').addEventListener('click', async () => {
+  if (!state.shot) return;
+  showResult('uploading mission…');
+  try { showShot(await api('POST', `/shots/${state.shot.id}/mission`)); } catch (e) { showResult(String(e.message || e), true); }
+});
+$('start').addEventListener('click', async () => {
+  if (!state.shot) return;
+  try { showShot(await api('POST', `/shots/${state.shot.id}/start`)); pollProgress(); } catch (e) { showResult(String(e.message || e), true); }
+});
+async function pollProgress() {
+  if (!state.shot || !state.shot.mission) return;
+  try {
+    const p = await api('GET', `/shots/${state.shot.id}/progress`);
+    const pr = p.progress || {};
+    $('result').textContent += `\nprogress: item ${pr.current_seq ?? '?'} of ${pr.total ?? '?'}`;
+    if (!(pr.total && pr.last_reached === pr.total - 1)) setTimeout(pollProgress, 1000);
+  } catch (_) {}
+}
+
+// ---- start ------------------------------------------------------------------------
+connectEvents();
+refreshKeyframes();
+refreshMap();
+setInterval(refreshMap, 2000);
+setInterval(refreshKeyframes, 3000);
