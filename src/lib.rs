@@ -35,6 +35,8 @@
 //! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
 //! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
 //! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
+//! | [`shot`] | desired shot from four anchors (warp) and its localisation in the map |
+//! | [`slam`] | map, tracking, local mapping, map file |
 //! | [`vehicle`] | MAVLink link actor, transports, telemetry |
 //! | [`mission`] | mission planning (pure) and upload protocol |
 //!
@@ -50,6 +52,7 @@ pub mod geometry;
 pub mod matching;
 pub mod mission;
 pub mod optimize;
+pub mod shot;
 pub mod slam;
 pub mod vehicle;
 pub mod video;
