@@ -116,7 +116,7 @@ fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()
             *a = px;
         }
         let desired = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)?;
-        let out = shot::localize(&map, &desired.image, Some(&desired.mask), &params.localize)?;
+        let out = shot::localize(map, &desired.image, Some(&desired.mask), &params.localize)?;
         let world_from_kf = kf.world_from_cam();
         let expected = world_from_kf * Isometry3::from_parts(Translation3::identity(), r);
         let depth = map.median_depth(kf_id).unwrap_or(f64::NAN);
