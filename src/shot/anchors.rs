@@ -182,6 +182,11 @@ pub fn homography_from_anchors(
     Ok(hm)
 }
 
+/// Fractional bits of the bilinear weights.
+const WBITS: u32 = 11;
+/// One in fixed point.
+const WONE: u32 = 1 << WBITS;
+
 /// Resamples `src` at `h·p` for every pixel `p` of a `width`x`height`
 /// output (bilinear). Pixels whose source (with its bilinear support) lies
 /// outside `src`, or behind the transform's horizon, are black with mask 0.
@@ -199,6 +204,7 @@ pub fn warp_perspective(
     let s = src.as_raw();
     if sw >= 2 && sh >= 2 {
         let (xmax, ymax) = ((sw - 1) as f64, (sh - 1) as f64);
+        let (dnx, dny, dd) = (h[(0, 0)], h[(1, 0)], h[(2, 0)]);
         for y in 0..oh {
             let yf = y as f64;
             // Numerators and denominator are affine in x along a row.
@@ -207,31 +213,31 @@ pub fn warp_perspective(
                 h[(1, 1)] * yf + h[(1, 2)],
                 h[(2, 1)] * yf + h[(2, 2)],
             );
-            let row = y * ow;
-            for x in 0..ow {
+            let out_row = &mut out[y * ow..(y + 1) * ow];
+            let mask_row = &mut mask[y * ow..(y + 1) * ow];
+            for (o, m) in out_row.iter_mut().zip(mask_row.iter_mut()) {
                 if d > 1e-12 {
-                    let sx = nx / d;
-                    let sy = ny / d;
+                    let inv = 1.0 / d;
+                    let sx = nx * inv;
+                    let sy = ny * inv;
                     if sx >= 0.0 && sy >= 0.0 && sx <= xmax && sy <= ymax {
                         let x0 = (sx as usize).min(sw - 2);
                         let y0 = (sy as usize).min(sh - 2);
-                        let fx = sx - x0 as f64;
-                        let fy = sy - y0 as f64;
+                        // Fixed-point bilinear weights (WBITS fractional bits).
+                        let fx = ((sx - x0 as f64) * WONE as f64 + 0.5) as u32;
+                        let fy = ((sy - y0 as f64) * WONE as f64 + 0.5) as u32;
                         let i = y0 * sw + x0;
-                        let p00 = s[i] as f64;
-                        let p01 = s[i + 1] as f64;
-                        let p10 = s[i + sw] as f64;
-                        let p11 = s[i + sw + 1] as f64;
-                        let top = p00 + fx * (p01 - p00);
-                        let bot = p10 + fx * (p11 - p10);
-                        let v = top + fy * (bot - top);
-                        out[row + x] = (v + 0.5).clamp(0.0, 255.0) as u8;
-                        mask[row + x] = 255;
+                        let top = s[i] as u32 * (WONE - fx) + s[i + 1] as u32 * fx;
+                        let bot = s[i + sw] as u32 * (WONE - fx) + s[i + sw + 1] as u32 * fx;
+                        let v =
+                            (top * (WONE - fy) + bot * fy + (1 << (2 * WBITS - 1))) >> (2 * WBITS);
+                        *o = v.min(255) as u8;
+                        *m = 255;
                     }
                 }
-                nx += h[(0, 0)];
-                ny += h[(1, 0)];
-                d += h[(2, 0)];
+                nx += dnx;
+                ny += dny;
+                d += dd;
             }
         }
     }
