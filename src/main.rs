@@ -104,6 +104,10 @@ struct ShotArgs {
     /// Candidate keyframes tried.
     #[arg(long, default_value_t = 5, value_name = "K")]
     top_k: usize,
+    /// Choose the candidates by a bag-of-words query with the built-in
+    /// vocabulary instead of descriptor matching against every keyframe.
+    #[arg(long)]
+    bow: bool,
     /// Seed of the RANSAC.
     #[arg(long, default_value_t = 1, value_name = "N")]
     seed: u64,

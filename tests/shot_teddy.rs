@@ -15,8 +15,9 @@ use nalgebra::{Isometry3, Point2, Translation3, Unit, UnitQuaternion, Vector3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
+use shotpilot::bow::Vocabulary;
 use shotpilot::eval::{StampedPose, Trajectory, associate, umeyama};
-use shotpilot::shot::{self, Localization, frame_corners};
+use shotpilot::shot::{self, BowIndex, Localization, frame_corners};
 use shotpilot::slam::{self, Map, Slam, mapfile};
 use shotpilot::video::dataset::Dataset;
 
@@ -91,77 +92,89 @@ fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()
     kfs.sort();
     assert!(kfs.len() >= 10, "only {} keyframes", kfs.len());
     let params = shot::Params::default();
-    let mut rng = StdRng::seed_from_u64(20261121);
-    println!("trial  kf  R_deg  localized  inliers  ratio  rmse_px  rot_err_deg  pos_err_%depth");
-    let mut worst_rot: f64 = 0.0;
-    let mut worst_pos: f64 = 0.0;
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(map, &vocabulary);
     let mut failures = Vec::new();
-    for trial in 0..20 {
-        let kf_id = kfs[(trial * kfs.len()) / 20];
-        let Some(kf) = map.keyframe(kf_id) else {
-            anyhow::bail!("keyframe vanished");
-        };
-        let Some(img) = kf.image.as_ref() else {
-            anyhow::bail!("no image");
-        };
-        let r = random_rotation(&mut rng, 15.0);
-        // kf_from_shot = R: the shot's ray d is R·d in the keyframe.
-        let corners = frame_corners(cam.width, cam.height);
-        let mut anchors = [Point2::origin(); 4];
-        for (a, c) in anchors.iter_mut().zip(&corners) {
-            let ray = cam.unproject(*c).into_inner();
-            let Some(px) = cam.project(&(r * ray)) else {
-                anyhow::bail!("anchor behind the camera");
+    for (mode, bow_index) in [("descriptor ranking", None), ("bow query", Some(&index))] {
+        let mut rng = StdRng::seed_from_u64(20261121);
+        println!(
+            "[{mode}] trial  kf  R_deg  localized  inliers  ratio  rmse_px  rot_err_deg  pos_err_%depth"
+        );
+        let mut worst_rot: f64 = 0.0;
+        let mut worst_pos: f64 = 0.0;
+        for trial in 0..20 {
+            let kf_id = kfs[(trial * kfs.len()) / 20];
+            let Some(kf) = map.keyframe(kf_id) else {
+                anyhow::bail!("keyframe vanished");
             };
-            *a = px;
-        }
-        let desired = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)?;
-        let out = shot::localize(map, &desired.image, Some(&desired.mask), &params.localize)?;
-        let world_from_kf = kf.world_from_cam();
-        let expected = world_from_kf * Isometry3::from_parts(Translation3::identity(), r);
-        let depth = map.median_depth(kf_id).unwrap_or(f64::NAN);
-        match out {
-            Localization::Localized(p) => {
-                let rot_err = p
-                    .world_from_cam
-                    .rotation
-                    .angle_to(&expected.rotation)
-                    .to_degrees();
-                let pos_err = (p.world_from_cam.translation.vector - expected.translation.vector)
-                    .norm()
-                    / depth
-                    * 100.0;
-                println!(
-                    "{trial:5} {:3} {:6.2}  yes       {:6}  {:5.2}  {:7.3}  {:11.4}  {:14.3}",
-                    kf_id.0,
-                    r.angle().to_degrees(),
-                    p.inliers,
-                    p.inlier_ratio,
-                    p.reprojection_rmse_px,
-                    rot_err,
-                    pos_err
-                );
-                worst_rot = worst_rot.max(rot_err);
-                worst_pos = worst_pos.max(pos_err);
-                if rot_err > 0.5 || pos_err > 2.0 {
-                    failures.push(format!(
-                        "trial {trial}: rot {rot_err:.3} deg, pos {pos_err:.3} %"
-                    ));
+            let Some(img) = kf.image.as_ref() else {
+                anyhow::bail!("no image");
+            };
+            let r = random_rotation(&mut rng, 15.0);
+            // kf_from_shot = R: the shot's ray d is R·d in the keyframe.
+            let corners = frame_corners(cam.width, cam.height);
+            let mut anchors = [Point2::origin(); 4];
+            for (a, c) in anchors.iter_mut().zip(&corners) {
+                let ray = cam.unproject(*c).into_inner();
+                let Some(px) = cam.project(&(r * ray)) else {
+                    anyhow::bail!("anchor behind the camera");
+                };
+                *a = px;
+            }
+            let desired = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)?;
+            let out = shot::localize(
+                map,
+                &desired.image,
+                Some(&desired.mask),
+                bow_index,
+                &params.localize,
+            )?;
+            let world_from_kf = kf.world_from_cam();
+            let expected = world_from_kf * Isometry3::from_parts(Translation3::identity(), r);
+            let depth = map.median_depth(kf_id).unwrap_or(f64::NAN);
+            match out {
+                Localization::Localized(p) => {
+                    let rot_err = p
+                        .world_from_cam
+                        .rotation
+                        .angle_to(&expected.rotation)
+                        .to_degrees();
+                    let pos_err =
+                        (p.world_from_cam.translation.vector - expected.translation.vector).norm()
+                            / depth
+                            * 100.0;
+                    println!(
+                        "{trial:5} {:3} {:6.2}  yes       {:6}  {:5.2}  {:7.3}  {:11.4}  {:14.3}",
+                        kf_id.0,
+                        r.angle().to_degrees(),
+                        p.inliers,
+                        p.inlier_ratio,
+                        p.reprojection_rmse_px,
+                        rot_err,
+                        pos_err
+                    );
+                    worst_rot = worst_rot.max(rot_err);
+                    worst_pos = worst_pos.max(pos_err);
+                    if rot_err > 0.5 || pos_err > 2.0 {
+                        failures.push(format!(
+                            "[{mode}] trial {trial}: rot {rot_err:.3} deg, pos {pos_err:.3} %"
+                        ));
+                    }
+                }
+                Localization::NotLocalized { reason } => {
+                    println!(
+                        "{trial:5} {:3} {:6.2}  no: {reason}",
+                        kf_id.0,
+                        r.angle().to_degrees()
+                    );
+                    failures.push(format!("[{mode}] trial {trial}: not localised: {reason}"));
                 }
             }
-            Localization::NotLocalized { reason } => {
-                println!(
-                    "{trial:5} {:3} {:6.2}  no: {reason}",
-                    kf_id.0,
-                    r.angle().to_degrees()
-                );
-                failures.push(format!("trial {trial}: not localised: {reason}"));
-            }
         }
+        println!(
+            "[{mode}] worst rotation error {worst_rot:.4} deg, worst position error {worst_pos:.3} % of median depth"
+        );
     }
-    println!(
-        "worst rotation error {worst_rot:.4} deg, worst position error {worst_pos:.3} % of median depth"
-    );
     assert!(failures.is_empty(), "{failures:#?}");
     Ok(())
 }
@@ -203,7 +216,7 @@ fn shots_outside_the_map_are_not_localised() -> anyhow::Result<()> {
     shots.push(("noise".to_string(), noise));
     let mut wrong = Vec::new();
     for (name, img) in &shots {
-        match shot::localize(map, img, None, &params)? {
+        match shot::localize(map, img, None, None, &params)? {
             Localization::Localized(p) => {
                 println!("{name}: LOCALISED with {} inliers (wrong)", p.inliers);
                 wrong.push(name.clone());
@@ -290,7 +303,7 @@ fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
             continue;
         };
         n_total += 1;
-        match shot::localize(&map, &f.image, None, &params)? {
+        match shot::localize(&map, &f.image, None, None, &params)? {
             Localization::Localized(p) => {
                 n_loc += 1;
                 let est = sim.transform_pose(&p.world_from_cam);

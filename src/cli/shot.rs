@@ -101,7 +101,19 @@ pub fn run(args: ShotArgs) -> Result<()> {
     }
 
     let t1 = Instant::now();
-    let result = shot::localize(&map, &image, mask.as_ref(), &params.localize)?;
+    let vocabulary = if args.bow {
+        Some(shotpilot::bow::Vocabulary::builtin().context("loading the built-in vocabulary")?)
+    } else {
+        None
+    };
+    let index = vocabulary.as_ref().map(|v| shot::BowIndex::build(&map, v));
+    let result = shot::localize(
+        &map,
+        &image,
+        mask.as_ref(),
+        index.as_ref(),
+        &params.localize,
+    )?;
     let t_loc = t1.elapsed().as_secs_f64() * 1e3;
 
     let shot_path_str = shot_path
@@ -115,6 +127,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
                 "localized": true,
                 "reason": null,
                 "source": source,
+                "candidates_by": if args.bow { "bow" } else { "descriptors" },
                 "position": [t.x, t.y, t.z],
                 "quaternion": [q.i, q.j, q.k, q.w],
                 "inliers": p.inliers,

@@ -3,12 +3,12 @@
 //!
 //! 1. ORB on the shot, with the validity mask (the black fill never yields a
 //!    feature).
-//! 2. Candidate keyframes: every keyframe's map points are matched by
-//!    descriptor (nearest neighbour under a Hamming bound, ratio test,
-//!    one-to-one) and the keyframes with the most matches are kept (top k).
-//!    This is a descriptor-matching ranking, not a bag-of-words query: it
-//!    costs one brute-force pass per keyframe, fine for maps of up to a few
-//!    hundred keyframes.
+//! 2. Candidate keyframes: with a [`BowIndex`], the top k of a bag-of-words
+//!    query of the shot against the keyframe database; without one, every
+//!    keyframe is ranked by descriptor matching (one brute-force pass per
+//!    keyframe, fine for maps of up to a few hundred keyframes). Each
+//!    candidate's map points are matched by descriptor (nearest neighbour
+//!    under a Hamming bound, ratio test, one-to-one).
 //! 3. Per candidate: PnP RANSAC on its matches; then the points of the
 //!    candidate and its best covisible keyframes are projected with that pose
 //!    and matched in the shot (search by projection), and motion-only bundle
@@ -25,6 +25,7 @@ use image::GrayImage;
 use nalgebra::{Isometry3, Point2, Point3};
 
 use super::ShotError;
+use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
 use crate::features::{self, Descriptor, OrbExtractor, hamming};
 use crate::geometry::se3::rotation_angle_between;
 use crate::geometry::{PnpParams, solve_pnp_ransac};
@@ -261,6 +262,39 @@ pub enum Localization {
     },
 }
 
+/// A bag-of-words index of a map's keyframes: the vocabulary and a database
+/// holding every keyframe's BoW vector.
+pub struct BowIndex<'v> {
+    vocabulary: &'v Vocabulary,
+    database: KeyFrameDatabase,
+}
+
+impl<'v> BowIndex<'v> {
+    /// Indexes every keyframe of `map` (its descriptors through `vocabulary`).
+    pub fn build(map: &Map, vocabulary: &'v Vocabulary) -> Self {
+        let mut database = KeyFrameDatabase::new(vocabulary.word_count());
+        for kf in map.keyframes() {
+            let v: BowVector = vocabulary.transform(&kf.descriptors);
+            // Ids are unique in a map, so adding cannot collide.
+            let _ = database.add(bow::KeyFrameId(kf.id.0 as u64), v);
+        }
+        BowIndex {
+            vocabulary,
+            database,
+        }
+    }
+
+    /// Keyframes indexed.
+    pub fn len(&self) -> usize {
+        self.database.len()
+    }
+
+    /// True when no keyframe is indexed.
+    pub fn is_empty(&self) -> bool {
+        self.database.is_empty()
+    }
+}
+
 /// For every shot descriptor, its best match among `cand` (point, descriptor)
 /// under `max_d` and the ratio test; one-to-one on points (the closest wins).
 fn match_descriptors(
@@ -315,6 +349,7 @@ pub fn localize(
     map: &Map,
     shot: &GrayImage,
     mask: Option<&GrayImage>,
+    bow_index: Option<&BowIndex<'_>>,
     params: &LocalizeParams,
 ) -> Result<Localization, ShotError> {
     let cam = &map.camera;
@@ -355,7 +390,19 @@ pub fn localize(
     // Candidates by descriptor matching against each keyframe's map points.
     let mut ranked: Vec<(KeyFrameId, Vec<(usize, PointId)>)> = Vec::new();
     let mut pts: Vec<(PointId, Descriptor)> = Vec::new();
-    for kf in map.keyframes() {
+    let candidates: Vec<KeyFrameId> = match bow_index {
+        Some(index) => {
+            let q = index.vocabulary.transform(&feats.descriptors);
+            index
+                .database
+                .query(&q, params.top_k.max(1))
+                .into_iter()
+                .filter_map(|r| u32::try_from(r.id.0).ok().map(KeyFrameId))
+                .collect()
+        }
+        None => map.keyframes().map(|k| k.id).collect(),
+    };
+    for kf in candidates.iter().filter_map(|id| map.keyframe(*id)) {
         pts.clear();
         for p in kf.points.iter().flatten() {
             if let Some(mp) = map.point(*p) {

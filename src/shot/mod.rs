@@ -17,7 +17,9 @@ pub mod localize;
 pub use anchors::{
     AnchorParams, DesiredShot, desired_shot_from_anchors, homography_from_anchors, warp_perspective,
 };
-pub use localize::{Localization, LocalizeParams, NotLocalizedReason, ShotPose, localize};
+pub use localize::{
+    BowIndex, GateParams, Localization, LocalizeParams, NotLocalizedReason, ShotPose, localize,
+};
 
 use nalgebra::Point2;
 
