@@ -102,6 +102,7 @@ fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()
         );
         let mut worst_rot: f64 = 0.0;
         let mut worst_pos: f64 = 0.0;
+        let mut ms = Vec::new();
         for trial in 0..20 {
             let kf_id = kfs[(trial * kfs.len()) / 20];
             let Some(kf) = map.keyframe(kf_id) else {
@@ -122,6 +123,7 @@ fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()
                 *a = px;
             }
             let desired = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)?;
+            let t0 = std::time::Instant::now();
             let out = shot::localize(
                 map,
                 &desired.image,
@@ -129,6 +131,7 @@ fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()
                 bow_index,
                 &params.localize,
             )?;
+            ms.push(t0.elapsed().as_secs_f64() * 1e3);
             let world_from_kf = kf.world_from_cam();
             let expected = world_from_kf * Isometry3::from_parts(Translation3::identity(), r);
             let depth = map.median_depth(kf_id).unwrap_or(f64::NAN);
@@ -173,6 +176,12 @@ fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()
         }
         println!(
             "[{mode}] worst rotation error {worst_rot:.4} deg, worst position error {worst_pos:.3} % of median depth"
+        );
+        ms.sort_by(f64::total_cmp);
+        println!(
+            "[{mode}] localisation time median {:.1} ms, max {:.1} ms (not asserted)",
+            ms[ms.len() / 2],
+            ms[ms.len() - 1]
         );
     }
     assert!(failures.is_empty(), "{failures:#?}");

@@ -672,3 +672,64 @@ fn refine_candidate(
         median_depth,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Camera, Distortion};
+    use crate::slam::ScaleInfo;
+
+    fn empty_map() -> Map {
+        let cam = Camera::new(
+            320,
+            240,
+            [300.0, 300.0, 160.0, 120.0],
+            Distortion::default(),
+        )
+        .unwrap_or_else(|e| panic!("camera: {e}"));
+        Map::new(cam, ScaleInfo::new(1.2, 8))
+    }
+
+    /// A textured image with plenty of corners.
+    fn checker(w: u32, h: u32) -> GrayImage {
+        GrayImage::from_fn(w, h, |x, y| {
+            let v = ((x / 9 + y / 7) % 2) as u8 * 180 + ((x * 31 + y * 17) % 37) as u8;
+            image::Luma([v])
+        })
+    }
+
+    #[test]
+    fn wrong_sizes_are_errors() {
+        let map = empty_map();
+        let p = LocalizeParams::default();
+        assert!(matches!(
+            localize(&map, &checker(640, 480), None, None, &p),
+            Err(ShotError::ImageSize { width: 640, .. })
+        ));
+        let mask = GrayImage::from_pixel(100, 100, image::Luma([255]));
+        assert!(matches!(
+            localize(&map, &checker(320, 240), Some(&mask), None, &p),
+            Err(ShotError::ImageSize { width: 100, .. })
+        ));
+    }
+
+    #[test]
+    fn empty_map_gives_no_candidate_and_blank_shot_too_few_features() {
+        let map = empty_map();
+        let p = LocalizeParams::default();
+        assert_eq!(
+            localize(&map, &checker(320, 240), None, None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::NoCandidate
+            })
+        );
+        // A fully masked shot yields no feature at all.
+        let mask = GrayImage::new(320, 240);
+        assert!(matches!(
+            localize(&map, &checker(320, 240), Some(&mask), None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::TooFewFeatures { found: 0, .. }
+            })
+        ));
+    }
+}
