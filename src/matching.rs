@@ -452,7 +452,11 @@ mod tests {
         };
         assert_eq!(match_brute_force(&query, &train, &loose).unwrap().len(), 1);
         // 10 vs 11 bits: ambiguous under the ratio test.
-        assert!(match_brute_force(&query, &train, &Params::default()).unwrap().is_empty());
+        assert!(
+            match_brute_force(&query, &train, &Params::default())
+                .unwrap()
+                .is_empty()
+        );
         // Two queries wanting the same train: cross-check keeps the closer.
         let t = random_desc(&mut rng);
         let query = vec![flip_bits(&t, 12, &mut rng), flip_bits(&t, 5, &mut rng)];
@@ -462,7 +466,14 @@ mod tests {
             ..Params::default()
         };
         let m = match_brute_force(&query, &[t], &p).unwrap();
-        assert_eq!(m, vec![Match { query: 1, train: 0, distance: 5 }]);
+        assert_eq!(
+            m,
+            vec![Match {
+                query: 1,
+                train: 0,
+                distance: 5
+            }]
+        );
         assert!(match_brute_force(&[], &[t], &p).unwrap().is_empty());
         assert!(
             match_brute_force(&query, &[t], &Params { ratio: 0.0, ..p }).is_err(),
@@ -501,7 +512,10 @@ mod tests {
         assert_eq!(g.len(), inside);
         let mut out = Vec::new();
         for _ in 0..200 {
-            let (x, y) = (rng.random_range(-30.0..670.0), rng.random_range(-30.0..510.0));
+            let (x, y) = (
+                rng.random_range(-30.0..670.0),
+                rng.random_range(-30.0..510.0),
+            );
             let r = rng.random_range(1.0..60.0);
             let (lo, hi) = (rng.random_range(0..4u8), rng.random_range(3..8u8));
             g.features_in_area(x, y, r, lo..=hi, &mut out);

@@ -12,7 +12,9 @@ use shotpilot::slam::{self, Map, Slam, SlamRun, mapfile};
 use shotpilot::video::dataset::Dataset;
 
 fn shared(name: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data").join(name);
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data")
+        .join(name);
     if p.is_dir() {
         Some(p)
     } else {
@@ -52,9 +54,17 @@ fn assert_maps_equal(a: &Map, b: &Map) {
         let (ia, ib) = (ka.image.as_ref().unwrap(), kb.image.as_ref().unwrap());
         assert_eq!(ia.dimensions(), ib.dimensions());
         // JPEG at quality 90: the mean absolute difference stays small.
-        let mad: f64 = ia.pixels().zip(ib.pixels()).map(|(p, q)| (p.0[0] as f64 - q.0[0] as f64).abs()).sum::<f64>()
+        let mad: f64 = ia
+            .pixels()
+            .zip(ib.pixels())
+            .map(|(p, q)| (p.0[0] as f64 - q.0[0] as f64).abs())
+            .sum::<f64>()
             / (ia.width() * ia.height()) as f64;
-        assert!(mad < 3.0, "keyframe {:?} image differs by {mad} grey levels on average", ka.id);
+        assert!(
+            mad < 3.0,
+            "keyframe {:?} image differs by {mad} grey levels on average",
+            ka.id
+        );
     }
     for (pa, pb) in a.points().zip(b.points()) {
         assert_eq!(pa.id, pb.id);
@@ -62,13 +72,18 @@ fn assert_maps_equal(a: &Map, b: &Map) {
         assert_eq!(pa.observations, pb.observations);
         assert_eq!(pa.descriptor, pb.descriptor);
         assert_eq!(pa.normal, pb.normal);
-        assert_eq!((pa.min_distance, pa.max_distance), (pb.min_distance, pb.max_distance));
+        assert_eq!(
+            (pa.min_distance, pa.max_distance),
+            (pb.min_distance, pb.max_distance)
+        );
     }
 }
 
 #[test]
 fn teddy_initialises_tracks_and_meets_the_accuracy_gates() {
-    let Some(dir) = shared("tum_fr3_teddy_100") else { return };
+    let Some(dir) = shared("tum_fr3_teddy_100") else {
+        return;
+    };
     let ds = Dataset::open(&dir).unwrap();
     let run = run_sequential(&ds, 1);
     let init = run.initialized_at.expect("teddy initialises");
@@ -127,18 +142,25 @@ fn teddy_initialises_tracks_and_meets_the_accuracy_gates() {
 
 #[test]
 fn a_camera_standing_still_does_not_initialise_and_says_why() {
-    let Some(dir) = shared("euroc_v101_static95") else { return };
+    let Some(dir) = shared("euroc_v101_static95") else {
+        return;
+    };
     let ds = Dataset::open(&dir).unwrap();
     let run = run_sequential(&ds, 1);
     assert_eq!(run.initialized_at, None);
     assert_eq!(run.map.keyframe_count(), 0);
     let reason = run.last_reason.unwrap_or_default();
-    assert!(reason.contains("parallax") || reason.contains("matches"), "reason: {reason}");
+    assert!(
+        reason.contains("parallax") || reason.contains("matches"),
+        "reason: {reason}"
+    );
 }
 
 #[test]
 fn the_cli_reports_json_on_teddy() {
-    let Some(dir) = shared("tum_fr3_teddy_100") else { return };
+    let Some(dir) = shared("tum_fr3_teddy_100") else {
+        return;
+    };
     let tmp = tempfile::tempdir().unwrap();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_shotpilot"))
         .args(["slam", "--sequential", "--json", "--out"])
@@ -146,7 +168,11 @@ fn the_cli_reports_json_on_teddy() {
         .arg(&dir)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for key in [
         "frames",

@@ -136,10 +136,19 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let (med_ex, p95_ex) = med_p95(&extract_ms);
     let (med_tr, p95_tr) = med_p95(&track_ms);
     let map_ms: Vec<f64> = run.mapping.iter().map(|r| r.total_ms).collect();
-    let ba_ms: Vec<f64> = run.mapping.iter().map(|r| r.ba_ms).filter(|v| *v > 0.0).collect();
+    let ba_ms: Vec<f64> = run
+        .mapping
+        .iter()
+        .map(|r| r.ba_ms)
+        .filter(|v| *v > 0.0)
+        .collect();
     let (med_map, p95_map) = med_p95(&map_ms);
     let (med_ba, p95_ba) = med_p95(&ba_ms);
-    let reason = if initialized { None } else { run.last_reason.clone() };
+    let reason = if initialized {
+        None
+    } else {
+        run.last_reason.clone()
+    };
     if args.json {
         let out = json!({
             "dataset": args.dataset.display().to_string(),
@@ -185,8 +194,12 @@ pub fn run(args: SlamArgs) -> Result<()> {
             run.map.keyframe_count(),
             run.map.point_count()
         );
-        println!("per frame   extraction median {med_ex:.2} ms p95 {p95_ex:.2} ms | tracking (with extraction) median {med_tr:.2} ms p95 {p95_tr:.2} ms");
-        println!("per keyframe mapping median {med_map:.2} ms p95 {p95_map:.2} ms | local BA median {med_ba:.2} ms p95 {p95_ba:.2} ms");
+        println!(
+            "per frame   extraction median {med_ex:.2} ms p95 {p95_ex:.2} ms | tracking (with extraction) median {med_tr:.2} ms p95 {p95_tr:.2} ms"
+        );
+        println!(
+            "per keyframe mapping median {med_map:.2} ms p95 {p95_map:.2} ms | local BA median {med_ba:.2} ms p95 {p95_ba:.2} ms"
+        );
         match (&ate, &ate_kf) {
             (Some(a), Some(k)) => println!(
                 "ATE (Sim(3)) all frames rmse {:.4} m max {:.4} m ({} matched) | keyframes rmse {:.4} m ({} matched)",

@@ -129,7 +129,14 @@ impl Steerer {
     /// keypoint [`PATTERN_REACH`] pixels inside the level; tests that fall
     /// outside read 0.
     #[inline(always)]
-    pub fn describe(&self, blur: &[u8], w: usize, x: usize, y: usize, angle_deg: f32) -> Descriptor {
+    pub fn describe(
+        &self,
+        blur: &[u8],
+        w: usize,
+        x: usize,
+        y: usize,
+        angle_deg: f32,
+    ) -> Descriptor {
         let (sin, cos) = angle_deg.to_radians().sin_cos();
         // Rotation in 16.16 fixed point; rounding half up, clamped to the reach
         // so every read below stays inside the window checked here.

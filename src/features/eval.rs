@@ -171,7 +171,11 @@ pub fn draw_warps(n: usize, params: &WarpParams, seed: u64) -> Vec<WarpSpec> {
     let mut rng = StdRng::seed_from_u64(seed);
     (0..n)
         .map(|i| {
-            let frac = if n > 1 { i as f64 / (n - 1) as f64 } else { 0.5 };
+            let frac = if n > 1 {
+                i as f64 / (n - 1) as f64
+            } else {
+                0.5
+            };
             let sign = if rng.random::<bool>() { 1.0 } else { -1.0 };
             let ls = rng.random_range(params.min_scale.ln()..=params.max_scale.ln());
             let p = params.max_perspective;
@@ -232,7 +236,12 @@ pub fn apply(h: &Matrix3<f64>, x: f64, y: f64) -> Option<(f64, f64)> {
 /// Warp `src` by `h` (bilinear, destination of the same size), add seeded
 /// Gaussian noise; returns the image and its mask (255 where the source
 /// covers the pixel, 0 on the black fill).
-pub fn warp_image(src: &GrayImage, h: &Matrix3<f64>, noise_sigma: f64, seed: u64) -> (GrayImage, GrayImage) {
+pub fn warp_image(
+    src: &GrayImage,
+    h: &Matrix3<f64>,
+    noise_sigma: f64,
+    seed: u64,
+) -> (GrayImage, GrayImage) {
     let (w, ht) = src.dimensions();
     let mut out = GrayImage::new(w, ht);
     let mut mask = GrayImage::new(w, ht);
@@ -260,7 +269,11 @@ pub fn warp_image(src: &GrayImage, h: &Matrix3<f64>, noise_sigma: f64, seed: u64
             let u1: f64 = rng.random_range(f64::EPSILON..1.0);
             let u2: f64 = rng.random();
             let n = (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos();
-            out.put_pixel(u, v, image::Luma([(val + noise_sigma * n).round().clamp(0.0, 255.0) as u8]));
+            out.put_pixel(
+                u,
+                v,
+                image::Luma([(val + noise_sigma * n).round().clamp(0.0, 255.0) as u8]),
+            );
             mask.put_pixel(u, v, image::Luma([255]));
         }
     }
@@ -283,7 +296,12 @@ pub struct WarpPair {
 }
 
 /// Make `warps_per_frame` pairs from every frame of `frames` (seeded).
-pub fn make_pairs(frames: &[GrayImage], warps_per_frame: usize, params: &WarpParams, seed: u64) -> Vec<WarpPair> {
+pub fn make_pairs(
+    frames: &[GrayImage],
+    warps_per_frame: usize,
+    params: &WarpParams,
+    seed: u64,
+) -> Vec<WarpPair> {
     let specs = draw_warps(frames.len() * warps_per_frame, params, seed);
     let mut pairs = Vec::with_capacity(specs.len());
     for (i, spec) in specs.iter().enumerate() {
@@ -310,10 +328,15 @@ pub fn write_pairs(dir: &Path, pairs: &[WarpPair]) -> Result<(), EvalError> {
     })?;
     let mut index = Vec::new();
     for (i, p) in pairs.iter().enumerate() {
-        let names = [format!("a_{i:03}.png"), format!("b_{i:03}.png"), format!("mask_{i:03}.png")];
+        let names = [
+            format!("a_{i:03}.png"),
+            format!("b_{i:03}.png"),
+            format!("mask_{i:03}.png"),
+        ];
         for (name, img) in names.iter().zip([&p.a, &p.b, &p.mask_b]) {
             let path = dir.join(name);
-            img.save(&path).map_err(|source| EvalError::Image { path, source })?;
+            img.save(&path)
+                .map_err(|source| EvalError::Image { path, source })?;
         }
         let h: Vec<f64> = (0..9).map(|k| p.h_ab[(k / 3, k % 3)]).collect();
         index.push(serde_json::json!({
@@ -381,13 +404,12 @@ pub fn evaluate_pair(
             && pair.mask_b.get_pixel(x as u32, y as u32)[0] != 0
     };
     // a's keypoints seen in b, mapped; b's keypoints seen in a.
-    let a_in: Vec<(usize, (f64, f64))> = fa
-        .0
-        .iter()
-        .enumerate()
-        .filter_map(|(i, k)| apply(&pair.h_ab, k.x as f64, k.y as f64).map(|p| (i, p)))
-        .filter(|(_, (x, y))| in_b(*x, *y))
-        .collect();
+    let a_in: Vec<(usize, (f64, f64))> =
+        fa.0.iter()
+            .enumerate()
+            .filter_map(|(i, k)| apply(&pair.h_ab, k.x as f64, k.y as f64).map(|p| (i, p)))
+            .filter(|(_, (x, y))| in_b(*x, *y))
+            .collect();
     let b_in: Vec<usize> = (0..fb.0.len())
         .filter(|&j| {
             let k = &fb.0[j];
@@ -494,8 +516,12 @@ pub fn read_peer_features(path: &Path) -> Result<Vec<(Features, Features)>, Eval
     let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
     let arr = v.as_array().ok_or_else(|| bad("not a list".into()))?;
     let side = |s: &serde_json::Value| -> Result<Features, EvalError> {
-        let kps = s["kps"].as_array().ok_or_else(|| bad("kps missing".into()))?;
-        let desc = s["desc"].as_array().ok_or_else(|| bad("desc missing".into()))?;
+        let kps = s["kps"]
+            .as_array()
+            .ok_or_else(|| bad("kps missing".into()))?;
+        let desc = s["desc"]
+            .as_array()
+            .ok_or_else(|| bad("desc missing".into()))?;
         if kps.len() != desc.len() {
             return Err(bad("kps and desc differ in length".into()));
         }
@@ -521,12 +547,18 @@ pub fn read_peer_features(path: &Path) -> Result<Vec<(Features, Features)>, Eval
                 response: n[4] as f32,
                 size: n[5] as f32,
             });
-            let hex = d.as_str().ok_or_else(|| bad("descriptor not a string".into()))?;
-            f.descriptors.push(parse_hex_descriptor(hex).ok_or_else(|| bad(format!("bad descriptor {hex}")))?);
+            let hex = d
+                .as_str()
+                .ok_or_else(|| bad("descriptor not a string".into()))?;
+            f.descriptors.push(
+                parse_hex_descriptor(hex).ok_or_else(|| bad(format!("bad descriptor {hex}")))?,
+            );
         }
         Ok(f)
     };
-    arr.iter().map(|p| Ok((side(&p["a"])?, side(&p["b"])?))).collect()
+    arr.iter()
+        .map(|p| Ok((side(&p["a"])?, side(&p["b"])?)))
+        .collect()
 }
 
 /// Parse 32 bytes of hex (OpenCV's byte order: byte `i` holds tests

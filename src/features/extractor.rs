@@ -171,7 +171,13 @@ impl OrbExtractor {
         Ok(())
     }
 
-    fn run(&mut self, img: &GrayImage, mask: Option<&[u8]>, camera: Option<&Camera>, out: &mut Features) {
+    fn run(
+        &mut self,
+        img: &GrayImage,
+        mask: Option<&[u8]>,
+        camera: Option<&Camera>,
+        out: &mut Features,
+    ) {
         out.keypoints.clear();
         out.descriptors.clear();
         let (w0, h0) = (img.width() as usize, img.height() as usize);
@@ -257,7 +263,9 @@ impl OrbExtractor {
                 level.w = w0;
                 level.h = h0;
                 level.image.clear();
-                level.image.extend_from_slice(&raw[..(w0 * h0).min(raw.len())]);
+                level
+                    .image
+                    .extend_from_slice(&raw[..(w0 * h0).min(raw.len())]);
                 level.image.resize(w0 * h0, 0);
                 continue;
             }
@@ -266,7 +274,15 @@ impl OrbExtractor {
             let dst = &mut rest[0];
             dst.w = w;
             dst.h = h;
-            resize_bilinear(&src.image, src.w, src.h, &mut dst.image, w, h, &mut self.resize);
+            resize_bilinear(
+                &src.image,
+                src.w,
+                src.h,
+                &mut dst.image,
+                w,
+                h,
+                &mut self.resize,
+            );
         }
     }
 }
@@ -313,7 +329,8 @@ fn patch_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) -> 
         if px < 0.0 || py < 0.0 || px >= w0 as f32 || py >= h0 as f32 {
             return false;
         }
-        mask.get(py as usize * w0 + px as usize).is_some_and(|&m| m != 0)
+        mask.get(py as usize * w0 + px as usize)
+            .is_some_and(|&m| m != 0)
     })
 }
 
@@ -350,7 +367,15 @@ fn detect_fallback(level: &mut Level, g: &CellGrid, threshold: u8) {
                 x1: (g.area.x0 + i * g.cw).min(g.area.x1),
                 y1: (g.area.y0 + (j + 1) * g.ch).min(g.area.y1),
             };
-            detect(&level.image, w, h, run, threshold, &mut level.fast, &mut level.corners);
+            detect(
+                &level.image,
+                w,
+                h,
+                run,
+                threshold,
+                &mut level.fast,
+                &mut level.corners,
+            );
         }
     }
 }
@@ -414,7 +439,15 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         x1: w - edge,
         y1: h - edge,
     };
-    detect(&level.image, w, h, area, p.ini_th_fast, &mut level.fast, &mut level.corners);
+    detect(
+        &level.image,
+        w,
+        h,
+        area,
+        p.ini_th_fast,
+        &mut level.fast,
+        &mut level.corners,
+    );
 
     // Cells where the first threshold found nothing get the second.
     let (aw, ah) = (area.x1 - area.x0, area.y1 - area.y0);
@@ -439,14 +472,25 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
     mask_filter(level, 0, scale, sh);
     let n_strong = level.corners.len();
 
-    let region = (area.x0 as f32, area.y0 as f32, area.x1 as f32, area.y1 as f32);
+    let region = (
+        area.x0 as f32,
+        area.y0 as f32,
+        area.x1 as f32,
+        area.y1 as f32,
+    );
     let has_fallback = sh.low_threshold < p.ini_th_fast;
     if p.fallback_fills_only {
         // The quadtree spreads the first-threshold corners; fallback corners
         // (from cells where the first threshold found nothing) are detected
         // only when those cannot fill the level's quota, and get a quadtree
         // of their own over what is left of it.
-        distribute(&level.corners, region, quota, &mut level.quad, &mut level.selected);
+        distribute(
+            &level.corners,
+            region,
+            quota,
+            &mut level.quad,
+            &mut level.selected,
+        );
         let missing = quota.saturating_sub(level.selected.len());
         if missing > 0 && has_fallback {
             detect_fallback(level, &grid, sh.low_threshold);
@@ -469,7 +513,13 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
             detect_fallback(level, &grid, sh.low_threshold);
             mask_filter(level, n_strong, scale, sh);
         }
-        distribute(&level.corners, region, quota, &mut level.quad, &mut level.selected);
+        distribute(
+            &level.corners,
+            region,
+            quota,
+            &mut level.quad,
+            &mut level.selected,
+        );
     }
     if level.selected.is_empty() {
         return;
@@ -519,7 +569,10 @@ mod tests {
         }
         let q = features_per_level(1000, 8, 1.2, 2.0);
         assert_eq!(q.iter().sum::<usize>(), 1000);
-        assert!((q[1] as f32 / q[0] as f32 - 1.0 / 1.44).abs() < 0.02, "{q:?}");
+        assert!(
+            (q[1] as f32 / q[0] as f32 - 1.0 / 1.44).abs() < 0.02,
+            "{q:?}"
+        );
         let q = features_per_level(100, 4, 1.2, 0.0);
         assert_eq!(q, vec![25, 25, 25, 25]);
     }

@@ -249,8 +249,7 @@ pub fn detect(
         let slot = y % 3;
         scratch.scores[slot].fill(0);
         scratch.cands[slot].clear();
-        let rows: [&[u8]; 7] =
-            std::array::from_fn(|k| &img[(y + k - 3) * w..(y + k - 3) * w + w]);
+        let rows: [&[u8]; 7] = std::array::from_fn(|k| &img[(y + k - 3) * w..(y + k - 3) * w + w]);
         let mut xs = sx0;
         while xs < sx0 + sw {
             let words = if xs + L + 3 <= w {
@@ -354,7 +353,9 @@ mod tests {
     fn random_image(w: usize, h: usize, seed: u64) -> Vec<u8> {
         let mut rng = StdRng::seed_from_u64(seed);
         // Blocky noise: corners at many thresholds.
-        let cells: Vec<u8> = (0..(w / 3 + 1) * (h / 3 + 1)).map(|_| rng.random()).collect();
+        let cells: Vec<u8> = (0..(w / 3 + 1) * (h / 3 + 1))
+            .map(|_| rng.random())
+            .collect();
         (0..w * h)
             .map(|i| {
                 let (x, y) = (i % w, i / w);
@@ -412,7 +413,10 @@ mod tests {
                         }
                     }
                 }
-                assert!(!want.is_empty() || t == 40, "{w}x{h} t{t}: no corners at all");
+                assert!(
+                    !want.is_empty() || t == 40,
+                    "{w}x{h} t{t}: no corners at all"
+                );
                 assert_eq!(out, want, "{w}x{h} t{t}");
             }
         }

@@ -189,7 +189,11 @@ impl Params {
             })
         };
         if !(self.scale_factor > 1.0 && self.scale_factor <= 4.0) {
-            return bad("scale_factor", self.scale_factor.to_string(), "must be in (1, 4]");
+            return bad(
+                "scale_factor",
+                self.scale_factor.to_string(),
+                "must be in (1, 4]",
+            );
         }
         if self.n_levels == 0 || self.n_levels > 32 {
             return bad("n_levels", self.n_levels.to_string(), "must be in 1..=32");
@@ -202,7 +206,11 @@ impl Params {
             );
         }
         if self.cell_size < 8 || self.cell_size > 1024 {
-            return bad("cell_size", self.cell_size.to_string(), "must be in 8..=1024");
+            return bad(
+                "cell_size",
+                self.cell_size.to_string(),
+                "must be in 8..=1024",
+            );
         }
         if self.edge_threshold < 19 || self.edge_threshold > 256 {
             return bad(

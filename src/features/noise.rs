@@ -35,16 +35,19 @@ pub fn estimate_noise_sigma_masked(
         let down = &img[(y + 1) * w..(y + 2) * w];
         for x in (1..w - 1).step_by(sx) {
             if let Some(m) = mask {
-                let ok = [y - 1, y, y + 1]
-                    .iter()
-                    .all(|&yy| m[yy * w + x - 1] != 0 && m[yy * w + x] != 0 && m[yy * w + x + 1] != 0);
+                let ok = [y - 1, y, y + 1].iter().all(|&yy| {
+                    m[yy * w + x - 1] != 0 && m[yy * w + x] != 0 && m[yy * w + x + 1] != 0
+                });
                 if !ok {
                     continue;
                 }
             }
-            let corners = up[x - 1] as i32 + up[x + 1] as i32 + down[x - 1] as i32 + down[x + 1] as i32;
+            let corners =
+                up[x - 1] as i32 + up[x + 1] as i32 + down[x - 1] as i32 + down[x + 1] as i32;
             let edges = up[x] as i32 + down[x] as i32 + mid[x - 1] as i32 + mid[x + 1] as i32;
-            let r = (corners - 2 * edges + 4 * mid[x] as i32).unsigned_abs().min(255);
+            let r = (corners - 2 * edges + 4 * mid[x] as i32)
+                .unsigned_abs()
+                .min(255);
             hist[r as usize] += 1;
             n += 1;
         }
@@ -83,7 +86,10 @@ mod tests {
                 })
                 .collect();
             let est = estimate_noise_sigma(&img, w, h, 1, 1);
-            assert!((est - sigma).abs() < 0.25 * sigma + 0.3, "sigma {sigma}: {est}");
+            assert!(
+                (est - sigma).abs() < 0.25 * sigma + 0.3,
+                "sigma {sigma}: {est}"
+            );
         }
         assert_eq!(estimate_noise_sigma(&vec![9u8; w * h], w, h, 2, 2), 0.0);
         assert_eq!(estimate_noise_sigma(&[1, 2], 2, 1, 1, 1), 0.0);

@@ -91,7 +91,11 @@ mod tests {
     fn angle_points_to_the_bright_side() {
         let w = 64;
         let d = Disc::new(15);
-        for (deg, (dx, dy)) in [(0.0f32, (1.0f32, 0.0f32)), (90.0, (0.0, 1.0)), (225.0, (-1.0, -1.0))] {
+        for (deg, (dx, dy)) in [
+            (0.0f32, (1.0f32, 0.0f32)),
+            (90.0, (0.0, 1.0)),
+            (225.0, (-1.0, -1.0)),
+        ] {
             // Intensity ramp rising along (dx, dy).
             let img: Vec<u8> = (0..w * w)
                 .map(|i| {

@@ -44,7 +44,13 @@ pub struct QuadScratch {
 
 /// Split `node` into its four children, partitioning its index range; the
 /// non-empty children are appended to `out`.
-fn split(node: &Node, corners: &[Corner], idx: &mut [u32], tmp: &mut Vec<u32>, out: &mut Vec<Node>) {
+fn split(
+    node: &Node,
+    corners: &[Corner],
+    idx: &mut [u32],
+    tmp: &mut Vec<u32>,
+    out: &mut Vec<Node>,
+) {
     let hx = ((node.x1 - node.x0) / 2.0).ceil();
     let hy = ((node.y1 - node.y0) / 2.0).ceil();
     let (mx, my) = (node.x0 + hx, node.y0 + hy);
@@ -230,7 +236,13 @@ mod tests {
             cs.push(corner(100 + (k % 8) * 60, 100 + (k / 8) * 70, 10));
         }
         let mut sel = Vec::new();
-        distribute(&cs, (19.0, 19.0, 621.0, 461.0), 60, &mut QuadScratch::default(), &mut sel);
+        distribute(
+            &cs,
+            (19.0, 19.0, 621.0, 461.0),
+            60,
+            &mut QuadScratch::default(),
+            &mut sel,
+        );
         assert!(sel.len() >= 60 && sel.len() <= 63, "{}", sel.len());
         let spread = sel.iter().filter(|&&i| i >= 400).count();
         assert_eq!(spread, 40, "every isolated corner is kept");
@@ -242,7 +254,13 @@ mod tests {
     fn keeps_the_strongest_per_node() {
         let cs = vec![corner(30, 30, 5), corner(31, 30, 50), corner(300, 300, 7)];
         let mut sel = Vec::new();
-        distribute(&cs, (19.0, 19.0, 621.0, 461.0), 2, &mut QuadScratch::default(), &mut sel);
+        distribute(
+            &cs,
+            (19.0, 19.0, 621.0, 461.0),
+            2,
+            &mut QuadScratch::default(),
+            &mut sel,
+        );
         assert_eq!(sel, vec![1, 2]);
     }
 
@@ -250,9 +268,21 @@ mod tests {
     fn fewer_corners_than_wanted_keeps_all() {
         let cs: Vec<_> = (0..10).map(|k| corner(20 + 50 * k, 40, 20)).collect();
         let mut sel = Vec::new();
-        distribute(&cs, (19.0, 19.0, 621.0, 461.0), 100, &mut QuadScratch::default(), &mut sel);
+        distribute(
+            &cs,
+            (19.0, 19.0, 621.0, 461.0),
+            100,
+            &mut QuadScratch::default(),
+            &mut sel,
+        );
         assert_eq!(sel, (0..10).collect::<Vec<_>>());
-        distribute(&[], (19.0, 19.0, 621.0, 461.0), 100, &mut QuadScratch::default(), &mut sel);
+        distribute(
+            &[],
+            (19.0, 19.0, 621.0, 461.0),
+            100,
+            &mut QuadScratch::default(),
+            &mut sel,
+        );
         assert!(sel.is_empty());
     }
 }

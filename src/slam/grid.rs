@@ -85,7 +85,10 @@ impl FeatureGrid {
         };
         let cells: Vec<Option<usize>> = keypoints
             .iter()
-            .map(|k| grid.cell_of(k.ux as f64, k.uy as f64).map(|(c, r)| r * GRID_COLS + c))
+            .map(|k| {
+                grid.cell_of(k.ux as f64, k.uy as f64)
+                    .map(|(c, r)| r * GRID_COLS + c)
+            })
             .collect();
         for c in cells.iter().flatten() {
             grid.cell_start[c + 1] += 1;
@@ -133,9 +136,13 @@ impl FeatureGrid {
             return;
         };
         let c0 = ((x - r - b.min_x) * self.inv_cell_w).floor().max(0.0);
-        let c1 = ((x + r - b.min_x) * self.inv_cell_w).floor().min(GRID_COLS as f64 - 1.0);
+        let c1 = ((x + r - b.min_x) * self.inv_cell_w)
+            .floor()
+            .min(GRID_COLS as f64 - 1.0);
         let r0 = ((y - r - b.min_y) * self.inv_cell_h).floor().max(0.0);
-        let r1 = ((y + r - b.min_y) * self.inv_cell_h).floor().min(GRID_ROWS as f64 - 1.0);
+        let r1 = ((y + r - b.min_y) * self.inv_cell_h)
+            .floor()
+            .min(GRID_ROWS as f64 - 1.0);
         if !(c0 <= c1 && r0 <= r1) {
             return;
         }
@@ -190,7 +197,11 @@ mod tests {
         };
         let g = FeatureGrid::new(&kps, b);
         let mut out = Vec::new();
-        for &(x, y, r, lo, hi) in &[(100.0, 100.0, 30.0, 0, 7), (0.0, 0.0, 50.0, 2, 3), (639.0, 479.0, 80.0, 0, 0)] {
+        for &(x, y, r, lo, hi) in &[
+            (100.0, 100.0, 30.0, 0, 7),
+            (0.0, 0.0, 50.0, 2, 3),
+            (639.0, 479.0, 80.0, 0, 0),
+        ] {
             g.features_in_area(&kps, x, y, r, lo, hi, &mut out);
             let mut want: Vec<usize> = (0..kps.len())
                 .filter(|&i| {

@@ -40,7 +40,9 @@ pub struct ScaleInfo {
 impl ScaleInfo {
     /// Scale factors for `n_levels` levels of `scale_factor`.
     pub fn new(scale_factor: f64, n_levels: usize) -> Self {
-        let scale_factors: Vec<f64> = (0..n_levels.max(1)).map(|l| scale_factor.powi(l as i32)).collect();
+        let scale_factors: Vec<f64> = (0..n_levels.max(1))
+            .map(|l| scale_factor.powi(l as i32))
+            .collect();
         let inv_level_sigma2 = scale_factors.iter().map(|s| 1.0 / (s * s)).collect();
         ScaleInfo {
             scale_factor,
@@ -113,7 +115,10 @@ impl KeyFrame {
         self.points
             .iter()
             .flatten()
-            .filter(|p| map.point(**p).is_some_and(|mp| mp.observations.len() >= min_obs))
+            .filter(|p| {
+                map.point(**p)
+                    .is_some_and(|mp| mp.observations.len() >= min_obs)
+            })
             .count()
     }
 
@@ -225,8 +230,17 @@ impl Map {
     ) -> Result<Map, String> {
         let mut map = Map::new(camera, scale);
         map.covisibility_threshold = covisibility_threshold;
-        let max_kf = keyframes.iter().map(|k| k.id.0 as usize + 1).chain(culled.iter().map(|c| c.0.0 as usize + 1)).max().unwrap_or(0);
-        let max_p = points.iter().map(|p| p.id.0 as usize + 1).max().unwrap_or(0);
+        let max_kf = keyframes
+            .iter()
+            .map(|k| k.id.0 as usize + 1)
+            .chain(culled.iter().map(|c| c.0.0 as usize + 1))
+            .max()
+            .unwrap_or(0);
+        let max_p = points
+            .iter()
+            .map(|p| p.id.0 as usize + 1)
+            .max()
+            .unwrap_or(0);
         if max_kf > 10_000_000 || max_p > 100_000_000 {
             return Err("ids out of range".into());
         }
@@ -271,7 +285,9 @@ impl Map {
 
     /// A live keyframe, mutable.
     pub fn keyframe_mut(&mut self, id: KeyFrameId) -> Option<&mut KeyFrame> {
-        self.keyframes.get_mut(id.0 as usize).and_then(Option::as_mut)
+        self.keyframes
+            .get_mut(id.0 as usize)
+            .and_then(Option::as_mut)
     }
 
     /// A live point.
@@ -320,7 +336,12 @@ impl Map {
     }
 
     /// Insert a point with no observations yet.
-    pub fn add_point(&mut self, position: Point3<f64>, descriptor: Descriptor, first_kf: KeyFrameId) -> PointId {
+    pub fn add_point(
+        &mut self,
+        position: Point3<f64>,
+        descriptor: Descriptor,
+        first_kf: KeyFrameId,
+    ) -> PointId {
         let id = PointId(self.points.len() as u32);
         self.points.push(Some(MapPoint {
             id,
@@ -486,7 +507,13 @@ impl Map {
             p.children.retain(|c| *c != id);
             p.children.extend(children.iter().copied());
         }
-        self.culled.insert(id, CulledKeyFrame { parent, cam_from_parent });
+        self.culled.insert(
+            id,
+            CulledKeyFrame {
+                parent,
+                cam_from_parent,
+            },
+        );
         self.keyframes[id.0 as usize] = None;
         self.n_keyframes -= 1;
         true
@@ -535,7 +562,11 @@ impl Map {
             .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
             .map(|(k, w)| (*k, *w))
             .unwrap_or((id, 0));
-        let mut edges: Vec<(KeyFrameId, u32)> = counts.iter().filter(|e| *e.1 >= th).map(|(k, w)| (*k, *w)).collect();
+        let mut edges: Vec<(KeyFrameId, u32)> = counts
+            .iter()
+            .filter(|e| *e.1 >= th)
+            .map(|(k, w)| (*k, *w))
+            .collect();
         if edges.is_empty() {
             edges.push((best_id, best_w));
         }
@@ -546,7 +577,9 @@ impl Map {
             if let Some(k) = self.keyframe_mut(other) {
                 k.covisible.retain(|e| e.0 != id);
                 if keep {
-                    let pos = k.covisible.partition_point(|e| e.1 > w || (e.1 == w && e.0 < id));
+                    let pos = k
+                        .covisible
+                        .partition_point(|e| e.1 > w || (e.1 == w && e.0 < id));
                     k.covisible.insert(pos, (id, w));
                 }
             }
@@ -582,7 +615,11 @@ impl Map {
         let descs: Vec<Descriptor> = mp
             .observations
             .iter()
-            .filter_map(|(kf, idx)| self.keyframe(*kf).and_then(|k| k.descriptors.get(*idx as usize)).copied())
+            .filter_map(|(kf, idx)| {
+                self.keyframe(*kf)
+                    .and_then(|k| k.descriptors.get(*idx as usize))
+                    .copied()
+            })
             .collect();
         if descs.is_empty() {
             return;
@@ -639,7 +676,10 @@ impl Map {
             return;
         };
         let dist = (pos - rk.center()).norm();
-        let octave = rk.keypoints.get(idx as usize).map_or(0, |k| k.octave as usize);
+        let octave = rk
+            .keypoints
+            .get(idx as usize)
+            .map_or(0, |k| k.octave as usize);
         let level_scale = self.scale.scale_factors.get(octave).copied().unwrap_or(1.0);
         let top = self.scale.scale_factors.last().copied().unwrap_or(1.0);
         let max_distance = dist * level_scale;
@@ -682,10 +722,16 @@ impl Map {
             for (i, p) in kf.points.iter().enumerate() {
                 if let Some(p) = p {
                     let Some(mp) = self.point(*p) else {
-                        return Err(format!("keyframe {:?} slot {i}: dangling point {:?}", kf.id, p));
+                        return Err(format!(
+                            "keyframe {:?} slot {i}: dangling point {:?}",
+                            kf.id, p
+                        ));
                     };
                     if mp.index_in(kf.id) != Some(i as u32) {
-                        return Err(format!("keyframe {:?} slot {i}: point {:?} does not list it", kf.id, p));
+                        return Err(format!(
+                            "keyframe {:?} slot {i}: point {:?} does not list it",
+                            kf.id, p
+                        ));
                     }
                 }
             }
@@ -708,12 +754,18 @@ impl Map {
                     return Err(format!("keyframe {:?}: dangling parent {:?}", kf.id, p));
                 };
                 if !pk.children.contains(&kf.id) {
-                    return Err(format!("keyframe {:?}: parent {:?} does not list it", kf.id, p));
+                    return Err(format!(
+                        "keyframe {:?}: parent {:?} does not list it",
+                        kf.id, p
+                    ));
                 }
             }
             for c in &kf.children {
                 if self.keyframe(*c).and_then(|k| k.parent) != Some(kf.id) {
-                    return Err(format!("keyframe {:?}: child {:?} has another parent", kf.id, c));
+                    return Err(format!(
+                        "keyframe {:?}: child {:?} has another parent",
+                        kf.id, c
+                    ));
                 }
             }
         }
@@ -728,7 +780,10 @@ impl Map {
                     return Err(format!("point {:?}: dangling keyframe {:?}", mp.id, kf));
                 };
                 if k.points.get(*idx as usize).copied().flatten() != Some(mp.id) {
-                    return Err(format!("point {:?}: keyframe {:?} slot {idx} does not hold it", mp.id, kf));
+                    return Err(format!(
+                        "point {:?}: keyframe {:?} slot {idx} does not hold it",
+                        mp.id, kf
+                    ));
                 }
             }
         }
@@ -750,7 +805,10 @@ mod tests {
             id: KeyFrameId(0),
             frame_index: 0,
             timestamp: x,
-            cam_from_world: Isometry3::from_parts(Translation3::new(-x, 0.0, 0.0), Default::default()),
+            cam_from_world: Isometry3::from_parts(
+                Translation3::new(-x, 0.0, 0.0),
+                Default::default(),
+            ),
             keypoints: vec![KeyPoint::default(); n],
             descriptors: vec![[0; 4]; n],
             points: vec![None; n],
@@ -763,12 +821,24 @@ mod tests {
     }
 
     fn map_with(n_kf: usize, n_pts: usize) -> Map {
-        let cam = Camera::new(640, 480, [500.0, 500.0, 320.0, 240.0], Distortion::default()).unwrap();
+        let cam = Camera::new(
+            640,
+            480,
+            [500.0, 500.0, 320.0, 240.0],
+            Distortion::default(),
+        )
+        .unwrap();
         let mut m = Map::new(cam, ScaleInfo::new(1.2, 8));
         m.covisibility_threshold = 2;
-        let ids: Vec<KeyFrameId> = (0..n_kf).map(|i| m.add_keyframe(kf(n_pts, i as f64 * 0.1))).collect();
+        let ids: Vec<KeyFrameId> = (0..n_kf)
+            .map(|i| m.add_keyframe(kf(n_pts, i as f64 * 0.1)))
+            .collect();
         for j in 0..n_pts {
-            let p = m.add_point(Point3::new(j as f64 * 0.01, 0.0, 2.0), [j as u64; 4], ids[0]);
+            let p = m.add_point(
+                Point3::new(j as f64 * 0.01, 0.0, 2.0),
+                [j as u64; 4],
+                ids[0],
+            );
             for &k in &ids {
                 assert!(m.add_observation(p, k, j as u32));
             }

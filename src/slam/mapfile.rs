@@ -165,7 +165,10 @@ impl<'a> R<'a> {
         let n = self.u32()? as usize;
         let remaining = self.data.len() - self.pos;
         if n.saturating_mul(min_item_bytes.max(1)) > remaining {
-            return Err(format!("count {n} at byte {} exceeds the file", self.pos - 4));
+            return Err(format!(
+                "count {n} at byte {} exceeds the file",
+                self.pos - 4
+            ));
         }
         Ok(n)
     }
@@ -242,7 +245,16 @@ pub fn encode(map: &Map) -> Result<Vec<u8>, MapFileError> {
     w.len(pts.len());
     for p in pts {
         w.u32(p.id.0);
-        for v in [p.position.x, p.position.y, p.position.z, p.normal.x, p.normal.y, p.normal.z, p.min_distance, p.max_distance] {
+        for v in [
+            p.position.x,
+            p.position.y,
+            p.position.z,
+            p.normal.x,
+            p.normal.y,
+            p.normal.z,
+            p.min_distance,
+            p.max_distance,
+        ] {
             w.f64(v);
         }
         for word in p.descriptor {
@@ -304,12 +316,17 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Map, MapFileError> {
         reason,
     };
     if bytes.len() < 8 || &bytes[..8] != MAGIC {
-        return Err(MapFileError::BadMagic { path: path.to_owned() });
+        return Err(MapFileError::BadMagic {
+            path: path.to_owned(),
+        });
     }
     if bytes.len() < 28 {
         return Err(corrupt("header truncated".into()));
     }
-    let mut hdr = R { data: bytes, pos: 8 };
+    let mut hdr = R {
+        data: bytes,
+        pos: 8,
+    };
     let version = hdr.u32().map_err(&corrupt)?;
     if version != FORMAT_VERSION {
         return Err(MapFileError::Version {
@@ -322,7 +339,10 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Map, MapFileError> {
     let sum = hdr.u64().map_err(&corrupt)?;
     let payload = &bytes[28..];
     if payload.len() != len {
-        return Err(corrupt(format!("payload is {} bytes, header says {len}", payload.len())));
+        return Err(corrupt(format!(
+            "payload is {} bytes, header says {len}",
+            payload.len()
+        )));
     }
     if fnv1a(payload) != sum {
         return Err(corrupt("checksum mismatch".into()));
@@ -331,7 +351,10 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Map, MapFileError> {
 }
 
 fn parse_payload(payload: &[u8]) -> RResult<Map> {
-    let mut r = R { data: payload, pos: 0 };
+    let mut r = R {
+        data: payload,
+        pos: 0,
+    };
     let (width, height) = (r.u32()?, r.u32()?);
     let mut v = [0.0; 9];
     for x in &mut v {
@@ -466,7 +489,13 @@ fn parse_payload(payload: &[u8]) -> RResult<Map> {
         let id = KeyFrameId(r.u32()?);
         let parent = KeyFrameId(r.u32()?);
         let cam_from_parent = r.pose()?;
-        culled.push((id, CulledKeyFrame { parent, cam_from_parent }));
+        culled.push((
+            id,
+            CulledKeyFrame {
+                parent,
+                cam_from_parent,
+            },
+        ));
     }
     if r.pos != payload.len() {
         return Err(format!("{} trailing bytes", payload.len() - r.pos));

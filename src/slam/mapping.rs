@@ -115,12 +115,20 @@ impl LocalMapper {
 
     /// Process one new keyframe. `more_waiting` skips the expensive steps
     /// (fusion, BA) when keyframes are queued behind this one.
-    pub fn process_keyframe(&mut self, map: &Mutex<Map>, kf: KeyFrameId, more_waiting: bool) -> MappingReport {
+    pub fn process_keyframe(
+        &mut self,
+        map: &Mutex<Map>,
+        kf: KeyFrameId,
+        more_waiting: bool,
+    ) -> MappingReport {
         let t0 = Instant::now();
         let mut report = MappingReport::default();
         {
             let mut m = lock(map);
-            let pids: Vec<PointId> = m.keyframe(kf).map(|k| k.points.iter().flatten().copied().collect()).unwrap_or_default();
+            let pids: Vec<PointId> = m
+                .keyframe(kf)
+                .map(|k| k.points.iter().flatten().copied().collect())
+                .unwrap_or_default();
             for p in pids {
                 m.update_point_normal_and_depth(p);
                 m.update_point_descriptor(p);
@@ -164,7 +172,9 @@ impl LocalMapper {
                 return false;
             };
             let age = current.0.saturating_sub(created.0);
-            if mp.found_ratio() < p.min_found_ratio || (age >= 2 && mp.observations.len() <= p.min_recent_observations) {
+            if mp.found_ratio() < p.min_found_ratio
+                || (age >= 2 && mp.observations.len() <= p.min_recent_observations)
+            {
                 map.erase_point(pid);
                 culled += 1;
                 false
@@ -179,7 +189,9 @@ impl LocalMapper {
         let Some(k1) = map.keyframe(kf) else {
             return 0;
         };
-        let neighbours: Vec<KeyFrameId> = k1.best_covisible(self.params.triangulation_neighbours).collect();
+        let neighbours: Vec<KeyFrameId> = k1
+            .best_covisible(self.params.triangulation_neighbours)
+            .collect();
         let t1 = k1.cam_from_world;
         let c1 = k1.center();
         let r1wc = t1.rotation.inverse();
@@ -191,7 +203,9 @@ impl LocalMapper {
             let t2 = k2.cam_from_world;
             let c2 = k2.center();
             let baseline = (c2 - c1).norm();
-            let Some(median2) = map.median_depth(n) else { continue };
+            let Some(median2) = map.median_depth(n) else {
+                continue;
+            };
             if baseline / median2 < self.params.min_baseline_ratio {
                 continue;
             }
@@ -200,7 +214,9 @@ impl LocalMapper {
             let r2wc = t2.rotation.inverse();
             let mut new_points = Vec::new();
             {
-                let (Some(k1), Some(k2)) = (map.keyframe(kf), map.keyframe(n)) else { continue };
+                let (Some(k1), Some(k2)) = (map.keyframe(kf), map.keyframe(n)) else {
+                    continue;
+                };
                 for (i1, i2) in matches {
                     let kp1 = &k1.keypoints[i1];
                     let kp2 = &k2.keypoints[i2];
@@ -212,7 +228,12 @@ impl LocalMapper {
                     if !(cos_par > 0.0 && cos_par < self.params.max_parallax_cos) {
                         continue;
                     }
-                    let Some(x) = geometry::triangulate(&t1, &t2, &Point2::new(xn1.x, xn1.y), &Point2::new(xn2.x, xn2.y)) else {
+                    let Some(x) = geometry::triangulate(
+                        &t1,
+                        &t2,
+                        &Point2::new(xn1.x, xn1.y),
+                        &Point2::new(xn2.x, xn2.y),
+                    ) else {
                         continue;
                     };
                     let p1 = t1 * x;
@@ -226,7 +247,9 @@ impl LocalMapper {
                         let (ex, ey) = (u - kp.ux as f64, v - kp.uy as f64);
                         (ex * ex + ey * ey) * map.scale.inv_level_sigma2[kp.octave as usize]
                     };
-                    if chi(&p1, kp1) > self.params.reprojection_chi2 || chi(&p2, kp2) > self.params.reprojection_chi2 {
+                    if chi(&p1, kp1) > self.params.reprojection_chi2
+                        || chi(&p2, kp2) > self.params.reprojection_chi2
+                    {
                         continue;
                     }
                     let d1 = (x.coords - c1).norm();
@@ -235,7 +258,8 @@ impl LocalMapper {
                         continue;
                     }
                     let ratio_dist = d2 / d1;
-                    let ratio_octave = map.scale.scale_factors[kp1.octave as usize] / map.scale.scale_factors[kp2.octave as usize];
+                    let ratio_octave = map.scale.scale_factors[kp1.octave as usize]
+                        / map.scale.scale_factors[kp2.octave as usize];
                     let f = self.params.scale_consistency;
                     if ratio_dist * f < ratio_octave || ratio_dist > ratio_octave * f {
                         continue;
@@ -245,7 +269,9 @@ impl LocalMapper {
             }
             for (x, i1, i2, desc) in new_points {
                 // The slot may have been taken by an earlier point of this loop.
-                if map.keyframe(kf).and_then(|k| k.points[i1]).is_some() || map.keyframe(n).and_then(|k| k.points[i2]).is_some() {
+                if map.keyframe(kf).and_then(|k| k.points[i1]).is_some()
+                    || map.keyframe(n).and_then(|k| k.points[i2]).is_some()
+                {
                     continue;
                 }
                 let pid = map.add_point(x, desc, kf);
@@ -266,7 +292,10 @@ impl LocalMapper {
         };
         let mut targets: Vec<KeyFrameId> = Vec::new();
         let mut seen: HashSet<KeyFrameId> = HashSet::from([kf]);
-        for n in k.best_covisible(self.params.fuse_neighbours).collect::<Vec<_>>() {
+        for n in k
+            .best_covisible(self.params.fuse_neighbours)
+            .collect::<Vec<_>>()
+        {
             if seen.insert(n) {
                 targets.push(n);
             }
@@ -281,7 +310,14 @@ impl LocalMapper {
         let mut fused = 0;
         let own: Vec<PointId> = k.points.iter().flatten().copied().collect();
         for &t in &targets {
-            fused += matcher::fuse(map, t, &own, self.params.fuse_radius, &self.bounds, &self.params.matcher);
+            fused += matcher::fuse(
+                map,
+                t,
+                &own,
+                self.params.fuse_radius,
+                &self.bounds,
+                &self.params.matcher,
+            );
         }
         let mut others: Vec<PointId> = Vec::new();
         let mut seen_p: HashSet<PointId> = HashSet::new();
@@ -294,8 +330,18 @@ impl LocalMapper {
                 }
             }
         }
-        fused += matcher::fuse(map, kf, &others, self.params.fuse_radius, &self.bounds, &self.params.matcher);
-        let pids: Vec<PointId> = map.keyframe(kf).map(|k| k.points.iter().flatten().copied().collect()).unwrap_or_default();
+        fused += matcher::fuse(
+            map,
+            kf,
+            &others,
+            self.params.fuse_radius,
+            &self.bounds,
+            &self.params.matcher,
+        );
+        let pids: Vec<PointId> = map
+            .keyframe(kf)
+            .map(|k| k.points.iter().flatten().copied().collect())
+            .unwrap_or_default();
         for p in pids {
             map.update_point_descriptor(p);
             map.update_point_normal_and_depth(p);
@@ -353,8 +399,14 @@ impl LocalMapper {
                     if *okf == c {
                         continue;
                     }
-                    let Some(ok) = map.keyframe(*okf) else { continue };
-                    if ok.keypoints.get(*oi as usize).is_some_and(|kp| kp.octave <= octave + 1) {
+                    let Some(ok) = map.keyframe(*okf) else {
+                        continue;
+                    };
+                    if ok
+                        .keypoints
+                        .get(*oi as usize)
+                        .is_some_and(|kp| kp.octave <= octave + 1)
+                    {
                         others += 1;
                         if others >= 3 {
                             break;
@@ -365,7 +417,10 @@ impl LocalMapper {
                     redundant += 1;
                 }
             }
-            if n_points > 0 && redundant as f64 > self.params.redundant_ratio * n_points as f64 && map.erase_keyframe(c) {
+            if n_points > 0
+                && redundant as f64 > self.params.redundant_ratio * n_points as f64
+                && map.erase_keyframe(c)
+            {
                 culled += 1;
             }
         }

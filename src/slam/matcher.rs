@@ -87,7 +87,10 @@ pub fn search_for_initialization(
         if k1.octave > 0 {
             continue;
         }
-        let p = prev.get(i1).copied().unwrap_or(Point2::new(k1.ux as f64, k1.uy as f64));
+        let p = prev
+            .get(i1)
+            .copied()
+            .unwrap_or(Point2::new(k1.ux as f64, k1.uy as f64));
         grid2.features_in_area(kps2, p.x, p.y, window, 0, 0, &mut cand);
         let (mut best, mut best2, mut best_i) = (u32::MAX, u32::MAX, usize::MAX);
         for &i2 in &cand {
@@ -208,9 +211,15 @@ pub fn search_local_points(
         };
         let r = if pr.view_cos > 0.998 { 2.5 } else { 4.0 } * th * scale.scale_factors[pr.level];
         let lvl = pr.level as i32;
-        target
-            .grid
-            .features_in_area(target.keypoints, pr.uv.x, pr.uv.y, r, lvl - 1, lvl, &mut cand);
+        target.grid.features_in_area(
+            target.keypoints,
+            pr.uv.x,
+            pr.uv.y,
+            r,
+            lvl - 1,
+            lvl,
+            &mut cand,
+        );
         let (mut best, mut best2) = (u32::MAX, u32::MAX);
         let (mut best_lvl, mut best_lvl2) = (-1i32, -1i32);
         let mut best_i = usize::MAX;
@@ -287,9 +296,15 @@ pub fn search_last_frame(
         };
         let lo = lk.octave as i32;
         let r = th * map.scale.scale_factors[lk.octave as usize];
-        target
-            .grid
-            .features_in_area(target.keypoints, u, v, r, (lo - 1).max(0), (lo + 1).min(n_levels - 1), &mut cand);
+        target.grid.features_in_area(
+            target.keypoints,
+            u,
+            v,
+            r,
+            (lo - 1).max(0),
+            (lo + 1).min(n_levels - 1),
+            &mut cand,
+        );
         let (mut best, mut best_i) = (u32::MAX, usize::MAX);
         for &i in &cand {
             if taken[i] {
@@ -325,7 +340,11 @@ pub fn search_last_frame(
 
 /// The fundamental matrix from keyframe 2 to keyframe 1 (x1ᵀ F12 x2 = 0 in
 /// undistorted pixels).
-pub fn fundamental_12(cam: &Camera, cam1_from_world: &Isometry3<f64>, cam2_from_world: &Isometry3<f64>) -> Matrix3<f64> {
+pub fn fundamental_12(
+    cam: &Camera,
+    cam1_from_world: &Isometry3<f64>,
+    cam2_from_world: &Isometry3<f64>,
+) -> Matrix3<f64> {
     let c1_from_c2 = cam1_from_world * cam2_from_world.inverse();
     let r = c1_from_c2.rotation.to_rotation_matrix().into_inner();
     let t = c1_from_c2.translation.vector;
@@ -354,11 +373,16 @@ pub fn search_for_triangulation(
     // Epipole of camera 1 in image 2.
     let c1_in_2 = k2.cam_from_world * Point3::from(k1.center());
     let (ex, ey) = if c1_in_2.z.abs() > 1e-12 {
-        (cam.fx * c1_in_2.x / c1_in_2.z + cam.cx, cam.fy * c1_in_2.y / c1_in_2.z + cam.cy)
+        (
+            cam.fx * c1_in_2.x / c1_in_2.z + cam.cx,
+            cam.fy * c1_in_2.y / c1_in_2.z + cam.cy,
+        )
     } else {
         (f64::INFINITY, f64::INFINITY)
     };
-    let free2: Vec<usize> = (0..k2.keypoints.len()).filter(|&i| k2.points[i].is_none()).collect();
+    let free2: Vec<usize> = (0..k2.keypoints.len())
+        .filter(|&i| k2.points[i].is_none())
+        .collect();
     let mut matched2 = vec![false; k2.keypoints.len()];
     let mut out = Vec::new();
     let mut rot = Vec::new();
@@ -430,7 +454,14 @@ pub fn search_for_triangulation(
 /// matches: a keypoint already holding another point is merged with it (the
 /// one with more observations stays), a free keypoint gains the observation.
 /// Returns the number of fusions.
-pub fn fuse(map: &mut Map, kf: KeyFrameId, points: &[PointId], th: f64, bounds: &Bounds, params: &MatcherParams) -> usize {
+pub fn fuse(
+    map: &mut Map,
+    kf: KeyFrameId,
+    points: &[PointId],
+    th: f64,
+    bounds: &Bounds,
+    params: &MatcherParams,
+) -> usize {
     let Some(k) = map.keyframe(kf) else {
         return 0;
     };
@@ -449,7 +480,8 @@ pub fn fuse(map: &mut Map, kf: KeyFrameId, points: &[PointId], th: f64, bounds: 
             continue;
         };
         let r = th * map.scale.scale_factors[pr.level];
-        k.grid.features_in_area(&k.keypoints, pr.uv.x, pr.uv.y, r, 0, i32::MAX, &mut cand);
+        k.grid
+            .features_in_area(&k.keypoints, pr.uv.x, pr.uv.y, r, 0, i32::MAX, &mut cand);
         let (mut best, mut best_i) = (u32::MAX, usize::MAX);
         for &i in &cand {
             let kp = &k.keypoints[i];
@@ -476,7 +508,9 @@ pub fn fuse(map: &mut Map, kf: KeyFrameId, points: &[PointId], th: f64, bounds: 
         if map.point(pid).is_none() {
             continue;
         }
-        let existing = map.keyframe(kf).and_then(|k| k.points.get(i).copied().flatten());
+        let existing = map
+            .keyframe(kf)
+            .and_then(|k| k.points.get(i).copied().flatten());
         match existing {
             Some(other) if other != pid => {
                 let (n_other, n_this) = (

@@ -187,7 +187,9 @@ impl Slam {
         self.frames += 1;
         let idle = match &self.mapping {
             Mapping::Inline(_) => true,
-            Mapping::Thread { busy, queued, .. } => !busy.load(Ordering::Acquire) && queued.load(Ordering::Acquire) == 0,
+            Mapping::Thread { busy, queued, .. } => {
+                !busy.load(Ordering::Acquire) && queued.load(Ordering::Acquire) == 0
+            }
         };
         let outcome = self.tracker.track(&self.map, index, timestamp, image, idle);
         if let Some(kf) = outcome.new_keyframe {
@@ -202,7 +204,10 @@ impl Slam {
                             Ok(()) => {}
                             Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
                                 queued.fetch_sub(1, Ordering::AcqRel);
-                                tracing::warn!(kf = kf.0, "mapping queue full; keyframe kept without local mapping");
+                                tracing::warn!(
+                                    kf = kf.0,
+                                    "mapping queue full; keyframe kept without local mapping"
+                                );
                             }
                         }
                     }

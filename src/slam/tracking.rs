@@ -14,7 +14,9 @@ use nalgebra::{Isometry3, Point2, UnitQuaternion, Vector3};
 use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, OrbExtractor, hamming};
 use crate::geometry::{self, PnpParams, TwoViewParams};
-use crate::optimize::{self, BaParams, BaPose, BaProblem, Intrinsics, Observation, PoseObservation, PoseParams};
+use crate::optimize::{
+    self, BaParams, BaPose, BaProblem, Intrinsics, Observation, PoseObservation, PoseParams,
+};
 
 use super::SlamError;
 use super::grid::{Bounds, FeatureGrid};
@@ -214,7 +216,10 @@ impl Tracker {
             n_features: params.init_features,
             ..params.features
         })?;
-        let scale = ScaleInfo::new(params.features.scale_factor as f64, params.features.n_levels);
+        let scale = ScaleInfo::new(
+            params.features.scale_factor as f64,
+            params.features.n_levels,
+        );
         Ok(Tracker {
             extractor,
             init_extractor,
@@ -269,7 +274,14 @@ impl Tracker {
 
     /// Track one frame. `mapping_idle` says whether mapping can take a
     /// keyframe now (tracking never waits for it).
-    pub fn track(&mut self, map: &Mutex<Map>, index: u64, timestamp: f64, image: Arc<GrayImage>, mapping_idle: bool) -> FrameOutcome {
+    pub fn track(
+        &mut self,
+        map: &Mutex<Map>,
+        index: u64,
+        timestamp: f64,
+        image: Arc<GrayImage>,
+        mapping_idle: bool,
+    ) -> FrameOutcome {
         let t0 = Instant::now();
         let initializing = self.state == TrackState::NotInitialized;
         let feats = if initializing {
@@ -345,7 +357,11 @@ impl Tracker {
     /// One initialisation step: Ok(Some) on success with (pose, points,
     /// second keyframe), Ok(None) when the frame became the first frame of a
     /// new attempt, Err(reason) while not initialised.
-    fn try_initialize(&mut self, map: &Mutex<Map>, frame: Frame) -> Result<Option<(Isometry3<f64>, usize, KeyFrameId)>, String> {
+    fn try_initialize(
+        &mut self,
+        map: &Mutex<Map>,
+        frame: Frame,
+    ) -> Result<Option<(Isometry3<f64>, usize, KeyFrameId)>, String> {
         let Some(init) = self.init.take() else {
             if frame.keypoints.len() > self.params.init_min_matches {
                 let prev = frame
@@ -356,7 +372,10 @@ impl Tracker {
                 self.init = Some(InitFrame { frame, prev });
                 return Ok(None);
             }
-            return Err(format!("frame has {} keypoints, too few to start initialisation", frame.keypoints.len()));
+            return Err(format!(
+                "frame has {} keypoints, too few to start initialisation",
+                frame.keypoints.len()
+            ));
         };
         let m12 = matcher::search_for_initialization(
             &init.frame.keypoints,
@@ -368,7 +387,11 @@ impl Tracker {
             self.params.init_window,
             &self.params.matcher,
         );
-        let matches: Vec<(usize, usize)> = m12.iter().enumerate().filter_map(|(i, m)| m.map(|j| (i, j))).collect();
+        let matches: Vec<(usize, usize)> = m12
+            .iter()
+            .enumerate()
+            .filter_map(|(i, m)| m.map(|j| (i, j)))
+            .collect();
         if matches.len() < self.params.init_min_matches {
             let reason = format!(
                 "only {} matches with the initialisation frame (need {}); starting over from this frame",
@@ -391,8 +414,17 @@ impl Tracker {
             let k = &frame.keypoints[j];
             init.prev[i] = Point2::new(k.ux as f64, k.uy as f64);
         }
-        let kp1: Vec<Point2<f64>> = init.frame.keypoints.iter().map(|k| Point2::new(k.ux as f64, k.uy as f64)).collect();
-        let kp2: Vec<Point2<f64>> = frame.keypoints.iter().map(|k| Point2::new(k.ux as f64, k.uy as f64)).collect();
+        let kp1: Vec<Point2<f64>> = init
+            .frame
+            .keypoints
+            .iter()
+            .map(|k| Point2::new(k.ux as f64, k.uy as f64))
+            .collect();
+        let kp2: Vec<Point2<f64>> = frame
+            .keypoints
+            .iter()
+            .map(|k| Point2::new(k.ux as f64, k.uy as f64))
+            .collect();
         self.attempt += 1;
         let tv = geometry::initialize_two_view(
             &self.camera.k(),
@@ -405,7 +437,10 @@ impl Tracker {
         let tv = match tv {
             Ok(tv) => tv,
             Err(e) => {
-                let reason = format!("two-view initialisation refused ({} matches): {e}", matches.len());
+                let reason = format!(
+                    "two-view initialisation refused ({} matches): {e}",
+                    matches.len()
+                );
                 self.init = Some(init);
                 return Err(reason);
             }
@@ -506,7 +541,12 @@ impl Tracker {
             return Err("initial keyframe vanished".into());
         };
         let pose2 = kf2.cam_from_world;
-        let matched: Vec<(usize, PointId)> = kf2.points.iter().enumerate().filter_map(|(i, p)| p.map(|p| (i, p))).collect();
+        let matched: Vec<(usize, PointId)> = kf2
+            .points
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| p.map(|p| (i, p)))
+            .collect();
         tracing::info!(
             frame = f2.index,
             first_frame = f1.index,
@@ -516,7 +556,11 @@ impl Tracker {
             "map initialised"
         );
         for f in [f1, f2] {
-            let (r, pose) = if f.index == f1.index { (id1, Isometry3::identity()) } else { (id2, pose2) };
+            let (r, pose) = if f.index == f1.index {
+                (id1, Isometry3::identity())
+            } else {
+                (id2, pose2)
+            };
             let _ = pose;
             self.records.push(FrameRecord {
                 index: f.index,
@@ -537,7 +581,12 @@ impl Tracker {
     }
 
     /// Track an ordinary frame against the map.
-    fn track_frame(&mut self, map: &mut Map, frame: &mut Frame, mapping_idle: bool) -> Result<(Isometry3<f64>, usize, Option<KeyFrameId>), String> {
+    fn track_frame(
+        &mut self,
+        map: &mut Map,
+        frame: &mut Frame,
+        mapping_idle: bool,
+    ) -> Result<(Isometry3<f64>, usize, Option<KeyFrameId>), String> {
         let mut pose: Option<Isometry3<f64>> = None;
         if self.state == TrackState::Tracking {
             if let (Some(v), Some(last)) = (self.velocity, self.last.as_ref()) {
@@ -547,14 +596,13 @@ impl Tracker {
                 pose = self.track_reference_keyframe(map, frame);
             }
         }
-        let recently_relocalized;
         if pose.is_none() {
             pose = self.relocalize(map, frame);
             if pose.is_some() {
                 self.last_reloc_frame = Some(frame.index);
             }
         }
-        recently_relocalized = self
+        let recently_relocalized = self
             .last_reloc_frame
             .is_some_and(|r| frame.index < r + self.params.max_frames_between_keyframes);
         let Some(pose) = pose else {
@@ -571,7 +619,9 @@ impl Tracker {
             self.params.min_tracked_inliers
         };
         if inliers < needed {
-            return Err(format!("only {inliers} inliers after the local map (need {needed})"));
+            return Err(format!(
+                "only {inliers} inliers after the local map (need {needed})"
+            ));
         }
         // Motion model.
         if let Some(last) = &self.last {
@@ -604,7 +654,12 @@ impl Tracker {
 
     /// Optimise the frame pose on its current matches; drop outliers.
     /// Returns the pose and the number of inliers.
-    fn optimize_frame_pose(&self, map: &Map, frame: &mut Frame, pose: Isometry3<f64>) -> Option<(Isometry3<f64>, usize)> {
+    fn optimize_frame_pose(
+        &self,
+        map: &Map,
+        frame: &mut Frame,
+        pose: Isometry3<f64>,
+    ) -> Option<(Isometry3<f64>, usize)> {
         let mut idx = Vec::new();
         let mut obs = Vec::new();
         for i in 0..frame.points.len() {
@@ -624,7 +679,8 @@ impl Tracker {
         if obs.len() < 3 {
             return None;
         }
-        let report = optimize::optimize_pose(pose, &obs, &self.intrinsics, &self.params.pose).ok()?;
+        let report =
+            optimize::optimize_pose(pose, &obs, &self.intrinsics, &self.params.pose).ok()?;
         for (k, &i) in idx.iter().enumerate() {
             if !report.inliers[k] {
                 frame.points[i] = None;
@@ -633,7 +689,12 @@ impl Tracker {
         Some((renormalized(report.cam_from_world), report.n_inliers))
     }
 
-    fn track_motion_model(&mut self, map: &Map, frame: &mut Frame, predicted: Isometry3<f64>) -> Option<Isometry3<f64>> {
+    fn track_motion_model(
+        &mut self,
+        map: &Map,
+        frame: &mut Frame,
+        predicted: Isometry3<f64>,
+    ) -> Option<Isometry3<f64>> {
         let last = self.last.as_ref()?;
         let mut th = self.params.motion_search_radius;
         let mut found = Vec::new();
@@ -645,7 +706,16 @@ impl Tracker {
                 grid: &frame.grid,
                 points: &frame.points,
             };
-            found = matcher::search_last_frame(&target, &last.keypoints, &last.matches, map, &predicted, &self.bounds, th, &self.params.matcher);
+            found = matcher::search_last_frame(
+                &target,
+                &last.keypoints,
+                &last.matches,
+                map,
+                &predicted,
+                &self.bounds,
+                th,
+                &self.params.matcher,
+            );
             if found.len() >= self.params.min_motion_matches {
                 break;
             }
@@ -665,8 +735,12 @@ impl Tracker {
     /// rotation check) and optimise from the last pose.
     fn track_reference_keyframe(&mut self, map: &Map, frame: &mut Frame) -> Option<Isometry3<f64>> {
         let reference = self.reference_kf?;
-        let start = self.last.as_ref().map_or_else(|| map.keyframe(reference).map(|k| k.cam_from_world), |l| Some(l.cam_from_world))?;
-        let matches = match_keyframe_by_descriptor(map, reference, frame, &self.params.matcher, 0.7);
+        let start = self.last.as_ref().map_or_else(
+            || map.keyframe(reference).map(|k| k.cam_from_world),
+            |l| Some(l.cam_from_world),
+        )?;
+        let matches =
+            match_keyframe_by_descriptor(map, reference, frame, &self.params.matcher, 0.7);
         if matches.len() < 15 {
             return None;
         }
@@ -684,7 +758,9 @@ impl Tracker {
         let mut candidates: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
         candidates.reverse();
         candidates.truncate(15);
-        let mut best: Option<(usize, Isometry3<f64>, Vec<(usize, PointId)>)> = None;
+        // (inliers, pose, inlier matches) of the best candidate.
+        type Candidate = (usize, Isometry3<f64>, Vec<(usize, PointId)>);
+        let mut best: Option<Candidate> = None;
         for (ci, kf) in candidates.into_iter().enumerate() {
             let matches = match_keyframe_by_descriptor(map, kf, frame, &self.params.matcher, 0.75);
             if matches.len() < 15 {
@@ -701,10 +777,21 @@ impl Tracker {
                     (k.uy as f64 - self.camera.cy) / self.camera.fy,
                 ));
             }
-            let Ok(r) = geometry::solve_pnp_ransac(&pts, &obs, self.camera.fx, &self.params.pnp, self.params.seed.wrapping_add(frame.index * 31 + ci as u64)) else {
+            let Ok(r) = geometry::solve_pnp_ransac(
+                &pts,
+                &obs,
+                self.camera.fx,
+                &self.params.pnp,
+                self.params.seed.wrapping_add(frame.index * 31 + ci as u64),
+            ) else {
                 continue;
             };
-            let inl: Vec<(usize, PointId)> = matches.iter().zip(&r.inliers).filter(|(_, ok)| **ok).map(|(m, _)| *m).collect();
+            let inl: Vec<(usize, PointId)> = matches
+                .iter()
+                .zip(&r.inliers)
+                .filter(|(_, ok)| **ok)
+                .map(|(m, _)| *m)
+                .collect();
             if best.as_ref().is_none_or(|b| r.n_inliers > b.0) {
                 best = Some((r.n_inliers, renormalized(r.cam_from_world), inl));
             }
@@ -729,7 +816,8 @@ impl Tracker {
     /// neighbours, parents and children; the reference keyframe becomes the
     /// one sharing most.
     fn local_keyframes(&mut self, map: &Map, frame: &Frame) -> Vec<KeyFrameId> {
-        let mut counts: std::collections::HashMap<KeyFrameId, u32> = std::collections::HashMap::new();
+        let mut counts: std::collections::HashMap<KeyFrameId, u32> =
+            std::collections::HashMap::new();
         for pid in frame.points.iter().flatten() {
             if let Some(mp) = map.point(*pid) {
                 for (kf, _) in &mp.observations {
@@ -767,10 +855,16 @@ impl Tracker {
         local
     }
 
-    fn track_local_map(&mut self, map: &mut Map, frame: &mut Frame, pose: Isometry3<f64>) -> Result<(Isometry3<f64>, usize), String> {
+    fn track_local_map(
+        &mut self,
+        map: &mut Map,
+        frame: &mut Frame,
+        pose: Isometry3<f64>,
+    ) -> Result<(Isometry3<f64>, usize), String> {
         let local_kfs = self.local_keyframes(map, frame);
         let center = pose.inverse().translation.vector;
-        let mut in_frame: std::collections::HashSet<PointId> = frame.points.iter().flatten().copied().collect();
+        let mut in_frame: std::collections::HashSet<PointId> =
+            frame.points.iter().flatten().copied().collect();
         let mut projected = Vec::new();
         for kf in &local_kfs {
             let Some(k) = map.keyframe(*kf) else { continue };
@@ -778,7 +872,9 @@ impl Tracker {
                 if !in_frame.insert(*pid) {
                     continue;
                 }
-                if let Some(pr) = matcher::project_point(map, *pid, &pose, &center, &self.bounds, 0.5) {
+                if let Some(pr) =
+                    matcher::project_point(map, *pid, &pose, &center, &self.bounds, 0.5)
+                {
                     projected.push(pr);
                 }
             }
@@ -794,7 +890,11 @@ impl Tracker {
                 mp.visible += 1;
             }
         }
-        let th = if self.last_reloc_frame.is_some_and(|r| frame.index < r + 2) { 5.0 } else { 1.0 };
+        let th = if self.last_reloc_frame.is_some_and(|r| frame.index < r + 2) {
+            5.0
+        } else {
+            1.0
+        };
         let found = {
             let target = SearchTarget {
                 keypoints: &frame.keypoints,
@@ -802,7 +902,14 @@ impl Tracker {
                 grid: &frame.grid,
                 points: &frame.points,
             };
-            matcher::search_local_points(&target, &projected, map, &self.scale, th, &self.params.matcher)
+            matcher::search_local_points(
+                &target,
+                &projected,
+                map,
+                &self.scale,
+                th,
+                &self.params.matcher,
+            )
         };
         for (i, p) in found {
             if frame.points[i].is_none() {
@@ -820,7 +927,14 @@ impl Tracker {
         Ok((pose, inliers))
     }
 
-    fn need_new_keyframe(&self, map: &Map, frame: &Frame, inliers: usize, mapping_idle: bool, recently_relocalized: bool) -> bool {
+    fn need_new_keyframe(
+        &self,
+        map: &Map,
+        frame: &Frame,
+        inliers: usize,
+        mapping_idle: bool,
+        recently_relocalized: bool,
+    ) -> bool {
         let n_kfs = map.keyframe_count();
         let max_frames = self.params.max_frames_between_keyframes;
         if recently_relocalized && n_kfs as u64 > max_frames {
@@ -834,7 +948,8 @@ impl Tracker {
         let since = frame.index.saturating_sub(self.last_kf_frame);
         let c1a = since >= max_frames;
         let c1b = since >= self.params.min_frames_between_keyframes && mapping_idle;
-        let c2 = (inliers as f64) < ref_matches as f64 * self.params.keyframe_ref_ratio && inliers > 15;
+        let c2 =
+            (inliers as f64) < ref_matches as f64 * self.params.keyframe_ref_ratio && inliers > 15;
         (c1a || c1b) && c2 && mapping_idle
     }
 }
@@ -842,7 +957,13 @@ impl Tracker {
 /// Match the map points of keyframe `kf` to the frame's keypoints by
 /// descriptor: best under `th_high` with a ratio test, rotation check.
 /// Returns (frame keypoint, point).
-fn match_keyframe_by_descriptor(map: &Map, kf: KeyFrameId, frame: &Frame, params: &MatcherParams, ratio: f32) -> Vec<(usize, PointId)> {
+fn match_keyframe_by_descriptor(
+    map: &Map,
+    kf: KeyFrameId,
+    frame: &Frame,
+    params: &MatcherParams,
+    ratio: f32,
+) -> Vec<(usize, PointId)> {
     let Some(k) = map.keyframe(kf) else {
         return Vec::new();
     };
@@ -871,10 +992,22 @@ fn match_keyframe_by_descriptor(map: &Map, kf: KeyFrameId, frame: &Frame, params
         }
     }
     // Keep, per frame keypoint, only its best match.
-    let keep: Vec<bool> = out.iter().enumerate().map(|(n, m)| best_for[m.0].1 == n).collect();
-    let filtered: Vec<(usize, PointId, f32)> = out.into_iter().zip(keep).filter(|(_, k)| *k).map(|(m, _)| m).collect();
+    let keep: Vec<bool> = out
+        .iter()
+        .enumerate()
+        .map(|(n, m)| best_for[m.0].1 == n)
+        .collect();
+    let filtered: Vec<(usize, PointId, f32)> = out
+        .into_iter()
+        .zip(keep)
+        .filter(|(_, k)| *k)
+        .map(|(m, _)| m)
+        .collect();
     let rot: Vec<(usize, f32)> = filtered.iter().enumerate().map(|(n, m)| (n, m.2)).collect();
-    let drop: std::collections::HashSet<usize> = matcher::rotation_outliers(&rot, params.histo_bins).into_iter().collect();
+    let drop: std::collections::HashSet<usize> =
+        matcher::rotation_outliers(&rot, params.histo_bins)
+            .into_iter()
+            .collect();
     filtered
         .into_iter()
         .enumerate()
@@ -891,7 +1024,12 @@ fn reset_map(map: &mut Map) {
 /// Bundle adjustment over `kfs` (poses free unless listed in `fixed`) and
 /// all points they see; keyframes outside `kfs` that see those points join
 /// as fixed. Outlier observations are erased. Returns the report.
-pub fn run_bundle_adjustment(map: &mut Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId], params: &BaParams) -> Option<optimize::BaReport> {
+pub fn run_bundle_adjustment(
+    map: &mut Map,
+    kfs: &[KeyFrameId],
+    fixed: &[KeyFrameId],
+    params: &BaParams,
+) -> Option<optimize::BaReport> {
     let problem = build_ba_problem(map, kfs, fixed)?;
     let (mut problem, pose_ids, point_ids) = problem;
     let report = optimize::local_bundle_adjustment(&mut problem, params).ok()?;
@@ -906,7 +1044,8 @@ pub type BaSetup = (BaProblem, Vec<KeyFrameId>, Vec<PointId>);
 /// Build a bundle adjustment over `kfs` (free unless in `fixed`), the
 /// points they see, and every other keyframe seeing those points (fixed).
 pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> Option<BaSetup> {
-    let mut pose_index: std::collections::HashMap<KeyFrameId, usize> = std::collections::HashMap::new();
+    let mut pose_index: std::collections::HashMap<KeyFrameId, usize> =
+        std::collections::HashMap::new();
     let mut poses = Vec::new();
     let mut pose_ids = Vec::new();
     for &kf in kfs {
@@ -921,7 +1060,8 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
         });
         pose_ids.push(kf);
     }
-    let mut point_index: std::collections::HashMap<PointId, usize> = std::collections::HashMap::new();
+    let mut point_index: std::collections::HashMap<PointId, usize> =
+        std::collections::HashMap::new();
     let mut points = Vec::new();
     let mut point_ids = Vec::new();
     for &kf in &pose_ids.clone() {
@@ -953,7 +1093,9 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
                     poses.len() - 1
                 }
             };
-            let Some(kp) = k.keypoints.get(*idx as usize) else { continue };
+            let Some(kp) = k.keypoints.get(*idx as usize) else {
+                continue;
+            };
             observations.push(Observation {
                 pose,
                 point: pi,
@@ -985,7 +1127,13 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
 
 /// Write a solved bundle adjustment back: free poses, points, and erase the
 /// outlier observations.
-pub fn apply_ba_result(map: &mut Map, problem: &BaProblem, pose_ids: &[KeyFrameId], point_ids: &[PointId], outliers: &[bool]) {
+pub fn apply_ba_result(
+    map: &mut Map,
+    problem: &BaProblem,
+    pose_ids: &[KeyFrameId],
+    point_ids: &[PointId],
+    outliers: &[bool],
+) {
     for (i, kf) in pose_ids.iter().enumerate() {
         if problem.poses[i].fixed {
             continue;
@@ -1013,7 +1161,10 @@ pub fn apply_ba_result(map: &mut Map, problem: &BaProblem, pose_ids: &[KeyFrameI
 /// quaternion from a slightly non-orthonormal matrix leave it off unit
 /// length, and the error grows through compositions.
 pub fn renormalized(pose: Isometry3<f64>) -> Isometry3<f64> {
-    Isometry3::from_parts(pose.translation, UnitQuaternion::new_normalize(*pose.rotation.quaternion()))
+    Isometry3::from_parts(
+        pose.translation,
+        UnitQuaternion::new_normalize(*pose.rotation.quaternion()),
+    )
 }
 
 /// The world position of a camera with pose `cam_from_world`.
