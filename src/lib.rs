@@ -34,9 +34,9 @@
 //! | [`matching`] | Hamming matching: brute force, by projection |
 //! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
 //! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
-//! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
-//! | [`shot`] | desired shot from four anchors (warp) and its localisation in the map |
 //! | [`slam`] | map, tracking, local mapping, map file |
+//! | [`shot`] | desired shot from four anchors (warp) and its localisation in the map |
+//! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
 //! | [`vehicle`] | MAVLink link actor, transports, telemetry |
 //! | [`mission`] | mission planning (pure) and upload protocol |
 //!
