@@ -34,6 +34,8 @@
 //! | [`matching`] | Hamming matching: brute force, by projection |
 //! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
 //! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
+//! | [`slam`] | map, tracking, local mapping, map file |
+//! | [`shot`] | desired shot from four anchors (warp) and its localisation in the map |
 //! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
 //! | [`geo`] | map ↔ NED ↔ WGS84: telemetry history, camera mounting, robust Sim(3), targets |
 //! | [`vehicle`] | MAVLink link actor, transports, telemetry |
@@ -56,6 +58,7 @@ pub mod geometry;
 pub mod matching;
 pub mod mission;
 pub mod optimize;
+pub mod shot;
 pub mod slam;
 pub mod vehicle;
 pub mod video;

@@ -58,6 +58,18 @@ enum Command {
     /// frame, placed relative to its reference keyframe after the final
     /// optimisation) and DIR/keyframes.txt, both in the TUM format.
     Slam(SlamArgs),
+
+    /// The desired shot and the camera pose that takes it.
+    ///
+    /// Either four anchors on a keyframe of the map (where the frame's
+    /// corners (0,0), (w-1,0), (w-1,h-1), (0,h-1) should go; the keyframe is
+    /// warped by the perspective transform they define) or a photo taken
+    /// with the map's camera. The shot is localised in the map (ORB,
+    /// candidate keyframes, PnP RANSAC, motion-only refinement, reliability
+    /// gate) and the pose printed as world_from_cam in map coordinates.
+    /// Maps are made with `shotpilot slam DATASET --sequential --save-map FILE`.
+    Shot(ShotArgs),
+
     /// Bag-of-words vocabularies: train one from images, import ORB-SLAM's
     /// ORBvoc.txt, describe one.
     Vocab(vocab_cli::VocabArgs),
@@ -87,6 +99,44 @@ struct RunArgs {
     #[arg(long)]
     no_sim: bool,
     /// Print the final summary as one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args, Debug)]
+struct ShotArgs {
+    /// Map file (from `shotpilot slam --save-map`).
+    #[arg(long, value_name = "FILE")]
+    map: PathBuf,
+    /// Keyframe whose image the anchors are placed on.
+    #[arg(long, value_name = "ID", requires = "anchors", conflicts_with = "photo")]
+    keyframe: Option<u32>,
+    /// The four anchors, pixels of the keyframe: where the frame's top-left,
+    /// top-right, bottom-right and bottom-left corners should go.
+    #[arg(
+        long,
+        value_name = "x1,y1,x2,y2,x3,y3,x4,y4",
+        requires = "keyframe",
+        allow_hyphen_values = true
+    )]
+    anchors: Option<String>,
+    /// A photo of the desired shot, taken with the map's camera.
+    #[arg(long, value_name = "FILE")]
+    photo: Option<PathBuf>,
+    /// Folder for desired_shot.png (and desired_shot_mask.png).
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Candidate keyframes tried.
+    #[arg(long, default_value_t = 5, value_name = "K")]
+    top_k: usize,
+    /// Choose the candidates by a bag-of-words query with the built-in
+    /// vocabulary instead of descriptor matching against every keyframe.
+    #[arg(long)]
+    bow: bool,
+    /// Seed of the RANSAC.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    seed: u64,
+    /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     json: bool,
 }
@@ -312,6 +362,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Eval(args) => cmd_eval(args),
         Command::Slam(args) => cli::slam::run(args),
+        Command::Shot(args) => cli::shot::run(args),
         Command::Vocab(args) => vocab_cli::run(args),
         Command::Mission(cmd) => mission_cli::run(cmd, &config),
         Command::Run(args) => cmd_run(args, config, cli.config.as_deref()),

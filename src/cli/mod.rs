@@ -1,3 +1,4 @@
 //! Bodies of the longer subcommands (the argument types live in `main.rs`).
 
+pub mod shot;
 pub mod slam;

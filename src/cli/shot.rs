@@ -1,0 +1,187 @@
+//! `shotpilot shot`: the desired shot (from anchors on a keyframe, or a
+//! photo) and the camera pose that takes it, in map coordinates.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use nalgebra::Point2;
+use serde_json::json;
+
+use shotpilot::shot::{self, Localization};
+use shotpilot::slam::{KeyFrameId, mapfile};
+
+use crate::ShotArgs;
+
+/// Parses `x1,y1,x2,y2,x3,y3,x4,y4`.
+fn parse_anchors(s: &str) -> Result<[Point2<f64>; 4]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| {
+            t.trim()
+                .parse::<f64>()
+                .with_context(|| format!("anchor value {t:?} is not a number"))
+        })
+        .collect::<Result<_>>()?;
+    if v.len() != 8 {
+        bail!(
+            "--anchors needs 8 numbers (x1,y1,...,x4,y4), got {}",
+            v.len()
+        );
+    }
+    Ok([
+        Point2::new(v[0], v[1]),
+        Point2::new(v[2], v[3]),
+        Point2::new(v[4], v[5]),
+        Point2::new(v[6], v[7]),
+    ])
+}
+
+pub fn run(args: ShotArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let map =
+        mapfile::load(&args.map).with_context(|| format!("loading map {}", args.map.display()))?;
+    let cam = map.camera;
+    let params = shot::Params {
+        localize: shot::LocalizeParams {
+            seed: args.seed,
+            top_k: args.top_k,
+            ..shot::LocalizeParams::default()
+        },
+        ..shot::Params::default()
+    };
+
+    let (image, mask, source) = match (&args.photo, args.keyframe, &args.anchors) {
+        (Some(photo), None, None) => {
+            let img = image::open(photo)
+                .with_context(|| format!("reading photo {}", photo.display()))?
+                .to_luma8();
+            if img.dimensions() != (cam.width, cam.height) {
+                bail!(
+                    "photo {} is {}x{} but the map's camera is {}x{} (same camera required)",
+                    photo.display(),
+                    img.width(),
+                    img.height(),
+                    cam.width,
+                    cam.height
+                );
+            }
+            (img, None, "photo")
+        }
+        (None, Some(id), Some(anchors)) => {
+            let anchors = parse_anchors(anchors)?;
+            let Some(kf) = map.keyframe(KeyFrameId(id)) else {
+                let mut ids: Vec<u32> = map.keyframes().map(|k| k.id.0).collect();
+                ids.sort_unstable();
+                return Err(shot::ShotError::UnknownKeyFrame { id })
+                    .with_context(|| format!("the map's keyframes are {ids:?}"));
+            };
+            let img = kf.image.as_ref().ok_or(shot::ShotError::NoImage { id })?;
+            let d = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)
+                .context("the anchors were refused")?;
+            (d.image, Some(d.mask), "anchors")
+        }
+        _ => bail!("give either --keyframe ID with --anchors, or --photo FILE"),
+    };
+    let t_shot = t0.elapsed().as_secs_f64() * 1e3;
+
+    let mut shot_path = None;
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        let p = dir.join("desired_shot.png");
+        image
+            .save(&p)
+            .with_context(|| format!("writing {}", p.display()))?;
+        if let Some(m) = &mask {
+            let mp = dir.join("desired_shot_mask.png");
+            m.save(&mp)
+                .with_context(|| format!("writing {}", mp.display()))?;
+        }
+        shot_path = Some(p);
+    }
+
+    let t1 = Instant::now();
+    let vocabulary = if args.bow {
+        Some(shotpilot::bow::Vocabulary::builtin().context("loading the built-in vocabulary")?)
+    } else {
+        None
+    };
+    let index = vocabulary.as_ref().map(|v| shot::BowIndex::build(&map, v));
+    let result = shot::localize(
+        &map,
+        &image,
+        mask.as_ref(),
+        index.as_ref(),
+        &params.localize,
+    )?;
+    let t_loc = t1.elapsed().as_secs_f64() * 1e3;
+
+    let shot_path_str = shot_path
+        .as_ref()
+        .map(|p: &PathBuf| p.display().to_string());
+    let value = match &result {
+        Localization::Localized(p) => {
+            let t = p.world_from_cam.translation.vector;
+            let q = p.world_from_cam.rotation;
+            json!({
+                "localized": true,
+                "reason": null,
+                "source": source,
+                "candidates_by": if args.bow { "bow" } else { "descriptors" },
+                "position": [t.x, t.y, t.z],
+                "quaternion": [q.i, q.j, q.k, q.w],
+                "inliers": p.inliers,
+                "matches": p.matches,
+                "inlier_ratio": p.inlier_ratio,
+                "reprojection_rmse_px": p.reprojection_rmse_px,
+                "median_depth": p.median_depth,
+                "agreeing_candidates": p.agreeing_candidates,
+                "keyframe_id": p.keyframe_id.0,
+                "desired_shot": shot_path_str,
+                "shot_ms": t_shot,
+                "localize_ms": t_loc,
+            })
+        }
+        Localization::NotLocalized { reason } => json!({
+            "localized": false,
+            "reason": reason.to_string(),
+            "source": source,
+            "position": null,
+            "quaternion": null,
+            "inliers": null,
+            "reprojection_rmse_px": null,
+            "keyframe_id": null,
+            "desired_shot": shot_path_str,
+            "shot_ms": t_shot,
+            "localize_ms": t_loc,
+        }),
+    };
+    if args.json {
+        println!("{value}");
+    } else {
+        match &result {
+            Localization::Localized(p) => {
+                let t = p.world_from_cam.translation.vector;
+                let q = p.world_from_cam.rotation;
+                println!(
+                    "localised through keyframe {}: position [{:.4}, {:.4}, {:.4}], quaternion [{:.5}, {:.5}, {:.5}, {:.5}] (world_from_cam)",
+                    p.keyframe_id.0, t.x, t.y, t.z, q.i, q.j, q.k, q.w
+                );
+                println!(
+                    "{} inliers of {} pairs, reprojection RMSE {:.3} px, median depth {:.3}, {} agreeing candidates",
+                    p.inliers,
+                    p.matches,
+                    p.reprojection_rmse_px,
+                    p.median_depth,
+                    p.agreeing_candidates
+                );
+            }
+            Localization::NotLocalized { reason } => println!("not localised: {reason}"),
+        }
+        if let Some(p) = &shot_path {
+            println!("desired shot written to {}", p.display());
+        }
+        println!("desired shot {t_shot:.1} ms (incl. map load), localisation {t_loc:.1} ms");
+    }
+    Ok(())
+}

@@ -1,0 +1,735 @@
+//! Localisation of a desired shot in the map: which camera pose
+//! (`world_from_cam`, map coordinates) takes it.
+//!
+//! 1. ORB on the shot, with the validity mask (the black fill never yields a
+//!    feature).
+//! 2. Candidate keyframes: with a [`BowIndex`], the top k of a bag-of-words
+//!    query of the shot against the keyframe database; without one, every
+//!    keyframe is ranked by descriptor matching (one brute-force pass per
+//!    keyframe, fine for maps of up to a few hundred keyframes). Each
+//!    candidate's map points are matched by descriptor (nearest neighbour
+//!    under a Hamming bound, ratio test, one-to-one).
+//! 3. Per candidate: PnP RANSAC on its matches; then the points of the
+//!    candidate and its best covisible keyframes are projected with that pose
+//!    and matched in the shot (search by projection), and motion-only bundle
+//!    adjustment refines the pose on all pairs (twice, the second time with a
+//!    tighter window).
+//! 4. A reliability gate: enough inliers, a small reprojection RMSE, a high
+//!    inlier ratio, the inliers in front of the camera, and agreement with
+//!    every other candidate that passes the gate too. Failing it gives
+//!    [`Localization::NotLocalized`] with the reason; no pose is returned then.
+
+use std::collections::HashSet;
+
+use image::GrayImage;
+use nalgebra::{Isometry3, Point2, Point3};
+
+use super::ShotError;
+use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
+use crate::features::{self, Descriptor, OrbExtractor, hamming};
+use crate::geometry::se3::rotation_angle_between;
+use crate::geometry::{PnpParams, solve_pnp_ransac};
+use crate::optimize::{Intrinsics, PoseObservation, PoseParams, optimize_pose};
+use crate::slam::grid::{Bounds, FeatureGrid};
+use crate::slam::matcher::{MatcherParams, SearchTarget, project_point, search_local_points};
+use crate::slam::{KeyFrameId, Map, PointId};
+
+/// Thresholds of the reliability gate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GateParams {
+    /// Fewest inliers after refinement.
+    pub min_inliers: usize,
+    /// Largest RMSE of the inliers' reprojection errors, pixels.
+    pub max_rmse_px: f64,
+    /// Smallest fraction of the refined pairs that are inliers.
+    pub min_inlier_ratio: f64,
+    /// Smallest fraction of the inliers lying in front of the camera.
+    pub min_in_front_fraction: f64,
+    /// Largest distance between the positions of two gated candidates, as a
+    /// fraction of the scene's median depth.
+    pub max_disagreement_depth_fraction: f64,
+    /// Largest angle between the orientations of two gated candidates, degrees.
+    pub max_disagreement_deg: f64,
+}
+
+impl Default for GateParams {
+    fn default() -> Self {
+        GateParams {
+            min_inliers: 30,
+            max_rmse_px: 3.0,
+            min_inlier_ratio: 0.5,
+            min_in_front_fraction: 0.99,
+            max_disagreement_depth_fraction: 0.05,
+            max_disagreement_deg: 2.0,
+        }
+    }
+}
+
+/// Every tunable number of the localisation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LocalizeParams {
+    /// ORB settings for the shot (scale factor and levels are taken from the map).
+    pub features: features::Params,
+    /// Candidate keyframes kept.
+    pub top_k: usize,
+    /// Largest Hamming distance of a descriptor match against a candidate.
+    pub max_hamming: u32,
+    /// Ratio test: best distance below `ratio` times the second best.
+    pub ratio: f32,
+    /// Fewest descriptor matches for a keyframe to be tried.
+    pub min_candidate_matches: usize,
+    /// Covisible keyframes of a candidate whose points are projected.
+    pub covisible: usize,
+    /// Search windows (pixels at level 0) of the projection rounds.
+    pub projection_radius_px: [f64; 2],
+    /// Smallest cosine between the viewing ray and a point's mean viewing
+    /// direction for it to be projected.
+    pub min_view_cos: f64,
+    /// Matcher settings for the search by projection.
+    pub matcher: MatcherParams,
+    /// PnP RANSAC settings.
+    pub pnp: PnpParams,
+    /// Motion-only bundle adjustment settings.
+    pub pose: PoseParams,
+    /// The reliability gate.
+    pub gate: GateParams,
+    /// Seed of the RANSAC.
+    pub seed: u64,
+}
+
+impl Default for LocalizeParams {
+    fn default() -> Self {
+        let features = features::Params {
+            n_features: 1500,
+            ..features::Params::default()
+        };
+        let pnp = PnpParams {
+            min_inliers: 12,
+            max_iterations: 2000,
+            ..PnpParams::default()
+        };
+        LocalizeParams {
+            features,
+            top_k: 5,
+            max_hamming: 50,
+            ratio: 0.8,
+            min_candidate_matches: 15,
+            covisible: 10,
+            projection_radius_px: [5.0, 2.5],
+            min_view_cos: 0.5,
+            matcher: MatcherParams {
+                th_high: 64,
+                ..MatcherParams::default()
+            },
+            pnp,
+            pose: PoseParams::default(),
+            gate: GateParams::default(),
+            seed: 1,
+        }
+    }
+}
+
+/// A localised desired shot.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ShotPose {
+    /// The camera that takes the shot, map coordinates.
+    pub world_from_cam: Isometry3<f64>,
+    /// The candidate keyframe the pose was found through.
+    pub keyframe_id: KeyFrameId,
+    /// Inlier 2D-3D pairs after refinement.
+    pub inliers: usize,
+    /// 2D-3D pairs that went into the refinement.
+    pub matches: usize,
+    /// RMSE of the inliers' reprojection errors, pixels (undistorted).
+    pub reprojection_rmse_px: f64,
+    /// `inliers / matches`.
+    pub inlier_ratio: f64,
+    /// Fraction of the inliers in front of the camera.
+    pub in_front_fraction: f64,
+    /// Median depth of the inliers, map units.
+    pub median_depth: f64,
+    /// Other candidates that passed the gate and agree with this pose.
+    pub agreeing_candidates: usize,
+}
+
+/// Why a shot was not localised.
+#[derive(Debug, Clone, PartialEq)]
+pub enum NotLocalizedReason {
+    /// The shot gave too few ORB features.
+    TooFewFeatures {
+        /// Features found.
+        found: usize,
+        /// Needed.
+        needed: usize,
+    },
+    /// The map has no keyframe with map points.
+    NoCandidate,
+    /// No candidate keyframe has enough descriptor matches.
+    TooFewMatches {
+        /// Matches of the best candidate.
+        found: usize,
+        /// Needed.
+        needed: usize,
+    },
+    /// PnP found no pose with enough inliers on any candidate.
+    PnpFailed {
+        /// Candidates tried.
+        candidates: usize,
+    },
+    /// The best pose has too few inliers.
+    TooFewInliers {
+        /// Inliers of the best pose.
+        found: usize,
+        /// Needed.
+        needed: usize,
+    },
+    /// The inliers' reprojection RMSE is too large.
+    HighReprojectionError {
+        /// RMSE, pixels.
+        rmse_px: f64,
+        /// Allowed maximum.
+        max_px: f64,
+    },
+    /// Too small a fraction of the pairs are inliers.
+    LowInlierRatio {
+        /// The ratio.
+        ratio: f64,
+        /// Required minimum.
+        min: f64,
+    },
+    /// Inliers lie behind the camera.
+    PointsBehind {
+        /// Fraction in front.
+        in_front_fraction: f64,
+        /// Required minimum.
+        min: f64,
+    },
+    /// Two candidates pass the gate with different poses.
+    CandidatesDisagree {
+        /// The other keyframe.
+        other: KeyFrameId,
+        /// Distance between the positions, as a fraction of the median depth.
+        position_depth_fraction: f64,
+        /// Angle between the orientations, degrees.
+        angle_deg: f64,
+    },
+}
+
+impl std::fmt::Display for NotLocalizedReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        use NotLocalizedReason::*;
+        match self {
+            TooFewFeatures { found, needed } => write!(f, "too few features ({found} < {needed})"),
+            NoCandidate => write!(f, "no candidate keyframe"),
+            TooFewMatches { found, needed } => write!(f, "too few matches ({found} < {needed})"),
+            PnpFailed { candidates } => write!(f, "PnP failed on all {candidates} candidates"),
+            TooFewInliers { found, needed } => write!(f, "too few inliers ({found} < {needed})"),
+            HighReprojectionError { rmse_px, max_px } => {
+                write!(f, "reprojection RMSE {rmse_px:.2} px > {max_px:.2} px")
+            }
+            LowInlierRatio { ratio, min } => write!(f, "inlier ratio {ratio:.2} < {min:.2}"),
+            PointsBehind {
+                in_front_fraction,
+                min,
+            } => {
+                write!(
+                    f,
+                    "only {in_front_fraction:.3} of the inliers in front (< {min:.3})"
+                )
+            }
+            CandidatesDisagree {
+                other,
+                position_depth_fraction,
+                angle_deg,
+            } => write!(
+                f,
+                "candidate keyframe {} disagrees by {:.3} x median depth and {angle_deg:.2} deg",
+                other.0, position_depth_fraction
+            ),
+        }
+    }
+}
+
+/// The outcome of [`localize`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Localization {
+    /// The shot's camera pose, through the gate.
+    Localized(ShotPose),
+    /// Not localised, and why.
+    NotLocalized {
+        /// Why.
+        reason: NotLocalizedReason,
+    },
+}
+
+/// A bag-of-words index of a map's keyframes: the vocabulary and a database
+/// holding every keyframe's BoW vector.
+pub struct BowIndex<'v> {
+    vocabulary: &'v Vocabulary,
+    database: KeyFrameDatabase,
+}
+
+impl<'v> BowIndex<'v> {
+    /// Indexes every keyframe of `map` (its descriptors through `vocabulary`).
+    pub fn build(map: &Map, vocabulary: &'v Vocabulary) -> Self {
+        let mut database = KeyFrameDatabase::new(vocabulary.word_count());
+        for kf in map.keyframes() {
+            let v: BowVector = vocabulary.transform(&kf.descriptors);
+            // Ids are unique in a map, so adding cannot collide.
+            let _ = database.add(bow::KeyFrameId(kf.id.0 as u64), v);
+        }
+        BowIndex {
+            vocabulary,
+            database,
+        }
+    }
+
+    /// Keyframes indexed.
+    pub fn len(&self) -> usize {
+        self.database.len()
+    }
+
+    /// True when no keyframe is indexed.
+    pub fn is_empty(&self) -> bool {
+        self.database.is_empty()
+    }
+}
+
+/// For every shot descriptor, its best match among `cand` (point, descriptor)
+/// under `max_d` and the ratio test; one-to-one on points (the closest wins).
+fn match_descriptors(
+    shot: &[Descriptor],
+    cand: &[(PointId, Descriptor)],
+    max_d: u32,
+    ratio: f32,
+) -> Vec<(usize, PointId)> {
+    let mut m: Vec<(u32, usize, PointId)> = Vec::new();
+    for (i, d) in shot.iter().enumerate() {
+        let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+        for (j, (_, c)) in cand.iter().enumerate() {
+            let h = hamming(d, c);
+            if h < b1 {
+                b2 = b1;
+                b1 = h;
+                bi = j;
+            } else if h < b2 {
+                b2 = h;
+            }
+        }
+        if b1 <= max_d && (b2 == u32::MAX || (b1 as f32) < ratio * b2 as f32) {
+            m.push((b1, i, cand[bi].0));
+        }
+    }
+    m.sort_unstable_by_key(|x| x.0);
+    let mut used = HashSet::new();
+    m.into_iter()
+        .filter(|(_, _, p)| used.insert(*p))
+        .map(|(_, i, p)| (i, p))
+        .collect()
+}
+
+/// One candidate's refined pose and its statistics (before the gate).
+struct CandidatePose {
+    kf: KeyFrameId,
+    cam_from_world: Isometry3<f64>,
+    inliers: usize,
+    matches: usize,
+    rmse: f64,
+    in_front: f64,
+    median_depth: f64,
+}
+
+/// Localises a desired shot (see the module documentation). `mask` (same
+/// size as the shot, 0 = no data) keeps features off the black fill.
+///
+/// Errors: [`ShotError::ImageSize`] when the shot or the mask does not have
+/// the map camera's size; [`ShotError::Features`] when the extractor refuses
+/// the settings.
+pub fn localize(
+    map: &Map,
+    shot: &GrayImage,
+    mask: Option<&GrayImage>,
+    bow_index: Option<&BowIndex<'_>>,
+    params: &LocalizeParams,
+) -> Result<Localization, ShotError> {
+    let cam = &map.camera;
+    for img in std::iter::once(shot).chain(mask) {
+        if img.dimensions() != (cam.width, cam.height) {
+            return Err(ShotError::ImageSize {
+                width: img.width(),
+                height: img.height(),
+                expected_width: cam.width,
+                expected_height: cam.height,
+            });
+        }
+    }
+    let mut fparams = params.features;
+    fparams.scale_factor = map.scale.scale_factor as f32;
+    fparams.n_levels = map.scale.n_levels();
+    let mut extractor = OrbExtractor::new(fparams).map_err(|e| ShotError::Features {
+        message: e.to_string(),
+    })?;
+    let feats = match mask {
+        Some(m) => {
+            extractor
+                .extract_masked(shot, m, Some(cam))
+                .map_err(|e| ShotError::Features {
+                    message: e.to_string(),
+                })?
+        }
+        None => extractor.extract(shot, Some(cam)),
+    };
+    let needed = params.min_candidate_matches.max(params.gate.min_inliers);
+    if feats.len() < needed {
+        return Ok(not(NotLocalizedReason::TooFewFeatures {
+            found: feats.len(),
+            needed,
+        }));
+    }
+
+    // Candidates by descriptor matching against each keyframe's map points.
+    let mut ranked: Vec<(KeyFrameId, Vec<(usize, PointId)>)> = Vec::new();
+    let mut pts: Vec<(PointId, Descriptor)> = Vec::new();
+    let candidates: Vec<KeyFrameId> = match bow_index {
+        Some(index) => {
+            let q = index.vocabulary.transform(&feats.descriptors);
+            index
+                .database
+                .query(&q, params.top_k.max(1))
+                .into_iter()
+                .filter_map(|r| u32::try_from(r.id.0).ok().map(KeyFrameId))
+                .collect()
+        }
+        None => map.keyframes().map(|k| k.id).collect(),
+    };
+    for kf in candidates.iter().filter_map(|id| map.keyframe(*id)) {
+        pts.clear();
+        for p in kf.points.iter().flatten() {
+            if let Some(mp) = map.point(*p) {
+                pts.push((*p, mp.descriptor));
+            }
+        }
+        if pts.is_empty() {
+            continue;
+        }
+        let m = match_descriptors(&feats.descriptors, &pts, params.max_hamming, params.ratio);
+        ranked.push((kf.id, m));
+    }
+    if ranked.is_empty() {
+        return Ok(not(NotLocalizedReason::NoCandidate));
+    }
+    ranked.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(&b.0)));
+    ranked.truncate(params.top_k.max(1));
+    let best_count = ranked[0].1.len();
+    if best_count < params.min_candidate_matches {
+        return Ok(not(NotLocalizedReason::TooFewMatches {
+            found: best_count,
+            needed: params.min_candidate_matches,
+        }));
+    }
+
+    let intr = Intrinsics {
+        fx: cam.fx,
+        fy: cam.fy,
+        cx: cam.cx,
+        cy: cam.cy,
+    };
+    let bounds = Bounds::of(cam);
+    let grid = FeatureGrid::new(&feats.keypoints, bounds);
+    let mut poses: Vec<CandidatePose> = Vec::new();
+    let mut tried = 0;
+    for (kf_id, matches) in &ranked {
+        if matches.len() < params.min_candidate_matches {
+            continue;
+        }
+        tried += 1;
+        if let Some(c) =
+            refine_candidate(map, *kf_id, matches, &feats, &grid, &bounds, &intr, params)
+        {
+            poses.push(c);
+        }
+    }
+    if poses.is_empty() {
+        return Ok(not(NotLocalizedReason::PnpFailed { candidates: tried }));
+    }
+    poses.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rmse.total_cmp(&b.rmse)));
+    let g = &params.gate;
+    let gate = |c: &CandidatePose| -> Option<NotLocalizedReason> {
+        let ratio = c.inliers as f64 / c.matches.max(1) as f64;
+        if c.inliers < g.min_inliers {
+            Some(NotLocalizedReason::TooFewInliers {
+                found: c.inliers,
+                needed: g.min_inliers,
+            })
+        } else if c.rmse.is_nan() || c.rmse > g.max_rmse_px {
+            Some(NotLocalizedReason::HighReprojectionError {
+                rmse_px: c.rmse,
+                max_px: g.max_rmse_px,
+            })
+        } else if ratio < g.min_inlier_ratio {
+            Some(NotLocalizedReason::LowInlierRatio {
+                ratio,
+                min: g.min_inlier_ratio,
+            })
+        } else if c.in_front < g.min_in_front_fraction {
+            Some(NotLocalizedReason::PointsBehind {
+                in_front_fraction: c.in_front,
+                min: g.min_in_front_fraction,
+            })
+        } else {
+            None
+        }
+    };
+    let best = &poses[0];
+    if let Some(reason) = gate(best) {
+        return Ok(not(reason));
+    }
+    let best_wfc = best.cam_from_world.inverse();
+    let mut agreeing = 0;
+    for other in poses.iter().skip(1) {
+        if gate(other).is_some() {
+            continue;
+        }
+        let owfc = other.cam_from_world.inverse();
+        let dist = (owfc.translation.vector - best_wfc.translation.vector).norm()
+            / best.median_depth.max(1e-12);
+        let ang = rotation_angle_between(&owfc.rotation, &best_wfc.rotation).to_degrees();
+        let agrees = dist <= g.max_disagreement_depth_fraction && ang <= g.max_disagreement_deg;
+        if !agrees {
+            return Ok(not(NotLocalizedReason::CandidatesDisagree {
+                other: other.kf,
+                position_depth_fraction: dist,
+                angle_deg: ang,
+            }));
+        }
+        agreeing += 1;
+    }
+    Ok(Localization::Localized(ShotPose {
+        world_from_cam: best_wfc,
+        keyframe_id: best.kf,
+        inliers: best.inliers,
+        matches: best.matches,
+        reprojection_rmse_px: best.rmse,
+        inlier_ratio: best.inliers as f64 / best.matches.max(1) as f64,
+        in_front_fraction: best.in_front,
+        median_depth: best.median_depth,
+        agreeing_candidates: agreeing,
+    }))
+}
+
+fn not(reason: NotLocalizedReason) -> Localization {
+    Localization::NotLocalized { reason }
+}
+
+/// PnP on a candidate's matches, then projection rounds with motion-only BA.
+#[allow(clippy::too_many_arguments)]
+fn refine_candidate(
+    map: &Map,
+    kf_id: KeyFrameId,
+    matches: &[(usize, PointId)],
+    feats: &features::Features,
+    grid: &FeatureGrid,
+    bounds: &Bounds,
+    intr: &Intrinsics,
+    params: &LocalizeParams,
+) -> Option<CandidatePose> {
+    let kf = map.keyframe(kf_id)?;
+    let mut pw: Vec<Point3<f64>> = Vec::with_capacity(matches.len());
+    let mut xn: Vec<Point2<f64>> = Vec::with_capacity(matches.len());
+    let mut pairs: Vec<(usize, PointId)> = Vec::with_capacity(matches.len());
+    for &(i, p) in matches {
+        let Some(mp) = map.point(p) else { continue };
+        let k = &feats.keypoints[i];
+        pw.push(mp.position);
+        xn.push(Point2::new(
+            (k.ux as f64 - intr.cx) / intr.fx,
+            (k.uy as f64 - intr.cy) / intr.fy,
+        ));
+        pairs.push((i, p));
+    }
+    let pnp =
+        solve_pnp_ransac(&pw, &xn, intr.fx, &params.pnp, params.seed ^ kf_id.0 as u64).ok()?;
+    let mut cam_from_world = pnp.cam_from_world;
+    // Slots: keypoint -> point, seeded with the PnP inliers.
+    let mut slots: Vec<Option<PointId>> = vec![None; feats.len()];
+    for (k, &(i, p)) in pairs.iter().enumerate() {
+        if pnp.inliers[k] {
+            slots[i] = Some(p);
+        }
+    }
+    // The local map: points of the candidate and its best covisible keyframes.
+    let mut local: Vec<PointId> = Vec::new();
+    let mut seen: HashSet<PointId> = HashSet::new();
+    for id in std::iter::once(kf_id).chain(kf.best_covisible(params.covisible)) {
+        if let Some(k) = map.keyframe(id) {
+            for p in k.points.iter().flatten() {
+                if seen.insert(*p) {
+                    local.push(*p);
+                }
+            }
+        }
+    }
+    let mut report = None;
+    for &radius in &params.projection_radius_px {
+        let used: HashSet<PointId> = slots.iter().flatten().copied().collect();
+        let center = cam_from_world.inverse().translation.vector;
+        let projected: Vec<_> = local
+            .iter()
+            .filter(|p| !used.contains(p))
+            .filter_map(|p| {
+                project_point(
+                    map,
+                    *p,
+                    &cam_from_world,
+                    &center,
+                    bounds,
+                    params.min_view_cos,
+                )
+            })
+            .collect();
+        let target = SearchTarget {
+            keypoints: &feats.keypoints,
+            descriptors: &feats.descriptors,
+            grid,
+            points: &slots,
+        };
+        let found = search_local_points(
+            &target,
+            &projected,
+            map,
+            &map.scale,
+            radius,
+            &params.matcher,
+        );
+        for (i, p) in found {
+            slots[i] = Some(p);
+        }
+        let mut obs = Vec::new();
+        let mut obs_slot = Vec::new();
+        for (i, s) in slots.iter().enumerate() {
+            if let Some(p) = s
+                && let Some(mp) = map.point(*p)
+            {
+                let k = &feats.keypoints[i];
+                obs.push(PoseObservation {
+                    p_world: mp.position,
+                    uv: Point2::new(k.ux as f64, k.uy as f64),
+                    inv_sigma2: map
+                        .scale
+                        .inv_level_sigma2
+                        .get(k.octave as usize)
+                        .copied()
+                        .unwrap_or(1.0),
+                });
+                obs_slot.push(i);
+            }
+        }
+        let r = optimize_pose(cam_from_world, &obs, intr, &params.pose).ok()?;
+        cam_from_world = r.cam_from_world;
+        // Drop the outliers from the slots so the next round can re-match them.
+        for (k, &i) in obs_slot.iter().enumerate() {
+            if !r.inliers[k] {
+                slots[i] = None;
+            }
+        }
+        report = Some((r, obs));
+    }
+    let (r, obs) = report?;
+    let mut sq = 0.0;
+    let mut n_in = 0usize;
+    let mut in_front = 0usize;
+    let mut depths = Vec::new();
+    for (o, inl) in obs.iter().zip(&r.inliers) {
+        if !inl {
+            continue;
+        }
+        n_in += 1;
+        let pc = cam_from_world * o.p_world;
+        if pc.z > 0.0 {
+            in_front += 1;
+            let uv = intr.project(&pc.coords);
+            sq += (uv - o.uv).norm_squared();
+            depths.push(pc.z);
+        } else {
+            sq += f64::INFINITY;
+        }
+    }
+    if n_in == 0 {
+        return None;
+    }
+    depths.sort_by(f64::total_cmp);
+    let median_depth = depths
+        .get(depths.len().saturating_sub(1) / 2)
+        .copied()
+        .unwrap_or(f64::NAN);
+    Some(CandidatePose {
+        kf: kf_id,
+        cam_from_world,
+        inliers: n_in,
+        matches: obs.len(),
+        rmse: (sq / n_in as f64).sqrt(),
+        in_front: in_front as f64 / n_in as f64,
+        median_depth,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Camera, Distortion};
+    use crate::slam::ScaleInfo;
+
+    fn empty_map() -> Map {
+        let cam = Camera::new(
+            320,
+            240,
+            [300.0, 300.0, 160.0, 120.0],
+            Distortion::default(),
+        )
+        .unwrap_or_else(|e| panic!("camera: {e}"));
+        Map::new(cam, ScaleInfo::new(1.2, 8))
+    }
+
+    /// A textured image with plenty of corners.
+    fn checker(w: u32, h: u32) -> GrayImage {
+        GrayImage::from_fn(w, h, |x, y| {
+            let v = ((x / 9 + y / 7) % 2) as u8 * 180 + ((x * 31 + y * 17) % 37) as u8;
+            image::Luma([v])
+        })
+    }
+
+    #[test]
+    fn wrong_sizes_are_errors() {
+        let map = empty_map();
+        let p = LocalizeParams::default();
+        assert!(matches!(
+            localize(&map, &checker(640, 480), None, None, &p),
+            Err(ShotError::ImageSize { width: 640, .. })
+        ));
+        let mask = GrayImage::from_pixel(100, 100, image::Luma([255]));
+        assert!(matches!(
+            localize(&map, &checker(320, 240), Some(&mask), None, &p),
+            Err(ShotError::ImageSize { width: 100, .. })
+        ));
+    }
+
+    #[test]
+    fn empty_map_gives_no_candidate_and_blank_shot_too_few_features() {
+        let map = empty_map();
+        let p = LocalizeParams::default();
+        assert_eq!(
+            localize(&map, &checker(320, 240), None, None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::NoCandidate
+            })
+        );
+        // A fully masked shot yields no feature at all.
+        let mask = GrayImage::new(320, 240);
+        assert!(matches!(
+            localize(&map, &checker(320, 240), Some(&mask), None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::TooFewFeatures { found: 0, .. }
+            })
+        ));
+    }
+}

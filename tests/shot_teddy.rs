@@ -1,0 +1,400 @@
+//! The must-show experiment of the desired shot on real data: anchors that a
+//! pure camera rotation `R` would give, `anchor_i = distort(K·R·K⁻¹·undistort(corner_i))`,
+//! placed on keyframes of a map of TUM fr3/teddy (100 frames). The shot they
+//! describe is taken from the keyframe's position with orientation
+//! `R_kf·R`; the localisation must find it within 0.5 degree and 2 % of the
+//! keyframe's median scene depth, for 20 random rotations up to 15 degrees.
+//!
+//! Needs ../shared/data/tum_fr3_teddy_100 (skips with a message otherwise).
+//! Run with `--nocapture` to see the table of errors.
+
+use std::path::Path;
+use std::sync::{Arc, OnceLock};
+
+use nalgebra::{Isometry3, Point2, Translation3, Unit, UnitQuaternion, Vector3};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use shotpilot::bow::Vocabulary;
+use shotpilot::eval::{StampedPose, Trajectory, associate, umeyama};
+use shotpilot::shot::{self, BowIndex, Localization, frame_corners};
+use shotpilot::slam::{self, Map, Slam, mapfile};
+use shotpilot::video::dataset::Dataset;
+
+/// The dataset, relative to the repository (a worktree sits one level deeper).
+fn data_dir() -> Option<std::path::PathBuf> {
+    ["../shared/data", "../../shared/data"]
+        .iter()
+        .map(|rel| {
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join(rel)
+                .join("tum_fr3_teddy_100")
+        })
+        .find(|d| d.join("rgb.txt").is_file())
+}
+
+fn build_map(dir: &Path, max_frames: usize) -> anyhow::Result<Map> {
+    let ds = Dataset::open(dir)?;
+    let params = slam::Params {
+        sequential: true,
+        ..slam::Params::default()
+    };
+    let mut system = Slam::new(ds.camera, params)?;
+    for i in 0..ds.len().min(max_frames) {
+        let f = ds.frame(i)?;
+        system.process(f.index as u64, f.timestamp, Arc::new(f.image));
+    }
+    let run = system.finish();
+    // Through the map file, as the CLI reads it (JPEG keyframe images).
+    let tmp = tempfile::tempdir()?;
+    let path = tmp.path().join("teddy.map");
+    mapfile::save(&run.map, &path)?;
+    Ok(mapfile::load(&path)?)
+}
+
+/// The map of all 100 frames, built once for the tests of this file.
+fn full_map(dir: &Path) -> anyhow::Result<&'static Map> {
+    static MAP: OnceLock<Result<Map, String>> = OnceLock::new();
+    MAP.get_or_init(|| build_map(dir, usize::MAX).map_err(|e| format!("{e:#}")))
+        .as_ref()
+        .map_err(|e| anyhow::anyhow!("{e}"))
+}
+
+/// A rotation with a uniformly random axis and an angle uniform in [0, max].
+fn random_rotation(rng: &mut StdRng, max_deg: f64) -> UnitQuaternion<f64> {
+    loop {
+        let v = Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        );
+        let n = v.norm();
+        if n > 0.1 && n <= 1.0 {
+            let angle = rng.random_range(0.0..max_deg).to_radians();
+            return UnitQuaternion::from_axis_angle(&Unit::new_normalize(v), angle);
+        }
+    }
+}
+
+#[test]
+fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()> {
+    let Some(dir) = data_dir() else {
+        eprintln!("skipped: ../shared/data/tum_fr3_teddy_100 not present");
+        return Ok(());
+    };
+    let map = full_map(&dir)?;
+    let cam = map.camera;
+    let mut kfs: Vec<_> = map
+        .keyframes()
+        .filter(|k| k.image.is_some())
+        .map(|k| k.id)
+        .collect();
+    kfs.sort();
+    assert!(kfs.len() >= 10, "only {} keyframes", kfs.len());
+    let params = shot::Params::default();
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(map, &vocabulary);
+    let mut failures = Vec::new();
+    for (mode, bow_index) in [("descriptor ranking", None), ("bow query", Some(&index))] {
+        let mut rng = StdRng::seed_from_u64(20261121);
+        println!(
+            "[{mode}] trial  kf  R_deg  localized  inliers  ratio  rmse_px  rot_err_deg  pos_err_%depth"
+        );
+        let mut worst_rot: f64 = 0.0;
+        let mut worst_pos: f64 = 0.0;
+        let mut ms = Vec::new();
+        for trial in 0..20 {
+            let kf_id = kfs[(trial * kfs.len()) / 20];
+            let Some(kf) = map.keyframe(kf_id) else {
+                anyhow::bail!("keyframe vanished");
+            };
+            let Some(img) = kf.image.as_ref() else {
+                anyhow::bail!("no image");
+            };
+            let r = random_rotation(&mut rng, 15.0);
+            // kf_from_shot = R: the shot's ray d is R·d in the keyframe.
+            let corners = frame_corners(cam.width, cam.height);
+            let mut anchors = [Point2::origin(); 4];
+            for (a, c) in anchors.iter_mut().zip(&corners) {
+                let ray = cam.unproject(*c).into_inner();
+                let Some(px) = cam.project(&(r * ray)) else {
+                    anyhow::bail!("anchor behind the camera");
+                };
+                *a = px;
+            }
+            let desired = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)?;
+            let t0 = std::time::Instant::now();
+            let out = shot::localize(
+                map,
+                &desired.image,
+                Some(&desired.mask),
+                bow_index,
+                &params.localize,
+            )?;
+            ms.push(t0.elapsed().as_secs_f64() * 1e3);
+            let world_from_kf = kf.world_from_cam();
+            let expected = world_from_kf * Isometry3::from_parts(Translation3::identity(), r);
+            let depth = map.median_depth(kf_id).unwrap_or(f64::NAN);
+            match out {
+                Localization::Localized(p) => {
+                    let rot_err = p
+                        .world_from_cam
+                        .rotation
+                        .angle_to(&expected.rotation)
+                        .to_degrees();
+                    let pos_err =
+                        (p.world_from_cam.translation.vector - expected.translation.vector).norm()
+                            / depth
+                            * 100.0;
+                    println!(
+                        "{trial:5} {:3} {:6.2}  yes       {:6}  {:5.2}  {:7.3}  {:11.4}  {:14.3}",
+                        kf_id.0,
+                        r.angle().to_degrees(),
+                        p.inliers,
+                        p.inlier_ratio,
+                        p.reprojection_rmse_px,
+                        rot_err,
+                        pos_err
+                    );
+                    worst_rot = worst_rot.max(rot_err);
+                    worst_pos = worst_pos.max(pos_err);
+                    if rot_err > 0.5 || pos_err > 2.0 {
+                        failures.push(format!(
+                            "[{mode}] trial {trial}: rot {rot_err:.3} deg, pos {pos_err:.3} %"
+                        ));
+                    }
+                }
+                Localization::NotLocalized { reason } => {
+                    println!(
+                        "{trial:5} {:3} {:6.2}  no: {reason}",
+                        kf_id.0,
+                        r.angle().to_degrees()
+                    );
+                    failures.push(format!("[{mode}] trial {trial}: not localised: {reason}"));
+                }
+            }
+        }
+        println!(
+            "[{mode}] worst rotation error {worst_rot:.4} deg, worst position error {worst_pos:.3} % of median depth"
+        );
+        ms.sort_by(f64::total_cmp);
+        println!(
+            "[{mode}] localisation time median {:.1} ms, max {:.1} ms (not asserted)",
+            ms[ms.len() / 2],
+            ms[ms.len() - 1]
+        );
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+    Ok(())
+}
+
+/// Shots of places the map never saw (EuRoC's machine hall, cropped to the
+/// map camera's size, and seeded noise) must come back "not localised".
+#[test]
+fn shots_outside_the_map_are_not_localised() -> anyhow::Result<()> {
+    let Some(dir) = data_dir() else {
+        eprintln!("skipped: ../shared/data/tum_fr3_teddy_100 not present");
+        return Ok(());
+    };
+    let Some(euroc_dir) = dir.parent().map(|p| p.join("euroc_v101_static95")) else {
+        anyhow::bail!("no parent");
+    };
+    let map = full_map(&dir)?;
+    let cam = map.camera;
+    let params = shot::LocalizeParams::default();
+    let mut shots = Vec::new();
+    if euroc_dir.join("rgb.txt").is_file() {
+        let euroc = Dataset::open(&euroc_dir)?;
+        for i in [0, 30, 60, 90] {
+            let f = euroc.frame(i.min(euroc.len() - 1))?;
+            let (w, h) = f.image.dimensions();
+            assert!(w >= cam.width && h >= cam.height);
+            let x0 = (w - cam.width) / 2;
+            let y0 = (h - cam.height) / 2;
+            let crop =
+                image::imageops::crop_imm(&f.image, x0, y0, cam.width, cam.height).to_image();
+            shots.push((format!("euroc frame {i}"), crop));
+        }
+    } else {
+        eprintln!("euroc_v101_static95 not present: noise only");
+    }
+    let mut rng = StdRng::seed_from_u64(7);
+    let noise = image::GrayImage::from_fn(cam.width, cam.height, |_, _| {
+        image::Luma([rng.random::<u8>()])
+    });
+    shots.push(("noise".to_string(), noise));
+    let mut wrong = Vec::new();
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(map, &vocabulary);
+    for (mode, bow_index) in [("descriptor ranking", None), ("bow query", Some(&index))] {
+        for (name, img) in &shots {
+            match shot::localize(map, img, None, bow_index, &params)? {
+                Localization::Localized(p) => {
+                    println!(
+                        "[{mode}] {name}: LOCALISED with {} inliers (wrong)",
+                        p.inliers
+                    );
+                    wrong.push(format!("[{mode}] {name}"));
+                }
+                Localization::NotLocalized { reason } => {
+                    println!("[{mode}] {name}: not localised: {reason}")
+                }
+            }
+        }
+    }
+    assert!(
+        wrong.is_empty(),
+        "localised shots of unmapped places: {wrong:?}"
+    );
+    Ok(())
+}
+
+/// Frames held out of the map (the map is built from the first 70 frames;
+/// the queries are later frames of the same scene) as photos: most localise,
+/// none with a gross error against the ground truth (measured relative to
+/// the keyframe they were found through, scale from a Sim(3) alignment of
+/// the map's keyframes); the table shows absolute and relative errors.
+#[test]
+fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
+    let Some(dir) = data_dir() else {
+        eprintln!("skipped: ../shared/data/tum_fr3_teddy_100 not present");
+        return Ok(());
+    };
+    let ds = Dataset::open(&dir)?;
+    let Some(gt) = ds.groundtruth.clone() else {
+        anyhow::bail!("teddy has ground truth");
+    };
+    let map = build_map(&dir, 70)?;
+    // Sim(3) map -> ground truth from the keyframes.
+    let mut kf_traj = Trajectory {
+        poses: map
+            .keyframes()
+            .map(|k| StampedPose {
+                t: k.timestamp,
+                world_from_cam: k.world_from_cam(),
+            })
+            .collect(),
+    };
+    kf_traj.poses.sort_by(|a, b| a.t.total_cmp(&b.t));
+    let pairs = associate(&kf_traj, &gt, 0.02);
+    let src: Vec<_> = pairs
+        .iter()
+        .map(|(a, _)| kf_traj.poses[*a].position())
+        .collect();
+    let dst: Vec<_> = pairs.iter().map(|(_, b)| gt.poses[*b].position()).collect();
+    let sim = umeyama(&src, &dst, true)?;
+    // How well the map's own keyframes agree with the ground truth under this
+    // alignment (the floor of the absolute errors below).
+    let mut kf_rot: Vec<f64> = pairs
+        .iter()
+        .map(|(a, b)| {
+            let e = sim.transform_pose(&kf_traj.poses[*a].world_from_cam);
+            e.rotation
+                .angle_to(&gt.poses[*b].world_from_cam.rotation)
+                .to_degrees()
+        })
+        .collect();
+    kf_rot.sort_by(f64::total_cmp);
+    println!(
+        "map keyframes vs ground truth after Sim(3): rotation error median {:.3} deg, max {:.3} deg",
+        kf_rot[kf_rot.len() / 2],
+        kf_rot[kf_rot.len() - 1]
+    );
+    let params = shot::LocalizeParams::default();
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(&map, &vocabulary);
+    for (mode, bow_index) in [("descriptor ranking", None), ("bow query", Some(&index))] {
+        println!(
+            "[{mode}] frame  localized  inliers  rmse_px  abs_rot_deg  abs_pos_%dist  rel_rot_deg  rel_pos_%dist  kf"
+        );
+        let (mut n_ok, mut n_loc, mut n_total) = (0, 0, 0);
+        let mut confident_wrong = Vec::new();
+        for i in (70..ds.len()).step_by(2) {
+            let f = ds.frame(i)?;
+            let Some(g) = gt
+                .poses
+                .iter()
+                .filter(|p| (p.t - f.timestamp).abs() < 0.02)
+                .min_by(|a, b| {
+                    (a.t - f.timestamp)
+                        .abs()
+                        .total_cmp(&(b.t - f.timestamp).abs())
+                })
+            else {
+                continue;
+            };
+            n_total += 1;
+            match shot::localize(&map, &f.image, None, bow_index, &params)? {
+                Localization::Localized(p) => {
+                    n_loc += 1;
+                    let est = sim.transform_pose(&p.world_from_cam);
+                    let abs_rot = est
+                        .rotation
+                        .angle_to(&g.world_from_cam.rotation)
+                        .to_degrees();
+                    // Distance to the scene: the inliers' median depth, in metres.
+                    let dist = p.median_depth * sim.scale;
+                    let abs_pos = (est.translation.vector - g.position()).norm() / dist * 100.0;
+                    // Relative to the keyframe it was found through (free of the
+                    // global alignment): kf_from_query, estimated vs ground truth.
+                    let Some(kf) = map.keyframe(p.keyframe_id) else {
+                        anyhow::bail!("keyframe vanished");
+                    };
+                    let Some(gk) = gt.poses.iter().min_by(|a, b| {
+                        (a.t - kf.timestamp)
+                            .abs()
+                            .total_cmp(&(b.t - kf.timestamp).abs())
+                    }) else {
+                        anyhow::bail!("no gt");
+                    };
+                    let rel_est = kf.cam_from_world * p.world_from_cam;
+                    let rel_gt = gk.world_from_cam.inverse() * g.world_from_cam;
+                    let rot_err = rel_est.rotation.angle_to(&rel_gt.rotation).to_degrees();
+                    let pos_err =
+                        (rel_est.translation.vector * sim.scale - rel_gt.translation.vector).norm()
+                            / dist
+                            * 100.0;
+                    println!(
+                        "{i:5}  yes       {:6}  {:7.3}  {:11.4}  {:13.3}  {:11.4}  {:13.3}  {:3}",
+                        p.inliers,
+                        p.reprojection_rmse_px,
+                        abs_rot,
+                        abs_pos,
+                        rot_err,
+                        pos_err,
+                        p.keyframe_id.0
+                    );
+                    if rot_err <= 0.5 && pos_err <= 2.0 {
+                        n_ok += 1;
+                    }
+                    if rot_err > 2.0 || pos_err > 5.0 {
+                        confident_wrong.push(i);
+                    }
+                }
+                Localization::NotLocalized { reason } => println!("{i:5}  no: {reason}"),
+            }
+        }
+        println!(
+            "[{mode}] {n_loc}/{n_total} localised, {n_ok} within 0.5 deg and 2 % of the distance (Sim(3) scale {:.4}, {} keyframes aligned)",
+            sim.scale,
+            pairs.len()
+        );
+        // The absolute errors carry the map's own bias against the ground truth
+        // (its keyframes are ~4 degrees off after a positions-only Sim(3) over a
+        // short arc), so the gate is judged on the pose relative to the keyframe
+        // it was found through. Nothing localised may be grossly wrong; most
+        // frames must localise. The 0.5 degree / 2 % figure is reported, not
+        // asserted: the relative errors include the map's drift between the
+        // keyframe and the query (see the table).
+        assert!(
+            confident_wrong.is_empty(),
+            "[{mode}] localised with errors over 2 deg or 5 %: frames {confident_wrong:?}"
+        );
+        assert!(n_total >= 10, "{n_total} query frames with ground truth");
+        assert!(
+            n_loc * 3 >= n_total * 2,
+            "[{mode}] only {n_loc}/{n_total} localised"
+        );
+    }
+    Ok(())
+}
