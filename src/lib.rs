@@ -46,8 +46,8 @@
 //! The synchronous core never imports tokio or axum; I/O lives in
 //! `vehicle`, `video` (live sources) and `mission::upload`.
 
-pub mod bow;
 pub mod api;
+pub mod bow;
 pub mod camera;
 pub mod config;
 pub mod daemon;

@@ -109,7 +109,12 @@ struct ShotArgs {
     #[arg(long, value_name = "FILE")]
     map: PathBuf,
     /// Keyframe whose image the anchors are placed on.
-    #[arg(long, value_name = "ID", requires = "anchors", conflicts_with = "photo")]
+    #[arg(
+        long,
+        value_name = "ID",
+        requires = "anchors",
+        conflicts_with = "photo"
+    )]
     keyframe: Option<u32>,
     /// The four anchors, pixels of the keyframe: where the frame's top-left,
     /// top-right, bottom-right and bottom-left corners should go.

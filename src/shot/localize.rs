@@ -27,7 +27,6 @@ use nalgebra::{Isometry3, Point2, Point3};
 use super::ShotError;
 use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
 use crate::features::{self, Descriptor, OrbExtractor, hamming};
-use crate::geometry::se3::rotation_angle_between;
 use crate::geometry::{PnpParams, solve_pnp_ransac};
 use crate::optimize::{Intrinsics, PoseObservation, PoseParams, optimize_pose};
 use crate::slam::grid::{Bounds, FeatureGrid};
@@ -493,7 +492,7 @@ pub fn localize(
         let owfc = other.cam_from_world.inverse();
         let dist = (owfc.translation.vector - best_wfc.translation.vector).norm()
             / best.median_depth.max(1e-12);
-        let ang = rotation_angle_between(&owfc.rotation, &best_wfc.rotation).to_degrees();
+        let ang = owfc.rotation.angle_to(&best_wfc.rotation).to_degrees();
         let agrees = dist <= g.max_disagreement_depth_fraction && ang <= g.max_disagreement_deg;
         if !agrees {
             return Ok(not(NotLocalizedReason::CandidatesDisagree {
