@@ -15,6 +15,7 @@
 //! takes no further frame, finishes (mapping, map file) and is joined; the
 //! simulator stops last.
 
+pub mod shot_service;
 pub mod slam_view;
 pub mod vehicle_view;
 
@@ -219,9 +220,14 @@ pub async fn run(
         ingest: ingest.clone(),
         slam: slam_view.clone(),
         vehicle: Some(vehicle),
-        shots: Arc::new(WarpOnly {
-            keyframes: slam_view,
+        shots: Arc::new(shot_service::LocalizingShots {
+            warp: WarpOnly {
+                keyframes: slam_view,
+                params: Default::default(),
+            },
+            slam: shared.clone(),
             params: Default::default(),
+            anchors: Default::default(),
         }),
         store: store.clone(),
         params: Arc::new(ApiParams {

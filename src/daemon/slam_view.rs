@@ -38,6 +38,11 @@ pub trait MapSource: Send + Sync {
     fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>>;
     /// Points (at most `max_points`) and trajectory.
     fn map(&self, max_points: usize) -> MapView;
+    /// A copy of the whole map (for shot localisation, which must not hold
+    /// the SLAM's lock while it works).
+    fn snapshot(&self) -> Option<Map> {
+        None
+    }
 }
 
 /// Something that eats frames on the SLAM thread.
@@ -205,6 +210,10 @@ impl MapSource for SlamMapSource {
         self.lock().keyframe(KeyFrameId(id))?.image.clone()
     }
 
+    fn snapshot(&self) -> Option<Map> {
+        Some(self.lock().clone())
+    }
+
     fn map(&self, max_points: usize) -> MapView {
         let m = self.lock();
         let total = m.point_count();
@@ -313,6 +322,14 @@ impl SlamShared {
         let mut v: Vec<f64> = g.latencies_ms.iter().copied().collect();
         v.sort_by(f64::total_cmp);
         Some(v[v.len() / 2])
+    }
+}
+
+impl SlamShared {
+    /// A copy of the SLAM's map, when a SLAM runs.
+    pub fn map_snapshot(&self) -> Option<Map> {
+        let src = self.lock().source.clone();
+        src.and_then(|s| s.snapshot())
     }
 }
 
