@@ -7,7 +7,9 @@
 pub mod plot;
 pub mod trajectory;
 
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Point3, Vector3};
+
+use crate::geometry::GeometryError;
 use serde::Serialize;
 
 pub use trajectory::{StampedPose, Trajectory, TrajectoryError, associate};
@@ -64,94 +66,26 @@ impl Default for Params {
     }
 }
 
-/// A similarity transform `p -> scale * rotation * p + translation`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Similarity {
-    /// Rotation.
-    pub rotation: UnitQuaternion<f64>,
-    /// Translation.
-    pub translation: Vector3<f64>,
-    /// Scale (1 for SE(3)).
-    pub scale: f64,
-}
+/// The alignment applied to the estimate: `p -> scale * rotation * p + translation`.
+pub use crate::geometry::Sim3 as Similarity;
 
-impl Similarity {
-    /// The identity.
-    pub fn identity() -> Self {
-        Similarity {
-            rotation: UnitQuaternion::identity(),
-            translation: Vector3::zeros(),
-            scale: 1.0,
-        }
-    }
-
-    /// Apply to a point.
-    pub fn transform_point(&self, p: &Vector3<f64>) -> Vector3<f64> {
-        self.scale * (self.rotation * p) + self.translation
-    }
-
-    /// Apply to a camera pose: the rotation and the scaled, moved centre.
-    pub fn transform_pose(&self, world_from_cam: &Isometry3<f64>) -> Isometry3<f64> {
-        Isometry3::from_parts(
-            Translation3::from(self.transform_point(&world_from_cam.translation.vector)),
-            self.rotation * world_from_cam.rotation,
-        )
-    }
-}
-
-/// Umeyama's least-squares alignment `dst ~ s R src + t` (Umeyama 1991).
-/// With `with_scale` false, `s` = 1.
+/// Umeyama's least-squares alignment `dst ~ s R src + t` (Umeyama 1991),
+/// through [`crate::geometry::umeyama`]; with `with_scale` false, `s` = 1.
 pub fn umeyama(
     src: &[Vector3<f64>],
     dst: &[Vector3<f64>],
     with_scale: bool,
 ) -> Result<Similarity, EvalError> {
     let n = src.len().min(dst.len());
-    if n < 3 {
-        return Err(EvalError::NotEnoughMatches {
-            found: n,
-            needed: 3,
-        });
-    }
-    let inv_n = 1.0 / n as f64;
-    let mu_s = src[..n].iter().sum::<Vector3<f64>>() * inv_n;
-    let mu_d = dst[..n].iter().sum::<Vector3<f64>>() * inv_n;
-    let mut cov = Matrix3::zeros();
-    let mut var_s = 0.0;
-    for (s, d) in src[..n].iter().zip(&dst[..n]) {
-        let ds = s - mu_s;
-        cov += (d - mu_d) * ds.transpose();
-        var_s += ds.norm_squared();
-    }
-    cov *= inv_n;
-    var_s *= inv_n;
-    if var_s < 1e-18 {
-        return Err(EvalError::Degenerate {
-            reason: "the estimated positions are all the same point".into(),
-        });
-    }
-    let svd = cov.svd(true, true);
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Err(EvalError::Degenerate {
-            reason: "SVD failed".into(),
-        });
-    };
-    let mut s_diag = Vector3::new(1.0, 1.0, 1.0);
-    if u.determinant() * v_t.determinant() < 0.0 {
-        s_diag.z = -1.0;
-    }
-    let r = u * Matrix3::from_diagonal(&s_diag) * v_t;
-    let scale = if with_scale {
-        svd.singular_values.dot(&s_diag) / var_s
-    } else {
-        1.0
-    };
-    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
-    let translation = mu_d - scale * (rotation * mu_s);
-    Ok(Similarity {
-        rotation,
-        translation,
-        scale,
+    let to_points =
+        |v: &[Vector3<f64>]| v[..n].iter().map(|p| Point3::from(*p)).collect::<Vec<_>>();
+    crate::geometry::umeyama(&to_points(src), &to_points(dst), with_scale).map_err(|e| match e {
+        GeometryError::NotEnoughPoints { found, needed } => {
+            EvalError::NotEnoughMatches { found, needed }
+        }
+        other => EvalError::Degenerate {
+            reason: other.to_string(),
+        },
     })
 }
 
@@ -256,7 +190,7 @@ pub fn evaluate(
     let mut errors = Vec::with_capacity(pairs.len());
     let mut est_aligned = Vec::with_capacity(pairs.len());
     for (k, &(i, _)) in pairs.iter().enumerate() {
-        let e = alignment.transform_point(&est_p[k]);
+        let e = alignment.transform_point(&Point3::from(est_p[k])).coords;
         errors.push((gt.poses[i].t, (e - gt_p[k]).norm()));
         est_aligned.push(Point3::from(e));
     }
@@ -293,6 +227,7 @@ pub fn evaluate(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
 
     #[test]
     fn umeyama_recovers_known_similarity() {
@@ -307,7 +242,10 @@ mod tests {
             translation: Vector3::new(1.0, -2.0, 0.5),
             scale: 2.7,
         };
-        let dst: Vec<_> = src.iter().map(|p| truth.transform_point(p)).collect();
+        let dst: Vec<_> = src
+            .iter()
+            .map(|p| truth.transform_point(&Point3::from(*p)).coords)
+            .collect();
         let est = umeyama(&src, &dst, true).unwrap();
         assert!((est.scale - truth.scale).abs() < 1e-10);
         assert!(est.rotation.angle_to(&truth.rotation) < 1e-10);

@@ -106,6 +106,17 @@ impl Sim3 {
         self.rotation * v * self.scale
     }
 
+    /// A camera pose moved by this similarity: the orientation rotated, the
+    /// centre transformed (the scale does not apply to the orientation).
+    pub fn transform_pose(&self, world_from_cam: &Isometry3<f64>) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::from(
+                self.transform_vector(&world_from_cam.translation.vector) + self.translation,
+            ),
+            self.rotation * world_from_cam.rotation,
+        )
+    }
+
     /// The inverse similarity `p ↦ (1/s)·Rᵀ·(p - t)`.
     pub fn inverse(&self) -> Self {
         let rinv = self.rotation.inverse();

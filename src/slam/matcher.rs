@@ -7,6 +7,7 @@ use nalgebra::{Isometry3, Matrix3, Point2, Point3, Vector3};
 
 use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, hamming};
+use crate::matching::RotationHistogram;
 
 use super::grid::{Bounds, FeatureGrid};
 use super::map::{KeyFrameId, Map, PointId, ScaleInfo};
@@ -34,35 +35,16 @@ impl Default for MatcherParams {
 
 /// ORB-SLAM's rotation-consistency filter: the orientation differences of
 /// the matches go in a histogram; matches outside the three largest bins
-/// (bins under a tenth of the largest do not count) are dropped. `rot` holds
+/// (bins under a tenth of the largest do not count) are dropped; the
+/// histogram is [`RotationHistogram`]. `rot` holds
 /// per candidate match `(match id, angle difference in degrees)`. Returns the
 /// ids to drop.
 pub fn rotation_outliers(rot: &[(usize, f32)], bins: usize) -> Vec<usize> {
-    if rot.is_empty() || bins == 0 {
-        return Vec::new();
-    }
-    let factor = bins as f32 / 360.0;
-    let mut hist: Vec<Vec<usize>> = vec![Vec::new(); bins];
+    let mut h = RotationHistogram::new(bins);
     for &(id, d) in rot {
-        let d = d.rem_euclid(360.0);
-        let b = ((d * factor).round() as usize) % bins;
-        hist[b].push(id);
+        h.add(d, 0.0, id);
     }
-    let mut order: Vec<usize> = (0..bins).collect();
-    order.sort_by(|a, b| hist[*b].len().cmp(&hist[*a].len()));
-    let max1 = hist[order[0]].len();
-    let keep = |k: usize| -> Option<usize> {
-        let b = *order.get(k)?;
-        (hist[b].len() as f32 >= 0.1 * max1 as f32 && !hist[b].is_empty()).then_some(b)
-    };
-    let kept: Vec<usize> = [keep(0), keep(1), keep(2)].into_iter().flatten().collect();
-    let mut out = Vec::new();
-    for (b, ids) in hist.iter().enumerate() {
-        if !kept.contains(&b) {
-            out.extend(ids.iter().copied());
-        }
-    }
-    out
+    h.rejected()
 }
 
 /// Matches between two frames for initialisation: every level-0 keypoint of

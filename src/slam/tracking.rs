@@ -9,7 +9,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
 
 use image::GrayImage;
-use nalgebra::{Isometry3, Point2, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point2, UnitQuaternion};
 
 use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, OrbExtractor, hamming};
@@ -1165,9 +1165,4 @@ pub fn renormalized(pose: Isometry3<f64>) -> Isometry3<f64> {
         pose.translation,
         UnitQuaternion::new_normalize(*pose.rotation.quaternion()),
     )
-}
-
-/// The world position of a camera with pose `cam_from_world`.
-pub fn camera_center(cam_from_world: &Isometry3<f64>) -> Vector3<f64> {
-    cam_from_world.inverse().translation.vector
 }
