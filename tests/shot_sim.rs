@@ -3,8 +3,9 @@
 //! flight; desired shots are rendered from hidden poses near the explored
 //! area (seeded random positions and orientations whose view holds mapped
 //! scene) and localised; the map is aligned to the simulator's ground truth
-//! with a Sim(3) (Umeyama, keyframe centres against the true camera centres)
-//! and each localised pose is compared with the hidden one:
+//! with a Sim(3) (`geometry::umeyama` on the keyframes' poses: their centres
+//! and points one scene depth along their camera axes, against the true
+//! ones) and each localised pose is compared with the hidden one:
 //!
 //! * within 1 % of the distance to the scene and 0.5 degree in at least 90 %
 //!   of the trials;
@@ -131,6 +132,22 @@ fn build_map(sc: &Scene, setup: &Setup) -> anyhow::Result<(Map, Sim3, MapStats)>
         let truth = sc.path.world_from_cam(kf.timestamp);
         dst.push(Point3::from(truth.translation.vector));
         kfs.push((kf.world_from_cam(), truth));
+    }
+    // The Sim(3) from the keyframes' poses: their centres first (for the
+    // scale), then with three points one median scene depth along each
+    // keyframe's camera axes, so the orientations constrain it too.
+    let coarse = umeyama(&src, &dst, true)?;
+    let mut depths: Vec<f64> = map
+        .keyframes()
+        .filter_map(|k| map.median_depth(k.id))
+        .collect();
+    depths.sort_by(f64::total_cmp);
+    let d = depths.get(depths.len() / 2).copied().unwrap_or(1.0);
+    for (est, truth) in &kfs {
+        for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
+            src.push(est * Point3::from(axis * d));
+            dst.push(truth * Point3::from(axis * (d * coarse.scale)));
+        }
     }
     let sim = umeyama(&src, &dst, true)?;
     let mut sq = 0.0;
