@@ -861,6 +861,40 @@ mod tests {
     }
 
     #[test]
+    fn assumed_camera_scales_the_map_camera_and_refuses_other_aspects() {
+        let map = empty_map();
+        let c = assumed_camera(&map.camera, 640, 480).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((c.width, c.height), (640, 480));
+        assert!((c.fx - 600.0).abs() < 1e-12 && (c.fy - 600.0).abs() < 1e-12);
+        // Pixel centres: (160 + 0.5)·2 − 0.5.
+        assert!((c.cx - 320.5).abs() < 1e-12 && (c.cy - 240.5).abs() < 1e-12);
+        // The same ray through corresponding pixels.
+        let r0 = map.camera.unproject(Point2::new(10.0, 20.0)).into_inner();
+        let r1 = c.unproject(Point2::new(20.5, 40.5)).into_inner();
+        assert!((r0 - r1).norm() < 1e-12, "{r0} vs {r1}");
+        assert!(matches!(
+            assumed_camera(&map.camera, 400, 240),
+            Err(ShotError::ImageSize { width: 400, .. })
+        ));
+        assert!(assumed_camera(&map.camera, 0, 0).is_err());
+        // A shot must have the size of the camera it is localised with.
+        let p = LocalizeParams::default();
+        assert!(matches!(
+            localize_with_camera(&map, &c, &checker(320, 240), None, None, &p),
+            Err(ShotError::ImageSize {
+                expected_width: 640,
+                ..
+            })
+        ));
+        assert_eq!(
+            localize_with_camera(&map, &c, &checker(640, 480), None, None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::NoCandidate
+            })
+        );
+    }
+
+    #[test]
     fn empty_map_gives_no_candidate_and_blank_shot_too_few_features() {
         let map = empty_map();
         let p = LocalizeParams::default();
