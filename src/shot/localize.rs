@@ -9,11 +9,19 @@
 //!    keyframe, fine for maps of up to a few hundred keyframes). Each
 //!    candidate's map points are matched by descriptor (nearest neighbour
 //!    under a Hamming bound, ratio test, one-to-one).
-//! 3. Per candidate: PnP RANSAC on its matches; then the points of the
-//!    candidate and its best covisible keyframes are projected with that pose
-//!    and matched in the shot (search by projection), and motion-only bundle
-//!    adjustment refines the pose on all pairs (twice, the second time with a
-//!    tighter window).
+//! 3. Per candidate: PnP RANSAC on its matches; then the local map (the
+//!    points of the candidate, its best covisible keyframes and the keyframes
+//!    that observe the points matched so far, most shared points first) is
+//!    projected with that pose and matched in the shot (search by
+//!    projection), and motion-only bundle adjustment (Huber, then outliers
+//!    dropped) refines the pose on all pairs; twice, the second time with the
+//!    local map regrown from the refined matches and a tighter window.
+//!
+//! The shot may come from another camera ([`localize_with_camera`]): its
+//! own intrinsics and distortion are used for the features, the PnP, the
+//! projection (with the predicted pyramid level corrected for the focal
+//! length ratio) and the refinement; [`assumed_camera`] gives the camera of
+//! a resized photo when the intrinsics are not known.
 //! 4. A reliability gate: enough inliers, a small reprojection RMSE, a high
 //!    inlier ratio, the inliers in front of the camera, and agreement with
 //!    every other candidate that passes the gate too. Failing it gives
