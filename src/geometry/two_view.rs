@@ -79,6 +79,11 @@ pub struct TwoViewParams {
     /// LM iterations of the two-view bundle adjustment of the result
     /// (0: none).
     pub refine_iterations: usize,
+    /// When the ratio picks F and F's reconstruction is refused, try the
+    /// homography's (under all its own checks) before giving up; the error
+    /// returned when both fail is F's. Noise in both images lowers `S_H`
+    /// on planes, so a planar pair can fall just below the ratio threshold.
+    pub homography_fallback: bool,
 }
 
 impl Default for TwoViewParams {
@@ -99,6 +104,7 @@ impl Default for TwoViewParams {
             reprojection_chi2: 4.0,
             refit_rounds: 2,
             refine_iterations: 20,
+            homography_fallback: true,
         }
     }
 }
@@ -683,18 +689,6 @@ pub fn initialize_two_view(
     } else {
         Model::Fundamental
     };
-    let inliers = match model {
-        Model::Homography => best_h_in,
-        Model::Fundamental => best_f_in,
-    };
-    let n_inliers = inliers.iter().filter(|&&b| b).count();
-    if n_inliers < params.min_triangulated {
-        return Err(GeometryError::TooFewInliers {
-            found: n_inliers,
-            needed: params.min_triangulated,
-        });
-    }
-
     let xn1: Vec<Point2<f64>> = px1
         .iter()
         .map(|p| {
@@ -709,13 +703,87 @@ pub fn initialize_two_view(
             Point2::new(v.x / v.z, v.y / v.z)
         })
         .collect();
-    let ctx = CheckCtx {
+    let fits = Fits {
+        h: best_h,
+        f: best_f,
+        h_inliers: &best_h_in,
+        f_inliers: &best_f_in,
+        score_h: best_sh,
+        score_f: best_sf,
+    };
+    let views = Views {
         k: cam_k,
+        k_inv: &k_inv,
         px1: &px1,
         px2: &px2,
         xn1: &xn1,
         xn2: &xn2,
-        inliers: &inliers,
+    };
+    match reconstruct(model, &fits, &views, params) {
+        // A plane with pixel-level noise in both images can score below the
+        // ratio threshold and fall to F, which a plane cannot support: when
+        // F fails, the homography gets its chance, under all its own checks.
+        Err(e) if model == Model::Fundamental && params.homography_fallback => {
+            reconstruct(Model::Homography, &fits, &views, params).map_err(|_| e)
+        }
+        other => other,
+    }
+}
+
+/// The two models after RANSAC and refits.
+struct Fits<'a> {
+    h: Option<Matrix3<f64>>,
+    f: Option<Matrix3<f64>>,
+    h_inliers: &'a [bool],
+    f_inliers: &'a [bool],
+    score_h: f64,
+    score_f: f64,
+}
+
+/// The matched keypoints, in pixels and normalised.
+struct Views<'a> {
+    k: &'a Matrix3<f64>,
+    k_inv: &'a Matrix3<f64>,
+    px1: &'a [[f64; 2]],
+    px2: &'a [[f64; 2]],
+    xn1: &'a [Point2<f64>],
+    xn2: &'a [Point2<f64>],
+}
+
+/// Motion hypotheses of `model`, the best chosen and checked, then refined.
+fn reconstruct(
+    model: Model,
+    fits: &Fits,
+    views: &Views,
+    params: &TwoViewParams,
+) -> Result<TwoViewResult, GeometryError> {
+    let Views {
+        k: cam_k,
+        k_inv,
+        px1,
+        px2,
+        xn1,
+        xn2,
+    } = *views;
+    let (best_h, best_f, best_sh, best_sf) = (fits.h, fits.f, fits.score_h, fits.score_f);
+    let inliers = match model {
+        Model::Homography => fits.h_inliers,
+        Model::Fundamental => fits.f_inliers,
+    };
+    let n_inliers = inliers.iter().filter(|&&b| b).count();
+    if n_inliers < params.min_triangulated {
+        return Err(GeometryError::TooFewInliers {
+            found: n_inliers,
+            needed: params.min_triangulated,
+        });
+    }
+    let ctx = CheckCtx {
+        k: cam_k,
+        px1,
+        px2,
+        xn1,
+        xn2,
+        inliers,
         th2: params.reprojection_chi2 * params.sigma_px * params.sigma_px,
         cos_with_depth: params.cos_parallax_with_depth,
         parallax_rank: params.parallax_rank,
@@ -805,13 +873,13 @@ pub fn initialize_two_view(
     let mut cam2_from_cam1 = Isometry3::from_parts(Translation3::from(best.t), rot);
     let mut points = best.points;
     if params.refine_iterations > 0 {
-        refine_two_view(cam_k, &px1, &px2, params, &mut cam2_from_cam1, &mut points);
+        refine_two_view(cam_k, px1, px2, params, &mut cam2_from_cam1, &mut points);
     }
     Ok(TwoViewResult {
         cam2_from_cam1,
         points,
         model,
-        inliers: inliers.clone(),
+        inliers: inliers.to_vec(),
         score_h: best_sh,
         score_f: best_sf,
         parallax_deg: best.parallax_deg,
