@@ -49,13 +49,16 @@ fn homography_pairs_reach_the_measured_quality() {
     let pairs = pairs(&teddy);
     let m = ours(&pairs);
     eprintln!("ours: {m:?}");
-    // Measured: repeatability 0.801, precision 0.931, recall 0.444, spread
-    // 0.381 (OpenCV ORB on the same pairs: 0.815, 0.936, 0.443, 0.308).
+    // Measured: repeatability 0.827, precision 0.940, recall 0.453, spread
+    // 0.372, 1002 / 952 keypoints. The floors are OpenCV ORB's figures on the
+    // same pairs (0.815, 0.936, 0.443, spread 0.308; measured by
+    // `homography_pairs_against_opencv`), so this run alone checks that the
+    // extractor still reaches them.
     assert!(m.n_a > 950.0 && m.n_b > 900.0, "{m:?}");
-    assert!(m.repeatability >= 0.78, "{m:?}");
-    assert!(m.precision >= 0.92, "{m:?}");
-    assert!(m.recall >= 0.43, "{m:?}");
-    assert!(m.spread >= 0.36, "{m:?}");
+    assert!(m.repeatability >= 0.815, "{m:?}");
+    assert!(m.precision >= 0.936, "{m:?}");
+    assert!(m.recall >= 0.443, "{m:?}");
+    assert!(m.spread >= 0.35, "{m:?}");
 }
 
 #[test]
@@ -96,9 +99,13 @@ fn homography_pairs_against_opencv() {
     let m = ours(&pairs);
     eprintln!("ours:   {m:?}\nopencv: {cv:?}");
     assert!(m.spread > cv.spread, "spread");
-    assert!(m.recall >= cv.recall - 0.005, "recall");
-    // Within 2 points of OpenCV on repeatability and 1 on precision (measured
-    // 1.4 and 0.5 below): the spread ORB-SLAM wants costs a little of both.
-    assert!(m.repeatability >= cv.repeatability - 0.02, "repeatability");
-    assert!(m.precision >= cv.precision - 0.01, "precision");
+    assert!(m.repeatability >= cv.repeatability, "repeatability");
+    assert!(m.precision >= cv.precision, "precision");
+    assert!(m.recall >= cv.recall, "recall");
+    // OpenCV returns about as many keypoints (it may return fewer than
+    // asked): the comparison is not won by returning fewer.
+    assert!(
+        m.n_a >= 0.95 * cv.n_a && m.n_b >= 0.95 * cv.n_b,
+        "keypoint counts"
+    );
 }

@@ -161,9 +161,13 @@ fn pnp_200_points_1px_50pct_outliers_100_trials_720p() {
     );
 }
 
-/// On a 640×480 f=500 camera the maximum-likelihood pose itself exceeds
-/// 0.1 deg in a few trials (the bound is below what the data allow), so
-/// here the check is that the solver reaches the ML pose.
+/// On a 640×480 f=500 camera the 0.1 deg is at the edge of what the
+/// data allow: measured 98/100 within bounds and 100/100 at the ML pose of
+/// the solver's own inliers. Of the two misses, trial 23's ML pose on the
+/// TRUE inliers is itself 0.120 deg off; trial 35 is 0.105 deg off where
+/// the true inliers' ML pose is 0.096 deg (its inlier set loses the true
+/// inliers beyond the 3-sigma bound). So here the check is that the solver
+/// reaches the ML pose, and the 98.
 #[test]
 fn pnp_200_points_1px_50pct_outliers_100_trials_vga() {
     let s = run(CAM_VGA, "640x480 f=500");
@@ -172,7 +176,7 @@ fn pnp_200_points_1px_50pct_outliers_100_trials_vga() {
         "only {}/100 trials near the ML pose",
         s.near_ml
     );
-    assert!(s.within >= 97, "only {}/100 trials within bounds", s.within);
+    assert!(s.within >= 98, "only {}/100 trials within bounds", s.within);
 }
 
 #[test]

@@ -197,3 +197,121 @@ fn same_seed_same_result_and_bad_input_refused() {
         Err(GeometryError::IndexOutOfRange { index: 999, .. })
     ));
 }
+
+/// Point error of an initialisation after Sim(3) alignment to the truth (RMS
+/// over the mean depth), and the same for the noise floor: the same noisy
+/// observations triangulated with the true motion. Also the camera-2 centre
+/// error (after scale alignment of the unit baseline) over the mean depth.
+fn errors_against_the_noise_floor(
+    s: &Scene,
+    res: &shotpilot::geometry::TwoViewResult,
+) -> (f64, f64, f64) {
+    use nalgebra::{Isometry3, Point2, Point3};
+    use shotpilot::geometry::{triangulate, umeyama};
+    let norm = |p: &Point2<f64>| Point2::new((p.x - CX) / F, (p.y - CY) / F);
+    let (mut est, mut truth, mut floor) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, p) in res.points.iter().enumerate() {
+        let Some(p) = p else { continue };
+        if s.outlier[i] {
+            continue;
+        }
+        let Some(o) = triangulate(
+            &Isometry3::identity(),
+            &s.cam2_from_cam1,
+            &norm(&s.kp1[i]),
+            &norm(&s.kp2[i]),
+        ) else {
+            continue;
+        };
+        est.push(*p);
+        truth.push(s.p1[i]);
+        floor.push(o);
+    }
+    let depth = truth.iter().map(|q| q.z).sum::<f64>() / truth.len() as f64;
+    let rms = |a: &[Point3<f64>]| {
+        (a.iter()
+            .zip(&truth)
+            .map(|(p, q)| (p - q).norm_squared())
+            .sum::<f64>()
+            / a.len() as f64)
+            .sqrt()
+            / depth
+    };
+    let sim = umeyama(&est, &truth, true).expect("well-spread points");
+    let aligned: Vec<Point3<f64>> = est.iter().map(|p| sim.transform_point(p)).collect();
+    let c_true = s.cam2_from_cam1.inverse().translation.vector;
+    let c_est = res.cam2_from_cam1.inverse().translation.vector * c_true.norm();
+    (rms(&aligned), rms(&floor), (c_est - c_true).norm() / depth)
+}
+
+/// The issue's 1 px case. Per point, the error is bounded below by the
+/// observation noise: on these scenes (baseline 1.4-1.6 m at 4-9 m, f = 500)
+/// the same observations triangulated with the TRUE motion already err by
+/// 1.4-1.5 % (non-planar) and 1.0 % (planar) of the mean depth, so "< 1 %"
+/// per point cannot hold at 1 px for any initialiser. What the initialiser
+/// controls is checked instead: the points (after its two-view bundle
+/// adjustment and Sim(3) alignment) within 20 % of that floor, and the
+/// motion: camera-2 centre within 1 % of the mean depth. Every scene must
+/// initialise with the right model (at 1 px a planar pair's score ratio is
+/// 0.399, below 0.40: F is refused and the homography fallback takes it; a
+/// non-planar pair's minimal-fit motion triangulates 270 good points where
+/// ORB-SLAM's 90 % rule wants 273, its bundle-adjusted motion all 303).
+#[test]
+fn one_px_noise_reaches_the_noise_floor() {
+    for (planar, want, c, r, label) in [
+        (
+            false,
+            Model::Fundamental,
+            [1.6, 0.1, 0.3],
+            [0.02, -0.08, 0.01],
+            "non-planar",
+        ),
+        (
+            true,
+            Model::Homography,
+            [1.4, -0.2, 0.2],
+            [-0.03, 0.1, 0.02],
+            "planar",
+        ),
+    ] {
+        let mut ok = 0;
+        for seed in 0..5u64 {
+            let s = make_scene(
+                10 * seed + u64::from(planar),
+                400,
+                planar,
+                motion(c, r),
+                1.0,
+                0.1,
+            );
+            let res = match initialize_two_view(
+                &k(),
+                &s.kp1,
+                &s.kp2,
+                &s.matches,
+                &TwoViewParams::default(),
+                42 + seed,
+            ) {
+                Ok(res) => res,
+                Err(e) => {
+                    eprintln!("1 px {label} seed {seed}: refused, {e:?}");
+                    continue;
+                }
+            };
+            assert_eq!(res.model, want, "1 px {label} seed {seed}");
+            check(&s, &res, &format!("1 px {label} seed {seed}"));
+            let (e, e_floor, e_cam) = errors_against_the_noise_floor(&s, &res);
+            eprintln!(
+                "1 px {label} seed {seed}: points {:.3} % of mean depth after Sim(3) alignment, \
+                 noise floor (true motion) {:.3} %, camera-2 centre {:.3} %",
+                e * 100.0,
+                e_floor * 100.0,
+                e_cam * 100.0
+            );
+            assert!(e < 1.2 * e_floor, "{label} seed {seed}: {e} vs {e_floor}");
+            assert!(e_cam < 0.01, "{label} seed {seed}: camera centre {e_cam}");
+            ok += 1;
+        }
+        assert_eq!(ok, 5, "1 px {label}: only {ok}/5 initialised");
+    }
+}

@@ -1,8 +1,9 @@
 //! ORB features as ORB-SLAM extracts them.
 //!
 //! The extractor ([`OrbExtractor`]) builds an image pyramid (default 8 levels,
-//! scale 1.2), detects FAST-9 corners per level in 30-pixel cells (threshold 20,
-//! falling back to 7 in cells where 20 finds nothing), gives each level a share
+//! scale 1.2), detects FAST-9 corners per level in 30-pixel cells (threshold 24,
+//! falling back to a lower one, 5 times the image's noise deviation but at
+//! least 7, in cells where 24 finds nothing), gives each level a share
 //! of the wanted features in geometric proportion, spreads each level's corners
 //! with ORB-SLAM's quadtree (the strongest corner per node), orients each
 //! keypoint by the intensity centroid of a circular patch of radius 15 and
@@ -163,14 +164,14 @@ impl Default for Params {
             n_features: 1000,
             scale_factor: 1.2,
             n_levels: 8,
-            ini_th_fast: 20,
+            ini_th_fast: 24,
             min_th_fast: 7,
             cell_size: 30,
             edge_threshold: 19,
             patch_size: 31,
             level_weight_exponent: 1.0,
             threads: 1,
-            noise_threshold_factor: 4.0,
+            noise_threshold_factor: 5.0,
             fallback_fills_only: true,
         }
     }

@@ -22,9 +22,13 @@
 //!    A hypothesis must clearly beat the others (F: no other with more than
 //!    70 % of its good points; H: the second best below 75 %), reconstruct
 //!    90 % of the inliers, at least `min_triangulated` points, and reach
-//!    `min_parallax_deg` (ORB-SLAM's 50th-largest parallax). Otherwise the
-//!    initialisation is refused with a typed [`GeometryError`] carrying the
-//!    counts.
+//!    `min_parallax_deg` (ORB-SLAM's 50th-largest parallax). A hypothesis
+//!    that passes all but the 90 % rule is bundle-adjusted and checked
+//!    again (the minimal-fit motion is slightly off at pixel-level noise).
+//!    When F is refused, the homography is tried under its own checks
+//!    (`homography_fallback`: noise in both images lowers `S_H` on planes).
+//!    Otherwise the initialisation is refused with a typed
+//!    [`GeometryError`] carrying the counts (F's, when both fail).
 //! 5. The accepted reconstruction is refined by a two-view bundle
 //!    adjustment (camera 1 fixed, Huber kernel, `refine_iterations`), as
 //!    ORB-SLAM does with its global BA right after initialising.
@@ -79,6 +83,11 @@ pub struct TwoViewParams {
     /// LM iterations of the two-view bundle adjustment of the result
     /// (0: none).
     pub refine_iterations: usize,
+    /// When the ratio picks F and F's reconstruction is refused, try the
+    /// homography's (under all its own checks) before giving up; the error
+    /// returned when both fail is F's. Noise in both images lowers `S_H`
+    /// on planes, so a planar pair can fall just below the ratio threshold.
+    pub homography_fallback: bool,
 }
 
 impl Default for TwoViewParams {
@@ -99,6 +108,7 @@ impl Default for TwoViewParams {
             reprojection_chi2: 4.0,
             refit_rounds: 2,
             refine_iterations: 20,
+            homography_fallback: true,
         }
     }
 }
@@ -683,18 +693,6 @@ pub fn initialize_two_view(
     } else {
         Model::Fundamental
     };
-    let inliers = match model {
-        Model::Homography => best_h_in,
-        Model::Fundamental => best_f_in,
-    };
-    let n_inliers = inliers.iter().filter(|&&b| b).count();
-    if n_inliers < params.min_triangulated {
-        return Err(GeometryError::TooFewInliers {
-            found: n_inliers,
-            needed: params.min_triangulated,
-        });
-    }
-
     let xn1: Vec<Point2<f64>> = px1
         .iter()
         .map(|p| {
@@ -709,13 +707,87 @@ pub fn initialize_two_view(
             Point2::new(v.x / v.z, v.y / v.z)
         })
         .collect();
-    let ctx = CheckCtx {
+    let fits = Fits {
+        h: best_h,
+        f: best_f,
+        h_inliers: &best_h_in,
+        f_inliers: &best_f_in,
+        score_h: best_sh,
+        score_f: best_sf,
+    };
+    let views = Views {
         k: cam_k,
+        k_inv: &k_inv,
         px1: &px1,
         px2: &px2,
         xn1: &xn1,
         xn2: &xn2,
-        inliers: &inliers,
+    };
+    match reconstruct(model, &fits, &views, params) {
+        // A plane with pixel-level noise in both images can score below the
+        // ratio threshold and fall to F, which a plane cannot support: when
+        // F fails, the homography gets its chance, under all its own checks.
+        Err(e) if model == Model::Fundamental && params.homography_fallback => {
+            reconstruct(Model::Homography, &fits, &views, params).map_err(|_| e)
+        }
+        other => other,
+    }
+}
+
+/// The two models after RANSAC and refits.
+struct Fits<'a> {
+    h: Option<Matrix3<f64>>,
+    f: Option<Matrix3<f64>>,
+    h_inliers: &'a [bool],
+    f_inliers: &'a [bool],
+    score_h: f64,
+    score_f: f64,
+}
+
+/// The matched keypoints, in pixels and normalised.
+struct Views<'a> {
+    k: &'a Matrix3<f64>,
+    k_inv: &'a Matrix3<f64>,
+    px1: &'a [[f64; 2]],
+    px2: &'a [[f64; 2]],
+    xn1: &'a [Point2<f64>],
+    xn2: &'a [Point2<f64>],
+}
+
+/// Motion hypotheses of `model`, the best chosen and checked, then refined.
+fn reconstruct(
+    model: Model,
+    fits: &Fits,
+    views: &Views,
+    params: &TwoViewParams,
+) -> Result<TwoViewResult, GeometryError> {
+    let Views {
+        k: cam_k,
+        k_inv,
+        px1,
+        px2,
+        xn1,
+        xn2,
+    } = *views;
+    let (best_h, best_f, best_sh, best_sf) = (fits.h, fits.f, fits.score_h, fits.score_f);
+    let inliers = match model {
+        Model::Homography => fits.h_inliers,
+        Model::Fundamental => fits.f_inliers,
+    };
+    let n_inliers = inliers.iter().filter(|&&b| b).count();
+    if n_inliers < params.min_triangulated {
+        return Err(GeometryError::TooFewInliers {
+            found: n_inliers,
+            needed: params.min_triangulated,
+        });
+    }
+    let ctx = CheckCtx {
+        k: cam_k,
+        px1,
+        px2,
+        xn1,
+        xn2,
+        inliers,
         th2: params.reprojection_chi2 * params.sigma_px * params.sigma_px,
         cos_with_depth: params.cos_parallax_with_depth,
         parallax_rank: params.parallax_rank,
@@ -795,29 +867,70 @@ pub fn initialize_two_view(
             second: second_good,
         });
     }
-    if max_good < min_good {
-        return Err(GeometryError::TooFewTriangulated {
-            found: max_good,
-            needed: min_good,
-        });
-    }
+    let (best, max_good) = if max_good < min_good {
+        // The 90 % rule judges the hypothesis by its triangulations, which
+        // the minimal-fit motion puts a little off at pixel-level noise:
+        // judge the bundle-adjusted motion of the same hypothesis instead.
+        match recheck_refined(&ctx, best, params, &mut cos_buf) {
+            Some(h) if h.n_good >= min_good && h.parallax_deg >= params.min_parallax_deg => {
+                let g = h.n_good;
+                (h, g)
+            }
+            _ => {
+                return Err(GeometryError::TooFewTriangulated {
+                    found: max_good,
+                    needed: min_good,
+                });
+            }
+        }
+    } else {
+        (best, max_good)
+    };
     let rot = crate::geometry::se3::quaternion_from_matrix(&best.r);
     let mut cam2_from_cam1 = Isometry3::from_parts(Translation3::from(best.t), rot);
     let mut points = best.points;
     if params.refine_iterations > 0 {
-        refine_two_view(cam_k, &px1, &px2, params, &mut cam2_from_cam1, &mut points);
+        refine_two_view(cam_k, px1, px2, params, &mut cam2_from_cam1, &mut points);
     }
     Ok(TwoViewResult {
         cam2_from_cam1,
         points,
         model,
-        inliers: inliers.clone(),
+        inliers: inliers.to_vec(),
         score_h: best_sh,
         score_f: best_sf,
         parallax_deg: best.parallax_deg,
         n_good: max_good,
         n_second: second_good,
     })
+}
+
+/// The hypothesis `h` after a two-view bundle adjustment of its good
+/// points, checked again on every inlier; `None` when the adjustment could
+/// not run.
+fn recheck_refined(
+    ctx: &CheckCtx<'_>,
+    h: Hypothesis,
+    params: &TwoViewParams,
+    cos_buf: &mut Vec<f64>,
+) -> Option<Hypothesis> {
+    if params.refine_iterations == 0 {
+        return None;
+    }
+    let rot = crate::geometry::se3::quaternion_from_matrix(&h.r);
+    let mut pose = Isometry3::from_parts(Translation3::from(h.t), rot);
+    let before = pose;
+    let mut points = h.points;
+    refine_two_view(ctx.k, ctx.px1, ctx.px2, params, &mut pose, &mut points);
+    if pose == before {
+        return None;
+    }
+    Some(check_rt(
+        ctx,
+        pose.rotation.to_rotation_matrix().into_inner(),
+        pose.translation.vector,
+        cos_buf,
+    ))
 }
 
 /// Two-view bundle adjustment of the initial reconstruction (ORB-SLAM runs
