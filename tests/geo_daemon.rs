@@ -276,10 +276,9 @@ fn fly(stress: Option<f64>, flight_s: f64) -> Run {
 
     // Fly, noting the georeference's refusals on the way.
     let mut refusals = Vec::new();
-    let mut geo = Value::Null;
     while t0.elapsed().as_secs_f64() < flight_s {
         let status = get_json(addr, "/api/v1/status");
-        geo = status["vehicle"]["georeference"].clone();
+        let geo = &status["vehicle"]["georeference"];
         if let Some(r) = geo["reason"].as_str() {
             let r = r.split(':').next().unwrap_or("").to_owned();
             if refusals.last() != Some(&r) {
@@ -295,7 +294,7 @@ fn fly(stress: Option<f64>, flight_s: f64) -> Run {
         std::thread::sleep(Duration::from_secs(1));
     }
     let status = get_json(addr, "/api/v1/status");
-    geo = status["vehicle"]["georeference"].clone();
+    let geo = status["vehicle"]["georeference"].clone();
     eprintln!("slam: {}", status["slam"]);
     eprintln!("georeference: {geo}");
     assert_eq!(geo["state"], "ok", "{geo}");
