@@ -18,7 +18,8 @@
 //! measured in the first run.
 //!
 //! Slow (two flights of `SHOTPILOT_GEO_FLIGHT_S` seconds, default 100, in
-//! real time): `cargo test --release --test geo_daemon -- --ignored --nocapture`.
+//! real time; `full` flies the whole explore script, about 6 minutes each):
+//! `cargo test --release --test geo_daemon -- --ignored --nocapture`.
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream, UdpSocket};
@@ -230,7 +231,7 @@ fn angle_diff_deg(a: f64, b: f64) -> f64 {
     d.min(360.0 - d)
 }
 
-fn fly(stress: Option<f64>, flight_s: f64) -> Run {
+fn fly(stress: Option<f64>, flight_s: Option<f64>) -> Run {
     let dir = tempfile::tempdir().unwrap();
     let video_port = free_tcp_port();
     let mav_port = free_udp_port();
@@ -276,8 +277,21 @@ fn fly(stress: Option<f64>, flight_s: f64) -> Run {
 
     // Fly, noting the georeference's refusals on the way.
     let mut refusals = Vec::new();
-    while t0.elapsed().as_secs_f64() < flight_s {
+    let mut offboard = false;
+    loop {
         let status = get_json(addr, "/api/v1/status");
+        let mode = status["vehicle"]["mode"].as_str().unwrap_or("");
+        offboard |= mode == "OFFBOARD";
+        let elapsed = t0.elapsed().as_secs_f64();
+        let done = match flight_s {
+            Some(s) => elapsed >= s,
+            // The whole explore flight: the script hands over to loiter.
+            None => offboard && mode == "AUTO.LOITER" || elapsed > 900.0,
+        };
+        if done {
+            eprintln!("flew {elapsed:.0} s, mode {mode}");
+            break;
+        }
         let geo = &status["vehicle"]["georeference"];
         if let Some(r) = geo["reason"].as_str() {
             let r = r.split(':').next().unwrap_or("").to_owned();
@@ -485,10 +499,13 @@ fn report(name: &str, r: &Run) {
 #[test]
 #[ignore = "slow: two simulated flights in real time"]
 fn explore_through_the_daemon_then_delayed_telemetry_and_mis_set_latency() {
-    let flight_s: f64 = std::env::var("SHOTPILOT_GEO_FLIGHT_S")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(100.0);
+    // Seconds of flight, or `full` for the whole explore flight (about
+    // 6 minutes each).
+    let flight_s: Option<f64> = match std::env::var("SHOTPILOT_GEO_FLIGHT_S") {
+        Ok(v) if v == "full" => None,
+        Ok(v) => Some(v.parse().expect("SHOTPILOT_GEO_FLIGHT_S: seconds or full")),
+        Err(_) => Some(100.0),
+    };
     let nominal = fly(None, flight_s);
     report("nominal", &nominal);
     // The video latency set 50 ms above the delay measured in this run.
