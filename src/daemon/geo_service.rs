@@ -78,6 +78,8 @@ struct State {
     last_heading_rad: Option<f64>,
     counts: Counts,
     video_delay_ms: VecDeque<f64>,
+    /// Sum and count of every frame's delay (the whole run's mean).
+    video_delay_sum_ms: (f64, u64),
 }
 
 /// The georeference the daemon keeps, shared by its worker and the API.
@@ -110,6 +112,7 @@ impl GeoService {
                 last_heading_rad: None,
                 counts: Counts::default(),
                 video_delay_ms: VecDeque::new(),
+                video_delay_sum_ms: (0.0, 0),
             }),
             params,
         }
@@ -228,6 +231,8 @@ impl GeoService {
                     st.video_delay_ms.pop_front();
                 }
                 st.video_delay_ms.push_back(d);
+                st.video_delay_sum_ms.0 += d;
+                st.video_delay_sum_ms.1 += 1;
             }
         }
     }
@@ -345,6 +350,8 @@ impl GeoService {
                 "use_frame_timestamps": self.params.history.use_frame_timestamps,
                 "video_latency_s": self.params.history.video_latency_s,
                 "video_delay_ms_median": delays.get(delays.len() / 2),
+                "video_delay_ms_mean_all": (st.video_delay_sum_ms.1 > 0)
+                    .then(|| st.video_delay_sum_ms.0 / st.video_delay_sum_ms.1 as f64),
             },
             "fit_age_s": st.fitted_at.map(|t| t.elapsed().as_secs_f64()),
         });
