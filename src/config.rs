@@ -462,6 +462,7 @@ mod tests {
         assert_eq!(cfg.server, ServerConfig::default());
         assert_eq!(cfg.slam, SlamConfig::default());
         assert_eq!(cfg.sim, SimSection::default());
+        assert_eq!(cfg.geo, crate::geo::Params::default());
     }
 
     #[test]

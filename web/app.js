@@ -36,11 +36,17 @@ function showStatus(s) {
   $('status').textContent =
     `SLAM ${sl.state || '?'} · kf ${sl.keyframes ?? 0} · pts ${sl.points ?? 0} · inliers ${sl.last_inliers ?? 0}` +
     ` | video ${(v.received_fps || 0).toFixed(1)} fps` +
-    ` | vehicle ${ve.configured === false ? 'none' : (ve.connected ? (ve.mode || 'connected') + (ve.armed ? ' ARMED' : '') : 'not connected')}`;
+    ` | vehicle ${ve.configured === false ? 'none' : (ve.connected ? (ve.mode || 'connected') + (ve.armed ? ' ARMED' : '') : 'not connected')}` +
+    geoText(ve.georeference);
   $('videostats').textContent =
     `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
     (v.width ? ` · ${v.width}x${v.height}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
+}
+function geoText(g) {
+  if (!g) return '';
+  if (g.state === 'ok') return ` | georef ok: scale ${g.scale.toFixed(3)}, rms ${(g.rms_m * 100).toFixed(1)} cm, ${g.keyframes_used} kf`;
+  return ` | georef ${g.state}: ${g.reason || ''}`;
 }
 function connectEvents() {
   const es = new EventSource(API + '/events');
@@ -247,6 +253,8 @@ function showShot(s) {
     lines.push(`camera at (${t.map((v) => v.toFixed(3)).join(', ')})`, `inliers ${l.inliers}, rms error ${l.rms_error_px.toFixed(2)} px`);
   } else if (s.reason) lines.push(`reason: ${s.reason}`);
   if (s.mission) lines.push(`mission: ${s.mission.state}, ${s.mission.items} items`);
+  const t = s.mission && s.mission.details && s.mission.details.target;
+  if (t) lines.push(`target: ${t.lat_deg.toFixed(7)}, ${t.lon_deg.toFixed(7)}, ${t.alt_above_home_m.toFixed(1)} m, yaw ${t.yaw_deg.toFixed(1)}°, pitch ${t.gimbal_pitch_deg.toFixed(1)}°`);
   showResult(lines.join('\n'));
   if (s.has_image) $('shotimg').src = `${API}/shots/${s.id}/image.jpg?t=${Date.now()}`;
   $('upload').disabled = !l;

@@ -78,6 +78,8 @@ struct State {
     last_heading_rad: Option<f64>,
     counts: Counts,
     video_delay_ms: VecDeque<f64>,
+    /// Sum and count of every frame's delay (the whole run's mean).
+    video_delay_sum_ms: (f64, u64),
 }
 
 /// The georeference the daemon keeps, shared by its worker and the API.
@@ -110,6 +112,7 @@ impl GeoService {
                 last_heading_rad: None,
                 counts: Counts::default(),
                 video_delay_ms: VecDeque::new(),
+                video_delay_sum_ms: (0.0, 0),
             }),
             params,
         }
@@ -228,6 +231,8 @@ impl GeoService {
                     st.video_delay_ms.pop_front();
                 }
                 st.video_delay_ms.push_back(d);
+                st.video_delay_sum_ms.0 += d;
+                st.video_delay_sum_ms.1 += 1;
             }
         }
     }
@@ -345,6 +350,8 @@ impl GeoService {
                 "use_frame_timestamps": self.params.history.use_frame_timestamps,
                 "video_latency_s": self.params.history.video_latency_s,
                 "video_delay_ms_median": delays.get(delays.len() / 2),
+                "video_delay_ms_mean_all": (st.video_delay_sum_ms.1 > 0)
+                    .then(|| st.video_delay_sum_ms.0 / st.video_delay_sum_ms.1 as f64),
             },
             "fit_age_s": st.fitted_at.map(|t| t.elapsed().as_secs_f64()),
         });
@@ -440,6 +447,135 @@ impl GeoService {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::api::store::PoseJson;
+    use crate::geo::{LocalFrame, MountParams, ned_from_cam};
+    use crate::geometry::Sim3;
+    use nalgebra::{Point3, UnitQuaternion, Vector3};
+
+    /// An L-shaped flight at 10 m, facing north with the camera 30 deg
+    /// down: telemetry on the boot clock, keyframes in a map that is NED
+    /// through a known similarity. Refused while the motion is a line, then
+    /// fitted with the map's scale; a keyframe culled is forgotten.
+    #[test]
+    fn telemetry_and_keyframes_give_the_maps_similarity() {
+        let geo = GeoService::new(Params::default());
+        let home = Geodetic {
+            lat_deg: 47.3977,
+            lon_deg: 8.5456,
+            alt_m: 488.0,
+        };
+        let frame = LocalFrame::new(home);
+        let t_end = 40.0;
+        let at = |t: f64| {
+            Instant::now()
+                .checked_sub(Duration::from_secs_f64(t_end - t + 0.02))
+                .unwrap_or_else(Instant::now)
+        };
+        let path = |t: f64| {
+            if t < 20.0 {
+                Vector3::new(t, 0.0, -10.0)
+            } else {
+                Vector3::new(20.0, t - 20.0, -10.0)
+            }
+        };
+        geo.on_home(&Stamped {
+            value: HomePosition {
+                lat_deg: home.lat_deg,
+                lon_deg: home.lon_deg,
+                alt_amsl_m: home.alt_m,
+            },
+            received: at(0.0),
+        });
+        for i in 0..=400 {
+            let t = i as f64 * 0.1;
+            let g = frame.ned_to_geodetic(&path(t));
+            let ms = (t * 1e3).round() as u32;
+            geo.on_position(&Stamped {
+                value: GlobalPosition {
+                    time_boot_ms: ms,
+                    lat_deg: g.lat_deg,
+                    lon_deg: g.lon_deg,
+                    alt_amsl_m: g.alt_m,
+                    rel_alt_m: 10.0,
+                    vel_ned_m_s: [0.0; 3],
+                    heading_deg: Some(0.0),
+                },
+                received: at(t),
+            });
+            geo.on_attitude(&Stamped {
+                value: Attitude {
+                    time_boot_ms: ms,
+                    roll_rad: 0.0,
+                    pitch_rad: 0.0,
+                    yaw_rad: 0.0,
+                },
+                received: at(t),
+            });
+            geo.on_gimbal(&Stamped {
+                value: GimbalAttitude {
+                    roll_deg: 0.0,
+                    pitch_deg: -30.0,
+                    yaw_deg: 0.0,
+                    yaw_absolute: false,
+                    time_boot_ms: Some(ms),
+                },
+                received: at(t),
+            });
+        }
+        let offset = geo.lock().clock.offset_s.unwrap();
+        let map_from_ned = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.3, -1.0, 2.0),
+            Vector3::new(1.0, -2.0, 0.5),
+            0.08,
+        );
+        let keyframe = |id: u64, t: f64| {
+            let state = geo.lock().geo.history().lookup(t + offset).unwrap();
+            let ned = ned_from_cam(&state, &MountParams::default());
+            let p = map_from_ned.transform_point(&Point3::from(ned.translation.vector));
+            KeyframeInfo {
+                id,
+                timestamp: t + offset,
+                world_from_cam: PoseJson::from_isometry(&Isometry3::from_parts(
+                    p.coords.into(),
+                    map_from_ned.rotation * ned.rotation,
+                )),
+                width: 640,
+                height: 480,
+            }
+        };
+        // The first leg only: a line.
+        let mut kfs: Vec<KeyframeInfo> =
+            (0..8).map(|i| keyframe(i, 1.0 + 2.0 * i as f64)).collect();
+        geo.sync_keyframes(&kfs);
+        let s = geo.status();
+        assert_eq!(s["state"], "refused", "{s}");
+        assert!(s["reason"].as_str().unwrap().contains("line"), "{s}");
+        // Round the corner.
+        kfs.extend((8..16).map(|i| keyframe(i, 1.0 + 2.0 * i as f64)));
+        geo.sync_keyframes(&kfs);
+        let s = geo.status();
+        assert_eq!(s["state"], "ok", "{s}");
+        let scale = s["scale"].as_f64().unwrap();
+        assert!((scale * 0.08 - 1.0).abs() < 1e-3, "{s}");
+        assert!(s["rms_m"].as_f64().unwrap() < 0.02, "{s}");
+        assert_eq!(s["keyframes_used"], 16);
+        // A target at a keyframe's pose is that keyframe's camera.
+        let kf = &kfs[12];
+        let (target, _) = geo
+            .target(&kf.world_from_cam.to_isometry().unwrap())
+            .unwrap();
+        assert!((target.gimbal_pitch_deg + 30.0).abs() < 0.05, "{target:?}");
+        assert!(
+            target.yaw_deg < 0.05 || target.yaw_deg > 359.95,
+            "{target:?}"
+        );
+        let p = path(kf.timestamp - offset);
+        assert!((target.p_ned_vehicle - p).norm() < 0.02, "{target:?}");
+        // Culled keyframes are forgotten.
+        kfs.truncate(12);
+        geo.sync_keyframes(&kfs);
+        assert_eq!(geo.status()["pairs"], 12);
+    }
 
     #[test]
     fn boot_clock_takes_the_fastest_delivery_and_restarts_on_reboot() {

@@ -371,6 +371,17 @@ mod tests {
     }
 
     #[test]
+    fn frame_timestamps_are_used_only_when_configured() {
+        let mut p = HistoryParams {
+            video_latency_s: 0.2,
+            ..Default::default()
+        };
+        assert_eq!(capture_time(10.0, Some(9.9), &p), 9.9);
+        p.use_frame_timestamps = false;
+        assert!((capture_time(10.0, Some(9.9), &p) - 9.8).abs() < 1e-12);
+    }
+
+    #[test]
     fn out_of_order_samples_are_placed_and_capacity_holds() {
         let mut h = TelemetryHistory::new(HistoryParams {
             capacity: 3,
