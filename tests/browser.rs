@@ -153,6 +153,31 @@ fn operator_page_in_headless_chromium() {
             assert!((x - y).abs() <= 0.051, "sent {a} vs dragged {b}");
         }
     }
+    // The page shows the daemon's numbers: pose and inliers, or the reason.
+    let text = seen["shot"]["text"].as_str().unwrap();
+    if shot["status"] == "localised" {
+        let l = &shot["localisation"];
+        let t: Vec<String> = l["world_from_cam"]["translation"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| format!("{:.3}", v.as_f64().unwrap()))
+            .collect();
+        assert!(
+            text.contains(&format!("camera at ({})", t.join(", "))),
+            "{text} vs {l}"
+        );
+        assert!(
+            text.contains(&format!("inliers {}", l["inliers"])),
+            "{text} vs {l}"
+        );
+    } else {
+        let reason = shot["reason"].as_str().unwrap();
+        assert!(
+            !reason.is_empty() && text.contains(reason),
+            "{text} vs {reason}"
+        );
+    }
     // The desired shot is the keyframe's size (no size was given).
     assert_eq!(seen["shot_image"], serde_json::json!([640, 480]));
     let png = std::fs::metadata(&shot_png).expect("the screenshot was saved");

@@ -104,7 +104,10 @@ fn raw(u: &mut Unstructured<'_>) -> AResult<()> {
     if let Some(b) = &boundary {
         // Unquoted, one leading "--" dropped (a value may itself begin
         // with dashes), never empty.
-        assert!(!b.is_empty() && ct.contains(b.as_str()), "{b:?} from {ct:?}");
+        assert!(
+            !b.is_empty() && ct.contains(b.as_str()),
+            "{b:?} from {ct:?}"
+        );
     }
     let max_part = u.int_in_range(0..=4096usize)?;
     let n_sizes = u.int_in_range(1..=8)?;
