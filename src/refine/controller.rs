@@ -194,3 +194,289 @@ pub fn correct(
     let live = convert_target(alignment, map_from_live, frame, mount).map_err(RefineError::Geo)?;
     correct_targets(&desired, &live, current, home, fence, mount, params)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geo::{AlignQuality, GimbalAngles, VehicleState, ned_from_cam};
+    use crate::geometry::Sim3;
+    use nalgebra::{Point3, Translation3, UnitQuaternion};
+
+    const HOME: Home = Home {
+        lat_deg: 47.397742,
+        lon_deg: 8.545594,
+        alt_amsl_m: 488.0,
+    };
+
+    fn frame() -> LocalFrame {
+        LocalFrame::new(Geodetic {
+            lat_deg: HOME.lat_deg,
+            lon_deg: HOME.lon_deg,
+            alt_m: HOME.alt_amsl_m,
+        })
+    }
+
+    fn alignment(ned_from_map: Sim3) -> GeoAlignment {
+        GeoAlignment {
+            ned_from_map,
+            quality: AlignQuality {
+                rms_m: 0.0,
+                max_residual_m: 0.0,
+                rotation_rms_deg: None,
+                time_offset_s: None,
+                pairs: 0,
+                inliers: 0,
+                iterations: 0,
+                spread_m2: [0.0; 3],
+            },
+            inlier_ids: Vec::new(),
+        }
+    }
+
+    /// The camera pose (NED) of a vehicle hovering exactly at `target`.
+    fn fly(target: &Target, mount: &MountParams) -> Isometry3<f64> {
+        let p = frame().geodetic_to_ned(&Geodetic {
+            lat_deg: target.lat_deg,
+            lon_deg: target.lon_deg,
+            alt_m: HOME.alt_amsl_m + target.alt_m,
+        });
+        let state = VehicleState {
+            time: 0.0,
+            p_ned: p,
+            v_ned: Vector3::zeros(),
+            ned_from_body: UnitQuaternion::from_euler_angles(0.0, 0.0, target.yaw_deg.to_radians()),
+            gimbal: GimbalAngles {
+                pitch: target.gimbal_pitch_deg.to_radians(),
+                yaw: 0.0,
+            },
+        };
+        ned_from_cam(&state, mount)
+    }
+
+    fn map_pose(map_from_ned: &Sim3, ned_from_cam: &Isometry3<f64>) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::from(
+                map_from_ned
+                    .transform_point(&Point3::from(ned_from_cam.translation.vector))
+                    .coords,
+            ),
+            map_from_ned.rotation * ned_from_cam.rotation,
+        )
+    }
+
+    #[test]
+    fn a_wrong_georeference_is_corrected_in_a_few_rounds() {
+        let mount = MountParams::default();
+        let fence = Fence::default();
+        // The true map ← NED and an estimate 3 % off in scale, 2 deg off in
+        // heading and 1.5 m off in position.
+        let ned_from_map = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.7, -0.3, 1.9),
+            Vector3::new(4.0, -7.0, -3.0),
+            8.0,
+        );
+        let map_from_ned = ned_from_map.inverse();
+        let estimate = alignment(
+            Sim3::new(
+                UnitQuaternion::from_euler_angles(0.0, 0.0, 2f64.to_radians()),
+                Vector3::new(1.0, -1.0, 0.5),
+                1.03,
+            )
+            .compose(&ned_from_map),
+        );
+        let truth = crate::geo::target_from_ned(
+            &fly(
+                &Target {
+                    lat_deg: HOME.lat_deg + 2e-4,
+                    lon_deg: HOME.lon_deg - 3e-4,
+                    alt_m: 18.0,
+                    yaw_deg: 250.0,
+                    gimbal_pitch_deg: -40.0,
+                    photo: false,
+                },
+                &mount,
+            ),
+            &frame(),
+            &mount,
+        )
+        .unwrap();
+        let desired_ned = truth.ned_from_cam;
+        let desired_map = map_pose(&map_from_ned, &desired_ned);
+        let mut target = convert_target(&estimate, &desired_map, &frame(), &mount)
+            .unwrap()
+            .to_mission_target(false);
+        let mut errors = Vec::new();
+        for _round in 0..5 {
+            let live_ned = fly(&target, &mount);
+            let d = crate::refine::pose_difference(&desired_ned, &live_ned);
+            errors.push((d.position_m, d.rotation_deg));
+            let live_map = map_pose(&map_from_ned, &live_ned);
+            let c = correct(
+                &estimate,
+                &frame(),
+                &mount,
+                &desired_map,
+                &live_map,
+                &target,
+                &HOME,
+                &fence,
+                &ControllerParams::default(),
+            )
+            .unwrap();
+            target = c.target;
+        }
+        println!("position / rotation error per round: {errors:?}");
+        assert!(errors[0].0 > 1.0 && errors[0].1 > 1.5, "{:?}", errors[0]);
+        // Each round shrinks the error by about the georeference's relative
+        // error (a few percent): centimetres after two rounds.
+        assert!(errors[2].0 < 0.02 && errors[2].1 < 0.05, "{:?}", errors[2]);
+        assert!(errors[4].0 < 1e-3 && errors[4].1 < 1e-3, "{:?}", errors[4]);
+    }
+
+    fn geo_target(p: Vector3<f64>, yaw_deg: f64, pitch_deg: f64) -> GeoTarget {
+        GeoTarget {
+            lat_deg: 0.0,
+            lon_deg: 0.0,
+            alt_above_home_m: -p.z,
+            alt_m: 0.0,
+            yaw_deg,
+            gimbal_pitch_deg: pitch_deg,
+            residual_roll_deg: 0.0,
+            axis_error_deg: 0.0,
+            p_ned_vehicle: p,
+            ned_from_cam: Isometry3::identity(),
+        }
+    }
+
+    fn current() -> Target {
+        Target {
+            lat_deg: HOME.lat_deg,
+            lon_deg: HOME.lon_deg,
+            alt_m: 20.0,
+            yaw_deg: 355.0,
+            gimbal_pitch_deg: -30.0,
+            photo: true,
+        }
+    }
+
+    #[test]
+    fn steps_are_added_wrapped_and_limited() {
+        let p = ControllerParams::default();
+        let desired = geo_target(Vector3::new(3.0, -4.0, -21.0), 5.0, -33.0);
+        let live = geo_target(Vector3::new(0.0, 0.0, -20.0), 355.0, -30.0);
+        let c = correct_targets(
+            &desired,
+            &live,
+            &current(),
+            &HOME,
+            &Fence::default(),
+            &MountParams::default(),
+            &p,
+        )
+        .unwrap();
+        assert!(!c.limited);
+        assert!((c.yaw_step_deg - 10.0).abs() < 1e-9);
+        assert!((c.target.yaw_deg - 5.0).abs() < 1e-9);
+        assert!((c.target.gimbal_pitch_deg + 33.0).abs() < 1e-9);
+        assert!((c.target.alt_m - 21.0).abs() < 1e-4, "{}", c.target.alt_m);
+        let back = frame().geodetic_to_ned(&Geodetic {
+            lat_deg: c.target.lat_deg,
+            lon_deg: c.target.lon_deg,
+            alt_m: HOME.alt_amsl_m,
+        });
+        assert!(
+            (back.x - 3.0).abs() < 1e-4 && (back.y + 4.0).abs() < 1e-4,
+            "{back:?}"
+        );
+        assert!(c.target.photo);
+        // A 50 m jump is cut to the 10 m limit; 40 deg to 20 deg.
+        let far = geo_target(Vector3::new(30.0, 40.0, -20.0), 35.0, -30.0);
+        let c = correct_targets(
+            &far,
+            &live,
+            &current(),
+            &HOME,
+            &Fence::default(),
+            &MountParams::default(),
+            &p,
+        )
+        .unwrap();
+        assert!(c.limited);
+        assert!((Vector3::from(c.step_ned_m).norm() - 10.0).abs() < 1e-9);
+        assert!((c.yaw_step_deg - 20.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn corrections_pass_the_fence_altitude_and_gimbal_checks() {
+        let p = ControllerParams::default();
+        let mount = MountParams::default();
+        let live = geo_target(Vector3::new(0.0, 0.0, -20.0), 355.0, -30.0);
+        let fence = Fence {
+            radius_m: 5.0,
+            min_alt_m: 19.5,
+            max_alt_m: 20.5,
+        };
+        let out = geo_target(Vector3::new(6.0, 0.0, -20.0), 355.0, -30.0);
+        assert!(matches!(
+            correct_targets(&out, &live, &current(), &HOME, &fence, &mount, &p),
+            Err(RefineError::Target(plan::PlanError::OutsideFence { .. }))
+        ));
+        let low = geo_target(Vector3::new(0.0, 0.0, -19.0), 355.0, -30.0);
+        assert!(matches!(
+            correct_targets(&low, &live, &current(), &HOME, &fence, &mount, &p),
+            Err(RefineError::Target(
+                plan::PlanError::BelowMinAltitude { .. }
+            ))
+        ));
+        let high = geo_target(Vector3::new(0.0, 0.0, -21.0), 355.0, -30.0);
+        assert!(matches!(
+            correct_targets(&high, &live, &current(), &HOME, &fence, &mount, &p),
+            Err(RefineError::Target(
+                plan::PlanError::AboveMaxAltitude { .. }
+            ))
+        ));
+        let mut steep = current();
+        steep.gimbal_pitch_deg = -85.0;
+        let down = geo_target(Vector3::new(0.0, 0.0, -20.0), 355.0, -40.0);
+        assert!(matches!(
+            correct_targets(&down, &live, &steep, &HOME, &Fence::default(), &mount, &p),
+            Err(RefineError::PitchOutOfRange { .. })
+        ));
+        let nan = geo_target(Vector3::new(f64::NAN, 0.0, -20.0), 355.0, -30.0);
+        assert!(matches!(
+            correct_targets(
+                &nan,
+                &live,
+                &current(),
+                &HOME,
+                &Fence::default(),
+                &mount,
+                &p
+            ),
+            Err(RefineError::NonFinite { .. })
+        ));
+        let bad_gain = ControllerParams { gain: 0.0, ..p };
+        assert!(matches!(
+            correct_targets(
+                &live,
+                &live,
+                &current(),
+                &HOME,
+                &Fence::default(),
+                &mount,
+                &bad_gain
+            ),
+            Err(RefineError::InvalidParams { name: "gain", .. })
+        ));
+    }
+
+    #[test]
+    fn the_loop_stops_on_the_threshold_or_the_budget() {
+        let p = ControllerParams::default();
+        assert_eq!(decide(Some(0.5), 0, &p), Decision::Converged);
+        assert_eq!(decide(Some(1.5), 0, &p), Decision::Correct);
+        assert_eq!(decide(None, 1, &p), Decision::Correct);
+        assert_eq!(decide(Some(1.5), p.max_rounds, &p), Decision::MaxRounds);
+        assert_eq!(decide(Some(0.99), p.max_rounds, &p), Decision::Converged);
+    }
+}
