@@ -30,6 +30,11 @@ pub struct ScenarioArgs {
     /// (0: never).
     #[arg(long, default_value_t = 4)]
     pub anchor_every: usize,
+    /// Fly without the disturbances (GPS bias drift, gimbal pitch and camera
+    /// heading calibration errors): the vehicle is exactly where telemetry
+    /// says and the camera exactly as mounted.
+    #[arg(long)]
+    pub no_disturbances: bool,
     /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -53,6 +58,9 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     params.refine.controller.threshold_pct = args.threshold_pct;
     params.refine.controller.max_rounds = args.max_rounds;
     params.anchor_every = args.anchor_every;
+    if args.no_disturbances {
+        params.disturbances = scenario::Disturbances::none();
+    }
     let json = args.json;
     let mut progress = |t: &TrialReport| {
         if !json {
@@ -67,7 +75,10 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
                 fmt_opt(t.pitch_error_deg, 2),
                 t.rounds,
                 t.stop,
-                t.reason.as_ref().map(|r| format!(" ({r})")).unwrap_or_default(),
+                t.reason
+                    .as_ref()
+                    .map(|r| format!(" ({r})"))
+                    .unwrap_or_default(),
                 t.sim_s,
                 t.wall_s
             );
@@ -81,11 +92,23 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     let e = &report.explore;
     println!(
         "explore: {:.0} s simulated, {} frames ({} tracked), {} keyframes, {} points; georeference {} / {} inliers, rms {:.3} m ({:.1} s wall)",
-        e.sim_s, e.frames, e.tracked, e.keyframes, e.points, e.geo_inliers, e.geo_pairs, e.geo_rms_m, e.wall_s
+        e.sim_s,
+        e.frames,
+        e.tracked,
+        e.keyframes,
+        e.points,
+        e.geo_inliers,
+        e.geo_pairs,
+        e.geo_rms_m,
+        e.wall_s
     );
     println!(
         "{} trials, {} flown, {} converged under {} %; fence violations: {}",
-        report.trials, report.flown, report.converged, report.threshold_pct, report.fence_violations
+        report.trials,
+        report.flown,
+        report.converged,
+        report.threshold_pct,
+        report.fence_violations
     );
     println!(
         "shot error: first median {} % p90 {} %; final median {} % p90 {} %; final <= 2 %: {}",

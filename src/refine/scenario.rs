@@ -25,7 +25,7 @@ use std::time::Instant;
 use image::GrayImage;
 use mavlink::MavHeader;
 use mavlink::dialects::common::{MavMessage, MavMissionType};
-use nalgebra::{Isometry3, Point2, Vector3};
+use nalgebra::{Isometry3, Point2, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 use serde::Serialize;
 
@@ -108,6 +108,50 @@ impl Default for SteadyParams {
     }
 }
 
+/// What the daemon does not know about the vehicle: the errors that make a
+/// single open-loop estimate miss and that the loop must correct.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Disturbances {
+    /// GPS bias (the vehicle stands at its reported position plus this
+    /// bias, which drifts as a first-order Gauss-Markov process):
+    /// horizontal standard deviation per axis, m.
+    pub gps_sigma_xy_m: f64,
+    /// Its vertical standard deviation, m.
+    pub gps_sigma_z_m: f64,
+    /// Its correlation time, s.
+    pub gps_tau_s: f64,
+    /// Gimbal pitch calibration error: the camera looks this much higher
+    /// than the gimbal reports, degrees.
+    pub gimbal_pitch_offset_deg: f64,
+    /// Camera heading error (mounting/compass), degrees.
+    pub camera_yaw_offset_deg: f64,
+}
+
+impl Default for Disturbances {
+    fn default() -> Self {
+        Self {
+            gps_sigma_xy_m: 1.0,
+            gps_sigma_z_m: 0.5,
+            gps_tau_s: 120.0,
+            gimbal_pitch_offset_deg: 1.0,
+            camera_yaw_offset_deg: 0.7,
+        }
+    }
+}
+
+impl Disturbances {
+    /// No disturbance: the vehicle is exactly where telemetry says.
+    pub fn none() -> Self {
+        Self {
+            gps_sigma_xy_m: 0.0,
+            gps_sigma_z_m: 0.0,
+            gps_tau_s: 120.0,
+            gimbal_pitch_offset_deg: 0.0,
+            camera_yaw_offset_deg: 0.0,
+        }
+    }
+}
+
 /// Every tunable number of the scenario.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ScenarioParams {
@@ -130,6 +174,8 @@ pub struct ScenarioParams {
     pub anchor_every: usize,
     /// Hidden poses.
     pub hidden: HiddenParams,
+    /// Errors the daemon does not know about.
+    pub disturbances: Disturbances,
     /// Arrival.
     pub steady: SteadyParams,
     /// The SLAM (run sequentially, so runs repeat).
@@ -159,6 +205,7 @@ impl Default for ScenarioParams {
             sensor_noise: true,
             anchor_every: 4,
             hidden: HiddenParams::default(),
+            disturbances: Disturbances::default(),
             steady: SteadyParams::default(),
             slam: slam::Params {
                 sequential: true,
@@ -179,7 +226,12 @@ impl Default for ScenarioParams {
                     pitch_max_deg: vehicle.gimbal.pitch_max_deg,
                     ..MountParams::default()
                 },
-                align: geo::AlignParams::default(),
+                // GPS-grade positions: metre-level errors are inliers.
+                align: geo::AlignParams {
+                    inlier_threshold_m: 2.5,
+                    position_sigma_m: 1.0,
+                    ..geo::AlignParams::default()
+                },
             },
             plan: plan::Params {
                 hold_time_s: 15.0,
@@ -445,6 +497,10 @@ struct Sim {
     home: Home,
     fence: plan::Fence,
     fence_ok: bool,
+    disturb: Disturbances,
+    /// The GPS bias now: true position = reported position + bias.
+    bias: Vector3<f64>,
+    rng: SmallRng,
 }
 
 impl Sim {
@@ -495,9 +551,24 @@ impl Sim {
                 _ => {}
             }
         }
+        let d = &self.disturb;
+        if d.gps_tau_s > 0.0 {
+            let a = self.dt / d.gps_tau_s;
+            let k = (2.0 * a).sqrt();
+            let (gx, gy, gz) = (
+                gauss(&mut self.rng),
+                gauss(&mut self.rng),
+                gauss(&mut self.rng),
+            );
+            self.bias += Vector3::new(
+                -self.bias.x * a + d.gps_sigma_xy_m * k * gx,
+                -self.bias.y * a + d.gps_sigma_xy_m * k * gy,
+                -self.bias.z * a + d.gps_sigma_z_m * k * gz,
+            );
+        }
         let v = self.ap.vehicle();
         if !v.landed() {
-            let p = v.p_ned();
+            let p = v.p_ned() + self.bias;
             let alt = -p.z;
             if p.xy().norm() > self.fence.radius_m || alt > self.fence.max_alt_m {
                 self.fence_ok = false;
@@ -505,8 +576,27 @@ impl Sim {
         }
     }
 
+    /// The camera pose the vehicle really has (bias and misalignment included).
+    fn true_camera(&self) -> Isometry3<f64> {
+        let nominal = self.ap.vehicle().world_from_cam();
+        let d = &self.disturb;
+        let rotation = UnitQuaternion::from_axis_angle(
+            &Vector3::z_axis(),
+            d.camera_yaw_offset_deg.to_radians(),
+        ) * nominal.rotation
+            // the camera's x axis points right: a negative turn about it looks up
+            * UnitQuaternion::from_axis_angle(
+                &Vector3::x_axis(),
+                -d.gimbal_pitch_offset_deg.to_radians(),
+            );
+        Isometry3::from_parts(
+            Translation3::from(nominal.translation.vector + self.bias),
+            rotation,
+        )
+    }
+
     fn render(&mut self) -> GrayImage {
-        let wfc = self.ap.vehicle().world_from_cam();
+        let wfc = self.true_camera();
         if self.sensor_noise {
             self.noise_seed = self.noise_seed.wrapping_add(1);
             self.renderer.render_noisy(&wfc, self.noise_seed)
@@ -545,7 +635,10 @@ impl Sim {
             let msgs = std::mem::take(&mut out);
             if msgs.is_empty() {
                 // Nothing in flight without a lossy link; a timeout would be a bug.
-                up.on_timeout(Instant::now() + std::time::Duration::from_secs(3600), &mut out);
+                up.on_timeout(
+                    Instant::now() + std::time::Duration::from_secs(3600),
+                    &mut out,
+                );
                 continue;
             }
             for m in msgs {
@@ -593,8 +686,9 @@ struct Explored {
     map: Map,
     alignment: GeoAlignment,
     frame: LocalFrame,
-    /// Truth per keyframe id: (vehicle position NED, heading rad, gimbal pitch rad).
-    kf_truth: BTreeMap<u32, (Vector3<f64>, f64, f64)>,
+    /// Truth per keyframe id: (vehicle position NED, heading rad, gimbal
+    /// pitch rad) as reported, and the true camera pose.
+    kf_truth: BTreeMap<u32, ((Vector3<f64>, f64, f64), Isometry3<f64>)>,
     report: ExploreReport,
 }
 
@@ -610,12 +704,15 @@ fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioE
         alt_m: home.alt_m,
     })?;
     let world = sim.renderer.world().clone();
-    let mut script = Script::new(ScriptKind::Explore, params.script.clone(), &move |x, y, r| {
-        world.max_height_near(x, y, r)
-    });
+    let mut script = Script::new(
+        ScriptKind::Explore,
+        params.script.clone(),
+        &move |x, y, r| world.max_height_near(x, y, r),
+    );
     let every = ((params.step_hz / params.slam_fps).round() as u64).max(1);
     let limit_s = 3.0 * script.length_m() / params.script.speed.max(0.1) + 120.0;
-    let mut truth_by_frame: BTreeMap<u64, (Vector3<f64>, f64, f64)> = BTreeMap::new();
+    type Truth = ((Vector3<f64>, f64, f64), Isometry3<f64>);
+    let mut truth_by_frame: BTreeMap<u64, Truth> = BTreeMap::new();
     let (mut frames, mut tracked) = (0u64, 0u64);
     while !script.finished() {
         if sim.t > limit_s {
@@ -626,7 +723,10 @@ fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioE
         if sim.k.is_multiple_of(every) && !sim.ap.vehicle().landed() {
             let image = Arc::new(sim.render());
             let v = sim.ap.vehicle();
-            truth_by_frame.insert(frames, (v.p_ned(), v.yaw(), v.gimbal_angles().0));
+            truth_by_frame.insert(
+                frames,
+                ((v.p_ned(), v.yaw(), v.gimbal_angles().0), sim.true_camera()),
+            );
             let outcome = slam.process(frames, sim.t, image);
             frames += 1;
             if outcome.cam_from_world.is_some() {
@@ -697,8 +797,18 @@ fn hover_state(p_ned: Vector3<f64>, yaw: f64, pitch: f64) -> VehicleState {
     }
 }
 
+fn gauss(rng: &mut SmallRng) -> f64 {
+    let u1: f64 = rng.random_range(1e-12..1.0);
+    let u2: f64 = rng.random_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
 fn sym(rng: &mut SmallRng, r: f64) -> f64 {
-    if r > 0.0 { rng.random_range(-r..r) } else { 0.0 }
+    if r > 0.0 {
+        rng.random_range(-r..r)
+    } else {
+        0.0
+    }
 }
 
 fn make_hidden(
@@ -715,27 +825,32 @@ fn make_hidden(
         return None;
     }
     let id = ids[rng.random_range(0..ids.len())];
-    let (p, yaw, pitch) = ex.kf_truth[&id];
+    let ((p, yaw, pitch), kf_cam) = ex.kf_truth[&id];
     if anchors {
         let kf = ex.map.keyframe(crate::slam::KeyFrameId(id))?;
         let img = kf.image.clone()?;
-        let kf_cam = ned_from_cam(&hover_state(p, yaw, pitch), mount);
-        let yaw2 = yaw + sym(rng, hp.anchor_yaw_deg).to_radians();
-        let pitch2 = (pitch + sym(rng, hp.anchor_pitch_deg).to_radians()).clamp(
-            hp.pitch_range_deg.0.to_radians(),
-            hp.pitch_range_deg.1.to_radians(),
+        // The keyframe's true camera turned about the vertical and its own
+        // x axis (a pan and a tilt: a pose a 2-axis gimbal can take).
+        let dyaw = sym(rng, hp.anchor_yaw_deg).to_radians();
+        let dpitch = sym(rng, hp.anchor_pitch_deg).to_radians();
+        let cam = Isometry3::from_parts(
+            kf_cam.translation,
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), dyaw)
+                * kf_cam.rotation
+                * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -dpitch),
         );
-        let cam = ned_from_cam(&hover_state(p, yaw2, pitch2), mount);
-        // Where the keyframe's corners appear in the turned camera.
+        let (yaw2, pitch2) = (yaw + dyaw, pitch + dpitch);
+        // The anchors: where the desired frame's corners lie in the
+        // keyframe (the warp samples the keyframe at H·p, H: corner -> anchor).
         let cam_model = ex.map.camera;
-        let d_from_k = cam.rotation.inverse() * kf_cam.rotation;
+        let k_from_d = kf_cam.rotation.inverse() * cam.rotation;
         let mut pts = [Point2::origin(); 4];
         for (i, c) in frame_corners(cam_model.width, cam_model.height)
             .iter()
             .enumerate()
         {
             let ray = cam_model.unproject(*c);
-            pts[i] = cam_model.project(&(d_from_k * ray.into_inner()))?;
+            pts[i] = cam_model.project(&(k_from_d * ray.into_inner()))?;
         }
         let shot = desired_shot_from_anchors(&img, &pts, &params.anchors).ok()?;
         return Some(Hidden {
@@ -778,7 +893,12 @@ fn make_hidden(
     })
 }
 
-fn localise(map: &Map, img: &GrayImage, mask: Option<&GrayImage>, p: &LocalizeParams) -> Result<Isometry3<f64>, String> {
+fn localise(
+    map: &Map,
+    img: &GrayImage,
+    mask: Option<&GrayImage>,
+    p: &LocalizeParams,
+) -> Result<Isometry3<f64>, String> {
     match localize(map, img, mask, None, p) {
         Ok(Localization::Localized(s)) => Ok(s.world_from_cam),
         Ok(Localization::NotLocalized { reason }) => Err(format!("not localised: {reason}")),
@@ -842,7 +962,12 @@ fn run_trial(
     rep.hidden_yaw_deg = hidden.yaw.to_degrees();
     rep.hidden_pitch_deg = hidden.pitch.to_degrees();
     let mount = &params.geo.mount;
-    let desired_map = match localise(&ex.map, &hidden.image, hidden.mask.as_ref(), &params.localize) {
+    let desired_map = match localise(
+        &ex.map,
+        &hidden.image,
+        hidden.mask.as_ref(),
+        &params.localize,
+    ) {
         Ok(p) => p,
         Err(e) => {
             rep.reason = Some(e);
@@ -893,8 +1018,8 @@ fn run_trial(
             }
         };
         rep.flown = true;
+        let live_cam = sim.true_camera();
         let live = sim.render();
-        let live_cam = sim.ap.vehicle().world_from_cam();
         let err = super::shot_error(
             &live,
             &hidden.image,
@@ -983,7 +1108,11 @@ pub fn run(
     let wall = Instant::now();
     let world = World::generate_with(params.seed, &params.world)
         .map_err(|e| ScenarioError::World(e.to_string()))?;
-    let renderer = Renderer::new(Arc::new(world), SimCamera::default(), RenderParams::default());
+    let renderer = Renderer::new(
+        Arc::new(world),
+        SimCamera::default(),
+        RenderParams::default(),
+    );
     let ap_params = AutopilotParams::default();
     let h = ap_params.vehicle.home;
     let mut sim = Sim {
@@ -1002,6 +1131,9 @@ pub fn run(
         },
         fence: params.plan.fence,
         fence_ok: true,
+        disturb: params.disturbances.clone(),
+        bias: Vector3::zeros(),
+        rng: SmallRng::seed_from_u64(params.seed ^ 0x0b1a_5ed),
     };
     let ex = explore(&mut sim, params)?;
     let mut rng = SmallRng::seed_from_u64(params.seed ^ 0x7e57_5407);
@@ -1011,13 +1143,31 @@ pub fn run(
         progress(&r);
         trials.push(r);
     }
-    let flown: Vec<&TrialReport> = trials.iter().filter(|t| t.final_shot_error_pct.is_some()).collect();
-    let fin: Vec<f64> = flown.iter().filter_map(|t| t.final_shot_error_pct).collect();
-    let first: Vec<f64> = flown.iter().filter_map(|t| t.first_shot_error_pct).collect();
+    let flown: Vec<&TrialReport> = trials
+        .iter()
+        .filter(|t| t.final_shot_error_pct.is_some())
+        .collect();
+    let fin: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.final_shot_error_pct)
+        .collect();
+    let first: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.first_shot_error_pct)
+        .collect();
     let pos: Vec<f64> = flown.iter().filter_map(|t| t.position_error_m).collect();
-    let pos0: Vec<f64> = flown.iter().filter_map(|t| t.first_position_error_m).collect();
-    let yaw: Vec<f64> = flown.iter().filter_map(|t| t.yaw_error_deg.map(f64::abs)).collect();
-    let pitch: Vec<f64> = flown.iter().filter_map(|t| t.pitch_error_deg.map(f64::abs)).collect();
+    let pos0: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.first_position_error_m)
+        .collect();
+    let yaw: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.yaw_error_deg.map(f64::abs))
+        .collect();
+    let pitch: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.pitch_error_deg.map(f64::abs))
+        .collect();
     let n = flown.len();
     Ok(ScenarioReport {
         seed: params.seed,
