@@ -71,7 +71,8 @@ fn a_short_scenario_converges_under_one_percent() {
     assert_eq!(trials.len(), 4);
     assert_eq!(r["flown"], 4, "every desired shot localised and flown");
     assert!(
-        trials.iter().any(|t| t["kind"] == "anchors") && trials.iter().any(|t| t["kind"] == "render")
+        trials.iter().any(|t| t["kind"] == "anchors")
+            && trials.iter().any(|t| t["kind"] == "render")
     );
     assert_eq!(r["fence_violations"], 0);
     // The loop's figures.

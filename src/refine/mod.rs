@@ -8,6 +8,9 @@
 //! * [`controller`]: the correction that moves the camera from the
 //!   localised live pose to the desired pose through the georeference,
 //!   checked like the first target; when to stop.
+//! * [`session`]: one shot's loop as a state machine (arrival → measure →
+//!   decide → localise the live frame → corrected target), whose rounds
+//!   are the record the API shows.
 //! * [`scenario`]: the closed-loop experiment in the simulator (explore
 //!   flight → SLAM map and georeference → desired shots from hidden poses →
 //!   localise, plan, upload, fly, refine), run synchronously in simulated
@@ -20,12 +23,14 @@
 pub mod controller;
 pub mod error;
 pub mod scenario;
+pub mod session;
 
 pub use controller::{ControllerParams, Correction, Decision, correct, correct_targets, decide};
 pub use error::{
     PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
     pose_difference, shot_error,
 };
+pub use session::{Context, RoundRecord, Session, Step, Stop};
 
 /// Every tunable number of the refinement.
 #[derive(Debug, Clone, Default, PartialEq)]

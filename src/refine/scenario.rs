@@ -35,13 +35,13 @@ use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::script::{Level, Script, ScriptKind, ScriptParams};
 use shotpilot_sim::world::{World, WorldParams};
 
-use super::{ControllerParams, Correction, Decision, Params, correct, decide, pose_difference};
+use super::{Context, Params, RoundRecord, Session, Step, Stop, pose_difference};
 use crate::camera::{Camera, Distortion};
 use crate::geo::{
     self, GeoAlignment, Geodetic, GimbalAngles, LeverArmFrame, LocalFrame, MountParams,
     VehicleState, convert_target, ned_from_cam,
 };
-use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
+use crate::mission::plan::{self, Flavour, Home, MissionItem};
 use crate::mission::upload::{self, Peers, Uploader};
 use crate::shot::{
     AnchorParams, Localization, LocalizeParams, desired_shot_from_anchors, frame_corners, localize,
@@ -335,17 +335,12 @@ pub struct ExploreReport {
     pub wall_s: f64,
 }
 
-/// One measurement on arrival (and the correction that followed, if any).
+/// One measurement on arrival (the loop's record) and the judge's figures.
 #[derive(Debug, Clone, Serialize)]
 pub struct RoundReport {
-    /// 0 for the first flight, then one per correction.
-    pub round: usize,
-    /// Shot error, % of the diagonal (None when no homography was found).
-    pub shot_error_pct: Option<f64>,
-    /// Shot error, pixels.
-    pub shot_error_px: Option<f64>,
-    /// Homography inliers of the shot error.
-    pub shot_error_inliers: Option<usize>,
+    /// What the loop measured and did.
+    #[serde(flatten)]
+    pub record: RoundRecord,
     /// Camera position error against the hidden pose, m (the judge).
     pub position_error_m: f64,
     /// Heading error of the optical axis, degrees.
@@ -354,12 +349,6 @@ pub struct RoundReport {
     pub pitch_error_deg: f64,
     /// Simulated seconds of this round's flight.
     pub flight_s: f64,
-    /// The target flown.
-    pub target: Target,
-    /// The correction uploaded after this measurement.
-    pub correction: Option<Correction>,
-    /// Why the loop stopped or could not correct, if it did.
-    pub note: Option<String>,
 }
 
 /// One trial.
@@ -979,7 +968,7 @@ fn run_trial(
             - hidden.camera.translation.vector)
             .norm(),
     );
-    let mut target = match convert_target(&ex.alignment, &desired_map, &ex.frame, mount) {
+    let target = match convert_target(&ex.alignment, &desired_map, &ex.frame, mount) {
         Ok(t) => t.to_mission_target(false),
         Err(e) => {
             rep.reason = Some(format!("no target: {e}"));
@@ -988,10 +977,26 @@ fn run_trial(
     };
     let flavour = Flavour::Px4;
     let cam_model = ex.map.camera;
-    let ctrl: &ControllerParams = &params.refine.controller;
+    let mut session = Session::new(
+        hidden.image.clone(),
+        hidden.mask.clone(),
+        desired_map,
+        target,
+        params.refine.clone(),
+    );
+    let home = sim.home;
+    let ctx = Context {
+        map: &ex.map,
+        alignment: &ex.alignment,
+        frame: &ex.frame,
+        mount,
+        home: &home,
+        fence: &params.plan.fence,
+        localize: &params.localize,
+    };
     sim.fence_ok = true;
-    let mut round = 0usize;
     loop {
+        let target = *session.target();
         let items = match plan::plan(&target, &sim.home, flavour, &params.plan) {
             Ok(i) => i,
             Err(e) => {
@@ -1020,76 +1025,33 @@ fn run_trial(
         rep.flown = true;
         let live_cam = sim.true_camera();
         let live = sim.render();
-        let err = super::shot_error(
-            &live,
-            &hidden.image,
-            hidden.mask.as_ref(),
-            Some(&cam_model),
-            &params.refine.error,
-        );
+        let step = session.on_arrival(&live, Some(&cam_model), &ctx);
+        let Some(record) = session.rounds().last().cloned() else {
+            return finish(rep, sim, "no_round".into());
+        };
         let d = pose_difference(&hidden.camera, &live_cam);
-        let mut rr = RoundReport {
-            round,
-            shot_error_pct: err.as_ref().ok().map(|e| e.corner_error_pct),
-            shot_error_px: err.as_ref().ok().map(|e| e.corner_error_px),
-            shot_error_inliers: err.as_ref().ok().map(|e| e.inliers),
+        if record.round == 0 {
+            rep.first_shot_error_pct = record.shot_error_pct;
+            rep.first_position_error_m = Some(d.position_m);
+        }
+        rep.final_shot_error_pct = record.shot_error_pct;
+        rep.position_error_m = Some(d.position_m);
+        rep.yaw_error_deg = Some(d.yaw_deg);
+        rep.pitch_error_deg = Some(d.pitch_deg);
+        rep.rounds = record.round;
+        rep.round_reports.push(RoundReport {
+            record,
             position_error_m: d.position_m,
             yaw_error_deg: d.yaw_deg,
             pitch_error_deg: d.pitch_deg,
             flight_s,
-            target,
-            correction: None,
-            note: err.as_ref().err().map(|e| format!("shot error: {e}")),
-        };
-        if round == 0 {
-            rep.first_shot_error_pct = rr.shot_error_pct;
-            rep.first_position_error_m = Some(d.position_m);
-        }
-        rep.final_shot_error_pct = rr.shot_error_pct;
-        rep.position_error_m = Some(d.position_m);
-        rep.yaw_error_deg = Some(d.yaw_deg);
-        rep.pitch_error_deg = Some(d.pitch_deg);
-        rep.rounds = round;
-        let stop = match decide(rr.shot_error_pct, round, ctrl) {
-            Decision::Converged => Some("converged".to_string()),
-            Decision::MaxRounds => Some("max_rounds".to_string()),
-            Decision::Correct => None,
-        };
-        if let Some(s) = stop {
-            rep.round_reports.push(rr);
-            return finish(rep, sim, s);
-        }
-        let live_map = match localise(&ex.map, &live, None, &params.localize) {
-            Ok(p) => p,
-            Err(e) => {
-                rr.note = Some(format!("live frame {e}"));
-                rep.round_reports.push(rr);
-                return finish(rep, sim, "live_not_localised".into());
+        });
+        if let Step::Done(stop) = step {
+            if let Stop::LiveNotLocalised(r) | Stop::CorrectionRefused(r) = &stop {
+                rep.reason = Some(r.clone());
             }
-        };
-        match correct(
-            &ex.alignment,
-            &ex.frame,
-            mount,
-            &desired_map,
-            &live_map,
-            &target,
-            &sim.home,
-            &params.plan.fence,
-            ctrl,
-        ) {
-            Ok(c) => {
-                target = c.target;
-                rr.correction = Some(c);
-                rep.round_reports.push(rr);
-            }
-            Err(e) => {
-                rr.note = Some(format!("correction refused: {e}"));
-                rep.round_reports.push(rr);
-                return finish(rep, sim, "correction_refused".into());
-            }
+            return finish(rep, sim, stop.name().into());
         }
-        round += 1;
     }
 }
 
