@@ -5,6 +5,8 @@
 //!   (ORB matches, RANSAC homography, mean displacement of the four image
 //!   corners, pixels and % of the diagonal) and the pose difference when
 //!   both poses are known.
+//! * [`arrival`]: when to look (waypoint reached, vehicle still, gimbal at
+//!   its commanded pitch, for a dwell time).
 //! * [`controller`]: the correction that moves the camera from the
 //!   localised live pose to the desired pose through the georeference,
 //!   checked like the first target; when to stop.
@@ -20,11 +22,13 @@
 //! simulator's autopilot in-process through the upload state machine of
 //! [`crate::mission::upload`].
 
+pub mod arrival;
 pub mod controller;
 pub mod error;
 pub mod scenario;
 pub mod session;
 
+pub use arrival::{ArrivalDetector, ArrivalParams};
 pub use controller::{ControllerParams, Correction, Decision, correct, correct_targets, decide};
 pub use error::{
     PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
@@ -39,6 +43,8 @@ pub struct Params {
     pub error: ShotErrorParams,
     /// The correction loop.
     pub controller: ControllerParams,
+    /// When the view counts as steady on arrival.
+    pub arrival: ArrivalParams,
 }
 
 /// Errors of the refinement.

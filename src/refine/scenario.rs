@@ -35,7 +35,10 @@ use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::script::{Level, Script, ScriptKind, ScriptParams};
 use shotpilot_sim::world::{World, WorldParams};
 
-use super::{Context, Params, RoundRecord, Session, Step, Stop, pose_difference};
+use super::{
+    ArrivalDetector, ArrivalParams, Context, Params, RoundRecord, Session, Step, Stop,
+    pose_difference,
+};
 use crate::camera::{Camera, Distortion};
 use crate::geo::{
     self, GeoAlignment, Geodetic, GimbalAngles, LeverArmFrame, LocalFrame, MountParams,
@@ -84,15 +87,9 @@ impl Default for HiddenParams {
     }
 }
 
-/// When the view counts as steady after the waypoint is reached.
+/// Flight limits of a round.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SteadyParams {
-    /// Largest vehicle speed, m/s.
-    pub speed_m_s: f64,
-    /// Largest gimbal error to its target, degrees.
-    pub gimbal_deg: f64,
-    /// The conditions hold this long, s.
-    pub dwell_s: f64,
     /// Longest flight of one round before giving up, s.
     pub max_flight_s: f64,
 }
@@ -100,9 +97,6 @@ pub struct SteadyParams {
 impl Default for SteadyParams {
     fn default() -> Self {
         Self {
-            speed_m_s: 0.05,
-            gimbal_deg: 0.2,
-            dwell_s: 1.0,
             max_flight_s: 120.0,
         }
     }
@@ -644,23 +638,26 @@ impl Sim {
         }
     }
 
-    /// Flies until the waypoint `wp_seq` is reached and the view is steady.
-    fn fly_until_steady(&mut self, wp_seq: u16, p: &SteadyParams) -> Result<f64, String> {
+    /// Flies until the waypoint `wp_seq` is reached and the view is steady
+    /// by the daemon's arrival rule, fed with what telemetry reports.
+    fn fly_until_steady(
+        &mut self,
+        wp_seq: u16,
+        gimbal_pitch_deg: f64,
+        arrival: &ArrivalParams,
+        p: &SteadyParams,
+    ) -> Result<f64, String> {
         let t0 = self.t;
-        let mut steady_since: Option<f64> = None;
+        let mut det = ArrivalDetector::new(*arrival, wp_seq, gimbal_pitch_deg);
         while self.t - t0 < p.max_flight_s {
             self.step(None);
+            if let Some(seq) = self.reached.take() {
+                det.on_reached(seq);
+            }
             let v = self.ap.vehicle();
-            let ok = self.reached == Some(wp_seq)
-                && v.v_ned().norm() < p.speed_m_s
-                && v.gimbal_settled(p.gimbal_deg);
-            if ok {
-                let s = *steady_since.get_or_insert(self.t);
-                if self.t - s >= p.dwell_s {
-                    return Ok(self.t - t0);
-                }
-            } else {
-                steady_since = None;
+            let pitch = v.gimbal_angles().0.to_degrees();
+            if det.update(self.t, v.v_ned().norm(), pitch) {
+                return Ok(self.t - t0);
             }
         }
         Err(format!(
@@ -670,6 +667,10 @@ impl Sim {
     }
 }
 
+/// The truth of one explore frame: the vehicle position (NED), heading and
+/// gimbal pitch (radians) as reported, and the camera pose it really had.
+type FrameTruth = ((Vector3<f64>, f64, f64), Isometry3<f64>);
+
 /// The explore flight and what it built.
 struct Explored {
     map: Map,
@@ -677,7 +678,7 @@ struct Explored {
     frame: LocalFrame,
     /// Truth per keyframe id: (vehicle position NED, heading rad, gimbal
     /// pitch rad) as reported, and the true camera pose.
-    kf_truth: BTreeMap<u32, ((Vector3<f64>, f64, f64), Isometry3<f64>)>,
+    kf_truth: BTreeMap<u32, FrameTruth>,
     report: ExploreReport,
 }
 
@@ -700,8 +701,7 @@ fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioE
     );
     let every = ((params.step_hz / params.slam_fps).round() as u64).max(1);
     let limit_s = 3.0 * script.length_m() / params.script.speed.max(0.1) + 120.0;
-    type Truth = ((Vector3<f64>, f64, f64), Isometry3<f64>);
-    let mut truth_by_frame: BTreeMap<u64, Truth> = BTreeMap::new();
+    let mut truth_by_frame: BTreeMap<u64, FrameTruth> = BTreeMap::new();
     let (mut frames, mut tracked) = (0u64, 0u64);
     while !script.finished() {
         if sim.t > limit_s {
@@ -1015,7 +1015,12 @@ fn run_trial(
             sim.ap.set_mode(Mode::Mission);
         }
         let _ = sim.ap.arm();
-        let flight_s = match sim.fly_until_steady(wp, &params.steady) {
+        let flight_s = match sim.fly_until_steady(
+            wp,
+            target.gimbal_pitch_deg,
+            &params.refine.arrival,
+            &params.steady,
+        ) {
             Ok(s) => s,
             Err(e) => {
                 rep.reason = Some(e);
@@ -1095,7 +1100,7 @@ pub fn run(
         fence_ok: true,
         disturb: params.disturbances.clone(),
         bias: Vector3::zeros(),
-        rng: SmallRng::seed_from_u64(params.seed ^ 0x0b1a_5ed),
+        rng: SmallRng::seed_from_u64(params.seed ^ 0x00b1_a5ed),
     };
     let ex = explore(&mut sim, params)?;
     let mut rng = SmallRng::seed_from_u64(params.seed ^ 0x7e57_5407);
