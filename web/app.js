@@ -247,6 +247,15 @@ function showShot(s) {
     lines.push(`camera at (${t.map((v) => v.toFixed(3)).join(', ')})`, `inliers ${l.inliers}, rms error ${l.rms_error_px.toFixed(2)} px`);
   } else if (s.reason) lines.push(`reason: ${s.reason}`);
   if (s.mission) lines.push(`mission: ${s.mission.state}, ${s.mission.items} items`);
+  const rf = s.mission && s.mission.details && s.mission.details.refinement;
+  if (rf && Array.isArray(rf.rounds)) {
+    for (const r of rf.rounds) {
+      const e = r.shot_error_pct == null ? 'no shot error' : `shot error ${r.shot_error_pct.toFixed(2)} %`;
+      const c = r.correction ? `, corrected by (${r.correction.step_ned_m.map((v) => v.toFixed(2)).join(', ')}) m, yaw ${r.correction.yaw_step_deg.toFixed(2)}°, pitch ${r.correction.pitch_step_deg.toFixed(2)}°` : '';
+      lines.push(`refinement round ${r.round}: ${e}, ${r.decision}${c}${r.note ? ` (${r.note})` : ''}`);
+    }
+    if (rf.stop) lines.push(`refinement: ${rf.stop}${rf.reason ? ` (${rf.reason})` : ''}`);
+  }
   showResult(lines.join('\n'));
   if (s.has_image) $('shotimg').src = `${API}/shots/${s.id}/image.jpg?t=${Date.now()}`;
   $('upload').disabled = !l;

@@ -15,6 +15,7 @@
 //! takes no further frame, finishes (mapping, map file) and is joined; the
 //! simulator stops last.
 
+pub mod refine_service;
 pub mod shot_service;
 pub mod slam_view;
 pub mod vehicle_view;
