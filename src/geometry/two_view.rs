@@ -1076,4 +1076,53 @@ mod tests {
                 .any(|(rh, th)| (rh - r).norm() < 1e-9 && (th - t).norm() < 1e-9)
         );
     }
+
+    #[test]
+    fn find_homography_recovers_a_known_one_among_outliers() {
+        use rand::{Rng, SeedableRng, rngs::SmallRng};
+        let h = Matrix3::new(1.05, 0.03, -12.0, -0.02, 0.98, 7.5, 1.5e-4, -8e-5, 1.0);
+        let mut rng = SmallRng::seed_from_u64(9);
+        let (mut p1, mut p2) = (Vec::new(), Vec::new());
+        for i in 0..300 {
+            let a = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+            let v = h * Vector3::new(a.x, a.y, 1.0);
+            let mut b = Point2::new(v.x / v.z, v.y / v.z);
+            if i % 10 < 3 {
+                // 30 % outliers anywhere in the image
+                b = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+            } else {
+                b.x += rng.random_range(-0.5..0.5);
+                b.y += rng.random_range(-0.5..0.5);
+            }
+            p1.push(a);
+            p2.push(b);
+        }
+        let fit = find_homography(&p1, &p2, &HomographyParams::default(), 1).unwrap();
+        assert!(
+            fit.n_inliers >= 200 && fit.n_inliers <= 215,
+            "{}",
+            fit.n_inliers
+        );
+        let est = fit.h21 / fit.h21[(2, 2)];
+        for c in [(0.0, 0.0), (639.0, 0.0), (639.0, 479.0), (0.0, 479.0)] {
+            let t = h * Vector3::new(c.0, c.1, 1.0);
+            let e = est * Vector3::new(c.0, c.1, 1.0);
+            let d = (t.xy() / t.z - e.xy() / e.z).norm();
+            assert!(d < 0.3, "corner {c:?} off by {d} px");
+        }
+        assert!(matches!(
+            find_homography(&p1[..5], &p2[..5], &HomographyParams::default(), 1),
+            Err(GeometryError::NotEnoughPoints { .. })
+        ));
+        assert!(matches!(
+            find_homography(&p1, &p2[..10], &HomographyParams::default(), 1),
+            Err(GeometryError::LengthMismatch { .. })
+        ));
+        let mut bad = p1.clone();
+        bad[3].x = f64::NAN;
+        assert_eq!(
+            find_homography(&bad, &p2, &HomographyParams::default(), 1),
+            Err(GeometryError::NonFinite)
+        );
+    }
 }
