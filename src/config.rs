@@ -64,6 +64,9 @@ pub struct Config {
     pub slam: SlamConfig,
     /// `[sim]`: the simulator run in-process.
     pub sim: SimSection,
+    /// `[geo]`: the georeference (time alignment and video latency,
+    /// camera mounting, map → NED alignment).
+    pub geo: crate::geo::Params,
 }
 
 /// How video frames are fetched.
@@ -200,6 +203,9 @@ pub struct SimSection {
     pub script: String,
     /// Autopilot flavour: `px4` or `ardupilot`.
     pub flavour: String,
+    /// Write the simulator's ground truth (camera trajectory, video frame
+    /// poses) to this folder (relative to `server.data_dir`); unset: none.
+    pub truth_dir: Option<PathBuf>,
 }
 
 impl Default for SimSection {
@@ -212,6 +218,7 @@ impl Default for SimSection {
             seed: 1,
             script: "explore".into(),
             flavour: "px4".into(),
+            truth_dir: None,
         }
     }
 }
@@ -392,6 +399,30 @@ impl Config {
                 "link",
                 "heartbeat_period_ms/link_lost_after_ms",
                 "must be positive".into(),
+            ));
+        }
+        let h = &self.geo.history;
+        if !(h.video_latency_s.is_finite() && (0.0..=10.0).contains(&h.video_latency_s)) {
+            return Err(invalid(
+                "geo.history",
+                "video_latency_s",
+                "must be in [0, 10] s".into(),
+            ));
+        }
+        if !(h.max_gap_s > 0.0 && h.max_gap_s.is_finite()) || h.capacity < 2 {
+            return Err(invalid(
+                "geo.history",
+                "max_gap_s/capacity",
+                "need max_gap_s > 0 and capacity >= 2".into(),
+            ));
+        }
+        let m = &self.geo.mount;
+        if !(m.pitch_min_deg < m.pitch_max_deg && m.lever_arm_body_m.iter().all(|v| v.is_finite()))
+        {
+            return Err(invalid(
+                "geo.mount",
+                "pitch_min_deg/pitch_max_deg/lever_arm_body_m",
+                "need pitch_min_deg < pitch_max_deg and a finite lever arm".into(),
             ));
         }
         let fence = &self.mission.plan.fence;

@@ -129,9 +129,15 @@ struct ShotArgs {
         allow_hyphen_values = true
     )]
     anchors: Option<String>,
-    /// A photo of the desired shot, taken with the map's camera.
+    /// A photo of the desired shot: taken with the map's camera, or (at
+    /// another size, same aspect ratio) a resized copy of one, unless
+    /// --photo-intrinsics says otherwise.
     #[arg(long, value_name = "FILE")]
     photo: Option<PathBuf>,
+    /// The photo's camera when it is not the map's: `fx,fy,cx,cy` or
+    /// `fx,fy,cx,cy,k1,k2,p1,p2,k3` (pixels of the photo, OpenCV order).
+    #[arg(long, value_name = "fx,fy,cx,cy[,k1,k2,p1,p2,k3]", requires = "photo")]
+    photo_intrinsics: Option<String>,
     /// Folder for desired_shot.png (and desired_shot_mask.png).
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,

@@ -1,8 +1,10 @@
 //! End to end: the daemon with the simulator in-process, driven over its
 //! HTTP API. SLAM reaches tracking, keyframes appear with images, the map
-//! grows, a shot posted by anchors is stored (and refused for upload while
-//! it is not localised), the vehicle is heard over MAVLink, and a
-//! cancellation stops everything cleanly with the map saved.
+//! grows, the vehicle is heard over MAVLink, the map is georeferenced from
+//! telemetry, a shot posted by anchors is localised and converted to a
+//! vehicle target, its mission is uploaded to the simulator and read back
+//! item by item, and a cancellation stops everything cleanly with the map
+//! saved.
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
@@ -118,6 +120,10 @@ fn daemon_with_simulator_end_to_end() {
     assert!(n >= 5);
     let kf = &kfs["keyframes"][(n / 2) as usize];
     let id = kf["id"].as_u64().unwrap();
+    assert!(
+        kf["timestamp"].as_f64().unwrap() > 1.0e9,
+        "capture times are unix seconds"
+    );
     let (st, jpeg) = http(
         addr,
         "GET",
@@ -132,22 +138,121 @@ fn daemon_with_simulator_end_to_end() {
     assert!(map["total_points"].as_u64().unwrap() >= 200);
     assert_eq!(map["trajectory"].as_array().unwrap().len() as u64, n);
 
-    // A shot by anchors on that keyframe.
-    let shot = json!({"keyframe_id": id, "anchors": [[160, 120], [480, 120], [480, 360], [160, 360]], "width": 320, "height": 240});
-    let (st, b) = http(addr, "POST", "/api/v1/shots", Some(&shot));
-    assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
-    let shot: Value = serde_json::from_slice(&b).unwrap();
-    let sid = shot["id"].as_str().unwrap().to_owned();
-    let (st, b) = http(addr, "GET", &format!("/api/v1/shots/{sid}/image.jpg"), None);
-    assert_eq!(st, 200);
-    assert_eq!(image::load_from_memory(&b).unwrap().width(), 320);
-    let (st, _) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
-    if shot["status"] == "localised" {
-        // Localised: the upload needs the georeference (409) or succeeds.
-        assert!(st == 200 || st == 409, "{st}");
-    } else {
+    // The georeference: refused (with a reason) until the flight has moved
+    // enough, then fitted from the keyframes and telemetry.
+    let mut geo = Value::Null;
+    let mut reasons = std::collections::BTreeSet::new();
+    while t0.elapsed() < Duration::from_secs(50) {
+        geo = get_json(addr, "/api/v1/status")["vehicle"]["georeference"].clone();
+        if geo["state"] == "ok" {
+            break;
+        }
+        assert!(
+            geo["reason"].as_str().is_some_and(|r| !r.is_empty()),
+            "{geo}"
+        );
+        reasons.insert(
+            geo["reason"]
+                .as_str()
+                .unwrap_or("")
+                .split(':')
+                .next()
+                .unwrap_or("")
+                .to_owned(),
+        );
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    eprintln!(
+        "georeference after {:.1} s (refusals seen: {reasons:?}): {geo}",
+        t0.elapsed().as_secs_f64()
+    );
+    assert_eq!(geo["state"], "ok", "{geo}");
+    assert!(geo["keyframes_used"].as_u64().unwrap() >= 6, "{geo}");
+    assert!(geo["rms_m"].as_f64().unwrap() < 0.5, "{geo}");
+    assert!(geo["scale"].as_f64().unwrap() > 0.0);
+    assert!(geo["home"]["lat_deg"].as_f64().is_some());
+
+    // A shot by anchors on a keyframe: most of its picture, slightly
+    // zoomed in. The newest keyframes first (the map around them is the
+    // freshest).
+    let kfs = get_json(addr, "/api/v1/keyframes");
+    let ids: Vec<u64> = kfs["keyframes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|k| k["id"].as_u64().unwrap())
+        .collect();
+    let mut posted = 0;
+    let mut localised = None;
+    for &kid in ids.iter().rev().take(6) {
+        let shot = json!({"keyframe_id": kid, "anchors": [[40, 30], [600, 30], [600, 450], [40, 450]], "width": 320, "height": 240});
+        let (st, b) = http(addr, "POST", "/api/v1/shots", Some(&shot));
+        assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+        posted += 1;
+        let shot: Value = serde_json::from_slice(&b).unwrap();
+        let sid = shot["id"].as_str().unwrap().to_owned();
+        let (st, b) = http(addr, "GET", &format!("/api/v1/shots/{sid}/image.jpg"), None);
+        assert_eq!(st, 200);
+        assert_eq!(image::load_from_memory(&b).unwrap().width(), 320);
+        if shot["status"] == "localised" {
+            localised = Some((sid, kid, shot));
+            break;
+        }
+        eprintln!("shot on keyframe {kid} not localised: {}", shot["reason"]);
+        let (st, _) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
         assert_eq!(st, 409);
     }
+    let (sid, kid, shot) = localised.expect("a shot by anchors is localised");
+    eprintln!("shot {sid} on keyframe {kid}: {}", shot["localisation"]);
+
+    // Its vehicle target: near home, inside the gimbal's range, and the
+    // camera placed in front of the keyframe's camera (the anchors zoom in).
+    let target = get_json(addr, &format!("/api/v1/shots/{sid}/target"));
+    eprintln!("target: {target}");
+    let t = &target["target"];
+    let home = &geo["home"];
+    let (dlat, dlon) = (
+        t["lat_deg"].as_f64().unwrap() - home["lat_deg"].as_f64().unwrap(),
+        t["lon_deg"].as_f64().unwrap() - home["lon_deg"].as_f64().unwrap(),
+    );
+    let north = dlat * 111_132.0;
+    let east = dlon * 111_320.0 * home["lat_deg"].as_f64().unwrap().to_radians().cos();
+    assert!(north.hypot(east) < 80.0, "{target}");
+    let alt = t["alt_above_home_m"].as_f64().unwrap();
+    assert!((2.0..60.0).contains(&alt), "{target}");
+    let pitch = t["gimbal_pitch_deg"].as_f64().unwrap();
+    assert!((-90.0..=30.0).contains(&pitch), "{target}");
+
+    // Plan and upload; the vehicle's mission, downloaded again, holds the
+    // planned items exactly.
+    let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
+    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
+    let with_mission: Value = serde_json::from_slice(&b).unwrap();
+    let m = &with_mission["mission"];
+    eprintln!("mission: {m}");
+    assert_eq!(m["state"], "uploaded");
+    assert_eq!(m["details"]["verified_by_read_back"], true);
+    let planned = m["details"]["planned_items"].as_array().unwrap().clone();
+    assert_eq!(m["items"].as_u64().unwrap() as usize, planned.len());
+    assert!(planned.len() >= 3);
+    let lla = m["target_lat_lon_alt"].as_array().unwrap();
+    assert_eq!(lla[0], t["lat_deg"]);
+    let on_vehicle = get_json(addr, "/api/v1/vehicle/mission");
+    let items = on_vehicle["items"].as_array().unwrap();
+    assert_eq!(items.len(), planned.len(), "{on_vehicle}");
+    for (a, b) in planned.iter().zip(items) {
+        assert_eq!(a, b, "planned vs on the vehicle");
+    }
+    // The waypoint is the target: latitude/longitude in 1e-7 degrees.
+    let wp = planned
+        .iter()
+        .find(|i| i["command"] == 16)
+        .expect("a NAV_WAYPOINT");
+    let lat_e7 = wp["x"].as_i64().unwrap() as f64 / 1e7;
+    assert!((lat_e7 - t["lat_deg"].as_f64().unwrap()).abs() < 2e-7);
+    let stored = get_json(addr, &format!("/api/v1/shots/{sid}"));
+    assert_eq!(stored["mission"]["state"], "uploaded");
+
     // Live video is re-served.
     let (st, snap) = http(addr, "GET", "/api/v1/snapshot.jpg", None);
     assert_eq!(st, 200);
@@ -185,6 +290,6 @@ fn daemon_with_simulator_end_to_end() {
             .join(format!("{sid}.json"))
             .is_file()
     );
-    assert_eq!(summary.shots, 1);
+    assert_eq!(summary.shots, posted);
     assert!(t0.elapsed() < Duration::from_secs(150));
 }

@@ -146,5 +146,61 @@ fn shot_cli_anchors_photo_and_refusal() -> anyhow::Result<()> {
     if v["localized"] == Value::Bool(false) {
         assert!(v["reason"].is_string() && v["position"].is_null());
     }
+
+    // The same photo from "another camera": resized to 480x360, once with
+    // the camera assumed for that size, once with its intrinsics given
+    // (the map camera's, scaled by 3/4): both localise where the full-size
+    // photo does (within 3 % of the scene depth).
+    let small = image::imageops::resize(
+        &image::open(&photo)?.to_luma8(),
+        480,
+        360,
+        image::imageops::FilterType::Triangle,
+    );
+    let small_path = tmp.path().join("small.png");
+    small.save(&small_path)?;
+    let small_s = small_path.to_string_lossy().into_owned();
+    let c = map.camera;
+    let given = format!(
+        "{},{},{},{}",
+        c.fx * 0.75,
+        c.fy * 0.75,
+        0.75 * (c.cx + 0.5) - 0.5,
+        0.75 * (c.cy + 0.5) - 0.5
+    );
+    let position = |v: &Value| -> Option<nalgebra::Vector3<f64>> {
+        let p = v["position"].as_array()?;
+        Some(nalgebra::Vector3::new(
+            p.first()?.as_f64()?,
+            p.get(1)?.as_f64()?,
+            p.get(2)?.as_f64()?,
+        ))
+    };
+    for extra in [vec![], vec!["--photo-intrinsics", given.as_str()]] {
+        let mut a = vec!["shot", "--map", &map_s, "--photo", &small_s, "--json"];
+        a.extend(extra.iter().copied());
+        let (ok, stdout, err) = shotpilot(&a)?;
+        assert!(ok, "shot --photo (480x360) failed: {err}");
+        let vs: Value = serde_json::from_str(stdout.trim())?;
+        println!("photo frame 45 at 480x360 {extra:?}: {vs}");
+        assert_eq!(vs["localized"], Value::Bool(true), "{vs}");
+        if let (Some(full), Some(p), Some(depth)) =
+            (position(&v), position(&vs), vs["median_depth"].as_f64())
+        {
+            let d = (full - p).norm() / depth;
+            assert!(
+                d < 0.03,
+                "480x360 photo {d:.4} x depth from the full-size one"
+            );
+        }
+    }
+    // Another aspect ratio without intrinsics is refused with a hint.
+    let odd_path = tmp.path().join("odd.png");
+    image::imageops::resize(&small, 500, 300, image::imageops::FilterType::Triangle)
+        .save(&odd_path)?;
+    let odd_s = odd_path.to_string_lossy().into_owned();
+    let (ok, _, err) = shotpilot(&["shot", "--map", &map_s, "--photo", &odd_s, "--json"])?;
+    assert!(!ok);
+    assert!(err.contains("--photo-intrinsics"), "{err}");
     Ok(())
 }

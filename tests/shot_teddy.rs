@@ -11,12 +11,13 @@
 use std::path::Path;
 use std::sync::{Arc, OnceLock};
 
-use nalgebra::{Isometry3, Point2, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point2, Point3, Translation3, Unit, UnitQuaternion, Vector3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use shotpilot::bow::Vocabulary;
-use shotpilot::eval::{StampedPose, Trajectory, associate, umeyama};
+use shotpilot::eval::{StampedPose, Trajectory, associate};
+use shotpilot::geometry::{Sim3, umeyama};
 use shotpilot::shot::{self, BowIndex, Localization, frame_corners};
 use shotpilot::slam::{self, Map, Slam, mapfile};
 use shotpilot::video::dataset::Dataset;
@@ -249,11 +250,69 @@ fn shots_outside_the_map_are_not_localised() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A keyframe's pose, estimated (map frame) and true.
+type PosePair = (Isometry3<f64>, Isometry3<f64>);
+
+/// A Sim(3) map -> ground truth from the keyframes' poses, through
+/// `geometry::umeyama`: each keyframe gives its centre and three points one
+/// median scene depth along its camera axes, so the orientations constrain
+/// the rotation too. (The centres alone come from a short, nearly straight
+/// arc here, about which the rotation is poorly determined: aligned that way
+/// the map's own keyframes are 3 degrees off the ground truth.)
+fn align_keyframes(map: &Map, gt: &Trajectory) -> anyhow::Result<(Sim3, Vec<PosePair>)> {
+    let mut kf_traj = Trajectory {
+        poses: map
+            .keyframes()
+            .map(|k| StampedPose {
+                t: k.timestamp,
+                world_from_cam: k.world_from_cam(),
+            })
+            .collect(),
+    };
+    kf_traj.poses.sort_by(|a, b| a.t.total_cmp(&b.t));
+    let pairs: Vec<PosePair> = associate(&kf_traj, gt, 0.02)
+        .into_iter()
+        .map(|(a, b)| (kf_traj.poses[a].world_from_cam, gt.poses[b].world_from_cam))
+        .collect();
+    let centres = |i: usize| -> Vec<Point3<f64>> {
+        pairs
+            .iter()
+            .map(|p| Point3::from(if i == 0 { p.0 } else { p.1 }.translation.vector))
+            .collect()
+    };
+    let coarse = umeyama(&centres(0), &centres(1), true)?;
+    let mut depths: Vec<f64> = map
+        .keyframes()
+        .filter_map(|k| map.median_depth(k.id))
+        .collect();
+    depths.sort_by(f64::total_cmp);
+    let d = depths.get(depths.len() / 2).copied().unwrap_or(1.0);
+    let (mut src, mut dst) = (Vec::new(), Vec::new());
+    for (est, truth) in &pairs {
+        src.push(Point3::from(est.translation.vector));
+        dst.push(Point3::from(truth.translation.vector));
+        for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
+            src.push(est * Point3::from(axis * d));
+            dst.push(truth * Point3::from(axis * (d * coarse.scale)));
+        }
+    }
+    Ok((umeyama(&src, &dst, true)?, pairs))
+}
+
 /// Frames held out of the map (the map is built from the first 70 frames;
-/// the queries are later frames of the same scene) as photos: most localise,
-/// none with a gross error against the ground truth (measured relative to
-/// the keyframe they were found through, scale from a Sim(3) alignment of
-/// the map's keyframes); the table shows absolute and relative errors.
+/// the queries are the later frames of the same scene, every second one) as
+/// photos, against the ground truth after a Sim(3) alignment of the map's
+/// keyframes ([`align_keyframes`]); once at full size with the map camera,
+/// once resized to 480x360 with the camera assumed for that size
+/// ([`shot::assumed_camera`]: another camera's photo).
+///
+/// The map's own keyframes differ from the ground truth by about 0.6 degree
+/// after the best alignment (the floor of any absolute figure here: the
+/// SLAM's own tracking of these frames, when they are part of the run, is no
+/// closer). Asserted: nothing localised with an error over 2 degrees or 5 %
+/// of the distance; at least 2/3 of the frames localised; each localised
+/// frame's orientation within 0.25 degree beyond the map's worst keyframe,
+/// and its position within 2 % of the distance to the scene.
 #[test]
 fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
     let Some(dir) = data_dir() else {
@@ -265,50 +324,40 @@ fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
         anyhow::bail!("teddy has ground truth");
     };
     let map = build_map(&dir, 70)?;
-    // Sim(3) map -> ground truth from the keyframes.
-    let mut kf_traj = Trajectory {
-        poses: map
-            .keyframes()
-            .map(|k| StampedPose {
-                t: k.timestamp,
-                world_from_cam: k.world_from_cam(),
-            })
-            .collect(),
-    };
-    kf_traj.poses.sort_by(|a, b| a.t.total_cmp(&b.t));
-    let pairs = associate(&kf_traj, &gt, 0.02);
-    let src: Vec<_> = pairs
+    let (sim, kf_pairs) = align_keyframes(&map, &gt)?;
+    let mut kf_rot: Vec<f64> = kf_pairs
         .iter()
-        .map(|(a, _)| kf_traj.poses[*a].position())
-        .collect();
-    let dst: Vec<_> = pairs.iter().map(|(_, b)| gt.poses[*b].position()).collect();
-    let sim = umeyama(&src, &dst, true)?;
-    // How well the map's own keyframes agree with the ground truth under this
-    // alignment (the floor of the absolute errors below).
-    let mut kf_rot: Vec<f64> = pairs
-        .iter()
-        .map(|(a, b)| {
-            let e = sim.transform_pose(&kf_traj.poses[*a].world_from_cam);
-            e.rotation
-                .angle_to(&gt.poses[*b].world_from_cam.rotation)
+        .map(|(est, truth)| {
+            sim.transform_pose(est)
+                .rotation
+                .angle_to(&truth.rotation)
                 .to_degrees()
         })
         .collect();
     kf_rot.sort_by(f64::total_cmp);
+    let kf_rot_max = kf_rot[kf_rot.len() - 1];
     println!(
-        "map keyframes vs ground truth after Sim(3): rotation error median {:.3} deg, max {:.3} deg",
+        "map: {} keyframes, {} points; keyframes vs ground truth after Sim(3) (scale {:.4}): rotation error median {:.3} deg, max {kf_rot_max:.3} deg",
+        map.keyframe_count(),
+        map.point_count(),
+        sim.scale,
         kf_rot[kf_rot.len() / 2],
-        kf_rot[kf_rot.len() - 1]
     );
     let params = shot::LocalizeParams::default();
     let vocabulary = Vocabulary::builtin()?;
     let index = BowIndex::build(&map, &vocabulary);
-    for (mode, bow_index) in [("descriptor ranking", None), ("bow query", Some(&index))] {
+    let small = shot::assumed_camera(&map.camera, 480, 360)?;
+    let mut failures = Vec::new();
+    for (mode, bow_index, photo_camera) in [
+        ("descriptor ranking, 640x480", None, map.camera),
+        ("bow query, 640x480", Some(&index), map.camera),
+        ("bow query, 480x360 assumed camera", Some(&index), small),
+    ] {
         println!(
-            "[{mode}] frame  localized  inliers  rmse_px  abs_rot_deg  abs_pos_%dist  rel_rot_deg  rel_pos_%dist  kf"
+            "[{mode}] frame  localized  inliers  rmse_px  rot_err_deg  pos_err_cm  pos_err_%dist  kf"
         );
         let (mut n_ok, mut n_loc, mut n_total) = (0, 0, 0);
-        let mut confident_wrong = Vec::new();
+        let mut rot_errs = Vec::new();
         for i in (70..ds.len()).step_by(2) {
             let f = ds.frame(i)?;
             let Some(g) = gt
@@ -324,77 +373,64 @@ fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
                 continue;
             };
             n_total += 1;
-            match shot::localize(&map, &f.image, None, bow_index, &params)? {
+            let photo = if photo_camera.width == f.image.width() {
+                f.image
+            } else {
+                image::imageops::resize(
+                    &f.image,
+                    photo_camera.width,
+                    photo_camera.height,
+                    image::imageops::FilterType::Triangle,
+                )
+            };
+            match shot::localize_with_camera(&map, &photo_camera, &photo, None, bow_index, &params)?
+            {
                 Localization::Localized(p) => {
                     n_loc += 1;
                     let est = sim.transform_pose(&p.world_from_cam);
-                    let abs_rot = est
+                    let rot_err = est
                         .rotation
                         .angle_to(&g.world_from_cam.rotation)
                         .to_degrees();
                     // Distance to the scene: the inliers' median depth, in metres.
                     let dist = p.median_depth * sim.scale;
-                    let abs_pos = (est.translation.vector - g.position()).norm() / dist * 100.0;
-                    // Relative to the keyframe it was found through (free of the
-                    // global alignment): kf_from_query, estimated vs ground truth.
-                    let Some(kf) = map.keyframe(p.keyframe_id) else {
-                        anyhow::bail!("keyframe vanished");
-                    };
-                    let Some(gk) = gt.poses.iter().min_by(|a, b| {
-                        (a.t - kf.timestamp)
-                            .abs()
-                            .total_cmp(&(b.t - kf.timestamp).abs())
-                    }) else {
-                        anyhow::bail!("no gt");
-                    };
-                    let rel_est = kf.cam_from_world * p.world_from_cam;
-                    let rel_gt = gk.world_from_cam.inverse() * g.world_from_cam;
-                    let rot_err = rel_est.rotation.angle_to(&rel_gt.rotation).to_degrees();
-                    let pos_err =
-                        (rel_est.translation.vector * sim.scale - rel_gt.translation.vector).norm()
-                            / dist
-                            * 100.0;
+                    let pos_m = (est.translation.vector - g.position()).norm();
+                    let pos_err = pos_m / dist * 100.0;
                     println!(
-                        "{i:5}  yes       {:6}  {:7.3}  {:11.4}  {:13.3}  {:11.4}  {:13.3}  {:3}",
+                        "{i:5}  yes       {:6}  {:7.3}  {rot_err:11.4}  {:10.2}  {pos_err:13.3}  {:3}",
                         p.inliers,
                         p.reprojection_rmse_px,
-                        abs_rot,
-                        abs_pos,
-                        rot_err,
-                        pos_err,
+                        pos_m * 100.0,
                         p.keyframe_id.0
                     );
+                    rot_errs.push(rot_err);
                     if rot_err <= 0.5 && pos_err <= 2.0 {
                         n_ok += 1;
                     }
                     if rot_err > 2.0 || pos_err > 5.0 {
-                        confident_wrong.push(i);
+                        failures.push(format!(
+                            "[{mode}] frame {i}: localised {rot_err:.2} deg, {pos_err:.2} % off"
+                        ));
+                    } else if rot_err > kf_rot_max + 0.25 || pos_err > 2.0 {
+                        failures.push(format!("[{mode}] frame {i}: {rot_err:.3} deg (map's worst keyframe {kf_rot_max:.3}), {pos_err:.2} %"));
                     }
                 }
                 Localization::NotLocalized { reason } => println!("{i:5}  no: {reason}"),
             }
         }
+        rot_errs.sort_by(f64::total_cmp);
         println!(
-            "[{mode}] {n_loc}/{n_total} localised, {n_ok} within 0.5 deg and 2 % of the distance (Sim(3) scale {:.4}, {} keyframes aligned)",
-            sim.scale,
-            pairs.len()
-        );
-        // The absolute errors carry the map's own bias against the ground truth
-        // (its keyframes are ~4 degrees off after a positions-only Sim(3) over a
-        // short arc), so the gate is judged on the pose relative to the keyframe
-        // it was found through. Nothing localised may be grossly wrong; most
-        // frames must localise. The 0.5 degree / 2 % figure is reported, not
-        // asserted: the relative errors include the map's drift between the
-        // keyframe and the query (see the table).
-        assert!(
-            confident_wrong.is_empty(),
-            "[{mode}] localised with errors over 2 deg or 5 %: frames {confident_wrong:?}"
+            "[{mode}] {n_loc}/{n_total} localised, {n_ok} within 0.5 deg and 2 % of the distance; rotation error median {:.3} deg",
+            rot_errs
+                .get(rot_errs.len() / 2)
+                .copied()
+                .unwrap_or(f64::NAN)
         );
         assert!(n_total >= 10, "{n_total} query frames with ground truth");
-        assert!(
-            n_loc * 3 >= n_total * 2,
-            "[{mode}] only {n_loc}/{n_total} localised"
-        );
+        if n_loc * 3 < n_total * 2 {
+            failures.push(format!("[{mode}] only {n_loc}/{n_total} localised"));
+        }
     }
+    assert!(failures.is_empty(), "{failures:#?}");
     Ok(())
 }

@@ -146,6 +146,21 @@ pub trait VehicleView: Send + Sync {
     fn start_mission(&self) -> BoxFuture<'_, Result<(), VehicleError>>;
     /// Mission progress, as JSON.
     fn progress(&self) -> Value;
+    /// The vehicle target (latitude, longitude, altitude, yaw, gimbal
+    /// pitch) of a localised shot, without uploading anything.
+    fn shot_target(&self, shot: &Shot) -> Result<Value, VehicleError> {
+        Err(VehicleError::NoGeoreference {
+            reason: format!("no georeference for shot {}", shot.id),
+        })
+    }
+    /// The mission the vehicle holds, read back over the link.
+    fn download_mission(&self) -> BoxFuture<'_, Result<Value, VehicleError>> {
+        Box::pin(async {
+            Err(VehicleError::NoVehicle {
+                reason: "this vehicle cannot be read back".into(),
+            })
+        })
+    }
 }
 
 /// Server tunables the API needs.
@@ -313,6 +328,8 @@ pub fn router(state: AppState) -> Router {
         .route("/shots/{id}", get(get_shot))
         .route("/shots/{id}/image.jpg", get(shot_image))
         .route("/shots/{id}/progress", get(progress))
+        .route("/shots/{id}/target", get(shot_target))
+        .route("/vehicle/mission", get(vehicle_mission))
         .merge(changing)
         .fallback(|| async { ApiError::not_found("endpoint") });
     Router::new()
@@ -771,6 +788,31 @@ async fn upload_mission(
     let record = v.upload_shot(&shot).await?;
     shot.mission = Some(record);
     save(&st, shot).await
+}
+
+async fn shot_target(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Value>, ApiError> {
+    let shot = find_shot(&st, &id)?;
+    if shot.localisation.is_none() {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "not_localised",
+            format!(
+                "shot {id} is not localised: {}",
+                shot.reason.as_deref().unwrap_or("no localisation")
+            ),
+        ));
+    }
+    let v = vehicle(&st)?;
+    Ok(Json(v.shot_target(&shot)?))
+}
+
+async fn vehicle_mission(State(st): State<AppState>) -> Result<Json<Value>, ApiError> {
+    let v = vehicle(&st)?;
+    let _guard = st.actions.lock().await;
+    Ok(Json(v.download_mission().await?))
 }
 
 async fn save(st: &AppState, shot: Shot) -> Result<Json<Shot>, ApiError> {

@@ -52,6 +52,24 @@ impl PoseJson {
             rotation_xyzw: [q.x, q.y, q.z, q.w],
         }
     }
+
+    /// Back to an isometry (`world_from_cam`); None when a number is not
+    /// finite or the quaternion is (nearly) zero. The quaternion is
+    /// normalised.
+    pub fn to_isometry(&self) -> Option<nalgebra::Isometry3<f64>> {
+        let [x, y, z, w] = self.rotation_xyzw;
+        let q = nalgebra::Quaternion::new(w, x, y, z);
+        let t = nalgebra::Vector3::from(self.translation);
+        if !(q.coords.iter().all(|v| v.is_finite()) && t.iter().all(|v| v.is_finite()))
+            || q.norm() < 1e-9
+        {
+            return None;
+        }
+        Some(nalgebra::Isometry3::from_parts(
+            t.into(),
+            nalgebra::UnitQuaternion::from_quaternion(q),
+        ))
+    }
 }
 
 /// Where a desired shot came from.

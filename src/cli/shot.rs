@@ -8,6 +8,7 @@ use anyhow::{Context, Result, bail};
 use nalgebra::Point2;
 use serde_json::json;
 
+use shotpilot::camera::{Camera, Distortion};
 use shotpilot::shot::{self, Localization};
 use shotpilot::slam::{KeyFrameId, mapfile};
 
@@ -37,6 +38,31 @@ fn parse_anchors(s: &str) -> Result<[Point2<f64>; 4]> {
     ])
 }
 
+/// Parses `fx,fy,cx,cy[,k1,k2,p1,p2,k3]` into the camera of a `w` x `h` photo.
+fn parse_intrinsics(s: &str, w: u32, h: u32) -> Result<Camera> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| {
+            t.trim()
+                .parse::<f64>()
+                .with_context(|| format!("intrinsics value {t:?} is not a number"))
+        })
+        .collect::<Result<_>>()?;
+    let distortion = match v.len() {
+        4 => Distortion::default(),
+        9 => Distortion {
+            k1: v[4],
+            k2: v[5],
+            p1: v[6],
+            p2: v[7],
+            k3: v[8],
+        },
+        n => bail!("--photo-intrinsics needs 4 or 9 numbers, got {n}"),
+    };
+    Camera::new(w, h, [v[0], v[1], v[2], v[3]], distortion)
+        .context("--photo-intrinsics are not a usable camera")
+}
+
 pub fn run(args: ShotArgs) -> Result<()> {
     let t0 = Instant::now();
     let map =
@@ -51,22 +77,25 @@ pub fn run(args: ShotArgs) -> Result<()> {
         ..shot::Params::default()
     };
 
-    let (image, mask, source) = match (&args.photo, args.keyframe, &args.anchors) {
+    let (image, mask, shot_cam, source) = match (&args.photo, args.keyframe, &args.anchors) {
         (Some(photo), None, None) => {
             let img = image::open(photo)
                 .with_context(|| format!("reading photo {}", photo.display()))?
                 .to_luma8();
-            if img.dimensions() != (cam.width, cam.height) {
-                bail!(
-                    "photo {} is {}x{} but the map's camera is {}x{} (same camera required)",
-                    photo.display(),
-                    img.width(),
-                    img.height(),
-                    cam.width,
-                    cam.height
-                );
-            }
-            (img, None, "photo")
+            let (w, h) = img.dimensions();
+            let photo_cam = match &args.photo_intrinsics {
+                Some(s) => parse_intrinsics(s, w, h)?,
+                None if (w, h) == (cam.width, cam.height) => cam,
+                None => shot::assumed_camera(&cam, w, h).with_context(|| {
+                    format!(
+                        "photo {} is {w}x{h}, the map's camera {}x{}: give --photo-intrinsics",
+                        photo.display(),
+                        cam.width,
+                        cam.height
+                    )
+                })?,
+            };
+            (img, None, photo_cam, "photo")
         }
         (None, Some(id), Some(anchors)) => {
             let anchors = parse_anchors(anchors)?;
@@ -79,7 +108,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
             let img = kf.image.as_ref().ok_or(shot::ShotError::NoImage { id })?;
             let d = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)
                 .context("the anchors were refused")?;
-            (d.image, Some(d.mask), "anchors")
+            (d.image, Some(d.mask), cam, "anchors")
         }
         _ => bail!("give either --keyframe ID with --anchors, or --photo FILE"),
     };
@@ -107,8 +136,9 @@ pub fn run(args: ShotArgs) -> Result<()> {
         None
     };
     let index = vocabulary.as_ref().map(|v| shot::BowIndex::build(&map, v));
-    let result = shot::localize(
+    let result = shot::localize_with_camera(
         &map,
+        &shot_cam,
         &image,
         mask.as_ref(),
         index.as_ref(),

@@ -7,7 +7,8 @@
 //!                                                                 -> frame slot
 //!  frame slot --newest frame--> SLAM thread (FrameProcessor) -> SlamShared (status, keyframes)
 //!  sim autopilot <--MAVLink/UDP--> link actor (LinkHandle)
-//!  HTTP API reads Ingest, SlamShared, LinkHandle; writes shots to data_dir
+//!  link telemetry + SLAM keyframes --> geo worker (GeoService: map -> NED -> WGS84)
+//!  HTTP API reads Ingest, SlamShared, LinkHandle, GeoService; writes shots to data_dir
 //! ```
 //!
 //! Shutdown: the token is cancelled (Ctrl-C / SIGTERM in `main`); the
@@ -15,6 +16,7 @@
 //! takes no further frame, finishes (mapping, map file) and is joined; the
 //! simulator stops last.
 
+pub mod geo_service;
 pub mod refine_service;
 pub mod shot_service;
 pub mod slam_view;
@@ -134,6 +136,7 @@ fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimCo
             ..defaults.autopilot.clone()
         },
         capture_dir: data_dir.join("captures"),
+        truth_dir: s.truth_dir.as_ref().map(|d| data_dir.join(d)),
         ..defaults
     };
     Ok(sc)
@@ -192,15 +195,16 @@ pub async fn run(
     };
 
     // SLAM thread.
+    let geo = Arc::new(geo_service::GeoService::new(cfg.geo.clone()));
     let shared = Arc::new(SlamShared::new(cfg.slam.enabled));
     let map_file = data_dir.join(&cfg.slam.map_file);
     let processor = slam_view::make_processor(&cfg, camera, shared.clone(), map_file.clone());
     let slam_thread = {
-        let (ing, sh) = (ingest.clone(), shared.clone());
+        let (ing, sh, g) = (ingest.clone(), shared.clone(), geo.clone());
         let delay = Duration::from_millis(cfg.slam.artificial_delay_ms);
         std::thread::Builder::new()
             .name("slam".into())
-            .spawn(move || slam_loop(processor, &ing, &sh, delay))
+            .spawn(move || slam_loop(processor, &ing, &sh, &g, delay))
             .map_err(|source| DaemonError::Thread {
                 what: "slam",
                 source,
@@ -212,8 +216,17 @@ pub async fn run(
     let (link, link_task) =
         crate::vehicle::spawn(cfg.link.clone(), cfg.mission.transfer, link_cancel.clone())
             .map_err(|e| DaemonError::Link(e.to_string()))?;
-    let vehicle: Arc<dyn VehicleView> =
-        Arc::new(vehicle_view::LinkVehicle::new(link, cfg.mission.plan));
+    // The georeference worker: telemetry and keyframes in.
+    let geo_task = tokio::spawn(geo.clone().run(
+        link.telemetry.clone(),
+        shared.clone(),
+        link_cancel.clone(),
+    ));
+    let vehicle: Arc<dyn VehicleView> = Arc::new(vehicle_view::LinkVehicle::new(
+        link,
+        cfg.mission.plan,
+        geo.clone(),
+    ));
 
     // The API.
     let slam_view: Arc<dyn SlamView> = shared.clone();
@@ -271,6 +284,7 @@ pub async fn run(
     .ok()
     .flatten();
     link_cancel.cancel();
+    let _ = geo_task.await;
     let _ = link_task.await;
     sim_cancel.cancel();
     if let Some(t) = sim_task {
@@ -301,6 +315,7 @@ fn slam_loop(
     mut processor: Box<dyn FrameProcessor>,
     ingest: &Ingest,
     shared: &SlamShared,
+    geo: &geo_service::GeoService,
     delay: Duration,
 ) -> Option<PathBuf> {
     loop {
@@ -309,6 +324,7 @@ fn slam_loop(
             Ok(None) => continue,
             Err(Closed) => break,
         };
+        geo.note_frame(&frame);
         let t = Instant::now();
         let outcome = processor.process(&frame);
         if !delay.is_zero() {

@@ -90,6 +90,7 @@ pub fn make_processor(
                 map_file,
                 size: (w, h),
                 warned_size: false,
+                clock: cfg.geo.history.clone(),
             })
         }
         Err(e) => {
@@ -105,6 +106,9 @@ pub struct SlamProcessor {
     map_file: PathBuf,
     size: (u32, u32),
     warned_size: bool,
+    /// How a frame's capture time is found (its keyframes carry it, and
+    /// the georeference matches them to telemetry by it).
+    clock: crate::geo::HistoryParams,
 }
 
 fn state_name(s: TrackState) -> &'static str {
@@ -131,9 +135,8 @@ impl FrameProcessor for SlamProcessor {
                 ..Default::default()
             };
         }
-        let out = self
-            .slam
-            .process(frame.seq, frame.timestamp(), frame.image.clone());
+        let t = crate::geo::capture_time(frame.received_unix, frame.capture_time, &self.clock);
+        let out = self.slam.process(frame.seq, t, frame.image.clone());
         let (keyframes, points) = {
             let map = self.slam.map();
             let m = map.lock().unwrap_or_else(|e| e.into_inner());

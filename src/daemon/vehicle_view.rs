@@ -1,21 +1,80 @@
-//! The vehicle side of the API over the MAVLink link actor.
+//! The vehicle side of the API over the MAVLink link actor: status (with
+//! the georeference), a localised shot's camera pose turned into a vehicle
+//! target through the georeference, planned, uploaded and read back.
+
+use std::sync::Arc;
 
 use serde_json::{Value, json};
 
+use super::geo_service::GeoService;
 use crate::api::store::{MissionRecord, Shot};
 use crate::api::{BoxFuture, VehicleError, VehicleView};
+use crate::geo::{GeoAlignment, GeoError, GeoTarget};
+use crate::mission::plan::{Flavour, Home, plan};
+use crate::mission::upload::same_mission;
 use crate::vehicle::LinkHandle;
+use crate::video::live::unix_now;
 
-/// [`VehicleView`] over a [`LinkHandle`].
+/// [`VehicleView`] over a [`LinkHandle`] and the daemon's georeference.
 pub struct LinkVehicle {
     link: LinkHandle,
-    _plan: crate::mission::plan::Params,
+    plan: crate::mission::plan::Params,
+    geo: Arc<GeoService>,
+}
+
+fn target_json(t: &GeoTarget) -> Value {
+    json!({
+        "lat_deg": t.lat_deg,
+        "lon_deg": t.lon_deg,
+        "alt_above_home_m": t.alt_above_home_m,
+        "alt_m": t.alt_m,
+        "yaw_deg": t.yaw_deg,
+        "gimbal_pitch_deg": t.gimbal_pitch_deg,
+        "residual_roll_deg": t.residual_roll_deg,
+        "axis_error_deg": t.axis_error_deg,
+        "p_ned_vehicle": [t.p_ned_vehicle.x, t.p_ned_vehicle.y, t.p_ned_vehicle.z],
+        "camera_ned": crate::api::store::PoseJson::from_isometry(&t.ned_from_cam),
+    })
+}
+
+fn alignment_json(a: &GeoAlignment) -> Value {
+    json!({
+        "scale": a.ned_from_map.scale,
+        "rms_m": a.quality.rms_m,
+        "keyframes_used": a.quality.inliers,
+        "pairs": a.quality.pairs,
+        "time_offset_s": a.quality.time_offset_s,
+    })
 }
 
 impl LinkVehicle {
-    /// A view over `link`, planning with `plan`.
-    pub fn new(link: LinkHandle, plan: crate::mission::plan::Params) -> Self {
-        Self { link, _plan: plan }
+    /// A view over `link`, planning with `plan`, georeferencing with `geo`.
+    pub fn new(link: LinkHandle, plan: crate::mission::plan::Params, geo: Arc<GeoService>) -> Self {
+        Self { link, plan, geo }
+    }
+
+    /// The shot's target camera pose as a vehicle target.
+    fn target_of(&self, shot: &Shot) -> Result<(GeoTarget, GeoAlignment), VehicleError> {
+        let Some(loc) = &shot.localisation else {
+            return Err(VehicleError::Conflict {
+                reason: format!("shot {} is not localised", shot.id),
+            });
+        };
+        let Some(map_from_cam) = loc.world_from_cam.to_isometry() else {
+            return Err(VehicleError::Conflict {
+                reason: format!("shot {} has an invalid pose", shot.id),
+            });
+        };
+        self.geo.target(&map_from_cam).map_err(|e| match e {
+            GeoError::PitchOutOfRange { .. } | GeoError::NonFinite { .. } => {
+                VehicleError::Conflict {
+                    reason: format!("the target cannot be reproduced: {e}"),
+                }
+            }
+            e => VehicleError::NoGeoreference {
+                reason: e.to_string(),
+            },
+        })
     }
 
     fn heard(&self) -> Result<(), VehicleError> {
@@ -53,24 +112,119 @@ impl VehicleView for LinkVehicle {
                 "rel_alt_m": p.value.rel_alt_m,
                 "heading_deg": p.value.heading_deg,
             })),
-            "georeference": null,
+            "georeference": self.geo.status(),
         })
     }
 
     fn upload_shot<'a>(
         &'a self,
-        _shot: &'a Shot,
+        shot: &'a Shot,
     ) -> BoxFuture<'a, Result<MissionRecord, VehicleError>> {
         Box::pin(async move {
             self.heard()?;
-            // The target pose is in the SLAM map frame; turning it into
-            // latitude/longitude needs the map->NED->WGS84 alignment
-            // (crate::geo), which this build does not have yet.
-            Err(VehicleError::NoGeoreference {
-                reason:
-                    "the map is not aligned to the world (georeference module not in this build)"
+            let (target, alignment) = self.target_of(shot)?;
+            let flavour = self
+                .link
+                .telemetry
+                .vehicle
+                .borrow()
+                .flavour
+                .ok_or_else(|| VehicleError::Failed {
+                    reason: "the autopilot is neither PX4 nor ArduPilot".into(),
+                })?;
+            let home = self
+                .geo
+                .home()
+                .ok_or_else(|| VehicleError::NoGeoreference {
+                    reason: "home position not known yet".into(),
+                })?;
+            let home = Home {
+                lat_deg: home.lat_deg,
+                lon_deg: home.lon_deg,
+                alt_amsl_m: home.alt_amsl_m,
+            };
+            let items =
+                plan(&target.to_mission_target(true), &home, flavour, &self.plan).map_err(|e| {
+                    VehicleError::Conflict {
+                        reason: format!("the target cannot be flown: {e}"),
+                    }
+                })?;
+            let report = self.link.upload_mission(items.clone()).await.map_err(|e| {
+                VehicleError::Failed {
+                    reason: e.to_string(),
+                }
+            })?;
+            // Read the mission back: what the vehicle holds is what was planned.
+            let verified = match self.link.download_mission().await {
+                Ok(d) => Some(same_mission(
+                    &items,
+                    &d.items,
+                    flavour == Flavour::ArduPilot,
+                )),
+                Err(e) => {
+                    tracing::warn!(shot = %shot.id, "mission read-back failed: {e}");
+                    None
+                }
+            };
+            if verified == Some(false) {
+                return Err(VehicleError::Failed {
+                    reason: "the mission read back from the vehicle differs from the one uploaded"
                         .into(),
+                });
+            }
+            tracing::info!(
+                shot = %shot.id,
+                lat = target.lat_deg,
+                lon = target.lon_deg,
+                alt_above_home_m = target.alt_above_home_m,
+                yaw_deg = target.yaw_deg,
+                pitch_deg = target.gimbal_pitch_deg,
+                items = items.len(),
+                "mission uploaded"
+            );
+            Ok(MissionRecord {
+                state: "uploaded".into(),
+                items: items.len(),
+                uploaded_unix: unix_now(),
+                started_unix: None,
+                target_lat_lon_alt: Some([target.lat_deg, target.lon_deg, target.alt_m]),
+                details: json!({
+                    "target": target_json(&target),
+                    "georeference": alignment_json(&alignment),
+                    "flavour": flavour,
+                    "planned_items": items,
+                    "upload": report,
+                    "verified_by_read_back": verified,
+                }),
             })
+        })
+    }
+
+    fn shot_target(&self, shot: &Shot) -> Result<Value, VehicleError> {
+        let (target, alignment) = self.target_of(shot)?;
+        Ok(json!({
+            "shot": shot.id,
+            "target": target_json(&target),
+            "georeference": alignment_json(&alignment),
+        }))
+    }
+
+    fn download_mission(&self) -> BoxFuture<'_, Result<Value, VehicleError>> {
+        Box::pin(async move {
+            self.heard()?;
+            let d = self
+                .link
+                .download_mission()
+                .await
+                .map_err(|e| VehicleError::Failed {
+                    reason: e.to_string(),
+                })?;
+            Ok(json!({
+                "count": d.items.len(),
+                "items": d.items,
+                "retries": d.retries,
+                "seconds": d.seconds,
+            }))
         })
     }
 

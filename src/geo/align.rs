@@ -301,6 +301,40 @@ impl Georeference {
         })
     }
 
+    /// Moves a held keyframe's map side (bundle adjustment moved it),
+    /// keeping its NED side. Returns whether it was held.
+    pub fn update_map_pose(
+        &mut self,
+        kf_id: u64,
+        map_from_cam: &Isometry3<f64>,
+    ) -> Result<bool, GeoError> {
+        if !(map_from_cam
+            .translation
+            .vector
+            .iter()
+            .all(|v| v.is_finite())
+            && map_from_cam.rotation.coords.iter().all(|v| v.is_finite()))
+        {
+            return Err(GeoError::NonFinite {
+                what: "keyframe pose",
+            });
+        }
+        let Some(p) = self.pairs.iter_mut().find(|p| p.kf_id == kf_id) else {
+            return Ok(false);
+        };
+        p.p_map = map_from_cam.translation.vector.into();
+        if let Some((map_rot, _)) = &mut p.orientations {
+            *map_rot = map_from_cam.rotation;
+        }
+        self.changed = true;
+        Ok(true)
+    }
+
+    /// Whether a keyframe's pair is held.
+    pub fn contains(&self, kf_id: u64) -> bool {
+        self.pairs.iter().any(|p| p.kf_id == kf_id)
+    }
+
     /// Forgets a keyframe (culled by the map). Returns whether it was held.
     pub fn remove(&mut self, kf_id: u64) -> bool {
         let before = self.pairs.len();

@@ -33,7 +33,9 @@ pub use align::{AlignParams, AlignQuality, GeoAlignment, Georeference, Pair};
 pub use mount::{GimbalSolution, LeverArmFrame, MountParams, ned_from_cam, solve_gimbal};
 pub use pipeline::{Geo, KeyframeStatus};
 pub use target::{GeoTarget, convert_target, target_from_ned};
-pub use telemetry::{GimbalAngles, HistoryParams, TelemetryHistory, VehicleState, capture_time};
+pub use telemetry::{
+    GimbalAngles, HistoryParams, TelemetryClock, TelemetryHistory, VehicleState, capture_time,
+};
 pub use wgs84::{Geodetic, LocalFrame};
 
 use crate::geometry::GeometryError;

@@ -136,6 +136,39 @@ impl Geo {
         }
     }
 
+    /// A keyframe's map pose changed (bundle adjustment): the pair keeps its
+    /// telemetry side and takes the new map side; a keyframe still waiting
+    /// for telemetry takes the new pose too. Returns whether it was known.
+    pub fn refresh_keyframe(
+        &mut self,
+        kf_id: u64,
+        map_from_cam: &Isometry3<f64>,
+    ) -> Result<bool, GeoError> {
+        if self.georef.update_map_pose(kf_id, map_from_cam)? {
+            return Ok(true);
+        }
+        match self.pending.iter_mut().find(|(id, _, _)| *id == kf_id) {
+            Some(p) => {
+                p.1 = *map_from_cam;
+                Ok(true)
+            }
+            None => Ok(false),
+        }
+    }
+
+    /// Forgets a keyframe (culled by the map), paired or pending. Returns
+    /// whether it was known.
+    pub fn remove_keyframe(&mut self, kf_id: u64) -> bool {
+        let before = self.pending.len();
+        self.pending.retain(|(id, _, _)| *id != kf_id);
+        self.georef.remove(kf_id) || self.pending.len() != before
+    }
+
+    /// Whether a keyframe is paired or pending.
+    pub fn knows_keyframe(&self, kf_id: u64) -> bool {
+        self.georef.contains(kf_id) || self.pending.iter().any(|(id, _, _)| *id == kf_id)
+    }
+
     /// Retries the pending keyframes (call after telemetry arrives); returns
     /// how many were paired.
     pub fn retry_pending(&mut self) -> usize {

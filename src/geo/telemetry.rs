@@ -27,8 +27,28 @@ pub struct HistoryParams {
     /// Largest time between the two samples an interpolation uses, seconds.
     pub max_gap_s: f64,
     /// Video latency (seconds) subtracted from a frame's receive time when
-    /// the frame carries no capture timestamp.
+    /// the frame carries no capture timestamp (or when frame timestamps are
+    /// not used).
     pub video_latency_s: f64,
+    /// Use a frame's own capture timestamp (the MJPEG part's `X-Timestamp`)
+    /// when it has one; false: always receive time minus `video_latency_s`
+    /// (for senders whose clock is not the ground station's).
+    pub use_frame_timestamps: bool,
+    /// Which clock telemetry samples are timed by.
+    pub telemetry_clock: TelemetryClock,
+}
+
+/// How telemetry samples are placed on the ground station's clock.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TelemetryClock {
+    /// The autopilot's `time_boot_ms`, mapped to the local clock by the
+    /// smallest observed `receive time - boot time` (the link's fastest
+    /// delivery): transport jitter does not reach the samples' times.
+    Boot,
+    /// The time each message was received (every delay and jitter of the
+    /// link lands on the samples).
+    Received,
 }
 
 impl Default for HistoryParams {
@@ -37,16 +57,19 @@ impl Default for HistoryParams {
             capacity: 4096,
             max_gap_s: 0.5,
             video_latency_s: 0.1,
+            use_frame_timestamps: true,
+            telemetry_clock: TelemetryClock::Boot,
         }
     }
 }
 
 /// The capture time of a frame: its own timestamp (the MJPEG part's
-/// `X-Timestamp`, already on the telemetry clock) when it has one, else its
-/// receive time minus the configured video latency.
+/// `X-Timestamp`, already on the telemetry clock) when it has one and
+/// `use_frame_timestamps` is set, else its receive time minus the
+/// configured video latency.
 pub fn capture_time(received_s: f64, stamped_s: Option<f64>, params: &HistoryParams) -> f64 {
     match stamped_s {
-        Some(t) if t.is_finite() => t,
+        Some(t) if t.is_finite() && params.use_frame_timestamps => t,
         _ => received_s - params.video_latency_s,
     }
 }

@@ -470,7 +470,7 @@ fn decompose_e(e: &Matrix3<f64>) -> Option<[(Matrix3<f64>, Vector3<f64>); 4]> {
 /// The 8 motion hypotheses of a calibrated homography `A = K⁻¹·H·K`
 /// (Faugeras & Lustman 1988, cases d' = ±d₂). Returns `None` when the
 /// singular values coincide (no translation is observable).
-fn decompose_h(a: &Matrix3<f64>) -> Option<Vec<(Matrix3<f64>, Vector3<f64>)>> {
+pub fn decompose_h(a: &Matrix3<f64>) -> Option<Vec<(Matrix3<f64>, Vector3<f64>)>> {
     let svd = a.svd(true, true);
     let (u, vt) = (svd.u?, svd.v_t?);
     let (d1, d2, d3) = (

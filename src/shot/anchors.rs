@@ -348,6 +348,59 @@ mod tests {
     }
 
     #[test]
+    fn degenerate_image_and_bad_params_have_their_own_errors() {
+        let good = [
+            p(20.0, 10.0),
+            p(300.0, 30.0),
+            p(290.0, 220.0),
+            p(10.0, 230.0),
+        ];
+        // An image too small to warp (empty, or one pixel wide).
+        for (w, h) in [(0, 0), (1, 240), (320, 1)] {
+            let img = GrayImage::new(w, h);
+            assert!(
+                matches!(
+                    desired_shot_from_anchors(&img, &good, &AnchorParams::default()),
+                    Err(ShotError::ImageSize { width, height, .. }) if width == w && height == h
+                ),
+                "{w}x{h}"
+            );
+        }
+        let bad = [
+            (
+                AnchorParams {
+                    max_outside_factor: -1.0,
+                    ..AnchorParams::default()
+                },
+                "max_outside_factor",
+            ),
+            (
+                AnchorParams {
+                    min_area_fraction: f64::NAN,
+                    ..AnchorParams::default()
+                },
+                "min_area_fraction",
+            ),
+            (
+                AnchorParams {
+                    max_condition: 0.5,
+                    ..AnchorParams::default()
+                },
+                "max_condition",
+            ),
+        ];
+        for (params, which) in bad {
+            assert!(
+                matches!(
+                    homography_from_anchors(W, H, &good, &params),
+                    Err(ShotError::InvalidParams { name, .. }) if name == which
+                ),
+                "{which}"
+            );
+        }
+    }
+
+    #[test]
     fn bow_tie_is_not_convex() {
         let bowtie = [p(0.0, 0.0), p(300.0, 0.0), p(30.0, 200.0), p(250.0, 150.0)];
         assert!(matches!(solve(bowtie), Err(ShotError::NotConvex { .. })));

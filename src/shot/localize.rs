@@ -9,11 +9,19 @@
 //!    keyframe, fine for maps of up to a few hundred keyframes). Each
 //!    candidate's map points are matched by descriptor (nearest neighbour
 //!    under a Hamming bound, ratio test, one-to-one).
-//! 3. Per candidate: PnP RANSAC on its matches; then the points of the
-//!    candidate and its best covisible keyframes are projected with that pose
-//!    and matched in the shot (search by projection), and motion-only bundle
-//!    adjustment refines the pose on all pairs (twice, the second time with a
-//!    tighter window).
+//! 3. Per candidate: PnP RANSAC on its matches; then the local map (the
+//!    points of the candidate, its best covisible keyframes and the keyframes
+//!    that observe the points matched so far, most shared points first) is
+//!    projected with that pose and matched in the shot (search by
+//!    projection), and motion-only bundle adjustment (Huber, then outliers
+//!    dropped) refines the pose on all pairs; twice, the second time with the
+//!    local map regrown from the refined matches and a tighter window.
+//!
+//! The shot may come from another camera ([`localize_with_camera`]): its
+//! own intrinsics and distortion are used for the features, the PnP, the
+//! projection (with the predicted pyramid level corrected for the focal
+//! length ratio) and the refinement; [`assumed_camera`] gives the camera of
+//! a resized photo when the intrinsics are not known.
 //! 4. A reliability gate: enough inliers, a small reprojection RMSE, a high
 //!    inlier ratio, the inliers in front of the camera, and agreement with
 //!    every other candidate that passes the gate too. Failing it gives
@@ -26,11 +34,12 @@ use nalgebra::{Isometry3, Point2, Point3};
 
 use super::ShotError;
 use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
+use crate::camera::Camera;
 use crate::features::{self, Descriptor, OrbExtractor, hamming};
 use crate::geometry::{PnpParams, solve_pnp_ransac};
 use crate::optimize::{Intrinsics, PoseObservation, PoseParams, optimize_pose};
 use crate::slam::grid::{Bounds, FeatureGrid};
-use crate::slam::matcher::{MatcherParams, SearchTarget, project_point, search_local_points};
+use crate::slam::matcher::{MatcherParams, Projected, SearchTarget, search_local_points};
 use crate::slam::{KeyFrameId, Map, PointId};
 
 /// Thresholds of the reliability gate.
@@ -77,8 +86,13 @@ pub struct LocalizeParams {
     pub ratio: f32,
     /// Fewest descriptor matches for a keyframe to be tried.
     pub min_candidate_matches: usize,
-    /// Covisible keyframes of a candidate whose points are projected.
+    /// Covisible keyframes of a candidate whose points are projected in the
+    /// first projection round.
     pub covisible: usize,
+    /// Largest number of keyframes whose points make the local map of the
+    /// later rounds: the keyframes that observe the points matched so far,
+    /// most shared points first (ORB-SLAM's local keyframes).
+    pub local_keyframes: usize,
     /// Search windows (pixels at level 0) of the projection rounds.
     pub projection_radius_px: [f64; 2],
     /// Smallest cosine between the viewing ray and a point's mean viewing
@@ -114,6 +128,7 @@ impl Default for LocalizeParams {
             ratio: 0.8,
             min_candidate_matches: 15,
             covisible: 10,
+            local_keyframes: 20,
             projection_radius_px: [5.0, 2.5],
             min_view_cos: 0.5,
             matcher: MatcherParams {
@@ -338,8 +353,9 @@ struct CandidatePose {
     median_depth: f64,
 }
 
-/// Localises a desired shot (see the module documentation). `mask` (same
-/// size as the shot, 0 = no data) keeps features off the black fill.
+/// Localises a desired shot taken with the map's camera (see the module
+/// documentation). `mask` (same size as the shot, 0 = no data) keeps
+/// features off the black fill.
 ///
 /// Errors: [`ShotError::ImageSize`] when the shot or the mask does not have
 /// the map camera's size; [`ShotError::Features`] when the extractor refuses
@@ -351,7 +367,62 @@ pub fn localize(
     bow_index: Option<&BowIndex<'_>>,
     params: &LocalizeParams,
 ) -> Result<Localization, ShotError> {
-    let cam = &map.camera;
+    localize_with_camera(map, &map.camera, shot, mask, bow_index, params)
+}
+
+/// The camera assumed for a photo of `width` x `height` whose intrinsics
+/// are not known: the map camera's field of view and distortion (in
+/// normalised coordinates) scaled to the photo's size, as for a resized or
+/// re-encoded frame of the same camera.
+///
+/// Errors: [`ShotError::ImageSize`] for an empty photo or one whose aspect
+/// ratio differs from the map camera's by more than 2 %, where the scaling
+/// would be a guess.
+pub fn assumed_camera(map_camera: &Camera, width: u32, height: u32) -> Result<Camera, ShotError> {
+    let size_err = || ShotError::ImageSize {
+        width,
+        height,
+        expected_width: map_camera.width,
+        expected_height: map_camera.height,
+    };
+    if width == 0 || height == 0 {
+        return Err(size_err());
+    }
+    let sx = width as f64 / map_camera.width as f64;
+    let sy = height as f64 / map_camera.height as f64;
+    if (sx / sy - 1.0).abs() > 0.02 {
+        return Err(size_err());
+    }
+    // Pixel centres at integers: x' = s·(x + 0.5) − 0.5.
+    Camera::new(
+        width,
+        height,
+        [
+            map_camera.fx * sx,
+            map_camera.fy * sy,
+            sx * (map_camera.cx + 0.5) - 0.5,
+            sy * (map_camera.cy + 0.5) - 0.5,
+        ],
+        map_camera.distortion,
+    )
+    .map_err(|_| size_err())
+}
+
+/// Localises a desired shot taken with `camera` (any intrinsics and size:
+/// a photo from another camera) against `map`; otherwise as [`localize`].
+///
+/// Errors: [`ShotError::ImageSize`] when the shot or the mask does not have
+/// `camera`'s size; [`ShotError::Features`] when the extractor refuses the
+/// settings.
+pub fn localize_with_camera(
+    map: &Map,
+    camera: &Camera,
+    shot: &GrayImage,
+    mask: Option<&GrayImage>,
+    bow_index: Option<&BowIndex<'_>>,
+    params: &LocalizeParams,
+) -> Result<Localization, ShotError> {
+    let cam = camera;
     for img in std::iter::once(shot).chain(mask) {
         if img.dimensions() != (cam.width, cam.height) {
             return Err(ShotError::ImageSize {
@@ -435,6 +506,13 @@ pub fn localize(
     };
     let bounds = Bounds::of(cam);
     let grid = FeatureGrid::new(&feats.keypoints, bounds);
+    // A point at distance d looks, to the shot camera, as it would to the
+    // map camera at d·f_map/f_shot (for the predicted pyramid level).
+    let view = ShotView {
+        cam,
+        bounds,
+        distance_factor: (map.camera.fx + map.camera.fy) / (cam.fx + cam.fy),
+    };
     let mut poses: Vec<CandidatePose> = Vec::new();
     let mut tried = 0;
     for (kf_id, matches) in &ranked {
@@ -442,8 +520,7 @@ pub fn localize(
             continue;
         }
         tried += 1;
-        if let Some(c) =
-            refine_candidate(map, *kf_id, matches, &feats, &grid, &bounds, &intr, params)
+        if let Some(c) = refine_candidate(map, *kf_id, matches, &feats, &grid, &view, &intr, params)
         {
             poses.push(c);
         }
@@ -520,6 +597,102 @@ fn not(reason: NotLocalizedReason) -> Localization {
     Localization::NotLocalized { reason }
 }
 
+/// The shot's camera as the projection of map points into it needs it.
+struct ShotView<'c> {
+    cam: &'c Camera,
+    bounds: Bounds,
+    distance_factor: f64,
+}
+
+/// Whether map point `id` is in the shot camera's frustum (in front, inside
+/// the undistorted bounds, within its scale range, seen from within
+/// `min_view_cos` of its mean viewing direction); where and at which level.
+fn project_into_shot(
+    map: &Map,
+    view: &ShotView<'_>,
+    id: PointId,
+    cam_from_world: &Isometry3<f64>,
+    center: &nalgebra::Vector3<f64>,
+    min_view_cos: f64,
+) -> Option<Projected> {
+    let mp = map.point(id)?;
+    let pc = cam_from_world * mp.position;
+    if pc.z <= 0.0 {
+        return None;
+    }
+    let u = view.cam.fx * pc.x / pc.z + view.cam.cx;
+    let v = view.cam.fy * pc.y / pc.z + view.cam.cy;
+    if !view.bounds.contains(u, v) {
+        return None;
+    }
+    let po = mp.position.coords - center;
+    let dist = po.norm();
+    // The scale range, in the map camera's terms.
+    let d_map = dist * view.distance_factor;
+    if d_map < 0.8 * mp.min_distance || d_map > 1.2 * mp.max_distance {
+        return None;
+    }
+    let view_cos = po.dot(&mp.normal) / dist;
+    if view_cos < min_view_cos {
+        return None;
+    }
+    Some(Projected {
+        id,
+        uv: Point2::new(u, v),
+        level: map.scale.predict_level(mp.max_distance, d_map),
+        view_cos,
+    })
+}
+
+/// The local map of a shot: the points of the keyframes that observe the
+/// points matched so far (most shared points first, at most `max_kfs`),
+/// with the candidate keyframe and its best covisible ones always in.
+fn local_points(
+    map: &Map,
+    kf_id: KeyFrameId,
+    slots: &[Option<PointId>],
+    params: &LocalizeParams,
+) -> Vec<PointId> {
+    let mut counts: std::collections::HashMap<KeyFrameId, usize> = std::collections::HashMap::new();
+    for p in slots.iter().flatten() {
+        if let Some(mp) = map.point(*p) {
+            for (k, _) in &mp.observations {
+                *counts.entry(*k).or_default() += 1;
+            }
+        }
+    }
+    let mut kfs: Vec<(KeyFrameId, usize)> = counts.into_iter().collect();
+    kfs.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+    let mut chosen: Vec<KeyFrameId> = Vec::new();
+    let mut seen_kf: HashSet<KeyFrameId> = HashSet::new();
+    let candidate = map.keyframe(kf_id);
+    let base = std::iter::once(kf_id).chain(
+        candidate
+            .into_iter()
+            .flat_map(|k| k.best_covisible(params.covisible)),
+    );
+    for id in base.chain(kfs.iter().map(|x| x.0)) {
+        if chosen.len() >= params.covisible + 1 + params.local_keyframes {
+            break;
+        }
+        if seen_kf.insert(id) {
+            chosen.push(id);
+        }
+    }
+    let mut local: Vec<PointId> = Vec::new();
+    let mut seen: HashSet<PointId> = HashSet::new();
+    for id in chosen {
+        if let Some(k) = map.keyframe(id) {
+            for p in k.points.iter().flatten() {
+                if seen.insert(*p) {
+                    local.push(*p);
+                }
+            }
+        }
+    }
+    local
+}
+
 /// PnP on a candidate's matches, then projection rounds with motion-only BA.
 #[allow(clippy::too_many_arguments)]
 fn refine_candidate(
@@ -528,11 +701,11 @@ fn refine_candidate(
     matches: &[(usize, PointId)],
     feats: &features::Features,
     grid: &FeatureGrid,
-    bounds: &Bounds,
+    view: &ShotView<'_>,
     intr: &Intrinsics,
     params: &LocalizeParams,
 ) -> Option<CandidatePose> {
-    let kf = map.keyframe(kf_id)?;
+    map.keyframe(kf_id)?;
     let mut pw: Vec<Point3<f64>> = Vec::with_capacity(matches.len());
     let mut xn: Vec<Point2<f64>> = Vec::with_capacity(matches.len());
     let mut pairs: Vec<(usize, PointId)> = Vec::with_capacity(matches.len());
@@ -556,34 +729,17 @@ fn refine_candidate(
             slots[i] = Some(p);
         }
     }
-    // The local map: points of the candidate and its best covisible keyframes.
-    let mut local: Vec<PointId> = Vec::new();
-    let mut seen: HashSet<PointId> = HashSet::new();
-    for id in std::iter::once(kf_id).chain(kf.best_covisible(params.covisible)) {
-        if let Some(k) = map.keyframe(id) {
-            for p in k.points.iter().flatten() {
-                if seen.insert(*p) {
-                    local.push(*p);
-                }
-            }
-        }
-    }
     let mut report = None;
     for &radius in &params.projection_radius_px {
+        // The local map, grown from the keyframes that see the matched points.
+        let local = local_points(map, kf_id, &slots, params);
         let used: HashSet<PointId> = slots.iter().flatten().copied().collect();
         let center = cam_from_world.inverse().translation.vector;
         let projected: Vec<_> = local
             .iter()
             .filter(|p| !used.contains(p))
             .filter_map(|p| {
-                project_point(
-                    map,
-                    *p,
-                    &cam_from_world,
-                    &center,
-                    bounds,
-                    params.min_view_cos,
-                )
+                project_into_shot(map, view, *p, &cam_from_world, &center, params.min_view_cos)
             })
             .collect();
         let target = SearchTarget {
@@ -710,6 +866,40 @@ mod tests {
             localize(&map, &checker(320, 240), Some(&mask), None, &p),
             Err(ShotError::ImageSize { width: 100, .. })
         ));
+    }
+
+    #[test]
+    fn assumed_camera_scales_the_map_camera_and_refuses_other_aspects() {
+        let map = empty_map();
+        let c = assumed_camera(&map.camera, 640, 480).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((c.width, c.height), (640, 480));
+        assert!((c.fx - 600.0).abs() < 1e-12 && (c.fy - 600.0).abs() < 1e-12);
+        // Pixel centres: (160 + 0.5)·2 − 0.5.
+        assert!((c.cx - 320.5).abs() < 1e-12 && (c.cy - 240.5).abs() < 1e-12);
+        // The same ray through corresponding pixels.
+        let r0 = map.camera.unproject(Point2::new(10.0, 20.0)).into_inner();
+        let r1 = c.unproject(Point2::new(20.5, 40.5)).into_inner();
+        assert!((r0 - r1).norm() < 1e-12, "{r0} vs {r1}");
+        assert!(matches!(
+            assumed_camera(&map.camera, 400, 240),
+            Err(ShotError::ImageSize { width: 400, .. })
+        ));
+        assert!(assumed_camera(&map.camera, 0, 0).is_err());
+        // A shot must have the size of the camera it is localised with.
+        let p = LocalizeParams::default();
+        assert!(matches!(
+            localize_with_camera(&map, &c, &checker(320, 240), None, None, &p),
+            Err(ShotError::ImageSize {
+                expected_width: 640,
+                ..
+            })
+        ));
+        assert_eq!(
+            localize_with_camera(&map, &c, &checker(640, 480), None, None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::NoCandidate
+            })
+        );
     }
 
     #[test]

@@ -18,7 +18,8 @@ pub use anchors::{
     AnchorParams, DesiredShot, desired_shot_from_anchors, homography_from_anchors, warp_perspective,
 };
 pub use localize::{
-    BowIndex, GateParams, Localization, LocalizeParams, NotLocalizedReason, ShotPose, localize,
+    BowIndex, GateParams, Localization, LocalizeParams, NotLocalizedReason, ShotPose,
+    assumed_camera, localize, localize_with_camera,
 };
 
 use nalgebra::Point2;

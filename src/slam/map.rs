@@ -5,7 +5,8 @@
 //! - a point lists keyframe `k` at keypoint `i` exactly when keyframe `k`'s
 //!   slot `i` holds that point;
 //! - no live object refers to an erased id;
-//! - covisibility weights are symmetric.
+//! - covisibility weights are symmetric;
+//! - the place index (BoW database) holds exactly the indexed live keyframes.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -17,6 +18,7 @@ use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, hamming};
 
 use super::grid::FeatureGrid;
+use crate::bow::{self, BowVector, FeatureVector, KeyFrameDatabase};
 
 /// Id of a keyframe, unique for the life of a map (never reused).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -201,6 +203,30 @@ pub struct Map {
     pub culled: HashMap<KeyFrameId, CulledKeyFrame>,
     /// Keyframes with fewer shared points are not covisibility neighbours.
     pub covisibility_threshold: u32,
+    places: Option<Places>,
+}
+
+/// The bag-of-words index of the live keyframes: the keyframe database
+/// (inverted index) and each keyframe's feature vector (direct index) for
+/// BoW-guided matching.
+#[derive(Debug, Clone)]
+pub struct Places {
+    /// Inverted index word -> keyframes (ids are the map's, widened).
+    pub database: KeyFrameDatabase,
+    /// Direct index of each indexed keyframe.
+    pub features: HashMap<KeyFrameId, FeatureVector>,
+}
+
+impl Places {
+    /// The database id of a keyframe.
+    pub fn db_id(id: KeyFrameId) -> bow::KeyFrameId {
+        bow::KeyFrameId(id.0 as u64)
+    }
+
+    /// The map id of a database id.
+    pub fn map_id(id: bow::KeyFrameId) -> Option<KeyFrameId> {
+        u32::try_from(id.0).ok().map(KeyFrameId)
+    }
 }
 
 impl Map {
@@ -215,7 +241,40 @@ impl Map {
             n_points: 0,
             culled: HashMap::new(),
             covisibility_threshold: 15,
+            places: None,
         }
+    }
+
+    /// The bag-of-words index of the keyframes, once one was indexed.
+    pub fn places(&self) -> Option<&Places> {
+        self.places.as_ref()
+    }
+
+    /// Index a live keyframe for place recognition (its BoW vector and
+    /// feature vector, from a vocabulary of `word_count` words). Returns
+    /// false when the keyframe is not live or the vector does not fit the
+    /// database.
+    pub fn index_keyframe(
+        &mut self,
+        id: KeyFrameId,
+        bow: BowVector,
+        features: FeatureVector,
+        word_count: usize,
+    ) -> bool {
+        if self.keyframe(id).is_none() {
+            return false;
+        }
+        let places = self.places.get_or_insert_with(|| Places {
+            database: KeyFrameDatabase::new(word_count),
+            features: HashMap::new(),
+        });
+        places.database.remove(Places::db_id(id));
+        if places.database.add(Places::db_id(id), bow).is_err() {
+            places.features.remove(&id);
+            return false;
+        }
+        places.features.insert(id, features);
+        true
     }
 
     /// Rebuild a map from its parts (the map file): objects are placed at
@@ -516,6 +575,10 @@ impl Map {
         );
         self.keyframes[id.0 as usize] = None;
         self.n_keyframes -= 1;
+        if let Some(places) = &mut self.places {
+            places.database.remove(Places::db_id(id));
+            places.features.remove(&id);
+        }
         true
     }
 
@@ -713,6 +776,23 @@ impl Map {
 
     /// Check the map's invariants; a description of the first violation.
     pub fn check_invariants(&self) -> Result<(), String> {
+        if let Some(places) = &self.places {
+            for id in places.features.keys() {
+                if self.keyframe(*id).is_none() {
+                    return Err(format!("place index holds erased keyframe {id:?}"));
+                }
+                if !places.database.contains(Places::db_id(*id)) {
+                    return Err(format!("keyframe {id:?} has features but no BoW entry"));
+                }
+            }
+            if places.database.len() != places.features.len() {
+                return Err(format!(
+                    "keyframe database holds {} keyframes, feature vectors {}",
+                    places.database.len(),
+                    places.features.len()
+                ));
+            }
+        }
         let mut n_kf = 0;
         for kf in self.keyframes() {
             n_kf += 1;

@@ -5,6 +5,7 @@
 
 use nalgebra::{Isometry3, Matrix3, Point2, Point3, Vector3};
 
+use crate::bow::FeatureVector;
 use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, hamming};
 use crate::matching::RotationHistogram;
@@ -47,9 +48,10 @@ pub fn rotation_outliers(rot: &[(usize, f32)], bins: usize) -> Vec<usize> {
     h.rejected()
 }
 
-/// Matches between two frames for initialisation: every level-0 keypoint of
-/// the first is searched for within `window` pixels of `prev` (its position
-/// in the frame matched last) in the second. Returns, per keypoint of the
+/// Matches between two frames for initialisation: every keypoint of the
+/// first up to level `max_octave` is searched for within `window` pixels of
+/// `prev` (its position in the frame matched last) in the second, among
+/// keypoints one level up or down (only level 0 when `max_octave` is 0). Returns, per keypoint of the
 /// first frame, the matched keypoint of the second.
 #[allow(clippy::too_many_arguments)]
 pub fn search_for_initialization(
@@ -60,20 +62,24 @@ pub fn search_for_initialization(
     grid2: &FeatureGrid,
     prev: &[Point2<f64>],
     window: f64,
+    max_octave: i32,
     params: &MatcherParams,
 ) -> Vec<Option<usize>> {
     let mut m12: Vec<Option<usize>> = vec![None; kps1.len()];
     let mut m21_dist: Vec<(Option<usize>, u32)> = vec![(None, u32::MAX); kps2.len()];
     let mut cand = Vec::new();
     for (i1, k1) in kps1.iter().enumerate() {
-        if k1.octave > 0 {
+        let oct = k1.octave as i32;
+        if oct > max_octave {
             continue;
         }
         let p = prev
             .get(i1)
             .copied()
             .unwrap_or(Point2::new(k1.ux as f64, k1.uy as f64));
-        grid2.features_in_area(kps2, p.x, p.y, window, 0, 0, &mut cand);
+        let lo = (oct - 1).max(0);
+        let hi = if max_octave == 0 { 0 } else { oct + 1 };
+        grid2.features_in_area(kps2, p.x, p.y, window, lo, hi, &mut cand);
         let (mut best, mut best2, mut best_i) = (u32::MAX, u32::MAX, usize::MAX);
         for &i2 in &cand {
             let d = hamming(&desc1[i1], &desc2[i2]);
@@ -515,6 +521,84 @@ pub fn fuse(
         }
     }
     n
+}
+
+/// ORB-SLAM's SearchByBoW: match the map points of keyframe `kf` to a
+/// frame's keypoints, comparing only features under the same vocabulary
+/// node (`kf_features` and `features` are the two direct indices): the best
+/// under `th_low` with the ratio test, one match per frame keypoint (the
+/// closest wins), then the rotation-consistency filter. Returns (frame
+/// keypoint, point) pairs.
+#[allow(clippy::too_many_arguments)]
+pub fn search_by_bow(
+    map: &Map,
+    kf: KeyFrameId,
+    kf_features: &FeatureVector,
+    descriptors: &[Descriptor],
+    keypoints: &[KeyPoint],
+    features: &FeatureVector,
+    params: &MatcherParams,
+    ratio: f32,
+) -> Vec<(usize, PointId)> {
+    let Some(k) = map.keyframe(kf) else {
+        return Vec::new();
+    };
+    // Per frame keypoint: (distance, kf keypoint) of its current match.
+    let mut best_for: Vec<Option<(u32, usize)>> = vec![None; keypoints.len()];
+    for (_, kf_idx, frame_idx) in kf_features.common_nodes(features) {
+        for ki in kf_idx.iter() {
+            let ki = ki as usize;
+            let Some(Some(pid)) = k.points.get(ki) else {
+                continue;
+            };
+            if map.point(*pid).is_none() {
+                continue;
+            }
+            let Some(d1) = k.descriptors.get(ki) else {
+                continue;
+            };
+            let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+            for fi in frame_idx.iter() {
+                let fi = fi as usize;
+                let Some(d2) = descriptors.get(fi) else {
+                    continue;
+                };
+                let d = hamming(d1, d2);
+                if d < b1 {
+                    b2 = b1;
+                    b1 = d;
+                    bi = fi;
+                } else if d < b2 {
+                    b2 = d;
+                }
+            }
+            if bi == usize::MAX || b1 > params.th_low || (b1 as f32) >= ratio * b2 as f32 {
+                continue;
+            }
+            if best_for[bi].is_none_or(|(d, _)| b1 < d) {
+                best_for[bi] = Some((b1, ki));
+            }
+        }
+    }
+    let found: Vec<(usize, usize)> = best_for
+        .iter()
+        .enumerate()
+        .filter_map(|(fi, m)| m.map(|(_, ki)| (fi, ki)))
+        .collect();
+    let rot: Vec<(usize, f32)> = found
+        .iter()
+        .enumerate()
+        .map(|(n, &(fi, ki))| (n, k.keypoints[ki].angle - keypoints[fi].angle))
+        .collect();
+    let drop: std::collections::HashSet<usize> = rotation_outliers(&rot, params.histo_bins)
+        .into_iter()
+        .collect();
+    found
+        .into_iter()
+        .enumerate()
+        .filter(|(n, _)| !drop.contains(n))
+        .filter_map(|(_, (fi, ki))| k.points[ki].map(|p| (fi, p)))
+        .collect()
 }
 
 #[cfg(test)]

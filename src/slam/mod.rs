@@ -12,6 +12,7 @@ pub mod map;
 pub mod mapfile;
 pub mod mapping;
 pub mod matcher;
+pub mod planar;
 pub mod tracking;
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -42,6 +43,9 @@ pub enum SlamError {
     /// A map file could not be read or written.
     #[error(transparent)]
     MapFile(#[from] mapfile::MapFileError),
+    /// The built-in vocabulary could not be loaded.
+    #[error(transparent)]
+    Vocabulary(#[from] crate::bow::BowError),
 }
 
 /// Every tunable of the SLAM.
@@ -143,9 +147,20 @@ impl SlamRun {
 }
 
 impl Slam {
-    /// A SLAM for `camera`; starts the mapping thread unless sequential.
+    /// A SLAM for `camera` with the built-in vocabulary; starts the mapping
+    /// thread unless sequential.
     pub fn new(camera: Camera, params: Params) -> Result<Self, SlamError> {
-        let tracker = Tracker::new(camera, params.tracking.clone())?;
+        let vocabulary = Arc::new(crate::bow::Vocabulary::builtin()?);
+        Self::with_vocabulary(camera, params, vocabulary)
+    }
+
+    /// A SLAM for `camera` whose keyframe database uses `vocabulary`.
+    pub fn with_vocabulary(
+        camera: Camera,
+        params: Params,
+        vocabulary: Arc<crate::bow::Vocabulary>,
+    ) -> Result<Self, SlamError> {
+        let tracker = Tracker::new(camera, params.tracking.clone(), vocabulary)?;
         let map = Arc::new(Mutex::new(Map::new(camera, tracker.scale().clone())));
         let bounds = grid::Bounds::of(&camera);
         let mapper = LocalMapper::new(params.mapping.clone(), bounds);

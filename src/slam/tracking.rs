@@ -2,8 +2,10 @@
 //! constant-velocity motion model with search by projection, the reference
 //! keyframe as fallback, the local map, motion-only bundle adjustment, and
 //! the keyframe decision (ORB-SLAM's criteria). States: not initialised,
-//! tracking, lost; when lost, relocalisation against recent keyframes
-//! (descriptor matching, PnP RANSAC, refinement).
+//! tracking, lost; when lost, relocalisation through the keyframe database
+//! (BoW candidates, BoW-guided matching, PnP RANSAC, refinement by
+//! projection). Initialisation on planar scenes resolves the homography's
+//! twin reconstructions with intermediate frames ([`super::planar`]).
 
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
@@ -11,6 +13,7 @@ use std::time::Instant;
 use image::GrayImage;
 use nalgebra::{Isometry3, Point2, UnitQuaternion};
 
+use crate::bow::{BowVector, FeatureVector, Vocabulary};
 use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, OrbExtractor, hamming};
 use crate::geometry::{self, PnpParams, TwoViewParams};
@@ -20,8 +23,9 @@ use crate::optimize::{
 
 use super::SlamError;
 use super::grid::{Bounds, FeatureGrid};
-use super::map::{KeyFrame, KeyFrameId, Map, PointId, ScaleInfo};
+use super::map::{self, KeyFrame, KeyFrameId, Map, PointId, ScaleInfo};
 use super::matcher::{self, MatcherParams, SearchTarget};
+use super::planar;
 
 /// Tunable numbers of tracking.
 #[derive(Debug, Clone, PartialEq)]
@@ -34,6 +38,16 @@ pub struct TrackingParams {
     pub init_min_matches: usize,
     /// Search window of initialisation matching, pixels.
     pub init_window: f64,
+    /// Highest pyramid level matched between the initialisation frames
+    /// (ORB-SLAM: 0); a keypoint is matched with keypoints one level up or
+    /// down.
+    pub init_max_octave: i32,
+    /// Planar scenes: the twin reconstruction is rejected when its
+    /// third-view cost exceeds the chosen one's by this factor.
+    pub planar_cost_ratio: f64,
+    /// Planar scenes: the chosen reconstruction's third-view cost (mean
+    /// squared reprojection error, pixels²) must stay below this.
+    pub planar_max_cost: f64,
     /// Map points the initial map must keep after its bundle adjustment.
     pub init_min_points: usize,
     /// Search radius factor of the motion-model search, pixels at level 0.
@@ -55,6 +69,12 @@ pub struct TrackingParams {
     pub max_local_keyframes: usize,
     /// Descriptor matching thresholds.
     pub matcher: MatcherParams,
+    /// Bag of words: direct-index level and relocalisation candidates.
+    pub bow: crate::bow::Params,
+    /// Relocalisation tries at most this many candidate keyframes.
+    pub reloc_max_candidates: usize,
+    /// Matches a relocalisation candidate needs from BoW matching.
+    pub reloc_min_bow_matches: usize,
     /// Two-view initialisation.
     pub two_view: TwoViewParams,
     /// Motion-only bundle adjustment.
@@ -74,6 +94,9 @@ impl Default for TrackingParams {
             init_features: 2000,
             init_min_matches: 100,
             init_window: 100.0,
+            init_max_octave: 2,
+            planar_cost_ratio: 2.0,
+            planar_max_cost: 2.0,
             init_min_points: 80,
             motion_search_radius: 15.0,
             min_motion_matches: 20,
@@ -84,6 +107,9 @@ impl Default for TrackingParams {
             keyframe_ref_ratio: 0.9,
             max_local_keyframes: 80,
             matcher: MatcherParams::default(),
+            bow: crate::bow::Params::default(),
+            reloc_max_candidates: 30,
+            reloc_min_bow_matches: 15,
             two_view: TwoViewParams::default(),
             pose: PoseParams::default(),
             pnp: PnpParams::default(),
@@ -153,6 +179,8 @@ struct Frame {
     grid: FeatureGrid,
     points: Vec<Option<PointId>>,
     image: Arc<GrayImage>,
+    /// BoW vector and direct index, computed when first needed.
+    bow: Option<(BowVector, FeatureVector)>,
 }
 
 impl Frame {
@@ -170,6 +198,8 @@ struct InitFrame {
     frame: Frame,
     /// Where each of its keypoints was last matched (window centre).
     prev: Vec<Point2<f64>>,
+    /// Later frames matched with it, to tell planar reconstructions apart.
+    third_views: Vec<planar::ThirdView>,
 }
 
 /// The previous tracked frame.
@@ -189,6 +219,7 @@ pub struct Tracker {
     bounds: Bounds,
     scale: ScaleInfo,
     intrinsics: Intrinsics,
+    vocabulary: Arc<Vocabulary>,
     state: TrackState,
     init: Option<InitFrame>,
     last: Option<LastFrame>,
@@ -209,8 +240,13 @@ fn lock(map: &Mutex<Map>) -> MutexGuard<'_, Map> {
 }
 
 impl Tracker {
-    /// A tracker for `camera`.
-    pub fn new(camera: Camera, params: TrackingParams) -> Result<Self, SlamError> {
+    /// A tracker for `camera`; `vocabulary` indexes keyframes and frames
+    /// for relocalisation and BoW-guided matching.
+    pub fn new(
+        camera: Camera,
+        params: TrackingParams,
+        vocabulary: Arc<Vocabulary>,
+    ) -> Result<Self, SlamError> {
         let extractor = OrbExtractor::new(params.features)?;
         let init_extractor = OrbExtractor::new(crate::features::Params {
             n_features: params.init_features,
@@ -233,6 +269,7 @@ impl Tracker {
             camera,
             scale,
             params,
+            vocabulary,
             state: TrackState::NotInitialized,
             init: None,
             last: None,
@@ -300,6 +337,7 @@ impl Tracker {
             grid,
             points: vec![None; n],
             image,
+            bow: None,
         };
         let mut out = FrameOutcome {
             state: self.state,
@@ -369,7 +407,11 @@ impl Tracker {
                     .iter()
                     .map(|k| Point2::new(k.ux as f64, k.uy as f64))
                     .collect();
-                self.init = Some(InitFrame { frame, prev });
+                self.init = Some(InitFrame {
+                    frame,
+                    prev,
+                    third_views: Vec::new(),
+                });
                 return Ok(None);
             }
             return Err(format!(
@@ -385,6 +427,7 @@ impl Tracker {
             &frame.grid,
             &init.prev,
             self.params.init_window,
+            self.params.init_max_octave,
             &self.params.matcher,
         );
         let matches: Vec<(usize, usize)> = m12
@@ -405,7 +448,11 @@ impl Tracker {
                     .iter()
                     .map(|k| Point2::new(k.ux as f64, k.uy as f64))
                     .collect();
-                self.init = Some(InitFrame { frame, prev });
+                self.init = Some(InitFrame {
+                    frame,
+                    prev,
+                    third_views: Vec::new(),
+                });
             }
             return Err(reason);
         }
@@ -435,6 +482,25 @@ impl Tracker {
             self.params.seed.wrapping_add(self.attempt),
         );
         let tv = match tv {
+            Ok(tv) => Ok(tv),
+            Err(e @ geometry::GeometryError::Ambiguous { .. }) => self
+                .resolve_planar(&init, &kp1, &kp2, &matches)
+                .map_err(|why| format!("{e}; {why}")),
+            Err(e) => Err(e.to_string()),
+        };
+        init.third_views.push(planar::ThirdView {
+            index: frame.index,
+            seen: matches.iter().map(|&(i, j)| (i, kp2[j])).collect(),
+        });
+        if init.third_views.len() > 64 {
+            // Keep them spread over the attempt: drop every other one.
+            let mut n = 0;
+            init.third_views.retain(|_| {
+                n += 1;
+                n % 2 == 1
+            });
+        }
+        let tv = match tv {
             Ok(tv) => tv,
             Err(e) => {
                 let reason = format!(
@@ -459,10 +525,131 @@ impl Tracker {
                     .iter()
                     .map(|k| Point2::new(k.ux as f64, k.uy as f64))
                     .collect();
-                self.init = Some(InitFrame { frame, prev });
+                self.init = Some(InitFrame {
+                    frame,
+                    prev,
+                    third_views: Vec::new(),
+                });
                 Err(reason)
             }
         }
+    }
+
+    /// A planar pair both of whose reconstructions hold: decide between
+    /// them with the frames seen in between (see [`planar`]).
+    fn resolve_planar(
+        &self,
+        init: &InitFrame,
+        kp1: &[Point2<f64>],
+        kp2: &[Point2<f64>],
+        matches: &[(usize, usize)],
+    ) -> Result<geometry::TwoViewResult, String> {
+        let mut relaxed = self.params.two_view.clone();
+        relaxed.h_second_fraction = f64::INFINITY;
+        let tv = geometry::initialize_two_view(
+            &self.camera.k(),
+            kp1,
+            kp2,
+            matches,
+            &relaxed,
+            self.params.seed.wrapping_add(self.attempt),
+        )
+        .map_err(|e| e.to_string())?;
+        if tv.model != geometry::Model::Homography {
+            return Err("the motion hypotheses of F are alike".into());
+        }
+        let [a, b] =
+            planar::twin_hypotheses(&self.camera, kp1, kp2, matches, &tv, &self.params.two_view)
+                .ok_or("the homography gives no second reconstruction")?;
+        let (first, last) = (
+            init.frame.index,
+            init.third_views.last().map_or(0, |v| v.index),
+        );
+        if init.third_views.is_empty() || last <= first {
+            return Err("no third view yet to choose between the planar reconstructions".into());
+        }
+        // Third views near a quarter, half and three quarters of the way.
+        let span = (last.saturating_sub(first) + 1) as f64;
+        let mut picked: Vec<&planar::ThirdView> = Vec::new();
+        for q in [0.25, 0.5, 0.75] {
+            let target = first as f64 + q * span;
+            if let Some(v) = init.third_views.iter().min_by(|x, y| {
+                (x.index as f64 - target)
+                    .abs()
+                    .total_cmp(&(y.index as f64 - target).abs())
+            }) && !picked.iter().any(|p| p.index == v.index)
+            {
+                picked.push(v);
+            }
+        }
+        let (mut ca, mut cb, mut used) = (0.0, 0.0, 0usize);
+        for (n, v) in picked.iter().enumerate() {
+            let seed = self.params.seed.wrapping_add(v.index * 7 + n as u64);
+            let (Some(x), Some(y)) = (
+                planar::third_view_cost(&self.camera, &a, matches, v, &self.params.pnp, seed),
+                planar::third_view_cost(&self.camera, &b, matches, v, &self.params.pnp, seed),
+            ) else {
+                continue;
+            };
+            ca += x;
+            cb += y;
+            used += 1;
+        }
+        if used == 0 {
+            return Err("the third views share too few points".into());
+        }
+        let (ca, cb) = (ca / used as f64, cb / used as f64);
+        tracing::debug!(
+            frame = init.third_views.last().map_or(0, |v| v.index),
+            good_a = a.n_good,
+            good_b = b.n_good,
+            cost_a = ca,
+            cost_b = cb,
+            views = used,
+            "planar reconstructions"
+        );
+        let p = &self.params;
+        let (win, lose, cw, cl) = if ca <= cb {
+            (&a, &b, ca, cb)
+        } else {
+            (&b, &a, cb, ca)
+        };
+        if cl < p.planar_cost_ratio * cw || cw > p.planar_max_cost {
+            return Err(format!(
+                "third views do not tell the planar reconstructions apart (costs {cw:.2} and {cl:.2} px²)"
+            ));
+        }
+        if win.parallax_deg < p.two_view.min_parallax_deg {
+            return Err(format!(
+                "not enough parallax: {:.3} deg, needed {:.3} deg",
+                win.parallax_deg, p.two_view.min_parallax_deg
+            ));
+        }
+        let needed = ((p.two_view.min_good_fraction
+            * tv.inliers.iter().filter(|b| **b).count() as f64)
+            .ceil() as usize)
+            .max(p.two_view.min_triangulated);
+        if win.n_good < needed {
+            return Err(format!("only {} good points (need {needed})", win.n_good));
+        }
+        Ok(planar::as_result(&tv, win, lose.n_good))
+    }
+
+    /// The frame's BoW vector and direct index (computed once).
+    fn frame_bow<'f>(&self, frame: &'f mut Frame) -> &'f (BowVector, FeatureVector) {
+        frame.bow.get_or_insert_with(|| {
+            self.vocabulary
+                .transform_with_features(&frame.descriptors, self.params.bow.direct_index_level)
+        })
+    }
+
+    /// Add a keyframe made from `frame` to the map and index it in the
+    /// keyframe database.
+    fn insert_keyframe(&self, map: &mut Map, frame: &mut Frame, kf: KeyFrame) -> KeyFrameId {
+        let (bow, fv) = self.frame_bow(frame).clone();
+        let id = map.add_keyframe(kf);
+        map.index_keyframe(id, bow, fv, self.vocabulary.word_count());
+        id
     }
 
     fn new_keyframe_from(&self, frame: &Frame, cam_from_world: Isometry3<f64>) -> KeyFrame {
@@ -495,8 +682,16 @@ impl Tracker {
         let mut kf2 = self.new_keyframe_from(f2, renormalized(tv.cam2_from_cam1));
         kf1.points.iter_mut().for_each(|p| *p = None);
         kf2.points.iter_mut().for_each(|p| *p = None);
+        let mut bows = [f1, f2].map(|f| {
+            self.vocabulary
+                .transform_with_features(&f.descriptors, self.params.bow.direct_index_level)
+        });
         let id1 = map.add_keyframe(kf1);
         let id2 = map.add_keyframe(kf2);
+        let words = self.vocabulary.word_count();
+        for (id, (bow, fv)) in [id1, id2].into_iter().zip(bows.iter_mut()) {
+            map.index_keyframe(id, std::mem::take(bow), std::mem::take(fv), words);
+        }
         for (m, &(i, j)) in matches.iter().enumerate() {
             let Some(p) = tv.points.get(m).copied().flatten() else {
                 continue;
@@ -631,7 +826,7 @@ impl Tracker {
         let mut new_kf = None;
         if self.need_new_keyframe(map, frame, inliers, mapping_idle, recently_relocalized) {
             let kf = self.new_keyframe_from(frame, pose);
-            let id = map.add_keyframe(kf);
+            let id = self.insert_keyframe(map, frame, kf);
             self.reference_kf = Some(id);
             self.last_kf_frame = frame.index;
             new_kf = Some(id);
@@ -739,8 +934,23 @@ impl Tracker {
             || map.keyframe(reference).map(|k| k.cam_from_world),
             |l| Some(l.cam_from_world),
         )?;
-        let matches =
-            match_keyframe_by_descriptor(map, reference, frame, &self.params.matcher, 0.7);
+        // BoW-guided when the keyframe is indexed, else by brute force.
+        let matches = match map.places().and_then(|p| p.features.get(&reference)) {
+            Some(kf_fv) => {
+                let fv = self.frame_bow(frame).1.clone();
+                matcher::search_by_bow(
+                    map,
+                    reference,
+                    kf_fv,
+                    &frame.descriptors,
+                    &frame.keypoints,
+                    &fv,
+                    &self.params.matcher,
+                    0.7,
+                )
+            }
+            None => match_keyframe_by_descriptor(map, reference, frame, &self.params.matcher, 0.7),
+        };
         if matches.len() < 15 {
             return None;
         }
@@ -752,22 +962,50 @@ impl Tracker {
         (inliers >= 10).then_some(pose)
     }
 
-    /// Relocalise against recent keyframes: descriptor matches, PnP RANSAC,
-    /// then motion-only BA.
+    /// Relocalise as ORB-SLAM does: candidate keyframes from the keyframe
+    /// database (words in common, scores accumulated over covisibility
+    /// groups), BoW-guided matching with each, PnP RANSAC, motion-only BA,
+    /// and, when the inliers fall short, search by projection of the
+    /// candidate's covisible points and a second optimisation.
     fn relocalize(&mut self, map: &Map, frame: &mut Frame) -> Option<Isometry3<f64>> {
-        let mut candidates: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
-        candidates.reverse();
-        candidates.truncate(15);
-        // (inliers, pose, inlier matches) of the best candidate.
-        type Candidate = (usize, Isometry3<f64>, Vec<(usize, PointId)>);
-        let mut best: Option<Candidate> = None;
-        for (ci, kf) in candidates.into_iter().enumerate() {
-            let matches = match_keyframe_by_descriptor(map, kf, frame, &self.params.matcher, 0.75);
-            if matches.len() < 15 {
+        let places = map.places()?;
+        let (bow, fv) = self.frame_bow(frame).clone();
+        let neighbours = self.params.bow.candidates.covisible_neighbours;
+        let mut candidates = places.database.detect_candidates(
+            &bow,
+            &self.params.bow.candidates,
+            |_| false,
+            |id, out| {
+                if let Some(k) = map::Places::map_id(id).and_then(|id| map.keyframe(id)) {
+                    out.extend(k.best_covisible(neighbours).map(map::Places::db_id));
+                }
+            },
+        );
+        candidates.truncate(self.params.reloc_max_candidates);
+        let needed = self.params.min_inliers_after_reloc;
+        for (ci, cand) in candidates.iter().enumerate() {
+            let Some(kf) = map::Places::map_id(cand.id) else {
+                continue;
+            };
+            let Some(kf_fv) = places.features.get(&kf) else {
+                continue;
+            };
+            let matches = matcher::search_by_bow(
+                map,
+                kf,
+                kf_fv,
+                &frame.descriptors,
+                &frame.keypoints,
+                &fv,
+                &self.params.matcher,
+                0.75,
+            );
+            if matches.len() < self.params.reloc_min_bow_matches {
                 continue;
             }
             let mut pts = Vec::with_capacity(matches.len());
             let mut obs = Vec::with_capacity(matches.len());
+            let mut used = Vec::with_capacity(matches.len());
             for &(i, p) in &matches {
                 let Some(mp) = map.point(p) else { continue };
                 let k = &frame.keypoints[i];
@@ -776,6 +1014,7 @@ impl Tracker {
                     (k.ux as f64 - self.camera.cx) / self.camera.fx,
                     (k.uy as f64 - self.camera.cy) / self.camera.fy,
                 ));
+                used.push((i, p));
             }
             let Ok(r) = geometry::solve_pnp_ransac(
                 &pts,
@@ -786,30 +1025,101 @@ impl Tracker {
             ) else {
                 continue;
             };
-            let inl: Vec<(usize, PointId)> = matches
-                .iter()
-                .zip(&r.inliers)
-                .filter(|(_, ok)| **ok)
-                .map(|(m, _)| *m)
-                .collect();
-            if best.as_ref().is_none_or(|b| r.n_inliers > b.0) {
-                best = Some((r.n_inliers, renormalized(r.cam_from_world), inl));
+            frame.points.iter_mut().for_each(|p| *p = None);
+            for ((i, p), ok) in used.iter().zip(&r.inliers) {
+                if *ok {
+                    frame.points[*i] = Some(*p);
+                }
+            }
+            let Some((mut pose, mut inliers)) =
+                self.optimize_frame_pose(map, frame, renormalized(r.cam_from_world))
+            else {
+                continue;
+            };
+            if inliers < 10 {
+                continue;
+            }
+            // Search by projection for more matches: first wide, then
+            // narrow after a second optimisation (ORB-SLAM's 10 then 3 px).
+            for th in [3.0, 1.0] {
+                if inliers >= needed {
+                    break;
+                }
+                self.search_candidate_points(map, frame, kf, &pose, th);
+                match self.optimize_frame_pose(map, frame, pose) {
+                    Some((p, n)) => {
+                        pose = p;
+                        inliers = n;
+                    }
+                    None => break,
+                }
+            }
+            if inliers >= needed {
+                tracing::info!(
+                    frame = frame.index,
+                    keyframe = kf.0,
+                    candidates = candidates.len(),
+                    inliers,
+                    "relocalised"
+                );
+                return Some(pose);
             }
         }
-        let (n, pose, inl) = best?;
-        if n < 15 {
-            return None;
-        }
         frame.points.iter_mut().for_each(|p| *p = None);
-        for (i, p) in inl {
-            frame.points[i] = Some(p);
+        None
+    }
+
+    /// Project the points of keyframe `kf` and its best covisible
+    /// neighbours that the frame has not matched, and match them by
+    /// projection (radius factor `th`).
+    fn search_candidate_points(
+        &self,
+        map: &Map,
+        frame: &mut Frame,
+        kf: KeyFrameId,
+        pose: &Isometry3<f64>,
+        th: f64,
+    ) {
+        let Some(k) = map.keyframe(kf) else { return };
+        let center = pose.inverse().translation.vector;
+        let mut seen: std::collections::HashSet<PointId> =
+            frame.points.iter().flatten().copied().collect();
+        let mut projected = Vec::new();
+        let kfs: Vec<KeyFrameId> = std::iter::once(kf).chain(k.best_covisible(10)).collect();
+        for id in kfs {
+            let Some(k) = map.keyframe(id) else { continue };
+            for pid in k.points.iter().flatten() {
+                if !seen.insert(*pid) {
+                    continue;
+                }
+                if let Some(pr) =
+                    matcher::project_point(map, *pid, pose, &center, &self.bounds, 0.5)
+                {
+                    projected.push(pr);
+                }
+            }
         }
-        let (pose, inliers) = self.optimize_frame_pose(map, frame, pose)?;
-        if inliers < 10 {
-            return None;
+        let found = {
+            let target = SearchTarget {
+                keypoints: &frame.keypoints,
+                descriptors: &frame.descriptors,
+                grid: &frame.grid,
+                points: &frame.points,
+            };
+            matcher::search_local_points(
+                &target,
+                &projected,
+                map,
+                &self.scale,
+                th,
+                &self.params.matcher,
+            )
+        };
+        for (i, p) in found {
+            if frame.points[i].is_none() {
+                frame.points[i] = Some(p);
+            }
         }
-        tracing::info!(frame = frame.index, inliers, "relocalised");
-        Some(pose)
     }
 
     /// The keyframes sharing points with the frame, their best covisible

@@ -607,6 +607,7 @@ impl Actor {
                     pitch_deg,
                     yaw_deg,
                     yaw_absolute,
+                    time_boot_ms: Some(d.time_boot_ms),
                 };
                 self.gimbal.send_replace(Some(Stamped {
                     value,
@@ -621,6 +622,7 @@ impl Actor {
                     pitch_deg: d.pitch,
                     yaw_deg: d.yaw,
                     yaw_absolute: false,
+                    time_boot_ms: Some(d.time_boot_ms),
                 };
                 self.gimbal.send_replace(Some(Stamped {
                     value,

@@ -256,6 +256,8 @@ pub struct GimbalAttitude {
     pub yaw_deg: f32,
     /// Whether yaw is relative to north (true) or to the vehicle's heading.
     pub yaw_absolute: bool,
+    /// Autopilot boot time of the sample, ms (when the message carries it).
+    pub time_boot_ms: Option<u32>,
 }
 
 /// Mission progress from MISSION_CURRENT and MISSION_ITEM_REACHED.
