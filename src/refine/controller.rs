@@ -25,8 +25,13 @@ pub struct ControllerParams {
     pub threshold_pct: f64,
     /// Corrections uploaded at most (rounds after the first flight).
     pub max_rounds: usize,
-    /// Fraction of the measured error corrected per round (1: all of it).
+    /// Fraction of the measured error corrected by the first correction
+    /// (1: all of it; the first error is mostly systematic).
     pub gain: f64,
+    /// Fraction corrected by the later ones: what is left is mostly the
+    /// live frame's localisation noise, which a gain g passes on with
+    /// variance g/(2-g) of its own in steady state (1/3 at 0.5).
+    pub later_gain: f64,
     /// Largest horizontal or vertical move of one correction, metres.
     pub max_step_m: f64,
     /// Largest yaw or pitch change of one correction, degrees.
@@ -39,6 +44,7 @@ impl Default for ControllerParams {
             threshold_pct: 1.0,
             max_rounds: 4,
             gain: 1.0,
+            later_gain: 0.5,
             max_step_m: 10.0,
             max_step_deg: 20.0,
         }
@@ -105,6 +111,12 @@ pub fn correct_targets(
     mount: &MountParams,
     params: &ControllerParams,
 ) -> Result<Correction, RefineError> {
+    if !(params.later_gain.is_finite() && params.later_gain > 0.0 && params.later_gain <= 1.0) {
+        return Err(RefineError::InvalidParams {
+            name: "later_gain",
+            reason: "must be in (0, 1]",
+        });
+    }
     if !(params.gain.is_finite() && params.gain > 0.0 && params.gain <= 1.0) {
         return Err(RefineError::InvalidParams {
             name: "gain",

@@ -196,6 +196,12 @@ impl Session {
             }
         };
         rec.live_map_position = Some(live_map.translation.vector.into());
+        // The first correction takes the whole (mostly systematic) error,
+        // the later ones a fraction, so the live localisation noise averages.
+        let mut ctrl = self.params.controller;
+        if round >= 1 {
+            ctrl.gain = ctrl.later_gain;
+        }
         match correct(
             ctx.alignment,
             ctx.frame,
@@ -205,7 +211,7 @@ impl Session {
             &self.target,
             ctx.home,
             ctx.fence,
-            &self.params.controller,
+            &ctrl,
         ) {
             Ok(c) => {
                 self.target = c.target;
