@@ -42,6 +42,7 @@
 //! | [`api`] | the HTTP API (`/api/v1`), shot store, operator page |
 //! | [`daemon`] | `shotpilot run`: wires sim, video, SLAM, link and API; shutdown |
 //! | [`mission`] | mission planning (pure) and upload protocol |
+//! | [`refine`] | closing the loop: shot error (homography), correction controller, simulator scenario |
 //!
 //! The synchronous core never imports tokio or axum; I/O lives in
 //! `vehicle`, `video` (live sources) and `mission::upload`.
@@ -58,6 +59,7 @@ pub mod geometry;
 pub mod matching;
 pub mod mission;
 pub mod optimize;
+pub mod refine;
 pub mod shot;
 pub mod slam;
 pub mod vehicle;

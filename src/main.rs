@@ -88,6 +88,10 @@ enum Command {
     /// untimed warm-up extractions), reporting the median and 95th
     /// percentile milliseconds per frame and the mean number of keypoints.
     Features(FeaturesArgs),
+    /// The closed loop in the simulator: explore, then per trial a desired
+    /// shot from a hidden pose is localised, uploaded, flown and refined
+    /// until the live view matches it; reports first and final shot errors.
+    Scenario(cli::scenario::ScenarioArgs),
 }
 
 #[derive(Args, Debug)]
@@ -378,6 +382,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Mission(cmd) => mission_cli::run(cmd, &config),
         Command::Run(args) => cmd_run(args, config, cli.config.as_deref()),
         Command::Features(args) => cmd_features(args),
+        Command::Scenario(args) => cli::scenario::run(args),
     }
 }
 

@@ -261,6 +261,15 @@ function showShot(s) {
   if (s.mission) lines.push(`mission: ${s.mission.state}, ${s.mission.items} items`);
   const t = s.mission && s.mission.details && s.mission.details.target;
   if (t) lines.push(`target: ${t.lat_deg.toFixed(7)}, ${t.lon_deg.toFixed(7)}, ${t.alt_above_home_m.toFixed(1)} m, yaw ${t.yaw_deg.toFixed(1)}°, pitch ${t.gimbal_pitch_deg.toFixed(1)}°`);
+  const rf = s.mission && s.mission.details && s.mission.details.refinement;
+  if (rf && Array.isArray(rf.rounds)) {
+    for (const r of rf.rounds) {
+      const e = r.shot_error_pct == null ? 'no shot error' : `shot error ${r.shot_error_pct.toFixed(2)} %`;
+      const c = r.correction ? `, corrected by (${r.correction.step_ned_m.map((v) => v.toFixed(2)).join(', ')}) m, yaw ${r.correction.yaw_step_deg.toFixed(2)}°, pitch ${r.correction.pitch_step_deg.toFixed(2)}°` : '';
+      lines.push(`refinement round ${r.round}: ${e}, ${r.decision}${c}${r.note ? ` (${r.note})` : ''}`);
+    }
+    if (rf.stop) lines.push(`refinement: ${rf.stop}${rf.reason ? ` (${rf.reason})` : ''}`);
+  }
   $('result').dataset.shotId = s.id;
   showResult(lines.join('\n'), false, s.status);
   if (s.has_image) $('shotimg').src = `${API}/shots/${s.id}/image.jpg?t=${Date.now()}`;

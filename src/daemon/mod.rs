@@ -17,6 +17,7 @@
 //! simulator stops last.
 
 pub mod geo_service;
+pub mod refine_service;
 pub mod shot_service;
 pub mod slam_view;
 pub mod vehicle_view;

@@ -19,7 +19,10 @@ pub use homography4::homography_from_4;
 pub use pnp::{PnpParams, PnpResult, solve_pnp_ransac};
 pub use se3::Sim3;
 pub use triangulate::{TriangulationChecks, TriangulationReject, triangulate, triangulate_checked};
-pub use two_view::{Model, TwoViewParams, TwoViewResult, initialize_two_view};
+pub use two_view::{
+    HomographyFit, HomographyParams, Model, TwoViewParams, TwoViewResult, find_homography,
+    initialize_two_view,
+};
 pub use umeyama::umeyama;
 
 /// Every tunable number of the geometry module, grouped by algorithm.

@@ -1024,6 +1024,134 @@ fn refine_two_view(
     *cam2_from_cam1 = refined;
 }
 
+/// Tunables of [`find_homography`]. Defaults follow the two-view
+/// initialiser's homography test (σ = 1 px, χ² 5.991 per direction).
+#[derive(Debug, Clone, PartialEq)]
+pub struct HomographyParams {
+    /// RANSAC iterations (minimal samples of four pairs).
+    pub ransac_iterations: usize,
+    /// Standard deviation of the point positions, pixels.
+    pub sigma_px: f64,
+    /// Chi-square threshold (two degrees of freedom) of the symmetric
+    /// transfer error of one direction.
+    pub chi2_two_dof: f64,
+    /// Least-squares refits on the consensus set (kept when the score rises).
+    pub refit_rounds: usize,
+    /// Fewest inliers accepted.
+    pub min_inliers: usize,
+}
+
+impl Default for HomographyParams {
+    fn default() -> Self {
+        Self {
+            ransac_iterations: 500,
+            sigma_px: 1.0,
+            chi2_two_dof: 5.991,
+            refit_rounds: 3,
+            min_inliers: 12,
+        }
+    }
+}
+
+/// A robust homography between two point sets.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HomographyFit {
+    /// `x2 ~ h21 · x1` (pixels to pixels).
+    pub h21: Matrix3<f64>,
+    /// Which pairs agree with it (both transfer directions).
+    pub inliers: Vec<bool>,
+    /// How many do.
+    pub n_inliers: usize,
+}
+
+/// A homography `x2 ~ H·x1` from point pairs `(p1[i], p2[i])`, by the
+/// two-view initialiser's machinery: seeded RANSAC over minimal 4-pair
+/// samples (normalised DLT), symmetric-transfer scoring (ORB-SLAM's
+/// `CheckHomography`), then least-squares refits on the consensus set.
+pub fn find_homography(
+    p1: &[Point2<f64>],
+    p2: &[Point2<f64>],
+    params: &HomographyParams,
+    seed: u64,
+) -> Result<HomographyFit, GeometryError> {
+    let n = p1.len();
+    if n != p2.len() {
+        return Err(GeometryError::LengthMismatch {
+            left: n,
+            right: p2.len(),
+        });
+    }
+    let needed = params.min_inliers.max(4);
+    if n < needed {
+        return Err(GeometryError::NotEnoughPoints { found: n, needed });
+    }
+    if p1
+        .iter()
+        .chain(p2)
+        .any(|p| !(p.x.is_finite() && p.y.is_finite()))
+    {
+        return Err(GeometryError::NonFinite);
+    }
+    let px1: Vec<[f64; 2]> = p1.iter().map(|p| [p.x, p.y]).collect();
+    let px2: Vec<[f64; 2]> = p2.iter().map(|p| [p.x, p.y]).collect();
+    let mut pn1 = Vec::with_capacity(n);
+    let mut pn2 = Vec::with_capacity(n);
+    let t1 = normalize(&px1, &mut pn1);
+    let t2 = normalize(&px2, &mut pn2);
+    let t2_inv = t2.try_inverse().ok_or(GeometryError::Degenerate {
+        what: "normalisation",
+    })?;
+    let inv_sigma2 = 1.0 / (params.sigma_px * params.sigma_px);
+    let mut rng = SmallRng::seed_from_u64(seed);
+    let mut pool: Vec<usize> = (0..n).collect();
+    let mut cur = vec![false; n];
+    let mut best_in = vec![false; n];
+    let mut best_score = 0.0f64;
+    let mut best_h = None;
+    let mut consider = |h21: Matrix3<f64>, cur: &mut Vec<bool>, best_in: &mut Vec<bool>| {
+        if let Some(h12) = h21.try_inverse() {
+            let s = score_homography(&h21, &h12, &px1, &px2, inv_sigma2, params.chi2_two_dof, cur);
+            if s > best_score {
+                best_score = s;
+                best_h = Some(h21);
+                std::mem::swap(cur, best_in);
+            }
+        }
+    };
+    for _ in 0..params.ransac_iterations {
+        for k in 0..4 {
+            let j = rng.random_range(k..n);
+            pool.swap(k, j);
+        }
+        if let Some(hn) = compute_h21(&pn1, &pn2, &pool[..4], true) {
+            consider(t2_inv * hn * t1, &mut cur, &mut best_in);
+        }
+    }
+    let mut idx: Vec<usize> = Vec::with_capacity(n);
+    for _ in 0..params.refit_rounds {
+        idx.clear();
+        idx.extend((0..n).filter(|&i| best_in[i]));
+        if idx.len() < 4 {
+            break;
+        }
+        if let Some(hn) = compute_h21(&pn1, &pn2, &idx, false) {
+            consider(t2_inv * hn * t1, &mut cur, &mut best_in);
+        }
+    }
+    let n_inliers = best_in.iter().filter(|&&b| b).count();
+    match best_h {
+        Some(h21) if n_inliers >= needed => Ok(HomographyFit {
+            h21,
+            inliers: best_in,
+            n_inliers,
+        }),
+        _ => Err(GeometryError::TooFewInliers {
+            found: n_inliers,
+            needed,
+        }),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1059,6 +1187,55 @@ mod tests {
         assert!(
             hyps.iter()
                 .any(|(rh, th)| (rh - r).norm() < 1e-9 && (th - t).norm() < 1e-9)
+        );
+    }
+
+    #[test]
+    fn find_homography_recovers_a_known_one_among_outliers() {
+        use rand::{Rng, SeedableRng, rngs::SmallRng};
+        let h = Matrix3::new(1.05, 0.03, -12.0, -0.02, 0.98, 7.5, 1.5e-4, -8e-5, 1.0);
+        let mut rng = SmallRng::seed_from_u64(9);
+        let (mut p1, mut p2) = (Vec::new(), Vec::new());
+        for i in 0..300 {
+            let a = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+            let v = h * Vector3::new(a.x, a.y, 1.0);
+            let mut b = Point2::new(v.x / v.z, v.y / v.z);
+            if i % 10 < 3 {
+                // 30 % outliers anywhere in the image
+                b = Point2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+            } else {
+                b.x += rng.random_range(-0.5..0.5);
+                b.y += rng.random_range(-0.5..0.5);
+            }
+            p1.push(a);
+            p2.push(b);
+        }
+        let fit = find_homography(&p1, &p2, &HomographyParams::default(), 1).unwrap();
+        assert!(
+            fit.n_inliers >= 200 && fit.n_inliers <= 215,
+            "{}",
+            fit.n_inliers
+        );
+        let est = fit.h21 / fit.h21[(2, 2)];
+        for c in [(0.0, 0.0), (639.0, 0.0), (639.0, 479.0), (0.0, 479.0)] {
+            let t = h * Vector3::new(c.0, c.1, 1.0);
+            let e = est * Vector3::new(c.0, c.1, 1.0);
+            let d = (t.xy() / t.z - e.xy() / e.z).norm();
+            assert!(d < 0.3, "corner {c:?} off by {d} px");
+        }
+        assert!(matches!(
+            find_homography(&p1[..5], &p2[..5], &HomographyParams::default(), 1),
+            Err(GeometryError::NotEnoughPoints { .. })
+        ));
+        assert!(matches!(
+            find_homography(&p1, &p2[..10], &HomographyParams::default(), 1),
+            Err(GeometryError::LengthMismatch { .. })
+        ));
+        let mut bad = p1.clone();
+        bad[3].x = f64::NAN;
+        assert_eq!(
+            find_homography(&bad, &p2, &HomographyParams::default(), 1),
+            Err(GeometryError::NonFinite)
         );
     }
 }

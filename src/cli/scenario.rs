@@ -1,0 +1,131 @@
+//! `shotpilot scenario`: the closed-loop experiment in the simulator
+//! ([`shotpilot::refine::scenario`]): explore, then per trial a desired shot
+//! from a hidden pose, localised, planned, uploaded, flown and refined.
+
+use anyhow::Result;
+use clap::Args;
+
+use shotpilot::refine::scenario::{self, ScenarioParams, TrialReport};
+
+/// Arguments of `shotpilot scenario`.
+#[derive(Args, Debug)]
+pub struct ScenarioArgs {
+    /// Trials after the explore flight.
+    #[arg(long, default_value_t = 20)]
+    pub trials: usize,
+    /// Seed of the world, the sensor noise and the hidden poses.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// The short survey and small textures of the CI test instead of the
+    /// full `explore` flight.
+    #[arg(long)]
+    pub quick: bool,
+    /// Shot error under which the loop stops, % of the image diagonal.
+    #[arg(long, default_value_t = 1.0)]
+    pub threshold_pct: f64,
+    /// Corrections at most per trial.
+    #[arg(long, default_value_t = 4)]
+    pub max_rounds: usize,
+    /// Every N-th trial makes its desired shot from anchors on a keyframe
+    /// (0: never).
+    #[arg(long, default_value_t = 4)]
+    pub anchor_every: usize,
+    /// Fly without the disturbances (GPS bias drift, gimbal pitch and camera
+    /// heading calibration errors): the vehicle is exactly where telemetry
+    /// says and the camera exactly as mounted.
+    #[arg(long)]
+    pub no_disturbances: bool,
+    /// Print exactly one JSON object on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn fmt_opt(v: Option<f64>, digits: usize) -> String {
+    v.map_or_else(|| "-".into(), |x| format!("{x:.digits$}"))
+}
+
+/// Runs the scenario and prints the report.
+pub fn run(args: ScenarioArgs) -> Result<()> {
+    let mut params = if args.quick {
+        ScenarioParams::quick(args.trials, args.seed)
+    } else {
+        ScenarioParams {
+            trials: args.trials,
+            seed: args.seed,
+            ..ScenarioParams::default()
+        }
+    };
+    params.refine.controller.threshold_pct = args.threshold_pct;
+    params.refine.controller.max_rounds = args.max_rounds;
+    params.anchor_every = args.anchor_every;
+    if args.no_disturbances {
+        params.disturbances = scenario::Disturbances::none();
+    }
+    let json = args.json;
+    let mut progress = |t: &TrialReport| {
+        if !json {
+            println!(
+                "trial {:2} {:7}: first {:>6} %  final {:>6} %  position {:>6} m  yaw {:>6}°  pitch {:>6}°  rounds {}  {}{}  ({:.0} s sim, {:.1} s wall)",
+                t.trial,
+                t.kind,
+                fmt_opt(t.first_shot_error_pct, 2),
+                fmt_opt(t.final_shot_error_pct, 2),
+                fmt_opt(t.position_error_m, 3),
+                fmt_opt(t.yaw_error_deg, 2),
+                fmt_opt(t.pitch_error_deg, 2),
+                t.rounds,
+                t.stop,
+                t.reason
+                    .as_ref()
+                    .map(|r| format!(" ({r})"))
+                    .unwrap_or_default(),
+                t.sim_s,
+                t.wall_s
+            );
+        }
+    };
+    let report = scenario::run(&params, &mut progress)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    let e = &report.explore;
+    println!(
+        "explore: {:.0} s simulated, {} frames ({} tracked), {} keyframes, {} points; georeference {} / {} inliers, rms {:.3} m ({:.1} s wall)",
+        e.sim_s,
+        e.frames,
+        e.tracked,
+        e.keyframes,
+        e.points,
+        e.geo_inliers,
+        e.geo_pairs,
+        e.geo_rms_m,
+        e.wall_s
+    );
+    println!(
+        "{} trials, {} flown, {} converged under {} %; fence violations: {}",
+        report.trials,
+        report.flown,
+        report.converged,
+        report.threshold_pct,
+        report.fence_violations
+    );
+    println!(
+        "shot error: first median {} % p90 {} %; final median {} % p90 {} %; final <= 2 %: {}",
+        fmt_opt(report.median_first_shot_error_pct, 2),
+        fmt_opt(report.p90_first_shot_error_pct, 2),
+        fmt_opt(report.median_final_shot_error_pct, 2),
+        fmt_opt(report.p90_final_shot_error_pct, 2),
+        fmt_opt(report.fraction_final_within_2pct.map(|f| 100.0 * f), 0) + " %",
+    );
+    println!(
+        "camera position error: first median {} m, final median {} m; final yaw {}°, pitch {}° (medians); {} corrections per trial on average; {:.1} s wall",
+        fmt_opt(report.median_first_position_error_m, 3),
+        fmt_opt(report.median_position_error_m, 3),
+        fmt_opt(report.median_yaw_error_deg, 2),
+        fmt_opt(report.median_pitch_error_deg, 2),
+        fmt_opt(report.mean_rounds, 1),
+        report.wall_s
+    );
+    Ok(())
+}

@@ -1,0 +1,494 @@
+//! The refinement controller: once the vehicle stands at its target and the
+//! view is steady, the live frame is localised in the map; the difference
+//! between the desired camera pose and the live one, both carried through
+//! the same georeference, is the correction added to the current target.
+//!
+//! Errors the georeference makes in the same way for both poses (a scale
+//! or heading error of the map → NED fit, a mounting offset, the vehicle's
+//! own position bias) cancel in the difference, so the loop converges where
+//! one open-loop estimate does not. Every corrected target passes the same
+//! checks as the first ([`crate::mission::plan::check_target`]: geofence and
+//! altitude band) and the gimbal's pitch range.
+
+use nalgebra::{Isometry3, Vector3};
+
+use super::RefineError;
+use crate::geo::{GeoAlignment, GeoTarget, Geodetic, LocalFrame, MountParams, convert_target};
+use crate::mission::plan::{self, Fence, Home, Target};
+
+/// Every tunable number of the controller.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ControllerParams {
+    /// Stop when the shot error is below this percentage of the image
+    /// diagonal.
+    pub threshold_pct: f64,
+    /// Corrections uploaded at most (rounds after the first flight).
+    pub max_rounds: usize,
+    /// Fraction of the measured error corrected by the first correction
+    /// (1: all of it; the first error is mostly systematic).
+    pub gain: f64,
+    /// Fraction corrected by the later ones: what is left is mostly the
+    /// live frame's localisation noise, which a gain g passes on with
+    /// variance g/(2-g) of its own in steady state (1/3 at 0.5).
+    pub later_gain: f64,
+    /// Largest horizontal or vertical move of one correction, metres.
+    pub max_step_m: f64,
+    /// Largest yaw or pitch change of one correction, degrees.
+    pub max_step_deg: f64,
+}
+
+impl Default for ControllerParams {
+    fn default() -> Self {
+        Self {
+            threshold_pct: 1.0,
+            max_rounds: 4,
+            gain: 1.0,
+            later_gain: 0.5,
+            max_step_m: 10.0,
+            max_step_deg: 20.0,
+        }
+    }
+}
+
+/// Why the loop ends (or that it goes on).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Decision {
+    /// The shot error is under the threshold.
+    Converged,
+    /// The round budget is spent.
+    MaxRounds,
+    /// Upload a correction.
+    Correct,
+}
+
+/// Whether to correct again after a measured shot error (percent of the
+/// diagonal; `None` when it could not be measured) with `rounds_done`
+/// corrections already flown.
+pub fn decide(
+    shot_error_pct: Option<f64>,
+    rounds_done: usize,
+    params: &ControllerParams,
+) -> Decision {
+    match shot_error_pct {
+        Some(e) if e < params.threshold_pct => Decision::Converged,
+        _ if rounds_done >= params.max_rounds => Decision::MaxRounds,
+        _ => Decision::Correct,
+    }
+}
+
+/// A corrected target and what it changed.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Correction {
+    /// The new target (checked).
+    pub target: Target,
+    /// Vehicle position change, local NED metres.
+    pub step_ned_m: [f64; 3],
+    /// Yaw change, degrees.
+    pub yaw_step_deg: f64,
+    /// Gimbal pitch change, degrees.
+    pub pitch_step_deg: f64,
+    /// The step was shortened to the per-round limits.
+    pub limited: bool,
+}
+
+fn wrap180(d: f64) -> f64 {
+    let x = (d + 180.0).rem_euclid(360.0) - 180.0;
+    if x <= -180.0 { x + 360.0 } else { x }
+}
+
+/// The corrected target from the desired and the live camera poses, both
+/// already converted to vehicle targets by the same georeference:
+/// `current + gain · (desired − live)` in position (local NED around home),
+/// yaw and gimbal pitch, limited per round, then checked like the first.
+pub fn correct_targets(
+    desired: &GeoTarget,
+    live: &GeoTarget,
+    current: &Target,
+    home: &Home,
+    fence: &Fence,
+    mount: &MountParams,
+    params: &ControllerParams,
+) -> Result<Correction, RefineError> {
+    if !(params.later_gain.is_finite() && params.later_gain > 0.0 && params.later_gain <= 1.0) {
+        return Err(RefineError::InvalidParams {
+            name: "later_gain",
+            reason: "must be in (0, 1]",
+        });
+    }
+    if !(params.gain.is_finite() && params.gain > 0.0 && params.gain <= 1.0) {
+        return Err(RefineError::InvalidParams {
+            name: "gain",
+            reason: "must be in (0, 1]",
+        });
+    }
+    plan::check_target(current, home, fence).map_err(RefineError::Target)?;
+    let mut step = (desired.p_ned_vehicle - live.p_ned_vehicle) * params.gain;
+    let mut dyaw = wrap180(desired.yaw_deg - live.yaw_deg) * params.gain;
+    let mut dpitch = (desired.gimbal_pitch_deg - live.gimbal_pitch_deg) * params.gain;
+    if !(step.iter().all(|x| x.is_finite()) && dyaw.is_finite() && dpitch.is_finite()) {
+        return Err(RefineError::NonFinite { what: "correction" });
+    }
+    let mut limited = false;
+    let horiz = step.xy().norm();
+    if horiz > params.max_step_m {
+        let s = params.max_step_m / horiz;
+        step.x *= s;
+        step.y *= s;
+        limited = true;
+    }
+    if step.z.abs() > params.max_step_m {
+        step.z = step.z.signum() * params.max_step_m;
+        limited = true;
+    }
+    for d in [&mut dyaw, &mut dpitch] {
+        if d.abs() > params.max_step_deg {
+            *d = d.signum() * params.max_step_deg;
+            limited = true;
+        }
+    }
+    let frame = LocalFrame::new(Geodetic {
+        lat_deg: home.lat_deg,
+        lon_deg: home.lon_deg,
+        alt_m: home.alt_amsl_m,
+    });
+    let cur_ned = frame.geodetic_to_ned(&Geodetic {
+        lat_deg: current.lat_deg,
+        lon_deg: current.lon_deg,
+        alt_m: home.alt_amsl_m + current.alt_m,
+    });
+    let new_ned = cur_ned + Vector3::new(step.x, step.y, step.z);
+    let g = frame.ned_to_geodetic(&new_ned);
+    let pitch = current.gimbal_pitch_deg + dpitch;
+    if pitch < mount.pitch_min_deg || pitch > mount.pitch_max_deg {
+        return Err(RefineError::PitchOutOfRange {
+            pitch_deg: pitch,
+            min_deg: mount.pitch_min_deg,
+            max_deg: mount.pitch_max_deg,
+        });
+    }
+    let target = Target {
+        lat_deg: g.lat_deg,
+        lon_deg: g.lon_deg,
+        alt_m: g.alt_m - home.alt_amsl_m,
+        yaw_deg: (current.yaw_deg + dyaw).rem_euclid(360.0),
+        gimbal_pitch_deg: pitch,
+        photo: current.photo,
+    };
+    plan::check_target(&target, home, fence).map_err(RefineError::Target)?;
+    Ok(Correction {
+        target,
+        step_ned_m: [step.x, step.y, step.z],
+        yaw_step_deg: dyaw,
+        pitch_step_deg: dpitch,
+        limited,
+    })
+}
+
+/// The corrected target from the desired and the live camera poses in the
+/// map (`map ← cam`), converted through the georeference `alignment`
+/// (see [`correct_targets`]).
+#[allow(clippy::too_many_arguments)]
+pub fn correct(
+    alignment: &GeoAlignment,
+    frame: &LocalFrame,
+    mount: &MountParams,
+    map_from_desired: &Isometry3<f64>,
+    map_from_live: &Isometry3<f64>,
+    current: &Target,
+    home: &Home,
+    fence: &Fence,
+    params: &ControllerParams,
+) -> Result<Correction, RefineError> {
+    let desired =
+        convert_target(alignment, map_from_desired, frame, mount).map_err(RefineError::Geo)?;
+    let live = convert_target(alignment, map_from_live, frame, mount).map_err(RefineError::Geo)?;
+    correct_targets(&desired, &live, current, home, fence, mount, params)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geo::{AlignQuality, GimbalAngles, VehicleState, ned_from_cam};
+    use crate::geometry::Sim3;
+    use nalgebra::{Point3, Translation3, UnitQuaternion};
+
+    const HOME: Home = Home {
+        lat_deg: 47.397742,
+        lon_deg: 8.545594,
+        alt_amsl_m: 488.0,
+    };
+
+    fn frame() -> LocalFrame {
+        LocalFrame::new(Geodetic {
+            lat_deg: HOME.lat_deg,
+            lon_deg: HOME.lon_deg,
+            alt_m: HOME.alt_amsl_m,
+        })
+    }
+
+    fn alignment(ned_from_map: Sim3) -> GeoAlignment {
+        GeoAlignment {
+            ned_from_map,
+            quality: AlignQuality {
+                rms_m: 0.0,
+                max_residual_m: 0.0,
+                rotation_rms_deg: None,
+                time_offset_s: None,
+                pairs: 0,
+                inliers: 0,
+                iterations: 0,
+                spread_m2: [0.0; 3],
+            },
+            inlier_ids: Vec::new(),
+        }
+    }
+
+    /// The camera pose (NED) of a vehicle hovering exactly at `target`.
+    fn fly(target: &Target, mount: &MountParams) -> Isometry3<f64> {
+        let p = frame().geodetic_to_ned(&Geodetic {
+            lat_deg: target.lat_deg,
+            lon_deg: target.lon_deg,
+            alt_m: HOME.alt_amsl_m + target.alt_m,
+        });
+        let state = VehicleState {
+            time: 0.0,
+            p_ned: p,
+            v_ned: Vector3::zeros(),
+            ned_from_body: UnitQuaternion::from_euler_angles(0.0, 0.0, target.yaw_deg.to_radians()),
+            gimbal: GimbalAngles {
+                pitch: target.gimbal_pitch_deg.to_radians(),
+                yaw: 0.0,
+            },
+        };
+        ned_from_cam(&state, mount)
+    }
+
+    fn map_pose(map_from_ned: &Sim3, ned_from_cam: &Isometry3<f64>) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::from(
+                map_from_ned
+                    .transform_point(&Point3::from(ned_from_cam.translation.vector))
+                    .coords,
+            ),
+            map_from_ned.rotation * ned_from_cam.rotation,
+        )
+    }
+
+    #[test]
+    fn a_wrong_georeference_is_corrected_in_a_few_rounds() {
+        let mount = MountParams::default();
+        let fence = Fence::default();
+        // The true map ← NED and an estimate 3 % off in scale, 2 deg off in
+        // heading and 1.5 m off in position.
+        let ned_from_map = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.7, -0.3, 1.9),
+            Vector3::new(4.0, -7.0, -3.0),
+            8.0,
+        );
+        let map_from_ned = ned_from_map.inverse();
+        let estimate = alignment(
+            Sim3::new(
+                UnitQuaternion::from_euler_angles(0.0, 0.0, 2f64.to_radians()),
+                Vector3::new(1.0, -1.0, 0.5),
+                1.03,
+            )
+            .compose(&ned_from_map),
+        );
+        let truth = crate::geo::target_from_ned(
+            &fly(
+                &Target {
+                    lat_deg: HOME.lat_deg + 2e-4,
+                    lon_deg: HOME.lon_deg - 3e-4,
+                    alt_m: 18.0,
+                    yaw_deg: 250.0,
+                    gimbal_pitch_deg: -40.0,
+                    photo: false,
+                },
+                &mount,
+            ),
+            &frame(),
+            &mount,
+        )
+        .unwrap();
+        let desired_ned = truth.ned_from_cam;
+        let desired_map = map_pose(&map_from_ned, &desired_ned);
+        let mut target = convert_target(&estimate, &desired_map, &frame(), &mount)
+            .unwrap()
+            .to_mission_target(false);
+        let mut errors = Vec::new();
+        for _round in 0..5 {
+            let live_ned = fly(&target, &mount);
+            let d = crate::refine::pose_difference(&desired_ned, &live_ned);
+            errors.push((d.position_m, d.rotation_deg));
+            let live_map = map_pose(&map_from_ned, &live_ned);
+            let c = correct(
+                &estimate,
+                &frame(),
+                &mount,
+                &desired_map,
+                &live_map,
+                &target,
+                &HOME,
+                &fence,
+                &ControllerParams::default(),
+            )
+            .unwrap();
+            target = c.target;
+        }
+        println!("position / rotation error per round: {errors:?}");
+        assert!(errors[0].0 > 1.0 && errors[0].1 > 1.5, "{:?}", errors[0]);
+        // Each round shrinks the error by about the georeference's relative
+        // error (a few percent): centimetres after two rounds.
+        assert!(errors[2].0 < 0.02 && errors[2].1 < 0.05, "{:?}", errors[2]);
+        assert!(errors[4].0 < 1e-3 && errors[4].1 < 1e-3, "{:?}", errors[4]);
+    }
+
+    fn geo_target(p: Vector3<f64>, yaw_deg: f64, pitch_deg: f64) -> GeoTarget {
+        GeoTarget {
+            lat_deg: 0.0,
+            lon_deg: 0.0,
+            alt_above_home_m: -p.z,
+            alt_m: 0.0,
+            yaw_deg,
+            gimbal_pitch_deg: pitch_deg,
+            residual_roll_deg: 0.0,
+            axis_error_deg: 0.0,
+            p_ned_vehicle: p,
+            ned_from_cam: Isometry3::identity(),
+        }
+    }
+
+    fn current() -> Target {
+        Target {
+            lat_deg: HOME.lat_deg,
+            lon_deg: HOME.lon_deg,
+            alt_m: 20.0,
+            yaw_deg: 355.0,
+            gimbal_pitch_deg: -30.0,
+            photo: true,
+        }
+    }
+
+    #[test]
+    fn steps_are_added_wrapped_and_limited() {
+        let p = ControllerParams::default();
+        let desired = geo_target(Vector3::new(3.0, -4.0, -21.0), 5.0, -33.0);
+        let live = geo_target(Vector3::new(0.0, 0.0, -20.0), 355.0, -30.0);
+        let c = correct_targets(
+            &desired,
+            &live,
+            &current(),
+            &HOME,
+            &Fence::default(),
+            &MountParams::default(),
+            &p,
+        )
+        .unwrap();
+        assert!(!c.limited);
+        assert!((c.yaw_step_deg - 10.0).abs() < 1e-9);
+        assert!((c.target.yaw_deg - 5.0).abs() < 1e-9);
+        assert!((c.target.gimbal_pitch_deg + 33.0).abs() < 1e-9);
+        assert!((c.target.alt_m - 21.0).abs() < 1e-4, "{}", c.target.alt_m);
+        let back = frame().geodetic_to_ned(&Geodetic {
+            lat_deg: c.target.lat_deg,
+            lon_deg: c.target.lon_deg,
+            alt_m: HOME.alt_amsl_m,
+        });
+        assert!(
+            (back.x - 3.0).abs() < 1e-4 && (back.y + 4.0).abs() < 1e-4,
+            "{back:?}"
+        );
+        assert!(c.target.photo);
+        // A 50 m jump is cut to the 10 m limit; 40 deg to 20 deg.
+        let far = geo_target(Vector3::new(30.0, 40.0, -20.0), 35.0, -30.0);
+        let c = correct_targets(
+            &far,
+            &live,
+            &current(),
+            &HOME,
+            &Fence::default(),
+            &MountParams::default(),
+            &p,
+        )
+        .unwrap();
+        assert!(c.limited);
+        assert!((Vector3::from(c.step_ned_m).norm() - 10.0).abs() < 1e-9);
+        assert!((c.yaw_step_deg - 20.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn corrections_pass_the_fence_altitude_and_gimbal_checks() {
+        let p = ControllerParams::default();
+        let mount = MountParams::default();
+        let live = geo_target(Vector3::new(0.0, 0.0, -20.0), 355.0, -30.0);
+        let fence = Fence {
+            radius_m: 5.0,
+            min_alt_m: 19.5,
+            max_alt_m: 20.5,
+        };
+        let out = geo_target(Vector3::new(6.0, 0.0, -20.0), 355.0, -30.0);
+        assert!(matches!(
+            correct_targets(&out, &live, &current(), &HOME, &fence, &mount, &p),
+            Err(RefineError::Target(plan::PlanError::OutsideFence { .. }))
+        ));
+        let low = geo_target(Vector3::new(0.0, 0.0, -19.0), 355.0, -30.0);
+        assert!(matches!(
+            correct_targets(&low, &live, &current(), &HOME, &fence, &mount, &p),
+            Err(RefineError::Target(
+                plan::PlanError::BelowMinAltitude { .. }
+            ))
+        ));
+        let high = geo_target(Vector3::new(0.0, 0.0, -21.0), 355.0, -30.0);
+        assert!(matches!(
+            correct_targets(&high, &live, &current(), &HOME, &fence, &mount, &p),
+            Err(RefineError::Target(
+                plan::PlanError::AboveMaxAltitude { .. }
+            ))
+        ));
+        let mut steep = current();
+        steep.gimbal_pitch_deg = -85.0;
+        let down = geo_target(Vector3::new(0.0, 0.0, -20.0), 355.0, -40.0);
+        assert!(matches!(
+            correct_targets(&down, &live, &steep, &HOME, &Fence::default(), &mount, &p),
+            Err(RefineError::PitchOutOfRange { .. })
+        ));
+        let nan = geo_target(Vector3::new(f64::NAN, 0.0, -20.0), 355.0, -30.0);
+        assert!(matches!(
+            correct_targets(
+                &nan,
+                &live,
+                &current(),
+                &HOME,
+                &Fence::default(),
+                &mount,
+                &p
+            ),
+            Err(RefineError::NonFinite { .. })
+        ));
+        let bad_gain = ControllerParams { gain: 0.0, ..p };
+        assert!(matches!(
+            correct_targets(
+                &live,
+                &live,
+                &current(),
+                &HOME,
+                &Fence::default(),
+                &mount,
+                &bad_gain
+            ),
+            Err(RefineError::InvalidParams { name: "gain", .. })
+        ));
+    }
+
+    #[test]
+    fn the_loop_stops_on_the_threshold_or_the_budget() {
+        let p = ControllerParams::default();
+        assert_eq!(decide(Some(0.5), 0, &p), Decision::Converged);
+        assert_eq!(decide(Some(1.5), 0, &p), Decision::Correct);
+        assert_eq!(decide(None, 1, &p), Decision::Correct);
+        assert_eq!(decide(Some(1.5), p.max_rounds, &p), Decision::MaxRounds);
+        assert_eq!(decide(Some(0.99), p.max_rounds, &p), Decision::Converged);
+    }
+}

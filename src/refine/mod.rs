@@ -1,0 +1,111 @@
+//! Closing the loop: fly to the shot, look, and correct until the live view
+//! matches the desired shot.
+//!
+//! * [`error`]: the shot error between a live frame and the desired shot
+//!   (ORB matches, RANSAC homography, mean displacement of the four image
+//!   corners, pixels and % of the diagonal) and the pose difference when
+//!   both poses are known.
+//! * [`arrival`]: when to look (waypoint reached, vehicle still, gimbal at
+//!   its commanded pitch, for a dwell time).
+//! * [`controller`]: the correction that moves the camera from the
+//!   localised live pose to the desired pose through the georeference,
+//!   checked like the first target; when to stop.
+//! * [`session`]: one shot's loop as a state machine (arrival → measure →
+//!   decide → localise the live frame → corrected target), whose rounds
+//!   are the record the API shows.
+//! * [`scenario`]: the closed-loop experiment in the simulator (explore
+//!   flight → SLAM map and georeference → desired shots from hidden poses →
+//!   localise, plan, upload, fly, refine), run synchronously in simulated
+//!   time.
+//!
+//! Everything here is synchronous (no tokio); the scenario drives the
+//! simulator's autopilot in-process through the upload state machine of
+//! [`crate::mission::upload`].
+
+pub mod arrival;
+pub mod controller;
+pub mod error;
+pub mod scenario;
+pub mod session;
+
+pub use arrival::{ArrivalDetector, ArrivalParams};
+pub use controller::{ControllerParams, Correction, Decision, correct, correct_targets, decide};
+pub use error::{
+    PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
+    pose_difference, shot_error,
+};
+pub use session::{Context, RoundRecord, Session, Step, Stop};
+
+/// Every tunable number of the refinement.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Params {
+    /// The shot error measure.
+    pub error: ShotErrorParams,
+    /// The correction loop.
+    pub controller: ControllerParams,
+    /// When the view counts as steady on arrival.
+    pub arrival: ArrivalParams,
+}
+
+/// Errors of the refinement.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RefineError {
+    /// The two images (or an image and its mask) differ in size.
+    #[error("image sizes differ: {live:?} vs desired {desired:?}")]
+    ImageSize {
+        /// Size of the live frame (or the mask).
+        live: (u32, u32),
+        /// Size of the desired shot.
+        desired: (u32, u32),
+    },
+    /// The feature extractor refused.
+    #[error("feature extraction: {message}")]
+    Features {
+        /// Its message.
+        message: String,
+    },
+    /// The matcher refused.
+    #[error("matching: {message}")]
+    Matching {
+        /// Its message.
+        message: String,
+    },
+    /// No homography between the live frame and the desired shot.
+    #[error("no homography from {matches} matches: {reason}")]
+    NoHomography {
+        /// Descriptor matches available.
+        matches: usize,
+        /// Why the fit failed.
+        reason: String,
+    },
+    /// A corrected target fails the planner's checks (geofence, altitude).
+    #[error("corrected target refused: {0}")]
+    Target(crate::mission::plan::PlanError),
+    /// The georeference could not convert a pose.
+    #[error("georeference: {0}")]
+    Geo(crate::geo::GeoError),
+    /// The corrected gimbal pitch is outside the gimbal's range.
+    #[error("corrected gimbal pitch {pitch_deg:.1} deg outside [{min_deg}, {max_deg}]")]
+    PitchOutOfRange {
+        /// The pitch asked.
+        pitch_deg: f64,
+        /// The gimbal's lowest pitch.
+        min_deg: f64,
+        /// The gimbal's highest pitch.
+        max_deg: f64,
+    },
+    /// A computed value is NaN or infinite.
+    #[error("non-finite {what}")]
+    NonFinite {
+        /// Which value.
+        what: &'static str,
+    },
+    /// Invalid parameters.
+    #[error("invalid parameter {name}: {reason}")]
+    InvalidParams {
+        /// Which parameter.
+        name: &'static str,
+        /// What is wrong with it.
+        reason: &'static str,
+    },
+}

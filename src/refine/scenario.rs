@@ -1,0 +1,1161 @@
+//! The closed-loop scenario: the simulator's `explore` flight builds the
+//! SLAM map and the georeference; then, trial after trial, a desired shot is
+//! made from a hidden camera pose in the explored area (rendered from it, or
+//! from four anchors on a keyframe that a small pan/tilt of that keyframe's
+//! camera would give), localised in the map, converted to a vehicle target,
+//! planned, uploaded to the simulated autopilot and flown; on arrival, once
+//! the view is steady, the live frame is compared with the desired shot
+//! ([`super::shot_error`]), localised, and a corrected mission is uploaded
+//! ([`super::correct`]) until the shot error is under the threshold or the
+//! round budget is spent.
+//!
+//! Everything runs synchronously in simulated time, with the daemon's own
+//! pieces: the SLAM ([`crate::slam::Slam`], sequential), the georeference
+//! ([`crate::geo::Geo`], fed with the autopilot's telemetry messages as the
+//! link actor parses them), shot localisation ([`crate::shot::localize`]),
+//! planning ([`crate::mission::plan`]) and the upload state machine
+//! ([`crate::mission::upload::Uploader`]) talking MAVLink messages to the
+//! simulator's autopilot in-process (no sockets, no radio losses). The hidden
+//! poses and the simulator's vehicle are the judges.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+use image::GrayImage;
+use mavlink::MavHeader;
+use mavlink::dialects::common::{MavMessage, MavMissionType};
+use nalgebra::{Isometry3, Point2, Translation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng, rngs::SmallRng};
+use serde::Serialize;
+
+use shotpilot_sim::autopilot::{Autopilot, AutopilotParams, Mode};
+use shotpilot_sim::camera::SimCamera;
+use shotpilot_sim::render::{RenderParams, Renderer};
+use shotpilot_sim::script::{Level, Script, ScriptKind, ScriptParams};
+use shotpilot_sim::world::{World, WorldParams};
+
+use super::{
+    ArrivalDetector, ArrivalParams, Context, Params, RoundRecord, Session, Step, Stop,
+    pose_difference,
+};
+use crate::camera::{Camera, Distortion};
+use crate::geo::{
+    self, GeoAlignment, Geodetic, GimbalAngles, LeverArmFrame, LocalFrame, MountParams,
+    VehicleState, convert_target, ned_from_cam,
+};
+use crate::mission::plan::{self, Flavour, Home, MissionItem};
+use crate::mission::upload::{self, Peers, Uploader};
+use crate::shot::{
+    AnchorParams, Localization, LocalizeParams, desired_shot_from_anchors, frame_corners, localize,
+};
+use crate::slam::{self, Map, Slam};
+
+/// How the hidden poses are drawn.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HiddenParams {
+    /// Horizontal offset from an explore keyframe's vehicle position, up to, m.
+    pub horizontal_m: f64,
+    /// Vertical offset, up to, m.
+    pub vertical_m: f64,
+    /// Heading offset, up to, degrees.
+    pub yaw_deg: f64,
+    /// Gimbal pitch offset, up to, degrees.
+    pub pitch_deg: f64,
+    /// Gimbal pitch range of the hidden poses, degrees.
+    pub pitch_range_deg: (f64, f64),
+    /// Lowest hidden altitude above home, m.
+    pub min_alt_m: f64,
+    /// Anchor trials: heading change of the keyframe's camera, up to, degrees.
+    pub anchor_yaw_deg: f64,
+    /// Anchor trials: pitch change of the keyframe's camera, up to, degrees.
+    pub anchor_pitch_deg: f64,
+}
+
+impl Default for HiddenParams {
+    fn default() -> Self {
+        Self {
+            horizontal_m: 3.0,
+            vertical_m: 2.0,
+            yaw_deg: 15.0,
+            pitch_deg: 8.0,
+            pitch_range_deg: (-80.0, -20.0),
+            min_alt_m: 6.0,
+            anchor_yaw_deg: 6.0,
+            anchor_pitch_deg: 4.0,
+        }
+    }
+}
+
+/// Flight limits of a round.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SteadyParams {
+    /// Longest flight of one round before giving up, s.
+    pub max_flight_s: f64,
+}
+
+impl Default for SteadyParams {
+    fn default() -> Self {
+        Self {
+            max_flight_s: 120.0,
+        }
+    }
+}
+
+/// What the daemon does not know about the vehicle: the errors that make a
+/// single open-loop estimate miss and that the loop must correct.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Disturbances {
+    /// GPS bias (the vehicle stands at its reported position plus this
+    /// bias, which drifts as a first-order Gauss-Markov process):
+    /// horizontal standard deviation per axis, m.
+    pub gps_sigma_xy_m: f64,
+    /// Its vertical standard deviation, m.
+    pub gps_sigma_z_m: f64,
+    /// Its correlation time, s.
+    pub gps_tau_s: f64,
+    /// Gimbal pitch calibration error: the camera looks this much higher
+    /// than the gimbal reports, degrees.
+    pub gimbal_pitch_offset_deg: f64,
+    /// Camera heading error (mounting/compass), degrees.
+    pub camera_yaw_offset_deg: f64,
+}
+
+impl Default for Disturbances {
+    fn default() -> Self {
+        Self {
+            gps_sigma_xy_m: 1.0,
+            gps_sigma_z_m: 0.5,
+            gps_tau_s: 120.0,
+            gimbal_pitch_offset_deg: 1.0,
+            camera_yaw_offset_deg: 0.7,
+        }
+    }
+}
+
+impl Disturbances {
+    /// No disturbance: the vehicle is exactly where telemetry says.
+    pub fn none() -> Self {
+        Self {
+            gps_sigma_xy_m: 0.0,
+            gps_sigma_z_m: 0.0,
+            gps_tau_s: 120.0,
+            gimbal_pitch_offset_deg: 0.0,
+            camera_yaw_offset_deg: 0.0,
+        }
+    }
+}
+
+/// Every tunable number of the scenario.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScenarioParams {
+    /// Trials after the explore flight.
+    pub trials: usize,
+    /// Seeds the world, the sensor noise and the hidden poses.
+    pub seed: u64,
+    /// The world's texture sizes (the layout comes from the seed).
+    pub world: WorldParams,
+    /// The explore flight.
+    pub script: ScriptParams,
+    /// Simulation steps per second.
+    pub step_hz: f64,
+    /// Frames per second given to the SLAM during the explore flight.
+    pub slam_fps: f64,
+    /// Add the simulator's sensor noise to every frame.
+    pub sensor_noise: bool,
+    /// Every `anchor_every`-th trial (1-based) makes its desired shot from
+    /// anchors on a keyframe (0: never).
+    pub anchor_every: usize,
+    /// Hidden poses.
+    pub hidden: HiddenParams,
+    /// Errors the daemon does not know about.
+    pub disturbances: Disturbances,
+    /// Arrival.
+    pub steady: SteadyParams,
+    /// The SLAM (run sequentially, so runs repeat).
+    pub slam: slam::Params,
+    /// Shot localisation (desired shots and live frames).
+    pub localize: LocalizeParams,
+    /// Anchor checks.
+    pub anchors: AnchorParams,
+    /// Georeference.
+    pub geo: geo::Params,
+    /// Mission planning (geofence).
+    pub plan: plan::Params,
+    /// Shot error and correction loop.
+    pub refine: Params,
+}
+
+impl Default for ScenarioParams {
+    fn default() -> Self {
+        let vehicle = shotpilot_sim::vehicle::VehicleParams::default();
+        Self {
+            trials: 20,
+            seed: 1,
+            world: WorldParams::default(),
+            script: ScriptParams::default(),
+            step_hz: 50.0,
+            slam_fps: 5.0,
+            sensor_noise: true,
+            anchor_every: 4,
+            hidden: HiddenParams::default(),
+            disturbances: Disturbances::default(),
+            steady: SteadyParams::default(),
+            slam: slam::Params {
+                sequential: true,
+                ..slam::Params::default()
+            },
+            localize: LocalizeParams::default(),
+            anchors: AnchorParams::default(),
+            geo: geo::Params {
+                history: geo::HistoryParams {
+                    capacity: 200_000,
+                    ..geo::HistoryParams::default()
+                },
+                mount: MountParams {
+                    lever_arm_body_m: vehicle.camera_offset_body,
+                    lever_arm_frame: LeverArmFrame::Heading,
+                    stabilised: true,
+                    pitch_min_deg: vehicle.gimbal.pitch_min_deg,
+                    pitch_max_deg: vehicle.gimbal.pitch_max_deg,
+                    ..MountParams::default()
+                },
+                // GPS-grade positions: metre-level errors are inliers.
+                align: geo::AlignParams {
+                    inlier_threshold_m: 2.5,
+                    position_sigma_m: 1.0,
+                    ..geo::AlignParams::default()
+                },
+            },
+            plan: plan::Params {
+                hold_time_s: 15.0,
+                acceptance_radius_m: 0.5,
+                ..plan::Params::default()
+            },
+            refine: Params::default(),
+        }
+    }
+}
+
+impl ScenarioParams {
+    /// A short scenario for tests: a smaller world texture and one level
+    /// of a smaller survey.
+    pub fn quick(trials: usize, seed: u64) -> Self {
+        Self {
+            trials,
+            seed,
+            world: WorldParams::small(),
+            script: ScriptParams {
+                half_extent_m: 15.0,
+                passes: 3,
+                levels: vec![
+                    Level {
+                        alt_m: 12.0,
+                        gimbal_pitch_deg: -40.0,
+                        yaw_deg: 0.0,
+                    },
+                    Level {
+                        alt_m: 18.0,
+                        gimbal_pitch_deg: -55.0,
+                        yaw_deg: 90.0,
+                    },
+                ],
+                ..ScriptParams::default()
+            },
+            ..Self::default()
+        }
+    }
+}
+
+/// Errors that stop the scenario (a failing trial is a result, not an error).
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    /// Invalid parameters.
+    #[error("invalid parameter {name}: {reason}")]
+    InvalidParams {
+        /// Which parameter.
+        name: &'static str,
+        /// What is wrong with it.
+        reason: &'static str,
+    },
+    /// The world could not be generated.
+    #[error("world: {0}")]
+    World(String),
+    /// The camera is unusable.
+    #[error("camera: {0}")]
+    Camera(#[from] crate::camera::CameraError),
+    /// The SLAM could not start.
+    #[error("SLAM: {0}")]
+    Slam(#[from] crate::slam::SlamError),
+    /// The explore flight did not give a map.
+    #[error("the explore flight gave no usable map: {keyframes} keyframes")]
+    NoMap {
+        /// Keyframes in the map.
+        keyframes: usize,
+    },
+    /// The georeference could not be fitted.
+    #[error("georeference: {0}")]
+    Geo(#[from] crate::geo::GeoError),
+    /// The explore flight did not finish in time.
+    #[error("the explore flight did not finish within {seconds} s")]
+    ExploreTimeout {
+        /// The limit, s.
+        seconds: f64,
+    },
+}
+
+/// What the explore flight gave.
+#[derive(Debug, Clone, Serialize)]
+pub struct ExploreReport {
+    /// Simulated seconds.
+    pub sim_s: f64,
+    /// Frames given to the SLAM.
+    pub frames: u64,
+    /// Frames it tracked.
+    pub tracked: u64,
+    /// Keyframes in the final map.
+    pub keyframes: usize,
+    /// Points in the final map.
+    pub points: usize,
+    /// Keyframes paired with telemetry.
+    pub geo_pairs: usize,
+    /// Inliers of the map → NED fit.
+    pub geo_inliers: usize,
+    /// RMS residual of the fit, m.
+    pub geo_rms_m: f64,
+    /// Scale of the fit (metres per map unit).
+    pub geo_scale: f64,
+    /// Wall seconds.
+    pub wall_s: f64,
+}
+
+/// One measurement on arrival (the loop's record) and the judge's figures.
+#[derive(Debug, Clone, Serialize)]
+pub struct RoundReport {
+    /// What the loop measured and did.
+    #[serde(flatten)]
+    pub record: RoundRecord,
+    /// Camera position error against the hidden pose, m (the judge).
+    pub position_error_m: f64,
+    /// Heading error of the optical axis, degrees.
+    pub yaw_error_deg: f64,
+    /// Elevation error of the optical axis, degrees.
+    pub pitch_error_deg: f64,
+    /// Simulated seconds of this round's flight.
+    pub flight_s: f64,
+}
+
+/// One trial.
+#[derive(Debug, Clone, Serialize)]
+pub struct TrialReport {
+    /// Trial number (0-based).
+    pub trial: usize,
+    /// `render` (a photo from the hidden pose) or `anchors` (on a keyframe).
+    pub kind: &'static str,
+    /// The hidden vehicle position, local NED m.
+    pub hidden_p_ned: [f64; 3],
+    /// The hidden heading, degrees.
+    pub hidden_yaw_deg: f64,
+    /// The hidden gimbal pitch, degrees.
+    pub hidden_pitch_deg: f64,
+    /// The desired shot was localised and flown.
+    pub flown: bool,
+    /// Why not, when it was not.
+    pub reason: Option<String>,
+    /// Localisation error of the desired shot (through the georeference)
+    /// against the hidden camera, m.
+    pub desired_localisation_error_m: Option<f64>,
+    /// Shot error of the first flight, % of the diagonal.
+    pub first_shot_error_pct: Option<f64>,
+    /// Shot error at the end, % of the diagonal.
+    pub final_shot_error_pct: Option<f64>,
+    /// Camera position error of the first flight, m.
+    pub first_position_error_m: Option<f64>,
+    /// Camera position error at the end, m.
+    pub position_error_m: Option<f64>,
+    /// Optical-axis heading error at the end, degrees.
+    pub yaw_error_deg: Option<f64>,
+    /// Optical-axis elevation error at the end, degrees.
+    pub pitch_error_deg: Option<f64>,
+    /// Corrections flown.
+    pub rounds: usize,
+    /// How the loop ended: converged, max_rounds, or the reason it stopped.
+    pub stop: String,
+    /// Simulated seconds of the trial.
+    pub sim_s: f64,
+    /// Wall seconds of the trial.
+    pub wall_s: f64,
+    /// The vehicle stayed inside the geofence all along.
+    pub inside_fence: bool,
+    /// Every measurement.
+    pub round_reports: Vec<RoundReport>,
+}
+
+/// The whole scenario.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScenarioReport {
+    /// Seed.
+    pub seed: u64,
+    /// Trials run.
+    pub trials: usize,
+    /// Trials whose desired shot was localised and flown.
+    pub flown: usize,
+    /// Trials that converged under the threshold.
+    pub converged: usize,
+    /// Threshold of the loop, % of the diagonal.
+    pub threshold_pct: f64,
+    /// Median final shot error over the flown trials, %.
+    pub median_final_shot_error_pct: Option<f64>,
+    /// 90th percentile of the final shot error, %.
+    pub p90_final_shot_error_pct: Option<f64>,
+    /// Median first-flight shot error, %.
+    pub median_first_shot_error_pct: Option<f64>,
+    /// 90th percentile of the first-flight shot error, %.
+    pub p90_first_shot_error_pct: Option<f64>,
+    /// Median final camera position error, m.
+    pub median_position_error_m: Option<f64>,
+    /// Median first-flight camera position error, m.
+    pub median_first_position_error_m: Option<f64>,
+    /// Median final optical-axis heading error (absolute), degrees.
+    pub median_yaw_error_deg: Option<f64>,
+    /// Median final optical-axis elevation error (absolute), degrees.
+    pub median_pitch_error_deg: Option<f64>,
+    /// Fraction of flown trials with a final shot error <= 2 %.
+    pub fraction_final_within_2pct: Option<f64>,
+    /// Mean corrections per flown trial.
+    pub mean_rounds: Option<f64>,
+    /// Trials in which the vehicle left the geofence.
+    pub fence_violations: usize,
+    /// The explore flight.
+    pub explore: ExploreReport,
+    /// Every trial.
+    pub trial_reports: Vec<TrialReport>,
+    /// Wall seconds of everything.
+    pub wall_s: f64,
+}
+
+/// The quantile `q` (0..1, nearest rank) of the values, None when empty.
+pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
+    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
+    Some(v[rank - 1])
+}
+
+fn camera_of(c: &SimCamera) -> Result<Camera, crate::camera::CameraError> {
+    Camera::new(
+        c.width,
+        c.height,
+        [c.fx, c.fy, c.cx, c.cy],
+        Distortion {
+            k1: c.k1,
+            k2: c.k2,
+            p1: c.p1,
+            p2: c.p2,
+            k3: c.k3,
+        },
+    )
+}
+
+const GCS: MavHeader = MavHeader {
+    system_id: 255,
+    component_id: 190,
+    sequence: 0,
+};
+
+/// The simulated world, its autopilot and the telemetry the daemon sees.
+struct Sim {
+    ap: Autopilot,
+    renderer: Renderer,
+    t: f64,
+    dt: f64,
+    k: u64,
+    noise_seed: u64,
+    sensor_noise: bool,
+    /// Most recent MISSION_ITEM_REACHED seq since the last upload.
+    reached: Option<u16>,
+    home: Home,
+    fence: plan::Fence,
+    fence_ok: bool,
+    disturb: Disturbances,
+    /// The GPS bias now: true position = reported position + bias.
+    bias: Vector3<f64>,
+    rng: SmallRng,
+}
+
+impl Sim {
+    /// One simulation step; telemetry goes to `geo` when given.
+    fn step(&mut self, geo: Option<&mut geo::Geo>) {
+        self.k += 1;
+        self.t = self.k as f64 * self.dt;
+        let out = self.ap.step(self.t, self.dt);
+        let _ = self.ap.take_capture_requests();
+        let mut geo = geo;
+        for m in &out {
+            match m {
+                MavMessage::MISSION_ITEM_REACHED(r) => self.reached = Some(r.seq),
+                MavMessage::GLOBAL_POSITION_INT(d) => {
+                    if let Some(g) = geo.as_deref_mut() {
+                        let _ = g.push_position_geodetic(
+                            f64::from(d.time_boot_ms) / 1e3,
+                            &Geodetic {
+                                lat_deg: f64::from(d.lat) / 1e7,
+                                lon_deg: f64::from(d.lon) / 1e7,
+                                alt_m: f64::from(d.alt) / 1e3,
+                            },
+                        );
+                    }
+                }
+                MavMessage::ATTITUDE(d) => {
+                    if let Some(g) = geo.as_deref_mut() {
+                        let _ = g.history_mut().push_attitude_euler(
+                            f64::from(d.time_boot_ms) / 1e3,
+                            f64::from(d.roll),
+                            f64::from(d.pitch),
+                            f64::from(d.yaw),
+                        );
+                    }
+                }
+                MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(d) => {
+                    if let Some(g) = geo.as_deref_mut() {
+                        let (_, pitch, yaw) = crate::vehicle::quat_to_euler_deg(d.q);
+                        let _ = g.history_mut().push_gimbal(
+                            f64::from(d.time_boot_ms) / 1e3,
+                            GimbalAngles {
+                                pitch: f64::from(pitch).to_radians(),
+                                yaw: f64::from(yaw).to_radians(),
+                            },
+                        );
+                    }
+                }
+                _ => {}
+            }
+        }
+        let d = &self.disturb;
+        if d.gps_tau_s > 0.0 {
+            let a = self.dt / d.gps_tau_s;
+            let k = (2.0 * a).sqrt();
+            let (gx, gy, gz) = (
+                gauss(&mut self.rng),
+                gauss(&mut self.rng),
+                gauss(&mut self.rng),
+            );
+            self.bias += Vector3::new(
+                -self.bias.x * a + d.gps_sigma_xy_m * k * gx,
+                -self.bias.y * a + d.gps_sigma_xy_m * k * gy,
+                -self.bias.z * a + d.gps_sigma_z_m * k * gz,
+            );
+        }
+        let v = self.ap.vehicle();
+        if !v.landed() {
+            let p = v.p_ned() + self.bias;
+            let alt = -p.z;
+            if p.xy().norm() > self.fence.radius_m || alt > self.fence.max_alt_m {
+                self.fence_ok = false;
+            }
+        }
+    }
+
+    /// The camera pose the vehicle really has (bias and misalignment included).
+    fn true_camera(&self) -> Isometry3<f64> {
+        let nominal = self.ap.vehicle().world_from_cam();
+        let d = &self.disturb;
+        let rotation = UnitQuaternion::from_axis_angle(
+            &Vector3::z_axis(),
+            d.camera_yaw_offset_deg.to_radians(),
+        ) * nominal.rotation
+            // the camera's x axis points right: a negative turn about it looks up
+            * UnitQuaternion::from_axis_angle(
+                &Vector3::x_axis(),
+                -d.gimbal_pitch_offset_deg.to_radians(),
+            );
+        Isometry3::from_parts(
+            Translation3::from(nominal.translation.vector + self.bias),
+            rotation,
+        )
+    }
+
+    fn render(&mut self) -> GrayImage {
+        let wfc = self.true_camera();
+        if self.sensor_noise {
+            self.noise_seed = self.noise_seed.wrapping_add(1);
+            self.renderer.render_noisy(&wfc, self.noise_seed)
+        } else {
+            self.renderer.render(&wfc)
+        }
+    }
+
+    /// Uploads a mission through the upload state machine, in-process.
+    fn upload(&mut self, items: &[MissionItem]) -> Result<upload::UploadReport, String> {
+        let peers = Peers {
+            own_system: 255,
+            own_component: 190,
+            target_system: self.ap.params().system_id,
+            target_component: self.ap.params().component_id,
+        };
+        let ap_header = MavHeader {
+            system_id: u32::from(peers.target_system),
+            component_id: peers.target_component,
+            sequence: 0,
+        };
+        let mut out = Vec::new();
+        let mut up = Uploader::new(
+            items,
+            peers,
+            MavMissionType::MAV_MISSION_TYPE_MISSION,
+            upload::Params::default(),
+            Instant::now(),
+            &mut out,
+        )
+        .map_err(|e| e.to_string())?;
+        for _ in 0..10_000 {
+            if up.is_done() {
+                break;
+            }
+            let msgs = std::mem::take(&mut out);
+            if msgs.is_empty() {
+                // Nothing in flight without a lossy link; a timeout would be a bug.
+                up.on_timeout(
+                    Instant::now() + std::time::Duration::from_secs(3600),
+                    &mut out,
+                );
+                continue;
+            }
+            for m in msgs {
+                for r in self.ap.handle(&GCS, &m) {
+                    up.on_message(&ap_header, &r, Instant::now(), &mut out);
+                }
+            }
+        }
+        self.reached = None;
+        match up.take_outcome() {
+            Some(Ok(r)) => Ok(r),
+            Some(Err(e)) => Err(e.to_string()),
+            None => Err("upload did not finish".into()),
+        }
+    }
+
+    /// Flies until the waypoint `wp_seq` is reached and the view is steady
+    /// by the daemon's arrival rule, fed with what telemetry reports.
+    fn fly_until_steady(
+        &mut self,
+        wp_seq: u16,
+        gimbal_pitch_deg: f64,
+        arrival: &ArrivalParams,
+        p: &SteadyParams,
+    ) -> Result<f64, String> {
+        let t0 = self.t;
+        let mut det = ArrivalDetector::new(*arrival, wp_seq, gimbal_pitch_deg);
+        while self.t - t0 < p.max_flight_s {
+            self.step(None);
+            if let Some(seq) = self.reached.take() {
+                det.on_reached(seq);
+            }
+            let v = self.ap.vehicle();
+            let pitch = v.gimbal_angles().0.to_degrees();
+            if det.update(self.t, v.v_ned().norm(), pitch) {
+                return Ok(self.t - t0);
+            }
+        }
+        Err(format!(
+            "waypoint not reached and steady within {} s",
+            p.max_flight_s
+        ))
+    }
+}
+
+/// The truth of one explore frame: the vehicle position (NED), heading and
+/// gimbal pitch (radians) as reported, and the camera pose it really had.
+type FrameTruth = ((Vector3<f64>, f64, f64), Isometry3<f64>);
+
+/// The explore flight and what it built.
+struct Explored {
+    map: Map,
+    alignment: GeoAlignment,
+    frame: LocalFrame,
+    /// Truth per keyframe id: (vehicle position NED, heading rad, gimbal
+    /// pitch rad) as reported, and the true camera pose.
+    kf_truth: BTreeMap<u32, FrameTruth>,
+    report: ExploreReport,
+}
+
+fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioError> {
+    let wall = Instant::now();
+    let camera = camera_of(sim.renderer.camera())?;
+    let mut slam = Slam::new(camera, params.slam.clone())?;
+    let home = sim.ap.params().vehicle.home;
+    let mut g = geo::Geo::new(params.geo.clone());
+    g.set_home(Geodetic {
+        lat_deg: home.lat_deg,
+        lon_deg: home.lon_deg,
+        alt_m: home.alt_m,
+    })?;
+    let world = sim.renderer.world().clone();
+    let mut script = Script::new(
+        ScriptKind::Explore,
+        params.script.clone(),
+        &move |x, y, r| world.max_height_near(x, y, r),
+    );
+    let every = ((params.step_hz / params.slam_fps).round() as u64).max(1);
+    let limit_s = 3.0 * script.length_m() / params.script.speed.max(0.1) + 120.0;
+    let mut truth_by_frame: BTreeMap<u64, FrameTruth> = BTreeMap::new();
+    let (mut frames, mut tracked) = (0u64, 0u64);
+    while !script.finished() {
+        if sim.t > limit_s {
+            return Err(ScenarioError::ExploreTimeout { seconds: limit_s });
+        }
+        script.step(&mut sim.ap, sim.t + sim.dt);
+        sim.step(Some(&mut g));
+        if sim.k.is_multiple_of(every) && !sim.ap.vehicle().landed() {
+            let image = Arc::new(sim.render());
+            let v = sim.ap.vehicle();
+            truth_by_frame.insert(
+                frames,
+                ((v.p_ned(), v.yaw(), v.gimbal_angles().0), sim.true_camera()),
+            );
+            let outcome = slam.process(frames, sim.t, image);
+            frames += 1;
+            if outcome.cam_from_world.is_some() {
+                tracked += 1;
+            }
+        }
+    }
+    // A little more telemetry so the last keyframes are covered.
+    for _ in 0..50 {
+        sim.step(Some(&mut g));
+    }
+    let run = slam.finish();
+    let map = run.map;
+    let mut kf_truth = BTreeMap::new();
+    for kf in map.keyframes() {
+        g.add_keyframe(u64::from(kf.id.0), &kf.world_from_cam(), kf.timestamp)?;
+        if let Some(t) = truth_by_frame.get(&kf.frame_index) {
+            kf_truth.insert(kf.id.0, *t);
+        }
+    }
+    g.retry_pending();
+    let keyframes = map.keyframes().count();
+    if keyframes < 5 {
+        return Err(ScenarioError::NoMap { keyframes });
+    }
+    let alignment = g.fit()?;
+    let frame = *g.frame().ok_or(crate::geo::GeoError::NoHome)?;
+    let report = ExploreReport {
+        sim_s: sim.t,
+        frames,
+        tracked,
+        keyframes,
+        points: map.points().count(),
+        geo_pairs: alignment.quality.pairs,
+        geo_inliers: alignment.quality.inliers,
+        geo_rms_m: alignment.quality.rms_m,
+        geo_scale: alignment.ned_from_map.scale,
+        wall_s: wall.elapsed().as_secs_f64(),
+    };
+    Ok(Explored {
+        map,
+        alignment,
+        frame,
+        kf_truth,
+        report,
+    })
+}
+
+/// A hidden pose: the vehicle state that takes it, its camera, the desired
+/// shot (image, mask) and its kind.
+struct Hidden {
+    p_ned: Vector3<f64>,
+    yaw: f64,
+    pitch: f64,
+    camera: Isometry3<f64>,
+    image: GrayImage,
+    mask: Option<GrayImage>,
+    kind: &'static str,
+}
+
+fn hover_state(p_ned: Vector3<f64>, yaw: f64, pitch: f64) -> VehicleState {
+    VehicleState {
+        time: 0.0,
+        p_ned,
+        v_ned: Vector3::zeros(),
+        ned_from_body: nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
+        gimbal: GimbalAngles { pitch, yaw: 0.0 },
+    }
+}
+
+fn gauss(rng: &mut SmallRng) -> f64 {
+    let u1: f64 = rng.random_range(1e-12..1.0);
+    let u2: f64 = rng.random_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+fn sym(rng: &mut SmallRng, r: f64) -> f64 {
+    if r > 0.0 {
+        rng.random_range(-r..r)
+    } else {
+        0.0
+    }
+}
+
+fn make_hidden(
+    ex: &Explored,
+    sim: &Sim,
+    params: &ScenarioParams,
+    anchors: bool,
+    rng: &mut SmallRng,
+) -> Option<Hidden> {
+    let hp = &params.hidden;
+    let mount = &params.geo.mount;
+    let ids: Vec<u32> = ex.kf_truth.keys().copied().collect();
+    if ids.is_empty() {
+        return None;
+    }
+    let id = ids[rng.random_range(0..ids.len())];
+    let ((p, yaw, pitch), kf_cam) = ex.kf_truth[&id];
+    if anchors {
+        let kf = ex.map.keyframe(crate::slam::KeyFrameId(id))?;
+        let img = kf.image.clone()?;
+        // The keyframe's true camera turned about the vertical and its own
+        // x axis (a pan and a tilt: a pose a 2-axis gimbal can take).
+        let dyaw = sym(rng, hp.anchor_yaw_deg).to_radians();
+        let dpitch = sym(rng, hp.anchor_pitch_deg).to_radians();
+        let cam = Isometry3::from_parts(
+            kf_cam.translation,
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), dyaw)
+                * kf_cam.rotation
+                * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -dpitch),
+        );
+        let (yaw2, pitch2) = (yaw + dyaw, pitch + dpitch);
+        // The anchors: where the desired frame's corners lie in the
+        // keyframe (the warp samples the keyframe at H·p, H: corner -> anchor).
+        let cam_model = ex.map.camera;
+        let k_from_d = kf_cam.rotation.inverse() * cam.rotation;
+        let mut pts = [Point2::origin(); 4];
+        for (i, c) in frame_corners(cam_model.width, cam_model.height)
+            .iter()
+            .enumerate()
+        {
+            let ray = cam_model.unproject(*c);
+            pts[i] = cam_model.project(&(k_from_d * ray.into_inner()))?;
+        }
+        let shot = desired_shot_from_anchors(&img, &pts, &params.anchors).ok()?;
+        return Some(Hidden {
+            p_ned: p,
+            yaw: yaw2,
+            pitch: pitch2,
+            camera: cam,
+            image: shot.image,
+            mask: Some(shot.mask),
+            kind: "anchors",
+        });
+    }
+    let ground = sim.renderer.world().height_at(p.x, p.y);
+    let mut q = p + Vector3::new(
+        sym(rng, hp.horizontal_m),
+        sym(rng, hp.horizontal_m),
+        sym(rng, hp.vertical_m),
+    );
+    let clearance = sim.renderer.world().max_height_near(q.x, q.y, 3.0);
+    q.z = q.z.min(-(hp.min_alt_m.max(clearance - ground + 3.0)));
+    let yaw2 = yaw + sym(rng, hp.yaw_deg).to_radians();
+    let pitch2 = (pitch + sym(rng, hp.pitch_deg).to_radians()).clamp(
+        hp.pitch_range_deg.0.to_radians(),
+        hp.pitch_range_deg.1.to_radians(),
+    );
+    let cam = ned_from_cam(&hover_state(q, yaw2, pitch2), mount);
+    let image = if params.sensor_noise {
+        sim.renderer.render_noisy(&cam, rng.random())
+    } else {
+        sim.renderer.render(&cam)
+    };
+    Some(Hidden {
+        p_ned: q,
+        yaw: yaw2,
+        pitch: pitch2,
+        camera: cam,
+        image,
+        mask: None,
+        kind: "render",
+    })
+}
+
+fn localise(
+    map: &Map,
+    img: &GrayImage,
+    mask: Option<&GrayImage>,
+    p: &LocalizeParams,
+) -> Result<Isometry3<f64>, String> {
+    match localize(map, img, mask, None, p) {
+        Ok(Localization::Localized(s)) => Ok(s.world_from_cam),
+        Ok(Localization::NotLocalized { reason }) => Err(format!("not localised: {reason}")),
+        Err(e) => Err(format!("not localised: {e}")),
+    }
+}
+
+fn waypoint_seq(items: &[MissionItem]) -> Option<u16> {
+    items
+        .iter()
+        .filter(|i| i.command == 16) // MAV_CMD_NAV_WAYPOINT
+        .map(|i| i.seq)
+        .next_back()
+}
+
+fn run_trial(
+    trial: usize,
+    ex: &Explored,
+    sim: &mut Sim,
+    params: &ScenarioParams,
+    rng: &mut SmallRng,
+) -> TrialReport {
+    let wall = Instant::now();
+    let t0 = sim.t;
+    let anchors = params.anchor_every > 0 && (trial + 1).is_multiple_of(params.anchor_every);
+    let mut rep = TrialReport {
+        trial,
+        kind: if anchors { "anchors" } else { "render" },
+        hidden_p_ned: [0.0; 3],
+        hidden_yaw_deg: 0.0,
+        hidden_pitch_deg: 0.0,
+        flown: false,
+        reason: None,
+        desired_localisation_error_m: None,
+        first_shot_error_pct: None,
+        final_shot_error_pct: None,
+        first_position_error_m: None,
+        position_error_m: None,
+        yaw_error_deg: None,
+        pitch_error_deg: None,
+        rounds: 0,
+        stop: String::new(),
+        sim_s: 0.0,
+        wall_s: 0.0,
+        inside_fence: true,
+        round_reports: Vec::new(),
+    };
+    let finish = |mut rep: TrialReport, sim: &Sim, stop: String| {
+        rep.stop = stop;
+        rep.sim_s = sim.t - t0;
+        rep.wall_s = wall.elapsed().as_secs_f64();
+        rep.inside_fence = sim.fence_ok;
+        rep
+    };
+    let Some(hidden) = make_hidden(ex, sim, params, anchors, rng) else {
+        rep.reason = Some("no hidden pose could be made".into());
+        return finish(rep, sim, "no_shot".into());
+    };
+    rep.kind = hidden.kind;
+    rep.hidden_p_ned = hidden.p_ned.into();
+    rep.hidden_yaw_deg = hidden.yaw.to_degrees();
+    rep.hidden_pitch_deg = hidden.pitch.to_degrees();
+    let mount = &params.geo.mount;
+    let desired_map = match localise(
+        &ex.map,
+        &hidden.image,
+        hidden.mask.as_ref(),
+        &params.localize,
+    ) {
+        Ok(p) => p,
+        Err(e) => {
+            rep.reason = Some(e);
+            return finish(rep, sim, "not_localised".into());
+        }
+    };
+    rep.desired_localisation_error_m = Some(
+        (ex.alignment.ned_from_cam(&desired_map).translation.vector
+            - hidden.camera.translation.vector)
+            .norm(),
+    );
+    let target = match convert_target(&ex.alignment, &desired_map, &ex.frame, mount) {
+        Ok(t) => t.to_mission_target(false),
+        Err(e) => {
+            rep.reason = Some(format!("no target: {e}"));
+            return finish(rep, sim, "no_target".into());
+        }
+    };
+    let flavour = Flavour::Px4;
+    let cam_model = ex.map.camera;
+    let mut session = Session::new(
+        hidden.image.clone(),
+        hidden.mask.clone(),
+        desired_map,
+        target,
+        params.refine.clone(),
+    );
+    let home = sim.home;
+    let ctx = Context {
+        map: &ex.map,
+        alignment: &ex.alignment,
+        frame: &ex.frame,
+        mount,
+        home: &home,
+        fence: &params.plan.fence,
+        localize: &params.localize,
+    };
+    sim.fence_ok = true;
+    loop {
+        let target = *session.target();
+        let items = match plan::plan(&target, &sim.home, flavour, &params.plan) {
+            Ok(i) => i,
+            Err(e) => {
+                rep.reason = Some(format!("plan refused: {e}"));
+                return finish(rep, sim, "plan_refused".into());
+            }
+        };
+        let Some(wp) = waypoint_seq(&items) else {
+            return finish(rep, sim, "no_waypoint".into());
+        };
+        if let Err(e) = sim.upload(&items) {
+            rep.reason = Some(format!("upload: {e}"));
+            return finish(rep, sim, "upload_failed".into());
+        }
+        if sim.ap.mode() != Mode::Mission {
+            sim.ap.set_mode(Mode::Mission);
+        }
+        let _ = sim.ap.arm();
+        let flight_s = match sim.fly_until_steady(
+            wp,
+            target.gimbal_pitch_deg,
+            &params.refine.arrival,
+            &params.steady,
+        ) {
+            Ok(s) => s,
+            Err(e) => {
+                rep.reason = Some(e);
+                return finish(rep, sim, "not_arrived".into());
+            }
+        };
+        rep.flown = true;
+        let live_cam = sim.true_camera();
+        let live = sim.render();
+        let step = session.on_arrival(&live, Some(&cam_model), &ctx);
+        let Some(record) = session.rounds().last().cloned() else {
+            return finish(rep, sim, "no_round".into());
+        };
+        let d = pose_difference(&hidden.camera, &live_cam);
+        if record.round == 0 {
+            rep.first_shot_error_pct = record.shot_error_pct;
+            rep.first_position_error_m = Some(d.position_m);
+        }
+        rep.final_shot_error_pct = record.shot_error_pct;
+        rep.position_error_m = Some(d.position_m);
+        rep.yaw_error_deg = Some(d.yaw_deg);
+        rep.pitch_error_deg = Some(d.pitch_deg);
+        rep.rounds = record.round;
+        rep.round_reports.push(RoundReport {
+            record,
+            position_error_m: d.position_m,
+            yaw_error_deg: d.yaw_deg,
+            pitch_error_deg: d.pitch_deg,
+            flight_s,
+        });
+        if let Step::Done(stop) = step {
+            if let Stop::LiveNotLocalised(r) | Stop::CorrectionRefused(r) = &stop {
+                rep.reason = Some(r.clone());
+            }
+            return finish(rep, sim, stop.name().into());
+        }
+    }
+}
+
+/// Runs the scenario: the explore flight, then `params.trials` trials.
+/// `progress` is called after each trial.
+pub fn run(
+    params: &ScenarioParams,
+    progress: &mut dyn FnMut(&TrialReport),
+) -> Result<ScenarioReport, ScenarioError> {
+    if !(params.step_hz >= 10.0 && params.slam_fps > 0.0 && params.slam_fps <= params.step_hz) {
+        return Err(ScenarioError::InvalidParams {
+            name: "step_hz/slam_fps",
+            reason: "need step_hz >= 10 and 0 < slam_fps <= step_hz",
+        });
+    }
+    let wall = Instant::now();
+    let world = World::generate_with(params.seed, &params.world)
+        .map_err(|e| ScenarioError::World(e.to_string()))?;
+    let renderer = Renderer::new(
+        Arc::new(world),
+        SimCamera::default(),
+        RenderParams::default(),
+    );
+    let ap_params = AutopilotParams::default();
+    let h = ap_params.vehicle.home;
+    let mut sim = Sim {
+        ap: Autopilot::new(ap_params, 0.0),
+        renderer,
+        t: 0.0,
+        dt: 1.0 / params.step_hz,
+        k: 0,
+        noise_seed: params.seed.wrapping_mul(1_000_003),
+        sensor_noise: params.sensor_noise,
+        reached: None,
+        home: Home {
+            lat_deg: h.lat_deg,
+            lon_deg: h.lon_deg,
+            alt_amsl_m: h.alt_m,
+        },
+        fence: params.plan.fence,
+        fence_ok: true,
+        disturb: params.disturbances.clone(),
+        bias: Vector3::zeros(),
+        rng: SmallRng::seed_from_u64(params.seed ^ 0x00b1_a5ed),
+    };
+    let ex = explore(&mut sim, params)?;
+    let mut rng = SmallRng::seed_from_u64(params.seed ^ 0x7e57_5407);
+    let mut trials = Vec::with_capacity(params.trials);
+    for i in 0..params.trials {
+        let r = run_trial(i, &ex, &mut sim, params, &mut rng);
+        progress(&r);
+        trials.push(r);
+    }
+    let flown: Vec<&TrialReport> = trials
+        .iter()
+        .filter(|t| t.final_shot_error_pct.is_some())
+        .collect();
+    let fin: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.final_shot_error_pct)
+        .collect();
+    let first: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.first_shot_error_pct)
+        .collect();
+    let pos: Vec<f64> = flown.iter().filter_map(|t| t.position_error_m).collect();
+    let pos0: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.first_position_error_m)
+        .collect();
+    let yaw: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.yaw_error_deg.map(f64::abs))
+        .collect();
+    let pitch: Vec<f64> = flown
+        .iter()
+        .filter_map(|t| t.pitch_error_deg.map(f64::abs))
+        .collect();
+    let n = flown.len();
+    Ok(ScenarioReport {
+        seed: params.seed,
+        trials: trials.len(),
+        flown: n,
+        converged: trials.iter().filter(|t| t.stop == "converged").count(),
+        threshold_pct: params.refine.controller.threshold_pct,
+        median_final_shot_error_pct: quantile(&fin, 0.5),
+        p90_final_shot_error_pct: quantile(&fin, 0.9),
+        median_first_shot_error_pct: quantile(&first, 0.5),
+        p90_first_shot_error_pct: quantile(&first, 0.9),
+        median_position_error_m: quantile(&pos, 0.5),
+        median_first_position_error_m: quantile(&pos0, 0.5),
+        median_yaw_error_deg: quantile(&yaw, 0.5),
+        median_pitch_error_deg: quantile(&pitch, 0.5),
+        fraction_final_within_2pct: (n > 0)
+            .then(|| fin.iter().filter(|&&e| e <= 2.0).count() as f64 / n as f64),
+        mean_rounds: (n > 0).then(|| flown.iter().map(|t| t.rounds as f64).sum::<f64>() / n as f64),
+        fence_violations: trials.iter().filter(|t| !t.inside_fence).count(),
+        explore: ex.report.clone(),
+        trial_reports: trials,
+        wall_s: wall.elapsed().as_secs_f64(),
+    })
+}

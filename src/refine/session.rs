@@ -1,0 +1,383 @@
+//! One shot's refinement loop as a state machine the daemon (or the
+//! scenario) drives: it is told the vehicle has arrived with a steady view
+//! and given the live frame; it measures the shot error, decides, localises
+//! the live frame and returns the corrected target to upload, or stops.
+//! Its rounds are the record the API shows.
+
+use image::GrayImage;
+use nalgebra::Isometry3;
+use serde::Serialize;
+
+use super::{Correction, Decision, Params, correct, decide, shot_error};
+use crate::camera::Camera;
+use crate::geo::{GeoAlignment, LocalFrame, MountParams};
+use crate::mission::plan::{Fence, Home, Target};
+use crate::shot::{Localization, LocalizeParams, localize};
+use crate::slam::Map;
+
+/// What the loop needs from the rest of the daemon at an arrival.
+#[derive(Debug, Clone, Copy)]
+pub struct Context<'a> {
+    /// The SLAM map (a snapshot).
+    pub map: &'a Map,
+    /// The map → NED alignment.
+    pub alignment: &'a GeoAlignment,
+    /// The local tangent plane at home.
+    pub frame: &'a LocalFrame,
+    /// The camera's mounting.
+    pub mount: &'a MountParams,
+    /// Home.
+    pub home: &'a Home,
+    /// The geofence every target must lie in.
+    pub fence: &'a Fence,
+    /// Localisation of the live frame.
+    pub localize: &'a LocalizeParams,
+}
+
+/// One arrival: what was measured and what was done.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RoundRecord {
+    /// 0 for the first flight, then one per correction.
+    pub round: usize,
+    /// The target flown.
+    pub target: Target,
+    /// Shot error, % of the image diagonal (None: no homography).
+    pub shot_error_pct: Option<f64>,
+    /// Shot error, pixels.
+    pub shot_error_px: Option<f64>,
+    /// Homography inliers.
+    pub inliers: Option<usize>,
+    /// The decision.
+    pub decision: Decision,
+    /// The live frame's pose in the map, when it was localised.
+    pub live_map_position: Option<[f64; 3]>,
+    /// The correction uploaded next.
+    pub correction: Option<Correction>,
+    /// Why the loop could not go on, or why the shot error is missing.
+    pub note: Option<String>,
+}
+
+/// How the loop ended.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case", tag = "stop", content = "reason")]
+pub enum Stop {
+    /// The shot error is under the threshold.
+    Converged,
+    /// The round budget is spent.
+    MaxRounds,
+    /// The live frame could not be localised.
+    LiveNotLocalised(String),
+    /// The correction failed its checks (geofence, altitude, gimbal) or
+    /// the georeference refused it.
+    CorrectionRefused(String),
+}
+
+impl Stop {
+    /// A short name (`converged`, `max_rounds`, `live_not_localised`,
+    /// `correction_refused`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Stop::Converged => "converged",
+            Stop::MaxRounds => "max_rounds",
+            Stop::LiveNotLocalised(_) => "live_not_localised",
+            Stop::CorrectionRefused(_) => "correction_refused",
+        }
+    }
+}
+
+/// What to do after an arrival.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Step {
+    /// Plan and upload this target, fly, and call [`Session::on_arrival`] again.
+    Upload(Target),
+    /// The loop is over.
+    Done(Stop),
+}
+
+/// One shot's loop.
+#[derive(Debug, Clone)]
+pub struct Session {
+    desired: GrayImage,
+    mask: Option<GrayImage>,
+    map_from_desired: Isometry3<f64>,
+    target: Target,
+    rounds: Vec<RoundRecord>,
+    stop: Option<Stop>,
+    params: Params,
+}
+
+impl Session {
+    /// A loop for the desired shot (image, mask of its valid pixels, pose
+    /// in the map) whose first target is being flown.
+    pub fn new(
+        desired: GrayImage,
+        mask: Option<GrayImage>,
+        map_from_desired: Isometry3<f64>,
+        first_target: Target,
+        params: Params,
+    ) -> Self {
+        Self {
+            desired,
+            mask,
+            map_from_desired,
+            target: first_target,
+            rounds: Vec::new(),
+            stop: None,
+            params,
+        }
+    }
+
+    /// The target being flown.
+    pub fn target(&self) -> &Target {
+        &self.target
+    }
+
+    /// The rounds so far.
+    pub fn rounds(&self) -> &[RoundRecord] {
+        &self.rounds
+    }
+
+    /// How the loop ended, once it has.
+    pub fn stop(&self) -> Option<&Stop> {
+        self.stop.as_ref()
+    }
+
+    /// The vehicle reached the target and the view is steady: measure the
+    /// shot error of `live`, decide, and when going on, localise `live` and
+    /// correct the target. `camera` undistorts the shot-error keypoints.
+    pub fn on_arrival(
+        &mut self,
+        live: &GrayImage,
+        camera: Option<&Camera>,
+        ctx: &Context<'_>,
+    ) -> Step {
+        if let Some(s) = &self.stop {
+            return Step::Done(s.clone());
+        }
+        let round = self.rounds.len();
+        let err = shot_error(
+            live,
+            &self.desired,
+            self.mask.as_ref(),
+            camera,
+            &self.params.error,
+        );
+        let pct = err.as_ref().ok().map(|e| e.corner_error_pct);
+        let decision = decide(pct, round, &self.params.controller);
+        let mut rec = RoundRecord {
+            round,
+            target: self.target,
+            shot_error_pct: pct,
+            shot_error_px: err.as_ref().ok().map(|e| e.corner_error_px),
+            inliers: err.as_ref().ok().map(|e| e.inliers),
+            decision,
+            live_map_position: None,
+            correction: None,
+            note: err.as_ref().err().map(|e| format!("shot error: {e}")),
+        };
+        let stop = match decision {
+            Decision::Converged => Some(Stop::Converged),
+            Decision::MaxRounds => Some(Stop::MaxRounds),
+            Decision::Correct => None,
+        };
+        if let Some(s) = stop {
+            return self.end(rec, s);
+        }
+        let live_map = match localize(ctx.map, live, None, None, ctx.localize) {
+            Ok(Localization::Localized(p)) => p.world_from_cam,
+            Ok(Localization::NotLocalized { reason }) => {
+                let why = reason.to_string();
+                rec.note = Some(format!("live frame not localised: {why}"));
+                return self.end(rec, Stop::LiveNotLocalised(why));
+            }
+            Err(e) => {
+                rec.note = Some(format!("live frame not localised: {e}"));
+                return self.end(rec, Stop::LiveNotLocalised(e.to_string()));
+            }
+        };
+        rec.live_map_position = Some(live_map.translation.vector.into());
+        // The first correction takes the whole (mostly systematic) error,
+        // the later ones a fraction, so the live localisation noise averages.
+        let mut ctrl = self.params.controller;
+        if round >= 1 {
+            ctrl.gain = ctrl.later_gain;
+        }
+        match correct(
+            ctx.alignment,
+            ctx.frame,
+            ctx.mount,
+            &self.map_from_desired,
+            &live_map,
+            &self.target,
+            ctx.home,
+            ctx.fence,
+            &ctrl,
+        ) {
+            Ok(c) => {
+                self.target = c.target;
+                rec.correction = Some(c);
+                self.rounds.push(rec);
+                Step::Upload(self.target)
+            }
+            Err(e) => {
+                rec.note = Some(format!("correction refused: {e}"));
+                self.end(rec, Stop::CorrectionRefused(e.to_string()))
+            }
+        }
+    }
+
+    fn end(&mut self, rec: RoundRecord, stop: Stop) -> Step {
+        self.rounds.push(rec);
+        self.stop = Some(stop.clone());
+        Step::Done(stop)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Distortion;
+    use crate::geo::{AlignQuality, Geodetic};
+    use crate::geometry::Sim3;
+    use crate::refine::ControllerParams;
+    use crate::slam::ScaleInfo;
+    use nalgebra::Point3;
+    use shotpilot_sim::camera::SimCamera;
+    use shotpilot_sim::paths::camera_from_yaw_pitch;
+    use shotpilot_sim::render::{RenderParams, Renderer};
+    use shotpilot_sim::world::{World, WorldParams};
+    use std::sync::Arc;
+
+    struct Fixture {
+        desired: GrayImage,
+        turned: GrayImage,
+        map: Map,
+        alignment: GeoAlignment,
+        frame: LocalFrame,
+        home: Home,
+        target: Target,
+    }
+
+    fn fixture() -> Fixture {
+        let sc = SimCamera::default();
+        let world = World::generate_with(3, &WorldParams::small()).unwrap();
+        let r = Renderer::new(Arc::new(world), sc, RenderParams::default());
+        let pose = camera_from_yaw_pitch(Point3::new(0.0, 0.0, -15.0), 0.2, 0.8);
+        let turned = camera_from_yaw_pitch(Point3::new(0.0, 0.0, -15.0), 0.2 + 0.05, 0.8);
+        let camera = Camera::new(
+            sc.width,
+            sc.height,
+            [sc.fx, sc.fy, sc.cx, sc.cy],
+            Distortion::default(),
+        )
+        .unwrap();
+        let home = Home {
+            lat_deg: 47.0,
+            lon_deg: 8.0,
+            alt_amsl_m: 400.0,
+        };
+        Fixture {
+            desired: r.render_noisy(&pose, 1),
+            turned: r.render_noisy(&turned, 2),
+            map: Map::new(camera, ScaleInfo::new(1.2, 8)),
+            alignment: GeoAlignment {
+                ned_from_map: Sim3::identity(),
+                quality: AlignQuality {
+                    rms_m: 0.0,
+                    max_residual_m: 0.0,
+                    rotation_rms_deg: None,
+                    time_offset_s: None,
+                    pairs: 0,
+                    inliers: 0,
+                    iterations: 0,
+                    spread_m2: [0.0; 3],
+                },
+                inlier_ids: Vec::new(),
+            },
+            frame: LocalFrame::new(Geodetic {
+                lat_deg: home.lat_deg,
+                lon_deg: home.lon_deg,
+                alt_m: home.alt_amsl_m,
+            }),
+            home,
+            target: Target {
+                lat_deg: 47.0,
+                lon_deg: 8.0,
+                alt_m: 15.0,
+                yaw_deg: 11.0,
+                gimbal_pitch_deg: -45.0,
+                photo: false,
+            },
+        }
+    }
+
+    fn run(f: &Fixture, live: &GrayImage, max_rounds: usize) -> (Step, Session) {
+        let params = Params {
+            controller: ControllerParams {
+                max_rounds,
+                ..ControllerParams::default()
+            },
+            ..Params::default()
+        };
+        let mut s = Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            params,
+        );
+        let ctx = Context {
+            map: &f.map,
+            alignment: &f.alignment,
+            frame: &f.frame,
+            mount: &MountParams::default(),
+            home: &f.home,
+            fence: &Fence::default(),
+            localize: &LocalizeParams::default(),
+        };
+        let step = s.on_arrival(live, None, &ctx);
+        (step, s)
+    }
+
+    #[test]
+    fn arrivals_end_the_loop_for_their_reasons() {
+        let f = fixture();
+        // The same view: converged at once.
+        let (step, s) = run(&f, &f.desired, 4);
+        assert_eq!(step, Step::Done(Stop::Converged));
+        assert_eq!(s.rounds().len(), 1);
+        assert!(s.rounds()[0].shot_error_pct.is_some_and(|e| e < 0.2));
+        // A view turned by ~3 deg (about 4 % of the diagonal) with no round
+        // left: the budget ends it, with the error recorded.
+        let (step, s) = run(&f, &f.turned, 0);
+        assert_eq!(step, Step::Done(Stop::MaxRounds));
+        let e = s.rounds()[0].shot_error_pct.unwrap_or(0.0);
+        assert!(e > 2.0, "{e}");
+        // With rounds left, the live frame must be localised: an empty map
+        // cannot, and the loop says so instead of guessing.
+        let (step, s) = run(&f, &f.turned, 4);
+        assert!(
+            matches!(step, Step::Done(Stop::LiveNotLocalised(_))),
+            "{step:?}"
+        );
+        assert_eq!(s.stop().map(Stop::name), Some("live_not_localised"));
+        assert_eq!(s.rounds()[0].decision, Decision::Correct);
+        assert!(s.rounds()[0].note.is_some());
+        // A finished session stays finished.
+        let mut s = s;
+        let ctx = Context {
+            map: &f.map,
+            alignment: &f.alignment,
+            frame: &f.frame,
+            mount: &MountParams::default(),
+            home: &f.home,
+            fence: &Fence::default(),
+            localize: &LocalizeParams::default(),
+        };
+        assert!(matches!(
+            s.on_arrival(&f.desired, None, &ctx),
+            Step::Done(Stop::LiveNotLocalised(_))
+        ));
+        assert_eq!(s.rounds().len(), 1);
+    }
+}
