@@ -8,7 +8,6 @@
 //! twin reconstructions with intermediate frames ([`super::planar`]).
 
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::Instant;
 
 use image::GrayImage;
 use nalgebra::{Isometry3, Point2, UnitQuaternion};
@@ -22,6 +21,7 @@ use crate::optimize::{
 };
 
 use super::SlamError;
+use super::cpu_time::Stopwatch;
 use super::grid::{Bounds, FeatureGrid};
 use super::map::{self, KeyFrame, KeyFrameId, Map, PointId, ScaleInfo};
 use super::matcher::{self, MatcherParams, SearchTarget};
@@ -168,6 +168,10 @@ pub struct FrameOutcome {
     pub extract_ms: f64,
     /// Whole frame time (extraction included), ms.
     pub track_ms: f64,
+    /// ORB extraction, this thread's CPU ms (None without a thread clock).
+    pub extract_cpu_ms: Option<f64>,
+    /// Whole frame (extraction included), this thread's CPU ms.
+    pub track_cpu_ms: Option<f64>,
 }
 
 /// A frame being tracked.
@@ -284,6 +288,17 @@ impl Tracker {
         })
     }
 
+    /// Go on with an existing map (a loaded map file): the tracker starts
+    /// lost, so the next frame relocalises against the map.
+    pub fn start_lost(&mut self) {
+        self.state = TrackState::Lost;
+        self.init = None;
+        self.last = None;
+        self.velocity = None;
+        self.reference_kf = None;
+        self.last_reason = Some("continuing on a saved map: not relocalised yet".into());
+    }
+
     /// The scale levels of the extractor.
     pub fn scale(&self) -> &ScaleInfo {
         &self.scale
@@ -319,14 +334,15 @@ impl Tracker {
         image: Arc<GrayImage>,
         mapping_idle: bool,
     ) -> FrameOutcome {
-        let t0 = Instant::now();
+        let t0 = Stopwatch::start();
         let initializing = self.state == TrackState::NotInitialized;
         let feats = if initializing {
             self.init_extractor.extract(&image, Some(&self.camera))
         } else {
             self.extractor.extract(&image, Some(&self.camera))
         };
-        let extract_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let extract_ms = t0.wall_ms();
+        let extract_cpu_ms = t0.cpu_ms();
         let grid = FeatureGrid::new(&feats.keypoints, self.bounds);
         let n = feats.keypoints.len();
         let mut frame = Frame {
@@ -348,6 +364,8 @@ impl Tracker {
             reason: None,
             extract_ms,
             track_ms: 0.0,
+            extract_cpu_ms,
+            track_cpu_ms: None,
         };
         if initializing {
             match self.try_initialize(map, frame) {
@@ -365,7 +383,8 @@ impl Tracker {
                 }
             }
             out.state = self.state;
-            out.track_ms = t0.elapsed().as_secs_f64() * 1e3;
+            out.track_ms = t0.wall_ms();
+            out.track_cpu_ms = t0.cpu_ms();
             return out;
         }
 
@@ -388,7 +407,8 @@ impl Tracker {
             }
         }
         out.state = self.state;
-        out.track_ms = t0.elapsed().as_secs_f64() * 1e3;
+        out.track_ms = t0.wall_ms();
+        out.track_cpu_ms = t0.cpu_ms();
         out
     }
 
