@@ -235,6 +235,62 @@ pub struct Tracker {
     initialized_at: Option<u64>,
     last_reason: Option<String>,
     attempt: u64,
+    marks: Marks,
+}
+
+/// Per-pass marks on map points and keyframes, indexed by id (ORB-SLAM's
+/// `mnTrackReferenceForFrame`): "seen in this pass" without building a set
+/// per frame. A pass number is never reused while marks of it remain.
+#[derive(Debug, Default)]
+struct Marks {
+    pass: u32,
+    point: Vec<u32>,
+    keyframe: Vec<u32>,
+    /// Shared-point count per keyframe, valid where `keyframe` holds the
+    /// current pass.
+    count: Vec<u32>,
+}
+
+impl Marks {
+    /// Start a new pass: nothing is marked in it yet.
+    fn next_pass(&mut self) {
+        if self.pass == u32::MAX {
+            self.point.iter_mut().for_each(|m| *m = 0);
+            self.keyframe.iter_mut().for_each(|m| *m = 0);
+            self.pass = 0;
+        }
+        self.pass += 1;
+    }
+
+    /// Mark a point in this pass; false when it already was.
+    #[inline]
+    fn mark_point(&mut self, id: PointId) -> bool {
+        let i = id.0 as usize;
+        if i >= self.point.len() {
+            self.point.resize((i + 1).next_power_of_two(), 0);
+        }
+        let fresh = self.point[i] != self.pass;
+        self.point[i] = self.pass;
+        fresh
+    }
+
+    /// Mark a keyframe in this pass (its count starts at 0); false when it
+    /// already was.
+    #[inline]
+    fn mark_keyframe(&mut self, id: KeyFrameId) -> bool {
+        let i = id.0 as usize;
+        if i >= self.keyframe.len() {
+            let n = (i + 1).next_power_of_two();
+            self.keyframe.resize(n, 0);
+            self.count.resize(n, 0);
+        }
+        if self.keyframe[i] == self.pass {
+            return false;
+        }
+        self.keyframe[i] = self.pass;
+        self.count[i] = 0;
+        true
+    }
 }
 
 fn lock(map: &Mutex<Map>) -> MutexGuard<'_, Map> {
@@ -285,6 +341,7 @@ impl Tracker {
             initialized_at: None,
             last_reason: None,
             attempt: 0,
+            marks: Marks::default(),
         })
     }
 
@@ -1093,7 +1150,7 @@ impl Tracker {
     /// neighbours that the frame has not matched, and match them by
     /// projection (radius factor `th`).
     fn search_candidate_points(
-        &self,
+        &mut self,
         map: &Map,
         frame: &mut Frame,
         kf: KeyFrameId,
@@ -1102,14 +1159,16 @@ impl Tracker {
     ) {
         let Some(k) = map.keyframe(kf) else { return };
         let center = pose.inverse().translation.vector;
-        let mut seen: std::collections::HashSet<PointId> =
-            frame.points.iter().flatten().copied().collect();
+        self.marks.next_pass();
+        for pid in frame.points.iter().flatten() {
+            self.marks.mark_point(*pid);
+        }
         let mut projected = Vec::new();
         let kfs: Vec<KeyFrameId> = std::iter::once(kf).chain(k.best_covisible(10)).collect();
         for id in kfs {
             let Some(k) = map.keyframe(id) else { continue };
             for pid in k.points.iter().flatten() {
-                if !seen.insert(*pid) {
+                if !self.marks.mark_point(*pid) {
                     continue;
                 }
                 if let Some(pr) =
@@ -1146,35 +1205,41 @@ impl Tracker {
     /// neighbours, parents and children; the reference keyframe becomes the
     /// one sharing most.
     fn local_keyframes(&mut self, map: &Map, frame: &Frame) -> Vec<KeyFrameId> {
-        let mut counts: std::collections::HashMap<KeyFrameId, u32> =
-            std::collections::HashMap::new();
+        let marks = &mut self.marks;
+        marks.next_pass();
+        let mut list: Vec<(KeyFrameId, u32)> = Vec::new();
         for pid in frame.points.iter().flatten() {
             if let Some(mp) = map.point(*pid) {
                 for (kf, _) in &mp.observations {
-                    *counts.entry(*kf).or_insert(0) += 1;
+                    if marks.mark_keyframe(*kf) {
+                        list.push((*kf, 0));
+                    }
+                    marks.count[kf.0 as usize] += 1;
                 }
             }
         }
-        let mut list: Vec<(KeyFrameId, u32)> = counts.into_iter().collect();
-        list.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        for e in &mut list {
+            e.1 = marks.count[e.0.0 as usize];
+        }
+        list.sort_unstable_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
         if let Some(best) = list.first() {
             self.reference_kf = Some(best.0);
         }
         let mut local: Vec<KeyFrameId> = list.iter().map(|e| e.0).collect();
-        let mut seen: std::collections::HashSet<KeyFrameId> = local.iter().copied().collect();
-        let direct = local.clone();
-        for kf in direct {
+        let direct = local.len();
+        for d in 0..direct {
             if local.len() >= self.params.max_local_keyframes {
                 break;
             }
-            let Some(k) = map.keyframe(kf) else { continue };
+            let Some(k) = map.keyframe(local[d]) else {
+                continue;
+            };
             let extra = k
                 .best_covisible(10)
                 .chain(k.children.iter().copied())
-                .chain(k.parent)
-                .collect::<Vec<_>>();
+                .chain(k.parent);
             for e in extra {
-                if seen.insert(e) {
+                if self.marks.mark_keyframe(e) {
                     local.push(e);
                     if local.len() >= self.params.max_local_keyframes {
                         break;
@@ -1193,13 +1258,15 @@ impl Tracker {
     ) -> Result<(Isometry3<f64>, usize), String> {
         let local_kfs = self.local_keyframes(map, frame);
         let center = pose.inverse().translation.vector;
-        let mut in_frame: std::collections::HashSet<PointId> =
-            frame.points.iter().flatten().copied().collect();
+        self.marks.next_pass();
+        for pid in frame.points.iter().flatten() {
+            self.marks.mark_point(*pid);
+        }
         let mut projected = Vec::new();
         for kf in &local_kfs {
             let Some(k) = map.keyframe(*kf) else { continue };
             for pid in k.points.iter().flatten() {
-                if !in_frame.insert(*pid) {
+                if !self.marks.mark_point(*pid) {
                     continue;
                 }
                 if let Some(pr) =
