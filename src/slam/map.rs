@@ -277,6 +277,13 @@ impl Map {
         true
     }
 
+    /// Whether a keyframe is in the keyframe database.
+    pub fn is_indexed(&self, id: KeyFrameId) -> bool {
+        self.places
+            .as_ref()
+            .is_some_and(|p| p.features.contains_key(&id))
+    }
+
     /// Index every live keyframe that is not indexed yet, from its stored
     /// descriptors with `vocabulary` (direct index at `level`): the map file
     /// does not store the BoW vectors, so a loaded map needs this before it

@@ -217,7 +217,12 @@ impl Slam {
         let camera = map.camera;
         let map = Arc::new(Mutex::new(map));
         let bounds = grid::Bounds::of(&camera);
-        let mapper = LocalMapper::new(params.mapping.clone(), bounds);
+        let mapper = LocalMapper::new(
+            params.mapping.clone(),
+            bounds,
+            tracker.vocabulary().clone(),
+            params.tracking.bow.direct_index_level,
+        );
         let mapping = if params.sequential {
             Mapping::Inline(Box::new(mapper))
         } else {

@@ -356,6 +356,11 @@ impl Tracker {
         self.last_reason = Some("continuing on a saved map: not relocalised yet".into());
     }
 
+    /// The vocabulary of the keyframe database.
+    pub fn vocabulary(&self) -> &Arc<Vocabulary> {
+        &self.vocabulary
+    }
+
     /// The scale levels of the extractor.
     pub fn scale(&self) -> &ScaleInfo {
         &self.scale
@@ -720,13 +725,27 @@ impl Tracker {
         })
     }
 
-    /// Add a keyframe made from `frame` to the map and index it in the
-    /// keyframe database.
+    /// Add a keyframe made from `frame` to the map. It is indexed in the
+    /// keyframe database now when the frame's BoW vector was computed
+    /// anyway; otherwise mapping indexes it (off the tracking thread).
     fn insert_keyframe(&self, map: &mut Map, frame: &mut Frame, kf: KeyFrame) -> KeyFrameId {
-        let (bow, fv) = self.frame_bow(frame).clone();
         let id = map.add_keyframe(kf);
-        map.index_keyframe(id, bow, fv, self.vocabulary.word_count());
+        if let Some((bow, fv)) = frame.bow.take() {
+            map.index_keyframe(id, bow, fv, self.vocabulary.word_count());
+        }
         id
+    }
+
+    /// Index keyframe `kf` now if mapping has not yet.
+    fn ensure_indexed(&self, map: &mut Map, kf: KeyFrameId) {
+        if map.is_indexed(kf) {
+            return;
+        }
+        let Some(k) = map.keyframe(kf) else { return };
+        let (bow, fv) = self
+            .vocabulary
+            .transform_with_features(&k.descriptors, self.params.bow.direct_index_level);
+        map.index_keyframe(kf, bow, fv, self.vocabulary.word_count());
     }
 
     fn new_keyframe_from(&self, frame: &Frame, cam_from_world: Isometry3<f64>) -> KeyFrame {
@@ -1005,8 +1024,13 @@ impl Tracker {
 
     /// Match the reference keyframe's points by descriptor (ratio test and
     /// rotation check) and optimise from the last pose.
-    fn track_reference_keyframe(&mut self, map: &Map, frame: &mut Frame) -> Option<Isometry3<f64>> {
+    fn track_reference_keyframe(
+        &mut self,
+        map: &mut Map,
+        frame: &mut Frame,
+    ) -> Option<Isometry3<f64>> {
         let reference = self.reference_kf?;
+        self.ensure_indexed(map, reference);
         let start = self.last.as_ref().map_or_else(
             || map.keyframe(reference).map(|k| k.cam_from_world),
             |l| Some(l.cam_from_world),
