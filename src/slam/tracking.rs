@@ -236,6 +236,8 @@ pub struct Tracker {
     last_reason: Option<String>,
     attempt: u64,
     marks: Marks,
+    /// Scratch list of the local map's projected points.
+    projected: Vec<matcher::Projected>,
 }
 
 /// Per-pass marks on map points and keyframes, indexed by id (ORB-SLAM's
@@ -342,6 +344,7 @@ impl Tracker {
             last_reason: None,
             attempt: 0,
             marks: Marks::default(),
+            projected: Vec::new(),
         })
     }
 
@@ -1286,7 +1289,9 @@ impl Tracker {
         for pid in frame.points.iter().flatten() {
             self.marks.mark_point(*pid);
         }
-        let mut projected = Vec::new();
+        // Reused from frame to frame (no allocation per frame).
+        let mut projected = std::mem::take(&mut self.projected);
+        projected.clear();
         for kf in &local_kfs {
             let Some(k) = map.keyframe(*kf) else { continue };
             for pid in k.points.iter().flatten() {
@@ -1332,6 +1337,7 @@ impl Tracker {
                 &self.params.matcher,
             )
         };
+        self.projected = projected;
         for (i, p) in found {
             if frame.points[i].is_none() {
                 frame.points[i] = Some(p);
