@@ -66,9 +66,20 @@ pub struct FeatureGrid {
     bounds: Option<Bounds>,
     inv_cell_w: f64,
     inv_cell_h: f64,
-    /// `cell_start[c]..cell_start[c+1]` indexes `indices` for cell `c`.
+    /// `cell_start[c]..cell_start[c+1]` indexes `entries` for cell `c`.
     cell_start: Vec<u32>,
-    indices: Vec<u32>,
+    /// The keypoints in cell order, with what the search tests (read in
+    /// sequence rather than gathered from the keypoint list).
+    entries: Vec<Entry>,
+}
+
+/// A keypoint as the grid holds it.
+#[derive(Debug, Clone, Copy, Default)]
+struct Entry {
+    x: f32,
+    y: f32,
+    octave: i32,
+    index: u32,
 }
 
 impl FeatureGrid {
@@ -81,7 +92,7 @@ impl FeatureGrid {
             inv_cell_w,
             inv_cell_h,
             cell_start: vec![0; GRID_COLS * GRID_ROWS + 1],
-            indices: Vec::with_capacity(keypoints.len()),
+            entries: Vec::new(),
         };
         let cells: Vec<Option<usize>> = keypoints
             .iter()
@@ -97,10 +108,16 @@ impl FeatureGrid {
             grid.cell_start[i + 1] += grid.cell_start[i];
         }
         let mut fill = grid.cell_start.clone();
-        grid.indices = vec![0; grid.cell_start[GRID_COLS * GRID_ROWS] as usize];
+        grid.entries = vec![Entry::default(); grid.cell_start[GRID_COLS * GRID_ROWS] as usize];
         for (i, c) in cells.iter().enumerate() {
             if let Some(c) = c {
-                grid.indices[fill[*c] as usize] = i as u32;
+                let k = &keypoints[i];
+                grid.entries[fill[*c] as usize] = Entry {
+                    x: k.ux,
+                    y: k.uy,
+                    octave: k.octave as i32,
+                    index: i as u32,
+                };
                 fill[*c] += 1;
             }
         }
@@ -120,6 +137,8 @@ impl FeatureGrid {
 
     /// Fill `out` with the keypoints within `r` pixels (square window, then
     /// the exact circle) of `(x, y)` whose octave is in `min_level..=max_level`.
+    /// `keypoints` are the ones the grid was built from (indices past their
+    /// end are skipped).
     #[allow(clippy::too_many_arguments)]
     pub fn features_in_area(
         &self,
@@ -135,34 +154,37 @@ impl FeatureGrid {
         let Some(b) = self.bounds else {
             return;
         };
-        let c0 = ((x - r - b.min_x) * self.inv_cell_w).floor().max(0.0);
-        let c1 = ((x + r - b.min_x) * self.inv_cell_w)
-            .floor()
-            .min(GRID_COLS as f64 - 1.0);
-        let r0 = ((y - r - b.min_y) * self.inv_cell_h).floor().max(0.0);
-        let r1 = ((y + r - b.min_y) * self.inv_cell_h)
-            .floor()
-            .min(GRID_ROWS as f64 - 1.0);
-        if !(c0 <= c1 && r0 <= r1) {
+        // Cell range of the square window. `as usize` truncates towards
+        // zero and saturates negatives (and NaN) at 0, which is the floor
+        // clamped at 0 for the low ends; a high end below 0 means the window
+        // misses the grid.
+        let (hx, hy) = (
+            (x + r - b.min_x) * self.inv_cell_w,
+            (y + r - b.min_y) * self.inv_cell_h,
+        );
+        if !(hx >= 0.0 && hy >= 0.0) {
             return;
         }
-        let (c0, c1, r0, r1) = (c0 as usize, c1 as usize, r0 as usize, r1 as usize);
+        let c0 = ((x - r - b.min_x) * self.inv_cell_w) as usize;
+        let r0 = ((y - r - b.min_y) * self.inv_cell_h) as usize;
+        let c1 = (hx as usize).min(GRID_COLS - 1);
+        let r1 = (hy as usize).min(GRID_ROWS - 1);
+        if c0 > c1 || r0 > r1 {
+            return;
+        }
         let r2 = (r * r) as f32;
         let (xf, yf) = (x as f32, y as f32);
+        let n = keypoints.len();
         for row in r0..=r1 {
             let start = self.cell_start[row * GRID_COLS + c0] as usize;
             let end = self.cell_start[row * GRID_COLS + c1 + 1] as usize;
-            for &i in &self.indices[start..end] {
-                let Some(k) = keypoints.get(i as usize) else {
-                    continue;
-                };
-                let o = k.octave as i32;
-                if o < min_level || o > max_level {
+            for e in &self.entries[start..end] {
+                if e.octave < min_level || e.octave > max_level {
                     continue;
                 }
-                let (dx, dy) = (k.ux - xf, k.uy - yf);
-                if dx * dx + dy * dy <= r2 {
-                    out.push(i as usize);
+                let (dx, dy) = (e.x - xf, e.y - yf);
+                if dx * dx + dy * dy <= r2 && (e.index as usize) < n {
+                    out.push(e.index as usize);
                 }
             }
         }

@@ -277,6 +277,39 @@ impl Map {
         true
     }
 
+    /// Whether a keyframe is in the keyframe database.
+    pub fn is_indexed(&self, id: KeyFrameId) -> bool {
+        self.places
+            .as_ref()
+            .is_some_and(|p| p.features.contains_key(&id))
+    }
+
+    /// Index every live keyframe that is not indexed yet, from its stored
+    /// descriptors with `vocabulary` (direct index at `level`): the map file
+    /// does not store the BoW vectors, so a loaded map needs this before it
+    /// can relocalise. Returns the number of keyframes indexed.
+    pub fn index_keyframes(&mut self, vocabulary: &bow::Vocabulary, level: u32) -> usize {
+        let todo: Vec<KeyFrameId> = self
+            .keyframes()
+            .filter(|k| {
+                self.places
+                    .as_ref()
+                    .is_none_or(|p| !p.features.contains_key(&k.id))
+            })
+            .map(|k| k.id)
+            .collect();
+        let words = vocabulary.word_count();
+        let mut n = 0;
+        for id in todo {
+            let Some(k) = self.keyframe(id) else { continue };
+            let (bow, fv) = vocabulary.transform_with_features(&k.descriptors, level);
+            if self.index_keyframe(id, bow, fv, words) {
+                n += 1;
+            }
+        }
+        n
+    }
+
     /// Rebuild a map from its parts (the map file): objects are placed at
     /// their ids; ids must be unique and every reference must resolve.
     pub fn from_parts(

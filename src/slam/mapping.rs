@@ -6,11 +6,12 @@
 //! it), and cull keyframes whose points are seen by enough others.
 
 use std::collections::HashSet;
-use std::sync::{Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
 
 use nalgebra::{Point2, Vector3};
 
+use crate::bow::Vocabulary;
 use crate::geometry;
 use crate::optimize::{self, BaParams};
 
@@ -93,6 +94,8 @@ pub struct MappingReport {
 pub struct LocalMapper {
     params: MappingParams,
     bounds: Bounds,
+    vocabulary: Arc<Vocabulary>,
+    bow_level: u32,
     recent: Vec<(PointId, KeyFrameId)>,
     /// Reports of every processed keyframe.
     pub reports: Vec<MappingReport>,
@@ -103,11 +106,20 @@ fn lock(map: &Mutex<Map>) -> MutexGuard<'_, Map> {
 }
 
 impl LocalMapper {
-    /// A mapper for images bounded by `bounds`.
-    pub fn new(params: MappingParams, bounds: Bounds) -> Self {
+    /// A mapper for images bounded by `bounds`; it indexes new keyframes
+    /// in the keyframe database with `vocabulary` (direct index at
+    /// `bow_level`), off the tracking thread as ORB-SLAM does.
+    pub fn new(
+        params: MappingParams,
+        bounds: Bounds,
+        vocabulary: Arc<Vocabulary>,
+        bow_level: u32,
+    ) -> Self {
         LocalMapper {
             params,
             bounds,
+            vocabulary,
+            bow_level,
             recent: Vec::new(),
             reports: Vec::new(),
         }
@@ -123,6 +135,7 @@ impl LocalMapper {
     ) -> MappingReport {
         let t0 = Instant::now();
         let mut report = MappingReport::default();
+        self.index_keyframe(map, kf);
         {
             let mut m = lock(map);
             let pids: Vec<PointId> = m
@@ -162,6 +175,29 @@ impl LocalMapper {
         );
         self.reports.push(report);
         report
+    }
+
+    /// The keyframe's BoW vector and direct index into the keyframe
+    /// database (computed outside the map lock), unless tracking already
+    /// indexed it.
+    fn index_keyframe(&self, map: &Mutex<Map>, kf: KeyFrameId) {
+        let descriptors = {
+            let m = lock(map);
+            if m.is_indexed(kf) {
+                return;
+            }
+            match m.keyframe(kf) {
+                Some(k) => k.descriptors.clone(),
+                None => return,
+            }
+        };
+        let (bow, fv) = self
+            .vocabulary
+            .transform_with_features(&descriptors, self.bow_level);
+        let mut m = lock(map);
+        if !m.is_indexed(kf) {
+            m.index_keyframe(kf, bow, fv, self.vocabulary.word_count());
+        }
     }
 
     fn cull_recent_points(&mut self, map: &mut Map, current: KeyFrameId) -> usize {

@@ -7,6 +7,7 @@
 //! keyframe when mapping is idle, and mapping solves its bundle adjustment
 //! outside the map lock.
 
+pub mod cpu_time;
 pub mod grid;
 pub mod map;
 pub mod mapfile;
@@ -46,6 +47,20 @@ pub enum SlamError {
     /// The built-in vocabulary could not be loaded.
     #[error(transparent)]
     Vocabulary(#[from] crate::bow::BowError),
+    /// A saved map does not fit the extractor's scale levels.
+    #[error(
+        "the map was built with {map_levels} levels at scale {map_scale}, the extractor has {levels} at {scale}"
+    )]
+    ScaleMismatch {
+        /// Levels in the map.
+        map_levels: usize,
+        /// Scale factor in the map.
+        map_scale: f64,
+        /// Levels of the extractor.
+        levels: usize,
+        /// Scale factor of the extractor.
+        scale: f64,
+    },
 }
 
 /// Every tunable of the SLAM.
@@ -161,9 +176,53 @@ impl Slam {
         vocabulary: Arc<crate::bow::Vocabulary>,
     ) -> Result<Self, SlamError> {
         let tracker = Tracker::new(camera, params.tracking.clone(), vocabulary)?;
-        let map = Arc::new(Mutex::new(Map::new(camera, tracker.scale().clone())));
+        let map = Map::new(camera, tracker.scale().clone());
+        Self::start(tracker, map, params)
+    }
+
+    /// A SLAM that goes on with a saved map ([`mapfile::load`]) seen by the
+    /// same camera: the map's keyframes are indexed in the keyframe
+    /// database with `vocabulary` (the file stores descriptors, not BoW
+    /// vectors) and tracking starts lost, so the first frames relocalise
+    /// against the map; new keyframes extend it.
+    pub fn from_map(
+        mut map: Map,
+        params: Params,
+        vocabulary: Arc<crate::bow::Vocabulary>,
+    ) -> Result<Self, SlamError> {
+        let mut tracker = Tracker::new(map.camera, params.tracking.clone(), vocabulary.clone())?;
+        let scale = tracker.scale();
+        if scale.n_levels() != map.scale.n_levels()
+            || (scale.scale_factor - map.scale.scale_factor).abs() > 1e-6
+        {
+            return Err(SlamError::ScaleMismatch {
+                map_levels: map.scale.n_levels(),
+                map_scale: map.scale.scale_factor,
+                levels: scale.n_levels(),
+                scale: scale.scale_factor,
+            });
+        }
+        let indexed = map.index_keyframes(&vocabulary, params.tracking.bow.direct_index_level);
+        tracing::info!(
+            keyframes = map.keyframe_count(),
+            points = map.point_count(),
+            indexed,
+            "continuing on a saved map"
+        );
+        tracker.start_lost();
+        Self::start(tracker, map, params)
+    }
+
+    fn start(tracker: Tracker, map: Map, params: Params) -> Result<Self, SlamError> {
+        let camera = map.camera;
+        let map = Arc::new(Mutex::new(map));
         let bounds = grid::Bounds::of(&camera);
-        let mapper = LocalMapper::new(params.mapping.clone(), bounds);
+        let mapper = LocalMapper::new(
+            params.mapping.clone(),
+            bounds,
+            tracker.vocabulary().clone(),
+            params.tracking.bow.direct_index_level,
+        );
         let mapping = if params.sequential {
             Mapping::Inline(Box::new(mapper))
         } else {

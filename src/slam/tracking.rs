@@ -8,7 +8,6 @@
 //! twin reconstructions with intermediate frames ([`super::planar`]).
 
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::Instant;
 
 use image::GrayImage;
 use nalgebra::{Isometry3, Point2, UnitQuaternion};
@@ -22,6 +21,7 @@ use crate::optimize::{
 };
 
 use super::SlamError;
+use super::cpu_time::Stopwatch;
 use super::grid::{Bounds, FeatureGrid};
 use super::map::{self, KeyFrame, KeyFrameId, Map, PointId, ScaleInfo};
 use super::matcher::{self, MatcherParams, SearchTarget};
@@ -168,6 +168,10 @@ pub struct FrameOutcome {
     pub extract_ms: f64,
     /// Whole frame time (extraction included), ms.
     pub track_ms: f64,
+    /// ORB extraction, this thread's CPU ms (None without a thread clock).
+    pub extract_cpu_ms: Option<f64>,
+    /// Whole frame (extraction included), this thread's CPU ms.
+    pub track_cpu_ms: Option<f64>,
 }
 
 /// A frame being tracked.
@@ -231,6 +235,64 @@ pub struct Tracker {
     initialized_at: Option<u64>,
     last_reason: Option<String>,
     attempt: u64,
+    marks: Marks,
+    /// Scratch list of the local map's projected points.
+    projected: Vec<matcher::Projected>,
+}
+
+/// Per-pass marks on map points and keyframes, indexed by id (ORB-SLAM's
+/// `mnTrackReferenceForFrame`): "seen in this pass" without building a set
+/// per frame. A pass number is never reused while marks of it remain.
+#[derive(Debug, Default)]
+struct Marks {
+    pass: u32,
+    point: Vec<u32>,
+    keyframe: Vec<u32>,
+    /// Shared-point count per keyframe, valid where `keyframe` holds the
+    /// current pass.
+    count: Vec<u32>,
+}
+
+impl Marks {
+    /// Start a new pass: nothing is marked in it yet.
+    fn next_pass(&mut self) {
+        if self.pass == u32::MAX {
+            self.point.iter_mut().for_each(|m| *m = 0);
+            self.keyframe.iter_mut().for_each(|m| *m = 0);
+            self.pass = 0;
+        }
+        self.pass += 1;
+    }
+
+    /// Mark a point in this pass; false when it already was.
+    #[inline]
+    fn mark_point(&mut self, id: PointId) -> bool {
+        let i = id.0 as usize;
+        if i >= self.point.len() {
+            self.point.resize((i + 1).next_power_of_two(), 0);
+        }
+        let fresh = self.point[i] != self.pass;
+        self.point[i] = self.pass;
+        fresh
+    }
+
+    /// Mark a keyframe in this pass (its count starts at 0); false when it
+    /// already was.
+    #[inline]
+    fn mark_keyframe(&mut self, id: KeyFrameId) -> bool {
+        let i = id.0 as usize;
+        if i >= self.keyframe.len() {
+            let n = (i + 1).next_power_of_two();
+            self.keyframe.resize(n, 0);
+            self.count.resize(n, 0);
+        }
+        if self.keyframe[i] == self.pass {
+            return false;
+        }
+        self.keyframe[i] = self.pass;
+        self.count[i] = 0;
+        true
+    }
 }
 
 fn lock(map: &Mutex<Map>) -> MutexGuard<'_, Map> {
@@ -281,7 +343,25 @@ impl Tracker {
             initialized_at: None,
             last_reason: None,
             attempt: 0,
+            marks: Marks::default(),
+            projected: Vec::new(),
         })
+    }
+
+    /// Go on with an existing map (a loaded map file): the tracker starts
+    /// lost, so the next frame relocalises against the map.
+    pub fn start_lost(&mut self) {
+        self.state = TrackState::Lost;
+        self.init = None;
+        self.last = None;
+        self.velocity = None;
+        self.reference_kf = None;
+        self.last_reason = Some("continuing on a saved map: not relocalised yet".into());
+    }
+
+    /// The vocabulary of the keyframe database.
+    pub fn vocabulary(&self) -> &Arc<Vocabulary> {
+        &self.vocabulary
     }
 
     /// The scale levels of the extractor.
@@ -319,14 +399,15 @@ impl Tracker {
         image: Arc<GrayImage>,
         mapping_idle: bool,
     ) -> FrameOutcome {
-        let t0 = Instant::now();
+        let t0 = Stopwatch::start();
         let initializing = self.state == TrackState::NotInitialized;
         let feats = if initializing {
             self.init_extractor.extract(&image, Some(&self.camera))
         } else {
             self.extractor.extract(&image, Some(&self.camera))
         };
-        let extract_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let extract_ms = t0.wall_ms();
+        let extract_cpu_ms = t0.cpu_ms();
         let grid = FeatureGrid::new(&feats.keypoints, self.bounds);
         let n = feats.keypoints.len();
         let mut frame = Frame {
@@ -348,6 +429,8 @@ impl Tracker {
             reason: None,
             extract_ms,
             track_ms: 0.0,
+            extract_cpu_ms,
+            track_cpu_ms: None,
         };
         if initializing {
             match self.try_initialize(map, frame) {
@@ -365,7 +448,8 @@ impl Tracker {
                 }
             }
             out.state = self.state;
-            out.track_ms = t0.elapsed().as_secs_f64() * 1e3;
+            out.track_ms = t0.wall_ms();
+            out.track_cpu_ms = t0.cpu_ms();
             return out;
         }
 
@@ -388,7 +472,8 @@ impl Tracker {
             }
         }
         out.state = self.state;
-        out.track_ms = t0.elapsed().as_secs_f64() * 1e3;
+        out.track_ms = t0.wall_ms();
+        out.track_cpu_ms = t0.cpu_ms();
         out
     }
 
@@ -643,13 +728,27 @@ impl Tracker {
         })
     }
 
-    /// Add a keyframe made from `frame` to the map and index it in the
-    /// keyframe database.
+    /// Add a keyframe made from `frame` to the map. It is indexed in the
+    /// keyframe database now when the frame's BoW vector was computed
+    /// anyway; otherwise mapping indexes it (off the tracking thread).
     fn insert_keyframe(&self, map: &mut Map, frame: &mut Frame, kf: KeyFrame) -> KeyFrameId {
-        let (bow, fv) = self.frame_bow(frame).clone();
         let id = map.add_keyframe(kf);
-        map.index_keyframe(id, bow, fv, self.vocabulary.word_count());
+        if let Some((bow, fv)) = frame.bow.take() {
+            map.index_keyframe(id, bow, fv, self.vocabulary.word_count());
+        }
         id
+    }
+
+    /// Index keyframe `kf` now if mapping has not yet.
+    fn ensure_indexed(&self, map: &mut Map, kf: KeyFrameId) {
+        if map.is_indexed(kf) {
+            return;
+        }
+        let Some(k) = map.keyframe(kf) else { return };
+        let (bow, fv) = self
+            .vocabulary
+            .transform_with_features(&k.descriptors, self.params.bow.direct_index_level);
+        map.index_keyframe(kf, bow, fv, self.vocabulary.word_count());
     }
 
     fn new_keyframe_from(&self, frame: &Frame, cam_from_world: Isometry3<f64>) -> KeyFrame {
@@ -928,8 +1027,13 @@ impl Tracker {
 
     /// Match the reference keyframe's points by descriptor (ratio test and
     /// rotation check) and optimise from the last pose.
-    fn track_reference_keyframe(&mut self, map: &Map, frame: &mut Frame) -> Option<Isometry3<f64>> {
+    fn track_reference_keyframe(
+        &mut self,
+        map: &mut Map,
+        frame: &mut Frame,
+    ) -> Option<Isometry3<f64>> {
         let reference = self.reference_kf?;
+        self.ensure_indexed(map, reference);
         let start = self.last.as_ref().map_or_else(
             || map.keyframe(reference).map(|k| k.cam_from_world),
             |l| Some(l.cam_from_world),
@@ -1073,7 +1177,7 @@ impl Tracker {
     /// neighbours that the frame has not matched, and match them by
     /// projection (radius factor `th`).
     fn search_candidate_points(
-        &self,
+        &mut self,
         map: &Map,
         frame: &mut Frame,
         kf: KeyFrameId,
@@ -1082,14 +1186,16 @@ impl Tracker {
     ) {
         let Some(k) = map.keyframe(kf) else { return };
         let center = pose.inverse().translation.vector;
-        let mut seen: std::collections::HashSet<PointId> =
-            frame.points.iter().flatten().copied().collect();
+        self.marks.next_pass();
+        for pid in frame.points.iter().flatten() {
+            self.marks.mark_point(*pid);
+        }
         let mut projected = Vec::new();
         let kfs: Vec<KeyFrameId> = std::iter::once(kf).chain(k.best_covisible(10)).collect();
         for id in kfs {
             let Some(k) = map.keyframe(id) else { continue };
             for pid in k.points.iter().flatten() {
-                if !seen.insert(*pid) {
+                if !self.marks.mark_point(*pid) {
                     continue;
                 }
                 if let Some(pr) =
@@ -1126,35 +1232,41 @@ impl Tracker {
     /// neighbours, parents and children; the reference keyframe becomes the
     /// one sharing most.
     fn local_keyframes(&mut self, map: &Map, frame: &Frame) -> Vec<KeyFrameId> {
-        let mut counts: std::collections::HashMap<KeyFrameId, u32> =
-            std::collections::HashMap::new();
+        let marks = &mut self.marks;
+        marks.next_pass();
+        let mut list: Vec<(KeyFrameId, u32)> = Vec::new();
         for pid in frame.points.iter().flatten() {
             if let Some(mp) = map.point(*pid) {
                 for (kf, _) in &mp.observations {
-                    *counts.entry(*kf).or_insert(0) += 1;
+                    if marks.mark_keyframe(*kf) {
+                        list.push((*kf, 0));
+                    }
+                    marks.count[kf.0 as usize] += 1;
                 }
             }
         }
-        let mut list: Vec<(KeyFrameId, u32)> = counts.into_iter().collect();
-        list.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        for e in &mut list {
+            e.1 = marks.count[e.0.0 as usize];
+        }
+        list.sort_unstable_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
         if let Some(best) = list.first() {
             self.reference_kf = Some(best.0);
         }
         let mut local: Vec<KeyFrameId> = list.iter().map(|e| e.0).collect();
-        let mut seen: std::collections::HashSet<KeyFrameId> = local.iter().copied().collect();
-        let direct = local.clone();
-        for kf in direct {
+        let direct = local.len();
+        for d in 0..direct {
             if local.len() >= self.params.max_local_keyframes {
                 break;
             }
-            let Some(k) = map.keyframe(kf) else { continue };
+            let Some(k) = map.keyframe(local[d]) else {
+                continue;
+            };
             let extra = k
                 .best_covisible(10)
                 .chain(k.children.iter().copied())
-                .chain(k.parent)
-                .collect::<Vec<_>>();
+                .chain(k.parent);
             for e in extra {
-                if seen.insert(e) {
+                if self.marks.mark_keyframe(e) {
                     local.push(e);
                     if local.len() >= self.params.max_local_keyframes {
                         break;
@@ -1173,13 +1285,17 @@ impl Tracker {
     ) -> Result<(Isometry3<f64>, usize), String> {
         let local_kfs = self.local_keyframes(map, frame);
         let center = pose.inverse().translation.vector;
-        let mut in_frame: std::collections::HashSet<PointId> =
-            frame.points.iter().flatten().copied().collect();
-        let mut projected = Vec::new();
+        self.marks.next_pass();
+        for pid in frame.points.iter().flatten() {
+            self.marks.mark_point(*pid);
+        }
+        // Reused from frame to frame (no allocation per frame).
+        let mut projected = std::mem::take(&mut self.projected);
+        projected.clear();
         for kf in &local_kfs {
             let Some(k) = map.keyframe(*kf) else { continue };
             for pid in k.points.iter().flatten() {
-                if !in_frame.insert(*pid) {
+                if !self.marks.mark_point(*pid) {
                     continue;
                 }
                 if let Some(pr) =
@@ -1221,6 +1337,7 @@ impl Tracker {
                 &self.params.matcher,
             )
         };
+        self.projected = projected;
         for (i, p) in found {
             if frame.points[i].is_none() {
                 frame.points[i] = Some(p);
