@@ -72,7 +72,7 @@ impl ShotComputer for LocalisingOnKf1 {
         &self,
         kf: u64,
         a: &[[f64; 2]; 4],
-        size: (u32, u32),
+        size: Option<(u32, u32)>,
     ) -> Result<ShotComputation, ShotError> {
         let mut c = self.0.shot_from_anchors(kf, a, size)?;
         if kf == 1 {
@@ -232,6 +232,13 @@ fn json_of(b: &[u8]) -> Value {
     serde_json::from_slice(b).unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(b)))
 }
 
+/// A bad-anchors error with its check's `reason`.
+fn assert_anchor_refusal(r: &(u16, String, Vec<u8>), reason: &str) {
+    assert_error(r, 400, "bad_anchors");
+    let v = json_of(&r.2);
+    assert_eq!(v["error"]["reason"], reason, "{v}");
+}
+
 fn assert_error(r: &(u16, String, Vec<u8>), status: u16, code: &str) {
     assert_eq!(r.0, status, "{}", String::from_utf8_lossy(&r.2));
     assert!(r.1.contains("content-type: application/json"), "{}", r.1);
@@ -248,8 +255,10 @@ const TOKEN: &str = "s3cret";
 const AUTH: (&str, &str) = ("Authorization", "Bearer s3cret");
 const JSON_CT: (&str, &str) = ("Content-Type", "application/json");
 
+/// The 200 x 150 crop at (100, 100): anchors are where the picture's corner
+/// pixels go (pixel centres at integers).
 fn good_shot(kf: u64) -> Vec<u8> {
-    json!({"keyframe_id": kf, "anchors": [[100, 100], [300, 100], [300, 250], [100, 250]], "width": 200, "height": 150})
+    json!({"keyframe_id": kf, "anchors": [[100, 100], [299, 100], [299, 249], [100, 249]], "width": 200, "height": 150})
         .to_string()
         .into_bytes()
 }
@@ -332,7 +341,7 @@ fn endpoints_and_bad_input() {
     );
     let three =
         json!({"keyframe_id": 0, "anchors": [[100, 100], [300, 100], [300, 250]]}).to_string();
-    assert_error(
+    assert_anchor_refusal(
         &http(
             a,
             "POST",
@@ -340,22 +349,52 @@ fn endpoints_and_bad_input() {
             &[AUTH, JSON_CT],
             three.as_bytes(),
         ),
-        400,
-        "bad_anchors",
+        "count",
     );
-    let bowtie =
-        json!({"keyframe_id": 0, "anchors": [[100, 100], [300, 100], [100, 250], [300, 250]]})
-            .to_string();
+    // Each anchor check answers with its own reason.
+    for (anchors, reason) in [
+        (
+            json!([[0, 0], [300, 0], [30, 200], [250, 150]]),
+            "not_convex",
+        ),
+        (
+            json!([[300, 100], [100, 100], [100, 250], [300, 250]]),
+            "mirrored",
+        ),
+        (
+            json!([[0, 0], [300, 100], [150, 120], [0, 250]]),
+            "not_convex",
+        ),
+        (
+            json!([[100, 100], [110, 100], [110, 105], [100, 105]]),
+            "collapsed",
+        ),
+        (
+            json!([[-2000, 100], [300, 100], [300, 250], [100, 250]]),
+            "out_of_bounds",
+        ),
+    ] {
+        let body = json!({"keyframe_id": 0, "anchors": anchors}).to_string();
+        let r = http(
+            a,
+            "POST",
+            "/api/v1/shots",
+            &[AUTH, JSON_CT],
+            body.as_bytes(),
+        );
+        assert_anchor_refusal(&r, reason);
+    }
+    let tiny = json!({"keyframe_id": 0, "anchors": [[100, 100], [299, 100], [299, 249], [100, 249]], "width": 1, "height": 150}).to_string();
     assert_error(
         &http(
             a,
             "POST",
             "/api/v1/shots",
             &[AUTH, JSON_CT],
-            bowtie.as_bytes(),
+            tiny.as_bytes(),
         ),
         400,
-        "bad_anchors",
+        "bad_image",
     );
     assert_error(
         &http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(9)),

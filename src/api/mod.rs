@@ -223,6 +223,9 @@ pub struct ApiError {
     pub code: &'static str,
     /// Human-readable message.
     pub message: String,
+    /// Machine-readable details merged into the error object (e.g. which
+    /// anchor check refused: `{"reason": "not_convex", "anchor": 2}`).
+    pub detail: Option<serde_json::Map<String, Value>>,
 }
 
 impl ApiError {
@@ -232,7 +235,14 @@ impl ApiError {
             status,
             code,
             message: message.into(),
+            detail: None,
         }
+    }
+
+    /// The same error with machine-readable details.
+    pub fn with_detail(mut self, detail: serde_json::Map<String, Value>) -> Self {
+        self.detail = Some(detail);
+        self
     }
     fn not_found(what: &str) -> Self {
         Self::new(
@@ -245,11 +255,13 @@ impl ApiError {
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        let mut r = (
-            self.status,
-            Json(json!({"error": {"code": self.code, "message": self.message}})),
-        )
-            .into_response();
+        let mut error = serde_json::Map::new();
+        error.insert("code".into(), self.code.into());
+        error.insert("message".into(), self.message.into());
+        for (k, v) in self.detail.into_iter().flatten() {
+            error.entry(k).or_insert(v);
+        }
+        let mut r = (self.status, Json(json!({ "error": error }))).into_response();
         if self.status == StatusCode::UNAUTHORIZED {
             r.headers_mut()
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
@@ -264,14 +276,36 @@ impl From<ShotError> for ApiError {
             ShotError::UnknownKeyframe { .. } => {
                 Self::new(StatusCode::NOT_FOUND, "unknown_keyframe", e.to_string())
             }
-            ShotError::BadAnchors { .. } => {
-                Self::new(StatusCode::BAD_REQUEST, "bad_anchors", e.to_string())
+            ShotError::BadAnchors { ref source } => {
+                let detail = anchor_refusal(source);
+                Self::new(StatusCode::BAD_REQUEST, "bad_anchors", e.to_string()).with_detail(detail)
             }
             ShotError::BadImage { .. } => {
                 Self::new(StatusCode::BAD_REQUEST, "bad_image", e.to_string())
             }
         }
     }
+}
+
+/// Which anchor check refused, as the error's `reason` (and the anchor's
+/// index where one anchor is at fault).
+fn anchor_refusal(e: &crate::shot::ShotError) -> serde_json::Map<String, Value> {
+    use crate::shot::ShotError as R;
+    let (reason, anchor) = match e {
+        R::NonFiniteAnchor { index } => ("non_finite", Some(*index)),
+        R::AnchorOutOfBounds { index, .. } => ("out_of_bounds", Some(*index)),
+        R::Collapsed { .. } => ("collapsed", None),
+        R::MirroredWinding => ("mirrored", None),
+        R::NotConvex { vertex } => ("not_convex", Some(*vertex)),
+        R::NearSingular { .. } => ("near_singular", None),
+        _ => ("invalid", None),
+    };
+    let mut m = serde_json::Map::new();
+    m.insert("reason".into(), reason.into());
+    if let Some(i) = anchor {
+        m.insert("anchor".into(), i.into());
+    }
+    m
 }
 
 impl From<VehicleError> for ApiError {
@@ -596,7 +630,9 @@ async fn shot_image(
 pub struct ShotRequest {
     /// The keyframe the anchors are on.
     pub keyframe_id: u64,
-    /// Four corners (top-left, top-right, bottom-right, bottom-left), pixels.
+    /// Where the picture's four corner pixels go on the keyframe (top-left,
+    /// top-right, bottom-right, bottom-left), pixels, pixel centres at
+    /// integers (the keyframe's top-left pixel is (0, 0)).
     pub anchors: Vec<[f64; 2]>,
     /// Desired picture width, pixels (default: the keyframe's).
     pub width: Option<u32>,
@@ -617,6 +653,10 @@ pub fn parse_shot_request(body: &[u8]) -> Result<ParsedShot, ApiError> {
             "bad_anchors",
             format!("exactly 4 anchors are needed, got {}", req.anchors.len()),
         )
+        .with_detail(serde_json::Map::from_iter([(
+            "reason".to_owned(),
+            Value::from("count"),
+        )]))
     })?;
     let size = match (req.width, req.height) {
         (Some(w), Some(h)) => Some((w, h)),
@@ -692,21 +732,11 @@ async fn create_shot(
     }
     let (kf, anchors, size) = parse_shot_request(&body)?;
     let computer = st.shots.clone();
-    let slam = st.slam.clone();
-    let comp = tokio::task::spawn_blocking(move || {
-        let size = match size {
-            Some(s) => s,
-            None => {
-                let img = slam
-                    .keyframe_image(kf)
-                    .ok_or(ShotError::UnknownKeyframe { id: kf })?;
-                (img.width(), img.height())
-            }
-        };
-        computer.shot_from_anchors(kf, &anchors, size)
-    })
-    .await
-    .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))??;
+    let comp = tokio::task::spawn_blocking(move || computer.shot_from_anchors(kf, &anchors, size))
+        .await
+        .map_err(|e| {
+            ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string())
+        })??;
     store_shot(
         &st,
         ShotSource::Anchors {
