@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use image::{GrayImage, Luma};
 use serde_json::{Value, json};
-use shotpilot::api::shots::{ShotComputation, ShotComputer, ShotError, WarpOnly};
+use shotpilot::api::shots::{PhotoIntrinsics, ShotComputation, ShotComputer, ShotError, WarpOnly};
 use shotpilot::api::store::{Localisation, MissionRecord, PoseJson, Shot, ShotStore};
 use shotpilot::api::{
     self, ApiParams, AppState, BoxFuture, KeyframeInfo, MapView, SlamStatus, SlamView,
@@ -88,8 +88,12 @@ impl ShotComputer for LocalisingOnKf1 {
         }
         Ok(c)
     }
-    fn shot_from_photo(&self, p: &GrayImage) -> Result<ShotComputation, ShotError> {
-        self.0.shot_from_photo(p)
+    fn shot_from_photo(
+        &self,
+        p: &GrayImage,
+        i: Option<&PhotoIntrinsics>,
+    ) -> Result<ShotComputation, ShotError> {
+        self.0.shot_from_photo(p, i)
     }
 }
 
@@ -504,6 +508,38 @@ fn endpoints_and_bad_input() {
     );
     assert_eq!(r.0, 201, "{}", String::from_utf8_lossy(&r.2));
     assert_eq!(json_of(&r.2)["source"]["kind"], "photo");
+    // A photo from another camera, with its intrinsics: kept with the shot.
+    let r = http(
+        a,
+        "POST",
+        "/api/v1/shots/photo?fx=500&fy=510.5&cx=319.5&cy=239.5&k1=-0.05",
+        &[AUTH, ("Content-Type", "image/png")],
+        &png,
+    );
+    assert_eq!(r.0, 201, "{}", String::from_utf8_lossy(&r.2));
+    let src = &json_of(&r.2)["source"];
+    assert_eq!(src["intrinsics"]["fy"], 510.5, "{src}");
+    assert_eq!(src["intrinsics"]["distortion"]["k1"], -0.05, "{src}");
+    assert_eq!(src["intrinsics"]["distortion"]["k2"], 0.0, "{src}");
+    // Incomplete, impossible or unknown intrinsics: 400, nothing stored.
+    for q in [
+        "fx=500",
+        "fx=500&fy=500&cx=319.5",
+        "k1=0.1",
+        "fx=-500&fy=500&cx=319.5&cy=239.5",
+        "fx=500&fy=500&cx=319.5&cy=nan",
+        "fx=500&fy=500&cx=319.5&cy=239.5&focal=3",
+        "fx=five&fy=500&cx=319.5&cy=239.5",
+    ] {
+        let r = http(
+            a,
+            "POST",
+            &format!("/api/v1/shots/photo?{q}"),
+            &[AUTH, ("Content-Type", "image/png")],
+            &png,
+        );
+        assert_error(&r, 400, "bad_intrinsics");
+    }
 
     // A localised shot: upload, start, progress.
     let r = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(1));
@@ -551,7 +587,7 @@ fn endpoints_and_bad_input() {
     assert_eq!(p["progress"]["current_seq"], 1);
     assert_eq!(
         json_of(&http(a, "GET", "/api/v1/shots", &[], b"").2)["count"],
-        3
+        4
     );
 }
 

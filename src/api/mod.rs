@@ -283,6 +283,14 @@ impl From<ShotError> for ApiError {
             ShotError::BadImage { .. } => {
                 Self::new(StatusCode::BAD_REQUEST, "bad_image", e.to_string())
             }
+            ShotError::BadIntrinsics { .. } => {
+                Self::new(StatusCode::BAD_REQUEST, "bad_intrinsics", e.to_string())
+            }
+            ShotError::IntrinsicsRequired { .. } => Self::new(
+                StatusCode::BAD_REQUEST,
+                "intrinsics_required",
+                e.to_string(),
+            ),
         }
     }
 }
@@ -748,12 +756,71 @@ async fn create_shot(
     .await
 }
 
+/// `POST /shots/photo` query: the photo camera's intrinsics, all four of
+/// `fx fy cx cy` or none; distortion terms optional (zero when left out).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhotoQuery {
+    /// Focal length x, pixels.
+    pub fx: Option<f64>,
+    /// Focal length y, pixels.
+    pub fy: Option<f64>,
+    /// Principal point x, pixels.
+    pub cx: Option<f64>,
+    /// Principal point y, pixels.
+    pub cy: Option<f64>,
+    /// Radial, r^2.
+    pub k1: Option<f64>,
+    /// Radial, r^4.
+    pub k2: Option<f64>,
+    /// Tangential, first.
+    pub p1: Option<f64>,
+    /// Tangential, second.
+    pub p2: Option<f64>,
+    /// Radial, r^6.
+    pub k3: Option<f64>,
+}
+
+impl PhotoQuery {
+    /// The intrinsics it gives (None: none given).
+    pub fn intrinsics(&self) -> Result<Option<shots::PhotoIntrinsics>, ApiError> {
+        let bad = |m: &str| ApiError::new(StatusCode::BAD_REQUEST, "bad_intrinsics", m);
+        let d = [self.k1, self.k2, self.p1, self.p2, self.k3];
+        match (self.fx, self.fy, self.cx, self.cy) {
+            (Some(fx), Some(fy), Some(cx), Some(cy)) => {
+                let z = |v: Option<f64>| v.unwrap_or(0.0);
+                Ok(Some(shots::PhotoIntrinsics {
+                    fx,
+                    fy,
+                    cx,
+                    cy,
+                    distortion: crate::camera::Distortion {
+                        k1: z(self.k1),
+                        k2: z(self.k2),
+                        p1: z(self.p1),
+                        p2: z(self.p2),
+                        k3: z(self.k3),
+                    },
+                }))
+            }
+            (None, None, None, None) if d.iter().all(Option::is_none) => Ok(None),
+            (None, None, None, None) => Err(bad("distortion without fx, fy, cx, cy")),
+            _ => Err(bad("give all of fx, fy, cx, cy, or none")),
+        }
+    }
+}
+
 async fn create_shot_from_photo(
     State(st): State<AppState>,
     headers: HeaderMap,
+    query: Result<Query<PhotoQuery>, axum::extract::rejection::QueryRejection>,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
     let body = body?;
+    let intrinsics = query
+        .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_intrinsics", e.body_text()))?
+        .0
+        .intrinsics()?;
     let ct = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -773,7 +840,9 @@ async fn create_shot_from_photo(
         })?;
         let grey = img.to_luma8();
         let (w, h) = grey.dimensions();
-        computer.shot_from_photo(&grey).map(|c| (c, w, h))
+        computer
+            .shot_from_photo(&grey, intrinsics.as_ref())
+            .map(|c| (c, w, h))
     })
     .await
     .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))??;
@@ -783,6 +852,7 @@ async fn create_shot_from_photo(
             bytes,
             width: w,
             height: h,
+            intrinsics,
         },
         comp,
     )

@@ -19,6 +19,7 @@ use image::GrayImage;
 use nalgebra::{Matrix3, Point2};
 
 use super::store::Localisation;
+use crate::camera::{Camera, Distortion};
 use crate::shot::{AnchorParams, DesiredShot, homography_from_anchors, warp_perspective};
 
 /// Why a shot request cannot be computed.
@@ -44,6 +45,63 @@ pub enum ShotError {
         /// What is wrong.
         reason: String,
     },
+    /// The photo's intrinsics do not describe a camera.
+    #[error("bad intrinsics: {reason}")]
+    BadIntrinsics {
+        /// What is wrong.
+        reason: String,
+    },
+    /// A photo whose aspect ratio is not the map camera's: the map camera
+    /// cannot be scaled to it, so its intrinsics must be given.
+    #[error(
+        "the photo is {width}x{height}, not the map camera's aspect ratio ({camera_width}x{camera_height}): \
+         give its intrinsics as query parameters fx, fy, cx, cy (pixels, for this photo's size, \
+         pixel centres at integers) and optionally k1, k2, p1, p2, k3"
+    )]
+    IntrinsicsRequired {
+        /// Photo width, pixels.
+        width: u32,
+        /// Photo height, pixels.
+        height: u32,
+        /// Map camera width, pixels.
+        camera_width: u32,
+        /// Map camera height, pixels.
+        camera_height: u32,
+    },
+}
+
+/// The intrinsics of a photo from another camera (pinhole with OpenCV's
+/// radial-tangential distortion, pixel centres at integers, for the photo's
+/// own size).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhotoIntrinsics {
+    /// Focal length x, pixels.
+    pub fx: f64,
+    /// Focal length y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Distortion (zero when not given).
+    #[serde(default)]
+    pub distortion: Distortion,
+}
+
+impl PhotoIntrinsics {
+    /// The camera of a `width` x `height` photo with these intrinsics.
+    pub fn camera(&self, width: u32, height: u32) -> Result<Camera, ShotError> {
+        Camera::new(
+            width,
+            height,
+            [self.fx, self.fy, self.cx, self.cy],
+            self.distortion,
+        )
+        .map_err(|e| ShotError::BadIntrinsics {
+            reason: e.to_string(),
+        })
+    }
 }
 
 /// What a shot computation produces.
@@ -66,8 +124,14 @@ pub trait ShotComputer: Send + Sync {
         anchors: &[[f64; 2]; 4],
         size: Option<(u32, u32)>,
     ) -> Result<ShotComputation, ShotError>;
-    /// A shot given as a photograph.
-    fn shot_from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError>;
+    /// A shot given as a photograph, with its camera's intrinsics when it
+    /// is not the map camera's (None: the map camera, scaled to the photo's
+    /// size when that has the same aspect ratio).
+    fn shot_from_photo(
+        &self,
+        photo: &GrayImage,
+        intrinsics: Option<&PhotoIntrinsics>,
+    ) -> Result<ShotComputation, ShotError>;
 }
 
 /// Tunables of the anchor shot.
@@ -208,14 +272,21 @@ impl<K: KeyframeImages> WarpOnly<K> {
         anchor_shot(&img, anchors, size, &self.params)
     }
 
-    /// Check a photo's size (at least 32 x 32 pixels).
-    pub fn check_photo(&self, photo: &GrayImage) -> Result<(), ShotError> {
+    /// Check a photo's size (at least 32 x 32 pixels) and its intrinsics
+    /// when given; returns the camera they describe.
+    pub fn check_photo(
+        &self,
+        photo: &GrayImage,
+        intrinsics: Option<&PhotoIntrinsics>,
+    ) -> Result<Option<Camera>, ShotError> {
         if photo.width() < 32 || photo.height() < 32 {
             return Err(ShotError::BadImage {
                 reason: format!("{}x{} is too small", photo.width(), photo.height()),
             });
         }
-        Ok(())
+        intrinsics
+            .map(|i| i.camera(photo.width(), photo.height()))
+            .transpose()
     }
 }
 
@@ -235,8 +306,12 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         })
     }
 
-    fn shot_from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError> {
-        self.check_photo(photo)?;
+    fn shot_from_photo(
+        &self,
+        photo: &GrayImage,
+        intrinsics: Option<&PhotoIntrinsics>,
+    ) -> Result<ShotComputation, ShotError> {
+        self.check_photo(photo, intrinsics)?;
         Ok(ShotComputation {
             desired: Some(photo.clone()),
             localisation: Err(NO_LOCALISATION.into()),

@@ -11,9 +11,12 @@ use std::sync::Arc;
 use image::GrayImage;
 
 use crate::api::SlamView;
-use crate::api::shots::{ShotComputation, ShotComputer, ShotError, WarpOnly, anchor_shot};
+use crate::api::shots::{
+    PhotoIntrinsics, ShotComputation, ShotComputer, ShotError, WarpOnly, anchor_shot,
+};
 use crate::api::store::{Localisation, PoseJson};
-use crate::shot::localize::{Localization, LocalizeParams, localize};
+use crate::camera::Camera;
+use crate::shot::localize::{Localization, LocalizeParams, assumed_camera, localize_with_camera};
 use crate::slam::{KeyFrameId, Map};
 
 use super::slam_view::SlamShared;
@@ -33,10 +36,11 @@ impl LocalizingShots {
     fn localise(
         &self,
         map: &Map,
+        camera: &Camera,
         shot: &GrayImage,
         mask: Option<&GrayImage>,
     ) -> Result<Localisation, String> {
-        match localize(map, shot, mask, None, &self.params) {
+        match localize_with_camera(map, camera, shot, mask, None, &self.params) {
             Ok(Localization::Localized(p)) => {
                 tracing::info!(
                     keyframe = p.keyframe_id.0,
@@ -79,29 +83,42 @@ impl ShotComputer for LocalizingShots {
             .and_then(|k| k.image.clone())
             .ok_or(ShotError::UnknownKeyframe { id: keyframe_id })?;
         let shot = anchor_shot(&image, anchors, size, &self.warp.params)?;
-        let localisation = self.localise(&map, &shot.shot.image, Some(&shot.shot.mask));
+        let localisation =
+            self.localise(&map, &map.camera, &shot.shot.image, Some(&shot.shot.mask));
         Ok(ShotComputation {
             desired: Some(shot.into_picture()),
             localisation,
         })
     }
 
-    fn shot_from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError> {
-        let mut out = self.warp.shot_from_photo(photo)?;
+    fn shot_from_photo(
+        &self,
+        photo: &GrayImage,
+        intrinsics: Option<&PhotoIntrinsics>,
+    ) -> Result<ShotComputation, ShotError> {
+        let given = self.warp.check_photo(photo, intrinsics)?;
         let Some(map) = self.slam.map_snapshot() else {
-            out.localisation = Err("not localised: no map yet".into());
-            return Ok(out);
+            return Ok(ShotComputation {
+                desired: Some(photo.clone()),
+                localisation: Err("not localised: no map yet".into()),
+            });
         };
-        let (w, h) = (map.camera.width, map.camera.height);
-        out.localisation = if photo.dimensions() == (w, h) {
-            self.localise(&map, photo, None)
-        } else {
-            Err(format!(
-                "not localised: the photo is {}x{}, the camera's images are {w}x{h}",
-                photo.width(),
-                photo.height()
-            ))
+        let (w, h) = photo.dimensions();
+        let camera = match given {
+            Some(c) => c,
+            None => {
+                assumed_camera(&map.camera, w, h).map_err(|_| ShotError::IntrinsicsRequired {
+                    width: w,
+                    height: h,
+                    camera_width: map.camera.width,
+                    camera_height: map.camera.height,
+                })?
+            }
         };
-        Ok(out)
+        let localisation = self.localise(&map, &camera, photo, None);
+        Ok(ShotComputation {
+            desired: Some(photo.clone()),
+            localisation,
+        })
     }
 }
