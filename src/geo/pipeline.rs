@@ -134,7 +134,9 @@ impl Geo {
                     .fold(capture_time, f64::max);
                 let max_age = self.params.history.max_age_s;
                 let before = self.pending.len();
-                self.pending.retain(|p| !(newest - p.2 > max_age));
+                self.pending.retain(|p| {
+                    (newest - p.2).partial_cmp(&max_age) != Some(std::cmp::Ordering::Greater)
+                });
                 self.dropped += (before - self.pending.len()) as u64;
                 Ok(KeyframeStatus::Pending)
             }
