@@ -131,6 +131,7 @@ function chooseKeyframe(kf) {
     state.anchors = [[w * 0.25, h * 0.25], [w * 0.75, h * 0.25], [w * 0.75, h * 0.75], [w * 0.25, h * 0.75]];
     $('submit').disabled = false;
     $('editinfo').textContent = `keyframe #${kf.id} (${w}x${h})`;
+    ed.dataset.keyframe = kf.id;
     drawEditor();
   };
   img.src = `${API}/keyframes/${kf.id}/image.jpg`;
@@ -145,6 +146,8 @@ function drawEditor() {
   g.strokeStyle = '#ffd24d'; g.lineWidth = 2; g.beginPath();
   a.forEach((p, i) => (i ? g.lineTo(p[0], p[1]) : g.moveTo(p[0], p[1])));
   g.closePath(); g.stroke();
+  // Hook for tests and tools: the anchors in keyframe pixels.
+  ed.dataset.anchors = JSON.stringify(a.map((p) => [Math.round(p[0] * 10) / 10, Math.round(p[1] * 10) / 10]));
   const names = ['TL', 'TR', 'BR', 'BL'];
   a.forEach((p, i) => {
     g.fillStyle = i === state.drag ? '#ff4d4d' : '#ffd24d';
@@ -239,9 +242,12 @@ $('editor').addEventListener('pointerup', endDrag);
 $('editor').addEventListener('pointercancel', endDrag);
 
 // ---- shot, mission -----------------------------------------------------------
-function showResult(obj, isError) {
+// `state` is a hook for tests and tools (#result's data-state): idle,
+// busy, localised, not_localised, error.
+function showResult(obj, isError, state) {
   const el = $('result');
   el.classList.toggle('error', !!isError);
+  el.dataset.state = state || (isError ? 'error' : 'busy');
   el.textContent = typeof obj === 'string' ? obj : JSON.stringify(obj, null, 2);
 }
 function showShot(s) {
@@ -255,7 +261,8 @@ function showShot(s) {
   if (s.mission) lines.push(`mission: ${s.mission.state}, ${s.mission.items} items`);
   const t = s.mission && s.mission.details && s.mission.details.target;
   if (t) lines.push(`target: ${t.lat_deg.toFixed(7)}, ${t.lon_deg.toFixed(7)}, ${t.alt_above_home_m.toFixed(1)} m, yaw ${t.yaw_deg.toFixed(1)}°, pitch ${t.gimbal_pitch_deg.toFixed(1)}°`);
-  showResult(lines.join('\n'));
+  $('result').dataset.shotId = s.id;
+  showResult(lines.join('\n'), false, s.status);
   if (s.has_image) $('shotimg').src = `${API}/shots/${s.id}/image.jpg?t=${Date.now()}`;
   $('upload').disabled = !l;
   $('start').disabled = !s.mission;

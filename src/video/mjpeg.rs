@@ -170,10 +170,19 @@ fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
 /// found by walking the marker segments up to the scan and then scanning
 /// the entropy-coded data for the EOI (FF D9; FF is byte-stuffed there, so
 /// an embedded thumbnail's EOI in an APP segment is never mistaken for it).
-/// `None` when the data is incomplete.
+/// `None` when the data is incomplete, or when a new SOI comes before the
+/// end (a truncated JPEG followed by the next one).
 pub fn jpeg_end(buf: &[u8]) -> Option<usize> {
+    jpeg_scan(buf).ok()
+}
+
+/// [`jpeg_end`]'s walk: `Ok(end)`, or `Err(from)` when the data is
+/// incomplete, where `from` is the first byte that is not inside a marker
+/// segment (an SOI found there starts a new JPEG, so this one was cut
+/// short; one inside a segment is data, e.g. an EXIF thumbnail).
+fn jpeg_scan(buf: &[u8]) -> Result<usize, usize> {
     if buf.len() < 2 || buf[0] != 0xFF || buf[1] != 0xD8 {
-        return None;
+        return Err(buf.len());
     }
     let mut i = 2;
     // Marker segments before the (first) scan.
@@ -183,15 +192,17 @@ pub fn jpeg_end(buf: &[u8]) -> Option<usize> {
             i += 1;
         }
         if i + 1 >= buf.len() {
-            return None;
+            return Err(i);
         }
         if buf[i] != 0xFF {
             // Not a marker where one must be: fall back to a plain search.
-            return find(&buf[i..], &[0xFF, 0xD9]).map(|k| i + k + 2);
+            return find(&buf[i..], &[0xFF, 0xD9]).map(|k| i + k + 2).ok_or(i);
         }
         let m = buf[i + 1];
         match m {
-            0xD9 => return Some(i + 2),
+            0xD9 => return Ok(i + 2),
+            // A new SOI where a marker must be: this JPEG has no end.
+            0xD8 => return Err(i),
             0x01 | 0xD0..=0xD7 => {
                 i += 2;
                 continue;
@@ -199,13 +210,17 @@ pub fn jpeg_end(buf: &[u8]) -> Option<usize> {
             _ => {}
         }
         if i + 3 >= buf.len() {
-            return None;
+            return Err(i);
         }
         let len = u16::from_be_bytes([buf[i + 2], buf[i + 3]]) as usize;
         if len < 2 {
-            return find(&buf[i..], &[0xFF, 0xD9]).map(|k| i + k + 2);
+            return find(&buf[i..], &[0xFF, 0xD9]).map(|k| i + k + 2).ok_or(i);
         }
         let seg_end = i + 2 + len;
+        if seg_end > buf.len() {
+            // Inside a segment that has not fully arrived.
+            return Err(buf.len());
+        }
         if m == 0xDA {
             i = seg_end;
             break;
@@ -214,20 +229,24 @@ pub fn jpeg_end(buf: &[u8]) -> Option<usize> {
     }
     // Entropy-coded data (and possibly further scans): the first FF D9 that
     // is a marker.
+    let scan = i;
     while i + 1 < buf.len() {
         match buf[i..].iter().position(|&b| b == 0xFF) {
-            None => return None,
+            None => return Err(scan),
             Some(off) => {
                 let j = i + off;
                 match buf.get(j + 1) {
-                    None => return None,
-                    Some(0xD9) => return Some(j + 2),
+                    None => return Err(scan),
+                    Some(0xD9) => return Ok(j + 2),
+                    // An SOI cannot be in entropy-coded data: a new JPEG
+                    // begins there and this one has no end.
+                    Some(0xD8) => return Err(scan),
                     Some(_) => i = j + 1,
                 }
             }
         }
     }
-    None
+    Err(scan)
 }
 
 /// The boundary from a `Content-Type` header value, unquoted and without a
@@ -456,14 +475,15 @@ impl PartParser {
                                 return self.skip(b, "truncated JPEG");
                             }
                             (None, None) => {
-                                // A new SOI after the start means this one
-                                // was cut short.
-                                if let Some(k) = find(&data[2..], &[0xFF, 0xD8, 0xFF])
-                                    && jpeg_end(&data[..k + 2]).is_none()
-                                    && k > 0
+                                // A new SOI after the start, outside the
+                                // marker segments (which may hold an EXIF
+                                // thumbnail), means this one was cut short.
+                                let from = jpeg_scan(data).err().unwrap_or(data.len()).max(2);
+                                if let Some(k) = find(&data[from..], &[0xFF, 0xD8, 0xFF])
+                                    && from + k > 2
                                 {
                                     self.state = State::Seek;
-                                    return self.skip(k + 2, "truncated JPEG");
+                                    return self.skip(from + k, "truncated JPEG");
                                 }
                                 if data.len() > self.max_part {
                                     self.state = State::Seek;
@@ -1217,6 +1237,77 @@ mod tests {
         assert_eq!(good[0].body, fake_jpeg(1));
         assert_eq!(good[1].body, fake_jpeg(2));
         assert!(skipped >= 2, "{skipped}");
+    }
+
+    /// A JPEG whose APP1 segment holds a whole thumbnail JPEG (as EXIF
+    /// does), with a bigger entropy-coded part.
+    fn jpeg_with_thumbnail(tag: u8) -> Vec<u8> {
+        let thumb = fake_jpeg(tag.wrapping_add(100));
+        let mut v = vec![0xFF, 0xD8, 0xFF, 0xE1];
+        v.extend_from_slice(&((thumb.len() + 2 + 6) as u16).to_be_bytes());
+        v.extend_from_slice(b"Exif\0\0");
+        v.extend_from_slice(&thumb);
+        v.extend_from_slice(&[0xFF, 0xDA, 0x00, 0x04, 0x01, 0x02]);
+        for k in 0..300u32 {
+            v.push((k * 37 % 255) as u8);
+        }
+        v.extend_from_slice(&[tag, 0xFF, 0xD9]);
+        v
+    }
+
+    // Found by the mjpeg_parser fuzz target: a JPEG carrying an embedded
+    // JPEG in a marker segment, arriving in pieces without Content-Length,
+    // was cut at the thumbnail's SOI as "truncated".
+    #[test]
+    fn thumbnail_in_a_segment_is_not_a_new_jpeg_when_fed_in_pieces() {
+        for boundary in [Some("myboundary"), None] {
+            let mut data = Vec::new();
+            for i in 0..3 {
+                if boundary.is_some() {
+                    data.extend_from_slice(b"--myboundary\r\n\r\n");
+                }
+                data.extend_from_slice(&jpeg_with_thumbnail(i));
+                data.extend_from_slice(b"\r\n");
+            }
+            for step in [1, 7, 64] {
+                let mut p = PartParser::new(boundary, 1 << 20);
+                let mut got = Vec::new();
+                let mut skipped = 0;
+                for piece in data.chunks(step) {
+                    p.push(piece);
+                    let (parts, s) = parts(&mut p);
+                    got.extend(parts);
+                    skipped += s;
+                }
+                assert_eq!(got.len(), 3, "{boundary:?} step {step}");
+                assert_eq!(skipped, 0, "{boundary:?} step {step}");
+                for (i, g) in got.iter().enumerate() {
+                    assert_eq!(g.body, jpeg_with_thumbnail(i as u8));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn jpeg_cut_in_its_scan_is_skipped_when_the_next_one_starts() {
+        let good = jpeg_with_thumbnail(1);
+        let mut data = jpeg_with_thumbnail(0);
+        data.truncate(data.len() - 120); // cut in the entropy-coded data
+        data.extend_from_slice(&good);
+        for step in [1, 13, data.len()] {
+            let mut p = PartParser::new(None, 1 << 20);
+            let mut got = Vec::new();
+            let mut skipped = 0;
+            for piece in data.chunks(step) {
+                p.push(piece);
+                let (parts, s) = parts(&mut p);
+                got.extend(parts);
+                skipped += s;
+            }
+            assert_eq!(got.len(), 1, "step {step}");
+            assert_eq!(got[0].body, good);
+            assert_eq!(skipped, 1, "step {step}");
+        }
     }
 
     #[test]

@@ -1,0 +1,191 @@
+//! The operator's page in a real browser: the daemon runs with the simulator
+//! in-process, and headless Chromium (Debian's `chromium`, driven by npm's
+//! `playwright-core` from `tests/browser/node_modules`) opens the page, sees
+//! live video and keyframes, drags the four anchors of a desired shot on a
+//! keyframe, submits it and sees the result; a screenshot is saved.
+//!
+//! Needs `node`, `npm ci` in `tests/browser` and Chromium; `.ci/run` sets
+//! them up. Environment: `SHOTPILOT_CHROMIUM` (default `/usr/bin/chromium`),
+//! `SHOTPILOT_NODE` (default `node`), `SHOTPILOT_SCREENSHOT` (default
+//! `<target>/tmp/browser/operator_page.png`).
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+use shotpilot::config::Config;
+use tokio_util::sync::CancellationToken;
+
+fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn get_json(addr: SocketAddr, path: &str) -> Value {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes())
+        .unwrap();
+    let mut resp = Vec::new();
+    s.read_to_end(&mut resp).unwrap();
+    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
+    let head = String::from_utf8_lossy(&resp[..split]);
+    assert!(head.starts_with("HTTP/1.1 200"), "{path}: {head}");
+    serde_json::from_slice(&resp[split + 4..]).unwrap()
+}
+
+#[test]
+#[ignore = "needs chromium and playwright-core"]
+fn operator_page_in_headless_chromium() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let script = root.join("tests/browser/page_test.js");
+    assert!(
+        root.join("tests/browser/node_modules/playwright-core")
+            .is_dir(),
+        "run `npm ci` in tests/browser first"
+    );
+    let chromium =
+        std::env::var("SHOTPILOT_CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
+    assert!(
+        Path::new(&chromium).is_file(),
+        "no Chromium at {chromium} (SHOTPILOT_CHROMIUM)"
+    );
+    let node = std::env::var("SHOTPILOT_NODE").unwrap_or_else(|_| "node".into());
+    let shot_png = std::env::var("SHOTPILOT_SCREENSHOT")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| {
+            Path::new(env!("CARGO_TARGET_TMPDIR")).join("browser/operator_page.png")
+        });
+    if let Some(d) = shot_png.parent() {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    let _ = std::fs::remove_file(&shot_png);
+
+    let dir = tempfile::tempdir().unwrap();
+    let video_port = free_tcp_port();
+    let mav_port = free_udp_port();
+    let mut cfg = Config::default();
+    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
+    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
+    cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
+    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
+    cfg.server.bind = "127.0.0.1:0".into();
+    cfg.server.token = Some("browser".into());
+    cfg.validate(Path::new("test")).unwrap();
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let cancel = CancellationToken::new();
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let base = dir.path().to_owned();
+    let c = cancel.clone();
+    let daemon = rt.spawn(async move { shotpilot::daemon::run(cfg, &base, c, Some(tx)).await });
+    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let t0 = Instant::now();
+
+    // SLAM tracks and has keyframes before the page is opened.
+    let mut status = Value::Null;
+    while t0.elapsed() < Duration::from_secs(90) {
+        status = get_json(addr, "/api/v1/status");
+        let s = &status["slam"];
+        if s["state"] == "tracking" && s["keyframes"].as_u64().unwrap_or(0) >= 5 {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    assert_eq!(status["slam"]["state"], "tracking", "{status}");
+    eprintln!("SLAM ready after {:.1} s", t0.elapsed().as_secs_f64());
+
+    let t_page = Instant::now();
+    let out = Command::new(&node)
+        .arg(&script)
+        .env("SHOTPILOT_URL", format!("http://{addr}"))
+        .env("SHOTPILOT_TOKEN", "browser")
+        .env("SHOTPILOT_CHROMIUM", &chromium)
+        .env("SHOTPILOT_SCREENSHOT", &shot_png)
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run {node}: {e}"));
+    let page_secs = t_page.elapsed().as_secs_f64();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success(),
+        "page test failed ({}):\n{stderr}\n{stdout}",
+        out.status
+    );
+    let seen: Value = serde_json::from_str(stdout.trim().lines().last().unwrap_or("")).unwrap();
+    eprintln!("the page saw: {seen}");
+    eprintln!(
+        "page test took {page_secs:.1} s; screenshot: {}",
+        shot_png.display()
+    );
+
+    // What the page showed is what the daemon holds.
+    assert!(seen["keyframes_listed"].as_u64().unwrap() >= 3);
+    let shots = get_json(addr, "/api/v1/shots");
+    assert_eq!(shots["count"], 1, "{shots}");
+    let id = seen["shot"]["id"].as_str().unwrap();
+    let shot = get_json(addr, &format!("/api/v1/shots/{id}"));
+    assert_eq!(shot["status"], seen["shot"]["state"], "{shot}");
+    assert_eq!(shot["source"]["keyframe_id"], seen["keyframe"], "{shot}");
+    let sent = shot["source"]["anchors"].as_array().unwrap();
+    let dragged = seen["anchors"].as_array().unwrap();
+    for (a, b) in sent.iter().zip(dragged) {
+        for k in 0..2 {
+            let (x, y) = (a[k].as_f64().unwrap(), b[k].as_f64().unwrap());
+            assert!((x - y).abs() <= 0.051, "sent {a} vs dragged {b}");
+        }
+    }
+    // The page shows the daemon's numbers: pose and inliers, or the reason.
+    let text = seen["shot"]["text"].as_str().unwrap();
+    if shot["status"] == "localised" {
+        let l = &shot["localisation"];
+        let t: Vec<String> = l["world_from_cam"]["translation"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| format!("{:.3}", v.as_f64().unwrap()))
+            .collect();
+        assert!(
+            text.contains(&format!("camera at ({})", t.join(", "))),
+            "{text} vs {l}"
+        );
+        assert!(
+            text.contains(&format!("inliers {}", l["inliers"])),
+            "{text} vs {l}"
+        );
+    } else {
+        let reason = shot["reason"].as_str().unwrap();
+        assert!(
+            !reason.is_empty() && text.contains(reason),
+            "{text} vs {reason}"
+        );
+    }
+    // The desired shot is the keyframe's size (no size was given).
+    assert_eq!(seen["shot_image"], serde_json::json!([640, 480]));
+    let png = std::fs::metadata(&shot_png).expect("the screenshot was saved");
+    assert!(png.len() > 10_000, "screenshot of {} bytes", png.len());
+
+    cancel.cancel();
+    rt.block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })
+        .expect("the daemon stops")
+        .unwrap()
+        .unwrap();
+}

@@ -1,0 +1,173 @@
+// Drives shotpilot's operator page in headless Chromium (playwright-core,
+// Debian's chromium) against a running daemon; started by tests/browser.rs.
+//
+// Environment: SHOTPILOT_URL (the daemon, e.g. http://127.0.0.1:8080),
+// SHOTPILOT_TOKEN (bearer token, optional), SHOTPILOT_CHROMIUM (browser
+// executable, default /usr/bin/chromium), SHOTPILOT_SCREENSHOT (PNG path).
+//
+// Checks, each failing the run with a message: live video shows (the MJPEG
+// <img> has a size and its pixels change between two looks); keyframes are
+// listed with their images; a chosen keyframe opens in the anchor editor;
+// the four anchors, dragged with the mouse, land where they were dropped;
+// the preview shows the warped shot; submitting shows the daemon's answer
+// (localised with pose and inliers, or not localised with its reason) and
+// the desired-shot image. Prints one JSON line of what it saw.
+'use strict';
+
+const { chromium } = require('playwright-core');
+
+const BASE = process.env.SHOTPILOT_URL;
+const TOKEN = process.env.SHOTPILOT_TOKEN || '';
+const EXE = process.env.SHOTPILOT_CHROMIUM || '/usr/bin/chromium';
+const SHOT = process.env.SHOTPILOT_SCREENSHOT || 'operator_page.png';
+
+function check(cond, msg) {
+  if (!cond) throw new Error('check failed: ' + msg);
+}
+
+// A small hash of the live <img>'s current pixels (drawn into a canvas).
+async function videoLook(page) {
+  return page.evaluate(() => {
+    const img = document.getElementById('video');
+    const w = img.naturalWidth, h = img.naturalHeight;
+    if (!w || !h) return { w, h, hash: null };
+    const c = document.createElement('canvas');
+    c.width = 160; c.height = 120;
+    const g = c.getContext('2d');
+    g.drawImage(img, 0, 0, c.width, c.height);
+    const d = g.getImageData(0, 0, c.width, c.height).data;
+    let hash = 2166136261, sum = 0;
+    for (let i = 0; i < d.length; i += 4) {
+      hash = Math.imul(hash ^ d[i], 16777619) >>> 0;
+      sum += d[i];
+    }
+    return { w, h, hash, mean: sum / (d.length / 4) };
+  });
+}
+
+async function main() {
+  check(BASE, 'SHOTPILOT_URL is set');
+  const t0 = Date.now();
+  const browser = await chromium.launch({
+    executablePath: EXE,
+    headless: true,
+    args: ['--no-sandbox', '--disable-gpu', '--disable-dev-shm-usage'],
+  });
+  const out = {};
+  try {
+    const page = await browser.newPage({ viewport: { width: 1400, height: 1300 } });
+    const errors = [];
+    page.on('pageerror', (e) => errors.push(String(e)));
+    await page.goto(BASE + '/', { waitUntil: 'domcontentloaded' });
+    if (TOKEN) await page.fill('#token', TOKEN);
+
+    // Live video: a picture with a size, whose pixels change.
+    await page.waitForFunction(() => document.getElementById('video').naturalWidth > 0, null, { timeout: 20000 });
+    const first = await videoLook(page);
+    let second = first;
+    for (let i = 0; i < 40 && second.hash === first.hash; i++) {
+      await page.waitForTimeout(250);
+      second = await videoLook(page);
+    }
+    check(first.w === 640 && first.h === 480, `live video is 640x480, got ${first.w}x${first.h}`);
+    check(first.mean > 5, `live video is not black (mean ${first.mean})`);
+    check(second.hash !== first.hash, 'live video frames advance within 10 s');
+    // The status line follows the daemon (server-sent events).
+    await page.waitForFunction(() => /SLAM tracking/.test(document.getElementById('status').textContent), null, { timeout: 20000 });
+    out.video = { width: first.w, height: first.h, frames_advance: true };
+    out.status_line = await page.textContent('#status');
+
+    // Keyframes listed, with their pictures.
+    await page.waitForFunction(() => {
+      const imgs = [...document.querySelectorAll('#gallery figure img')];
+      return imgs.length >= 3 && imgs.every((i) => i.complete && i.naturalWidth > 0);
+    }, null, { timeout: 20000 });
+    const ids = await page.$$eval('#gallery figure', (fs) => fs.map((f) => Number(f.dataset.id)));
+    const count = await page.textContent('#kfcount');
+    check(count === `(${ids.length})` || Number(count.slice(1, -1)) >= ids.length, `keyframe count ${count} vs ${ids.length} shown`);
+    out.keyframes_listed = ids.length;
+
+    // Choose the middle keyframe.
+    const kfId = ids[Math.floor(ids.length / 2)];
+    await page.click(`#gallery figure[data-id="${kfId}"]`);
+    await page.waitForFunction((id) => document.getElementById('editor').dataset.keyframe === String(id), kfId, { timeout: 10000 });
+    check(await page.$eval(`#gallery figure[data-id="${kfId}"]`, (f) => f.classList.contains('selected')), 'the chosen keyframe is highlighted');
+    check(!(await page.isDisabled('#submit')), 'submit is enabled once a keyframe is chosen');
+    out.keyframe = kfId;
+
+    // Drag the four anchors (they start at 25 % / 75 % of the picture) out
+    // to 5 % inside each corner: a shot a little closer than the keyframe,
+    // which the daemon can localise (at 10 % its fit is just over the
+    // 3 px reprojection gate, and the page then shows that refusal).
+    await page.locator('#editor').scrollIntoViewIfNeeded();
+    const ed = await page.$eval('#editor', (c) => {
+      const r = c.getBoundingClientRect();
+      return { left: r.left, top: r.top, cw: r.width, ch: r.height, w: c.width, h: c.height, anchors: JSON.parse(c.dataset.anchors) };
+    });
+    const W = ed.w, H = ed.h;
+    const targets = [[0.05 * W, 0.05 * H], [0.95 * W, 0.05 * H], [0.95 * W, 0.95 * H], [0.05 * W, 0.95 * H]];
+    const toClient = (p) => [ed.left + (p[0] * ed.cw) / W, ed.top + (p[1] * ed.ch) / H];
+    for (let i = 0; i < 4; i++) {
+      const [sx, sy] = toClient(ed.anchors[i]);
+      const [tx, ty] = toClient(targets[i]);
+      await page.mouse.move(sx, sy);
+      await page.mouse.down();
+      await page.mouse.move(tx, ty, { steps: 12 });
+      await page.mouse.up();
+    }
+    const anchors = await page.$eval('#editor', (c) => JSON.parse(c.dataset.anchors));
+    const px = W / ed.cw; // one screen pixel in picture pixels
+    for (let i = 0; i < 4; i++) {
+      const d = Math.hypot(anchors[i][0] - targets[i][0], anchors[i][1] - targets[i][1]);
+      check(d <= 1.5 * px + 0.1, `anchor ${i} dropped at (${anchors[i]}), wanted (${targets[i].map((v) => v.toFixed(1))})`);
+    }
+    out.anchors = anchors;
+    // The live preview shows the warped picture (not black).
+    const preview = await page.$eval('#preview', (c) => {
+      const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+      let lit = 0;
+      for (let i = 0; i < d.length; i += 4) if (d[i] + d[i + 1] + d[i + 2] > 30) lit++;
+      return lit / (d.length / 4);
+    });
+    check(preview > 0.5, `preview is the warped shot (lit fraction ${preview.toFixed(2)})`);
+    out.preview_lit_fraction = Number(preview.toFixed(3));
+
+    // Submit and see the daemon's answer.
+    await page.click('#submit');
+    await page.waitForFunction(() => {
+      const s = document.getElementById('result').dataset.state;
+      return s !== 'idle' && s !== 'busy';
+    }, null, { timeout: 60000 });
+    const state = await page.$eval('#result', (r) => r.dataset.state);
+    const text = await page.textContent('#result');
+    check(state === 'localised' || state === 'not_localised', `a shot was created, page says: ${state}: ${text}`);
+    const shotId = await page.$eval('#result', (r) => r.dataset.shotId);
+    check(text.includes(`shot ${shotId}: ${state}`), `result names the shot: ${text}`);
+    if (state === 'localised') {
+      check(/camera at \(-?\d/.test(text) && /inliers \d+, rms error \d/.test(text), `a localised shot shows pose, inliers and error: ${text}`);
+      check(!(await page.isDisabled('#upload')), 'upload is offered for a localised shot');
+    } else {
+      check(/reason: \S/.test(text), `a refused shot says why: ${text}`);
+      check(await page.isDisabled('#upload'), 'upload is not offered for an unlocalised shot');
+    }
+    await page.waitForFunction(() => {
+      const i = document.getElementById('shotimg');
+      return i.complete && i.naturalWidth > 0;
+    }, null, { timeout: 10000 });
+    out.shot_image = await page.$eval('#shotimg', (i) => [i.naturalWidth, i.naturalHeight]);
+    out.shot = { id: shotId, state, text };
+
+    await page.screenshot({ path: SHOT, fullPage: true });
+    out.screenshot = SHOT;
+    check(errors.length === 0, `no script errors on the page: ${errors.join('; ')}`);
+    out.ms = Date.now() - t0;
+  } finally {
+    await browser.close();
+  }
+  console.log(JSON.stringify(out));
+}
+
+main().catch((e) => {
+  console.error(String(e && e.stack ? e.stack : e));
+  process.exit(1);
+});
