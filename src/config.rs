@@ -409,11 +409,18 @@ impl Config {
                 "must be in [0, 10] s".into(),
             ));
         }
-        if !(h.max_gap_s > 0.0 && h.max_gap_s.is_finite()) || h.capacity < 2 {
+        if !(h.max_gap_s > 0.0 && h.max_gap_s.is_finite()) {
             return Err(invalid(
                 "geo.history",
-                "max_gap_s/capacity",
-                "need max_gap_s > 0 and capacity >= 2".into(),
+                "max_gap_s",
+                "must be finite and > 0 s".into(),
+            ));
+        }
+        if !(h.max_age_s.is_finite() && h.max_age_s >= h.max_gap_s) {
+            return Err(invalid(
+                "geo.history",
+                "max_age_s",
+                "must be finite and at least max_gap_s".into(),
             ));
         }
         let m = &self.geo.mount;

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use image::{GrayImage, Luma};
 use serde_json::{Value, json};
-use shotpilot::api::shots::{ShotComputation, ShotComputer, ShotError, WarpOnly};
+use shotpilot::api::shots::{PhotoIntrinsics, ShotComputation, ShotComputer, ShotError, WarpOnly};
 use shotpilot::api::store::{Localisation, MissionRecord, PoseJson, Shot, ShotStore};
 use shotpilot::api::{
     self, ApiParams, AppState, BoxFuture, KeyframeInfo, MapView, SlamStatus, SlamView,
@@ -72,7 +72,7 @@ impl ShotComputer for LocalisingOnKf1 {
         &self,
         kf: u64,
         a: &[[f64; 2]; 4],
-        size: (u32, u32),
+        size: Option<(u32, u32)>,
     ) -> Result<ShotComputation, ShotError> {
         let mut c = self.0.shot_from_anchors(kf, a, size)?;
         if kf == 1 {
@@ -88,8 +88,12 @@ impl ShotComputer for LocalisingOnKf1 {
         }
         Ok(c)
     }
-    fn shot_from_photo(&self, p: &GrayImage) -> Result<ShotComputation, ShotError> {
-        self.0.shot_from_photo(p)
+    fn shot_from_photo(
+        &self,
+        p: &GrayImage,
+        i: Option<&PhotoIntrinsics>,
+    ) -> Result<ShotComputation, ShotError> {
+        self.0.shot_from_photo(p, i)
     }
 }
 
@@ -232,6 +236,13 @@ fn json_of(b: &[u8]) -> Value {
     serde_json::from_slice(b).unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(b)))
 }
 
+/// A bad-anchors error with its check's `reason`.
+fn assert_anchor_refusal(r: &(u16, String, Vec<u8>), reason: &str) {
+    assert_error(r, 400, "bad_anchors");
+    let v = json_of(&r.2);
+    assert_eq!(v["error"]["reason"], reason, "{v}");
+}
+
 fn assert_error(r: &(u16, String, Vec<u8>), status: u16, code: &str) {
     assert_eq!(r.0, status, "{}", String::from_utf8_lossy(&r.2));
     assert!(r.1.contains("content-type: application/json"), "{}", r.1);
@@ -248,8 +259,10 @@ const TOKEN: &str = "s3cret";
 const AUTH: (&str, &str) = ("Authorization", "Bearer s3cret");
 const JSON_CT: (&str, &str) = ("Content-Type", "application/json");
 
+/// The 200 x 150 crop at (100, 100): anchors are where the picture's corner
+/// pixels go (pixel centres at integers).
 fn good_shot(kf: u64) -> Vec<u8> {
-    json!({"keyframe_id": kf, "anchors": [[100, 100], [300, 100], [300, 250], [100, 250]], "width": 200, "height": 150})
+    json!({"keyframe_id": kf, "anchors": [[100, 100], [299, 100], [299, 249], [100, 249]], "width": 200, "height": 150})
         .to_string()
         .into_bytes()
 }
@@ -332,7 +345,7 @@ fn endpoints_and_bad_input() {
     );
     let three =
         json!({"keyframe_id": 0, "anchors": [[100, 100], [300, 100], [300, 250]]}).to_string();
-    assert_error(
+    assert_anchor_refusal(
         &http(
             a,
             "POST",
@@ -340,22 +353,52 @@ fn endpoints_and_bad_input() {
             &[AUTH, JSON_CT],
             three.as_bytes(),
         ),
-        400,
-        "bad_anchors",
+        "count",
     );
-    let bowtie =
-        json!({"keyframe_id": 0, "anchors": [[100, 100], [300, 100], [100, 250], [300, 250]]})
-            .to_string();
+    // Each anchor check answers with its own reason.
+    for (anchors, reason) in [
+        (
+            json!([[0, 0], [300, 0], [30, 200], [250, 150]]),
+            "not_convex",
+        ),
+        (
+            json!([[300, 100], [100, 100], [100, 250], [300, 250]]),
+            "mirrored",
+        ),
+        (
+            json!([[0, 0], [300, 100], [150, 120], [0, 250]]),
+            "not_convex",
+        ),
+        (
+            json!([[100, 100], [110, 100], [110, 105], [100, 105]]),
+            "collapsed",
+        ),
+        (
+            json!([[-2000, 100], [300, 100], [300, 250], [100, 250]]),
+            "out_of_bounds",
+        ),
+    ] {
+        let body = json!({"keyframe_id": 0, "anchors": anchors}).to_string();
+        let r = http(
+            a,
+            "POST",
+            "/api/v1/shots",
+            &[AUTH, JSON_CT],
+            body.as_bytes(),
+        );
+        assert_anchor_refusal(&r, reason);
+    }
+    let tiny = json!({"keyframe_id": 0, "anchors": [[100, 100], [299, 100], [299, 249], [100, 249]], "width": 1, "height": 150}).to_string();
     assert_error(
         &http(
             a,
             "POST",
             "/api/v1/shots",
             &[AUTH, JSON_CT],
-            bowtie.as_bytes(),
+            tiny.as_bytes(),
         ),
         400,
-        "bad_anchors",
+        "bad_image",
     );
     assert_error(
         &http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(9)),
@@ -465,6 +508,38 @@ fn endpoints_and_bad_input() {
     );
     assert_eq!(r.0, 201, "{}", String::from_utf8_lossy(&r.2));
     assert_eq!(json_of(&r.2)["source"]["kind"], "photo");
+    // A photo from another camera, with its intrinsics: kept with the shot.
+    let r = http(
+        a,
+        "POST",
+        "/api/v1/shots/photo?fx=500&fy=510.5&cx=319.5&cy=239.5&k1=-0.05",
+        &[AUTH, ("Content-Type", "image/png")],
+        &png,
+    );
+    assert_eq!(r.0, 201, "{}", String::from_utf8_lossy(&r.2));
+    let src = &json_of(&r.2)["source"];
+    assert_eq!(src["intrinsics"]["fy"], 510.5, "{src}");
+    assert_eq!(src["intrinsics"]["distortion"]["k1"], -0.05, "{src}");
+    assert_eq!(src["intrinsics"]["distortion"]["k2"], 0.0, "{src}");
+    // Incomplete, impossible or unknown intrinsics: 400, nothing stored.
+    for q in [
+        "fx=500",
+        "fx=500&fy=500&cx=319.5",
+        "k1=0.1",
+        "fx=-500&fy=500&cx=319.5&cy=239.5",
+        "fx=500&fy=500&cx=319.5&cy=nan",
+        "fx=500&fy=500&cx=319.5&cy=239.5&focal=3",
+        "fx=five&fy=500&cx=319.5&cy=239.5",
+    ] {
+        let r = http(
+            a,
+            "POST",
+            &format!("/api/v1/shots/photo?{q}"),
+            &[AUTH, ("Content-Type", "image/png")],
+            &png,
+        );
+        assert_error(&r, 400, "bad_intrinsics");
+    }
 
     // A localised shot: upload, start, progress.
     let r = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(1));
@@ -512,7 +587,7 @@ fn endpoints_and_bad_input() {
     assert_eq!(p["progress"]["current_seq"], 1);
     assert_eq!(
         json_of(&http(a, "GET", "/api/v1/shots", &[], b"").2)["count"],
-        3
+        4
     );
 }
 

@@ -52,6 +52,37 @@ fn http(addr: SocketAddr, method: &str, path: &str, body: Option<&Value>) -> (u1
     (status, resp[split + 4..].to_vec())
 }
 
+/// POST a PNG image; returns status and body.
+fn post_png(addr: SocketAddr, path: &str, img: &image::GrayImage) -> (u16, Vec<u8>) {
+    let mut png = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
+    let head = format!(
+        "POST {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer e2e\r\nContent-Type: image/png\r\nContent-Length: {}\r\n\r\n",
+        png.len()
+    );
+    s.write_all(head.as_bytes()).unwrap();
+    s.write_all(&png).unwrap();
+    let mut resp = Vec::new();
+    s.read_to_end(&mut resp).unwrap();
+    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
+    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
+    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    (status, resp[split + 4..].to_vec())
+}
+
+/// Distance between a localised shot's camera centre and a keyframe's.
+fn centre_distance(shot: &Value, kf: &Value) -> f64 {
+    let a = &shot["localisation"]["world_from_cam"]["translation"];
+    let b = &kf["world_from_cam"]["translation"];
+    (0..3)
+        .map(|i| (a[i].as_f64().unwrap() - b[i].as_f64().unwrap()).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
 fn get_json(addr: SocketAddr, path: &str) -> Value {
     let (st, b) = http(addr, "GET", path, None);
     assert_eq!(st, 200, "{path}: {}", String::from_utf8_lossy(&b));
@@ -71,6 +102,7 @@ fn daemon_with_simulator_end_to_end() {
     cfg.server.bind = "127.0.0.1:0".into();
     cfg.server.token = Some("e2e".into());
     cfg.validate(Path::new("test")).unwrap();
+    let cam_cfg = cfg.camera.clone();
 
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -204,6 +236,79 @@ fn daemon_with_simulator_end_to_end() {
     }
     let (sid, kid, shot) = localised.expect("a shot by anchors is localised");
     eprintln!("shot {sid} on keyframe {kid}: {}", shot["localisation"]);
+
+    // Photos of that keyframe from "other cameras": the map camera at half
+    // size (same aspect ratio: the camera is scaled, no intrinsics needed),
+    // and a square crop (another aspect ratio: refused without intrinsics,
+    // localised with them). Both land near the keyframe's camera, within a
+    // tenth of the map's trajectory extent.
+    let (st, b) = http(
+        addr,
+        "GET",
+        &format!("/api/v1/keyframes/{kid}/image.jpg"),
+        None,
+    );
+    assert_eq!(st, 200);
+    let kf_img = image::load_from_memory(&b).unwrap().to_luma8();
+    let kf = kfs["keyframes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|k| k["id"] == kid)
+        .unwrap()
+        .clone();
+    let traj = get_json(addr, "/api/v1/map")["trajectory"].clone();
+    let traj: Vec<[f64; 3]> = serde_json::from_value(traj).unwrap();
+    let extent = (0..3)
+        .map(|i| {
+            let (lo, hi) = traj.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+                (lo.min(p[i]), hi.max(p[i]))
+            });
+            (hi - lo).powi(2)
+        })
+        .sum::<f64>()
+        .sqrt();
+    let half = image::imageops::resize(&kf_img, 320, 240, image::imageops::FilterType::Triangle);
+    let (st, b) = post_png(addr, "/api/v1/shots/photo", &half);
+    assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+    posted += 1;
+    let half_shot: Value = serde_json::from_slice(&b).unwrap();
+    eprintln!("half-size photo of keyframe {kid}: {half_shot}");
+    assert_eq!(half_shot["status"], "localised", "{half_shot}");
+    let d = centre_distance(&half_shot, &kf);
+    eprintln!("half-size photo: {d:.3} from the keyframe's centre (trajectory extent {extent:.3})");
+    assert!(d < 0.1 * extent, "{d} vs extent {extent}");
+    let crop = image::imageops::crop_imm(&kf_img, 80, 0, 480, 480).to_image();
+    let (st, b) = post_png(addr, "/api/v1/shots/photo", &crop);
+    assert_eq!(st, 400, "{}", String::from_utf8_lossy(&b));
+    let e: Value = serde_json::from_slice(&b).unwrap();
+    assert_eq!(e["error"]["code"], "intrinsics_required", "{e}");
+    assert!(
+        e["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("fx, fy, cx, cy"),
+        "{e}"
+    );
+    let c = &cam_cfg;
+    let q = format!(
+        "fx={}&fy={}&cx={}&cy={}&k1={}&k2={}",
+        c.fx,
+        c.fy,
+        c.cx - 80.0,
+        c.cy,
+        c.k1,
+        c.k2
+    );
+    let (st, b) = post_png(addr, &format!("/api/v1/shots/photo?{q}"), &crop);
+    assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+    posted += 1;
+    let crop_shot: Value = serde_json::from_slice(&b).unwrap();
+    assert_eq!(crop_shot["status"], "localised", "{crop_shot}");
+    assert_eq!(crop_shot["source"]["intrinsics"]["fx"], c.fx);
+    let d = centre_distance(&crop_shot, &kf);
+    eprintln!("cropped photo with intrinsics: {d:.3} from the keyframe's centre");
+    assert!(d < 0.1 * extent, "{d} vs extent {extent}");
 
     // Its vehicle target: near home, inside the gimbal's range, and the
     // camera placed in front of the keyframe's camera (the anchors zoom in).

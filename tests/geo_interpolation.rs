@@ -105,7 +105,7 @@ fn refuses_outside_the_history_and_across_gaps() {
 #[test]
 fn bounded_history_forgets_the_oldest() {
     let mut h = TelemetryHistory::new(HistoryParams {
-        capacity: 10,
+        max_age_s: 0.95, // 10 samples at 10 Hz
         ..HistoryParams::default()
     });
     for i in 0..100 {

@@ -1,11 +1,12 @@
 //! Fuzz the body of `POST /api/v1/shots`: the JSON parsing and checks
-//! (`shotpilot::api::parse_shot_request`), then the anchor validation, the
-//! shot-to-keyframe homography and the desired-shot warp
-//! (`shotpilot::api::shots`) on a small synthetic keyframe.
+//! (`shotpilot::api::parse_shot_request`), then the anchor validation and
+//! the desired-shot warp (`shotpilot::api::shots::anchor_shot`, i.e.
+//! `shotpilot::shot`'s) on a small synthetic keyframe.
 //!
 //! Checked: no panic; every refusal is a 4xx with a known code; a request
-//! that passes makes a desired shot of exactly the asked size whose
-//! homography takes the shot's corners onto the anchors.
+//! that passes makes a desired shot of exactly the asked size, and a
+//! keyframe-size shot whose homography takes the frame's corner pixels
+//! onto the anchors.
 #![no_main]
 
 use std::sync::Arc;
@@ -14,9 +15,7 @@ use image::{GrayImage, Luma};
 use libfuzzer_sys::fuzz_target;
 use nalgebra::Point2;
 use shotpilot::api::parse_shot_request;
-use shotpilot::api::shots::{
-    KeyframeImages, Params, ShotComputer, ShotError, WarpOnly, shot_to_keyframe,
-};
+use shotpilot::api::shots::{KeyframeImages, Params, ShotError, WarpOnly};
 use shotpilot::geometry::homography4::apply_homography;
 
 /// Keyframe 0 does not exist; every other id is one 64x48 picture.
@@ -43,8 +42,6 @@ fuzz_target!(|data: &[u8]| {
             return;
         }
     };
-    // As the daemon does: without a size, the keyframe's.
-    let size = size.unwrap_or((W, H));
     let img = GrayImage::from_fn(W, H, |x, y| Luma([((x * 7 + y * 13) % 251) as u8]));
     let computer = WarpOnly {
         keyframes: OneKeyframe(Arc::new(img)),
@@ -55,19 +52,19 @@ fuzz_target!(|data: &[u8]| {
             ..Params::default()
         },
     };
-    match computer.shot_from_anchors(kf, &anchors, size) {
+    match computer.anchor_shot(kf, &anchors, size) {
         Err(ShotError::UnknownKeyframe { id }) => assert_eq!((id, kf), (0, 0)),
-        Err(ShotError::BadAnchors { reason } | ShotError::BadImage { reason }) => {
-            assert!(!reason.is_empty());
+        Err(e @ ShotError::BadAnchors { .. }) | Err(e @ ShotError::BadImage { .. }) => {
+            assert!(!e.to_string().is_empty());
         }
-        Ok(comp) => {
+        Err(e) => panic!("unexpected refusal {e:?}"),
+        Ok(shot) => {
             assert_ne!(kf, 0);
-            let desired = comp.desired.expect("an anchor shot has a picture");
-            assert_eq!(desired.dimensions(), size);
-            assert!(comp.localisation.is_err());
-            // The homography takes the shot's corners onto the anchors.
-            let h = shot_to_keyframe(&anchors, size).expect("validated anchors");
-            let (w, hh) = (size.0 as f64, size.1 as f64);
+            assert_eq!(shot.picture().dimensions(), size.unwrap_or((W, H)));
+            assert_eq!(shot.shot.image.dimensions(), (W, H));
+            // The homography takes the frame's corner pixels onto the anchors.
+            let h = shot.shot.shot_to_source;
+            let (w, hh) = ((W - 1) as f64, (H - 1) as f64);
             let corners = [(0.0, 0.0), (w, 0.0), (w, hh), (0.0, hh)];
             for (c, a) in corners.iter().zip(&anchors) {
                 let q = apply_homography(&h, &Point2::new(c.0, c.1))

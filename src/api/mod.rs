@@ -223,6 +223,9 @@ pub struct ApiError {
     pub code: &'static str,
     /// Human-readable message.
     pub message: String,
+    /// Machine-readable details merged into the error object (e.g. which
+    /// anchor check refused: `{"reason": "not_convex", "anchor": 2}`).
+    pub detail: Option<serde_json::Map<String, Value>>,
 }
 
 impl ApiError {
@@ -232,7 +235,14 @@ impl ApiError {
             status,
             code,
             message: message.into(),
+            detail: None,
         }
+    }
+
+    /// The same error with machine-readable details.
+    pub fn with_detail(mut self, detail: serde_json::Map<String, Value>) -> Self {
+        self.detail = Some(detail);
+        self
     }
     fn not_found(what: &str) -> Self {
         Self::new(
@@ -245,11 +255,13 @@ impl ApiError {
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        let mut r = (
-            self.status,
-            Json(json!({"error": {"code": self.code, "message": self.message}})),
-        )
-            .into_response();
+        let mut error = serde_json::Map::new();
+        error.insert("code".into(), self.code.into());
+        error.insert("message".into(), self.message.into());
+        for (k, v) in self.detail.into_iter().flatten() {
+            error.entry(k).or_insert(v);
+        }
+        let mut r = (self.status, Json(json!({ "error": error }))).into_response();
         if self.status == StatusCode::UNAUTHORIZED {
             r.headers_mut()
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
@@ -264,14 +276,44 @@ impl From<ShotError> for ApiError {
             ShotError::UnknownKeyframe { .. } => {
                 Self::new(StatusCode::NOT_FOUND, "unknown_keyframe", e.to_string())
             }
-            ShotError::BadAnchors { .. } => {
-                Self::new(StatusCode::BAD_REQUEST, "bad_anchors", e.to_string())
+            ShotError::BadAnchors { ref source } => {
+                let detail = anchor_refusal(source);
+                Self::new(StatusCode::BAD_REQUEST, "bad_anchors", e.to_string()).with_detail(detail)
             }
             ShotError::BadImage { .. } => {
                 Self::new(StatusCode::BAD_REQUEST, "bad_image", e.to_string())
             }
+            ShotError::BadIntrinsics { .. } => {
+                Self::new(StatusCode::BAD_REQUEST, "bad_intrinsics", e.to_string())
+            }
+            ShotError::IntrinsicsRequired { .. } => Self::new(
+                StatusCode::BAD_REQUEST,
+                "intrinsics_required",
+                e.to_string(),
+            ),
         }
     }
+}
+
+/// Which anchor check refused, as the error's `reason` (and the anchor's
+/// index where one anchor is at fault).
+fn anchor_refusal(e: &crate::shot::ShotError) -> serde_json::Map<String, Value> {
+    use crate::shot::ShotError as R;
+    let (reason, anchor) = match e {
+        R::NonFiniteAnchor { index } => ("non_finite", Some(*index)),
+        R::AnchorOutOfBounds { index, .. } => ("out_of_bounds", Some(*index)),
+        R::Collapsed { .. } => ("collapsed", None),
+        R::MirroredWinding => ("mirrored", None),
+        R::NotConvex { vertex } => ("not_convex", Some(*vertex)),
+        R::NearSingular { .. } => ("near_singular", None),
+        _ => ("invalid", None),
+    };
+    let mut m = serde_json::Map::new();
+    m.insert("reason".into(), reason.into());
+    if let Some(i) = anchor {
+        m.insert("anchor".into(), i.into());
+    }
+    m
 }
 
 impl From<VehicleError> for ApiError {
@@ -596,7 +638,9 @@ async fn shot_image(
 pub struct ShotRequest {
     /// The keyframe the anchors are on.
     pub keyframe_id: u64,
-    /// Four corners (top-left, top-right, bottom-right, bottom-left), pixels.
+    /// Where the picture's four corner pixels go on the keyframe (top-left,
+    /// top-right, bottom-right, bottom-left), pixels, pixel centres at
+    /// integers (the keyframe's top-left pixel is (0, 0)).
     pub anchors: Vec<[f64; 2]>,
     /// Desired picture width, pixels (default: the keyframe's).
     pub width: Option<u32>,
@@ -617,6 +661,10 @@ pub fn parse_shot_request(body: &[u8]) -> Result<ParsedShot, ApiError> {
             "bad_anchors",
             format!("exactly 4 anchors are needed, got {}", req.anchors.len()),
         )
+        .with_detail(serde_json::Map::from_iter([(
+            "reason".to_owned(),
+            Value::from("count"),
+        )]))
     })?;
     let size = match (req.width, req.height) {
         (Some(w), Some(h)) => Some((w, h)),
@@ -692,21 +740,11 @@ async fn create_shot(
     }
     let (kf, anchors, size) = parse_shot_request(&body)?;
     let computer = st.shots.clone();
-    let slam = st.slam.clone();
-    let comp = tokio::task::spawn_blocking(move || {
-        let size = match size {
-            Some(s) => s,
-            None => {
-                let img = slam
-                    .keyframe_image(kf)
-                    .ok_or(ShotError::UnknownKeyframe { id: kf })?;
-                (img.width(), img.height())
-            }
-        };
-        computer.shot_from_anchors(kf, &anchors, size)
-    })
-    .await
-    .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))??;
+    let comp = tokio::task::spawn_blocking(move || computer.shot_from_anchors(kf, &anchors, size))
+        .await
+        .map_err(|e| {
+            ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string())
+        })??;
     store_shot(
         &st,
         ShotSource::Anchors {
@@ -718,12 +756,71 @@ async fn create_shot(
     .await
 }
 
+/// `POST /shots/photo` query: the photo camera's intrinsics, all four of
+/// `fx fy cx cy` or none; distortion terms optional (zero when left out).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhotoQuery {
+    /// Focal length x, pixels.
+    pub fx: Option<f64>,
+    /// Focal length y, pixels.
+    pub fy: Option<f64>,
+    /// Principal point x, pixels.
+    pub cx: Option<f64>,
+    /// Principal point y, pixels.
+    pub cy: Option<f64>,
+    /// Radial, r^2.
+    pub k1: Option<f64>,
+    /// Radial, r^4.
+    pub k2: Option<f64>,
+    /// Tangential, first.
+    pub p1: Option<f64>,
+    /// Tangential, second.
+    pub p2: Option<f64>,
+    /// Radial, r^6.
+    pub k3: Option<f64>,
+}
+
+impl PhotoQuery {
+    /// The intrinsics it gives (None: none given).
+    pub fn intrinsics(&self) -> Result<Option<shots::PhotoIntrinsics>, ApiError> {
+        let bad = |m: &str| ApiError::new(StatusCode::BAD_REQUEST, "bad_intrinsics", m);
+        let d = [self.k1, self.k2, self.p1, self.p2, self.k3];
+        match (self.fx, self.fy, self.cx, self.cy) {
+            (Some(fx), Some(fy), Some(cx), Some(cy)) => {
+                let z = |v: Option<f64>| v.unwrap_or(0.0);
+                Ok(Some(shots::PhotoIntrinsics {
+                    fx,
+                    fy,
+                    cx,
+                    cy,
+                    distortion: crate::camera::Distortion {
+                        k1: z(self.k1),
+                        k2: z(self.k2),
+                        p1: z(self.p1),
+                        p2: z(self.p2),
+                        k3: z(self.k3),
+                    },
+                }))
+            }
+            (None, None, None, None) if d.iter().all(Option::is_none) => Ok(None),
+            (None, None, None, None) => Err(bad("distortion without fx, fy, cx, cy")),
+            _ => Err(bad("give all of fx, fy, cx, cy, or none")),
+        }
+    }
+}
+
 async fn create_shot_from_photo(
     State(st): State<AppState>,
     headers: HeaderMap,
+    query: Result<Query<PhotoQuery>, axum::extract::rejection::QueryRejection>,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
     let body = body?;
+    let intrinsics = query
+        .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_intrinsics", e.body_text()))?
+        .0
+        .intrinsics()?;
     let ct = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -743,7 +840,9 @@ async fn create_shot_from_photo(
         })?;
         let grey = img.to_luma8();
         let (w, h) = grey.dimensions();
-        computer.shot_from_photo(&grey).map(|c| (c, w, h))
+        computer
+            .shot_from_photo(&grey, intrinsics.as_ref())
+            .map(|c| (c, w, h))
     })
     .await
     .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", e.to_string()))??;
@@ -753,6 +852,7 @@ async fn create_shot_from_photo(
             bytes,
             width: w,
             height: h,
+            intrinsics,
         },
         comp,
     )

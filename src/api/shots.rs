@@ -1,13 +1,26 @@
-//! Shot computation behind a trait, anchor validation, and the desired-shot
-//! warp (the keyframe seen through the homography of the four anchors).
+//! Shot computation behind a trait, and the anchor shot of the API.
+//!
+//! One pixel convention throughout, [`crate::shot::anchors`]'s: pixel
+//! centres at integer coordinates (the camera model's), so the four anchors
+//! are where the desired picture's corner pixels (0,0), (w-1,0), (w-1,h-1),
+//! (0,h-1) go on the keyframe. Anchors are validated and warped by
+//! [`crate::shot::homography_from_anchors`] and
+//! [`crate::shot::warp_perspective`]; each refusal keeps its own
+//! [`crate::shot::ShotError`] case.
+//!
+//! The keyframe is warped once, at its own size: that shot (with its mask)
+//! is both the picture and what localisation matches. Only when the
+//! operator asks for a picture of another size is the keyframe warped at
+//! that size as well (straight from the keyframe, not from the first warp).
 
 use std::sync::Arc;
 
-use image::{GrayImage, Luma};
+use image::GrayImage;
 use nalgebra::{Matrix3, Point2};
 
 use super::store::Localisation;
-use crate::geometry::homography4::{apply_homography, homography_from_4};
+use crate::camera::{Camera, Distortion};
+use crate::shot::{AnchorParams, DesiredShot, homography_from_anchors, warp_perspective};
 
 /// Why a shot request cannot be computed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -18,11 +31,13 @@ pub enum ShotError {
         /// The id asked for.
         id: u64,
     },
-    /// The anchors do not describe a picture.
-    #[error("bad anchors: {reason}")]
+    /// The anchors do not describe a picture; `source` says which check
+    /// refused them (not finite, out of bounds, collapsed, mirrored, not
+    /// convex, near-singular).
+    #[error("bad anchors: {source}")]
     BadAnchors {
-        /// What is wrong.
-        reason: String,
+        /// The refusal of [`crate::shot::homography_from_anchors`].
+        source: crate::shot::ShotError,
     },
     /// The picture is unusable (size, content).
     #[error("bad image: {reason}")]
@@ -30,6 +45,63 @@ pub enum ShotError {
         /// What is wrong.
         reason: String,
     },
+    /// The photo's intrinsics do not describe a camera.
+    #[error("bad intrinsics: {reason}")]
+    BadIntrinsics {
+        /// What is wrong.
+        reason: String,
+    },
+    /// A photo whose aspect ratio is not the map camera's: the map camera
+    /// cannot be scaled to it, so its intrinsics must be given.
+    #[error(
+        "the photo is {width}x{height}, not the map camera's aspect ratio ({camera_width}x{camera_height}): \
+         give its intrinsics as query parameters fx, fy, cx, cy (pixels, for this photo's size, \
+         pixel centres at integers) and optionally k1, k2, p1, p2, k3"
+    )]
+    IntrinsicsRequired {
+        /// Photo width, pixels.
+        width: u32,
+        /// Photo height, pixels.
+        height: u32,
+        /// Map camera width, pixels.
+        camera_width: u32,
+        /// Map camera height, pixels.
+        camera_height: u32,
+    },
+}
+
+/// The intrinsics of a photo from another camera (pinhole with OpenCV's
+/// radial-tangential distortion, pixel centres at integers, for the photo's
+/// own size).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhotoIntrinsics {
+    /// Focal length x, pixels.
+    pub fx: f64,
+    /// Focal length y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Distortion (zero when not given).
+    #[serde(default)]
+    pub distortion: Distortion,
+}
+
+impl PhotoIntrinsics {
+    /// The camera of a `width` x `height` photo with these intrinsics.
+    pub fn camera(&self, width: u32, height: u32) -> Result<Camera, ShotError> {
+        Camera::new(
+            width,
+            height,
+            [self.fx, self.fy, self.cx, self.cy],
+            self.distortion,
+        )
+        .map_err(|e| ShotError::BadIntrinsics {
+            reason: e.to_string(),
+        })
+    }
 }
 
 /// What a shot computation produces.
@@ -45,130 +117,128 @@ pub struct ShotComputation {
 /// (`crate::shot`: desired shot -> BoW query -> PnP -> target pose).
 pub trait ShotComputer: Send + Sync {
     /// A shot described by four anchors on a keyframe; `size` is the
-    /// desired picture's width and height, pixels.
+    /// desired picture's width and height, pixels (None: the keyframe's).
     fn shot_from_anchors(
         &self,
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
-        size: (u32, u32),
+        size: Option<(u32, u32)>,
     ) -> Result<ShotComputation, ShotError>;
-    /// A shot given as a photograph.
-    fn shot_from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError>;
+    /// A shot given as a photograph, with its camera's intrinsics when it
+    /// is not the map camera's (None: the map camera, scaled to the photo's
+    /// size when that has the same aspect ratio).
+    fn shot_from_photo(
+        &self,
+        photo: &GrayImage,
+        intrinsics: Option<&PhotoIntrinsics>,
+    ) -> Result<ShotComputation, ShotError>;
 }
 
-/// Tunables of anchor validation.
+/// Tunables of the anchor shot.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Params {
-    /// How far outside the keyframe an anchor may lie, as a fraction of the
-    /// keyframe's size.
-    pub max_outside_fraction: f64,
-    /// Smallest area of the anchor quadrilateral, pixels^2.
-    pub min_area_px2: f64,
-    /// Largest desired-shot side, pixels.
+    /// The anchor checks (bounds, area, convexity, conditioning).
+    pub anchors: AnchorParams,
+    /// Largest desired-picture side, pixels.
     pub max_output_side: u32,
 }
 
 impl Default for Params {
     fn default() -> Self {
         Self {
-            max_outside_fraction: 0.5,
-            min_area_px2: 400.0,
+            anchors: AnchorParams::default(),
             max_output_side: 4096,
         }
     }
 }
 
-/// Check four anchors on a `width` x `height` keyframe: finite, not too far
-/// outside, a convex quadrilateral in clockwise order (image axes: x right,
-/// y down; top-left, top-right, bottom-right, bottom-left) of a useful area.
+fn points(anchors: &[[f64; 2]; 4]) -> [Point2<f64>; 4] {
+    anchors.map(|a| Point2::new(a[0], a[1]))
+}
+
+/// Check four anchors on a `width` x `height` keyframe with
+/// [`crate::shot::homography_from_anchors`] (integer pixel centres; order
+/// top-left, top-right, bottom-right, bottom-left, image axes x right, y
+/// down). Each refusal is its own [`crate::shot::ShotError`] case inside
+/// [`ShotError::BadAnchors`].
 pub fn validate_anchors(
     anchors: &[[f64; 2]; 4],
     width: u32,
     height: u32,
     params: &Params,
 ) -> Result<(), ShotError> {
-    let bad = |reason: String| Err(ShotError::BadAnchors { reason });
-    let (w, h) = (width as f64, height as f64);
-    let mx = w * params.max_outside_fraction;
-    let my = h * params.max_outside_fraction;
-    for (i, a) in anchors.iter().enumerate() {
-        if !a[0].is_finite() || !a[1].is_finite() {
-            return bad(format!("anchor {i} is not finite"));
-        }
-        if a[0] < -mx || a[0] > w + mx || a[1] < -my || a[1] > h + my {
-            return bad(format!(
-                "anchor {i} ({:.1}, {:.1}) is too far outside the {width}x{height} keyframe",
-                a[0], a[1]
-            ));
-        }
-    }
-    // Cross products of consecutive edges: all positive for a convex,
-    // clockwise-on-screen (y down) quadrilateral.
-    let mut area2 = 0.0;
-    for i in 0..4 {
-        let p = anchors[i];
-        let q = anchors[(i + 1) % 4];
-        let r = anchors[(i + 2) % 4];
-        let cross = (q[0] - p[0]) * (r[1] - q[1]) - (q[1] - p[1]) * (r[0] - q[0]);
-        if cross <= 0.0 {
-            return bad(format!(
-                "the anchors must form a convex quadrilateral in the order top-left, top-right, bottom-right, bottom-left (turn at anchor {} is not clockwise)",
-                (i + 1) % 4
-            ));
-        }
-        area2 += p[0] * q[1] - q[0] * p[1];
-    }
-    let area = area2.abs() / 2.0;
-    if area < params.min_area_px2 {
-        return bad(format!(
-            "the anchors enclose {area:.0} px^2, less than {:.0}",
-            params.min_area_px2
-        ));
-    }
-    Ok(())
+    homography_from_anchors(width, height, &points(anchors), &params.anchors)
+        .map(|_| ())
+        .map_err(|source| ShotError::BadAnchors { source })
 }
 
-/// The homography taking desired-shot pixels to keyframe pixels.
-pub fn shot_to_keyframe(
+/// The desired shot of four anchors on a keyframe: the keyframe warped once
+/// at its own size, plus the picture at another size when one is asked for.
+#[derive(Debug, Clone)]
+pub struct AnchorShot {
+    /// The shot at the keyframe's size, its mask and `H` (shot pixel ->
+    /// keyframe pixel): what localisation matches.
+    pub shot: DesiredShot,
+    /// The picture at the requested size when that differs from the
+    /// keyframe's (None: `shot.image` is the picture).
+    pub resized: Option<GrayImage>,
+}
+
+impl AnchorShot {
+    /// The picture the operator asked for.
+    pub fn picture(&self) -> &GrayImage {
+        self.resized.as_ref().unwrap_or(&self.shot.image)
+    }
+
+    /// The picture, by value.
+    pub fn into_picture(self) -> GrayImage {
+        self.resized.unwrap_or(self.shot.image)
+    }
+}
+
+/// Validate the anchors on `keyframe` and warp it (see the module
+/// documentation). `size` is the picture's size (None: the keyframe's);
+/// each side must be in `2..=max_output_side`.
+pub fn anchor_shot(
+    keyframe: &GrayImage,
     anchors: &[[f64; 2]; 4],
-    size: (u32, u32),
-) -> Result<Matrix3<f64>, ShotError> {
-    let (w, h) = (size.0 as f64, size.1 as f64);
-    let corners = [
-        Point2::new(0.0, 0.0),
-        Point2::new(w, 0.0),
-        Point2::new(w, h),
-        Point2::new(0.0, h),
-    ];
-    let dst = anchors.map(|a| Point2::new(a[0], a[1]));
-    homography_from_4(&corners, &dst).map_err(|e| ShotError::BadAnchors {
-        reason: e.to_string(),
-    })
-}
-
-/// Warp `src` through `h` (output pixel -> source pixel, pixel centres at
-/// +0.5) into a `size` image with bilinear sampling; outside is black.
-pub fn warp(src: &GrayImage, h: &Matrix3<f64>, size: (u32, u32)) -> GrayImage {
-    let (sw, sh) = (src.width() as f64, src.height() as f64);
-    let raw = src.as_raw();
-    let stride = src.width() as usize;
-    GrayImage::from_fn(size.0, size.1, |x, y| {
-        let p = Point2::new(x as f64 + 0.5, y as f64 + 0.5);
-        let Some(q) = apply_homography(h, &p) else {
-            return Luma([0]);
-        };
-        let (fx, fy) = (q.x - 0.5, q.y - 0.5);
-        if !(fx >= 0.0 && fy >= 0.0 && fx <= sw - 1.0 && fy <= sh - 1.0) {
-            return Luma([0]);
-        }
-        let (x0, y0) = (fx.floor() as usize, fy.floor() as usize);
-        let x1 = (x0 + 1).min(stride - 1);
-        let y1 = (y0 + 1).min(src.height() as usize - 1);
-        let (ax, ay) = (fx - x0 as f64, fy - y0 as f64);
-        let g = |xx: usize, yy: usize| raw[yy * stride + xx] as f64;
-        let v = (1.0 - ay) * ((1.0 - ax) * g(x0, y0) + ax * g(x1, y0))
-            + ay * ((1.0 - ax) * g(x0, y1) + ax * g(x1, y1));
-        Luma([v.round().clamp(0.0, 255.0) as u8])
+    size: Option<(u32, u32)>,
+    params: &Params,
+) -> Result<AnchorShot, ShotError> {
+    let (kw, kh) = keyframe.dimensions();
+    let max = params.max_output_side;
+    if let Some((w, h)) = size
+        && !((2..=max).contains(&w) && (2..=max).contains(&h))
+    {
+        return Err(ShotError::BadImage {
+            reason: format!("output size {w}x{h} outside 2..={max}"),
+        });
+    }
+    let hm =
+        homography_from_anchors(kw, kh, &points(anchors), &params.anchors).map_err(|source| {
+            match source {
+                crate::shot::ShotError::ImageSize { width, height, .. } => ShotError::BadImage {
+                    reason: format!("keyframe image of {width}x{height} is too small to warp"),
+                },
+                source => ShotError::BadAnchors { source },
+            }
+        })?;
+    let (image, mask) = warp_perspective(keyframe, &hm, kw, kh);
+    let resized = size.filter(|&s| s != (kw, kh)).map(|(w, h)| {
+        // Picture pixel -> keyframe-size shot pixel, corner centres onto
+        // corner centres, then through H.
+        let sx = (kw - 1) as f64 / (w - 1) as f64;
+        let sy = (kh - 1) as f64 / (h - 1) as f64;
+        let scale = Matrix3::new(sx, 0.0, 0.0, 0.0, sy, 0.0, 0.0, 0.0, 1.0);
+        warp_perspective(keyframe, &(hm * scale), w, h).0
+    });
+    Ok(AnchorShot {
+        shot: DesiredShot {
+            image,
+            mask,
+            shot_to_source: hm,
+        },
+        resized,
     })
 }
 
@@ -178,50 +248,73 @@ pub trait KeyframeImages: Send + Sync {
     fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>>;
 }
 
-/// The shot computer used until the shot localisation (`crate::shot`) is
-/// wired in: it validates anchors and renders the desired shot, and reports
-/// every shot as not localised with the reason.
+/// The shot computer without a map: it validates anchors and renders the
+/// desired shot, and reports every shot as not localised with the reason.
 pub struct WarpOnly<K> {
     /// Keyframe images.
     pub keyframes: K,
-    /// Validation tunables.
+    /// Anchor-shot tunables.
     pub params: Params,
 }
+
+impl<K: KeyframeImages> WarpOnly<K> {
+    /// The anchor shot of a keyframe (see [`anchor_shot`]).
+    pub fn anchor_shot(
+        &self,
+        keyframe_id: u64,
+        anchors: &[[f64; 2]; 4],
+        size: Option<(u32, u32)>,
+    ) -> Result<AnchorShot, ShotError> {
+        let img = self
+            .keyframes
+            .keyframe_image(keyframe_id)
+            .ok_or(ShotError::UnknownKeyframe { id: keyframe_id })?;
+        anchor_shot(&img, anchors, size, &self.params)
+    }
+
+    /// Check a photo's size (at least 32 x 32 pixels) and its intrinsics
+    /// when given; returns the camera they describe.
+    pub fn check_photo(
+        &self,
+        photo: &GrayImage,
+        intrinsics: Option<&PhotoIntrinsics>,
+    ) -> Result<Option<Camera>, ShotError> {
+        if photo.width() < 32 || photo.height() < 32 {
+            return Err(ShotError::BadImage {
+                reason: format!("{}x{} is too small", photo.width(), photo.height()),
+            });
+        }
+        intrinsics
+            .map(|i| i.camera(photo.width(), photo.height()))
+            .transpose()
+    }
+}
+
+const NO_LOCALISATION: &str = "shot localisation is not available in this build";
 
 impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
     fn shot_from_anchors(
         &self,
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
-        size: (u32, u32),
+        size: Option<(u32, u32)>,
     ) -> Result<ShotComputation, ShotError> {
-        let img = self
-            .keyframes
-            .keyframe_image(keyframe_id)
-            .ok_or(ShotError::UnknownKeyframe { id: keyframe_id })?;
-        validate_anchors(anchors, img.width(), img.height(), &self.params)?;
-        let max = self.params.max_output_side;
-        if size.0 == 0 || size.1 == 0 || size.0 > max || size.1 > max {
-            return Err(ShotError::BadImage {
-                reason: format!("output size {}x{} outside 1..={max}", size.0, size.1),
-            });
-        }
-        let h = shot_to_keyframe(anchors, size)?;
+        let shot = self.anchor_shot(keyframe_id, anchors, size)?;
         Ok(ShotComputation {
-            desired: Some(warp(&img, &h, size)),
-            localisation: Err("shot localisation is not available in this build".into()),
+            desired: Some(shot.into_picture()),
+            localisation: Err(NO_LOCALISATION.into()),
         })
     }
 
-    fn shot_from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError> {
-        if photo.width() < 32 || photo.height() < 32 {
-            return Err(ShotError::BadImage {
-                reason: format!("{}x{} is too small", photo.width(), photo.height()),
-            });
-        }
+    fn shot_from_photo(
+        &self,
+        photo: &GrayImage,
+        intrinsics: Option<&PhotoIntrinsics>,
+    ) -> Result<ShotComputation, ShotError> {
+        self.check_photo(photo, intrinsics)?;
         Ok(ShotComputation {
             desired: Some(photo.clone()),
-            localisation: Err("shot localisation is not available in this build".into()),
+            localisation: Err(NO_LOCALISATION.into()),
         })
     }
 }
@@ -229,47 +322,73 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::shot::ShotError as Refusal;
+    use image::Luma;
 
+    /// Corner-pixel anchors of the 200 x 150 crop at (100, 100).
     const SQ: [[f64; 2]; 4] = [
         [100.0, 100.0],
-        [300.0, 100.0],
-        [300.0, 250.0],
-        [100.0, 250.0],
+        [299.0, 100.0],
+        [299.0, 249.0],
+        [100.0, 249.0],
     ];
 
     #[test]
-    fn anchors_validation() {
+    fn each_bad_anchor_case_keeps_its_own_error() {
         let p = Params::default();
         assert!(validate_anchors(&SQ, 640, 480, &p).is_ok());
-        // Counter-clockwise order, a bow tie, a sliver, NaN, far outside.
-        let mut ccw = SQ;
-        ccw.reverse();
-        let bowtie = [SQ[0], SQ[1], SQ[3], SQ[2]];
-        let sliver = [[0.0, 0.0], [300.0, 0.0], [300.0, 1.0], [0.0, 1.0]];
+        let refusal = |a: [[f64; 2]; 4]| match validate_anchors(&a, 640, 480, &p) {
+            Err(ShotError::BadAnchors { source }) => source,
+            other => panic!("{a:?}: {other:?}"),
+        };
         let nan = [[f64::NAN, 0.0], SQ[1], SQ[2], SQ[3]];
+        assert_eq!(refusal(nan), Refusal::NonFiniteAnchor { index: 0 });
         let far = [[-1000.0, 0.0], SQ[1], SQ[2], SQ[3]];
-        for bad in [ccw, bowtie, sliver, nan, far] {
-            assert!(
-                matches!(
-                    validate_anchors(&bad, 640, 480, &p),
-                    Err(ShotError::BadAnchors { .. })
-                ),
-                "{bad:?}"
-            );
-        }
+        assert!(matches!(
+            refusal(far),
+            Refusal::AnchorOutOfBounds { index: 0, .. }
+        ));
+        let sliver = [[0.0, 0.0], [300.0, 0.0], [300.0, 1.0], [0.0, 1.0]];
+        assert!(matches!(refusal(sliver), Refusal::Collapsed { .. }));
+        let mirrored = [SQ[1], SQ[0], SQ[3], SQ[2]];
+        assert_eq!(refusal(mirrored), Refusal::MirroredWinding);
+        let bowtie = [SQ[0], SQ[1], SQ[3], SQ[2]];
+        assert!(matches!(
+            refusal(bowtie),
+            Refusal::NotConvex { .. } | Refusal::Collapsed { .. }
+        ));
+        let dart = [[0.0, 0.0], [300.0, 0.0], [100.0, 80.0], [0.0, 230.0]];
+        assert_eq!(refusal(dart), Refusal::NotConvex { vertex: 2 });
     }
 
     #[test]
-    fn warp_of_an_axis_aligned_rectangle_is_a_crop() {
+    fn one_warp_at_keyframe_size_and_an_exact_crop_at_another() {
         let src = GrayImage::from_fn(640, 480, |x, y| Luma([((x * 7 + y * 3) % 251) as u8]));
-        let h = shot_to_keyframe(&SQ, (200, 150)).unwrap();
-        let out = warp(&src, &h, (200, 150));
+        // The requested size: the crop itself, pixel for pixel.
+        let s = anchor_shot(&src, &SQ, Some((200, 150)), &Params::default()).unwrap();
+        let out = s.picture();
+        assert_eq!(out.dimensions(), (200, 150));
         for (x, y) in [(0, 0), (57, 33), (199, 149), (120, 80)] {
             assert_eq!(
                 out.get_pixel(x, y),
                 src.get_pixel(100 + x, 100 + y),
                 "({x},{y})"
             );
+        }
+        // The localisation's shot is the keyframe's size, fully covered.
+        assert_eq!(s.shot.image.dimensions(), (640, 480));
+        assert!(s.shot.mask.pixels().all(|m| m[0] == 255));
+        // No size, or the keyframe's: the single warp is the picture.
+        for size in [None, Some((640, 480))] {
+            let s = anchor_shot(&src, &SQ, size, &Params::default()).unwrap();
+            assert!(s.resized.is_none());
+            assert_eq!(s.picture().dimensions(), (640, 480));
+        }
+        for bad in [(1, 150), (200, 0), (5000, 10)] {
+            assert!(matches!(
+                anchor_shot(&src, &SQ, Some(bad), &Params::default()),
+                Err(ShotError::BadImage { .. })
+            ));
         }
     }
 }

@@ -92,6 +92,9 @@ pub enum ShotSource {
         width: u32,
         /// Height, pixels.
         height: u32,
+        /// The intrinsics given with it (None: the map camera's, scaled).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        intrinsics: Option<super::shots::PhotoIntrinsics>,
     },
 }
 

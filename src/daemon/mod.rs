@@ -241,7 +241,6 @@ pub async fn run(
             },
             slam: shared.clone(),
             params: Default::default(),
-            anchors: Default::default(),
         }),
         store: store.clone(),
         params: Arc::new(ApiParams {

@@ -1,44 +1,46 @@
-//! The daemon's shot service: the API's desired-shot rendering and anchor
-//! validation ([`WarpOnly`]), then localisation of the shot against a copy
-//! of the SLAM's map with [`crate::shot::localize`] (ORB on the shot with its
-//! black fill masked, candidate keyframes, PnP RANSAC, refinement, the
-//! reliability gate). A shot that fails the gate is stored as not localised
-//! with the gate's reason.
+//! The daemon's shot service: anchor validation and the desired shot
+//! ([`crate::api::shots::anchor_shot`]: the keyframe warped once, at its own
+//! size, with [`crate::shot`]'s pixel convention), then localisation of that
+//! shot against a copy of the SLAM's map with [`crate::shot::localize`] (ORB
+//! on the shot with its black fill masked, candidate keyframes, PnP RANSAC,
+//! refinement, the reliability gate). A shot that fails the gate is stored
+//! as not localised with the gate's reason.
 
 use std::sync::Arc;
 
 use image::GrayImage;
-use nalgebra::Point2;
 
 use crate::api::SlamView;
-use crate::api::shots::{ShotComputation, ShotComputer, ShotError, WarpOnly};
+use crate::api::shots::{
+    PhotoIntrinsics, ShotComputation, ShotComputer, ShotError, WarpOnly, anchor_shot,
+};
 use crate::api::store::{Localisation, PoseJson};
-use crate::shot::anchors::{AnchorParams, desired_shot_from_anchors};
-use crate::shot::localize::{Localization, LocalizeParams, localize};
+use crate::camera::Camera;
+use crate::shot::localize::{Localization, LocalizeParams, assumed_camera, localize_with_camera};
 use crate::slam::{KeyFrameId, Map};
 
 use super::slam_view::SlamShared;
 
-/// Desired shots rendered by the API's warp and localised in the SLAM map.
+/// Desired shots warped once and localised in the SLAM map.
 pub struct LocalizingShots {
-    /// Anchor validation and the desired-shot picture.
+    /// Anchor validation and the desired shot while there is no map yet
+    /// (its tunables are used with the map too).
     pub warp: WarpOnly<Arc<dyn SlamView>>,
     /// Where the map comes from.
     pub slam: Arc<SlamShared>,
     /// Localisation tunables (the reliability gate among them).
     pub params: LocalizeParams,
-    /// Anchor tunables of the localisation's own warp (keyframe size).
-    pub anchors: AnchorParams,
 }
 
 impl LocalizingShots {
     fn localise(
         &self,
         map: &Map,
+        camera: &Camera,
         shot: &GrayImage,
         mask: Option<&GrayImage>,
     ) -> Result<Localisation, String> {
-        match localize(map, shot, mask, None, &self.params) {
+        match localize_with_camera(map, camera, shot, mask, None, &self.params) {
             Ok(Localization::Localized(p)) => {
                 tracing::info!(
                     keyframe = p.keyframe_id.0,
@@ -67,44 +69,56 @@ impl ShotComputer for LocalizingShots {
         &self,
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
-        size: (u32, u32),
+        size: Option<(u32, u32)>,
     ) -> Result<ShotComputation, ShotError> {
-        let mut out = self.warp.shot_from_anchors(keyframe_id, anchors, size)?;
         let Some(map) = self.slam.map_snapshot() else {
+            let mut out = self.warp.shot_from_anchors(keyframe_id, anchors, size)?;
             out.localisation = Err("not localised: no map yet".into());
             return Ok(out);
         };
+        // The keyframe from the same snapshot the shot is localised in.
         let image = u32::try_from(keyframe_id)
             .ok()
             .and_then(|id| map.keyframe(KeyFrameId(id)))
-            .and_then(|k| k.image.clone());
-        let Some(image) = image else {
-            return Err(ShotError::UnknownKeyframe { id: keyframe_id });
-        };
-        let pts = anchors.map(|a| Point2::new(a[0], a[1]));
-        out.localisation = match desired_shot_from_anchors(&image, &pts, &self.anchors) {
-            Ok(shot) => self.localise(&map, &shot.image, Some(&shot.mask)),
-            Err(e) => Err(format!("not localised: {e}")),
-        };
-        Ok(out)
+            .and_then(|k| k.image.clone())
+            .ok_or(ShotError::UnknownKeyframe { id: keyframe_id })?;
+        let shot = anchor_shot(&image, anchors, size, &self.warp.params)?;
+        let localisation =
+            self.localise(&map, &map.camera, &shot.shot.image, Some(&shot.shot.mask));
+        Ok(ShotComputation {
+            desired: Some(shot.into_picture()),
+            localisation,
+        })
     }
 
-    fn shot_from_photo(&self, photo: &GrayImage) -> Result<ShotComputation, ShotError> {
-        let mut out = self.warp.shot_from_photo(photo)?;
+    fn shot_from_photo(
+        &self,
+        photo: &GrayImage,
+        intrinsics: Option<&PhotoIntrinsics>,
+    ) -> Result<ShotComputation, ShotError> {
+        let given = self.warp.check_photo(photo, intrinsics)?;
         let Some(map) = self.slam.map_snapshot() else {
-            out.localisation = Err("not localised: no map yet".into());
-            return Ok(out);
+            return Ok(ShotComputation {
+                desired: Some(photo.clone()),
+                localisation: Err("not localised: no map yet".into()),
+            });
         };
-        let (w, h) = (map.camera.width, map.camera.height);
-        out.localisation = if photo.dimensions() == (w, h) {
-            self.localise(&map, photo, None)
-        } else {
-            Err(format!(
-                "not localised: the photo is {}x{}, the camera's images are {w}x{h}",
-                photo.width(),
-                photo.height()
-            ))
+        let (w, h) = photo.dimensions();
+        let camera = match given {
+            Some(c) => c,
+            None => {
+                assumed_camera(&map.camera, w, h).map_err(|_| ShotError::IntrinsicsRequired {
+                    width: w,
+                    height: h,
+                    camera_width: map.camera.width,
+                    camera_height: map.camera.height,
+                })?
+            }
         };
-        Ok(out)
+        let localisation = self.localise(&map, &camera, photo, None);
+        Ok(ShotComputation {
+            desired: Some(photo.clone()),
+            localisation,
+        })
     }
 }

@@ -103,8 +103,9 @@ impl Geo {
 
     /// Pairs a keyframe (its camera pose in the map and capture time) with
     /// the camera pose from telemetry at that time; keeps it pending while
-    /// telemetry has not reached its time (at most `history.capacity`
-    /// keyframes wait; the oldest is dropped beyond). Refusals other than
+    /// telemetry has not reached its time (keyframes more than
+    /// `history.max_age_s` older than the newest waiting one are dropped,
+    /// as the telemetry history would have dropped their samples). Refusals other than
     /// "not yet" are returned.
     pub fn add_keyframe(
         &mut self,
@@ -126,10 +127,17 @@ impl Geo {
             }
             Err(GeoError::NotYet { .. }) | Err(GeoError::EmptyHistory { .. }) => {
                 self.pending.push_back((kf_id, *map_from_cam, capture_time));
-                while self.pending.len() > self.params.history.capacity.max(1) {
-                    self.pending.pop_front();
-                    self.dropped += 1;
-                }
+                let newest = self
+                    .pending
+                    .iter()
+                    .map(|p| p.2)
+                    .fold(capture_time, f64::max);
+                let max_age = self.params.history.max_age_s;
+                let before = self.pending.len();
+                self.pending.retain(|p| {
+                    (newest - p.2).partial_cmp(&max_age) != Some(std::cmp::Ordering::Greater)
+                });
+                self.dropped += (before - self.pending.len()) as u64;
                 Ok(KeyframeStatus::Pending)
             }
             Err(e) => Err(e),

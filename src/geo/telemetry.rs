@@ -22,8 +22,10 @@ use super::wgs84::{Geodetic, LocalFrame};
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct HistoryParams {
-    /// Samples kept per stream; the oldest are dropped beyond it.
-    pub capacity: usize,
+    /// How much history each stream keeps, seconds: samples older than the
+    /// stream's newest by more than this are dropped (a duration, so that
+    /// the history spans the same time at any telemetry rate).
+    pub max_age_s: f64,
     /// Largest time between the two samples an interpolation uses, seconds.
     pub max_gap_s: f64,
     /// Video latency (seconds) subtracted from a frame's receive time when
@@ -54,7 +56,7 @@ pub enum TelemetryClock {
 impl Default for HistoryParams {
     fn default() -> Self {
         Self {
-            capacity: 4096,
+            max_age_s: 1800.0,
             max_gap_s: 0.5,
             video_latency_s: 0.1,
             use_frame_timestamps: true,
@@ -145,16 +147,27 @@ impl<T: Copy> Stream<T> {
     }
 
     /// Inserts in time order (late samples go to their place; an equal time
-    /// replaces), dropping the oldest beyond `capacity`.
-    fn push(&mut self, t: f64, v: T, capacity: usize) {
+    /// replaces), dropping the samples more than `max_age` older than the
+    /// newest (the newest two always stay, for an interpolation).
+    fn push(&mut self, t: f64, v: T, max_age: f64) {
         let at = self.samples.partition_point(|(ts, _)| *ts < t);
         if at < self.samples.len() && self.samples[at].0 == t {
             self.samples[at].1 = v;
         } else {
             self.samples.insert(at, (t, v));
         }
-        while self.samples.len() > capacity.max(2) {
-            self.samples.pop_front();
+        // A NaN or negative age keeps just the newest two samples.
+        let max_age = if max_age.is_nan() {
+            0.0
+        } else {
+            max_age.max(0.0)
+        };
+        if let Some(&(newest, _)) = self.samples.back() {
+            let oldest_kept = newest - max_age;
+            while self.samples.len() > 2 && self.samples.front().is_some_and(|s| s.0 < oldest_kept)
+            {
+                self.samples.pop_front();
+            }
         }
     }
 
@@ -238,7 +251,7 @@ impl TelemetryHistory {
         if !p_ned.iter().all(|v| v.is_finite()) {
             return Err(GeoError::NonFinite { what: "position" });
         }
-        self.positions.push(t, p_ned, self.params.capacity);
+        self.positions.push(t, p_ned, self.params.max_age_s);
         Ok(())
     }
 
@@ -267,7 +280,7 @@ impl TelemetryHistory {
         if !ned_from_body.coords.iter().all(|v| v.is_finite()) {
             return Err(GeoError::NonFinite { what: "attitude" });
         }
-        self.attitudes.push(t, ned_from_body, self.params.capacity);
+        self.attitudes.push(t, ned_from_body, self.params.max_age_s);
         Ok(())
     }
 
@@ -292,7 +305,7 @@ impl TelemetryHistory {
         if !(gimbal.pitch.is_finite() && gimbal.yaw.is_finite()) {
             return Err(GeoError::NonFinite { what: "gimbal" });
         }
-        self.gimbals.push(t, gimbal, self.params.capacity);
+        self.gimbals.push(t, gimbal, self.params.max_age_s);
         Ok(())
     }
 
@@ -382,9 +395,9 @@ mod tests {
     }
 
     #[test]
-    fn out_of_order_samples_are_placed_and_capacity_holds() {
+    fn out_of_order_samples_are_placed_and_the_age_bound_holds() {
         let mut h = TelemetryHistory::new(HistoryParams {
-            capacity: 3,
+            max_age_s: 2.0,
             ..Default::default()
         });
         h.push_position_ned(1.0, Vector3::new(1.0, 0.0, 0.0))
@@ -393,10 +406,73 @@ mod tests {
             .unwrap();
         h.push_position_ned(2.0, Vector3::new(2.0, 0.0, 0.0))
             .unwrap();
+        assert_eq!(h.len().0, 3);
         h.push_position_ned(3.0, Vector3::new(3.0, 0.0, 0.0))
             .unwrap();
+        // 0.0 is more than 2 s older than 3.0; 1.0 is exactly 2 s older and stays.
         assert_eq!(h.len().0, 3);
         assert_eq!(h.positions.samples.front().unwrap().0, 1.0);
+        // A late sample older than the bound is placed and dropped at once.
+        h.push_position_ned(0.5, Vector3::zeros()).unwrap();
+        assert_eq!(h.positions.samples.front().unwrap().0, 1.0);
         assert!(h.push_position_ned(f64::NAN, Vector3::zeros()).is_err());
+    }
+
+    #[test]
+    fn history_spans_its_duration_at_any_rate() {
+        // An hour of 10 Hz attitude (5 Hz position, gimbal): the default keeps
+        // 30 minutes of both, far more than a 4096-sample cap (409.6 s).
+        let p = HistoryParams::default();
+        assert_eq!(p.max_age_s, 1800.0);
+        let mut h = TelemetryHistory::new(p);
+        let n = 36_000;
+        for i in 0..=n {
+            let t = i as f64 * 0.1;
+            h.push_attitude(t, UnitQuaternion::from_euler_angles(0.0, 0.0, 0.001 * t))
+                .unwrap();
+            if i % 2 == 0 {
+                h.push_position_ned(t, Vector3::new(t, 0.0, -10.0)).unwrap();
+                h.push_gimbal(
+                    t,
+                    GimbalAngles {
+                        pitch: -0.5,
+                        yaw: 0.0,
+                    },
+                )
+                .unwrap();
+            }
+        }
+        let newest = n as f64 * 0.1;
+        let (pos, att, gim) = h.len();
+        assert_eq!(att, 18_001, "10 Hz over 1800 s, both ends");
+        assert_eq!(pos, 9_001, "5 Hz over 1800 s, both ends");
+        assert_eq!(gim, 9_001, "5 Hz over 1800 s, both ends");
+        // 25 minutes back is still answered, with the right values.
+        let t = newest - 1500.0 + 0.05;
+        let s = h.lookup(t).unwrap();
+        assert!((s.p_ned.x - t).abs() < 1e-9, "{}", s.p_ned.x);
+        assert!((s.heading() - wrap_pi(0.001 * t)).abs() < 1e-9);
+        // Beyond 30 minutes it is gone.
+        assert!(matches!(
+            h.lookup(newest - 1800.5),
+            Err(GeoError::TooOld { .. })
+        ));
+        // A non-finite age keeps the newest two samples, not everything.
+        let mut tight = TelemetryHistory::new(HistoryParams {
+            max_age_s: f64::NAN,
+            ..Default::default()
+        });
+        for i in 0..100 {
+            tight
+                .push_gimbal(
+                    i as f64,
+                    GimbalAngles {
+                        pitch: -0.5,
+                        yaw: 0.0,
+                    },
+                )
+                .unwrap();
+        }
+        assert_eq!(tight.len().2, 2);
     }
 }
