@@ -98,6 +98,12 @@ async function refreshKeyframes() {
     const have = new Set(state.keyframes.map((k) => k.id));
     state.keyframes = r.keyframes;
     $('kfcount').textContent = `(${r.count})`;
+    // Keyframes the map has culled leave the gallery (a shot on one would be
+    // refused as unknown_keyframe).
+    const now = new Set(r.keyframes.map((k) => String(k.id)));
+    for (const f of [...gal.querySelectorAll('figure')]) {
+      if (!now.has(f.dataset.id)) { f.remove(); have.delete(Number(f.dataset.id)); }
+    }
     for (const kf of r.keyframes) {
       if (have.has(kf.id)) continue;
       const fig = document.createElement('figure');
@@ -143,16 +149,19 @@ function drawEditor() {
   if (!state.kfImage) return;
   g.drawImage(state.kfImage, 0, 0);
   const a = state.anchors;
+  // Anchors are in keyframe pixels with pixel centres at integers (the
+  // daemon's convention: the corners of the shot are pixels (0,0) and
+  // (w-1,h-1)); on the canvas a pixel's centre is at +0.5.
   g.strokeStyle = '#ffd24d'; g.lineWidth = 2; g.beginPath();
-  a.forEach((p, i) => (i ? g.lineTo(p[0], p[1]) : g.moveTo(p[0], p[1])));
+  a.forEach((p, i) => (i ? g.lineTo(p[0] + 0.5, p[1] + 0.5) : g.moveTo(p[0] + 0.5, p[1] + 0.5)));
   g.closePath(); g.stroke();
   // Hook for tests and tools: the anchors in keyframe pixels.
   ed.dataset.anchors = JSON.stringify(a.map((p) => [Math.round(p[0] * 10) / 10, Math.round(p[1] * 10) / 10]));
   const names = ['TL', 'TR', 'BR', 'BL'];
   a.forEach((p, i) => {
     g.fillStyle = i === state.drag ? '#ff4d4d' : '#ffd24d';
-    g.beginPath(); g.arc(p[0], p[1], 7, 0, 2 * Math.PI); g.fill();
-    g.fillStyle = '#000'; g.font = '10px sans-serif'; g.fillText(names[i], p[0] - 6, p[1] + 3);
+    g.beginPath(); g.arc(p[0] + 0.5, p[1] + 0.5, 7, 0, 2 * Math.PI); g.fill();
+    g.fillStyle = '#000'; g.font = '10px sans-serif'; g.fillText(names[i], p[0] - 5.5, p[1] + 3.5);
   });
   drawPreview();
 }
@@ -191,16 +200,16 @@ function drawPreview() {
   const src = state.srcPixels;
   if (!src) return;
   const W = pv.width, H = pv.height;
-  const h = homography4([[0, 0], [W, 0], [W, H], [0, H]], state.anchors);
+  // The shot's corner pixels go to the anchors (pixel centres at integers).
+  const h = homography4([[0, 0], [W - 1, 0], [W - 1, H - 1], [0, H - 1]], state.anchors);
   const out = g.createImageData(W, H);
   if (h) {
     const sw = src.width, sh = src.height, s = src.data, o = out.data;
     for (let y = 0; y < H; y++) {
       for (let x = 0; x < W; x++) {
-        const px = x + 0.5, py = y + 0.5;
-        const w = h[6] * px + h[7] * py + h[8];
-        const u = (h[0] * px + h[1] * py + h[2]) / w - 0.5;
-        const v = (h[3] * px + h[4] * py + h[5]) / w - 0.5;
+        const w = h[6] * x + h[7] * y + h[8];
+        const u = (h[0] * x + h[1] * y + h[2]) / w;
+        const v = (h[3] * x + h[4] * y + h[5]) / w;
         const i = (y * W + x) * 4;
         o[i + 3] = 255;
         if (!(u >= 0 && v >= 0 && u <= sw - 1 && v <= sh - 1)) continue;
@@ -220,7 +229,8 @@ function drawPreview() {
 
 function editorPoint(ev) {
   const ed = $('editor'), r = ed.getBoundingClientRect();
-  return [(ev.clientX - r.left) * ed.width / r.width, (ev.clientY - r.top) * ed.height / r.height];
+  // Canvas coordinates to keyframe pixels (pixel centres at integers).
+  return [(ev.clientX - r.left) * ed.width / r.width - 0.5, (ev.clientY - r.top) * ed.height / r.height - 0.5];
 }
 $('editor').addEventListener('pointerdown', (ev) => {
   if (!state.anchors) return;

@@ -209,7 +209,8 @@ impl Default for ScenarioParams {
             anchors: AnchorParams::default(),
             geo: geo::Params {
                 history: geo::HistoryParams {
-                    capacity: 200_000,
+                    // The scenario keeps its whole simulated flight.
+                    max_age_s: 86_400.0,
                     ..geo::HistoryParams::default()
                 },
                 mount: MountParams {

@@ -82,13 +82,23 @@ async function main() {
       const imgs = [...document.querySelectorAll('#gallery figure img')];
       return imgs.length >= 3 && imgs.every((i) => i.complete && i.naturalWidth > 0);
     }, null, { timeout: 20000 });
+    // The count and the gallery are refreshed together; while the map grows
+    // and culls, one look may fall between two refreshes, so wait (bounded)
+    // for a look at which they agree.
+    const agreed = await page.waitForFunction(() => {
+      const n = document.querySelectorAll('#gallery figure').length;
+      const c = Number(document.getElementById('kfcount').textContent.replace(/[()]/g, ''));
+      return n === c ? n : null;
+    }, null, { timeout: 10000 }).then(() => true, () => false);
     const ids = await page.$$eval('#gallery figure', (fs) => fs.map((f) => Number(f.dataset.id)));
     const count = await page.textContent('#kfcount');
-    check(count === `(${ids.length})` || Number(count.slice(1, -1)) >= ids.length, `keyframe count ${count} vs ${ids.length} shown`);
+    check(agreed, `keyframe count ${count} never matched the ${ids.length} keyframes shown`);
     out.keyframes_listed = ids.length;
 
-    // Choose the middle keyframe.
-    const kfId = ids[Math.floor(ids.length / 2)];
+    // Choose the map's first keyframe: the SLAM never culls it, so it is
+    // still there when the shot is submitted (a culled keyframe is refused
+    // with unknown_keyframe, which the page shows as such).
+    const kfId = Math.min(...ids);
     await page.click(`#gallery figure[data-id="${kfId}"]`);
     await page.waitForFunction((id) => document.getElementById('editor').dataset.keyframe === String(id), kfId, { timeout: 10000 });
     check(await page.$eval(`#gallery figure[data-id="${kfId}"]`, (f) => f.classList.contains('selected')), 'the chosen keyframe is highlighted');
@@ -106,7 +116,8 @@ async function main() {
     });
     const W = ed.w, H = ed.h;
     const targets = [[0.05 * W, 0.05 * H], [0.95 * W, 0.05 * H], [0.95 * W, 0.95 * H], [0.05 * W, 0.95 * H]];
-    const toClient = (p) => [ed.left + (p[0] * ed.cw) / W, ed.top + (p[1] * ed.ch) / H];
+    // Anchors are keyframe pixels with pixel centres at integers: canvas +0.5.
+    const toClient = (p) => [ed.left + ((p[0] + 0.5) * ed.cw) / W, ed.top + ((p[1] + 0.5) * ed.ch) / H];
     for (let i = 0; i < 4; i++) {
       const [sx, sy] = toClient(ed.anchors[i]);
       const [tx, ty] = toClient(targets[i]);
