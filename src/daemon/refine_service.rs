@@ -54,6 +54,26 @@ pub fn record_rounds(mission: &mut MissionRecord, session: &Session) {
     }
 }
 
+/// Marks the recorded refinement as ended by the daemon rather than by
+/// the session (no arrival, an upload failed, shutdown, another shot):
+/// `stop` becomes `aborted` (when the session had not stopped) and
+/// `reason` says why. Call after [`record_rounds`].
+pub fn record_abort(mission: &mut MissionRecord, reason: &str) {
+    let Some(r) = mission
+        .details
+        .get_mut("refinement")
+        .and_then(Value::as_object_mut)
+    else {
+        return;
+    };
+    if r.get("stop").is_none_or(Value::is_null) {
+        r.insert("stop".into(), Value::from("aborted"));
+        r.insert("reason".into(), Value::from(reason));
+    } else {
+        r.insert("daemon_note".into(), Value::from(reason));
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
