@@ -50,6 +50,92 @@ fn http(addr: SocketAddr, method: &str, path: &str, body: Option<&Value>) -> (u1
     (status, resp[split + 4..].to_vec())
 }
 
+fn post_jpeg(addr: SocketAddr, path: &str, jpeg: &[u8]) -> (u16, Vec<u8>) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let head = format!(
+        "POST {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer e2e\r\nContent-Type: image/jpeg\r\nContent-Length: {}\r\n\r\n",
+        jpeg.len()
+    );
+    s.write_all(head.as_bytes()).unwrap();
+    s.write_all(jpeg).unwrap();
+    let mut resp = Vec::new();
+    s.read_to_end(&mut resp).unwrap();
+    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
+    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
+    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    (status, resp[split + 4..].to_vec())
+}
+
+/// Uploads and starts the shot's mission, then waits for the daemon's
+/// loop to stop; returns the recorded refinement and the seconds it took.
+fn refine(addr: SocketAddr, sid: &str) -> (Value, f64) {
+    let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
+    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
+    let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/start"), None);
+    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
+    let t_start = Instant::now();
+    let mut refinement = Value::Null;
+    while t_start.elapsed() < Duration::from_secs(200) {
+        let shot = get_json(addr, &format!("/api/v1/shots/{sid}"));
+        refinement = shot["mission"]["details"]["refinement"].clone();
+        if !refinement["stop"].is_null() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    let loop_s = t_start.elapsed().as_secs_f64();
+    eprintln!("shot {sid}: refinement after {loop_s:.1} s");
+    for r in refinement["rounds"].as_array().into_iter().flatten() {
+        eprintln!(
+            "  round {} shot error {} % ({} px, {} inliers) -> {}, step {}",
+            r["round"],
+            r["shot_error_pct"],
+            r["shot_error_px"],
+            r["inliers"],
+            r["decision"],
+            r["correction"]["step_ned_m"]
+        );
+    }
+    eprintln!("  stop: {} ({})", refinement["stop"], refinement["reason"]);
+    check_rounds(&refinement);
+    (refinement, loop_s)
+}
+
+/// Every round measured the shot error, the loop ended for one of the
+/// session's reasons, rounds before the last carry a correction.
+fn check_rounds(refinement: &Value) {
+    let rounds = refinement["rounds"].as_array().expect("rounds recorded");
+    assert!(!rounds.is_empty(), "{refinement}");
+    for r in rounds {
+        let pct = r["shot_error_pct"].as_f64();
+        assert!(
+            pct.is_some_and(|p| p.is_finite() && (0.0..100.0).contains(&p)),
+            "round without a shot error: {r}"
+        );
+        assert!(r["shot_error_px"].as_f64().is_some_and(|p| p >= 0.0), "{r}");
+    }
+    let stop = refinement["stop"].as_str().unwrap_or("");
+    assert!(
+        [
+            "converged",
+            "max_rounds",
+            "live_not_localised",
+            "correction_refused"
+        ]
+        .contains(&stop),
+        "{refinement}"
+    );
+    for r in &rounds[..rounds.len() - 1] {
+        assert_eq!(r["decision"], "correct", "{r}");
+        assert!(r["correction"].is_object(), "{r}");
+    }
+    if stop == "converged" {
+        let last = rounds.last().unwrap()["shot_error_pct"].as_f64().unwrap();
+        assert!(last <= 1.0, "{refinement}");
+    }
+}
+
 fn get_json(addr: SocketAddr, path: &str) -> Value {
     let (st, b) = http(addr, "GET", path, None);
     assert_eq!(st, 200, "{path}: {}", String::from_utf8_lossy(&b));
@@ -85,8 +171,15 @@ fn started_mission_is_refined_by_the_daemon() {
 
     // Tracking, then the georeference.
     let mut geo = Value::Null;
+    let mut photos = Vec::new();
     while t0.elapsed() < Duration::from_secs(90) {
         let status = get_json(addr, "/api/v1/status");
+        if status["slam"]["state"] == "tracking" {
+            let (st, jpeg) = http(addr, "GET", "/api/v1/snapshot.jpg", None);
+            if st == 200 {
+                photos.push(jpeg);
+            }
+        }
         geo = status["vehicle"]["georeference"].clone();
         if status["slam"]["state"] == "tracking"
             && status["slam"]["keyframes"].as_u64().unwrap_or(0) >= 5
@@ -122,56 +215,34 @@ fn started_mission_is_refined_by_the_daemon() {
         }
     }
     let sid = sid.expect("a shot by anchors is localised");
+    photos.reverse();
 
     // Upload and start: the daemon's loop takes over.
-    let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
-    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
-    let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/start"), None);
-    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
-    let t_start = Instant::now();
-    let mut refinement = Value::Null;
-    while t_start.elapsed() < Duration::from_secs(200) {
-        let shot = get_json(addr, &format!("/api/v1/shots/{sid}"));
-        refinement = shot["mission"]["details"]["refinement"].clone();
-        if !refinement["stop"].is_null() {
+    let (anchors, _) = refine(addr, &sid);
+    let first = anchors["rounds"][0]["shot_error_pct"].as_f64().unwrap();
+    assert!(first > 0.0);
+
+    // A photograph the camera took during the exploration: a view that can
+    // be reproduced exactly (an anchors shot is a zoom, which no camera
+    // position reproduces without parallax).
+    let mut photo_sid = None;
+    for jpeg in &photos {
+        let (st, b) = post_jpeg(addr, "/api/v1/shots/photo", jpeg);
+        assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+        let shot: Value = serde_json::from_slice(&b).unwrap();
+        if shot["status"] == "localised" {
+            photo_sid = Some(shot["id"].as_str().unwrap().to_owned());
             break;
         }
-        std::thread::sleep(Duration::from_millis(500));
     }
-    let loop_s = t_start.elapsed().as_secs_f64();
-    eprintln!("refinement after {loop_s:.1} s: {refinement:#}");
-    let rounds = refinement["rounds"].as_array().expect("rounds recorded");
-    assert!(!rounds.is_empty(), "{refinement}");
-    // Each round measured the live view against the desired shot.
-    for r in rounds {
-        let pct = r["shot_error_pct"].as_f64();
-        assert!(
-            pct.is_some_and(|p| p.is_finite() && (0.0..100.0).contains(&p)),
-            "round without a shot error: {r}"
-        );
-        assert!(r["shot_error_px"].as_f64().is_some_and(|p| p >= 0.0), "{r}");
-    }
-    // The loop ended for one of the session's reasons.
-    let stop = refinement["stop"].as_str().unwrap_or("");
-    assert!(
-        [
-            "converged",
-            "max_rounds",
-            "live_not_localised",
-            "correction_refused"
-        ]
-        .contains(&stop),
-        "{refinement}"
+    let photo_sid = photo_sid.expect("a photograph is localised");
+    let (photo, _) = refine(addr, &photo_sid);
+    let rounds = photo["rounds"].as_array().unwrap();
+    let last = rounds.last().unwrap()["shot_error_pct"].as_f64().unwrap();
+    eprintln!(
+        "photo shot: first {} %, last {last} %",
+        rounds[0]["shot_error_pct"]
     );
-    // Rounds before the last asked for a correction and carry one.
-    for r in &rounds[..rounds.len() - 1] {
-        assert_eq!(r["decision"], "correct", "{r}");
-        assert!(r["correction"].is_object(), "{r}");
-    }
-    if stop == "converged" {
-        let last = rounds.last().unwrap()["shot_error_pct"].as_f64().unwrap();
-        assert!(last <= 1.0, "{refinement}");
-    }
 
     cancel.cancel();
     rt.block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })

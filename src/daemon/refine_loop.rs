@@ -320,9 +320,10 @@ async fn refine_shot(deps: &Deps, shot: Shot, cancel: CancellationToken) {
             }
             s = look(deps, session, &shot, &home, arrived_at) => s,
         };
-        let (s, step) = match step {
+        let (s, step) = step;
+        let step = match step {
             Ok(x) => x,
-            Err((s, why)) => {
+            Err(why) => {
                 tracing::warn!(shot = %id, "refinement: {why}");
                 save_rounds(deps, &id, &s, Some(&why)).await;
                 return;
@@ -389,7 +390,7 @@ async fn prepare(deps: &Deps, shot: &Shot) -> Result<Session, String> {
     let slam = deps.slam.clone();
     let store = deps.store.clone();
     let s = shot.clone();
-    let anchors = deps.params.anchors.clone();
+    let anchors = deps.params.anchors;
     let picture = tokio::task::spawn_blocking(move || {
         let map = slam.map_snapshot().ok_or("no SLAM map")?;
         desired_picture(&store, &map, &s, &anchors)
@@ -465,7 +466,8 @@ async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, 
     }
 }
 
-type Looked = Result<(Session, Step), (Session, String)>;
+/// The session after the round, and the step or why there was none.
+type Looked = (Session, Result<Step, String>);
 
 /// The arrival: the newest frame received after it, a map snapshot and the
 /// georeference, then the session's round on a blocking thread.
@@ -476,7 +478,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         match deps.ingest.latest() {
             Some(f) if f.received > arrived => break f,
             _ if t0.elapsed() > p.frame_wait => {
-                return Err((session, "no video frame after the arrival".into()));
+                return (session, Err("no video frame after the arrival".into()));
             }
             _ => tokio::time::sleep(Duration::from_millis(20)).await,
         }
@@ -486,11 +488,11 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         .as_ref()
         .and_then(|l| l.world_from_cam.to_isometry())
     else {
-        return Err((session, "shot not localised".into()));
+        return (session, Err("shot not localised".into()));
     };
     let alignment = match deps.geo.target(&map_from_desired) {
         Ok((_, a)) => a,
-        Err(e) => return Err((session, format!("georeference: {e}"))),
+        Err(e) => return (session, Err(format!("georeference: {e}"))),
     };
     let frame_ltp = LocalFrame::new(Geodetic {
         lat_deg: home.lat_deg,
@@ -506,7 +508,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
     let joined = tokio::task::spawn_blocking(move || {
         let mut session = session;
         let Some(map) = slam.map_snapshot() else {
-            return Err((session, "no SLAM map".to_string()));
+            return (session, Err("no SLAM map".to_string()));
         };
         let ctx = Context {
             map: &map,
@@ -519,12 +521,12 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         };
         let camera = map.camera;
         let step = session.on_arrival(&frame.image, Some(&camera), &ctx);
-        Ok((session, step))
+        (session, Ok(step))
     })
     .await;
     match joined {
         Ok(r) => r,
-        Err(e) => Err((backup, format!("the round failed: {e}"))),
+        Err(e) => (backup, Err(format!("the round failed: {e}"))),
     }
 }
 
