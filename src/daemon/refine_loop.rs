@@ -563,3 +563,54 @@ async fn fly(
     );
     Ok(wp)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mission::plan::Params as PlanParams;
+
+    fn target() -> Target {
+        Target {
+            lat_deg: 47.397,
+            lon_deg: 8.545,
+            alt_m: 15.0,
+            yaw_deg: 30.0,
+            gimbal_pitch_deg: -40.0,
+            photo: true,
+        }
+    }
+
+    #[test]
+    fn the_shot_waypoint_is_found_in_both_flavours() {
+        let home = Home {
+            lat_deg: 47.3970,
+            lon_deg: 8.5449,
+            alt_amsl_m: 488.0,
+        };
+        for f in [Flavour::Px4, Flavour::ArduPilot] {
+            let items = plan::plan(&target(), &home, f, &PlanParams::default()).unwrap();
+            let wp = waypoint_seq(&items).unwrap();
+            let item = &items[usize::from(wp)];
+            assert_eq!(item.command, 16);
+            // The shot's waypoint, not ArduPilot's home item.
+            assert_eq!(item.x, (target().lat_deg * 1e7).round() as i32, "{f:?}");
+        }
+        assert_eq!(waypoint_seq(&[]), None);
+    }
+
+    #[test]
+    fn distance_to_the_target_in_metres() {
+        let t = target();
+        let (h, v) = distance_to(&t, t.lat_deg, t.lon_deg, t.alt_m);
+        assert!(h < 1e-9 && v < 1e-9);
+        // 1e-5 deg of latitude is 1.11 m; 2 m lower.
+        let (h, v) = distance_to(&t, t.lat_deg + 1e-5, t.lon_deg, t.alt_m - 2.0);
+        assert!((h - 1.111).abs() < 0.01, "{h}");
+        assert!((v - 2.0).abs() < 1e-9);
+        // 1e-5 deg of longitude at 47.4 deg is 0.754 m.
+        let (h, _) = distance_to(&t, t.lat_deg, t.lon_deg + 1e-5, t.alt_m);
+        assert!((h - 0.754).abs() < 0.01, "{h}");
+        let (h, _) = distance_to(&t, f64::NAN, t.lon_deg, t.alt_m);
+        assert!(h.is_nan(), "NaN never counts as near");
+    }
+}

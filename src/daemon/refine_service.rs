@@ -162,6 +162,11 @@ mod tests {
                 .as_str()
                 .is_some_and(|n| n.contains("shot error"))
         );
+        // The daemon's own end is noted beside the session's stop.
+        let mut aborted = m.clone();
+        record_abort(&mut aborted, "cancelled");
+        assert_eq!(aborted.details["refinement"]["stop"], "max_rounds");
+        assert_eq!(aborted.details["refinement"]["daemon_note"], "cancelled");
         // Details that are not an object are kept beside it.
         m.details = json!("uploaded by read-back");
         record_rounds(&mut m, &s);
@@ -171,5 +176,24 @@ mod tests {
         let back: MissionRecord =
             serde_json::from_str(&serde_json::to_string(&m).unwrap()).unwrap();
         assert_eq!(back, m);
+        // A session that had not stopped is marked aborted, with the reason.
+        let blank_target = *s.target();
+        let open = Session::new(
+            blank,
+            None,
+            Isometry3::identity(),
+            blank_target,
+            Params::default(),
+        );
+        record_rounds(&mut m, &open);
+        assert!(m.details["refinement"]["stop"].is_null());
+        record_abort(&mut m, "waypoint 1 not reached and steady within 120 s");
+        assert_eq!(m.details["refinement"]["stop"], "aborted");
+        assert!(
+            m.details["refinement"]["reason"]
+                .as_str()
+                .is_some_and(|r| r.contains("not reached"))
+        );
+        assert_eq!(m.details["refinement"]["rounds"], json!([]));
     }
 }
