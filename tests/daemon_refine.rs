@@ -243,6 +243,46 @@ fn started_mission_is_refined_by_the_daemon() {
         "photo shot: first {} %, last {last} %",
         rounds[0]["shot_error_pct"]
     );
+    // A reproducible view ends under the threshold (1 % of the diagonal).
+    assert_eq!(photo["stop"], "converged", "{photo}");
+    assert!(last <= 1.0, "{photo}");
+
+    // Another shot's upload cancels a running loop: the anchors shot again,
+    // interrupted after its first round by the photograph's mission.
+    let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
+    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
+    let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/start"), None);
+    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
+    let t1 = Instant::now();
+    let mut r = Value::Null;
+    while t1.elapsed() < Duration::from_secs(60) {
+        r = get_json(addr, &format!("/api/v1/shots/{sid}"))["mission"]["details"]["refinement"]
+            .clone();
+        if r["rounds"].as_array().is_some_and(|a| !a.is_empty()) {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    assert!(r["stop"].is_null(), "the loop goes on after one round: {r}");
+    let (st, b) = http(
+        addr,
+        "POST",
+        &format!("/api/v1/shots/{photo_sid}/mission"),
+        None,
+    );
+    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
+    let t2 = Instant::now();
+    while t2.elapsed() < Duration::from_secs(10) {
+        r = get_json(addr, &format!("/api/v1/shots/{sid}"))["mission"]["details"]["refinement"]
+            .clone();
+        if !r["stop"].is_null() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    eprintln!("interrupted: stop {} ({})", r["stop"], r["reason"]);
+    assert_eq!(r["stop"], "aborted", "{r}");
+    assert_eq!(r["reason"], "cancelled", "{r}");
 
     cancel.cancel();
     rt.block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })
