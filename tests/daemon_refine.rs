@@ -258,7 +258,7 @@ fn started_mission_is_refined_by_the_daemon() {
     while t1.elapsed() < Duration::from_secs(60) {
         r = get_json(addr, &format!("/api/v1/shots/{sid}"))["mission"]["details"]["refinement"]
             .clone();
-        if r["rounds"].as_array().is_some_and(|a| !a.is_empty()) {
+        if r["rounds"].as_array().is_some_and(|a| !a.is_empty()) || !r["stop"].is_null() {
             break;
         }
         std::thread::sleep(Duration::from_millis(200));

@@ -236,6 +236,7 @@ pub async fn run(
             plan: cfg.mission.plan,
             actions: actions.clone(),
             params: Default::default(),
+            pictures: Default::default(),
         },
         cancel.child_token(),
     );

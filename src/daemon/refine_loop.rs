@@ -69,9 +69,10 @@ impl Default for Params {
 #[derive(Debug)]
 enum Request {
     /// The shot's mission was started: refine it.
-    Start(Box<Shot>),
-    /// Another mission replaces it: stop.
-    Stop,
+    Start(Box<(Shot, Target)>),
+    /// Another mission replaces it: stop, and make this shot's desired
+    /// picture now, while its keyframe is in the map.
+    Stop(Box<Shot>),
 }
 
 /// The handle the vehicle view uses to start and stop the loop.
@@ -81,14 +82,17 @@ pub struct RefineHandle {
 }
 
 impl RefineHandle {
-    /// Refine `shot`, whose mission was just started (stops any other).
-    pub fn start(&self, shot: Shot) {
-        let _ = self.tx.send(Request::Start(Box::new(shot)));
+    /// Refine `shot`, whose mission (flying `target`) was just started
+    /// (stops any other).
+    pub fn start(&self, shot: Shot, target: Target) {
+        let _ = self.tx.send(Request::Start(Box::new((shot, target))));
     }
 
-    /// Stop the running loop, if any.
-    pub fn stop(&self) {
-        let _ = self.tx.send(Request::Stop);
+    /// `shot` is being uploaded: stop the running loop, if any, and keep
+    /// the shot's desired picture (an anchors shot's keyframe may later
+    /// leave the map).
+    pub fn uploading(&self, shot: Shot) {
+        let _ = self.tx.send(Request::Stop(Box::new(shot)));
     }
 }
 
@@ -110,6 +114,34 @@ pub struct Deps {
     pub actions: Arc<tokio::sync::Mutex<()>>,
     /// Tunables.
     pub params: Params,
+    /// Desired pictures (and masks) by shot id, made at upload.
+    pub pictures: std::sync::Mutex<Vec<(String, Picture)>>,
+}
+
+/// A desired picture and the mask of its valid pixels.
+pub type Picture = (GrayImage, Option<GrayImage>);
+
+/// Desired pictures kept at most.
+const KEEP_PICTURES: usize = 8;
+
+/// Makes (or finds) the shot's desired picture and keeps it.
+fn picture_of(deps: &Deps, shot: &Shot) -> Result<Picture, String> {
+    if let Ok(p) = deps.pictures.lock()
+        && let Some((_, pic)) = p.iter().find(|(id, _)| *id == shot.id)
+    {
+        return Ok(pic.clone());
+    }
+    let map = deps.slam.map_snapshot().ok_or("no SLAM map")?;
+    let pic = desired_picture(&deps.store, &map, shot, &deps.params.anchors)?;
+    if let Ok(mut p) = deps.pictures.lock() {
+        p.retain(|(id, _)| *id != shot.id);
+        p.push((shot.id.clone(), pic.clone()));
+        let n = p.len();
+        if n > KEEP_PICTURES {
+            p.drain(..n - KEEP_PICTURES);
+        }
+    }
+    Ok(pic)
 }
 
 /// Creates the handle and the loop's task body; run the future until
@@ -134,14 +166,23 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
             c.cancel();
             let _ = t.await;
         }
-        if let Request::Start(shot) = req {
+        if let Request::Stop(shot) = &req {
+            let d = deps.clone();
+            let shot = (**shot).clone();
+            let made = tokio::task::spawn_blocking(move || picture_of(&d, &shot).map(|_| ()));
+            if let Ok(Err(e)) = made.await {
+                tracing::warn!("refinement: desired picture: {e}");
+            }
+        }
+        if let Request::Start(start) = req {
+            let (shot, target) = *start;
             let c = cancel.child_token();
             let d = deps.clone();
             let cc = c.clone();
             tracing::info!(shot = %shot.id, "refinement: started");
             current = Some((
                 c,
-                tokio::spawn(async move { refine_shot(&d, *shot, cc).await }),
+                tokio::spawn(async move { refine_shot(&d, shot, target, cc).await }),
             ));
         }
     }
@@ -242,7 +283,7 @@ fn home_of(geo: &GeoService) -> Option<Home> {
 }
 
 /// One shot's loop. Every failure ends it with a logged, recorded reason.
-async fn refine_shot(deps: &Deps, shot: Shot, cancel: CancellationToken) {
+async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: CancellationToken) {
     let id = shot.id.clone();
     let blank = Session::new(
         GrayImage::new(1, 1),
@@ -258,7 +299,7 @@ async fn refine_shot(deps: &Deps, shot: Shot, cancel: CancellationToken) {
         },
         deps.params.refine.clone(),
     );
-    let mut session = match prepare(deps, &shot).await {
+    let mut session = match prepare(deps, &shot, first).await {
         Ok(s) => s,
         Err(why) => {
             tracing::warn!(shot = %id, "refinement: not started: {why}");
@@ -375,28 +416,18 @@ async fn refine_shot(deps: &Deps, shot: Shot, cancel: CancellationToken) {
     }
 }
 
-/// The session of a started shot: its pose, desired picture and first target.
-async fn prepare(deps: &Deps, shot: &Shot) -> Result<Session, String> {
+/// The session of a started shot: its pose, desired picture and the
+/// target its mission flies.
+async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Session, String> {
     let map_from_desired = shot
         .localisation
         .as_ref()
         .and_then(|l| l.world_from_cam.to_isometry())
         .ok_or_else(|| format!("shot {} is not localised", shot.id))?;
-    let (target, _) = deps
-        .geo
-        .target(&map_from_desired)
-        .map_err(|e| format!("georeference: {e}"))?;
-    let target = target.to_mission_target(true);
-    let slam = deps.slam.clone();
-    let store = deps.store.clone();
-    let s = shot.clone();
-    let anchors = deps.params.anchors;
-    let picture = tokio::task::spawn_blocking(move || {
-        let map = slam.map_snapshot().ok_or("no SLAM map")?;
-        desired_picture(&store, &map, &s, &anchors)
-    })
-    .await
-    .map_err(|e| e.to_string())??;
+    let (d, s) = (deps.clone(), shot.clone());
+    let picture = tokio::task::spawn_blocking(move || picture_of(&d, &s))
+        .await
+        .map_err(|e| e.to_string())??;
     Ok(Session::new(
         picture.0,
         picture.1,

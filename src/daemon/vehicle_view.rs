@@ -22,7 +22,8 @@ pub struct LinkVehicle {
     plan: crate::mission::plan::Params,
     geo: Arc<GeoService>,
     refine: Option<super::refine_loop::RefineHandle>,
-    last_uploaded: std::sync::Mutex<Option<Shot>>,
+    /// The shot last uploaded and the target its mission flies.
+    last_uploaded: std::sync::Mutex<Option<(Shot, crate::mission::plan::Target)>>,
 }
 
 /// Uploads `items`, then reads the vehicle's mission back and compares:
@@ -188,19 +189,18 @@ impl VehicleView for LinkVehicle {
                 lon_deg: home.lon_deg,
                 alt_amsl_m: home.alt_amsl_m,
             };
+            let flown = target.to_mission_target(true);
             let items =
-                plan(&target.to_mission_target(true), &home, flavour, &self.plan).map_err(|e| {
-                    VehicleError::Conflict {
-                        reason: format!("the target cannot be flown: {e}"),
-                    }
+                plan(&flown, &home, flavour, &self.plan).map_err(|e| VehicleError::Conflict {
+                    reason: format!("the target cannot be flown: {e}"),
                 })?;
             // A new mission replaces the one a refinement loop is flying.
             if let Some(r) = &self.refine {
-                r.stop();
+                r.uploading(shot.clone());
             }
             let (report, verified) = upload_verified(&self.link, &items, flavour).await?;
             if let Ok(mut last) = self.last_uploaded.lock() {
-                *last = Some(shot.clone());
+                *last = Some((shot.clone(), flown));
             }
             tracing::info!(
                 shot = %shot.id,
@@ -269,8 +269,8 @@ impl VehicleView for LinkVehicle {
                 })?;
             if let Some(r) = &self.refine {
                 let shot = self.last_uploaded.lock().ok().and_then(|l| l.clone());
-                if let Some(shot) = shot {
-                    r.start(shot);
+                if let Some((shot, flown)) = shot {
+                    r.start(shot, flown);
                 }
             }
             Ok(())
