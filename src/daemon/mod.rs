@@ -17,6 +17,7 @@
 //! simulator stops last.
 
 pub mod geo_service;
+pub mod refine_loop;
 pub mod refine_service;
 pub mod shot_service;
 pub mod slam_view;
@@ -222,11 +223,26 @@ pub async fn run(
         shared.clone(),
         link_cancel.clone(),
     ));
-    let vehicle: Arc<dyn VehicleView> = Arc::new(vehicle_view::LinkVehicle::new(
-        link,
-        cfg.mission.plan,
-        geo.clone(),
-    ));
+    // The refinement loop: started with a shot's mission, stopped by the
+    // next upload or the shutdown.
+    let actions: Arc<tokio::sync::Mutex<()>> = Default::default();
+    let (refine, refine_task) = refine_loop::spawn(
+        refine_loop::Deps {
+            store: store.clone(),
+            geo: geo.clone(),
+            slam: shared.clone(),
+            ingest: ingest.clone(),
+            link: link.clone(),
+            plan: cfg.mission.plan,
+            actions: actions.clone(),
+            params: Default::default(),
+            pictures: Default::default(),
+        },
+        cancel.child_token(),
+    );
+    let vehicle: Arc<dyn VehicleView> = Arc::new(
+        vehicle_view::LinkVehicle::new(link, cfg.mission.plan, geo.clone()).with_refine(refine),
+    );
 
     // The API.
     let slam_view: Arc<dyn SlamView> = shared.clone();
@@ -250,7 +266,7 @@ pub async fn run(
             events_hz: cfg.server.events_hz,
             ..Default::default()
         }),
-        actions: Default::default(),
+        actions,
         started_unix: unix_now(),
         shutdown: cancel.clone(),
     };
@@ -272,6 +288,7 @@ pub async fn run(
 
     // Shutdown, in order.
     tracing::info!("shutting down");
+    let _ = refine_task.await;
     video_cancel.cancel();
     let _ = reader.await;
     ingest.close();

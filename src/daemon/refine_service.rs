@@ -54,6 +54,26 @@ pub fn record_rounds(mission: &mut MissionRecord, session: &Session) {
     }
 }
 
+/// Marks the recorded refinement as ended by the daemon rather than by
+/// the session (no arrival, an upload failed, shutdown, another shot):
+/// `stop` becomes `aborted` (when the session had not stopped) and
+/// `reason` says why. Call after [`record_rounds`].
+pub fn record_abort(mission: &mut MissionRecord, reason: &str) {
+    let Some(r) = mission
+        .details
+        .get_mut("refinement")
+        .and_then(Value::as_object_mut)
+    else {
+        return;
+    };
+    if r.get("stop").is_none_or(Value::is_null) {
+        r.insert("stop".into(), Value::from("aborted"));
+        r.insert("reason".into(), Value::from(reason));
+    } else {
+        r.insert("daemon_note".into(), Value::from(reason));
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -142,6 +162,11 @@ mod tests {
                 .as_str()
                 .is_some_and(|n| n.contains("shot error"))
         );
+        // The daemon's own end is noted beside the session's stop.
+        let mut aborted = m.clone();
+        record_abort(&mut aborted, "cancelled");
+        assert_eq!(aborted.details["refinement"]["stop"], "max_rounds");
+        assert_eq!(aborted.details["refinement"]["daemon_note"], "cancelled");
         // Details that are not an object are kept beside it.
         m.details = json!("uploaded by read-back");
         record_rounds(&mut m, &s);
@@ -151,5 +176,24 @@ mod tests {
         let back: MissionRecord =
             serde_json::from_str(&serde_json::to_string(&m).unwrap()).unwrap();
         assert_eq!(back, m);
+        // A session that had not stopped is marked aborted, with the reason.
+        let blank_target = *s.target();
+        let open = Session::new(
+            blank,
+            None,
+            Isometry3::identity(),
+            blank_target,
+            Params::default(),
+        );
+        record_rounds(&mut m, &open);
+        assert!(m.details["refinement"]["stop"].is_null());
+        record_abort(&mut m, "waypoint 1 not reached and steady within 120 s");
+        assert_eq!(m.details["refinement"]["stop"], "aborted");
+        assert!(
+            m.details["refinement"]["reason"]
+                .as_str()
+                .is_some_and(|r| r.contains("not reached"))
+        );
+        assert_eq!(m.details["refinement"]["rounds"], json!([]));
     }
 }

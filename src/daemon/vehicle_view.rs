@@ -10,8 +10,9 @@ use super::geo_service::GeoService;
 use crate::api::store::{MissionRecord, Shot};
 use crate::api::{BoxFuture, VehicleError, VehicleView};
 use crate::geo::{GeoAlignment, GeoError, GeoTarget};
+use crate::mission::MissionItem;
 use crate::mission::plan::{Flavour, Home, plan};
-use crate::mission::upload::same_mission;
+use crate::mission::upload::{UploadReport, same_mission};
 use crate::vehicle::LinkHandle;
 use crate::video::live::unix_now;
 
@@ -20,6 +21,38 @@ pub struct LinkVehicle {
     link: LinkHandle,
     plan: crate::mission::plan::Params,
     geo: Arc<GeoService>,
+    refine: Option<super::refine_loop::RefineHandle>,
+    /// The shot last uploaded and the target its mission flies.
+    last_uploaded: std::sync::Mutex<Option<(Shot, crate::mission::plan::Target)>>,
+}
+
+/// Uploads `items`, then reads the vehicle's mission back and compares:
+/// `Some(true)` when it holds exactly the planned items, `None` when the
+/// read-back failed. A read-back that differs is an error.
+pub async fn upload_verified(
+    link: &LinkHandle,
+    items: &[MissionItem],
+    flavour: Flavour,
+) -> Result<(UploadReport, Option<bool>), VehicleError> {
+    let report = link
+        .upload_mission(items.to_vec())
+        .await
+        .map_err(|e| VehicleError::Failed {
+            reason: e.to_string(),
+        })?;
+    let verified = match link.download_mission().await {
+        Ok(d) => Some(same_mission(items, &d.items, flavour == Flavour::ArduPilot)),
+        Err(e) => {
+            tracing::warn!("mission read-back failed: {e}");
+            None
+        }
+    };
+    if verified == Some(false) {
+        return Err(VehicleError::Failed {
+            reason: "the mission read back from the vehicle differs from the one uploaded".into(),
+        });
+    }
+    Ok((report, verified))
 }
 
 fn target_json(t: &GeoTarget) -> Value {
@@ -50,7 +83,20 @@ fn alignment_json(a: &GeoAlignment) -> Value {
 impl LinkVehicle {
     /// A view over `link`, planning with `plan`, georeferencing with `geo`.
     pub fn new(link: LinkHandle, plan: crate::mission::plan::Params, geo: Arc<GeoService>) -> Self {
-        Self { link, plan, geo }
+        Self {
+            link,
+            plan,
+            geo,
+            refine: None,
+            last_uploaded: std::sync::Mutex::new(None),
+        }
+    }
+
+    /// Starting a mission also starts the refinement loop of the shot last
+    /// uploaded; uploading another shot stops the running loop.
+    pub fn with_refine(mut self, refine: super::refine_loop::RefineHandle) -> Self {
+        self.refine = Some(refine);
+        self
     }
 
     /// The shot's target camera pose as a vehicle target.
@@ -143,34 +189,18 @@ impl VehicleView for LinkVehicle {
                 lon_deg: home.lon_deg,
                 alt_amsl_m: home.alt_amsl_m,
             };
+            let flown = target.to_mission_target(true);
             let items =
-                plan(&target.to_mission_target(true), &home, flavour, &self.plan).map_err(|e| {
-                    VehicleError::Conflict {
-                        reason: format!("the target cannot be flown: {e}"),
-                    }
+                plan(&flown, &home, flavour, &self.plan).map_err(|e| VehicleError::Conflict {
+                    reason: format!("the target cannot be flown: {e}"),
                 })?;
-            let report = self.link.upload_mission(items.clone()).await.map_err(|e| {
-                VehicleError::Failed {
-                    reason: e.to_string(),
-                }
-            })?;
-            // Read the mission back: what the vehicle holds is what was planned.
-            let verified = match self.link.download_mission().await {
-                Ok(d) => Some(same_mission(
-                    &items,
-                    &d.items,
-                    flavour == Flavour::ArduPilot,
-                )),
-                Err(e) => {
-                    tracing::warn!(shot = %shot.id, "mission read-back failed: {e}");
-                    None
-                }
-            };
-            if verified == Some(false) {
-                return Err(VehicleError::Failed {
-                    reason: "the mission read back from the vehicle differs from the one uploaded"
-                        .into(),
-                });
+            // A new mission replaces the one a refinement loop is flying.
+            if let Some(r) = &self.refine {
+                r.uploading(shot.clone());
+            }
+            let (report, verified) = upload_verified(&self.link, &items, flavour).await?;
+            if let Ok(mut last) = self.last_uploaded.lock() {
+                *last = Some((shot.clone(), flown));
             }
             tracing::info!(
                 shot = %shot.id,
@@ -236,7 +266,14 @@ impl VehicleView for LinkVehicle {
                 .await
                 .map_err(|e| VehicleError::Failed {
                     reason: e.to_string(),
-                })
+                })?;
+            if let Some(r) = &self.refine {
+                let shot = self.last_uploaded.lock().ok().and_then(|l| l.clone());
+                if let Some((shot, flown)) = shot {
+                    r.start(shot, flown);
+                }
+            }
+            Ok(())
         })
     }
 

@@ -1,0 +1,647 @@
+//! The daemon's refinement loop: once a shot's mission is started
+//! (`POST /api/v1/shots/{id}/start`), watch the vehicle's telemetry with
+//! [`ArrivalDetector`] (waypoint reached, ground speed, gimbal pitch, dwell);
+//! on arrival run [`Session::on_arrival`] (on a blocking thread) with the
+//! newest video frame, a snapshot of the SLAM map and the georeference;
+//! when the session asks for a correction, plan, upload (read back) and
+//! start the corrected target like the first one; record each round on the
+//! shot. It stops on convergence, the round budget or a refusal, and is
+//! cancelled by the daemon's shutdown or when another shot is uploaded or
+//! started.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use image::GrayImage;
+use nalgebra::{Isometry3, Point2};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+
+use super::geo_service::GeoService;
+use super::refine_service::{record_abort, record_rounds};
+use super::slam_view::SlamShared;
+use super::vehicle_view::upload_verified;
+use crate::api::store::{Shot, ShotSource, ShotStore};
+use crate::geo::{Geodetic, LocalFrame};
+use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
+use crate::refine::{ArrivalDetector, Context, Session, Step};
+use crate::shot::LocalizeParams;
+use crate::shot::anchors::{AnchorParams, desired_shot_from_anchors};
+use crate::slam::{KeyFrameId, Map};
+use crate::vehicle::LinkHandle;
+use crate::video::live::Ingest;
+
+/// Every tunable number of the daemon's loop (the session's own are in
+/// [`crate::refine::Params`]).
+#[derive(Debug, Clone)]
+pub struct Params {
+    /// The session: shot error, controller, arrival rule.
+    pub refine: crate::refine::Params,
+    /// Localisation of the live frame.
+    pub localize: LocalizeParams,
+    /// The desired picture of an anchors shot.
+    pub anchors: AnchorParams,
+    /// Telemetry polling period.
+    pub poll: Duration,
+    /// Longest flight to one target before the loop gives up.
+    pub max_flight: Duration,
+    /// Telemetry older than this counts as missing.
+    pub max_telemetry_age: Duration,
+    /// Longest wait for a video frame received after the arrival.
+    pub frame_wait: Duration,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Self {
+            refine: crate::refine::Params::default(),
+            localize: LocalizeParams::default(),
+            anchors: AnchorParams::default(),
+            poll: Duration::from_millis(100),
+            max_flight: Duration::from_secs(120),
+            max_telemetry_age: Duration::from_secs(2),
+            frame_wait: Duration::from_secs(3),
+        }
+    }
+}
+
+/// What the loop is told.
+#[derive(Debug)]
+enum Request {
+    /// The shot's mission was started: refine it.
+    Start(Box<(Shot, Target)>),
+    /// Another mission replaces it: stop, and make this shot's desired
+    /// picture now, while its keyframe is in the map.
+    Stop(Box<Shot>),
+}
+
+/// The handle the vehicle view uses to start and stop the loop.
+#[derive(Debug, Clone)]
+pub struct RefineHandle {
+    tx: mpsc::UnboundedSender<Request>,
+}
+
+impl RefineHandle {
+    /// Refine `shot`, whose mission (flying `target`) was just started
+    /// (stops any other).
+    pub fn start(&self, shot: Shot, target: Target) {
+        let _ = self.tx.send(Request::Start(Box::new((shot, target))));
+    }
+
+    /// `shot` is being uploaded: stop the running loop, if any, and keep
+    /// the shot's desired picture (an anchors shot's keyframe may later
+    /// leave the map).
+    pub fn uploading(&self, shot: Shot) {
+        let _ = self.tx.send(Request::Stop(Box::new(shot)));
+    }
+}
+
+/// What the loop reads and drives.
+pub struct Deps {
+    /// The shots (rounds are recorded here).
+    pub store: Arc<ShotStore>,
+    /// The georeference.
+    pub geo: Arc<GeoService>,
+    /// The SLAM map.
+    pub slam: Arc<SlamShared>,
+    /// The newest video frame.
+    pub ingest: Arc<Ingest>,
+    /// The vehicle.
+    pub link: LinkHandle,
+    /// Mission planning (its geofence checks every target).
+    pub plan: plan::Params,
+    /// Serialises mission actions with the API.
+    pub actions: Arc<tokio::sync::Mutex<()>>,
+    /// Tunables.
+    pub params: Params,
+    /// Desired pictures (and masks) by shot id, made at upload.
+    pub pictures: std::sync::Mutex<Vec<(String, Picture)>>,
+}
+
+/// A desired picture and the mask of its valid pixels.
+pub type Picture = (GrayImage, Option<GrayImage>);
+
+/// Desired pictures kept at most.
+const KEEP_PICTURES: usize = 8;
+
+/// Makes (or finds) the shot's desired picture and keeps it.
+fn picture_of(deps: &Deps, shot: &Shot) -> Result<Picture, String> {
+    if let Ok(p) = deps.pictures.lock()
+        && let Some((_, pic)) = p.iter().find(|(id, _)| *id == shot.id)
+    {
+        return Ok(pic.clone());
+    }
+    let map = deps.slam.map_snapshot().ok_or("no SLAM map")?;
+    let pic = desired_picture(&deps.store, &map, shot, &deps.params.anchors)?;
+    if let Ok(mut p) = deps.pictures.lock() {
+        p.retain(|(id, _)| *id != shot.id);
+        p.push((shot.id.clone(), pic.clone()));
+        let n = p.len();
+        if n > KEEP_PICTURES {
+            p.drain(..n - KEEP_PICTURES);
+        }
+    }
+    Ok(pic)
+}
+
+/// Creates the handle and the loop's task body; run the future until
+/// `cancel` fires.
+pub fn spawn(deps: Deps, cancel: CancellationToken) -> (RefineHandle, tokio::task::JoinHandle<()>) {
+    let (tx, rx) = mpsc::unbounded_channel();
+    let task = tokio::spawn(run(Arc::new(deps), rx, cancel));
+    (RefineHandle { tx }, task)
+}
+
+async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: CancellationToken) {
+    let mut current: Option<(CancellationToken, tokio::task::JoinHandle<()>)> = None;
+    loop {
+        let req = tokio::select! {
+            _ = cancel.cancelled() => break,
+            r = rx.recv() => match r {
+                Some(r) => r,
+                None => break,
+            },
+        };
+        if let Some((c, t)) = current.take() {
+            c.cancel();
+            let _ = t.await;
+        }
+        if let Request::Stop(shot) = &req {
+            let d = deps.clone();
+            let shot = (**shot).clone();
+            let made = tokio::task::spawn_blocking(move || picture_of(&d, &shot).map(|_| ()));
+            if let Ok(Err(e)) = made.await {
+                tracing::warn!("refinement: desired picture: {e}");
+            }
+        }
+        if let Request::Start(start) = req {
+            let (shot, target) = *start;
+            let c = cancel.child_token();
+            let d = deps.clone();
+            let cc = c.clone();
+            tracing::info!(shot = %shot.id, "refinement: started");
+            current = Some((
+                c,
+                tokio::spawn(async move { refine_shot(&d, shot, target, cc).await }),
+            ));
+        }
+    }
+    if let Some((c, t)) = current.take() {
+        c.cancel();
+        let _ = t.await;
+    }
+}
+
+/// The last NAV_WAYPOINT of a mission (the shot's).
+fn waypoint_seq(items: &[MissionItem]) -> Option<u16> {
+    items
+        .iter()
+        .filter(|i| i.command == 16)
+        .map(|i| i.seq)
+        .next_back()
+}
+
+/// The desired picture (and the mask of its valid pixels) at the camera's
+/// size: an anchors shot is warped again from its keyframe, a photo is the
+/// stored image.
+fn desired_picture(
+    store: &ShotStore,
+    map: &Map,
+    shot: &Shot,
+    anchors: &AnchorParams,
+) -> Result<(GrayImage, Option<GrayImage>), String> {
+    match &shot.source {
+        ShotSource::Anchors {
+            keyframe_id,
+            anchors: a,
+        } => {
+            let image = u32::try_from(*keyframe_id)
+                .ok()
+                .and_then(|id| map.keyframe(KeyFrameId(id)))
+                .and_then(|k| k.image.clone())
+                .ok_or_else(|| format!("keyframe {keyframe_id} has no image in the map"))?;
+            let pts = a.map(|p| Point2::new(p[0], p[1]));
+            let s = desired_shot_from_anchors(&image, &pts, anchors)
+                .map_err(|e| format!("desired shot: {e}"))?;
+            Ok((s.image, Some(s.mask)))
+        }
+        ShotSource::Photo { .. } => {
+            let jpeg = store
+                .image(&shot.id)
+                .ok_or_else(|| format!("shot {} has no stored image", shot.id))?;
+            let img = image::load_from_memory(&jpeg)
+                .map_err(|e| format!("shot image: {e}"))?
+                .to_luma8();
+            if img.dimensions() != (map.camera.width, map.camera.height) {
+                return Err(format!(
+                    "the photo is {}x{}, the camera's images are {}x{}",
+                    img.width(),
+                    img.height(),
+                    map.camera.width,
+                    map.camera.height
+                ));
+            }
+            Ok((img, None))
+        }
+    }
+}
+
+/// Writes the session (and an abort reason, if any) into the stored shot.
+async fn save_rounds(deps: &Deps, shot_id: &str, session: &Session, abort: Option<&str>) {
+    let Some(mut shot) = deps.store.get(shot_id) else {
+        tracing::warn!(shot = %shot_id, "refinement: the shot is gone");
+        return;
+    };
+    let Some(m) = shot.mission.as_mut() else {
+        tracing::warn!(shot = %shot_id, "refinement: the shot has no mission record");
+        return;
+    };
+    record_rounds(m, session);
+    if let Some(why) = abort {
+        record_abort(m, why);
+    }
+    let t = session.target();
+    m.target_lat_lon_alt = Some([
+        t.lat_deg,
+        t.lon_deg,
+        m.target_lat_lon_alt.map_or(t.alt_m, |x| x[2]),
+    ]);
+    let store = deps.store.clone();
+    match tokio::task::spawn_blocking(move || store.put(shot, None)).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => tracing::warn!("refinement: saving the shot: {e}"),
+        Err(e) => tracing::warn!("refinement: saving the shot: {e}"),
+    }
+}
+
+fn home_of(geo: &GeoService) -> Option<Home> {
+    geo.home().map(|h| Home {
+        lat_deg: h.lat_deg,
+        lon_deg: h.lon_deg,
+        alt_amsl_m: h.alt_amsl_m,
+    })
+}
+
+/// One shot's loop. Every failure ends it with a logged, recorded reason.
+async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: CancellationToken) {
+    let id = shot.id.clone();
+    let blank = Session::new(
+        GrayImage::new(1, 1),
+        None,
+        Isometry3::identity(),
+        Target {
+            lat_deg: f64::NAN,
+            lon_deg: f64::NAN,
+            alt_m: f64::NAN,
+            yaw_deg: f64::NAN,
+            gimbal_pitch_deg: f64::NAN,
+            photo: false,
+        },
+        deps.params.refine.clone(),
+    );
+    let mut session = match prepare(deps, &shot, first).await {
+        Ok(s) => s,
+        Err(why) => {
+            tracing::warn!(shot = %id, "refinement: not started: {why}");
+            save_rounds(deps, &id, &blank, Some(&why)).await;
+            return;
+        }
+    };
+    let flavour = deps.link.telemetry.vehicle.borrow().flavour;
+    let Some(flavour) = flavour else {
+        save_rounds(
+            deps,
+            &id,
+            &session,
+            Some("the autopilot is neither PX4 nor ArduPilot"),
+        )
+        .await;
+        return;
+    };
+    let Some(home) = home_of(&deps.geo) else {
+        save_rounds(deps, &id, &session, Some("home position not known")).await;
+        return;
+    };
+    let mut wp = match plan::plan(session.target(), &home, flavour, &deps.plan)
+        .map_err(|e| e.to_string())
+        .and_then(|items| waypoint_seq(&items).ok_or_else(|| "no waypoint".to_string()))
+    {
+        Ok(w) => w,
+        Err(e) => {
+            save_rounds(deps, &id, &session, Some(&format!("plan: {e}"))).await;
+            return;
+        }
+    };
+    let t_loop = Instant::now();
+    loop {
+        let target = *session.target();
+        let t_fly = Instant::now();
+        let arrived = tokio::select! {
+            _ = cancel.cancelled() => {
+                tracing::info!(shot = %id, "refinement: cancelled");
+                save_rounds(deps, &id, &session, Some("cancelled")).await;
+                return;
+            }
+            a = wait_arrival(deps, wp, &target) => a,
+        };
+        let arrived_at = match arrived {
+            Ok(t) => t,
+            Err(why) => {
+                tracing::warn!(shot = %id, "refinement: {why}");
+                save_rounds(deps, &id, &session, Some(&why)).await;
+                return;
+            }
+        };
+        let flight_s = t_fly.elapsed().as_secs_f64();
+        let before = session.clone();
+        let step = tokio::select! {
+            _ = cancel.cancelled() => {
+                save_rounds(deps, &id, &before, Some("cancelled")).await;
+                return;
+            }
+            s = look(deps, session, &shot, &home, arrived_at) => s,
+        };
+        let (s, step) = step;
+        let step = match step {
+            Ok(x) => x,
+            Err(why) => {
+                tracing::warn!(shot = %id, "refinement: {why}");
+                save_rounds(deps, &id, &s, Some(&why)).await;
+                return;
+            }
+        };
+        session = s;
+        if let Some(r) = session.rounds().last() {
+            tracing::info!(
+                shot = %id,
+                round = r.round,
+                shot_error_pct = r.shot_error_pct,
+                shot_error_px = r.shot_error_px,
+                inliers = r.inliers,
+                decision = ?r.decision,
+                flight_s,
+                note = r.note.as_deref().unwrap_or(""),
+                "refinement: round"
+            );
+        }
+        save_rounds(deps, &id, &session, None).await;
+        let next = match step {
+            Step::Done(stop) => {
+                tracing::info!(
+                    shot = %id,
+                    stop = stop.name(),
+                    rounds = session.rounds().len(),
+                    seconds = t_loop.elapsed().as_secs_f64(),
+                    "refinement: done"
+                );
+                return;
+            }
+            Step::Upload(t) => t,
+        };
+        let started = tokio::select! {
+            _ = cancel.cancelled() => {
+                save_rounds(deps, &id, &session, Some("cancelled")).await;
+                return;
+            }
+            r = fly(deps, &next, &home, flavour, &cancel) => r,
+        };
+        match started {
+            Ok(w) => wp = w,
+            Err(why) => {
+                tracing::warn!(shot = %id, "refinement: corrected mission: {why}");
+                save_rounds(deps, &id, &session, Some(&why)).await;
+                return;
+            }
+        }
+    }
+}
+
+/// The session of a started shot: its pose, desired picture and the
+/// target its mission flies.
+async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Session, String> {
+    let map_from_desired = shot
+        .localisation
+        .as_ref()
+        .and_then(|l| l.world_from_cam.to_isometry())
+        .ok_or_else(|| format!("shot {} is not localised", shot.id))?;
+    let (d, s) = (deps.clone(), shot.clone());
+    let picture = tokio::task::spawn_blocking(move || picture_of(&d, &s))
+        .await
+        .map_err(|e| e.to_string())??;
+    Ok(Session::new(
+        picture.0,
+        picture.1,
+        map_from_desired,
+        target,
+        deps.params.refine.clone(),
+    ))
+}
+
+/// Horizontal and vertical distance (metres) of a reported position from
+/// a target (equirectangular; the distances here are metres).
+fn distance_to(t: &Target, lat_deg: f64, lon_deg: f64, rel_alt_m: f64) -> (f64, f64) {
+    let n = (lat_deg - t.lat_deg) * 111_132.0;
+    let e = (lon_deg - t.lon_deg) * 111_320.0 * t.lat_deg.to_radians().cos();
+    (n.hypot(e), (rel_alt_m - t.alt_m).abs())
+}
+
+/// Waits for the vehicle to reach waypoint `wp` of the mission flying
+/// `target` and hold still with the gimbal at the target's pitch.
+///
+/// The waypoint counts as reached when the vehicle reports it (or reports
+/// a later item, or the mission complete) *and* its position is within the
+/// planner's acceptance radius of the target: the last reached item stays
+/// in the telemetry from the previous flight, and an upload to a vehicle
+/// in mission mode restarts the mission at once, so the report alone may
+/// be stale or already past. Returns the arrival time.
+async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, String> {
+    let p = &deps.params;
+    let tel = &deps.link.telemetry;
+    let mut det = ArrivalDetector::new(p.refine.arrival, wp, target.gimbal_pitch_deg);
+    let t0 = Instant::now();
+    let radius = f64::from(deps.plan.acceptance_radius_m).max(0.1);
+    let mut tick = tokio::time::interval(p.poll);
+    loop {
+        tick.tick().await;
+        if t0.elapsed() > p.max_flight {
+            return Err(format!(
+                "waypoint {wp} not reached and steady within {:.0} s",
+                p.max_flight.as_secs_f64()
+            ));
+        }
+        let fresh = |r: Instant| r.elapsed() <= p.max_telemetry_age;
+        let progress = (*tel.progress.borrow()).map(|s| s.value);
+        let passed = progress
+            .is_some_and(|pr| pr.last_reached.is_some_and(|r| r >= wp) || pr.state == Some(5));
+        let gp = (*tel.global_position.borrow()).filter(|g| fresh(g.received));
+        let near = gp.is_some_and(|g| {
+            let (h, v) = distance_to(target, g.value.lat_deg, g.value.lon_deg, g.value.rel_alt_m);
+            h <= radius && v <= radius
+        });
+        if passed && near {
+            det.on_reached(wp);
+        }
+        let speed = gp.map_or(f64::NAN, |g| {
+            let v = g.value.vel_ned_m_s;
+            f64::from(v[0])
+                .hypot(f64::from(v[1]))
+                .hypot(f64::from(v[2]))
+        });
+        let pitch = (*tel.gimbal.borrow())
+            .filter(|g| fresh(g.received))
+            .map_or(f64::NAN, |g| f64::from(g.value.pitch_deg));
+        let speed = if near { speed } else { f64::NAN };
+        if det.update(t0.elapsed().as_secs_f64(), speed, pitch) {
+            return Ok(Instant::now());
+        }
+    }
+}
+
+/// The session after the round, and the step or why there was none.
+type Looked = (Session, Result<Step, String>);
+
+/// The arrival: the newest frame received after it, a map snapshot and the
+/// georeference, then the session's round on a blocking thread.
+async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: Instant) -> Looked {
+    let p = &deps.params;
+    let t0 = Instant::now();
+    let frame = loop {
+        match deps.ingest.latest() {
+            Some(f) if f.received > arrived => break f,
+            _ if t0.elapsed() > p.frame_wait => {
+                return (session, Err("no video frame after the arrival".into()));
+            }
+            _ => tokio::time::sleep(Duration::from_millis(20)).await,
+        }
+    };
+    let Some(map_from_desired) = shot
+        .localisation
+        .as_ref()
+        .and_then(|l| l.world_from_cam.to_isometry())
+    else {
+        return (session, Err("shot not localised".into()));
+    };
+    let alignment = match deps.geo.target(&map_from_desired) {
+        Ok((_, a)) => a,
+        Err(e) => return (session, Err(format!("georeference: {e}"))),
+    };
+    let frame_ltp = LocalFrame::new(Geodetic {
+        lat_deg: home.lat_deg,
+        lon_deg: home.lon_deg,
+        alt_m: home.alt_amsl_m,
+    });
+    let mount = deps.geo.params().mount.clone();
+    let fence = deps.plan.fence;
+    let localize = p.localize.clone();
+    let slam = deps.slam.clone();
+    let home = *home;
+    let backup = session.clone();
+    let joined = tokio::task::spawn_blocking(move || {
+        let mut session = session;
+        let Some(map) = slam.map_snapshot() else {
+            return (session, Err("no SLAM map".to_string()));
+        };
+        let ctx = Context {
+            map: &map,
+            alignment: &alignment,
+            frame: &frame_ltp,
+            mount: &mount,
+            home: &home,
+            fence: &fence,
+            localize: &localize,
+        };
+        let camera = map.camera;
+        let step = session.on_arrival(&frame.image, Some(&camera), &ctx);
+        (session, Ok(step))
+    })
+    .await;
+    match joined {
+        Ok(r) => r,
+        Err(e) => (backup, Err(format!("the round failed: {e}"))),
+    }
+}
+
+/// Plans, uploads (with read-back) and starts the corrected target; the
+/// planner's geofence and altitude checks apply as to the first target.
+/// Returns the waypoint's sequence number.
+async fn fly(
+    deps: &Deps,
+    target: &Target,
+    home: &Home,
+    flavour: Flavour,
+    cancel: &CancellationToken,
+) -> Result<u16, String> {
+    let items = plan::plan(target, home, flavour, &deps.plan).map_err(|e| format!("plan: {e}"))?;
+    let wp = waypoint_seq(&items).ok_or("the plan has no waypoint")?;
+    let _guard = deps.actions.lock().await;
+    if cancel.is_cancelled() {
+        return Err("cancelled".into());
+    }
+    upload_verified(&deps.link, &items, flavour)
+        .await
+        .map_err(|e| e.to_string())?;
+    deps.link
+        .start_mission()
+        .await
+        .map_err(|e| format!("start: {e}"))?;
+    tracing::info!(
+        lat = target.lat_deg,
+        lon = target.lon_deg,
+        alt_m = target.alt_m,
+        yaw_deg = target.yaw_deg,
+        pitch_deg = target.gimbal_pitch_deg,
+        "refinement: corrected mission started"
+    );
+    Ok(wp)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mission::plan::Params as PlanParams;
+
+    fn target() -> Target {
+        Target {
+            lat_deg: 47.397,
+            lon_deg: 8.545,
+            alt_m: 15.0,
+            yaw_deg: 30.0,
+            gimbal_pitch_deg: -40.0,
+            photo: true,
+        }
+    }
+
+    #[test]
+    fn the_shot_waypoint_is_found_in_both_flavours() {
+        let home = Home {
+            lat_deg: 47.3970,
+            lon_deg: 8.5449,
+            alt_amsl_m: 488.0,
+        };
+        for f in [Flavour::Px4, Flavour::ArduPilot] {
+            let items = plan::plan(&target(), &home, f, &PlanParams::default()).unwrap();
+            let wp = waypoint_seq(&items).unwrap();
+            let item = &items[usize::from(wp)];
+            assert_eq!(item.command, 16);
+            // The shot's waypoint, not ArduPilot's home item.
+            assert_eq!(item.x, (target().lat_deg * 1e7).round() as i32, "{f:?}");
+        }
+        assert_eq!(waypoint_seq(&[]), None);
+    }
+
+    #[test]
+    fn distance_to_the_target_in_metres() {
+        let t = target();
+        let (h, v) = distance_to(&t, t.lat_deg, t.lon_deg, t.alt_m);
+        assert!(h < 1e-9 && v < 1e-9);
+        // 1e-5 deg of latitude is 1.11 m; 2 m lower.
+        let (h, v) = distance_to(&t, t.lat_deg + 1e-5, t.lon_deg, t.alt_m - 2.0);
+        assert!((h - 1.111).abs() < 0.01, "{h}");
+        assert!((v - 2.0).abs() < 1e-9);
+        // 1e-5 deg of longitude at 47.4 deg is 0.754 m.
+        let (h, _) = distance_to(&t, t.lat_deg, t.lon_deg + 1e-5, t.alt_m);
+        assert!((h - 0.754).abs() < 0.01, "{h}");
+        let (h, _) = distance_to(&t, f64::NAN, t.lon_deg, t.alt_m);
+        assert!(h.is_nan(), "NaN never counts as near");
+    }
+}
