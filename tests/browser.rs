@@ -9,8 +9,10 @@
 //! `SHOTPILOT_NODE` (default `node`), `SHOTPILOT_SCREENSHOT` (default
 //! `<target>/tmp/browser/operator_page.png`).
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream};
+mod daemon_support;
+
+use daemon_support::{TOKEN, free_tcp_port, free_udp_port, get_json};
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -18,35 +20,6 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 use shotpilot::config::Config;
 use tokio_util::sync::CancellationToken;
-
-fn free_tcp_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn get_json(addr: SocketAddr, path: &str) -> Value {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes())
-        .unwrap();
-    let mut resp = Vec::new();
-    s.read_to_end(&mut resp).unwrap();
-    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
-    let head = String::from_utf8_lossy(&resp[..split]);
-    assert!(head.starts_with("HTTP/1.1 200"), "{path}: {head}");
-    serde_json::from_slice(&resp[split + 4..]).unwrap()
-}
 
 #[test]
 #[ignore = "needs chromium and playwright-core"]
@@ -84,7 +57,7 @@ fn operator_page_in_headless_chromium() {
     cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
     cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
     cfg.server.bind = "127.0.0.1:0".into();
-    cfg.server.token = Some("browser".into());
+    cfg.server.token = Some(TOKEN.into());
     cfg.validate(Path::new("test")).unwrap();
 
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -117,7 +90,7 @@ fn operator_page_in_headless_chromium() {
     let out = Command::new(&node)
         .arg(&script)
         .env("SHOTPILOT_URL", format!("http://{addr}"))
-        .env("SHOTPILOT_TOKEN", "browser")
+        .env("SHOTPILOT_TOKEN", TOKEN)
         .env("SHOTPILOT_CHROMIUM", &chromium)
         .env("SHOTPILOT_SCREENSHOT", &shot_png)
         .output()

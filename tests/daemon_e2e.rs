@@ -6,6 +6,10 @@
 //! item by item, and a cancellation stops everything cleanly with the map
 //! saved.
 
+mod daemon_support;
+
+use daemon_support::{free_tcp_port, free_udp_port, get_json, http, request};
+
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::Path;
@@ -15,62 +19,12 @@ use serde_json::{Value, json};
 use shotpilot::config::Config;
 use tokio_util::sync::CancellationToken;
 
-fn free_tcp_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn http(addr: SocketAddr, method: &str, path: &str, body: Option<&Value>) -> (u16, Vec<u8>) {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-    let body = body.map(|b| b.to_string()).unwrap_or_default();
-    let req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer e2e\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
-        body.len()
-    );
-    s.write_all(req.as_bytes()).unwrap();
-    let mut resp = Vec::new();
-    s.read_to_end(&mut resp).unwrap();
-    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
-    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
-    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
-    assert!(
-        !head.contains("transfer-encoding: chunked"),
-        "unexpected chunked response to {path}"
-    );
-    (status, resp[split + 4..].to_vec())
-}
-
 /// POST a PNG image; returns status and body.
 fn post_png(addr: SocketAddr, path: &str, img: &image::GrayImage) -> (u16, Vec<u8>) {
     let mut png = Vec::new();
     img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
         .unwrap();
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
-    let head = format!(
-        "POST {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer e2e\r\nContent-Type: image/png\r\nContent-Length: {}\r\n\r\n",
-        png.len()
-    );
-    s.write_all(head.as_bytes()).unwrap();
-    s.write_all(&png).unwrap();
-    let mut resp = Vec::new();
-    s.read_to_end(&mut resp).unwrap();
-    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
-    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
-    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
-    (status, resp[split + 4..].to_vec())
+    request(addr, "POST", path, "image/png", &png)
 }
 
 /// Distance between a localised shot's camera centre and a keyframe's.
@@ -81,12 +35,6 @@ fn centre_distance(shot: &Value, kf: &Value) -> f64 {
         .map(|i| (a[i].as_f64().unwrap() - b[i].as_f64().unwrap()).powi(2))
         .sum::<f64>()
         .sqrt()
-}
-
-fn get_json(addr: SocketAddr, path: &str) -> Value {
-    let (st, b) = http(addr, "GET", path, None);
-    assert_eq!(st, 200, "{path}: {}", String::from_utf8_lossy(&b));
-    serde_json::from_slice(&b).unwrap()
 }
 
 #[test]

@@ -21,8 +21,11 @@
 //! real time; `full` flies the whole explore script, about 6 minutes each):
 //! `cargo test --release --test geo_daemon -- --ignored --nocapture`.
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream, UdpSocket};
+mod daemon_support;
+
+use daemon_support::{free_tcp_port, free_udp_port, get_json, request};
+
+use std::net::{SocketAddr, UdpSocket};
 use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -36,45 +39,6 @@ use shotpilot::geo::{LeverArmFrame, TelemetryClock};
 use shotpilot::geometry::umeyama;
 use shotpilot_sim::geodesy::{Geodetic as SimGeodetic, LocalFrame as SimFrame};
 use tokio_util::sync::CancellationToken;
-
-fn free_tcp_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn free_udp_port() -> u16 {
-    UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn http(addr: SocketAddr, method: &str, path: &str, ct: &str, body: &[u8]) -> (u16, Vec<u8>) {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
-    let head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: {ct}\r\nContent-Length: {}\r\n\r\n",
-        body.len()
-    );
-    s.write_all(head.as_bytes()).unwrap();
-    s.write_all(body).unwrap();
-    let mut resp = Vec::new();
-    s.read_to_end(&mut resp).unwrap();
-    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
-    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
-    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
-    (status, resp[split + 4..].to_vec())
-}
-
-fn get_json(addr: SocketAddr, path: &str) -> Value {
-    let (st, b) = http(addr, "GET", path, "application/json", b"");
-    assert_eq!(st, 200, "{path}: {}", String::from_utf8_lossy(&b));
-    serde_json::from_slice(&b).unwrap()
-}
 
 /// Lines `seq t tx ty tz qx qy qz qw` of the simulator's `frames.txt`.
 fn read_truth_frames(path: &Path) -> Vec<(f64, Isometry3<f64>)> {
@@ -404,7 +368,7 @@ fn fly(stress: Option<f64>, flight_s: Option<f64>) -> Run {
         image::DynamicImage::ImageLuma8(img)
             .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
             .unwrap();
-        let (st, b) = http(addr, "POST", "/api/v1/shots/photo", "image/png", &png);
+        let (st, b) = request(addr, "POST", "/api/v1/shots/photo", "image/png", &png);
         assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
         let shot: Value = serde_json::from_slice(&b).unwrap();
         if shot["status"] != "localised" {
@@ -412,7 +376,7 @@ fn fly(stress: Option<f64>, flight_s: Option<f64>) -> Run {
             continue;
         }
         let sid = shot["id"].as_str().unwrap();
-        let (st, b) = http(addr, "GET", &format!("/api/v1/shots/{sid}/target"), "", b"");
+        let (st, b) = request(addr, "GET", &format!("/api/v1/shots/{sid}/target"), "", b"");
         if st != 200 {
             eprintln!("photo {i}: no target: {}", String::from_utf8_lossy(&b));
             continue;

@@ -188,6 +188,16 @@ struct Frame {
 }
 
 impl Frame {
+    /// The frame as the matcher searches it.
+    fn search_target(&self) -> SearchTarget<'_> {
+        SearchTarget {
+            keypoints: &self.keypoints,
+            descriptors: &self.descriptors,
+            grid: &self.grid,
+            points: &self.points,
+        }
+    }
+
     fn matches(&self) -> Vec<(usize, PointId)> {
         self.points
             .iter()
@@ -994,12 +1004,7 @@ impl Tracker {
         let mut found = Vec::new();
         for _ in 0..2 {
             frame.points.iter_mut().for_each(|p| *p = None);
-            let target = SearchTarget {
-                keypoints: &frame.keypoints,
-                descriptors: &frame.descriptors,
-                grid: &frame.grid,
-                points: &frame.points,
-            };
+            let target = frame.search_target();
             found = matcher::search_last_frame(
                 &target,
                 &last.keypoints,
@@ -1206,12 +1211,7 @@ impl Tracker {
             }
         }
         let found = {
-            let target = SearchTarget {
-                keypoints: &frame.keypoints,
-                descriptors: &frame.descriptors,
-                grid: &frame.grid,
-                points: &frame.points,
-            };
+            let target = frame.search_target();
             matcher::search_local_points(
                 &target,
                 &projected,
@@ -1322,12 +1322,7 @@ impl Tracker {
             1.0
         };
         let found = {
-            let target = SearchTarget {
-                keypoints: &frame.keypoints,
-                descriptors: &frame.descriptors,
-                grid: &frame.grid,
-                points: &frame.points,
-            };
+            let target = frame.search_target();
             matcher::search_local_points(
                 &target,
                 &projected,

@@ -1,0 +1,74 @@
+//! Shared by the tests that start the daemon with the in-process simulator
+//! (`daemon_e2e`, `daemon_refine`, `geo_daemon`, `browser`): free ports and
+//! a minimal HTTP/1.1 client (one request per connection).
+#![allow(dead_code)] // each test binary uses its own subset
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::time::Duration;
+
+use serde_json::Value;
+
+/// The bearer token the daemon tests configure and send.
+pub const TOKEN: &str = "e2e";
+
+/// A TCP port free on 127.0.0.1 at the time of the call.
+pub fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A UDP port free on 127.0.0.1 at the time of the call.
+pub fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// One request with [`TOKEN`] as bearer token (a daemon without a token
+/// ignores it); returns the status and the body. The daemon's answers are
+/// never chunked.
+pub fn request(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    content_type: &str,
+    body: &[u8],
+) -> (u16, Vec<u8>) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
+    let head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer {TOKEN}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    s.write_all(head.as_bytes()).unwrap();
+    s.write_all(body).unwrap();
+    let mut resp = Vec::new();
+    s.read_to_end(&mut resp).unwrap();
+    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
+    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
+    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    assert!(
+        !head.contains("transfer-encoding: chunked"),
+        "unexpected chunked response to {path}"
+    );
+    (status, resp[split + 4..].to_vec())
+}
+
+/// A request with an optional JSON body.
+pub fn http(addr: SocketAddr, method: &str, path: &str, body: Option<&Value>) -> (u16, Vec<u8>) {
+    let body = body.map(|b| b.to_string()).unwrap_or_default();
+    request(addr, method, path, "application/json", body.as_bytes())
+}
+
+/// GET that must answer 200 with JSON.
+pub fn get_json(addr: SocketAddr, path: &str) -> Value {
+    let (st, b) = http(addr, "GET", path, None);
+    assert_eq!(st, 200, "{path}: {}", String::from_utf8_lossy(&b));
+    serde_json::from_slice(&b).unwrap()
+}
