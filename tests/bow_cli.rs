@@ -2,7 +2,8 @@
 //! dataset, import a DBoW2 text vocabulary, describe a file, and fail with a
 //! clear message on a corrupt one.
 
-use std::path::Path;
+mod data_support;
+
 use std::process::Command;
 
 use image::{GrayImage, Luma};
@@ -171,13 +172,7 @@ fn import_a_dbow2_text_vocabulary() {
 
 #[test]
 fn train_on_a_dataset() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let Some(teddy) = ["../shared/data", "../../shared/data"]
-        .iter()
-        .map(|r| root.join(r).join("tum_fr3_teddy_100"))
-        .find(|p| p.is_dir())
-    else {
-        eprintln!("skipped: ../shared/data not present");
+    let Some(teddy) = data_support::shared_data("tum_fr3_teddy_100") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();

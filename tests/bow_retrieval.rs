@@ -14,6 +14,8 @@
 //!   `shotpilot-sim`, a world the built-in vocabulary never saw), with the
 //!   built-in vocabulary.
 
+mod data_support;
+
 use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
@@ -22,15 +24,7 @@ use shotpilot::features::{OrbExtractor, Params};
 use shotpilot::video::dataset::Dataset;
 
 fn shared_data() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    for rel in ["../shared/data", "../../shared/data"] {
-        let p = root.join(rel);
-        if p.is_dir() {
-            return Some(p);
-        }
-    }
-    eprintln!("skipped: ../shared/data not present");
-    None
+    data_support::shared_data("")
 }
 
 fn extract_all(ds: &Dataset) -> Vec<Vec<[u64; 4]>> {

@@ -9,6 +9,8 @@
 //! absent. The OpenCV comparison needs opencv-python-headless
 //! (`SHOTPILOT_PYTHON`, default `python3`).
 
+mod data_support;
+
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -16,16 +18,7 @@ use shotpilot::features::eval::{self, PairMetrics, WarpPair, WarpParams};
 use shotpilot::features::{OrbExtractor, Params};
 
 fn data_dir() -> Option<PathBuf> {
-    let dir = std::env::var_os("SHOTPILOT_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
-    let teddy = dir.join("tum_fr3_teddy_100");
-    if teddy.is_dir() {
-        Some(teddy)
-    } else {
-        eprintln!("skipped: {} not present", teddy.display());
-        None
-    }
+    data_support::shared_data("tum_fr3_teddy_100")
 }
 
 fn pairs(teddy: &std::path::Path) -> Vec<WarpPair> {

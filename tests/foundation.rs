@@ -6,20 +6,16 @@
 //! Tests that need `../shared/data` skip (with a message) when it is absent,
 //! so a clone without it still runs; `.ci/run` runs them with the data.
 
-use std::path::{Path, PathBuf};
+mod data_support;
+
+use std::path::PathBuf;
 
 use nalgebra::{Isometry3, Point2, Translation3, UnitQuaternion, Vector3};
 use shotpilot::eval::{self, AlignMode, StampedPose, Trajectory};
 use shotpilot::video::dataset::{Dataset, DatasetError, Layout};
 
 fn shared_data() -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!("skipped: ../shared/data not present");
-        None
-    }
+    data_support::shared_data("")
 }
 
 #[test]

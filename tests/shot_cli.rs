@@ -2,7 +2,9 @@
 //! on TUM fr3/teddy (first 40 frames), then the desired shot from anchors
 //! and from a photo, as JSON. Skips with a message when ../shared/data is absent.
 
-use std::path::{Path, PathBuf};
+mod data_support;
+
+use std::path::PathBuf;
 use std::process::Command;
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
@@ -11,14 +13,7 @@ use serde_json::Value;
 use shotpilot::slam::{KeyFrameId, mapfile};
 
 fn data_dir() -> Option<PathBuf> {
-    ["../shared/data", "../../shared/data"]
-        .iter()
-        .map(|rel| {
-            Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join(rel)
-                .join("tum_fr3_teddy_100")
-        })
-        .find(|d| d.join("rgb.txt").is_file())
+    data_support::shared_data("tum_fr3_teddy_100")
 }
 
 fn shotpilot(args: &[&str]) -> anyhow::Result<(bool, String, String)> {
@@ -37,7 +32,6 @@ fn shotpilot(args: &[&str]) -> anyhow::Result<(bool, String, String)> {
 #[test]
 fn shot_cli_anchors_photo_and_refusal() -> anyhow::Result<()> {
     let Some(dir) = data_dir() else {
-        eprintln!("skipped: ../shared/data/tum_fr3_teddy_100 not present");
         return Ok(());
     };
     let tmp = tempfile::tempdir()?;

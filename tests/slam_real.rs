@@ -4,7 +4,9 @@
 //! does not initialise and says why; the map keeps its invariants and a
 //! saved map loads back equal; damaged map files are refused.
 
-use std::path::{Path, PathBuf};
+mod data_support;
+
+use std::path::PathBuf;
 use std::sync::Arc;
 
 use shotpilot::eval;
@@ -12,15 +14,7 @@ use shotpilot::slam::{self, Map, Slam, SlamRun, mapfile};
 use shotpilot::video::dataset::Dataset;
 
 fn shared(name: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data")
-        .join(name);
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!("skipped: {} not present", p.display());
-        None
-    }
+    data_support::shared_data(name)
 }
 
 fn run_sequential(ds: &Dataset, seed: u64) -> SlamRun {

@@ -19,10 +19,9 @@ fn python() -> PathBuf {
     }
 }
 
-fn free_udp_port() -> u16 {
-    let s = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
-    s.local_addr().expect("addr").port()
-}
+#[path = "../../tests/ports/mod.rs"]
+mod ports;
+use ports::free_udp_port;
 
 struct Sim(Child);
 

@@ -12,23 +12,9 @@ use serde_json::Value;
 /// The bearer token the daemon tests configure and send.
 pub const TOKEN: &str = "e2e";
 
-/// A TCP port free on 127.0.0.1 at the time of the call.
-pub fn free_tcp_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-/// A UDP port free on 127.0.0.1 at the time of the call.
-pub fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+#[path = "../ports/mod.rs"]
+mod ports;
+pub use ports::{free_tcp_port, free_udp_port};
 
 /// One request with [`TOKEN`] as bearer token (a daemon without a token
 /// ignores it); returns the status and the body. The daemon's answers are

@@ -395,11 +395,9 @@ fn request(habit: Habit, gs: u8, gc: u8, seq: u16) -> MavMessage {
     }
 }
 
-/// A free UDP port on localhost.
-pub fn free_udp_port() -> u16 {
-    let s = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
-    s.local_addr().expect("addr").port()
-}
+#[path = "../ports/mod.rs"]
+mod ports;
+pub use ports::free_udp_port;
 
 /// Starts a fake on a free port; returns its address and shared state.
 pub fn start_fake(cfg: FakeConfig, cancel: &CancellationToken) -> (String, Arc<Mutex<FakeState>>) {
