@@ -1,5 +1,10 @@
-//! Bodies of the longer subcommands (the argument types live in `main.rs`).
+//! The subcommands: each file holds one command's arguments and its body.
 
+pub mod eval;
+pub mod features;
+pub mod mission;
+pub mod run;
 pub mod scenario;
 pub mod shot;
 pub mod slam;
+pub mod vocab;

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
+use clap::Args;
 use nalgebra::Point2;
 use serde_json::json;
 
@@ -12,7 +13,55 @@ use shotpilot::camera::{Camera, Distortion};
 use shotpilot::shot::{self, Localization};
 use shotpilot::slam::{KeyFrameId, mapfile};
 
-use crate::ShotArgs;
+/// Arguments of `shotpilot shot`.
+#[derive(Args, Debug)]
+pub struct ShotArgs {
+    /// Map file (from `shotpilot slam --save-map`).
+    #[arg(long, value_name = "FILE")]
+    pub map: PathBuf,
+    /// Keyframe whose image the anchors are placed on.
+    #[arg(
+        long,
+        value_name = "ID",
+        requires = "anchors",
+        conflicts_with = "photo"
+    )]
+    pub keyframe: Option<u32>,
+    /// The four anchors, pixels of the keyframe: where the frame's top-left,
+    /// top-right, bottom-right and bottom-left corners should go.
+    #[arg(
+        long,
+        value_name = "x1,y1,x2,y2,x3,y3,x4,y4",
+        requires = "keyframe",
+        allow_hyphen_values = true
+    )]
+    pub anchors: Option<String>,
+    /// A photo of the desired shot: taken with the map's camera, or (at
+    /// another size, same aspect ratio) a resized copy of one, unless
+    /// --photo-intrinsics says otherwise.
+    #[arg(long, value_name = "FILE")]
+    pub photo: Option<PathBuf>,
+    /// The photo's camera when it is not the map's: `fx,fy,cx,cy` or
+    /// `fx,fy,cx,cy,k1,k2,p1,p2,k3` (pixels of the photo, OpenCV order).
+    #[arg(long, value_name = "fx,fy,cx,cy[,k1,k2,p1,p2,k3]", requires = "photo")]
+    pub photo_intrinsics: Option<String>,
+    /// Folder for desired_shot.png (and desired_shot_mask.png).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Candidate keyframes tried.
+    #[arg(long, default_value_t = 5, value_name = "K")]
+    pub top_k: usize,
+    /// Choose the candidates by a bag-of-words query with the built-in
+    /// vocabulary instead of descriptor matching against every keyframe.
+    #[arg(long)]
+    pub bow: bool,
+    /// Seed of the RANSAC.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub seed: u64,
+    /// Print exactly one JSON object on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
 
 /// Parses `x1,y1,x2,y2,x3,y3,x4,y4`.
 fn parse_anchors(s: &str) -> Result<[Point2<f64>; 4]> {
@@ -63,6 +112,7 @@ fn parse_intrinsics(s: &str, w: u32, h: u32) -> Result<Camera> {
         .context("--photo-intrinsics are not a usable camera")
 }
 
+/// Makes the desired shot, localises it in the map and prints the result.
 pub fn run(args: ShotArgs) -> Result<()> {
     let t0 = Instant::now();
     let map =

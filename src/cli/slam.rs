@@ -1,18 +1,57 @@
 //! `shotpilot slam`: run the SLAM on a dataset and report.
 
 use std::io::IsTerminal;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::mpsc::sync_channel;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
+use clap::Args;
 use serde_json::json;
 
 use shotpilot::eval::{self, Trajectory};
 use shotpilot::slam::{self, Slam, TrackState};
 use shotpilot::video::dataset::Dataset;
 
-use crate::SlamArgs;
+/// Arguments of `shotpilot slam`.
+#[derive(Args, Debug)]
+pub struct SlamArgs {
+    /// Dataset folder (TUM or EuRoC layout).
+    pub dataset: PathBuf,
+    /// Folder for trajectory.txt and keyframes.txt (created if missing).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Ground truth (TUM format); default: the dataset's own, if any.
+    #[arg(long, value_name = "FILE")]
+    pub gt: Option<PathBuf>,
+    /// Run local mapping after each keyframe on the same thread, so runs
+    /// repeat exactly (and frames are not paced).
+    #[arg(long)]
+    pub sequential: bool,
+    /// Replay speed relative to the frame timestamps (two-thread mode);
+    /// 0 feeds frames as fast as tracking takes them.
+    #[arg(long, default_value_t = 1.0, value_name = "X")]
+    pub speed: f64,
+    /// Save the map to this file at the end.
+    #[arg(long, value_name = "FILE")]
+    pub save_map: Option<PathBuf>,
+    /// ORB features per frame.
+    #[arg(long, default_value_t = 1000, value_name = "N")]
+    pub features: usize,
+    /// Use only the first N frames.
+    #[arg(long, value_name = "N")]
+    pub max_frames: Option<usize>,
+    /// Seed of the randomised steps (RANSAC).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub seed: u64,
+    /// Largest timestamp difference when pairing with the ground truth, seconds.
+    #[arg(long, default_value_t = 0.02, value_name = "S")]
+    pub max_dt: f64,
+    /// Print exactly one JSON object on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
 
 /// Median and 95th percentile of a list of milliseconds.
 fn med_p95(v: &[f64]) -> (f64, f64) {
@@ -26,6 +65,7 @@ fn med_p95(v: &[f64]) -> (f64, f64) {
     (med, p95)
 }
 
+/// Runs the SLAM over the dataset and prints timing, counts and accuracy.
 pub fn run(args: SlamArgs) -> Result<()> {
     let ds = Dataset::open(&args.dataset)?;
     let n = args.max_frames.map_or(ds.len(), |m| m.min(ds.len()));
