@@ -271,6 +271,40 @@ fn compute_f21(
     Some(u * Matrix3::from_diagonal(&s) * vt)
 }
 
+/// The best-scoring model of one kind seen so far in the RANSAC, with its
+/// inlier flags.
+struct BestModel {
+    score: f64,
+    model: Option<Matrix3<f64>>,
+    inliers: Vec<bool>,
+}
+
+impl BestModel {
+    fn new(n: usize) -> Self {
+        Self {
+            score: 0.0,
+            model: None,
+            inliers: vec![false; n],
+        }
+    }
+
+    /// Keeps `model` when `score` beats the best; its inlier flags in `cur`
+    /// then become the best's (the old best's go back as scratch).
+    fn offer(&mut self, score: f64, model: Matrix3<f64>, cur: &mut Vec<bool>) {
+        if score > self.score {
+            self.score = score;
+            self.model = Some(model);
+            std::mem::swap(cur, &mut self.inliers);
+        }
+    }
+
+    /// The indices of the best's inliers, into `out`.
+    fn inlier_indices(&self, out: &mut Vec<usize>) {
+        out.clear();
+        out.extend((0..self.inliers.len()).filter(|&i| self.inliers[i]));
+    }
+}
+
 /// Symmetric transfer score of a homography (ORB-SLAM `CheckHomography`).
 fn score_homography(
     h21: &Matrix3<f64>,
@@ -583,52 +617,45 @@ pub fn initialize_two_view(
     let mut rng = SmallRng::seed_from_u64(seed);
     let mut pool: Vec<usize> = (0..n).collect();
     let mut cur = vec![false; n];
-    let mut best_h_in = vec![false; n];
-    let mut best_f_in = vec![false; n];
-    let (mut best_sh, mut best_sf) = (0.0f64, 0.0f64);
-    let mut best_h = None;
-    let mut best_f = None;
+    let mut best_h = BestModel::new(n);
+    let mut best_f = BestModel::new(n);
+    let score_h = |h21: &Matrix3<f64>, cur: &mut Vec<bool>| {
+        let h12 = h21.try_inverse()?;
+        Some(score_homography(
+            h21,
+            &h12,
+            &px1,
+            &px2,
+            inv_sigma2,
+            params.chi2_two_dof,
+            cur,
+        ))
+    };
+    let score_f = |f21: &Matrix3<f64>, cur: &mut Vec<bool>| {
+        score_fundamental(
+            f21,
+            &px1,
+            &px2,
+            inv_sigma2,
+            params.chi2_one_dof,
+            params.chi2_two_dof,
+            cur,
+        )
+    };
     for _ in 0..params.ransac_iterations {
         for k in 0..8 {
             let j = rng.random_range(k..n);
             pool.swap(k, j);
         }
         let set = &pool[..8];
-        if let Some(hn) = compute_h21(&pn1, &pn2, set, true) {
-            let h21 = t2_inv * hn * t1;
-            if let Some(h12) = h21.try_inverse() {
-                let s = score_homography(
-                    &h21,
-                    &h12,
-                    &px1,
-                    &px2,
-                    inv_sigma2,
-                    params.chi2_two_dof,
-                    &mut cur,
-                );
-                if s > best_sh {
-                    best_sh = s;
-                    best_h = Some(h21);
-                    std::mem::swap(&mut cur, &mut best_h_in);
-                }
-            }
+        if let Some(h21) = compute_h21(&pn1, &pn2, set, true).map(|hn| t2_inv * hn * t1)
+            && let Some(s) = score_h(&h21, &mut cur)
+        {
+            best_h.offer(s, h21, &mut cur);
         }
-        if let Some(fn_) = compute_f21(&pn1, &pn2, set, true) {
-            let f21 = t2_t * fn_ * t1;
-            let s = score_fundamental(
-                &f21,
-                &px1,
-                &px2,
-                inv_sigma2,
-                params.chi2_one_dof,
-                params.chi2_two_dof,
-                &mut cur,
-            );
-            if s > best_sf {
-                best_sf = s;
-                best_f = Some(f21);
-                std::mem::swap(&mut cur, &mut best_f_in);
-            }
+        if let Some(f21) = compute_f21(&pn1, &pn2, set, true).map(|fn_| t2_t * fn_ * t1) {
+            let s = score_f(&f21, &mut cur);
+            best_f.offer(s, f21, &mut cur);
         }
     }
     // Least-squares refit of each model on its consensus set (Hartley &
@@ -636,51 +663,29 @@ pub fn initialize_two_view(
     // fits are noisy with pixel-level noise. Kept only when the score rises.
     let mut idx_buf: Vec<usize> = Vec::with_capacity(n);
     for _ in 0..params.refit_rounds {
-        idx_buf.clear();
-        idx_buf.extend((0..n).filter(|&i| best_h_in[i]));
+        best_h.inlier_indices(&mut idx_buf);
         let h_fit = (idx_buf.len() >= 8)
             .then(|| compute_h21(&pn1, &pn2, &idx_buf, false))
             .flatten()
             .map(|hn| t2_inv * hn * t1);
-        if let Some((h21, h12)) = h_fit.and_then(|h| h.try_inverse().map(|hi| (h, hi))) {
-            let s = score_homography(
-                &h21,
-                &h12,
-                &px1,
-                &px2,
-                inv_sigma2,
-                params.chi2_two_dof,
-                &mut cur,
-            );
-            if s > best_sh {
-                best_sh = s;
-                best_h = Some(h21);
-                std::mem::swap(&mut cur, &mut best_h_in);
-            }
+        if let Some(h21) = h_fit
+            && let Some(s) = score_h(&h21, &mut cur)
+        {
+            best_h.offer(s, h21, &mut cur);
         }
-        idx_buf.clear();
-        idx_buf.extend((0..n).filter(|&i| best_f_in[i]));
+        best_f.inlier_indices(&mut idx_buf);
         let f_fit = (idx_buf.len() >= 8)
             .then(|| compute_f21(&pn1, &pn2, &idx_buf, false))
             .flatten()
             .map(|fn_| t2_t * fn_ * t1);
         if let Some(f21) = f_fit {
-            let s = score_fundamental(
-                &f21,
-                &px1,
-                &px2,
-                inv_sigma2,
-                params.chi2_one_dof,
-                params.chi2_two_dof,
-                &mut cur,
-            );
-            if s > best_sf {
-                best_sf = s;
-                best_f = Some(f21);
-                std::mem::swap(&mut cur, &mut best_f_in);
-            }
+            let s = score_f(&f21, &mut cur);
+            best_f.offer(s, f21, &mut cur);
         }
     }
+    let (best_sh, best_sf) = (best_h.score, best_f.score);
+    let (best_h_in, best_f_in) = (best_h.inliers, best_f.inliers);
+    let (best_h, best_f) = (best_h.model, best_f.model);
     if best_sh + best_sf <= 0.0 {
         return Err(GeometryError::TooFewInliers {
             found: 0,
