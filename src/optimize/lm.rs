@@ -37,6 +37,30 @@ pub trait LeastSquares {
     fn state_norm(&self) -> f64;
 }
 
+/// Solves a small dense damped system `(H + λ·D)·δ = -g` with `D` the
+/// clamped diagonal of `H` (see the module comment), for problems whose
+/// normal equations fit in a fixed-size matrix. Returns `δ` and the
+/// predicted decrease `½·δᵀ·(λ·D·δ - g)`, or `None` when the damped matrix
+/// is not positive definite or the step is not finite.
+pub fn solve_damped_dense<const N: usize>(
+    h: &nalgebra::SMatrix<f64, N, N>,
+    g: &nalgebra::SVector<f64, N>,
+    lambda: f64,
+) -> Option<(nalgebra::SVector<f64, N>, f64)> {
+    let mut a = *h;
+    let mut d = nalgebra::SVector::<f64, N>::zeros();
+    for i in 0..N {
+        d[i] = h[(i, i)].clamp(1e-6, 1e32);
+        a[(i, i)] += lambda * d[i];
+    }
+    let step = a.cholesky()?.solve(&(-g));
+    if !step.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let pred = 0.5 * step.dot(&(d.component_mul(&step) * lambda - g));
+    Some((step, pred))
+}
+
 /// Tunables of the LM core.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LmParams {
@@ -188,19 +212,9 @@ mod tests {
             (0.5 * r.norm_squared(), self.g.amax())
         }
         fn solve_damped(&mut self, lambda: f64) -> Option<(f64, f64)> {
-            let mut a = self.h;
-            let d = Vector2::new(
-                self.h[(0, 0)].clamp(1e-6, 1e32),
-                self.h[(1, 1)].clamp(1e-6, 1e32),
-            );
-            a[(0, 0)] += lambda * d.x;
-            a[(1, 1)] += lambda * d.y;
-            self.step = a.cholesky()?.solve(&(-self.g));
-            let pred = 0.5
-                * self
-                    .step
-                    .dot(&(d.component_mul(&self.step) * lambda - self.g));
-            Some((pred, self.step.norm()))
+            let (step, pred) = solve_damped_dense(&self.h, &self.g, lambda)?;
+            self.step = step;
+            Some((pred, step.norm()))
         }
         fn apply_step(&mut self) {
             self.old = self.x;

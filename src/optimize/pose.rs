@@ -10,7 +10,7 @@
 
 use nalgebra::{Isometry3, Matrix6, Point2, Point3, Vector6};
 
-use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt};
+use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt, solve_damped_dense};
 use super::{Intrinsics, OptimizeError, RobustKernel, valid_obs};
 use crate::geometry::se3::{se3_exp, skew};
 
@@ -164,18 +164,8 @@ impl LeastSquares for PoseProblem<'_> {
     }
 
     fn solve_damped(&mut self, lambda: f64) -> Option<(f64, f64)> {
-        let mut a = self.h;
-        let mut d = Vector6::zeros();
-        for i in 0..6 {
-            d[i] = self.h[(i, i)].clamp(1e-6, 1e32);
-            a[(i, i)] += lambda * d[i];
-        }
-        let step = a.cholesky()?.solve(&(-self.g));
-        if !step.iter().all(|v| v.is_finite()) {
-            return None;
-        }
+        let (step, pred) = solve_damped_dense(&self.h, &self.g, lambda)?;
         self.step = step;
-        let pred = 0.5 * step.dot(&(d.component_mul(&step) * lambda - self.g));
         Some((pred, step.norm()))
     }
 

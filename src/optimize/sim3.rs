@@ -17,7 +17,7 @@
 
 use nalgebra::{Matrix2x3, Point2, Point3, SMatrix, SVector, UnitQuaternion, Vector3};
 
-use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt};
+use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt, solve_damped_dense};
 use super::{Intrinsics, OptimizeError, RobustKernel, valid_obs};
 use crate::geometry::Sim3;
 use crate::geometry::se3::skew;
@@ -207,21 +207,9 @@ impl LeastSquares for Sim3Ls<'_> {
     }
 
     fn solve_damped(&mut self, lambda: f64) -> Option<(f64, f64)> {
-        let mut a = self.h;
-        let mut d = Vec7::zeros();
-        for i in 0..7 {
-            d[i] = self.h[(i, i)].clamp(1e-6, 1e32);
-            a[(i, i)] += lambda * d[i];
-        }
-        let step = a.cholesky()?.solve(&(-self.g));
-        if !step.iter().all(|v| v.is_finite()) {
-            return None;
-        }
+        let (step, pred) = solve_damped_dense(&self.h, &self.g, lambda)?;
         self.step = step;
-        Some((
-            0.5 * step.dot(&(d.component_mul(&step) * lambda - self.g)),
-            step.norm(),
-        ))
+        Some((pred, step.norm()))
     }
 
     fn apply_step(&mut self) {
