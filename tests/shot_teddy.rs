@@ -643,6 +643,11 @@ fn two_view_fit(
 /// 0.18, across it 0.38 deg; each keyframe at its own best time shift still
 /// 0.34 deg. Sampson error: map 0.63 px, keypoints' own optimum 0.59 px,
 /// ground truth 1.17 px (median). None of (a), (b), (c) explains the floor.
+/// The localiser adds nothing to it: non-keyframe frames inside the map's
+/// span localise at 0.57 deg (median) against the keyframes' 0.55; beyond
+/// the span (frames 70..100) the localised frames are at 1.03 deg, and
+/// SLAM's own keyframes of those frames (run over all 100, aligned on its
+/// keyframes of 0..70) at 0.96 deg: the discrepancy grows with the motion.
 #[test]
 #[ignore = "diagnosis: prints the orientation-floor tables, asserts nothing"]
 fn orientation_floor_diagnosis() -> anyhow::Result<()> {
@@ -994,6 +999,64 @@ fn orientation_floor_diagnosis() -> anyhow::Result<()> {
             e_lx.push((l2 * r * x).angle_to(&g.rotation).to_degrees());
         }
     }
+    // The same localisation for frames inside the map's span that are not
+    // keyframes: what the localiser adds to the map's own floor.
+    let kf_frames: std::collections::HashSet<u64> =
+        map.keyframes().map(|k| k.frame_index).collect();
+    let mut inside = Vec::new();
+    for i in (0..70).step_by(3) {
+        let f = ds.frame(i)?;
+        if kf_frames.contains(&(f.index as u64)) {
+            continue;
+        }
+        let Some(g) = gt_at(&gt, f.timestamp, 0.05) else {
+            continue;
+        };
+        if let Localization::Localized(p) =
+            shot::localize(&map, &f.image, None, Some(&index), &params)?
+        {
+            inside.push(
+                sim.transform_pose(&p.world_from_cam)
+                    .rotation
+                    .angle_to(&g.rotation)
+                    .to_degrees(),
+            );
+        }
+    }
+    let n_inside = inside.len();
+    let (im, ix) = med_max(inside);
+    println!(
+        "non-keyframe frames inside the map's span (every 3rd of 0..70), localised, orientation vs ground truth with Sim(3): median {im:.3}, max {ix:.3} deg over {n_inside}"
+    );
+    // SLAM itself over all 100 frames: its keyframes of frames 70..100
+    // against the ground truth, with the Sim(3) of its keyframes of 0..70.
+    let full = build_map(&dir, usize::MAX)?;
+    let full_pairs = |early: bool| -> Vec<PosePair> {
+        full.keyframes()
+            .filter(|k| (k.frame_index < 70) == early)
+            .filter_map(|k| gt_at(&gt, k.timestamp, 0.05).map(|g| (k.world_from_cam(), g)))
+            .collect()
+    };
+    let (early, late) = (full_pairs(true), full_pairs(false));
+    let sim_early = align_pairs(&full, &early)?;
+    let err = |v: &[PosePair]| -> Vec<f64> {
+        v.iter()
+            .map(|(e, g)| {
+                sim_early
+                    .transform_pose(e)
+                    .rotation
+                    .angle_to(&g.rotation)
+                    .to_degrees()
+            })
+            .collect()
+    };
+    let (em, ex) = med_max(err(&early));
+    let (lm, lx) = med_max(err(&late));
+    println!(
+        "SLAM over all 100 frames, Sim(3) of its keyframes of frames 0..70: those {} keyframes median {em:.3}, max {ex:.3} deg; its {} keyframes of frames 70..100 median {lm:.3}, max {lx:.3} deg",
+        early.len(),
+        late.len()
+    );
     let n = e_sim.len();
     let within = |v: &[f64]| v.iter().filter(|e| **e <= 0.5).count();
     for (name, v) in [
