@@ -12,6 +12,13 @@
 //! * no trial reports "localised" with an error over 5 % or 2 degrees;
 //! * shots of places the map never saw come back "not localised".
 //!
+//! Held-out frames (the third must-show): frames of the explore
+//! flight after its mapped segment, and, on a flight that revisits its
+//! scene, a second lap of the sim's orbit (on the mapped circle and off
+//! it) against a map made from 75 % of the first lap
+//! ([`held_out_orbit_frames_localise`]), localised as photos against the
+//! true poses after the Sim(3) alignment.
+//!
 //! Everything is rendered in-process through the sim crate's library (no
 //! files). Run with `--nocapture` to see the map's statistics and the table.
 
@@ -25,7 +32,7 @@ use shotpilot::bow::Vocabulary;
 use shotpilot::camera::{Camera, Distortion};
 use shotpilot::geometry::{Sim3, umeyama};
 use shotpilot::shot::{self, BowIndex, Localization};
-use shotpilot::slam::{self, Map, Slam};
+use shotpilot::slam::{self, KeyFrameId, Map, Slam, mapfile};
 use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::paths::{CameraPath, Params as PathParams, camera_from_yaw_pitch};
 use shotpilot_sim::render::{RenderParams, Renderer};
@@ -82,10 +89,21 @@ struct Scene {
 }
 
 fn scene(setup: &Setup, seed: u64) -> anyhow::Result<Scene> {
+    scene_on(setup, seed, |world| {
+        CameraPath::explore(world, PathParams::default())
+    })
+}
+
+/// The world of `seed`, the renderer and the path `make_path` builds over it.
+fn scene_on(
+    setup: &Setup,
+    seed: u64,
+    make_path: impl FnOnce(&World) -> CameraPath,
+) -> anyhow::Result<Scene> {
     let world = Arc::new(World::generate_with(seed, &WorldParams::default())?);
     let sc = sim_camera(setup.width, setup.height);
     let renderer = Renderer::new(world.clone(), sc, RenderParams::default());
-    let path = CameraPath::explore(&world, PathParams::default());
+    let path = make_path(&world);
     Ok(Scene {
         world,
         renderer,
@@ -171,7 +189,7 @@ fn build_map(sc: &Scene, setup: &Setup) -> anyhow::Result<(Map, Sim3, MapStats)>
     Ok((map, sim, stats))
 }
 
-/// Mapped points (in the true world frame) that the camera at
+/// Number of mapped points (in the true world frame) that the camera at
 /// `world_from_cam` sees unoccluded inside its image.
 fn visible_map_points(
     sc: &Scene,
@@ -179,12 +197,24 @@ fn visible_map_points(
     points_world: &[Point3<f64>],
     world_from_cam: &Isometry3<f64>,
 ) -> usize {
+    visible_point_indices(sc, camera, points_world, world_from_cam).len()
+}
+
+/// Indices of the mapped points (in the true world frame) that the camera
+/// at `world_from_cam` sees unoccluded inside its image.
+fn visible_point_indices(
+    sc: &Scene,
+    camera: &Camera,
+    points_world: &[Point3<f64>],
+    world_from_cam: &Isometry3<f64>,
+) -> Vec<usize> {
     let cam_from_world = world_from_cam.inverse();
     let eye = Point3::from(world_from_cam.translation.vector);
     let (w, h) = (camera.width as f64, camera.height as f64);
     points_world
         .iter()
-        .filter(|p| {
+        .enumerate()
+        .filter(|(_, p)| {
             let pc = cam_from_world * **p;
             let Some(px) = camera.project(&pc.coords) else {
                 return false;
@@ -199,7 +229,8 @@ fn visible_map_points(
                 None => true,
             }
         })
-        .count()
+        .map(|(i, _)| i)
+        .collect()
 }
 
 /// Median distance from the camera to the scene over a 7x7 grid of pixels
@@ -251,6 +282,12 @@ struct Mapped {
     points_world: Vec<Point3<f64>>,
     /// Times of the keyframes along the flight.
     kf_times: Vec<f64>,
+    /// For each map point (in `points_world`'s order), the true centres of
+    /// the keyframes that observe it.
+    point_observers: Vec<Vec<Vector3<f64>>>,
+    /// Frames given to SLAM, and how many it tracked.
+    frames: usize,
+    tracked: usize,
 }
 
 /// The setting: a 640x480 render of the first third (30 s) of the
@@ -274,11 +311,16 @@ fn mapped() -> anyhow::Result<&'static Mapped> {
 }
 
 fn build_mapped(setup: Setup, seed: u64) -> anyhow::Result<Mapped> {
+    build_mapped_on(scene(&setup, seed)?, setup, "explore")
+}
+
+/// SLAM's map of `sc`'s path over `setup`'s segment, aligned to the truth;
+/// `label` names the path in the printed statistics.
+fn build_mapped_on(sc: Scene, setup: Setup, label: &str) -> anyhow::Result<Mapped> {
     let t_start = std::time::Instant::now();
-    let sc = scene(&setup, seed)?;
     let (map, sim, st) = build_map(&sc, &setup)?;
     println!(
-        "map: {}x{} render, explore t = {:.1}..{:.1} s every {:.2} s: {} frames, initialised at frame {:?}, {} tracked, {} keyframes, {} points",
+        "map: {}x{} render, {label} t = {:.1}..{:.1} s every {:.2} s: {} frames, initialised at frame {:?}, {} tracked, {} keyframes, {} points",
         setup.width,
         setup.height,
         setup.t0,
@@ -309,12 +351,28 @@ fn build_mapped(setup: Setup, seed: u64) -> anyhow::Result<Mapped> {
         .collect();
     let mut kf_times: Vec<f64> = map.keyframes().map(|k| k.timestamp).collect();
     kf_times.sort_by(f64::total_cmp);
+    let kf_centres: std::collections::HashMap<KeyFrameId, Vector3<f64>> = map
+        .keyframes()
+        .map(|k| (k.id, sc.path.world_from_cam(k.timestamp).translation.vector))
+        .collect();
+    let point_observers = map
+        .points()
+        .map(|p| {
+            p.observations
+                .iter()
+                .filter_map(|(k, _)| kf_centres.get(k).copied())
+                .collect()
+        })
+        .collect();
     Ok(Mapped {
         sc,
         map,
         sim,
         points_world,
         kf_times,
+        point_observers,
+        frames: st.frames,
+        tracked: st.tracked,
     })
 }
 
@@ -512,5 +570,451 @@ fn photos_from_another_camera_localise() -> anyhow::Result<()> {
     let camera = map_camera(&other)?;
     let trials = localise_near(m, &renderer, &camera, 20, 0xca3e)?;
     judge("800x600 camera", &trials);
+    Ok(())
+}
+
+/// How far a view is from the viewpoints the map was made from: for each
+/// mapped point the camera at `world_from_cam` sees (unoccluded, in the
+/// image), the smallest angle between its ray to the point and the ray of a
+/// keyframe that observed the point (the keyframes' TRUE centres); the
+/// median over those points, degrees, with their number. Ground truth and
+/// the map only: no localisation result enters it.
+fn viewpoint_change(m: &Mapped, camera: &Camera, world_from_cam: &Isometry3<f64>) -> (usize, f64) {
+    let visible = visible_point_indices(&m.sc, camera, &m.points_world, world_from_cam);
+    let eye = world_from_cam.translation.vector;
+    let mut angles: Vec<f64> = visible
+        .iter()
+        .map(|&j| {
+            let p = m.points_world[j].coords;
+            let ray = (p - eye).normalize();
+            m.point_observers[j]
+                .iter()
+                .map(|c| ray.angle(&(p - c).normalize()).to_degrees())
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    angles.sort_by(f64::total_cmp);
+    let median = angles.get(angles.len() / 2).copied().unwrap_or(f64::NAN);
+    (visible.len(), median)
+}
+
+/// Localises `img` (a photo of the map camera) as `shotpilot shot --photo`
+/// does and compares it with `truth`; prints `row` with the outcome.
+fn localise_photo(
+    m: &Mapped,
+    map: &Map,
+    index: &BowIndex<'_>,
+    img: &image::GrayImage,
+    truth: &Isometry3<f64>,
+    row: &str,
+) -> anyhow::Result<Trial> {
+    let params = shot::LocalizeParams::default();
+    let dist = distance_to_scene(&m.sc, truth);
+    Ok(
+        match shot::localize_with_camera(map, &map.camera, img, None, Some(index), &params)? {
+            Localization::Localized(p) => {
+                let est = m.sim.transform_pose(&p.world_from_cam);
+                let rot_err = est.rotation.angle_to(&truth.rotation).to_degrees();
+                let pos_err =
+                    (est.translation.vector - truth.translation.vector).norm() / dist * 100.0;
+                println!(
+                    "{row}  {dist:6.1}  yes        {:7}  {:7.3}  {rot_err:11.4}  {pos_err:13.3}",
+                    p.inliers, p.reprojection_rmse_px,
+                );
+                Trial {
+                    localized: true,
+                    rot_err_deg: rot_err,
+                    pos_err_pct: pos_err,
+                }
+            }
+            Localization::NotLocalized { reason } => {
+                println!("{row}  {dist:6.1}  no: {reason}");
+                Trial {
+                    localized: false,
+                    rot_err_deg: f64::NAN,
+                    pos_err_pct: f64::NAN,
+                }
+            }
+        },
+    )
+}
+
+/// Frames of the same rendered flight that were held out of the map: the
+/// map is SLAM's run over the explore flight's first 30 s (a frame every
+/// 0.15 s, 201 frames); the queries are the flight's LATER frames (t = 30.15
+/// to 90 s on the same frame clock, with the same noise sequence; none was
+/// given to SLAM), localised as photos exactly as `shotpilot shot --photo`
+/// does (the map read back from its file, the map camera, no mask, BoW
+/// candidates), and compared with the simulator's true poses after the
+/// map's Sim(3) alignment (`judge`'s tolerances: 1 % of the distance to the
+/// scene and 0.5 degree for 90 %, nothing localised beyond 5 % or 2 degrees).
+///
+/// Which later frames "see the same scene" is decided from the ground truth
+/// and the map alone, before any localisation ([`viewpoint_change`]): a
+/// frame is kept when its true view holds at least 150 mapped points (the
+/// hidden-pose trials' rule) AND the median angle between its rays to those
+/// points and the rays of the keyframes that observed them is no larger
+/// than the largest such angle among the 50 hidden poses of
+/// [`simulator_shots_localise`] (the neighbourhood of the flight that
+/// experiment covers; computed here from the same generator and seed).
+/// On this figure-of-eight the rule keeps the frames just after the mapped
+/// segment and those where the loop closes over its start; in between, the
+/// flight sees the mapped ground from 20-70 degrees away, beyond what ORB
+/// descriptors match.
+///
+/// Those wider views are checked too, for the gate only: every 4th later
+/// frame with at least 150 mapped points in view, whatever its viewpoint;
+/// most come back "not localised", and none may be localised beyond 5 % or
+/// 2 degrees. About 10 s in `--release` with the map.
+#[test]
+fn held_out_later_frames_localise() -> anyhow::Result<()> {
+    let m = mapped()?;
+    let tmp = tempfile::tempdir()?;
+    let path = tmp.path().join("sim.map");
+    mapfile::save(&m.map, &path)?;
+    let map = mapfile::load(&path)?;
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(&map, &vocabulary);
+    let camera = map.camera;
+    let min_visible = 150;
+
+    // The envelope of the hidden-pose trials (same draws as `localise_near`).
+    let mut rng = StdRng::seed_from_u64(0x5eed);
+    let mut max_change: f64 = 0.0;
+    let (mut drawn, mut attempts) = (0, 0);
+    while drawn < 50 {
+        attempts += 1;
+        anyhow::ensure!(attempts < 1000, "too few poses see the map");
+        let (_, hidden, _, _) = hidden_pose_near(m, &mut rng);
+        let (visible, change) = viewpoint_change(m, &camera, &hidden);
+        if visible < min_visible {
+            continue;
+        }
+        max_change = max_change.max(change);
+        drawn += 1;
+    }
+
+    let first = ((SETUP.t1 - SETUP.t0) / SETUP.dt).floor() as usize + 1;
+    let last = ((m.sc.path.end() - SETUP.t0) / SETUP.dt).round() as usize;
+    let mut kept = Vec::new();
+    let mut wide = Vec::new();
+    let (mut few_points, mut far_view) = (0, 0);
+    for i in first..=last {
+        let t = SETUP.t0 + SETUP.dt * i as f64;
+        let truth = m.sc.path.world_from_cam(t);
+        let (visible, change) = viewpoint_change(m, &camera, &truth);
+        if visible < min_visible {
+            few_points += 1;
+        } else if change > max_change {
+            far_view += 1;
+            if (i - first).is_multiple_of(4) {
+                wide.push((i, t, truth, visible, change));
+            }
+        } else {
+            kept.push((i, t, truth, visible, change));
+        }
+    }
+    println!(
+        "held-out later frames t = {:.2}..{:.2} s: {} frames; kept {} (>= {min_visible} mapped points in view, median viewpoint change <= {max_change:.2} deg, the largest of the 50 hidden poses); excluded {} ({few_points} with fewer points in view, {far_view} seen from further away)",
+        SETUP.t0 + SETUP.dt * first as f64,
+        SETUP.t0 + SETUP.dt * last as f64,
+        last + 1 - first,
+        kept.len(),
+        few_points + far_view,
+    );
+    let header = "frame   t_s  visible  view_change_deg  dist_m  localized  inliers  rmse_px  rot_err_deg  pos_err_%dist";
+    println!("{header}");
+    let mut trials = Vec::new();
+    for (i, t, truth, visible, change) in &kept {
+        let img = m.sc.renderer.render_noisy(truth, 1000 + *i as u64);
+        let row = format!("{i:5} {t:5.2}  {visible:7}  {change:15.2}");
+        trials.push(localise_photo(m, &map, &index, &img, truth, &row)?);
+    }
+    println!(
+        "wider views (every 4th later frame with >= {min_visible} mapped points in view and a larger viewpoint change; gate check only):"
+    );
+    println!("{header}");
+    let mut wrong = Vec::new();
+    let mut wide_localised = 0;
+    for (i, t, truth, visible, change) in &wide {
+        let img = m.sc.renderer.render_noisy(truth, 1000 + *i as u64);
+        let row = format!("{i:5} {t:5.2}  {visible:7}  {change:15.2}");
+        let trial = localise_photo(m, &map, &index, &img, truth, &row)?;
+        if trial.localized {
+            wide_localised += 1;
+            if trial.rot_err_deg > 2.0 || trial.pos_err_pct > 5.0 {
+                wrong.push(*i);
+            }
+        }
+    }
+    println!(
+        "[wider views] {wide_localised}/{} localised, {} of them beyond 2 deg or 5 %",
+        wide.len(),
+        wrong.len()
+    );
+    assert!(
+        kept.len() >= 10,
+        "only {} later frames see the mapped scene",
+        kept.len()
+    );
+    judge("held-out later frames", &trials);
+    assert!(
+        wrong.is_empty(),
+        "wider views localised beyond 2 deg or 5 %: frames {wrong:?}"
+    );
+    Ok(())
+}
+
+/// Orbit period of the held-out orbit experiment, seconds: 40 s for the
+/// sim's 60 m radius at 30 m altitude (9.4 m/s, 9 degrees of azimuth a
+/// second); at 10 frames per second the camera moves 0.94 m and turns 0.9
+/// degree between frames, as on the explore flight at its 0.15 s step.
+const ORBIT_PERIOD_S: f64 = 40.0;
+/// Share of the first lap that makes the map.
+const ORBIT_MAPPED_SHARE: f64 = 0.75;
+/// Every how many frames a later frame is queried.
+const ORBIT_QUERY_EVERY: usize = 4;
+
+/// Frames held out of the map on a flight that revisits its scene: the
+/// sim's `orbit` (radius 60 m, altitude 30 m, looking at the scene centre;
+/// the lap shortened to [`ORBIT_PERIOD_S`] through `paths::Params`) flown
+/// for two laps at 10 frames per second, 640x480.
+///
+/// The map is SLAM's run over the first 75 % of the first lap (t = 0 to
+/// 30 s, 301 frames, 270 degrees of azimuth): "the first part" of the
+/// flight, leaving a quarter the map never saw to test the gate on. Not the
+/// whole lap: SLAM has no loop closing, so a full lap ends on a seam where
+/// its drift meets its own start with duplicated points (measured with the
+/// whole lap, 401 frames, as the map: keyframe centres 0.085 m RMSE against
+/// 0.046 m; the second lap on the circle still 100/100, but its worst
+/// position error 0.79 % of the distance against 0.30 %; 6 m in and down
+/// 43/47).
+///
+/// The queries, fixed before any localisation: every 4th frame of the
+/// flight after the map (every 8th on the off-circle laps), split by where
+/// the camera truly is:
+///
+/// * the second lap over the mapped arc (t = 40 to 70 s, 0 to 270 degrees,
+///   75 frames). The video's frame clock runs half a frame out of step with
+///   the lap (t = 40.05, 40.45, ...), so no query repeats a viewpoint SLAM
+///   saw: each lies midway between two frames of the first lap;
+/// * the same second lap flown off the mapped circle, 6 m wider and 6 m
+///   higher, then 6 m closer and 6 m lower, still looking at the centre
+///   (38 frames each): viewpoints the first lap never had;
+/// * the unmapped quarter of the first lap (t = 30 to 40 s, 270 to 360
+///   degrees, up to 47 degrees of azimuth from any keyframe): the gate
+///   only, nothing localised beyond 5 % or 2 degrees; the counts of
+///   localised and refused frames are printed.
+///
+/// Frames are excluded by two rules from the ground truth alone, counted
+/// and printed: a pose no drone can take (the camera less than 2 m above a
+/// roof within 2 m, the sim's own clearance check of its flights: the orbit
+/// ignores buildings) and a view that does not see the mapped scene (fewer
+/// than 150 mapped points in the TRUE view, unoccluded, inside the image:
+/// the hidden-pose trials' rule). On this world they exclude only 3 frames
+/// of the lower lap (azimuth 195-210 degrees, the camera 0.6 m over a
+/// 23.4 m roof, the scene 1.4 m away). The first rule was added after a
+/// run on world 2 showed a lap inside a building. The map must also have
+/// been tracked through (at most 5 of its frames untracked), or the test
+/// stops with that error.
+///
+/// Each query is localised as `shotpilot shot --photo` does (the map read
+/// back from its file, the map camera, no mask, BoW candidates) and
+/// compared with the orbit's true pose after the map's Sim(3) alignment.
+/// The three second laps carry the bounds ([`judge`]: at least
+/// 90 % within 1 % of the distance to the scene and 0.5 degree, none
+/// localised beyond 5 % or 2 degrees). Measured: on the circle 75/75
+/// (rotation error median 0.046, max 0.132 degree; position median 0.087,
+/// max 0.301 % of the distance); 6 m out and up 38/38 (max 0.132 degree,
+/// 0.198 %); 6 m in and down 33/35 (two refused, 3 excluded; max 0.101 degree,
+/// 0.509 %); the unmapped quarter 11/25 localised, the 14 others refused,
+/// none beyond 2 degrees or 5 % (worst 0.21 degree and 1.5 %, 21 degrees
+/// of azimuth from the nearest keyframe). About 25 s to render and map,
+/// 45 s in all, in `--release`.
+///
+/// Other worlds (not run here; change the seed of `scene_on` below): world
+/// 2, on the circle 75/75 localised, 73/75 within the bounds (two at 1.4
+/// and 1.6 % of an 8-9 m distance to a wall, 0.2 degree), 6 m out and up
+/// 38/38, 6 m in and down 33/33 (5 excluded: inside a 26.5 m building),
+/// the unmapped quarter 13/25 localised, none wrong; world 3, the orbit's
+/// circle runs through a 31.9 m building at azimuth 171-195 degrees, SLAM
+/// loses track there (191 of 301 frames tracked) and the test stops on the
+/// tracking check; flown at 40 m instead (`orbit_altitude_m`), 300/301
+/// tracked and 75/75, 38/38, 38/38 within the bounds (worst 0.161 degree,
+/// 0.249 %), the unmapped quarter 18/25 localised, none wrong.
+#[test]
+fn held_out_orbit_frames_localise() -> anyhow::Result<()> {
+    let setup = Setup {
+        width: 640,
+        height: 480,
+        t0: 0.0,
+        t1: ORBIT_MAPPED_SHARE * ORBIT_PERIOD_S,
+        dt: 0.1,
+    };
+    let path_params = PathParams {
+        orbit_duration_s: ORBIT_PERIOD_S,
+        ..PathParams::default()
+    };
+    let sc = scene_on(&setup, SEED, |_| CameraPath::orbit(path_params))?;
+    let m = build_mapped_on(sc, setup, "orbit")?;
+    let tmp = tempfile::tempdir()?;
+    let file = tmp.path().join("orbit.map");
+    mapfile::save(&m.map, &file)?;
+    let map = mapfile::load(&file)?;
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(&map, &vocabulary);
+    let camera = map.camera;
+    // The orbit is one lap; the second lap is its first again (the path
+    // clamps to its lap), so a time of the flight maps to the lap's time.
+    let pose_at = |t: f64| m.sc.path.world_from_cam(t.rem_euclid(ORBIT_PERIOD_S));
+    // Azimuth (degrees) of a camera centre around the scene centre, and its
+    // distance in azimuth to the nearest keyframe's true centre.
+    let azimuth = |p: &Vector3<f64>| p.y.atan2(p.x).to_degrees().rem_euclid(360.0);
+    let kf_azimuths: Vec<f64> = m
+        .kf_times
+        .iter()
+        .map(|&t| azimuth(&pose_at(t).translation.vector))
+        .collect();
+    let azimuth_gap = |truth: &Isometry3<f64>| {
+        let a = azimuth(&truth.translation.vector);
+        kf_azimuths
+            .iter()
+            .map(|k| {
+                let d = (a - k).rem_euclid(360.0);
+                d.min(360.0 - d)
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    // SLAM must have tracked the mapped part through (the sim's orbit
+    // ignores buildings: on some worlds it flies into one and SLAM loses
+    // track; the experiment is about the localiser, given a map).
+    anyhow::ensure!(
+        m.tracked + 5 >= m.frames,
+        "SLAM tracked only {} of the {} frames of the mapped part",
+        m.tracked,
+        m.frames
+    );
+    let mapped_frames = ((setup.t1 - setup.t0) / setup.dt).round() as usize + 1;
+    let lap_frames = (ORBIT_PERIOD_S / setup.dt).round() as usize;
+    let header = "frame    t_s  azimuth_deg  visible  kf_gap_deg  dist_m  localized  inliers  rmse_px  rot_err_deg  pos_err_%dist";
+
+    // Renders the flight's frame `i` at the true pose `truth`, localises it
+    // as a photo and prints its row.
+    // A frame is excluded (None) and counted when a drone cannot take it
+    // (the camera less than 2 m above a roof within 2 m: the sim's own
+    // clearance check of its flights) or when its true view holds fewer
+    // than `min_visible` mapped points (it does not see the mapped scene).
+    let min_visible = 150;
+    let query = |i: usize, t: f64, truth: Isometry3<f64>| -> anyhow::Result<Option<Trial>> {
+        let visible = visible_map_points(&m.sc, &camera, &m.points_world, &truth);
+        let gap = azimuth_gap(&truth);
+        let p = truth.translation.vector;
+        let az = azimuth(&p);
+        let row = format!("{i:5} {t:6.2}  {az:11.1}  {visible:7}  {gap:10.1}");
+        let roof = m.sc.world.max_height_near(p.x, p.y, 2.0);
+        if -p.z < roof + 2.0 {
+            println!(
+                "{row}  excluded: the camera at {:.1} m, a {roof:.1} m roof within 2 m",
+                -p.z
+            );
+            return Ok(None);
+        }
+        if visible < min_visible {
+            let dist = distance_to_scene(&m.sc, &truth);
+            println!("{row}  {dist:6.1}  excluded: fewer than {min_visible} mapped points in view");
+            return Ok(None);
+        }
+        let img = m.sc.renderer.render_noisy(&truth, 1000 + i as u64);
+        Ok(Some(localise_photo(&m, &map, &index, &img, &truth, &row)?))
+    };
+    // Runs `query` over `frames`; returns the trials and the number excluded.
+    let run = |frames: Vec<(usize, f64, Isometry3<f64>)>| -> anyhow::Result<(Vec<Trial>, usize)> {
+        let n = frames.len();
+        let mut trials = Vec::new();
+        for (i, t, truth) in frames {
+            trials.extend(query(i, t, truth)?);
+        }
+        let excluded = n - trials.len();
+        Ok((trials, excluded))
+    };
+
+    // The unmapped quarter of the first lap.
+    println!("unmapped quarter of the first lap (gate only):");
+    println!("{header}");
+    let (unmapped, unmapped_excluded) = run((mapped_frames..lap_frames)
+        .step_by(ORBIT_QUERY_EVERY)
+        .map(|i| {
+            let t = setup.t0 + setup.dt * i as f64;
+            (i, t, pose_at(t))
+        })
+        .collect())?;
+
+    // The second lap over the mapped arc, half a frame out of step.
+    println!("second lap over the mapped arc (the issue's bounds):");
+    println!("{header}");
+    let (revisit, revisit_excluded) = run((0..mapped_frames - 1)
+        .step_by(ORBIT_QUERY_EVERY)
+        .map(|k| {
+            let i = lap_frames + k;
+            let t = setup.t0 + setup.dt * (i as f64 + 0.5);
+            (i, t, pose_at(t))
+        })
+        .collect())?;
+
+    // The second lap off the mapped circle: 6 m higher and 6 m further
+    // out, then 6 m lower and 6 m closer, still looking at the centre;
+    // every 8th frame over the mapped arc.
+    let mut off_circle = Vec::new();
+    for (dr, dh) in [(6.0, 6.0), (-6.0, -6.0)] {
+        let off = CameraPath::orbit(PathParams {
+            orbit_radius_m: path_params.orbit_radius_m + dr,
+            orbit_altitude_m: path_params.orbit_altitude_m + dh,
+            ..path_params
+        });
+        println!(
+            "second lap {dr:+} m in radius, {dh:+} m in altitude, over the mapped arc (the issue's bounds):"
+        );
+        println!("{header}");
+        let (trials, excluded) = run((0..mapped_frames - 1)
+            .step_by(2 * ORBIT_QUERY_EVERY)
+            .map(|k| {
+                let i = lap_frames + k;
+                let t = setup.t0 + setup.dt * (i as f64 + 0.5);
+                (i, t, off.world_from_cam(t.rem_euclid(ORBIT_PERIOD_S)))
+            })
+            .collect())?;
+        off_circle.push((
+            format!("orbit second lap {dr:+} m radius {dh:+} m altitude"),
+            trials,
+            excluded,
+        ));
+    }
+
+    let unmapped_localised = unmapped.iter().filter(|t| t.localized).count();
+    let unmapped_wrong: Vec<usize> = unmapped
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.localized && (t.rot_err_deg > 2.0 || t.pos_err_pct > 5.0))
+        .map(|(k, _)| k)
+        .collect();
+    let unmapped_good = unmapped
+        .iter()
+        .filter(|t| t.localized && t.rot_err_deg <= 0.5 && t.pos_err_pct <= 1.0)
+        .count();
+    println!(
+        "[unmapped quarter] {unmapped_localised}/{} localised ({unmapped_good} within 1 % and 0.5 deg), {} beyond 2 deg or 5 %; {unmapped_excluded} excluded",
+        unmapped.len(),
+        unmapped_wrong.len()
+    );
+    println!("[orbit second lap] {revisit_excluded} excluded");
+    judge("orbit second lap", &revisit);
+    for (name, trials, excluded) in &off_circle {
+        println!("[{name}] {excluded} excluded");
+        judge(name, trials);
+    }
+    assert!(
+        unmapped_wrong.is_empty(),
+        "unmapped quarter localised beyond 2 deg or 5 %: {unmapped_wrong:?}"
+    );
     Ok(())
 }

@@ -36,11 +36,21 @@ fn data_dir() -> Option<std::path::PathBuf> {
 
 fn build_map(dir: &Path, max_frames: usize) -> anyhow::Result<Map> {
     let ds = Dataset::open(dir)?;
+    build_map_with(&ds, ds.camera, max_frames)
+}
+
+/// The map of the first `max_frames` frames of `ds`, as seen through
+/// `camera` (the dataset's own or altered intrinsics).
+fn build_map_with(
+    ds: &Dataset,
+    camera: shotpilot::camera::Camera,
+    max_frames: usize,
+) -> anyhow::Result<Map> {
     let params = slam::Params {
         sequential: true,
         ..slam::Params::default()
     };
-    let mut system = Slam::new(ds.camera, params)?;
+    let mut system = Slam::new(camera, params)?;
     for i in 0..ds.len().min(max_frames) {
         let f = ds.frame(i)?;
         system.process(f.index as u64, f.timestamp, Arc::new(f.image));
@@ -274,6 +284,11 @@ fn align_keyframes(map: &Map, gt: &Trajectory) -> anyhow::Result<(Sim3, Vec<Pose
         .into_iter()
         .map(|(a, b)| (kf_traj.poses[a].world_from_cam, gt.poses[b].world_from_cam))
         .collect();
+    Ok((align_pairs(map, &pairs)?, pairs))
+}
+
+/// The Sim(3) of [`align_keyframes`] from given (estimated, true) pose pairs.
+fn align_pairs(map: &Map, pairs: &[PosePair]) -> anyhow::Result<Sim3> {
     let centres = |i: usize| -> Vec<Point3<f64>> {
         pairs
             .iter()
@@ -288,7 +303,7 @@ fn align_keyframes(map: &Map, gt: &Trajectory) -> anyhow::Result<(Sim3, Vec<Pose
     depths.sort_by(f64::total_cmp);
     let d = depths.get(depths.len() / 2).copied().unwrap_or(1.0);
     let (mut src, mut dst) = (Vec::new(), Vec::new());
-    for (est, truth) in &pairs {
+    for (est, truth) in pairs {
         src.push(Point3::from(est.translation.vector));
         dst.push(Point3::from(truth.translation.vector));
         for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
@@ -296,7 +311,7 @@ fn align_keyframes(map: &Map, gt: &Trajectory) -> anyhow::Result<(Sim3, Vec<Pose
             dst.push(truth * Point3::from(axis * (d * coarse.scale)));
         }
     }
-    Ok((umeyama(&src, &dst, true)?, pairs))
+    Ok(umeyama(&src, &dst, true)?)
 }
 
 /// Frames held out of the map (the map is built from the first 70 frames;
@@ -306,15 +321,21 @@ fn align_keyframes(map: &Map, gt: &Trajectory) -> anyhow::Result<(Sim3, Vec<Pose
 /// once resized to 480x360 with the camera assumed for that size
 /// ([`shot::assumed_camera`]: another camera's photo).
 ///
-/// The map's own keyframes differ from the ground truth by about 0.6 degree
-/// after the best alignment (the floor of any absolute figure here: the
-/// SLAM's own tracking of these frames, when they are part of the run, is no
-/// closer). Asserted: nothing localised with an error over 2 degrees or 5 %
-/// of the distance; at least 2/3 of the frames localised; each localised
-/// frame's orientation within 0.25 degree beyond the map's worst keyframe.
-/// (The 0.5 degree / 2 % is met by only a third of the frames here:
-/// with the map itself up to 1-1.7 degrees off the ground truth, position
-/// errors of 2-2.7 % follow; see the note of session 2.)
+/// The map's own keyframes differ from the ground truth by about 0.55
+/// degree (median; max 1.7) after the best alignment: the floor of any
+/// absolute figure here (the SLAM's own tracking of these frames, when they
+/// are part of the run, is no closer). [`orientation_floor_diagnosis`]
+/// finds that neither a constant camera-from-marker rotation, nor a time
+/// offset, nor other intrinsics removes it, and that the images' keypoints
+/// fit the map's relative poses about as well as their own two-view optimum
+/// while the ground truth's relative poses fit them twice as badly: the
+/// floor is in the data (ground truth against these images), not in the
+/// map's fit; no correction is applied here. Asserted: nothing localised
+/// with an error over 2 degrees or 5 % of the distance; at least 2/3 of the
+/// frames localised; each localised frame's orientation within 0.25 degree
+/// beyond the map's worst keyframe. (The 0.5 degree / 2 % is met by
+/// only 1-2 of the 15 frames here: their orientation errors are 0.8-1.0
+/// degree (median) against the ground truth.)
 #[test]
 fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
     let Some(dir) = data_dir() else {
@@ -434,5 +455,620 @@ fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
         }
     }
     assert!(failures.is_empty(), "{failures:#?}");
+    Ok(())
+}
+
+/// The ground truth at time `t`: position linearly, orientation by slerp
+/// between the two samples around `t` (None outside, or across a gap over
+/// `max_gap` seconds).
+fn gt_at(gt: &Trajectory, t: f64, max_gap: f64) -> Option<Isometry3<f64>> {
+    let up = gt.poses.partition_point(|p| p.t <= t);
+    if up == 0 || up >= gt.poses.len() {
+        return None;
+    }
+    let (a, b) = (&gt.poses[up - 1], &gt.poses[up]);
+    if b.t - a.t > max_gap {
+        return None;
+    }
+    let f = (t - a.t) / (b.t - a.t);
+    let qa = a.world_from_cam.rotation;
+    let mut qb = b.world_from_cam.rotation;
+    if qa.coords.dot(&qb.coords) < 0.0 {
+        qb = UnitQuaternion::new_unchecked(-qb.into_inner());
+    }
+    let q = qa.try_slerp(&qb, f, 1e-12).unwrap_or(qa);
+    let p = a.position() * (1.0 - f) + b.position() * f;
+    Some(Isometry3::from_parts(Translation3::from(p), q))
+}
+
+/// The rotation nearest (chordal L2) to the mean of `rs`.
+fn rotation_mean(rs: &[UnitQuaternion<f64>]) -> UnitQuaternion<f64> {
+    let sum: nalgebra::Matrix3<f64> = rs.iter().map(|r| r.to_rotation_matrix().into_inner()).sum();
+    let svd = sum.svd(true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        return UnitQuaternion::identity();
+    };
+    let mut d = nalgebra::Matrix3::identity();
+    if (u * vt).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    UnitQuaternion::from_matrix(&(u * d * vt))
+}
+
+fn med_max(mut v: Vec<f64>) -> (f64, f64) {
+    v.sort_by(f64::total_cmp);
+    (
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN),
+        v.last().copied().unwrap_or(f64::NAN),
+    )
+}
+
+/// The best constant rotations `L` (left) and `X` (right) with
+/// `truth ≈ L·est·X` over `pairs` (alternating chordal means); `X` is the
+/// identity when `right` is false.
+fn fit_left_right(
+    pairs: &[(UnitQuaternion<f64>, UnitQuaternion<f64>)],
+    right: bool,
+) -> (UnitQuaternion<f64>, UnitQuaternion<f64>) {
+    let mut x = UnitQuaternion::identity();
+    let mut l = UnitQuaternion::identity();
+    for _ in 0..if right { 200 } else { 1 } {
+        let ls: Vec<_> = pairs
+            .iter()
+            .map(|(e, g)| g * x.inverse() * e.inverse())
+            .collect();
+        l = rotation_mean(&ls);
+        if right {
+            let xs: Vec<_> = pairs
+                .iter()
+                .map(|(e, g)| e.inverse() * l.inverse() * g)
+                .collect();
+            x = rotation_mean(&xs);
+        }
+    }
+    (l, x)
+}
+
+/// Orientation residuals (degrees) of `truth ≈ L·est·X`.
+fn residuals(
+    pairs: &[(UnitQuaternion<f64>, UnitQuaternion<f64>)],
+    l: &UnitQuaternion<f64>,
+    x: &UnitQuaternion<f64>,
+) -> Vec<f64> {
+    pairs
+        .iter()
+        .map(|(e, g)| (l * e * x).angle_to(g).to_degrees())
+        .collect()
+}
+
+/// The signed Sampson distance (pixels, for focal `f_px`) of the normalised
+/// correspondence `x1 -> x2` under the relative pose `x2 ~ r·x1 + t`.
+fn sampson_px(
+    r: &UnitQuaternion<f64>,
+    t: &Vector3<f64>,
+    x1: &Vector3<f64>,
+    x2: &Vector3<f64>,
+    f_px: f64,
+) -> f64 {
+    let e = nalgebra::Matrix3::new(0.0, -t.z, t.y, t.z, 0.0, -t.x, -t.y, t.x, 0.0)
+        * r.to_rotation_matrix().into_inner();
+    let ex1 = e * x1;
+    let etx2 = e.transpose() * x2;
+    let den = ex1.x * ex1.x + ex1.y * ex1.y + etx2.x * etx2.x + etx2.y * etx2.y;
+    if den > 0.0 {
+        x2.dot(&ex1) / den.sqrt() * f_px
+    } else {
+        0.0
+    }
+}
+
+/// The relative pose (rotation, unit translation) that minimises the
+/// Huber-weighted (2 px) Sampson errors of `corr`, by Gauss-Newton with
+/// numeric derivatives from `(r0, t0)`.
+fn two_view_fit(
+    corr: &[(Vector3<f64>, Vector3<f64>)],
+    r0: UnitQuaternion<f64>,
+    t0: Vector3<f64>,
+    f_px: f64,
+) -> (UnitQuaternion<f64>, Vector3<f64>) {
+    let (mut r, mut t) = (r0, t0);
+    let apply = |r: &UnitQuaternion<f64>, t: &Vector3<f64>, d: &nalgebra::Vector5<f64>| {
+        let rn = UnitQuaternion::from_scaled_axis(Vector3::new(d[0], d[1], d[2])) * r;
+        let a = if t.x.abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        };
+        let u1 = t.cross(&a).normalize();
+        let u2 = t.cross(&u1);
+        (rn, (t + u1 * d[3] + u2 * d[4]).normalize())
+    };
+    for _ in 0..30 {
+        let mut h = nalgebra::Matrix5::<f64>::zeros();
+        let mut g = nalgebra::Vector5::<f64>::zeros();
+        for (x1, x2) in corr {
+            let e0 = sampson_px(&r, &t, x1, x2, f_px);
+            let w = if e0.abs() <= 2.0 { 1.0 } else { 2.0 / e0.abs() };
+            let mut j = nalgebra::Vector5::<f64>::zeros();
+            for k in 0..5 {
+                let mut d = nalgebra::Vector5::zeros();
+                d[k] = 1e-7;
+                let (rk, tk) = apply(&r, &t, &d);
+                j[k] = (sampson_px(&rk, &tk, x1, x2, f_px) - e0) / 1e-7;
+            }
+            h += j * j.transpose() * w;
+            g += j * e0 * w;
+        }
+        let Some(step) = h.try_inverse().map(|hi| -(hi * g)) else {
+            break;
+        };
+        (r, t) = apply(&r, &t, &step);
+        if step.norm() < 1e-10 {
+            break;
+        }
+    }
+    (r, t)
+}
+
+/// Why the map's keyframes sit about 0.6 degree off the TUM ground truth
+/// after the best Sim(3) (the floor of [`held_out_frames_localise_against_ground_truth`]).
+/// A diagnosis: it prints its tables and asserts nothing. The map is the
+/// held-out test's (first 70 frames); the ground truth is interpolated at
+/// the keyframes' times (position linearly, orientation by slerp).
+///
+/// * (a) hand-eye: a constant camera-from-marker rotation `X`, which a left
+///   Sim(3) cannot remove, fitted with the left rotation (`truth ≈ L·est·X`)
+///   on the keyframes; also leave-one-out over the keyframes, and carried
+///   to the held-out frames (estimated on the keyframes only).
+/// * (b) a time offset between images and ground truth, -30..30 ms.
+/// * (c) intrinsics: the map rebuilt with the focal length scaled by
+///   ±1..4 % and the principal point moved by 5 px.
+/// * what remains: the ground truth's own sample-to-sample noise, the
+///   error of the rotation between consecutive keyframes, how much of the
+///   residual a slow function of time (a drift) takes, whether it lies
+///   along the motion (as a timing error would), and the epipolar (Sampson)
+///   error of the raw keypoints consecutive keyframes share, under the
+///   map's relative pose, the ground truth's, mixtures of the two, and the
+///   keypoints' own two-view optimum.
+///
+/// Measured (session 3, 21 keyframes with ground truth): keyframe
+/// orientation residual median / max 0.546 / 1.725 deg with the held-out
+/// test's Sim(3), 0.439 / 1.753 with the best left rotation, 0.366 / 1.420
+/// with a right rotation too (X = 1.36 deg; leave-one-out 0.397 / 1.568;
+/// carried to the held-out frames it makes them worse: median 1.03 -> 1.09
+/// deg); time offsets -30..30 ms: best 0.431 at +6 ms (flat within ±6 ms);
+/// focal length ±1-4 % and principal point ±5 px: 0.41-0.61; ground truth
+/// noise 0.09 deg (median, 10 ms); consecutive keyframes' relative rotation
+/// (2.7 deg) off by 0.36 deg (median); residual along the angular velocity
+/// 0.18, across it 0.38 deg; each keyframe at its own best time shift still
+/// 0.34 deg. Sampson error: map 0.63 px, keypoints' own optimum 0.59 px,
+/// ground truth 1.17 px (median). None of (a), (b), (c) explains the floor.
+/// The localiser adds nothing to it: non-keyframe frames inside the map's
+/// span localise at 0.57 deg (median) against the keyframes' 0.55; beyond
+/// the span (frames 70..100) the localised frames are at 1.03 deg, and
+/// SLAM's own keyframes of those frames (run over all 100, aligned on its
+/// keyframes of 0..70) at 0.96 deg: the discrepancy grows with the motion.
+#[test]
+#[ignore = "diagnosis: prints the orientation-floor tables, asserts nothing"]
+fn orientation_floor_diagnosis() -> anyhow::Result<()> {
+    let Some(dir) = data_dir() else {
+        eprintln!("skipped: ../shared/data/tum_fr3_teddy_100 not present");
+        return Ok(());
+    };
+    let ds = Dataset::open(&dir)?;
+    let Some(gt) = ds.groundtruth.clone() else {
+        anyhow::bail!("teddy has ground truth");
+    };
+    let map = build_map(&dir, 70)?;
+    let mut kfs: Vec<(f64, Isometry3<f64>)> = map
+        .keyframes()
+        .map(|k| (k.timestamp, k.world_from_cam()))
+        .collect();
+    kfs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let pairs_at = |dt: f64| -> Vec<(f64, PosePair)> {
+        kfs.iter()
+            .filter_map(|(t, e)| gt_at(&gt, t + dt, 0.05).map(|g| (*t, (*e, g))))
+            .collect()
+    };
+    let rot_pairs = |p: &[(f64, PosePair)]| -> Vec<(UnitQuaternion<f64>, UnitQuaternion<f64>)> {
+        p.iter()
+            .map(|(_, (e, g))| (e.rotation, g.rotation))
+            .collect()
+    };
+    let sim_rot = |p: &[(f64, PosePair)]| -> anyhow::Result<Vec<f64>> {
+        let pp: Vec<PosePair> = p.iter().map(|x| x.1).collect();
+        let sim = align_pairs(&map, &pp)?;
+        Ok(pp
+            .iter()
+            .map(|(e, g)| {
+                sim.transform_pose(e)
+                    .rotation
+                    .angle_to(&g.rotation)
+                    .to_degrees()
+            })
+            .collect())
+    };
+
+    // (a) left vs left + right constant rotation, at the images' times.
+    let p0 = pairs_at(0.0);
+    let r0 = rot_pairs(&p0);
+    let (ls, lx) = med_max(sim_rot(&p0)?);
+    let (l, _) = fit_left_right(&r0, false);
+    let (l_med, l_max) = med_max(residuals(&r0, &l, &UnitQuaternion::identity()));
+    let (l2, x) = fit_left_right(&r0, true);
+    let (lr_med, lr_max) = med_max(residuals(&r0, &l2, &x));
+    let mut loo = Vec::new();
+    for k in 0..r0.len() {
+        let rest: Vec<_> = r0
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != k)
+            .map(|(_, p)| *p)
+            .collect();
+        let (lk, xk) = fit_left_right(&rest, true);
+        loo.extend(residuals(&r0[k..=k], &lk, &xk));
+    }
+    let (loo_med, loo_max) = med_max(loo);
+    println!(
+        "(a) {} keyframes with ground truth; orientation residual, degrees (median / max):",
+        r0.len()
+    );
+    println!("    Sim(3) of the held-out test (centres + axis points)   {ls:.3} / {lx:.3}");
+    println!("    best left rotation only                              {l_med:.3} / {l_max:.3}");
+    println!(
+        "    left + right constant rotation (X = {:.3} deg)        {lr_med:.3} / {lr_max:.3}",
+        x.angle().to_degrees()
+    );
+    println!(
+        "    the same, leave-one-out over the keyframes           {loo_med:.3} / {loo_max:.3}"
+    );
+
+    // (b) time offset.
+    println!("(b) ground truth taken at image time + dt (interpolated):");
+    println!("    dt_ms  keyframes  Sim(3) med / max   left rotation med / max");
+    for dt_ms in (-30..=30).step_by(3) {
+        let p = pairs_at(dt_ms as f64 * 1e-3);
+        let r = rot_pairs(&p);
+        let (a, b) = med_max(sim_rot(&p)?);
+        let (lt, _) = fit_left_right(&r, false);
+        let (c, d) = med_max(residuals(&r, &lt, &UnitQuaternion::identity()));
+        println!(
+            "    {dt_ms:5}  {:9}  {a:6.3} / {b:6.3}    {c:6.3} / {d:6.3}",
+            p.len()
+        );
+    }
+
+    // (c) intrinsics.
+    println!("(c) map rebuilt with other intrinsics; keyframes' orientation residual:");
+    println!("    intrinsics  keyframes  Sim(3) med / max   left rotation med / max");
+    let c0 = ds.camera;
+    for (name, df, dcx, dcy) in [
+        ("as given", 1.0, 0.0, 0.0),
+        ("f -4 %", 0.96, 0.0, 0.0),
+        ("f -2 %", 0.98, 0.0, 0.0),
+        ("f -1 %", 0.99, 0.0, 0.0),
+        ("f +1 %", 1.01, 0.0, 0.0),
+        ("f +2 %", 1.02, 0.0, 0.0),
+        ("f +4 %", 1.04, 0.0, 0.0),
+        ("cx +5 px", 1.0, 5.0, 0.0),
+        ("cx -5 px", 1.0, -5.0, 0.0),
+        ("cy +5 px", 1.0, 0.0, 5.0),
+        ("cy -5 px", 1.0, 0.0, -5.0),
+    ] {
+        let cam = shotpilot::camera::Camera::new(
+            c0.width,
+            c0.height,
+            [c0.fx * df, c0.fy * df, c0.cx + dcx, c0.cy + dcy],
+            c0.distortion,
+        )?;
+        let m = build_map_with(&ds, cam, 70)?;
+        let pp: Vec<PosePair> = m
+            .keyframes()
+            .filter_map(|k| gt_at(&gt, k.timestamp, 0.05).map(|g| (k.world_from_cam(), g)))
+            .collect();
+        let sim = align_pairs(&m, &pp)?;
+        let (a, b) = med_max(
+            pp.iter()
+                .map(|(e, g)| {
+                    sim.transform_pose(e)
+                        .rotation
+                        .angle_to(&g.rotation)
+                        .to_degrees()
+                })
+                .collect(),
+        );
+        let r: Vec<_> = pp.iter().map(|(e, g)| (e.rotation, g.rotation)).collect();
+        let (lt, _) = fit_left_right(&r, false);
+        let (c, d) = med_max(residuals(&r, &lt, &UnitQuaternion::identity()));
+        println!(
+            "    {name:10}  {:9}  {a:6.3} / {b:6.3}    {c:6.3} / {d:6.3}",
+            pp.len()
+        );
+    }
+
+    // What remains.
+    let gq: Vec<UnitQuaternion<f64>> = gt.poses.iter().map(|p| p.world_from_cam.rotation).collect();
+    let noise: Vec<f64> = gq
+        .windows(3)
+        .map(|w| {
+            let mid = w[0].try_slerp(&w[2], 0.5, 1e-12).unwrap_or(w[0]);
+            mid.angle_to(&w[1]).to_degrees()
+        })
+        .collect();
+    let (n_med, n_max) = med_max(noise);
+    let rpe: Vec<(f64, f64)> = p0
+        .windows(2)
+        .map(|w| {
+            let de = w[0].1.0.rotation.inverse() * w[1].1.0.rotation;
+            let dg = w[0].1.1.rotation.inverse() * w[1].1.1.rotation;
+            (de.angle_to(&dg).to_degrees(), dg.angle().to_degrees())
+        })
+        .collect();
+    let (rpe_med, rpe_max) = med_max(rpe.iter().map(|x| x.0).collect());
+    let (step_med, _) = med_max(rpe.iter().map(|x| x.1).collect());
+    println!(
+        "ground truth: a sample's orientation vs the midpoint of its neighbours (10 ms): median {n_med:.3}, max {n_max:.3} deg"
+    );
+    println!(
+        "consecutive keyframes: relative rotation {step_med:.2} deg (median), its error vs ground truth median {rpe_med:.3}, max {rpe_max:.3} deg"
+    );
+    // A slow drift: the residual after the left rotation, in the camera
+    // frame, fitted by a quadratic in time (leave-one-out).
+    let t0 = p0.first().map(|p| p.0).unwrap_or(0.0);
+    let res_vec: Vec<(f64, Vector3<f64>)> = p0
+        .iter()
+        .map(|(t, (e, g))| {
+            (
+                t - t0,
+                (g.rotation.inverse() * l * e.rotation).scaled_axis() * 180.0
+                    / std::f64::consts::PI,
+            )
+        })
+        .collect();
+    let mut drift_loo = Vec::new();
+    for k in 0..res_vec.len() {
+        let rows: Vec<&(f64, Vector3<f64>)> = res_vec
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != k)
+            .map(|(_, r)| r)
+            .collect();
+        let a = nalgebra::DMatrix::from_fn(rows.len(), 3, |i, c| rows[i].0.powi(c as i32));
+        let b = nalgebra::DMatrix::from_fn(rows.len(), 3, |i, c| rows[i].1[c]);
+        let Ok(coef) = a.clone().svd(true, true).solve(&b, 1e-12) else {
+            continue;
+        };
+        let (tk, rk) = res_vec[k];
+        let pred = Vector3::from_fn(|c, _| (0..3).map(|d| coef[(d, c)] * tk.powi(d as i32)).sum());
+        drift_loo.push((rk - pred).norm());
+    }
+    let (d_med, d_max) = med_max(drift_loo);
+    println!(
+        "left-rotation residual minus a quadratic drift in time (leave-one-out): median {d_med:.3}, max {d_max:.3} deg"
+    );
+
+    // Along the motion or across it: the residual's component along the
+    // ground truth's angular velocity (camera frame, over ±15 ms) is what a
+    // timing error of the frame would give; the per-keyframe time shift
+    // within ±30 ms that best removes the residual says how far timing alone
+    // could explain each keyframe.
+    let (mut along, mut across, mut shifted, mut shifts) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (t, r) in &res_vec {
+        let t = t + t0;
+        let (Some(a), Some(b)) = (gt_at(&gt, t - 0.015, 0.05), gt_at(&gt, t + 0.015, 0.05)) else {
+            continue;
+        };
+        let w = (a.rotation.inverse() * b.rotation).scaled_axis();
+        if w.norm() < 1e-9 {
+            continue;
+        }
+        let wn = w.normalize();
+        along.push(r.dot(&wn).abs());
+        across.push(r.cross(&wn).norm());
+        let Some(e) = kfs.iter().find(|k| k.0 == t).map(|k| k.1) else {
+            continue;
+        };
+        let (best, dt) = (-30..=30)
+            .filter_map(|ms| {
+                gt_at(&gt, t + ms as f64 * 1e-3, 0.05)
+                    .map(|g| ((l * e.rotation).angle_to(&g.rotation).to_degrees(), ms))
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .unwrap_or((f64::NAN, 0));
+        shifted.push(best);
+        shifts.push((dt as f64).abs());
+    }
+    let (al_med, _) = med_max(along);
+    let (ac_med, _) = med_max(across);
+    let (sh_med, sh_max) = med_max(shifted);
+    let (dt_med, dt_max) = med_max(shifts);
+    println!(
+        "left-rotation residual along the angular velocity: median {al_med:.3} deg; across it: median {ac_med:.3} deg"
+    );
+    println!(
+        "each keyframe at its own best time shift (|dt| median {dt_med:.0} ms, max {dt_max:.0} ms): residual median {sh_med:.3}, max {sh_max:.3} deg"
+    );
+
+    // The images' own word, free of any alignment: the raw keypoints that
+    // consecutive keyframes share (through a map point) against the
+    // epipolar geometry of their relative pose, from the map and from the
+    // ground truth (the translation's scale does not enter), and with the
+    // rotation of one and the translation direction of the other.
+    let cam = map.camera;
+    let f_px = 0.5 * (cam.fx + cam.fy);
+    let mut kf_sorted: Vec<_> = map
+        .keyframes()
+        .filter_map(|k| gt_at(&gt, k.timestamp, 0.05).map(|g| (k, g)))
+        .collect();
+    kf_sorted.sort_by(|a, b| a.0.timestamp.total_cmp(&b.0.timestamp));
+    let mut sampson: [Vec<f64>; 5] = Default::default();
+    for w in kf_sorted.windows(2) {
+        let mut corr: Vec<(Vector3<f64>, Vector3<f64>)> = Vec::new();
+        let ((a, ga), (b, gb)) = (&w[0], &w[1]);
+        // b_from_a = cam_from_world_b · world_from_cam_a.
+        let slam_rel = b.cam_from_world * a.world_from_cam();
+        let gt_rel = gb.inverse() * ga;
+        let norm = |v: Vector3<f64>| if v.norm() > 0.0 { v.normalize() } else { v };
+        let variants = [
+            (slam_rel.rotation, norm(slam_rel.translation.vector)),
+            (gt_rel.rotation, norm(gt_rel.translation.vector)),
+            (gt_rel.rotation, norm(slam_rel.translation.vector)),
+            (slam_rel.rotation, norm(gt_rel.translation.vector)),
+        ];
+        for (i, slot) in a.points.iter().enumerate() {
+            let Some(mp) = slot.and_then(|p| map.point(p)) else {
+                continue;
+            };
+            let Some(&(_, j)) = mp.observations.iter().find(|(k, _)| *k == b.id) else {
+                continue;
+            };
+            let (Some(ka), Some(kb)) = (a.keypoints.get(i), b.keypoints.get(j as usize)) else {
+                continue;
+            };
+            let x1 = Vector3::new(
+                (ka.ux as f64 - cam.cx) / cam.fx,
+                (ka.uy as f64 - cam.cy) / cam.fy,
+                1.0,
+            );
+            let x2 = Vector3::new(
+                (kb.ux as f64 - cam.cx) / cam.fx,
+                (kb.uy as f64 - cam.cy) / cam.fy,
+                1.0,
+            );
+            for (v, (r, t)) in variants.iter().enumerate() {
+                sampson[v].push(sampson_px(r, t, &x1, &x2, f_px).abs());
+            }
+            corr.push((x1, x2));
+        }
+        // The two-view relative pose of the keypoints alone (Sampson error,
+        // Huber-weighted Gauss-Newton from the ground truth's pose).
+        let (r2, t2) = two_view_fit(
+            &corr,
+            gt_rel.rotation,
+            norm(gt_rel.translation.vector),
+            f_px,
+        );
+        for (x1, x2) in &corr {
+            sampson[4].push(sampson_px(&r2, &t2, x1, x2, f_px).abs());
+        }
+    }
+    for (name, v) in [
+        "map rotation, map translation",
+        "ground-truth rotation, ground-truth translation",
+        "ground-truth rotation, map translation",
+        "map rotation, ground-truth translation",
+        "two-view optimum of the keypoints alone",
+    ]
+    .iter()
+    .zip(&sampson)
+    {
+        let (m, _) = med_max(v.clone());
+        let mut s = v.clone();
+        s.sort_by(f64::total_cmp);
+        let p90 = s.get(s.len() * 9 / 10).copied().unwrap_or(f64::NAN);
+        println!(
+            "epipolar (Sampson) error of the {} shared keypoints of consecutive keyframes, {name:48}: median {m:.3} px, 90 % {p90:.3} px",
+            v.len()
+        );
+    }
+
+    // (a) carried to the held-out frames: L and X from the keyframes only.
+    let params = shot::LocalizeParams::default();
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(&map, &vocabulary);
+    let pp: Vec<PosePair> = p0.iter().map(|x| x.1).collect();
+    let sim = align_pairs(&map, &pp)?;
+    let (mut e_sim, mut e_l, mut e_lx) = (Vec::new(), Vec::new(), Vec::new());
+    for i in (70..ds.len()).step_by(2) {
+        let f = ds.frame(i)?;
+        let Some(g) = gt_at(&gt, f.timestamp, 0.05) else {
+            continue;
+        };
+        if let Localization::Localized(p) =
+            shot::localize(&map, &f.image, None, Some(&index), &params)?
+        {
+            let r = p.world_from_cam.rotation;
+            e_sim.push(
+                sim.transform_pose(&p.world_from_cam)
+                    .rotation
+                    .angle_to(&g.rotation)
+                    .to_degrees(),
+            );
+            e_l.push((l * r).angle_to(&g.rotation).to_degrees());
+            e_lx.push((l2 * r * x).angle_to(&g.rotation).to_degrees());
+        }
+    }
+    // The same localisation for frames inside the map's span that are not
+    // keyframes: what the localiser adds to the map's own floor.
+    let kf_frames: std::collections::HashSet<u64> =
+        map.keyframes().map(|k| k.frame_index).collect();
+    let mut inside = Vec::new();
+    for i in (0..70).step_by(3) {
+        let f = ds.frame(i)?;
+        if kf_frames.contains(&(f.index as u64)) {
+            continue;
+        }
+        let Some(g) = gt_at(&gt, f.timestamp, 0.05) else {
+            continue;
+        };
+        if let Localization::Localized(p) =
+            shot::localize(&map, &f.image, None, Some(&index), &params)?
+        {
+            inside.push(
+                sim.transform_pose(&p.world_from_cam)
+                    .rotation
+                    .angle_to(&g.rotation)
+                    .to_degrees(),
+            );
+        }
+    }
+    let n_inside = inside.len();
+    let (im, ix) = med_max(inside);
+    println!(
+        "non-keyframe frames inside the map's span (every 3rd of 0..70), localised, orientation vs ground truth with Sim(3): median {im:.3}, max {ix:.3} deg over {n_inside}"
+    );
+    // SLAM itself over all 100 frames: its keyframes of frames 70..100
+    // against the ground truth, with the Sim(3) of its keyframes of 0..70.
+    let full = build_map(&dir, usize::MAX)?;
+    let full_pairs = |early: bool| -> Vec<PosePair> {
+        full.keyframes()
+            .filter(|k| (k.frame_index < 70) == early)
+            .filter_map(|k| gt_at(&gt, k.timestamp, 0.05).map(|g| (k.world_from_cam(), g)))
+            .collect()
+    };
+    let (early, late) = (full_pairs(true), full_pairs(false));
+    let sim_early = align_pairs(&full, &early)?;
+    let err = |v: &[PosePair]| -> Vec<f64> {
+        v.iter()
+            .map(|(e, g)| {
+                sim_early
+                    .transform_pose(e)
+                    .rotation
+                    .angle_to(&g.rotation)
+                    .to_degrees()
+            })
+            .collect()
+    };
+    let (em, ex) = med_max(err(&early));
+    let (lm, lx) = med_max(err(&late));
+    println!(
+        "SLAM over all 100 frames, Sim(3) of its keyframes of frames 0..70: those {} keyframes median {em:.3}, max {ex:.3} deg; its {} keyframes of frames 70..100 median {lm:.3}, max {lx:.3} deg",
+        early.len(),
+        late.len()
+    );
+    let n = e_sim.len();
+    let within = |v: &[f64]| v.iter().filter(|e| **e <= 0.5).count();
+    for (name, v) in [
+        ("Sim(3)", &e_sim),
+        ("left rotation", &e_l),
+        ("left + right X", &e_lx),
+    ] {
+        let (m, mx) = med_max(v.clone());
+        println!(
+            "held-out frames (bow query), orientation vs ground truth with {name:15} from the keyframes: median {m:.3}, max {mx:.3} deg, {}/{n} within 0.5 deg",
+            within(v)
+        );
+    }
     Ok(())
 }
