@@ -9,7 +9,7 @@
 
 mod daemon_support;
 
-use daemon_support::{free_tcp_port, free_udp_port, get_json, http};
+use daemon_support::{free_tcp_port, free_udp_port, get_json, http, request};
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -144,6 +144,19 @@ fn anchors_shot(addr: SocketAddr, kid: u64) -> (String, Option<Isometry3<f64>>, 
     (id, p, shot)
 }
 
+/// Post a photo (JPEG bytes, the map camera's size); its id and localised
+/// pose, if localised.
+fn photo_shot(addr: SocketAddr, jpeg: &[u8]) -> (String, Option<Isometry3<f64>>) {
+    let (st, b) = request(addr, "POST", "/api/v1/shots/photo", "image/jpeg", jpeg);
+    assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+    let shot: Value = serde_json::from_slice(&b).unwrap();
+    let p = (shot["status"] == "localised").then(|| pose(&shot["localisation"]["world_from_cam"]));
+    if p.is_none() {
+        eprintln!("photo not localised: {}", shot["reason"]);
+    }
+    (shot["id"].as_str().unwrap().to_owned(), p)
+}
+
 #[test]
 fn the_daemon_continues_on_its_saved_map() {
     let dir = tempfile::tempdir().unwrap();
@@ -176,6 +189,17 @@ fn the_daemon_continues_on_its_saved_map() {
         eprintln!("shot on keyframe {kid} not localised: {}", shot["reason"]);
     }
     let (sid, kid, shot1_pose) = shot1.expect("a shot is localised in run 1");
+    // A photo: a keyframe from the middle of the map, sent as a picture.
+    let pkid = ids[ids.len() / 2];
+    let (st, photo) = http(
+        d.addr,
+        "GET",
+        &format!("/api/v1/keyframes/{pkid}/image.jpg"),
+        None,
+    );
+    assert_eq!(st, 200);
+    let (psid, photo1_pose) = photo_shot(d.addr, &photo);
+    let photo1_pose = photo1_pose.expect("the photo is localised in run 1");
     let summary1 = d.stop();
     let map_file = summary1.map_file.clone().expect("run 1 saved its map");
     let saved = shotpilot::slam::mapfile::load(&map_file).unwrap();
@@ -195,11 +219,12 @@ fn the_daemon_continues_on_its_saved_map() {
     // Run 2 on the same data directory: the saved map is continued.
     let t1 = Instant::now();
     let d = start(&base);
+    // Until it has relocalised and made three keyframes of its own.
     let status = wait_status(d.addr, 90, |s| {
         let s = &s["slam"];
         !s["map_start"]["relocalised_at_frame"].is_null()
             && s["state"] == "tracking"
-            && s["keyframes"].as_u64().unwrap_or(0) as usize >= old.len() + 3
+            && keyframes(d.addr).keys().filter(|&&id| id > old_max).count() >= 3
     });
     eprintln!(
         "run 2 after {:.1} s: {}",
@@ -253,27 +278,44 @@ fn the_daemon_continues_on_its_saved_map() {
         "old keyframes moved at most {:.4} of the extent, {:.3} deg",
         worst_kf.0, worst_kf.1
     );
-    // Local bundle adjustment near the new keyframes may nudge old ones;
-    // a fresh map (another origin, another scale) would be off by a
-    // sizeable part of the extent.
-    assert!(worst_kf.0 < 0.02 && worst_kf.1 < 1.0, "{worst_kf:?}");
+    // Run 1's final bundle adjustment and run 2's local ones nudge the old
+    // keyframes (seen: at most 0.05-0.2 % of the extent, 0.02-0.05 deg); a
+    // fresh map has its own origin and scale (run 1's extent after the
+    // same flight time came out anywhere from 0.6 to 1.8 in five runs).
+    assert!(worst_kf.0 < 0.01 && worst_kf.1 < 0.5, "{worst_kf:?}");
 
-    // The shot from before the restart is listed with its pose, and the
-    // same anchors on the same keyframe localise to the same pose.
-    let listed = get_json(d.addr, &format!("/api/v1/shots/{sid}"));
-    assert_eq!(listed["status"], "localised");
+    // The shots from before the restart are listed with their poses, and
+    // they localise again where they did.
+    for id in [&sid, &psid] {
+        let listed = get_json(d.addr, &format!("/api/v1/shots/{id}"));
+        assert_eq!(listed["status"], "localised", "{listed}");
+    }
+    let (_, photo2_pose) = photo_shot(d.addr, &photo);
+    let photo2_pose = photo2_pose.expect("the photo localises after the restart");
+    let (dp, da) = differ(&photo1_pose, &photo2_pose);
+    eprintln!(
+        "photo shot {psid} (keyframe {pkid}) before vs after the restart: {dp:.4} ({:.4} of the extent), {da:.3} deg",
+        dp / old_extent
+    );
+    // Tolerance: the same picture against the same map, so what can move
+    // it is the map itself, whose old keyframes moved by at most
+    // `worst_kf` (0.05-0.2 % of the extent, 0.02-0.04 deg seen), and the
+    // matching's randomness. 0.5 % of the extent and 0.25 deg: a fresh
+    // map (its own origin, scale and axes) would be off by a large part of
+    // the extent.
+    assert!(dp < 0.005 * old_extent && da < 0.25, "{dp} {da}");
     let (_, again, shot) = anchors_shot(d.addr, kid);
     let again = again.unwrap_or_else(|| panic!("the shot localises after the restart: {shot}"));
     let (dp, da) = differ(&shot1_pose, &again);
     eprintln!(
-        "shot {sid} before vs after the restart: {dp:.4} ({:.4} of the extent), {da:.3} deg",
+        "anchors shot {sid} (keyframe {kid}) before vs after the restart: {dp:.4} ({:.4} of the extent), {da:.3} deg",
         dp / old_extent
     );
-    // Tolerance: in run 1 a photo of a keyframe lands about 0.003 of the
-    // extent from the keyframe (e2e); the map under the shot moved by at
-    // most `worst_kf` since. 1 % of the extent and 0.5 deg leave room for
-    // both and are far below what another frame would give.
-    assert!(dp < 0.01 * old_extent && da < 0.5, "{dp} {da}");
+    // An anchors shot is a homography of a keyframe, which no camera pose
+    // reproduces exactly when the scene has depth: its pose depends on
+    // which map points are matched, and the map has grown since. Seen:
+    // 0.3-1.1 % of the extent, 0.1-0.5 deg; bound 3 % and 1.5 deg.
+    assert!(dp < 0.03 * old_extent && da < 1.5, "{dp} {da}");
     let summary2 = d.stop();
     eprintln!(
         "run 2 summary: {}",
@@ -314,7 +356,7 @@ fn the_daemon_continues_on_its_saved_map() {
     let shots = get_json(d.addr, "/api/v1/shots")["count"].as_u64().unwrap() as usize;
     assert_eq!(
         shots,
-        summary1.shots + 1,
+        summary1.shots + 2,
         "the shots of runs 1 and 2 are listed"
     );
     d.stop();
