@@ -4,7 +4,8 @@
 //! live video and keyframes, drags the four anchors of a desired shot on a
 //! keyframe, submits it and sees the result; the shots panel shows each
 //! shot's refinement rounds and stop reason (two refined shots are in the
-//! data directory before the daemon starts); a screenshot is saved.
+//! data directory before the daemon starts), and the status line says the
+//! damaged map file found there was not used; a screenshot is saved.
 //!
 //! Needs `node`, `npm ci` in `tests/browser` and Chromium; `.ci/run` sets
 //! them up. Environment: `SHOTPILOT_CHROMIUM` (default `/usr/bin/chromium`),
@@ -202,6 +203,9 @@ fn operator_page_in_headless_chromium() {
 
     let dir = tempfile::tempdir().unwrap();
     let seeded = seed_refined_shots(&dir.path().join("data/shots"));
+    // A damaged map file: the daemon starts a fresh map, keeps the file
+    // aside, and the page says so.
+    std::fs::write(dir.path().join("data/map.spmap"), b"not a map").unwrap();
     let video_port = free_tcp_port();
     let mav_port = free_udp_port();
     let mut cfg = Config::default();
@@ -304,6 +308,17 @@ fn operator_page_in_headless_chromium() {
             "{text} vs {reason}"
         );
     }
+    let line = seen["status_line"].as_str().unwrap();
+    assert!(
+        line.contains("saved map not used") && line.contains("bad magic"),
+        "{line}"
+    );
+    let kept = std::fs::read_dir(dir.path().join("data"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.to_string_lossy().contains("map.spmap.unusable-"))
+        .expect("the damaged map file is kept aside");
+    assert_eq!(std::fs::read(&kept).unwrap(), b"not a map");
     // The shots panel: every shot, newest first, and each refined shot's
     // rounds and stop reason as the daemon stores them.
     let panel = seen["shots_panel"].as_array().unwrap();

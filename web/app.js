@@ -37,11 +37,23 @@ function showStatus(s) {
     `SLAM ${sl.state || '?'} · kf ${sl.keyframes ?? 0} · pts ${sl.points ?? 0} · inliers ${sl.last_inliers ?? 0}` +
     ` | video ${(v.received_fps || 0).toFixed(1)} fps` +
     ` | vehicle ${ve.configured === false ? 'none' : (ve.connected ? (ve.mode || 'connected') + (ve.armed ? ' ARMED' : '') : 'not connected')}` +
-    geoText(ve.georeference);
+    geoText(ve.georeference) + mapStartText(sl.map_start);
   $('videostats').textContent =
     `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
     (v.width ? ` · ${v.width}x${v.height}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
+}
+// Where the SLAM's map came from: the saved map continued (and whether
+// tracking has relocalised into it yet), or why it was not used.
+function mapStartText(m) {
+  if (!m) return '';
+  if (m.mode === 'continued') {
+    return m.relocalised_at_frame == null
+      ? ` | saved map (${m.keyframes} kf, ${m.points} pts): not relocalised yet, fly over the mapped area`
+      : ` | saved map continued (${m.keyframes} kf), relocalised at frame ${m.relocalised_at_frame}`;
+  }
+  if (m.mode === 'fresh_after_error') return ` | saved map not used: ${m.error || '?'}${m.set_aside ? ` (kept as ${m.set_aside})` : ''}`;
+  return '';
 }
 function geoText(g) {
   if (!g) return '';
