@@ -1724,6 +1724,44 @@ mod tests {
         );
     }
 
+    #[test]
+    fn resumable_scanning_agrees_on_marker_soup() {
+        // Bytes drawn from markers, boundary pieces and line ends: fill
+        // bytes, segments with odd lengths, missing markers (the plain
+        // search), SOIs everywhere.
+        use rand::{Rng, SeedableRng};
+        let alphabet: &[u8] = b"\xFF\xFF\xFF\xD8\xD9\xDA\xE0\x00\x02\x10--fr\r\n\n";
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let (mut parts_seen, mut skips) = (0usize, 0usize);
+        for trial in 0..600 {
+            let n = rng.random_range(1..3000);
+            let data: Vec<u8> = (0..n)
+                .map(|_| alphabet[rng.random_range(0..alphabet.len())])
+                .collect();
+            let boundary = [Some("fr"), Some("-fr"), None][trial % 3];
+            let max_part = [64, 500, 1 << 20][rng.random_range(0..3)];
+            let mut new = PartParser::new(boundary, max_part);
+            let mut old = reference::RefParser::new(boundary, max_part);
+            let mut at = 0;
+            for c in chunks(&mut rng, data.len()) {
+                new.push(&data[at..at + c]);
+                old.push(&data[at..at + c]);
+                at += c;
+                loop {
+                    let (a, b) = (new.next_part(), old.next_part());
+                    assert_eq!(a, b, "trial {trial}, {at} bytes in");
+                    match a {
+                        None => break,
+                        Some(ParseEvent::Part(_)) => parts_seen += 1,
+                        Some(ParseEvent::Skipped { .. }) => skips += 1,
+                    }
+                }
+            }
+        }
+        eprintln!("marker soup: {parts_seen} parts, {skips} skips");
+        assert!(parts_seen > 500 && skips > 500, "{parts_seen} {skips}");
+    }
+
     /// Feeds `data` in `chunk`-byte pieces; (bytes examined, parts, pushes).
     fn examine(boundary: Option<&str>, data: &[u8], chunk: usize) -> (u64, usize, usize) {
         let mut p = PartParser::new(boundary, 1 << 20);
