@@ -170,6 +170,11 @@ pub struct SlamConfig {
     pub enabled: bool,
     /// Map file written on shutdown (relative to `server.data_dir`).
     pub map_file: PathBuf,
+    /// At start, go on with the map in `map_file` when there is one (the
+    /// SLAM relocalises into it, so shots and the georeference stay in one
+    /// frame); false: start a fresh map (the old file is kept under a new
+    /// name).
+    pub continue_map: bool,
     /// Extra time spent per frame, ms (0: none; to test that a slow SLAM
     /// never stalls the video).
     pub artificial_delay_ms: u64,
@@ -180,6 +185,7 @@ impl Default for SlamConfig {
         Self {
             enabled: true,
             map_file: PathBuf::from("map.spmap"),
+            continue_map: true,
             artificial_delay_ms: 0,
         }
     }

@@ -2,7 +2,10 @@
 //! in-process, and headless Chromium (Debian's `chromium`, driven by npm's
 //! `playwright-core` from `tests/browser/node_modules`) opens the page, sees
 //! live video and keyframes, drags the four anchors of a desired shot on a
-//! keyframe, submits it and sees the result; a screenshot is saved.
+//! keyframe, submits it and sees the result; the shots panel shows each
+//! shot's refinement rounds and stop reason (two refined shots are in the
+//! data directory before the daemon starts), and the status line says the
+//! damaged map file found there was not used; a screenshot is saved.
 //!
 //! Needs `node`, `npm ci` in `tests/browser` and Chromium; `.ci/run` sets
 //! them up. Environment: `SHOTPILOT_CHROMIUM` (default `/usr/bin/chromium`),
@@ -17,9 +20,159 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use serde_json::Value;
+use serde_json::{Value, json};
+use shotpilot::api::store::{Localisation, MissionRecord, PoseJson, Shot, ShotSource, ShotStore};
 use shotpilot::config::Config;
+use shotpilot::daemon::refine_service::record_abort;
+use shotpilot::mission::plan::Target;
+use shotpilot::refine::{Correction, Decision, RoundRecord};
 use tokio_util::sync::CancellationToken;
+
+/// A refinement round as the daemon records it.
+fn round(
+    n: usize,
+    pct: Option<f64>,
+    decision: Decision,
+    step: Option<[f64; 3]>,
+    note: Option<&str>,
+) -> Value {
+    let target = Target {
+        lat_deg: 47.397742,
+        lon_deg: 8.545594,
+        alt_m: 12.0,
+        yaw_deg: 90.0,
+        gimbal_pitch_deg: -30.0,
+        photo: false,
+    };
+    let r = RoundRecord {
+        round: n,
+        target,
+        shot_error_pct: pct,
+        shot_error_px: pct.map(|p| p / 100.0 * 800.0),
+        inliers: pct.map(|_| 212 + n),
+        decision,
+        live_map_position: None,
+        correction: step.map(|s| Correction {
+            target,
+            step_ned_m: s,
+            yaw_step_deg: 1.25,
+            pitch_step_deg: -0.5,
+            limited: false,
+        }),
+        note: note.map(str::to_owned),
+    };
+    serde_json::to_value(r).unwrap()
+}
+
+/// Two shots whose started missions were refined, written into the shot
+/// store before the daemon starts: `shot-1` converged after one correction,
+/// `shot-2` was aborted by the daemon after a round without a shot error.
+/// Returns their ids.
+fn seed_refined_shots(dir: &Path) -> Vec<String> {
+    let store = ShotStore::open(dir).unwrap();
+    let mut ids = Vec::new();
+    for (i, (rounds, stop, abort)) in [
+        (
+            vec![
+                round(
+                    0,
+                    Some(3.214),
+                    Decision::Correct,
+                    Some([1.5, -0.25, 0.75]),
+                    None,
+                ),
+                round(1, Some(0.642), Decision::Converged, None, None),
+            ],
+            json!("converged"),
+            None,
+        ),
+        (
+            vec![round(
+                0,
+                None,
+                Decision::Correct,
+                None,
+                Some("live frame: not enough matches"),
+            )],
+            Value::Null,
+            Some("no arrival at the waypoint within 120 s"),
+        ),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let mut mission = MissionRecord {
+            state: "started".into(),
+            items: 4,
+            uploaded_unix: 1.7e9,
+            started_unix: Some(1.7e9 + 1.0),
+            target_lat_lon_alt: Some([47.397742, 8.545594, 500.0]),
+            details: json!({"refinement": {"rounds": rounds, "stop": stop, "reason": null}}),
+        };
+        if let Some(why) = abort {
+            record_abort(&mut mission, why);
+        }
+        let shot = Shot {
+            id: store.next_id(),
+            created_unix: 1.7e9 + i as f64,
+            source: ShotSource::Anchors {
+                keyframe_id: 0,
+                anchors: [[40.0, 30.0], [600.0, 30.0], [600.0, 450.0], [40.0, 450.0]],
+            },
+            status: "localised".into(),
+            localisation: Some(Localisation {
+                world_from_cam: PoseJson {
+                    translation: [0.1, -0.2, 0.3],
+                    rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+                },
+                inliers: 300,
+                rms_error_px: 1.5,
+                keyframe_id: Some(0),
+            }),
+            reason: None,
+            has_image: false,
+            mission: Some(mission),
+        };
+        ids.push(shot.id.clone());
+        store.put(shot, None).unwrap();
+    }
+    ids
+}
+
+/// The page's card of a refined shot shows the stored rounds (error,
+/// decision, correction, note) and the stop reason.
+fn check_refinement_card(card: &Value, rf: &Value) {
+    let rows = card["rounds"].as_array().unwrap();
+    let rounds = rf["rounds"].as_array().unwrap();
+    assert_eq!(rows.len(), rounds.len(), "{card} vs {rf}");
+    for (row, r) in rows.iter().zip(rounds) {
+        let cell = |i: usize| row[i].as_str().unwrap().to_owned();
+        assert_eq!(cell(0), r["round"].to_string());
+        let pct = r["shot_error_pct"]
+            .as_f64()
+            .map_or("–".to_string(), |p| format!("{p:.2}"));
+        assert_eq!(cell(1), pct, "{row}");
+        assert_eq!(cell(4), r["decision"].as_str().unwrap(), "{row}");
+        match r["correction"]["step_ned_m"].as_array() {
+            Some(step) => {
+                let s: Vec<String> = step
+                    .iter()
+                    .map(|v| format!("{:.2}", v.as_f64().unwrap()))
+                    .collect();
+                assert_eq!(cell(5), s.join(", "), "{row}");
+            }
+            None => assert_eq!(cell(5), "–", "{row}"),
+        }
+        assert_eq!(cell(8), r["note"].as_str().unwrap_or(""), "{row}");
+    }
+    let stop = rf["stop"].as_str().unwrap();
+    assert_eq!(card["stop"]["key"], stop, "{card}");
+    let text = card["stop"]["text"].as_str().unwrap();
+    assert!(text.contains(stop), "{text}");
+    if let Some(reason) = rf["reason"].as_str() {
+        assert!(text.contains(reason), "{text} vs {reason}");
+    }
+}
 
 #[test]
 #[ignore = "needs chromium and playwright-core"]
@@ -49,6 +202,10 @@ fn operator_page_in_headless_chromium() {
     let _ = std::fs::remove_file(&shot_png);
 
     let dir = tempfile::tempdir().unwrap();
+    let seeded = seed_refined_shots(&dir.path().join("data/shots"));
+    // A damaged map file: the daemon starts a fresh map, keeps the file
+    // aside, and the page says so.
+    std::fs::write(dir.path().join("data/map.spmap"), b"not a map").unwrap();
     let video_port = free_tcp_port();
     let mav_port = free_udp_port();
     let mut cfg = Config::default();
@@ -113,7 +270,7 @@ fn operator_page_in_headless_chromium() {
     // What the page showed is what the daemon holds.
     assert!(seen["keyframes_listed"].as_u64().unwrap() >= 3);
     let shots = get_json(addr, "/api/v1/shots");
-    assert_eq!(shots["count"], 1, "{shots}");
+    assert_eq!(shots["count"], 1 + seeded.len(), "{shots}");
     let id = seen["shot"]["id"].as_str().unwrap();
     let shot = get_json(addr, &format!("/api/v1/shots/{id}"));
     assert_eq!(shot["status"], seen["shot"]["state"], "{shot}");
@@ -151,6 +308,31 @@ fn operator_page_in_headless_chromium() {
             "{text} vs {reason}"
         );
     }
+    let line = seen["status_line"].as_str().unwrap();
+    assert!(
+        line.contains("saved map not used") && line.contains("bad magic"),
+        "{line}"
+    );
+    let kept = std::fs::read_dir(dir.path().join("data"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.to_string_lossy().contains("map.spmap.unusable-"))
+        .expect("the damaged map file is kept aside");
+    assert_eq!(std::fs::read(&kept).unwrap(), b"not a map");
+    // The shots panel: every shot, newest first, and each refined shot's
+    // rounds and stop reason as the daemon stores them.
+    let panel = seen["shots_panel"].as_array().unwrap();
+    let ids: Vec<&str> = panel.iter().map(|c| c["id"].as_str().unwrap()).collect();
+    assert_eq!(ids, [id, "shot-2", "shot-1"], "{panel:?}");
+    for sid in &seeded {
+        let stored = get_json(addr, &format!("/api/v1/shots/{sid}"));
+        let rf = &stored["mission"]["details"]["refinement"];
+        let card = panel.iter().find(|c| c["id"] == *sid).unwrap();
+        check_refinement_card(card, rf);
+    }
+    let new_card = &panel[0];
+    assert!(new_card["rounds"].as_array().unwrap().is_empty());
+    assert!(new_card["stop"].is_null(), "{new_card}");
     // The desired shot is the keyframe's size (no size was given).
     assert_eq!(seen["shot_image"], serde_json::json!([640, 480]));
     let png = std::fs::metadata(&shot_png).expect("the screenshot was saved");

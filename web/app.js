@@ -37,11 +37,23 @@ function showStatus(s) {
     `SLAM ${sl.state || '?'} · kf ${sl.keyframes ?? 0} · pts ${sl.points ?? 0} · inliers ${sl.last_inliers ?? 0}` +
     ` | video ${(v.received_fps || 0).toFixed(1)} fps` +
     ` | vehicle ${ve.configured === false ? 'none' : (ve.connected ? (ve.mode || 'connected') + (ve.armed ? ' ARMED' : '') : 'not connected')}` +
-    geoText(ve.georeference);
+    geoText(ve.georeference) + mapStartText(sl.map_start);
   $('videostats').textContent =
     `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
     (v.width ? ` · ${v.width}x${v.height}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
+}
+// Where the SLAM's map came from: the saved map continued (and whether
+// tracking has relocalised into it yet), or why it was not used.
+function mapStartText(m) {
+  if (!m) return '';
+  if (m.mode === 'continued') {
+    return m.relocalised_at_frame == null
+      ? ` | saved map (${m.keyframes} kf, ${m.points} pts): not relocalised yet, fly over the mapped area`
+      : ` | saved map continued (${m.keyframes} kf), relocalised at frame ${m.relocalised_at_frame}`;
+  }
+  if (m.mode === 'fresh_after_error') return ` | saved map not used: ${m.error || '?'}${m.set_aside ? ` (kept as ${m.set_aside})` : ''}`;
+  return '';
 }
 function geoText(g) {
   if (!g) return '';
@@ -285,7 +297,9 @@ function showShot(s) {
   if (s.has_image) $('shotimg').src = `${API}/shots/${s.id}/image.jpg?t=${Date.now()}`;
   $('upload').disabled = !l;
   $('start').disabled = !s.mission;
+  for (const c of document.querySelectorAll('.shotcard')) c.classList.toggle('selected', c.dataset.id === s.id);
   drawMap();
+  refreshShots();
 }
 $('submit').addEventListener('click', async () => {
   if (!state.kf) return;
@@ -316,9 +330,105 @@ async function pollProgress() {
   } catch (_) {}
 }
 
+// ---- shots and their refinement rounds ----------------------------------------
+// One card per shot (newest first): status, source, mission, and, once its
+// mission was started, a table of the refinement rounds and why the loop
+// stopped (or that it is still running). Hooks for tests and tools: each
+// card has data-id, each round row data-round, the stop line data-stop.
+const fmt = (v, d) => (typeof v === 'number' && isFinite(v) ? v.toFixed(d) : '–');
+function el(tag, attrs, text) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs || {})) {
+    if (k === 'class') e.className = v; else e.setAttribute(k, v);
+  }
+  if (text !== undefined) e.textContent = text;
+  return e;
+}
+function sourceText(src) {
+  if (!src) return '';
+  if (src.kind === 'anchors') return `anchors on keyframe #${src.keyframe_id}`;
+  if (src.kind === 'photo') return `photo ${src.width}x${src.height}`;
+  return src.kind || '';
+}
+function stopText(rf) {
+  if (!rf.stop) return { key: 'running', text: `refining… (${(rf.rounds || []).length} round${(rf.rounds || []).length === 1 ? '' : 's'} so far)` };
+  const why = rf.reason ? `: ${rf.reason}` : '';
+  const note = rf.daemon_note ? ` (daemon: ${rf.daemon_note})` : '';
+  return { key: rf.stop, text: `stopped: ${rf.stop}${why}${note}` };
+}
+function roundsTable(rounds) {
+  const t = el('table', { class: 'rounds' });
+  const head = el('tr');
+  for (const h of ['round', 'shot error %', 'error px', 'inliers', 'decision', 'correction (N, E, D) m', 'yaw °', 'pitch °', 'note']) head.append(el('th', {}, h));
+  t.append(head);
+  for (const r of rounds) {
+    const tr = el('tr', { 'data-round': r.round });
+    const c = r.correction;
+    tr.append(
+      el('td', {}, String(r.round)),
+      el('td', {}, fmt(r.shot_error_pct, 2)),
+      el('td', {}, fmt(r.shot_error_px, 1)),
+      el('td', {}, r.inliers == null ? '–' : String(r.inliers)),
+      el('td', { class: 'text' }, r.decision || ''),
+      el('td', {}, c ? c.step_ned_m.map((v) => fmt(v, 2)).join(', ') + (c.limited ? ' (limited)' : '') : '–'),
+      el('td', {}, c ? fmt(c.yaw_step_deg, 2) : '–'),
+      el('td', {}, c ? fmt(c.pitch_step_deg, 2) : '–'),
+      el('td', { class: 'text' }, r.note || ''),
+    );
+    t.append(tr);
+  }
+  return t;
+}
+function shotCard(s) {
+  const card = el('div', { class: 'shotcard', 'data-id': s.id });
+  if (state.shot && state.shot.id === s.id) card.classList.add('selected');
+  const parts = [s.id, s.status, sourceText(s.source)];
+  if (s.localisation) parts.push(`${s.localisation.inliers} inliers, ${fmt(s.localisation.rms_error_px, 2)} px`);
+  else if (s.reason) parts.push(s.reason);
+  if (s.mission) parts.push(`mission ${s.mission.state}, ${s.mission.items} items`);
+  const head = el('div', { class: 'head' }, parts.join(' · '));
+  head.addEventListener('click', () => showShot(s));
+  card.append(head);
+  const rf = s.mission && s.mission.details && s.mission.details.refinement;
+  if (rf) {
+    const rounds = Array.isArray(rf.rounds) ? rf.rounds : [];
+    if (rounds.length) card.append(roundsTable(rounds));
+    const st = stopText(rf);
+    card.append(el('div', { class: 'stop', 'data-stop': st.key }, st.text));
+  } else if (s.mission && s.mission.state === 'started') {
+    card.append(el('div', { class: 'stop', 'data-stop': 'running' }, 'refining… (waiting for the first arrival)'));
+  }
+  return card;
+}
+let shotsBusy = false, shotsSeen = '';
+async function refreshShots() {
+  if (shotsBusy) return;
+  shotsBusy = true;
+  try {
+    const r = await api('GET', '/shots');
+    const text = JSON.stringify(r.shots);
+    if (text !== shotsSeen) {
+      shotsSeen = text;
+      const box = $('shots');
+      box.textContent = '';
+      const shots = [...r.shots].reverse();
+      for (const s of shots) box.append(shotCard(s));
+      if (!shots.length) box.textContent = 'no shots yet';
+      $('shotcount').textContent = `(${r.count})`;
+      // The shot in the result pane follows the daemon (rounds arrive while
+      // the loop runs).
+      const cur = state.shot && r.shots.find((s) => s.id === state.shot.id);
+      if (cur && JSON.stringify(cur) !== JSON.stringify(state.shot)) showShot(cur);
+    }
+  } catch (_) {
+  } finally { shotsBusy = false; }
+}
+
 // ---- start ------------------------------------------------------------------------
 connectEvents();
 refreshKeyframes();
 refreshMap();
 setInterval(refreshMap, 2000);
 setInterval(refreshKeyframes, 3000);
+refreshShots();
+setInterval(refreshShots, 2000);

@@ -58,6 +58,27 @@ pub struct SlamStatus {
     pub latency_ms_median: Option<f64>,
     /// Frames per second processed.
     pub fps: f64,
+    /// Where the map came from at start (None before the SLAM started).
+    pub map_start: Option<MapStart>,
+}
+
+/// Where the SLAM's map came from when the daemon started.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct MapStart {
+    /// `fresh` (no saved map, or `[slam] continue_map = false`),
+    /// `continued` (the saved map was loaded and is relocalised into), or
+    /// `fresh_after_error` (the saved map could not be used).
+    pub mode: String,
+    /// Keyframes loaded from the saved map.
+    pub keyframes: usize,
+    /// Points loaded from the saved map.
+    pub points: usize,
+    /// The first frame (ingest sequence number) tracked in the loaded map.
+    pub relocalised_at_frame: Option<u64>,
+    /// Why the saved map was not used.
+    pub error: Option<String>,
+    /// Where a saved map that was not continued was moved to.
+    pub set_aside: Option<std::path::PathBuf>,
 }
 
 /// A keyframe in the API.

@@ -199,13 +199,17 @@ pub async fn run(
     let geo = Arc::new(geo_service::GeoService::new(cfg.geo.clone()));
     let shared = Arc::new(SlamShared::new(cfg.slam.enabled));
     let map_file = data_dir.join(&cfg.slam.map_file);
-    let processor = slam_view::make_processor(&cfg, camera, shared.clone(), map_file.clone());
     let slam_thread = {
         let (ing, sh, g) = (ingest.clone(), shared.clone(), geo.clone());
         let delay = Duration::from_millis(cfg.slam.artificial_delay_ms);
+        let cfg = cfg.clone();
         std::thread::Builder::new()
             .name("slam".into())
-            .spawn(move || slam_loop(processor, &ing, &sh, &g, delay))
+            .spawn(move || {
+                // Built here: loading and indexing a saved map takes a while.
+                let processor = slam_view::make_processor(&cfg, camera, sh.clone(), map_file);
+                slam_loop(processor, &ing, &sh, &g, delay)
+            })
             .map_err(|source| DaemonError::Thread {
                 what: "slam",
                 source,

@@ -2,14 +2,14 @@
 //! drives, and [`SlamShared`], the status and map view the API reads.
 
 use std::collections::VecDeque;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use image::GrayImage;
 
 use crate::api::store::PoseJson;
-use crate::api::{KeyframeInfo, MapView, SlamStatus, SlamView};
+use crate::api::{KeyframeInfo, MapStart, MapView, SlamStatus, SlamView};
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::slam::{self, KeyFrameId, Map, Slam, TrackState};
@@ -72,6 +72,16 @@ impl FrameProcessor for NoSlam {
 
 /// The processor for this configuration: the SLAM, or [`NoSlam`] when
 /// `[slam] enabled = false` or the SLAM cannot start.
+///
+/// With `[slam] continue_map` (the default) and a map file in place, the
+/// SLAM goes on with the saved map ([`Slam::from_map`]): it starts lost and
+/// relocalises into the old map, so shots, keyframe ids and the
+/// georeference stay in one frame across restarts. A map file that cannot
+/// be used (damaged, another format, another camera or extractor) never
+/// stops the daemon: it is moved aside under a new name (nothing is
+/// overwritten), the reason is logged and shown in the status, and the SLAM
+/// starts a fresh map. With `continue_map = false` an existing map file is
+/// moved aside the same way before a fresh map starts.
 pub fn make_processor(
     cfg: &Config,
     camera: Camera,
@@ -82,20 +92,154 @@ pub fn make_processor(
         return Box::new(NoSlam);
     }
     let (w, h) = (camera.width, camera.height);
-    match Slam::new(camera, slam::Params::default()) {
-        Ok(slam) => {
-            shared.set_source(Arc::new(SlamMapSource { map: slam.map() }));
-            Box::new(SlamProcessor {
-                slam,
-                map_file,
-                size: (w, h),
-                warned_size: false,
-                clock: cfg.geo.history.clone(),
-            })
-        }
+    let params = slam::Params::default();
+    let vocabulary = match crate::bow::Vocabulary::builtin() {
+        Ok(v) => Arc::new(v),
         Err(e) => {
             tracing::error!("SLAM cannot start: {e}");
-            Box::new(NoSlam)
+            return Box::new(NoSlam);
+        }
+    };
+    let mut start = MapStart {
+        mode: "fresh".into(),
+        ..Default::default()
+    };
+    let mut continued = None;
+    if map_file.exists() {
+        if cfg.slam.continue_map {
+            match continue_on(&map_file, &camera, &params, &vocabulary) {
+                Ok(slam) => continued = Some(slam),
+                Err(reason) => {
+                    start.mode = "fresh_after_error".into();
+                    start.set_aside = set_aside(&map_file, "unusable");
+                    tracing::error!(
+                        path = %map_file.display(),
+                        moved_to = ?start.set_aside,
+                        "the saved map cannot be continued, starting a fresh map: {reason}"
+                    );
+                    start.error = Some(reason);
+                }
+            }
+        } else {
+            start.set_aside = set_aside(&map_file, "replaced");
+            tracing::info!(
+                path = %map_file.display(),
+                moved_to = ?start.set_aside,
+                "continue_map = false: starting a fresh map, the saved one is kept aside"
+            );
+        }
+    }
+    // A file that could not be moved aside is not overwritten either: the
+    // new map goes next to it.
+    let save_to = if map_file.exists() && continued.is_none() {
+        let alt = unused_name(&map_file, "new");
+        tracing::warn!(
+            path = %map_file.display(),
+            save_to = %alt.display(),
+            "the old map file stays in place; the new map will be saved beside it"
+        );
+        alt
+    } else {
+        map_file
+    };
+    let slam = match continued {
+        Some(slam) => {
+            let map = slam.map();
+            let m = map.lock().unwrap_or_else(|e| e.into_inner());
+            start.mode = "continued".into();
+            start.keyframes = m.keyframe_count();
+            start.points = m.point_count();
+            tracing::info!(
+                next_keyframe_id = m.next_keyframe_id().0,
+                "continuing on saved map: {} keyframes, {} points",
+                start.keyframes,
+                start.points
+            );
+            drop(m);
+            slam
+        }
+        None => match Slam::with_vocabulary(camera, params, vocabulary) {
+            Ok(slam) => slam,
+            Err(e) => {
+                tracing::error!("SLAM cannot start: {e}");
+                return Box::new(NoSlam);
+            }
+        },
+    };
+    let awaiting_reloc = start.mode == "continued";
+    shared.set_map_start(start);
+    shared.set_source(Arc::new(SlamMapSource { map: slam.map() }));
+    Box::new(SlamProcessor {
+        slam,
+        map_file: save_to,
+        size: (w, h),
+        warned_size: false,
+        clock: cfg.geo.history.clone(),
+        shared,
+        awaiting_reloc,
+    })
+}
+
+/// Load the map file and start a SLAM on it; the reason when it cannot be
+/// used.
+fn continue_on(
+    path: &Path,
+    camera: &Camera,
+    params: &slam::Params,
+    vocabulary: &Arc<crate::bow::Vocabulary>,
+) -> Result<Slam, String> {
+    let map = slam::mapfile::load(path).map_err(|e| e.to_string())?;
+    if map.camera != *camera {
+        return Err(format!(
+            "the map was built with another camera ({}x{}, fx {}) than [camera] ({}x{}, fx {})",
+            map.camera.width,
+            map.camera.height,
+            map.camera.fx,
+            camera.width,
+            camera.height,
+            camera.fx
+        ));
+    }
+    if map.keyframe_count() < 2 {
+        return Err(format!(
+            "the map holds {} keyframes, too few to relocalise in",
+            map.keyframe_count()
+        ));
+    }
+    Slam::from_map(map, params.clone(), vocabulary.clone()).map_err(|e| e.to_string())
+}
+
+/// A name beside `path` that is not taken: `<name>.<tag>-<unix seconds>`,
+/// with `-2`, `-3`, ... appended when needed.
+fn unused_name(path: &Path, tag: &str) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "map".into());
+    let stamp = unix_now().max(0.0) as u64;
+    let base = path.with_file_name(format!("{name}.{tag}-{stamp}"));
+    let mut candidate = base.clone();
+    let mut n = 2;
+    while candidate.exists() {
+        candidate = path.with_file_name(format!("{name}.{tag}-{stamp}-{n}"));
+        n += 1;
+    }
+    candidate
+}
+
+/// Move `path` to an unused name beside it; the new path, or None (logged)
+/// when it cannot be moved.
+fn set_aside(path: &Path, tag: &str) -> Option<PathBuf> {
+    let to = unused_name(path, tag);
+    match std::fs::rename(path, &to) {
+        Ok(()) => Some(to),
+        Err(e) => {
+            tracing::error!(
+                path = %path.display(),
+                to = %to.display(),
+                "cannot move the map file aside: {e}"
+            );
+            None
         }
     }
 }
@@ -109,6 +253,10 @@ pub struct SlamProcessor {
     /// How a frame's capture time is found (its keyframes carry it, and
     /// the georeference matches them to telemetry by it).
     clock: crate::geo::HistoryParams,
+    /// Where the relocalisation into a continued map is reported.
+    shared: Arc<SlamShared>,
+    /// A saved map was continued and no frame is tracked in it yet.
+    awaiting_reloc: bool,
 }
 
 fn state_name(s: TrackState) -> &'static str {
@@ -142,6 +290,16 @@ impl FrameProcessor for SlamProcessor {
             let m = map.lock().unwrap_or_else(|e| e.into_inner());
             (m.keyframe_count(), m.point_count())
         };
+        if self.awaiting_reloc && out.state == TrackState::Tracking {
+            self.awaiting_reloc = false;
+            tracing::info!(
+                keyframes,
+                points,
+                "relocalised at frame {} in the saved map",
+                frame.seq
+            );
+            self.shared.set_relocalised(frame.seq);
+        }
         ProcessOutcome {
             state: state_name(out.state).into(),
             tracked: out.cam_from_world.is_some(),
@@ -288,6 +446,18 @@ impl SlamShared {
         self.inner.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// Record where the map came from at start.
+    pub fn set_map_start(&self, start: MapStart) {
+        self.lock().status.map_start = Some(start);
+    }
+
+    /// Record the first frame tracked in a continued map.
+    pub fn set_relocalised(&self, seq: u64) {
+        if let Some(s) = self.lock().status.map_start.as_mut() {
+            s.relocalised_at_frame = Some(seq);
+        }
+    }
+
     /// Attach the SLAM's map.
     pub fn set_source(&self, source: Arc<dyn MapSource>) {
         self.lock().source = Some(source);
@@ -356,5 +526,89 @@ impl SlamView for SlamShared {
     fn map(&self, max_points: usize) -> MapView {
         let src = self.lock().source.clone();
         src.map(|s| s.map(max_points)).unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn setup() -> (tempfile::TempDir, Config, Camera, PathBuf) {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = Config::default();
+        let camera = cfg.camera.camera(dir.path()).unwrap();
+        let file = dir.path().join("map.spmap");
+        (dir, cfg, camera, file)
+    }
+
+    /// Start a processor on `file`; the status it reports, the files in
+    /// the folder afterwards.
+    fn start(cfg: &Config, camera: Camera, file: &Path) -> (MapStart, Vec<PathBuf>) {
+        let shared = Arc::new(SlamShared::new(true));
+        let p = make_processor(cfg, camera, shared.clone(), file.to_owned());
+        assert!(p.finish().is_none(), "nothing to save without keyframes");
+        let mut files: Vec<PathBuf> = std::fs::read_dir(file.parent().unwrap())
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        files.sort();
+        (shared.status().map_start.unwrap(), files)
+    }
+
+    #[test]
+    fn no_map_file_starts_fresh() {
+        let (_dir, cfg, camera, file) = setup();
+        let (s, files) = start(&cfg, camera, &file);
+        assert_eq!(s.mode, "fresh");
+        assert!(s.error.is_none() && s.set_aside.is_none());
+        assert!(files.is_empty());
+    }
+
+    #[test]
+    fn a_damaged_map_file_is_set_aside_and_a_fresh_map_starts() {
+        let (_dir, cfg, camera, file) = setup();
+        std::fs::write(&file, b"not a map at all").unwrap();
+        let (s, files) = start(&cfg, camera, &file);
+        assert_eq!(s.mode, "fresh_after_error");
+        assert!(s.error.as_deref().unwrap().contains("bad magic"), "{s:?}");
+        let aside = s.set_aside.unwrap();
+        assert_eq!(files, vec![aside.clone()]);
+        assert!(aside.to_string_lossy().contains("map.spmap.unusable-"));
+        assert_eq!(std::fs::read(&aside).unwrap(), b"not a map at all");
+    }
+
+    #[test]
+    fn a_map_of_another_camera_is_not_continued() {
+        let (_dir, cfg, camera, file) = setup();
+        let mut other = camera;
+        other.fx *= 1.5;
+        let map = Map::new(other, slam::ScaleInfo::new(1.2, 8));
+        slam::mapfile::save(&map, &file).unwrap();
+        let bytes = std::fs::read(&file).unwrap();
+        let (s, files) = start(&cfg, camera, &file);
+        assert_eq!(s.mode, "fresh_after_error");
+        assert!(
+            s.error.as_deref().unwrap().contains("another camera"),
+            "{s:?}"
+        );
+        assert_eq!(files.len(), 1);
+        assert_eq!(std::fs::read(&files[0]).unwrap(), bytes);
+    }
+
+    #[test]
+    fn continue_map_false_keeps_the_old_map_aside() {
+        let (_dir, mut cfg, camera, file) = setup();
+        cfg.slam.continue_map = false;
+        std::fs::write(&file, b"old map").unwrap();
+        // A name already taken is not overwritten.
+        let taken = unused_name(&file, "replaced");
+        std::fs::write(&taken, b"older").unwrap();
+        let (s, files) = start(&cfg, camera, &file);
+        assert_eq!(s.mode, "fresh");
+        let aside = s.set_aside.unwrap();
+        assert_ne!(aside, taken);
+        assert_eq!(files.len(), 2);
+        assert_eq!(std::fs::read(&aside).unwrap(), b"old map");
+        assert_eq!(std::fs::read(&taken).unwrap(), b"older");
     }
 }

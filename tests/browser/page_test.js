@@ -11,7 +11,8 @@
 // the four anchors, dragged with the mouse, land where they were dropped;
 // the preview shows the warped shot; submitting shows the daemon's answer
 // (localised with pose and inliers, or not localised with its reason) and
-// the desired-shot image. Prints one JSON line of what it saw.
+// the desired-shot image; the shots panel lists every shot with its
+// refinement rounds and stop reason. Prints one JSON line of what it saw.
 'use strict';
 
 const { chromium } = require('playwright-core');
@@ -167,6 +168,20 @@ async function main() {
     }, null, { timeout: 10000 });
     out.shot_image = await page.$eval('#shotimg', (i) => [i.naturalWidth, i.naturalHeight]);
     out.shot = { id: shotId, state, text };
+
+    // The shots panel: the new shot, and every shot's refinement rounds and
+    // stop reason as the page shows them (the Rust side compares them with
+    // what the daemon stores).
+    await page.waitForFunction((id) => !!document.querySelector(`#shots .shotcard[data-id="${id}"]`), shotId, { timeout: 10000 });
+    out.shots_panel = await page.$$eval('#shots .shotcard', (cards) => cards.map((c) => {
+      const stop = c.querySelector('.stop');
+      return {
+        id: c.dataset.id,
+        head: c.querySelector('.head').textContent,
+        rounds: [...c.querySelectorAll('.rounds tr[data-round]')].map((tr) => [...tr.children].map((td) => td.textContent)),
+        stop: stop ? { key: stop.dataset.stop, text: stop.textContent } : null,
+      };
+    }));
 
     await page.screenshot({ path: SHOT, fullPage: true });
     out.screenshot = SHOT;
