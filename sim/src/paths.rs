@@ -204,7 +204,9 @@ impl CameraPath {
         }
     }
 
-    /// The orbit around the scene centre (raised over tall buildings on its circle).
+    /// The orbit around the scene centre at the fixed `orbit_altitude_m`. It
+    /// does not look at the world: a building on its circle taller than
+    /// that altitude is flown through (choose the altitude above it).
     pub fn orbit(params: Params) -> CameraPath {
         CameraPath {
             kind: Kind::Orbit,
