@@ -12,9 +12,127 @@ use std::net::SocketAddr;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use nalgebra::{Isometry3, Point2, Quaternion, Translation3, UnitQuaternion, Vector3};
 use serde_json::{Value, json};
+use shotpilot::camera::{Camera, Distortion};
 use shotpilot::config::Config;
+use shotpilot::geo::{Geodetic, GimbalAngles, LocalFrame, MountParams, VehicleState, ned_from_cam};
+use shotpilot::refine::pose_difference;
 use tokio_util::sync::CancellationToken;
+
+/// The simulator's truth: capture time (unix s) and true camera pose (NED at home) of each video frame.
+fn read_truth(dir: &Path) -> Vec<(f64, Isometry3<f64>)> {
+    let text = std::fs::read_to_string(dir.join("frames.txt")).unwrap_or_default();
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let v: Vec<f64> = l
+                .split_whitespace()
+                .filter_map(|x| x.parse().ok())
+                .collect();
+            (v.len() == 9).then(|| {
+                (
+                    v[1],
+                    Isometry3::from_parts(
+                        Translation3::new(v[2], v[3], v[4]),
+                        UnitQuaternion::from_quaternion(Quaternion::new(v[8], v[5], v[6], v[7])),
+                    ),
+                )
+            })
+        })
+        .collect()
+}
+
+fn truth_at(truth: &[(f64, Isometry3<f64>)], t: f64) -> Option<Isometry3<f64>> {
+    truth
+        .iter()
+        .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+        .filter(|(ti, _)| (ti - t).abs() < 0.01)
+        .map(|(_, p)| *p)
+}
+
+/// The camera pose (NED at home) of a vehicle hovering exactly at a recorded target.
+fn commanded_camera(home: &Geodetic, t: &Value) -> Option<Isometry3<f64>> {
+    let frame = LocalFrame::new(*home);
+    let p = frame.geodetic_to_ned(&Geodetic {
+        lat_deg: t["lat_deg"].as_f64()?,
+        lon_deg: t["lon_deg"].as_f64()?,
+        alt_m: home.alt_m + t["alt_m"].as_f64()?,
+    });
+    let state = VehicleState {
+        time: 0.0,
+        p_ned: p,
+        v_ned: Vector3::zeros(),
+        ned_from_body: UnitQuaternion::from_euler_angles(
+            0.0,
+            0.0,
+            t["yaw_deg"].as_f64()?.to_radians(),
+        ),
+        gimbal: GimbalAngles {
+            pitch: t["gimbal_pitch_deg"].as_f64()?.to_radians(),
+            yaw: 0.0,
+        },
+    };
+    Some(ned_from_cam(&state, &MountParams::default()))
+}
+
+/// Prints what each round measured against the simulator's truth.
+fn analyse(
+    refinement: &Value,
+    truth_dir: &Path,
+    home: &Geodetic,
+    true_desired: Option<&Isometry3<f64>>,
+) {
+    let truth = read_truth(truth_dir);
+    for r in refinement["rounds"].as_array().into_iter().flatten() {
+        let o = &r["observed"];
+        let c = &r["correction"];
+        eprintln!(
+            "  round {}: err {} % | capture-arrival {} s, latency {} s, vehicle-target {} m, yaw {} deg, gimbal {} deg, speed {} | pose error (geo) {} m, yaw {} deg, pitch {} deg",
+            r["round"],
+            r["shot_error_pct"],
+            o["capture_after_arrival_s"],
+            o["frame_latency_s"],
+            o["vehicle_offset_ned_m"],
+            o["yaw_error_deg"],
+            o["gimbal_pitch_error_deg"],
+            o["speed_m_s"],
+            c["error_ned_m"],
+            c["yaw_error_deg"],
+            c["pitch_error_deg"]
+        );
+        let Some(live) = o["frame_capture_unix"]
+            .as_f64()
+            .and_then(|t| truth_at(&truth, t))
+        else {
+            eprintln!("    no truth for the frame");
+            continue;
+        };
+        if let Some(cmd) = commanded_camera(home, &r["target"]) {
+            let d = pose_difference(&cmd, &live);
+            eprintln!(
+                "    true camera vs commanded: {:.3} m, yaw {:.3} deg, pitch {:.3} deg",
+                d.position_m, d.yaw_deg, d.pitch_deg
+            );
+        }
+        if let Some(want) = true_desired {
+            let d = pose_difference(want, &live);
+            eprintln!(
+                "    true camera vs true desired: {:.3} m, yaw {:.3} deg, pitch {:.3} deg, rot {:.3} deg",
+                d.position_m, d.yaw_deg, d.pitch_deg, d.rotation_deg
+            );
+            if r["round"] == 0 {
+                if let Some(cmd) = commanded_camera(home, &r["target"]) {
+                    let d = pose_difference(want, &cmd);
+                    eprintln!(
+                        "    first target (shot pose via georeference) vs true desired: {:.3} m, yaw {:.3} deg, pitch {:.3} deg",
+                        d.position_m, d.yaw_deg, d.pitch_deg
+                    );
+                }
+            }
+        }
+    }
+}
 
 fn post_jpeg(addr: SocketAddr, path: &str, jpeg: &[u8]) -> (u16, Vec<u8>) {
     request(addr, "POST", path, "image/jpeg", jpeg)
@@ -101,6 +219,8 @@ fn started_mission_is_refined_by_the_daemon() {
     cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
     cfg.server.bind = "127.0.0.1:0".into();
     cfg.server.token = Some("e2e".into());
+    cfg.sim.truth_dir = Some("truth".into());
+    let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
     cfg.validate(Path::new("test")).unwrap();
 
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -142,14 +262,22 @@ fn started_mission_is_refined_by_the_daemon() {
     );
     assert_eq!(geo["state"], "ok", "{geo}");
 
+    let home = Geodetic {
+        lat_deg: geo["home"]["lat_deg"].as_f64().unwrap(),
+        lon_deg: geo["home"]["lon_deg"].as_f64().unwrap(),
+        alt_m: geo["home"]["alt_amsl_m"].as_f64().unwrap(),
+    };
+    let truth = read_truth(&truth_dir);
+
     // A shot by anchors on one of the newest keyframes, localised.
     let kfs = get_json(addr, "/api/v1/keyframes");
-    let ids: Vec<u64> = kfs["keyframes"]
+    let kf_list: Vec<(u64, f64)> = kfs["keyframes"]
         .as_array()
         .unwrap()
         .iter()
-        .map(|k| k["id"].as_u64().unwrap())
+        .map(|k| (k["id"].as_u64().unwrap(), k["timestamp"].as_f64().unwrap()))
         .collect();
+    let ids: Vec<u64> = kf_list.iter().map(|k| k.0).collect();
     let mut sid = None;
     for &kid in ids.iter().rev().take(6) {
         let shot = json!({"keyframe_id": kid, "anchors": [[40, 30], [600, 30], [600, 450], [40, 450]], "width": 320, "height": 240});
@@ -157,6 +285,7 @@ fn started_mission_is_refined_by_the_daemon() {
         assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
         let shot: Value = serde_json::from_slice(&b).unwrap();
         if shot["status"] == "localised" {
+            eprintln!("zoom shot: {}", shot["localisation"]);
             sid = Some(shot["id"].as_str().unwrap().to_owned());
             break;
         }
@@ -166,8 +295,59 @@ fn started_mission_is_refined_by_the_daemon() {
 
     // Upload and start: the daemon's loop takes over.
     let (anchors, _) = refine(addr, &sid);
+    analyse(&anchors, &truth_dir, &home, None);
     let first = anchors["rounds"][0]["shot_error_pct"].as_f64().unwrap();
     assert!(first > 0.0);
+
+    // A shot by anchors that a pan and tilt of the keyframe's camera gives
+    // (as the scenario makes them): a view the camera can take.
+    let cam = shotpilot_sim::camera::SimCamera::default();
+    let camera = Camera::new(
+        cam.width,
+        cam.height,
+        [cam.fx, cam.fy, cam.cx, cam.cy],
+        Distortion::default(),
+    )
+    .unwrap();
+    let mut pan = None;
+    for &(kid, ts) in kf_list.iter().rev().take(6) {
+        let Some(kf_cam) = truth_at(&truth, ts) else {
+            continue;
+        };
+        let (dyaw, dpitch) = (4f64.to_radians(), 3f64.to_radians());
+        let want_rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), dyaw)
+            * kf_cam.rotation
+            * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -dpitch);
+        let want = Isometry3::from_parts(kf_cam.translation, want_rot);
+        let k_from_d = kf_cam.rotation.inverse() * want_rot;
+        let corners = [
+            Point2::new(0.0, 0.0),
+            Point2::new(f64::from(cam.width) - 1.0, 0.0),
+            Point2::new(f64::from(cam.width) - 1.0, f64::from(cam.height) - 1.0),
+            Point2::new(0.0, f64::from(cam.height) - 1.0),
+        ];
+        let a: Vec<[f64; 2]> = corners
+            .iter()
+            .map(|c| {
+                let p = camera
+                    .project(&(k_from_d * camera.unproject(*c).into_inner()))
+                    .unwrap();
+                [p.x, p.y]
+            })
+            .collect();
+        let shot = json!({"keyframe_id": kid, "anchors": a});
+        let (st, b) = http(addr, "POST", "/api/v1/shots", Some(&shot));
+        assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+        let shot: Value = serde_json::from_slice(&b).unwrap();
+        if shot["status"] == "localised" {
+            eprintln!("pan/tilt shot on keyframe {kid}: {}", shot["localisation"]);
+            pan = Some((shot["id"].as_str().unwrap().to_owned(), want));
+            break;
+        }
+    }
+    let (pan_sid, pan_want) = pan.expect("a pan/tilt anchors shot is localised");
+    let (pan_r, _) = refine(addr, &pan_sid);
+    analyse(&pan_r, &truth_dir, &home, Some(&pan_want));
 
     // A photograph the camera took during the exploration: a view that can
     // be reproduced exactly (an anchors shot is a zoom, which no camera
@@ -184,6 +364,7 @@ fn started_mission_is_refined_by_the_daemon() {
     }
     let photo_sid = photo_sid.expect("a photograph is localised");
     let (photo, _) = refine(addr, &photo_sid);
+    analyse(&photo, &truth_dir, &home, None);
     let rounds = photo["rounds"].as_array().unwrap();
     let last = rounds.last().unwrap()["shot_error_pct"].as_f64().unwrap();
     eprintln!(

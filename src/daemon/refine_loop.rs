@@ -24,12 +24,12 @@ use super::vehicle_view::upload_verified;
 use crate::api::store::{Shot, ShotSource, ShotStore};
 use crate::geo::{Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
-use crate::refine::{ArrivalDetector, Context, Session, Step};
+use crate::refine::{ArrivalDetector, Context, Observation, Session, Step};
 use crate::shot::LocalizeParams;
 use crate::shot::anchors::{AnchorParams, desired_shot_from_anchors};
 use crate::slam::{KeyFrameId, Map};
 use crate::vehicle::LinkHandle;
-use crate::video::live::Ingest;
+use crate::video::live::{Frame, Ingest};
 
 /// Every tunable number of the daemon's loop (the session's own are in
 /// [`crate::refine::Params`]).
@@ -514,6 +514,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
             _ => tokio::time::sleep(Duration::from_millis(20)).await,
         }
     };
+    let observed = observe(deps, session.target(), &frame, arrived);
     let Some(map_from_desired) = shot
         .localisation
         .as_ref()
@@ -552,6 +553,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         };
         let camera = map.camera;
         let step = session.on_arrival(&frame.image, Some(&camera), &ctx);
+        session.observe(observed);
         (session, Ok(step))
     })
     .await;
@@ -559,6 +561,43 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         Ok(r) => r,
         Err(e) => (backup, Err(format!("the round failed: {e}"))),
     }
+}
+
+/// The vehicle's report and the frame's timing when `frame` is taken for
+/// the round flying `target` that arrived at `arrived`.
+fn observe(deps: &Deps, target: &Target, frame: &Frame, arrived: Instant) -> Observation {
+    let tel = &deps.link.telemetry;
+    let arrived_unix = frame.received_unix
+        - frame
+            .received
+            .checked_duration_since(arrived)
+            .map_or(0.0, |d| d.as_secs_f64());
+    let mut o = Observation {
+        frame_capture_unix: frame.capture_time,
+        capture_after_arrival_s: frame.capture_time.map(|c| c - arrived_unix),
+        frame_latency_s: frame.capture_time.map(|c| frame.received_unix - c),
+        ..Observation::default()
+    };
+    if let Some(g) = *tel.global_position.borrow() {
+        let v = g.value;
+        let n = (v.lat_deg - target.lat_deg) * 111_132.0;
+        let e = (v.lon_deg - target.lon_deg) * 111_320.0 * target.lat_deg.to_radians().cos();
+        o.vehicle_offset_ned_m = Some([n, e, target.alt_m - v.rel_alt_m]);
+        o.speed_m_s = Some(
+            f64::from(v.vel_ned_m_s[0])
+                .hypot(f64::from(v.vel_ned_m_s[1]))
+                .hypot(f64::from(v.vel_ned_m_s[2])),
+        );
+        o.position_age_s = Some(g.received.elapsed().as_secs_f64());
+    }
+    if let Some(a) = *tel.attitude.borrow() {
+        let yaw = f64::from(a.value.yaw_rad).to_degrees();
+        o.yaw_error_deg = Some((yaw - target.yaw_deg + 180.0).rem_euclid(360.0) - 180.0);
+    }
+    if let Some(g) = *tel.gimbal.borrow() {
+        o.gimbal_pitch_error_deg = Some(f64::from(g.value.pitch_deg) - target.gimbal_pitch_deg);
+    }
+    o
 }
 
 /// Plans, uploads (with read-back) and starts the corrected target; the

@@ -34,7 +34,7 @@ pub use error::{
     PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
     pose_difference, shot_error,
 };
-pub use session::{Context, RoundRecord, Session, Step, Stop};
+pub use session::{Context, Observation, RoundRecord, Session, Step, Stop};
 
 /// Every tunable number of the refinement.
 #[derive(Debug, Clone, Default, PartialEq)]

@@ -55,6 +55,34 @@ pub struct RoundRecord {
     pub correction: Option<Correction>,
     /// Why the loop could not go on, or why the shot error is missing.
     pub note: Option<String>,
+    /// What the driver saw besides the frame (telemetry, timing), when it
+    /// told ([`Session::observe`]).
+    pub observed: Option<Observation>,
+}
+
+/// What the driver of the loop saw at an arrival besides the live frame:
+/// the vehicle's own report and the frame's timing, for the record (the
+/// session does not use it).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Observation {
+    /// The measured frame's capture time, unix seconds, when the source
+    /// sent it.
+    pub frame_capture_unix: Option<f64>,
+    /// The measured frame's capture time minus the arrival time, seconds
+    /// (negative: captured before the view was judged steady).
+    pub capture_after_arrival_s: Option<f64>,
+    /// The measured frame's receipt minus its capture, seconds.
+    pub frame_latency_s: Option<f64>,
+    /// The reported vehicle position minus the target's, local NED metres.
+    pub vehicle_offset_ned_m: Option<[f64; 3]>,
+    /// The reported heading minus the target's, degrees.
+    pub yaw_error_deg: Option<f64>,
+    /// The reported gimbal pitch minus the target's, degrees.
+    pub gimbal_pitch_error_deg: Option<f64>,
+    /// The reported 3-D speed, m/s.
+    pub speed_m_s: Option<f64>,
+    /// Age of the position report when the frame was taken, seconds.
+    pub position_age_s: Option<f64>,
 }
 
 /// How the loop ended.
@@ -174,6 +202,7 @@ impl Session {
             live_map_position: None,
             correction: None,
             note: err.as_ref().err().map(|e| format!("shot error: {e}")),
+            observed: None,
         };
         let stop = match decision {
             Decision::Converged => Some(Stop::Converged),
@@ -223,6 +252,13 @@ impl Session {
                 rec.note = Some(format!("correction refused: {e}"));
                 self.end(rec, Stop::CorrectionRefused(e.to_string()))
             }
+        }
+    }
+
+    /// Attaches what the driver saw at the last arrival to its round.
+    pub fn observe(&mut self, observed: Observation) {
+        if let Some(r) = self.rounds.last_mut() {
+            r.observed = Some(observed);
         }
     }
 
