@@ -24,7 +24,9 @@ use super::vehicle_view::upload_verified;
 use crate::api::store::{Shot, ShotSource, ShotStore};
 use crate::geo::{Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
-use crate::refine::{ArrivalDetector, Context, Observation, Session, Step};
+use crate::refine::{
+    ArrivalDetector, Context, Observation, Reachable, Session, Step, reachable_from_anchors,
+};
 use crate::shot::LocalizeParams;
 use crate::shot::anchors::{AnchorParams, desired_shot_from_anchors};
 use crate::slam::{KeyFrameId, Map};
@@ -118,8 +120,10 @@ pub struct Deps {
     pub pictures: std::sync::Mutex<Vec<(String, Picture)>>,
 }
 
-/// A desired picture and the mask of its valid pixels.
-pub type Picture = (GrayImage, Option<GrayImage>);
+/// A desired picture, the mask of its valid pixels and, for a shot made
+/// from anchors, the best framing a camera can reach (the shot error's
+/// floor; None when it could not be computed).
+pub type Picture = (GrayImage, Option<GrayImage>, Option<Reachable>);
 
 /// Desired pictures kept at most.
 const KEEP_PICTURES: usize = 8;
@@ -132,7 +136,7 @@ fn picture_of(deps: &Deps, shot: &Shot) -> Result<Picture, String> {
         return Ok(pic.clone());
     }
     let map = deps.slam.map_snapshot().ok_or("no SLAM map")?;
-    let pic = desired_picture(&deps.store, &map, shot, &deps.params.anchors)?;
+    let pic = desired_picture(&deps.store, &map, shot, &deps.params)?;
     if let Ok(mut p) = deps.pictures.lock() {
         p.retain(|(id, _)| *id != shot.id);
         p.push((shot.id.clone(), pic.clone()));
@@ -202,14 +206,16 @@ fn waypoint_seq(items: &[MissionItem]) -> Option<u16> {
 }
 
 /// The desired picture (and the mask of its valid pixels) at the camera's
-/// size: an anchors shot is warped again from its keyframe, a photo is the
+/// size: an anchors shot is warped again from its keyframe, with its
+/// reachable framing from the keyframe's map points; a photo is the
 /// stored image.
 fn desired_picture(
     store: &ShotStore,
     map: &Map,
     shot: &Shot,
-    anchors: &AnchorParams,
-) -> Result<(GrayImage, Option<GrayImage>), String> {
+    params: &Params,
+) -> Result<Picture, String> {
+    let anchors = &params.anchors;
     match &shot.source {
         ShotSource::Anchors {
             keyframe_id,
@@ -223,7 +229,32 @@ fn desired_picture(
             let pts = a.map(|p| Point2::new(p[0], p[1]));
             let s = desired_shot_from_anchors(&image, &pts, anchors)
                 .map_err(|e| format!("desired shot: {e}"))?;
-            Ok((s.image, Some(s.mask)))
+            let reachable = shot
+                .localisation
+                .as_ref()
+                .and_then(|l| l.world_from_cam.to_isometry())
+                .and_then(|map_from_desired| {
+                    let id = KeyFrameId(u32::try_from(*keyframe_id).ok()?);
+                    reachable_from_anchors(
+                        map,
+                        id,
+                        &s.shot_to_source,
+                        &map_from_desired,
+                        &params.refine.error,
+                    )
+                    .map_err(|e| tracing::warn!("refinement: reachable framing: {e}"))
+                    .ok()
+                });
+            if let Some(r) = &reachable {
+                tracing::info!(
+                    shot = %shot.id,
+                    floor_pct = r.floor_pct,
+                    points = r.points,
+                    inliers = r.inliers,
+                    "refinement: the shot's reachable framing"
+                );
+            }
+            Ok((s.image, Some(s.mask), reachable))
         }
         ShotSource::Photo { .. } => {
             let jpeg = store
@@ -241,7 +272,7 @@ fn desired_picture(
                     map.camera.height
                 ));
             }
-            Ok((img, None))
+            Ok((img, None, None))
         }
     }
 }
@@ -428,13 +459,18 @@ async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Sessio
     let picture = tokio::task::spawn_blocking(move || picture_of(&d, &s))
         .await
         .map_err(|e| e.to_string())??;
-    Ok(Session::new(
-        picture.0,
-        picture.1,
+    let (image, mask, reachable) = picture;
+    let session = Session::new(
+        image,
+        mask,
         map_from_desired,
         target,
         deps.params.refine.clone(),
-    ))
+    );
+    Ok(match reachable {
+        Some(r) => session.with_reachable(r),
+        None => session,
+    })
 }
 
 /// Horizontal and vertical distance (metres) of a reported position from

@@ -59,6 +59,10 @@ pub enum Decision {
     Converged,
     /// The round budget is spent.
     MaxRounds,
+    /// The shot error is at the shot's own floor (no camera pose can
+    /// reproduce the desired shot better; see [`super::reachable`]): the
+    /// live view is within the threshold of the reachable framing.
+    AtFloor,
     /// Upload a correction.
     Correct,
 }
