@@ -222,3 +222,145 @@ pub fn reachable_from_anchors(
             .collect(),
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Distortion;
+    use crate::features::KeyPoint;
+    use crate::slam::grid::FeatureGrid;
+    use crate::slam::{KeyFrame, ScaleInfo};
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    fn camera() -> Camera {
+        Camera::new(
+            640,
+            480,
+            [460.0, 460.0, 319.5, 239.5],
+            Distortion::default(),
+        )
+        .unwrap()
+    }
+
+    /// A keyframe tilted 40 deg down over flat ground 10 m below (map y
+    /// down), seeing a grid of ground points; returns the map, the
+    /// keyframe's id and its `map ← cam`.
+    fn ground_map() -> (Map, KeyFrameId, Isometry3<f64>) {
+        let cam = camera();
+        let map_from_kf = Isometry3::from_parts(
+            Translation3::identity(),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -40f64.to_radians()),
+        );
+        let mut map = Map::new(cam, ScaleInfo::new(1.2, 8));
+        let mut kps = Vec::new();
+        let mut pids = Vec::new();
+        for i in 0..40 {
+            for j in 0..40 {
+                let p = Point3::new(-30.0 + 1.5 * f64::from(i), 10.0, 2.0 + 1.5 * f64::from(j));
+                let Some(px) = cam.project(&(map_from_kf.inverse() * p).coords) else {
+                    continue;
+                };
+                if !cam.contains(px, 0.0) {
+                    continue;
+                }
+                let id = map.add_point(p, [0; 4], KeyFrameId(0));
+                kps.push(KeyPoint {
+                    x: px.x as f32,
+                    y: px.y as f32,
+                    ux: px.x as f32,
+                    uy: px.y as f32,
+                    ..KeyPoint::default()
+                });
+                pids.push(Some(id));
+            }
+        }
+        let n = kps.len();
+        let kf = map.add_keyframe(KeyFrame {
+            id: KeyFrameId(0),
+            frame_index: 0,
+            timestamp: 0.0,
+            cam_from_world: map_from_kf.inverse(),
+            keypoints: kps,
+            descriptors: vec![[0; 4]; n],
+            points: pids,
+            grid: FeatureGrid::default(),
+            covisible: Vec::new(),
+            parent: None,
+            children: Vec::new(),
+            image: None,
+        });
+        (map, kf, map_from_kf)
+    }
+
+    fn k() -> Matrix3<f64> {
+        Matrix3::new(460.0, 0.0, 319.5, 0.0, 460.0, 239.5, 0.0, 0.0, 1.0)
+    }
+
+    #[test]
+    fn a_pan_is_reachable_a_zoom_is_not() {
+        let (map, kf, map_from_kf) = ground_map();
+        let params = ShotErrorParams::default();
+        // A pan of the keyframe's camera about the vertical: the shot is
+        // that camera's view, the floor is zero.
+        let pan = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 4f64.to_radians());
+        let map_from_pan =
+            Isometry3::from_parts(map_from_kf.translation, pan * map_from_kf.rotation);
+        let kf_from_pan =
+            (map_from_kf.rotation.inverse() * map_from_pan.rotation).to_rotation_matrix();
+        let h = k() * kf_from_pan.matrix() * k().try_inverse().unwrap();
+        let r = reachable_from_anchors(&map, kf, &h, &map_from_pan, &params).unwrap();
+        assert!(r.floor_pct < 0.01, "{}", r.floor_pct);
+        assert!(
+            r.points > 300 && r.inliers == r.points,
+            "{} {}",
+            r.points,
+            r.inliers
+        );
+        // A centred zoom (anchors 40 px inside the corners), the camera
+        // moved forward to where the centre keeps its scale: the near
+        // ground grows more than the far, and the corners are off by more
+        // than the 1 % threshold; from a 1 m other place, more still.
+        let s = 559.0 / 639.0;
+        let zoom = Matrix3::new(
+            s,
+            0.0,
+            319.5 * (1.0 - s),
+            0.0,
+            s,
+            239.5 * (1.0 - s),
+            0.0,
+            0.0,
+            1.0,
+        );
+        let depth = 10.0 / 40f64.to_radians().sin();
+        let forward = map_from_kf.rotation * Vector3::z() * depth * (1.0 - s);
+        let map_from_zoom = Isometry3::from_parts(
+            Translation3::from(map_from_kf.translation.vector + forward),
+            map_from_kf.rotation,
+        );
+        let r = reachable_from_anchors(&map, kf, &zoom, &map_from_zoom, &params).unwrap();
+        assert!(r.floor_pct > 1.0, "{}", r.floor_pct);
+        let cam = camera();
+        let (_, at) = r.floor_at(&map_from_zoom, &cam).unwrap();
+        assert!((at - r.floor_pct).abs() < 0.05, "{at} vs {}", r.floor_pct);
+        let moved = Isometry3::from_parts(
+            Translation3::from(map_from_zoom.translation.vector + Vector3::new(1.0, 0.0, 0.0)),
+            map_from_zoom.rotation,
+        );
+        let (_, off) = r.floor_at(&moved, &cam).unwrap();
+        assert!(off > r.floor_pct + 0.5, "{off} vs {}", r.floor_pct);
+        // The framing change between two poses: none for the same pose,
+        // some for a move.
+        let same = r
+            .framing_change_pct(&map_from_zoom, &map_from_zoom, &cam)
+            .unwrap();
+        assert!(same < 1e-6, "{same}");
+        let change = r.framing_change_pct(&moved, &map_from_zoom, &cam).unwrap();
+        assert!(change > 1.0, "{change}");
+        // A keyframe that is not in the map is refused.
+        assert!(matches!(
+            reachable_from_anchors(&map, KeyFrameId(7), &zoom, &map_from_zoom, &params),
+            Err(RefineError::UnknownKeyframe { id: 7 })
+        ));
+    }
+}
