@@ -121,14 +121,14 @@ fn analyse(
                 "    true camera vs true desired: {:.3} m, yaw {:.3} deg, pitch {:.3} deg, rot {:.3} deg",
                 d.position_m, d.yaw_deg, d.pitch_deg, d.rotation_deg
             );
-            if r["round"] == 0 {
-                if let Some(cmd) = commanded_camera(home, &r["target"]) {
-                    let d = pose_difference(want, &cmd);
-                    eprintln!(
-                        "    first target (shot pose via georeference) vs true desired: {:.3} m, yaw {:.3} deg, pitch {:.3} deg",
-                        d.position_m, d.yaw_deg, d.pitch_deg
-                    );
-                }
+            if r["round"] == 0
+                && let Some(cmd) = commanded_camera(home, &r["target"])
+            {
+                let d = pose_difference(want, &cmd);
+                eprintln!(
+                    "    first target (shot pose via georeference) vs true desired: {:.3} m, yaw {:.3} deg, pitch {:.3} deg",
+                    d.position_m, d.yaw_deg, d.pitch_deg
+                );
             }
         }
     }
