@@ -5,9 +5,13 @@
 //! newest video frame, a snapshot of the SLAM map and the georeference;
 //! when the session asks for a correction, plan, upload (read back) and
 //! start the corrected target like the first one; record each round on the
-//! shot. It stops on convergence, the round budget or a refusal, and is
-//! cancelled by the daemon's shutdown or when another shot is uploaded or
-//! started.
+//! shot, with what the vehicle reported and the frame's timing
+//! ([`Observation`]). An anchors shot carries its reachable framing
+//! ([`crate::refine::reachable`], made with its desired picture while the
+//! keyframe is in the map), so a zoom no camera pose reproduces stops
+//! `at_floor` instead of spending its rounds. It stops on convergence, the
+//! floor, the round budget or a refusal, and is cancelled by the daemon's
+//! shutdown or when another shot is uploaded or started.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
