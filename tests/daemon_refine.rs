@@ -1,8 +1,16 @@
 //! The daemon's own refinement loop, end to end with the simulator
-//! in-process: a shot by anchors is localised, its mission uploaded and
-//! started over the API; the daemon watches the telemetry for the arrival,
+//! in-process: shots are localised, their missions uploaded and started
+//! over the API; the daemon watches the telemetry for the arrival,
 //! measures the shot error on the live video, corrects and re-uploads,
 //! and records each round on the shot until the loop stops.
+//!
+//! Three shots: a centred zoom by anchors (no camera pose reproduces it:
+//! it stops `at_floor`, its error within 0.75 % of the predicted floor), a
+//! pan/tilt of a keyframe by anchors (as the scenario makes them) and a
+//! photograph the camera took; the last two end under the 1 % threshold.
+//! Each round is printed against the simulator's truth (`frames.txt`):
+//! the camera's true pose vs the commanded and the truly desired one.
+//! `SHOTPILOT_REFINE_SEED=N` flies another world (default 1).
 
 mod daemon_support;
 
@@ -12,9 +20,142 @@ use std::net::SocketAddr;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use nalgebra::{Isometry3, Point2, Quaternion, Translation3, UnitQuaternion, Vector3};
 use serde_json::{Value, json};
+use shotpilot::camera::{Camera, Distortion};
 use shotpilot::config::Config;
+use shotpilot::geo::{Geodetic, GimbalAngles, LocalFrame, MountParams, VehicleState, ned_from_cam};
+use shotpilot::refine::pose_difference;
 use tokio_util::sync::CancellationToken;
+
+/// The simulator's truth: capture time (unix s) and true camera pose (NED at home) of each video frame.
+fn read_truth(dir: &Path) -> Vec<(f64, Isometry3<f64>)> {
+    let text = std::fs::read_to_string(dir.join("frames.txt")).unwrap_or_default();
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let v: Vec<f64> = l
+                .split_whitespace()
+                .filter_map(|x| x.parse().ok())
+                .collect();
+            (v.len() == 9).then(|| {
+                (
+                    v[1],
+                    Isometry3::from_parts(
+                        Translation3::new(v[2], v[3], v[4]),
+                        UnitQuaternion::from_quaternion(Quaternion::new(v[8], v[5], v[6], v[7])),
+                    ),
+                )
+            })
+        })
+        .collect()
+}
+
+fn truth_at(truth: &[(f64, Isometry3<f64>)], t: f64) -> Option<Isometry3<f64>> {
+    truth
+        .iter()
+        .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+        .filter(|(ti, _)| (ti - t).abs() < 0.01)
+        .map(|(_, p)| *p)
+}
+
+/// The camera pose (NED at home) of a vehicle hovering exactly at a recorded target.
+fn commanded_camera(home: &Geodetic, t: &Value) -> Option<Isometry3<f64>> {
+    let frame = LocalFrame::new(*home);
+    let p = frame.geodetic_to_ned(&Geodetic {
+        lat_deg: t["lat_deg"].as_f64()?,
+        lon_deg: t["lon_deg"].as_f64()?,
+        alt_m: home.alt_m + t["alt_m"].as_f64()?,
+    });
+    let state = VehicleState {
+        time: 0.0,
+        p_ned: p,
+        v_ned: Vector3::zeros(),
+        ned_from_body: UnitQuaternion::from_euler_angles(
+            0.0,
+            0.0,
+            t["yaw_deg"].as_f64()?.to_radians(),
+        ),
+        gimbal: GimbalAngles {
+            pitch: t["gimbal_pitch_deg"].as_f64()?.to_radians(),
+            yaw: 0.0,
+        },
+    };
+    Some(ned_from_cam(&state, &MountParams::default()))
+}
+
+/// What the last round's frame shows against the simulator's truth:
+/// the true camera vs the commanded one and vs the truly desired one
+/// (position m, rotation deg).
+#[derive(Debug, Default)]
+struct TruthCheck {
+    vs_commanded: Option<(f64, f64)>,
+    vs_desired: Option<(f64, f64)>,
+}
+
+/// Prints what each round measured against the simulator's truth and
+/// returns the last round's [`TruthCheck`].
+fn analyse(
+    refinement: &Value,
+    truth_dir: &Path,
+    home: &Geodetic,
+    true_desired: Option<&Isometry3<f64>>,
+) -> TruthCheck {
+    let truth = read_truth(truth_dir);
+    let mut check = TruthCheck::default();
+    for r in refinement["rounds"].as_array().into_iter().flatten() {
+        let o = &r["observed"];
+        let c = &r["correction"];
+        eprintln!(
+            "  round {}: err {} % | capture-arrival {} s, latency {} s, vehicle-target {} m, yaw {} deg, gimbal {} deg, speed {} | pose error (geo) {} m, yaw {} deg, pitch {} deg",
+            r["round"],
+            r["shot_error_pct"],
+            o["capture_after_arrival_s"],
+            o["frame_latency_s"],
+            o["vehicle_offset_ned_m"],
+            o["yaw_error_deg"],
+            o["gimbal_pitch_error_deg"],
+            o["speed_m_s"],
+            c["error_ned_m"],
+            c["yaw_error_deg"],
+            c["pitch_error_deg"]
+        );
+        check = TruthCheck::default();
+        let Some(live) = o["frame_capture_unix"]
+            .as_f64()
+            .and_then(|t| truth_at(&truth, t))
+        else {
+            eprintln!("    no truth for the frame");
+            continue;
+        };
+        if let Some(cmd) = commanded_camera(home, &r["target"]) {
+            let d = pose_difference(&cmd, &live);
+            check.vs_commanded = Some((d.position_m, d.rotation_deg));
+            eprintln!(
+                "    true camera vs commanded: {:.3} m, yaw {:.3} deg, pitch {:.3} deg",
+                d.position_m, d.yaw_deg, d.pitch_deg
+            );
+        }
+        if let Some(want) = true_desired {
+            let d = pose_difference(want, &live);
+            check.vs_desired = Some((d.position_m, d.rotation_deg));
+            eprintln!(
+                "    true camera vs true desired: {:.3} m, yaw {:.3} deg, pitch {:.3} deg, rot {:.3} deg",
+                d.position_m, d.yaw_deg, d.pitch_deg, d.rotation_deg
+            );
+            if r["round"] == 0
+                && let Some(cmd) = commanded_camera(home, &r["target"])
+            {
+                let d = pose_difference(want, &cmd);
+                eprintln!(
+                    "    first target (shot pose via georeference) vs true desired: {:.3} m, yaw {:.3} deg, pitch {:.3} deg",
+                    d.position_m, d.yaw_deg, d.pitch_deg
+                );
+            }
+        }
+    }
+    check
+}
 
 fn post_jpeg(addr: SocketAddr, path: &str, jpeg: &[u8]) -> (u16, Vec<u8>) {
     request(addr, "POST", path, "image/jpeg", jpeg)
@@ -41,16 +182,21 @@ fn refine(addr: SocketAddr, sid: &str) -> (Value, f64) {
     eprintln!("shot {sid}: refinement after {loop_s:.1} s");
     for r in refinement["rounds"].as_array().into_iter().flatten() {
         eprintln!(
-            "  round {} shot error {} % ({} px, {} inliers) -> {}, step {}",
+            "  round {} shot error {} % ({} px, {} inliers), floor {} %, pose still changes the framing by {} % -> {}, step {}",
             r["round"],
             r["shot_error_pct"],
             r["shot_error_px"],
             r["inliers"],
+            r["floor_pct"],
+            r["pose_framing_pct"],
             r["decision"],
             r["correction"]["step_ned_m"]
         );
     }
-    eprintln!("  stop: {} ({})", refinement["stop"], refinement["reason"]);
+    eprintln!(
+        "  stop: {} ({}), reachable {}",
+        refinement["stop"], refinement["reason"], refinement["reachable"]
+    );
     check_rounds(&refinement);
     (refinement, loop_s)
 }
@@ -73,6 +219,7 @@ fn check_rounds(refinement: &Value) {
         [
             "converged",
             "max_rounds",
+            "at_floor",
             "live_not_localised",
             "correction_refused"
         ]
@@ -101,6 +248,15 @@ fn started_mission_is_refined_by_the_daemon() {
     cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
     cfg.server.bind = "127.0.0.1:0".into();
     cfg.server.token = Some("e2e".into());
+    cfg.sim.truth_dir = Some("truth".into());
+    // Another world and flight, to reproduce the figures over seeds.
+    if let Some(seed) = std::env::var("SHOTPILOT_REFINE_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+    {
+        cfg.sim.seed = seed;
+    }
+    let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
     cfg.validate(Path::new("test")).unwrap();
 
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -142,21 +298,33 @@ fn started_mission_is_refined_by_the_daemon() {
     );
     assert_eq!(geo["state"], "ok", "{geo}");
 
+    let home = Geodetic {
+        lat_deg: geo["home"]["lat_deg"].as_f64().unwrap(),
+        lon_deg: geo["home"]["lon_deg"].as_f64().unwrap(),
+        alt_m: geo["home"]["alt_amsl_m"].as_f64().unwrap(),
+    };
+    let truth = read_truth(&truth_dir);
+
     // A shot by anchors on one of the newest keyframes, localised.
     let kfs = get_json(addr, "/api/v1/keyframes");
-    let ids: Vec<u64> = kfs["keyframes"]
+    let kf_list: Vec<(u64, f64)> = kfs["keyframes"]
         .as_array()
         .unwrap()
         .iter()
-        .map(|k| k["id"].as_u64().unwrap())
+        .map(|k| (k["id"].as_u64().unwrap(), k["timestamp"].as_f64().unwrap()))
         .collect();
+    let ids: Vec<u64> = kf_list.iter().map(|k| k.0).collect();
     let mut sid = None;
     for &kid in ids.iter().rev().take(6) {
         let shot = json!({"keyframe_id": kid, "anchors": [[40, 30], [600, 30], [600, 450], [40, 450]], "width": 320, "height": 240});
         let (st, b) = http(addr, "POST", "/api/v1/shots", Some(&shot));
+        if st == 404 {
+            continue; // culled since the listing
+        }
         assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
         let shot: Value = serde_json::from_slice(&b).unwrap();
         if shot["status"] == "localised" {
+            eprintln!("zoom shot: {}", shot["localisation"]);
             sid = Some(shot["id"].as_str().unwrap().to_owned());
             break;
         }
@@ -166,12 +334,125 @@ fn started_mission_is_refined_by_the_daemon() {
 
     // Upload and start: the daemon's loop takes over.
     let (anchors, _) = refine(addr, &sid);
-    let first = anchors["rounds"][0]["shot_error_pct"].as_f64().unwrap();
-    assert!(first > 0.0);
+    let zoom_truth = analyse(&anchors, &truth_dir, &home, None);
+    // The zoom is no camera's view: its floor (what a camera exactly at
+    // the shot's pose measures) is above the threshold, and the loop stops
+    // there once the camera stands at the shot's pose instead of spending
+    // its rounds.
+    let floor = anchors["reachable"]["floor_pct"]
+        .as_f64()
+        .expect("the zoom shot's floor");
+    let last = anchors["rounds"]
+        .as_array()
+        .unwrap()
+        .last()
+        .unwrap()
+        .clone();
+    let zoom_final = last["shot_error_pct"].as_f64().unwrap();
+    eprintln!("zoom shot: floor {floor:.2} %, final {zoom_final:.2} %");
+    assert!(floor > 1.5, "{anchors}");
+    assert_eq!(anchors["stop"], "at_floor", "{anchors}");
+    assert!(
+        last["pose_framing_pct"].as_f64().is_some_and(|f| f < 1.0),
+        "{last}"
+    );
+    // It stops there instead of spending its budget (every run so far
+    // stopped in round 0). The floor is an estimate, a homography fitted on
+    // the keyframe's map points where the shot error fits one on image
+    // matches: over 11 runs of seeds 1-6 the final error was within 0.31 %
+    // of it, except in seed 5's world (buildings in view) where it was
+    // 1.1-1.8 % below it; an over-estimate cannot stop a loop early, the
+    // camera must stand at the shot's pose too.
+    assert!(
+        anchors["rounds"].as_array().unwrap().len() <= 2,
+        "{anchors}"
+    );
+    // The simulator's truth: the camera stands where it was sent.
+    let (dp, dr) = zoom_truth.vs_commanded.expect("truth of the last frame");
+    assert!(
+        dp < 0.1 && dr < 0.1,
+        "true camera {dp} m, {dr} deg from the commanded"
+    );
+
+    // A shot by anchors that a pan and tilt of the keyframe's camera gives
+    // (as the scenario makes them): a view the camera can take.
+    let cam = shotpilot_sim::camera::SimCamera::default();
+    let camera = Camera::new(
+        cam.width,
+        cam.height,
+        [cam.fx, cam.fy, cam.cx, cam.cy],
+        Distortion::default(),
+    )
+    .unwrap();
+    let mut pan = None;
+    for &(kid, ts) in kf_list.iter().rev().take(6) {
+        let Some(kf_cam) = truth_at(&truth, ts) else {
+            continue;
+        };
+        let (dyaw, dpitch) = (4f64.to_radians(), 3f64.to_radians());
+        let want_rot = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), dyaw)
+            * kf_cam.rotation
+            * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -dpitch);
+        let want = Isometry3::from_parts(kf_cam.translation, want_rot);
+        let k_from_d = kf_cam.rotation.inverse() * want_rot;
+        let corners = [
+            Point2::new(0.0, 0.0),
+            Point2::new(f64::from(cam.width) - 1.0, 0.0),
+            Point2::new(f64::from(cam.width) - 1.0, f64::from(cam.height) - 1.0),
+            Point2::new(0.0, f64::from(cam.height) - 1.0),
+        ];
+        let a: Vec<[f64; 2]> = corners
+            .iter()
+            .map(|c| {
+                let p = camera
+                    .project(&(k_from_d * camera.unproject(*c).into_inner()))
+                    .unwrap();
+                [p.x, p.y]
+            })
+            .collect();
+        let shot = json!({"keyframe_id": kid, "anchors": a});
+        let (st, b) = http(addr, "POST", "/api/v1/shots", Some(&shot));
+        if st == 404 {
+            continue; // culled since the listing
+        }
+        assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+        let shot: Value = serde_json::from_slice(&b).unwrap();
+        if shot["status"] == "localised" {
+            eprintln!("pan/tilt shot on keyframe {kid}: {}", shot["localisation"]);
+            pan = Some((shot["id"].as_str().unwrap().to_owned(), want));
+            break;
+        }
+    }
+    let (pan_sid, pan_want) = pan.expect("a pan/tilt anchors shot is localised");
+    let (pan_r, _) = refine(addr, &pan_sid);
+    let pan_truth = analyse(&pan_r, &truth_dir, &home, Some(&pan_want));
+    // A view the camera can take ends under the threshold, as the
+    // scenario's anchors trials do, with its floor near zero.
+    let pan_final = pan_r["rounds"].as_array().unwrap().last().unwrap()["shot_error_pct"]
+        .as_f64()
+        .unwrap();
+    eprintln!(
+        "pan/tilt shot: floor {} %, final {pan_final:.2} %",
+        pan_r["reachable"]["floor_pct"]
+    );
+    assert_eq!(pan_r["stop"], "converged", "{pan_r}");
+    assert!(pan_final <= 1.0, "{pan_r}");
+    assert!(
+        pan_r["reachable"]["floor_pct"]
+            .as_f64()
+            .is_some_and(|f| f < 0.5),
+        "{pan_r}"
+    );
+    // The truly desired camera (the keyframe's true camera turned) is
+    // reached to a few centimetres and a quarter degree.
+    let (dp, dr) = pan_truth.vs_desired.expect("truth of the last frame");
+    assert!(
+        dp < 0.15 && dr < 0.5,
+        "true camera {dp} m, {dr} deg from the desired"
+    );
 
     // A photograph the camera took during the exploration: a view that can
-    // be reproduced exactly (an anchors shot is a zoom, which no camera
-    // position reproduces without parallax).
+    // be reproduced exactly.
     let mut photo_sid = None;
     for jpeg in &photos {
         let (st, b) = post_jpeg(addr, "/api/v1/shots/photo", jpeg);
@@ -184,6 +465,7 @@ fn started_mission_is_refined_by_the_daemon() {
     }
     let photo_sid = photo_sid.expect("a photograph is localised");
     let (photo, _) = refine(addr, &photo_sid);
+    analyse(&photo, &truth_dir, &home, None);
     let rounds = photo["rounds"].as_array().unwrap();
     let last = rounds.last().unwrap()["shot_error_pct"].as_f64().unwrap();
     eprintln!(
@@ -194,23 +476,16 @@ fn started_mission_is_refined_by_the_daemon() {
     assert_eq!(photo["stop"], "converged", "{photo}");
     assert!(last <= 1.0, "{photo}");
 
-    // Another shot's upload cancels a running loop: the anchors shot again,
-    // interrupted after its first round by the photograph's mission.
+    // Another shot's upload cancels a running loop: the zoom shot again,
+    // interrupted during its flight by the photograph's mission (the loop
+    // cannot have ended yet: the arrival alone needs the 1 s dwell).
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/start"), None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
-    let t1 = Instant::now();
-    let mut r = Value::Null;
-    while t1.elapsed() < Duration::from_secs(60) {
-        r = get_json(addr, &format!("/api/v1/shots/{sid}"))["mission"]["details"]["refinement"]
-            .clone();
-        if r["rounds"].as_array().is_some_and(|a| !a.is_empty()) || !r["stop"].is_null() {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    assert!(r["stop"].is_null(), "the loop goes on after one round: {r}");
+    let mut r =
+        get_json(addr, &format!("/api/v1/shots/{sid}"))["mission"]["details"]["refinement"].clone();
+    assert!(r["stop"].is_null(), "the loop is running: {r}");
     let (st, b) = http(
         addr,
         "POST",

@@ -5,9 +5,13 @@
 //! newest video frame, a snapshot of the SLAM map and the georeference;
 //! when the session asks for a correction, plan, upload (read back) and
 //! start the corrected target like the first one; record each round on the
-//! shot. It stops on convergence, the round budget or a refusal, and is
-//! cancelled by the daemon's shutdown or when another shot is uploaded or
-//! started.
+//! shot, with what the vehicle reported and the frame's timing
+//! ([`Observation`]). An anchors shot carries its reachable framing
+//! ([`crate::refine::reachable`], made with its desired picture while the
+//! keyframe is in the map), so a zoom no camera pose reproduces stops
+//! `at_floor` instead of spending its rounds. It stops on convergence, the
+//! floor, the round budget or a refusal, and is cancelled by the daemon's
+//! shutdown or when another shot is uploaded or started.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -24,12 +28,14 @@ use super::vehicle_view::upload_verified;
 use crate::api::store::{Shot, ShotSource, ShotStore};
 use crate::geo::{Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
-use crate::refine::{ArrivalDetector, Context, Session, Step};
+use crate::refine::{
+    ArrivalDetector, Context, Observation, Reachable, Session, Step, reachable_from_anchors,
+};
 use crate::shot::LocalizeParams;
 use crate::shot::anchors::{AnchorParams, desired_shot_from_anchors};
 use crate::slam::{KeyFrameId, Map};
 use crate::vehicle::LinkHandle;
-use crate::video::live::Ingest;
+use crate::video::live::{Frame, Ingest};
 
 /// Every tunable number of the daemon's loop (the session's own are in
 /// [`crate::refine::Params`]).
@@ -118,8 +124,10 @@ pub struct Deps {
     pub pictures: std::sync::Mutex<Vec<(String, Picture)>>,
 }
 
-/// A desired picture and the mask of its valid pixels.
-pub type Picture = (GrayImage, Option<GrayImage>);
+/// A desired picture, the mask of its valid pixels and, for a shot made
+/// from anchors, the best framing a camera can reach (the shot error's
+/// floor; None when it could not be computed).
+pub type Picture = (GrayImage, Option<GrayImage>, Option<Reachable>);
 
 /// Desired pictures kept at most.
 const KEEP_PICTURES: usize = 8;
@@ -132,7 +140,7 @@ fn picture_of(deps: &Deps, shot: &Shot) -> Result<Picture, String> {
         return Ok(pic.clone());
     }
     let map = deps.slam.map_snapshot().ok_or("no SLAM map")?;
-    let pic = desired_picture(&deps.store, &map, shot, &deps.params.anchors)?;
+    let pic = desired_picture(&deps.store, &map, shot, &deps.params)?;
     if let Ok(mut p) = deps.pictures.lock() {
         p.retain(|(id, _)| *id != shot.id);
         p.push((shot.id.clone(), pic.clone()));
@@ -202,14 +210,16 @@ fn waypoint_seq(items: &[MissionItem]) -> Option<u16> {
 }
 
 /// The desired picture (and the mask of its valid pixels) at the camera's
-/// size: an anchors shot is warped again from its keyframe, a photo is the
+/// size: an anchors shot is warped again from its keyframe, with its
+/// reachable framing from the keyframe's map points; a photo is the
 /// stored image.
 fn desired_picture(
     store: &ShotStore,
     map: &Map,
     shot: &Shot,
-    anchors: &AnchorParams,
-) -> Result<(GrayImage, Option<GrayImage>), String> {
+    params: &Params,
+) -> Result<Picture, String> {
+    let anchors = &params.anchors;
     match &shot.source {
         ShotSource::Anchors {
             keyframe_id,
@@ -223,7 +233,32 @@ fn desired_picture(
             let pts = a.map(|p| Point2::new(p[0], p[1]));
             let s = desired_shot_from_anchors(&image, &pts, anchors)
                 .map_err(|e| format!("desired shot: {e}"))?;
-            Ok((s.image, Some(s.mask)))
+            let reachable = shot
+                .localisation
+                .as_ref()
+                .and_then(|l| l.world_from_cam.to_isometry())
+                .and_then(|map_from_desired| {
+                    let id = KeyFrameId(u32::try_from(*keyframe_id).ok()?);
+                    reachable_from_anchors(
+                        map,
+                        id,
+                        &s.shot_to_source,
+                        &map_from_desired,
+                        &params.refine.error,
+                    )
+                    .map_err(|e| tracing::warn!("refinement: reachable framing: {e}"))
+                    .ok()
+                });
+            if let Some(r) = &reachable {
+                tracing::info!(
+                    shot = %shot.id,
+                    floor_pct = r.floor_pct,
+                    points = r.points,
+                    inliers = r.inliers,
+                    "refinement: the shot's reachable framing"
+                );
+            }
+            Ok((s.image, Some(s.mask), reachable))
         }
         ShotSource::Photo { .. } => {
             let jpeg = store
@@ -241,7 +276,7 @@ fn desired_picture(
                     map.camera.height
                 ));
             }
-            Ok((img, None))
+            Ok((img, None, None))
         }
     }
 }
@@ -428,13 +463,18 @@ async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Sessio
     let picture = tokio::task::spawn_blocking(move || picture_of(&d, &s))
         .await
         .map_err(|e| e.to_string())??;
-    Ok(Session::new(
-        picture.0,
-        picture.1,
+    let (image, mask, reachable) = picture;
+    let session = Session::new(
+        image,
+        mask,
         map_from_desired,
         target,
         deps.params.refine.clone(),
-    ))
+    );
+    Ok(match reachable {
+        Some(r) => session.with_reachable(r),
+        None => session,
+    })
 }
 
 /// Horizontal and vertical distance (metres) of a reported position from
@@ -514,6 +554,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
             _ => tokio::time::sleep(Duration::from_millis(20)).await,
         }
     };
+    let observed = observe(deps, session.target(), &frame, arrived);
     let Some(map_from_desired) = shot
         .localisation
         .as_ref()
@@ -552,6 +593,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         };
         let camera = map.camera;
         let step = session.on_arrival(&frame.image, Some(&camera), &ctx);
+        session.observe(observed);
         (session, Ok(step))
     })
     .await;
@@ -559,6 +601,43 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         Ok(r) => r,
         Err(e) => (backup, Err(format!("the round failed: {e}"))),
     }
+}
+
+/// The vehicle's report and the frame's timing when `frame` is taken for
+/// the round flying `target` that arrived at `arrived`.
+fn observe(deps: &Deps, target: &Target, frame: &Frame, arrived: Instant) -> Observation {
+    let tel = &deps.link.telemetry;
+    let arrived_unix = frame.received_unix
+        - frame
+            .received
+            .checked_duration_since(arrived)
+            .map_or(0.0, |d| d.as_secs_f64());
+    let mut o = Observation {
+        frame_capture_unix: frame.capture_time,
+        capture_after_arrival_s: frame.capture_time.map(|c| c - arrived_unix),
+        frame_latency_s: frame.capture_time.map(|c| frame.received_unix - c),
+        ..Observation::default()
+    };
+    if let Some(g) = *tel.global_position.borrow() {
+        let v = g.value;
+        let n = (v.lat_deg - target.lat_deg) * 111_132.0;
+        let e = (v.lon_deg - target.lon_deg) * 111_320.0 * target.lat_deg.to_radians().cos();
+        o.vehicle_offset_ned_m = Some([n, e, target.alt_m - v.rel_alt_m]);
+        o.speed_m_s = Some(
+            f64::from(v.vel_ned_m_s[0])
+                .hypot(f64::from(v.vel_ned_m_s[1]))
+                .hypot(f64::from(v.vel_ned_m_s[2])),
+        );
+        o.position_age_s = Some(g.received.elapsed().as_secs_f64());
+    }
+    if let Some(a) = *tel.attitude.borrow() {
+        let yaw = f64::from(a.value.yaw_rad).to_degrees();
+        o.yaw_error_deg = Some((yaw - target.yaw_deg + 180.0).rem_euclid(360.0) - 180.0);
+    }
+    if let Some(g) = *tel.gimbal.borrow() {
+        o.gimbal_pitch_error_deg = Some(f64::from(g.value.pitch_deg) - target.gimbal_pitch_deg);
+    }
+    o
 }
 
 /// Plans, uploads (with read-back) and starts the corrected target; the

@@ -34,6 +34,12 @@ pub fn refinement_json(session: &Session) -> Value {
         "stop": stop,
         "reason": reason,
         "target": serde_json::to_value(session.target()).unwrap_or(Value::Null),
+        "reachable": session.reachable().map_or(Value::Null, |r| json!({
+            "floor_pct": r.floor_pct,
+            "floor_px": r.floor_px,
+            "points": r.points,
+            "inliers": r.inliers,
+        })),
     })
 }
 

@@ -59,6 +59,10 @@ pub enum Decision {
     Converged,
     /// The round budget is spent.
     MaxRounds,
+    /// The shot error is at the shot's own floor (no camera pose can
+    /// reproduce the desired shot better; see [`super::reachable`]): the
+    /// live view is within the threshold of the reachable framing.
+    AtFloor,
     /// Upload a correction.
     Correct,
 }
@@ -91,6 +95,14 @@ pub struct Correction {
     pub pitch_step_deg: f64,
     /// The step was shortened to the per-round limits.
     pub limited: bool,
+    /// What the step corrects: the desired minus the live vehicle
+    /// position (local NED metres) through the georeference, before the
+    /// gain and the limits.
+    pub error_ned_m: [f64; 3],
+    /// The desired minus the live heading, degrees, before the gain.
+    pub yaw_error_deg: f64,
+    /// The desired minus the live gimbal pitch, degrees, before the gain.
+    pub pitch_error_deg: f64,
 }
 
 fn wrap180(d: f64) -> f64 {
@@ -124,9 +136,12 @@ pub fn correct_targets(
         });
     }
     plan::check_target(current, home, fence).map_err(RefineError::Target)?;
-    let mut step = (desired.p_ned_vehicle - live.p_ned_vehicle) * params.gain;
-    let mut dyaw = wrap180(desired.yaw_deg - live.yaw_deg) * params.gain;
-    let mut dpitch = (desired.gimbal_pitch_deg - live.gimbal_pitch_deg) * params.gain;
+    let error = desired.p_ned_vehicle - live.p_ned_vehicle;
+    let yaw_error = wrap180(desired.yaw_deg - live.yaw_deg);
+    let pitch_error = desired.gimbal_pitch_deg - live.gimbal_pitch_deg;
+    let mut step = error * params.gain;
+    let mut dyaw = yaw_error * params.gain;
+    let mut dpitch = pitch_error * params.gain;
     if !(step.iter().all(|x| x.is_finite()) && dyaw.is_finite() && dpitch.is_finite()) {
         return Err(RefineError::NonFinite { what: "correction" });
     }
@@ -183,6 +198,9 @@ pub fn correct_targets(
         yaw_step_deg: dyaw,
         pitch_step_deg: dpitch,
         limited,
+        error_ned_m: error.into(),
+        yaw_error_deg: yaw_error,
+        pitch_error_deg: pitch_error,
     })
 }
 

@@ -10,6 +10,8 @@
 //! * [`controller`]: the correction that moves the camera from the
 //!   localised live pose to the desired pose through the georeference,
 //!   checked like the first target; when to stop.
+//! * [`reachable`]: the best framing a camera can reach for a desired shot
+//!   made from anchors (a zoom is no camera's view), the shot error's floor.
 //! * [`session`]: one shot's loop as a state machine (arrival → measure →
 //!   decide → localise the live frame → corrected target), whose rounds
 //!   are the record the API shows.
@@ -25,6 +27,7 @@
 pub mod arrival;
 pub mod controller;
 pub mod error;
+pub mod reachable;
 pub mod scenario;
 pub mod session;
 
@@ -34,7 +37,8 @@ pub use error::{
     PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
     pose_difference, shot_error,
 };
-pub use session::{Context, RoundRecord, Session, Step, Stop};
+pub use reachable::{Reachable, reachable_from_anchors};
+pub use session::{Context, Observation, RoundRecord, Session, Step, Stop};
 
 /// Every tunable number of the refinement.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -93,6 +97,12 @@ pub enum RefineError {
         min_deg: f64,
         /// The gimbal's highest pitch.
         max_deg: f64,
+    },
+    /// The desired shot's keyframe is not in the map.
+    #[error("keyframe {id} is not in the map")]
+    UnknownKeyframe {
+        /// Its id.
+        id: u32,
     },
     /// A computed value is NaN or infinite.
     #[error("non-finite {what}")]

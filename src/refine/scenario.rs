@@ -766,7 +766,8 @@ fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioE
 }
 
 /// A hidden pose: the vehicle state that takes it, its camera, the desired
-/// shot (image, mask) and its kind.
+/// shot (image, mask), its kind and, for an anchors shot, its keyframe and
+/// transform (shot pixel -> keyframe pixel).
 struct Hidden {
     p_ned: Vector3<f64>,
     yaw: f64,
@@ -775,6 +776,7 @@ struct Hidden {
     image: GrayImage,
     mask: Option<GrayImage>,
     kind: &'static str,
+    anchors_on: Option<(u32, nalgebra::Matrix3<f64>)>,
 }
 
 fn hover_state(p_ned: Vector3<f64>, yaw: f64, pitch: f64) -> VehicleState {
@@ -851,6 +853,7 @@ fn make_hidden(
             image: shot.image,
             mask: Some(shot.mask),
             kind: "anchors",
+            anchors_on: Some((id, shot.shot_to_source)),
         });
     }
     let ground = sim.renderer.world().height_at(p.x, p.y);
@@ -880,6 +883,7 @@ fn make_hidden(
         image,
         mask: None,
         kind: "render",
+        anchors_on: None,
     })
 }
 
@@ -985,6 +989,18 @@ fn run_trial(
         target,
         params.refine.clone(),
     );
+    // An anchors shot knows its floor, as in the daemon.
+    if let Some((id, h)) = hidden.anchors_on
+        && let Ok(r) = super::reachable_from_anchors(
+            &ex.map,
+            crate::slam::KeyFrameId(id),
+            &h,
+            &desired_map,
+            &params.refine.error,
+        )
+    {
+        session = session.with_reachable(r);
+    }
     let home = sim.home;
     let ctx = Context {
         map: &ex.map,

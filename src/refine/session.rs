@@ -5,12 +5,14 @@
 //! Its rounds are the record the API shows.
 
 use image::GrayImage;
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
-use super::{Correction, Decision, Params, correct, decide, shot_error};
+use super::{Correction, Decision, Params, Reachable, correct, decide, shot_error};
 use crate::camera::Camera;
-use crate::geo::{GeoAlignment, LocalFrame, MountParams};
+use crate::geo::{
+    GeoAlignment, GimbalAngles, LocalFrame, MountParams, VehicleState, convert_target, ned_from_cam,
+};
 use crate::mission::plan::{Fence, Home, Target};
 use crate::shot::{Localization, LocalizeParams, localize};
 use crate::slam::Map;
@@ -47,6 +49,14 @@ pub struct RoundRecord {
     pub shot_error_px: Option<f64>,
     /// Homography inliers.
     pub inliers: Option<usize>,
+    /// The shot error a camera exactly at the shot's pose would measure,
+    /// % of the diagonal, when known ([`Session::with_reachable`]).
+    pub floor_pct: Option<f64>,
+    /// How much the framing would still change if the camera moved from
+    /// the live frame's localised pose to the shot's pose (corner error,
+    /// % of the diagonal, over the shot's map points): what the loop can
+    /// still remove. Computed for shots whose floor is above the threshold.
+    pub pose_framing_pct: Option<f64>,
     /// The decision.
     pub decision: Decision,
     /// The live frame's pose in the map, when it was localised.
@@ -55,6 +65,34 @@ pub struct RoundRecord {
     pub correction: Option<Correction>,
     /// Why the loop could not go on, or why the shot error is missing.
     pub note: Option<String>,
+    /// What the driver saw besides the frame (telemetry, timing), when it
+    /// told ([`Session::observe`]).
+    pub observed: Option<Observation>,
+}
+
+/// What the driver of the loop saw at an arrival besides the live frame:
+/// the vehicle's own report and the frame's timing, for the record (the
+/// session does not use it).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Observation {
+    /// The measured frame's capture time, unix seconds, when the source
+    /// sent it.
+    pub frame_capture_unix: Option<f64>,
+    /// The measured frame's capture time minus the arrival time, seconds
+    /// (negative: captured before the view was judged steady).
+    pub capture_after_arrival_s: Option<f64>,
+    /// The measured frame's receipt minus its capture, seconds.
+    pub frame_latency_s: Option<f64>,
+    /// The reported vehicle position minus the target's, local NED metres.
+    pub vehicle_offset_ned_m: Option<[f64; 3]>,
+    /// The reported heading minus the target's, degrees.
+    pub yaw_error_deg: Option<f64>,
+    /// The reported gimbal pitch minus the target's, degrees.
+    pub gimbal_pitch_error_deg: Option<f64>,
+    /// The reported 3-D speed, m/s.
+    pub speed_m_s: Option<f64>,
+    /// Age of the position report when the frame was taken, seconds.
+    pub position_age_s: Option<f64>,
 }
 
 /// How the loop ended.
@@ -65,6 +103,10 @@ pub enum Stop {
     Converged,
     /// The round budget is spent.
     MaxRounds,
+    /// The shot error cannot go lower: it is the shot's own floor (above
+    /// the threshold) and the live view is within the threshold of the
+    /// best framing a camera can reach.
+    AtFloor,
     /// The live frame could not be localised.
     LiveNotLocalised(String),
     /// The correction failed its checks (geofence, altitude, gimbal) or
@@ -73,12 +115,13 @@ pub enum Stop {
 }
 
 impl Stop {
-    /// A short name (`converged`, `max_rounds`, `live_not_localised`,
-    /// `correction_refused`).
+    /// A short name (`converged`, `max_rounds`, `at_floor`,
+    /// `live_not_localised`, `correction_refused`).
     pub fn name(&self) -> &'static str {
         match self {
             Stop::Converged => "converged",
             Stop::MaxRounds => "max_rounds",
+            Stop::AtFloor => "at_floor",
             Stop::LiveNotLocalised(_) => "live_not_localised",
             Stop::CorrectionRefused(_) => "correction_refused",
         }
@@ -104,6 +147,7 @@ pub struct Session {
     rounds: Vec<RoundRecord>,
     stop: Option<Stop>,
     params: Params,
+    reachable: Option<Reachable>,
 }
 
 impl Session {
@@ -124,7 +168,22 @@ impl Session {
             rounds: Vec::new(),
             stop: None,
             params,
+            reachable: None,
         }
+    }
+
+    /// The same loop knowing the shot's reachable framing: it stops
+    /// (`at_floor`) when the shot error is the shot's own floor, above the
+    /// threshold, and the live view is within the threshold of the best
+    /// framing a camera can reach.
+    pub fn with_reachable(mut self, reachable: Reachable) -> Self {
+        self.reachable = Some(reachable);
+        self
+    }
+
+    /// The shot's reachable framing, when known.
+    pub fn reachable(&self) -> Option<&Reachable> {
+        self.reachable.as_ref()
     }
 
     /// The target being flown.
@@ -163,6 +222,7 @@ impl Session {
             &self.params.error,
         );
         let pct = err.as_ref().ok().map(|e| e.corner_error_pct);
+        let threshold = self.params.controller.threshold_pct;
         let decision = decide(pct, round, &self.params.controller);
         let mut rec = RoundRecord {
             round,
@@ -170,29 +230,72 @@ impl Session {
             shot_error_pct: pct,
             shot_error_px: err.as_ref().ok().map(|e| e.corner_error_px),
             inliers: err.as_ref().ok().map(|e| e.inliers),
+            floor_pct: self.reachable.as_ref().map(|r| r.floor_pct),
+            pose_framing_pct: None,
             decision,
             live_map_position: None,
             correction: None,
             note: err.as_ref().err().map(|e| format!("shot error: {e}")),
+            observed: None,
         };
-        let stop = match decision {
-            Decision::Converged => Some(Stop::Converged),
-            Decision::MaxRounds => Some(Stop::MaxRounds),
-            Decision::Correct => None,
-        };
-        if let Some(s) = stop {
-            return self.end(rec, s);
+        if decision == Decision::Converged {
+            return self.end(rec, Stop::Converged);
         }
-        let live_map = match localize(ctx.map, live, None, None, ctx.localize) {
-            Ok(Localization::Localized(p)) => p.world_from_cam,
-            Ok(Localization::NotLocalized { reason }) => {
+        // A shot whose floor is above the threshold can stop short of it:
+        // when the live camera stands where the vehicle can reproduce the
+        // shot's pose (what the remaining pose error would still change in
+        // the framing is under the threshold) and the shot error is the
+        // floor there (within the threshold), no correction can lower it.
+        let reachable_pose = self
+            .reachable
+            .as_ref()
+            .and_then(|_| reproducible_pose(ctx, &self.map_from_desired));
+        if let (Some(r), Some(pose)) = (self.reachable.as_mut(), reachable_pose.as_ref())
+            && let Some((px, pct)) = r.floor_at(pose, &ctx.map.camera)
+        {
+            r.floor_px = px;
+            r.floor_pct = pct;
+            rec.floor_pct = Some(pct);
+        }
+        let floor = self
+            .reachable
+            .as_ref()
+            .filter(|r| r.floor_pct >= threshold)
+            .zip(reachable_pose);
+        let localised = if floor.is_some() || decision == Decision::Correct {
+            Some(localize(ctx.map, live, None, None, ctx.localize))
+        } else {
+            None
+        };
+        if let (Some((r, pose)), Some(Ok(Localization::Localized(p)))) = (floor, &localised) {
+            rec.live_map_position = Some(p.world_from_cam.translation.vector.into());
+            let framing = r.framing_change_pct(&p.world_from_cam, &pose, &ctx.map.camera);
+            rec.pose_framing_pct = framing;
+            if framing.is_some_and(|f| f < threshold)
+                && pct.is_some_and(|e| e <= r.floor_pct + threshold)
+            {
+                rec.decision = Decision::AtFloor;
+                return self.end(rec, Stop::AtFloor);
+            }
+        }
+        if decision == Decision::MaxRounds {
+            return self.end(rec, Stop::MaxRounds);
+        }
+        let live_map = match localised {
+            Some(Ok(Localization::Localized(p))) => p.world_from_cam,
+            Some(Ok(Localization::NotLocalized { reason })) => {
                 let why = reason.to_string();
                 rec.note = Some(format!("live frame not localised: {why}"));
                 return self.end(rec, Stop::LiveNotLocalised(why));
             }
-            Err(e) => {
+            Some(Err(e)) => {
                 rec.note = Some(format!("live frame not localised: {e}"));
                 return self.end(rec, Stop::LiveNotLocalised(e.to_string()));
+            }
+            None => {
+                let why = "the live frame was not localised".to_string();
+                rec.note = Some(why.clone());
+                return self.end(rec, Stop::LiveNotLocalised(why));
             }
         };
         rec.live_map_position = Some(live_map.translation.vector.into());
@@ -226,11 +329,48 @@ impl Session {
         }
     }
 
+    /// Attaches what the driver saw at the last arrival to its round.
+    pub fn observe(&mut self, observed: Observation) {
+        if let Some(r) = self.rounds.last_mut() {
+            r.observed = Some(observed);
+        }
+    }
+
     fn end(&mut self, rec: RoundRecord, stop: Stop) -> Step {
         self.rounds.push(rec);
         self.stop = Some(stop.clone());
         Step::Done(stop)
     }
+}
+
+/// The camera pose (map frame) a vehicle reproducing `map_from_desired`
+/// takes: the target the georeference makes of it (position, heading,
+/// gimbal pitch; a 2-axis gimbal drops the roll), flown exactly.
+fn reproducible_pose(
+    ctx: &Context<'_>,
+    map_from_desired: &Isometry3<f64>,
+) -> Option<Isometry3<f64>> {
+    let t = convert_target(ctx.alignment, map_from_desired, ctx.frame, ctx.mount).ok()?;
+    let state = VehicleState {
+        time: 0.0,
+        p_ned: t.p_ned_vehicle,
+        v_ned: Vector3::zeros(),
+        ned_from_body: UnitQuaternion::from_euler_angles(0.0, 0.0, t.yaw_deg.to_radians()),
+        gimbal: GimbalAngles {
+            pitch: t.gimbal_pitch_deg.to_radians(),
+            yaw: 0.0,
+        },
+    };
+    let ned = ned_from_cam(&state, ctx.mount);
+    let map_from_ned = ctx.alignment.ned_from_map.inverse();
+    Some(Isometry3::from_parts(
+        Translation3::from(
+            map_from_ned
+                .transform_point(&Point3::from(ned.translation.vector))
+                .coords,
+        ),
+        map_from_ned.rotation * ned.rotation,
+    ))
 }
 
 #[cfg(test)]
