@@ -6,7 +6,7 @@ use std::hint::black_box;
 use criterion::{Criterion, criterion_group, criterion_main};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use shotpilot::features::{Descriptor, KeyPoint};
-use shotpilot::matching::{self, FeatureGrid, Match, Params, RotationHistogram};
+use shotpilot::matching::{self, Bounds, FeatureGrid, Match, Params, RotationHistogram};
 
 fn descriptors(n: usize, rng: &mut StdRng) -> Vec<Descriptor> {
     (0..n)
@@ -58,10 +58,16 @@ fn bench_matching(c: &mut Criterion) {
             }
         })
         .collect();
+    let bounds = Bounds {
+        min_x: 0.0,
+        max_x: 640.0,
+        min_y: 0.0,
+        max_y: 480.0,
+    };
     let mut grid = FeatureGrid::default();
     c.bench_function("feature_grid_build_2000", |b| {
         b.iter(|| {
-            let _ = grid.rebuild(black_box(&kps), (0.0, 0.0, 640.0, 480.0), 64, 48);
+            grid.rebuild(black_box(&kps), bounds);
             black_box(grid.len())
         })
     });
@@ -70,7 +76,15 @@ fn bench_matching(c: &mut Criterion) {
         b.iter(|| {
             let mut total = 0;
             for k in kps.iter().take(1000) {
-                grid.features_in_area(k.ux + 3.0, k.uy - 2.0, 15.0, 0..=7, &mut found);
+                grid.features_in_area(
+                    &kps,
+                    k.ux as f64 + 3.0,
+                    k.uy as f64 - 2.0,
+                    15.0,
+                    0,
+                    7,
+                    &mut found,
+                );
                 total += found.len();
             }
             black_box(total)

@@ -37,8 +37,8 @@ use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
 use crate::camera::Camera;
 use crate::features::{self, Descriptor, OrbExtractor, hamming};
 use crate::geometry::{PnpParams, solve_pnp_ransac};
+use crate::matching::{Bounds, FeatureGrid};
 use crate::optimize::{Intrinsics, PoseObservation, PoseParams, optimize_pose};
-use crate::slam::grid::{Bounds, FeatureGrid};
 use crate::slam::matcher::{MatcherParams, Projected, SearchTarget, search_local_points};
 use crate::slam::{KeyFrameId, Map, PointId};
 

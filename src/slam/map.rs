@@ -17,8 +17,8 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, hamming};
 
-use super::grid::FeatureGrid;
 use crate::bow::{self, BowVector, FeatureVector, KeyFrameDatabase};
+use crate::matching::FeatureGrid;
 
 /// Id of a keyframe, unique for the life of a map (never reused).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
