@@ -812,11 +812,8 @@ fn refine_candidate(
     if n_in == 0 {
         return None;
     }
-    depths.sort_by(f64::total_cmp);
-    let median_depth = depths
-        .get(depths.len().saturating_sub(1) / 2)
-        .copied()
-        .unwrap_or(f64::NAN);
+    // The lower median (nearest-rank 50 % quantile).
+    let median_depth = crate::stats::quantile(&depths, 0.5).unwrap_or(f64::NAN);
     Some(CandidatePose {
         kf: kf_id,
         cam_from_world,
