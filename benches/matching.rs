@@ -1,5 +1,6 @@
 //! Matching hot paths: brute force 1000 x 1000 with ratio test and
-//! cross-check, grid search by projection, rotation histogram.
+//! cross-check, Hamming distance pair by pair, grid search by projection,
+//! rotation histogram.
 
 use std::hint::black_box;
 
@@ -38,6 +39,33 @@ fn bench_matching(c: &mut Criterion) {
                 &mut out,
             );
             black_box(out.len())
+        })
+    });
+
+    // Pair by pair, as the SLAM's searches by projection call it: the
+    // runtime-dispatched `hamming` (POPCNT when the CPU has it) against the
+    // portable `count_ones`, which the default x86-64 target compiles
+    // without POPCNT.
+    c.bench_function("hamming_pairs_1000x100_dispatched", |b| {
+        b.iter(|| {
+            let mut sum = 0u32;
+            for q in &query {
+                for t in &train[..100] {
+                    sum = sum.wrapping_add(shotpilot::features::hamming(black_box(q), t));
+                }
+            }
+            black_box(sum)
+        })
+    });
+    c.bench_function("hamming_pairs_1000x100_portable", |b| {
+        b.iter(|| {
+            let mut sum = 0u32;
+            for q in &query {
+                for t in &train[..100] {
+                    sum = sum.wrapping_add(shotpilot::features::hamming_portable(black_box(q), t));
+                }
+            }
+            black_box(sum)
         })
     });
 
