@@ -1,12 +1,13 @@
 //! Matching hot paths: brute force 1000 x 1000 with ratio test and
-//! cross-check, grid search by projection, rotation histogram.
+//! cross-check, Hamming distance pair by pair, grid search by projection,
+//! rotation histogram.
 
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use shotpilot::features::{Descriptor, KeyPoint};
-use shotpilot::matching::{self, FeatureGrid, Match, Params, RotationHistogram};
+use shotpilot::matching::{self, Bounds, FeatureGrid, Match, Params, RotationHistogram};
 
 fn descriptors(n: usize, rng: &mut StdRng) -> Vec<Descriptor> {
     (0..n)
@@ -41,6 +42,33 @@ fn bench_matching(c: &mut Criterion) {
         })
     });
 
+    // Pair by pair, as the SLAM's searches by projection call it: the
+    // runtime-dispatched `hamming` (POPCNT when the CPU has it) against the
+    // portable `count_ones`, which the default x86-64 target compiles
+    // without POPCNT.
+    c.bench_function("hamming_pairs_1000x100_dispatched", |b| {
+        b.iter(|| {
+            let mut sum = 0u32;
+            for q in &query {
+                for t in &train[..100] {
+                    sum = sum.wrapping_add(shotpilot::features::hamming(black_box(q), t));
+                }
+            }
+            black_box(sum)
+        })
+    });
+    c.bench_function("hamming_pairs_1000x100_portable", |b| {
+        b.iter(|| {
+            let mut sum = 0u32;
+            for q in &query {
+                for t in &train[..100] {
+                    sum = sum.wrapping_add(shotpilot::features::hamming_portable(black_box(q), t));
+                }
+            }
+            black_box(sum)
+        })
+    });
+
     let kps: Vec<KeyPoint> = (0..2000)
         .map(|_| {
             let (x, y) = (
@@ -58,10 +86,16 @@ fn bench_matching(c: &mut Criterion) {
             }
         })
         .collect();
+    let bounds = Bounds {
+        min_x: 0.0,
+        max_x: 640.0,
+        min_y: 0.0,
+        max_y: 480.0,
+    };
     let mut grid = FeatureGrid::default();
     c.bench_function("feature_grid_build_2000", |b| {
         b.iter(|| {
-            let _ = grid.rebuild(black_box(&kps), (0.0, 0.0, 640.0, 480.0), 64, 48);
+            grid.rebuild(black_box(&kps), bounds);
             black_box(grid.len())
         })
     });
@@ -70,7 +104,15 @@ fn bench_matching(c: &mut Criterion) {
         b.iter(|| {
             let mut total = 0;
             for k in kps.iter().take(1000) {
-                grid.features_in_area(k.ux + 3.0, k.uy - 2.0, 15.0, 0..=7, &mut found);
+                grid.features_in_area(
+                    &kps,
+                    k.ux as f64 + 3.0,
+                    k.uy as f64 - 2.0,
+                    15.0,
+                    0,
+                    7,
+                    &mut found,
+                );
                 total += found.len();
             }
             black_box(total)

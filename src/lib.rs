@@ -30,8 +30,9 @@
 //! | [`camera`] | pinhole + radial-tangential distortion |
 //! | [`video`] | frame sources: datasets (TUM, EuRoC), live MJPEG/snapshot over HTTP, latest-frame slots |
 //! | [`eval`] | TUM trajectories, association, Umeyama alignment, ATE/RPE, plots |
+//! | [`stats`] | median and nearest-rank quantiles of samples |
 //! | [`features`] | image pyramid, FAST, orientation, rBRIEF (ORB) |
-//! | [`matching`] | Hamming matching: brute force, by projection |
+//! | [`matching`] | Hamming matching: brute force, keypoint grid for search by projection |
 //! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
 //! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
 //! | [`slam`] | map, tracking, local mapping, map file |
@@ -62,5 +63,6 @@ pub mod optimize;
 pub mod refine;
 pub mod shot;
 pub mod slam;
+pub mod stats;
 pub mod vehicle;
 pub mod video;

@@ -3,16 +3,19 @@
 //! - [`match_brute_force`]: every query against every train descriptor, with
 //!   a distance bound, Lowe's ratio test and an optional cross-check, in one
 //!   pass over the distance matrix (the reverse best is tracked on the way).
-//! - [`FeatureGrid`]: keypoints binned over the image (ORB-SLAM uses 64 x 48
-//!   cells) for search by projection: [`FeatureGrid::features_in_area`].
+//! - [`FeatureGrid`]: keypoints binned in ORB-SLAM's 64 x 48 cells over the
+//!   undistorted image [`Bounds`], for search by projection (the SLAM's
+//!   tracking, mapping and relocalisation, the shot's localisation):
+//!   [`FeatureGrid::features_in_area`].
 //! - [`RotationHistogram`]: ORB-SLAM's rotation-consistency filter: the
 //!   angle differences of the matches go into 30 bins and only the matches of
 //!   the (up to) 3 fullest bins are kept.
 //!
 //! Matching by vocabulary node lives with the vocabulary.
 
-use std::ops::RangeInclusive;
+use nalgebra::Point2;
 
+use crate::camera::Camera;
 pub use crate::features::{Descriptor, KeyPoint, hamming};
 
 /// Errors of the matching helpers.
@@ -191,97 +194,148 @@ fn scan(
     }
 }
 
-/// Keypoints binned in a regular grid over an image region, for search by
-/// projection. Uses the undistorted positions `ux, uy`; keypoints outside the
-/// region are not indexed.
+/// Columns of the [`FeatureGrid`] (ORB-SLAM's 64).
+pub const GRID_COLS: usize = 64;
+/// Rows of the [`FeatureGrid`] (ORB-SLAM's 48).
+pub const GRID_ROWS: usize = 48;
+
+/// The undistorted image bounds of a camera: where undistorted keypoints can
+/// lie, the region a [`FeatureGrid`] covers.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Bounds {
+    /// Smallest x.
+    pub min_x: f64,
+    /// Largest x.
+    pub max_x: f64,
+    /// Smallest y.
+    pub min_y: f64,
+    /// Largest y.
+    pub max_y: f64,
+}
+
+impl Bounds {
+    /// The bounding box of the undistorted image border.
+    pub fn of(camera: &Camera) -> Bounds {
+        let (w, h) = (camera.width as f64 - 1.0, camera.height as f64 - 1.0);
+        let mut b = Bounds {
+            min_x: f64::INFINITY,
+            max_x: f64::NEG_INFINITY,
+            min_y: f64::INFINITY,
+            max_y: f64::NEG_INFINITY,
+        };
+        let n = 16;
+        for i in 0..=n {
+            let t = i as f64 / n as f64;
+            for p in [
+                Point2::new(t * w, 0.0),
+                Point2::new(t * w, h),
+                Point2::new(0.0, t * h),
+                Point2::new(w, t * h),
+            ] {
+                let u = camera.undistort_pixel(p);
+                b.min_x = b.min_x.min(u.x);
+                b.max_x = b.max_x.max(u.x);
+                b.min_y = b.min_y.min(u.y);
+                b.max_y = b.max_y.max(u.y);
+            }
+        }
+        b
+    }
+
+    /// True when a point lies inside.
+    #[inline]
+    pub fn contains(&self, x: f64, y: f64) -> bool {
+        x >= self.min_x && x <= self.max_x && y >= self.min_y && y <= self.max_y
+    }
+
+    /// True when the bounds are finite and enclose some area.
+    pub fn is_valid(&self) -> bool {
+        [self.min_x, self.max_x, self.min_y, self.max_y]
+            .iter()
+            .all(|v| v.is_finite())
+            && self.max_x > self.min_x
+            && self.max_y > self.min_y
+    }
+}
+
+/// Keypoints binned in [`GRID_COLS`] x [`GRID_ROWS`] cells over the
+/// undistorted image [`Bounds`], for search by projection
+/// ([`FeatureGrid::features_in_area`]). Uses the undistorted positions
+/// `ux, uy`; keypoints outside `[min_x, max_x) x [min_y, max_y)` are not
+/// indexed. Flat storage (cell offsets + entries in cell order), built once
+/// per frame; [`FeatureGrid::rebuild`] reuses it.
 #[derive(Debug, Clone, Default)]
 pub struct FeatureGrid {
-    min_x: f32,
-    min_y: f32,
-    inv_cell_w: f32,
-    inv_cell_h: f32,
-    cols: usize,
-    rows: usize,
-    /// `starts[c]..starts[c + 1]` are the entries of cell `c`.
-    starts: Vec<u32>,
-    /// Keypoint index, x, y, octave per entry, grouped by cell.
-    entries: Vec<(u32, f32, f32, u8)>,
+    /// `None` for an empty grid (default, or built over invalid bounds).
+    bounds: Option<Bounds>,
+    inv_cell_w: f64,
+    inv_cell_h: f64,
+    /// `cell_start[c]..cell_start[c + 1]` indexes `entries` for cell `c`.
+    cell_start: Vec<u32>,
+    /// The keypoints in cell order, with what the search tests (read in
+    /// sequence rather than gathered from the keypoint list).
+    entries: Vec<Entry>,
+}
+
+/// A keypoint as the grid holds it.
+#[derive(Debug, Clone, Copy, Default)]
+struct Entry {
+    x: f32,
+    y: f32,
+    octave: i32,
+    index: u32,
 }
 
 impl FeatureGrid {
-    /// Index `keypoints` in `cols` x `rows` cells over
-    /// `[min_x, max_x) x [min_y, max_y)` (ORB-SLAM: 64 x 48 over the
-    /// undistorted image bounds).
-    pub fn new(
-        keypoints: &[KeyPoint],
-        (min_x, min_y, max_x, max_y): (f32, f32, f32, f32),
-        cols: usize,
-        rows: usize,
-    ) -> Result<Self, MatchingError> {
-        let mut g = FeatureGrid::default();
-        g.rebuild(keypoints, (min_x, min_y, max_x, max_y), cols, rows)?;
-        Ok(g)
+    /// Index `keypoints` (their undistorted positions) within `bounds`. Over
+    /// bounds that are not finite or enclose no area the grid is empty.
+    pub fn new(keypoints: &[KeyPoint], bounds: Bounds) -> Self {
+        let mut grid = FeatureGrid::default();
+        grid.rebuild(keypoints, bounds);
+        grid
     }
 
-    /// Rebuild in place, reusing the storage.
-    pub fn rebuild(
-        &mut self,
-        keypoints: &[KeyPoint],
-        (min_x, min_y, max_x, max_y): (f32, f32, f32, f32),
-        cols: usize,
-        rows: usize,
-    ) -> Result<(), MatchingError> {
-        if cols == 0 || rows == 0 || cols * rows > 1 << 20 {
-            return Err(MatchingError::InvalidParams {
-                name: "cols x rows",
-                value: format!("{cols} x {rows}"),
-                reason: "must be between 1 and 2^20 cells",
-            });
-        }
-        let finite = [min_x, min_y, max_x, max_y].iter().all(|v| v.is_finite());
-        if !finite || max_x <= min_x || max_y <= min_y {
-            return Err(MatchingError::InvalidParams {
-                name: "bounds",
-                value: format!("[{min_x}, {max_x}) x [{min_y}, {max_y})"),
-                reason: "must be a finite, non-empty region",
-            });
-        }
-        self.min_x = min_x;
-        self.min_y = min_y;
-        self.inv_cell_w = cols as f32 / (max_x - min_x);
-        self.inv_cell_h = rows as f32 / (max_y - min_y);
-        self.cols = cols;
-        self.rows = rows;
-        let cell_of = |kp: &KeyPoint| -> Option<usize> {
-            let cx = ((kp.ux - min_x) * self.inv_cell_w).floor();
-            let cy = ((kp.uy - min_y) * self.inv_cell_h).floor();
-            if cx >= 0.0 && cy >= 0.0 && cx < cols as f32 && cy < rows as f32 {
-                Some(cy as usize * cols + cx as usize)
-            } else {
-                None
-            }
-        };
-        self.starts.clear();
-        self.starts.resize(cols * rows + 1, 0);
-        for kp in keypoints {
-            if let Some(c) = cell_of(kp) {
-                self.starts[c + 1] += 1;
-            }
-        }
-        for c in 0..cols * rows {
-            self.starts[c + 1] += self.starts[c];
-        }
-        let total = self.starts[cols * rows] as usize;
+    /// [`FeatureGrid::new`] in place, reusing the storage.
+    pub fn rebuild(&mut self, keypoints: &[KeyPoint], bounds: Bounds) {
+        self.cell_start.clear();
         self.entries.clear();
-        self.entries.resize(total, (0, 0.0, 0.0, 0));
-        let mut fill: Vec<u32> = self.starts[..cols * rows].to_vec();
-        for (i, kp) in keypoints.iter().enumerate() {
-            if let Some(c) = cell_of(kp) {
-                self.entries[fill[c] as usize] = (i as u32, kp.ux, kp.uy, kp.octave);
-                fill[c] += 1;
+        if !bounds.is_valid() || keypoints.len() > u32::MAX as usize {
+            self.bounds = None;
+            return;
+        }
+        self.bounds = Some(bounds);
+        self.inv_cell_w = GRID_COLS as f64 / (bounds.max_x - bounds.min_x);
+        self.inv_cell_h = GRID_ROWS as f64 / (bounds.max_y - bounds.min_y);
+        const CELLS: usize = GRID_COLS * GRID_ROWS;
+        self.cell_start.resize(CELLS + 1, 0);
+        // Count per cell (shifted by one), then prefix sums: cell_start[c]
+        // is where cell c begins.
+        for k in keypoints {
+            if let Some(c) = self.cell_of(k.ux as f64, k.uy as f64) {
+                self.cell_start[c + 1] += 1;
             }
         }
-        Ok(())
+        for i in 0..CELLS {
+            self.cell_start[i + 1] += self.cell_start[i];
+        }
+        self.entries
+            .resize(self.cell_start[CELLS] as usize, Entry::default());
+        // Fill in keypoint order, advancing each cell's start; afterwards
+        // every start sits at the next cell's beginning, so shift back.
+        for (i, k) in keypoints.iter().enumerate() {
+            if let Some(c) = self.cell_of(k.ux as f64, k.uy as f64) {
+                let at = self.cell_start[c] as usize;
+                self.entries[at] = Entry {
+                    x: k.ux,
+                    y: k.uy,
+                    octave: k.octave as i32,
+                    index: i as u32,
+                };
+                self.cell_start[c] += 1;
+            }
+        }
+        self.cell_start.copy_within(0..CELLS, 1);
+        self.cell_start[0] = 0;
     }
 
     /// Number of indexed keypoints.
@@ -294,39 +348,71 @@ impl FeatureGrid {
         self.entries.is_empty()
     }
 
-    /// Indices of the keypoints with `|ux - x| < r`, `|uy - y| < r` (ORB-SLAM's
-    /// square window) and octave in `octaves`, appended to `out` (cleared
-    /// first) in grid order.
+    /// The cell (row-major index) holding `(x, y)`, if inside.
+    #[inline]
+    fn cell_of(&self, x: f64, y: f64) -> Option<usize> {
+        let b = self.bounds?;
+        let cx = ((x - b.min_x) * self.inv_cell_w).floor();
+        let cy = ((y - b.min_y) * self.inv_cell_h).floor();
+        // Written so that NaN fails every test.
+        if cx >= 0.0 && cy >= 0.0 && cx < GRID_COLS as f64 && cy < GRID_ROWS as f64 {
+            Some(cy as usize * GRID_COLS + cx as usize)
+        } else {
+            None
+        }
+    }
+
+    /// Fill `out` (cleared first) with the indices of the keypoints within
+    /// `r` pixels of `(x, y)` (the square window's cells, then the exact
+    /// circle) whose octave is in `min_level..=max_level`, in grid order.
+    /// `keypoints` are the ones the grid was built from (indices past their
+    /// end are skipped, so a mismatched list cannot index out of bounds).
+    #[allow(clippy::too_many_arguments)]
     pub fn features_in_area(
         &self,
-        x: f32,
-        y: f32,
-        r: f32,
-        octaves: RangeInclusive<u8>,
+        keypoints: &[KeyPoint],
+        x: f64,
+        y: f64,
+        r: f64,
+        min_level: i32,
+        max_level: i32,
         out: &mut Vec<usize>,
     ) {
         out.clear();
-        if self.cols == 0 || r.is_nan() || r <= 0.0 || !x.is_finite() || !y.is_finite() {
+        let Some(b) = self.bounds else {
+            return;
+        };
+        // Cell range of the square window. `as usize` truncates towards
+        // zero and saturates negatives (and NaN) at 0, which is the floor
+        // clamped at 0 for the low ends; a high end below 0 (or NaN) means
+        // the window misses the grid.
+        let (hx, hy) = (
+            (x + r - b.min_x) * self.inv_cell_w,
+            (y + r - b.min_y) * self.inv_cell_h,
+        );
+        if !(hx >= 0.0 && hy >= 0.0) {
             return;
         }
-        let c0 = ((x - r - self.min_x) * self.inv_cell_w).floor();
-        let c1 = ((x + r - self.min_x) * self.inv_cell_w).floor();
-        let r0 = ((y - r - self.min_y) * self.inv_cell_h).floor();
-        let r1 = ((y + r - self.min_y) * self.inv_cell_h).floor();
-        if c1 < 0.0 || r1 < 0.0 || c0 >= self.cols as f32 || r0 >= self.rows as f32 {
+        let c0 = ((x - r - b.min_x) * self.inv_cell_w) as usize;
+        let r0 = ((y - r - b.min_y) * self.inv_cell_h) as usize;
+        let c1 = (hx as usize).min(GRID_COLS - 1);
+        let r1 = (hy as usize).min(GRID_ROWS - 1);
+        if c0 > c1 || r0 > r1 {
             return;
         }
-        let c0 = c0.max(0.0) as usize;
-        let r0 = r0.max(0.0) as usize;
-        let c1 = (c1 as usize).min(self.cols - 1);
-        let r1 = (r1 as usize).min(self.rows - 1);
-        let (lo, hi) = (*octaves.start(), *octaves.end());
+        let r2 = (r * r) as f32;
+        let (xf, yf) = (x as f32, y as f32);
+        let n = keypoints.len();
         for row in r0..=r1 {
-            let a = self.starts[row * self.cols + c0] as usize;
-            let b = self.starts[row * self.cols + c1 + 1] as usize;
-            for &(i, kx, ky, oct) in &self.entries[a..b] {
-                if oct >= lo && oct <= hi && (kx - x).abs() < r && (ky - y).abs() < r {
-                    out.push(i as usize);
+            let start = self.cell_start[row * GRID_COLS + c0] as usize;
+            let end = self.cell_start[row * GRID_COLS + c1 + 1] as usize;
+            for e in &self.entries[start..end] {
+                if e.octave < min_level || e.octave > max_level {
+                    continue;
+                }
+                let (dx, dy) = (e.x - xf, e.y - yf);
+                if dx * dx + dy * dy <= r2 && (e.index as usize) < n {
+                    out.push(e.index as usize);
                 }
             }
         }
@@ -545,41 +631,71 @@ mod tests {
                 )
             })
             .collect();
-        let g = FeatureGrid::new(&kps, (0.0, 0.0, 640.0, 480.0), 64, 48).unwrap();
-        let inside = kps
-            .iter()
-            .filter(|k| k.ux >= 0.0 && k.ux < 640.0 && k.uy >= 0.0 && k.uy < 480.0)
-            .count();
-        assert_eq!(g.len(), inside);
-        let mut out = Vec::new();
-        for _ in 0..200 {
-            let (x, y) = (
-                rng.random_range(-30.0..670.0),
-                rng.random_range(-30.0..510.0),
-            );
+        let b = Bounds {
+            min_x: 0.0,
+            max_x: 640.0,
+            min_y: 0.0,
+            max_y: 480.0,
+        };
+        let inside = |k: &KeyPoint| k.ux >= 0.0 && k.ux < 640.0 && k.uy >= 0.0 && k.uy < 480.0;
+        let g = FeatureGrid::new(&kps, b);
+        assert_eq!(g.len(), kps.iter().filter(|k| inside(k)).count());
+        // Rebuilding storage that held other keypoints gives the same grid.
+        let mut reused = FeatureGrid::new(&kps[..700], b);
+        reused.rebuild(&kps, b);
+        let (mut out, mut out2) = (Vec::new(), Vec::new());
+        let mut total = 0;
+        for i in 0..300 {
+            let (x, y) = if i < 3 {
+                // The corners and a point outside.
+                [(0.0, 0.0), (639.0, 479.0), (700.0, -40.0)][i]
+            } else {
+                (
+                    rng.random_range(-30.0..670.0),
+                    rng.random_range(-30.0..510.0),
+                )
+            };
             let r = rng.random_range(1.0..60.0);
-            let (lo, hi) = (rng.random_range(0..4u8), rng.random_range(3..8u8));
-            g.features_in_area(x, y, r, lo..=hi, &mut out);
+            let (lo, hi) = (rng.random_range(0..4), rng.random_range(3..8));
+            g.features_in_area(&kps, x, y, r, lo, hi, &mut out);
+            reused.features_in_area(&kps, x, y, r, lo, hi, &mut out2);
+            assert_eq!(out, out2);
             out.sort_unstable();
             let want: Vec<usize> = kps
                 .iter()
                 .enumerate()
                 .filter(|(_, k)| {
-                    k.ux >= 0.0
-                        && k.ux < 640.0
-                        && k.uy >= 0.0
-                        && k.uy < 480.0
-                        && (k.ux - x).abs() < r
-                        && (k.uy - y).abs() < r
-                        && k.octave >= lo
-                        && k.octave <= hi
+                    let d2 = (k.ux as f64 - x).powi(2) + (k.uy as f64 - y).powi(2);
+                    inside(k) && d2 <= r * r && (k.octave as i32) >= lo && (k.octave as i32) <= hi
                 })
                 .map(|(i, _)| i)
                 .collect();
-            assert_eq!(out, want);
+            assert_eq!(out, want, "({x}, {y}) r {r} levels {lo}..={hi}");
+            total += want.len();
         }
-        assert!(FeatureGrid::new(&kps, (0.0, 0.0, 0.0, 480.0), 64, 48).is_err());
-        assert!(FeatureGrid::new(&kps, (0.0, 0.0, 640.0, 480.0), 0, 48).is_err());
+        assert!(total > 1000, "the queries find points: {total}");
+        // A keypoint list shorter than the grid's: no index past its end.
+        g.features_in_area(&kps[..10], 320.0, 240.0, 400.0, 0, 7, &mut out);
+        assert!(!out.is_empty() && out.iter().all(|&i| i < 10));
+        // Windows that miss, NaN, degenerate bounds, the empty grid.
+        g.features_in_area(&kps, -100.0, 240.0, 30.0, 0, 7, &mut out);
+        assert!(out.is_empty());
+        g.features_in_area(&kps, f64::NAN, 240.0, 30.0, 0, 7, &mut out);
+        assert!(out.is_empty());
+        for bad in [
+            Bounds { max_x: 0.0, ..b },
+            Bounds {
+                min_y: f64::NAN,
+                ..b
+            },
+        ] {
+            let e = FeatureGrid::new(&kps, bad);
+            assert!(e.is_empty());
+            e.features_in_area(&kps, 320.0, 240.0, 50.0, 0, 7, &mut out);
+            assert!(out.is_empty());
+        }
+        FeatureGrid::default().features_in_area(&kps, 320.0, 240.0, 50.0, 0, 7, &mut out);
+        assert!(out.is_empty());
     }
 
     #[test]

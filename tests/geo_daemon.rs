@@ -176,9 +176,7 @@ fn max(v: &[f64]) -> f64 {
 }
 
 fn median(v: &[f64]) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    s.get(s.len() / 2).copied().unwrap_or(f64::NAN)
+    shotpilot::stats::median(v).unwrap_or(f64::NAN)
 }
 
 /// Heading and pitch (degrees) of a camera's optical axis in NED.

@@ -12,6 +12,7 @@ use geometry_support::{CAM_720P, CX, CY, F, motion, pnp_scene, two_view_scene};
 use nalgebra::Matrix3;
 use serde_json::{Value, json};
 use shotpilot::geometry::{PnpParams, TwoViewParams, initialize_two_view, solve_pnp_ransac};
+use shotpilot::stats;
 
 const REPS: usize = 5;
 
@@ -23,8 +24,7 @@ fn median_ms<T>(mut f: impl FnMut() -> T) -> (f64, T) {
         out = Some(f());
         ts.push(t0.elapsed().as_secs_f64() * 1e3);
     }
-    ts.sort_by(f64::total_cmp);
-    (ts[REPS / 2], out.expect("REPS > 0"))
+    (median(&ts), out.expect("REPS > 0"))
 }
 
 fn mat_json(m: &Matrix3<f64>) -> Value {
@@ -41,9 +41,8 @@ fn mat_json(m: &Matrix3<f64>) -> Value {
     ])
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+fn median(v: &[f64]) -> f64 {
+    stats::median(v).unwrap_or(f64::NAN)
 }
 
 #[test]
@@ -135,7 +134,7 @@ fn geometry_against_opencv() {
         String::from_utf8_lossy(&out.stderr)
     );
     let v: Value = serde_json::from_slice(&out.stdout).expect("peer JSON");
-    let mut cv_pnp_ms: Vec<f64> = v["pnp"]
+    let cv_pnp_ms: Vec<f64> = v["pnp"]
         .as_array()
         .unwrap()
         .iter()
@@ -147,40 +146,40 @@ fn geometry_against_opencv() {
         .iter()
         .map(|x| x["rot_err_deg"].as_f64().unwrap_or(f64::INFINITY))
         .collect();
-    let mut cv_tv_ms: Vec<f64> = v["two_view"]
+    let cv_tv_ms: Vec<f64> = v["two_view"]
         .as_array()
         .unwrap()
         .iter()
         .map(|x| x["ms"].as_f64().unwrap())
         .collect();
-    let mut cv_tv_rot: Vec<f64> = v["two_view"]
+    let cv_tv_rot: Vec<f64> = v["two_view"]
         .as_array()
         .unwrap()
         .iter()
         .map(|x| x["rot_err_deg"].as_f64().unwrap())
         .collect();
-    let mut cv_tv_t: Vec<f64> = v["two_view"]
+    let cv_tv_t: Vec<f64> = v["two_view"]
         .as_array()
         .unwrap()
         .iter()
         .map(|x| x["t_dir_err_deg"].as_f64().unwrap())
         .collect();
-    let mut cv_h_ms: Vec<f64> = v["two_view"]
+    let cv_h_ms: Vec<f64> = v["two_view"]
         .as_array()
         .unwrap()
         .iter()
         .map(|x| x["homography_ms"].as_f64().unwrap())
         .collect();
-    let (op, cp) = (median(&mut ours_pnp_ms), median(&mut cv_pnp_ms));
-    let (ot, ct) = (median(&mut ours_tv_ms), median(&mut cv_tv_ms));
+    let (op, cp) = (median(&ours_pnp_ms), median(&cv_pnp_ms));
+    let (ot, ct) = (median(&ours_tv_ms), median(&cv_tv_ms));
     let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     eprintln!("OpenCV {}", v["opencv"]);
     eprintln!(
         "PnP-RANSAC (20 scenes, 200 pts, 50 % outliers, 1 px): ours {op:.3} ms, rot err median {:.4} max {:.4} deg | \
          OpenCV AP3P-RANSAC {cp:.3} ms, rot err median {:.4} max {:.4} deg | time ratio OpenCV/ours {:.2}",
-        median(&mut ours_pnp_err.clone()),
+        median(&ours_pnp_err),
         max(&ours_pnp_err),
-        median(&mut cv_pnp_err.clone()),
+        median(&cv_pnp_err),
         max(&cv_pnp_err),
         cp / op
     );
@@ -189,12 +188,12 @@ fn geometry_against_opencv() {
          t dir err median {:.3} deg | OpenCV findEssentialMat+recoverPose {ct:.3} ms, rot err median {:.4} deg, \
          t dir err median {:.3} deg | time ratio OpenCV(E+recoverPose)/ours {:.2} | (OpenCV findHomography on these \
          non-planar scenes: {:.3} ms, it runs to its iteration cap)",
-        median(&mut ours_tv_rot),
-        median(&mut ours_tv_t),
-        median(&mut cv_tv_rot),
-        median(&mut cv_tv_t),
+        median(&ours_tv_rot),
+        median(&ours_tv_t),
+        median(&cv_tv_rot),
+        median(&cv_tv_t),
         ct / ot,
-        median(&mut cv_h_ms),
+        median(&cv_h_ms),
     );
     // Accuracy, not time, is asserted: ours is at least as accurate.
     assert!(max(&ours_pnp_err) < 0.1);

@@ -13,6 +13,7 @@ use shotpilot::geometry::{GeometryError, PnpParams, solve_pnp_ransac};
 use shotpilot::optimize::lm::LmParams;
 use shotpilot::optimize::pose::{PoseObservation, refine_pose};
 use shotpilot::optimize::{Intrinsics, RobustKernel};
+use shotpilot::stats;
 
 /// Statistics of 100 trials on one camera.
 struct Stats {
@@ -120,17 +121,16 @@ fn run(cam: Cam, label: &str) -> Stats {
             );
         }
     }
-    times.sort_by(f64::total_cmp);
-    rots.sort_by(f64::total_cmp);
+    let (median_s, max_s) = stats::median_max(&times).unwrap_or((f64::NAN, f64::NAN));
     iters.sort();
     let s = Stats {
         within,
         near_ml,
-        median_rot: rots[rots.len() / 2],
+        median_rot: stats::median(&rots).unwrap_or(f64::NAN),
         worst_rot,
         worst_trans,
-        median_ms: times[50] * 1e3,
-        max_ms: times[99] * 1e3,
+        median_ms: median_s * 1e3,
+        max_ms: max_s * 1e3,
         median_iters: iters[iters.len() / 2],
         max_iters: iters[iters.len() - 1],
     };

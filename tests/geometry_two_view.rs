@@ -50,7 +50,6 @@ fn check(s: &Scene, res: &shotpilot::geometry::TwoViewResult, label: &str) -> f6
             rel.push(e / q.coords.norm());
         }
     }
-    rel.sort_by(f64::total_cmp);
     let rms = (se / n as f64).sqrt() / (depth / n as f64);
     eprintln!(
         "{label}: model {:?}, R_H {:.3}, rot err {rot_err:.4} deg, t dir err {t_ang:.3} deg, \
@@ -62,7 +61,7 @@ fn check(s: &Scene, res: &shotpilot::geometry::TwoViewResult, label: &str) -> f6
         res.n_good,
         res.n_second,
         rms * 100.0,
-        rel[rel.len() / 2] * 100.0
+        shotpilot::stats::median(&rel).unwrap_or(f64::NAN) * 100.0
     );
     assert!(rot_err < 0.5, "{label}: rotation error {rot_err}");
     assert!(t_ang < 3.0, "{label}: translation direction error {t_ang}");

@@ -115,9 +115,7 @@ async fn uploads(link: &LinkHandle, flavour: Flavour, n: usize) -> anyhow::Resul
 }
 
 fn median_max(v: &[f64]) -> (f64, f64) {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    (s[s.len() / 2], s[s.len() - 1])
+    shotpilot::stats::median_max(v).unwrap_or((f64::NAN, f64::NAN))
 }
 
 fn report(what: &str, n: usize, f: &Figures) {

@@ -161,12 +161,9 @@ async fn lossy_run(habit: Habit, n: usize, seed: u64) -> anyhow::Result<Vec<f64>
     assert!(dropped > 0);
     let loss = dropped as f64 / (dropped + fwd) as f64;
     assert!((loss - 0.3).abs() < 0.05, "radio loss {loss:.3}");
-    let med = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        (v[v.len() / 2], v[v.len() - 1])
-    };
-    let (up_med, up_max) = med(&mut times.clone());
-    let (down_med, down_max) = med(&mut down_times);
+    let med = |v: &[f64]| shotpilot::stats::median_max(v).unwrap_or((f64::NAN, f64::NAN));
+    let (up_med, up_max) = med(&times);
+    let (down_med, down_max) = med(&down_times);
     println!(
         "{habit:?}: {n}/{n} uploads of {} items verified by download; upload median {up_med:.2} s, max {up_max:.2} s; \
          download median {down_med:.2} s, max {down_max:.2} s; {retries} upload retries, {read_backs} final ACKs lost and confirmed by read-back; radio dropped {dropped} of {} datagrams \

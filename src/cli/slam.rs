@@ -12,6 +12,7 @@ use serde_json::json;
 
 use shotpilot::eval::{self, Trajectory};
 use shotpilot::slam::{self, Slam, TrackState};
+use shotpilot::stats;
 use shotpilot::video::dataset::Dataset;
 
 /// Arguments of `shotpilot slam`.
@@ -53,16 +54,13 @@ pub struct SlamArgs {
     pub json: bool,
 }
 
-/// Median and 95th percentile of a list of milliseconds.
+/// Lower median and 95th percentile (nearest rank) of a list of
+/// milliseconds; zeros when empty.
 fn med_p95(v: &[f64]) -> (f64, f64) {
-    if v.is_empty() {
-        return (0.0, 0.0);
-    }
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    let med = s[(s.len() - 1) / 2];
-    let p95 = s[((s.len() as f64 * 0.95).ceil() as usize).clamp(1, s.len()) - 1];
-    (med, p95)
+    (
+        stats::quantile(v, 0.5).unwrap_or(0.0),
+        stats::quantile(v, 0.95).unwrap_or(0.0),
+    )
 }
 
 /// Runs the SLAM over the dataset and prints timing, counts and accuracy.

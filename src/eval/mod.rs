@@ -120,19 +120,11 @@ impl Stats {
         let mean = values.iter().sum::<f64>() / n;
         let rmse = (values.iter().map(|v| v * v).sum::<f64>() / n).sqrt();
         let std = (values.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n).sqrt();
-        let mut sorted = values.to_vec();
-        sorted.sort_by(f64::total_cmp);
-        let m = sorted.len();
-        let median = if m % 2 == 1 {
-            sorted[m / 2]
-        } else {
-            0.5 * (sorted[m / 2 - 1] + sorted[m / 2])
-        };
         Stats {
             rmse,
             mean,
-            median,
-            max: sorted[m - 1],
+            median: crate::stats::median(values).unwrap_or(f64::NAN),
+            max: crate::stats::quantile(values, 1.0).unwrap_or(f64::NAN),
             std,
         }
     }

@@ -99,20 +99,12 @@ pub fn time_frames(
 
 /// Median, 95th percentile and mean keypoints of per-frame timings.
 pub fn summarize(timings: &[(f64, usize)]) -> TimingReport {
-    let mut ms: Vec<f64> = timings.iter().map(|t| t.0).collect();
-    ms.sort_by(f64::total_cmp);
-    let pick = |q: f64| -> f64 {
-        if ms.is_empty() {
-            return 0.0;
-        }
-        let i = ((ms.len() - 1) as f64 * q).round() as usize;
-        ms[i.min(ms.len() - 1)]
-    };
+    let ms: Vec<f64> = timings.iter().map(|t| t.0).collect();
     let kps: usize = timings.iter().map(|t| t.1).sum();
     TimingReport {
         frames: timings.len(),
-        median_ms: pick(0.5),
-        p95_ms: pick(0.95),
+        median_ms: crate::stats::median(&ms).unwrap_or(0.0),
+        p95_ms: crate::stats::quantile(&ms, 0.95).unwrap_or(0.0),
         mean_keypoints: if timings.is_empty() {
             0.0
         } else {

@@ -1636,8 +1636,7 @@ mod tests {
                 );
                 times.push(t.as_secs_f64());
             }
-            times.sort_by(f64::total_cmp);
-            let (median, max) = (times[times.len() / 2], times[times.len() - 1]);
+            let (median, max) = crate::stats::median_max(&times).expect("300 uploads timed");
             println!(
                 "ardupilot={ardupilot}: 300/300 seeded uploads stored, {no_final_ack} without final ACK; \
                  virtual median {median:.2} s, max {max:.2} s, {retries} retries"

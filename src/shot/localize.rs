@@ -37,8 +37,8 @@ use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
 use crate::camera::Camera;
 use crate::features::{self, Descriptor, OrbExtractor, hamming};
 use crate::geometry::{PnpParams, solve_pnp_ransac};
+use crate::matching::{Bounds, FeatureGrid};
 use crate::optimize::{Intrinsics, PoseObservation, PoseParams, optimize_pose};
-use crate::slam::grid::{Bounds, FeatureGrid};
 use crate::slam::matcher::{MatcherParams, Projected, SearchTarget, search_local_points};
 use crate::slam::{KeyFrameId, Map, PointId};
 
@@ -812,11 +812,8 @@ fn refine_candidate(
     if n_in == 0 {
         return None;
     }
-    depths.sort_by(f64::total_cmp);
-    let median_depth = depths
-        .get(depths.len().saturating_sub(1) / 2)
-        .copied()
-        .unwrap_or(f64::NAN);
+    // The lower median (nearest-rank 50 % quantile).
+    let median_depth = crate::stats::quantile(&depths, 0.5).unwrap_or(f64::NAN);
     Some(CandidatePose {
         kf: kf_id,
         cam_from_world,

@@ -17,8 +17,8 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, hamming};
 
-use super::grid::FeatureGrid;
 use crate::bow::{self, BowVector, FeatureVector, KeyFrameDatabase};
+use crate::matching::FeatureGrid;
 
 /// Id of a keyframe, unique for the life of a map (never reused).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -790,21 +790,19 @@ impl Map {
         }
     }
 
-    /// Median depth of the keyframe's points in its camera (None without points).
+    /// Median depth of the keyframe's points in its camera: the lower median
+    /// (nearest-rank 50 % quantile, ORB-SLAM's scene median depth); None
+    /// without points.
     pub fn median_depth(&self, id: KeyFrameId) -> Option<f64> {
         let kf = self.keyframe(id)?;
-        let mut depths: Vec<f64> = kf
+        let depths: Vec<f64> = kf
             .points
             .iter()
             .flatten()
             .filter_map(|p| self.point(*p))
             .map(|mp| (kf.cam_from_world * mp.position).z)
             .collect();
-        if depths.is_empty() {
-            return None;
-        }
-        depths.sort_by(f64::total_cmp);
-        Some(depths[(depths.len() - 1) / 2])
+        crate::stats::quantile(&depths, 0.5)
     }
 
     /// Check the map's invariants; a description of the first violation.

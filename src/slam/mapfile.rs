@@ -22,8 +22,8 @@ use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vect
 use crate::camera::{Camera, Distortion};
 use crate::features::KeyPoint;
 
-use super::grid::{Bounds, FeatureGrid};
 use super::map::{CulledKeyFrame, KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
+use crate::matching::{Bounds, FeatureGrid};
 
 /// The format version this build writes and reads.
 pub const FORMAT_VERSION: u32 = 1;

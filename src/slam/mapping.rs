@@ -15,10 +15,10 @@ use crate::bow::Vocabulary;
 use crate::geometry;
 use crate::optimize::{self, BaParams};
 
-use super::grid::Bounds;
 use super::map::{KeyFrameId, Map, PointId};
 use super::matcher::{self, MatcherParams};
 use super::tracking::{apply_ba_result, build_ba_problem};
+use crate::matching::Bounds;
 
 /// Tunable numbers of local mapping.
 #[derive(Debug, Clone, PartialEq)]

@@ -8,9 +8,8 @@ use nalgebra::{Isometry3, Matrix3, Point2, Point3, Vector3};
 use crate::bow::FeatureVector;
 use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, hamming};
-use crate::matching::RotationHistogram;
+use crate::matching::{Bounds, FeatureGrid, RotationHistogram};
 
-use super::grid::{Bounds, FeatureGrid};
 use super::map::{KeyFrameId, Map, PointId, ScaleInfo};
 
 /// Tunable numbers of the matcher.

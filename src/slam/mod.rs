@@ -8,7 +8,6 @@
 //! outside the map lock.
 
 pub mod cpu_time;
-pub mod grid;
 pub mod map;
 pub mod mapfile;
 pub mod mapping;
@@ -216,7 +215,7 @@ impl Slam {
     fn start(tracker: Tracker, map: Map, params: Params) -> Result<Self, SlamError> {
         let camera = map.camera;
         let map = Arc::new(Mutex::new(map));
-        let bounds = grid::Bounds::of(&camera);
+        let bounds = crate::matching::Bounds::of(&camera);
         let mapper = LocalMapper::new(
             params.mapping.clone(),
             bounds,

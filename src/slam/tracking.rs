@@ -22,10 +22,10 @@ use crate::optimize::{
 
 use super::SlamError;
 use super::cpu_time::Stopwatch;
-use super::grid::{Bounds, FeatureGrid};
 use super::map::{self, KeyFrame, KeyFrameId, Map, PointId, ScaleInfo};
 use super::matcher::{self, MatcherParams, SearchTarget};
 use super::planar;
+use crate::matching::{Bounds, FeatureGrid};
 
 /// Tunable numbers of tracking.
 #[derive(Debug, Clone, PartialEq)]
