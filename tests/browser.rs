@@ -50,16 +50,22 @@ fn round(
         shot_error_pct: pct,
         shot_error_px: pct.map(|p| p / 100.0 * 800.0),
         inliers: pct.map(|_| 212 + n),
+        floor_pct: pct.map(|p| p / 4.0),
+        pose_framing_pct: None,
         decision,
         live_map_position: None,
         correction: step.map(|s| Correction {
             target,
             step_ned_m: s,
+            error_ned_m: s.map(|v| 2.0 * v),
+            yaw_error_deg: 2.5,
+            pitch_error_deg: -1.0,
             yaw_step_deg: 1.25,
             pitch_step_deg: -0.5,
             limited: false,
         }),
         note: note.map(str::to_owned),
+        observed: None,
     };
     serde_json::to_value(r).unwrap()
 }
@@ -140,7 +146,7 @@ fn seed_refined_shots(dir: &Path) -> Vec<String> {
 }
 
 /// The page's card of a refined shot shows the stored rounds (error,
-/// decision, correction, note) and the stop reason.
+/// decision, correction, note, floor) and the stop reason.
 fn check_refinement_card(card: &Value, rf: &Value) {
     let rows = card["rounds"].as_array().unwrap();
     let rounds = rf["rounds"].as_array().unwrap();
@@ -164,6 +170,10 @@ fn check_refinement_card(card: &Value, rf: &Value) {
             None => assert_eq!(cell(5), "–", "{row}"),
         }
         assert_eq!(cell(8), r["note"].as_str().unwrap_or(""), "{row}");
+        let floor = r["floor_pct"]
+            .as_f64()
+            .map_or("–".to_string(), |p| format!("{p:.2}"));
+        assert_eq!(cell(9), floor, "{row}");
     }
     let stop = rf["stop"].as_str().unwrap();
     assert_eq!(card["stop"]["key"], stop, "{card}");

@@ -487,12 +487,8 @@ fn rotation_mean(rs: &[UnitQuaternion<f64>]) -> UnitQuaternion<f64> {
     UnitQuaternion::from_matrix(&(u * d * vt))
 }
 
-fn med_max(mut v: Vec<f64>) -> (f64, f64) {
-    v.sort_by(f64::total_cmp);
-    (
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN),
-        v.last().copied().unwrap_or(f64::NAN),
-    )
+fn med_max(v: Vec<f64>) -> (f64, f64) {
+    shotpilot::stats::median_max(&v).unwrap_or((f64::NAN, f64::NAN))
 }
 
 /// The best constant rotations `L` (left) and `X` (right) with

@@ -288,7 +288,8 @@ function showShot(s) {
     for (const r of rf.rounds) {
       const e = r.shot_error_pct == null ? 'no shot error' : `shot error ${r.shot_error_pct.toFixed(2)} %`;
       const c = r.correction ? `, corrected by (${r.correction.step_ned_m.map((v) => v.toFixed(2)).join(', ')}) m, yaw ${r.correction.yaw_step_deg.toFixed(2)}°, pitch ${r.correction.pitch_step_deg.toFixed(2)}°` : '';
-      lines.push(`refinement round ${r.round}: ${e}, ${r.decision}${c}${r.note ? ` (${r.note})` : ''}`);
+      const fl = r.floor_pct == null ? '' : `, floor ${r.floor_pct.toFixed(2)} %`;
+      lines.push(`refinement round ${r.round}: ${e}${fl}, ${r.decision}${c}${r.note ? ` (${r.note})` : ''}`);
     }
     if (rf.stop) lines.push(`refinement: ${rf.stop}${rf.reason ? ` (${rf.reason})` : ''}`);
   }
@@ -359,7 +360,7 @@ function stopText(rf) {
 function roundsTable(rounds) {
   const t = el('table', { class: 'rounds' });
   const head = el('tr');
-  for (const h of ['round', 'shot error %', 'error px', 'inliers', 'decision', 'correction (N, E, D) m', 'yaw °', 'pitch °', 'note']) head.append(el('th', {}, h));
+  for (const h of ['round', 'shot error %', 'error px', 'inliers', 'decision', 'correction (N, E, D) m', 'yaw °', 'pitch °', 'note', 'floor %']) head.append(el('th', {}, h));
   t.append(head);
   for (const r of rounds) {
     const tr = el('tr', { 'data-round': r.round });
@@ -374,6 +375,7 @@ function roundsTable(rounds) {
       el('td', {}, c ? fmt(c.yaw_step_deg, 2) : '–'),
       el('td', {}, c ? fmt(c.pitch_step_deg, 2) : '–'),
       el('td', { class: 'text' }, r.note || ''),
+      el('td', {}, fmt(r.floor_pct, 2)),
     );
     t.append(tr);
   }

@@ -435,15 +435,12 @@ pub struct ScenarioReport {
     pub wall_s: f64,
 }
 
-/// The quantile `q` (0..1, nearest rank) of the values, None when empty.
+/// The nearest-rank quantile `q` (0..1) of the finite values ([`crate::stats::quantile`]
+/// after dropping the infinities: a trial without a figure has no rank here),
+/// None when none is left.
 pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
-    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
-    Some(v[rank - 1])
+    let finite: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    crate::stats::quantile(&finite, q)
 }
 
 fn camera_of(c: &SimCamera) -> Result<Camera, crate::camera::CameraError> {
