@@ -228,7 +228,7 @@ mod tests {
     use super::*;
     use crate::camera::Distortion;
     use crate::features::KeyPoint;
-    use crate::slam::grid::FeatureGrid;
+    use crate::matching::FeatureGrid;
     use crate::slam::{KeyFrame, ScaleInfo};
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
