@@ -224,6 +224,8 @@ pub struct SimSection {
     pub gps_sigma_z_m: f64,
     /// Its correlation time, s.
     pub gps_tau_s: f64,
+    /// Seed of the bias's walk (unset: `seed`, so each world has its own).
+    pub gps_seed: Option<u64>,
 }
 
 impl Default for SimSection {
@@ -240,19 +242,20 @@ impl Default for SimSection {
             gps_sigma_xy_m: 0.0,
             gps_sigma_z_m: 0.0,
             gps_tau_s: 120.0,
+            gps_seed: None,
         }
     }
 }
 
 impl SimSection {
     /// The vehicle's GPS bias model these keys describe (its walk seeded
-    /// from `seed`, as the scenario seeds its own).
+    /// from `gps_seed`, else `seed`, mixed as the scenario mixes its own).
     pub fn gps_bias(&self) -> shotpilot_sim::vehicle::GpsBiasParams {
         shotpilot_sim::vehicle::GpsBiasParams {
             sigma_xy_m: self.gps_sigma_xy_m,
             sigma_z_m: self.gps_sigma_z_m,
             tau_s: self.gps_tau_s,
-            seed: self.seed ^ 0x00b1_a5ed,
+            seed: self.gps_seed.unwrap_or(self.seed) ^ 0x00b1_a5ed,
         }
     }
 }
