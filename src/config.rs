@@ -216,9 +216,10 @@ pub struct SimSection {
     /// Write the simulator's ground truth (camera trajectory, video frame
     /// poses) to this folder (relative to `server.data_dir`); unset: none.
     pub truth_dir: Option<PathBuf>,
-    /// GPS bias of the simulated vehicle (true position = reported position
-    /// + bias, a first-order Gauss-Markov process from zero, seeded from
-    /// `seed`): horizontal standard deviation per axis, m (0: no bias).
+    /// GPS bias of the simulated vehicle (the true position is the reported
+    /// one plus the bias, a first-order Gauss-Markov process from zero,
+    /// seeded from `gps_seed` or `seed`): horizontal standard deviation per
+    /// axis, m (0: no bias).
     pub gps_sigma_xy_m: f64,
     /// Its vertical standard deviation, m (0: none).
     pub gps_sigma_z_m: f64,

@@ -136,7 +136,7 @@ impl GpsBias {
     /// positive finite number).
     pub fn step(&mut self, dt: f64) {
         let p = self.params;
-        if !p.enabled() || !(dt.is_finite() && dt > 0.0) {
+        if !(p.enabled() && dt.is_finite() && dt > 0.0) {
             return;
         }
         let a = dt / p.tau_s;
