@@ -67,6 +67,10 @@ pub struct Config {
     /// `[geo]`: the georeference (time alignment and video latency,
     /// camera mounting, map → NED alignment).
     pub geo: crate::geo::Params,
+    /// `[refine]`: the closed loop after a shot's mission is started
+    /// (threshold, rounds, controller gains and steps, arrival rule,
+    /// waiting limits).
+    pub refine: RefineSection,
 }
 
 /// How video frames are fetched.
@@ -212,6 +216,17 @@ pub struct SimSection {
     /// Write the simulator's ground truth (camera trajectory, video frame
     /// poses) to this folder (relative to `server.data_dir`); unset: none.
     pub truth_dir: Option<PathBuf>,
+    /// GPS bias of the simulated vehicle (the true position is the reported
+    /// one plus the bias, a first-order Gauss-Markov process from zero,
+    /// seeded from `gps_seed` or `seed`): horizontal standard deviation per
+    /// axis, m (0: no bias).
+    pub gps_sigma_xy_m: f64,
+    /// Its vertical standard deviation, m (0: none).
+    pub gps_sigma_z_m: f64,
+    /// Its correlation time, s.
+    pub gps_tau_s: f64,
+    /// Seed of the bias's walk (unset: `seed`, so each world has its own).
+    pub gps_seed: Option<u64>,
 }
 
 impl Default for SimSection {
@@ -225,7 +240,168 @@ impl Default for SimSection {
             script: "explore".into(),
             flavour: "px4".into(),
             truth_dir: None,
+            gps_sigma_xy_m: 0.0,
+            gps_sigma_z_m: 0.0,
+            gps_tau_s: 120.0,
+            gps_seed: None,
         }
+    }
+}
+
+impl SimSection {
+    /// The vehicle's GPS bias model these keys describe (its walk seeded
+    /// from `gps_seed`, else `seed`, mixed as the scenario mixes its own).
+    pub fn gps_bias(&self) -> shotpilot_sim::vehicle::GpsBiasParams {
+        shotpilot_sim::vehicle::GpsBiasParams {
+            sigma_xy_m: self.gps_sigma_xy_m,
+            sigma_z_m: self.gps_sigma_z_m,
+            tau_s: self.gps_tau_s,
+            seed: self.gps_seed.unwrap_or(self.seed) ^ 0x00b1_a5ed,
+        }
+    }
+}
+
+/// `[refine]`: the daemon's refinement loop, mapped onto
+/// [`crate::daemon::refine_loop::Params`] by [`RefineSection::params`];
+/// numbers not listed here keep their defaults there.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RefineSection {
+    /// Stop when the shot error is below this, % of the image diagonal.
+    pub threshold_pct: f64,
+    /// Corrections uploaded at most after the first flight.
+    pub max_rounds: usize,
+    /// Fraction of the measured pose error the first correction removes,
+    /// in (0, 1].
+    pub gain: f64,
+    /// Fraction the later corrections remove, in (0, 1].
+    pub later_gain: f64,
+    /// Largest horizontal or vertical move of one correction, m.
+    pub max_step_m: f64,
+    /// Largest yaw or pitch change of one correction, degrees.
+    pub max_step_deg: f64,
+    /// Arrival: largest ground speed, m/s.
+    pub arrival_speed_m_s: f64,
+    /// Arrival: largest gap between reported and commanded gimbal pitch,
+    /// degrees.
+    pub arrival_gimbal_deg: f64,
+    /// Arrival: the conditions hold this long, s.
+    pub arrival_dwell_s: f64,
+    /// ORB features per image for the shot error.
+    pub error_features: usize,
+    /// Fewest homography inliers for a shot error.
+    pub error_min_inliers: usize,
+    /// Longest flight to one target before the loop gives up, s.
+    pub max_flight_s: f64,
+    /// Longest wait for a video frame received after the arrival, s.
+    pub frame_wait_s: f64,
+    /// Telemetry older than this counts as missing, s.
+    pub max_telemetry_age_s: f64,
+    /// Telemetry polling period, ms.
+    pub poll_ms: u64,
+}
+
+impl Default for RefineSection {
+    fn default() -> Self {
+        let p = crate::daemon::refine_loop::Params::default();
+        let c = &p.refine.controller;
+        let a = &p.refine.arrival;
+        let e = &p.refine.error;
+        Self {
+            threshold_pct: c.threshold_pct,
+            max_rounds: c.max_rounds,
+            gain: c.gain,
+            later_gain: c.later_gain,
+            max_step_m: c.max_step_m,
+            max_step_deg: c.max_step_deg,
+            arrival_speed_m_s: a.speed_m_s,
+            arrival_gimbal_deg: a.gimbal_deg,
+            arrival_dwell_s: a.dwell_s,
+            error_features: e.features.n_features,
+            error_min_inliers: e.homography.min_inliers,
+            max_flight_s: p.max_flight.as_secs_f64(),
+            frame_wait_s: p.frame_wait.as_secs_f64(),
+            max_telemetry_age_s: p.max_telemetry_age.as_secs_f64(),
+            poll_ms: u64::try_from(p.poll.as_millis()).unwrap_or(u64::MAX),
+        }
+    }
+}
+
+impl RefineSection {
+    /// The loop's parameters (call after [`Config::validate`]: durations
+    /// out of range are clamped, not refused, here).
+    pub fn params(&self) -> crate::daemon::refine_loop::Params {
+        let mut p = crate::daemon::refine_loop::Params::default();
+        let c = &mut p.refine.controller;
+        c.threshold_pct = self.threshold_pct;
+        c.max_rounds = self.max_rounds;
+        c.gain = self.gain;
+        c.later_gain = self.later_gain;
+        c.max_step_m = self.max_step_m;
+        c.max_step_deg = self.max_step_deg;
+        let a = &mut p.refine.arrival;
+        a.speed_m_s = self.arrival_speed_m_s;
+        a.gimbal_deg = self.arrival_gimbal_deg;
+        a.dwell_s = self.arrival_dwell_s;
+        let e = &mut p.refine.error;
+        e.features.n_features = self.error_features;
+        e.homography.min_inliers = self.error_min_inliers;
+        let secs = |s: f64| std::time::Duration::try_from_secs_f64(s).unwrap_or_default();
+        p.max_flight = secs(self.max_flight_s);
+        p.frame_wait = secs(self.frame_wait_s);
+        p.max_telemetry_age = secs(self.max_telemetry_age_s);
+        p.poll = std::time::Duration::from_millis(self.poll_ms);
+        p
+    }
+
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !(positive(self.threshold_pct) && self.threshold_pct < 100.0) {
+            return Err(("threshold_pct", "must be in (0, 100) %".into()));
+        }
+        if self.max_rounds > 100 {
+            return Err(("max_rounds", "must be at most 100".into()));
+        }
+        if !(positive(self.gain) && self.gain <= 1.0) {
+            return Err(("gain", "must be in (0, 1]".into()));
+        }
+        if !(positive(self.later_gain) && self.later_gain <= 1.0) {
+            return Err(("later_gain", "must be in (0, 1]".into()));
+        }
+        if !positive(self.max_step_m) {
+            return Err(("max_step_m", "must be finite and > 0 m".into()));
+        }
+        if !(positive(self.max_step_deg) && self.max_step_deg <= 180.0) {
+            return Err(("max_step_deg", "must be in (0, 180] deg".into()));
+        }
+        if !positive(self.arrival_speed_m_s) {
+            return Err(("arrival_speed_m_s", "must be finite and > 0 m/s".into()));
+        }
+        if !positive(self.arrival_gimbal_deg) {
+            return Err(("arrival_gimbal_deg", "must be finite and > 0 deg".into()));
+        }
+        if !(self.arrival_dwell_s.is_finite() && (0.0..=60.0).contains(&self.arrival_dwell_s)) {
+            return Err(("arrival_dwell_s", "must be in [0, 60] s".into()));
+        }
+        if !(100..=10_000).contains(&self.error_features) {
+            return Err(("error_features", "must be in [100, 10000]".into()));
+        }
+        if !(8..=1000).contains(&self.error_min_inliers) {
+            return Err(("error_min_inliers", "must be in [8, 1000]".into()));
+        }
+        for (key, v, max) in [
+            ("max_flight_s", self.max_flight_s, 3600.0),
+            ("frame_wait_s", self.frame_wait_s, 60.0),
+            ("max_telemetry_age_s", self.max_telemetry_age_s, 60.0),
+        ] {
+            if !(positive(v) && v <= max) {
+                return Err((key, format!("must be in (0, {max}] s")));
+            }
+        }
+        if !(10..=10_000).contains(&self.poll_ms) {
+            return Err(("poll_ms", "must be in [10, 10000] ms".into()));
+        }
+        Ok(())
     }
 }
 
@@ -391,6 +567,24 @@ impl Config {
             if !(self.sim.video_fps > 0.0 && self.sim.video_fps <= 120.0) {
                 return Err(invalid("sim", "video_fps", "must be in (0, 120]".into()));
             }
+            if let Err((field, reason)) = self.sim.gps_bias().check() {
+                return Err(invalid(
+                    "sim",
+                    match field {
+                        "sigma_xy_m" => "gps_sigma_xy_m",
+                        "sigma_z_m" => "gps_sigma_z_m",
+                        _ => "gps_tau_s",
+                    },
+                    reason.into(),
+                ));
+            }
+            if self.sim.gps_sigma_xy_m > 50.0 || self.sim.gps_sigma_z_m > 50.0 {
+                return Err(invalid(
+                    "sim",
+                    "gps_sigma_xy_m/gps_sigma_z_m",
+                    "at most 50 m".into(),
+                ));
+            }
         }
         self.link
             .url
@@ -449,6 +643,9 @@ impl Config {
                 ),
             ));
         }
+        self.refine
+            .validate()
+            .map_err(|(key, reason)| invalid("refine", key, reason))?;
         if self.mission.transfer.retry_timeout_ms == 0 {
             return Err(invalid(
                 "mission.transfer",
@@ -476,6 +673,62 @@ mod tests {
         assert_eq!(cfg.slam, SlamConfig::default());
         assert_eq!(cfg.sim, SimSection::default());
         assert_eq!(cfg.geo, crate::geo::Params::default());
+        assert_eq!(cfg.refine, RefineSection::default());
+        assert!(!cfg.sim.gps_bias().enabled());
+    }
+
+    #[test]
+    fn refine_section_maps_onto_the_loop_params() {
+        let d = crate::daemon::refine_loop::Params::default();
+        let p = RefineSection::default().params();
+        assert_eq!(p.refine, d.refine);
+        assert_eq!(
+            (p.poll, p.max_flight, p.max_telemetry_age, p.frame_wait),
+            (d.poll, d.max_flight, d.max_telemetry_age, d.frame_wait)
+        );
+        let cfg = Config::from_toml(
+            "[refine]\nthreshold_pct = 0.5\nmax_rounds = 6\nlater_gain = 0.7\narrival_dwell_s = 2.0\nerror_features = 2000\nmax_flight_s = 30.0\npoll_ms = 50\n",
+            Path::new("x.toml"),
+        )
+        .unwrap();
+        let p = cfg.refine.params();
+        assert_eq!(p.refine.controller.threshold_pct, 0.5);
+        assert_eq!(p.refine.controller.max_rounds, 6);
+        assert_eq!(p.refine.controller.later_gain, 0.7);
+        assert_eq!(p.refine.arrival.dwell_s, 2.0);
+        assert_eq!(p.refine.error.features.n_features, 2000);
+        assert_eq!(p.max_flight, std::time::Duration::from_secs(30));
+        assert_eq!(p.poll, std::time::Duration::from_millis(50));
+    }
+
+    #[test]
+    fn refine_and_gps_bias_keys_are_checked() {
+        for (text, needle) in [
+            ("[refine]\nthreshold_pct = 0.0\n", "[refine] threshold_pct"),
+            ("[refine]\ngain = 1.5\n", "[refine] gain"),
+            ("[refine]\nlater_gain = 0.0\n", "[refine] later_gain"),
+            ("[refine]\nmax_step_m = -1.0\n", "[refine] max_step_m"),
+            ("[refine]\nframe_wait_s = 0.0\n", "[refine] frame_wait_s"),
+            ("[refine]\npoll_ms = 0\n", "[refine] poll_ms"),
+            ("[refine]\nrounds = 3\n", "rounds"),
+            ("[sim]\ngps_sigma_xy_m = -1.0\n", "[sim] gps_sigma_xy_m"),
+            ("[sim]\ngps_sigma_z_m = nan\n", "[sim] gps_sigma_z_m"),
+            ("[sim]\ngps_tau_s = -5.0\n", "[sim] gps_tau_s"),
+            ("[sim]\ngps_sigma_xy_m = 80.0\n", "gps_sigma_xy_m"),
+        ] {
+            let e = Config::from_toml(text, Path::new("x.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(needle), "{text}: {e}");
+        }
+        let cfg = Config::from_toml(
+            "[sim]\nseed = 7\ngps_sigma_xy_m = 1.5\ngps_sigma_z_m = 0.5\ngps_tau_s = 60.0\n",
+            Path::new("x.toml"),
+        )
+        .unwrap();
+        let b = cfg.sim.gps_bias();
+        assert!(b.enabled());
+        assert_eq!((b.sigma_xy_m, b.sigma_z_m, b.tau_s), (1.5, 0.5, 60.0));
     }
 
     #[test]

@@ -148,6 +148,17 @@ impl SimConfig {
                 "must be 1-100",
             );
         }
+        if let Err((field, reason)) = self.autopilot.vehicle.gps_bias.check() {
+            let b = &self.autopilot.vehicle.gps_bias;
+            return bad(
+                "gps_bias",
+                format!(
+                    "{field} (sigma_xy_m {}, sigma_z_m {}, tau_s {})",
+                    b.sigma_xy_m, b.sigma_z_m, b.tau_s
+                ),
+                reason,
+            );
+        }
         for (name, p) in [
             ("drop up", self.radio.up.drop),
             ("drop down", self.radio.down.drop),
@@ -374,7 +385,9 @@ pub async fn run_with(
             if next_frame_t < t {
                 next_frame_t = t + frame_dt;
             }
-            let wfc = ap.vehicle().world_from_cam();
+            // The true pose (GPS bias included): what the camera films and
+            // what the truth files record.
+            let wfc = ap.vehicle().true_world_from_cam();
             let capture_time = unix_at_boot + t;
             if let Some(w) = &mut truth
                 && let Err(e) = w.write_pose(capture_time, &wfc)

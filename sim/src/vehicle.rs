@@ -14,8 +14,15 @@
 //! velocity loop asks for an acceleration (v_des - v) / tau, clamped to the
 //! acceleration limits, which is integrated. Roll and pitch are derived from
 //! the horizontal acceleration (tilt = atan(a / g)) for telemetry.
+//!
+//! GPS error: the position the controller flies and the autopilot reports
+//! ([`Vehicle::p_ned`]) is the vehicle's estimate. With a [`GpsBiasParams`]
+//! switched on, the vehicle truly stands at that position plus a bias
+//! ([`GpsBias`], a first-order Gauss-Markov process), and the camera films
+//! from the true pose ([`Vehicle::true_world_from_cam`]). Off by default.
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng, rngs::SmallRng};
 
 use crate::geodesy::{Geodetic, LocalFrame};
 
@@ -49,6 +56,116 @@ impl Default for GimbalParams {
     }
 }
 
+/// The GPS bias: true position = reported position + bias, each axis a
+/// first-order Gauss-Markov process (stationary standard deviation sigma,
+/// correlation time tau) starting at zero. The same model and step as the
+/// closed-loop scenario's disturbance (`shotpilot::refine::scenario`,
+/// which uses this type). Off (both sigmas zero) by default.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GpsBiasParams {
+    /// Horizontal standard deviation per axis (north, east), m.
+    pub sigma_xy_m: f64,
+    /// Vertical standard deviation, m.
+    pub sigma_z_m: f64,
+    /// Correlation time, s (0: the bias never moves from zero).
+    pub tau_s: f64,
+    /// Seed of the bias's random walk.
+    pub seed: u64,
+}
+
+impl Default for GpsBiasParams {
+    fn default() -> Self {
+        Self {
+            sigma_xy_m: 0.0,
+            sigma_z_m: 0.0,
+            tau_s: 120.0,
+            seed: 0,
+        }
+    }
+}
+
+impl GpsBiasParams {
+    /// True when the bias can move away from zero.
+    pub fn enabled(&self) -> bool {
+        (self.sigma_xy_m > 0.0 || self.sigma_z_m > 0.0) && self.tau_s > 0.0
+    }
+
+    /// Why these numbers are refused, if they are: the sigmas must be finite
+    /// and >= 0, tau finite and >= 0. Returns the field and the reason.
+    pub fn check(&self) -> Result<(), (&'static str, &'static str)> {
+        if !(self.sigma_xy_m.is_finite() && self.sigma_xy_m >= 0.0) {
+            return Err(("sigma_xy_m", "must be finite and >= 0 m"));
+        }
+        if !(self.sigma_z_m.is_finite() && self.sigma_z_m >= 0.0) {
+            return Err(("sigma_z_m", "must be finite and >= 0 m"));
+        }
+        if !(self.tau_s.is_finite() && self.tau_s >= 0.0) {
+            return Err(("tau_s", "must be finite and >= 0 s"));
+        }
+        Ok(())
+    }
+}
+
+/// A GPS bias drifting as a first-order Gauss-Markov process: each step of
+/// `dt` does `b += -b dt/tau + sigma sqrt(2 dt/tau) n` per axis with `n`
+/// standard normal (the Euler step of `db = -b/tau dt + sigma sqrt(2/tau)
+/// dW`, whose stationary deviation is sigma).
+#[derive(Debug, Clone)]
+pub struct GpsBias {
+    params: GpsBiasParams,
+    bias: Vector3<f64>,
+    rng: SmallRng,
+}
+
+impl GpsBias {
+    /// A bias at zero, its walk seeded by `params.seed`.
+    pub fn new(params: GpsBiasParams) -> Self {
+        Self {
+            params,
+            bias: Vector3::zeros(),
+            rng: SmallRng::seed_from_u64(params.seed),
+        }
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &GpsBiasParams {
+        &self.params
+    }
+
+    /// Advance by `dt` seconds (nothing when switched off or `dt` is not a
+    /// positive finite number).
+    pub fn step(&mut self, dt: f64) {
+        let p = self.params;
+        if !(p.enabled() && dt.is_finite() && dt > 0.0) {
+            return;
+        }
+        let a = dt / p.tau_s;
+        let k = (2.0 * a).sqrt();
+        let (gx, gy, gz) = (
+            gauss(&mut self.rng),
+            gauss(&mut self.rng),
+            gauss(&mut self.rng),
+        );
+        self.bias += Vector3::new(
+            -self.bias.x * a + p.sigma_xy_m * k * gx,
+            -self.bias.y * a + p.sigma_xy_m * k * gy,
+            -self.bias.z * a + p.sigma_z_m * k * gz,
+        );
+    }
+
+    /// The bias now (NED, m): true position = reported position + bias.
+    pub fn bias(&self) -> Vector3<f64> {
+        self.bias
+    }
+}
+
+/// A standard normal draw (Box-Muller).
+fn gauss(rng: &mut SmallRng) -> f64 {
+    let u1: f64 = rng.random_range(1e-12..1.0);
+    let u2: f64 = rng.random_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
 /// Every tunable number of the vehicle model.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct VehicleParams {
@@ -80,6 +197,8 @@ pub struct VehicleParams {
     pub camera_offset_body: [f64; 3],
     /// Gimbal limits.
     pub gimbal: GimbalParams,
+    /// GPS error (off by default).
+    pub gps_bias: GpsBiasParams,
 }
 
 impl Default for VehicleParams {
@@ -103,6 +222,7 @@ impl Default for VehicleParams {
             land_speed: 0.7,
             camera_offset_body: [0.10, 0.0, 0.08],
             gimbal: GimbalParams::default(),
+            gps_bias: GpsBiasParams::default(),
         }
     }
 }
@@ -152,6 +272,7 @@ pub struct Vehicle {
     gimbal_target_pitch: f64,
     gimbal_target_yaw: f64,
     gimbal_rate: (f64, f64),
+    gps_bias: GpsBias,
 }
 
 fn wrap_pi(a: f64) -> f64 {
@@ -196,6 +317,7 @@ impl Vehicle {
             gimbal_target_pitch: 0.0,
             gimbal_target_yaw: 0.0,
             gimbal_rate: (0.0, 0.0),
+            gps_bias: GpsBias::new(params.gps_bias),
         }
     }
 
@@ -332,6 +454,7 @@ impl Vehicle {
         self.gimbal_pitch = slew(self.gimbal_pitch, self.gimbal_target_pitch, step);
         self.gimbal_yaw = slew(self.gimbal_yaw, self.gimbal_target_yaw, step);
         self.gimbal_rate = ((self.gimbal_pitch - op) / dt, (self.gimbal_yaw - oy) / dt);
+        self.gps_bias.step(dt);
     }
 
     fn position_velocity(&self, target: &Vector3<f64>, max_speed: Option<f64>) -> Vector3<f64> {
@@ -361,9 +484,19 @@ impl Vehicle {
         v
     }
 
-    /// Position, local NED metres.
+    /// Position, local NED metres: what the controller flies and the
+    /// autopilot reports (the GPS solution; the true position adds
+    /// [`Self::gps_bias`]).
     pub fn p_ned(&self) -> Vector3<f64> {
         self.p_ned
+    }
+    /// The GPS bias now, NED metres (zero when switched off).
+    pub fn gps_bias(&self) -> Vector3<f64> {
+        self.gps_bias.bias()
+    }
+    /// Where the vehicle truly is: [`Self::p_ned`] plus the GPS bias.
+    pub fn true_p_ned(&self) -> Vector3<f64> {
+        self.p_ned + self.gps_bias.bias()
     }
     /// Velocity, local NED m/s.
     pub fn v_ned(&self) -> Vector3<f64> {
@@ -436,8 +569,9 @@ impl Vehicle {
         UnitQuaternion::from_euler_angles(0.0, self.gimbal_pitch, self.gimbal_yaw)
     }
 
-    /// Pose of the camera (x right, y down, z forward) in local NED: the
-    /// pose the renderer draws from.
+    /// Pose of the camera (x right, y down, z forward) in local NED where
+    /// the vehicle's GPS says it is (the true pose is
+    /// [`Self::true_world_from_cam`]).
     pub fn world_from_cam(&self) -> Isometry3<f64> {
         let r = self.world_from_gimbal_rotation()
             * UnitQuaternion::from_rotation_matrix(&body_from_cam_base());
@@ -447,7 +581,15 @@ impl Vehicle {
         Isometry3::from_parts(Translation3::from(t), r)
     }
 
-    /// Position in WGS84.
+    /// The camera's true pose (GPS bias included): the pose the renderer
+    /// draws from.
+    pub fn true_world_from_cam(&self) -> Isometry3<f64> {
+        let mut wfc = self.world_from_cam();
+        wfc.translation.vector += self.gps_bias.bias();
+        wfc
+    }
+
+    /// Position in WGS84, as the GPS reports it.
     pub fn geodetic(&self) -> Geodetic {
         self.frame.ned_to_geodetic(&self.p_ned)
     }
@@ -570,6 +712,96 @@ mod tests {
         v.step(0.05);
         let (roll, pitch) = v.roll_pitch();
         assert!(pitch < -0.2 && roll.abs() < 1e-9, "{roll} {pitch}");
+    }
+
+    #[test]
+    fn gps_bias_is_off_by_default_and_moves_the_true_camera_only() {
+        let mut v = Vehicle::new(VehicleParams::default());
+        v.teleport(Vector3::new(5.0, 0.0, -10.0), 0.0);
+        v.set_setpoint(Setpoint::Position {
+            p_ned: Vector3::new(5.0, 0.0, -10.0),
+            yaw: None,
+            max_speed: None,
+        });
+        run(&mut v, 30.0, 0.02, |_| {});
+        assert_eq!(v.gps_bias(), Vector3::zeros());
+        assert_eq!(v.true_world_from_cam(), v.world_from_cam());
+
+        let bias = GpsBiasParams {
+            sigma_xy_m: 1.5,
+            sigma_z_m: 0.5,
+            tau_s: 120.0,
+            seed: 3,
+        };
+        let mut v = Vehicle::new(VehicleParams {
+            gps_bias: bias,
+            ..Default::default()
+        });
+        v.teleport(Vector3::new(5.0, 0.0, -10.0), 0.0);
+        v.set_setpoint(Setpoint::Position {
+            p_ned: Vector3::new(5.0, 0.0, -10.0),
+            yaw: None,
+            max_speed: None,
+        });
+        run(&mut v, 30.0, 0.02, |_| {});
+        // The controller holds the reported position; the camera is off by
+        // the bias, which has moved from zero.
+        assert!((v.p_ned() - Vector3::new(5.0, 0.0, -10.0)).norm() < 1e-3);
+        let b = v.gps_bias();
+        assert!(b.xy().norm() > 0.05, "{b}");
+        let d = v.true_world_from_cam().translation.vector - v.world_from_cam().translation.vector;
+        assert!((d - b).norm() < 1e-12);
+        assert!((v.true_p_ned() - v.p_ned() - b).norm() < 1e-12);
+        // Same seed, same walk.
+        let mut a = GpsBias::new(bias);
+        let mut c = GpsBias::new(bias);
+        for _ in 0..100 {
+            a.step(0.02);
+            c.step(0.02);
+        }
+        assert_eq!(a.bias(), c.bias());
+    }
+
+    #[test]
+    fn gps_bias_has_the_gauss_markov_deviation_and_correlation_time() {
+        let p = GpsBiasParams {
+            sigma_xy_m: 1.5,
+            sigma_z_m: 0.5,
+            tau_s: 10.0,
+            seed: 11,
+        };
+        let mut b = GpsBias::new(p);
+        let dt = 0.05;
+        // Burn in 10 tau, then sample every second for 2000 tau (about
+        // 1000 independent samples per axis: the deviation's standard error
+        // is about 2 %).
+        for _ in 0..(100.0 / dt) as usize {
+            b.step(dt);
+        }
+        let mut xs = Vec::new();
+        for _ in 0..20_000 {
+            for _ in 0..(1.0 / dt).round() as usize {
+                b.step(dt);
+            }
+            xs.push(b.bias());
+        }
+        let n = xs.len() as f64;
+        let sd = |f: &dyn Fn(&Vector3<f64>) -> f64| {
+            (xs.iter().map(|x| f(x).powi(2)).sum::<f64>() / n).sqrt()
+        };
+        let (sx, sy, sz) = (sd(&|x| x.x), sd(&|x| x.y), sd(&|x| x.z));
+        assert!((sx / 1.5 - 1.0).abs() < 0.1, "{sx}");
+        assert!((sy / 1.5 - 1.0).abs() < 0.1, "{sy}");
+        assert!((sz / 0.5 - 1.0).abs() < 0.1, "{sz}");
+        // Correlation at a lag of tau (10 samples): exp(-1) = 0.37.
+        let lag = 10;
+        let c: f64 = xs
+            .iter()
+            .zip(&xs[lag..])
+            .map(|(a, b)| a.x * b.x + a.y * b.y)
+            .sum::<f64>()
+            / ((n - lag as f64) * (sx * sx + sy * sy));
+        assert!((c - (-1f64).exp()).abs() < 0.06, "{c}");
     }
 
     #[test]

@@ -134,6 +134,10 @@ fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimCo
         script,
         autopilot: shotpilot_sim::autopilot::AutopilotParams {
             flavour,
+            vehicle: shotpilot_sim::vehicle::VehicleParams {
+                gps_bias: s.gps_bias(),
+                ..defaults.autopilot.vehicle
+            },
             ..defaults.autopilot.clone()
         },
         capture_dir: data_dir.join("captures"),
@@ -239,7 +243,7 @@ pub async fn run(
             link: link.clone(),
             plan: cfg.mission.plan,
             actions: actions.clone(),
-            params: Default::default(),
+            params: cfg.refine.params(),
             pictures: Default::default(),
         },
         cancel.child_token(),

@@ -25,7 +25,7 @@ use std::time::Instant;
 use image::GrayImage;
 use mavlink::MavHeader;
 use mavlink::dialects::common::{MavMessage, MavMissionType};
-use nalgebra::{Isometry3, Point2, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point2, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 use serde::Serialize;
 
@@ -33,6 +33,7 @@ use shotpilot_sim::autopilot::{Autopilot, AutopilotParams, Mode};
 use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::script::{Level, Script, ScriptKind, ScriptParams};
+use shotpilot_sim::vehicle::GpsBiasParams;
 use shotpilot_sim::world::{World, WorldParams};
 
 use super::{
@@ -107,7 +108,8 @@ impl Default for SteadyParams {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Disturbances {
     /// GPS bias (the vehicle stands at its reported position plus this
-    /// bias, which drifts as a first-order Gauss-Markov process):
+    /// bias, which drifts as a first-order Gauss-Markov process starting at
+    /// zero; the simulator's [`shotpilot_sim::vehicle::GpsBias`]):
     /// horizontal standard deviation per axis, m.
     pub gps_sigma_xy_m: f64,
     /// Its vertical standard deviation, m.
@@ -479,9 +481,6 @@ struct Sim {
     fence: plan::Fence,
     fence_ok: bool,
     disturb: Disturbances,
-    /// The GPS bias now: true position = reported position + bias.
-    bias: Vector3<f64>,
-    rng: SmallRng,
 }
 
 impl Sim {
@@ -532,24 +531,9 @@ impl Sim {
                 _ => {}
             }
         }
-        let d = &self.disturb;
-        if d.gps_tau_s > 0.0 {
-            let a = self.dt / d.gps_tau_s;
-            let k = (2.0 * a).sqrt();
-            let (gx, gy, gz) = (
-                gauss(&mut self.rng),
-                gauss(&mut self.rng),
-                gauss(&mut self.rng),
-            );
-            self.bias += Vector3::new(
-                -self.bias.x * a + d.gps_sigma_xy_m * k * gx,
-                -self.bias.y * a + d.gps_sigma_xy_m * k * gy,
-                -self.bias.z * a + d.gps_sigma_z_m * k * gz,
-            );
-        }
         let v = self.ap.vehicle();
         if !v.landed() {
-            let p = v.p_ned() + self.bias;
+            let p = v.true_p_ned();
             let alt = -p.z;
             if p.xy().norm() > self.fence.radius_m || alt > self.fence.max_alt_m {
                 self.fence_ok = false;
@@ -557,9 +541,10 @@ impl Sim {
         }
     }
 
-    /// The camera pose the vehicle really has (bias and misalignment included).
+    /// The camera pose the vehicle really has (GPS bias, which the
+    /// simulator's vehicle carries, and misalignment included).
     fn true_camera(&self) -> Isometry3<f64> {
-        let nominal = self.ap.vehicle().world_from_cam();
+        let nominal = self.ap.vehicle().true_world_from_cam();
         let d = &self.disturb;
         let rotation = UnitQuaternion::from_axis_angle(
             &Vector3::z_axis(),
@@ -570,10 +555,7 @@ impl Sim {
                 &Vector3::x_axis(),
                 -d.gimbal_pitch_offset_deg.to_radians(),
             );
-        Isometry3::from_parts(
-            Translation3::from(nominal.translation.vector + self.bias),
-            rotation,
-        )
+        Isometry3::from_parts(nominal.translation, rotation)
     }
 
     fn render(&mut self) -> GrayImage {
@@ -784,12 +766,6 @@ fn hover_state(p_ned: Vector3<f64>, yaw: f64, pitch: f64) -> VehicleState {
         ned_from_body: nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
         gimbal: GimbalAngles { pitch, yaw: 0.0 },
     }
-}
-
-fn gauss(rng: &mut SmallRng) -> f64 {
-    let u1: f64 = rng.random_range(1e-12..1.0);
-    let u2: f64 = rng.random_range(0.0..1.0);
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
 fn sym(rng: &mut SmallRng, r: f64) -> f64 {
@@ -1094,7 +1070,19 @@ pub fn run(
         SimCamera::default(),
         RenderParams::default(),
     );
-    let ap_params = AutopilotParams::default();
+    let mut ap_params = AutopilotParams::default();
+    // The GPS bias is the simulator vehicle's own model (true position =
+    // reported position + bias), seeded from the scenario's seed.
+    let d = &params.disturbances;
+    ap_params.vehicle.gps_bias = GpsBiasParams {
+        sigma_xy_m: d.gps_sigma_xy_m,
+        sigma_z_m: d.gps_sigma_z_m,
+        tau_s: d.gps_tau_s,
+        seed: params.seed ^ 0x00b1_a5ed,
+    };
+    if let Err((name, reason)) = ap_params.vehicle.gps_bias.check() {
+        return Err(ScenarioError::InvalidParams { name, reason });
+    }
     let h = ap_params.vehicle.home;
     let mut sim = Sim {
         ap: Autopilot::new(ap_params, 0.0),
@@ -1113,8 +1101,6 @@ pub fn run(
         fence: params.plan.fence,
         fence_ok: true,
         disturb: params.disturbances.clone(),
-        bias: Vector3::zeros(),
-        rng: SmallRng::seed_from_u64(params.seed ^ 0x00b1_a5ed),
     };
     let ex = explore(&mut sim, params)?;
     let mut rng = SmallRng::seed_from_u64(params.seed ^ 0x7e57_5407);

@@ -166,7 +166,8 @@ pub struct CaptureRequest {
     pub time_boot_s: f64,
     /// Capture time, Unix seconds.
     pub time_unix_s: f64,
-    /// Camera pose for the renderer (local NED).
+    /// Camera pose for the renderer (local NED): the true one, GPS bias
+    /// included.
     pub world_from_cam: Isometry3<f64>,
     /// Camera position.
     pub geodetic: Geodetic,
@@ -836,7 +837,9 @@ impl Autopilot {
 
     fn capture_now(&mut self) {
         let g = self.vehicle.geodetic();
-        let wfc = self.vehicle.world_from_cam();
+        // The picture is taken from where the camera truly is; the position
+        // reported with it is the GPS's.
+        let wfc = self.vehicle.true_world_from_cam();
         let q = self.vehicle.world_from_gimbal_rotation();
         self.captures.push(CaptureRequest {
             index: self.next_image_index,
