@@ -14,7 +14,7 @@
 
 mod daemon_support;
 
-use daemon_support::{TOKEN, free_tcp_port, free_udp_port, get_json};
+use daemon_support::{TOKEN, get_json};
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -22,7 +22,6 @@ use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
 use shotpilot::api::store::{Localisation, MissionRecord, PoseJson, Shot, ShotSource, ShotStore};
-use shotpilot::config::Config;
 use shotpilot::daemon::refine_service::record_abort;
 use shotpilot::mission::plan::Target;
 use shotpilot::refine::{Correction, Decision, RoundRecord};
@@ -216,15 +215,7 @@ fn operator_page_in_headless_chromium() {
     // A damaged map file: the daemon starts a fresh map, keeps the file
     // aside, and the page says so.
     std::fs::write(dir.path().join("data/map.spmap"), b"not a map").unwrap();
-    let video_port = free_tcp_port();
-    let mav_port = free_udp_port();
-    let mut cfg = Config::default();
-    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
-    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
-    cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
-    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
-    cfg.server.bind = "127.0.0.1:0".into();
-    cfg.server.token = Some(TOKEN.into());
+    let cfg = daemon_support::sim_config();
     cfg.validate(Path::new("test")).unwrap();
 
     let rt = tokio::runtime::Builder::new_multi_thread()

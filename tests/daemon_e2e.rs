@@ -8,7 +8,7 @@
 
 mod daemon_support;
 
-use daemon_support::{free_tcp_port, free_udp_port, get_json, http, request};
+use daemon_support::{get_json, http, request};
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
@@ -16,7 +16,6 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
-use shotpilot::config::Config;
 use tokio_util::sync::CancellationToken;
 
 /// POST a PNG image; returns status and body.
@@ -40,15 +39,7 @@ fn centre_distance(shot: &Value, kf: &Value) -> f64 {
 #[test]
 fn daemon_with_simulator_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
-    let video_port = free_tcp_port();
-    let mav_port = free_udp_port();
-    let mut cfg = Config::default();
-    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
-    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
-    cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
-    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
-    cfg.server.bind = "127.0.0.1:0".into();
-    cfg.server.token = Some("e2e".into());
+    let cfg = daemon_support::sim_config();
     cfg.validate(Path::new("test")).unwrap();
     let cam_cfg = cfg.camera.clone();
 

@@ -20,7 +20,7 @@
 
 mod daemon_support;
 
-use daemon_support::{free_tcp_port, free_udp_port, get_json, http, request};
+use daemon_support::{get_json, http, request};
 
 use std::net::SocketAddr;
 use std::path::Path;
@@ -261,15 +261,7 @@ struct Running {
 
 fn start(tweak: impl FnOnce(&mut Config)) -> Running {
     let dir = tempfile::tempdir().unwrap();
-    let video_port = free_tcp_port();
-    let mav_port = free_udp_port();
-    let mut cfg = Config::default();
-    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
-    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
-    cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
-    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
-    cfg.server.bind = "127.0.0.1:0".into();
-    cfg.server.token = Some("e2e".into());
+    let mut cfg = daemon_support::sim_config();
     cfg.sim.truth_dir = Some("truth".into());
     // Another world and flight, to reproduce the figures over seeds.
     if let Some(seed) = std::env::var("SHOTPILOT_REFINE_SEED")

@@ -9,7 +9,7 @@
 
 mod daemon_support;
 
-use daemon_support::{free_tcp_port, free_udp_port, get_json, http, request};
+use daemon_support::{get_json, http, request};
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -18,7 +18,6 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use serde_json::{Value, json};
-use shotpilot::config::Config;
 use tokio_util::sync::CancellationToken;
 
 /// A daemon running on its own runtime.
@@ -31,15 +30,7 @@ struct Running {
 }
 
 fn start(base: &Path) -> Running {
-    let video_port = free_tcp_port();
-    let mav_port = free_udp_port();
-    let mut cfg = Config::default();
-    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
-    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
-    cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
-    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
-    cfg.server.bind = "127.0.0.1:0".into();
-    cfg.server.token = Some(daemon_support::TOKEN.into());
+    let cfg = daemon_support::sim_config();
     assert!(cfg.slam.continue_map, "continuing is the default");
     cfg.validate(Path::new("test")).unwrap();
     let rt = tokio::runtime::Builder::new_multi_thread()

@@ -16,6 +16,23 @@ pub const TOKEN: &str = "e2e";
 mod ports;
 pub use ports::{free_tcp_port, free_udp_port};
 
+/// The daemon's configuration for a test: the in-process simulator's
+/// video and MAVLink on fresh local ports, the API on an OS-chosen port,
+/// [`TOKEN`] as the bearer token. Validated by the caller after its own
+/// changes.
+pub fn sim_config() -> shotpilot::config::Config {
+    let video_port = free_tcp_port();
+    let mav_port = free_udp_port();
+    let mut cfg = shotpilot::config::Config::default();
+    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
+    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
+    cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
+    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
+    cfg.server.bind = "127.0.0.1:0".into();
+    cfg.server.token = Some(TOKEN.into());
+    cfg
+}
+
 /// One request with [`TOKEN`] as bearer token (a daemon without a token
 /// ignores it); returns the status and the body. The daemon's answers are
 /// never chunked.
