@@ -26,7 +26,7 @@ use std::net::SocketAddr;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use nalgebra::{Isometry3, Point2, Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point2, UnitQuaternion, Vector3};
 use serde_json::{Value, json};
 use shotpilot::camera::{Camera, Distortion};
 use shotpilot::config::Config;
@@ -35,26 +35,9 @@ use shotpilot::refine::pose_difference;
 use tokio_util::sync::CancellationToken;
 
 /// The simulator's truth: capture time (unix s) and true camera pose (NED at home) of each video frame.
+/// The simulator's per-frame truth so far (empty until its file exists).
 fn read_truth(dir: &Path) -> Vec<(f64, Isometry3<f64>)> {
-    let text = std::fs::read_to_string(dir.join("frames.txt")).unwrap_or_default();
-    text.lines()
-        .filter(|l| !l.starts_with('#'))
-        .filter_map(|l| {
-            let v: Vec<f64> = l
-                .split_whitespace()
-                .filter_map(|x| x.parse().ok())
-                .collect();
-            (v.len() == 9).then(|| {
-                (
-                    v[1],
-                    Isometry3::from_parts(
-                        Translation3::new(v[2], v[3], v[4]),
-                        UnitQuaternion::from_quaternion(Quaternion::new(v[8], v[5], v[6], v[7])),
-                    ),
-                )
-            })
-        })
-        .collect()
+    shotpilot_sim::dataset::read_truth_frames(&dir.join("frames.txt")).unwrap_or_default()
 }
 
 fn truth_at(truth: &[(f64, Isometry3<f64>)], t: f64) -> Option<Isometry3<f64>> {

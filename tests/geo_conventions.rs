@@ -3,8 +3,8 @@
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use shotpilot::geo::{
-    AlignQuality, GeoAlignment, GeoError, Geodetic, GimbalAngles, LocalFrame, MountParams,
-    VehicleState, convert_target, ned_from_cam, target_from_ned,
+    GeoAlignment, GeoError, Geodetic, GimbalAngles, LocalFrame, MountParams, VehicleState,
+    convert_target, ned_from_cam, target_from_ned,
 };
 use shotpilot::geometry::Sim3;
 
@@ -142,20 +142,7 @@ fn map_to_ned_to_wgs84_to_ned_round_trips() {
         Vector3::new(40.0, -25.0, -12.0),
         7.5,
     );
-    let alignment = GeoAlignment {
-        ned_from_map,
-        quality: AlignQuality {
-            rms_m: 0.0,
-            max_residual_m: 0.0,
-            rotation_rms_deg: None,
-            time_offset_s: None,
-            pairs: 0,
-            inliers: 0,
-            iterations: 0,
-            spread_m2: [0.0; 3],
-        },
-        inlier_ids: vec![],
-    };
+    let alignment = GeoAlignment::given(ned_from_map);
     let mut worst_m: f64 = 0.0;
     let mut worst_deg: f64 = 0.0;
     for i in 0..50 {

@@ -31,37 +31,15 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3, Quaternion, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 use serde_json::Value;
 use shotpilot::config::Config;
 use shotpilot::geo::{LeverArmFrame, TelemetryClock};
 use shotpilot::geometry::umeyama;
+use shotpilot_sim::dataset::read_truth_frames;
 use shotpilot_sim::geodesy::{Geodetic as SimGeodetic, LocalFrame as SimFrame};
 use tokio_util::sync::CancellationToken;
-
-/// Lines `seq t tx ty tz qx qy qz qw` of the simulator's `frames.txt`.
-fn read_truth_frames(path: &Path) -> Vec<(f64, Isometry3<f64>)> {
-    let text = std::fs::read_to_string(path).unwrap();
-    text.lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .filter_map(|l| {
-            let v: Vec<f64> = l
-                .split_whitespace()
-                .filter_map(|x| x.parse().ok())
-                .collect();
-            (v.len() == 9).then(|| {
-                (
-                    v[1],
-                    Isometry3::from_parts(
-                        Translation3::new(v[2], v[3], v[4]),
-                        UnitQuaternion::from_quaternion(Quaternion::new(v[8], v[5], v[6], v[7])),
-                    ),
-                )
-            })
-        })
-        .collect()
-}
 
 /// Forwards the simulator's MAVLink datagrams to the daemon, each after
 /// `delay ± jitter/2` (uniform), and the daemon's back at once.
@@ -284,7 +262,7 @@ fn fly(stress: Option<f64>, flight_s: Option<f64>) -> Run {
         translation: Vector3::new(t[0], t[1], t[2]),
         scale,
     };
-    let truth = read_truth_frames(&dir.path().join("data/truth/frames.txt"));
+    let truth = read_truth_frames(&dir.path().join("data/truth/frames.txt")).unwrap();
     assert!(truth.len() > 100);
 
     // Keyframes against the truth at their capture times (exact when the

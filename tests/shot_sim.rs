@@ -29,7 +29,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use shotpilot::bow::Vocabulary;
-use shotpilot::camera::{Camera, Distortion};
+use shotpilot::camera::Camera;
 use shotpilot::geometry::{Sim3, umeyama};
 use shotpilot::shot::{self, BowIndex, Localization};
 use shotpilot::slam::{self, KeyFrameId, Map, Slam, mapfile};
@@ -66,18 +66,7 @@ fn sim_camera(width: u32, height: u32) -> SimCamera {
 }
 
 fn map_camera(c: &SimCamera) -> anyhow::Result<Camera> {
-    Ok(Camera::new(
-        c.width,
-        c.height,
-        [c.fx, c.fy, c.cx, c.cy],
-        Distortion {
-            k1: c.k1,
-            k2: c.k2,
-            p1: c.p1,
-            p2: c.p2,
-            k3: c.k3,
-        },
-    )?)
+    Ok(Camera::from_sim(c)?)
 }
 
 /// The world, the renderer and the explore path.

@@ -21,7 +21,7 @@ use std::time::Instant;
 use nalgebra::Isometry3;
 
 use crate::camera::{CameraError, SimCamera};
-use crate::paths::{CameraPath, Params as PathParams, PathError, PathSpec, tum_line};
+use crate::paths::{CameraPath, Params as PathParams, PathError, PathSpec, parse_tum, tum_line};
 use crate::render::{RenderParams, Renderer};
 use crate::world::World;
 
@@ -315,6 +315,30 @@ impl TruthWriter {
     }
 }
 
+/// Reads a `frames.txt` written by [`TruthWriter::write_frame`]: each video
+/// frame's capture time (unix seconds) and camera pose (`world_from_cam`),
+/// in the order written. Errors name the file and line, as [`parse_tum`].
+pub fn read_truth_frames(path: &Path) -> Result<Vec<(f64, Isometry3<f64>)>, PathError> {
+    let text = std::fs::read_to_string(path).map_err(|source| PathError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    // Drop each line's leading sequence number; comments and line numbers stay.
+    let tum: Vec<&str> = text
+        .lines()
+        .map(|l| {
+            let l = l.trim();
+            if l.starts_with('#') {
+                l
+            } else {
+                l.split_once(char::is_whitespace)
+                    .map_or("", |(_, rest)| rest)
+            }
+        })
+        .collect();
+    parse_tum(&tum.join("\n"), path)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -451,5 +475,10 @@ mod tests {
             last.starts_with("7 1700000000.500000 1.000000 2.000000 -30.000000"),
             "{last}"
         );
+        let back = read_truth_frames(&dir.path().join("truth/frames.txt")).unwrap();
+        assert_eq!(back.len(), 1);
+        assert!((back[0].0 - 1_700_000_000.5).abs() < 1e-6);
+        assert!((back[0].1.translation.vector - a.translation.vector).norm() < 1e-5);
+        assert!(back[0].1.rotation.angle_to(&a.rotation) < 1e-5);
     }
 }

@@ -332,8 +332,7 @@ impl GeoService {
     pub fn status(&self) -> Value {
         let st = self.lock();
         let georef = st.geo.georeference();
-        let mut delays: Vec<f64> = st.video_delay_ms.iter().copied().collect();
-        delays.sort_by(f64::total_cmp);
+        let delays: Vec<f64> = st.video_delay_ms.iter().copied().collect();
         let (positions, attitudes, gimbals) = st.geo.history().len();
         let mut v = json!({
             "home": st.home.map(|h| json!({
@@ -349,7 +348,7 @@ impl GeoService {
                 "boot_offset_unix_s": st.clock.offset_s,
                 "use_frame_timestamps": self.params.history.use_frame_timestamps,
                 "video_latency_s": self.params.history.video_latency_s,
-                "video_delay_ms_median": delays.get(delays.len() / 2),
+                "video_delay_ms_median": crate::stats::median(&delays),
                 "video_delay_ms_mean_all": (st.video_delay_sum_ms.1 > 0)
                     .then(|| st.video_delay_sum_ms.0 / st.video_delay_sum_ms.1 as f64),
             },

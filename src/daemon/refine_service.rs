@@ -84,7 +84,7 @@ pub fn record_abort(mission: &mut MissionRecord, reason: &str) {
 mod tests {
     use super::*;
     use crate::camera::{Camera, Distortion};
-    use crate::geo::{AlignQuality, GeoAlignment, Geodetic, LocalFrame, MountParams};
+    use crate::geo::{GeoAlignment, Geodetic, LocalFrame, MountParams};
     use crate::geometry::Sim3;
     use crate::mission::plan::{Fence, Home, Target};
     use crate::refine::{Context, Params, Step, Stop};
@@ -116,20 +116,7 @@ mod tests {
         let mut s = Session::new(blank.clone(), None, Isometry3::identity(), target, params);
         let camera = Camera::new(64, 48, [50.0, 50.0, 32.0, 24.0], Distortion::default()).unwrap();
         let map = Map::new(camera, ScaleInfo::new(1.2, 8));
-        let alignment = GeoAlignment {
-            ned_from_map: Sim3::identity(),
-            quality: AlignQuality {
-                rms_m: 0.0,
-                max_residual_m: 0.0,
-                rotation_rms_deg: None,
-                time_offset_s: None,
-                pairs: 0,
-                inliers: 0,
-                iterations: 0,
-                spread_m2: [0.0; 3],
-            },
-            inlier_ids: Vec::new(),
-        };
+        let alignment = GeoAlignment::given(Sim3::identity());
         let frame = LocalFrame::new(Geodetic {
             lat_deg: 47.0,
             lon_deg: 8.0,

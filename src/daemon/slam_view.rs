@@ -489,12 +489,8 @@ impl SlamShared {
 
     /// Median of recent capture-to-pose latencies, ms.
     fn latency_median(g: &Inner) -> Option<f64> {
-        if g.latencies_ms.is_empty() {
-            return None;
-        }
-        let mut v: Vec<f64> = g.latencies_ms.iter().copied().collect();
-        v.sort_by(f64::total_cmp);
-        Some(v[v.len() / 2])
+        let v: Vec<f64> = g.latencies_ms.iter().copied().collect();
+        crate::stats::median(&v)
     }
 }
 

@@ -198,6 +198,26 @@ pub struct GeoAlignment {
 }
 
 impl GeoAlignment {
+    /// An alignment known rather than fitted (the simulator's truth, a
+    /// test's chosen transform): `ned_from_map` with a zero-residual,
+    /// zero-pair quality and no inlier keyframes.
+    pub fn given(ned_from_map: Sim3) -> Self {
+        Self {
+            ned_from_map,
+            quality: AlignQuality {
+                rms_m: 0.0,
+                max_residual_m: 0.0,
+                rotation_rms_deg: None,
+                time_offset_s: None,
+                pairs: 0,
+                inliers: 0,
+                iterations: 0,
+                spread_m2: [0.0; 3],
+            },
+            inlier_ids: Vec::new(),
+        }
+    }
+
     /// A camera pose in the map (`map ← cam`) as a camera pose in NED.
     pub fn ned_from_cam(&self, map_from_cam: &Isometry3<f64>) -> Isometry3<f64> {
         let s = &self.ned_from_map;

@@ -228,7 +228,7 @@ pub fn correct(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geo::{AlignQuality, GimbalAngles, VehicleState, ned_from_cam};
+    use crate::geo::{GimbalAngles, VehicleState, ned_from_cam};
     use crate::geometry::Sim3;
     use nalgebra::{Point3, Translation3, UnitQuaternion};
 
@@ -247,20 +247,7 @@ mod tests {
     }
 
     fn alignment(ned_from_map: Sim3) -> GeoAlignment {
-        GeoAlignment {
-            ned_from_map,
-            quality: AlignQuality {
-                rms_m: 0.0,
-                max_residual_m: 0.0,
-                rotation_rms_deg: None,
-                time_offset_s: None,
-                pairs: 0,
-                inliers: 0,
-                iterations: 0,
-                spread_m2: [0.0; 3],
-            },
-            inlier_ids: Vec::new(),
-        }
+        GeoAlignment::given(ned_from_map)
     }
 
     /// The camera pose (NED) of a vehicle hovering exactly at `target`.

@@ -247,7 +247,6 @@ pub fn corner_error(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::Distortion;
     use crate::shot::warp_perspective;
     use nalgebra::{Point3, UnitQuaternion};
     use shotpilot_sim::camera::SimCamera;
@@ -262,19 +261,7 @@ mod tests {
     }
 
     fn camera_of(c: &SimCamera) -> Camera {
-        Camera::new(
-            c.width,
-            c.height,
-            [c.fx, c.fy, c.cx, c.cy],
-            Distortion {
-                k1: c.k1,
-                k2: c.k2,
-                p1: c.p1,
-                p2: c.p2,
-                k3: c.k3,
-            },
-        )
-        .unwrap()
+        Camera::from_sim(c).unwrap()
     }
 
     fn view() -> Isometry3<f64> {

@@ -40,7 +40,7 @@ use super::{
     ArrivalDetector, ArrivalParams, Context, Params, RoundRecord, Session, Step, Stop,
     pose_difference,
 };
-use crate::camera::{Camera, Distortion};
+use crate::camera::Camera;
 use crate::geo::{
     self, GeoAlignment, Geodetic, GimbalAngles, LeverArmFrame, LocalFrame, MountParams,
     VehicleState, convert_target, ned_from_cam,
@@ -446,18 +446,7 @@ pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
 }
 
 fn camera_of(c: &SimCamera) -> Result<Camera, crate::camera::CameraError> {
-    Camera::new(
-        c.width,
-        c.height,
-        [c.fx, c.fy, c.cx, c.cy],
-        Distortion {
-            k1: c.k1,
-            k2: c.k2,
-            p1: c.p1,
-            p2: c.p2,
-            k3: c.k3,
-        },
-    )
+    Camera::from_sim(c)
 }
 
 const GCS: MavHeader = MavHeader {

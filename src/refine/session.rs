@@ -377,7 +377,7 @@ fn reproducible_pose(
 mod tests {
     use super::*;
     use crate::camera::Distortion;
-    use crate::geo::{AlignQuality, Geodetic};
+    use crate::geo::Geodetic;
     use crate::geometry::Sim3;
     use crate::refine::ControllerParams;
     use crate::slam::ScaleInfo;
@@ -420,20 +420,7 @@ mod tests {
             desired: r.render_noisy(&pose, 1),
             turned: r.render_noisy(&turned, 2),
             map: Map::new(camera, ScaleInfo::new(1.2, 8)),
-            alignment: GeoAlignment {
-                ned_from_map: Sim3::identity(),
-                quality: AlignQuality {
-                    rms_m: 0.0,
-                    max_residual_m: 0.0,
-                    rotation_rms_deg: None,
-                    time_offset_s: None,
-                    pairs: 0,
-                    inliers: 0,
-                    iterations: 0,
-                    spread_m2: [0.0; 3],
-                },
-                inlier_ids: Vec::new(),
-            },
+            alignment: GeoAlignment::given(Sim3::identity()),
             frame: LocalFrame::new(Geodetic {
                 lat_deg: home.lat_deg,
                 lon_deg: home.lon_deg,
