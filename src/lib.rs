@@ -57,6 +57,7 @@ pub mod eval;
 pub mod features;
 pub mod geo;
 pub mod geometry;
+pub mod lie;
 pub mod matching;
 pub mod mission;
 pub mod optimize;

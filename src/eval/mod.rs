@@ -67,7 +67,7 @@ impl Default for Params {
 }
 
 /// The alignment applied to the estimate: `p -> scale * rotation * p + translation`.
-pub use crate::geometry::Sim3 as Similarity;
+pub use crate::lie::Sim3 as Similarity;
 
 /// Umeyama's least-squares alignment `dst ~ s R src + t` (Umeyama 1991),
 /// through [`crate::geometry::umeyama`]; with `with_scale` false, `s` = 1.
