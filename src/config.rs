@@ -87,10 +87,32 @@ pub enum VideoSource {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct VideoConfig {
-    /// `mjpeg` or `snapshot`.
+    /// For `http://` URLs: `mjpeg` or `snapshot`.
     pub source: VideoSource,
-    /// The stream or snapshot URL (plain http://).
+    /// Where the video comes from: `rtsp://[user:pass@]host[:port]/path`
+    /// (H.264), `udp://HOST:PORT` (raw RTP H.264, e.g. `udp://0.0.0.0:5600`),
+    /// a path to an `.sdp` file, `http://` (MJPEG stream or JPEG
+    /// snapshots, per `source`), or `auto` (the URL the vehicle's camera
+    /// announces over MAVLink in VIDEO_STREAM_INFORMATION).
     pub url: String,
+    /// RTSP transport for RTP: `tcp` (interleaved, default) or `udp`.
+    pub transport: crate::video::source::RtspTransport,
+    /// RTSP user name, when the URL carries none.
+    pub username: Option<String>,
+    /// RTSP password, when the URL carries none.
+    pub password: Option<String>,
+    /// `auto`: the MAVLink component asked for VIDEO_STREAM_INFORMATION
+    /// (100: MAV_COMP_ID_CAMERA).
+    pub camera_component: u8,
+    /// `auto`: how long to wait for the vehicle and its camera's answer, s
+    /// (asking again each second).
+    pub auto_timeout_s: f64,
+    /// H.264: access units queued ahead of the decoder before the oldest
+    /// are dropped and decoding resumes at the next key frame.
+    pub decode_queue: usize,
+    /// H.264: decimate the decoded picture by this integer factor before
+    /// SLAM (1: full resolution); the camera intrinsics are scaled to match.
+    pub downscale: u32,
     /// Snapshot polling rate, Hz.
     pub snapshot_hz: f64,
     /// Connect timeout, ms.
@@ -111,6 +133,13 @@ impl Default for VideoConfig {
         Self {
             source: VideoSource::Mjpeg,
             url: "http://127.0.0.1:8554/video.mjpg".into(),
+            transport: Default::default(),
+            username: None,
+            password: None,
+            camera_component: 100,
+            auto_timeout_s: 30.0,
+            decode_queue: 8,
+            downscale: 1,
             snapshot_hz: 5.0,
             connect_timeout_ms: p.connect_timeout_ms,
             read_timeout_ms: p.read_timeout_ms,
@@ -131,6 +160,23 @@ impl VideoConfig {
             reconnect_max_ms: self.reconnect_max_ms,
             max_part_bytes: self.max_frame_bytes,
             ..Default::default()
+        }
+    }
+
+    /// The H.264 sources' tunables.
+    pub fn h264_params(&self) -> crate::video::source::H264Params {
+        crate::video::source::H264Params {
+            transport: self.transport,
+            username: self.username.clone(),
+            password: self.password.clone(),
+            connect_timeout_ms: self.connect_timeout_ms,
+            read_timeout_ms: self.read_timeout_ms,
+            reconnect_min_ms: self.reconnect_min_ms,
+            reconnect_max_ms: self.reconnect_max_ms,
+            decode: crate::video::h264::DecodeParams {
+                queue: self.decode_queue,
+                downscale: self.downscale,
+            },
         }
     }
 }
@@ -515,8 +561,25 @@ impl Config {
                 key,
                 reason,
             };
-        crate::video::mjpeg::HttpUrl::parse(&self.video.url)
+        let url = crate::video::source::VideoUrl::parse(&self.video.url)
             .map_err(|e| invalid("video", "url", e.to_string()))?;
+        if let crate::video::source::VideoUrl::Http(u) = &url {
+            crate::video::mjpeg::HttpUrl::parse(u)
+                .map_err(|e| invalid("video", "url", e.to_string()))?;
+        }
+        if !(1..=8).contains(&self.video.downscale) {
+            return Err(invalid("video", "downscale", "must be 1 to 8".into()));
+        }
+        if self.video.decode_queue == 0 {
+            return Err(invalid(
+                "video",
+                "decode_queue",
+                "must be at least 1".into(),
+            ));
+        }
+        if !(self.video.auto_timeout_s > 0.0 && self.video.auto_timeout_s.is_finite()) {
+            return Err(invalid("video", "auto_timeout_s", "must be > 0".into()));
+        }
         if !(self.video.snapshot_hz > 0.0 && self.video.snapshot_hz <= 200.0) {
             return Err(invalid(
                 "video",
@@ -735,7 +798,9 @@ mod tests {
     fn daemon_sections_refuse_bad_values() {
         for (text, needle) in [
             ("[server]\nbind = \"nowhere\"\n", "bind"),
-            ("[video]\nurl = \"rtsp://cam/x\"\n", "url"),
+            ("[video]\nurl = \"ftp://cam/x\"\n", "url"),
+            ("[video]\nurl = \"udp://cam:5600\"\n", "url"),
+            ("[video]\ndownscale = 0\n", "downscale"),
             ("[sim]\nscript = \"loop\"\n", "script"),
             ("[server]\ntoken = \"\"\n", "token"),
             ("[server]\nport = 1\n", "port"),

@@ -523,13 +523,14 @@ async fn video_mjpeg(State(st): State<AppState>) -> Response {
         }
         let frame = rx.borrow_and_update().clone();
         let frame = frame?;
+        let jpeg = frame.jpeg();
         let mut part = format!(
             "--{RESERVE_BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {}\r\nX-Timestamp: {:.6}\r\n\r\n",
-            frame.jpeg.len(),
+            jpeg.len(),
             frame.timestamp()
         )
         .into_bytes();
-        part.extend_from_slice(&frame.jpeg);
+        part.extend_from_slice(&jpeg);
         part.extend_from_slice(b"\r\n");
         Some((
             Ok::<_, std::convert::Infallible>(Bytes::from(part)),
@@ -557,7 +558,7 @@ async fn snapshot(State(st): State<AppState>) -> Result<Response, ApiError> {
             "no frame received yet",
         )
     })?;
-    Ok(jpeg_response(f.jpeg.as_ref().clone()))
+    Ok(jpeg_response(f.jpeg().as_ref().clone()))
 }
 
 fn jpeg_response(bytes: Vec<u8>) -> Response {

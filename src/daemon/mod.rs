@@ -35,7 +35,7 @@ use tokio_util::sync::CancellationToken;
 use crate::api::shots::WarpOnly;
 use crate::api::store::ShotStore;
 use crate::api::{self, ApiParams, AppState, SlamView, VehicleView};
-use crate::config::{Config, VideoSource};
+use crate::config::Config;
 use crate::video::live::{Closed, Frame, Ingest, unix_now};
 use crate::video::mjpeg;
 pub use slam_view::{FrameProcessor, ProcessOutcome, SlamShared};
@@ -79,6 +79,9 @@ pub enum DaemonError {
     /// The video URL is unusable.
     #[error(transparent)]
     Video(#[from] mjpeg::MjpegError),
+    /// The video source is unusable.
+    #[error(transparent)]
+    VideoSource(#[from] crate::video::source::SourceError),
 }
 
 /// What the daemon reports when it stops.
@@ -183,20 +186,26 @@ pub async fn run(
             source,
         })?;
     let video_cancel = cancel.child_token();
-    let vparams = cfg.video.params();
-    mjpeg::HttpUrl::parse(&cfg.video.url)?;
+    // The source by `[video] url` (`auto` waits for the link below).
+    let video_url = crate::video::source::VideoUrl::parse(&cfg.video.url)?;
+    if let crate::video::source::VideoUrl::Http(u) = &video_url {
+        mjpeg::HttpUrl::parse(u)?;
+    }
+    let (link_for_video, link_rx) = oneshot::channel();
     let reader = {
-        let (url, ing, c) = (cfg.video.url.clone(), ingest.clone(), video_cancel.clone());
-        let (source, hz) = (cfg.video.source, cfg.video.snapshot_hz);
+        let (vcfg, ing, c) = (cfg.video.clone(), ingest.clone(), video_cancel.clone());
         tokio::spawn(async move {
-            let r = match source {
-                VideoSource::Mjpeg => mjpeg::run_mjpeg(&url, &vparams, ing, c).await,
-                VideoSource::Snapshot => mjpeg::run_snapshots(&url, hz, &vparams, ing, c).await,
-            };
-            if let Err(e) = r {
+            if let Err(e) = crate::video::source::run_configured(vcfg, ing, c, Some(link_rx)).await
+            {
                 tracing::error!("video: {e}");
             }
         })
+    };
+    // H.264 pictures decimated for SLAM: the intrinsics follow.
+    let camera = if matches!(video_url, crate::video::source::VideoUrl::Http(_)) {
+        camera
+    } else {
+        crate::video::source::decimated_camera(&camera, cfg.video.downscale)
     };
 
     // SLAM thread.
@@ -225,6 +234,7 @@ pub async fn run(
     let (link, link_task) =
         crate::vehicle::spawn(cfg.link.clone(), cfg.mission.transfer, link_cancel.clone())
             .map_err(|e| DaemonError::Link(e.to_string()))?;
+    let _ = link_for_video.send(link.clone());
     // The georeference worker: telemetry and keyframes in.
     let geo_task = tokio::spawn(geo.clone().run(
         link.telemetry.clone(),

@@ -60,6 +60,7 @@ pub fn spawn(
     let home = watch::channel(None);
     let gimbal = watch::channel(None);
     let progress = watch::channel(None);
+    let video_streams = watch::channel(Vec::new());
     let handle = LinkHandle {
         tx: cmd_tx,
         telemetry: Telemetry {
@@ -70,6 +71,7 @@ pub fn spawn(
             home: home.1,
             gimbal: gimbal.1,
             progress: progress.1,
+            video_streams: video_streams.1,
         },
     };
     let version = if params.mavlink1 {
@@ -100,6 +102,7 @@ pub fn spawn(
         home: home.0,
         gimbal: gimbal.0,
         progress: progress.0,
+        video_streams: video_streams.0,
         transfer: None,
         command: None,
         next_heartbeat: now,
@@ -400,6 +403,7 @@ struct Actor {
     home: watch::Sender<Option<Stamped<HomePosition>>>,
     gimbal: watch::Sender<Option<Stamped<GimbalAttitude>>>,
     progress: watch::Sender<Option<Stamped<MissionProgress>>>,
+    video_streams: watch::Sender<Vec<super::VideoStreamInfo>>,
     transfer: Option<Transfer>,
     command: Option<PendingCommand>,
     next_heartbeat: Instant,
@@ -656,6 +660,15 @@ impl Actor {
             }
             MavMessage::COMMAND_ACK(a) => {
                 self.on_command_ack(a.command, a.result, a.target_system, now)
+            }
+            MavMessage::VIDEO_STREAM_INFORMATION(d) => {
+                let info = video_stream_info(h.component_id, d);
+                self.video_streams.send_modify(|v| {
+                    v.retain(|x| {
+                        (x.component_id, x.stream_id) != (info.component_id, info.stream_id)
+                    });
+                    v.push(info);
+                });
             }
             _ => {}
         }
@@ -1056,6 +1069,31 @@ impl Actor {
                 info!("operator: start mission");
                 self.start_command(MavCmd::MAV_CMD_MISSION_START, [0.0, 0.0, 0.0], reply, now);
             }
+            Command::RequestMessage {
+                message_id,
+                target_component,
+                reply,
+            } => match self.peers() {
+                Some((peers, _)) => {
+                    self.out.push(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                        param1: message_id as f32,
+                        param2: 0.0,
+                        param3: 0.0,
+                        param4: 0.0,
+                        param5: 0.0,
+                        param6: 0.0,
+                        param7: 0.0,
+                        command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
+                        target_system: peers.target_system,
+                        target_component,
+                        confirmation: 0,
+                    }));
+                    let _ = reply.send(Ok(()));
+                }
+                None => {
+                    let _ = reply.send(Err(LinkError::NoVehicle));
+                }
+            },
         }
         self.flush().await;
     }
@@ -1095,5 +1133,41 @@ impl Actor {
             deadline: now + Duration::from_millis(self.params.command_timeout_ms),
             reply,
         });
+    }
+}
+
+fn video_stream_info(
+    component_id: u8,
+    d: &mavlink::dialects::common::VIDEO_STREAM_INFORMATION_DATA,
+) -> super::VideoStreamInfo {
+    use mavlink::dialects::common::{VideoStreamEncoding as E, VideoStreamType as T};
+    let text = |b: &[u8]| {
+        let end = b.iter().position(|&c| c == 0).unwrap_or(b.len());
+        String::from_utf8_lossy(&b[..end]).trim().to_owned()
+    };
+    super::VideoStreamInfo {
+        component_id,
+        stream_id: d.stream_id,
+        count: d.count,
+        kind: match d.mavtype {
+            T::VIDEO_STREAM_TYPE_RTSP => "rtsp",
+            T::VIDEO_STREAM_TYPE_RTPUDP => "rtpudp",
+            T::VIDEO_STREAM_TYPE_TCP_MPEG => "tcp_mpeg",
+            T::VIDEO_STREAM_TYPE_MPEG_TS => "mpeg_ts",
+            T::VIDEO_STREAM_TYPE_WHEP => "whep",
+        }
+        .into(),
+        encoding: match d.encoding {
+            E::VIDEO_STREAM_ENCODING_H264 => "h264",
+            E::VIDEO_STREAM_ENCODING_H265 => "h265",
+            E::VIDEO_STREAM_ENCODING_UNKNOWN => "unknown",
+        }
+        .into(),
+        name: text(&d.name[..]),
+        uri: text(&d.uri[..]),
+        framerate: d.framerate,
+        width: d.resolution_h,
+        height: d.resolution_v,
+        bitrate: d.bitrate,
     }
 }

@@ -333,6 +333,36 @@ pub struct Telemetry {
     pub gimbal: watch::Receiver<Option<Stamped<GimbalAttitude>>>,
     /// Mission progress.
     pub progress: watch::Receiver<Option<Stamped<MissionProgress>>>,
+    /// VIDEO_STREAM_INFORMATION from the vehicle's camera, newest last
+    /// (one entry per stream id).
+    pub video_streams: watch::Receiver<Vec<VideoStreamInfo>>,
+}
+
+/// A video stream a camera component announced (VIDEO_STREAM_INFORMATION).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct VideoStreamInfo {
+    /// The component that sent it (100 for a MAVLink camera).
+    pub component_id: u8,
+    /// Stream id (1-based).
+    pub stream_id: u8,
+    /// Streams the camera has.
+    pub count: u8,
+    /// `rtsp`, `rtpudp`, `tcp_mpeg`, `mpeg_ts` or `whep`.
+    pub kind: String,
+    /// `h264`, `h265` or `unknown`.
+    pub encoding: String,
+    /// The stream's name.
+    pub name: String,
+    /// The stream's URI as sent.
+    pub uri: String,
+    /// Frames per second.
+    pub framerate: f32,
+    /// Horizontal resolution, pixels.
+    pub width: u16,
+    /// Vertical resolution, pixels.
+    pub height: u16,
+    /// Bit rate, bit/s.
+    pub bitrate: u32,
 }
 
 /// A request to the link actor; each carries its reply channel.
@@ -371,6 +401,17 @@ pub enum Command {
     },
     /// MAV_CMD_MISSION_START. Operator action only.
     StartMission {
+        /// The outcome.
+        reply: oneshot::Sender<Result<(), LinkError>>,
+    },
+    /// MAV_CMD_REQUEST_MESSAGE to one component of the vehicle's system
+    /// (sent once; the answer arrives on the telemetry channels). Replies
+    /// once sent.
+    RequestMessage {
+        /// The message id wanted.
+        message_id: u32,
+        /// The component asked (100: the camera).
+        target_component: u8,
         /// The outcome.
         reply: oneshot::Sender<Result<(), LinkError>>,
     },
@@ -426,6 +467,21 @@ impl LinkHandle {
     /// Starts the uploaded mission (operator action).
     pub async fn start_mission(&self) -> Result<(), LinkError> {
         self.call(|reply| Command::StartMission { reply }).await
+    }
+
+    /// Asks `target_component` of the vehicle's system for one message
+    /// (MAV_CMD_REQUEST_MESSAGE); the answer arrives on the telemetry.
+    pub async fn request_message(
+        &self,
+        message_id: u32,
+        target_component: u8,
+    ) -> Result<(), LinkError> {
+        self.call(|reply| Command::RequestMessage {
+            message_id,
+            target_component,
+            reply,
+        })
+        .await
     }
 
     /// Waits until a vehicle heartbeat has been heard and the link is up.

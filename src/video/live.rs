@@ -9,7 +9,7 @@
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use image::GrayImage;
@@ -138,16 +138,53 @@ pub struct Frame {
     pub received: Instant,
     /// The same instant as unix seconds.
     pub received_unix: f64,
-    /// The JPEG as received (re-served by the API without re-encoding).
-    pub jpeg: Arc<Vec<u8>>,
     /// The grey image.
     pub image: Arc<GrayImage>,
+    /// The JPEG the API re-serves: as received for MJPEG, encoded from the
+    /// grey image on first use for H.264.
+    jpeg: OnceLock<Arc<Vec<u8>>>,
 }
 
 impl Frame {
+    /// A frame decoded from a source that sends no JPEG (H.264): the JPEG
+    /// is encoded from `image` when somebody asks for it.
+    pub fn from_image(
+        seq: u64,
+        capture_time: Option<f64>,
+        received: Instant,
+        received_unix: f64,
+        image: Arc<GrayImage>,
+    ) -> Self {
+        Self {
+            seq,
+            capture_time,
+            received,
+            received_unix,
+            image,
+            jpeg: OnceLock::new(),
+        }
+    }
+
     /// The best timestamp: the capture time, else the receive time.
     pub fn timestamp(&self) -> f64 {
         self.capture_time.unwrap_or(self.received_unix)
+    }
+
+    /// The frame as a JPEG: the bytes received for MJPEG sources (no
+    /// re-encoding), else the grey image encoded once (quality 85) and
+    /// kept for every later caller.
+    pub fn jpeg(&self) -> Arc<Vec<u8>> {
+        self.jpeg
+            .get_or_init(|| {
+                let mut out = Vec::new();
+                if let Err(e) = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 85)
+                    .encode_image(self.image.as_ref())
+                {
+                    tracing::warn!("cannot encode frame {} as JPEG: {e}", self.seq);
+                }
+                Arc::new(out)
+            })
+            .clone()
     }
 }
 
@@ -180,6 +217,17 @@ pub struct Counters {
     pub errors: AtomicU64,
     /// Bytes read from the network.
     pub bytes: AtomicU64,
+    /// H.264 access units not decoded because an earlier packet was lost
+    /// or a slice was broken: skipped until the next IDR or recovery point,
+    /// so no smeared frame reaches SLAM.
+    pub skipped: AtomicU64,
+    /// RTP packets lost (sequence-number gaps).
+    pub lost_packets: AtomicU64,
+    /// H.264 access units dropped because the decoder fell behind the
+    /// stream (the decoder then resumes at the next sync point).
+    pub late: AtomicU64,
+    /// Frames refused (a resolution other than the stream's first).
+    pub refused: AtomicU64,
 }
 
 /// A copy of the counters at one moment.
@@ -205,6 +253,14 @@ pub struct CountersSnapshot {
     pub errors: u64,
     /// See [`Counters::bytes`].
     pub bytes: u64,
+    /// See [`Counters::skipped`].
+    pub skipped: u64,
+    /// See [`Counters::lost_packets`].
+    pub lost_packets: u64,
+    /// See [`Counters::late`].
+    pub late: u64,
+    /// See [`Counters::refused`].
+    pub refused: u64,
 }
 
 impl Counters {
@@ -224,11 +280,96 @@ impl Counters {
             connects: l(&self.connects),
             errors: l(&self.errors),
             bytes: l(&self.bytes),
+            skipped: l(&self.skipped),
+            lost_packets: l(&self.lost_packets),
+            late: l(&self.late),
+            refused: l(&self.refused),
         }
     }
 
     pub(crate) fn inc(a: &AtomicU64) {
         a.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub(crate) fn add(a: &AtomicU64, n: u64) {
+        a.fetch_add(n, Ordering::Relaxed);
+    }
+}
+
+/// What the video source is, for the status and the log.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct SourceInfo {
+    /// `mjpeg`, `snapshot`, `rtsp` or `rtp`.
+    pub kind: String,
+    /// The URL with any password removed.
+    pub url: String,
+    /// `jpeg` or `h264` once known.
+    pub codec: Option<String>,
+    /// RTSP transport (`tcp` or `udp`).
+    pub transport: Option<String>,
+    /// The stream's resolution once a frame was decoded.
+    pub width: Option<u32>,
+    /// See `width`.
+    pub height: Option<u32>,
+    /// Whether the source is connected (RTSP playing, UDP packets arriving,
+    /// HTTP stream open).
+    pub connected: bool,
+    /// The last error, as the operator should read it.
+    pub last_error: Option<String>,
+}
+
+/// Bytes per second over a sliding window.
+#[derive(Debug)]
+pub struct ByteRate {
+    window: Duration,
+    samples: Mutex<VecDeque<(Instant, u64)>>,
+}
+
+impl ByteRate {
+    /// A meter over `window`.
+    pub fn new(window: Duration) -> Self {
+        Self {
+            window,
+            samples: Mutex::new(VecDeque::new()),
+        }
+    }
+
+    /// Record `n` bytes arriving now.
+    pub fn add(&self, n: u64) {
+        let now = Instant::now();
+        let mut s = self.samples.lock().unwrap_or_else(|e| e.into_inner());
+        s.push_back((now, n));
+        while s
+            .front()
+            .is_some_and(|f| now.duration_since(f.0) > self.window)
+        {
+            s.pop_front();
+        }
+    }
+
+    /// Bits per second over the window (0 with fewer than two samples).
+    pub fn bits_per_second(&self) -> f64 {
+        let now = Instant::now();
+        let mut s = self.samples.lock().unwrap_or_else(|e| e.into_inner());
+        while s
+            .front()
+            .is_some_and(|f| now.duration_since(f.0) > self.window)
+        {
+            s.pop_front();
+        }
+        match (s.front(), s.back()) {
+            (Some(a), Some(b)) if s.len() >= 2 => {
+                let span = b.0.duration_since(a.0).as_secs_f64();
+                // The first sample's bytes arrived before the span began.
+                let bytes: u64 = s.iter().skip(1).map(|x| x.1).sum();
+                if span > 0.0 {
+                    bytes as f64 * 8.0 / span
+                } else {
+                    0.0
+                }
+            }
+            _ => 0.0,
+        }
     }
 }
 
@@ -301,6 +442,10 @@ pub struct Ingest {
     pub decoded_rate: RateMeter,
     /// Consumed frames per second.
     pub consumed_rate: RateMeter,
+    /// Received video bytes per second.
+    pub byte_rate: ByteRate,
+    /// What the source is (set by the reader).
+    pub source: Mutex<SourceInfo>,
     observers: watch::Sender<Option<Arc<Frame>>>,
 }
 
@@ -321,6 +466,8 @@ impl Ingest {
             received_rate: RateMeter::new(w),
             decoded_rate: RateMeter::new(w),
             consumed_rate: RateMeter::new(w),
+            byte_rate: ByteRate::new(w),
+            source: Mutex::new(SourceInfo::default()),
             observers: watch::channel(None).0,
         }
     }
@@ -329,6 +476,7 @@ impl Ingest {
     pub fn push_raw(&self, part: RawPart) {
         Counters::inc(&self.counters.received);
         self.received_rate.tick();
+        self.byte_rate.add(part.jpeg.len() as u64);
         if self.raw.put(part) {
             Counters::inc(&self.counters.dropped_undecoded);
         }
@@ -355,6 +503,29 @@ impl Ingest {
         self.observers.subscribe()
     }
 
+    /// Change the source description.
+    pub fn update_source(&self, f: impl FnOnce(&mut SourceInfo)) {
+        f(&mut self.source.lock().unwrap_or_else(|e| e.into_inner()));
+    }
+
+    /// A copy of the source description.
+    pub fn source_info(&self) -> SourceInfo {
+        self.source
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// Publish a decoded frame to SLAM and the observers.
+    pub fn publish(&self, frame: Arc<Frame>) {
+        Counters::inc(&self.counters.decoded);
+        self.decoded_rate.tick();
+        if self.frames.put(frame.clone()) {
+            Counters::inc(&self.counters.dropped_unconsumed);
+        }
+        self.observers.send_replace(Some(frame));
+    }
+
     /// Close both slots: the decoder and the consumer stop.
     pub fn close(&self) {
         self.raw.close();
@@ -370,15 +541,10 @@ impl Ingest {
                     capture_time: part.capture_time,
                     received: part.received,
                     received_unix: part.received_unix,
-                    jpeg: part.jpeg.clone(),
                     image: Arc::new(img.to_luma8()),
+                    jpeg: OnceLock::from(part.jpeg.clone()),
                 });
-                Counters::inc(&self.counters.decoded);
-                self.decoded_rate.tick();
-                if self.frames.put(frame.clone()) {
-                    Counters::inc(&self.counters.dropped_unconsumed);
-                }
-                self.observers.send_replace(Some(frame));
+                self.publish(frame);
                 true
             }
             Err(e) => {

@@ -1,0 +1,715 @@
+//! The video source chosen by `[video] url`: `http://` MJPEG or snapshots
+//! ([`crate::video::mjpeg`]), `rtsp://` H.264 ([`crate::video::rtsp`]),
+//! `udp://HOST:PORT` raw RTP H.264 or an SDP file describing it
+//! ([`crate::video::udp`]), or `auto`: the URL the vehicle's camera
+//! announces in `VIDEO_STREAM_INFORMATION`.
+//!
+//! [`run_h264`] runs an H.264 source: the network reader (RTSP or UDP)
+//! assembles access units into a short queue, a dedicated thread decodes
+//! them ([`crate::video::h264`]) into the ingest's newest-frame slot.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::AtomicU64;
+use std::time::Duration;
+
+use tokio_util::sync::CancellationToken;
+
+use crate::video::h264::{self, AuQueue, DecodeParams, H264Error};
+use crate::video::live::Ingest;
+use crate::video::rtp::sdp::SdpError;
+
+/// Errors choosing or running a video source.
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    /// The URL names no source shotpilot can read.
+    #[error("video url {url:?}: {reason}")]
+    BadUrl {
+        /// The URL (password removed).
+        url: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The SDP file could not be read.
+    #[error("cannot read the SDP file {path}: {reason}")]
+    ReadSdp {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        reason: String,
+    },
+    /// The SDP file is malformed.
+    #[error("SDP file {path}: {source}")]
+    Sdp {
+        /// The file.
+        path: PathBuf,
+        /// The parse error.
+        #[source]
+        source: SdpError,
+    },
+    /// The stream's codec cannot be decoded.
+    #[error(transparent)]
+    Codec(#[from] H264Error),
+    /// The UDP port could not be bound.
+    #[error("cannot listen for RTP on {addr}: {reason}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The OS error.
+        reason: String,
+    },
+    /// A thread could not be started.
+    #[error("cannot start the H.264 decode thread: {0}")]
+    Thread(String),
+    /// `auto` found no stream.
+    #[error("auto: {reason}")]
+    Auto {
+        /// What happened.
+        reason: String,
+    },
+}
+
+/// RTSP's RTP transport.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RtspTransport {
+    /// RTP interleaved in the RTSP TCP connection (works through NAT and
+    /// firewalls; the default).
+    #[default]
+    Tcp,
+    /// RTP over separate UDP ports (lower latency on a clean LAN).
+    Udp,
+}
+
+/// A parsed `[video] url`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum VideoUrl {
+    /// `http://`: MJPEG stream or JPEG snapshots (per `[video] source`).
+    Http(String),
+    /// `rtsp://` (credentials removed from the URL and kept apart).
+    Rtsp {
+        /// The URL without user information.
+        url: String,
+        /// User name from the URL.
+        username: Option<String>,
+        /// Password from the URL.
+        password: Option<String>,
+    },
+    /// `udp://HOST:PORT`: raw RTP H.264 arriving on this local address
+    /// (`HOST` may be a multicast group, or empty for all interfaces).
+    Udp {
+        /// Where to listen.
+        bind: SocketAddr,
+    },
+    /// An SDP file describing a raw RTP stream (`file:///x.sdp` or a path
+    /// ending in `.sdp`).
+    Sdp {
+        /// The file.
+        path: PathBuf,
+    },
+    /// Ask the vehicle's camera over MAVLink.
+    Auto,
+}
+
+fn percent_decode(s: &str) -> String {
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%'
+            && i + 2 < b.len()
+            && let Ok(v) =
+                u8::from_str_radix(std::str::from_utf8(&b[i + 1..i + 3]).unwrap_or("zz"), 16)
+        {
+            out.push(v);
+            i += 3;
+            continue;
+        }
+        out.push(b[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+impl VideoUrl {
+    /// Parse `[video] url`.
+    pub fn parse(raw: &str) -> Result<Self, SourceError> {
+        let s = raw.trim();
+        let bad = |reason: &str| SourceError::BadUrl {
+            url: redact(s),
+            reason: reason.to_owned(),
+        };
+        let lower = s.to_ascii_lowercase();
+        if lower == "auto" {
+            return Ok(Self::Auto);
+        }
+        if lower.starts_with("http://") {
+            return Ok(Self::Http(s.to_owned()));
+        }
+        if lower.starts_with("https://") {
+            return Err(bad(
+                "https is not supported; cameras serve MJPEG over plain http://",
+            ));
+        }
+        if lower.starts_with("rtsps://") {
+            return Err(bad("rtsps (RTSP over TLS) is not supported; use rtsp://"));
+        }
+        if lower.starts_with("rtsp://") {
+            let rest = &s[7..];
+            let (authority, path) = match rest.find('/') {
+                Some(i) => (&rest[..i], &rest[i..]),
+                None => (rest, "/"),
+            };
+            let (userinfo, host) = match authority.rfind('@') {
+                Some(i) => (Some(&authority[..i]), &authority[i + 1..]),
+                None => (None, authority),
+            };
+            if host.is_empty() {
+                return Err(bad("no host"));
+            }
+            let url = format!("rtsp://{host}{path}");
+            url::Url::parse(&url).map_err(|e| bad(&e.to_string()))?;
+            let (username, password) = match userinfo {
+                None => (None, None),
+                Some(u) => match u.split_once(':') {
+                    Some((n, p)) => (Some(percent_decode(n)), Some(percent_decode(p))),
+                    None => (Some(percent_decode(u)), None),
+                },
+            };
+            return Ok(Self::Rtsp {
+                url,
+                username,
+                password,
+            });
+        }
+        if lower.starts_with("udp://") {
+            let hostport = s[6..].trim_end_matches('/');
+            let hostport = hostport.strip_prefix('@').unwrap_or(hostport);
+            let (host, port) = hostport
+                .rsplit_once(':')
+                .ok_or_else(|| bad("udp:// needs HOST:PORT (e.g. udp://0.0.0.0:5600)"))?;
+            let host = host.trim_start_matches('[').trim_end_matches(']');
+            let host = if host.is_empty() { "0.0.0.0" } else { host };
+            let port: u16 = port.parse().map_err(|_| bad("bad port"))?;
+            let ip: std::net::IpAddr = host
+                .parse()
+                .map_err(|_| bad("udp:// needs a numeric local or multicast address"))?;
+            return Ok(Self::Udp {
+                bind: SocketAddr::new(ip, port),
+            });
+        }
+        if let Some(p) = s.strip_prefix("file://") {
+            return Ok(Self::Sdp {
+                path: PathBuf::from(p),
+            });
+        }
+        if lower.ends_with(".sdp") {
+            return Ok(Self::Sdp {
+                path: PathBuf::from(s),
+            });
+        }
+        Err(bad(
+            "expected rtsp://, udp://HOST:PORT, an .sdp file, http:// (MJPEG or snapshots) or auto",
+        ))
+    }
+
+    /// The URL as logged and shown (password removed).
+    pub fn display(&self) -> String {
+        match self {
+            Self::Http(u) => redact(u),
+            Self::Rtsp { url, username, .. } => match username {
+                Some(u) => url.replacen("rtsp://", &format!("rtsp://{u}@"), 1),
+                None => url.clone(),
+            },
+            Self::Udp { bind } => format!("udp://{bind}"),
+            Self::Sdp { path } => path.display().to_string(),
+            Self::Auto => "auto".into(),
+        }
+    }
+}
+
+/// `url` with the password of its user information replaced by `***`.
+pub fn redact(url: &str) -> String {
+    let Some(scheme_end) = url.find("://") else {
+        return url.to_owned();
+    };
+    let rest = &url[scheme_end + 3..];
+    let auth_end = rest.find('/').unwrap_or(rest.len());
+    let authority = &rest[..auth_end];
+    match authority.rfind('@') {
+        Some(at) => {
+            let user = authority[..at].split(':').next().unwrap_or("");
+            format!("{}{}:***@{}", &url[..scheme_end + 3], user, &rest[at + 1..])
+        }
+        None => url.to_owned(),
+    }
+}
+
+/// Tunables of the H.264 sources.
+#[derive(Debug, Clone, PartialEq)]
+pub struct H264Params {
+    /// RTSP transport.
+    pub transport: RtspTransport,
+    /// RTSP user name when the URL has none.
+    pub username: Option<String>,
+    /// RTSP password when the URL has none.
+    pub password: Option<String>,
+    /// Connect (and RTSP setup) timeout, ms.
+    pub connect_timeout_ms: u64,
+    /// A stream silent this long is reopened, ms.
+    pub read_timeout_ms: u64,
+    /// First reconnect delay, ms (doubles per failure).
+    pub reconnect_min_ms: u64,
+    /// Largest reconnect delay, ms.
+    pub reconnect_max_ms: u64,
+    /// The decode thread's tunables.
+    pub decode: DecodeParams,
+}
+
+impl Default for H264Params {
+    fn default() -> Self {
+        Self {
+            transport: RtspTransport::Tcp,
+            username: None,
+            password: None,
+            connect_timeout_ms: 5_000,
+            read_timeout_ms: 5_000,
+            reconnect_min_ms: 250,
+            reconnect_max_ms: 2_000,
+            decode: DecodeParams::default(),
+        }
+    }
+}
+
+/// Reconnect delay after `failures` consecutive failures (exponential
+/// from `min`, capped at `max`).
+pub fn backoff(min_ms: u64, max_ms: u64, failures: u32) -> Duration {
+    let ms = min_ms
+        .saturating_mul(1u64 << failures.min(20))
+        .min(max_ms.max(min_ms));
+    Duration::from_millis(ms)
+}
+
+/// The shared parts every H.264 reader hands access units through.
+#[derive(Debug, Clone)]
+pub struct H264Sink {
+    /// The ingest (counters, source info, frame slot).
+    pub ingest: Arc<Ingest>,
+    /// The queue to the decode thread.
+    pub queue: Arc<AuQueue>,
+    /// Bumped on each new connection (the decoder waits for a sync point).
+    pub resets: Arc<AtomicU64>,
+}
+
+impl H264Sink {
+    /// Queue one access unit (never waits on the decoder).
+    pub fn push(&self, au: h264::AccessUnit) {
+        use crate::video::live::Counters;
+        let c = &self.ingest.counters;
+        Counters::inc(&c.received);
+        Counters::add(&c.bytes, au.data.len() as u64);
+        self.ingest.received_rate.tick();
+        self.ingest.byte_rate.add(au.data.len() as u64);
+        let dropped = self.queue.push(au);
+        if dropped > 0 {
+            Counters::add(&c.late, dropped as u64);
+            Counters::add(&c.dropped_undecoded, dropped as u64);
+        }
+    }
+
+    /// A new connection starts.
+    pub fn new_connection(&self) {
+        use crate::video::live::Counters;
+        self.resets
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        Counters::inc(&self.ingest.counters.connects);
+    }
+
+    /// Note an error for the status and the log (the log only when it
+    /// differs from the previous one, so a dead camera does not flood it).
+    pub fn error(&self, msg: String) {
+        use crate::video::live::Counters;
+        Counters::inc(&self.ingest.counters.errors);
+        let mut changed = false;
+        self.ingest.update_source(|s| {
+            s.connected = false;
+            if s.last_error.as_deref() != Some(msg.as_str()) {
+                changed = true;
+                s.last_error = Some(msg.clone());
+            }
+        });
+        if changed {
+            tracing::warn!("video: {msg}");
+        } else {
+            tracing::debug!("video: {msg}");
+        }
+    }
+}
+
+/// Run an H.264 source (`rtsp://`, `udp://` or SDP) until `cancel` fires.
+/// Errors that retrying cannot fix (a bad SDP file, an unbindable port)
+/// return; network errors are retried with backoff.
+pub async fn run_h264(
+    url: VideoUrl,
+    params: H264Params,
+    ingest: Arc<Ingest>,
+    cancel: CancellationToken,
+) -> Result<(), SourceError> {
+    let queue = Arc::new(AuQueue::new(params.decode.queue));
+    let resets = Arc::new(AtomicU64::new(0));
+    let decoder = h264::spawn_decoder(
+        ingest.clone(),
+        queue.clone(),
+        params.decode.clone(),
+        resets.clone(),
+    )
+    .map_err(|e| SourceError::Thread(e.to_string()))?;
+    let sink = H264Sink {
+        ingest: ingest.clone(),
+        queue: queue.clone(),
+        resets,
+    };
+    ingest.update_source(|s| {
+        s.url = url.display();
+        s.codec = Some("h264".into());
+    });
+    let r = match url {
+        VideoUrl::Rtsp {
+            url,
+            username,
+            password,
+        } => {
+            let creds = match (
+                username.or(params.username.clone()),
+                password.or(params.password.clone()),
+            ) {
+                (Some(u), p) => Some((u, p.unwrap_or_default())),
+                (None, _) => None,
+            };
+            ingest.update_source(|s| {
+                s.kind = "rtsp".into();
+                s.transport = Some(
+                    match params.transport {
+                        RtspTransport::Tcp => "tcp",
+                        RtspTransport::Udp => "udp",
+                    }
+                    .into(),
+                );
+            });
+            crate::video::rtsp::run(&url, creds, &params, &sink, &cancel).await
+        }
+        VideoUrl::Udp { bind } => {
+            ingest.update_source(|s| s.kind = "rtp".into());
+            crate::video::udp::run(bind, None, &params, &sink, &cancel).await
+        }
+        VideoUrl::Sdp { path } => {
+            ingest.update_source(|s| s.kind = "rtp".into());
+            let text = std::fs::read_to_string(&path).map_err(|e| SourceError::ReadSdp {
+                path: path.clone(),
+                reason: e.to_string(),
+            })?;
+            let sdp = crate::video::rtp::sdp::parse(&text).map_err(|source| SourceError::Sdp {
+                path: path.clone(),
+                source,
+            })?;
+            if sdp.codec != "H264" {
+                Err(SourceError::Codec(H264Error::UnsupportedCodec {
+                    codec: codec_name(&sdp.codec),
+                }))
+            } else {
+                let ip = sdp
+                    .address
+                    .as_deref()
+                    .and_then(|a| a.parse::<std::net::IpAddr>().ok())
+                    .filter(|ip| ip.is_multicast())
+                    .unwrap_or(std::net::IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED));
+                crate::video::udp::run(
+                    SocketAddr::new(ip, sdp.port),
+                    Some(sdp),
+                    &params,
+                    &sink,
+                    &cancel,
+                )
+                .await
+            }
+        }
+        VideoUrl::Http(_) | VideoUrl::Auto => Err(SourceError::BadUrl {
+            url: url.display(),
+            reason: "not an H.264 source".into(),
+        }),
+    };
+    if let Err(e) = &r {
+        ingest.update_source(|s| {
+            s.connected = false;
+            s.last_error = Some(e.to_string());
+        });
+    }
+    queue.close();
+    let _ = tokio::task::spawn_blocking(move || decoder.join()).await;
+    r
+}
+
+/// The camera model SLAM must use when the decoded picture is decimated by
+/// `f` (block averaging): focal lengths over `f`, principal point at
+/// `(c + 0.5) / f - 0.5`, size `floor(size / f)`; the distortion acts on
+/// normalised coordinates and is unchanged.
+pub fn decimated_camera(c: &crate::camera::Camera, f: u32) -> crate::camera::Camera {
+    if f <= 1 {
+        return c.clone();
+    }
+    let s = f64::from(f);
+    let mut d = c.clone();
+    d.width = c.width / f;
+    d.height = c.height / f;
+    d.fx = c.fx / s;
+    d.fy = c.fy / s;
+    d.cx = (c.cx + 0.5) / s - 0.5;
+    d.cy = (c.cy + 0.5) / s - 0.5;
+    d
+}
+
+/// The `[video] url` a camera's VIDEO_STREAM_INFORMATION stands for.
+pub fn url_from_stream_info(
+    info: &crate::vehicle::VideoStreamInfo,
+) -> Result<VideoUrl, SourceError> {
+    let bad = |reason: String| SourceError::Auto { reason };
+    if info.encoding == "h265" {
+        return Err(SourceError::Codec(H264Error::UnsupportedCodec {
+            codec: "H.265 (HEVC)".into(),
+        }));
+    }
+    let uri = info.uri.trim();
+    match info.kind.as_str() {
+        "rtpudp" => {
+            // QGroundControl's convention: a bare port or udp://HOST:PORT.
+            if let Ok(port) = uri.parse::<u16>() {
+                return Ok(VideoUrl::Udp {
+                    bind: SocketAddr::new(std::net::Ipv4Addr::UNSPECIFIED.into(), port),
+                });
+            }
+            if uri.is_empty() {
+                return Ok(VideoUrl::Udp {
+                    bind: SocketAddr::new(std::net::Ipv4Addr::UNSPECIFIED.into(), 5600),
+                });
+            }
+            VideoUrl::parse(uri)
+        }
+        "rtsp" => match VideoUrl::parse(uri)? {
+            u @ VideoUrl::Rtsp { .. } => Ok(u),
+            _ => Err(bad(format!(
+                "stream {:?} is RTSP but its URI is {uri:?}",
+                info.name
+            ))),
+        },
+        _ => match VideoUrl::parse(uri) {
+            Ok(u @ (VideoUrl::Http(_) | VideoUrl::Rtsp { .. } | VideoUrl::Udp { .. })) => Ok(u),
+            _ => Err(bad(format!(
+                "stream {:?} is {} at {uri:?}, which shotpilot cannot read (it reads RTSP, RTP/UDP H.264 and MJPEG over HTTP)",
+                info.name, info.kind
+            ))),
+        },
+    }
+}
+
+/// `auto`: wait for the vehicle, ask its camera component for
+/// VIDEO_STREAM_INFORMATION each second until one arrives or `timeout`
+/// passes, log what it announced and return the first stream's URL.
+pub async fn resolve_auto(
+    link: &crate::vehicle::LinkHandle,
+    camera_component: u8,
+    timeout: Duration,
+    cancel: &CancellationToken,
+) -> Result<VideoUrl, SourceError> {
+    let deadline = tokio::time::Instant::now() + timeout;
+    let fail = |what: &str| SourceError::Auto {
+        reason: format!(
+            "{what} within {:.0} s; set [video] url to the camera's stream instead of auto",
+            timeout.as_secs_f64()
+        ),
+    };
+    tokio::select! {
+        _ = cancel.cancelled() => return Err(SourceError::Auto { reason: "cancelled".into() }),
+        r = link.wait_for_vehicle(timeout) => {
+            r.map_err(|_| fail("no vehicle heartbeat"))?;
+        }
+    }
+    let mut rx = link.telemetry.video_streams.clone();
+    tracing::info!("video: auto: asking component {camera_component} for VIDEO_STREAM_INFORMATION");
+    loop {
+        if let Err(e) = link.request_message(269, camera_component).await {
+            tracing::debug!("video: auto: request: {e}");
+        }
+        let wait = tokio::time::sleep(
+            Duration::from_secs(1)
+                .min(deadline.saturating_duration_since(tokio::time::Instant::now())),
+        );
+        tokio::select! {
+            _ = cancel.cancelled() => return Err(SourceError::Auto { reason: "cancelled".into() }),
+            _ = rx.changed() => {}
+            _ = wait => {}
+        }
+        let streams = rx.borrow_and_update().clone();
+        if let Some(first) = streams.iter().min_by_key(|s| s.stream_id) {
+            for s in &streams {
+                tracing::info!(
+                    component = s.component_id,
+                    stream = s.stream_id,
+                    name = %s.name,
+                    kind = %s.kind,
+                    encoding = %s.encoding,
+                    uri = %redact(&s.uri),
+                    "video: auto: the camera announces {}x{} at {:.0} fps, {:.1} Mbit/s",
+                    s.width,
+                    s.height,
+                    s.framerate,
+                    f64::from(s.bitrate) / 1e6
+                );
+            }
+            let url = url_from_stream_info(first)?;
+            tracing::info!("video: auto: using {}", url.display());
+            return Ok(url);
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return Err(fail("no VIDEO_STREAM_INFORMATION from the camera"));
+        }
+    }
+}
+
+/// Run the source `[video]` names until `cancel` fires: MJPEG or
+/// snapshots (`http://`), H.264 (`rtsp://`, `udp://`, SDP), or `auto` (the
+/// link is awaited, the camera asked, then the URL it gave is run).
+pub async fn run_configured(
+    cfg: crate::config::VideoConfig,
+    ingest: Arc<Ingest>,
+    cancel: CancellationToken,
+    link: Option<tokio::sync::oneshot::Receiver<crate::vehicle::LinkHandle>>,
+) -> Result<(), SourceError> {
+    let mut url = VideoUrl::parse(&cfg.url)?;
+    if url == VideoUrl::Auto {
+        ingest.update_source(|s| {
+            s.kind = "auto".into();
+            s.url = "auto".into();
+        });
+        let Some(rx) = link else {
+            return Err(SourceError::Auto {
+                reason: "no MAVLink link to ask the camera".into(),
+            });
+        };
+        let handle = tokio::select! {
+            _ = cancel.cancelled() => return Ok(()),
+            h = rx => h.map_err(|_| SourceError::Auto { reason: "the MAVLink link did not start".into() })?,
+        };
+        let timeout = Duration::from_secs_f64(cfg.auto_timeout_s);
+        url = match resolve_auto(&handle, cfg.camera_component, timeout, &cancel).await {
+            Ok(u) => u,
+            Err(e) => {
+                ingest.update_source(|s| s.last_error = Some(e.to_string()));
+                return Err(e);
+            }
+        };
+    }
+    match url {
+        VideoUrl::Http(u) => {
+            ingest.update_source(|s| {
+                s.kind = match cfg.source {
+                    crate::config::VideoSource::Mjpeg => "mjpeg",
+                    crate::config::VideoSource::Snapshot => "snapshot",
+                }
+                .into();
+                s.url = redact(&u);
+                s.codec = Some("jpeg".into());
+            });
+            let p = cfg.params();
+            let r = match cfg.source {
+                crate::config::VideoSource::Mjpeg => {
+                    crate::video::mjpeg::run_mjpeg(&u, &p, ingest, cancel).await
+                }
+                crate::config::VideoSource::Snapshot => {
+                    crate::video::mjpeg::run_snapshots(&u, cfg.snapshot_hz, &p, ingest, cancel)
+                        .await
+                }
+            };
+            r.map_err(|e| SourceError::BadUrl {
+                url: redact(&u),
+                reason: e.to_string(),
+            })
+        }
+        other => run_h264(other, cfg.h264_params(), ingest, cancel).await,
+    }
+}
+
+/// The operator's name for a codec as SDP or RTSP spell it.
+pub fn codec_name(encoding: &str) -> String {
+    match encoding.to_ascii_uppercase().as_str() {
+        "H265" | "HEVC" => "H.265 (HEVC)".into(),
+        "JPEG" => "Motion JPEG over RTP".into(),
+        "MP2T" => "MPEG-TS".into(),
+        other => other.to_owned(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_parse() {
+        assert_eq!(VideoUrl::parse("auto").unwrap(), VideoUrl::Auto);
+        assert_eq!(
+            VideoUrl::parse("rtsp://admin:p%40ss@192.168.144.25:8554/main.264").unwrap(),
+            VideoUrl::Rtsp {
+                url: "rtsp://192.168.144.25:8554/main.264".into(),
+                username: Some("admin".into()),
+                password: Some("p@ss".into()),
+            }
+        );
+        assert_eq!(
+            VideoUrl::parse("udp://0.0.0.0:5600").unwrap(),
+            VideoUrl::Udp {
+                bind: "0.0.0.0:5600".parse().unwrap()
+            }
+        );
+        assert_eq!(
+            VideoUrl::parse("udp://@:5600").unwrap(),
+            VideoUrl::Udp {
+                bind: "0.0.0.0:5600".parse().unwrap()
+            }
+        );
+        assert!(matches!(
+            VideoUrl::parse("/etc/cam.sdp").unwrap(),
+            VideoUrl::Sdp { .. }
+        ));
+        assert!(matches!(
+            VideoUrl::parse("http://127.0.0.1:8554/video.mjpg").unwrap(),
+            VideoUrl::Http(_)
+        ));
+        for bad in [
+            "ftp://x",
+            "udp://host",
+            "udp://:99999",
+            "rtsp://",
+            "rtsps://x/y",
+        ] {
+            assert!(VideoUrl::parse(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn passwords_never_shown() {
+        let u = VideoUrl::parse("rtsp://admin:secret@cam/x").unwrap();
+        assert_eq!(u.display(), "rtsp://admin@cam/x");
+        assert_eq!(redact("rtsp://a:secret@h:1/p"), "rtsp://a:***@h:1/p");
+        let e = VideoUrl::parse("rtsps://a:secret@h/p")
+            .unwrap_err()
+            .to_string();
+        assert!(!e.contains("secret"), "{e}");
+    }
+
+    #[test]
+    fn backoff_doubles_and_caps() {
+        assert_eq!(backoff(250, 2000, 0), Duration::from_millis(250));
+        assert_eq!(backoff(250, 2000, 2), Duration::from_millis(1000));
+        assert_eq!(backoff(250, 2000, 30), Duration::from_millis(2000));
+    }
+}

@@ -1,0 +1,188 @@
+//! Raw RTP H.264 over UDP (OpenIPC / wfb-ng links, GStreamer or ffmpeg
+//! `udpsink`): listen on `udp://HOST:PORT` (a multicast `HOST` is joined),
+//! read RTCP sender reports on `PORT + 1` when the sender sends them,
+//! depacketise into access units and queue them for the decoder.
+//!
+//! There is no connection: the source counts as connected while packets
+//! arrive, and a silence longer than the read timeout, or a new SSRC (the
+//! sender restarted), makes the decoder wait for the next sync point.
+
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use tokio::net::UdpSocket;
+use tokio_util::sync::CancellationToken;
+
+use crate::video::h264::{AccessUnit, H264Error};
+use crate::video::live::{Counters, unix_now};
+use crate::video::rtp::sdp::SdpVideo;
+use crate::video::rtp::{
+    H264Depacketizer, RtpClock, looks_like_h265, parse_rtp, parse_sender_report,
+};
+use crate::video::source::{H264Params, H264Sink, SourceError};
+
+async fn bind(addr: SocketAddr) -> Result<UdpSocket, SourceError> {
+    let err = |e: std::io::Error| SourceError::Bind {
+        addr,
+        reason: e.to_string(),
+    };
+    if addr.ip().is_multicast() {
+        let any = match addr {
+            SocketAddr::V4(_) => {
+                SocketAddr::new(std::net::Ipv4Addr::UNSPECIFIED.into(), addr.port())
+            }
+            SocketAddr::V6(_) => {
+                SocketAddr::new(std::net::Ipv6Addr::UNSPECIFIED.into(), addr.port())
+            }
+        };
+        let s = UdpSocket::bind(any).await.map_err(err)?;
+        match addr.ip() {
+            std::net::IpAddr::V4(g) => s
+                .join_multicast_v4(g, std::net::Ipv4Addr::UNSPECIFIED)
+                .map_err(err)?,
+            std::net::IpAddr::V6(g) => s.join_multicast_v6(&g, 0).map_err(err)?,
+        }
+        Ok(s)
+    } else {
+        UdpSocket::bind(addr).await.map_err(err)
+    }
+}
+
+/// Receive RTP H.264 on `addr` until `cancel` fires. `sdp` (from an SDP
+/// file) gives the payload type and parameter sets; without it any dynamic
+/// payload type is taken as H.264 and an H.265 stream is recognised by its
+/// NAL headers and refused.
+pub async fn run(
+    addr: SocketAddr,
+    sdp: Option<SdpVideo>,
+    params: &H264Params,
+    sink: &H264Sink,
+    cancel: &CancellationToken,
+) -> Result<(), SourceError> {
+    let sock = bind(addr).await?;
+    let local = sock.local_addr().map_err(|e| SourceError::Bind {
+        addr,
+        reason: e.to_string(),
+    })?;
+    // RTCP beside it, when that port is free (raw camera links send none).
+    let rtcp_addr = SocketAddr::new(local.ip(), local.port().wrapping_add(1));
+    let rtcp = match UdpSocket::bind(rtcp_addr).await {
+        Ok(s) => Some(s),
+        Err(e) => {
+            tracing::debug!("video: no RTCP listener on {rtcp_addr}: {e}");
+            None
+        }
+    };
+    tracing::info!(%local, "video: listening for RTP H.264");
+    sink.ingest
+        .update_source(|s| s.url = format!("udp://{local}"));
+    let payload_type = sdp.as_ref().map(|s| s.payload_type);
+    let clock_rate = sdp.as_ref().map_or(90_000, |s| s.clock_rate);
+    let mut depack = H264Depacketizer::new(sdp.map(|s| s.param_sets).unwrap_or_default());
+    let mut clock = RtpClock::new(clock_rate);
+    let read = Duration::from_millis(params.read_timeout_ms.max(1));
+    let mut buf = vec![0u8; 65_536];
+    let mut rbuf = vec![0u8; 2048];
+    let mut last_packet: Option<Instant> = None;
+    let mut last_lost = 0u64;
+    let mut h265_votes = 0u32;
+    let mut ssrc: Option<u32> = None;
+    let mut wrong_pt_logged = false;
+    loop {
+        let rtcp_recv = async {
+            match &rtcp {
+                Some(s) => s.recv_from(&mut rbuf).await.map(|(n, _)| n),
+                None => std::future::pending().await,
+            }
+        };
+        let n = tokio::select! {
+            _ = cancel.cancelled() => return Ok(()),
+            r = tokio::time::timeout(read, sock.recv_from(&mut buf)) => match r {
+                Err(_) => {
+                    if last_packet.take().is_some() {
+                        sink.error(format!("no RTP packets on {local} for {:.1} s", read.as_secs_f64()));
+                    }
+                    continue;
+                }
+                Ok(Err(e)) => {
+                    sink.error(format!("UDP receive on {local}: {e}"));
+                    tokio::time::sleep(Duration::from_millis(params.reconnect_min_ms.max(1))).await;
+                    continue;
+                }
+                Ok(Ok((n, _))) => n,
+            },
+            r = rtcp_recv => {
+                if let Ok(n) = r
+                    && let Some((s, ntp, rtp)) = parse_sender_report(&rbuf[..n])
+                    && Some(s) == ssrc
+                {
+                    clock.sender_report(rtp, ntp);
+                }
+                continue;
+            }
+        };
+        let received = Instant::now();
+        let received_unix = unix_now();
+        let pkt = match parse_rtp(&buf[..n]) {
+            Ok(p) => p,
+            Err(e) => {
+                Counters::inc(&sink.ingest.counters.bad);
+                tracing::debug!("video: {e}");
+                continue;
+            }
+        };
+        if let Some(pt) = payload_type {
+            if pkt.payload_type != pt {
+                if !wrong_pt_logged {
+                    wrong_pt_logged = true;
+                    tracing::warn!(
+                        "video: RTP payload type {} on {local}, the SDP says {pt}: ignored",
+                        pkt.payload_type
+                    );
+                }
+                continue;
+            }
+        } else if pkt.payload_type < 96 {
+            Counters::inc(&sink.ingest.counters.bad);
+            continue;
+        } else if looks_like_h265(pkt.payload) {
+            h265_votes += 1;
+            if h265_votes >= 3 {
+                return Err(SourceError::Codec(H264Error::UnsupportedCodec {
+                    codec: "H.265 (HEVC)".into(),
+                }));
+            }
+        }
+        if last_packet.is_none() || ssrc != Some(pkt.ssrc) {
+            if ssrc.is_some_and(|s| s != pkt.ssrc) {
+                tracing::info!(
+                    "video: RTP sender on {local} restarted (new SSRC {:08x})",
+                    pkt.ssrc
+                );
+                clock.reset();
+            }
+            ssrc = Some(pkt.ssrc);
+            sink.new_connection();
+            sink.ingest.update_source(|s| {
+                s.connected = true;
+                s.last_error = None;
+            });
+        }
+        last_packet = Some(received);
+        for au in depack.push(&pkt) {
+            let capture = clock.capture_time(au.timestamp, received_unix);
+            sink.push(AccessUnit {
+                data: au.data,
+                capture_time: Some(capture),
+                received,
+                received_unix,
+                lost: au.lost,
+            });
+        }
+        let lost = depack.stats().lost;
+        if lost > last_lost {
+            Counters::add(&sink.ingest.counters.lost_packets, lost - last_lost);
+            last_lost = lost;
+        }
+    }
+}
