@@ -273,6 +273,9 @@ pub struct SimSection {
     pub gps_tau_s: f64,
     /// Seed of the bias's walk (unset: `seed`, so each world has its own).
     pub gps_seed: Option<u64>,
+    /// The video URI its camera announces in VIDEO_STREAM_INFORMATION (for
+    /// `[video] url = "auto"`); unset: its own MJPEG URL.
+    pub video_stream_uri: Option<String>,
 }
 
 impl Default for SimSection {
@@ -290,6 +293,7 @@ impl Default for SimSection {
             gps_sigma_z_m: 0.0,
             gps_tau_s: 120.0,
             gps_seed: None,
+            video_stream_uri: None,
         }
     }
 }

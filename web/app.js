@@ -38,9 +38,13 @@ function showStatus(s) {
     ` | video ${(v.received_fps || 0).toFixed(1)} fps` +
     ` | vehicle ${ve.configured === false ? 'none' : (ve.connected ? (ve.mode || 'connected') + (ve.armed ? ' ARMED' : '') : 'not connected')}` +
     geoText(ve.georeference) + mapStartText(sl.map_start);
+  const src = v.source || {};
   $('videostats').textContent =
-    `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
-    (v.width ? ` · ${v.width}x${v.height}` : '');
+    (src.kind ? `${src.kind} ${src.url || ''} ${src.codec || ''}${src.transport ? '/' + src.transport : ''} · ` : '') +
+    `${(v.decoded_fps || 0).toFixed(1)} fps · ${(v.bitrate_kbps || 0).toFixed(0)} kbit/s · ` +
+    `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · late ${c.late || 0} · skipped ${c.skipped || 0} · lost pkts ${c.lost_packets || 0} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
+    (v.width ? ` · ${v.width}x${v.height}` : '') +
+    (src.last_error ? ` · ${src.last_error}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
 }
 // Where the SLAM's map came from: the saved map continued (and whether

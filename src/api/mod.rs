@@ -477,6 +477,8 @@ fn status_json(st: &AppState) -> Value {
             "decoded_fps": st.ingest.decoded_rate.rate(),
             "consumed_fps": st.ingest.consumed_rate.rate(),
             "counters": c,
+            "source": st.ingest.source_info(),
+            "bitrate_kbps": st.ingest.byte_rate.bits_per_second() / 1e3,
             "width": latest.as_ref().map(|f| f.image.width()),
             "height": latest.as_ref().map(|f| f.image.height()),
             "last_frame_age_s": latest.as_ref().map(|f| f.received.elapsed().as_secs_f64()),

@@ -141,6 +141,11 @@ fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimCo
                 gps_bias: s.gps_bias(),
                 ..defaults.autopilot.vehicle
             },
+            video_stream_uri: Some(
+                s.video_stream_uri
+                    .clone()
+                    .unwrap_or_else(|| format!("http://{video_listen}/video.mjpg")),
+            ),
             ..defaults.autopilot.clone()
         },
         capture_dir: data_dir.join("captures"),

@@ -577,3 +577,86 @@ pub fn spawn_decoder(
             }
         })
 }
+
+/// Grey pictures encoded as H.264 by OpenH264 (neutral chroma): what the
+/// decode benchmark and the tests of the depacketiser and the decoder feed
+/// through the same path a camera's stream takes.
+pub struct GrayEncoder {
+    enc: openh264::encoder::Encoder,
+    width: u32,
+    height: u32,
+    yuv: Vec<u8>,
+}
+
+impl std::fmt::Debug for GrayEncoder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "GrayEncoder({}x{})", self.width, self.height)
+    }
+}
+
+impl GrayEncoder {
+    /// An encoder for `width`x`height` (even) pictures at `fps`, aiming at
+    /// `bitrate_bps`, with an IDR picture every `idr_period` pictures.
+    pub fn new(
+        width: u32,
+        height: u32,
+        fps: f32,
+        bitrate_bps: u32,
+        idr_period: u32,
+    ) -> Result<Self, H264Error> {
+        use openh264::encoder::{
+            BitRate, EncoderConfig, FrameRate, IntraFramePeriod, RateControlMode, SpsPpsStrategy,
+        };
+        let cfg = EncoderConfig::new()
+            .bitrate(BitRate::from_bps(bitrate_bps))
+            .max_frame_rate(FrameRate::from_hz(fps))
+            .rate_control_mode(RateControlMode::Bitrate)
+            .skip_frames(false)
+            .scene_change_detect(false)
+            .sps_pps_strategy(SpsPpsStrategy::ConstantId)
+            .intra_frame_period(IntraFramePeriod::from_num_frames(idr_period));
+        let enc =
+            openh264::encoder::Encoder::with_api_config(openh264::OpenH264API::from_source(), cfg)
+                .map_err(|e| H264Error::DecoderInit {
+                    reason: e.to_string(),
+                })?;
+        let (w, h) = (width as usize, height as usize);
+        let mut yuv = vec![128u8; w * h + 2 * (w / 2) * (h / 2)];
+        yuv[..w * h].fill(0);
+        Ok(Self {
+            enc,
+            width,
+            height,
+            yuv,
+        })
+    }
+
+    /// Encode one picture (its size must be the encoder's) into an Annex B
+    /// access unit (with SPS and PPS before each IDR picture).
+    pub fn encode(&mut self, img: &GrayImage) -> Result<Vec<u8>, H264Error> {
+        if (img.width(), img.height()) != (self.width, self.height) {
+            return Err(H264Error::BadPicture {
+                width: img.width() as usize,
+                height: img.height() as usize,
+                stride: img.width() as usize,
+                len: img.as_raw().len(),
+            });
+        }
+        let n = img.as_raw().len();
+        self.yuv[..n].copy_from_slice(img.as_raw());
+        let buf = openh264::formats::YUVBuffer::from_vec(
+            self.yuv.clone(),
+            self.width as usize,
+            self.height as usize,
+        );
+        let bs = self.enc.encode(&buf).map_err(|e| H264Error::Broken {
+            reason: e.to_string(),
+        })?;
+        Ok(bs.to_vec())
+    }
+
+    /// The next picture is an IDR picture.
+    pub fn force_idr(&mut self) {
+        self.enc.force_intra_frame();
+    }
+}

@@ -210,6 +210,11 @@ pub struct AutopilotParams {
     /// Battery: full voltage (V), empty voltage (V), capacity (mAh),
     /// hover current (A).
     pub battery: (f64, f64, f64, f64),
+    /// The camera's video stream URI, announced in VIDEO_STREAM_INFORMATION
+    /// (asked for with MAV_CMD_REQUEST_MESSAGE 269); unset: not announced.
+    /// `rtsp://` is typed RTSP, `udp://` RTP/UDP (both H.264), else
+    /// TCP_MPEG (the simulator's own MJPEG over HTTP).
+    pub video_stream_uri: Option<String>,
 }
 
 impl Default for AutopilotParams {
@@ -229,6 +234,7 @@ impl Default for AutopilotParams {
             disarm_after_land_s: 2.0,
             disarm_preflight_s: 10.0,
             battery: (16.8, 13.6, 5000.0, 15.0),
+            video_stream_uri: None,
         }
     }
 }
@@ -1578,6 +1584,45 @@ impl Autopilot {
                 os_custom_version: [0; 8],
                 uid2: [0; 18],
             }),
+            269 => {
+                use mavlink::dialects::common::{
+                    VIDEO_STREAM_INFORMATION_DATA, VideoStreamEncoding, VideoStreamStatusFlags,
+                    VideoStreamType,
+                };
+                let uri = self.params.video_stream_uri.as_deref()?;
+                let (mavtype, encoding) = if uri.starts_with("rtsp://") {
+                    (
+                        VideoStreamType::VIDEO_STREAM_TYPE_RTSP,
+                        VideoStreamEncoding::VIDEO_STREAM_ENCODING_H264,
+                    )
+                } else if uri.starts_with("udp://") {
+                    (
+                        VideoStreamType::VIDEO_STREAM_TYPE_RTPUDP,
+                        VideoStreamEncoding::VIDEO_STREAM_ENCODING_H264,
+                    )
+                } else {
+                    (
+                        VideoStreamType::VIDEO_STREAM_TYPE_TCP_MPEG,
+                        VideoStreamEncoding::VIDEO_STREAM_ENCODING_UNKNOWN,
+                    )
+                };
+                MavMessage::VIDEO_STREAM_INFORMATION(VIDEO_STREAM_INFORMATION_DATA {
+                    framerate: 0.0,
+                    bitrate: 0,
+                    flags: VideoStreamStatusFlags::VIDEO_STREAM_STATUS_FLAGS_RUNNING,
+                    resolution_h: 0,
+                    resolution_v: 0,
+                    rotation: 0,
+                    hfov: 0,
+                    stream_id: 1,
+                    count: 1,
+                    mavtype,
+                    name: "shotpilot-sim camera".into(),
+                    uri: uri.into(),
+                    encoding,
+                    camera_device_id: 0,
+                })
+            }
             _ => return None,
         })
     }

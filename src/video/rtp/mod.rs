@@ -500,3 +500,84 @@ pub fn parse_sender_report(buf: &[u8]) -> Option<(u32, u64, u32)> {
     }
     None
 }
+
+/// Packetise one Annex B access unit as RFC 6184 mode 1 RTP packets of at
+/// most `mtu` bytes: parameter sets aggregated in one STAP-A, NAL units
+/// that fit sent whole, larger ones as FU-A fragments; the marker bit on
+/// the last packet. `seq` is advanced per packet.
+pub fn packetize_h264(
+    au: &[u8],
+    mtu: usize,
+    payload_type: u8,
+    ssrc: u32,
+    seq: &mut u16,
+    timestamp: u32,
+) -> Vec<Vec<u8>> {
+    let mtu = mtu.max(12 + 3 + 1);
+    let max_payload = mtu - 12;
+    let nals = crate::video::h264::annexb_units(au);
+    let mut payloads: Vec<Vec<u8>> = Vec::new();
+    let mut i = 0;
+    while i < nals.len() {
+        // Aggregate a run of small parameter-set/SEI units.
+        let mut agg: Vec<&[u8]> = Vec::new();
+        let mut size = 1;
+        while i + agg.len() < nals.len() {
+            let n = nals[i + agg.len()];
+            let t = n.first().map_or(0, |b| b & 0x1f);
+            if !matches!(t, 6..=9) || size + 2 + n.len() > max_payload {
+                break;
+            }
+            size += 2 + n.len();
+            agg.push(n);
+        }
+        if agg.len() >= 2 {
+            let nri = agg.iter().map(|n| n[0] & 0x60).max().unwrap_or(0);
+            let mut p = vec![nri | 24];
+            for n in &agg {
+                p.extend_from_slice(&(n.len() as u16).to_be_bytes());
+                p.extend_from_slice(n);
+            }
+            payloads.push(p);
+            i += agg.len();
+            continue;
+        }
+        let nal = nals[i];
+        i += 1;
+        if nal.len() <= max_payload {
+            payloads.push(nal.to_vec());
+            continue;
+        }
+        let (hdr, body) = (nal[0], &nal[1..]);
+        let chunk = max_payload - 2;
+        let count = body.len().div_ceil(chunk);
+        for (k, part) in body.chunks(chunk).enumerate() {
+            let mut fu = (hdr & 0x1f) & 0x1f;
+            if k == 0 {
+                fu |= 0x80;
+            }
+            if k + 1 == count {
+                fu |= 0x40;
+            }
+            let mut p = vec![(hdr & 0xe0) | 28, fu];
+            p.extend_from_slice(part);
+            payloads.push(p);
+        }
+    }
+    let last = payloads.len().saturating_sub(1);
+    payloads
+        .into_iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let mut pkt = Vec::with_capacity(12 + p.len());
+            pkt.push(0x80);
+            pkt.push(if k == last { 0x80 } else { 0 } | (payload_type & 0x7f));
+            pkt.extend_from_slice(&seq.to_be_bytes());
+            pkt.extend_from_slice(&timestamp.to_be_bytes());
+            pkt.extend_from_slice(&ssrc.to_be_bytes());
+            pkt.extend_from_slice(&p);
+            *seq = seq.wrapping_add(1);
+            pkt
+        })
+        .collect()
+}

@@ -1,0 +1,356 @@
+//! The H.264 path without outside peers: OpenH264-encoded renders of the
+//! simulator, packetised as RFC 6184 RTP, through the depacketiser, the
+//! skip-to-sync decode loop and the RTP clock. The lossy runs check that no
+//! damaged picture reaches SLAM: every frame that comes out must be
+//! bit-identical to the same picture decoded from the clean stream.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+use image::GrayImage;
+use rand::{Rng, SeedableRng};
+use shotpilot::video::h264::{
+    AccessUnit, AuKind, AuQueue, DecodeLoop, DecodeParams, Decoded, GrayEncoder, annexb_units,
+};
+use shotpilot::video::rtp::{
+    H264Depacketizer, RtpClock, looks_like_h265, packetize_h264, parse_rtp, parse_sender_report,
+};
+use shotpilot_sim::camera::SimCamera;
+use shotpilot_sim::paths::{CameraPath, Params as PathParams};
+use shotpilot_sim::render::{RenderParams, Renderer};
+use shotpilot_sim::world::{World, WorldParams};
+
+/// `n` renders of the explore flight at 15 fps with a `w`x`h` camera.
+fn renders(w: u32, h: u32, n: usize) -> Vec<GrayImage> {
+    let world = Arc::new(World::generate_with(3, &WorldParams::small()).unwrap());
+    let path = CameraPath::explore(&world, PathParams::default());
+    let s = f64::from(w) / 640.0;
+    let cam = SimCamera {
+        width: w,
+        height: h,
+        fx: 460.0 * s,
+        fy: 460.0 * s,
+        cx: f64::from(w) / 2.0 - 0.5,
+        cy: f64::from(h) / 2.0 - 0.5,
+        ..SimCamera::default()
+    };
+    let r = Renderer::new(world, cam, RenderParams::default());
+    (0..n)
+        .map(|i| r.render(&path.world_from_cam(path.start() + i as f64 / 15.0)))
+        .collect()
+}
+
+struct Stream {
+    aus: Vec<Vec<u8>>,
+    frames: Vec<GrayImage>,
+}
+
+fn stream(w: u32, h: u32, n: usize, idr_period: u32) -> Stream {
+    let frames = renders(w, h, n);
+    let mut enc = GrayEncoder::new(w, h, 15.0, 400_000, idr_period).unwrap();
+    let aus = frames.iter().map(|f| enc.encode(f).unwrap()).collect();
+    Stream { aus, frames }
+}
+
+fn au(data: Vec<u8>, t: f64, lost: u32) -> AccessUnit {
+    AccessUnit {
+        data,
+        capture_time: Some(t),
+        received: Instant::now(),
+        received_unix: t,
+        lost,
+    }
+}
+
+fn mean_abs_diff(a: &GrayImage, b: &GrayImage) -> f64 {
+    a.as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(x, y)| (f64::from(*x) - f64::from(*y)).abs())
+        .sum::<f64>()
+        / a.as_raw().len() as f64
+}
+
+/// Decode a stream cleanly: picture index -> image.
+fn clean_decode(aus: &[Vec<u8>]) -> Vec<GrayImage> {
+    let mut dl = DecodeLoop::new(DecodeParams::default()).unwrap();
+    aus.iter()
+        .enumerate()
+        .filter_map(|(i, a)| match dl.step(&au(a.clone(), i as f64, 0), false) {
+            Decoded::Frame(f) => Some(f.image.as_ref().clone()),
+            other => panic!("clean picture {i}: {other:?}"),
+        })
+        .collect()
+}
+
+#[test]
+fn decoder_gives_the_encoded_luma() {
+    let s = stream(320, 240, 20, 10);
+    assert!(AuKind::of(&s.aus[0]).idr && AuKind::of(&s.aus[0]).sps);
+    assert!(!AuKind::of(&s.aus[1]).is_sync_point());
+    assert!(AuKind::of(&s.aus[10]).idr, "IDR period 10");
+    let out = clean_decode(&s.aus);
+    assert_eq!(out.len(), 20);
+    for (i, (o, f)) in out.iter().zip(&s.frames).enumerate() {
+        assert_eq!(o.dimensions(), (320, 240));
+        // 400 kbit/s at 320x240: a faithful picture, not a grey field.
+        let d = mean_abs_diff(o, f);
+        assert!(d < 6.0, "picture {i}: mean abs error {d:.2}");
+    }
+}
+
+#[test]
+fn rtp_roundtrip_gives_the_access_units_back() {
+    let s = stream(320, 240, 12, 6);
+    let mut seq = 65_530u16; // wraps inside the stream
+    let mut depack = H264Depacketizer::new(vec![]);
+    let mut got = Vec::new();
+    let mut kinds = HashMap::new();
+    for (i, a) in s.aus.iter().enumerate() {
+        let ts = 4_294_960_000u32.wrapping_add(6000 * i as u32); // wraps too
+        for p in packetize_h264(a, 400, 96, 0x1234_5678, &mut seq, ts) {
+            assert!(p.len() <= 400);
+            let pkt = parse_rtp(&p).unwrap();
+            *kinds.entry(pkt.payload[0] & 0x1f).or_insert(0) += 1;
+            got.extend(depack.push(&pkt));
+        }
+    }
+    assert!(
+        kinds.contains_key(&28),
+        "large slices go as FU-A: {kinds:?}"
+    );
+    assert!(kinds.contains_key(&24), "SPS+PPS go as STAP-A: {kinds:?}");
+    assert_eq!(got.len(), s.aus.len());
+    for (g, a) in got.iter().zip(&s.aus) {
+        assert_eq!(g.lost, 0);
+        assert_eq!(annexb_units(&g.data), annexb_units(a));
+    }
+    assert_eq!(depack.stats().lost, 0);
+    assert_eq!(depack.stats().late, 0);
+}
+
+/// Send the stream through RTP with `loss` of the packets dropped (seeded)
+/// and check that every frame that reaches "SLAM" is bit-identical to the
+/// clean decode of the same picture. Returns (decoded, skipped).
+fn lossy_run(loss: f64, seed: u64) -> (usize, usize, u64) {
+    let s = stream(320, 240, 90, 15);
+    let clean = clean_decode(&s.aus);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let mut seq = 0u16;
+    let mut depack = H264Depacketizer::new(vec![]);
+    let mut dl = DecodeLoop::new(DecodeParams::default()).unwrap();
+    let (mut decoded, mut skipped) = (0, 0);
+    for (i, a) in s.aus.iter().enumerate() {
+        let ts = 6000 * i as u32;
+        for p in packetize_h264(a, 1400, 96, 7, &mut seq, ts) {
+            if rng.random::<f64>() < loss {
+                continue;
+            }
+            for done in depack.push(&parse_rtp(&p).unwrap()) {
+                let idx = (done.timestamp / 6000) as usize;
+                match dl.step(&au(done.data, idx as f64, done.lost), false) {
+                    Decoded::Frame(f) => {
+                        decoded += 1;
+                        assert_eq!(
+                            f.image.as_raw(),
+                            clean[idx].as_raw(),
+                            "picture {idx} reached SLAM damaged (loss {loss})"
+                        );
+                    }
+                    Decoded::Skipped | Decoded::Broken(_) => skipped += 1,
+                    Decoded::NoPicture => {}
+                    Decoded::Refused { .. } => panic!("no size change here"),
+                }
+            }
+        }
+    }
+    (decoded, skipped, depack.stats().lost)
+}
+
+#[test]
+fn one_percent_loss_skips_to_the_next_idr_and_never_smears() {
+    let (decoded, skipped, lost) = lossy_run(0.01, 11);
+    eprintln!("1% loss: {lost} packets lost, {decoded} pictures decoded, {skipped} skipped");
+    assert!(lost > 0, "the run must lose packets");
+    assert!(skipped > 0);
+    // One IDR per second: most of the stream survives 1 % loss.
+    assert!(decoded >= 45, "{decoded}");
+}
+
+#[test]
+fn five_percent_loss_skips_to_the_next_idr_and_never_smears() {
+    let (decoded, skipped, lost) = lossy_run(0.05, 12);
+    eprintln!("5% loss: {lost} packets lost, {decoded} pictures decoded, {skipped} skipped");
+    assert!(lost > 5);
+    assert!(skipped > decoded / 4, "5 % loss must cost whole GOP tails");
+    assert!(decoded > 0, "IDR pictures that arrive whole still decode");
+}
+
+#[test]
+fn a_stream_joined_mid_gop_waits_for_the_idr() {
+    let s = stream(160, 120, 16, 8);
+    let mut dl = DecodeLoop::new(DecodeParams::default()).unwrap();
+    let mut out = Vec::new();
+    for (i, a) in s.aus.iter().enumerate().skip(3) {
+        out.push(match dl.step(&au(a.clone(), i as f64, 0), false) {
+            Decoded::Frame(_) => 'F',
+            Decoded::Skipped => 'S',
+            other => panic!("{other:?}"),
+        });
+    }
+    let out: String = out.into_iter().collect();
+    assert_eq!(out, "SSSSSFFFFFFFF", "pictures 3..16 with an IDR at 8");
+}
+
+#[test]
+fn queue_overflow_drops_the_backlog_and_resumes_at_a_sync_point() {
+    let s = stream(160, 120, 12, 6);
+    let q = AuQueue::new(3);
+    let mut dropped = 0;
+    for (i, a) in s.aus.iter().enumerate().take(5) {
+        dropped += q.push(au(a.clone(), i as f64, 0));
+    }
+    assert_eq!(
+        dropped, 3,
+        "the fourth push found 3 queued and dropped them"
+    );
+    let mut dl = DecodeLoop::new(DecodeParams::default()).unwrap();
+    let (first, gap) = q
+        .pop(std::time::Duration::ZERO)
+        .unwrap()
+        .expect("picture 3");
+    assert!(gap);
+    assert!(matches!(dl.step(&first, gap), Decoded::Skipped));
+}
+
+#[test]
+fn a_resolution_change_is_refused_with_both_sizes() {
+    let a = stream(160, 120, 2, 1);
+    let b = stream(320, 240, 2, 1);
+    let mut dl = DecodeLoop::new(DecodeParams::default()).unwrap();
+    assert!(matches!(
+        dl.step(&au(a.aus[0].clone(), 0.0, 0), false),
+        Decoded::Frame(_)
+    ));
+    match dl.step(&au(b.aus[0].clone(), 1.0, 0), false) {
+        Decoded::Refused { first, now } => {
+            assert_eq!(first, (160, 120));
+            assert_eq!(now, (320, 240));
+        }
+        other => panic!("{other:?}"),
+    }
+    // A new connection may bring a new size.
+    dl.reset();
+    assert!(matches!(
+        dl.step(&au(b.aus[0].clone(), 2.0, 0), false),
+        Decoded::Frame(_)
+    ));
+}
+
+#[test]
+fn downscaled_frames_average_the_blocks() {
+    let s = stream(320, 240, 1, 1);
+    let mut dl = DecodeLoop::new(DecodeParams {
+        downscale: 2,
+        ..Default::default()
+    })
+    .unwrap();
+    let Decoded::Frame(f) = dl.step(&au(s.aus[0].clone(), 0.0, 0), false) else {
+        panic!()
+    };
+    assert_eq!(f.image.dimensions(), (160, 120));
+    let full = clean_decode(&s.aus);
+    let p = |x: u32, y: u32| u32::from(full[0].get_pixel(x, y).0[0]);
+    let want = (p(20, 30) + p(21, 30) + p(20, 31) + p(21, 31) + 2) / 4;
+    assert_eq!(u32::from(f.image.get_pixel(10, 15).0[0]), want);
+}
+
+#[test]
+fn rtp_clock_uses_sender_reports_else_the_least_delayed_arrival() {
+    let mut c = RtpClock::new(90_000);
+    // Arrivals with jitter of 0..40 ms over a true capture at 1000 + k/30.
+    let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+    let mut last = 0.0;
+    for k in 0..300u32 {
+        let ts = 3000u32.wrapping_mul(k).wrapping_add(u32::MAX - 30_000); // wraps
+        let truth = 1000.0 + f64::from(k) / 30.0;
+        let arrival = truth + 0.010 + rng.random::<f64>() * 0.040;
+        last = c.capture_time(ts, arrival) - truth;
+    }
+    // The minimum delay (10 ms plus the smallest jitter) remains; no jitter.
+    assert!((0.009..0.013).contains(&last), "{last}");
+    // A sender report pins RTP time to the sender's clock exactly.
+    let ntp_of = |unix: f64| {
+        let s = unix + shotpilot::video::rtp::NTP_UNIX_OFFSET_S;
+        ((s.floor() as u64) << 32) | ((s.fract() * 4_294_967_296.0) as u64)
+    };
+    let ts300 = 3000u32.wrapping_mul(300).wrapping_add(u32::MAX - 30_000);
+    c.sender_report(ts300, ntp_of(1010.0));
+    let t = c.capture_time(ts300.wrapping_add(9000), 1010.2);
+    assert!((t - 1010.1).abs() < 1e-4, "{t}");
+    assert!(c.has_sender_report());
+    // The RTCP parser finds the report in a compound packet (RR first).
+    let mut rr = vec![0x80, 201, 0, 1, 0, 0, 0, 9];
+    let mut sr = vec![0x80, 200, 0, 6, 0, 0, 0, 7];
+    sr.extend_from_slice(&ntp_of(1010.0).to_be_bytes());
+    sr.extend_from_slice(&ts300.to_be_bytes());
+    sr.extend_from_slice(&[0; 8]);
+    rr.extend_from_slice(&sr);
+    let (ssrc, ntp, rtp) = parse_sender_report(&rr).unwrap();
+    assert_eq!((ssrc, ntp, rtp), (7, ntp_of(1010.0), ts300));
+}
+
+#[test]
+fn h265_payloads_are_recognised() {
+    // VPS, SPS, PPS, FU and a TRAIL_R-in-FU as rtph265pay sends them.
+    for p in [
+        [0x40u8, 0x01, 0x0c],
+        [0x42, 0x01, 0x01],
+        [0x44, 0x01, 0xc1],
+        [0x62, 0x01, 0x93],
+    ] {
+        assert!(looks_like_h265(&p), "{p:02x?}");
+    }
+    // H.264: SPS, PPS, IDR, FU-A, STAP-A, SEI.
+    for p in [
+        [0x67u8, 0x42, 0xc0],
+        [0x68, 0xce, 0x3c],
+        [0x65, 0x88, 0x84],
+        [0x7c, 0x85, 0x88],
+        [0x78, 0x00, 0x0f],
+        [0x06, 0x05, 0xff],
+    ] {
+        assert!(!looks_like_h265(&p), "{p:02x?}");
+    }
+}
+
+#[test]
+fn malformed_packets_are_errors_not_panics() {
+    assert!(parse_rtp(&[0x80; 5]).is_err());
+    assert!(parse_rtp(&[0x40; 20]).is_err(), "version 1");
+    // Padding larger than the payload.
+    let mut p = vec![0xa0, 96, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1, 0x65, 0xff];
+    assert!(parse_rtp(&p).is_err());
+    p[0] = 0x80;
+    let mut d = H264Depacketizer::new(vec![]);
+    // A STAP-A whose unit overruns, then an FU-A continuation without start.
+    for (k, payload) in [
+        vec![24u8, 0, 9, 0x67],
+        vec![28, 0x05, 1, 2, 3],
+        vec![28, 0xc5],
+        vec![],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let mut pkt = p[..12].to_vec();
+        pkt[1] |= 0x80;
+        pkt[3] = k as u8 + 1;
+        pkt.extend_from_slice(&payload);
+        if let Ok(r) = parse_rtp(&pkt) {
+            let _ = d.push(&r);
+        }
+    }
+    assert!(d.stats().malformed >= 2, "{:?}", d.stats());
+}
