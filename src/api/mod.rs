@@ -56,6 +56,8 @@ pub struct SlamStatus {
     pub last_frame_ms: f64,
     /// Median latency from capture to tracked pose over recent frames, ms.
     pub latency_ms_median: Option<f64>,
+    /// 95th percentile of the same latencies, ms.
+    pub latency_ms_p95: Option<f64>,
     /// Frames per second processed.
     pub fps: f64,
     /// Where the map came from at start (None before the SLAM started).

@@ -487,6 +487,17 @@ impl SlamShared {
         }
     }
 
+    /// 95th percentile of recent capture-to-pose latencies, ms.
+    fn latency_p95(g: &Inner) -> Option<f64> {
+        let mut v: Vec<f64> = g.latencies_ms.iter().copied().collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        let k = ((v.len() as f64 * 0.95).ceil() as usize).clamp(1, v.len()) - 1;
+        Some(v[k])
+    }
+
     /// Median of recent capture-to-pose latencies, ms.
     fn latency_median(g: &Inner) -> Option<f64> {
         let v: Vec<f64> = g.latencies_ms.iter().copied().collect();
@@ -507,6 +518,7 @@ impl SlamView for SlamShared {
         let g = self.lock();
         let mut s = g.status.clone();
         s.latency_ms_median = Self::latency_median(&g);
+        s.latency_ms_p95 = Self::latency_p95(&g);
         drop(g);
         s.fps = self.rate.rate();
         s
