@@ -544,6 +544,12 @@ impl Ingest {
                     image: Arc::new(img.to_luma8()),
                     jpeg: OnceLock::from(part.jpeg.clone()),
                 });
+                let (w, h) = (frame.image.width(), frame.image.height());
+                self.update_source(|s| {
+                    s.width = Some(w);
+                    s.height = Some(h);
+                    s.connected = true;
+                });
                 self.publish(frame);
                 true
             }

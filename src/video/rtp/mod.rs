@@ -260,6 +260,11 @@ impl H264Depacketizer {
                 self.fu = None;
             }
         }
+        if self.last_seq.is_none() && !starts_access_unit(pkt.payload) {
+            // Joined mid-unit (or its first packets were lost): what came
+            // before cannot be known, so the unit counts as damaged.
+            self.cur_lost += 1;
+        }
         self.last_seq = Some(pkt.sequence);
         self.stats.packets += 1;
         if self.cur_ts.is_some() && self.cur_ts != Some(pkt.timestamp) {
@@ -348,8 +353,8 @@ impl H264Depacketizer {
                     }
                     nal.extend_from_slice(&p[2..]);
                 } else {
-                    // The start fragment was lost; already counted as a gap
-                    // unless the stream began mid-fragment.
+                    // A fragment without its start: the start was lost.
+                    self.cur_lost += 1;
                     return Ok(());
                 }
                 if end && let Some(nal) = self.fu.take() {
@@ -362,6 +367,16 @@ impl H264Depacketizer {
                 reason: "reserved NAL unit type",
             }),
         }
+    }
+}
+
+/// Whether a payload can only open an access unit: an access unit
+/// delimiter, a sequence parameter set, or an aggregation opening with one.
+fn starts_access_unit(payload: &[u8]) -> bool {
+    match payload.first().map(|b| b & 0x1f) {
+        Some(7 | 9) => true,
+        Some(24) => payload.get(3).is_some_and(|b| matches!(b & 0x1f, 7 | 9)),
+        _ => false,
     }
 }
 
