@@ -33,6 +33,10 @@ fuzz_target!(|data: &[u8]| {
 });
 
 fn raw(u: &mut Unstructured<'_>) -> AResult<()> {
+    let sdp_len = u.int_in_range(0..=512usize)?;
+    if let Ok(text) = std::str::from_utf8(u.bytes(sdp_len.min(u.len()))?) {
+        let _ = sdp::parse(text);
+    }
     let mut d = H264Depacketizer::new(vec![]);
     let mut sent = 0usize;
     let mut taken = 0u64;
@@ -55,9 +59,6 @@ fn raw(u: &mut Unstructured<'_>) -> AResult<()> {
     }
     let s = d.stats();
     assert!(s.packets + s.late <= taken);
-    if let Ok(text) = std::str::from_utf8(u.take_rest()) {
-        let _ = sdp::parse(text);
-    }
     Ok(())
 }
 
