@@ -77,8 +77,8 @@ fn clean_decode(aus: &[Vec<u8>]) -> Vec<GrayImage> {
     let mut dl = DecodeLoop::new(DecodeParams::default()).unwrap();
     aus.iter()
         .enumerate()
-        .filter_map(|(i, a)| match dl.step(&au(a.clone(), i as f64, 0), false) {
-            Decoded::Frame(f) => Some(f.image.as_ref().clone()),
+        .map(|(i, a)| match dl.step(&au(a.clone(), i as f64, 0), false) {
+            Decoded::Frame(f) => f.image.as_ref().clone(),
             other => panic!("clean picture {i}: {other:?}"),
         })
         .collect()

@@ -456,10 +456,10 @@ pub async fn run_h264(
 /// normalised coordinates and is unchanged.
 pub fn decimated_camera(c: &crate::camera::Camera, f: u32) -> crate::camera::Camera {
     if f <= 1 {
-        return c.clone();
+        return *c;
     }
     let s = f64::from(f);
-    let mut d = c.clone();
+    let mut d = *c;
     d.width = c.width / f;
     d.height = c.height / f;
     d.fx = c.fx / s;
@@ -586,6 +586,7 @@ pub async fn run_configured(
     link: Option<tokio::sync::oneshot::Receiver<crate::vehicle::LinkHandle>>,
 ) -> Result<(), SourceError> {
     let mut url = VideoUrl::parse(&cfg.url)?;
+    tokio::spawn(log_status(ingest.clone(), cancel.clone()));
     if url == VideoUrl::Auto {
         ingest.update_source(|s| {
             s.kind = "auto".into();
@@ -636,6 +637,40 @@ pub async fn run_configured(
             })
         }
         other => run_h264(other, cfg.h264_params(), ingest, cancel).await,
+    }
+}
+
+/// Log the video's state every 30 s until `cancel` fires: source, codec,
+/// resolution, rates and the counters an operator checks first.
+async fn log_status(ingest: Arc<Ingest>, cancel: CancellationToken) {
+    let mut tick = tokio::time::interval(Duration::from_secs(30));
+    tick.tick().await;
+    loop {
+        tokio::select! {
+            _ = cancel.cancelled() => return,
+            _ = tick.tick() => {}
+        }
+        let s = ingest.source_info();
+        let c = ingest.counters.snapshot();
+        tracing::info!(
+            source = %s.kind,
+            url = %s.url,
+            codec = s.codec.as_deref().unwrap_or("?"),
+            connected = s.connected,
+            "video: {}x{} at {:.1} fps, {:.0} kbit/s; decoded {}, dropped {}, late {}, skipped to key frame {}, lost packets {}, bad {}, reconnects {}{}",
+            s.width.unwrap_or(0),
+            s.height.unwrap_or(0),
+            ingest.decoded_rate.rate(),
+            ingest.byte_rate.bits_per_second() / 1e3,
+            c.decoded,
+            c.dropped,
+            c.late,
+            c.skipped,
+            c.lost_packets,
+            c.bad,
+            c.connects.saturating_sub(1),
+            s.last_error.map(|e| format!("; last error: {e}")).unwrap_or_default()
+        );
     }
 }
 
