@@ -110,8 +110,8 @@ pub struct VideoConfig {
     /// H.264: access units queued ahead of the decoder before the oldest
     /// are dropped and decoding resumes at the next key frame.
     pub decode_queue: usize,
-    /// H.264: decimate the decoded picture by this integer factor before
-    /// SLAM (1: full resolution); the camera intrinsics are scaled to match.
+    /// Decimate the picture by this integer factor before SLAM (1: full
+    /// resolution; any source); the camera intrinsics are scaled to match.
     pub downscale: u32,
     /// Snapshot polling rate, Hz.
     pub snapshot_hz: f64,

@@ -192,9 +192,10 @@ pub async fn run(
         })?;
     let video_cancel = cancel.child_token();
     // The source by `[video] url` (`auto` waits for the link below).
-    let video_url = crate::video::source::VideoUrl::parse(&cfg.video.url)?;
-    if let crate::video::source::VideoUrl::Http(u) = &video_url {
-        mjpeg::HttpUrl::parse(u)?;
+    if let crate::video::source::VideoUrl::Http(u) =
+        crate::video::source::VideoUrl::parse(&cfg.video.url)?
+    {
+        mjpeg::HttpUrl::parse(&u)?;
     }
     let (link_for_video, link_rx) = oneshot::channel();
     let reader = {
@@ -206,12 +207,11 @@ pub async fn run(
             }
         })
     };
-    // H.264 pictures decimated for SLAM: the intrinsics follow.
-    let camera = if matches!(video_url, crate::video::source::VideoUrl::Http(_)) {
-        camera
-    } else {
-        crate::video::source::decimated_camera(&camera, cfg.video.downscale)
-    };
+    // Pictures decimated for SLAM (any source): the intrinsics follow.
+    ingest
+        .jpeg_downscale
+        .store(cfg.video.downscale, std::sync::atomic::Ordering::Relaxed);
+    let camera = crate::video::source::decimated_camera(&camera, cfg.video.downscale);
 
     // SLAM thread.
     let geo = Arc::new(geo_service::GeoService::new(cfg.geo.clone()));

@@ -446,6 +446,8 @@ pub struct Ingest {
     pub byte_rate: ByteRate,
     /// What the source is (set by the reader).
     pub source: Mutex<SourceInfo>,
+    /// Decimation of JPEG frames before SLAM (`[video] downscale`; 1: none).
+    pub jpeg_downscale: std::sync::atomic::AtomicU32,
     observers: watch::Sender<Option<Arc<Frame>>>,
 }
 
@@ -468,6 +470,7 @@ impl Ingest {
             consumed_rate: RateMeter::new(w),
             byte_rate: ByteRate::new(w),
             source: Mutex::new(SourceInfo::default()),
+            jpeg_downscale: std::sync::atomic::AtomicU32::new(1),
             observers: watch::channel(None).0,
         }
     }
@@ -541,7 +544,13 @@ impl Ingest {
                     capture_time: part.capture_time,
                     received: part.received,
                     received_unix: part.received_unix,
-                    image: Arc::new(img.to_luma8()),
+                    image: Arc::new({
+                        let grey = img.to_luma8();
+                        match self.jpeg_downscale.load(Ordering::Relaxed) {
+                            f if f > 1 => crate::video::h264::downscale(&grey, f),
+                            _ => grey,
+                        }
+                    }),
                     jpeg: OnceLock::from(part.jpeg.clone()),
                 });
                 let (w, h) = (frame.image.width(), frame.image.height());
@@ -614,6 +623,30 @@ mod tests {
         assert_eq!(s.take_fresh(Duration::from_secs(5)), Ok(Some(7)));
         assert!(t0.elapsed() < Duration::from_secs(4));
         t.join().unwrap();
+    }
+
+    #[test]
+    fn jpeg_frames_are_decimated_as_configured() {
+        let img = GrayImage::from_fn(64, 48, |x, y| image::Luma([(x * 4 + y) as u8]));
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 95)
+            .encode_image(&img)
+            .unwrap();
+        let ing = Ingest::new();
+        ing.jpeg_downscale.store(2, Ordering::Relaxed);
+        let part = RawPart {
+            jpeg: Arc::new(jpeg),
+            capture_time: None,
+            received: Instant::now(),
+            received_unix: unix_now(),
+        };
+        assert!(ing.decode_and_publish(&part, 0));
+        let f = ing.latest().unwrap();
+        assert_eq!(f.image.dimensions(), (32, 24));
+        // The re-served JPEG is the one received, at full size.
+        assert_eq!(f.jpeg().len(), part.jpeg.len());
+        let s = ing.source_info();
+        assert_eq!((s.width, s.height), (Some(32), Some(24)));
     }
 
     #[test]
