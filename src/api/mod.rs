@@ -323,6 +323,7 @@ fn anchor_refusal(e: &crate::shot::ShotError) -> serde_json::Map<String, Value> 
     let (reason, anchor) = match e {
         R::NonFiniteAnchor { index } => ("non_finite", Some(*index)),
         R::AnchorOutOfBounds { index, .. } => ("out_of_bounds", Some(*index)),
+        R::Crossed { .. } => ("crossed", None),
         R::Collapsed { .. } => ("collapsed", None),
         R::MirroredWinding => ("mirrored", None),
         R::NotConvex { vertex } => ("not_convex", Some(*vertex)),
@@ -349,15 +350,24 @@ impl From<VehicleError> for ApiError {
     }
 }
 
-impl From<BytesRejection> for ApiError {
-    fn from(r: BytesRejection) -> Self {
-        let status = r.status();
-        let code = if status == StatusCode::PAYLOAD_TOO_LARGE {
-            "body_too_large"
-        } else {
-            "bad_body"
-        };
-        Self::new(status, code, r.body_text())
+/// A request body that could not be read: 413 names the limit (and the
+/// setting that raises it), anything else is a 400-class `bad_body`.
+fn body_rejection(r: BytesRejection, limit: usize) -> ApiError {
+    let status = r.status();
+    if status == StatusCode::PAYLOAD_TOO_LARGE {
+        let mut detail = serde_json::Map::new();
+        detail.insert("limit_bytes".into(), limit.into());
+        ApiError::new(
+            status,
+            "body_too_large",
+            format!(
+                "the request body is larger than the limit of {limit} bytes ({:.1} MiB; [server] body_limit_bytes)",
+                limit as f64 / (1u64 << 20) as f64
+            ),
+        )
+        .with_detail(detail)
+    } else {
+        ApiError::new(status, "bad_body", r.body_text())
     }
 }
 
@@ -747,7 +757,7 @@ async fn create_shot(
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
-    let body = body?;
+    let body = body.map_err(|r| body_rejection(r, st.params.body_limit))?;
     if let Some(ct) = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -837,7 +847,7 @@ async fn create_shot_from_photo(
     query: Result<Query<PhotoQuery>, axum::extract::rejection::QueryRejection>,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
-    let body = body?;
+    let body = body.map_err(|r| body_rejection(r, st.params.body_limit))?;
     let intrinsics = query
         .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_intrinsics", e.body_text()))?
         .0
@@ -856,6 +866,12 @@ async fn create_shot_from_photo(
     let bytes = body.len();
     let computer = st.shots.clone();
     let (comp, w, h) = tokio::task::spawn_blocking(move || {
+        // A JPEG cut short decodes to a picture grey below the cut: refused.
+        if body.starts_with(&[0xFF, 0xD8])
+            && let Some(reason) = shots::jpeg_truncation(&body)
+        {
+            return Err(ShotError::BadImage { reason });
+        }
         let img = image::load_from_memory(&body).map_err(|e| ShotError::BadImage {
             reason: format!("not a readable image: {e}"),
         })?;
