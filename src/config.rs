@@ -172,8 +172,14 @@ impl Default for ServerConfig {
 pub struct SlamConfig {
     /// Run the SLAM on the live video.
     pub enabled: bool,
-    /// Map file written on shutdown (relative to `server.data_dir`).
+    /// Map file written on shutdown and at each checkpoint (relative to
+    /// `server.data_dir`); the georeference it is tied to goes beside it
+    /// (`<map_file>.geo.json`).
     pub map_file: PathBuf,
+    /// Seconds between checkpoints of the map (and its georeference) while
+    /// the daemon runs, written when the map changed, so a crash or a kill
+    /// loses at most this much mapping (0: only on shutdown).
+    pub checkpoint_s: f64,
     /// At start, go on with the map in `map_file` when there is one (the
     /// SLAM relocalises into it, so shots and the georeference stay in one
     /// frame); false: start a fresh map (the old file is kept under a new
@@ -189,6 +195,7 @@ impl Default for SlamConfig {
         Self {
             enabled: true,
             map_file: PathBuf::from("map.spmap"),
+            checkpoint_s: 30.0,
             continue_map: true,
             artificial_delay_ms: 0,
         }
@@ -545,6 +552,13 @@ impl Config {
         if !(self.server.events_hz > 0.0 && self.server.events_hz <= 50.0) {
             return Err(invalid("server", "events_hz", "must be in (0, 50]".into()));
         }
+        if !(self.slam.checkpoint_s >= 0.0 && self.slam.checkpoint_s <= 86_400.0) {
+            return Err(invalid(
+                "slam",
+                "checkpoint_s",
+                "must be in [0, 86400] s (0: only on shutdown)".into(),
+            ));
+        }
         if self.sim.enabled {
             self.sim
                 .video_listen
@@ -630,6 +644,29 @@ impl Config {
                 "geo.mount",
                 "pitch_min_deg/pitch_max_deg/lever_arm_body_m",
                 "need pitch_min_deg < pitch_max_deg and a finite lever arm".into(),
+            ));
+        }
+        let c = &self.geo.continuity;
+        if !(c.frame_pair_spacing_s.is_finite() && (0.0..=3600.0).contains(&c.frame_pair_spacing_s))
+        {
+            return Err(invalid(
+                "geo.continuity",
+                "frame_pair_spacing_s",
+                "must be in [0, 3600] s (0: no frame pairs)".into(),
+            ));
+        }
+        if c.max_frame_pairs > 10_000 {
+            return Err(invalid(
+                "geo.continuity",
+                "max_frame_pairs",
+                "must be at most 10000".into(),
+            ));
+        }
+        if !(c.disagreement_factor.is_finite() && c.disagreement_factor >= 1.0) {
+            return Err(invalid(
+                "geo.continuity",
+                "disagreement_factor",
+                "must be finite and at least 1".into(),
             ));
         }
         let fence = &self.mission.plan.fence;

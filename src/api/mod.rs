@@ -60,6 +60,25 @@ pub struct SlamStatus {
     pub fps: f64,
     /// Where the map came from at start (None before the SLAM started).
     pub map_start: Option<MapStart>,
+    /// The map file last written (a checkpoint, or at shutdown).
+    pub map_saved: Option<MapSaved>,
+}
+
+/// The last map file written.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MapSaved {
+    /// `checkpoint` or `shutdown`.
+    pub reason: String,
+    /// Keyframes in it.
+    pub keyframes: usize,
+    /// Map points in it.
+    pub points: usize,
+    /// File size, bytes.
+    pub bytes: u64,
+    /// Pairs in the georeference written beside it (None: none written).
+    pub geo_pairs: Option<usize>,
+    /// When it was written, unix seconds.
+    pub at_unix: f64,
 }
 
 /// Where the SLAM's map came from when the daemon started.
@@ -96,6 +115,22 @@ pub struct KeyframeInfo {
     pub height: u32,
 }
 
+/// The newest tracked frame, placed relative to its reference keyframe (so
+/// that it moves with it when bundle adjustment moves the keyframe): the
+/// georeference pairs such frames with telemetry.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackedFrame {
+    /// Ingest sequence number.
+    pub seq: u64,
+    /// Capture time, seconds (the keyframes' clock).
+    pub timestamp: f64,
+    /// The reference keyframe.
+    pub reference_kf: u64,
+    /// `cam ← ref_cam`: the frame's camera relative to the reference
+    /// keyframe's.
+    pub cam_from_ref: nalgebra::Isometry3<f64>,
+}
+
 /// The map for the top view.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct MapView {
@@ -123,6 +158,10 @@ pub trait SlamView: Send + Sync {
     fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>>;
     /// The map, with at most `max_points` points.
     fn map(&self, max_points: usize) -> MapView;
+    /// The newest tracked frame (None: none yet, or no SLAM).
+    fn last_tracked(&self) -> Option<TrackedFrame> {
+        None
+    }
 }
 
 /// Errors of vehicle actions, each with its HTTP status.

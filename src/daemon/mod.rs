@@ -17,6 +17,7 @@
 //! simulator stops last.
 
 pub mod geo_service;
+pub mod persist;
 pub mod refine_loop;
 pub mod refine_service;
 pub mod shot_service;
@@ -203,15 +204,27 @@ pub async fn run(
     let geo = Arc::new(geo_service::GeoService::new(cfg.geo.clone()));
     let shared = Arc::new(SlamShared::new(cfg.slam.enabled));
     let map_file = data_dir.join(&cfg.slam.map_file);
+    persist::remove_leftovers(&data_dir, &map_file);
+    // The georeference saved with the map: restored onto it once the SLAM
+    // has loaded it (dropped if the map is not continued).
+    if cfg.slam.enabled
+        && cfg.slam.continue_map
+        && map_file.exists()
+        && let Some(saved) = persist::load_geo(&map_file)
+    {
+        geo.restore(saved);
+    }
+    let persist = Arc::new(persist::MapPersist::new(map_file, shared.clone()));
     let slam_thread = {
         let (ing, sh, g) = (ingest.clone(), shared.clone(), geo.clone());
         let delay = Duration::from_millis(cfg.slam.artificial_delay_ms);
         let cfg = cfg.clone();
+        let p = persist.clone();
         std::thread::Builder::new()
             .name("slam".into())
             .spawn(move || {
                 // Built here: loading and indexing a saved map takes a while.
-                let processor = slam_view::make_processor(&cfg, camera, sh.clone(), map_file);
+                let processor = slam_view::make_processor(&cfg, camera, sh.clone(), p);
                 slam_loop(processor, &ing, &sh, &g, delay)
             })
             .map_err(|source| DaemonError::Thread {
@@ -231,6 +244,24 @@ pub async fn run(
         shared.clone(),
         link_cancel.clone(),
     ));
+    // Checkpoints of the map and its georeference.
+    let checkpoint_cancel = cancel.child_token();
+    let checkpoint_task = (cfg.slam.enabled && cfg.slam.checkpoint_s > 0.0).then(|| {
+        let (p, g, c) = (persist.clone(), geo.clone(), checkpoint_cancel.clone());
+        let period = Duration::from_secs_f64(cfg.slam.checkpoint_s);
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tokio::select! {
+                    _ = c.cancelled() => break,
+                    _ = tick.tick() => {}
+                }
+                let (p, g) = (p.clone(), g.clone());
+                let _ = tokio::task::spawn_blocking(move || p.checkpoint(&g)).await;
+            }
+        })
+    });
     // The refinement loop: started with a shot's mission, stopped by the
     // next upload or the shutdown.
     let actions: Arc<tokio::sync::Mutex<()>> = Default::default();
@@ -297,6 +328,10 @@ pub async fn run(
     // Shutdown, in order.
     tracing::info!("shutting down");
     let _ = refine_task.await;
+    checkpoint_cancel.cancel();
+    if let Some(t) = checkpoint_task {
+        let _ = t.await;
+    }
     video_cancel.cancel();
     let _ = reader.await;
     ingest.close();
@@ -307,6 +342,11 @@ pub async fn run(
     .await
     .ok()
     .flatten();
+    // The georeference beside the map just written.
+    if summary_slam.as_ref().is_some_and(Option::is_some) {
+        let (p, g) = (persist.clone(), geo.clone());
+        let _ = tokio::task::spawn_blocking(move || p.save_geo(&g)).await;
+    }
     link_cancel.cancel();
     let _ = geo_task.await;
     let _ = link_task.await;

@@ -229,6 +229,7 @@ impl Default for ScenarioParams {
                     position_sigma_m: 1.0,
                     ..geo::AlignParams::default()
                 },
+                continuity: geo::ContinuityParams::default(),
             },
             plan: plan::Params {
                 hold_time_s: 15.0,
