@@ -18,6 +18,7 @@
 
 pub mod geo_service;
 pub mod persist;
+pub mod reconcile;
 pub mod refine_loop;
 pub mod refine_service;
 pub mod shot_service;
@@ -160,6 +161,19 @@ pub async fn run(
     let t0 = Instant::now();
     let data_dir = base_dir.join(&cfg.server.data_dir);
     let store = Arc::new(ShotStore::open(&data_dir.join("shots"))?);
+    // A refinement loop still running in the record: the last session
+    // ended without stopping it (killed or crashed).
+    for shot in store.list() {
+        if let Some(s) = reconcile::interrupt_refinement(
+            &shot,
+            "the daemon ended while the loop ran (killed or crashed); start the shot's mission to refine again",
+        ) {
+            tracing::warn!(shot = %s.id, "refinement loop interrupted by the last session's end");
+            if let Err(e) = store.put(s, None) {
+                tracing::warn!("marking an interrupted refinement: {e}");
+            }
+        }
+    }
     let camera = cfg.camera.camera(base_dir)?;
 
     // The simulator, first, so the video and the link find it.
@@ -279,9 +293,18 @@ pub async fn run(
         },
         cancel.child_token(),
     );
-    let vehicle: Arc<dyn VehicleView> = Arc::new(
+    let link_vehicle = Arc::new(
         vehicle_view::LinkVehicle::new(link, cfg.mission.plan, geo.clone()).with_refine(refine),
     );
+    // The vehicle's truth: each shot's mission state from the mission the
+    // vehicle holds, at the first heartbeat and after every link loss.
+    let reconcile_task = tokio::spawn(vehicle_view::run_reconciler(
+        link_vehicle.clone(),
+        store.clone(),
+        actions.clone(),
+        link_cancel.clone(),
+    ));
+    let vehicle: Arc<dyn VehicleView> = link_vehicle;
 
     // The API.
     let slam_view: Arc<dyn SlamView> = shared.clone();
@@ -348,6 +371,7 @@ pub async fn run(
         let _ = tokio::task::spawn_blocking(move || p.save_geo(&g)).await;
     }
     link_cancel.cancel();
+    let _ = reconcile_task.await;
     let _ = geo_task.await;
     let _ = link_task.await;
     sim_cancel.cancel();

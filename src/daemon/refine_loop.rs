@@ -161,7 +161,7 @@ pub fn spawn(deps: Deps, cancel: CancellationToken) -> (RefineHandle, tokio::tas
 }
 
 async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: CancellationToken) {
-    let mut current: Option<(CancellationToken, tokio::task::JoinHandle<()>)> = None;
+    let mut current: Option<(CancellationToken, tokio::task::JoinHandle<()>, String)> = None;
     loop {
         let req = tokio::select! {
             _ = cancel.cancelled() => break,
@@ -170,7 +170,7 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
                 None => break,
             },
         };
-        if let Some((c, t)) = current.take() {
+        if let Some((c, t, _)) = current.take() {
             c.cancel();
             let _ = t.await;
         }
@@ -188,15 +188,52 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
             let d = deps.clone();
             let cc = c.clone();
             tracing::info!(shot = %shot.id, "refinement: started");
+            let id = shot.id.clone();
             current = Some((
                 c,
                 tokio::spawn(async move { refine_shot(&d, shot, target, cc).await }),
+                id,
             ));
         }
     }
-    if let Some((c, t)) = current.take() {
+    if let Some((c, t, id)) = current.take() {
         c.cancel();
         let _ = t.await;
+        mark_interrupted(&deps, &id).await;
+    }
+}
+
+/// The daemon stops while `id`'s loop runs: the loop recorded itself as
+/// cancelled; the record says interrupted, and that it can be restarted.
+async fn mark_interrupted(deps: &Deps, id: &str) {
+    let Some(mut shot) = deps.store.get(id) else {
+        return;
+    };
+    let Some(r) = shot
+        .mission
+        .as_mut()
+        .and_then(|m| m.details.get_mut("refinement"))
+        .and_then(serde_json::Value::as_object_mut)
+    else {
+        return;
+    };
+    let cancelled = r.get("stop").and_then(serde_json::Value::as_str) == Some("aborted")
+        && r.get("reason").and_then(serde_json::Value::as_str) == Some("cancelled");
+    if !cancelled {
+        return;
+    }
+    r.insert("stop".into(), "interrupted".into());
+    r.insert(
+        "reason".into(),
+        "the daemon stopped while the loop ran; start the shot's mission to refine again".into(),
+    );
+    r.insert("restartable".into(), true.into());
+    tracing::info!(shot = %id, "refinement: interrupted by the daemon's stop");
+    let store = deps.store.clone();
+    match tokio::task::spawn_blocking(move || store.put(shot, None)).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => tracing::warn!("refinement: saving the shot: {e}"),
+        Err(e) => tracing::warn!("refinement: saving the shot: {e}"),
     }
 }
 
