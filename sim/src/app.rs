@@ -243,8 +243,21 @@ fn write_capture(
 /// Run the simulator until `cancel` fires, serving video on
 /// `config.video_listen` (if set).
 pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSummary, SimError> {
+    run_announcing(config, cancel, false).await
+}
+
+/// [`run`]; with `announce`, once the video server and the MAVLink
+/// endpoint are open, one line on stdout gives their bound addresses
+/// (`shotpilot-sim bound: video=ADDR mavlink=ADDR`, `-` for none), so a
+/// caller that asked for port 0 knows where to connect.
+pub async fn run_announcing(
+    config: SimConfig,
+    cancel: CancellationToken,
+    announce: bool,
+) -> Result<RunSummary, SimError> {
     config.validate()?;
     let (video_tx, video_rx) = watch::channel(None);
+    let mut video_bound = None;
     if let Some(addr) = config.video_listen {
         let listener = tokio::net::TcpListener::bind(addr)
             .await
@@ -253,6 +266,7 @@ pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSumm
                 path: PathBuf::from(addr.to_string()),
                 source,
             })?;
+        video_bound = listener.local_addr().ok();
         let c = cancel.clone();
         tokio::spawn(async move {
             if let Err(e) = serve_video(listener, video_rx, c).await {
@@ -262,7 +276,7 @@ pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSumm
     } else {
         drop(video_rx);
     }
-    run_with(config, cancel, video_tx).await
+    run_inner(config, cancel, video_tx, announce.then_some(video_bound)).await
 }
 
 /// [`run`] without its video server: frames are published on `video_tx`
@@ -272,6 +286,17 @@ pub async fn run_with(
     config: SimConfig,
     cancel: CancellationToken,
     video_tx: watch::Sender<Option<Arc<VideoFrame>>>,
+) -> Result<RunSummary, SimError> {
+    run_inner(config, cancel, video_tx, None).await
+}
+
+/// The simulation; `announce` (Some: the video server's bound address)
+/// prints the bound addresses once the link is open.
+async fn run_inner(
+    config: SimConfig,
+    cancel: CancellationToken,
+    video_tx: watch::Sender<Option<Arc<VideoFrame>>>,
+    announce: Option<Option<SocketAddr>>,
 ) -> Result<RunSummary, SimError> {
     config.validate()?;
     let mut truth = match &config.truth_dir {
@@ -296,6 +321,16 @@ pub async fn run_with(
         cancel.clone(),
     )
     .await?;
+    if let Some(video) = announce {
+        let show = |a: Option<SocketAddr>| a.map_or("-".to_string(), |a| a.to_string());
+        println!(
+            "shotpilot-sim bound: video={} mavlink={}",
+            show(video),
+            show(link.local_addr)
+        );
+        use std::io::Write as _;
+        let _ = std::io::stdout().flush();
+    }
     tracing::info!(
         "shotpilot-sim: MAVLink on {}, flavour {:?}, radio {:?}",
         config.mavlink,

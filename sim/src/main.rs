@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
-use shotpilot_sim::app::{SimConfig, run};
+use shotpilot_sim::app::{SimConfig, run_announcing};
 use shotpilot_sim::autopilot::Flavour;
 use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::dataset::render_dataset;
@@ -269,7 +269,7 @@ fn main() -> Result<()> {
             }
             c2.cancel();
         });
-        let summary = run(config, cancel).await?;
+        let summary = run_announcing(config, cancel, true).await?;
         tracing::info!(
             "done: {:.1} s simulated, {} frames ({} skipped), {} captures, link {:?}",
             summary.sim_seconds,
