@@ -26,11 +26,7 @@ use crate::video::live::unix_now;
 
 /// The georeference file beside a map file.
 pub fn geo_path(map_file: &Path) -> PathBuf {
-    let name = map_file
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "map".into());
-    map_file.with_file_name(format!("{name}.geo.json"))
+    mapfile::beside(map_file, ".geo.json")
 }
 
 /// Reads the georeference saved beside `map_file`: None when there is

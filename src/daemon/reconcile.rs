@@ -167,17 +167,7 @@ pub fn reconcile(
                 "last_reached": p.last_reached,
             })),
         });
-        if !m.details.is_object() {
-            let previous = std::mem::take(&mut m.details);
-            m.details = if previous.is_null() {
-                json!({})
-            } else {
-                json!({ "previous": previous })
-            };
-        }
-        if let Some(d) = m.details.as_object_mut() {
-            d.insert("vehicle".into(), record);
-        }
+        super::refine_service::set_detail(m, "vehicle", record);
         m.state = new_state.into();
         changed.push(shot);
     }

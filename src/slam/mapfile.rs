@@ -392,11 +392,16 @@ pub fn encode_with(map: &Map, images: &mut KeyframeImages) -> Result<Vec<u8>, Ma
 /// The temporary file a save writes before renaming it into place
 /// (`<name>.tmp` beside `path`); a leftover one is an interrupted save.
 pub fn temp_path(path: &Path) -> PathBuf {
+    beside(path, ".tmp")
+}
+
+/// `<name><suffix>` beside `path` (`map.spmap` + `.tmp`: `map.spmap.tmp`).
+pub fn beside(path: &Path, suffix: &str) -> PathBuf {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "map".into());
-    path.with_file_name(format!("{name}.tmp"))
+    path.with_file_name(format!("{name}{suffix}"))
 }
 
 /// Write a map file (keyframe images as PNG, see [`save_with`]).
