@@ -133,14 +133,15 @@ fn slam_summary_counts_agree_with_the_ate_line() {
     };
     let posed = num_before(first, " frames posed");
     let tracked = num_before(first, " tracked");
-    let at_init = first
-        .contains("posed at initialisation")
-        .then(|| num_before(first, " posed at initialisation"))
-        .unwrap_or(0);
-    let gone = first
-        .contains("whose reference keyframe is gone")
-        .then(|| num_before(first, " whose reference keyframe is gone"))
-        .unwrap_or(0);
+    let optional = |key: &str| {
+        if first.contains(key) {
+            num_before(first, key)
+        } else {
+            0
+        }
+    };
+    let at_init = optional(" posed at initialisation");
+    let gone = optional(" whose reference keyframe is gone");
     assert_eq!(posed, tracked + at_init - gone, "{first}");
     assert!(
         !first.contains("other"),

@@ -19,7 +19,7 @@
 //! map's stored keyframes are all there after the next start, which
 //! uploads and flies both shots again.
 //!
-//! `twenty_restarts_in_one_flight` (slow, by hand): 20 restarts in a row
+//! `twenty_restarts_in_one_flight`: 20 restarts in a row
 //! (every fifth a SIGKILL) during one flight; each ends georeferenced and
 //! uploads a shot's mission, and the data directory holds exactly the map,
 //! its georeference and the shots (nothing left over, nothing lost).
@@ -625,7 +625,7 @@ fn a_field_restart_sigint_then_sigkill() {
 }
 
 #[test]
-#[ignore = "slow: 20 daemon restarts during one simulator flight (minutes)"]
+#[ignore = "needs the shotpilot-sim binary (cargo build --release --workspace); about a minute"]
 fn twenty_restarts_in_one_flight() {
     let dir = tempfile::tempdir().unwrap();
     let _logs = LogsOnFailure(dir.path());
