@@ -600,6 +600,9 @@ fn a_field_restart_sigint_then_sigkill() {
         before.shots, after.shots, before.missions, after.missions, before.map_keyframes_stored
     );
     assert_eq!(status["slam"]["map_start"]["mode"], "continued");
+    poll(a3, "/api/v1/status", 60, |s| {
+        s["vehicle"]["connected"] == true
+    });
     assert_eq!(
         (after.shots, after.missions),
         (before.shots, before.missions)

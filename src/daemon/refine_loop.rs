@@ -262,11 +262,24 @@ fn desired_picture(
             keyframe_id,
             anchors: a,
         } => {
-            let image = u32::try_from(*keyframe_id)
+            let Some(image) = u32::try_from(*keyframe_id)
                 .ok()
                 .and_then(|id| map.keyframe(KeyFrameId(id)))
                 .and_then(|k| k.image.clone())
-                .ok_or_else(|| format!("keyframe {keyframe_id} has no image in the map"))?;
+            else {
+                // The keyframe left the map (culled, or not in the map
+                // continued after a restart): the desired picture stored
+                // with the shot when it was made stands in for it.
+                let stored = stored_picture(store, map, shot).map_err(|e| {
+                    format!("keyframe {keyframe_id} has no image in the map, and {e}")
+                })?;
+                tracing::warn!(
+                    shot = %shot.id,
+                    keyframe = keyframe_id,
+                    "refinement: the shot's keyframe is not in the map; using its stored desired picture"
+                );
+                return Ok(stored);
+            };
             let pts = a.map(|p| Point2::new(p[0], p[1]));
             let s = desired_shot_from_anchors(&image, &pts, anchors)
                 .map_err(|e| format!("desired shot: {e}"))?;
@@ -297,25 +310,29 @@ fn desired_picture(
             }
             Ok((s.image, Some(s.mask), reachable))
         }
-        ShotSource::Photo { .. } => {
-            let jpeg = store
-                .image(&shot.id)
-                .ok_or_else(|| format!("shot {} has no stored image", shot.id))?;
-            let img = image::load_from_memory(&jpeg)
-                .map_err(|e| format!("shot image: {e}"))?
-                .to_luma8();
-            if img.dimensions() != (map.camera.width, map.camera.height) {
-                return Err(format!(
-                    "the photo is {}x{}, the camera's images are {}x{}",
-                    img.width(),
-                    img.height(),
-                    map.camera.width,
-                    map.camera.height
-                ));
-            }
-            Ok((img, None, None))
-        }
+        ShotSource::Photo { .. } => stored_picture(store, map, shot),
     }
+}
+
+/// The desired picture stored with the shot (a photo, or the picture an
+/// anchors shot made), at the camera's size.
+fn stored_picture(store: &ShotStore, map: &Map, shot: &Shot) -> Result<Picture, String> {
+    let jpeg = store
+        .image(&shot.id)
+        .ok_or_else(|| format!("shot {} has no stored image", shot.id))?;
+    let img = image::load_from_memory(&jpeg)
+        .map_err(|e| format!("shot image: {e}"))?
+        .to_luma8();
+    if img.dimensions() != (map.camera.width, map.camera.height) {
+        return Err(format!(
+            "the shot's picture is {}x{}, the camera's images are {}x{}",
+            img.width(),
+            img.height(),
+            map.camera.width,
+            map.camera.height
+        ));
+    }
+    Ok((img, None, None))
 }
 
 /// Writes the session (and an abort reason, if any) into the stored shot.
