@@ -229,7 +229,7 @@ fn a_camera_standing_still_does_not_initialise_and_says_why() {
     let run = run_sequential(&ds, 1);
     assert_eq!(run.initialized_at, None);
     assert_eq!(run.map.keyframe_count(), 0);
-    let reason = run.last_reason.unwrap_or_default();
+    let reason = run.last_reason.map(|r| r.to_string()).unwrap_or_default();
     assert!(
         reason.contains("parallax") || reason.contains("matches"),
         "reason: {reason}"

@@ -202,7 +202,7 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let reason = if initialized {
         None
     } else {
-        run.last_reason.clone()
+        run.last_reason.as_ref().map(ToString::to_string)
     };
     if args.json {
         let out = json!({

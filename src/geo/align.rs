@@ -31,8 +31,8 @@ use nalgebra::{Isometry3, Matrix3, Point3, SMatrix, SVector, UnitQuaternion, Vec
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
 use super::GeoError;
-use crate::geometry::se3::skew;
 use crate::geometry::{Sim3, umeyama};
+use crate::lie::skew;
 use crate::optimize::lm::{LeastSquares, LmParams, levenberg_marquardt};
 
 /// Tunables of the alignment.

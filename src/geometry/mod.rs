@@ -1,7 +1,10 @@
-//! Multiple-view geometry: SE(3)/Sim(3) helpers, two-view initialisation
-//! (fundamental matrix, homography, their decompositions), triangulation,
-//! PnP (Lambda Twist P3P + EPnP inside RANSAC, then robust refinement),
+//! Multiple-view geometry: two-view initialisation (fundamental matrix,
+//! homography, their decompositions), triangulation, PnP (Lambda Twist P3P
+//! and EPnP inside RANSAC, then robust refinement with [`crate::optimize`]),
 //! the homography from exactly four point pairs, and Umeyama alignment.
+//! SE(3)/Sim(3) live below both this module and `optimize`, in
+//! [`crate::lie`]; [`Sim3`] is re-exported here for callers that align
+//! with [`umeyama()`].
 //!
 //! Conventions (see `ARCHITECTURE.md`): camera axes x right, y down,
 //! z forward; poses are named for what they map (`cam_from_world`).
@@ -10,14 +13,13 @@
 
 pub mod homography4;
 pub mod pnp;
-pub mod se3;
 pub mod triangulate;
 pub mod two_view;
 pub mod umeyama;
 
+pub use crate::lie::Sim3;
 pub use homography4::homography_from_4;
 pub use pnp::{PnpParams, PnpResult, solve_pnp_ransac};
-pub use se3::Sim3;
 pub use triangulate::{TriangulationChecks, TriangulationReject, triangulate, triangulate_checked};
 pub use two_view::{
     HomographyFit, HomographyParams, Model, TwoViewParams, TwoViewResult, find_homography,

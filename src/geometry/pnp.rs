@@ -608,7 +608,7 @@ fn count_inliers_beating(
 fn to_iso(r: &Matrix3<f64>, t: &Vector3<f64>) -> Isometry3<f64> {
     Isometry3::from_parts(
         Translation3::from(*t),
-        crate::geometry::se3::quaternion_from_matrix(r),
+        crate::lie::quaternion_from_matrix(r),
     )
 }
 

@@ -891,7 +891,7 @@ fn reconstruct(
     } else {
         (best, max_good)
     };
-    let rot = crate::geometry::se3::quaternion_from_matrix(&best.r);
+    let rot = crate::lie::quaternion_from_matrix(&best.r);
     let mut cam2_from_cam1 = Isometry3::from_parts(Translation3::from(best.t), rot);
     let mut points = best.points;
     if params.refine_iterations > 0 {
@@ -922,7 +922,7 @@ fn recheck_refined(
     if params.refine_iterations == 0 {
         return None;
     }
-    let rot = crate::geometry::se3::quaternion_from_matrix(&h.r);
+    let rot = crate::lie::quaternion_from_matrix(&h.r);
     let mut pose = Isometry3::from_parts(Translation3::from(h.t), rot);
     let before = pose;
     let mut points = h.points;
@@ -1187,7 +1187,7 @@ mod tests {
             .to_rotation_matrix()
             .into_inner();
         let t = Vector3::new(-0.4, 0.2, 0.9).normalize();
-        let e = crate::geometry::se3::skew(&t) * r;
+        let e = crate::lie::skew(&t) * r;
         let hyps = decompose_e(&(e * -3.0)).unwrap();
         assert!(
             hyps.iter()

@@ -5,7 +5,8 @@
 
 use nalgebra::{Matrix3, Point3, Vector3};
 
-use super::{GeometryError, Sim3, all_finite3};
+use super::{GeometryError, all_finite3};
+use crate::lie::Sim3;
 
 /// Finds the similarity (or, with `with_scale == false`, the rigid motion)
 /// minimising `Σ |dst_i - (s·R·src_i + t)|²`.
@@ -87,7 +88,7 @@ pub fn umeyama(
     } else {
         1.0
     };
-    let rotation = crate::geometry::se3::quaternion_from_matrix(&r);
+    let rotation = crate::lie::quaternion_from_matrix(&r);
     let translation = mu_d - rotation * mu_s * scale;
     Ok(Sim3::new(rotation, translation, scale))
 }

@@ -29,7 +29,7 @@ use nalgebra::{
 
 use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt};
 use super::{Intrinsics, OptimizeError, RobustKernel, valid_obs};
-use crate::geometry::se3::{se3_exp, skew};
+use crate::lie::{se3_exp, skew};
 
 /// A keyframe pose in the problem.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -14,7 +14,7 @@
 //!   z forward; pixels are undistorted.
 //! * **Left perturbation**: an SE(3) update is `T ← Exp(δ)·T` with
 //!   `δ = [υ; ω]` (translation first), so `∂(T·p)/∂δ = [I₃ | -[T·p]ₓ]` at
-//!   `δ = 0` (see [`crate::geometry::se3`]). Sim(3) updates are
+//!   `δ = 0` (see [`crate::lie`]). Sim(3) updates are
 //!   `S ← (e^σ·Exp(ω), υ) ∘ S` with `δ = [υ; ω; σ]`.
 //! * Residuals are `r = π(p_cam) - uv` in pixels, weighted by the
 //!   observation's `inv_sigma2` (ORB-SLAM's per-octave `1/σ²`); the squared

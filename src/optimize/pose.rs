@@ -12,7 +12,7 @@ use nalgebra::{Isometry3, Matrix6, Point2, Point3, Vector6};
 
 use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt, solve_damped_dense};
 use super::{Intrinsics, OptimizeError, RobustKernel, valid_obs};
-use crate::geometry::se3::{se3_exp, skew};
+use crate::lie::{se3_exp, skew};
 
 /// A map point with its observation in the frame being optimised.
 #[derive(Debug, Clone, Copy, PartialEq)]

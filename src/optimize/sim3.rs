@@ -19,8 +19,8 @@ use nalgebra::{Matrix2x3, Point2, Point3, SMatrix, SVector, UnitQuaternion, Vect
 
 use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt, solve_damped_dense};
 use super::{Intrinsics, OptimizeError, RobustKernel, valid_obs};
-use crate::geometry::Sim3;
-use crate::geometry::se3::skew;
+use crate::lie::Sim3;
+use crate::lie::skew;
 
 type Mat7 = SMatrix<f64, 7, 7>;
 type Vec7 = SVector<f64, 7>;

@@ -9,7 +9,7 @@
 //! - the place index (BoW database) holds exactly the indexed live keyframes.
 
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use image::GrayImage;
 use nalgebra::{Isometry3, Point3, Vector3};
@@ -19,6 +19,178 @@ use crate::features::{Descriptor, KeyPoint, hamming};
 
 use crate::bow::{self, BowVector, FeatureVector, KeyFrameDatabase};
 use crate::matching::FeatureGrid;
+
+/// Errors of the map: a map rebuilt from parts that do not fit, or a
+/// broken invariant.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MapError {
+    /// Ids too large to be a real map's.
+    #[error("ids out of range: {keyframes} keyframe slots, {points} point slots")]
+    IdsOutOfRange {
+        /// Keyframe slots the ids need.
+        keyframes: usize,
+        /// Point slots the ids need.
+        points: usize,
+    },
+    /// Two keyframes with one id.
+    #[error("keyframe id {} twice", id.0)]
+    DuplicateKeyFrame {
+        /// The id.
+        id: KeyFrameId,
+    },
+    /// Two points with one id.
+    #[error("point id {} twice", id.0)]
+    DuplicatePoint {
+        /// The id.
+        id: PointId,
+    },
+    /// An invariant does not hold.
+    #[error("map invariant broken: {0}")]
+    Invariant(Violation),
+}
+
+/// A broken invariant of the map (see the module doc).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Violation {
+    /// The place index holds an erased keyframe.
+    #[error("place index holds erased keyframe {keyframe:?}")]
+    IndexedErased {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+    },
+    /// A keyframe has feature vectors but no BoW entry.
+    #[error("keyframe {keyframe:?} has features but no BoW entry")]
+    NotInDatabase {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+    },
+    /// The keyframe database and the feature vectors differ in size.
+    #[error("keyframe database holds {database} keyframes, feature vectors {features}")]
+    DatabaseSize {
+        /// Entries of the database.
+        database: usize,
+        /// Feature vectors.
+        features: usize,
+    },
+    /// A keyframe's keypoints, descriptors and point slots differ in count.
+    #[error("keyframe {keyframe:?}: slot counts differ")]
+    SlotCounts {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+    },
+    /// A keyframe slot holds an erased point.
+    #[error("keyframe {keyframe:?} slot {slot}: dangling point {point:?}")]
+    DanglingPoint {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+        /// The slot.
+        slot: usize,
+        /// The point.
+        point: PointId,
+    },
+    /// A keyframe slot holds a point that does not list the keyframe there.
+    #[error("keyframe {keyframe:?} slot {slot}: point {point:?} does not list it")]
+    PointMissesKeyFrame {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+        /// The slot.
+        slot: usize,
+        /// The point.
+        point: PointId,
+    },
+    /// A covisibility edge to an erased keyframe.
+    #[error("keyframe {keyframe:?}: dangling covisible {covisible:?}")]
+    DanglingCovisible {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+        /// The erased neighbour.
+        covisible: KeyFrameId,
+    },
+    /// A covisibility weight differs between its two ends.
+    #[error("covisibility {a:?}-{b:?} asymmetric: {a_to_b} vs {b_to_a}")]
+    AsymmetricCovisibility {
+        /// One end.
+        a: KeyFrameId,
+        /// The other end.
+        b: KeyFrameId,
+        /// The weight `a` holds.
+        a_to_b: u32,
+        /// The weight `b` holds.
+        b_to_a: u32,
+    },
+    /// A spanning-tree parent that was erased.
+    #[error("keyframe {keyframe:?}: dangling parent {parent:?}")]
+    DanglingParent {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+        /// The parent.
+        parent: KeyFrameId,
+    },
+    /// A parent that does not list the keyframe as its child.
+    #[error("keyframe {keyframe:?}: parent {parent:?} does not list it")]
+    ParentMissesChild {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+        /// The parent.
+        parent: KeyFrameId,
+    },
+    /// A child whose parent is another keyframe.
+    #[error("keyframe {keyframe:?}: child {child:?} has another parent")]
+    ChildHasOtherParent {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+        /// The child.
+        child: KeyFrameId,
+    },
+    /// The live keyframes and the count differ.
+    #[error("keyframe count {live} != {counted}")]
+    KeyFrameCount {
+        /// Live keyframes.
+        live: usize,
+        /// The map's count.
+        counted: usize,
+    },
+    /// A point observed by an erased keyframe.
+    #[error("point {point:?}: dangling keyframe {keyframe:?}")]
+    DanglingObserver {
+        /// The point.
+        point: PointId,
+        /// The erased keyframe.
+        keyframe: KeyFrameId,
+    },
+    /// A point observation whose keyframe slot holds something else.
+    #[error("point {point:?}: keyframe {keyframe:?} slot {slot} does not hold it")]
+    SlotMissesPoint {
+        /// The point.
+        point: PointId,
+        /// The keyframe.
+        keyframe: KeyFrameId,
+        /// The slot.
+        slot: u32,
+    },
+    /// The live points and the count differ.
+    #[error("point count {live} != {counted}")]
+    PointCount {
+        /// Live points.
+        live: usize,
+        /// The map's count.
+        counted: usize,
+    },
+}
+
+/// The map file's reader reports its errors as text (`slam::mapfile`).
+impl From<MapError> for String {
+    fn from(e: MapError) -> String {
+        e.to_string()
+    }
+}
+
+/// The map behind its lock. A panic in another thread while holding the
+/// lock leaves the map as it was between two whole operations: keep going
+/// with it.
+pub fn lock(map: &Mutex<Map>) -> MutexGuard<'_, Map> {
+    map.lock().unwrap_or_else(|e| e.into_inner())
+}
 
 /// Id of a keyframe, unique for the life of a map (never reused).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -319,7 +491,7 @@ impl Map {
         keyframes: Vec<KeyFrame>,
         points: Vec<MapPoint>,
         culled: Vec<(KeyFrameId, CulledKeyFrame)>,
-    ) -> Result<Map, String> {
+    ) -> Result<Map, MapError> {
         let mut map = Map::new(camera, scale);
         map.covisibility_threshold = covisibility_threshold;
         let max_kf = keyframes
@@ -334,14 +506,17 @@ impl Map {
             .max()
             .unwrap_or(0);
         if max_kf > 10_000_000 || max_p > 100_000_000 {
-            return Err("ids out of range".into());
+            return Err(MapError::IdsOutOfRange {
+                keyframes: max_kf,
+                points: max_p,
+            });
         }
         map.keyframes = vec![None; max_kf];
         map.points = vec![None; max_p];
         for kf in keyframes {
             let slot = &mut map.keyframes[kf.id.0 as usize];
             if slot.is_some() {
-                return Err(format!("keyframe id {} twice", kf.id.0));
+                return Err(MapError::DuplicateKeyFrame { id: kf.id });
             }
             *slot = Some(kf);
             map.n_keyframes += 1;
@@ -349,7 +524,7 @@ impl Map {
         for p in points {
             let slot = &mut map.points[p.id.0 as usize];
             if slot.is_some() {
-                return Err(format!("point id {} twice", p.id.0));
+                return Err(MapError::DuplicatePoint { id: p.id });
             }
             *slot = Some(p);
             map.n_points += 1;
@@ -805,101 +980,119 @@ impl Map {
         crate::stats::quantile(&depths, 0.5)
     }
 
-    /// Check the map's invariants; a description of the first violation.
-    pub fn check_invariants(&self) -> Result<(), String> {
+    /// Check the map's invariants; the first violation.
+    pub fn check_invariants(&self) -> Result<(), MapError> {
+        use MapError::Invariant as Broken;
+        use Violation as V;
         if let Some(places) = &self.places {
             for id in places.features.keys() {
                 if self.keyframe(*id).is_none() {
-                    return Err(format!("place index holds erased keyframe {id:?}"));
+                    return Err(Broken(V::IndexedErased { keyframe: *id }));
                 }
                 if !places.database.contains(Places::db_id(*id)) {
-                    return Err(format!("keyframe {id:?} has features but no BoW entry"));
+                    return Err(Broken(V::NotInDatabase { keyframe: *id }));
                 }
             }
             if places.database.len() != places.features.len() {
-                return Err(format!(
-                    "keyframe database holds {} keyframes, feature vectors {}",
-                    places.database.len(),
-                    places.features.len()
-                ));
+                return Err(Broken(V::DatabaseSize {
+                    database: places.database.len(),
+                    features: places.features.len(),
+                }));
             }
         }
         let mut n_kf = 0;
         for kf in self.keyframes() {
             n_kf += 1;
             if kf.points.len() != kf.keypoints.len() || kf.descriptors.len() != kf.keypoints.len() {
-                return Err(format!("keyframe {:?}: slot counts differ", kf.id));
+                return Err(Broken(V::SlotCounts { keyframe: kf.id }));
             }
             for (i, p) in kf.points.iter().enumerate() {
                 if let Some(p) = p {
                     let Some(mp) = self.point(*p) else {
-                        return Err(format!(
-                            "keyframe {:?} slot {i}: dangling point {:?}",
-                            kf.id, p
-                        ));
+                        return Err(Broken(V::DanglingPoint {
+                            keyframe: kf.id,
+                            slot: i,
+                            point: *p,
+                        }));
                     };
                     if mp.index_in(kf.id) != Some(i as u32) {
-                        return Err(format!(
-                            "keyframe {:?} slot {i}: point {:?} does not list it",
-                            kf.id, p
-                        ));
+                        return Err(Broken(V::PointMissesKeyFrame {
+                            keyframe: kf.id,
+                            slot: i,
+                            point: *p,
+                        }));
                     }
                 }
             }
             for (o, w) in &kf.covisible {
                 let Some(other) = self.keyframe(*o) else {
-                    return Err(format!("keyframe {:?}: dangling covisible {:?}", kf.id, o));
+                    return Err(Broken(V::DanglingCovisible {
+                        keyframe: kf.id,
+                        covisible: *o,
+                    }));
                 };
                 if other.weight(kf.id) != *w {
-                    return Err(format!(
-                        "covisibility {:?}-{:?} asymmetric: {} vs {}",
-                        kf.id,
-                        o,
-                        w,
-                        other.weight(kf.id)
-                    ));
+                    return Err(Broken(V::AsymmetricCovisibility {
+                        a: kf.id,
+                        b: *o,
+                        a_to_b: *w,
+                        b_to_a: other.weight(kf.id),
+                    }));
                 }
             }
             if let Some(p) = kf.parent {
                 let Some(pk) = self.keyframe(p) else {
-                    return Err(format!("keyframe {:?}: dangling parent {:?}", kf.id, p));
+                    return Err(Broken(V::DanglingParent {
+                        keyframe: kf.id,
+                        parent: p,
+                    }));
                 };
                 if !pk.children.contains(&kf.id) {
-                    return Err(format!(
-                        "keyframe {:?}: parent {:?} does not list it",
-                        kf.id, p
-                    ));
+                    return Err(Broken(V::ParentMissesChild {
+                        keyframe: kf.id,
+                        parent: p,
+                    }));
                 }
             }
             for c in &kf.children {
                 if self.keyframe(*c).and_then(|k| k.parent) != Some(kf.id) {
-                    return Err(format!(
-                        "keyframe {:?}: child {:?} has another parent",
-                        kf.id, c
-                    ));
+                    return Err(Broken(V::ChildHasOtherParent {
+                        keyframe: kf.id,
+                        child: *c,
+                    }));
                 }
             }
         }
         if n_kf != self.n_keyframes {
-            return Err(format!("keyframe count {} != {}", n_kf, self.n_keyframes));
+            return Err(Broken(V::KeyFrameCount {
+                live: n_kf,
+                counted: self.n_keyframes,
+            }));
         }
         let mut n_p = 0;
         for mp in self.points() {
             n_p += 1;
             for (kf, idx) in &mp.observations {
                 let Some(k) = self.keyframe(*kf) else {
-                    return Err(format!("point {:?}: dangling keyframe {:?}", mp.id, kf));
+                    return Err(Broken(V::DanglingObserver {
+                        point: mp.id,
+                        keyframe: *kf,
+                    }));
                 };
                 if k.points.get(*idx as usize).copied().flatten() != Some(mp.id) {
-                    return Err(format!(
-                        "point {:?}: keyframe {:?} slot {idx} does not hold it",
-                        mp.id, kf
-                    ));
+                    return Err(Broken(V::SlotMissesPoint {
+                        point: mp.id,
+                        keyframe: *kf,
+                        slot: *idx,
+                    }));
                 }
             }
         }
         if n_p != self.n_points {
-            return Err(format!("point count {} != {}", n_p, self.n_points));
+            return Err(Broken(V::PointCount {
+                live: n_p,
+                counted: self.n_points,
+            }));
         }
         Ok(())
     }

@@ -6,7 +6,7 @@
 //! it), and cull keyframes whose points are seen by enough others.
 
 use std::collections::HashSet;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use nalgebra::{Point2, Vector3};
@@ -15,9 +15,9 @@ use crate::bow::Vocabulary;
 use crate::geometry;
 use crate::optimize::{self, BaParams};
 
-use super::map::{KeyFrameId, Map, PointId};
+use super::bundle::{apply_ba_result, build_ba_problem};
+use super::map::{KeyFrameId, Map, PointId, lock};
 use super::matcher::{self, MatcherParams};
-use super::tracking::{apply_ba_result, build_ba_problem};
 use crate::matching::Bounds;
 
 /// Tunable numbers of local mapping.
@@ -99,10 +99,6 @@ pub struct LocalMapper {
     recent: Vec<(PointId, KeyFrameId)>,
     /// Reports of every processed keyframe.
     pub reports: Vec<MappingReport>,
-}
-
-fn lock(map: &Mutex<Map>) -> MutexGuard<'_, Map> {
-    map.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 impl LocalMapper {
@@ -390,7 +386,7 @@ impl LocalMapper {
     /// first keyframe fixed), other observers fixed. The solve runs without
     /// the map lock. Returns the final reprojection RMSE.
     fn local_bundle_adjustment(&mut self, map: &Mutex<Map>, kf: KeyFrameId) -> Option<f64> {
-        let (mut problem, pose_ids, point_ids) = {
+        let mut setup = {
             let m = lock(map);
             let k = m.keyframe(kf)?;
             let mut local: Vec<KeyFrameId> = vec![kf];
@@ -399,13 +395,14 @@ impl LocalMapper {
             let fixed: Vec<KeyFrameId> = first.into_iter().collect();
             build_ba_problem(&m, &local, &fixed)?
         };
-        if !problem.poses.iter().any(|p| !p.fixed) {
+        if !setup.problem.poses.iter().any(|p| !p.fixed) {
             return None;
         }
-        let report = optimize::local_bundle_adjustment(&mut problem, &self.params.local_ba).ok()?;
+        let report =
+            optimize::local_bundle_adjustment(&mut setup.problem, &self.params.local_ba).ok()?;
         tracing::trace!(kf = kf.0, before = report.initial_rmse_px, after = report.final_rmse_px, outliers = report.n_outliers, first = ?report.first_pass, second = ?report.second_pass, "local BA");
         let mut m = lock(map);
-        apply_ba_result(&mut m, &problem, &pose_ids, &point_ids, &report.outliers);
+        apply_ba_result(&mut m, &setup, &report.outliers);
         Some(report.final_rmse_px)
     }
 

@@ -600,6 +600,70 @@ pub fn search_by_bow(
         .collect()
 }
 
+/// Match the map points of keyframe `kf` to a frame's keypoints by
+/// descriptor, by brute force (the fallback of [`search_by_bow`] when the
+/// keyframe is not indexed yet): best under `th_low` with a ratio test,
+/// one match per frame keypoint, rotation check. Returns (frame keypoint,
+/// point).
+pub fn search_keyframe_by_descriptor(
+    map: &Map,
+    kf: KeyFrameId,
+    keypoints: &[KeyPoint],
+    descriptors: &[Descriptor],
+    params: &MatcherParams,
+    ratio: f32,
+) -> Vec<(usize, PointId)> {
+    let Some(k) = map.keyframe(kf) else {
+        return Vec::new();
+    };
+    let mut best_for: Vec<(u32, usize)> = vec![(u32::MAX, usize::MAX); keypoints.len()];
+    let mut out: Vec<(usize, PointId, f32)> = Vec::new();
+    for (ki, p) in k.points.iter().enumerate() {
+        let Some(pid) = p else { continue };
+        if map.point(*pid).is_none() {
+            continue;
+        }
+        let d1 = &k.descriptors[ki];
+        let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+        for (fi, d2) in descriptors.iter().enumerate() {
+            let d = hamming(d1, d2);
+            if d < b1 {
+                b2 = b1;
+                b1 = d;
+                bi = fi;
+            } else if d < b2 {
+                b2 = d;
+            }
+        }
+        if b1 <= params.th_low && (b1 as f32) < ratio * b2 as f32 && b1 < best_for[bi].0 {
+            best_for[bi] = (b1, out.len());
+            out.push((bi, *pid, k.keypoints[ki].angle - keypoints[bi].angle));
+        }
+    }
+    // Keep, per frame keypoint, only its best match.
+    let keep: Vec<bool> = out
+        .iter()
+        .enumerate()
+        .map(|(n, m)| best_for[m.0].1 == n)
+        .collect();
+    let filtered: Vec<(usize, PointId, f32)> = out
+        .into_iter()
+        .zip(keep)
+        .filter(|(_, k)| *k)
+        .map(|(m, _)| m)
+        .collect();
+    let rot: Vec<(usize, f32)> = filtered.iter().enumerate().map(|(n, m)| (n, m.2)).collect();
+    let drop: std::collections::HashSet<usize> = rotation_outliers(&rot, params.histo_bins)
+        .into_iter()
+        .collect();
+    filtered
+        .into_iter()
+        .enumerate()
+        .filter(|(n, _)| !drop.contains(n))
+        .map(|(_, m)| (m.0, m.1))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

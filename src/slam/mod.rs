@@ -6,13 +6,38 @@
 //! runs repeat exactly). Tracking never waits for mapping: it only inserts a
 //! keyframe when mapping is idle, and mapping solves its bundle adjustment
 //! outside the map lock.
+//!
+//! # Layout
+//!
+//! | module | what it holds |
+//! |---|---|
+//! | [`tracking`] | the [`Tracker`]: per frame, extraction, motion model, reference keyframe, states |
+//! | [`initializer`] | two-view initialisation and the initial map |
+//! | [`planar`] | deciding between the twin reconstructions of a planar scene |
+//! | `relocalizer` | BoW candidates, PnP RANSAC, search by projection for a lost frame |
+//! | `local_map` | local keyframes, search of their points by projection, pose on all matches |
+//! | `keyframe_decision` | whether a tracked frame becomes a keyframe |
+//! | `frame` | the frame being tracked, the tracker's context, motion-only BA of a frame |
+//! | [`params`] | [`TrackingParams`], the tunables of all of the above |
+//! | [`mapping`] | the [`LocalMapper`]: triangulation, fusion, local BA, keyframe culling |
+//! | [`bundle`] | the map ↔ [`crate::optimize`] glue of every bundle adjustment |
+//! | [`matcher`] | descriptor matching for each of the stages |
+//! | [`map`] | keyframes and points in arenas, covisibility, spanning tree, place index |
+//! | [`mapfile`] | the versioned binary map file |
 
+pub mod bundle;
 pub mod cpu_time;
+mod frame;
+pub mod initializer;
+mod keyframe_decision;
+mod local_map;
 pub mod map;
 pub mod mapfile;
 pub mod mapping;
 pub mod matcher;
+pub mod params;
 pub mod planar;
+mod relocalizer;
 pub mod tracking;
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -27,9 +52,10 @@ use crate::camera::Camera;
 use crate::eval::{StampedPose, Trajectory};
 use crate::optimize::BaParams;
 
+pub use initializer::InitFailure;
 pub use map::{KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
-pub use tracking::{FrameOutcome, FrameRecord, TrackState, Tracker, TrackingParams};
+pub use tracking::{FrameOutcome, FrameRecord, TrackFailure, TrackState, Tracker, TrackingParams};
 
 /// Errors of the SLAM.
 #[derive(Debug, thiserror::Error)]
@@ -125,7 +151,7 @@ pub struct SlamRun {
     /// Frames given.
     pub frames: u64,
     /// The last reason for not tracking / not initialising.
-    pub last_reason: Option<String>,
+    pub last_reason: Option<TrackFailure>,
 }
 
 impl SlamRun {
@@ -316,7 +342,7 @@ impl Slam {
             let kfs: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
             if kfs.len() >= 2 {
                 let fixed = vec![kfs[0]];
-                if let Some(r) = tracking::run_bundle_adjustment(&mut map, &kfs, &fixed, ba) {
+                if let Some(r) = bundle::run_bundle_adjustment(&mut map, &kfs, &fixed, ba) {
                     tracing::info!(
                         keyframes = kfs.len(),
                         rmse_before = r.initial_rmse_px,
@@ -334,7 +360,7 @@ impl Slam {
             mapping: reports,
             initialized_at: self.tracker.initialized_at(),
             frames: self.frames,
-            last_reason: self.tracker.last_reason().map(str::to_owned),
+            last_reason: self.tracker.last_reason().cloned(),
         }
     }
 }

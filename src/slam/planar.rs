@@ -12,12 +12,15 @@
 //! not. So a third view, taken between the reference and the current frame,
 //! decides: place it by PnP against each reconstruction's points; the true
 //! one explains it to the keypoint noise, the twin leaves a systematic
-//! residual. Nothing is decided while the residuals stay alike.
+//! residual. Nothing is decided while the residuals stay alike
+//! ([`choose_reconstruction`]).
 
 use nalgebra::{Isometry3, Matrix3, Point2, Point3, Translation3, Vector3};
 
 use crate::camera::Camera;
-use crate::geometry::{self, PnpParams, TwoViewParams, TwoViewResult};
+use crate::geometry::{self, GeometryError, PnpParams, TwoViewParams, TwoViewResult};
+
+use super::params::TrackingParams;
 
 /// One motion hypothesis of a planar pair with its triangulation.
 #[derive(Debug, Clone)]
@@ -165,11 +168,19 @@ pub fn twin_hypotheses(
     let mut checked: Vec<PlanarHypothesis> = hyps
         .into_iter()
         .map(|(r, t)| {
-            let pose = Isometry3::from_parts(
+            let cam2_from_cam1 = Isometry3::from_parts(
                 Translation3::from(t),
-                geometry::se3::quaternion_from_matrix(&r),
+                crate::lie::quaternion_from_matrix(&r),
             );
-            check_motion(camera, kp1, kp2, matches, &tv.inliers, &pose, params)
+            check_motion(
+                camera,
+                kp1,
+                kp2,
+                matches,
+                &tv.inliers,
+                &cam2_from_cam1,
+                params,
+            )
         })
         .collect();
     checked.sort_by_key(|h| std::cmp::Reverse(h.n_good));
@@ -250,6 +261,157 @@ pub fn as_result(tv: &TwoViewResult, h: &PlanarHypothesis, second: usize) -> Two
         n_good: h.n_good,
         n_second: second,
     }
+}
+
+/// Why the planar reconstructions could not be told apart (yet).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PlanarFailure {
+    /// The relaxed two-view solve failed.
+    #[error(transparent)]
+    Geometry(#[from] GeometryError),
+    /// The relaxed solve chose the fundamental matrix, whose hypotheses are alike.
+    #[error("the motion hypotheses of F are alike")]
+    FundamentalAmbiguous,
+    /// The homography has no second valid decomposition.
+    #[error("the homography gives no second reconstruction")]
+    NoTwin,
+    /// No frame between the two initialisation frames was seen yet.
+    #[error("no third view yet to choose between the planar reconstructions")]
+    NoThirdView,
+    /// No third view shares enough points with the reconstructions.
+    #[error("the third views share too few points")]
+    ThirdViewsShareTooFew,
+    /// The third views explain both reconstructions about equally well (or
+    /// neither well).
+    #[error(
+        "third views do not tell the planar reconstructions apart (costs {best_cost:.2} and {other_cost:.2} px²)"
+    )]
+    Undecided {
+        /// Mean squared reprojection error of the better one, pixels².
+        best_cost: f64,
+        /// That of the other, pixels².
+        other_cost: f64,
+    },
+    /// The chosen reconstruction has too little parallax.
+    #[error("not enough parallax: {parallax_deg:.3} deg, needed {needed_deg:.3} deg")]
+    NotEnoughParallax {
+        /// Its parallax, degrees.
+        parallax_deg: f64,
+        /// The minimum, degrees.
+        needed_deg: f64,
+    },
+    /// The chosen reconstruction triangulates too few good points.
+    #[error("only {found} good points (need {needed})")]
+    TooFewGoodPoints {
+        /// Good points.
+        found: usize,
+        /// The minimum.
+        needed: usize,
+    },
+}
+
+/// A planar pair both of whose reconstructions hold: decide between them
+/// with the frames seen in between (`third_views`, from the attempt that
+/// started at frame `first_index`). `attempt` seeds the relaxed two-view
+/// solve as the refused one was seeded.
+#[allow(clippy::too_many_arguments)]
+pub fn choose_reconstruction(
+    camera: &Camera,
+    params: &TrackingParams,
+    kp1: &[Point2<f64>],
+    kp2: &[Point2<f64>],
+    matches: &[(usize, usize)],
+    first_index: u64,
+    third_views: &[ThirdView],
+    attempt: u64,
+) -> Result<TwoViewResult, PlanarFailure> {
+    let mut relaxed = params.two_view.clone();
+    relaxed.h_second_fraction = f64::INFINITY;
+    let tv = geometry::initialize_two_view(
+        &camera.k(),
+        kp1,
+        kp2,
+        matches,
+        &relaxed,
+        params.seed.wrapping_add(attempt),
+    )?;
+    if tv.model != geometry::Model::Homography {
+        return Err(PlanarFailure::FundamentalAmbiguous);
+    }
+    let [a, b] = twin_hypotheses(camera, kp1, kp2, matches, &tv, &params.two_view)
+        .ok_or(PlanarFailure::NoTwin)?;
+    let (first, last) = (first_index, third_views.last().map_or(0, |v| v.index));
+    if third_views.is_empty() || last <= first {
+        return Err(PlanarFailure::NoThirdView);
+    }
+    // Third views near a quarter, half and three quarters of the way.
+    let span = (last.saturating_sub(first) + 1) as f64;
+    let mut picked: Vec<&ThirdView> = Vec::new();
+    for q in [0.25, 0.5, 0.75] {
+        let target = first as f64 + q * span;
+        if let Some(v) = third_views.iter().min_by(|x, y| {
+            (x.index as f64 - target)
+                .abs()
+                .total_cmp(&(y.index as f64 - target).abs())
+        }) && !picked.iter().any(|p| p.index == v.index)
+        {
+            picked.push(v);
+        }
+    }
+    let (mut ca, mut cb, mut used) = (0.0, 0.0, 0usize);
+    for (n, v) in picked.iter().enumerate() {
+        let seed = params.seed.wrapping_add(v.index * 7 + n as u64);
+        let (Some(x), Some(y)) = (
+            third_view_cost(camera, &a, matches, v, &params.pnp, seed),
+            third_view_cost(camera, &b, matches, v, &params.pnp, seed),
+        ) else {
+            continue;
+        };
+        ca += x;
+        cb += y;
+        used += 1;
+    }
+    if used == 0 {
+        return Err(PlanarFailure::ThirdViewsShareTooFew);
+    }
+    let (ca, cb) = (ca / used as f64, cb / used as f64);
+    tracing::debug!(
+        frame = last,
+        good_a = a.n_good,
+        good_b = b.n_good,
+        cost_a = ca,
+        cost_b = cb,
+        views = used,
+        "planar reconstructions"
+    );
+    let (win, lose, cw, cl) = if ca <= cb {
+        (&a, &b, ca, cb)
+    } else {
+        (&b, &a, cb, ca)
+    };
+    if cl < params.planar_cost_ratio * cw || cw > params.planar_max_cost {
+        return Err(PlanarFailure::Undecided {
+            best_cost: cw,
+            other_cost: cl,
+        });
+    }
+    if win.parallax_deg < params.two_view.min_parallax_deg {
+        return Err(PlanarFailure::NotEnoughParallax {
+            parallax_deg: win.parallax_deg,
+            needed_deg: params.two_view.min_parallax_deg,
+        });
+    }
+    let needed = ((params.two_view.min_good_fraction
+        * tv.inliers.iter().filter(|b| **b).count() as f64)
+        .ceil() as usize)
+        .max(params.two_view.min_triangulated);
+    if win.n_good < needed {
+        return Err(PlanarFailure::TooFewGoodPoints {
+            found: win.n_good,
+            needed,
+        });
+    }
+    Ok(as_result(&tv, win, lose.n_good))
 }
 
 #[cfg(test)]

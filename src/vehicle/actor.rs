@@ -23,6 +23,13 @@ use super::{
 use crate::mission::upload::{self, Downloader, MissionError, Peers, Uploader, same_mission};
 use crate::mission::{Download, Flavour, MissionItem, UploadReport};
 
+/// The actor's clock: tokio's, so that tests drive the protocol timers in
+/// paused time (it is the system's monotonic clock otherwise). The
+/// protocol machines and the telemetry stamps take it as a std `Instant`.
+fn clock_now() -> Instant {
+    tokio::time::Instant::now().into_std()
+}
+
 const CMD_QUEUE: usize = 32;
 const IO_QUEUE: usize = 256;
 /// How often missing telemetry streams are asked for again.
@@ -82,7 +89,7 @@ pub fn spawn(
         tx: io_tx,
         cancel: io_cancel.clone(),
     };
-    let now = Instant::now();
+    let now = clock_now();
     let actor = Actor {
         transfer_params: transfer,
         conn: None,
@@ -443,9 +450,9 @@ impl Actor {
             }
         }
         if let Some(mut t) = self.transfer.take() {
-            t.cancel(Instant::now(), &mut self.out);
+            t.cancel(clock_now(), &mut self.out);
             self.flush().await;
-            t.deliver(Instant::now(), false);
+            t.deliver(clock_now(), false);
         }
         info!("link actor stopped");
     }
@@ -510,7 +517,7 @@ impl Actor {
                     v.connections += 1;
                 });
                 info!(url = %self.params.url, "link connected");
-                self.next_heartbeat = Instant::now();
+                self.next_heartbeat = clock_now();
             }
             IoEvent::Lost(reason) => {
                 self.conn = None;
@@ -531,7 +538,7 @@ impl Actor {
     }
 
     async fn on_frame(&mut self, h: MavHeader, m: MavMessage) {
-        let now = Instant::now();
+        let now = clock_now();
         if let MavMessage::HEARTBEAT(hb) = &m {
             self.on_heartbeat(&h, hb, now).await;
             return;
@@ -791,7 +798,7 @@ impl Actor {
         let Some(t) = self.transfer.take() else {
             return;
         };
-        let now = Instant::now();
+        let now = clock_now();
         let peers = self.peers().map(|(p, _)| p);
         if let Next::Verify {
             items,
@@ -860,7 +867,7 @@ impl Actor {
     }
 
     async fn on_wake(&mut self) {
-        let now = Instant::now();
+        let now = clock_now();
         if now >= self.next_heartbeat {
             self.out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
                 custom_mode: 0,
@@ -934,7 +941,7 @@ impl Actor {
     }
 
     async fn on_command(&mut self, cmd: Command) {
-        let now = Instant::now();
+        let now = clock_now();
         match cmd {
             Command::UploadMission { items, reply } => {
                 if self.transfer.is_some() {

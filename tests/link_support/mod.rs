@@ -91,6 +91,8 @@ pub struct FakeState {
     pub commands: Vec<(MavCmd, f32)>,
     /// Mission transfer messages that carried a wrong mission_type or target.
     pub misaddressed: u32,
+    /// Every frame that arrived (dropped by `drop_in` or not), by message id.
+    pub heard: std::collections::HashMap<u32, u32>,
 }
 
 pub const HOME: (f64, f64, f64) = (47.397742, 8.545594, 488.0);
@@ -222,6 +224,10 @@ pub async fn run_fake(
                     Err(mavlink::error::MessageReadError::Io(_)) => return,
                     Err(_) => continue,
                 };
+                state
+                    .lock()
+                    .map(|mut s| *s.heard.entry(mavlink::Message::message_id(&msg)).or_default() += 1)
+                    .ok();
                 if rng.random_bool(cfg.drop_in) {
                     state.lock().map(|mut s| s.dropped += 1).ok();
                     continue;

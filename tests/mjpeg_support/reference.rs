@@ -1,9 +1,9 @@
 //! The MJPEG part parser as it was before scanning became resumable: it
-//! rescans the whole unconsumed buffer on every call. Kept, for tests only,
+//! rescans the whole unconsumed buffer on every call. Kept, for the tests only,
 //! as the reference the resumable parser must agree with event for event.
 #![allow(dead_code, missing_docs)]
 
-use super::{ParseEvent, Part};
+use shotpilot::video::mjpeg::{ParseEvent, Part};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum State {

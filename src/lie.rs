@@ -1,5 +1,8 @@
-//! SO(3)/SE(3)/Sim(3) helpers: the skew matrix, the SE(3) exponential used
-//! for left-perturbation updates, and the [`Sim3`] type.
+//! SO(3)/SE(3)/Sim(3), the rigid and similarity transforms that
+//! [`crate::geometry`] and [`crate::optimize`] both build on (it imports
+//! neither): the skew matrix, the SE(3) exponential used for
+//! left-perturbation updates, quaternion renormalisation, and the [`Sim3`]
+//! type.
 //!
 //! Tangent vectors of SE(3) are ordered `δ = [υ; ω]` (translation first,
 //! then rotation). An update is a *left* perturbation:
@@ -16,6 +19,16 @@ use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion, Vector3
 pub fn quaternion_from_matrix(r: &Matrix3<f64>) -> UnitQuaternion<f64> {
     let q = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(*r));
     UnitQuaternion::new_normalize(q.into_inner())
+}
+
+/// The pose with its rotation quaternion renormalised: solvers that build a
+/// quaternion from a slightly non-orthonormal matrix leave it off unit
+/// length, and the error grows through compositions.
+pub fn renormalized(pose: Isometry3<f64>) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        pose.translation,
+        UnitQuaternion::new_normalize(*pose.rotation.quaternion()),
+    )
 }
 
 /// The skew-symmetric matrix `[v]ₓ` with `[v]ₓ·w = v × w`.

@@ -1,0 +1,51 @@
+//! The keyframe decision (ORB-SLAM's `NeedNewKeyFrame`, stella_vslam's
+//! keyframe inserter): a tracked frame becomes a keyframe when mapping is
+//! idle, enough frames passed since the last keyframe (or mapping is idle
+//! and the minimum passed), and the frame tracks clearly fewer points than
+//! its reference keyframe while still tracking some.
+
+use super::map::{KeyFrameId, Map};
+use super::params::TrackingParams;
+
+/// What the decision looks at besides the map.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct KeyFrameCandidate {
+    /// Index of the tracked frame.
+    pub frame_index: u64,
+    /// Index of the frame the last keyframe was made from.
+    pub last_keyframe_frame: u64,
+    /// The frame's inliers after the local map.
+    pub inliers: usize,
+    /// Whether mapping can take a keyframe now.
+    pub mapping_idle: bool,
+    /// Whether the frame comes shortly after a relocalisation.
+    pub recently_relocalized: bool,
+    /// The frame's reference keyframe.
+    pub reference: Option<KeyFrameId>,
+}
+
+/// Whether the frame should become a keyframe.
+pub(super) fn need_new_keyframe(
+    params: &TrackingParams,
+    map: &Map,
+    candidate: &KeyFrameCandidate,
+) -> bool {
+    let n_kfs = map.keyframe_count();
+    let max_frames = params.max_frames_between_keyframes;
+    if candidate.recently_relocalized && n_kfs as u64 > max_frames {
+        return false;
+    }
+    let min_obs = if n_kfs <= 2 { 2 } else { 3 };
+    let ref_matches = candidate
+        .reference
+        .and_then(|r| map.keyframe(r))
+        .map_or(0, |k| k.tracked_points(map, min_obs));
+    let since = candidate
+        .frame_index
+        .saturating_sub(candidate.last_keyframe_frame);
+    let c1a = since >= max_frames;
+    let c1b = since >= params.min_frames_between_keyframes && candidate.mapping_idle;
+    let inliers = candidate.inliers;
+    let c2 = (inliers as f64) < ref_matches as f64 * params.keyframe_ref_ratio && inliers > 15;
+    (c1a || c1b) && c2 && candidate.mapping_idle
+}

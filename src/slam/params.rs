@@ -1,0 +1,104 @@
+//! The tunables of tracking: one flat [`TrackingParams`] that the
+//! initializer, the relocalizer, local-map tracking and the keyframe
+//! decision each read their numbers from.
+
+use crate::geometry::{PnpParams, TwoViewParams};
+use crate::optimize::{BaParams, PoseParams};
+
+use super::matcher::MatcherParams;
+
+/// Tunable numbers of tracking.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackingParams {
+    /// ORB extractor for tracking.
+    pub features: crate::features::Params,
+    /// Features of the two initialisation frames (ORB-SLAM uses twice as many).
+    pub init_features: usize,
+    /// Matches needed between the initialisation frames to try.
+    pub init_min_matches: usize,
+    /// Search window of initialisation matching, pixels.
+    pub init_window: f64,
+    /// Highest pyramid level matched between the initialisation frames
+    /// (ORB-SLAM: 0); a keypoint is matched with keypoints one level up or
+    /// down.
+    pub init_max_octave: i32,
+    /// Planar scenes: the twin reconstruction is rejected when its
+    /// third-view cost exceeds the chosen one's by this factor.
+    pub planar_cost_ratio: f64,
+    /// Planar scenes: the chosen reconstruction's third-view cost (mean
+    /// squared reprojection error, pixels²) must stay below this.
+    pub planar_max_cost: f64,
+    /// Map points the initial map must keep after its bundle adjustment.
+    pub init_min_points: usize,
+    /// Search radius factor of the motion-model search, pixels at level 0.
+    pub motion_search_radius: f64,
+    /// Matches needed from the motion model before optimising.
+    pub min_motion_matches: usize,
+    /// Inliers needed to call a frame tracked after the local map.
+    pub min_tracked_inliers: usize,
+    /// Inliers needed in the frames right after a relocalisation.
+    pub min_inliers_after_reloc: usize,
+    /// Frames between keyframes at most (ORB-SLAM: the frame rate).
+    pub max_frames_between_keyframes: u64,
+    /// Frames between keyframes at least.
+    pub min_frames_between_keyframes: u64,
+    /// A keyframe is due when the tracked points fall below this share of
+    /// the reference keyframe's.
+    pub keyframe_ref_ratio: f64,
+    /// Local keyframes at most.
+    pub max_local_keyframes: usize,
+    /// Descriptor matching thresholds.
+    pub matcher: MatcherParams,
+    /// Bag of words: direct-index level and relocalisation candidates.
+    pub bow: crate::bow::Params,
+    /// Relocalisation tries at most this many candidate keyframes.
+    pub reloc_max_candidates: usize,
+    /// Matches a relocalisation candidate needs from BoW matching.
+    pub reloc_min_bow_matches: usize,
+    /// Two-view initialisation.
+    pub two_view: TwoViewParams,
+    /// Motion-only bundle adjustment.
+    pub pose: PoseParams,
+    /// PnP for relocalisation.
+    pub pnp: PnpParams,
+    /// Bundle adjustment of the initial map.
+    pub init_ba: BaParams,
+    /// Seed of the randomised steps.
+    pub seed: u64,
+}
+
+impl Default for TrackingParams {
+    fn default() -> Self {
+        TrackingParams {
+            features: crate::features::Params::default(),
+            init_features: 2000,
+            init_min_matches: 100,
+            init_window: 100.0,
+            init_max_octave: 2,
+            planar_cost_ratio: 2.0,
+            planar_max_cost: 2.0,
+            init_min_points: 80,
+            motion_search_radius: 15.0,
+            min_motion_matches: 20,
+            min_tracked_inliers: 30,
+            min_inliers_after_reloc: 50,
+            max_frames_between_keyframes: 30,
+            min_frames_between_keyframes: 0,
+            keyframe_ref_ratio: 0.9,
+            max_local_keyframes: 80,
+            matcher: MatcherParams::default(),
+            bow: crate::bow::Params::default(),
+            reloc_max_candidates: 30,
+            reloc_min_bow_matches: 15,
+            two_view: TwoViewParams::default(),
+            pose: PoseParams::default(),
+            pnp: PnpParams::default(),
+            init_ba: BaParams {
+                first_pass_iterations: 20,
+                second_pass_iterations: 10,
+                ..BaParams::default()
+            },
+            seed: 1,
+        }
+    }
+}

@@ -1,0 +1,3 @@
+//! Test-only helpers of the MJPEG parser tests.
+
+pub mod reference;
