@@ -347,6 +347,35 @@ pub struct World {
     pub sun_dir: Vector3<f64>,
     /// Lighting factor per face (index by [`Face::index`]), ground = 1.
     pub(crate) face_light: [f32; 6],
+    /// Boxes that drive (cars on roads): they stand at [`World::boxes_at`].
+    pub movers: Vec<Mover>,
+    /// Open water (lakes), where the ground is a rippled mirror.
+    pub water: Vec<WaterBody>,
+}
+
+/// A box that drives back and forth along a road: its centre moves along
+/// x (or y) at a constant speed and wraps around within `[lo, hi)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Mover {
+    /// Index into [`World::boxes`] (the box's position at time 0).
+    pub index: usize,
+    /// True if it drives along x (north-south).
+    pub along_x: bool,
+    /// Signed speed, m/s.
+    pub speed_m_s: f64,
+    /// The stretch of road it wraps around on (along coordinate), metres.
+    pub lo: f64,
+    /// End of that stretch, metres.
+    pub hi: f64,
+}
+
+/// A rectangle of open water on the ground (NED metres).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WaterBody {
+    /// South-west corner (x, y).
+    pub min: [f64; 2],
+    /// North-east corner (x, y).
+    pub max: [f64; 2],
 }
 
 /// A straight road across the scene.
@@ -404,7 +433,50 @@ impl World {
             textures,
             sun_dir,
             face_light,
+            movers: Vec::new(),
+            water: Vec::new(),
         })
+    }
+
+    /// The boxes where they stand at scene time `t_s` (borrowed when
+    /// nothing moves).
+    pub fn boxes_at(&self, t_s: f64) -> std::borrow::Cow<'_, [SceneBox]> {
+        if self.movers.is_empty() {
+            return std::borrow::Cow::Borrowed(&self.boxes);
+        }
+        let mut boxes = self.boxes.clone();
+        for m in &self.movers {
+            let Some(b) = boxes.get_mut(m.index) else {
+                continue;
+            };
+            let axis = if m.along_x { 0 } else { 1 };
+            let centre = 0.5 * (b.min[axis] + b.max[axis]);
+            let span = (m.hi - m.lo).max(1e-6);
+            let moved = m.lo + (centre - m.lo + m.speed_m_s * t_s).rem_euclid(span);
+            let shift = moved - centre;
+            b.min[axis] += shift;
+            b.max[axis] += shift;
+        }
+        std::borrow::Cow::Owned(boxes)
+    }
+
+    /// True if ground point (x, y) is open water.
+    #[inline(always)]
+    pub(crate) fn water_at(&self, x: f32, y: f32) -> bool {
+        let (x, y) = (x as f64, y as f64);
+        self.water
+            .iter()
+            .any(|w| x >= w.min[0] && x <= w.max[0] && y >= w.min[1] && y <= w.max[1])
+    }
+
+    /// Brightness of the water body (what light comes up from below the
+    /// surface) at (x, y): dark, with slow turbid swirls that drift.
+    pub(crate) fn water_body_value(&self, x: f32, y: f32, t: f32) -> f32 {
+        let s = &self.textures;
+        let u = (x + 0.31 * t) * s.far_inv_texel * 4.0;
+        let v = (y - 0.23 * t) * s.far_inv_texel * 4.0;
+        let swirl = s.far.sample_lod(u, v, 2.0) - s.far.mean();
+        (38.0 + 0.15 * swirl).max(5.0)
     }
 
     /// Height of the tallest box covering ground point (x, y), 0 if none.
@@ -588,6 +660,32 @@ impl World {
         canvas.disc(c, (radius_m * s) as f32, value, 1.0);
         tx.ground = canvas.into_mip();
     }
+}
+
+/// The water surface's unit normal (pointing up, -z) at (x, y) and scene
+/// time `t`: a sum of gravity waves (deep-water dispersion, angular
+/// frequency sqrt(g k)) from several directions, so the pattern never repeats
+/// in time or space over a view.
+#[inline(always)]
+pub(crate) fn water_normal(x: f32, y: f32, t: f32) -> [f32; 3] {
+    // (direction (unit), wavenumber rad/m, slope amplitude, phase).
+    const WAVES: [([f32; 2], f32, f32, f32); 5] = [
+        ([0.96, 0.28], 2.1, 0.055, 0.3),
+        ([0.5, -0.87], 3.4, 0.045, 1.7),
+        ([-0.71, 0.71], 5.3, 0.035, 4.1),
+        ([0.17, 0.98], 8.9, 0.025, 2.6),
+        ([-0.94, -0.34], 13.7, 0.02, 5.5),
+    ];
+    let (mut gx, mut gy) = (0.0f32, 0.0f32);
+    for (dir, k, slope, phase) in WAVES {
+        let omega = (9.81 * k).sqrt();
+        let arg = k * (dir[0] * x + dir[1] * y) - omega * t + phase;
+        let c = arg.cos() * slope;
+        gx += c * dir[0];
+        gy += c * dir[1];
+    }
+    let n = (gx * gx + gy * gy + 1.0).sqrt();
+    [-gx / n, -gy / n, -1.0 / n]
 }
 
 /// Samples a texture at texel coordinates for a pixel footprint whose log2
