@@ -17,7 +17,10 @@ pub mod vehicle;
 // World, camera, renderer, paths, datasets and video (simworld).
 pub mod camera;
 pub mod dataset;
+pub mod disturbance;
+pub mod imaging;
 pub mod paths;
+pub mod realism;
 pub mod render;
 pub mod texture;
 pub mod video;

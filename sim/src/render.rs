@@ -980,7 +980,7 @@ impl CloudField {
 /// An approximately standard-normal number from (seed, index): the
 /// centred sum of four 16-bit uniforms (Irwin-Hall), scaled to unit variance.
 #[inline(always)]
-fn gaussian(seed: u64, index: u64) -> f32 {
+pub(crate) fn gaussian(seed: u64, index: u64) -> f32 {
     let h = mix64(seed ^ index.wrapping_mul(0x9e37_79b9_7f4a_7c15));
     let s = (h & 0xffff) + ((h >> 16) & 0xffff) + ((h >> 32) & 0xffff) + (h >> 48);
     // Sum of four U(0,1) has mean 2 and variance 1/3.
