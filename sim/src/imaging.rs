@@ -465,7 +465,7 @@ impl Imager {
             };
             let mut metered = 0.0f64;
             let out: &mut [u8] = &mut img;
-            for i in 0..n {
+            for (i, o) in out.iter_mut().enumerate().take(n) {
                 let v = if self.vignette.is_empty() {
                     1.0
                 } else {
@@ -492,7 +492,7 @@ impl Imager {
                     (Some(seed), None) if sigma > 0.0 => sigma * gaussian(seed, i as u64),
                     _ => 0.0,
                 };
-                out[i] = round_u8(y + noise);
+                *o = round_u8(y + noise);
             }
             if let (Some(ae), Some(state)) = (&cam.auto_exposure, self.ae.as_mut()) {
                 let dt = (t_s - state.last_t).max(0.0);

@@ -818,7 +818,7 @@ impl Realism {
                     "(0, max]",
                 );
             }
-            if !(ae.max_exposure_s <= 1.0) {
+            if ae.max_exposure_s > 1.0 || ae.max_exposure_s.is_nan() {
                 return bad("auto_exposure.max_exposure_s", ae.max_exposure_s, "<= 1 s");
             }
             if !(ae.max_gain >= 1.0 && ae.max_gain <= 1024.0) {
@@ -898,7 +898,7 @@ impl Realism {
                 ("wind.drag_per_m", w.drag_per_m),
                 ("wind.integral_gain", w.integral_gain),
             ] {
-                if !(x >= 0.0 && x <= 50.0) {
+                if !(0.0..=50.0).contains(&x) {
                     return bad(name, x, "[0, 50]");
                 }
             }
@@ -924,7 +924,7 @@ impl Realism {
                 ("gps.bias_sigma_z_m", g.bias_sigma_z_m),
                 ("gps.noise_sigma_m", g.noise_sigma_m),
             ] {
-                if !(x >= 0.0 && x <= 50.0) {
+                if !(0.0..=50.0).contains(&x) {
                     return bad(name, x, "[0, 50] m");
                 }
             }
