@@ -15,7 +15,7 @@ use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
 
-use crate::realism::{GimbalError, Wind};
+use crate::realism::{GimbalError, VideoLatency, Wind};
 
 /// A sum of cosines `sum a_i cos(w_i t + phi_i)`.
 #[derive(Debug, Clone, PartialEq)]
@@ -190,6 +190,35 @@ impl GimbalJitter {
     }
 }
 
+/// A video latency that varies (see [`VideoLatency`]): the mean plus a
+/// first-order Gauss-Markov deviation, never below zero.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LatencyProcess {
+    params: VideoLatency,
+    deviation: Spectral,
+}
+
+impl LatencyProcess {
+    /// The latency for `params`, seeded by `seed`.
+    pub fn new(params: VideoLatency, seed: u64) -> LatencyProcess {
+        let mut rng = SmallRng::seed_from_u64(seed ^ 0x1A7E_0C1D);
+        LatencyProcess {
+            deviation: Spectral::first_order(params.sigma_s, params.tau_s, TAU * 5.0, 32, &mut rng),
+            params,
+        }
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &VideoLatency {
+        &self.params
+    }
+
+    /// The latency of a frame captured at `t`, seconds.
+    pub fn at(&self, t: f64) -> f64 {
+        (self.params.mean_s + self.deviation.at(t)).max(0.0)
+    }
+}
+
 /// The position-hold loop's deviation from a prescribed path under wind,
 /// tabulated at a fixed step: the vehicle flies the path with the
 /// simulator's own controller (position gain, velocity-loop time constant)
@@ -298,6 +327,23 @@ mod tests {
         let (_, sd) = stats(&xs);
         let expected = (0.3f64.powi(2) + 0.05f64.powi(2)).sqrt().to_radians();
         assert!((sd / expected - 1.0).abs() < 0.1, "{} vs {}", sd, expected);
+    }
+
+    #[test]
+    fn video_latency_varies_around_its_mean() {
+        let p = Realism::field().vehicle.video_latency.unwrap();
+        let l = LatencyProcess::new(p, 3);
+        let xs: Vec<f64> = (0..20_000).map(|k| l.at(k as f64 * 0.1)).collect();
+        let (m, sd) = stats(&xs);
+        assert!((m - p.mean_s).abs() < 0.2 * p.sigma_s, "mean {m}");
+        assert!((sd / p.sigma_s - 1.0).abs() < 0.15, "sd {sd}");
+        // Correlated over a fraction of tau, decorrelated well beyond it.
+        let corr = |lag: usize| {
+            let n = xs.len() - lag;
+            (0..n).map(|i| (xs[i] - m) * (xs[i + lag] - m)).sum::<f64>() / n as f64 / (sd * sd)
+        };
+        assert!(corr(2) > 0.8, "{}", corr(2));
+        assert!(corr(200) < 0.2, "{}", corr(200));
     }
 
     #[test]

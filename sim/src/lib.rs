@@ -11,6 +11,7 @@ pub mod app;
 pub mod autopilot;
 pub mod geodesy;
 pub mod link;
+pub mod live;
 pub mod script;
 pub mod vehicle;
 

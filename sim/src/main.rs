@@ -232,8 +232,10 @@ fn config_from(cli: &Cli) -> Result<SimConfig> {
         truth_dir: cli.truth_dir.clone(),
         autopilot,
         sensor_noise: !cli.no_noise,
+        world: cli.world.parse().context("--world")?,
         ..defaults
-    })
+    }
+    .with_realism(cli.realism.parse().context("--realism")?))
 }
 
 fn main() -> Result<()> {
