@@ -345,8 +345,9 @@ pub async fn run_with(
         &realism,
         config.seed,
     ));
-    // The realistic camera (None: the plain renderer, as before realism).
-    let imager = (!realism.camera_is_ideal()).then(|| {
+    // The realistic camera (None: the plain renderer, as before realism;
+    // a world that moves needs each frame's scene time).
+    let imager = (!realism.camera_is_ideal() || !world.is_static()).then(|| {
         Arc::new(std::sync::Mutex::new(Imager::new(
             renderer.clone(),
             realism.camera.clone(),

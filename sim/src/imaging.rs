@@ -319,8 +319,9 @@ impl Imager {
         Some(program(&ae, s.product_s))
     }
 
-    /// True when every camera effect is off: captures are the renderer's
-    /// plain frames.
+    /// True when every camera effect is off and the world is static:
+    /// captures are the renderer's plain frames (a world with moving cars
+    /// or water is rendered at each frame's scene time).
     fn plain(&self) -> bool {
         let c = &self.camera;
         c.blur.is_none()
@@ -329,6 +330,7 @@ impl Imager {
             && c.vignetting.is_none()
             && c.noise.is_none()
             && self.renderer.clouds().is_none()
+            && self.renderer.world().is_static()
     }
 
     /// Captures the frame whose centre row is exposed around `t_s` (the

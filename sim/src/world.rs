@@ -527,6 +527,12 @@ impl World {
         })
     }
 
+    /// True when nothing in the world changes with time (no moving
+    /// objects, no water): a frame depends only on the camera pose.
+    pub fn is_static(&self) -> bool {
+        self.movers.is_empty() && self.water.is_empty()
+    }
+
     /// The boxes where they stand at scene time `t_s` (borrowed when
     /// nothing moves).
     pub fn boxes_at(&self, t_s: f64) -> std::borrow::Cow<'_, [SceneBox]> {
