@@ -757,7 +757,12 @@ fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioE
     let map = run.map;
     let mut kf_truth = BTreeMap::new();
     for kf in map.keyframes() {
-        g.add_keyframe(u64::from(kf.id.0), &kf.world_from_cam(), kf.timestamp)?;
+        // As the daemon does: a keyframe the georeference refuses (its
+        // time in a telemetry gap) is left out, the rest go on.
+        if let Err(e) = g.add_keyframe(u64::from(kf.id.0), &kf.world_from_cam(), kf.timestamp) {
+            tracing::debug!(kf = kf.id.0, "geo: keyframe refused: {e}");
+            continue;
+        }
         if let Some(t) = truth_by_frame.get(&kf.frame_index) {
             kf_truth.insert(kf.id.0, *t);
         }
@@ -1154,8 +1159,40 @@ pub fn run(
         return Err(ScenarioError::InvalidParams { name, reason });
     }
     let h = ap_params.vehicle.home;
+    let mut ap = Autopilot::new(ap_params, 0.0);
+    if realism.vehicle.telemetry.is_some() {
+        // The autopilot starts at its own stream rates; the daemon asks
+        // for its rates with SET_MESSAGE_INTERVAL, as on a real link.
+        let r = crate::vehicle::Rates::default();
+        for (id, hz) in [
+            (33u32, r.global_position_hz),
+            (32, r.local_position_hz),
+            (30, r.attitude_hz),
+            (242, r.home_position_hz),
+            (285, r.gimbal_hz),
+            (42, r.mission_current_hz),
+        ] {
+            if hz > 0.0 {
+                let _ = ap.handle(
+                    &MavHeader {
+                        system_id: 255,
+                        component_id: 190,
+                        sequence: 0,
+                    },
+                    &MavMessage::COMMAND_LONG(mavlink::dialects::common::COMMAND_LONG_DATA {
+                        param1: id as f32,
+                        param2: 1e6 / hz,
+                        command: mavlink::dialects::common::MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                        target_system: 1,
+                        target_component: 1,
+                        ..Default::default()
+                    }),
+                );
+            }
+        }
+    }
     let mut sim = Sim {
-        ap: Autopilot::new(ap_params, 0.0),
+        ap,
         renderer,
         t: 0.0,
         dt: 1.0 / params.step_hz,
