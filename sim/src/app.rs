@@ -11,7 +11,9 @@
 //! frames go through [`crate::imaging::Imager`], exposed over the true
 //! motion of the last steps ([`crate::live`]) and timed
 //! [`crate::live::LIVE_EXPOSURE_LAG_S`] behind the clock (their
-//! X-Timestamp and truth are the centre row's mid-exposure); with a video
+//! X-Timestamp and truth are the centre row's mid-exposure; the per-row
+//! poses of a rolling shutter are written by `render` datasets only, in
+//! `rows.txt`); with a video
 //! latency, each frame is published its latency after its capture time.
 
 use std::net::SocketAddr;
