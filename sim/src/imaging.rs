@@ -149,7 +149,8 @@ pub fn interpolate_knots(knots: &[RowKnot], y: usize) -> Option<Isometry3<f64>> 
     Some(lerp_pose(&a.world_from_cam, &b.world_from_cam, f))
 }
 
-fn lerp_pose(a: &Isometry3<f64>, b: &Isometry3<f64>, f: f64) -> Isometry3<f64> {
+/// Linear in translation, slerp in rotation, `f` in [0, 1] from `a` to `b`.
+pub(crate) fn lerp_pose(a: &Isometry3<f64>, b: &Isometry3<f64>, f: f64) -> Isometry3<f64> {
     let t = a.translation.vector.lerp(&b.translation.vector, f);
     let q = a
         .rotation

@@ -13,7 +13,7 @@
 
 use std::collections::VecDeque;
 
-use nalgebra::{Isometry3, Translation3};
+use nalgebra::Isometry3;
 
 use crate::disturbance::GimbalJitter;
 
@@ -90,12 +90,7 @@ impl PoseWindow {
                 } else {
                     let (a, b) = (&self.poses[i - 1], &self.poses[i]);
                     let f = ((t - a.0) / (b.0 - a.0).max(1e-12)).clamp(0.0, 1.0);
-                    let tr = a.1.translation.vector.lerp(&b.1.translation.vector, f);
-                    let q =
-                        a.1.rotation
-                            .try_slerp(&b.1.rotation, f, 1e-12)
-                            .unwrap_or(if f < 0.5 { a.1.rotation } else { b.1.rotation });
-                    Isometry3::from_parts(Translation3::from(tr), q)
+                    crate::imaging::lerp_pose(&a.1, &b.1, f)
                 }
             }
         };
@@ -109,7 +104,7 @@ impl PoseWindow {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{UnitQuaternion, Vector3};
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
     #[test]
     fn window_interpolates_between_steps_and_forgets_old_poses() {
