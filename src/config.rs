@@ -234,6 +234,13 @@ pub struct SimSection {
     pub gps_tau_s: f64,
     /// Seed of the bias's walk (unset: `seed`, so each world has its own).
     pub gps_seed: Option<u64>,
+    /// Realism of the simulated camera, vehicle and radio: `ideal`,
+    /// `field` or `harsh`, then any `-EFFECT` or `+EFFECT[@PRESET]`
+    /// (see `shotpilot_sim::realism`), e.g. `field-blur`.
+    pub realism: String,
+    /// The simulated world: town, grass, carpark, trees, water, traffic
+    /// or aliasing.
+    pub world: String,
 }
 
 impl Default for SimSection {
@@ -251,6 +258,8 @@ impl Default for SimSection {
             gps_sigma_z_m: 0.0,
             gps_tau_s: 120.0,
             gps_seed: None,
+            realism: "ideal".into(),
+            world: "town".into(),
         }
     }
 }
@@ -578,6 +587,12 @@ impl Config {
                     format!("{:?}: use px4 or ardupilot", self.sim.flavour),
                 ));
             }
+            if let Err(e) = self.sim.realism.parse::<shotpilot_sim::realism::Realism>() {
+                return Err(invalid("sim", "realism", e.to_string()));
+            }
+            if let Err(e) = self.sim.world.parse::<shotpilot_sim::world::WorldKind>() {
+                return Err(invalid("sim", "world", e.to_string()));
+            }
             if !(self.sim.video_fps > 0.0 && self.sim.video_fps <= 120.0) {
                 return Err(invalid("sim", "video_fps", "must be in (0, 120]".into()));
             }
@@ -774,6 +789,9 @@ mod tests {
             ("[server]\nbind = \"nowhere\"\n", "bind"),
             ("[video]\nurl = \"rtsp://cam/x\"\n", "url"),
             ("[sim]\nscript = \"loop\"\n", "script"),
+            ("[sim]\nrealism = \"sunny\"\n", "[sim] realism"),
+            ("[sim]\nrealism = \"field-fog\"\n", "[sim] realism"),
+            ("[sim]\nworld = \"moon\"\n", "[sim] world"),
             ("[server]\ntoken = \"\"\n", "token"),
             ("[server]\nport = 1\n", "port"),
         ] {

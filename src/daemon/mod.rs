@@ -144,8 +144,17 @@ fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimCo
         },
         capture_dir: data_dir.join("captures"),
         truth_dir: s.truth_dir.as_ref().map(|d| data_dir.join(d)),
+        world: s
+            .world
+            .parse()
+            .map_err(|e| DaemonError::Sim(format!("world {:?}: {e}", s.world)))?,
         ..defaults
-    };
+    }
+    .with_realism(
+        s.realism
+            .parse()
+            .map_err(|e| DaemonError::Sim(format!("realism {:?}: {e}", s.realism)))?,
+    );
     Ok(sc)
 }
 
