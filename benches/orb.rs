@@ -8,7 +8,8 @@ use std::path::PathBuf;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use image::GrayImage;
-use shotpilot::features::{Features, OrbExtractor, Params, eval};
+use shotpilot::features::{Features, OrbExtractor, Params};
+use shotpilot::features_eval as eval;
 
 fn frames() -> Vec<GrayImage> {
     let dir = std::env::var_os("SHOTPILOT_DATA")

@@ -218,8 +218,14 @@ impl Default for ServerConfig {
 pub struct SlamConfig {
     /// Run the SLAM on the live video.
     pub enabled: bool,
-    /// Map file written on shutdown (relative to `server.data_dir`).
+    /// Map file written on shutdown and at each checkpoint (relative to
+    /// `server.data_dir`); the georeference it is tied to goes beside it
+    /// (`<map_file>.geo.json`).
     pub map_file: PathBuf,
+    /// Seconds between checkpoints of the map (and its georeference) while
+    /// the daemon runs, written when the map changed, so a crash or a kill
+    /// loses at most this much mapping (0: only on shutdown).
+    pub checkpoint_s: f64,
     /// At start, go on with the map in `map_file` when there is one (the
     /// SLAM relocalises into it, so shots and the georeference stay in one
     /// frame); false: start a fresh map (the old file is kept under a new
@@ -235,6 +241,7 @@ impl Default for SlamConfig {
         Self {
             enabled: true,
             map_file: PathBuf::from("map.spmap"),
+            checkpoint_s: 30.0,
             continue_map: true,
             artificial_delay_ms: 0,
         }
@@ -276,6 +283,13 @@ pub struct SimSection {
     /// The video URI its camera announces in VIDEO_STREAM_INFORMATION (for
     /// `[video] url = "auto"`); unset: its own MJPEG URL.
     pub video_stream_uri: Option<String>,
+    /// Realism of the simulated camera, vehicle and radio: `ideal`,
+    /// `field` or `harsh`, then any `-EFFECT` or `+EFFECT[@PRESET]`
+    /// (see `shotpilot_sim::realism`), e.g. `field-blur`.
+    pub realism: String,
+    /// The simulated world: town, grass, carpark, trees, water, traffic
+    /// or aliasing.
+    pub world: String,
 }
 
 impl Default for SimSection {
@@ -294,6 +308,8 @@ impl Default for SimSection {
             gps_tau_s: 120.0,
             gps_seed: None,
             video_stream_uri: None,
+            realism: "ideal".into(),
+            world: "town".into(),
         }
     }
 }
@@ -612,6 +628,13 @@ impl Config {
         if !(self.server.events_hz > 0.0 && self.server.events_hz <= 50.0) {
             return Err(invalid("server", "events_hz", "must be in (0, 50]".into()));
         }
+        if !(self.slam.checkpoint_s >= 0.0 && self.slam.checkpoint_s <= 86_400.0) {
+            return Err(invalid(
+                "slam",
+                "checkpoint_s",
+                "must be in [0, 86400] s (0: only on shutdown)".into(),
+            ));
+        }
         if self.sim.enabled {
             self.sim
                 .video_listen
@@ -630,6 +653,12 @@ impl Config {
                     "flavour",
                     format!("{:?}: use px4 or ardupilot", self.sim.flavour),
                 ));
+            }
+            if let Err(e) = self.sim.realism.parse::<shotpilot_sim::realism::Realism>() {
+                return Err(invalid("sim", "realism", e.to_string()));
+            }
+            if let Err(e) = self.sim.world.parse::<shotpilot_sim::world::WorldKind>() {
+                return Err(invalid("sim", "world", e.to_string()));
             }
             if !(self.sim.video_fps > 0.0 && self.sim.video_fps <= 120.0) {
                 return Err(invalid("sim", "video_fps", "must be in (0, 120]".into()));
@@ -697,6 +726,29 @@ impl Config {
                 "geo.mount",
                 "pitch_min_deg/pitch_max_deg/lever_arm_body_m",
                 "need pitch_min_deg < pitch_max_deg and a finite lever arm".into(),
+            ));
+        }
+        let c = &self.geo.continuity;
+        if !(c.frame_pair_spacing_s.is_finite() && (0.0..=3600.0).contains(&c.frame_pair_spacing_s))
+        {
+            return Err(invalid(
+                "geo.continuity",
+                "frame_pair_spacing_s",
+                "must be in [0, 3600] s (0: no frame pairs)".into(),
+            ));
+        }
+        if c.max_frame_pairs > 10_000 {
+            return Err(invalid(
+                "geo.continuity",
+                "max_frame_pairs",
+                "must be at most 10000".into(),
+            ));
+        }
+        if !(c.disagreement_factor.is_finite() && c.disagreement_factor >= 1.0) {
+            return Err(invalid(
+                "geo.continuity",
+                "disagreement_factor",
+                "must be finite and at least 1".into(),
             ));
         }
         let fence = &self.mission.plan.fence;
@@ -806,6 +858,9 @@ mod tests {
             ("[video]\nurl = \"udp://cam:5600\"\n", "url"),
             ("[video]\ndownscale = 0\n", "downscale"),
             ("[sim]\nscript = \"loop\"\n", "script"),
+            ("[sim]\nrealism = \"sunny\"\n", "[sim] realism"),
+            ("[sim]\nrealism = \"field-fog\"\n", "[sim] realism"),
+            ("[sim]\nworld = \"moon\"\n", "[sim] world"),
             ("[server]\ntoken = \"\"\n", "token"),
             ("[server]\nport = 1\n", "port"),
         ] {

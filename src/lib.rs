@@ -31,8 +31,10 @@
 //! | [`video`] | frame sources: datasets (TUM, EuRoC), live MJPEG/snapshot over HTTP, latest-frame slots |
 //! | [`eval`] | TUM trajectories, association, Umeyama alignment, ATE/RPE, plots |
 //! | [`stats`] | median and nearest-rank quantiles of samples |
+//! | [`lie`] | SO(3)/SE(3)/Sim(3): skew, SE(3) exponential, quaternion renormalisation, [`lie::Sim3`] (below geometry and optimize) |
 //! | [`features`] | image pyramid, FAST, orientation, rBRIEF (ORB) |
 //! | [`matching`] | Hamming matching: brute force, keypoint grid for search by projection |
+//! | [`features_eval`] | measuring the extractor: timing, homography-warp repeatability, matching, spread |
 //! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
 //! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
 //! | [`slam`] | map, tracking, local mapping, map file |
@@ -55,6 +57,7 @@ pub mod config;
 pub mod daemon;
 pub mod eval;
 pub mod features;
+pub mod features_eval;
 pub mod geo;
 pub mod geometry;
 pub mod lie;

@@ -96,10 +96,31 @@ fn init_logging(filter: &str) {
     let env = tracing_subscriber::EnvFilter::try_from_default_env()
         .or_else(|_| tracing_subscriber::EnvFilter::try_new(filter))
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    // Colour only for a terminal: a log redirected to a file or a pipe
+    // carries no escape codes.
     tracing_subscriber::fmt()
         .with_env_filter(env)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr)
         .init();
+}
+
+/// The error and its causes on one line, `outer: cause: ...`, each cause
+/// once: a cause whose text the line already holds (an error that prints
+/// its source in its own message, as many do) is not repeated.
+fn error_chain(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if text.is_empty() || line.contains(&text) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(&text);
+    }
+    line
 }
 
 /// The configuration: `--config PATH`, else ./config.toml if present, else defaults.
@@ -123,7 +144,7 @@ fn main() -> std::process::ExitCode {
     match run(cli) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_chain(&e));
             std::process::ExitCode::FAILURE
         }
     }
@@ -140,5 +161,33 @@ fn run(cli: Cli) -> Result<()> {
         Command::Run(args) => cli::run::run(args, config, cli.config.as_deref()),
         Command::Features(args) => cli::features::run(args),
         Command::Scenario(args) => cli::scenario::run(args),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::error_chain;
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("cannot read {path}: {source}")]
+    struct Wraps {
+        path: &'static str,
+        source: std::io::Error,
+    }
+
+    #[test]
+    fn each_cause_is_printed_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "no such folder");
+        let e = anyhow::Error::new(Wraps {
+            path: "/x",
+            source: io,
+        })
+        .context("opening the dataset");
+        assert_eq!(
+            error_chain(&e),
+            "opening the dataset: cannot read /x: no such folder"
+        );
+        let plain = anyhow::anyhow!("inner").context("outer");
+        assert_eq!(error_chain(&plain), "outer: inner");
     }
 }

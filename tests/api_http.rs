@@ -358,8 +358,9 @@ fn endpoints_and_bad_input() {
     // Each anchor check answers with its own reason.
     for (anchors, reason) in [
         (
+            // A bow tie: crossed, said as such (not "collapsed" or "not convex").
             json!([[0, 0], [300, 0], [30, 200], [250, 150]]),
-            "not_convex",
+            "crossed",
         ),
         (
             json!([[300, 100], [100, 100], [100, 250], [300, 250]]),
@@ -417,10 +418,16 @@ fn endpoints_and_bad_input() {
         "bad_content_type",
     );
     let big = vec![b' '; 50 << 20];
-    assert_error(
-        &http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &big),
-        413,
-        "body_too_large",
+    let r = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &big);
+    assert_error(&r, 413, "body_too_large");
+    // The answer names the limit (and the setting that raises it).
+    let e = &json_of(&r.2)["error"];
+    let limit = e["limit_bytes"].as_u64().expect("the limit");
+    assert!(limit < 50 << 20, "{e}");
+    let message = e["message"].as_str().unwrap();
+    assert!(
+        message.contains(&limit.to_string()) && message.contains("body_limit_bytes"),
+        "{e}"
     );
     assert_error(
         &http(
@@ -495,6 +502,28 @@ fn endpoints_and_bad_input() {
     );
 
     // A photo shot.
+    // A JPEG cut short in transfer (it would decode to a picture grey
+    // below the cut): refused, saying so.
+    let mut jpeg = Vec::new();
+    kf_image()
+        .write_to(
+            &mut std::io::Cursor::new(&mut jpeg),
+            image::ImageFormat::Jpeg,
+        )
+        .unwrap();
+    let r = http(
+        a,
+        "POST",
+        "/api/v1/shots/photo",
+        &[AUTH, ("Content-Type", "image/jpeg")],
+        &jpeg[..jpeg.len() * 2 / 3],
+    );
+    assert_error(&r, 400, "bad_image");
+    let message = json_of(&r.2)["error"]["message"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    assert!(message.contains("truncated"), "{message}");
     let mut png = Vec::new();
     kf_image()
         .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)

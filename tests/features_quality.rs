@@ -14,8 +14,8 @@ mod data_support;
 use std::path::PathBuf;
 use std::process::Command;
 
-use shotpilot::features::eval::{self, PairMetrics, WarpPair, WarpParams};
 use shotpilot::features::{OrbExtractor, Params};
+use shotpilot::features_eval::{self as eval, PairMetrics, WarpPair, WarpParams};
 
 fn data_dir() -> Option<PathBuf> {
     data_support::shared_data("tum_fr3_teddy_100")

@@ -158,6 +158,7 @@ fn run(clocks: Clocks, estimate_offset: bool, seed: u64) -> Figures {
             estimate_time_offset: estimate_offset,
             ..AlignParams::default()
         },
+        ..Params::default()
     });
     geo.set_home(to_geo(&params.home)).unwrap();
     // The true map <- ned (a monocular map of arbitrary scale and frame).

@@ -61,7 +61,8 @@ function mapStartText(m) {
 }
 function geoText(g) {
   if (!g) return '';
-  if (g.state === 'ok') return ` | georef ok: scale ${g.scale.toFixed(3)}, rms ${(g.rms_m * 100).toFixed(1)} cm, ${g.keyframes_used} kf`;
+  const restored = g.evidence && g.evidence.restored_pairs ? `, ${g.evidence.restored_pairs} pairs from the saved georeference` : '';
+  if (g.state === 'ok') return ` | georef ok: scale ${g.scale.toFixed(3)}, rms ${(g.rms_m * 100).toFixed(1)} cm, ${g.keyframes_used} kf${restored}`;
   return ` | georef ${g.state}: ${g.reason || ''}`;
 }
 function connectEvents() {
@@ -391,7 +392,11 @@ function shotCard(s) {
   const parts = [s.id, s.status, sourceText(s.source)];
   if (s.localisation) parts.push(`${s.localisation.inliers} inliers, ${fmt(s.localisation.rms_error_px, 2)} px`);
   else if (s.reason) parts.push(s.reason);
-  if (s.mission) parts.push(`mission ${s.mission.state}, ${s.mission.items} items`);
+  if (s.mission) {
+    // As read back from the vehicle at start / reconnection, with why.
+    const v = s.mission.details && s.mission.details.vehicle;
+    parts.push(`mission ${s.mission.state}${v && v.reason ? ` (${v.reason})` : ''}, ${s.mission.items} items`);
+  }
   const head = el('div', { class: 'head' }, parts.join(' · '));
   head.addEventListener('click', () => showShot(s));
   card.append(head);

@@ -3,7 +3,7 @@
 
 Usage: orb_pairs_opencv.py PAIRS_DIR [--features N]
 
-PAIRS_DIR holds what shotpilot's `features::eval::write_pairs` writes:
+PAIRS_DIR holds what shotpilot's `features_eval::write_pairs` writes:
 pairs.json and a_NNN.png / b_NNN.png / mask_NNN.png. For every pair this runs
 cv2.ORB_create(nfeatures=N, scaleFactor=1.2, nlevels=8).detectAndCompute on a
 (no mask) and on b (with its mask, as shotpilot does), and writes

@@ -2,6 +2,11 @@
 //! default world: a close oblique view, two explore-flight poses and a high
 //! top-down view; plus JPEG encoding of a frame.
 //!
+//! A third group, `capture_640x480_cpu`, exposes consecutive explore-flight
+//! frames (15 frames/s) through the realistic camera
+//! ([`shotpilot_sim::imaging::Imager`]) for the presets `ideal`, `field`
+//! and `harsh`, in CPU time: what realism costs per frame against `ideal`.
+//!
 //! Two groups: `render_640x480` in wall-clock time (criterion's default)
 //! and `render_640x480_cpu` in CPU time of the benchmarking thread (Linux
 //! `/proc/thread-self/schedstat`), which is what "frames per second on one
@@ -15,10 +20,14 @@ use criterion::measurement::{Measurement, ValueFormatter};
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use nalgebra::{Isometry3, Point3};
 use shotpilot_sim::camera::SimCamera;
+use shotpilot_sim::dataset::{PathMotion, renderer_for, world_params_for};
+use shotpilot_sim::imaging::Imager;
 use shotpilot_sim::paths::{CameraPath, Params as PathParams, camera_from_yaw_pitch, look_at};
+use shotpilot_sim::realism::Realism;
 use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::video::encode_jpeg;
 use shotpilot_sim::world::World;
+use shotpilot_sim::world::WorldKind;
 
 /// CPU time of the calling thread, nanoseconds (0 where unavailable).
 fn thread_cpu_ns() -> u64 {
@@ -150,10 +159,48 @@ fn bench_cpu(c: &mut Criterion<ThreadCpuTime>) {
     });
 }
 
+fn bench_capture(c: &mut Criterion<ThreadCpuTime>) {
+    let mut g = c.benchmark_group("capture_640x480_cpu");
+    g.throughput(Throughput::Elements(1));
+    g.sample_size(20);
+    for name in ["ideal", "field", "harsh"] {
+        let realism = Realism::preset(name).expect("preset");
+        let params = world_params_for(WorldKind::Town, &realism);
+        let world = Arc::new(World::generate_with(1, &params).expect("world"));
+        let path = CameraPath::explore(&world, PathParams::default());
+        let renderer = Arc::new(renderer_for(
+            world,
+            SimCamera::default(),
+            RenderParams::default(),
+            &realism,
+            1,
+        ));
+        let motion = PathMotion::new(&path, &realism, 1);
+        let mut imager = Imager::new(renderer, realism.camera.clone(), &realism.lighting);
+        let mut k = 0u64;
+        g.bench_function(name, |b| {
+            b.iter(|| {
+                // Consecutive frames of the flight's busy middle.
+                let t = 20.0 + (k % 600) as f64 / 15.0;
+                k += 1;
+                imager
+                    .capture(t, &|s| motion.world_from_cam(&path, s), Some(k))
+                    .expect("capture")
+            })
+        });
+    }
+    g.finish();
+}
+
 criterion_group!(wall, bench_wall);
+criterion_group! {
+    name = capture;
+    config = Criterion::default().with_measurement(ThreadCpuTime);
+    targets = bench_capture
+}
 criterion_group! {
     name = cpu;
     config = Criterion::default().with_measurement(ThreadCpuTime);
     targets = bench_cpu
 }
-criterion_main!(wall, cpu);
+criterion_main!(wall, cpu, capture);

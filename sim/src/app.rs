@@ -4,6 +4,17 @@
 //!
 //! [`run`] is the library entry: the `shotpilot-sim` binary calls it, and
 //! the shotpilot daemon can call it to start the world in-process.
+//!
+//! Realism ([`SimConfig::with_realism`]): the vehicle effects live in the
+//! vehicle ([`crate::vehicle::VehicleDisturbances`]); telemetry follows the
+//! preset's stream rates over its radio; with any camera effect on, video
+//! frames go through [`crate::imaging::Imager`], exposed over the true
+//! motion of the last steps ([`crate::live`]) and timed
+//! [`crate::live::LIVE_EXPOSURE_LAG_S`] behind the clock (their
+//! X-Timestamp and truth are the centre row's mid-exposure; the per-row
+//! poses of a rolling shutter are written by `render` datasets only, in
+//! `rows.txt`); with a video
+//! latency, each frame is published its latency after its capture time.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -16,12 +27,17 @@ use tokio_util::sync::CancellationToken;
 
 use crate::autopilot::{Autopilot, AutopilotParams, CaptureRequest, Flavour};
 use crate::camera::SimCamera;
-use crate::dataset::TruthWriter;
+use crate::dataset::{TruthWriter, renderer_for, world_params_for};
+use crate::disturbance::LatencyProcess;
+use crate::imaging::Imager;
 use crate::link::{Endpoint, LinkError, LinkParams, LinkStats, RadioParams, spawn_link};
+use crate::live::{LIVE_EXPOSURE_LAG_S, PoseHistory};
+use crate::realism::Realism;
 use crate::render::{RenderParams, Renderer};
 use crate::script::{Script, ScriptKind, ScriptParams};
+use crate::vehicle::VehicleDisturbances;
 use crate::video::{VideoFrame, serve_video, try_encode_jpeg};
-use crate::world::World;
+use crate::world::{World, WorldKind};
 
 /// Errors that stop the simulator.
 #[derive(Debug, thiserror::Error)]
@@ -40,6 +56,12 @@ pub enum SimError {
         #[source]
         source: std::io::Error,
     },
+    /// The realism configuration is unusable.
+    #[error(transparent)]
+    Realism(#[from] crate::realism::RealismError),
+    /// The world could not be generated.
+    #[error(transparent)]
+    World(#[from] crate::world::WorldError),
     /// A configuration value is out of range.
     #[error("bad configuration: {field} = {value}: {reason}")]
     Config {
@@ -91,6 +113,12 @@ pub struct SimConfig {
     /// Video frames rendered at the same time (on blocking threads); a
     /// frame falling due while this many are rendering is skipped.
     pub max_renders_in_flight: usize,
+    /// Realism (`ideal`: none). Set it with [`SimConfig::with_realism`],
+    /// which also moves its vehicle and telemetry effects into
+    /// `autopilot` and `radio`.
+    pub realism: Realism,
+    /// The world.
+    pub world: WorldKind,
 }
 
 impl Default for SimConfig {
@@ -112,6 +140,8 @@ impl Default for SimConfig {
             render: RenderParams::default(),
             sensor_noise: true,
             max_renders_in_flight: 2,
+            realism: Realism::ideal(),
+            world: WorldKind::Town,
         }
     }
 }
@@ -120,6 +150,24 @@ impl SimConfig {
     /// The flavour shortcut.
     pub fn with_flavour(mut self, flavour: Flavour) -> Self {
         self.autopilot.flavour = flavour;
+        self
+    }
+
+    /// Applies `realism`: its vehicle effects (seeded from `self.seed`:
+    /// set the seed first), its telemetry stream rates, and its radio
+    /// (drop, latency and baud; a worse radio already configured stays).
+    pub fn with_realism(mut self, realism: Realism) -> Self {
+        self.autopilot.vehicle.disturbances =
+            VehicleDisturbances::from_realism(&realism, self.seed ^ 0x5EA1_0000);
+        if let Some(tel) = &realism.vehicle.telemetry {
+            self.autopilot.stream_intervals = tel.stream_intervals.clone();
+            for d in [&mut self.radio.up, &mut self.radio.down] {
+                d.drop = d.drop.max(tel.drop);
+                d.latency_s = d.latency_s.max(tel.latency_s);
+                d.baud = Some(d.baud.map_or(tel.baud, |b| b.min(tel.baud)));
+            }
+        }
+        self.realism = realism;
         self
     }
 
@@ -185,6 +233,7 @@ impl SimConfig {
                 );
             }
         }
+        self.realism.validate()?;
         Ok(())
     }
 }
@@ -243,8 +292,21 @@ fn write_capture(
 /// Run the simulator until `cancel` fires, serving video on
 /// `config.video_listen` (if set).
 pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSummary, SimError> {
+    run_announcing(config, cancel, false).await
+}
+
+/// [`run`]; with `announce`, once the video server and the MAVLink
+/// endpoint are open, one line on stdout gives their bound addresses
+/// (`shotpilot-sim bound: video=ADDR mavlink=ADDR`, `-` for none), so a
+/// caller that asked for port 0 knows where to connect.
+pub async fn run_announcing(
+    config: SimConfig,
+    cancel: CancellationToken,
+    announce: bool,
+) -> Result<RunSummary, SimError> {
     config.validate()?;
     let (video_tx, video_rx) = watch::channel(None);
+    let mut video_bound = None;
     if let Some(addr) = config.video_listen {
         let listener = tokio::net::TcpListener::bind(addr)
             .await
@@ -253,6 +315,7 @@ pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSumm
                 path: PathBuf::from(addr.to_string()),
                 source,
             })?;
+        video_bound = listener.local_addr().ok();
         let c = cancel.clone();
         tokio::spawn(async move {
             if let Err(e) = serve_video(listener, video_rx, c).await {
@@ -262,7 +325,7 @@ pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSumm
     } else {
         drop(video_rx);
     }
-    run_with(config, cancel, video_tx).await
+    run_inner(config, cancel, video_tx, announce.then_some(video_bound)).await
 }
 
 /// [`run`] without its video server: frames are published on `video_tx`
@@ -272,6 +335,17 @@ pub async fn run_with(
     config: SimConfig,
     cancel: CancellationToken,
     video_tx: watch::Sender<Option<Arc<VideoFrame>>>,
+) -> Result<RunSummary, SimError> {
+    run_inner(config, cancel, video_tx, None).await
+}
+
+/// The simulation; `announce` (Some: the video server's bound address)
+/// prints the bound addresses once the link is open.
+async fn run_inner(
+    config: SimConfig,
+    cancel: CancellationToken,
+    video_tx: watch::Sender<Option<Arc<VideoFrame>>>,
+    announce: Option<Option<SocketAddr>>,
 ) -> Result<RunSummary, SimError> {
     config.validate()?;
     let mut truth = match &config.truth_dir {
@@ -284,8 +358,41 @@ pub async fn run_with(
         ),
         None => None,
     };
-    let world = Arc::new(World::generate(config.seed));
-    let renderer = Arc::new(Renderer::new(world.clone(), config.camera, config.render));
+    let realism = config.realism.clone();
+    let world = if realism.lighting.sun.is_none() && config.world == WorldKind::Town {
+        World::generate(config.seed)
+    } else {
+        World::generate_with(config.seed, &world_params_for(config.world, &realism))?
+    };
+    let world = Arc::new(world);
+    let renderer = Arc::new(renderer_for(
+        world.clone(),
+        config.camera,
+        config.render,
+        &realism,
+        config.seed,
+    ));
+    // The realistic camera (None: the plain renderer, as before realism;
+    // a world that moves needs each frame's scene time).
+    let imager = (!realism.camera_is_ideal() || !world.is_static()).then(|| {
+        Arc::new(std::sync::Mutex::new(Imager::new(
+            renderer.clone(),
+            realism.camera.clone(),
+            &realism.lighting,
+        )))
+    });
+    let latency = realism
+        .vehicle
+        .video_latency
+        .map(|l| LatencyProcess::new(l, config.seed));
+    let mut history = PoseHistory::new();
+    if !realism.is_ideal() {
+        tracing::info!(
+            "realism {}: effects {}",
+            realism.name,
+            realism.effects_on().join(", ")
+        );
+    }
     let mut link = spawn_link(
         LinkParams {
             endpoint: config.mavlink.clone(),
@@ -296,6 +403,16 @@ pub async fn run_with(
         cancel.clone(),
     )
     .await?;
+    if let Some(video) = announce {
+        let show = |a: Option<SocketAddr>| a.map_or("-".to_string(), |a| a.to_string());
+        println!(
+            "shotpilot-sim bound: video={} mavlink={}",
+            show(video),
+            show(link.local_addr)
+        );
+        use std::io::Write as _;
+        let _ = std::io::stdout().flush();
+    }
     tracing::info!(
         "shotpilot-sim: MAVLink on {}, flavour {:?}, radio {:?}",
         config.mavlink,
@@ -317,6 +434,7 @@ pub async fn run_with(
     let dt = 1.0 / config.step_hz;
     let frame_dt = 1.0 / config.video_fps;
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(dt));
+    let clock_start = tokio::time::Instant::now();
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
     let (cap_tx, mut cap_rx) = mpsc::channel::<(CaptureRequest, Option<String>)>(64);
     let (frame_done_tx, mut frame_done_rx) = mpsc::channel::<()>(16);
@@ -350,6 +468,9 @@ pub async fn run_with(
         }
         let out = ap.step(t, dt);
         send(&link, out);
+        if imager.is_some() {
+            history.push(t, ap.vehicle().true_world_from_cam_stabilised());
+        }
         for req in ap.take_capture_requests() {
             let renderer = renderer.clone();
             let dir = config.capture_dir.clone();
@@ -386,9 +507,21 @@ pub async fn run_with(
                 next_frame_t = t + frame_dt;
             }
             // The true pose (GPS bias included): what the camera films and
-            // what the truth files record.
-            let wfc = ap.vehicle().true_world_from_cam();
-            let capture_time = unix_at_boot + t;
+            // what the truth files record. A realistic camera exposes the
+            // frame a moment back, over the poses around it.
+            let (t_frame, window) = match &imager {
+                Some(_) => {
+                    let tf = t - LIVE_EXPOSURE_LAG_S;
+                    let g = ap.vehicle().gimbal_error().cloned();
+                    (tf, Some(history.window(tf - 0.12, tf + 0.12, g)))
+                }
+                None => (t, None),
+            };
+            let wfc = match &window {
+                Some(w) => w.world_from_cam(t_frame),
+                None => ap.vehicle().true_world_from_cam(),
+            };
+            let capture_time = unix_at_boot + t_frame;
             if let Some(w) = &mut truth
                 && let Err(e) = w.write_pose(capture_time, &wfc)
             {
@@ -406,6 +539,7 @@ pub async fn run_with(
                     tracing::warn!("truth: {e}");
                 }
                 let renderer = renderer.clone();
+                let imager = imager.clone();
                 let tx = video_tx.clone();
                 let done = frame_done_tx.clone();
                 let newest = newest_published.clone();
@@ -413,27 +547,67 @@ pub async fn run_with(
                 let noise = config
                     .sensor_noise
                     .then_some(config.seed ^ seq.wrapping_mul(0x9E37_79B9));
-                tokio::task::spawn_blocking(move || {
-                    let img = match noise {
-                        Some(s) => renderer.render_noisy(&wfc, s),
-                        None => renderer.render(&wfc),
-                    };
-                    match VideoFrame::encode(&img, q, capture_time, seq) {
-                        Ok(frame) => {
-                            tx.send_if_modified(|slot| {
-                                use std::sync::atomic::Ordering;
-                                if seq == 0 || newest.fetch_max(seq, Ordering::AcqRel) < seq {
-                                    *slot = Some(Arc::new(frame));
-                                    true
-                                } else {
-                                    false
-                                }
-                            });
-                        }
-                        Err(e) => tracing::warn!("video frame: {e}"),
-                    }
-                    let _ = done.blocking_send(());
+                // Published this long after the capture (None: at once).
+                let publish_at = latency.as_ref().map(|l| {
+                    clock_start + Duration::from_secs_f64((t_frame + l.at(t_frame)).max(0.0))
                 });
+                let render = move || -> Option<VideoFrame> {
+                    let result = match (&imager, &window) {
+                        (Some(imager), Some(window)) => {
+                            let mut imager = imager.lock().unwrap_or_else(|p| p.into_inner());
+                            imager
+                                .capture(t_frame, &|s| window.world_from_cam(s), noise)
+                                .and_then(|shot| match shot.encoded {
+                                    // The stream's own bytes.
+                                    Some(jpeg) => Ok(VideoFrame {
+                                        jpeg,
+                                        capture_time_unix_s: capture_time,
+                                        seq,
+                                    }),
+                                    None => VideoFrame::encode(&shot.image, q, capture_time, seq),
+                                })
+                        }
+                        _ => {
+                            let img = match noise {
+                                Some(s) => renderer.render_noisy(&wfc, s),
+                                None => renderer.render(&wfc),
+                            };
+                            VideoFrame::encode(&img, q, capture_time, seq)
+                        }
+                    };
+                    result.map_err(|e| tracing::warn!("video frame: {e}")).ok()
+                };
+                let publish = move |frame: VideoFrame| {
+                    tx.send_if_modified(|slot| {
+                        use std::sync::atomic::Ordering;
+                        if seq == 0 || newest.fetch_max(seq, Ordering::AcqRel) < seq {
+                            *slot = Some(Arc::new(frame));
+                            true
+                        } else {
+                            false
+                        }
+                    });
+                };
+                match publish_at {
+                    None => {
+                        tokio::task::spawn_blocking(move || {
+                            if let Some(frame) = render() {
+                                publish(frame);
+                            }
+                            let _ = done.blocking_send(());
+                        });
+                    }
+                    Some(at) => {
+                        tokio::spawn(async move {
+                            let frame = tokio::task::spawn_blocking(render).await.ok().flatten();
+                            let _ = done.send(()).await;
+                            if let Some(frame) = frame {
+                                tokio::time::sleep_until(at).await;
+                                publish(frame);
+                            }
+                        });
+                    }
+                }
             }
         }
         summary.sim_seconds = t;

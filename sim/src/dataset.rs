@@ -7,7 +7,21 @@
 //! - `calib.txt`: one line `fx fy cx cy k1 k2 p1 p2 k3` (OpenCV order);
 //! - `groundtruth.txt`: `timestamp tx ty tz qx qy qz qw`, the camera's
 //!   `world_from_cam` with the quaternion scalar last;
-//! - `render_info.json`: seed, path, camera and timing of the render.
+//! - `render_info.json`: seed, path, camera, world, realism (the effects
+//!   on, the codec, the stream's bitrate) and timing of the render.
+//!
+//! With any realism effect on, frames carry their exact truth:
+//! `groundtruth.txt`'s pose is the camera's at the frame's timestamp, the
+//! mid-exposure of the centre row; `exposures.txt` gives each frame's
+//! exposure time, gain, rolling-shutter readout and sub-exposure samples
+//! (row `y` of `h` is exposed around `timestamp + (y - (h - 1) / 2) *
+//! readout / (h - 1)`); with a rolling shutter, `rows.txt` gives the
+//! mid-exposure pose of every 16th row and the last, and a row between two
+//! knots was rendered from their interpolation (linear by row in
+//! translation, slerp in rotation), so a consumer can evaluate every row
+//! exactly. With compression on, frames are the stream's JPEG files
+//! (`rgb/<timestamp>.jpg`, decoded exactly as the ground station decodes
+//! them); otherwise PNG.
 //!
 //! The world frame is the local NED frame at home (x north, y east, z down,
 //! metres); the headers of `rgb.txt` and `groundtruth.txt` say so.
@@ -21,9 +35,12 @@ use std::time::Instant;
 use nalgebra::Isometry3;
 
 use crate::camera::{CameraError, SimCamera};
+use crate::disturbance::{GimbalJitter, HoldSway, WindField};
+use crate::imaging::Imager;
 use crate::paths::{CameraPath, Params as PathParams, PathError, PathSpec, parse_tum, tum_line};
+use crate::realism::{Realism, RealismError};
 use crate::render::{RenderParams, Renderer};
-use crate::world::World;
+use crate::world::{World, WorldError, WorldKind, WorldParams};
 
 /// The header naming the frames, written atop trajectory files.
 pub const WORLD_FRAME_HEADER: &str = "# world frame: local NED at home (x north, y east, z down, metres); \
@@ -57,6 +74,12 @@ pub enum DatasetError {
     /// Zero frames were asked for.
     #[error("a dataset needs at least one frame")]
     NoFrames,
+    /// The realism configuration is unusable.
+    #[error(transparent)]
+    Realism(#[from] RealismError),
+    /// The world could not be generated.
+    #[error(transparent)]
+    World(#[from] WorldError),
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> DatasetError + '_ {
@@ -83,6 +106,20 @@ pub struct RenderReport {
     pub render_cpu_seconds: Option<f64>,
     /// Wall-clock seconds spent encoding and writing files.
     pub write_seconds: f64,
+    /// The realism configuration.
+    pub realism: String,
+    /// The world kind.
+    pub world: String,
+    /// Mean encoded bytes per frame (with compression).
+    pub bytes_per_frame: Option<f64>,
+    /// The stream's bitrate at the dataset's frame rate, bit/s (with compression).
+    pub bitrate_bit_s: Option<f64>,
+    /// Mean exposure time, s (realism only).
+    pub mean_exposure_s: Option<f64>,
+    /// Mean sub-exposure samples per frame.
+    pub mean_blur_samples: f64,
+    /// Rms horizontal position-hold error along the path, m (with wind).
+    pub hold_error_rms_m: Option<f64>,
 }
 
 impl RenderReport {
@@ -118,26 +155,112 @@ pub fn render_dataset(
     camera: SimCamera,
     noise_sigma: f32,
 ) -> Result<RenderReport, DatasetError> {
-    camera.validate()?;
-    if frames == 0 {
+    render_job(&RenderJob {
+        path,
+        frames,
+        out_dir: out_dir.to_path_buf(),
+        seed,
+        camera,
+        noise_sigma,
+        realism: Realism::ideal(),
+        world: WorldKind::Town,
+    })
+}
+
+/// Everything a dataset render needs.
+#[derive(Debug, Clone)]
+pub struct RenderJob {
+    /// The camera path.
+    pub path: PathSpec,
+    /// Frames, spread evenly over the path's time span.
+    pub frames: usize,
+    /// The dataset folder.
+    pub out_dir: PathBuf,
+    /// Seed of the world, the noise and every realism process.
+    pub seed: u64,
+    /// The camera.
+    pub camera: SimCamera,
+    /// The ideal sensor noise, grey levels (0: no noise at all, whatever
+    /// the realism's sensor).
+    pub noise_sigma: f32,
+    /// Camera, light and vehicle effects.
+    pub realism: Realism,
+    /// The world.
+    pub world: WorldKind,
+}
+
+/// The world a realism configuration sees: `kind`, with the sun of the
+/// realism's time of day (the world's fixed sun without it).
+pub fn world_params_for(kind: WorldKind, realism: &Realism) -> WorldParams {
+    let mut p = WorldParams {
+        kind,
+        ..WorldParams::default()
+    };
+    if let Some(sun) = &realism.lighting.sun {
+        let (az, el) = sun.position();
+        p.sun_azimuth_deg = az;
+        p.sun_elevation_deg = el;
+    }
+    p
+}
+
+/// The renderer a realism configuration sees (cloud shadows seeded from `seed`).
+pub fn renderer_for(
+    world: Arc<World>,
+    camera: SimCamera,
+    params: RenderParams,
+    realism: &Realism,
+    seed: u64,
+) -> Renderer {
+    let r = Renderer::new(world, camera, params);
+    match realism.lighting.clouds {
+        Some(mut c) => {
+            c.seed ^= crate::texture::mix64(seed ^ 0xC10D5);
+            r.with_clouds(c)
+        }
+        None => r,
+    }
+}
+
+/// Renders a dataset (see [`RenderJob`] and the module documentation).
+pub fn render_job(job: &RenderJob) -> Result<RenderReport, DatasetError> {
+    job.camera.validate()?;
+    if job.frames == 0 {
         return Err(DatasetError::NoFrames);
     }
+    job.realism.validate()?;
     let t0 = Instant::now();
-    let world = Arc::new(World::generate(seed));
+    let params = world_params_for(job.world, &job.realism);
+    let world = Arc::new(World::generate_with(job.seed, &params)?);
     let world_seconds = t0.elapsed().as_secs_f64();
     tracing::info!(
-        seed,
+        seed = job.seed,
+        world = %job.world,
         boxes = world.boxes.len(),
         seconds = world_seconds,
         "world generated"
     );
-    let camera_path = CameraPath::from_spec(&path, &world, PathParams::default())?;
-    let params = RenderParams {
-        noise_sigma,
+    let camera_path = CameraPath::from_spec(&job.path, &world, PathParams::default())?;
+    let render_params = RenderParams {
+        noise_sigma: job.noise_sigma,
         ..RenderParams::default()
     };
-    let renderer = Renderer::new(world, camera, params);
-    let mut report = render_path_dataset(&renderer, &camera_path, frames, out_dir, seed, &path)?;
+    let renderer = Arc::new(renderer_for(
+        world,
+        job.camera,
+        render_params,
+        &job.realism,
+        job.seed,
+    ));
+    let motion = PathMotion::new(&camera_path, &job.realism, job.seed);
+    let mut imager = Imager::new(renderer, job.realism.camera.clone(), &job.realism.lighting);
+    let mut report = write_dataset(
+        &mut imager,
+        &|t| motion.world_from_cam(&camera_path, t),
+        &camera_path,
+        job,
+        motion.hold_error_rms_m(&camera_path),
+    )?;
     report.world_seconds = world_seconds;
     Ok(report)
 }
@@ -152,12 +275,95 @@ pub fn render_path_dataset(
     seed: u64,
     spec: &PathSpec,
 ) -> Result<RenderReport, DatasetError> {
+    let job = RenderJob {
+        path: spec.clone(),
+        frames,
+        out_dir: out_dir.to_path_buf(),
+        seed,
+        camera: *renderer.camera(),
+        noise_sigma: renderer.params().noise_sigma,
+        realism: Realism::ideal(),
+        world: WorldKind::Town,
+    };
+    let realism = Realism::ideal();
+    let mut imager = Imager::new(
+        Arc::new(renderer.clone()),
+        realism.camera.clone(),
+        &realism.lighting,
+    );
+    write_dataset(&mut imager, &|t| path.world_from_cam(t), path, &job, None)
+}
+
+/// The true camera motion along a path under the realism's vehicle
+/// effects: the wind's hold sway on the position and the gimbal's pointing
+/// error on the rotation.
+pub struct PathMotion {
+    sway: Option<HoldSway>,
+    gimbal: Option<GimbalJitter>,
+}
+
+impl PathMotion {
+    /// The motion for `path` (its sway integrated over the whole path).
+    pub fn new(path: &CameraPath, realism: &Realism, seed: u64) -> PathMotion {
+        let vehicle = crate::vehicle::VehicleParams::default();
+        let sway = realism.vehicle.wind.map(|w| {
+            let wind = WindField::new(w, seed);
+            HoldSway::integrate(
+                &wind,
+                &|t| path.world_from_cam(t).translation.vector,
+                path.start() - 1.0,
+                path.end() + 1.0,
+                vehicle.position_gain,
+                vehicle.velocity_tau_s,
+            )
+        });
+        let gimbal = realism.vehicle.gimbal.map(|g| GimbalJitter::new(g, seed));
+        PathMotion { sway, gimbal }
+    }
+
+    /// The camera's true pose at `t`.
+    pub fn world_from_cam(&self, path: &CameraPath, t: f64) -> Isometry3<f64> {
+        let mut pose = path.world_from_cam(t);
+        if let Some(s) = &self.sway {
+            pose.translation.vector += s.offset(t);
+        }
+        match &self.gimbal {
+            Some(g) => g.apply(&pose, t),
+            None => pose,
+        }
+    }
+
+    /// Rms horizontal hold error over the path, m (None without wind).
+    pub fn hold_error_rms_m(&self, path: &CameraPath) -> Option<f64> {
+        let s = self.sway.as_ref()?;
+        let n = 1000;
+        let sum: f64 = (0..n)
+            .map(|k| {
+                s.offset(path.start() + path.duration() * k as f64 / n as f64)
+                    .xy()
+                    .norm_squared()
+            })
+            .sum();
+        Some((sum / n as f64).sqrt())
+    }
+}
+
+/// Writes the frames of `imager` along `path`, the camera's true pose at
+/// any time given by `pose_at`.
+fn write_dataset(
+    imager: &mut Imager,
+    pose_at: &dyn Fn(f64) -> Isometry3<f64>,
+    path: &CameraPath,
+    job: &RenderJob,
+    hold_error_rms_m: Option<f64>,
+) -> Result<RenderReport, DatasetError> {
+    let (frames, out_dir, seed) = (job.frames, job.out_dir.as_path(), job.seed);
     if frames == 0 {
         return Err(DatasetError::NoFrames);
     }
     let rgb_dir = out_dir.join("rgb");
     std::fs::create_dir_all(&rgb_dir).map_err(io_err(&rgb_dir))?;
-    let camera = *renderer.camera();
+    let camera = *imager.renderer().camera();
     let calib_path = out_dir.join("calib.txt");
     std::fs::write(&calib_path, format!("{}\n", camera.calib_line()))
         .map_err(io_err(&calib_path))?;
@@ -168,10 +374,39 @@ pub fn render_path_dataset(
     writeln!(rgb, "{WORLD_FRAME_HEADER}\n# timestamp filename").map_err(io_err(&rgb_txt))?;
     writeln!(gt, "{WORLD_FRAME_HEADER}\n# timestamp tx ty tz qx qy qz qw")
         .map_err(io_err(&gt_txt))?;
-
-    let noisy = renderer.params().noise_sigma > 0.0;
-    let mut img = image::GrayImage::new(camera.width, camera.height);
+    // Exposure and rolling-shutter truth, only when the camera is not ideal.
+    let realistic = !job.realism.is_ideal();
+    let exp_txt = out_dir.join("exposures.txt");
+    let rows_txt = out_dir.join("rows.txt");
+    let mut exposures = None;
+    let mut rows = None;
+    if realistic {
+        let mut e = BufWriter::new(File::create(&exp_txt).map_err(io_err(&exp_txt))?);
+        writeln!(
+            e,
+            "# timestamp exposure_s gain readout_s blur_samples encoded_bytes\n\
+             # timestamp: the centre row's mid-exposure (groundtruth.txt's pose); row y is exposed \
+             around timestamp + (y - (height - 1) / 2) * readout_s / (height - 1)"
+        )
+        .map_err(io_err(&exp_txt))?;
+        exposures = Some(e);
+        if job.realism.camera.rolling_shutter.is_some() {
+            let mut r = BufWriter::new(File::create(&rows_txt).map_err(io_err(&rows_txt))?);
+            writeln!(
+                r,
+                "{WORLD_FRAME_HEADER}\n# timestamp row row_time tx ty tz qx qy qz qw\n\
+                 # the mid-exposure pose of every {}th row (and the last) of each frame; a row \
+                 between two knots was rendered from their interpolation by row (linear in \
+                 translation, slerp in rotation)",
+                crate::imaging::ROW_KNOT_STEP
+            )
+            .map_err(io_err(&rows_txt))?;
+            rows = Some(r);
+        }
+    }
+    let noisy = job.noise_sigma > 0.0;
     let (mut render_s, mut write_s, mut cpu_s) = (0.0, 0.0, Some(0.0));
+    let (mut bytes_total, mut exposure_total, mut samples_total) = (0usize, 0.0, 0usize);
     let step = if frames > 1 {
         path.duration() / (frames - 1) as f64
     } else {
@@ -181,26 +416,70 @@ pub fn render_path_dataset(
     for i in 0..frames {
         let t = path.start() + step * i as f64;
         first_last.1 = t;
-        let world_from_cam = path.world_from_cam(t);
         let c0 = thread_cpu_seconds();
         let w0 = Instant::now();
         let noise_seed = noisy
             .then(|| crate::texture::mix64(seed ^ (i as u64).wrapping_mul(0x2545_f491_4f6c_dd1d)));
-        renderer.render_into(&world_from_cam, noise_seed, &mut img);
+        let shot = imager
+            .capture(t, pose_at, noise_seed)
+            .map_err(|e| DatasetError::Io {
+                path: rgb_dir.clone(),
+                source: std::io::Error::other(e.to_string()),
+            })?;
         render_s += w0.elapsed().as_secs_f64();
         cpu_s = match (cpu_s, c0, thread_cpu_seconds()) {
             (Some(acc), Some(a), Some(b)) => Some(acc + (b - a)),
             _ => None,
         };
+        exposure_total += shot.exposure_s;
+        samples_total += shot.blur_samples;
         let w1 = Instant::now();
-        let name = format!("{t:.6}.png");
-        let file = rgb_dir.join(&name);
-        img.save(&file).map_err(|source| DatasetError::Image {
-            path: file.clone(),
-            source,
-        })?;
+        let name = match &shot.encoded {
+            Some(bytes) => {
+                // The stream's own bytes: decoding them gives `shot.image`.
+                let name = format!("{t:.6}.jpg");
+                let file = rgb_dir.join(&name);
+                std::fs::write(&file, bytes).map_err(io_err(&file))?;
+                bytes_total += bytes.len();
+                name
+            }
+            None => {
+                let name = format!("{t:.6}.png");
+                let file = rgb_dir.join(&name);
+                shot.image
+                    .save(&file)
+                    .map_err(|source| DatasetError::Image {
+                        path: file.clone(),
+                        source,
+                    })?;
+                name
+            }
+        };
         writeln!(rgb, "{t:.6} rgb/{name}").map_err(io_err(&rgb_txt))?;
-        writeln!(gt, "{}", tum_line(t, &world_from_cam)).map_err(io_err(&gt_txt))?;
+        writeln!(gt, "{}", tum_line(t, &shot.world_from_cam)).map_err(io_err(&gt_txt))?;
+        if let Some(e) = exposures.as_mut() {
+            writeln!(
+                e,
+                "{t:.6} {:.9} {:.4} {:.6} {} {}",
+                shot.exposure_s,
+                shot.gain,
+                shot.readout_s,
+                shot.blur_samples,
+                shot.encoded.as_ref().map_or(0, Vec::len)
+            )
+            .map_err(io_err(&exp_txt))?;
+        }
+        if let Some(r) = rows.as_mut() {
+            for k in &shot.row_knots {
+                writeln!(
+                    r,
+                    "{t:.6} {} {}",
+                    k.row,
+                    tum_line(k.time_s, &k.world_from_cam)
+                )
+                .map_err(io_err(&rows_txt))?;
+            }
+        }
         write_s += w1.elapsed().as_secs_f64();
         if (i + 1) % 50 == 0 || i + 1 == frames {
             tracing::info!(
@@ -213,6 +492,18 @@ pub fn render_path_dataset(
     }
     rgb.flush().map_err(io_err(&rgb_txt))?;
     gt.flush().map_err(io_err(&gt_txt))?;
+    if let Some(mut e) = exposures {
+        e.flush().map_err(io_err(&exp_txt))?;
+    }
+    if let Some(mut r) = rows {
+        r.flush().map_err(io_err(&rows_txt))?;
+    }
+    let frame_rate = if path.duration() > 0.0 && frames > 1 {
+        (frames - 1) as f64 / path.duration()
+    } else {
+        0.0
+    };
+    let bytes_per_frame = (bytes_total > 0).then(|| bytes_total as f64 / frames as f64);
     let report = RenderReport {
         frames,
         out_dir: out_dir.to_path_buf(),
@@ -221,13 +512,25 @@ pub fn render_path_dataset(
         render_seconds: render_s,
         render_cpu_seconds: cpu_s,
         write_seconds: write_s,
+        realism: job.realism.name.clone(),
+        world: job.world.name().to_string(),
+        bytes_per_frame,
+        bitrate_bit_s: bytes_per_frame.map(|b| b * 8.0 * frame_rate),
+        mean_exposure_s: realistic.then(|| exposure_total / frames as f64),
+        mean_blur_samples: samples_total as f64 / frames as f64,
+        hold_error_rms_m,
     };
     let info_path = out_dir.join("render_info.json");
     let info = serde_json::json!({
         "seed": seed,
-        "path": format!("{spec:?}"),
+        "path": format!("{:?}", job.path),
         "camera": camera,
-        "noise_sigma": renderer.params().noise_sigma,
+        "noise_sigma": job.noise_sigma,
+        "world": job.world.name(),
+        "realism": job.realism.name,
+        "effects_on": job.realism.effects_on(),
+        "codec": imager.codec_description(),
+        "illuminance_lux": imager.illuminance_lux(),
         "world_frame": WORLD_FRAME_HEADER.trim_start_matches("# "),
         "report": &report,
     });

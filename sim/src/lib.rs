@@ -11,13 +11,17 @@ pub mod app;
 pub mod autopilot;
 pub mod geodesy;
 pub mod link;
+pub mod live;
 pub mod script;
 pub mod vehicle;
 
 // World, camera, renderer, paths, datasets and video (simworld).
 pub mod camera;
 pub mod dataset;
+pub mod disturbance;
+pub mod imaging;
 pub mod paths;
+pub mod realism;
 pub mod render;
 pub mod texture;
 pub mod video;

@@ -578,12 +578,16 @@ pub struct LinkHandle {
     pub from_link: mpsc::Receiver<(MavHeader, MavMessage)>,
     /// Latest counters.
     pub stats: tokio::sync::watch::Receiver<LinkStats>,
+    /// The bound address of a listening endpoint (`udpin:`, `tcpin:`; port
+    /// 0 picks a free one), None for the others.
+    pub local_addr: Option<SocketAddr>,
 }
 
 /// Raw transport: chunks in, chunks out.
 struct Transport {
     rx: mpsc::Receiver<Vec<u8>>,
     tx: mpsc::Sender<Vec<u8>>,
+    local: Option<SocketAddr>,
 }
 
 async fn open_transport(ep: &Endpoint, cancel: CancellationToken) -> Result<Transport, LinkError> {
@@ -593,6 +597,7 @@ async fn open_transport(ep: &Endpoint, cancel: CancellationToken) -> Result<Tran
         what: ep.to_string(),
         source,
     };
+    let mut local = None;
     match ep {
         Endpoint::UdpIn(addr) | Endpoint::UdpOut(addr) => {
             let listen = matches!(ep, Endpoint::UdpIn(_));
@@ -603,6 +608,9 @@ async fn open_transport(ep: &Endpoint, cancel: CancellationToken) -> Result<Tran
                     .await
                     .map_err(open_err)?
             };
+            if listen {
+                local = sock.local_addr().ok();
+            }
             let mut peer: Option<SocketAddr> = if listen {
                 None
             } else {
@@ -645,6 +653,7 @@ async fn open_transport(ep: &Endpoint, cancel: CancellationToken) -> Result<Tran
             let listener = tokio::net::TcpListener::bind(addr)
                 .await
                 .map_err(open_err)?;
+            local = listener.local_addr().ok();
             tokio::spawn(async move {
                 loop {
                     let stream = tokio::select! {
@@ -725,6 +734,7 @@ async fn open_transport(ep: &Endpoint, cancel: CancellationToken) -> Result<Tran
     Ok(Transport {
         rx: in_rx,
         tx: out_tx,
+        local,
     })
 }
 
@@ -762,6 +772,7 @@ pub async fn spawn_link(
     cancel: CancellationToken,
 ) -> Result<LinkHandle, LinkError> {
     let mut transport = open_transport(&params.endpoint, cancel.clone()).await?;
+    let local_addr = transport.local;
     let (to_link, mut app_rx) = mpsc::channel::<MavMessage>(1024);
     let (app_tx, from_link) = mpsc::channel::<(MavHeader, MavMessage)>(1024);
     let (stats_tx, stats) = tokio::sync::watch::channel(LinkStats::default());
@@ -836,6 +847,7 @@ pub async fn spawn_link(
         }
     });
     Ok(LinkHandle {
+        local_addr,
         to_link,
         from_link,
         stats,

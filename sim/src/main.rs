@@ -6,15 +6,17 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
-use shotpilot_sim::app::{SimConfig, run};
+use shotpilot_sim::app::{SimConfig, run_announcing};
 use shotpilot_sim::autopilot::Flavour;
 use shotpilot_sim::camera::SimCamera;
-use shotpilot_sim::dataset::render_dataset;
+use shotpilot_sim::dataset::{RenderJob, render_job};
 use shotpilot_sim::geodesy::Geodetic;
 use shotpilot_sim::link::{Endpoint, RadioDirParams, RadioParams};
 use shotpilot_sim::paths::PathSpec;
+use shotpilot_sim::realism::Realism;
 use shotpilot_sim::render::RenderParams;
 use shotpilot_sim::script::ScriptKind;
+use shotpilot_sim::world::WorldKind;
 use tokio_util::sync::CancellationToken;
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -138,6 +140,18 @@ struct Cli {
     /// Render frames without sensor noise.
     #[arg(long, global = true)]
     no_noise: bool,
+
+    /// Realism: a preset (ideal, field, harsh) then any -EFFECT (off) or
+    /// +EFFECT[@PRESET] (on), e.g. field-blur or ideal+wind@harsh. Effects:
+    /// blur, rolling_shutter, auto_exposure, sun, clouds, vignetting, noise,
+    /// compression, wind, gimbal, gps, gps_dropouts, baro, telemetry,
+    /// video_latency (see the shotpilot_sim::realism documentation).
+    #[arg(long, default_value = "ideal", value_name = "PRESET", global = true)]
+    realism: String,
+
+    /// The world: town, grass, carpark, trees, water, traffic or aliasing.
+    #[arg(long, default_value = "town", value_name = "NAME", global = true)]
+    world: String,
 }
 
 #[derive(Debug, Subcommand)]
@@ -145,7 +159,8 @@ enum Command {
     /// Render a TUM-layout dataset (rgb/, rgb.txt, calib.txt,
     /// groundtruth.txt) along a camera path, without flying.
     Render {
-        /// explore, orbit, or a TUM trajectory file (world_from_cam).
+        /// explore, orbit, loop (one lap revisiting its start after more
+        /// than 400 m), or a TUM trajectory file (world_from_cam).
         #[arg(long, default_value = "explore")]
         path: String,
         /// Number of frames.
@@ -217,8 +232,10 @@ fn config_from(cli: &Cli) -> Result<SimConfig> {
         truth_dir: cli.truth_dir.clone(),
         autopilot,
         sensor_noise: !cli.no_noise,
+        world: cli.world.parse().context("--world")?,
         ..defaults
-    })
+    }
+    .with_realism(cli.realism.parse().context("--realism")?))
 }
 
 fn main() -> Result<()> {
@@ -229,6 +246,8 @@ fn main() -> Result<()> {
         )
         .init();
     let cli = Cli::parse();
+    let realism: Realism = cli.realism.parse().context("--realism")?;
+    let world: WorldKind = cli.world.parse().context("--world")?;
     if let Some(Command::Render { path, frames, out }) = &cli.command {
         let spec: PathSpec = path.parse().unwrap_or(PathSpec::Explore);
         let noise = if cli.no_noise {
@@ -236,13 +255,28 @@ fn main() -> Result<()> {
         } else {
             RenderParams::default().noise_sigma
         };
-        let report = render_dataset(spec, *frames, out, cli.seed, SimCamera::default(), noise)
-            .with_context(|| format!("rendering {path} into {}", out.display()))?;
+        let job = RenderJob {
+            path: spec,
+            frames: *frames,
+            out_dir: out.clone(),
+            seed: cli.seed,
+            camera: SimCamera::default(),
+            noise_sigma: noise,
+            realism,
+            world,
+        };
+        let report =
+            render_job(&job).with_context(|| format!("rendering {path} into {}", out.display()))?;
+        let bitrate = report
+            .bitrate_bit_s
+            .map_or(String::new(), |b| format!(", stream {:.2} Mbit/s", b / 1e6));
         println!(
-            "{} frames in {} ({:.1} frames/s)",
+            "{} frames in {} ({:.1} frames/s, world {}, realism {}{bitrate})",
             report.frames,
             out.display(),
-            report.render_fps()
+            report.render_fps(),
+            report.world,
+            report.realism,
         );
         return Ok(());
     }
@@ -269,7 +303,7 @@ fn main() -> Result<()> {
             }
             c2.cancel();
         });
-        let summary = run(config, cancel).await?;
+        let summary = run_announcing(config, cancel, true).await?;
         tracing::info!(
             "done: {:.1} s simulated, {} frames ({} skipped), {} captures, link {:?}",
             summary.sim_seconds,

@@ -6,6 +6,10 @@
 //!   SLAM needs to initialise and track, and never a pure rotation. The
 //!   altitude rises over buildings to keep a clearance above their roofs.
 //! - [`CameraPath::orbit`]: a circle around the scene centre looking at it.
+//! - [`CameraPath::loop_path`] (`loop`): one lap of a rounded rectangle
+//!   around the scene (about 520 m at 5 m/s and 30 m), then on over the
+//!   first 60 m again with the same heading and pitch: the start is
+//!   revisited after more than 400 m of travel, for loop closing.
 //! - [`CameraPath::from_tum`]: a TUM trajectory file
 //!   (`timestamp tx ty tz qx qy qz qw`, world_from_cam), interpolated
 //!   linearly in translation and by slerp in rotation.
@@ -78,6 +82,21 @@ pub struct Params {
     pub orbit_radius_m: f64,
     /// Orbit altitude, metres.
     pub orbit_altitude_m: f64,
+    /// Loop: half extent north-south of its rounded rectangle, metres.
+    pub loop_half_x_m: f64,
+    /// Loop: half extent east-west, metres.
+    pub loop_half_y_m: f64,
+    /// Loop: nominal altitude, metres (raised over roofs).
+    pub loop_altitude_m: f64,
+    /// Loop: ground speed, m/s.
+    pub loop_speed_m_s: f64,
+    /// Loop: distance flown again past the start, metres.
+    pub loop_overlap_m: f64,
+    /// Loop: heading turned from the direction of travel towards the
+    /// inside of the loop, degrees.
+    pub loop_inward_deg: f64,
+    /// Loop: camera pitch below the horizon, degrees.
+    pub loop_pitch_deg: f64,
 }
 
 impl Default for Params {
@@ -94,6 +113,13 @@ impl Default for Params {
             orbit_duration_s: 60.0,
             orbit_radius_m: 60.0,
             orbit_altitude_m: 30.0,
+            loop_half_x_m: 80.0,
+            loop_half_y_m: 60.0,
+            loop_altitude_m: 30.0,
+            loop_speed_m_s: 5.0,
+            loop_overlap_m: 60.0,
+            loop_inward_deg: 35.0,
+            loop_pitch_deg: 45.0,
         }
     }
 }
@@ -105,6 +131,8 @@ pub enum PathSpec {
     Explore,
     /// The circle around the scene centre.
     Orbit,
+    /// The lap that revisits its start (loop closing).
+    Loop,
     /// A TUM trajectory file.
     Tum(PathBuf),
 }
@@ -116,6 +144,7 @@ impl std::str::FromStr for PathSpec {
         Ok(match s {
             "explore" => PathSpec::Explore,
             "orbit" => PathSpec::Orbit,
+            "loop" => PathSpec::Loop,
             other => PathSpec::Tum(PathBuf::from(other)),
         })
     }
@@ -125,6 +154,7 @@ impl std::str::FromStr for PathSpec {
 enum Kind {
     Explore { floor: Vec<f64> },
     Orbit,
+    Loop { track: LoopTrack, floor: Vec<f64> },
     Samples(Vec<(f64, Isometry3<f64>)>),
 }
 
@@ -180,28 +210,67 @@ impl CameraPath {
                 }
             })
             .collect();
-        let w = FLOOR_SAMPLES / 48; // 1/48 of the loop on each side
-        let dilated: Vec<f64> = (0..FLOOR_SAMPLES)
-            .map(|i| {
-                (0..=2 * w)
-                    .map(|k| raw[(i + FLOOR_SAMPLES + k - w) % FLOOR_SAMPLES])
-                    .fold(0.0, f64::max)
-            })
-            .collect();
-        let floor: Vec<f64> = (0..FLOOR_SAMPLES)
-            .map(|i| {
-                (0..=2 * w)
-                    .map(|k| dilated[(i + FLOOR_SAMPLES + k - w) % FLOOR_SAMPLES])
-                    .sum::<f64>()
-                    / (2 * w + 1) as f64
-            })
-            .collect();
+        let floor = dilate_and_smooth(&raw, FLOOR_SAMPLES / 48); // 1/48 of the loop on each side
         CameraPath {
             kind: Kind::Explore { floor },
             params,
             start: 0.0,
             end: params.explore_duration_s,
         }
+    }
+
+    /// The lap around the scene that revisits its start (see the module
+    /// documentation); the altitude rises over roofs as the explore
+    /// flight's does.
+    pub fn loop_path(world: &World, params: Params) -> CameraPath {
+        let track = LoopTrack::new(params.loop_half_x_m, params.loop_half_y_m);
+        let n = FLOOR_SAMPLES;
+        let raw: Vec<f64> = (0..n)
+            .map(|i| {
+                let (x, y) = track.at(track.perimeter * i as f64 / n as f64);
+                let h = world.max_height_near(x, y, params.roof_margin_m);
+                if h > 0.0 {
+                    h + params.roof_clearance_m
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let floor = dilate_and_smooth(&raw, n / 48);
+        let length = track.perimeter + params.loop_overlap_m;
+        CameraPath {
+            end: length / params.loop_speed_m_s.max(0.1),
+            kind: Kind::Loop { track, floor },
+            params,
+            start: 0.0,
+        }
+    }
+
+    /// Distance flown along the loop's track at time `t`, metres (None for other paths).
+    pub fn loop_distance_m(&self, t: f64) -> Option<f64> {
+        match &self.kind {
+            Kind::Loop { .. } => {
+                Some((t.clamp(self.start, self.end) - self.start) * self.params.loop_speed_m_s)
+            }
+            _ => None,
+        }
+    }
+
+    fn loop_pose(&self, track: &LoopTrack, floor: &[f64], t: f64) -> Isometry3<f64> {
+        let p = &self.params;
+        let s = (t - self.start) * p.loop_speed_m_s;
+        let (x, y) = track.at(s);
+        let (x2, y2) = track.at(s + 0.5);
+        let (x1, y1) = track.at(s - 0.5);
+        let travel = (y2 - y1).atan2(x2 - x1);
+        let u = s.rem_euclid(track.perimeter) / track.perimeter * FLOOR_SAMPLES as f64;
+        let i0 = (u.floor() as usize) % FLOOR_SAMPLES;
+        let f = u - u.floor();
+        let floor_alt = floor[i0] * (1.0 - f) + floor[(i0 + 1) % FLOOR_SAMPLES] * f;
+        let alt = p.loop_altitude_m.max(floor_alt);
+        // The inside of the loop is to the right of the direction of travel.
+        let yaw = travel + p.loop_inward_deg.to_radians();
+        camera_from_yaw_pitch(Point3::new(x, y, -alt), yaw, p.loop_pitch_deg.to_radians())
     }
 
     /// The orbit around the scene centre at the fixed `orbit_altitude_m`. It
@@ -254,6 +323,7 @@ impl CameraPath {
         match spec {
             PathSpec::Explore => Ok(CameraPath::explore(world, params)),
             PathSpec::Orbit => Ok(CameraPath::orbit(params)),
+            PathSpec::Loop => Ok(CameraPath::loop_path(world, params)),
             PathSpec::Tum(p) => CameraPath::from_tum(p),
         }
     }
@@ -337,8 +407,80 @@ impl CameraPath {
         match &self.kind {
             Kind::Explore { floor } => self.explore_pose(floor, t),
             Kind::Orbit => self.orbit_pose(t),
+            Kind::Loop { track, floor } => self.loop_pose(track, floor, t),
             Kind::Samples(samples) => interpolate(samples, t),
         }
+    }
+}
+
+/// A periodic running maximum over `w` samples each side, then a running
+/// mean over the same window: a floor that rises before an obstacle and
+/// falls after it.
+fn dilate_and_smooth(raw: &[f64], w: usize) -> Vec<f64> {
+    let n = raw.len();
+    let dilated: Vec<f64> = (0..n)
+        .map(|i| {
+            (0..=2 * w)
+                .map(|k| raw[(i + n + k - w) % n])
+                .fold(0.0, f64::max)
+        })
+        .collect();
+    (0..n)
+        .map(|i| {
+            (0..=2 * w)
+                .map(|k| dilated[(i + n + k - w) % n])
+                .sum::<f64>()
+                / (2 * w + 1) as f64
+        })
+        .collect()
+}
+
+/// The loop's track, a superellipse |x/a|^4 + |y/b|^4 = 1 (a rectangle
+/// with round corners), by arc length.
+#[derive(Debug, Clone)]
+struct LoopTrack {
+    points: Vec<(f64, f64)>,
+    cumulative: Vec<f64>,
+    perimeter: f64,
+}
+
+impl LoopTrack {
+    fn new(a: f64, b: f64) -> LoopTrack {
+        let n = 4096;
+        // Start south of home, heading east (theta = -pi/2).
+        let points: Vec<(f64, f64)> = (0..=n)
+            .map(|i| {
+                let th = -std::f64::consts::FRAC_PI_2 + TAU * i as f64 / n as f64;
+                let (c, s) = (th.cos(), th.sin());
+                (
+                    a * c.signum() * c.abs().sqrt(),
+                    b * s.signum() * s.abs().sqrt(),
+                )
+            })
+            .collect();
+        let mut cumulative = vec![0.0];
+        for w in points.windows(2) {
+            let d = (w[1].0 - w[0].0).hypot(w[1].1 - w[0].1);
+            cumulative.push(cumulative.last().copied().unwrap_or(0.0) + d);
+        }
+        let perimeter = cumulative.last().copied().unwrap_or(1.0);
+        LoopTrack {
+            points,
+            cumulative,
+            perimeter,
+        }
+    }
+
+    fn at(&self, s: f64) -> (f64, f64) {
+        let s = s.rem_euclid(self.perimeter);
+        let i = self
+            .cumulative
+            .partition_point(|&c| c <= s)
+            .clamp(1, self.points.len() - 1);
+        let (c0, c1) = (self.cumulative[i - 1], self.cumulative[i]);
+        let f = if c1 > c0 { (s - c0) / (c1 - c0) } else { 0.0 };
+        let (p0, p1) = (self.points[i - 1], self.points[i]);
+        (p0.0 + (p1.0 - p0.0) * f, p0.1 + (p1.1 - p0.1) * f)
     }
 }
 
@@ -477,6 +619,45 @@ mod tests {
             "turn rate {} deg/s",
             max_rate.to_degrees()
         );
+    }
+
+    #[test]
+    fn loop_revisits_its_start_after_400_m_with_the_same_view() {
+        let w = World::generate_with(2, &WorldParams::tiny()).unwrap();
+        let path = CameraPath::loop_path(&w, Params::default());
+        let start = path.world_from_cam(path.start());
+        let dt = 0.1;
+        let mut travelled = 0.0;
+        let mut prev = start;
+        let mut revisit = None;
+        let mut t = path.start() + dt;
+        while t <= path.end() {
+            let pose = path.world_from_cam(t);
+            travelled += (pose.translation.vector - prev.translation.vector).norm();
+            let d = (pose.translation.vector - start.translation.vector).norm();
+            if travelled > 400.0 && d < 2.0 && revisit.is_none() {
+                revisit = Some((t, pose, travelled));
+            }
+            // Clear of the roofs.
+            let p = pose.translation.vector;
+            assert!(
+                -p.z > w.max_height_near(p.x, p.y, 2.0) + 2.0,
+                "alt {} at {p:?}",
+                -p.z
+            );
+            prev = pose;
+            t += dt;
+        }
+        let (t_back, pose, len) = revisit.expect("the loop returns to its start");
+        assert!(len > 400.0 && len < 700.0, "revisited after {len} m");
+        assert!(
+            pose.rotation.angle_to(&start.rotation) < 2f64.to_radians(),
+            "same view"
+        );
+        // And flies on over the first stretch.
+        assert!(path.end() - t_back > 8.0);
+        assert_eq!(path.loop_distance_m(path.end()), Some(path.end() * 5.0));
+        assert_eq!("loop".parse::<PathSpec>().unwrap(), PathSpec::Loop);
     }
 
     #[test]

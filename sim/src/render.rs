@@ -14,6 +14,7 @@
 //! `(i, j)` (integer coordinates are pixel centres, as in OpenCV), so a
 //! world point renders where [`SimCamera::project`] says.
 
+use std::borrow::Cow;
 use std::sync::Arc;
 
 use image::GrayImage;
@@ -21,7 +22,7 @@ use nalgebra::{Isometry3, Point2};
 
 use crate::camera::{Params as CameraParams, SimCamera};
 use crate::texture::{fast_log2, mix64, round_u8};
-use crate::world::{Face, World};
+use crate::world::{Face, SceneBox, World};
 
 /// Every tunable number of the renderer.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -89,6 +90,19 @@ struct BoxF {
     radius: f32,
 }
 
+impl BoxF {
+    fn from_box(b: &SceneBox) -> BoxF {
+        let c = (b.min + b.max) * 0.5;
+        let r = (b.max - b.min).norm() * 0.5;
+        BoxF {
+            min: [b.min.x as f32, b.min.y as f32, b.min.z as f32],
+            max: [b.max.x as f32, b.max.y as f32, b.max.z as f32],
+            centre: [c.x as f32, c.y as f32, c.z as f32],
+            radius: r as f32 * 1.0001 + 1e-3,
+        }
+    }
+}
+
 /// A tile's pixel range and the cone bounding its rays (camera frame).
 #[derive(Debug, Clone, Copy)]
 struct Tile {
@@ -97,6 +111,8 @@ struct Tile {
     y0: usize,
     y1: usize,
     axis: [f32; 3],
+    /// Half angle of the cone, radians.
+    half: f32,
     cos_half: f32,
     sin_half: f32,
 }
@@ -127,6 +143,10 @@ pub struct Renderer {
     tiles: Vec<Tile>,
     boxes: Vec<BoxF>,
     inv_haze_range: f32,
+    /// Moving cloud shadows (only in [`Renderer::render_scene`]).
+    clouds: Option<CloudField>,
+    /// Unit vector towards the sun (NED), single precision.
+    sun_f: [f32; 3],
 }
 
 #[inline(always)]
@@ -226,25 +246,15 @@ impl Renderer {
                     y0,
                     y1,
                     axis: [axis[0] as f32, axis[1] as f32, axis[2] as f32],
+                    half: half as f32,
                     cos_half: half.cos() as f32,
                     sin_half: half.sin() as f32,
                 });
             }
         }
-        let boxes = world
-            .boxes
-            .iter()
-            .map(|b| {
-                let c = (b.min + b.max) * 0.5;
-                let r = (b.max - b.min).norm() * 0.5;
-                BoxF {
-                    min: [b.min.x as f32, b.min.y as f32, b.min.z as f32],
-                    max: [b.max.x as f32, b.max.y as f32, b.max.z as f32],
-                    centre: [c.x as f32, c.y as f32, c.z as f32],
-                    radius: r as f32 * 1.0001 + 1e-3,
-                }
-            })
-            .collect();
+        let boxes = world.boxes.iter().map(BoxF::from_box).collect();
+        let sun = world.sun_dir;
+        let sun_f = [sun.x as f32, sun.y as f32, sun.z as f32];
         Renderer {
             world,
             camera,
@@ -255,7 +265,41 @@ impl Renderer {
             tiles,
             boxes,
             inv_haze_range: 1.0 / params.haze_range_m.max(1e-3),
+            clouds: None,
+            sun_f,
         }
+    }
+
+    /// The same renderer with moving cloud shadows over the scene (seen by
+    /// [`Renderer::render_scene`]; the plain renders stay without them).
+    pub fn with_clouds(mut self, clouds: CloudShadows) -> Renderer {
+        self.clouds = Some(CloudField::new(clouds));
+        self
+    }
+
+    /// The cloud shadows, if any.
+    pub fn clouds(&self) -> Option<&CloudShadows> {
+        self.clouds.as_ref().map(|c| &c.params)
+    }
+
+    /// Image width, pixels.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Image height, pixels.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Unit ray (camera frame) through pixel `(x, y)`, `None` outside the
+    /// image or where the camera model could not be inverted.
+    pub fn pixel_ray(&self, x: usize, y: usize) -> Option<[f32; 3]> {
+        if x >= self.width || y >= self.height {
+            return None;
+        }
+        let r = self.rays[y * self.width + x];
+        (r[0] != 0.0 || r[1] != 0.0 || r[2] != 0.0).then_some([r[0], r[1], r[2]])
     }
 
     /// The camera model.
@@ -299,68 +343,132 @@ impl Renderer {
         if img.width() as usize != self.width || img.height() as usize != self.height {
             *img = GrayImage::new(self.width as u32, self.height as u32);
         }
-        let r64 = world_from_cam.rotation.to_rotation_matrix();
-        let m = r64.matrix();
-        let r: [[f32; 3]; 3] = [
-            [m[(0, 0)] as f32, m[(0, 1)] as f32, m[(0, 2)] as f32],
-            [m[(1, 0)] as f32, m[(1, 1)] as f32, m[(1, 2)] as f32],
-            [m[(2, 0)] as f32, m[(2, 1)] as f32, m[(2, 2)] as f32],
-        ];
-        let t = world_from_cam.translation.vector;
-        let o = [t.x as f32, t.y as f32, t.z as f32];
-        if !(o.iter().all(|v| v.is_finite()) && r.iter().flatten().all(|v| v.is_finite())) {
+        let Some(pose) = PoseF::new(world_from_cam) else {
             img.fill(0);
             return;
+        };
+        let ctx = FrameCtx {
+            boxes_f: Cow::Borrowed(&self.boxes),
+            boxes: Cow::Borrowed(&self.world.boxes),
+            clouds: None,
+            time_s: 0.0,
+        };
+        let buf: &mut [u8] = img;
+        let noise_sigma = self.params.noise_sigma;
+        // A pixel without a ray arrives as NaN, which rounds to 0.
+        self.render_core(&[pose], &ctx, |i, value| {
+            let noise = match noise_seed {
+                Some(seed) if noise_sigma > 0.0 => noise_sigma * gaussian(seed, i as u64),
+                _ => 0.0,
+            };
+            buf[i] = round_u8(value + noise);
+        });
+    }
+
+    /// Renders the scene's brightness (the renderer's grey scale, before
+    /// any sensor: no noise, no rounding, no clipping) at scene time
+    /// `scene.time_s` into `out` (row-major, resized to the image).
+    ///
+    /// `row_poses` holds either one `world_from_cam` for the whole frame
+    /// (a global shutter) or one per image row (a rolling shutter: row `y`
+    /// is seen from `row_poses[y]`). Moving objects stand where they are
+    /// at `scene.time_s`; cloud shadows (see [`Renderer::with_clouds`])
+    /// have drifted with their wind to that time. Pixels without a ray,
+    /// and every pixel of a frame with a non-finite pose, are 0.
+    pub fn render_scene(
+        &self,
+        row_poses: &[Isometry3<f64>],
+        scene: &SceneState,
+        out: &mut Vec<f32>,
+    ) -> Result<(), RenderError> {
+        if !(row_poses.len() == 1 || row_poses.len() == self.height) {
+            return Err(RenderError::RowPoses {
+                found: row_poses.len(),
+                height: self.height,
+            });
         }
-        // Boxes relative to the camera.
-        let views: Vec<BoxView> = self
-            .boxes
-            .iter()
-            .enumerate()
-            .map(|(i, b)| {
-                let rel_min = [b.min[0] - o[0], b.min[1] - o[1], b.min[2] - o[2]];
-                let rel_max = [b.max[0] - o[0], b.max[1] - o[1], b.max[2] - o[2]];
-                let v = [b.centre[0] - o[0], b.centre[1] - o[1], b.centre[2] - o[2]];
-                let dist = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-                let inside = dist <= b.radius;
-                let sin_b = if inside { 1.0 } else { b.radius / dist };
-                let cos_b = (1.0 - sin_b * sin_b).max(0.0).sqrt();
-                let inv = if dist > 0.0 { 1.0 / dist } else { 0.0 };
-                BoxView {
-                    index: i as u32,
-                    rel_min,
-                    rel_max,
-                    dir: [v[0] * inv, v[1] * inv, v[2] * inv],
-                    sin_b,
-                    cos_b,
-                    inside,
-                }
-            })
-            .collect();
-        // Candidate boxes of every tile, flat, with each tile's range.
-        let mut candidates: Vec<BoxView> = Vec::with_capacity(views.len() * 4);
+        out.clear();
+        out.resize(self.width * self.height, 0.0);
+        let Some(poses) = row_poses.iter().map(PoseF::new).collect::<Option<Vec<_>>>() else {
+            return Ok(());
+        };
+        let time = scene.time_s as f32;
+        let boxes = self.world.boxes_at(scene.time_s);
+        let boxes_f = match &boxes {
+            Cow::Borrowed(_) => Cow::Borrowed(&self.boxes[..]),
+            Cow::Owned(b) => Cow::Owned(b.iter().map(BoxF::from_box).collect()),
+        };
+        let ctx = FrameCtx {
+            boxes_f,
+            boxes,
+            clouds: self.clouds.as_ref().map(|c| (c, c.offset_at(scene.time_s))),
+            time_s: time,
+        };
+        self.render_core(&poses, &ctx, |i, value| {
+            out[i] = if value.is_nan() { 0.0 } else { value };
+        });
+        Ok(())
+    }
+
+    /// The ray-casting core: calls `sink(pixel_index, brightness)` for
+    /// every pixel (NaN for a pixel without a ray), and again for pixels on
+    /// geometric edges with their anti-aliased brightness (the last call
+    /// wins). `poses` has one pose, or one per row.
+    fn render_core<S: FnMut(usize, f32)>(&self, poses: &[PoseF], ctx: &FrameCtx, mut sink: S) {
+        let per_row = poses.len() > 1;
+        let pose_of_row = |y: usize| if per_row { &poses[y] } else { &poses[0] };
+        let boxes_f = &ctx.boxes_f[..];
+        // Candidate boxes of every tile, flat, with each tile's range; the
+        // views are relative to the band's reference pose.
+        let mut candidates: Vec<BoxView> = Vec::with_capacity(boxes_f.len() * 4);
         let mut ranges: Vec<(usize, usize)> = Vec::with_capacity(self.tiles.len());
+        let mut band_ref: Vec<usize> = Vec::new();
         let aa = self.params.edge_antialias;
         let mut ids: Vec<u32> = if aa {
             vec![INVALID_ID; self.width * self.height]
         } else {
             Vec::new()
         };
-        let buf: &mut [u8] = img;
-        let noise_sigma = self.params.noise_sigma;
-        let noise = |i: usize| match noise_seed {
-            Some(seed) if noise_sigma > 0.0 => noise_sigma * gaussian(seed, i as u64),
-            _ => 0.0,
-        };
+        let mut views: Vec<BoxView> = Vec::new();
+        let mut band_y0 = usize::MAX;
+        // Extra cone angle (radians) for the rotation of a band's rows away
+        // from its reference row; zero with one pose.
+        let mut extra_angle = 0.0f32;
+        let mut ref_index = 0usize;
+        let mut shifted: Vec<BoxView> = Vec::new();
         for tile in &self.tiles {
-            let axis = rot(&r, tile.axis);
+            if tile.y0 != band_y0 {
+                band_y0 = tile.y0;
+                if per_row {
+                    ref_index = (tile.y0 + tile.y1 - 1) / 2;
+                    let reference = &poses[ref_index];
+                    let (mut angle, mut shift) = (0.0f32, 0.0f32);
+                    for p in &poses[tile.y0..tile.y1] {
+                        angle = angle.max(reference.angle_to(p));
+                        shift = shift.max(dist3(reference.o, p.o));
+                    }
+                    extra_angle = angle;
+                    views = box_views(boxes_f, reference.o, shift);
+                } else if views.is_empty() && !boxes_f.is_empty() {
+                    views = box_views(boxes_f, poses[0].o, 0.0);
+                }
+            }
+            band_ref.push(ref_index);
+            let reference = &poses[ref_index];
+            let axis = rot(&reference.r, tile.axis);
+            let (sin_half, cos_half) = if extra_angle > 0.0 {
+                let half = tile.half + extra_angle;
+                (half.sin(), half.cos())
+            } else {
+                (tile.sin_half, tile.cos_half)
+            };
             let start = candidates.len();
             for b in &views {
                 let hit = b.inside || {
                     let c = axis[0] * b.dir[0] + axis[1] * b.dir[1] + axis[2] * b.dir[2];
                     // angle(axis, dir) <= half + beta  <=>  cos >= cos(half + beta) (if half + beta < pi).
-                    let sin_sum = tile.sin_half * b.cos_b + tile.cos_half * b.sin_b;
-                    let cos_sum = tile.cos_half * b.cos_b - tile.sin_half * b.sin_b;
+                    let sin_sum = sin_half * b.cos_b + cos_half * b.sin_b;
+                    let cos_sum = cos_half * b.cos_b - sin_half * b.sin_b;
                     sin_sum < 0.0 || c >= cos_sum
                 };
                 if hit {
@@ -368,22 +476,28 @@ impl Renderer {
                 }
             }
             ranges.push((start, candidates.len()));
-            let cands = &candidates[start..];
             for y in tile.y0..tile.y1 {
+                let pose = pose_of_row(y);
+                let cands: &[BoxView] = if per_row && pose.o != reference.o {
+                    shift_views(&candidates[start..], boxes_f, pose.o, &mut shifted);
+                    &shifted
+                } else {
+                    &candidates[start..]
+                };
                 let row = y * self.width;
                 for x in tile.x0..tile.x1 {
                     let i = row + x;
                     let ray = self.rays[i];
                     if ray[2] == 0.0 && ray[0] == 0.0 && ray[1] == 0.0 {
-                        buf[i] = 0;
+                        sink(i, f32::NAN);
                         continue;
                     }
-                    let d = rot(&r, [ray[0], ray[1], ray[2]]);
-                    let (value, id) = self.shade(o, d, ray[3], cands);
+                    let d = rot(&pose.r, [ray[0], ray[1], ray[2]]);
+                    let (value, id) = self.shade(pose.o, d, ray[3], cands, ctx);
                     if aa {
                         ids[i] = id;
                     }
-                    buf[i] = round_u8(value + noise(i));
+                    sink(i, value);
                 }
             }
         }
@@ -395,7 +509,9 @@ impl Renderer {
         let (w, h) = (self.width, self.height);
         let ts = self.params.tile_size.max(1);
         let tiles_x = w.div_ceil(ts);
+        let mut shifted_key = usize::MAX;
         for y in 0..h {
+            let pose = pose_of_row(y);
             for x in 0..w {
                 let i = y * w + x;
                 let id = ids[i];
@@ -417,10 +533,21 @@ impl Renderer {
                     (false, true) => &ALONG_Y,
                     (false, false) => continue,
                 };
-                let Some(&(a, b)) = ranges.get((y / ts) * tiles_x + x / ts) else {
+                let tile_index = (y / ts) * tiles_x + x / ts;
+                let Some(&(a, b)) = ranges.get(tile_index) else {
                     continue;
                 };
-                let cands = &candidates[a..b];
+                let reference = &poses[band_ref.get(tile_index).copied().unwrap_or(0)];
+                let cands: &[BoxView] = if per_row && pose.o != reference.o {
+                    let key = y * self.tiles.len() + tile_index;
+                    if key != shifted_key {
+                        shift_views(&candidates[a..b], boxes_f, pose.o, &mut shifted);
+                        shifted_key = key;
+                    }
+                    &shifted
+                } else {
+                    &candidates[a..b]
+                };
                 // Ray steps of one pixel along x and y (central differences, one-sided at borders).
                 let step = |j0: usize, j1: usize, span: f32| {
                     let (p, q) = (self.rays[j0], self.rays[j1]);
@@ -449,11 +576,11 @@ impl Renderer {
                         ray[2] + du[2] * ox + dv[2] * oy,
                     ];
                     let n = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
-                    let d = rot(&r, [c[0] / n, c[1] / n, c[2] / n]);
+                    let d = rot(&pose.r, [c[0] / n, c[1] / n, c[2] / n]);
                     // A sub-pixel is half the pixel across: half the footprint.
-                    sum += self.shade(o, d, ray[3] - 1.0, cands).0;
+                    sum += self.shade(pose.o, d, ray[3] - 1.0, cands, ctx).0;
                 }
-                buf[i] = round_u8(sum / offsets.len() as f32 + noise(i));
+                sink(i, sum / offsets.len() as f32);
             }
         }
     }
@@ -468,6 +595,7 @@ impl Renderer {
         d: [f32; 3],
         log_omega: f32,
         candidates: &[BoxView],
+        ctx: &FrameCtx,
     ) -> (f32, u32) {
         let p = &self.params;
         let mut t_best = p.max_distance_m;
@@ -513,40 +641,346 @@ impl Renderer {
         }
         let t = t_best;
         let mut id = GROUND_ID;
+        let hit = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
         let value = if let Some((index, axis, positive)) = hit_box {
             let face = Face::from_axis(axis, positive);
             id = BOX_ID0 + 6 * index + face.index() as u32;
             let cos = d[axis].abs().max(1e-3);
             let lod_m = fast_log2(t) + log_omega - fast_log2(cos) + p.lod_bias;
-            let hit = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
-            match self.world.boxes.get(index as usize) {
+            match ctx.boxes.get(index as usize) {
                 Some(b) => self.world.box_value(b, face, hit, lod_m),
                 None => 0.0,
             }
         } else if ground {
             let cos = d[2].max(1e-3);
             let lod_m = fast_log2(t) + log_omega - fast_log2(cos) + p.lod_bias;
-            self.world
-                .ground_value(o[0] + d[0] * t, o[1] + d[1] * t, lod_m)
+            if !self.world.water.is_empty() && self.world.water_at(hit[0], hit[1]) {
+                self.water_value(hit, d, ctx)
+            } else {
+                self.world.ground_value(hit[0], hit[1], lod_m)
+            }
         } else {
             // Sky (or ground beyond the far distance, lost in haze).
-            let up = (-d[2]).max(0.0);
-            let v = if d[2] > 0.0 {
-                p.haze_value
-            } else {
-                p.sky_horizon + (p.sky_zenith - p.sky_horizon) * up
-            };
-            return (v, SKY_ID);
+            return (self.sky_value(d), SKY_ID);
+        };
+        let value = match ctx.clouds {
+            Some((clouds, offset)) => {
+                value * clouds.light_factor(hit, &self.sun_f, offset, self.world.params.ambient)
+            }
+            None => value,
         };
         let keep = (1.0 - t * self.inv_haze_range).max(0.0);
         (value * keep + p.haze_value * (1.0 - keep), id)
+    }
+
+    /// Sky brightness along world direction `d` (haze below the horizon).
+    #[inline(always)]
+    fn sky_value(&self, d: [f32; 3]) -> f32 {
+        let p = &self.params;
+        let up = (-d[2]).max(0.0);
+        if d[2] > 0.0 {
+            p.haze_value
+        } else {
+            p.sky_horizon + (p.sky_zenith - p.sky_horizon) * up
+        }
+    }
+
+    /// Water at `hit` seen along `d`: a rippled mirror (Fresnel-weighted
+    /// reflection of the boxes and the sky, with sun glitter) over a dark,
+    /// slowly changing body. The ripples move with scene time, so nothing
+    /// on the surface stays put.
+    fn water_value(&self, hit: [f32; 3], d: [f32; 3], ctx: &FrameCtx) -> f32 {
+        let n = crate::world::water_normal(hit[0], hit[1], ctx.time_s);
+        let dn = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
+        // Reflect about the (upward, -z) normal.
+        let r = [
+            d[0] - 2.0 * dn * n[0],
+            d[1] - 2.0 * dn * n[1],
+            d[2] - 2.0 * dn * n[2],
+        ];
+        let cos_i = (-dn).clamp(0.0, 1.0);
+        // Schlick's approximation for water (n = 1.33): R0 = 0.02.
+        let fresnel = 0.02 + 0.98 * (1.0 - cos_i).powi(5);
+        let origin = [hit[0], hit[1], hit[2] - 0.01];
+        let reflected = if r[2] < 0.0 {
+            match self.trace_boxes(origin, r, &ctx.boxes_f) {
+                Some((index, face, point, _)) => ctx
+                    .boxes
+                    .get(index)
+                    .map_or(0.0, |b| self.world.box_value(b, face, point, 2.0)),
+                None => {
+                    let s = &self.sun_f;
+                    let glint = (r[0] * s[0] + r[1] * s[1] + r[2] * s[2]).max(0.0);
+                    self.sky_value(r) + 2500.0 * glint.powi(256)
+                }
+            }
+        } else {
+            self.world.water_body_value(hit[0], hit[1], ctx.time_s)
+        };
+        let body = self.world.water_body_value(hit[0], hit[1], ctx.time_s);
+        fresnel * reflected + (1.0 - fresnel) * body
+    }
+
+    /// The first box (index, face, hit point, distance) along a ray, over
+    /// every box (for secondary rays, which the tile culling does not cover).
+    fn trace_boxes(
+        &self,
+        o: [f32; 3],
+        d: [f32; 3],
+        boxes: &[BoxF],
+    ) -> Option<(usize, Face, [f32; 3], f32)> {
+        let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+        let mut best: Option<(usize, Face, f32)> = None;
+        let mut t_best = self.params.max_distance_m;
+        for (index, b) in boxes.iter().enumerate() {
+            let mut t0 = 0.0f32;
+            let mut t1 = t_best;
+            let mut axis = 0usize;
+            let mut ok = true;
+            for a in 0..3 {
+                let ta = (b.min[a] - o[a]) * inv[a];
+                let tb = (b.max[a] - o[a]) * inv[a];
+                let (lo, hi) = if ta < tb { (ta, tb) } else { (tb, ta) };
+                if lo > t0 {
+                    t0 = lo;
+                    axis = a;
+                }
+                t1 = t1.min(hi);
+                if t0 > t1 {
+                    ok = false;
+                    break;
+                }
+            }
+            if ok && t0 > 0.0 && t0 < t_best {
+                t_best = t0;
+                best = Some((index, Face::from_axis(axis, d[axis] > 0.0), t0));
+            }
+        }
+        best.map(|(i, f, t)| (i, f, [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t], t))
+    }
+}
+
+/// Errors of the renderer's checked entry points.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RenderError {
+    /// Row poses must be one for the frame or one per image row.
+    #[error("{found} row poses for an image of {height} rows: give 1 or {height}")]
+    RowPoses {
+        /// Poses given.
+        found: usize,
+        /// Image rows.
+        height: usize,
+    },
+}
+
+/// The time-dependent state of the scene for one exposure sample.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SceneState {
+    /// Scene time, seconds: moving objects, water ripples and cloud
+    /// shadows are where they are at this time.
+    pub time_s: f64,
+}
+
+/// A camera pose in render form (single precision).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PoseF {
+    r: [[f32; 3]; 3],
+    o: [f32; 3],
+}
+
+impl PoseF {
+    /// None when the pose is not finite.
+    fn new(world_from_cam: &Isometry3<f64>) -> Option<PoseF> {
+        let r64 = world_from_cam.rotation.to_rotation_matrix();
+        let m = r64.matrix();
+        let r: [[f32; 3]; 3] = [
+            [m[(0, 0)] as f32, m[(0, 1)] as f32, m[(0, 2)] as f32],
+            [m[(1, 0)] as f32, m[(1, 1)] as f32, m[(1, 2)] as f32],
+            [m[(2, 0)] as f32, m[(2, 1)] as f32, m[(2, 2)] as f32],
+        ];
+        let t = world_from_cam.translation.vector;
+        let o = [t.x as f32, t.y as f32, t.z as f32];
+        (o.iter().all(|v| v.is_finite()) && r.iter().flatten().all(|v| v.is_finite()))
+            .then_some(PoseF { r, o })
+    }
+
+    /// Rotation angle between two poses, radians (from the trace of
+    /// `R_a^T R_b`), with a small margin for single-precision rounding.
+    fn angle_to(&self, other: &PoseF) -> f32 {
+        let mut trace = 0.0f32;
+        for i in 0..3 {
+            for k in 0..3 {
+                trace += self.r[k][i] * other.r[k][i];
+            }
+        }
+        ((trace - 1.0) * 0.5).clamp(-1.0, 1.0).acos() + 1e-4
+    }
+}
+
+fn dist3(a: [f32; 3], b: [f32; 3]) -> f32 {
+    let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+}
+
+/// The per-frame scene the core shades: boxes where they are now, and the
+/// cloud shadows with their drift.
+struct FrameCtx<'a> {
+    boxes_f: Cow<'a, [BoxF]>,
+    boxes: Cow<'a, [SceneBox]>,
+    clouds: Option<(&'a CloudField, [f32; 2])>,
+    time_s: f32,
+}
+
+/// Every box as seen from camera position `o`; `extra_radius` widens each
+/// box's bounding sphere (the camera moves that far over a band of rows).
+fn box_views(boxes: &[BoxF], o: [f32; 3], extra_radius: f32) -> Vec<BoxView> {
+    boxes
+        .iter()
+        .enumerate()
+        .map(|(i, b)| {
+            let rel_min = [b.min[0] - o[0], b.min[1] - o[1], b.min[2] - o[2]];
+            let rel_max = [b.max[0] - o[0], b.max[1] - o[1], b.max[2] - o[2]];
+            let v = [b.centre[0] - o[0], b.centre[1] - o[1], b.centre[2] - o[2]];
+            let dist = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            let radius = b.radius + extra_radius;
+            let inside = dist <= radius;
+            let sin_b = if inside { 1.0 } else { radius / dist };
+            let cos_b = (1.0 - sin_b * sin_b).max(0.0).sqrt();
+            let inv = if dist > 0.0 { 1.0 / dist } else { 0.0 };
+            BoxView {
+                index: i as u32,
+                rel_min,
+                rel_max,
+                dir: [v[0] * inv, v[1] * inv, v[2] * inv],
+                sin_b,
+                cos_b,
+                inside,
+            }
+        })
+        .collect()
+}
+
+/// `views` re-expressed relative to camera position `o` into `out`.
+fn shift_views(views: &[BoxView], boxes: &[BoxF], o: [f32; 3], out: &mut Vec<BoxView>) {
+    out.clear();
+    out.extend(views.iter().map(|v| {
+        let b = &boxes[v.index as usize];
+        BoxView {
+            rel_min: [b.min[0] - o[0], b.min[1] - o[1], b.min[2] - o[2]],
+            rel_max: [b.max[0] - o[0], b.max[1] - o[1], b.max[2] - o[2]],
+            ..*v
+        }
+    }));
+}
+
+/// Moving cloud shadows: a cloud layer at an altitude, its cover a
+/// thresholded smooth noise field (soft-edged, so shadows have a penumbra),
+/// drifting with the wind at that altitude. A point on the ground or on a
+/// box is shadowed by the cloud its ray towards the sun crosses; in shadow
+/// it loses `opacity` of the direct (non-ambient) light.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CloudShadows {
+    /// Share of the sky covered, 0..1.
+    pub cover: f32,
+    /// Typical cloud size, metres (the noise field's base wavelength).
+    pub scale_m: f32,
+    /// Width of a shadow's soft edge, metres.
+    pub edge_m: f32,
+    /// Share of the direct sunlight a cloud stops, 0..1.
+    pub opacity: f32,
+    /// Cloud base altitude above the ground, metres.
+    pub altitude_m: f32,
+    /// Drift velocity of the clouds (north, east), m/s.
+    pub velocity_m_s: [f32; 2],
+    /// Seed of the cloud field.
+    pub seed: u64,
+}
+
+/// The precomputed cloud cover of [`CloudShadows`]: a wrapping grid of
+/// shadow amounts (0 clear, 1 full cloud) over a square of the cloud layer.
+#[derive(Debug, Clone)]
+pub(crate) struct CloudField {
+    params: CloudShadows,
+    size: usize,
+    inv_texel: f32,
+    cover: Vec<f32>,
+}
+
+impl CloudField {
+    /// Grid texels across the cloud layer.
+    const SIZE: usize = 512;
+
+    pub(crate) fn new(params: CloudShadows) -> CloudField {
+        let size = Self::SIZE;
+        // The layer spans 16 cloud scales, so the field wraps far outside any view.
+        let extent = params.scale_m.max(1.0) * 16.0;
+        let mut canvas = crate::texture::Canvas::new(size, 0.0);
+        canvas.add_fbm(16, 4, 1.0, 0.5, params.seed ^ 0xC10D);
+        let mut values: Vec<f32> = canvas.data().to_vec();
+        // The threshold leaving `cover` of the field above it.
+        let mut sorted = values.clone();
+        sorted.sort_by(f32::total_cmp);
+        let cover = params.cover.clamp(0.0, 1.0);
+        let k = (((1.0 - cover) * sorted.len() as f32) as usize).min(sorted.len() - 1);
+        let threshold = sorted[k];
+        // The field's slope in value per metre sets the soft edge's value width.
+        let (lo, hi) = (sorted[sorted.len() / 10], sorted[sorted.len() * 9 / 10]);
+        let per_metre = (hi - lo) / params.scale_m.max(1.0);
+        let half = (0.5 * params.edge_m.max(0.01) * per_metre).max(1e-6);
+        for v in &mut values {
+            let s = ((*v - threshold) / half * 0.5 + 0.5).clamp(0.0, 1.0);
+            *v = if cover <= 0.0 {
+                0.0
+            } else {
+                s * s * (3.0 - 2.0 * s)
+            };
+        }
+        CloudField {
+            params,
+            size,
+            inv_texel: size as f32 / extent,
+            cover: values,
+        }
+    }
+
+    /// The cloud layer's displacement at scene time `t`, metres.
+    fn offset_at(&self, t: f64) -> [f32; 2] {
+        let v = self.params.velocity_m_s;
+        [(v[0] as f64 * t) as f32, (v[1] as f64 * t) as f32]
+    }
+
+    /// Cloud cover (0..1) over layer point (x, y), bilinear, wrapping.
+    fn cover_at(&self, x: f32, y: f32) -> f32 {
+        let n = self.size as i32;
+        let (u, v) = (x * self.inv_texel, y * self.inv_texel);
+        let (x0, fx) = crate::texture::split_floor(u);
+        let (y0, fy) = crate::texture::split_floor(v);
+        let at = |i: i32, j: i32| {
+            self.cover[(j.rem_euclid(n) as usize) * self.size + i.rem_euclid(n) as usize]
+        };
+        let top = at(x0, y0) + (at(x0 + 1, y0) - at(x0, y0)) * fx;
+        let bottom = at(x0, y0 + 1) + (at(x0 + 1, y0 + 1) - at(x0, y0 + 1)) * fx;
+        top + (bottom - top) * fy
+    }
+
+    /// Light factor (1 in the sun, down to `1 - (1 - ambient) opacity`
+    /// under a full cloud) at world point `p` for sun direction `sun`
+    /// (towards the sun, NED) with the layer displaced by `offset`.
+    #[inline(always)]
+    fn light_factor(&self, p: [f32; 3], sun: &[f32; 3], offset: [f32; 2], ambient: f32) -> f32 {
+        // Follow the ray towards the sun up to the cloud base (z = -altitude).
+        let lambda = (-self.params.altitude_m - p[2]) / sun[2].min(-1e-3);
+        let x = p[0] + sun[0] * lambda - offset[0];
+        let y = p[1] + sun[1] * lambda - offset[1];
+        let c = self.cover_at(x, y);
+        1.0 - (1.0 - ambient) * self.params.opacity * c
     }
 }
 
 /// An approximately standard-normal number from (seed, index): the
 /// centred sum of four 16-bit uniforms (Irwin-Hall), scaled to unit variance.
 #[inline(always)]
-fn gaussian(seed: u64, index: u64) -> f32 {
+pub(crate) fn gaussian(seed: u64, index: u64) -> f32 {
     let h = mix64(seed ^ index.wrapping_mul(0x9e37_79b9_7f4a_7c15));
     let s = (h & 0xffff) + ((h >> 16) & 0xffff) + ((h >> 32) & 0xffff) + (h >> 48);
     // Sum of four U(0,1) has mean 2 and variance 1/3.

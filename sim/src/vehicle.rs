@@ -20,11 +20,31 @@
 //! switched on, the vehicle truly stands at that position plus a bias
 //! ([`GpsBias`], a first-order Gauss-Markov process), and the camera films
 //! from the true pose ([`Vehicle::true_world_from_cam`]). Off by default.
+//!
+//! Realism ([`VehicleDisturbances`], from a [`crate::realism::Realism`]'s
+//! vehicle effects; all off by default):
+//!
+//! - wind ([`crate::disturbance::WindField`]): the velocity loop feels the
+//!   wind's quadratic drag and compensates its mean with an integral term,
+//!   so the vehicle sways around its setpoint (decimetres in a breeze); the
+//!   roll and pitch follow the commanded thrust, leaning into the wind;
+//! - GNSS error: the realism's slow bias and fast noise (each a first-order
+//!   Gauss-Markov process) add to the true position like the bias above;
+//!   during a fix loss ([`Vehicle::gps_fix`] false) the estimate drifts as a
+//!   random walk, and snaps back (an estimator reset) when the fix returns;
+//! - barometer drift: the height the vehicle holds drifts as a random walk
+//!   (PX4 and ArduPilot fly on barometric height by default), so the true
+//!   height moves by the drift;
+//! - gimbal error ([`crate::disturbance::GimbalJitter`]): the true camera
+//!   is turned by the stabilisation error and jitter at the vehicle's clock;
+//!   the gimbal's reported attitude is the commanded one.
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
+use crate::disturbance::{GimbalJitter, WindField};
 use crate::geodesy::{Geodetic, LocalFrame};
+use crate::realism::{BaroDrift, GimbalError, GpsDropouts, GpsError, Realism, Wind};
 
 /// Gravity, m/s^2.
 pub const GRAVITY: f64 = 9.806_65;
@@ -199,6 +219,155 @@ pub struct VehicleParams {
     pub gimbal: GimbalParams,
     /// GPS error (off by default).
     pub gps_bias: GpsBiasParams,
+    /// Realism's vehicle disturbances (off by default).
+    pub disturbances: VehicleDisturbances,
+}
+
+/// The vehicle effects of a [`Realism`] (see the module documentation),
+/// each `None` when off, and the seed of their random processes.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct VehicleDisturbances {
+    /// Wind with gusts.
+    pub wind: Option<Wind>,
+    /// Gimbal stabilisation error and jitter.
+    pub gimbal: Option<GimbalError>,
+    /// GNSS bias and noise.
+    pub gps: Option<GpsError>,
+    /// GNSS fix losses.
+    pub gps_dropouts: Option<GpsDropouts>,
+    /// Barometric height drift.
+    pub baro: Option<BaroDrift>,
+    /// Seed of every process above.
+    pub seed: u64,
+}
+
+impl VehicleDisturbances {
+    /// The vehicle effects of `realism`, seeded by `seed`.
+    pub fn from_realism(realism: &Realism, seed: u64) -> Self {
+        let v = &realism.vehicle;
+        Self {
+            wind: v.wind,
+            gimbal: v.gimbal,
+            gps: v.gps,
+            gps_dropouts: v.gps_dropouts,
+            baro: v.baro,
+            seed,
+        }
+    }
+
+    /// True when every effect is off.
+    pub fn is_off(&self) -> bool {
+        self.wind.is_none()
+            && self.gimbal.is_none()
+            && self.gps.is_none()
+            && self.gps_dropouts.is_none()
+            && self.baro.is_none()
+    }
+}
+
+/// The running state of [`VehicleDisturbances`].
+#[derive(Debug, Clone)]
+struct DisturbanceState {
+    wind: Option<WindField>,
+    /// Integral of the velocity loop (m/s^2), compensating the wind.
+    wind_integral: Vector3<f64>,
+    gimbal: Option<GimbalJitter>,
+    gps_bias: Option<GpsBias>,
+    gps_noise: Option<GpsBias>,
+    /// Fix lost until this time (s on the vehicle's clock).
+    lost_until: Option<f64>,
+    /// Next fix loss starts at this time.
+    next_loss: f64,
+    /// Drift of the estimate while the fix is lost, m.
+    drift: Vector3<f64>,
+    /// Barometric height error, m (down positive: true z = estimate z + it).
+    baro: f64,
+    rng: SmallRng,
+}
+
+impl DisturbanceState {
+    fn new(d: &VehicleDisturbances) -> Self {
+        let mut rng = SmallRng::seed_from_u64(d.seed ^ 0x0DD5_EED5);
+        let gm = |sxy: f64, sz: f64, tau: f64, salt: u64| {
+            GpsBias::new(GpsBiasParams {
+                sigma_xy_m: sxy,
+                sigma_z_m: sz,
+                tau_s: tau,
+                seed: d.seed ^ salt,
+            })
+        };
+        let next_loss = d
+            .gps_dropouts
+            .map_or(f64::INFINITY, |g| exponential(&mut rng, g.mean_interval_s));
+        Self {
+            wind: d.wind.map(|w| WindField::new(w, d.seed)),
+            wind_integral: Vector3::zeros(),
+            gimbal: d.gimbal.map(|g| GimbalJitter::new(g, d.seed)),
+            gps_bias: d
+                .gps
+                .map(|g| gm(g.bias_sigma_xy_m, g.bias_sigma_z_m, g.bias_tau_s, 0xB1A5)),
+            gps_noise: d
+                .gps
+                .map(|g| gm(g.noise_sigma_m, g.noise_sigma_m, g.noise_tau_s, 0x4015E)),
+            lost_until: None,
+            next_loss,
+            drift: Vector3::zeros(),
+            baro: 0.0,
+            rng,
+        }
+    }
+
+    /// Advance the GNSS and barometer processes to time `t` by `dt`.
+    fn step_sensors(&mut self, d: &VehicleDisturbances, t: f64, dt: f64) {
+        if let Some(b) = &mut self.gps_bias {
+            b.step(dt);
+        }
+        if let Some(n) = &mut self.gps_noise {
+            n.step(dt);
+        }
+        if let Some(g) = d.gps_dropouts {
+            match self.lost_until {
+                Some(end) if t >= end => {
+                    // The fix is back: the estimator resets onto it.
+                    self.lost_until = None;
+                    self.drift = Vector3::zeros();
+                    self.next_loss = t + exponential(&mut self.rng, g.mean_interval_s);
+                }
+                Some(_) => {
+                    let k = g.drift_m_per_sqrt_s * dt.sqrt();
+                    self.drift +=
+                        Vector3::new(k * gauss(&mut self.rng), k * gauss(&mut self.rng), 0.0);
+                }
+                None if t >= self.next_loss => {
+                    self.lost_until = Some(t + exponential(&mut self.rng, g.mean_duration_s));
+                }
+                None => {}
+            }
+        }
+        if let Some(b) = d.baro {
+            // A random walk of `rate` metres per minute: sigma over a
+            // minute is the rate.
+            self.baro += b.rate_m_per_min * (dt / 60.0).sqrt() * gauss(&mut self.rng);
+        }
+    }
+
+    /// True position minus the estimate, NED m.
+    fn position_error(&self) -> Vector3<f64> {
+        let mut e = self.drift + Vector3::new(0.0, 0.0, self.baro);
+        if let Some(b) = &self.gps_bias {
+            e += b.bias();
+        }
+        if let Some(n) = &self.gps_noise {
+            e += n.bias();
+        }
+        e
+    }
+}
+
+/// An exponential draw of mean `mean`.
+fn exponential(rng: &mut SmallRng, mean: f64) -> f64 {
+    let u: f64 = rng.random_range(1e-12..1.0);
+    -mean * u.ln()
 }
 
 impl Default for VehicleParams {
@@ -223,6 +392,7 @@ impl Default for VehicleParams {
             camera_offset_body: [0.10, 0.0, 0.08],
             gimbal: GimbalParams::default(),
             gps_bias: GpsBiasParams::default(),
+            disturbances: VehicleDisturbances::default(),
         }
     }
 }
@@ -273,6 +443,12 @@ pub struct Vehicle {
     gimbal_target_yaw: f64,
     gimbal_rate: (f64, f64),
     gps_bias: GpsBias,
+    /// The vehicle's clock (sum of steps), s.
+    clock: f64,
+    /// Thrust acceleration the controller commands (roll and pitch follow
+    /// it), NED m/s^2; equal to `a_ned` without wind.
+    a_cmd: Vector3<f64>,
+    dist: DisturbanceState,
 }
 
 fn wrap_pi(a: f64) -> f64 {
@@ -318,6 +494,9 @@ impl Vehicle {
             gimbal_target_yaw: 0.0,
             gimbal_rate: (0.0, 0.0),
             gps_bias: GpsBias::new(params.gps_bias),
+            clock: 0.0,
+            a_cmd: Vector3::zeros(),
+            dist: DisturbanceState::new(&params.disturbances),
         }
     }
 
@@ -336,6 +515,7 @@ impl Vehicle {
         self.p_ned = Vector3::new(p_ned.x, p_ned.y, p_ned.z.min(0.0));
         self.v_ned = Vector3::zeros();
         self.a_ned = Vector3::zeros();
+        self.a_cmd = Vector3::zeros();
         self.yaw = wrap_pi(yaw);
         self.landed = self.p_ned.z >= 0.0;
     }
@@ -410,6 +590,7 @@ impl Vehicle {
         if idle && self.landed {
             self.v_ned = Vector3::zeros();
             self.a_ned = Vector3::zeros();
+            self.a_cmd = Vector3::zeros();
             self.yaw_rate = 0.0;
         } else {
             let v_des = if idle {
@@ -419,7 +600,8 @@ impl Vehicle {
             } else {
                 v_des
             };
-            let mut a = (v_des - self.v_ned) / p.velocity_tau_s.max(1e-3);
+            let v_err = v_des - self.v_ned;
+            let mut a = v_err / p.velocity_tau_s.max(1e-3);
             let a_xy = (a.x * a.x + a.y * a.y).sqrt();
             if a_xy > p.max_accel_xy {
                 let s = p.max_accel_xy / a_xy;
@@ -428,6 +610,16 @@ impl Vehicle {
             }
             a.z = a.z.clamp(-p.max_accel_z, p.max_accel_z);
             self.a_ned = a;
+            self.a_cmd = a;
+            if let (Some(wind), Some(w)) = (&self.dist.wind, p.disturbances.wind) {
+                // The wind pushes, the loop's integral leans against it
+                // (the thrust it commands on top of the limited term).
+                let drag = wind.drag_accel(self.clock, &self.v_ned);
+                self.a_cmd = a + self.dist.wind_integral;
+                self.dist.wind_integral += v_err * (w.integral_gain * dt);
+                a += self.dist.wind_integral + drag;
+                self.a_ned = a;
+            }
             self.v_ned += a * dt;
             self.p_ned += self.v_ned * dt;
             self.yaw_rate = yaw_rate_des.clamp(-max_yr, max_yr);
@@ -442,6 +634,7 @@ impl Vehicle {
                 if !climbing {
                     self.v_ned = Vector3::zeros();
                     self.a_ned = Vector3::zeros();
+                    self.a_cmd = Vector3::zeros();
                     self.landed = true;
                 }
             } else if self.p_ned.z < -0.05 {
@@ -455,6 +648,18 @@ impl Vehicle {
         self.gimbal_yaw = slew(self.gimbal_yaw, self.gimbal_target_yaw, step);
         self.gimbal_rate = ((self.gimbal_pitch - op) / dt, (self.gimbal_yaw - oy) / dt);
         self.gps_bias.step(dt);
+        self.clock += dt;
+        let d = p.disturbances;
+        if !d.is_off() {
+            if self.landed {
+                // On the ground the integrator sits converged on the wind
+                // at rest, ready for take-off.
+                if let Some(wind) = &self.dist.wind {
+                    self.dist.wind_integral = -wind.drag_accel(self.clock, &Vector3::zeros());
+                }
+            }
+            self.dist.step_sensors(&d, self.clock, dt);
+        }
     }
 
     fn position_velocity(&self, target: &Vector3<f64>, max_speed: Option<f64>) -> Vector3<f64> {
@@ -494,9 +699,33 @@ impl Vehicle {
     pub fn gps_bias(&self) -> Vector3<f64> {
         self.gps_bias.bias()
     }
-    /// Where the vehicle truly is: [`Self::p_ned`] plus the GPS bias.
+    /// Where the vehicle truly is: [`Self::p_ned`] plus the GPS bias and
+    /// the realism's position error ([`Self::position_error`]).
     pub fn true_p_ned(&self) -> Vector3<f64> {
-        self.p_ned + self.gps_bias.bias()
+        self.p_ned + self.position_error()
+    }
+    /// True position minus the estimate, NED m: the GPS bias plus the
+    /// realism's GNSS bias and noise, the drift during a fix loss and the
+    /// barometric height drift (zero with every effect off).
+    pub fn position_error(&self) -> Vector3<f64> {
+        let b = self.gps_bias.bias();
+        if self.params.disturbances.is_off() {
+            b
+        } else {
+            b + self.dist.position_error()
+        }
+    }
+    /// False while the GNSS fix is lost (realism `gps_dropouts`).
+    pub fn gps_fix(&self) -> bool {
+        self.dist.lost_until.is_none()
+    }
+    /// The vehicle's clock: seconds of [`Self::step`] so far.
+    pub fn clock(&self) -> f64 {
+        self.clock
+    }
+    /// The wind velocity now, NED m/s (None without wind).
+    pub fn wind(&self) -> Option<Vector3<f64>> {
+        self.dist.wind.as_ref().map(|w| w.velocity(self.clock))
     }
     /// Velocity, local NED m/s.
     pub fn v_ned(&self) -> Vector3<f64> {
@@ -518,11 +747,12 @@ impl Vehicle {
     pub fn landed(&self) -> bool {
         self.landed
     }
-    /// Roll and pitch (radians) implied by the horizontal acceleration.
+    /// Roll and pitch (radians) implied by the commanded horizontal
+    /// acceleration (the thrust's tilt; into the wind when it blows).
     pub fn roll_pitch(&self) -> (f64, f64) {
         let (s, c) = self.yaw.sin_cos();
-        let a_fwd = c * self.a_ned.x + s * self.a_ned.y;
-        let a_right = -s * self.a_ned.x + c * self.a_ned.y;
+        let a_fwd = c * self.a_cmd.x + s * self.a_cmd.y;
+        let a_right = -s * self.a_cmd.x + c * self.a_cmd.y;
         let roll = (a_right / GRAVITY).atan();
         let pitch = -(a_fwd / GRAVITY).atan();
         (roll, pitch)
@@ -584,9 +814,25 @@ impl Vehicle {
     /// The camera's true pose (GPS bias included): the pose the renderer
     /// draws from.
     pub fn true_world_from_cam(&self) -> Isometry3<f64> {
+        let wfc = self.true_world_from_cam_stabilised();
+        match &self.dist.gimbal {
+            Some(g) => g.apply(&wfc, self.clock),
+            None => wfc,
+        }
+    }
+
+    /// The camera's true position with the gimbal exactly where it is
+    /// commanded (no pointing error): [`Self::true_world_from_cam`] is this
+    /// turned by [`Self::gimbal_error`] at [`Self::clock`].
+    pub fn true_world_from_cam_stabilised(&self) -> Isometry3<f64> {
         let mut wfc = self.world_from_cam();
-        wfc.translation.vector += self.gps_bias.bias();
+        wfc.translation.vector += self.position_error();
         wfc
+    }
+
+    /// The gimbal's pointing error process (realism `gimbal`), if on.
+    pub fn gimbal_error(&self) -> Option<&GimbalJitter> {
+        self.dist.gimbal.as_ref()
     }
 
     /// Position in WGS84, as the GPS reports it.

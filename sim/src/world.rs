@@ -41,11 +41,89 @@ pub enum WorldError {
         /// Its value.
         value: f64,
     },
+    /// The world kind's name is not known.
+    #[error("unknown world {name:?}: use town, grass, carpark, trees, water, traffic or aliasing")]
+    UnknownKind {
+        /// The name given.
+        name: String,
+    },
+}
+
+/// The kind of terrain a world is, selectable by name (`--world NAME`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum WorldKind {
+    /// `town`: buildings, roads, parked cars and rich texture everywhere
+    /// (the simulator's original world).
+    #[default]
+    Town,
+    /// `grass`: open grass with mowing stripes, a dirt path and little
+    /// else: low texture.
+    Grass,
+    /// `carpark`: a large car park with identical stall markings and
+    /// identical cars (perceptual aliasing for bag-of-words).
+    Carpark,
+    /// `trees`: an orchard-like wood of identical trees with repetitive
+    /// foliage over a repetitive forest floor.
+    Trees,
+    /// `water`: two lakes beside a strip of land with buildings: a rippled,
+    /// reflecting surface with no stable features.
+    Water,
+    /// `traffic`: the town with its cars driving along the roads.
+    Traffic,
+    /// `aliasing`: a grid of identical buildings around a car park of
+    /// identical cars, built to fool bag-of-words place recognition.
+    Aliasing,
+}
+
+impl WorldKind {
+    /// Every kind, in documentation order.
+    pub const ALL: [WorldKind; 7] = [
+        WorldKind::Town,
+        WorldKind::Grass,
+        WorldKind::Carpark,
+        WorldKind::Trees,
+        WorldKind::Water,
+        WorldKind::Traffic,
+        WorldKind::Aliasing,
+    ];
+
+    /// The kind's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            WorldKind::Town => "town",
+            WorldKind::Grass => "grass",
+            WorldKind::Carpark => "carpark",
+            WorldKind::Trees => "trees",
+            WorldKind::Water => "water",
+            WorldKind::Traffic => "traffic",
+            WorldKind::Aliasing => "aliasing",
+        }
+    }
+}
+
+impl std::fmt::Display for WorldKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for WorldKind {
+    type Err = WorldError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        WorldKind::ALL
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| WorldError::UnknownKind {
+                name: s.to_string(),
+            })
+    }
 }
 
 /// Every tunable number of the world generator.
 #[derive(Debug, Clone, PartialEq)]
 pub struct WorldParams {
+    /// The kind of terrain (the layout and ground texture follow it).
+    pub kind: WorldKind,
     /// Texels across the ground texture (power of two).
     pub ground_texture_size: usize,
     /// Metres across the ground texture, centred on home.
@@ -102,6 +180,7 @@ pub struct WorldParams {
 impl Default for WorldParams {
     fn default() -> Self {
         Self {
+            kind: WorldKind::Town,
             ground_texture_size: 4096,
             ground_extent_m: 256.0,
             far_texture_size: 1024,
@@ -206,6 +285,8 @@ pub enum BoxKind {
     Container,
     /// A kiosk or shed.
     Kiosk,
+    /// A tree: a crown of foliage (a box above the ground) or its trunk.
+    Tree,
 }
 
 /// An axis-aligned box standing on the ground (NED, metres).
@@ -225,6 +306,9 @@ pub struct SceneBox {
     pub texture_scale: f32,
     /// Brightness multiplier of the whole box.
     pub albedo: f32,
+    /// Texture coordinates relative to the box's own corner, so boxes of
+    /// the same size and offsets look identical wherever they stand.
+    pub local_texture: bool,
 }
 
 impl SceneBox {
@@ -329,6 +413,9 @@ pub(crate) struct Textures {
     pub detail_b_rot: (f32, f32),
     /// cos, sin of the close-up layer's rotation.
     pub detail_close_rot: (f32, f32),
+    /// Foliage of the trees (only in the `trees` world).
+    pub foliage: Option<MipTexture>,
+    pub foliage_inv_texel: f32,
 }
 
 /// The scene: boxes on a ground plane, with their textures.
@@ -347,6 +434,35 @@ pub struct World {
     pub sun_dir: Vector3<f64>,
     /// Lighting factor per face (index by [`Face::index`]), ground = 1.
     pub(crate) face_light: [f32; 6],
+    /// Boxes that drive (cars on roads): they stand at [`World::boxes_at`].
+    pub movers: Vec<Mover>,
+    /// Open water (lakes), where the ground is a rippled mirror.
+    pub water: Vec<WaterBody>,
+}
+
+/// A box that drives back and forth along a road: its centre moves along
+/// x (or y) at a constant speed and wraps around within `[lo, hi)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Mover {
+    /// Index into [`World::boxes`] (the box's position at time 0).
+    pub index: usize,
+    /// True if it drives along x (north-south).
+    pub along_x: bool,
+    /// Signed speed, m/s.
+    pub speed_m_s: f64,
+    /// The stretch of road it wraps around on (along coordinate), metres.
+    pub lo: f64,
+    /// End of that stretch, metres.
+    pub hi: f64,
+}
+
+/// A rectangle of open water on the ground (NED metres).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WaterBody {
+    /// South-west corner (x, y).
+    pub min: [f64; 2],
+    /// North-east corner (x, y).
+    pub max: [f64; 2],
 }
 
 /// A straight road across the scene.
@@ -375,9 +491,11 @@ impl World {
     /// Generates a world with explicit parameters.
     pub fn generate_with(seed: u64, params: &WorldParams) -> Result<World, WorldError> {
         params.validate()?;
+        let mut params = params.clone();
+        params.kind.adjust(&mut params);
+        let params = &params;
         let mut rng = StdRng::seed_from_u64(seed);
-        let roads = layout_roads(&mut rng, params);
-        let boxes = layout_boxes(&mut rng, params, &roads);
+        let (roads, boxes, movers, water) = layout_kind(&mut rng, seed, params);
         let el = params.sun_elevation_deg.to_radians();
         let az = params.sun_azimuth_deg.to_radians();
         let sun_dir = Vector3::new(el.cos() * az.cos(), el.cos() * az.sin(), -el.sin());
@@ -404,7 +522,56 @@ impl World {
             textures,
             sun_dir,
             face_light,
+            movers,
+            water,
         })
+    }
+
+    /// True when nothing in the world changes with time (no moving
+    /// objects, no water): a frame depends only on the camera pose.
+    pub fn is_static(&self) -> bool {
+        self.movers.is_empty() && self.water.is_empty()
+    }
+
+    /// The boxes where they stand at scene time `t_s` (borrowed when
+    /// nothing moves).
+    pub fn boxes_at(&self, t_s: f64) -> std::borrow::Cow<'_, [SceneBox]> {
+        if self.movers.is_empty() {
+            return std::borrow::Cow::Borrowed(&self.boxes);
+        }
+        let mut boxes = self.boxes.clone();
+        for m in &self.movers {
+            let Some(b) = boxes.get_mut(m.index) else {
+                continue;
+            };
+            let axis = if m.along_x { 0 } else { 1 };
+            let centre = 0.5 * (b.min[axis] + b.max[axis]);
+            let span = (m.hi - m.lo).max(1e-6);
+            let moved = m.lo + (centre - m.lo + m.speed_m_s * t_s).rem_euclid(span);
+            let shift = moved - centre;
+            b.min[axis] += shift;
+            b.max[axis] += shift;
+        }
+        std::borrow::Cow::Owned(boxes)
+    }
+
+    /// True if ground point (x, y) is open water.
+    #[inline(always)]
+    pub(crate) fn water_at(&self, x: f32, y: f32) -> bool {
+        let (x, y) = (x as f64, y as f64);
+        self.water
+            .iter()
+            .any(|w| x >= w.min[0] && x <= w.max[0] && y >= w.min[1] && y <= w.max[1])
+    }
+
+    /// Brightness of the water body (what light comes up from below the
+    /// surface) at (x, y): dark, with slow turbid swirls that drift.
+    pub(crate) fn water_body_value(&self, x: f32, y: f32, t: f32) -> f32 {
+        let s = &self.textures;
+        let u = (x + 0.31 * t) * s.far_inv_texel * 4.0;
+        let v = (y - 0.23 * t) * s.far_inv_texel * 4.0;
+        let swirl = s.far.sample_lod(u, v, 2.0) - s.far.mean();
+        (38.0 + 0.15 * swirl).max(5.0)
     }
 
     /// Height of the tallest box covering ground point (x, y), 0 if none.
@@ -540,6 +707,27 @@ impl World {
     pub(crate) fn box_value(&self, b: &SceneBox, face: Face, p: [f32; 3], lod_m: f32) -> f32 {
         let tx = &self.textures;
         let light = self.face_light[face.index()];
+        let p = if b.local_texture {
+            [
+                p[0] - b.min.x as f32,
+                p[1] - b.min.y as f32,
+                p[2] - b.max.z as f32,
+            ]
+        } else {
+            p
+        };
+        if b.kind == BoxKind::Tree
+            && let Some(foliage) = &tx.foliage
+        {
+            // Foliage on every face, in the box's own coordinates.
+            let (u, w) = match face {
+                Face::Top | Face::Bottom => (p[0], p[1]),
+                Face::NegX | Face::PosX => (p[1], p[2]),
+                _ => (p[0], p[2]),
+            };
+            let s = tx.foliage_inv_texel;
+            return sample_at(foliage, u * s, w * s, lod_m, s) * light * b.albedo;
+        }
         let v = match face {
             Face::Top | Face::Bottom => {
                 let s = tx.roof_inv_texel;
@@ -586,6 +774,54 @@ impl World {
         let bh = (background_half_m * s) as f32;
         canvas.rect(c, (bh, bh), 0.0, background_value, 1.0);
         canvas.disc(c, (radius_m * s) as f32, value, 1.0);
+        tx.ground = canvas.into_mip();
+    }
+}
+
+/// The water surface's unit normal (pointing up, -z) at (x, y) and scene
+/// time `t`: a sum of gravity waves (deep-water dispersion, angular
+/// frequency sqrt(g k)) from several directions, so the pattern never repeats
+/// in time or space over a view. The slope's rms, 0.15, is Cox and Munk's
+/// (1954) for a 4 m/s wind (slope variance 0.003 + 0.00512 U).
+#[inline(always)]
+pub(crate) fn water_normal(x: f32, y: f32, t: f32) -> [f32; 3] {
+    // (direction (unit), wavenumber rad/m, slope amplitude, phase).
+    const WAVES: [([f32; 2], f32, f32, f32); 5] = [
+        ([0.96, 0.28], 2.1, 0.14, 0.3),
+        ([0.5, -0.87], 3.4, 0.11, 1.7),
+        ([-0.71, 0.71], 5.3, 0.09, 4.1),
+        ([0.17, 0.98], 8.9, 0.06, 2.6),
+        ([-0.94, -0.34], 13.7, 0.05, 5.5),
+    ];
+    let (mut gx, mut gy) = (0.0f32, 0.0f32);
+    for (dir, k, slope, phase) in WAVES {
+        let omega = (9.81 * k).sqrt();
+        let arg = k * (dir[0] * x + dir[1] * y) - omega * t + phase;
+        let c = arg.cos() * slope;
+        gx += c * dir[0];
+        gy += c * dir[1];
+    }
+    let n = (gx * gx + gy * gy + 1.0).sqrt();
+    [-gx / n, -gy / n, -1.0 / n]
+}
+
+impl World {
+    /// Paints an axis-aligned rectangle of brightness `value` centred at
+    /// ground point (x, y) with half sizes `half_x`, `half_y` metres (a
+    /// calibration target for tests).
+    pub fn paint_ground_rect(&mut self, x: f64, y: f64, half_x: f64, half_y: f64, value: f32) {
+        let tx = &mut self.textures;
+        let mut canvas = tx.ground.level0_canvas();
+        let s = tx.ground_inv_texel as f64;
+        let h = tx.ground_half_extent as f64;
+        let c = (((x + h) * s) as f32, ((y + h) * s) as f32);
+        canvas.rect(
+            c,
+            ((half_x * s) as f32, (half_y * s) as f32),
+            0.0,
+            value,
+            1.0,
+        );
         tx.ground = canvas.into_mip();
     }
 }
@@ -672,6 +908,7 @@ fn layout_boxes(rng: &mut StdRng, p: &WorldParams, roads: &[Road]) -> Vec<SceneB
             roof_offset: [rng.random_range(0.0..51.2), rng.random_range(0.0..51.2)],
             texture_scale: 1.0,
             albedo: rng.random_range(0.8..1.15),
+            local_texture: false,
         });
     }
     let mut placed = 0;
@@ -739,6 +976,7 @@ fn layout_boxes(rng: &mut StdRng, p: &WorldParams, roads: &[Road]) -> Vec<SceneB
                 _ => 1.5,
             },
             albedo: rng.random_range(0.6..1.3),
+            local_texture: false,
         });
         placed += 1;
     }
@@ -877,6 +1115,8 @@ fn make_textures(
             as f32,
         detail_b_rot: (rot.cos(), rot.sin()),
         detail_close_rot: (close_rot.cos(), close_rot.sin()),
+        foliage: (p.kind == WorldKind::Trees).then(|| foliage_texture(seed)),
+        foliage_inv_texel: FOLIAGE_TEXELS as f32 / FOLIAGE_TILE_M,
     }
 }
 
@@ -888,6 +1128,9 @@ fn ground_texture(
     sun: &Vector3<f64>,
     s: f32,
 ) -> MipTexture {
+    if !matches!(p.kind, WorldKind::Town | WorldKind::Traffic) {
+        return kind_ground_texture(seed, p, boxes, sun, s);
+    }
     let mut rng = StdRng::seed_from_u64(seed ^ 0x6E0D);
     let n = p.ground_texture_size;
     let h = (p.ground_extent_m * 0.5) as f32;
@@ -1049,7 +1292,8 @@ fn bake_shadows(
             for tx in tx0..tx1 {
                 let x = (tx as f64 + 0.5) / s as f64 - h as f64;
                 // Ray (x, y) + λ (dx, dy) for λ ∈ [0, ht]: does it cross the footprint?
-                let mut lo = 0.0f64;
+                // A box above the ground (a tree's crown) shades from its underside up.
+                let mut lo = if b.max.z < 0.0 { -b.max.z } else { 0.0 };
                 let mut hi = ht;
                 for (o, d, mn, mx) in [(x, dx, b.min.x, b.max.x), (y, dy, b.min.y, b.max.y)] {
                     if d.abs() < 1e-12 {
@@ -1250,6 +1494,482 @@ fn roof_texture(seed: u64, p: &WorldParams) -> MipTexture {
         c.line(a, b, w, rng.random_range(40.0..220.0), 1.0);
     }
     c.modulate_fbm(8, 8, 0.2, seed ^ 42);
+    c.into_mip()
+}
+
+/// Metres across one tile of the foliage texture (it repeats: foliage is
+/// repetitive).
+const FOLIAGE_TILE_M: f32 = 2.0;
+/// Texels across the foliage tile.
+const FOLIAGE_TEXELS: usize = 128;
+
+impl WorldKind {
+    /// The kind's own texture settings (the town keeps the parameters as
+    /// given): smooth surfaces carry less close-up detail.
+    fn adjust(self, p: &mut WorldParams) {
+        let detail = match self {
+            WorldKind::Town | WorldKind::Traffic | WorldKind::Aliasing => return,
+            WorldKind::Grass => 0.3,
+            WorldKind::Carpark => 0.35,
+            WorldKind::Trees => 0.5,
+            WorldKind::Water => 0.5,
+        };
+        p.detail_gain_a *= detail;
+        p.detail_gain_b *= detail;
+        p.detail_gain_close *= detail;
+    }
+}
+
+/// Layout of `params.kind`: roads, boxes, movers, water.
+fn layout_kind(
+    rng: &mut StdRng,
+    seed: u64,
+    p: &WorldParams,
+) -> (Vec<Road>, Vec<SceneBox>, Vec<Mover>, Vec<WaterBody>) {
+    match p.kind {
+        WorldKind::Town => {
+            let roads = layout_roads(rng, p);
+            let boxes = layout_boxes(rng, p, &roads);
+            (roads, boxes, Vec::new(), Vec::new())
+        }
+        WorldKind::Traffic => {
+            let roads = layout_roads(rng, p);
+            let boxes = layout_boxes(rng, p, &roads);
+            let movers = traffic_movers(seed, p, &roads, &boxes);
+            (roads, boxes, movers, Vec::new())
+        }
+        WorldKind::Grass => (Vec::new(), layout_grass(rng, p), Vec::new(), Vec::new()),
+        WorldKind::Carpark => {
+            let mut boxes = Vec::new();
+            carpark_cars(rng, p, &mut boxes, p.scene_radius_m, 0.7);
+            // Identical pay stations along the edge.
+            for k in 0..4 {
+                let y = -60.0 + 40.0 * k as f64;
+                boxes.push(identical_box(
+                    BoxKind::Kiosk,
+                    (p.scene_radius_m + 8.0, y),
+                    (3.0, 2.0, 2.6),
+                    1.5,
+                ));
+            }
+            (Vec::new(), boxes, Vec::new(), Vec::new())
+        }
+        WorldKind::Trees => (Vec::new(), layout_trees(rng, p), Vec::new(), Vec::new()),
+        WorldKind::Water => {
+            let water = vec![
+                WaterBody {
+                    min: [16.0, -160.0],
+                    max: [160.0, 160.0],
+                },
+                WaterBody {
+                    min: [-160.0, -160.0],
+                    max: [-16.0, 160.0],
+                },
+            ];
+            (Vec::new(), layout_shore(rng, p), Vec::new(), water)
+        }
+        WorldKind::Aliasing => {
+            let mut boxes = Vec::new();
+            // A grid of identical buildings, the centre left for the car park.
+            let pitch = 34.0;
+            for i in -3i32..=3 {
+                for j in -3i32..=3 {
+                    if i.abs() <= 1 && j.abs() <= 1 {
+                        continue;
+                    }
+                    let c = (i as f64 * pitch, j as f64 * pitch);
+                    if c.0.hypot(c.1) > p.scene_radius_m + 10.0 {
+                        continue;
+                    }
+                    boxes.push(identical_box(BoxKind::Building, c, (16.0, 12.0, 12.0), 1.0));
+                }
+            }
+            carpark_cars(rng, p, &mut boxes, 1.45 * pitch, 0.75);
+            (Vec::new(), boxes, Vec::new(), Vec::new())
+        }
+    }
+}
+
+/// A box of `size` (length along x, width along y, height) centred at
+/// `centre` whose look is the same wherever it stands.
+fn identical_box(kind: BoxKind, centre: (f64, f64), size: (f64, f64, f64), scale: f32) -> SceneBox {
+    SceneBox {
+        min: Vector3::new(centre.0 - size.0 * 0.5, centre.1 - size.1 * 0.5, -size.2),
+        max: Vector3::new(centre.0 + size.0 * 0.5, centre.1 + size.1 * 0.5, 0.0),
+        kind,
+        facade_offset: [17.0, 32.0],
+        roof_offset: [11.0, 23.0],
+        texture_scale: scale,
+        albedo: 1.0,
+        local_texture: true,
+    }
+}
+
+/// The car park's geometry: rows of stalls along y, with aisles.
+struct StallGrid {
+    /// Stall width (along y), m.
+    width: f64,
+    /// Stall depth (along x), m.
+    depth: f64,
+    /// Distance between the centres of two double rows, m.
+    pitch: f64,
+}
+
+const STALLS: StallGrid = StallGrid {
+    width: 2.5,
+    depth: 5.0,
+    pitch: 16.5,
+};
+
+/// Centres of the stalls within `radius` of home (outside the take-off
+/// area), and whether each faces +x.
+fn stall_centres(radius: f64) -> Vec<(f64, f64, bool)> {
+    let g = &STALLS;
+    let mut out = Vec::new();
+    let rows = (radius / g.pitch).ceil() as i32;
+    for r in -rows..=rows {
+        let x0 = r as f64 * g.pitch;
+        for side in [-1.0, 1.0] {
+            let x = x0 + side * g.depth * 0.5;
+            let n = (radius / g.width).ceil() as i32;
+            for k in -n..n {
+                let y = (k as f64 + 0.5) * g.width;
+                if x.hypot(y) <= radius && x.hypot(y) > 12.0 {
+                    out.push((x, y, side > 0.0));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Identical cars in a share of the stalls within `radius`.
+fn carpark_cars(
+    rng: &mut StdRng,
+    p: &WorldParams,
+    boxes: &mut Vec<SceneBox>,
+    radius: f64,
+    share: f64,
+) {
+    let _ = p;
+    for (x, y, _) in stall_centres(radius) {
+        if rng.random_bool(share) {
+            boxes.push(identical_box(BoxKind::Car, (x, y), (4.5, 1.8, 1.5), 2.5));
+        }
+    }
+}
+
+/// Open grass: a few sheds and hay bales far apart.
+fn layout_grass(rng: &mut StdRng, p: &WorldParams) -> Vec<SceneBox> {
+    let mut boxes = Vec::new();
+    for _ in 0..6 {
+        let r = p.scene_radius_m * (0.4 + 0.6 * rng.random::<f64>());
+        let a = rng.random_range(0.0..std::f64::consts::TAU);
+        let (l, w, h) = (
+            rng.random_range(1.5..4.0),
+            rng.random_range(1.5..3.0),
+            rng.random_range(1.2..2.8),
+        );
+        let (cx, cy) = (r * a.cos(), r * a.sin());
+        boxes.push(SceneBox {
+            min: Vector3::new(cx - l * 0.5, cy - w * 0.5, -h),
+            max: Vector3::new(cx + l * 0.5, cy + w * 0.5, 0.0),
+            kind: BoxKind::Kiosk,
+            facade_offset: [rng.random_range(0.0..128.0), rng.random_range(0.0..128.0)],
+            roof_offset: [rng.random_range(0.0..51.2), rng.random_range(0.0..51.2)],
+            texture_scale: 1.5,
+            albedo: rng.random_range(0.7..1.1),
+            local_texture: false,
+        });
+    }
+    boxes
+}
+
+/// An orchard-like wood: rows of trees 7 m apart (jittered), each a trunk
+/// and a crown of the same size.
+fn layout_trees(rng: &mut StdRng, p: &WorldParams) -> Vec<SceneBox> {
+    let mut boxes = Vec::new();
+    let pitch = 7.0;
+    let n = (p.scene_radius_m * 1.2 / pitch).ceil() as i32;
+    for i in -n..=n {
+        for j in -n..=n {
+            let (cx, cy) = (
+                i as f64 * pitch + rng.random_range(-1.0..1.0),
+                j as f64 * pitch + rng.random_range(-1.0..1.0),
+            );
+            let r = cx.hypot(cy);
+            if r < p.clear_radius_m || r > p.scene_radius_m * 1.2 {
+                continue;
+            }
+            let crown = 4.6;
+            let top = 8.0;
+            let bottom = 3.2;
+            boxes.push(SceneBox {
+                min: Vector3::new(cx - crown * 0.5, cy - crown * 0.5, -top),
+                max: Vector3::new(cx + crown * 0.5, cy + crown * 0.5, -bottom),
+                kind: BoxKind::Tree,
+                facade_offset: [0.0, 0.0],
+                roof_offset: [0.0, 0.0],
+                texture_scale: 1.0,
+                albedo: 1.0,
+                local_texture: true,
+            });
+            boxes.push(SceneBox {
+                min: Vector3::new(cx - 0.2, cy - 0.2, -bottom),
+                max: Vector3::new(cx + 0.2, cy + 0.2, 0.0),
+                kind: BoxKind::Kiosk,
+                facade_offset: [40.0, 5.0],
+                roof_offset: [0.0, 0.0],
+                texture_scale: 4.0,
+                albedo: 0.45,
+                local_texture: true,
+            });
+        }
+    }
+    boxes
+}
+
+/// Buildings along the strip of land between the lakes.
+fn layout_shore(rng: &mut StdRng, p: &WorldParams) -> Vec<SceneBox> {
+    let mut boxes = Vec::new();
+    let mut y = -p.scene_radius_m;
+    while y < p.scene_radius_m {
+        let w = rng.random_range(8.0..16.0);
+        if (y + w * 0.5).abs() > p.clear_radius_m + w * 0.5 {
+            let d = rng.random_range(6.0..10.0);
+            let h = rng.random_range(5.0..18.0);
+            let cx = rng.random_range(-1.0..1.0);
+            boxes.push(SceneBox {
+                min: Vector3::new(cx - d * 0.5, y, -h),
+                max: Vector3::new(cx + d * 0.5, y + w, 0.0),
+                kind: BoxKind::Building,
+                facade_offset: [
+                    rng.random_range(0.0..128.0),
+                    32.0 * rng.random_range(0..4) as f32,
+                ],
+                roof_offset: [rng.random_range(0.0..51.2), rng.random_range(0.0..51.2)],
+                texture_scale: 1.0,
+                albedo: rng.random_range(0.8..1.15),
+                local_texture: false,
+            });
+        }
+        y += w + rng.random_range(3.0..8.0);
+    }
+    boxes
+}
+
+/// The town's cars on roads drive: each along its road at 5-14 m/s (either
+/// way), wrapping around the stretch of road inside the ground texture.
+/// Seeded apart from the layout, so the town's layout is unchanged.
+fn traffic_movers(seed: u64, p: &WorldParams, roads: &[Road], boxes: &[SceneBox]) -> Vec<Mover> {
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x7AFF1C);
+    let lim = p.ground_extent_m * 0.5 - 4.0;
+    boxes
+        .iter()
+        .enumerate()
+        .filter(|(_, b)| b.kind == BoxKind::Car)
+        .filter_map(|(index, b)| {
+            let c = (b.min + b.max) * 0.5;
+            let road = roads.iter().find(|r| {
+                let across = if r.along_x { c.y } else { c.x };
+                (across - r.centre).abs() < r.width * 0.5
+            })?;
+            // Drive on the right: the lane's side sets the direction.
+            let across = if road.along_x { c.y } else { c.x };
+            let sign = if across > road.centre { 1.0 } else { -1.0 };
+            Some(Mover {
+                index,
+                along_x: road.along_x,
+                speed_m_s: sign * rng.random_range(5.0..14.0),
+                lo: -lim,
+                hi: lim,
+            })
+        })
+        .collect()
+}
+
+/// The ground of the kinds other than the town.
+fn kind_ground_texture(
+    seed: u64,
+    p: &WorldParams,
+    boxes: &[SceneBox],
+    sun: &Vector3<f64>,
+    s: f32,
+) -> MipTexture {
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x6E0D ^ (p.kind as u64) << 32);
+    let n = p.ground_texture_size;
+    let h = (p.ground_extent_m * 0.5) as f32;
+    let to_tex = |x: f64, y: f64| (((x as f32) + h) * s, ((y as f32) + h) * s);
+    let area = (p.ground_extent_m * p.ground_extent_m / 65536.0) as f32;
+    let mut c = match p.kind {
+        WorldKind::Carpark | WorldKind::Aliasing => {
+            let mut c = Canvas::new(n, 74.0);
+            c.add_fbm(8, 10, 10.0, 0.5, seed ^ 51);
+            // Oil stains and patches: faint.
+            dead_leaves(
+                &mut c,
+                &mut rng,
+                (3000.0 * area) as usize,
+                0.2 * s,
+                1.5 * s,
+                (55.0, 90.0),
+                (0.3, 0.6),
+            );
+            let radius = if p.kind == WorldKind::Carpark {
+                p.scene_radius_m
+            } else {
+                1.45 * 34.0
+            };
+            paint_stalls(&mut c, radius, &to_tex, s);
+            if p.kind == WorldKind::Aliasing {
+                // Pavements around the identical buildings.
+                for b in boxes.iter().filter(|b| b.kind == BoxKind::Building) {
+                    let cx = (b.min.x + b.max.x) * 0.5;
+                    let cy = (b.min.y + b.max.y) * 0.5;
+                    let half = (
+                        ((b.max.x - b.min.x) * 0.5 + 3.0) as f32 * s,
+                        ((b.max.y - b.min.y) * 0.5 + 3.0) as f32 * s,
+                    );
+                    c.rect(to_tex(cx, cy), half, 0.0, 160.0, 1.0);
+                }
+            }
+            c
+        }
+        WorldKind::Trees => {
+            // A repeating forest floor: one 2 m tile of leaf litter copied everywhere.
+            let tile = forest_floor_tile(seed, (2.0 * s) as usize);
+            let mut c = Canvas::new(n, 0.0);
+            let t = tile.size();
+            let data = c.data_mut();
+            for y in 0..n {
+                for x in 0..n {
+                    data[y * n + x] = tile.data()[(y % t) * t + x % t];
+                }
+            }
+            c.modulate_fbm(8, 4, 0.15, seed ^ 61);
+            c
+        }
+        WorldKind::Water => {
+            // The land between the lakes: grass and a paved promenade.
+            let mut c = grass_canvas(n, seed, &mut rng, s, area);
+            c.rect(to_tex(0.0, 0.0), (3.0 * s, h * s), 0.0, 150.0, 1.0);
+            c
+        }
+        // Grass (the town kinds never reach here).
+        _ => {
+            let mut c = grass_canvas(n, seed, &mut rng, s, area);
+            // A winding dirt path.
+            let mut pt = (-p.scene_radius_m, -20.0);
+            let mut heading: f64 = 0.2;
+            while pt.0 < p.scene_radius_m {
+                heading += rng.random_range(-0.25..0.25);
+                heading = heading.clamp(-0.8, 0.8);
+                let next = (pt.0 + 6.0 * heading.cos(), pt.1 + 6.0 * heading.sin());
+                c.line(
+                    to_tex(pt.0, pt.1),
+                    to_tex(next.0, next.1),
+                    1.2 * s,
+                    128.0,
+                    0.8,
+                );
+                pt = next;
+            }
+            c
+        }
+    };
+    bake_shadows(&mut c, p, boxes, sun, s, h);
+    c.into_mip()
+}
+
+/// Mown grass: low-contrast noise, mowing stripes 3 m wide, faint clover.
+fn grass_canvas(n: usize, seed: u64, rng: &mut StdRng, s: f32, area: f32) -> Canvas {
+    let mut c = Canvas::new(n, 100.0);
+    c.add_fbm(8, 10, 9.0, 0.5, seed ^ 71);
+    let stripe = (3.0 * s).max(1.0);
+    let nf = n as f32;
+    let mut x = 0.0;
+    let mut light = true;
+    while x < nf {
+        c.rect(
+            (x + stripe * 0.5, nf * 0.5),
+            (stripe * 0.5, nf * 0.5),
+            0.0,
+            if light { 106.0 } else { 96.0 },
+            0.6,
+        );
+        light = !light;
+        x += stripe;
+    }
+    dead_leaves(
+        &mut c,
+        rng,
+        (4000.0 * area) as usize,
+        0.05 * s,
+        0.3 * s,
+        (92.0, 118.0),
+        (0.3, 0.6),
+    );
+    c.modulate_fbm(16, 6, 0.05, seed ^ 72);
+    c
+}
+
+/// Stall lines of the car park within `radius` of home.
+fn paint_stalls(c: &mut Canvas, radius: f64, to_tex: &dyn Fn(f64, f64) -> (f32, f32), s: f32) {
+    let g = &STALLS;
+    let line = 0.12 * s;
+    for (x, y, _) in stall_centres(radius) {
+        // The two side lines of the stall and its end line.
+        let (x0, x1) = (x - g.depth * 0.5, x + g.depth * 0.5);
+        for yy in [y - g.width * 0.5, y + g.width * 0.5] {
+            c.line(to_tex(x0, yy), to_tex(x1, yy), line, 225.0, 0.95);
+        }
+    }
+    // The aisle centre lines (dashed).
+    let rows = (radius / g.pitch).ceil() as i32;
+    for r in -rows..=rows {
+        let x = (r as f64 + 0.5) * g.pitch;
+        let mut y = -radius;
+        while y < radius {
+            c.line(to_tex(x, y), to_tex(x, y + 2.0), line, 210.0, 0.9);
+            y += 5.0;
+        }
+    }
+}
+
+/// A tile of leaf litter `texels` across.
+fn forest_floor_tile(seed: u64, texels: usize) -> Canvas {
+    let mut rng = StdRng::seed_from_u64(seed ^ 0xF10);
+    let n = texels.max(8).next_power_of_two();
+    let mut c = Canvas::new(n, 70.0);
+    c.add_fbm(4, 6, 12.0, 0.6, seed ^ 0xF11);
+    dead_leaves(
+        &mut c,
+        &mut rng,
+        n * n / 24,
+        1.0,
+        n as f32 / 6.0,
+        (35.0, 140.0),
+        (0.6, 1.0),
+    );
+    c
+}
+
+/// The repeating foliage of the trees: leaves 4-20 cm on a 2 m tile.
+fn foliage_texture(seed: u64) -> MipTexture {
+    let mut rng = StdRng::seed_from_u64(seed ^ 0xF0_11A6E);
+    let n = FOLIAGE_TEXELS;
+    let s = n as f32 / FOLIAGE_TILE_M;
+    let mut c = Canvas::new(n, 60.0);
+    c.add_fbm(4, 5, 15.0, 0.6, seed ^ 0xF12);
+    dead_leaves(
+        &mut c,
+        &mut rng,
+        n * n / 6,
+        0.04 * s,
+        0.2 * s,
+        (30.0, 150.0),
+        (0.7, 1.0),
+    );
     c.into_mip()
 }
 

@@ -62,6 +62,25 @@ pub struct SlamStatus {
     pub fps: f64,
     /// Where the map came from at start (None before the SLAM started).
     pub map_start: Option<MapStart>,
+    /// The map file last written (a checkpoint, or at shutdown).
+    pub map_saved: Option<MapSaved>,
+}
+
+/// The last map file written.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MapSaved {
+    /// `checkpoint` or `shutdown`.
+    pub reason: String,
+    /// Keyframes in it.
+    pub keyframes: usize,
+    /// Map points in it.
+    pub points: usize,
+    /// File size, bytes.
+    pub bytes: u64,
+    /// Pairs in the georeference written beside it (None: none written).
+    pub geo_pairs: Option<usize>,
+    /// When it was written, unix seconds.
+    pub at_unix: f64,
 }
 
 /// Where the SLAM's map came from when the daemon started.
@@ -98,6 +117,22 @@ pub struct KeyframeInfo {
     pub height: u32,
 }
 
+/// The newest tracked frame, placed relative to its reference keyframe (so
+/// that it moves with it when bundle adjustment moves the keyframe): the
+/// georeference pairs such frames with telemetry.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackedFrame {
+    /// Ingest sequence number.
+    pub seq: u64,
+    /// Capture time, seconds (the keyframes' clock).
+    pub timestamp: f64,
+    /// The reference keyframe.
+    pub reference_kf: u64,
+    /// `cam ← ref_cam`: the frame's camera relative to the reference
+    /// keyframe's.
+    pub cam_from_ref: nalgebra::Isometry3<f64>,
+}
+
 /// The map for the top view.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct MapView {
@@ -125,6 +160,10 @@ pub trait SlamView: Send + Sync {
     fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>>;
     /// The map, with at most `max_points` points.
     fn map(&self, max_points: usize) -> MapView;
+    /// The newest tracked frame (None: none yet, or no SLAM).
+    fn last_tracked(&self) -> Option<TrackedFrame> {
+        None
+    }
 }
 
 /// Errors of vehicle actions, each with its HTTP status.
@@ -325,6 +364,7 @@ fn anchor_refusal(e: &crate::shot::ShotError) -> serde_json::Map<String, Value> 
     let (reason, anchor) = match e {
         R::NonFiniteAnchor { index } => ("non_finite", Some(*index)),
         R::AnchorOutOfBounds { index, .. } => ("out_of_bounds", Some(*index)),
+        R::Crossed { .. } => ("crossed", None),
         R::Collapsed { .. } => ("collapsed", None),
         R::MirroredWinding => ("mirrored", None),
         R::NotConvex { vertex } => ("not_convex", Some(*vertex)),
@@ -351,15 +391,24 @@ impl From<VehicleError> for ApiError {
     }
 }
 
-impl From<BytesRejection> for ApiError {
-    fn from(r: BytesRejection) -> Self {
-        let status = r.status();
-        let code = if status == StatusCode::PAYLOAD_TOO_LARGE {
-            "body_too_large"
-        } else {
-            "bad_body"
-        };
-        Self::new(status, code, r.body_text())
+/// A request body that could not be read: 413 names the limit (and the
+/// setting that raises it), anything else is a 400-class `bad_body`.
+fn body_rejection(r: BytesRejection, limit: usize) -> ApiError {
+    let status = r.status();
+    if status == StatusCode::PAYLOAD_TOO_LARGE {
+        let mut detail = serde_json::Map::new();
+        detail.insert("limit_bytes".into(), limit.into());
+        ApiError::new(
+            status,
+            "body_too_large",
+            format!(
+                "the request body is larger than the limit of {limit} bytes ({:.1} MiB; [server] body_limit_bytes)",
+                limit as f64 / (1u64 << 20) as f64
+            ),
+        )
+        .with_detail(detail)
+    } else {
+        ApiError::new(status, "bad_body", r.body_text())
     }
 }
 
@@ -752,7 +801,7 @@ async fn create_shot(
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
-    let body = body?;
+    let body = body.map_err(|r| body_rejection(r, st.params.body_limit))?;
     if let Some(ct) = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -842,7 +891,7 @@ async fn create_shot_from_photo(
     query: Result<Query<PhotoQuery>, axum::extract::rejection::QueryRejection>,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
-    let body = body?;
+    let body = body.map_err(|r| body_rejection(r, st.params.body_limit))?;
     let intrinsics = query
         .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_intrinsics", e.body_text()))?
         .0
@@ -861,6 +910,12 @@ async fn create_shot_from_photo(
     let bytes = body.len();
     let computer = st.shots.clone();
     let (comp, w, h) = tokio::task::spawn_blocking(move || {
+        // A JPEG cut short decodes to a picture grey below the cut: refused.
+        if body.starts_with(&[0xFF, 0xD8])
+            && let Some(reason) = shots::jpeg_truncation(&body)
+        {
+            return Err(ShotError::BadImage { reason });
+        }
         let img = image::load_from_memory(&body).map_err(|e| ShotError::BadImage {
             reason: format!("not a readable image: {e}"),
         })?;

@@ -104,6 +104,65 @@ impl PhotoIntrinsics {
     }
 }
 
+/// Why a JPEG is not whole, if it is not: walks the segments from SOI
+/// (skipping each marker segment by its length, so an EXIF thumbnail's
+/// own end marker is not mistaken for the image's) and the entropy-coded
+/// data of every scan, and wants the end-of-image marker before the bytes
+/// run out. A file cut short in transfer decodes to a picture whose lower
+/// part is grey, which would be localised as if it were the scene.
+pub fn jpeg_truncation(bytes: &[u8]) -> Option<String> {
+    let n = bytes.len();
+    if n < 2 || bytes[0] != 0xFF || bytes[1] != 0xD8 {
+        return Some("no JPEG start-of-image marker".into());
+    }
+    let cut = |at: usize, what: &str| {
+        Some(format!(
+            "the JPEG is truncated: {what} at byte {at} of {n}, no end-of-image marker"
+        ))
+    };
+    let mut i = 2;
+    loop {
+        // Fill bytes (0xFF) may precede a marker.
+        while i < n && bytes[i] == 0xFF && i + 1 < n && bytes[i + 1] == 0xFF {
+            i += 1;
+        }
+        if i + 1 >= n {
+            return cut(i, "the data ends between segments");
+        }
+        if bytes[i] != 0xFF {
+            return Some(format!("the JPEG is damaged: no marker at byte {i} of {n}"));
+        }
+        let marker = bytes[i + 1];
+        i += 2;
+        match marker {
+            0xD9 => return None,
+            0x01 | 0xD0..=0xD7 => continue,
+            _ => {}
+        }
+        if i + 2 > n {
+            return cut(i, "a segment header is cut");
+        }
+        let len = usize::from(u16::from_be_bytes([bytes[i], bytes[i + 1]]));
+        if len < 2 || i + len > n {
+            return cut(i, "a segment is cut");
+        }
+        i += len;
+        if marker == 0xDA {
+            // Entropy-coded data up to the next marker that is neither a
+            // stuffed zero nor a restart marker.
+            loop {
+                if i + 1 >= n {
+                    return cut(n, "the scan data ends");
+                }
+                if bytes[i] == 0xFF && !matches!(bytes[i + 1], 0x00 | 0xD0..=0xD7 | 0xFF) {
+                    break;
+                }
+                i += 1;
+            }
+        }
+    }
+}
+
 /// What a shot computation produces.
 #[derive(Debug, Clone)]
 pub struct ShotComputation {
@@ -353,12 +412,32 @@ mod tests {
         let mirrored = [SQ[1], SQ[0], SQ[3], SQ[2]];
         assert_eq!(refusal(mirrored), Refusal::MirroredWinding);
         let bowtie = [SQ[0], SQ[1], SQ[3], SQ[2]];
-        assert!(matches!(
-            refusal(bowtie),
-            Refusal::NotConvex { .. } | Refusal::Collapsed { .. }
-        ));
+        assert!(matches!(refusal(bowtie), Refusal::Crossed { .. }));
         let dart = [[0.0, 0.0], [300.0, 0.0], [100.0, 80.0], [0.0, 230.0]];
         assert_eq!(refusal(dart), Refusal::NotConvex { vertex: 2 });
+    }
+
+    #[test]
+    fn a_truncated_jpeg_is_told_from_a_whole_one() {
+        let img = GrayImage::from_fn(96, 64, |x, y| Luma([((x * 5 + y * 11) % 253) as u8]));
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
+            .encode_image(&img)
+            .unwrap();
+        assert_eq!(jpeg_truncation(&jpeg), None);
+        // Trailing bytes after the end marker (some cameras append data).
+        let mut trailer = jpeg.clone();
+        trailer.extend_from_slice(b"trailer");
+        assert_eq!(jpeg_truncation(&trailer), None);
+        // Every cut, in the headers or in the scan, is found.
+        for keep in [3, 10, 100, jpeg.len() / 2, jpeg.len() - 2, jpeg.len() - 1] {
+            let r = jpeg_truncation(&jpeg[..keep]);
+            assert!(
+                r.as_deref().is_some_and(|m| m.contains("truncated")),
+                "{keep}: {r:?}"
+            );
+        }
+        assert!(jpeg_truncation(b"\x89PNG").is_some());
     }
 
     #[test]

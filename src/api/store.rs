@@ -114,7 +114,11 @@ pub struct Localisation {
 /// A shot's mission on the vehicle.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MissionRecord {
-    /// `uploaded`, `started`.
+    /// `uploaded`, `started` (this session's actions), and as read back
+    /// from the vehicle at start and at every reconnection (see
+    /// `crate::daemon::reconcile`): `active`, `uploaded`, `finished`,
+    /// `on_vehicle`, `replaced`, `cleared`, `unknown`; `details.vehicle`
+    /// says why.
     pub state: String,
     /// Mission items uploaded.
     pub items: usize,

@@ -28,7 +28,8 @@ pub struct FeaturesArgs {
 
 /// Times the extraction on every frame and prints the summary.
 pub fn run(args: FeaturesArgs) -> Result<()> {
-    use shotpilot::features::{OrbExtractor, Params, eval as feval};
+    use shotpilot::features::{OrbExtractor, Params};
+    use shotpilot::features_eval as feval;
     let ds = shotpilot::video::dataset::Dataset::open(&args.dataset)
         .with_context(|| format!("opening {}", args.dataset.display()))?;
     let frames = ds

@@ -21,7 +21,8 @@ pub enum MissionCommand {
     Upload(UploadArgs),
     /// Download the vehicle's mission.
     Download(LinkArgs),
-    /// Plan a mission offline and export it as a QGroundControl `.plan` file.
+    /// Plan a mission offline (no vehicle: `--home` is required) and export
+    /// it as a QGroundControl `.plan` file.
     Plan(PlanArgs),
     /// Operator action: (optionally arm, then) start the uploaded mission.
     Start(StartArgs),
@@ -67,10 +68,6 @@ pub struct TargetArgs {
     /// Take a photo on arrival.
     #[arg(long)]
     pub photo: bool,
-    /// Home (latitude, longitude, altitude AMSL) for the geofence. Default:
-    /// the vehicle's HOME_POSITION (required for `mission plan`).
-    #[arg(long, value_name = "LAT,LON,ALT_AMSL", allow_hyphen_values = true)]
-    pub home: Option<String>,
 }
 
 /// Arguments of `shotpilot mission upload`.
@@ -80,6 +77,10 @@ pub struct UploadArgs {
     pub link: LinkArgs,
     #[command(flatten)]
     pub target: TargetArgs,
+    /// Home (latitude, longitude, altitude AMSL) for the geofence and the
+    /// relative altitudes. Default: the vehicle's HOME_POSITION.
+    #[arg(long, value_name = "LAT,LON,ALT_AMSL", allow_hyphen_values = true)]
+    pub home: Option<String>,
     /// Which autopilot's items to plan.
     #[arg(long, value_enum, default_value = "auto")]
     pub flavour: FlavourArg,
@@ -93,6 +94,10 @@ pub struct UploadArgs {
 pub struct PlanArgs {
     #[command(flatten)]
     pub target: TargetArgs,
+    /// Home (latitude, longitude, altitude AMSL) for the geofence and the
+    /// relative altitudes. Required: offline there is no vehicle to ask.
+    #[arg(long, value_name = "LAT,LON,ALT_AMSL", allow_hyphen_values = true)]
+    pub home: String,
     /// Which autopilot's items to plan (`auto` means PX4 offline).
     #[arg(long, value_enum, default_value = "px4")]
     pub flavour: FlavourArg,
@@ -159,24 +164,18 @@ fn target(args: &TargetArgs) -> Result<Target> {
     })
 }
 
-fn home_arg(args: &TargetArgs) -> Result<Option<Home>> {
-    args.home
-        .as_deref()
-        .map(|h| {
-            let v = numbers(h, 3, "--home")?;
-            Ok(Home {
-                lat_deg: v[0],
-                lon_deg: v[1],
-                alt_amsl_m: v[2],
-            })
-        })
-        .transpose()
+fn home_arg(text: &str) -> Result<Home> {
+    let v = numbers(text, 3, "--home")?;
+    Ok(Home {
+        lat_deg: v[0],
+        lon_deg: v[1],
+        alt_amsl_m: v[2],
+    })
 }
 
 fn cmd_plan(args: PlanArgs, config: &Config) -> Result<()> {
     let t = target(&args.target)?;
-    let home = home_arg(&args.target)?
-        .ok_or_else(|| anyhow!("`mission plan` needs --home LAT,LON,ALT_AMSL"))?;
+    let home = home_arg(&args.home)?;
     let flavour = match args.flavour {
         FlavourArg::Ardupilot => Flavour::ArduPilot,
         FlavourArg::Px4 | FlavourArg::Auto => Flavour::Px4,
@@ -232,7 +231,7 @@ async fn cmd_upload(args: UploadArgs, config: &Config) -> Result<()> {
             )
         })?,
     };
-    let home = match home_arg(&args.target)? {
+    let home = match args.home.as_deref().map(home_arg).transpose()? {
         Some(h) => h,
         None => {
             let mut rx = link.telemetry.home.clone();

@@ -2,7 +2,7 @@
 //! ([`shotpilot::refine::scenario`]): explore, then per trial a desired shot
 //! from a hidden pose, localised, planned, uploaded, flown and refined.
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 
 use shotpilot::refine::scenario::{self, ScenarioParams, TrialReport};
@@ -35,6 +35,12 @@ pub struct ScenarioArgs {
     /// says and the camera exactly as mounted.
     #[arg(long)]
     pub no_disturbances: bool,
+    /// Realism of the simulator: `ideal` (the clean world), `field` (a
+    /// calm day, a SIYI-class camera) or `harsh` (gusty evening), then any
+    /// `-EFFECT` (off) or `+EFFECT[@PRESET]` (on), e.g. `field-blur`; see
+    /// `shotpilot-sim --help`.
+    #[arg(long, default_value = "ideal", value_name = "PRESET")]
+    pub realism: String,
     /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -58,6 +64,10 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     params.refine.controller.threshold_pct = args.threshold_pct;
     params.refine.controller.max_rounds = args.max_rounds;
     params.anchor_every = args.anchor_every;
+    params.realism = args
+        .realism
+        .parse()
+        .with_context(|| format!("--realism {:?}", args.realism))?;
     if args.no_disturbances {
         params.disturbances = scenario::Disturbances::none();
     }

@@ -247,11 +247,33 @@ pub fn run(args: SlamArgs) -> Result<()> {
             );
             return Ok(());
         }
+        // The counts of the first line and of the ATE line are the same
+        // numbers: frames with a pose in the trajectory (tracked as they
+        // came, plus the first frame of the initialisation, posed after the
+        // fact, minus frames whose reference keyframe is gone) and the
+        // keyframes of the map.
+        let posed = traj.len();
+        let at_init = run
+            .records
+            .iter()
+            .filter(|r| run.initialized_at.is_some_and(|i| r.index < i))
+            .count();
+        let unposed = run.records.len().saturating_sub(posed);
+        let mut why = vec![format!("{tracked} tracked")];
+        if at_init > 0 {
+            why.push(format!("+ {at_init} posed at initialisation"));
+        }
+        if unposed > 0 {
+            why.push(format!("- {unposed} whose reference keyframe is gone"));
+        }
+        let other = posed as i64 - (tracked + at_init) as i64 + unposed as i64;
+        if other != 0 {
+            why.push(format!("{other:+} other"));
+        }
         println!(
-            "{n} frames: initialised at frame {}, {} tracked ({} counted while tracking, {lost_frames} lost), {} keyframes, {} map points, {wall_s:.2} s",
+            "{n} frames: initialised at frame {}, {posed} frames posed ({}), {lost_frames} lost, {} keyframes, {} map points, {wall_s:.2} s",
             run.initialized_at.unwrap_or(0),
-            traj.len(),
-            tracked,
+            why.join(" "),
             run.map.keyframe_count(),
             run.map.point_count()
         );
@@ -268,8 +290,14 @@ pub fn run(args: SlamArgs) -> Result<()> {
         );
         match (&ate, &ate_kf) {
             (Some(a), Some(k)) => println!(
-                "ATE (Sim(3)) all frames rmse {:.4} m max {:.4} m ({} matched) | keyframes rmse {:.4} m ({} matched)",
-                a.ate.rmse, a.ate.max, a.matched, k.ate.rmse, k.matched
+                "ATE (Sim(3)) all frames rmse {:.4} m max {:.4} m ({} of the {posed} posed frames matched the ground truth within {} s) | keyframes rmse {:.4} m ({} of the {} keyframes matched)",
+                a.ate.rmse,
+                a.ate.max,
+                a.matched,
+                args.max_dt,
+                k.ate.rmse,
+                k.matched,
+                kf_traj.len()
             ),
             _ if gt.is_some() => println!("ATE: too few poses matched the ground truth"),
             _ => {}

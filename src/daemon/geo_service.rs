@@ -3,6 +3,19 @@
 //! keyframes arrive, move (bundle adjustment) or go (culling); the API reads
 //! its state and turns a localised shot's camera pose into a vehicle target.
 //!
+//! Across restarts: the telemetry side of every pair is saved beside the
+//! map ([`GeoService::saved`], `<map_file>.geo.json`, written with each map
+//! checkpoint and at shutdown) and restored onto the continued map's
+//! keyframes ([`GeoService::restore`]), so the map is georeferenced as soon
+//! as it is loaded. Tracked frames pair with live telemetry too (one per
+//! [`ContinuityParams::frame_pair_spacing_s`], hung on their reference
+//! keyframe), so live evidence comes in while the drone flies over mapped
+//! ground and adds no keyframe; once enough of it is in, the saved pairs
+//! are checked against it and dropped, with the reason in the status, when
+//! they disagree beyond their own residuals (the fit is then made from
+//! live pairs alone). A saved file whose home differs from the vehicle's
+//! HOME_POSITION is carried to the new home exactly.
+//!
 //! Clocks: frames are timed by [`crate::geo::capture_time`] (the frame's
 //! `X-Timestamp` when used, else receive time minus the configured video
 //! latency), and the SLAM stamps its keyframes with that time. Telemetry is
@@ -18,10 +31,14 @@ use nalgebra::Isometry3;
 use serde_json::{Value, json};
 use tokio_util::sync::CancellationToken;
 
-use crate::api::{KeyframeInfo, SlamView};
+use crate::api::{KeyframeInfo, SlamView, TrackedFrame};
+use crate::geo::align::fit_pairs;
+use crate::geo::saved::{
+    PairKind, SAVED_FORMAT, SavedFit, SavedGeoreference, SavedPair, SavedPose,
+};
 use crate::geo::{
-    Geo, GeoAlignment, GeoError, GeoTarget, Geodetic, GimbalAngles, KeyframeStatus, Params,
-    TelemetryClock,
+    ContinuityParams, Geo, GeoAlignment, GeoError, GeoTarget, Geodetic, GimbalAngles,
+    KeyframeStatus, LocalFrame, Params, TelemetryClock,
 };
 use crate::vehicle::{Attitude, GimbalAttitude, GlobalPosition, HomePosition, Stamped, Telemetry};
 use crate::video::live::{Frame, unix_now};
@@ -31,6 +48,9 @@ use crate::video::live::{Frame, unix_now};
 const SYNC_PERIOD: Duration = Duration::from_millis(500);
 /// Frames in the video-delay median.
 const DELAY_WINDOW: usize = 100;
+/// Frame pairs' ids: this bit set, the capture time in milliseconds below
+/// (keyframe ids are small; a frame's capture time names it across runs).
+pub const FRAME_PAIR_BIT: u64 = 1 << 63;
 
 /// Maps the autopilot's boot time to the local (unix) clock: the offset is
 /// the smallest `receive - boot` seen, i.e. the fastest delivery; a boot
@@ -64,7 +84,58 @@ struct Counts {
     keyframes_refused: u64,
     keyframes_moved: u64,
     keyframes_removed: u64,
+    frame_pairs_added: u64,
+    frame_pairs_refused: u64,
     fits: u64,
+}
+
+/// What a pair's map side hangs from.
+#[derive(Debug, Clone, Copy)]
+struct Anchor {
+    kind: PairKind,
+    kf: u64,
+    kf_time: f64,
+    cam_from_kf: Isometry3<f64>,
+}
+
+/// The saved georeference of the previous run, while it is restored.
+#[derive(Debug, Clone)]
+struct Restore {
+    /// The home the waiting pairs are expressed in.
+    home: Geodetic,
+    /// Pairs not restored yet (their keyframes not seen yet).
+    waiting: Vec<SavedPair>,
+    loaded: usize,
+    restored: usize,
+    unmatched: usize,
+    saved_unix: f64,
+    file_fit: Option<SavedFit>,
+    /// Why the saved pairs were dropped, if they were.
+    dropped: Option<String>,
+    /// How far the vehicle's home is from the saved one, metres.
+    home_moved_m: Option<f64>,
+}
+
+/// The saved pairs checked against live ones.
+#[derive(Debug, Clone, serde::Serialize)]
+#[serde(tag = "state", rename_all = "snake_case")]
+enum Check {
+    /// Not enough live pairs yet.
+    Waiting { live_pairs: usize, needed: usize },
+    /// The saved pairs alone give no fit.
+    Unfitted { reason: String },
+    /// The live pairs agree with the saved georeference.
+    Agrees {
+        live_pairs: usize,
+        median_residual_m: f64,
+        bound_m: f64,
+    },
+    /// They do not: the saved pairs were dropped.
+    Disagrees {
+        live_pairs: usize,
+        median_residual_m: f64,
+        bound_m: f64,
+    },
 }
 
 struct State {
@@ -80,6 +151,21 @@ struct State {
     video_delay_ms: VecDeque<f64>,
     /// Sum and count of every frame's delay (the whole run's mean).
     video_delay_sum_ms: (f64, u64),
+    /// Every pair (held or waiting for telemetry) by id: what its map side
+    /// hangs from.
+    anchors: HashMap<u64, Anchor>,
+    /// Live frame pairs, oldest first.
+    frame_pairs: VecDeque<u64>,
+    /// Capture time of the newest frame pair.
+    last_frame_pair_t: f64,
+    /// Pairs restored from the saved georeference (held).
+    restored: HashSet<u64>,
+    /// The saved georeference being restored.
+    restore: Option<Restore>,
+    /// The saved pairs checked against the live ones.
+    check: Option<Check>,
+    /// Refit at the next sync even if no pair changed.
+    force_fit: bool,
 }
 
 /// The georeference the daemon keeps, shared by its worker and the API.
@@ -113,9 +199,106 @@ impl GeoService {
                 counts: Counts::default(),
                 video_delay_ms: VecDeque::new(),
                 video_delay_sum_ms: (0.0, 0),
+                anchors: HashMap::new(),
+                frame_pairs: VecDeque::new(),
+                last_frame_pair_t: f64::NEG_INFINITY,
+                restored: HashSet::new(),
+                restore: None,
+                check: None,
+                force_fit: false,
             }),
             params,
         }
+    }
+
+    /// Takes the georeference saved by the previous run: its pairs are
+    /// restored onto the continued map's keyframes as they appear (by id
+    /// and capture time), or dropped when the map was not continued. A
+    /// file of another format, or without pairs, is ignored (logged).
+    pub fn restore(&self, saved: SavedGeoreference) {
+        if saved.format != SAVED_FORMAT {
+            tracing::warn!(
+                format = saved.format,
+                "geo: saved georeference of another format ignored"
+            );
+            return;
+        }
+        if !saved.home.is_valid() {
+            tracing::warn!("geo: saved georeference with an invalid home ignored");
+            return;
+        }
+        let mut st = self.lock();
+        let n = saved.pairs.len();
+        tracing::info!(
+            pairs = n,
+            rms_m = saved.fit.map(|f| f.rms_m),
+            "geo: saved georeference loaded; its pairs wait for the map"
+        );
+        let mut restore = Restore {
+            home: saved.home,
+            waiting: saved.pairs,
+            loaded: n,
+            restored: 0,
+            unmatched: 0,
+            saved_unix: saved.saved_unix,
+            file_fit: saved.fit,
+            dropped: None,
+            home_moved_m: None,
+        };
+        if let Some(h) = st.home {
+            rebase_restore(&mut restore, home_geodetic(&h));
+        }
+        st.restore = Some(restore);
+    }
+
+    /// The georeference to save beside the map: every pair held (keyframe
+    /// and frame pairs, restored or live) with its anchor, and the saved
+    /// pairs still waiting for their keyframes. None before any home is
+    /// known (no pair can exist then).
+    pub fn saved(&self) -> Option<SavedGeoreference> {
+        let st = self.lock();
+        let home = st
+            .home
+            .map(|h| home_geodetic(&h))
+            .or(st.restore.as_ref().map(|r| r.home))?;
+        let mut pairs = Vec::new();
+        for p in st.geo.georeference().pairs() {
+            let (Some(a), Some((_, ned_rot))) = (st.anchors.get(&p.kf_id), p.orientations) else {
+                continue;
+            };
+            pairs.push(SavedPair {
+                id: p.kf_id,
+                kind: a.kind,
+                anchor_kf: a.kf,
+                anchor_time: a.kf_time,
+                cam_from_anchor: SavedPose::from_isometry(&a.cam_from_kf),
+                time: p.time,
+                ned_from_cam: SavedPose::from_isometry(&Isometry3::from_parts(
+                    p.p_ned.coords.into(),
+                    ned_rot,
+                )),
+                v_ned: p.v_ned.map(Into::into),
+            });
+        }
+        if let Some(r) = &st.restore {
+            pairs.extend(r.waiting.iter().copied());
+        }
+        let fit = match &st.fit {
+            Some(Ok(a)) => Some(SavedFit {
+                scale: a.ned_from_map.scale,
+                rms_m: a.quality.rms_m,
+                inliers: a.quality.inliers,
+                pairs: a.quality.pairs,
+            }),
+            _ => None,
+        };
+        Some(SavedGeoreference {
+            format: SAVED_FORMAT,
+            saved_unix: unix_now(),
+            home,
+            pairs,
+            fit,
+        })
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -157,9 +340,55 @@ impl GeoService {
                     "geo: home"
                 );
                 st.home = Some(h);
+                self.carry_restored_to(&mut st, g);
             }
             Err(e) => tracing::warn!("geo: home refused: {e}"),
         }
+    }
+
+    /// The vehicle's home is `home`: saved pairs expressed at another home
+    /// (waiting or already restored) are carried to it.
+    fn carry_restored_to(&self, st: &mut State, home: Geodetic) {
+        let Some(r) = st.restore.as_mut() else {
+            return;
+        };
+        let from = LocalFrame::new(r.home);
+        let moved = rebase_restore(r, home);
+        if moved == 0.0 {
+            return;
+        }
+        let to = LocalFrame::new(home);
+        let to_from = to.ned_from_other(&from);
+        let ids: Vec<u64> = st.restored.iter().copied().collect();
+        for id in ids {
+            let Some(p) = st
+                .geo
+                .georeference()
+                .pairs()
+                .iter()
+                .find(|p| p.kf_id == id)
+                .copied()
+            else {
+                continue;
+            };
+            let Some((map_rot, ned_rot)) = p.orientations else {
+                continue;
+            };
+            let map_from_cam = Isometry3::from_parts(p.p_map.coords.into(), map_rot);
+            let ned = to_from * Isometry3::from_parts(p.p_ned.coords.into(), ned_rot);
+            let v = p.v_ned.map(|v| to_from.rotation * v);
+            if let Err(e) = st.geo.add_known(id, &map_from_cam, &ned, v, p.time) {
+                tracing::warn!(
+                    pair = id,
+                    "geo: restored pair not carried to the new home: {e}"
+                );
+            }
+        }
+        st.force_fit = true;
+        tracing::info!(
+            moved_m = moved,
+            "geo: the vehicle's home differs from the saved one; saved pairs carried to it"
+        );
     }
 
     /// GLOBAL_POSITION_INT (needs home).
@@ -237,15 +466,39 @@ impl GeoService {
         }
     }
 
-    /// Compares the SLAM's keyframes with those fed before: new ones are
-    /// paired with telemetry (or wait for it), moved ones take their new
-    /// map pose, culled ones are forgotten; then the waiting ones are
-    /// retried and the alignment refitted when anything changed.
+    /// Compares the SLAM's keyframes with those fed before (see
+    /// [`Self::sync`]), without a tracked frame or a decision about the
+    /// saved georeference.
     pub fn sync_keyframes(&self, keyframes: &[KeyframeInfo]) {
+        self.sync(keyframes, None, None);
+    }
+
+    /// One round of the worker: the saved pairs are restored onto the
+    /// keyframes once the map is known to be continued (`continued`:
+    /// Some(true); Some(false) drops them; None waits); new keyframes are
+    /// paired with telemetry (or wait for it), moved ones take their new map
+    /// pose (and so do the frame pairs hung on them), culled ones are
+    /// forgotten; `frame` becomes a frame pair when the last one is old
+    /// enough; the waiting pairs are retried; the saved pairs are checked
+    /// against the live ones; and the alignment is refitted when anything
+    /// changed.
+    pub fn sync(
+        &self,
+        keyframes: &[KeyframeInfo],
+        frame: Option<TrackedFrame>,
+        continued: Option<bool>,
+    ) {
         let mut st = self.lock();
         let st = &mut *st;
-        let mut changed = false;
+        let cp = &self.params.continuity;
+        let mut changed = std::mem::take(&mut st.force_fit);
+        let poses: HashMap<u64, (f64, Isometry3<f64>)> = keyframes
+            .iter()
+            .filter_map(|k| Some((k.id, (k.timestamp, k.world_from_cam.to_isometry()?))))
+            .collect();
+        changed |= restore_pairs(st, &poses, continued);
         let mut seen = HashSet::with_capacity(keyframes.len());
+        let mut moved_kfs = HashSet::new();
         for kf in keyframes {
             seen.insert(kf.id);
             let Some(pose) = kf.world_from_cam.to_isometry() else {
@@ -256,8 +509,18 @@ impl GeoService {
                 None => {
                     st.counts.keyframes_seen += 1;
                     match st.geo.add_keyframe(kf.id, &pose, kf.timestamp) {
-                        Ok(KeyframeStatus::Paired) => changed = true,
-                        Ok(KeyframeStatus::Pending) => {}
+                        Ok(status) => {
+                            changed |= status == KeyframeStatus::Paired;
+                            st.anchors.insert(
+                                kf.id,
+                                Anchor {
+                                    kind: PairKind::Keyframe,
+                                    kf: kf.id,
+                                    kf_time: kf.timestamp,
+                                    cam_from_kf: Isometry3::identity(),
+                                },
+                            );
+                        }
                         Err(e) => {
                             st.counts.keyframes_refused += 1;
                             tracing::debug!(kf = kf.id, "geo: keyframe refused: {e}");
@@ -266,6 +529,7 @@ impl GeoService {
                     st.fed.insert(kf.id, key);
                 }
                 Some(old) if old != &key => {
+                    moved_kfs.insert(kf.id);
                     if matches!(st.geo.refresh_keyframe(kf.id, &pose), Ok(true)) {
                         st.counts.keyframes_moved += 1;
                         changed = true;
@@ -288,8 +552,44 @@ impl GeoService {
                 changed = true;
             }
         }
+        // Frame pairs follow their keyframe, or go with it.
+        let frames: Vec<(u64, Anchor)> = st
+            .anchors
+            .iter()
+            .filter(|(_, a)| a.kind == PairKind::Frame)
+            .map(|(id, a)| (*id, *a))
+            .collect();
+        for (id, a) in frames {
+            match poses.get(&a.kf) {
+                Some((t, kf_pose)) if *t == a.kf_time => {
+                    if moved_kfs.contains(&a.kf) {
+                        let pose = (a.cam_from_kf * kf_pose.inverse()).inverse();
+                        changed |= matches!(st.geo.refresh_keyframe(id, &pose), Ok(true));
+                    }
+                }
+                _ if poses.is_empty() => {}
+                _ => {
+                    changed |= st.geo.remove_keyframe(id);
+                    st.anchors.remove(&id);
+                    st.restored.remove(&id);
+                }
+            }
+        }
+        if let Some(f) = frame {
+            changed |= add_frame_pair(st, cp, &poses, &f);
+        }
         if st.geo.retry_pending() > 0 {
             changed = true;
+        }
+        // Anchors of pairs the georeference dropped (their telemetry never
+        // came) go too.
+        if st.anchors.len() > st.geo.georeference().pairs().len() + st.geo.pending() {
+            let geo = &st.geo;
+            st.anchors.retain(|id, _| geo.knows_keyframe(*id));
+            st.frame_pairs.retain(|id| geo.knows_keyframe(*id));
+        }
+        if changed && !st.restored.is_empty() {
+            check_restored(st, &self.params);
         }
         if changed || st.fit.is_none() && st.geo.georeference().pairs().len() >= 3 {
             let r = st.geo.fit();
@@ -353,6 +653,24 @@ impl GeoService {
                     .then(|| st.video_delay_sum_ms.0 / st.video_delay_sum_ms.1 as f64),
             },
             "fit_age_s": st.fitted_at.map(|t| t.elapsed().as_secs_f64()),
+            "evidence": {
+                "restored_pairs": st.restored.len(),
+                "frame_pairs": st.frame_pairs.len(),
+                "live_keyframe_pairs": georef.pairs().iter().filter(|p| {
+                    p.kf_id & FRAME_PAIR_BIT == 0 && !st.restored.contains(&p.kf_id)
+                }).count(),
+            },
+            "saved": st.restore.as_ref().map(|r| json!({
+                "pairs_in_file": r.loaded,
+                "restored": r.restored,
+                "waiting": r.waiting.len(),
+                "unmatched": r.unmatched,
+                "saved_unix": r.saved_unix,
+                "fit_when_saved": r.file_fit,
+                "home_moved_m": r.home_moved_m,
+                "dropped": r.dropped,
+                "check": st.check,
+            })),
         });
         let fit = match &st.fit {
             None => json!({"state": "waiting", "reason": if st.home.is_none() {
@@ -361,7 +679,12 @@ impl GeoService {
                 format!("{} keyframe pairs so far", georef.pairs().len())
             }}),
             Some(Err(e)) => {
-                json!({"state": "refused", "reason": e.to_string(), "error": format!("{e:?}")})
+                let dropped = st.restore.as_ref().and_then(|r| r.dropped.as_deref());
+                let reason = match dropped {
+                    Some(d) => format!("{e} (the saved georeference was dropped: {d})"),
+                    None => e.to_string(),
+                };
+                json!({"state": "refused", "reason": reason, "error": format!("{e:?}")})
             }
             Some(Ok(a)) => {
                 let q = &a.quality;
@@ -434,13 +757,250 @@ impl GeoService {
                 _ = tick.tick() => {
                     let (me, slam) = (self.clone(), slam.clone());
                     let _ = tokio::task::spawn_blocking(move || {
-                        me.sync_keyframes(&slam.keyframes());
+                        let continued = slam
+                            .status()
+                            .map_start
+                            .map(|m| m.mode == "continued");
+                        me.sync(&slam.keyframes(), slam.last_tracked(), continued);
                     })
                     .await;
                 }
             }
         }
     }
+}
+
+fn home_geodetic(h: &HomePosition) -> Geodetic {
+    Geodetic {
+        lat_deg: h.lat_deg,
+        lon_deg: h.lon_deg,
+        alt_m: h.alt_amsl_m,
+    }
+}
+
+/// Carries the waiting saved pairs to `home`; returns how far it moved,
+/// metres (0 when it is the same home).
+fn rebase_restore(r: &mut Restore, home: Geodetic) -> f64 {
+    let from = LocalFrame::new(r.home);
+    let to = LocalFrame::new(home);
+    let moved = to.geodetic_to_ned(&r.home).norm();
+    r.home_moved_m = Some(moved);
+    if moved < 1e-3 {
+        return 0.0;
+    }
+    r.waiting = r
+        .waiting
+        .iter()
+        .filter_map(|p| p.rebased(&from, &to))
+        .collect();
+    r.home = home;
+    moved
+}
+
+/// Restores the waiting saved pairs whose keyframes are in `poses` (once
+/// the map is known to be continued); returns whether any was added.
+fn restore_pairs(
+    st: &mut State,
+    poses: &HashMap<u64, (f64, Isometry3<f64>)>,
+    continued: Option<bool>,
+) -> bool {
+    let Some(r) = st.restore.as_mut() else {
+        return false;
+    };
+    if r.waiting.is_empty() {
+        return false;
+    }
+    match continued {
+        Some(false) => {
+            tracing::info!(
+                pairs = r.waiting.len(),
+                "geo: the saved map was not continued; its saved georeference is dropped"
+            );
+            r.unmatched += r.waiting.len();
+            r.waiting.clear();
+            r.dropped = Some("the saved map was not continued".into());
+            return false;
+        }
+        None => return false,
+        Some(true) if poses.is_empty() => return false,
+        Some(true) => {}
+    }
+    let waiting = std::mem::take(&mut r.waiting);
+    let mut added = 0;
+    let mut unmatched = 0;
+    for p in waiting {
+        let placed = poses
+            .get(&p.anchor_kf)
+            .filter(|(t, _)| *t == p.anchor_time)
+            .and_then(|(_, world_from_kf)| p.map_from_cam(&world_from_kf.inverse()));
+        let ned = p.ned_from_cam.to_isometry();
+        let (Some(map_from_cam), Some(ned)) = (placed, ned) else {
+            unmatched += 1;
+            continue;
+        };
+        let v = p.v_ned.map(nalgebra::Vector3::from);
+        if st
+            .geo
+            .add_known(p.id, &map_from_cam, &ned, v, p.time)
+            .is_err()
+        {
+            unmatched += 1;
+            continue;
+        }
+        let cam_from_kf = p
+            .cam_from_anchor
+            .to_isometry()
+            .unwrap_or_else(Isometry3::identity);
+        st.anchors.insert(
+            p.id,
+            Anchor {
+                kind: p.kind,
+                kf: p.anchor_kf,
+                kf_time: p.anchor_time,
+                cam_from_kf,
+            },
+        );
+        st.restored.insert(p.id);
+        if p.kind == PairKind::Keyframe {
+            st.fed.insert(p.anchor_kf, pose_key(&map_from_cam));
+        }
+        added += 1;
+    }
+    if let Some(r) = st.restore.as_mut() {
+        r.restored += added;
+        r.unmatched += unmatched;
+    }
+    tracing::info!(
+        restored = added,
+        unmatched,
+        "geo: saved georeference restored onto the continued map"
+    );
+    added > 0
+}
+
+/// Pairs the tracked frame `f` with telemetry when the last frame pair is
+/// old enough; the oldest frame pairs go beyond the limit. Returns whether
+/// a pair was added or removed.
+fn add_frame_pair(
+    st: &mut State,
+    cp: &ContinuityParams,
+    poses: &HashMap<u64, (f64, Isometry3<f64>)>,
+    f: &TrackedFrame,
+) -> bool {
+    if !(cp.frame_pair_spacing_s > 0.0 && cp.max_frame_pairs > 0 && f.timestamp.is_finite())
+        || f.timestamp < st.last_frame_pair_t + cp.frame_pair_spacing_s
+    {
+        return false;
+    }
+    let Some((kf_time, world_from_kf)) = poses.get(&f.reference_kf) else {
+        return false;
+    };
+    let id = FRAME_PAIR_BIT | ((f.timestamp * 1e3).round().max(0.0) as u64 & !FRAME_PAIR_BIT);
+    if st.geo.knows_keyframe(id) {
+        return false;
+    }
+    let map_from_cam = (f.cam_from_ref * world_from_kf.inverse()).inverse();
+    st.last_frame_pair_t = f.timestamp;
+    let mut changed = false;
+    match st.geo.add_keyframe(id, &map_from_cam, f.timestamp) {
+        Ok(status) => {
+            st.counts.frame_pairs_added += 1;
+            changed |= status == KeyframeStatus::Paired;
+            st.anchors.insert(
+                id,
+                Anchor {
+                    kind: PairKind::Frame,
+                    kf: f.reference_kf,
+                    kf_time: *kf_time,
+                    cam_from_kf: f.cam_from_ref,
+                },
+            );
+            st.frame_pairs.push_back(id);
+        }
+        Err(e) => {
+            st.counts.frame_pairs_refused += 1;
+            tracing::debug!(frame = f.seq, "geo: frame pair refused: {e}");
+        }
+    }
+    while st.frame_pairs.len() > cp.max_frame_pairs {
+        if let Some(old) = st.frame_pairs.pop_front() {
+            changed |= st.geo.remove_keyframe(old);
+            st.anchors.remove(&old);
+        }
+    }
+    changed
+}
+
+/// Checks the restored pairs against the live ones (see the module
+/// documentation); drops the restored pairs when they disagree.
+fn check_restored(st: &mut State, params: &Params) {
+    let cp = &params.continuity;
+    let (old, live): (Vec<_>, Vec<_>) = st
+        .geo
+        .georeference()
+        .pairs()
+        .iter()
+        .copied()
+        .partition(|p| st.restored.contains(&p.kf_id));
+    if old.is_empty() {
+        return;
+    }
+    if live.len() < cp.min_live_pairs.max(1) {
+        st.check = Some(Check::Waiting {
+            live_pairs: live.len(),
+            needed: cp.min_live_pairs.max(1),
+        });
+        return;
+    }
+    let fit = match fit_pairs(&old, &params.align, None, params.align.seed) {
+        Ok(f) => f,
+        Err(e) => {
+            st.check = Some(Check::Unfitted {
+                reason: e.to_string(),
+            });
+            return;
+        }
+    };
+    let residuals: Vec<f64> = live
+        .iter()
+        .map(|p| (fit.ned_from_map.transform_point(&p.p_map) - p.p_ned).norm())
+        .collect();
+    let Some(median) = crate::stats::median(&residuals) else {
+        return;
+    };
+    let bound = (cp.disagreement_factor * fit.quality.rms_m).max(params.align.inlier_threshold_m);
+    if median <= bound {
+        st.check = Some(Check::Agrees {
+            live_pairs: live.len(),
+            median_residual_m: median,
+            bound_m: bound,
+        });
+        return;
+    }
+    let why = format!(
+        "the live pairs are {median:.2} m from it (median of {}), more than {bound:.2} m",
+        live.len()
+    );
+    tracing::warn!(
+        median_residual_m = median,
+        bound_m = bound,
+        live_pairs = live.len(),
+        "geo: the saved georeference disagrees with live telemetry: dropped, refitting from live pairs"
+    );
+    let ids: Vec<u64> = st.restored.drain().collect();
+    for id in ids {
+        st.geo.remove_keyframe(id);
+        st.anchors.remove(&id);
+    }
+    if let Some(r) = st.restore.as_mut() {
+        r.dropped = Some(why);
+        r.waiting.clear();
+    }
+    st.check = Some(Check::Disagrees {
+        live_pairs: live.len(),
+        median_residual_m: median,
+        bound_m: bound,
+    });
 }
 
 #[cfg(test)]
@@ -451,40 +1011,43 @@ mod tests {
     use crate::geometry::Sim3;
     use nalgebra::{Point3, UnitQuaternion, Vector3};
 
-    /// An L-shaped flight at 10 m, facing north with the camera 30 deg
-    /// down: telemetry on the boot clock, keyframes in a map that is NED
-    /// through a known similarity. Refused while the motion is a line, then
-    /// fitted with the map's scale; a keyframe culled is forgotten.
-    #[test]
-    fn telemetry_and_keyframes_give_the_maps_similarity() {
-        let geo = GeoService::new(Params::default());
-        let home = Geodetic {
-            lat_deg: 47.3977,
-            lon_deg: 8.5456,
-            alt_m: 488.0,
-        };
-        let frame = LocalFrame::new(home);
-        let t_end = 40.0;
+    const HOME: Geodetic = Geodetic {
+        lat_deg: 47.3977,
+        lon_deg: 8.5456,
+        alt_m: 488.0,
+    };
+    const T_END: f64 = 40.0;
+
+    /// The L-shaped flight's NED position at `t`: north, then east, at 10 m.
+    fn path(t: f64) -> Vector3<f64> {
+        if t < 20.0 {
+            Vector3::new(t, 0.0, -10.0)
+        } else {
+            Vector3::new(20.0, t - 20.0, -10.0)
+        }
+    }
+
+    /// Feeds home and 40 s of telemetry of the L-shaped flight (facing
+    /// north, camera 30 deg down) on the boot clock, ending now; with
+    /// `telemetry` false only home. Returns the boot clock's offset.
+    fn feed_flight(geo: &GeoService, telemetry: bool) -> f64 {
+        let frame = LocalFrame::new(HOME);
         let at = |t: f64| {
             Instant::now()
-                .checked_sub(Duration::from_secs_f64(t_end - t + 0.02))
+                .checked_sub(Duration::from_secs_f64(T_END - t + 0.02))
                 .unwrap_or_else(Instant::now)
-        };
-        let path = |t: f64| {
-            if t < 20.0 {
-                Vector3::new(t, 0.0, -10.0)
-            } else {
-                Vector3::new(20.0, t - 20.0, -10.0)
-            }
         };
         geo.on_home(&Stamped {
             value: HomePosition {
-                lat_deg: home.lat_deg,
-                lon_deg: home.lon_deg,
-                alt_amsl_m: home.alt_m,
+                lat_deg: HOME.lat_deg,
+                lon_deg: HOME.lon_deg,
+                alt_amsl_m: HOME.alt_m,
             },
             received: at(0.0),
         });
+        if !telemetry {
+            return 0.0;
+        }
         for i in 0..=400 {
             let t = i as f64 * 0.1;
             let g = frame.ned_to_geodetic(&path(t));
@@ -521,36 +1084,55 @@ mod tests {
                 received: at(t),
             });
         }
-        let offset = geo.lock().clock.offset_s.unwrap();
-        let map_from_ned = Sim3::new(
+        geo.lock().clock.offset_s.unwrap()
+    }
+
+    /// The map: NED through a known similarity (a monocular map's scale).
+    fn map_from_ned() -> Sim3 {
+        Sim3::new(
             UnitQuaternion::from_euler_angles(0.3, -1.0, 2.0),
             Vector3::new(1.0, -2.0, 0.5),
             0.08,
-        );
-        let keyframe = |id: u64, t: f64| {
-            let state = geo.lock().geo.history().lookup(t + offset).unwrap();
-            let ned = ned_from_cam(&state, &MountParams::default());
-            let p = map_from_ned.transform_point(&Point3::from(ned.translation.vector));
-            KeyframeInfo {
-                id,
-                timestamp: t + offset,
-                world_from_cam: PoseJson::from_isometry(&Isometry3::from_parts(
-                    p.coords.into(),
-                    map_from_ned.rotation * ned.rotation,
-                )),
-                width: 640,
-                height: 480,
-            }
-        };
+        )
+    }
+
+    /// Keyframe `id` at flight time `t` (local clock `t + offset`), posed
+    /// in the map from `telemetry`'s history.
+    fn keyframe(telemetry: &GeoService, id: u64, t: f64, offset: f64) -> KeyframeInfo {
+        let state = telemetry.lock().geo.history().lookup(t + offset).unwrap();
+        let ned = ned_from_cam(&state, &MountParams::default());
+        let m = map_from_ned();
+        let p = m.transform_point(&Point3::from(ned.translation.vector));
+        KeyframeInfo {
+            id,
+            timestamp: t + offset,
+            world_from_cam: PoseJson::from_isometry(&Isometry3::from_parts(
+                p.coords.into(),
+                m.rotation * ned.rotation,
+            )),
+            width: 640,
+            height: 480,
+        }
+    }
+
+    /// An L-shaped flight at 10 m, facing north with the camera 30 deg
+    /// down: telemetry on the boot clock, keyframes in a map that is NED
+    /// through a known similarity. Refused while the motion is a line, then
+    /// fitted with the map's scale; a keyframe culled is forgotten.
+    #[test]
+    fn telemetry_and_keyframes_give_the_maps_similarity() {
+        let geo = GeoService::new(Params::default());
+        let offset = feed_flight(&geo, true);
         // The first leg only: a line.
-        let mut kfs: Vec<KeyframeInfo> =
-            (0..8).map(|i| keyframe(i, 1.0 + 2.0 * i as f64)).collect();
+        let mut kfs: Vec<KeyframeInfo> = (0..8)
+            .map(|i| keyframe(&geo, i, 1.0 + 2.0 * i as f64, offset))
+            .collect();
         geo.sync_keyframes(&kfs);
         let s = geo.status();
         assert_eq!(s["state"], "refused", "{s}");
         assert!(s["reason"].as_str().unwrap().contains("line"), "{s}");
         // Round the corner.
-        kfs.extend((8..16).map(|i| keyframe(i, 1.0 + 2.0 * i as f64)));
+        kfs.extend((8..16).map(|i| keyframe(&geo, i, 1.0 + 2.0 * i as f64, offset)));
         geo.sync_keyframes(&kfs);
         let s = geo.status();
         assert_eq!(s["state"], "ok", "{s}");
@@ -574,6 +1156,97 @@ mod tests {
         kfs.truncate(12);
         geo.sync_keyframes(&kfs);
         assert_eq!(geo.status()["pairs"], 12);
+    }
+
+    /// A restart: the saved pairs (through their JSON file) put the
+    /// continued map's keyframes in NED with no telemetry at all, the
+    /// target of a keyframe's pose is the same as before; not before the
+    /// map is known to be continued, and not at all when it was not.
+    #[test]
+    fn a_saved_georeference_is_restored_onto_the_continued_map() {
+        let before = GeoService::new(Params::default());
+        let offset = feed_flight(&before, true);
+        let kfs: Vec<KeyframeInfo> = (0..16)
+            .map(|i| keyframe(&before, i, 1.0 + 2.0 * i as f64, offset))
+            .collect();
+        before.sync_keyframes(&kfs);
+        assert_eq!(before.status()["state"], "ok");
+        let pose = kfs[12].world_from_cam.to_isometry().unwrap();
+        let (t_before, _) = before.target(&pose).unwrap();
+        let saved = before.saved().unwrap();
+        assert_eq!(saved.pairs.len(), 16);
+        let text = serde_json::to_vec(&saved).unwrap();
+        let file: SavedGeoreference = serde_json::from_slice(&text).unwrap();
+
+        let after = GeoService::new(Params::default());
+        after.restore(file.clone());
+        feed_flight(&after, false);
+        after.sync(&kfs, None, None);
+        assert_eq!(
+            after.status()["state"],
+            "waiting",
+            "not before the map is known"
+        );
+        after.sync(&kfs, None, Some(true));
+        let s = after.status();
+        assert_eq!(s["state"], "ok", "{s}");
+        assert_eq!(s["evidence"]["restored_pairs"], 16, "{s}");
+        assert!(s["rms_m"].as_f64().unwrap() < 0.02, "{s}");
+        let (t_after, _) = after.target(&pose).unwrap();
+        assert!((t_after.p_ned_vehicle - t_before.p_ned_vehicle).norm() < 1e-3);
+        // Saved again: the same pairs.
+        assert_eq!(after.saved().unwrap().pairs.len(), 16);
+
+        let fresh = GeoService::new(Params::default());
+        fresh.restore(file);
+        feed_flight(&fresh, false);
+        fresh.sync(&kfs, None, Some(false));
+        let s = fresh.status();
+        assert_ne!(s["state"], "ok", "{s}");
+        assert_eq!(s["evidence"]["restored_pairs"], 0, "{s}");
+    }
+
+    /// A saved georeference that live telemetry contradicts (its NED side
+    /// 5 m off, as a GPS glitch at the last session would leave it) is
+    /// dropped once enough live pairs are in, and the fit is made from
+    /// the live pairs alone; one that agrees is kept.
+    #[test]
+    fn a_saved_georeference_that_live_pairs_contradict_is_dropped() {
+        let before = GeoService::new(Params::default());
+        let offset = feed_flight(&before, true);
+        let old: Vec<KeyframeInfo> = (0..16)
+            .map(|i| keyframe(&before, i, 1.0 + 2.0 * i as f64, offset))
+            .collect();
+        before.sync_keyframes(&old);
+        let good = before.saved().unwrap();
+        let mut bad = good.clone();
+        for p in &mut bad.pairs {
+            p.ned_from_cam.translation[0] += 5.0;
+        }
+        for (file, agrees) in [(good, true), (bad, false)] {
+            let after = GeoService::new(Params::default());
+            after.restore(file);
+            let offset = feed_flight(&after, true);
+            // New keyframes of this run, paired with live telemetry.
+            let mut kfs = old.clone();
+            kfs.extend((0..10).map(|i| keyframe(&after, 100 + i, 2.0 + 3.8 * i as f64, offset)));
+            after.sync(&kfs, None, Some(true));
+            let s = after.status();
+            assert_eq!(s["state"], "ok", "{s}");
+            let check = &s["saved"]["check"];
+            if agrees {
+                assert_eq!(check["state"], "agrees", "{s}");
+                assert_eq!(s["evidence"]["restored_pairs"], 16, "{s}");
+            } else {
+                assert_eq!(check["state"], "disagrees", "{s}");
+                let m = check["median_residual_m"].as_f64().unwrap();
+                assert!((m - 5.0).abs() < 0.5, "{s}");
+                assert!(s["saved"]["dropped"].as_str().is_some(), "{s}");
+                assert_eq!(s["evidence"]["restored_pairs"], 0, "{s}");
+                assert_eq!(s["keyframes_used"], 10, "{s}");
+            }
+            assert!(s["rms_m"].as_f64().unwrap() < 0.05, "{s}");
+        }
     }
 
     #[test]

@@ -17,6 +17,8 @@
 //! simulator stops last.
 
 pub mod geo_service;
+pub mod persist;
+pub mod reconcile;
 pub mod refine_loop;
 pub mod refine_service;
 pub mod shot_service;
@@ -150,8 +152,17 @@ fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimCo
         },
         capture_dir: data_dir.join("captures"),
         truth_dir: s.truth_dir.as_ref().map(|d| data_dir.join(d)),
+        world: s
+            .world
+            .parse()
+            .map_err(|e| DaemonError::Sim(format!("world {:?}: {e}", s.world)))?,
         ..defaults
-    };
+    }
+    .with_realism(
+        s.realism
+            .parse()
+            .map_err(|e| DaemonError::Sim(format!("realism {:?}: {e}", s.realism)))?,
+    );
     Ok(sc)
 }
 
@@ -167,6 +178,19 @@ pub async fn run(
     let t0 = Instant::now();
     let data_dir = base_dir.join(&cfg.server.data_dir);
     let store = Arc::new(ShotStore::open(&data_dir.join("shots"))?);
+    // A refinement loop still running in the record: the last session
+    // ended without stopping it (killed or crashed).
+    for shot in store.list() {
+        if let Some(s) = reconcile::interrupt_refinement(
+            &shot,
+            "the daemon ended while the loop ran (killed or crashed); start the shot's mission to refine again",
+        ) {
+            tracing::warn!(shot = %s.id, "refinement loop interrupted by the last session's end");
+            if let Err(e) = store.put(s, None) {
+                tracing::warn!("marking an interrupted refinement: {e}");
+            }
+        }
+    }
     let camera = cfg.camera.camera(base_dir)?;
 
     // The simulator, first, so the video and the link find it.
@@ -217,15 +241,27 @@ pub async fn run(
     let geo = Arc::new(geo_service::GeoService::new(cfg.geo.clone()));
     let shared = Arc::new(SlamShared::new(cfg.slam.enabled));
     let map_file = data_dir.join(&cfg.slam.map_file);
+    persist::remove_leftovers(&data_dir, &map_file);
+    // The georeference saved with the map: restored onto it once the SLAM
+    // has loaded it (dropped if the map is not continued).
+    if cfg.slam.enabled
+        && cfg.slam.continue_map
+        && map_file.exists()
+        && let Some(saved) = persist::load_geo(&map_file)
+    {
+        geo.restore(saved);
+    }
+    let persist = Arc::new(persist::MapPersist::new(map_file, shared.clone()));
     let slam_thread = {
         let (ing, sh, g) = (ingest.clone(), shared.clone(), geo.clone());
         let delay = Duration::from_millis(cfg.slam.artificial_delay_ms);
         let cfg = cfg.clone();
+        let p = persist.clone();
         std::thread::Builder::new()
             .name("slam".into())
             .spawn(move || {
                 // Built here: loading and indexing a saved map takes a while.
-                let processor = slam_view::make_processor(&cfg, camera, sh.clone(), map_file);
+                let processor = slam_view::make_processor(&cfg, camera, sh.clone(), p);
                 slam_loop(processor, &ing, &sh, &g, delay)
             })
             .map_err(|source| DaemonError::Thread {
@@ -246,6 +282,24 @@ pub async fn run(
         shared.clone(),
         link_cancel.clone(),
     ));
+    // Checkpoints of the map and its georeference.
+    let checkpoint_cancel = cancel.child_token();
+    let checkpoint_task = (cfg.slam.enabled && cfg.slam.checkpoint_s > 0.0).then(|| {
+        let (p, g, c) = (persist.clone(), geo.clone(), checkpoint_cancel.clone());
+        let period = Duration::from_secs_f64(cfg.slam.checkpoint_s);
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tokio::select! {
+                    _ = c.cancelled() => break,
+                    _ = tick.tick() => {}
+                }
+                let (p, g) = (p.clone(), g.clone());
+                let _ = tokio::task::spawn_blocking(move || p.checkpoint(&g)).await;
+            }
+        })
+    });
     // The refinement loop: started with a shot's mission, stopped by the
     // next upload or the shutdown.
     let actions: Arc<tokio::sync::Mutex<()>> = Default::default();
@@ -263,9 +317,18 @@ pub async fn run(
         },
         cancel.child_token(),
     );
-    let vehicle: Arc<dyn VehicleView> = Arc::new(
+    let link_vehicle = Arc::new(
         vehicle_view::LinkVehicle::new(link, cfg.mission.plan, geo.clone()).with_refine(refine),
     );
+    // The vehicle's truth: each shot's mission state from the mission the
+    // vehicle holds, at the first heartbeat and after every link loss.
+    let reconcile_task = tokio::spawn(vehicle_view::run_reconciler(
+        link_vehicle.clone(),
+        store.clone(),
+        actions.clone(),
+        link_cancel.clone(),
+    ));
+    let vehicle: Arc<dyn VehicleView> = link_vehicle;
 
     // The API.
     let slam_view: Arc<dyn SlamView> = shared.clone();
@@ -312,6 +375,10 @@ pub async fn run(
     // Shutdown, in order.
     tracing::info!("shutting down");
     let _ = refine_task.await;
+    checkpoint_cancel.cancel();
+    if let Some(t) = checkpoint_task {
+        let _ = t.await;
+    }
     video_cancel.cancel();
     let _ = reader.await;
     ingest.close();
@@ -322,7 +389,13 @@ pub async fn run(
     .await
     .ok()
     .flatten();
+    // The georeference beside the map just written.
+    if summary_slam.as_ref().is_some_and(Option::is_some) {
+        let (p, g) = (persist.clone(), geo.clone());
+        let _ = tokio::task::spawn_blocking(move || p.save_geo(&g)).await;
+    }
     link_cancel.cancel();
+    let _ = reconcile_task.await;
     let _ = geo_task.await;
     let _ = link_task.await;
     sim_cancel.cancel();

@@ -161,7 +161,7 @@ pub fn spawn(deps: Deps, cancel: CancellationToken) -> (RefineHandle, tokio::tas
 }
 
 async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: CancellationToken) {
-    let mut current: Option<(CancellationToken, tokio::task::JoinHandle<()>)> = None;
+    let mut current: Option<(CancellationToken, tokio::task::JoinHandle<()>, String)> = None;
     loop {
         let req = tokio::select! {
             _ = cancel.cancelled() => break,
@@ -170,7 +170,7 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
                 None => break,
             },
         };
-        if let Some((c, t)) = current.take() {
+        if let Some((c, t, _)) = current.take() {
             c.cancel();
             let _ = t.await;
         }
@@ -188,15 +188,52 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
             let d = deps.clone();
             let cc = c.clone();
             tracing::info!(shot = %shot.id, "refinement: started");
+            let id = shot.id.clone();
             current = Some((
                 c,
                 tokio::spawn(async move { refine_shot(&d, shot, target, cc).await }),
+                id,
             ));
         }
     }
-    if let Some((c, t)) = current.take() {
+    if let Some((c, t, id)) = current.take() {
         c.cancel();
         let _ = t.await;
+        mark_interrupted(&deps, &id).await;
+    }
+}
+
+/// The daemon stops while `id`'s loop runs: the loop recorded itself as
+/// cancelled; the record says interrupted, and that it can be restarted.
+async fn mark_interrupted(deps: &Deps, id: &str) {
+    let Some(mut shot) = deps.store.get(id) else {
+        return;
+    };
+    let Some(r) = shot
+        .mission
+        .as_mut()
+        .and_then(|m| m.details.get_mut("refinement"))
+        .and_then(serde_json::Value::as_object_mut)
+    else {
+        return;
+    };
+    let cancelled = r.get("stop").and_then(serde_json::Value::as_str) == Some("aborted")
+        && r.get("reason").and_then(serde_json::Value::as_str) == Some("cancelled");
+    if !cancelled {
+        return;
+    }
+    r.insert("stop".into(), "interrupted".into());
+    r.insert(
+        "reason".into(),
+        "the daemon stopped while the loop ran; start the shot's mission to refine again".into(),
+    );
+    r.insert("restartable".into(), true.into());
+    tracing::info!(shot = %id, "refinement: interrupted by the daemon's stop");
+    let store = deps.store.clone();
+    match tokio::task::spawn_blocking(move || store.put(shot, None)).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => tracing::warn!("refinement: saving the shot: {e}"),
+        Err(e) => tracing::warn!("refinement: saving the shot: {e}"),
     }
 }
 
@@ -225,11 +262,24 @@ fn desired_picture(
             keyframe_id,
             anchors: a,
         } => {
-            let image = u32::try_from(*keyframe_id)
+            let Some(image) = u32::try_from(*keyframe_id)
                 .ok()
                 .and_then(|id| map.keyframe(KeyFrameId(id)))
                 .and_then(|k| k.image.clone())
-                .ok_or_else(|| format!("keyframe {keyframe_id} has no image in the map"))?;
+            else {
+                // The keyframe left the map (culled, or not in the map
+                // continued after a restart): the desired picture stored
+                // with the shot when it was made stands in for it.
+                let stored = stored_picture(store, map, shot).map_err(|e| {
+                    format!("keyframe {keyframe_id} has no image in the map, and {e}")
+                })?;
+                tracing::warn!(
+                    shot = %shot.id,
+                    keyframe = keyframe_id,
+                    "refinement: the shot's keyframe is not in the map; using its stored desired picture"
+                );
+                return Ok(stored);
+            };
             let pts = a.map(|p| Point2::new(p[0], p[1]));
             let s = desired_shot_from_anchors(&image, &pts, anchors)
                 .map_err(|e| format!("desired shot: {e}"))?;
@@ -260,25 +310,29 @@ fn desired_picture(
             }
             Ok((s.image, Some(s.mask), reachable))
         }
-        ShotSource::Photo { .. } => {
-            let jpeg = store
-                .image(&shot.id)
-                .ok_or_else(|| format!("shot {} has no stored image", shot.id))?;
-            let img = image::load_from_memory(&jpeg)
-                .map_err(|e| format!("shot image: {e}"))?
-                .to_luma8();
-            if img.dimensions() != (map.camera.width, map.camera.height) {
-                return Err(format!(
-                    "the photo is {}x{}, the camera's images are {}x{}",
-                    img.width(),
-                    img.height(),
-                    map.camera.width,
-                    map.camera.height
-                ));
-            }
-            Ok((img, None, None))
-        }
+        ShotSource::Photo { .. } => stored_picture(store, map, shot),
     }
+}
+
+/// The desired picture stored with the shot (a photo, or the picture an
+/// anchors shot made), at the camera's size.
+fn stored_picture(store: &ShotStore, map: &Map, shot: &Shot) -> Result<Picture, String> {
+    let jpeg = store
+        .image(&shot.id)
+        .ok_or_else(|| format!("shot {} has no stored image", shot.id))?;
+    let img = image::load_from_memory(&jpeg)
+        .map_err(|e| format!("shot image: {e}"))?
+        .to_luma8();
+    if img.dimensions() != (map.camera.width, map.camera.height) {
+        return Err(format!(
+            "the shot's picture is {}x{}, the camera's images are {}x{}",
+            img.width(),
+            img.height(),
+            map.camera.width,
+            map.camera.height
+        ));
+    }
+    Ok((img, None, None))
 }
 
 /// Writes the session (and an abort reason, if any) into the stored shot.

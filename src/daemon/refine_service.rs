@@ -47,6 +47,12 @@ pub fn refinement_json(session: &Session) -> Value {
 /// (other details are kept; details that are not an object become
 /// `{"previous": ..}`).
 pub fn record_rounds(mission: &mut MissionRecord, session: &Session) {
+    set_detail(mission, "refinement", refinement_json(session));
+}
+
+/// Sets `details[key]` of the mission record (details that are not an
+/// object become `{"previous": ..}`, null becomes `{}`).
+pub fn set_detail(mission: &mut MissionRecord, key: &str, value: Value) {
     if !mission.details.is_object() {
         let previous = std::mem::take(&mut mission.details);
         mission.details = if previous.is_null() {
@@ -56,7 +62,7 @@ pub fn record_rounds(mission: &mut MissionRecord, session: &Session) {
         };
     }
     if let Some(obj) = mission.details.as_object_mut() {
-        obj.insert("refinement".into(), refinement_json(session));
+        obj.insert(key.into(), value);
     }
 }
 

@@ -9,7 +9,7 @@ use std::time::Duration;
 use image::GrayImage;
 
 use crate::api::store::PoseJson;
-use crate::api::{KeyframeInfo, MapStart, MapView, SlamStatus, SlamView};
+use crate::api::{KeyframeInfo, MapSaved, MapStart, MapView, SlamStatus, SlamView, TrackedFrame};
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::slam::{self, KeyFrameId, Map, Slam, TrackState};
@@ -86,8 +86,9 @@ pub fn make_processor(
     cfg: &Config,
     camera: Camera,
     shared: Arc<SlamShared>,
-    map_file: PathBuf,
+    persist: Arc<super::persist::MapPersist>,
 ) -> Box<dyn FrameProcessor> {
+    let map_file = persist.path();
     if !cfg.slam.enabled {
         return Box::new(NoSlam);
     }
@@ -108,7 +109,14 @@ pub fn make_processor(
     if map_file.exists() {
         if cfg.slam.continue_map {
             match continue_on(&map_file, &camera, &params, &vocabulary) {
-                Ok(slam) => continued = Some(slam),
+                Ok((slam, images)) => {
+                    {
+                        let map = slam.map();
+                        let m = map.lock().unwrap_or_else(|e| e.into_inner());
+                        persist.loaded(&m, images);
+                    }
+                    continued = Some(slam)
+                }
                 Err(reason) => {
                     start.mode = "fresh_after_error".into();
                     start.set_aside = set_aside(&map_file, "unusable");
@@ -142,6 +150,7 @@ pub fn make_processor(
     } else {
         map_file
     };
+    persist.set_path(save_to);
     let slam = match continued {
         Some(slam) => {
             let map = slam.map();
@@ -170,8 +179,14 @@ pub fn make_processor(
     shared.set_map_start(start);
     shared.set_source(Arc::new(SlamMapSource { map: slam.map() }));
     Box::new(SlamProcessor {
+        next_kf: slam
+            .map()
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .next_keyframe_id()
+            .0,
         slam,
-        map_file: save_to,
+        persist,
         size: (w, h),
         warned_size: false,
         clock: cfg.geo.history.clone(),
@@ -187,8 +202,8 @@ fn continue_on(
     camera: &Camera,
     params: &slam::Params,
     vocabulary: &Arc<crate::bow::Vocabulary>,
-) -> Result<Slam, String> {
-    let map = slam::mapfile::load(path).map_err(|e| e.to_string())?;
+) -> Result<(Slam, slam::mapfile::KeyframeImages), String> {
+    let (map, images) = slam::mapfile::load_with_images(path).map_err(|e| e.to_string())?;
     if map.camera != *camera {
         return Err(format!(
             "the map was built with another camera ({}x{}, fx {}) than [camera] ({}x{}, fx {})",
@@ -206,7 +221,9 @@ fn continue_on(
             map.keyframe_count()
         ));
     }
-    Slam::from_map(map, params.clone(), vocabulary.clone()).map_err(|e| e.to_string())
+    Slam::from_map(map, params.clone(), vocabulary.clone())
+        .map(|s| (s, images))
+        .map_err(|e| e.to_string())
 }
 
 /// A name beside `path` that is not taken: `<name>.<tag>-<unix seconds>`,
@@ -228,8 +245,16 @@ fn unused_name(path: &Path, tag: &str) -> PathBuf {
 }
 
 /// Move `path` to an unused name beside it; the new path, or None (logged)
-/// when it cannot be moved.
-fn set_aside(path: &Path, tag: &str) -> Option<PathBuf> {
+/// when it cannot be moved. A map file takes the georeference saved beside
+/// it along (same tag).
+pub(crate) fn set_aside(path: &Path, tag: &str) -> Option<PathBuf> {
+    let geo = super::persist::geo_path(path);
+    if path.extension().is_some_and(|e| e != "json") && geo.exists() {
+        let to = unused_name(&geo, tag);
+        if let Err(e) = std::fs::rename(&geo, &to) {
+            tracing::error!(path = %geo.display(), "cannot move the saved georeference aside: {e}");
+        }
+    }
     let to = unused_name(path, tag);
     match std::fs::rename(path, &to) {
         Ok(()) => Some(to),
@@ -247,7 +272,10 @@ fn set_aside(path: &Path, tag: &str) -> Option<PathBuf> {
 /// The SLAM on the SLAM thread.
 pub struct SlamProcessor {
     slam: Slam,
-    map_file: PathBuf,
+    /// Where the map is written (and the keyframes' source JPEGs kept).
+    persist: Arc<super::persist::MapPersist>,
+    /// The next keyframe id not yet seen.
+    next_kf: u32,
     size: (u32, u32),
     warned_size: bool,
     /// How a frame's capture time is found (its keyframes carry it, and
@@ -284,12 +312,37 @@ impl FrameProcessor for SlamProcessor {
             };
         }
         let t = crate::geo::capture_time(frame.received_unix, frame.capture_time, &self.clock);
+        if let Some(jpeg) = frame.received_jpeg() {
+            // Frames decoded from H.264 have no received JPEG: their
+            // keyframes are stored from the image itself (PNG, lossless).
+            self.persist.note_frame(frame.seq, &jpeg);
+        }
         let out = self.slam.process(frame.seq, t, frame.image.clone());
         let (keyframes, points) = {
             let map = self.slam.map();
             let m = map.lock().unwrap_or_else(|e| e.into_inner());
+            // New keyframes: their frames' JPEGs are what the map file
+            // stores as their images.
+            let next = m.next_keyframe_id().0;
+            for id in self.next_kf..next {
+                if let Some(k) = m.keyframe(KeyFrameId(id)) {
+                    self.persist.note_keyframe(k.id, k.frame_index);
+                }
+            }
+            self.next_kf = next;
             (m.keyframe_count(), m.point_count())
         };
+        if out.cam_from_world.is_some()
+            && let Some(r) = self.slam.last_record()
+            && r.index == frame.seq
+        {
+            self.shared.set_last_tracked(TrackedFrame {
+                seq: frame.seq,
+                timestamp: t,
+                reference_kf: u64::from(r.reference.0),
+                cam_from_ref: r.cam_from_ref,
+            });
+        }
         if self.awaiting_reloc && out.state == TrackState::Tracking {
             self.awaiting_reloc = false;
             tracing::info!(
@@ -314,19 +367,10 @@ impl FrameProcessor for SlamProcessor {
         if run.map.keyframe_count() == 0 {
             return None;
         }
-        if let Some(dir) = self.map_file.parent() {
-            let _ = std::fs::create_dir_all(dir);
-        }
-        match slam::mapfile::save(&run.map, &self.map_file) {
-            Ok(()) => {
-                tracing::info!(
-                    path = %self.map_file.display(),
-                    keyframes = run.map.keyframe_count(),
-                    points = run.map.point_count(),
-                    "map saved"
-                );
-                Some(self.map_file)
-            }
+        // The georeference is written by the daemon after this (its worker
+        // is still running).
+        match self.persist.save(&run.map, None, "shutdown") {
+            Ok(_) => Some(self.persist.path()),
             Err(e) => {
                 tracing::error!("saving the map: {e}");
                 None
@@ -409,6 +453,7 @@ struct Inner {
     status: SlamStatus,
     latencies_ms: VecDeque<f64>,
     source: Option<Arc<dyn MapSource>>,
+    last_tracked: Option<TrackedFrame>,
 }
 
 /// Status and map view shared by the SLAM thread and the API.
@@ -456,6 +501,16 @@ impl SlamShared {
         if let Some(s) = self.lock().status.map_start.as_mut() {
             s.relocalised_at_frame = Some(seq);
         }
+    }
+
+    /// Record the newest tracked frame.
+    pub fn set_last_tracked(&self, frame: TrackedFrame) {
+        self.lock().last_tracked = Some(frame);
+    }
+
+    /// Record the map file last written.
+    pub fn set_map_saved(&self, saved: MapSaved) {
+        self.lock().status.map_saved = Some(saved);
     }
 
     /// Attach the SLAM's map.
@@ -535,6 +590,9 @@ impl SlamView for SlamShared {
         let src = self.lock().source.clone();
         src.map(|s| s.map(max_points)).unwrap_or_default()
     }
+    fn last_tracked(&self) -> Option<TrackedFrame> {
+        self.lock().last_tracked
+    }
 }
 
 #[cfg(test)]
@@ -553,7 +611,11 @@ mod tests {
     /// the folder afterwards.
     fn start(cfg: &Config, camera: Camera, file: &Path) -> (MapStart, Vec<PathBuf>) {
         let shared = Arc::new(SlamShared::new(true));
-        let p = make_processor(cfg, camera, shared.clone(), file.to_owned());
+        let persist = Arc::new(super::super::persist::MapPersist::new(
+            file.to_owned(),
+            shared.clone(),
+        ));
+        let p = make_processor(cfg, camera, shared.clone(), persist);
         assert!(p.finish().is_none(), "nothing to save without keyframes");
         let mut files: Vec<PathBuf> = std::fs::read_dir(file.parent().unwrap())
             .unwrap()

@@ -3,11 +3,15 @@
 //! target through the georeference, planned, uploaded and read back.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use serde_json::{Value, json};
 
+use tokio_util::sync::CancellationToken;
+
 use super::geo_service::GeoService;
-use crate::api::store::{MissionRecord, Shot};
+use super::reconcile::{VehicleMission, reconcile};
+use crate::api::store::{MissionRecord, Shot, ShotStore};
 use crate::api::{BoxFuture, VehicleError, VehicleView};
 use crate::geo::{GeoAlignment, GeoError, GeoTarget};
 use crate::mission::MissionItem;
@@ -123,6 +127,121 @@ impl LinkVehicle {
         })
     }
 
+    /// The target a shot's mission flies now: its refinement loop's
+    /// latest correction, else the target of its upload.
+    fn flown_target(shot: &Shot) -> Option<crate::mission::plan::Target> {
+        let d = &shot.mission.as_ref()?.details;
+        if let Some(t) = d
+            .get("refinement")
+            .and_then(|r| r.get("target"))
+            .and_then(|t| serde_json::from_value(t.clone()).ok())
+        {
+            return Some(t);
+        }
+        let t = d.get("target")?;
+        let f = |k: &str| t.get(k).and_then(Value::as_f64);
+        Some(crate::mission::plan::Target {
+            lat_deg: f("lat_deg")?,
+            lon_deg: f("lon_deg")?,
+            alt_m: f("alt_above_home_m")?,
+            yaw_deg: f("yaw_deg")?,
+            gimbal_pitch_deg: f("gimbal_pitch_deg")?,
+            photo: true,
+        })
+    }
+
+    /// Reads the vehicle's mission (three tries) and the progress reported
+    /// since `since`, waiting up to two seconds for a fresh one.
+    async fn read_vehicle_mission(
+        &self,
+        since: tokio::time::Instant,
+    ) -> Result<VehicleMission, String> {
+        let mut last_err = String::new();
+        let mut items = None;
+        for attempt in 0..3 {
+            match self.link.download_mission().await {
+                Ok(d) => {
+                    items = Some(d.items);
+                    break;
+                }
+                Err(e) => {
+                    last_err = e.to_string();
+                    tracing::warn!(attempt, "reconcile: mission download failed: {e}");
+                    tokio::time::sleep(Duration::from_secs(1)).await;
+                }
+            }
+        }
+        let items = items.ok_or(last_err)?;
+        let mut rx = self.link.telemetry.progress.clone();
+        let fresh = |p: &Option<crate::vehicle::Stamped<crate::vehicle::MissionProgress>>| {
+            p.filter(|p| tokio::time::Instant::from_std(p.received) >= since)
+                .map(|p| p.value)
+        };
+        let mut progress = fresh(&rx.borrow_and_update());
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(2);
+        while progress.is_none() {
+            match tokio::time::timeout_at(deadline, rx.changed()).await {
+                Ok(Ok(())) => progress = fresh(&rx.borrow_and_update()),
+                _ => break,
+            }
+        }
+        let skip_home = self.link.telemetry.vehicle.borrow().flavour == Some(Flavour::ArduPilot);
+        Ok(VehicleMission {
+            items,
+            progress,
+            skip_home,
+        })
+    }
+
+    /// Sets every stored shot's mission state from the vehicle's mission
+    /// (see [`super::reconcile`]); the shot whose mission the vehicle holds
+    /// becomes the one that `start` refines. Returns the shots changed.
+    pub async fn reconcile_shots(
+        &self,
+        store: &ShotStore,
+        since: tokio::time::Instant,
+    ) -> Vec<Shot> {
+        let vehicle = self.read_vehicle_mission(since).await;
+        let shots = store.list();
+        let home = self.geo.home().map(|h| Home {
+            lat_deg: h.lat_deg,
+            lon_deg: h.lon_deg,
+            alt_amsl_m: h.alt_amsl_m,
+        });
+        let flavour = self.link.telemetry.vehicle.borrow().flavour;
+        let replanned = |s: &Shot| -> Vec<Vec<MissionItem>> {
+            match (Self::flown_target(s), home, flavour) {
+                (Some(t), Some(h), Some(f)) => {
+                    plan(&t, &h, f, &self.plan).ok().into_iter().collect()
+                }
+                _ => Vec::new(),
+            }
+        };
+        let (changed, owner) = reconcile(&shots, &vehicle, replanned, unix_now());
+        for s in &changed {
+            let m = s.mission.as_ref();
+            tracing::info!(
+                shot = %s.id,
+                state = m.map(|m| m.state.as_str()),
+                reason = m
+                    .and_then(|m| m.details["vehicle"]["reason"].as_str()),
+                "reconciled with the vehicle's mission"
+            );
+            if let Err(e) = store.put(s.clone(), None) {
+                tracing::warn!(shot = %s.id, "reconcile: saving the shot: {e}");
+            }
+        }
+        if let Some(id) = owner
+            && let Some(shot) = store.get(&id)
+            && let Some(t) = Self::flown_target(&shot)
+            && let Ok(mut last) = self.last_uploaded.lock()
+            && last.as_ref().is_none_or(|(s, _)| s.id != id)
+        {
+            *last = Some((shot, t));
+        }
+        changed
+    }
+
     fn heard(&self) -> Result<(), VehicleError> {
         let v = self.link.telemetry.vehicle.borrow();
         if !v.connected || v.link_lost || v.system_id.is_none() {
@@ -135,6 +254,39 @@ impl LinkVehicle {
             });
         }
         Ok(())
+    }
+}
+
+/// Reconciles the stored shots with the vehicle's mission each time the
+/// vehicle is heard after not being heard (the first heartbeat after
+/// start, and after every link loss), until `cancel`.
+pub async fn run_reconciler(
+    vehicle: Arc<LinkVehicle>,
+    store: Arc<ShotStore>,
+    actions: Arc<tokio::sync::Mutex<()>>,
+    cancel: CancellationToken,
+) {
+    let mut rx = vehicle.link.telemetry.vehicle.clone();
+    let mut was_heard = false;
+    loop {
+        let heard = {
+            let v = rx.borrow_and_update();
+            v.connected && !v.link_lost && v.system_id.is_some()
+        };
+        if heard && !was_heard {
+            let since = tokio::time::Instant::now();
+            tracing::info!("vehicle heard: reconciling the shots' missions with it");
+            let _guard = actions.lock().await;
+            tokio::select! {
+                _ = cancel.cancelled() => break,
+                _ = vehicle.reconcile_shots(&store, since) => {}
+            }
+        }
+        was_heard = heard;
+        tokio::select! {
+            _ = cancel.cancelled() => break,
+            r = rx.changed() => if r.is_err() { break },
+        }
     }
 }
 

@@ -70,7 +70,7 @@ impl Default for Params {
 pub use crate::lie::Sim3 as Similarity;
 
 /// Umeyama's least-squares alignment `dst ~ s R src + t` (Umeyama 1991),
-/// through [`crate::geometry::umeyama`]; with `with_scale` false, `s` = 1.
+/// through [`crate::geometry::umeyama()`]; with `with_scale` false, `s` = 1.
 pub fn umeyama(
     src: &[Vector3<f64>],
     dst: &[Vector3<f64>],

@@ -21,10 +21,11 @@
 //! | [`brief`] | Gaussian blur and steered BRIEF |
 //! | [`pattern`] | the learned ORB test pattern |
 //! | [`extractor`] | [`OrbExtractor`], putting it together (optionally on 2 threads) |
-//! | [`eval`] | homography-warp evaluation: repeatability, matching, spread |
+//!
+//! Its homography-warp evaluation (repeatability, matching, spread) is
+//! [`crate::features_eval`], above both this module and [`crate::matching`].
 
 pub mod brief;
-pub mod eval;
 pub mod extractor;
 pub mod fast;
 pub mod noise;

@@ -25,6 +25,7 @@
 pub mod align;
 pub mod mount;
 pub mod pipeline;
+pub mod saved;
 pub mod target;
 pub mod telemetry;
 pub mod wgs84;
@@ -51,6 +52,41 @@ pub struct Params {
     pub mount: MountParams,
     /// The map → NED alignment.
     pub align: AlignParams,
+    /// Across restarts: tracked frames as extra pairs, and the check of a
+    /// saved georeference against live evidence.
+    pub continuity: ContinuityParams,
+}
+
+/// How the georeference carries on across a restart (see
+/// `crate::daemon::geo_service`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ContinuityParams {
+    /// A tracked frame is paired with telemetry at most this often, seconds
+    /// (so the fit gains live evidence when the drone flies over mapped
+    /// ground and adds no keyframe); 0 turns frame pairs off.
+    pub frame_pair_spacing_s: f64,
+    /// Frame pairs kept (the oldest go first).
+    pub max_frame_pairs: usize,
+    /// Live pairs (keyframes or frames of this run) needed before the saved
+    /// georeference is checked against them.
+    pub min_live_pairs: usize,
+    /// The saved georeference disagrees with the live pairs when their
+    /// median residual under it exceeds this many times its own RMS
+    /// residual (and the alignment's inlier threshold): it is then dropped
+    /// and the fit made from live pairs alone.
+    pub disagreement_factor: f64,
+}
+
+impl Default for ContinuityParams {
+    fn default() -> Self {
+        Self {
+            frame_pair_spacing_s: 1.0,
+            max_frame_pairs: 60,
+            min_live_pairs: 3,
+            disagreement_factor: 3.0,
+        }
+    }
 }
 
 /// Errors of the geo module.

@@ -144,6 +144,22 @@ impl Geo {
         }
     }
 
+    /// Adds (or replaces) a pair whose telemetry side is already known (a
+    /// saved pair restored onto the loaded map, or one carried to another
+    /// home): no history lookup.
+    pub fn add_known(
+        &mut self,
+        kf_id: u64,
+        map_from_cam: &Isometry3<f64>,
+        ned_from_cam: &Isometry3<f64>,
+        v_ned: Option<nalgebra::Vector3<f64>>,
+        capture_time: f64,
+    ) -> Result<(), GeoError> {
+        self.pending.retain(|(id, _, _)| *id != kf_id);
+        self.georef
+            .add_keyframe(kf_id, map_from_cam, ned_from_cam, v_ned, capture_time)
+    }
+
     /// A keyframe's map pose changed (bundle adjustment): the pair keeps its
     /// telemetry side and takes the new map side; a keyframe still waiting
     /// for telemetry takes the new pose too. Returns whether it was known.

@@ -144,6 +144,18 @@ impl LocalFrame {
         self.ned_from_ecef * (to_ecef(g) - self.home_ecef)
     }
 
+    /// The rigid transform from `other`'s NED frame to this one's (exact,
+    /// through ECEF): a point or camera pose in `other`'s local NED
+    /// expressed in this frame. The identity when both share a home.
+    pub fn ned_from_other(&self, other: &LocalFrame) -> nalgebra::Isometry3<f64> {
+        let r = self.ned_from_ecef * other.ned_from_ecef.transpose();
+        let t = self.ned_from_ecef * (other.home_ecef - self.home_ecef);
+        let rot = nalgebra::UnitQuaternion::from_rotation_matrix(
+            &nalgebra::Rotation3::from_matrix_unchecked(r),
+        );
+        nalgebra::Isometry3::from_parts(t.into(), rot)
+    }
+
     /// Altitude above home (ellipsoidal height minus home's) of a NED point.
     pub fn altitude_above_home(&self, p_ned: &Vector3<f64>) -> f64 {
         self.ned_to_geodetic(p_ned).alt_m - self.home.alt_m
@@ -153,6 +165,33 @@ impl LocalFrame {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ned_from_other_moves_points_between_homes_exactly() {
+        let a = LocalFrame::new(HOME);
+        let b = LocalFrame::new(Geodetic {
+            lat_deg: HOME.lat_deg + 0.01,
+            lon_deg: HOME.lon_deg - 0.02,
+            alt_m: HOME.alt_m + 30.0,
+        });
+        let b_from_a = b.ned_from_other(&a);
+        for p in [
+            Vector3::new(0.0, 0.0, 0.0),
+            Vector3::new(120.0, -340.0, -55.0),
+            Vector3::new(-800.0, 900.0, 10.0),
+        ] {
+            let via_geodetic = b.geodetic_to_ned(&a.ned_to_geodetic(&p));
+            let via_transform = b_from_a * nalgebra::Point3::from(p);
+            assert!((via_geodetic - via_transform.coords).norm() < 1e-6, "{p}");
+        }
+        // Directions turn by the rotation between the two tangent planes:
+        // 0.01 deg of latitude about east, 0.02 deg of longitude about the
+        // Earth's axis (perpendicular): sqrt(0.01² + 0.02²) = 0.02236 deg.
+        let angle = b_from_a.rotation.angle().to_degrees();
+        assert!((angle - 0.02236).abs() < 1e-4, "{angle}");
+        let same = a.ned_from_other(&a);
+        assert!(same.translation.vector.norm() < 1e-9 && same.rotation.angle() < 1e-12);
+    }
 
     const HOME: Geodetic = Geodetic {
         lat_deg: 47.397_742,

@@ -4,7 +4,7 @@
 //! the homography from exactly four point pairs, and Umeyama alignment.
 //! SE(3)/Sim(3) live below both this module and `optimize`, in
 //! [`crate::lie`]; [`Sim3`] is re-exported here for callers that align
-//! with [`umeyama`].
+//! with [`umeyama()`].
 //!
 //! Conventions (see `ARCHITECTURE.md`): camera axes x right, y down,
 //! z forward; poses are named for what they map (`cam_from_world`).

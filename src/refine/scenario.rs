@@ -31,9 +31,13 @@ use serde::Serialize;
 
 use shotpilot_sim::autopilot::{Autopilot, AutopilotParams, Mode};
 use shotpilot_sim::camera::SimCamera;
+use shotpilot_sim::dataset::renderer_for;
+use shotpilot_sim::imaging::Imager;
+use shotpilot_sim::live::{LIVE_EXPOSURE_LAG_S, PoseHistory};
+use shotpilot_sim::realism::Realism;
 use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::script::{Level, Script, ScriptKind, ScriptParams};
-use shotpilot_sim::vehicle::GpsBiasParams;
+use shotpilot_sim::vehicle::{GpsBiasParams, VehicleDisturbances};
 use shotpilot_sim::world::{World, WorldParams};
 
 use super::{
@@ -186,6 +190,12 @@ pub struct ScenarioParams {
     pub plan: plan::Params,
     /// Shot error and correction loop.
     pub refine: Params,
+    /// The simulator's realism (`ideal`: none): its camera effects on every
+    /// live frame (the desired photo stays a clean render), its vehicle
+    /// effects on the vehicle (its GNSS error then replaces
+    /// `disturbances`' GPS bias), its telemetry rates and frame losses on
+    /// the telemetry the georeference sees.
+    pub realism: Realism,
 }
 
 impl Default for ScenarioParams {
@@ -229,6 +239,7 @@ impl Default for ScenarioParams {
                     position_sigma_m: 1.0,
                     ..geo::AlignParams::default()
                 },
+                continuity: geo::ContinuityParams::default(),
             },
             plan: plan::Params {
                 hold_time_s: 15.0,
@@ -236,6 +247,7 @@ impl Default for ScenarioParams {
                 ..plan::Params::default()
             },
             refine: Params::default(),
+            realism: Realism::ideal(),
         }
     }
 }
@@ -284,6 +296,9 @@ pub enum ScenarioError {
     /// The world could not be generated.
     #[error("world: {0}")]
     World(String),
+    /// The realism configuration is unusable.
+    #[error("realism: {0}")]
+    Realism(#[from] shotpilot_sim::realism::RealismError),
     /// The camera is unusable.
     #[error("camera: {0}")]
     Camera(#[from] crate::camera::CameraError),
@@ -399,6 +414,8 @@ pub struct TrialReport {
 pub struct ScenarioReport {
     /// Seed.
     pub seed: u64,
+    /// The realism (`ideal`, `field`, ...).
+    pub realism: String,
     /// Trials run.
     pub trials: usize,
     /// Trials whose desired shot was localised and flown.
@@ -470,6 +487,12 @@ struct Sim {
     fence: plan::Fence,
     fence_ok: bool,
     disturb: Disturbances,
+    /// The realistic camera (None: the plain renderer).
+    imager: Option<Imager>,
+    /// The true camera poses of the last steps (for `imager`).
+    history: PoseHistory,
+    /// Telemetry frame loss: probability and its dice.
+    telemetry_drop: Option<(f64, SmallRng)>,
 }
 
 impl Sim {
@@ -477,8 +500,23 @@ impl Sim {
     fn step(&mut self, geo: Option<&mut geo::Geo>) {
         self.k += 1;
         self.t = self.k as f64 * self.dt;
-        let out = self.ap.step(self.t, self.dt);
+        let mut out = self.ap.step(self.t, self.dt);
         let _ = self.ap.take_capture_requests();
+        if self.imager.is_some() {
+            let wfc = self.misaligned(&self.ap.vehicle().true_world_from_cam_stabilised());
+            self.history.push(self.t, wfc);
+        }
+        if let Some((p, rng)) = &mut self.telemetry_drop {
+            // The radio loses whole frames of the telemetry streams.
+            out.retain(|m| {
+                !matches!(
+                    m,
+                    MavMessage::GLOBAL_POSITION_INT(_)
+                        | MavMessage::ATTITUDE(_)
+                        | MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(_)
+                ) || rng.random::<f64>() >= *p
+            });
+        }
         let mut geo = geo;
         for m in &out {
             match m {
@@ -533,7 +571,11 @@ impl Sim {
     /// The camera pose the vehicle really has (GPS bias, which the
     /// simulator's vehicle carries, and misalignment included).
     fn true_camera(&self) -> Isometry3<f64> {
-        let nominal = self.ap.vehicle().true_world_from_cam();
+        self.misaligned(&self.ap.vehicle().true_world_from_cam())
+    }
+
+    /// `nominal` turned by the camera's mounting errors.
+    fn misaligned(&self, nominal: &Isometry3<f64>) -> Isometry3<f64> {
         let d = &self.disturb;
         let rotation = UnitQuaternion::from_axis_angle(
             &Vector3::z_axis(),
@@ -548,10 +590,26 @@ impl Sim {
     }
 
     fn render(&mut self) -> GrayImage {
-        let wfc = self.true_camera();
-        if self.sensor_noise {
+        let noise = self.sensor_noise.then(|| {
             self.noise_seed = self.noise_seed.wrapping_add(1);
-            self.renderer.render_noisy(&wfc, self.noise_seed)
+            self.noise_seed
+        });
+        if let Some(imager) = &mut self.imager {
+            // Exposed a moment back, over the true motion around then.
+            let t = self.t - LIVE_EXPOSURE_LAG_S;
+            let window = self.history.window(
+                t - 0.12,
+                t + 0.12,
+                self.ap.vehicle().gimbal_error().cloned(),
+            );
+            match imager.capture(t, &|s| window.world_from_cam(s), noise) {
+                Ok(shot) => return shot.image,
+                Err(e) => tracing::warn!("realistic frame: {e}"),
+            }
+        }
+        let wfc = self.true_camera();
+        if let Some(seed) = noise {
+            self.renderer.render_noisy(&wfc, seed)
         } else {
             self.renderer.render(&wfc)
         }
@@ -700,7 +758,12 @@ fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioE
     let map = run.map;
     let mut kf_truth = BTreeMap::new();
     for kf in map.keyframes() {
-        g.add_keyframe(u64::from(kf.id.0), &kf.world_from_cam(), kf.timestamp)?;
+        // As the daemon does: a keyframe the georeference refuses (its
+        // time in a telemetry gap) is left out, the rest go on.
+        if let Err(e) = g.add_keyframe(u64::from(kf.id.0), &kf.world_from_cam(), kf.timestamp) {
+            tracing::debug!(kf = kf.id.0, "geo: keyframe refused: {e}");
+            continue;
+        }
         if let Some(t) = truth_by_frame.get(&kf.frame_index) {
             kf_truth.insert(kf.id.0, *t);
         }
@@ -1052,20 +1115,44 @@ pub fn run(
         });
     }
     let wall = Instant::now();
-    let world = World::generate_with(params.seed, &params.world)
+    let realism = &params.realism;
+    realism.validate()?;
+    let mut world_params = params.world.clone();
+    if let Some(sun) = &realism.lighting.sun {
+        let (az, el) = sun.position();
+        world_params.sun_azimuth_deg = az;
+        world_params.sun_elevation_deg = el;
+    }
+    let world = World::generate_with(params.seed, &world_params)
         .map_err(|e| ScenarioError::World(e.to_string()))?;
-    let renderer = Renderer::new(
+    let renderer = renderer_for(
         Arc::new(world),
         SimCamera::default(),
         RenderParams::default(),
+        realism,
+        params.seed,
     );
+    let imager = (!realism.camera_is_ideal()).then(|| {
+        Imager::new(
+            Arc::new(renderer.clone()),
+            realism.camera.clone(),
+            &realism.lighting,
+        )
+    });
     let mut ap_params = AutopilotParams::default();
+    ap_params.vehicle.disturbances =
+        VehicleDisturbances::from_realism(realism, params.seed ^ 0x5EA1_0000);
+    if let Some(tel) = &realism.vehicle.telemetry {
+        ap_params.stream_intervals = tel.stream_intervals.clone();
+    }
     // The GPS bias is the simulator vehicle's own model (true position =
-    // reported position + bias), seeded from the scenario's seed.
+    // reported position + bias), seeded from the scenario's seed; the
+    // realism's GNSS error replaces it.
     let d = &params.disturbances;
+    let gps_off = realism.vehicle.gps.is_some();
     ap_params.vehicle.gps_bias = GpsBiasParams {
-        sigma_xy_m: d.gps_sigma_xy_m,
-        sigma_z_m: d.gps_sigma_z_m,
+        sigma_xy_m: if gps_off { 0.0 } else { d.gps_sigma_xy_m },
+        sigma_z_m: if gps_off { 0.0 } else { d.gps_sigma_z_m },
         tau_s: d.gps_tau_s,
         seed: params.seed ^ 0x00b1_a5ed,
     };
@@ -1073,8 +1160,40 @@ pub fn run(
         return Err(ScenarioError::InvalidParams { name, reason });
     }
     let h = ap_params.vehicle.home;
+    let mut ap = Autopilot::new(ap_params, 0.0);
+    if realism.vehicle.telemetry.is_some() {
+        // The autopilot starts at its own stream rates; the daemon asks
+        // for its rates with SET_MESSAGE_INTERVAL, as on a real link.
+        let r = crate::vehicle::Rates::default();
+        for (id, hz) in [
+            (33u32, r.global_position_hz),
+            (32, r.local_position_hz),
+            (30, r.attitude_hz),
+            (242, r.home_position_hz),
+            (285, r.gimbal_hz),
+            (42, r.mission_current_hz),
+        ] {
+            if hz > 0.0 {
+                let _ = ap.handle(
+                    &MavHeader {
+                        system_id: 255,
+                        component_id: 190,
+                        sequence: 0,
+                    },
+                    &MavMessage::COMMAND_LONG(mavlink::dialects::common::COMMAND_LONG_DATA {
+                        param1: id as f32,
+                        param2: 1e6 / hz,
+                        command: mavlink::dialects::common::MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                        target_system: 1,
+                        target_component: 1,
+                        ..Default::default()
+                    }),
+                );
+            }
+        }
+    }
     let mut sim = Sim {
-        ap: Autopilot::new(ap_params, 0.0),
+        ap,
         renderer,
         t: 0.0,
         dt: 1.0 / params.step_hz,
@@ -1090,6 +1209,14 @@ pub fn run(
         fence: params.plan.fence,
         fence_ok: true,
         disturb: params.disturbances.clone(),
+        imager,
+        history: PoseHistory::new(),
+        telemetry_drop: realism
+            .vehicle
+            .telemetry
+            .as_ref()
+            .filter(|t| t.drop > 0.0)
+            .map(|t| (t.drop, SmallRng::seed_from_u64(params.seed ^ 0xD20F))),
     };
     let ex = explore(&mut sim, params)?;
     let mut rng = SmallRng::seed_from_u64(params.seed ^ 0x7e57_5407);
@@ -1127,6 +1254,7 @@ pub fn run(
     let n = flown.len();
     Ok(ScenarioReport {
         seed: params.seed,
+        realism: params.realism.name.clone(),
         trials: trials.len(),
         flown: n,
         converged: trials.iter().filter(|t| t.stop == "converged").count(),

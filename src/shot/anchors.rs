@@ -79,6 +79,26 @@ fn turn(q: &[Point2<f64>; 4], i: usize) -> f64 {
     a.x * b.y - a.y * b.x
 }
 
+/// `z` of `(b - a) x (c - a)`: positive when `c` is left of `a -> b`.
+fn orient(a: &Point2<f64>, b: &Point2<f64>, c: &Point2<f64>) -> f64 {
+    (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x)
+}
+
+/// The two opposite edges that cross, if any (`(a, b, c, d)`: the edge
+/// from anchor a to b crosses the one from c to d). Only a proper crossing
+/// counts; touching or collinear edges are left to the area and convexity
+/// checks.
+fn crossing_edges(q: &[Point2<f64>; 4]) -> Option<(usize, usize, usize, usize)> {
+    for (a, b, c, d) in [(0, 1, 2, 3), (1, 2, 3, 0)] {
+        let (o1, o2) = (orient(&q[a], &q[b], &q[c]), orient(&q[a], &q[b], &q[d]));
+        let (o3, o4) = (orient(&q[c], &q[d], &q[a]), orient(&q[c], &q[d], &q[b]));
+        if o1 * o2 < 0.0 && o3 * o4 < 0.0 {
+            return Some((a, b, c, d));
+        }
+    }
+    None
+}
+
 /// Signed (shoelace) area; positive for the corners' winding in image
 /// coordinates (y down: top-left, top-right, bottom-right, bottom-left).
 fn signed_area(q: &[Point2<f64>; 4]) -> f64 {
@@ -94,7 +114,8 @@ fn signed_area(q: &[Point2<f64>; 4]) -> f64 {
 /// for a `width`x`height` frame.
 ///
 /// Refusals, in this order: [`ShotError::NonFiniteAnchor`],
-/// [`ShotError::AnchorOutOfBounds`], [`ShotError::Collapsed`],
+/// [`ShotError::AnchorOutOfBounds`], [`ShotError::Crossed`] (a bow tie,
+/// whose lobes' areas cancel in the signed area), [`ShotError::Collapsed`],
 /// [`ShotError::MirroredWinding`], [`ShotError::NotConvex`],
 /// [`ShotError::NearSingular`].
 pub fn homography_from_anchors(
@@ -128,6 +149,9 @@ pub fn homography_from_anchors(
                 limit_px: mx.max(my),
             });
         }
+    }
+    if let Some((a, b, c, d)) = crossing_edges(anchors) {
+        return Err(ShotError::Crossed { a, b, c, d });
     }
     let area = signed_area(anchors);
     let min_area = params.min_area_fraction * w * h;
@@ -324,12 +348,18 @@ mod tests {
         // An arrowhead: the bottom-right anchor pushed inside the triangle of the others.
         let dart = [p(0.0, 0.0), p(300.0, 0.0), p(100.0, 80.0), p(0.0, 230.0)];
         assert_eq!(solve(dart), Err(ShotError::NotConvex { vertex: 2 }));
-        // A bow tie with unequal lobes (self-intersecting).
+        // A bow tie with unequal lobes (self-intersecting): crossed, not
+        // "collapsed" although its lobes' signed areas nearly cancel.
         let bowtie = [p(0.0, 0.0), p(300.0, 0.0), p(0.0, 200.0), p(200.0, 230.0)];
-        assert!(matches!(
+        assert_eq!(
             solve(bowtie),
-            Err(ShotError::NotConvex { .. }) | Err(ShotError::Collapsed { .. })
-        ));
+            Err(ShotError::Crossed {
+                a: 1,
+                b: 2,
+                c: 3,
+                d: 0
+            })
+        );
         // Nearly collinear but above a (lowered) area minimum: the transform is singular.
         let sliver = [
             p(0.0, 100.0),
@@ -401,9 +431,39 @@ mod tests {
     }
 
     #[test]
-    fn bow_tie_is_not_convex() {
+    fn crossed_anchors_are_reported_as_crossed() {
         let bowtie = [p(0.0, 0.0), p(300.0, 0.0), p(30.0, 200.0), p(250.0, 150.0)];
-        assert!(matches!(solve(bowtie), Err(ShotError::NotConvex { .. })));
+        assert!(matches!(solve(bowtie), Err(ShotError::Crossed { .. })));
+        // Equal lobes: the signed area is exactly zero, which the area
+        // check alone called "collapsed: area 0 px²".
+        let x = [
+            p(100.0, 100.0),
+            p(300.0, 300.0),
+            p(300.0, 100.0),
+            p(100.0, 300.0),
+        ];
+        let e = solve(x).unwrap_err();
+        assert_eq!(
+            e,
+            ShotError::Crossed {
+                a: 0,
+                b: 1,
+                c: 2,
+                d: 3
+            }
+        );
+        assert!(e.to_string().contains("cross"), "{e}");
+        // Top and bottom swapped (0-1 crosses 2-3 instead).
+        let swapped = [
+            p(100.0, 100.0),
+            p(300.0, 100.0),
+            p(100.0, 300.0),
+            p(300.0, 300.0),
+        ];
+        assert!(matches!(
+            solve(swapped),
+            Err(ShotError::Crossed { a: 1, b: 2, .. })
+        ));
     }
 
     /// A smooth test pattern, exactly evaluable anywhere.

@@ -54,6 +54,22 @@ pub enum ShotError {
         /// The allowed distance beyond the border, pixels (the larger of the two axes).
         limit_px: f64,
     },
+    /// Two opposite edges of the quadrilateral cross (a bow tie): the
+    /// anchors are not in the order of the frame's corners.
+    #[error(
+        "anchors cross: the edge from anchor {a} to anchor {b} crosses the edge from anchor {c} to anchor {d}; \
+         place them in order top-left, top-right, bottom-right, bottom-left"
+    )]
+    Crossed {
+        /// First edge's start anchor.
+        a: usize,
+        /// First edge's end anchor.
+        b: usize,
+        /// Second edge's start anchor.
+        c: usize,
+        /// Second edge's end anchor.
+        d: usize,
+    },
     /// The quadrilateral's area is below the minimum.
     #[error(
         "anchor quadrilateral collapsed: area {area_px2:.1} px² < minimum {min_area_px2:.1} px²"

@@ -41,7 +41,10 @@ impl LocalMapTracker {
         cam_from_world: Isometry3<f64>,
         just_relocalized: bool,
     ) -> LocalMapResult {
-        let (reference, local_kfs) = local_keyframes(ctx, marks, map, frame);
+        let LocalKeyframes {
+            reference,
+            keyframes: local_kfs,
+        } = local_keyframes(ctx, marks, map, frame);
         let center = cam_from_world.inverse().translation.vector;
         marks.next_pass();
         for pid in frame.points.iter().flatten() {
@@ -95,14 +98,18 @@ impl LocalMapTracker {
     }
 }
 
+/// The local keyframes of a frame.
+struct LocalKeyframes {
+    /// The keyframe sharing most points with the frame.
+    reference: Option<KeyFrameId>,
+    /// The keyframes sharing points with the frame (most shared first),
+    /// then their best covisible neighbours, children and parents.
+    keyframes: Vec<KeyFrameId>,
+}
+
 /// The keyframes sharing points with the frame, their best covisible
 /// neighbours, parents and children; with the one sharing most.
-fn local_keyframes(
-    ctx: &Context,
-    marks: &mut Marks,
-    map: &Map,
-    frame: &Frame,
-) -> (Option<KeyFrameId>, Vec<KeyFrameId>) {
+fn local_keyframes(ctx: &Context, marks: &mut Marks, map: &Map, frame: &Frame) -> LocalKeyframes {
     marks.next_pass();
     let mut list: Vec<(KeyFrameId, u32)> = Vec::new();
     for pid in frame.points.iter().flatten() {
@@ -143,5 +150,8 @@ fn local_keyframes(
             }
         }
     }
-    (best, local)
+    LocalKeyframes {
+        reference: best,
+        keyframes: local,
+    }
 }

@@ -6,16 +6,29 @@
 //! length   u64      payload bytes
 //! checksum u64      FNV-1a 64 of the payload
 //! payload           camera, scale, keyframes (pose, keypoints, descriptors,
-//!                   point slots, covisibility, parent, JPEG image), points
+//!                   point slots, covisibility, parent, image), points
 //!                   (position, descriptor, normal, scale range, counters,
 //!                   observations), culled keyframes
 //! ```
 //!
+//! Keyframe images are stored so that they load back pixel for pixel
+//! (version 2): the bytes the video delivered when they decode to exactly
+//! the keyframe's image (the daemon's JPEG frames, see [`KeyframeImages`]),
+//! else PNG. Version 1 stored a JPEG re-encoded at quality 90, a second
+//! lossy generation of the video frame (and one more at every save of a
+//! continued map): an anchors shot, which warps the keyframe's image,
+//! then matched the map with different pixels than before the save (up to
+//! 0.4 px more reprojection RMSE). Version 1 files are still read.
+//!
 //! Loading checks the magic, the version, the length and the checksum, every
 //! index, and the map's invariants; any failure is a typed error.
 
+use std::collections::HashMap;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+
+use image::GrayImage;
 
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
@@ -25,8 +38,10 @@ use crate::features::KeyPoint;
 use super::map::{CulledKeyFrame, KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
 use crate::matching::{Bounds, FeatureGrid};
 
-/// The format version this build writes and reads.
-pub const FORMAT_VERSION: u32 = 1;
+/// The format version this build writes (it also reads version 1).
+pub const FORMAT_VERSION: u32 = 2;
+/// The oldest version this build reads.
+pub const OLDEST_VERSION: u32 = 1;
 const MAGIC: &[u8; 8] = b"SHOTMAP\0";
 
 /// Errors reading or writing a map file.
@@ -67,6 +82,89 @@ pub enum MapFileError {
     /// A keyframe image could not be encoded.
     #[error("cannot encode keyframe image: {0}")]
     Encode(String),
+}
+
+/// The stored bytes of keyframe images (JPEG or PNG), each known to decode
+/// to exactly its keyframe's image; kept between saves so that an image is
+/// encoded (or checked) once, and a loaded map is saved again with the
+/// bytes it was loaded from (no generation loss).
+#[derive(Debug, Clone, Default)]
+pub struct KeyframeImages {
+    bytes: HashMap<KeyFrameId, Arc<Vec<u8>>>,
+}
+
+/// The grey image that stored image bytes decode to (JPEG or PNG; colour
+/// is converted as the video ingest converts it).
+pub fn decode_image(bytes: &[u8]) -> Result<GrayImage, String> {
+    image::load_from_memory(bytes)
+        .map(|i| i.to_luma8())
+        .map_err(|e| e.to_string())
+}
+
+/// A lossless PNG of a grey image.
+fn png(img: &GrayImage) -> Result<Vec<u8>, MapFileError> {
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new_with_quality(
+        &mut out,
+        image::codecs::png::CompressionType::Fast,
+        image::codecs::png::FilterType::Adaptive,
+    )
+    .write_image(
+        img.as_raw(),
+        img.width(),
+        img.height(),
+        image::ExtendedColorType::L8,
+    )
+    .map_err(|e| MapFileError::Encode(e.to_string()))?;
+    Ok(out)
+}
+
+use image::ImageEncoder as _;
+
+impl KeyframeImages {
+    /// Offers the bytes a keyframe's image was decoded from (the video's
+    /// JPEG): kept when they decode to exactly `image`, so the file stores
+    /// them instead of a PNG. Returns whether they were kept.
+    pub fn offer(&mut self, id: KeyFrameId, bytes: Arc<Vec<u8>>, image: &GrayImage) -> bool {
+        match decode_image(&bytes) {
+            Ok(decoded) if decoded == *image => {
+                self.bytes.insert(id, bytes);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// The stored bytes of a keyframe's image, when known.
+    pub fn get(&self, id: KeyFrameId) -> Option<&Arc<Vec<u8>>> {
+        self.bytes.get(&id)
+    }
+
+    /// Images held.
+    pub fn len(&self) -> usize {
+        self.bytes.len()
+    }
+
+    /// True when none is held.
+    pub fn is_empty(&self) -> bool {
+        self.bytes.is_empty()
+    }
+
+    /// Forgets the images of keyframes that are no longer in `map`.
+    pub fn retain_in(&mut self, map: &Map) {
+        self.bytes.retain(|id, _| map.keyframe(*id).is_some());
+    }
+
+    /// The bytes to store for `kf`'s image: the known ones, else a PNG
+    /// (remembered).
+    fn bytes_for(&mut self, id: KeyFrameId, img: &GrayImage) -> Result<Arc<Vec<u8>>, MapFileError> {
+        if let Some(b) = self.bytes.get(&id) {
+            return Ok(b.clone());
+        }
+        let b = Arc::new(png(img)?);
+        self.bytes.insert(id, b.clone());
+        Ok(b)
+    }
 }
 
 /// FNV-1a, 64 bit.
@@ -188,8 +286,14 @@ impl<'a> R<'a> {
     }
 }
 
-/// Serialise a map (keyframe images as JPEG, quality 90).
+/// Serialise a map; keyframe images as PNG (see [`encode_with`]).
 pub fn encode(map: &Map) -> Result<Vec<u8>, MapFileError> {
+    encode_with(map, &mut KeyframeImages::default())
+}
+
+/// Serialise a map, storing each keyframe image as the bytes `images`
+/// holds for it (else a PNG, which `images` then keeps for the next save).
+pub fn encode_with(map: &Map, images: &mut KeyframeImages) -> Result<Vec<u8>, MapFileError> {
     let mut w = W(Vec::with_capacity(1 << 20));
     let c = &map.camera;
     w.u32(c.width);
@@ -231,12 +335,9 @@ pub fn encode(map: &Map) -> Result<Vec<u8>, MapFileError> {
         }
         match &k.image {
             Some(img) => {
-                let mut jpeg = Vec::new();
-                image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
-                    .encode_image(img.as_ref())
-                    .map_err(|e| MapFileError::Encode(e.to_string()))?;
-                w.len(jpeg.len());
-                w.0.extend_from_slice(&jpeg);
+                let bytes = images.bytes_for(k.id, img)?;
+                w.len(bytes.len());
+                w.0.extend_from_slice(&bytes);
             }
             None => w.len(0),
         }
@@ -288,29 +389,68 @@ pub fn encode(map: &Map) -> Result<Vec<u8>, MapFileError> {
     Ok(out)
 }
 
-/// Write a map file (atomically: a temporary file renamed into place).
+/// The temporary file a save writes before renaming it into place
+/// (`<name>.tmp` beside `path`); a leftover one is an interrupted save.
+pub fn temp_path(path: &Path) -> PathBuf {
+    beside(path, ".tmp")
+}
+
+/// `<name><suffix>` beside `path` (`map.spmap` + `.tmp`: `map.spmap.tmp`).
+pub fn beside(path: &Path, suffix: &str) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "map".into());
+    path.with_file_name(format!("{name}{suffix}"))
+}
+
+/// Write a map file (keyframe images as PNG, see [`save_with`]).
 pub fn save(map: &Map, path: &Path) -> Result<(), MapFileError> {
-    let bytes = encode(map)?;
-    let tmp = path.with_extension("tmp");
+    save_with(map, path, &mut KeyframeImages::default())
+}
+
+/// Write a map file atomically (a temporary file, flushed to disk, renamed
+/// into place), its keyframe images as [`encode_with`] stores them.
+pub fn save_with(map: &Map, path: &Path, images: &mut KeyframeImages) -> Result<(), MapFileError> {
+    let bytes = encode_with(map, images)?;
+    let tmp = temp_path(path);
     let io = |source| MapFileError::Io {
         path: path.to_owned(),
         source,
     };
-    std::fs::write(&tmp, &bytes).map_err(io)?;
+    {
+        let mut f = std::fs::File::create(&tmp).map_err(io)?;
+        f.write_all(&bytes).map_err(io)?;
+        f.sync_all().map_err(io)?;
+    }
     std::fs::rename(&tmp, path).map_err(io)
 }
 
 /// Read a map file.
 pub fn load(path: &Path) -> Result<Map, MapFileError> {
+    load_with_images(path).map(|(m, _)| m)
+}
+
+/// Read a map file, with the stored bytes of its keyframe images (to save
+/// the map again without re-encoding them).
+pub fn load_with_images(path: &Path) -> Result<(Map, KeyframeImages), MapFileError> {
     let bytes = std::fs::read(path).map_err(|source| MapFileError::Io {
         path: path.to_owned(),
         source,
     })?;
-    decode(&bytes, path)
+    decode_with_images(&bytes, path)
 }
 
 /// Parse map file bytes; `path` names the source in errors.
 pub fn decode(bytes: &[u8], path: &Path) -> Result<Map, MapFileError> {
+    decode_with_images(bytes, path).map(|(m, _)| m)
+}
+
+/// [`decode`], with the stored bytes of the keyframe images.
+pub fn decode_with_images(
+    bytes: &[u8],
+    path: &Path,
+) -> Result<(Map, KeyframeImages), MapFileError> {
     let corrupt = |reason: String| MapFileError::Corrupt {
         path: path.to_owned(),
         reason,
@@ -328,7 +468,7 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Map, MapFileError> {
         pos: 8,
     };
     let version = hdr.u32().map_err(&corrupt)?;
-    if version != FORMAT_VERSION {
+    if !(OLDEST_VERSION..=FORMAT_VERSION).contains(&version) {
         return Err(MapFileError::Version {
             path: path.to_owned(),
             found: version,
@@ -350,7 +490,7 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Map, MapFileError> {
     parse_payload(payload).map_err(corrupt)
 }
 
-fn parse_payload(payload: &[u8]) -> RResult<Map> {
+fn parse_payload(payload: &[u8]) -> RResult<(Map, KeyframeImages)> {
     let mut r = R {
         data: payload,
         pos: 0,
@@ -383,6 +523,7 @@ fn parse_payload(payload: &[u8]) -> RResult<Map> {
     let bounds = Bounds::of(&camera);
     let n_kf = r.len(60)?;
     let mut keyframes = Vec::with_capacity(n_kf);
+    let mut images = KeyframeImages::default();
     for _ in 0..n_kf {
         let id = KeyFrameId(r.u32()?);
         let frame_index = r.u64()?;
@@ -425,12 +566,19 @@ fn parse_payload(payload: &[u8]) -> RResult<Map> {
         for _ in 0..n_ch {
             children.push(KeyFrameId(r.u32()?));
         }
-        let n_jpeg = r.len(1)?;
-        let image = if n_jpeg > 0 {
-            let jpeg = r.take(n_jpeg)?;
-            let img = image::load_from_memory_with_format(jpeg, image::ImageFormat::Jpeg)
-                .map_err(|e| format!("keyframe {} image: {e}", id.0))?
-                .into_luma8();
+        let n_image = r.len(1)?;
+        let image = if n_image > 0 {
+            let stored = r.take(n_image)?;
+            let img = decode_image(stored).map_err(|e| format!("keyframe {} image: {e}", id.0))?;
+            if img.dimensions() != (width, height) {
+                return Err(format!(
+                    "keyframe {} image is {}x{}, the camera's {width}x{height}",
+                    id.0,
+                    img.width(),
+                    img.height()
+                ));
+            }
+            images.bytes.insert(id, Arc::new(stored.to_vec()));
             Some(Arc::new(img))
         } else {
             None
@@ -502,5 +650,111 @@ fn parse_payload(payload: &[u8]) -> RResult<Map> {
     }
     let map = Map::from_parts(camera, scale, covis_th, keyframes, points, culled)?;
     map.check_invariants()?;
-    Ok(map)
+    Ok((map, images))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Distortion;
+    use crate::matching::{Bounds, FeatureGrid};
+
+    /// A one-keyframe map whose image is a noisy texture (what JPEG
+    /// changes).
+    fn map_with_image() -> (Map, GrayImage) {
+        let camera = Camera::new(64, 48, [50.0, 50.0, 31.5, 23.5], Distortion::default()).unwrap();
+        let img = GrayImage::from_fn(64, 48, |x, y| {
+            image::Luma([((x * 37 + y * 91 + (x * y) % 13 * 17) % 256) as u8])
+        });
+        let kf = KeyFrame {
+            id: KeyFrameId(0),
+            frame_index: 7,
+            timestamp: 1.5,
+            cam_from_world: Isometry3::identity(),
+            keypoints: Vec::new(),
+            descriptors: Vec::new(),
+            points: Vec::new(),
+            grid: FeatureGrid::new(&[], Bounds::of(&camera)),
+            covisible: Vec::new(),
+            parent: None,
+            children: Vec::new(),
+            image: Some(Arc::new(img.clone())),
+        };
+        let map = Map::from_parts(
+            camera,
+            ScaleInfo::new(1.2, 8),
+            15,
+            vec![kf],
+            Vec::new(),
+            Vec::new(),
+        )
+        .unwrap();
+        (map, img)
+    }
+
+    #[test]
+    fn keyframe_images_come_back_pixel_for_pixel() {
+        let (map, img) = map_with_image();
+        let p = Path::new("mem");
+        // PNG when nothing else is known.
+        let (back, images) = decode_with_images(&encode(&map).unwrap(), p).unwrap();
+        let got = back.keyframe(KeyFrameId(0)).unwrap().image.clone().unwrap();
+        assert_eq!(*got, img);
+        // The video's JPEG is stored as it came when it decodes to the image.
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 80)
+            .encode_image(&img)
+            .unwrap();
+        let decoded = decode_image(&jpeg).unwrap();
+        assert_ne!(decoded, img, "JPEG changes this texture");
+        let mut jpeg_map = map.clone();
+        jpeg_map.keyframe_mut(KeyFrameId(0)).unwrap().image = Some(Arc::new(decoded.clone()));
+        let mut known = KeyframeImages::default();
+        assert!(
+            !known.offer(KeyFrameId(0), Arc::new(jpeg.clone()), &img),
+            "not its source"
+        );
+        assert!(known.offer(KeyFrameId(0), Arc::new(jpeg.clone()), &decoded));
+        let bytes = encode_with(&jpeg_map, &mut known).unwrap();
+        let (back, images2) = decode_with_images(&bytes, p).unwrap();
+        assert_eq!(
+            **images2.get(KeyFrameId(0)).unwrap(),
+            jpeg,
+            "stored as it came"
+        );
+        assert_eq!(
+            *back.keyframe(KeyFrameId(0)).unwrap().image.clone().unwrap(),
+            decoded
+        );
+        // Saved again from what was loaded: the same bytes, no new generation.
+        let mut again = images2.clone();
+        assert_eq!(encode_with(&back, &mut again).unwrap(), bytes);
+        assert_eq!(images.len(), 1);
+    }
+
+    #[test]
+    fn version_1_files_are_still_read() {
+        let (map, img) = map_with_image();
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
+            .encode_image(&img)
+            .unwrap();
+        let mut known = KeyframeImages::default();
+        let decoded = decode_image(&jpeg).unwrap();
+        let mut m = map.clone();
+        m.keyframe_mut(KeyFrameId(0)).unwrap().image = Some(Arc::new(decoded.clone()));
+        assert!(known.offer(KeyFrameId(0), Arc::new(jpeg), &decoded));
+        let mut v1 = encode_with(&m, &mut known).unwrap();
+        v1[8..12].copy_from_slice(&1u32.to_le_bytes());
+        let back = decode(&v1, Path::new("v1")).unwrap();
+        assert_eq!(
+            *back.keyframe(KeyFrameId(0)).unwrap().image.clone().unwrap(),
+            decoded
+        );
+        v1[8..12].copy_from_slice(&3u32.to_le_bytes());
+        assert!(matches!(
+            decode(&v1, Path::new("v3")),
+            Err(MapFileError::Version { found: 3, .. })
+        ));
+    }
 }

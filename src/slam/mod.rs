@@ -281,6 +281,11 @@ impl Slam {
         self.tracker.state()
     }
 
+    /// The newest frame's pose record (the frame last tracked).
+    pub fn last_record(&self) -> Option<&FrameRecord> {
+        self.tracker.records().last()
+    }
+
     /// Track one frame (and map its keyframe inline in sequential mode).
     pub fn process(&mut self, index: u64, timestamp: f64, image: Arc<GrayImage>) -> FrameOutcome {
         self.frames += 1;

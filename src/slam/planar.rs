@@ -168,11 +168,19 @@ pub fn twin_hypotheses(
     let mut checked: Vec<PlanarHypothesis> = hyps
         .into_iter()
         .map(|(r, t)| {
-            let pose = Isometry3::from_parts(
+            let cam2_from_cam1 = Isometry3::from_parts(
                 Translation3::from(t),
                 crate::lie::quaternion_from_matrix(&r),
             );
-            check_motion(camera, kp1, kp2, matches, &tv.inliers, &pose, params)
+            check_motion(
+                camera,
+                kp1,
+                kp2,
+                matches,
+                &tv.inliers,
+                &cam2_from_cam1,
+                params,
+            )
         })
         .collect();
     checked.sort_by_key(|h| std::cmp::Reverse(h.n_good));

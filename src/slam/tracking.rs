@@ -1,11 +1,11 @@
 //! Tracking, per frame: ORB extraction, then (after initialisation) the
 //! constant-velocity motion model with search by projection, the reference
-//! keyframe as fallback, the local map ([`super::local_map`]), motion-only
+//! keyframe as fallback, the local map (`slam/local_map.rs`), motion-only
 //! bundle adjustment, and the keyframe decision
-//! ([`super::keyframe_decision`]). States: not initialised
+//! (`slam/keyframe_decision.rs`). States: not initialised
 //! ([`super::initializer`] builds the map), tracking, lost (the
-//! [`super::relocalizer`] finds the frame again through the keyframe
-//! database).
+//! relocaliser, `slam/relocalizer.rs`, finds the frame again through the
+//! keyframe database).
 
 use std::sync::{Arc, Mutex};
 

@@ -143,6 +143,8 @@ pub struct Frame {
     /// The JPEG the API re-serves: as received for MJPEG, encoded from the
     /// grey image on first use for H.264.
     jpeg: OnceLock<Arc<Vec<u8>>>,
+    /// Whether `jpeg` holds the bytes as received (MJPEG), not an encoding.
+    jpeg_received: bool,
 }
 
 impl Frame {
@@ -162,6 +164,18 @@ impl Frame {
             received_unix,
             image,
             jpeg: OnceLock::new(),
+            jpeg_received: false,
+        }
+    }
+
+    /// The JPEG bytes exactly as the source sent them (MJPEG, snapshot);
+    /// `None` for frames decoded from a stream that sends no JPEG (H.264),
+    /// whose only lossless form is `image` itself.
+    pub fn received_jpeg(&self) -> Option<Arc<Vec<u8>>> {
+        if self.jpeg_received {
+            self.jpeg.get().cloned()
+        } else {
+            None
         }
     }
 
@@ -552,6 +566,7 @@ impl Ingest {
                         }
                     }),
                     jpeg: OnceLock::from(part.jpeg.clone()),
+                    jpeg_received: true,
                 });
                 let (w, h) = (frame.image.width(), frame.image.height());
                 self.update_source(|s| {

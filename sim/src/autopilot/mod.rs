@@ -215,6 +215,21 @@ pub struct AutopilotParams {
     /// `rtsp://` is typed RTSP, `udp://` RTP/UDP (both H.264), else
     /// TCP_MPEG (the simulator's own MJPEG over HTTP).
     pub video_stream_uri: Option<String>,
+    /// Telemetry stream intervals (MAVLink message id, seconds) replacing
+    /// the defaults listed in the module documentation (e.g. PX4's rates
+    /// on a telemetry radio, [`crate::realism::PX4_NORMAL_STREAMS`]).
+    pub stream_intervals: Vec<(u32, f64)>,
+}
+
+impl AutopilotParams {
+    /// The default interval of stream `id`, seconds (None: not a stream).
+    pub fn default_interval(&self, id: u32) -> Option<f64> {
+        self.stream_intervals
+            .iter()
+            .chain(STREAMS.iter())
+            .find(|d| d.0 == id)
+            .map(|d| d.1)
+    }
 }
 
 impl Default for AutopilotParams {
@@ -235,6 +250,7 @@ impl Default for AutopilotParams {
             disarm_preflight_s: 10.0,
             battery: (16.8, 13.6, 5000.0, 15.0),
             video_stream_uri: None,
+            stream_intervals: Vec::new(),
         }
     }
 }
@@ -404,7 +420,7 @@ impl Autopilot {
                 .iter()
                 .map(|&(id, iv)| Stream {
                     id,
-                    interval: Some(iv),
+                    interval: Some(params.default_interval(id).unwrap_or(iv)),
                     next: 0.0,
                 })
                 .collect(),
@@ -739,7 +755,7 @@ impl Autopilot {
                 let Some(s) = self.streams.iter_mut().find(|s| s.id == id) else {
                     return MavResult::MAV_RESULT_UNSUPPORTED;
                 };
-                let default = STREAMS.iter().find(|d| d.0 == id).map_or(1.0, |d| d.1);
+                let default = self.params.default_interval(id).unwrap_or(1.0);
                 s.interval = if us < 0.0 {
                     None
                 } else if us == 0.0 {
@@ -1481,8 +1497,12 @@ impl Autopilot {
                 epv: 100,
                 vel: (vel.x.hypot(vel.y) * 100.0) as u16,
                 cog: ((vel.y.atan2(vel.x).to_degrees().rem_euclid(360.0)) * 100.0) as u16,
-                fix_type: GpsFixType::GPS_FIX_TYPE_3D_FIX,
-                satellites_visible: 14,
+                fix_type: if v.gps_fix() {
+                    GpsFixType::GPS_FIX_TYPE_3D_FIX
+                } else {
+                    GpsFixType::GPS_FIX_TYPE_NO_FIX
+                },
+                satellites_visible: if v.gps_fix() { 14 } else { 0 },
                 alt_ellipsoid: (g.alt_m * 1e3).round() as i32,
                 h_acc: 500,
                 v_acc: 800,
@@ -1515,6 +1535,8 @@ impl Autopilot {
                     yawspeed: v.yaw_rate() as f32,
                 })
             }
+            // No global position while the GNSS fix is lost.
+            33 if !v.gps_fix() => return None,
             33 => MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
                 time_boot_ms: t_ms,
                 lat: (g.lat_deg * 1e7).round() as i32,

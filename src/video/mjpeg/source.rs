@@ -97,16 +97,18 @@ struct Body {
     _connection: Connection,
 }
 
-/// A hyper error as the client's error: a connection that ended early is
+/// A hyper error as the client's error: a connection that ended early
+/// (before the head, or inside a body of known length or a chunk) is
 /// [`MjpegError::Closed`], one that failed is [`MjpegError::Io`], anything
 /// else a bad response.
 fn from_hyper(url: &str, e: hyper::Error) -> MjpegError {
-    if e.is_incomplete_message() || e.is_closed() || e.is_canceled() {
+    let io = std::error::Error::source(&e).and_then(|s| s.downcast_ref::<std::io::Error>());
+    let cut = io.is_some_and(|io| io.kind() == std::io::ErrorKind::UnexpectedEof);
+    if e.is_incomplete_message() || e.is_closed() || e.is_canceled() || cut {
         return MjpegError::Closed {
             url: url.to_owned(),
         };
     }
-    let io = std::error::Error::source(&e).and_then(|s| s.downcast_ref::<std::io::Error>());
     if let Some(io) = io {
         return MjpegError::Io {
             url: url.to_owned(),

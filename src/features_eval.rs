@@ -9,8 +9,8 @@ use image::GrayImage;
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
-use super::{Descriptor, Features, KeyPoint, OrbExtractor};
 use crate::camera::Camera;
+use crate::features::{Descriptor, FeatureError, Features, KeyPoint, OrbExtractor};
 use crate::matching;
 use crate::video::dataset::Dataset;
 
@@ -496,7 +496,7 @@ pub fn evaluate_extractor(
     extractor: &mut OrbExtractor,
     pairs: &[WarpPair],
     params: &WarpParams,
-) -> Result<Vec<PairMetrics>, super::FeatureError> {
+) -> Result<Vec<PairMetrics>, FeatureError> {
     let mut out = Vec::with_capacity(pairs.len());
     for p in pairs {
         let fa = extractor.extract(&p.a, None);
