@@ -80,7 +80,7 @@ impl Default for Params {
             connect_timeout_ms: 3000,
             read_timeout_ms: 5000,
             reconnect_min_ms: 100,
-            reconnect_max_ms: 5000,
+            reconnect_max_ms: 2000,
             max_part_bytes: 16 << 20,
             max_header_bytes: 16 << 10,
         }
