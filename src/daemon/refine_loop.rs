@@ -229,9 +229,17 @@ async fn mark_interrupted(deps: &Deps, id: &str) {
     );
     r.insert("restartable".into(), true.into());
     tracing::info!(shot = %id, "refinement: interrupted by the daemon's stop");
-    let store = deps.store.clone();
-    match tokio::task::spawn_blocking(move || store.put(shot, None)).await {
-        Ok(Ok(())) => {}
+    let refinement = r.clone();
+    let (store, id) = (deps.store.clone(), id.to_owned());
+    let write = move || {
+        store.update(&id, |s| {
+            if let Some(m) = s.mission.as_mut() {
+                super::refine_service::set_detail(m, "refinement", refinement.into());
+            }
+        })
+    };
+    match tokio::task::spawn_blocking(write).await {
+        Ok(Ok(_)) => {}
         Ok(Err(e)) => tracing::warn!("refinement: saving the shot: {e}"),
         Err(e) => tracing::warn!("refinement: saving the shot: {e}"),
     }
@@ -355,9 +363,24 @@ async fn save_rounds(deps: &Deps, shot_id: &str, session: &Session, abort: Optio
         t.lon_deg,
         m.target_lat_lon_alt.map_or(t.alt_m, |x| x[2]),
     ]);
-    let store = deps.store.clone();
-    match tokio::task::spawn_blocking(move || store.put(shot, None)).await {
-        Ok(Ok(())) => {}
+    // Only what the loop owns is written back (its rounds and the target),
+    // into the record as it is now: the reconciler may have changed the
+    // mission state meanwhile.
+    let refinement = m.details.get("refinement").cloned();
+    let target = m.target_lat_lon_alt;
+    let (store, id) = (deps.store.clone(), shot_id.to_owned());
+    let write = move || {
+        store.update(&id, |s| {
+            if let Some(m) = s.mission.as_mut() {
+                if let Some(r) = refinement {
+                    super::refine_service::set_detail(m, "refinement", r);
+                }
+                m.target_lat_lon_alt = target;
+            }
+        })
+    };
+    match tokio::task::spawn_blocking(write).await {
+        Ok(Ok(_)) => {}
         Ok(Err(e)) => tracing::warn!("refinement: saving the shot: {e}"),
         Err(e) => tracing::warn!("refinement: saving the shot: {e}"),
     }

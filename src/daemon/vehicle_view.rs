@@ -227,7 +227,22 @@ impl LinkVehicle {
                     .and_then(|m| m.details["vehicle"]["reason"].as_str()),
                 "reconciled with the vehicle's mission"
             );
-            if let Err(e) = store.put(s.clone(), None) {
+            // Only the reconciled part (state and `details.vehicle`) goes
+            // into the record as it is now: a refinement loop may have
+            // written its rounds since the list was read.
+            let (state, vehicle_detail) = match m {
+                Some(m) => (m.state.clone(), m.details.get("vehicle").cloned()),
+                None => continue,
+            };
+            let apply = |cur: &mut Shot| {
+                if let Some(cm) = cur.mission.as_mut() {
+                    cm.state = state;
+                    if let Some(v) = vehicle_detail {
+                        super::refine_service::set_detail(cm, "vehicle", v);
+                    }
+                }
+            };
+            if let Err(e) = store.update(&s.id, apply) {
                 tracing::warn!(shot = %s.id, "reconcile: saving the shot: {e}");
             }
         }
