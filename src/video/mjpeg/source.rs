@@ -468,6 +468,6 @@ mod tests {
         let p = Params::default();
         assert_eq!(backoff(&p, 0), Duration::from_millis(100));
         assert_eq!(backoff(&p, 3), Duration::from_millis(800));
-        assert_eq!(backoff(&p, 30), Duration::from_millis(5000));
+        assert_eq!(backoff(&p, 30), Duration::from_millis(2000));
     }
 }
