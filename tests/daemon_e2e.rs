@@ -26,16 +26,6 @@ fn post_png(addr: SocketAddr, path: &str, img: &image::GrayImage) -> (u16, Vec<u
     request(addr, "POST", path, "image/png", &png)
 }
 
-/// Distance between a localised shot's camera centre and a keyframe's.
-fn centre_distance(shot: &Value, kf: &Value) -> f64 {
-    let a = &shot["localisation"]["world_from_cam"]["translation"];
-    let b = &kf["world_from_cam"]["translation"];
-    (0..3)
-        .map(|i| (a[i].as_f64().unwrap() - b[i].as_f64().unwrap()).powi(2))
-        .sum::<f64>()
-        .sqrt()
-}
-
 #[test]
 fn daemon_with_simulator_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
@@ -216,17 +206,7 @@ fn daemon_with_simulator_end_to_end() {
         .find(|k| k["id"] == kid)
         .unwrap()
         .clone();
-    let traj = get_json(addr, "/api/v1/map")["trajectory"].clone();
-    let traj: Vec<[f64; 3]> = serde_json::from_value(traj).unwrap();
-    let extent = (0..3)
-        .map(|i| {
-            let (lo, hi) = traj.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
-                (lo.min(p[i]), hi.max(p[i]))
-            });
-            (hi - lo).powi(2)
-        })
-        .sum::<f64>()
-        .sqrt();
+    let extent = daemon_support::trajectory_extent(addr);
     let half = image::imageops::resize(&kf_img, 320, 240, image::imageops::FilterType::Triangle);
     let (st, b) = post_png(addr, "/api/v1/shots/photo", &half);
     assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
@@ -234,7 +214,7 @@ fn daemon_with_simulator_end_to_end() {
     let half_shot: Value = serde_json::from_slice(&b).unwrap();
     eprintln!("half-size photo of keyframe {kid}: {half_shot}");
     assert_eq!(half_shot["status"], "localised", "{half_shot}");
-    let d = centre_distance(&half_shot, &kf);
+    let d = daemon_support::centre_distance(&half_shot, &kf);
     eprintln!("half-size photo: {d:.3} from the keyframe's centre (trajectory extent {extent:.3})");
     assert!(d < 0.1 * extent, "{d} vs extent {extent}");
     let crop = image::imageops::crop_imm(&kf_img, 80, 0, 480, 480).to_image();
@@ -265,7 +245,7 @@ fn daemon_with_simulator_end_to_end() {
     let crop_shot: Value = serde_json::from_slice(&b).unwrap();
     assert_eq!(crop_shot["status"], "localised", "{crop_shot}");
     assert_eq!(crop_shot["source"]["intrinsics"]["fx"], c.fx);
-    let d = centre_distance(&crop_shot, &kf);
+    let d = daemon_support::centre_distance(&crop_shot, &kf);
     eprintln!("cropped photo with intrinsics: {d:.3} from the keyframe's centre");
     assert!(d < 0.1 * extent, "{d} vs extent {extent}");
 

@@ -411,15 +411,6 @@ struct Figures {
     mission: String,
 }
 
-fn centre_distance(shot: &Value, kf: &Value) -> f64 {
-    let c = &shot["localisation"]["world_from_cam"]["translation"];
-    let k = &kf["world_from_cam"]["translation"];
-    (0..3)
-        .map(|i| (c[i].as_f64().unwrap() - k[i].as_f64().unwrap()).powi(2))
-        .sum::<f64>()
-        .sqrt()
-}
-
 /// Run the daemon with the simulator; `setup` edits the configuration
 /// (and may start peers, kept alive in its return value), `after_start`
 /// may start peers that need the daemon's addresses.
@@ -513,18 +504,8 @@ fn end_to_end<P, Q>(
     assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
     let photo: Value = serde_json::from_slice(&b).unwrap();
     assert_eq!(photo["status"], "localised", "{photo}");
-    let traj: Vec<[f64; 3]> =
-        serde_json::from_value(get_json(addr, "/api/v1/map")["trajectory"].clone()).unwrap();
-    let extent = (0..3)
-        .map(|i| {
-            let (lo, hi) = traj.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
-                (lo.min(p[i]), hi.max(p[i]))
-            });
-            (hi - lo).powi(2)
-        })
-        .sum::<f64>()
-        .sqrt();
-    let shot_error_rel = centre_distance(&photo, &kf) / extent;
+    let extent = daemon_support::trajectory_extent(addr);
+    let shot_error_rel = daemon_support::centre_distance(&photo, &kf) / extent;
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let m: Value = serde_json::from_slice(&b).unwrap();

@@ -75,3 +75,30 @@ pub fn get_json(addr: SocketAddr, path: &str) -> Value {
     assert_eq!(st, 200, "{path}: {}", String::from_utf8_lossy(&b));
     serde_json::from_slice(&b).unwrap()
 }
+
+/// Distance between a shot's localised camera centre and a keyframe's,
+/// in map units (both as the API reports them).
+pub fn centre_distance(shot: &Value, kf: &Value) -> f64 {
+    let c = &shot["localisation"]["world_from_cam"]["translation"];
+    let k = &kf["world_from_cam"]["translation"];
+    (0..3)
+        .map(|i| (c[i].as_f64().unwrap() - k[i].as_f64().unwrap()).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// The diagonal of the map trajectory's bounding box, in map units: the
+/// scale that shot errors are divided by.
+pub fn trajectory_extent(addr: SocketAddr) -> f64 {
+    let traj: Vec<[f64; 3]> =
+        serde_json::from_value(get_json(addr, "/api/v1/map")["trajectory"].clone()).unwrap();
+    (0..3)
+        .map(|i| {
+            let (lo, hi) = traj.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+                (lo.min(p[i]), hi.max(p[i]))
+            });
+            (hi - lo).powi(2)
+        })
+        .sum::<f64>()
+        .sqrt()
+}
