@@ -24,16 +24,7 @@ const GOP: usize = 30;
 fn stream(w: u32, h: u32, bitrate: u32) -> Vec<Vec<u8>> {
     let world = Arc::new(World::generate_with(5, &WorldParams::small()).expect("world"));
     let path = CameraPath::explore(&world, PathParams::default());
-    let s = f64::from(w) / 640.0;
-    let cam = SimCamera {
-        width: w,
-        height: h,
-        fx: 460.0 * s,
-        fy: 460.0 * s,
-        cx: f64::from(w) / 2.0 - 0.5,
-        cy: f64::from(h) / 2.0 - 0.5,
-        ..SimCamera::default()
-    };
+    let cam = SimCamera::with_size(w, h);
     let r = Renderer::new(world, cam, RenderParams::default());
     let frames: Vec<GrayImage> = (0..GOP)
         .map(|i| {

@@ -25,16 +25,7 @@ use shotpilot_sim::world::{World, WorldParams};
 fn renders(w: u32, h: u32, n: usize) -> Vec<GrayImage> {
     let world = Arc::new(World::generate_with(3, &WorldParams::small()).unwrap());
     let path = CameraPath::explore(&world, PathParams::default());
-    let s = f64::from(w) / 640.0;
-    let cam = SimCamera {
-        width: w,
-        height: h,
-        fx: 460.0 * s,
-        fy: 460.0 * s,
-        cx: f64::from(w) / 2.0 - 0.5,
-        cy: f64::from(h) / 2.0 - 0.5,
-        ..SimCamera::default()
-    };
+    let cam = SimCamera::with_size(w, h);
     let r = Renderer::new(world, cam, RenderParams::default());
     (0..n)
         .map(|i| r.render(&path.world_from_cam(path.start() + i as f64 / 15.0)))

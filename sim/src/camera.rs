@@ -107,6 +107,23 @@ impl Default for SimCamera {
 }
 
 impl SimCamera {
+    /// The default camera's lens (same horizontal field of view and
+    /// distortion) on a `width` x `height` sensor, the principal point
+    /// at its centre: e.g. a 1280x720 stream of the same camera.
+    pub fn with_size(width: u32, height: u32) -> Self {
+        let s = f64::from(width) / 640.0;
+        let d = Self::default();
+        Self {
+            width,
+            height,
+            fx: d.fx * s,
+            fy: d.fy * s,
+            cx: f64::from(width) / 2.0 - 0.5,
+            cy: f64::from(height) / 2.0 - 0.5,
+            ..d
+        }
+    }
+
     /// Checks that the intrinsics can be used.
     pub fn validate(&self) -> Result<(), CameraError> {
         if self.width == 0 || self.height == 0 {
