@@ -550,10 +550,10 @@ impl LinkHandle {
             self.acquire_for_mission().await;
         }
         self.call(|reply| Command::SetMode { mode, reply }).await?;
-        if mode != FlightMode::Mission && self.telemetry.gimbal_control.borrow().for_mission {
-            if let Err(e) = self.release_gimbal().await {
-                warn!(error = %e, "gimbal release after the mode change failed");
-            }
+        let release =
+            mode != FlightMode::Mission && self.telemetry.gimbal_control.borrow().for_mission;
+        if release && let Err(e) = self.release_gimbal().await {
+            warn!(error = %e, "gimbal release after the mode change failed");
         }
         Ok(())
     }
