@@ -180,10 +180,11 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
         upload::Params::default(),
         cancel.clone(),
     )?;
-    let v = link.wait_for_vehicle(Duration::from_secs(20)).await?;
+    // The simulator builds its world first: seconds, more on a loaded machine.
+    let v = link.wait_for_vehicle(Duration::from_secs(60)).await?;
     anyhow::ensure!(v.flavour == Some(flavour), "sim says {:?}", v.flavour);
     let mut home_rx = link.telemetry.home.clone();
-    wait_for("HOME_POSITION", &mut home_rx, 20, Option::is_some).await?;
+    wait_for("HOME_POSITION", &mut home_rx, 30, Option::is_some).await?;
     let h = (*home_rx.borrow())
         .map(|s| s.value)
         .ok_or_else(|| anyhow::anyhow!("no home"))?;
