@@ -37,6 +37,17 @@ fn start_peer(
     seconds: f64,
     serve_upload: bool,
 ) -> anyhow::Result<(Child, BufReader<std::process::ChildStdout>)> {
+    start_peer_as(port, key, seconds, serve_upload, "px4")
+}
+
+/// [`start_peer`] with the autopilot it claims to be (`px4`, `ardupilot`).
+fn start_peer_as(
+    port: u16,
+    key: Option<&str>,
+    seconds: f64,
+    serve_upload: bool,
+    autopilot: &str,
+) -> anyhow::Result<(Child, BufReader<std::process::ChildStdout>)> {
     let script = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/tests/peers/pymavlink_vehicle.py"
@@ -53,6 +64,7 @@ fn start_peer(
     if serve_upload {
         cmd.arg("--serve-upload");
     }
+    cmd.arg("--autopilot").arg(autopilot);
     let mut child = cmd.stdout(Stdio::piped()).spawn()?;
     let stdout = child
         .stdout
@@ -227,5 +239,106 @@ async fn unsigned_frames_are_rejected_by_a_signing_peer() -> anyhow::Result<()> 
     let out = tokio::task::spawn_blocking(move || finish_peer(child, reader)).await??;
     cancel.cancel();
     assert_eq!(out["heartbeats"], 0, "{out}");
+    Ok(())
+}
+
+/// `shotpilot mission upload` to a pymavlink vehicle claiming `autopilot`:
+/// the items pymavlink decoded, and the same target's `mission plan --json`.
+fn upload_via_cli(
+    autopilot: &str,
+) -> anyhow::Result<(Vec<serde_json::Value>, Vec<serde_json::Value>)> {
+    let port = free_udp_port();
+    let (child, reader) = start_peer_as(port, None, 15.0, true, autopilot)?;
+    let target = "47.3981,8.5452,22.5,135,-40";
+    let home = "47.397742,8.545594,488";
+    let up = Command::new(env!("CARGO_BIN_EXE_shotpilot"))
+        .args(["--log", "warn", "mission", "upload", "--link"])
+        .arg(format!("udpout:127.0.0.1:{port}"))
+        .args(["--target", target, "--home", home, "--no-verify", "--json"])
+        .output()?;
+    anyhow::ensure!(
+        up.status.success(),
+        "upload: {}",
+        String::from_utf8_lossy(&up.stderr)
+    );
+    let out = finish_peer(child, reader)?;
+    let decoded = out["items"]
+        .as_array()
+        .cloned()
+        .ok_or_else(|| anyhow::anyhow!("the peer decoded no mission: {out}"))?;
+    let dir = tempfile::tempdir()?;
+    let planned = Command::new(env!("CARGO_BIN_EXE_shotpilot"))
+        .args([
+            "--log",
+            "warn",
+            "mission",
+            "plan",
+            "--json",
+            "--flavour",
+            autopilot,
+        ])
+        .args(["--target", target, "--home", home, "--qgc-plan"])
+        .arg(dir.path().join("p.plan"))
+        .output()?;
+    anyhow::ensure!(planned.status.success());
+    let j: serde_json::Value = serde_json::from_slice(&planned.stdout)?;
+    let planned = j["items"].as_array().cloned().unwrap_or_default();
+    Ok((decoded, planned))
+}
+
+#[test]
+#[ignore = "needs pymavlink"]
+fn pymavlink_decodes_gimbal_manager_items_on_both_flavours() -> anyhow::Result<()> {
+    for autopilot in ["px4", "ardupilot"] {
+        let (decoded, planned) = upload_via_cli(autopilot)?;
+        assert_eq!(decoded.len(), planned.len(), "{autopilot}: {decoded:?}");
+        for (d, p) in decoded.iter().zip(&planned) {
+            assert_eq!(d["command"], p["command"], "{autopilot}");
+        }
+        let names: Vec<&str> = decoded
+            .iter()
+            .map(|d| d["command_name"].as_str().unwrap_or("?"))
+            .collect();
+        let pitchyaw = decoded
+            .iter()
+            .find(|d| d["command_name"] == "MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW")
+            .ok_or_else(|| anyhow::anyhow!("{autopilot}: no PITCHYAW in {names:?}"))?;
+        assert_eq!(
+            pitchyaw["params"][0].as_f64(),
+            Some(-40.0),
+            "{autopilot}: pitch"
+        );
+        assert_eq!(
+            pitchyaw["params"][1].as_f64(),
+            Some(0.0),
+            "{autopilot}: yaw"
+        );
+        assert_eq!(pitchyaw["x"], 4 | 8 | 32, "{autopilot}: flags");
+        assert!(
+            !names.contains(&"MAV_CMD_DO_MOUNT_CONTROL"),
+            "{autopilot}: {names:?}"
+        );
+        let configures: Vec<&serde_json::Value> = decoded
+            .iter()
+            .filter(|d| d["command_name"] == "MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE")
+            .collect();
+        if autopilot == "px4" {
+            // take control (-2: the autopilot itself) before the PITCHYAW, release (-3) last
+            assert_eq!(configures.len(), 2, "{names:?}");
+            assert!(configures[0]["seq"].as_u64() < pitchyaw["seq"].as_u64());
+            assert_eq!(configures[0]["params"][0].as_f64(), Some(-2.0));
+            assert_eq!(configures[1]["params"][0].as_f64(), Some(-3.0));
+            assert_eq!(
+                configures[1]["seq"].as_u64(),
+                Some(decoded.len() as u64 - 1)
+            );
+        } else {
+            assert!(
+                configures.is_empty(),
+                "ArduPilot has no configure mission item: {names:?}"
+            );
+        }
+        println!("{autopilot}: pymavlink decoded {names:?}");
+    }
     Ok(())
 }

@@ -258,9 +258,26 @@ async fn progress_from_mission_current_and_item_reached() -> anyhow::Result<()> 
     .expect("some");
     assert_eq!(p.value.total, Some(n));
     let cmds = fake.lock().expect("lock").commands.clone();
+    use mavlink::dialects::common::MavCmd;
+    let start = cmds
+        .iter()
+        .position(|(c, _)| *c == MavCmd::MAV_CMD_MISSION_START);
+    // The mission points the gimbal: gimbal control was asked for first; this
+    // vehicle has no gimbal manager (no GIMBAL_MANAGER_STATUS, CONFIGURE
+    // UNSUPPORTED), which is a warning in the status, not a failed start.
+    let configure = cmds
+        .iter()
+        .position(|(c, _)| *c == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE);
     assert!(
-        cmds.iter()
-            .any(|(c, _)| *c == mavlink::dialects::common::MavCmd::MAV_CMD_MISSION_START)
+        configure.is_some() && configure < start,
+        "configure {configure:?}, start {start:?}: {cmds:?}"
+    );
+    let g = link.telemetry.gimbal_control.borrow().clone();
+    assert!(!g.held, "{g:?}");
+    let w = g.warning.unwrap_or_default();
+    assert!(
+        w.contains("gimbal control not taken") && w.contains("UNSUPPORTED"),
+        "{w}"
     );
     cancel.cancel();
     Ok(())

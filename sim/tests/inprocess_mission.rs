@@ -173,8 +173,19 @@ async fn in_process_sim_flies_an_uploaded_mission_and_captures() {
             lon,
             6.0,
         ),
+        // Gimbal protocol v2 as PX4 runs it: the mission makes the autopilot
+        // the gimbal's primary controller (-2) before pointing it.
         item(
             2,
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+            MavFrame::MAV_FRAME_MISSION,
+            [-2.0, -2.0, -1.0, -1.0],
+            0,
+            0,
+            0.0,
+        ),
+        item(
+            3,
             MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
             MavFrame::MAV_FRAME_MISSION,
             [-90.0, 0.0, f32::NAN, f32::NAN],
@@ -183,7 +194,7 @@ async fn in_process_sim_flies_an_uploaded_mission_and_captures() {
             0.0,
         ),
         item(
-            3,
+            4,
             MavCmd::MAV_CMD_IMAGE_START_CAPTURE,
             MavFrame::MAV_FRAME_MISSION,
             [0.0, 0.0, 1.0, 0.0],
@@ -230,7 +241,13 @@ async fn in_process_sim_flies_an_uploaded_mission_and_captures() {
     assert_eq!(ack, MavMissionResult::MAV_MISSION_ACCEPTED);
     assert_eq!(
         kinds,
-        vec![("legacy", 0), ("int", 1), ("int", 2), ("int", 3)]
+        vec![
+            ("legacy", 0),
+            ("int", 1),
+            ("int", 2),
+            ("int", 3),
+            ("int", 4)
+        ]
     );
 
     for (cmd, p1) in [
@@ -252,6 +269,7 @@ async fn in_process_sim_flies_an_uploaded_mission_and_captures() {
     let mut captured = None;
     let mut complete = false;
     let mut last_local = None;
+    let mut texts = Vec::new();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
     while tokio::time::Instant::now() < deadline && !(complete && captured.is_some()) {
         let Some(m) = g.recv_until(1.0, |_| true).await else {
@@ -265,6 +283,7 @@ async fn in_process_sim_flies_an_uploaded_mission_and_captures() {
                 complete = true
             }
             MavMessage::LOCAL_POSITION_NED(l) => last_local = Some(l),
+            MavMessage::STATUSTEXT(t) => texts.push(t.text.to_str().unwrap_or("").to_string()),
             _ => {}
         }
     }
@@ -275,6 +294,10 @@ async fn in_process_sim_flies_an_uploaded_mission_and_captures() {
     assert!(meta.len() > 10_000, "{} bytes", meta.len());
     assert!((c.relative_alt - 6000).abs() < 900, "{}", c.relative_alt);
     assert!(complete);
+    assert!(
+        !texts.iter().any(|t| t.contains("denied")),
+        "the mission's gimbal item was refused: {texts:?}"
+    );
     let l = last_local.expect("local position");
     assert!(
         (l.x - 12.0).abs() < 1.2 && l.y.abs() < 1.0 && (l.z + 6.0).abs() < 0.8,

@@ -309,6 +309,8 @@ impl VehicleView for LinkVehicle {
     fn status(&self) -> Value {
         let v = self.link.telemetry.vehicle.borrow().clone();
         let gp = *self.link.telemetry.global_position.borrow();
+        let manager = *self.link.telemetry.gimbal_manager.borrow();
+        let control = self.link.telemetry.gimbal_control.borrow().clone();
         json!({
             "configured": true,
             "connected": v.connected && !v.link_lost,
@@ -326,6 +328,15 @@ impl VehicleView for LinkVehicle {
                 "heading_deg": p.value.heading_deg,
             })),
             "georeference": self.geo.status(),
+            "gimbal": {
+                "manager": manager.map(|m| json!({
+                    "gimbal_device_id": m.value.gimbal_device_id,
+                    "primary": [m.value.primary.0, m.value.primary.1],
+                    "secondary": [m.value.secondary.0, m.value.secondary.1],
+                    "age_s": m.received.elapsed().as_secs_f64(),
+                })),
+                "control": control,
+            },
         })
     }
 

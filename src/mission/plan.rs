@@ -9,11 +9,28 @@
 //!
 //! | PX4 | ArduPilot |
 //! |---|---|
-//! | [0] `DO_GIMBAL_MANAGER_PITCHYAW` (or `DO_MOUNT_CONTROL`) | [0] home placeholder `NAV_WAYPOINT` (the autopilot overwrites it) |
-//! | [1] `NAV_WAYPOINT`, relative-altitude frame, yaw in param4, acceptance radius in param2 | [1] `NAV_WAYPOINT`, relative-altitude frame |
-//! | [2] `IMAGE_START_CAPTURE` (with `photo`) | [2] `CONDITION_YAW` (absolute) |
-//! | | [3] `DO_MOUNT_CONTROL` |
-//! | | [4] `DO_DIGICAM_CONTROL` (with `photo`) |
+//! | [0] `DO_GIMBAL_MANAGER_CONFIGURE` (-2/-2: the autopilot takes primary control) | [0] home placeholder `NAV_WAYPOINT` (the autopilot overwrites it) |
+//! | [1] `DO_GIMBAL_MANAGER_PITCHYAW` | [1] `NAV_WAYPOINT`, relative-altitude frame |
+//! | [2] `NAV_WAYPOINT`, relative-altitude frame, yaw in param4, acceptance radius in param2 | [2] `CONDITION_YAW` (absolute) |
+//! | [3] `IMAGE_START_CAPTURE` (with `photo`) | [3] `DO_GIMBAL_MANAGER_PITCHYAW` |
+//! | [last] `DO_GIMBAL_MANAGER_CONFIGURE` (-3/-3: release control) | [4] `DO_DIGICAM_CONTROL` (with `photo`) |
+//!
+//! Gimbal protocol v2 (MAVLink's gimbal manager). PX4 runs mission DO items
+//! as commands from the autopilot itself and its gimbal manager denies a
+//! `DO_GIMBAL_MANAGER_PITCHYAW` from anyone not in primary control, so a
+//! PX4 mission first makes the autopilot the primary controller with the
+//! `DO_GIMBAL_MANAGER_CONFIGURE` mission item (param1/param2 -2, "set
+//! itself in control", as MAVSDK's missions do) and gives control up at the
+//! end (-3, "remove control if in control"). ArduPilot (4.3+) executes a
+//! mission `DO_GIMBAL_MANAGER_PITCHYAW` without checking who is in control
+//! and has no handler for `DO_GIMBAL_MANAGER_CONFIGURE` as a mission item,
+//! so its missions carry only the PITCHYAW. The ground station's own
+//! control (taken with the command before the mission starts) is the link
+//! layer's job: see [`crate::vehicle::LinkHandle::start_mission`].
+//!
+//! With [`GimbalCommand::MountControl`] (older firmware: PX4 before the
+//! gimbal manager, ArduPilot before 4.3) both flavours get the legacy
+//! `DO_MOUNT_CONTROL` in place of the PITCHYAW and no configure items.
 //!
 //! PX4 runs the gimbal command before flying, so the camera is already
 //! pitched on arrival; the capture follows the waypoint's hold time.
@@ -36,6 +53,8 @@ pub mod cmd {
     pub const DO_MOUNT_CONTROL: u16 = 205;
     /// MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW
     pub const DO_GIMBAL_MANAGER_PITCHYAW: u16 = 1000;
+    /// MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE
+    pub const DO_GIMBAL_MANAGER_CONFIGURE: u16 = 1001;
     /// MAV_CMD_IMAGE_START_CAPTURE
     pub const IMAGE_START_CAPTURE: u16 = 2000;
 }
@@ -129,15 +148,24 @@ impl Flavour {
     }
 }
 
-/// Which command points the gimbal on PX4.
+/// Which command points the gimbal (both flavours).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum GimbalCommand {
-    /// MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW (gimbal protocol v2).
+    /// MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW (gimbal protocol v2: PX4, ArduPilot 4.3+).
     GimbalManager,
-    /// MAV_CMD_DO_MOUNT_CONTROL (older mounts).
+    /// MAV_CMD_DO_MOUNT_CONTROL (older firmware: ArduPilot before 4.3, old PX4 mounts).
     MountControl,
 }
+
+/// `DO_GIMBAL_MANAGER_CONFIGURE` param1/param2: "set itself in control"
+/// (the autopilot running the mission).
+pub const GIMBAL_CONTROL_SELF: f32 = -2.0;
+/// `DO_GIMBAL_MANAGER_CONFIGURE` param1/param2: "remove control if
+/// currently in control".
+pub const GIMBAL_CONTROL_RELEASE: f32 = -3.0;
+/// `DO_GIMBAL_MANAGER_CONFIGURE` param1..param4: "leave unchanged".
+pub const GIMBAL_CONTROL_UNCHANGED: f32 = -1.0;
 
 /// A circular geofence around home with an altitude band.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -171,8 +199,9 @@ pub struct Params {
     pub hold_time_s: f32,
     /// Yaw rate for ArduPilot's CONDITION_YAW, deg/s.
     pub yaw_rate_deg_s: f32,
-    /// Gimbal command on PX4.
-    pub px4_gimbal: GimbalCommand,
+    /// Gimbal command, both flavours (`px4_gimbal` is its old name).
+    #[serde(alias = "px4_gimbal")]
+    pub gimbal: GimbalCommand,
     /// The geofence every target must lie in.
     pub fence: Fence,
     /// Cruise speed written to `.plan` files, m/s.
@@ -187,7 +216,7 @@ impl Default for Params {
             acceptance_radius_m: 1.0,
             hold_time_s: 3.0,
             yaw_rate_deg_s: 30.0,
-            px4_gimbal: GimbalCommand::GimbalManager,
+            gimbal: GimbalCommand::GimbalManager,
             fence: Fence::default(),
             cruise_speed_m_s: 15.0,
             hover_speed_m_s: 5.0,
@@ -393,6 +422,14 @@ fn command_item(command: u16, params: [f32; 4], x: i32, y: i32, z: f32) -> Missi
     }
 }
 
+/// Whether a mission points the gimbal with the gimbal manager (protocol
+/// v2), so the ground station should take gimbal control before starting it.
+pub fn points_gimbal_v2(items: &[MissionItem]) -> bool {
+    items
+        .iter()
+        .any(|i| i.command == cmd::DO_GIMBAL_MANAGER_PITCHYAW)
+}
+
 /// Plans the mission that takes the camera to `target` for `flavour`.
 ///
 /// Refuses targets outside the fence. Items come numbered from 0.
@@ -408,29 +445,41 @@ pub fn plan(
     let lat = deg_to_e7(target.lat_deg);
     let lon = deg_to_e7(target.lon_deg);
     let alt = target.alt_m as f32;
-    let mount = command_item(
-        cmd::DO_MOUNT_CONTROL,
-        [pitch, 0.0, 0.0, 0.0],
-        0,
-        0,
-        MOUNT_MODE_MAVLINK_TARGETING,
-    );
-    let mut items = Vec::with_capacity(5);
+    let gimbal = match params.gimbal {
+        GimbalCommand::GimbalManager => command_item(
+            cmd::DO_GIMBAL_MANAGER_PITCHYAW,
+            // pitch, yaw (relative to the vehicle), rates unset
+            [pitch, 0.0, f32::NAN, f32::NAN],
+            GIMBAL_FLAG_ROLL_LOCK | GIMBAL_FLAG_PITCH_LOCK | GIMBAL_FLAG_YAW_IN_VEHICLE_FRAME,
+            0,
+            0.0, // gimbal device id: all
+        ),
+        GimbalCommand::MountControl => command_item(
+            cmd::DO_MOUNT_CONTROL,
+            [pitch, 0.0, 0.0, 0.0],
+            0,
+            0,
+            MOUNT_MODE_MAVLINK_TARGETING,
+        ),
+    };
+    let v2 = params.gimbal == GimbalCommand::GimbalManager;
+    // primary sysid/compid, secondary unchanged, device id 0 (all)
+    let configure = |who: f32| {
+        command_item(
+            cmd::DO_GIMBAL_MANAGER_CONFIGURE,
+            [who, who, GIMBAL_CONTROL_UNCHANGED, GIMBAL_CONTROL_UNCHANGED],
+            0,
+            0,
+            0.0,
+        )
+    };
+    let mut items = Vec::with_capacity(6);
     match flavour {
         Flavour::Px4 => {
-            items.push(match params.px4_gimbal {
-                GimbalCommand::GimbalManager => command_item(
-                    cmd::DO_GIMBAL_MANAGER_PITCHYAW,
-                    // pitch, yaw (relative to the vehicle), rates unset
-                    [pitch, 0.0, f32::NAN, f32::NAN],
-                    GIMBAL_FLAG_ROLL_LOCK
-                        | GIMBAL_FLAG_PITCH_LOCK
-                        | GIMBAL_FLAG_YAW_IN_VEHICLE_FRAME,
-                    0,
-                    0.0, // gimbal device id: all
-                ),
-                GimbalCommand::MountControl => mount,
-            });
+            if v2 {
+                items.push(configure(GIMBAL_CONTROL_SELF));
+            }
+            items.push(gimbal);
             items.push(MissionItem {
                 seq: 0,
                 frame: frame::GLOBAL_RELATIVE_ALT_INT,
@@ -451,6 +500,9 @@ pub fn plan(
                     0,
                     f32::NAN,
                 ));
+            }
+            if v2 {
+                items.push(configure(GIMBAL_CONTROL_RELEASE));
             }
         }
         Flavour::ArduPilot => {
@@ -484,7 +536,7 @@ pub fn plan(
                 0,
                 0.0,
             ));
-            items.push(mount);
+            items.push(gimbal);
             if target.photo {
                 // session, zoom, zoom step, focus lock, shoot = 1, command id, shot id
                 items.push(command_item(cmd::DO_DIGICAM_CONTROL, [0.0; 4], 1, 0, 0.0));
@@ -649,13 +701,32 @@ mod tests {
         assert_eq!(
             cmds,
             [
+                cmd::DO_GIMBAL_MANAGER_CONFIGURE,
                 cmd::DO_GIMBAL_MANAGER_PITCHYAW,
                 cmd::NAV_WAYPOINT,
-                cmd::IMAGE_START_CAPTURE
+                cmd::IMAGE_START_CAPTURE,
+                cmd::DO_GIMBAL_MANAGER_CONFIGURE,
             ]
         );
-        assert_eq!(items.iter().map(|i| i.seq).collect::<Vec<_>>(), [0, 1, 2]);
-        let wp = items[1];
+        assert!(points_gimbal_v2(&items));
+        assert_eq!(
+            items.iter().map(|i| i.seq).collect::<Vec<_>>(),
+            [0, 1, 2, 3, 4]
+        );
+        let take = items[0];
+        assert_eq!(take.frame, frame::MISSION);
+        assert_eq!(
+            take.params,
+            [-2.0, -2.0, -1.0, -1.0],
+            "autopilot takes control"
+        );
+        assert_eq!(take.z, 0.0, "all gimbal devices");
+        assert_eq!(
+            items[4].params,
+            [-3.0, -3.0, -1.0, -1.0],
+            "released at the end"
+        );
+        let wp = items[2];
         assert_eq!(wp.frame, frame::GLOBAL_RELATIVE_ALT_INT);
         assert_eq!(wp.params[3], 270.0, "yaw wrapped into [0, 360) in param4");
         assert_eq!(wp.params[1], p.acceptance_radius_m);
@@ -663,21 +734,22 @@ mod tests {
         assert_eq!(wp.x, deg_to_e7(t.lat_deg));
         assert_eq!(wp.y, deg_to_e7(t.lon_deg));
         assert_eq!(wp.z, 25.0);
-        let g = items[0];
+        let g = items[1];
         assert_eq!(g.frame, frame::MISSION);
         assert_eq!(g.params[0], -30.0);
         assert_eq!(g.params[1], 0.0);
         assert_eq!(g.x, 4 | 8 | 32);
-        assert_eq!(items[2].params[2], 1.0, "one image");
+        assert_eq!(items[3].params[2], 1.0, "one image");
         // without photo, and with the mount command by configuration
         let p2 = Params {
-            px4_gimbal: GimbalCommand::MountControl,
+            gimbal: GimbalCommand::MountControl,
             ..p
         };
         let items =
             plan(&target(40.0, 30.0, 25.0, false), &HOME, Flavour::Px4, &p2).expect("inside");
         let cmds: Vec<u16> = items.iter().map(|i| i.command).collect();
         assert_eq!(cmds, [cmd::DO_MOUNT_CONTROL, cmd::NAV_WAYPOINT]);
+        assert!(!points_gimbal_v2(&items));
         assert_eq!(items[0].params[0], -30.0);
         assert_eq!(items[0].z, 2.0, "mount mode MAVLINK_TARGETING");
     }
@@ -694,10 +766,11 @@ mod tests {
                 cmd::NAV_WAYPOINT,
                 cmd::NAV_WAYPOINT,
                 cmd::CONDITION_YAW,
-                cmd::DO_MOUNT_CONTROL,
+                cmd::DO_GIMBAL_MANAGER_PITCHYAW,
                 cmd::DO_DIGICAM_CONTROL
             ]
         );
+        assert!(points_gimbal_v2(&items));
         assert_eq!(
             items[0].frame,
             frame::GLOBAL,
@@ -711,11 +784,30 @@ mod tests {
         assert_eq!(items[2].params[1], p.yaw_rate_deg_s);
         assert_eq!(items[2].params[3], 0.0, "absolute heading");
         assert_eq!(items[3].params[0], -30.0);
+        assert_eq!(items[3].x, 4 | 8 | 32, "yaw in the vehicle frame");
         assert_eq!(items[4].x, 1, "shoot");
         assert_eq!(
             items.iter().map(|i| i.seq).collect::<Vec<_>>(),
             [0, 1, 2, 3, 4]
         );
+        // older firmware: the legacy mount command behind the switch
+        let legacy = Params {
+            gimbal: GimbalCommand::MountControl,
+            ..p
+        };
+        let items = plan(&t, &HOME, Flavour::ArduPilot, &legacy).expect("inside fence");
+        assert_eq!(items[3].command, cmd::DO_MOUNT_CONTROL);
+        assert_eq!(items[3].params[0], -30.0);
+        assert_eq!(items[3].z, 2.0, "mount mode MAVLINK_TARGETING");
+        assert!(!points_gimbal_v2(&items));
+    }
+
+    #[test]
+    fn gimbal_switch_reads_its_old_name() {
+        let p: Params = toml::from_str("px4_gimbal = \"mount_control\"").expect("old name");
+        assert_eq!(p.gimbal, GimbalCommand::MountControl);
+        let p: Params = toml::from_str("gimbal = \"gimbal_manager\"").expect("new name");
+        assert_eq!(p.gimbal, GimbalCommand::GimbalManager);
     }
 
     #[test]

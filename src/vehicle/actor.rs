@@ -16,9 +16,9 @@ use tracing::{Span, debug, info, info_span, warn};
 
 use super::transport::{self, Connection, LinkUrl};
 use super::{
-    Attitude, Command, GimbalAttitude, GlobalPosition, HomePosition, LinkError, LinkHandle,
-    LocalPosition, MissionProgress, Params, Stamped, Telemetry, VehicleState, ardupilot_mode_name,
-    mode_params, px4_mode_name, quat_to_euler_deg,
+    Attitude, Command, GimbalAttitude, GimbalControl, GimbalManagerStatus, GlobalPosition,
+    HomePosition, LinkError, LinkHandle, LocalPosition, MissionProgress, Params, Stamped,
+    Telemetry, VehicleState, ardupilot_mode_name, mode_params, px4_mode_name, quat_to_euler_deg,
 };
 use crate::mission::upload::{self, Downloader, MissionError, Peers, Uploader, same_mission};
 use crate::mission::{Download, Flavour, MissionItem, UploadReport};
@@ -61,8 +61,14 @@ pub fn spawn(
     let gimbal = watch::channel(None);
     let progress = watch::channel(None);
     let video_streams = watch::channel(Vec::new());
+    let gimbal_manager = watch::channel(None);
+    let gimbal_control = watch::channel(GimbalControl::default());
+    let gimbal_tx = Arc::new(gimbal_control.0);
     let handle = LinkHandle {
         tx: cmd_tx,
+        gimbal: gimbal_tx.clone(),
+        own: (params.system_id, params.component_id),
+        command_timeout: Duration::from_millis(params.command_timeout_ms.max(1)),
         telemetry: Telemetry {
             vehicle: vehicle.1,
             global_position: gp.1,
@@ -72,6 +78,8 @@ pub fn spawn(
             gimbal: gimbal.1,
             progress: progress.1,
             video_streams: video_streams.1,
+            gimbal_manager: gimbal_manager.1,
+            gimbal_control: gimbal_control.1,
         },
     };
     let version = if params.mavlink1 {
@@ -103,6 +111,8 @@ pub fn spawn(
         gimbal: gimbal.0,
         progress: progress.0,
         video_streams: video_streams.0,
+        gimbal_manager: gimbal_manager.0,
+        gimbal_control: gimbal_tx,
         transfer: None,
         command: None,
         next_heartbeat: now,
@@ -404,6 +414,8 @@ struct Actor {
     gimbal: watch::Sender<Option<Stamped<GimbalAttitude>>>,
     progress: watch::Sender<Option<Stamped<MissionProgress>>>,
     video_streams: watch::Sender<Vec<super::VideoStreamInfo>>,
+    gimbal_manager: watch::Sender<Option<Stamped<GimbalManagerStatus>>>,
+    gimbal_control: Arc<watch::Sender<GimbalControl>>,
     transfer: Option<Transfer>,
     command: Option<PendingCommand>,
     next_heartbeat: Instant,
@@ -647,6 +659,41 @@ impl Actor {
                 p.state = Some(d.mission_state as u8);
                 self.progress.send_replace(Some(Stamped {
                     value: p,
+                    received: now,
+                }));
+                self.gimbal_after_mission(d.mission_state as u8);
+            }
+            MavMessage::GIMBAL_MANAGER_STATUS(d) => {
+                let value = GimbalManagerStatus {
+                    manager_component: h.component_id,
+                    gimbal_device_id: d.gimbal_device_id,
+                    primary: (d.primary_control_sysid, d.primary_control_compid),
+                    secondary: (d.secondary_control_sysid, d.secondary_control_compid),
+                    flags: d.flags.bits(),
+                };
+                let before = self.gimbal_manager.borrow().map(|s| s.value.primary);
+                if before.is_some_and(|b| b != value.primary) {
+                    info!(
+                        from = ?before,
+                        to = ?value.primary,
+                        "gimbal primary control changed"
+                    );
+                }
+                let own = (self.params.system_id, self.params.component_id);
+                if self.gimbal_control.borrow().held && value.primary != own {
+                    // Someone (a PX4 mission's own configure item, another
+                    // ground station) took control: we no longer hold it and
+                    // have nothing to give back.
+                    let (s, c) = value.primary;
+                    info!("gimbal control passed from us to {s}/{c}");
+                    self.gimbal_control.send_modify(|g| {
+                        g.held = false;
+                        g.for_mission = false;
+                        g.last_event = Some(format!("gimbal control passed to {s}/{c}"));
+                    });
+                }
+                self.gimbal_manager.send_replace(Some(Stamped {
+                    value,
                     received: now,
                 }));
             }
@@ -1069,6 +1116,15 @@ impl Actor {
                 info!("operator: start mission");
                 self.start_command(MavCmd::MAV_CMD_MISSION_START, [0.0, 0.0, 0.0], reply, now);
             }
+            Command::Long {
+                command,
+                params,
+                target_component,
+                reply,
+            } => {
+                info!(command = cmd_number(command), ?params, "command");
+                self.start_command7(command, params, target_component, reply, now);
+            }
             Command::RequestMessage {
                 message_id,
                 target_component,
@@ -1098,10 +1154,72 @@ impl Actor {
         self.flush().await;
     }
 
+    /// Gimbal control taken for a mission goes back once the vehicle
+    /// reports that mission complete (MISSION_CURRENT.mission_state 5 after
+    /// 3, active). Sent once, without waiting for the ACK.
+    fn gimbal_after_mission(&mut self, state: u8) {
+        const ACTIVE: u8 = 3;
+        const COMPLETE: u8 = 5;
+        let g = self.gimbal_control.borrow().clone();
+        if !(g.held && g.for_mission) {
+            return;
+        }
+        if state == ACTIVE && !g.mission_seen_active {
+            self.gimbal_control
+                .send_modify(|g| g.mission_seen_active = true);
+        } else if state == COMPLETE && g.mission_seen_active {
+            let Some((peers, _)) = self.peers() else {
+                return;
+            };
+            let target = self
+                .gimbal_manager
+                .borrow()
+                .map_or(peers.target_component, |s| s.value.manager_component);
+            let p = super::release_params(g.device_id);
+            self.out.push(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                param1: p[0],
+                param2: p[1],
+                param3: p[2],
+                param4: p[3],
+                param5: p[4],
+                param6: p[5],
+                param7: p[6],
+                command: MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+                target_system: peers.target_system,
+                target_component: target,
+                confirmation: 0,
+            }));
+            info!("mission complete: gimbal control released");
+            self.gimbal_control.send_modify(|g| {
+                g.held = false;
+                g.for_mission = false;
+                g.mission_seen_active = false;
+                g.last_event = Some("mission complete: released gimbal control".into());
+            });
+        }
+    }
+
     fn start_command(
         &mut self,
         command: MavCmd,
         p: [f32; 3],
+        reply: oneshot::Sender<Result<(), LinkError>>,
+        now: Instant,
+    ) {
+        self.start_command7(
+            command,
+            [p[0], p[1], p[2], 0.0, 0.0, 0.0, 0.0],
+            None,
+            reply,
+            now,
+        );
+    }
+
+    fn start_command7(
+        &mut self,
+        command: MavCmd,
+        p: [f32; 7],
+        target_component: Option<u8>,
         reply: oneshot::Sender<Result<(), LinkError>>,
         now: Instant,
     ) {
@@ -1117,13 +1235,13 @@ impl Actor {
             param1: p[0],
             param2: p[1],
             param3: p[2],
-            param4: 0.0,
-            param5: 0.0,
-            param6: 0.0,
-            param7: 0.0,
+            param4: p[3],
+            param5: p[4],
+            param6: p[5],
+            param7: p[6],
             command,
             target_system: peers.target_system,
-            target_component: peers.target_component,
+            target_component: target_component.unwrap_or(peers.target_component),
             confirmation: 0,
         };
         self.out.push(MavMessage::COMMAND_LONG(data.clone()));

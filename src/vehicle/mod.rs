@@ -14,7 +14,21 @@
 //!   channels ([`Telemetry`]);
 //! - takes [`Command`]s with oneshot replies: mission upload/download/cancel
 //!   (the [`crate::mission::upload`] state machines, driven here), and arming,
-//!   mode and mission start, which are only ever sent when an operator asks.
+//!   mode and mission start, which are only ever sent when an operator asks;
+//! - follows MAVLink's gimbal protocol v2 for every caller of the handle:
+//!   before a mission that points the gimbal starts
+//!   ([`LinkHandle::start_mission`]) and before a direct gimbal command
+//!   ([`LinkHandle::point_gimbal`]) it reads `GIMBAL_MANAGER_STATUS`
+//!   (asking for it with `MAV_CMD_REQUEST_MESSAGE` when none is fresh),
+//!   notes who is in primary control, and takes control with
+//!   `MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE` (our sysid/compid as primary, the
+//!   manager's gimbal device id); it gives control back (param1/param2 -3,
+//!   "remove control if in control") when that mission completes, when the
+//!   operator switches to another mode, or on [`LinkHandle::release_gimbal`].
+//!   A refusal or silence is a warning in [`GimbalControl`] and the log,
+//!   never a failed mission start: PX4 missions take control themselves
+//!   (their first item, see [`crate::mission::plan`]) and ArduPilot runs
+//!   mission gimbal items whoever is in control.
 //!
 //! Shutdown: the actor ends when its `CancellationToken` is cancelled or every
 //! [`LinkHandle`] is dropped.
@@ -26,6 +40,7 @@ use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, oneshot, watch};
+use tracing::{info, warn};
 
 use crate::mission::{Download, Flavour, MissionError, MissionItem, UploadReport};
 
@@ -304,6 +319,43 @@ pub struct VehicleState {
     pub last_heartbeat: Option<Instant>,
 }
 
+/// GIMBAL_MANAGER_STATUS: who controls the gimbal.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct GimbalManagerStatus {
+    /// The component that runs the gimbal manager (the autopilot, usually).
+    pub manager_component: u8,
+    /// The gimbal device this manager is responsible for.
+    pub gimbal_device_id: u8,
+    /// (system, component) in primary control; (0, 0) nobody.
+    pub primary: (u8, u8),
+    /// (system, component) in secondary control; (0, 0) nobody.
+    pub secondary: (u8, u8),
+    /// GIMBAL_MANAGER_FLAGS bits.
+    pub flags: u32,
+}
+
+/// What the link did about gimbal control, for the status and the log.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize)]
+pub struct GimbalControl {
+    /// Our DO_GIMBAL_MANAGER_CONFIGURE was accepted and not yet released.
+    pub held: bool,
+    /// We took control for a mission (released when it completes).
+    pub for_mission: bool,
+    /// The running mission was seen active since we took control.
+    pub mission_seen_active: bool,
+    /// The gimbal device id we configured (0: all).
+    pub device_id: u8,
+    /// The primary controller before we took control ((0, 0) nobody; None
+    /// when no GIMBAL_MANAGER_STATUS was heard).
+    pub previous: Option<(u8, u8)>,
+    /// The last uploaded mission points the gimbal with DO_GIMBAL_MANAGER_PITCHYAW.
+    pub mission_points_gimbal: bool,
+    /// What happened last, in words.
+    pub last_event: Option<String>,
+    /// The last refusal or missing answer, in words (cleared on success).
+    pub warning: Option<String>,
+}
+
 /// Flight modes an operator may ask for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -336,6 +388,10 @@ pub struct Telemetry {
     /// VIDEO_STREAM_INFORMATION from the vehicle's camera, newest last
     /// (one entry per stream id).
     pub video_streams: watch::Receiver<Vec<VideoStreamInfo>>,
+    /// GIMBAL_MANAGER_STATUS from the vehicle's gimbal manager.
+    pub gimbal_manager: watch::Receiver<Option<Stamped<GimbalManagerStatus>>>,
+    /// Gimbal control as the link handled it.
+    pub gimbal_control: watch::Receiver<GimbalControl>,
 }
 
 /// A video stream a camera component announced (VIDEO_STREAM_INFORMATION).
@@ -404,6 +460,17 @@ pub enum Command {
         /// The outcome.
         reply: oneshot::Sender<Result<(), LinkError>>,
     },
+    /// A COMMAND_LONG with retries until COMMAND_ACK (gimbal commands).
+    Long {
+        /// The command.
+        command: mavlink::dialects::common::MavCmd,
+        /// param1..param7.
+        params: [f32; 7],
+        /// The component addressed (None: the autopilot).
+        target_component: Option<u8>,
+        /// The outcome.
+        reply: oneshot::Sender<Result<(), LinkError>>,
+    },
     /// MAV_CMD_REQUEST_MESSAGE to one component of the vehicle's system
     /// (sent once; the answer arrives on the telemetry channels). Replies
     /// once sent.
@@ -423,7 +490,17 @@ pub struct LinkHandle {
     tx: mpsc::Sender<Command>,
     /// The telemetry watch channels.
     pub telemetry: Telemetry,
+    gimbal: std::sync::Arc<watch::Sender<GimbalControl>>,
+    own: (u8, u8),
+    command_timeout: Duration,
 }
+
+/// MAVLink message id of GIMBAL_MANAGER_STATUS.
+const GIMBAL_MANAGER_STATUS_ID: u32 = 281;
+/// A GIMBAL_MANAGER_STATUS younger than this is read as is; older, it is asked for.
+const GIMBAL_STATUS_FRESH: Duration = Duration::from_secs(3);
+/// GIMBAL_MANAGER_FLAGS_ROLL_LOCK | PITCH_LOCK | YAW_IN_VEHICLE_FRAME.
+const GIMBAL_PITCHYAW_FLAGS: f32 = (4 | 8 | 32) as f32;
 
 impl LinkHandle {
     async fn call<T>(
@@ -440,8 +517,13 @@ impl LinkHandle {
 
     /// Uploads a mission and waits for the vehicle's ACK.
     pub async fn upload_mission(&self, items: Vec<MissionItem>) -> Result<UploadReport, LinkError> {
-        self.call(|reply| Command::UploadMission { items, reply })
-            .await
+        let points = crate::mission::plan::points_gimbal_v2(&items);
+        let report = self
+            .call(|reply| Command::UploadMission { items, reply })
+            .await?;
+        self.gimbal
+            .send_modify(|g| g.mission_points_gimbal = points);
+        Ok(report)
     }
 
     /// Downloads the vehicle's mission.
@@ -459,14 +541,241 @@ impl LinkHandle {
         self.call(|reply| Command::Arm { arm, reply }).await
     }
 
-    /// Changes flight mode (operator action).
+    /// Changes flight mode (operator action). Switching to the mission
+    /// mode starts the mission on an armed vehicle, so gimbal control is
+    /// taken first as in [`LinkHandle::start_mission`]; leaving the mission
+    /// for another mode gives back gimbal control taken for it.
     pub async fn set_mode(&self, mode: FlightMode) -> Result<(), LinkError> {
-        self.call(|reply| Command::SetMode { mode, reply }).await
+        if mode == FlightMode::Mission {
+            self.acquire_for_mission().await;
+        }
+        self.call(|reply| Command::SetMode { mode, reply }).await?;
+        let release =
+            mode != FlightMode::Mission && self.telemetry.gimbal_control.borrow().for_mission;
+        if release && let Err(e) = self.release_gimbal().await {
+            warn!(error = %e, "gimbal release after the mode change failed");
+        }
+        Ok(())
     }
 
-    /// Starts the uploaded mission (operator action).
+    /// Starts the uploaded mission (operator action). When the mission
+    /// points the gimbal with the gimbal manager, takes gimbal control first
+    /// ([`LinkHandle::acquire_gimbal`]); a refusal is a warning in
+    /// [`GimbalControl`], not a failed start.
     pub async fn start_mission(&self) -> Result<(), LinkError> {
+        self.acquire_for_mission().await;
         self.call(|reply| Command::StartMission { reply }).await
+    }
+
+    /// Takes gimbal control for the uploaded mission when it points the
+    /// gimbal; a failure is logged and kept in [`GimbalControl::warning`].
+    async fn acquire_for_mission(&self) {
+        {
+            let g = self.telemetry.gimbal_control.borrow();
+            if !g.mission_points_gimbal || (g.held && g.for_mission) {
+                return;
+            }
+        }
+        match self.acquire_gimbal().await {
+            Ok(_) => self.gimbal.send_modify(|g| {
+                g.for_mission = true;
+                g.mission_seen_active = false;
+            }),
+            Err(e) => warn!(error = %e, "gimbal control not taken; starting the mission anyway"),
+        }
+    }
+
+    fn note(&self, event: String, warning: Option<String>) {
+        self.gimbal.send_modify(|g| {
+            g.last_event = Some(event);
+            g.warning = warning;
+        });
+    }
+
+    /// Sends one COMMAND_LONG with the link's retries and waits for its ACK.
+    pub async fn command_long(
+        &self,
+        command: mavlink::dialects::common::MavCmd,
+        params: [f32; 7],
+        target_component: Option<u8>,
+    ) -> Result<(), LinkError> {
+        self.call(|reply| Command::Long {
+            command,
+            params,
+            target_component,
+            reply,
+        })
+        .await
+    }
+
+    /// The vehicle's GIMBAL_MANAGER_STATUS: the last one when younger than
+    /// 3 s, else asked for with MAV_CMD_REQUEST_MESSAGE (three tries, one
+    /// command timeout each).
+    pub async fn gimbal_manager_status(&self) -> Result<GimbalManagerStatus, LinkError> {
+        let mut rx = self.telemetry.gimbal_manager.clone();
+        let now = tokio::time::Instant::now().into_std();
+        if let Some(s) = *rx.borrow_and_update()
+            && now.saturating_duration_since(s.received) < GIMBAL_STATUS_FRESH
+        {
+            return Ok(s.value);
+        }
+        let component = self.telemetry.vehicle.borrow().component_id;
+        for _ in 0..3 {
+            self.request_message(GIMBAL_MANAGER_STATUS_ID, component)
+                .await?;
+            match tokio::time::timeout(self.command_timeout, rx.changed()).await {
+                Ok(Ok(())) => {
+                    if let Some(s) = *rx.borrow_and_update() {
+                        return Ok(s.value);
+                    }
+                }
+                Ok(Err(_)) => return Err(LinkError::ActorGone),
+                Err(_) => {}
+            }
+        }
+        Err(LinkError::Timeout {
+            what: "GIMBAL_MANAGER_STATUS",
+            seconds: 3.0 * self.command_timeout.as_secs_f64(),
+        })
+    }
+
+    /// Takes primary gimbal control (gimbal protocol v2): reads
+    /// GIMBAL_MANAGER_STATUS, notes (and logs) who holds control, and sends
+    /// MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE with our sysid/compid as primary
+    /// for the manager's gimbal device. Without a status (an old autopilot)
+    /// it still tries, for all devices. Does nothing when we already hold
+    /// control. Errors are also recorded in [`GimbalControl::warning`].
+    pub async fn acquire_gimbal(&self) -> Result<GimbalControl, LinkError> {
+        let current = self.telemetry.gimbal_control.borrow().clone();
+        if current.held {
+            return Ok(current);
+        }
+        let status = match self.gimbal_manager_status().await {
+            Ok(s) => Some(s),
+            Err(LinkError::Timeout { .. }) => {
+                warn!("no GIMBAL_MANAGER_STATUS from the vehicle; configuring all gimbals");
+                None
+            }
+            Err(e) => return Err(e),
+        };
+        let (device, target, previous) = match status {
+            Some(s) => (
+                s.gimbal_device_id,
+                Some(s.manager_component),
+                Some(s.primary),
+            ),
+            None => (0, None, None),
+        };
+        let vehicle = self.telemetry.vehicle.borrow().clone();
+        match previous {
+            Some(p) if p == self.own => info!("gimbal: we already hold primary control"),
+            Some((0, 0)) | None => info!(device, "gimbal: taking primary control"),
+            Some((s, c)) if Some(s) == vehicle.system_id && c == vehicle.component_id => {
+                info!(device, "gimbal: taking primary control from the autopilot")
+            }
+            Some((s, c)) => warn!(
+                device,
+                "gimbal: taking primary control from {s}/{c} (another controller)"
+            ),
+        }
+        let params = [
+            f32::from(self.own.0),
+            f32::from(self.own.1),
+            crate::mission::plan::GIMBAL_CONTROL_UNCHANGED,
+            crate::mission::plan::GIMBAL_CONTROL_UNCHANGED,
+            0.0,
+            0.0,
+            f32::from(device),
+        ];
+        use mavlink::dialects::common::MavCmd;
+        match self
+            .command_long(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, params, target)
+            .await
+        {
+            Ok(()) => {
+                let from = previous.map_or("unknown".to_string(), |(s, c)| format!("{s}/{c}"));
+                let event = format!("took gimbal control (device {device}) from {from}");
+                info!("{event}");
+                self.gimbal.send_modify(|g| {
+                    g.held = true;
+                    g.device_id = device;
+                    g.previous = previous;
+                    g.last_event = Some(event);
+                    g.warning = None;
+                });
+                Ok(self.telemetry.gimbal_control.borrow().clone())
+            }
+            Err(e) => {
+                let w = format!("gimbal control not taken: {e}");
+                warn!("{w}");
+                self.note("DO_GIMBAL_MANAGER_CONFIGURE failed".into(), Some(w));
+                Err(e)
+            }
+        }
+    }
+
+    /// Gives gimbal control back (DO_GIMBAL_MANAGER_CONFIGURE with -3/-3,
+    /// "remove control if in control", so a controller that took over
+    /// meanwhile keeps it). Returns false when we did not hold control.
+    pub async fn release_gimbal(&self) -> Result<bool, LinkError> {
+        let current = self.telemetry.gimbal_control.borrow().clone();
+        if !current.held {
+            return Ok(false);
+        }
+        let target = self
+            .telemetry
+            .gimbal_manager
+            .borrow()
+            .map(|s| s.value.manager_component);
+        let params = release_params(current.device_id);
+        use mavlink::dialects::common::MavCmd;
+        let r = self
+            .command_long(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, params, target)
+            .await;
+        // Whatever the answer, we no longer count on holding control.
+        self.gimbal.send_modify(|g| {
+            g.held = false;
+            g.for_mission = false;
+        });
+        match r {
+            Ok(()) => {
+                info!("released gimbal control");
+                self.note("released gimbal control".into(), None);
+                Ok(true)
+            }
+            Err(e) => {
+                let w = format!("gimbal release not acknowledged: {e}");
+                warn!("{w}");
+                self.note("release sent".into(), Some(w));
+                Err(e)
+            }
+        }
+    }
+
+    /// Points the gimbal now (DO_GIMBAL_MANAGER_PITCHYAW; pitch positive
+    /// up, yaw relative to the vehicle, degrees), taking control first.
+    pub async fn point_gimbal(&self, pitch_deg: f32, yaw_deg: f32) -> Result<(), LinkError> {
+        let g = self.acquire_gimbal().await?;
+        let target = self
+            .telemetry
+            .gimbal_manager
+            .borrow()
+            .map(|s| s.value.manager_component);
+        use mavlink::dialects::common::MavCmd;
+        self.command_long(
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+            [
+                pitch_deg,
+                yaw_deg,
+                f32::NAN,
+                f32::NAN,
+                GIMBAL_PITCHYAW_FLAGS,
+                0.0,
+                f32::from(g.device_id),
+            ],
+            target,
+        )
+        .await
     }
 
     /// Asks `target_component` of the vehicle's system for one message
@@ -497,6 +806,20 @@ impl LinkHandle {
             }),
         }
     }
+}
+
+/// DO_GIMBAL_MANAGER_CONFIGURE params that give control back for `device`.
+pub fn release_params(device: u8) -> [f32; 7] {
+    use crate::mission::plan::{GIMBAL_CONTROL_RELEASE, GIMBAL_CONTROL_UNCHANGED};
+    [
+        GIMBAL_CONTROL_RELEASE,
+        GIMBAL_CONTROL_RELEASE,
+        GIMBAL_CONTROL_UNCHANGED,
+        GIMBAL_CONTROL_UNCHANGED,
+        0.0,
+        0.0,
+        f32::from(device),
+    ]
 }
 
 /// PX4's custom_mode: main mode in bits 16..24, sub mode in bits 24..32.

@@ -243,9 +243,20 @@ pub async fn run_fake(
                         if c.command == MavCmd::MAV_CMD_MISSION_START && !mission.is_empty() {
                             flying = Some(0);
                         }
+                        // No gimbal manager here (an autopilot without a
+                        // gimbal, or older firmware).
+                        let gimbal_manager = matches!(
+                            c.command,
+                            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE
+                                | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW
+                        );
                         out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
                             command: c.command,
-                            result: MavResult::MAV_RESULT_ACCEPTED,
+                            result: if gimbal_manager {
+                                MavResult::MAV_RESULT_UNSUPPORTED
+                            } else {
+                                MavResult::MAV_RESULT_ACCEPTED
+                            },
                             target_system: gs,
                             target_component: gc,
                             ..Default::default()

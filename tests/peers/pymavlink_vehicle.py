@@ -3,10 +3,13 @@
 
 It listens on UDP, decodes what the ground station sends (heartbeats, a
 mission upload), optionally with MAVLink 2 signing, answers as a PX4-like
-autopilot, and prints one JSON summary on stdout. The first stdout line is
-"ready" once the socket is bound.
+autopilot (or an ArduPilot-like one with --autopilot ardupilot), and prints
+one JSON summary on stdout. The first stdout line is "ready" once the socket
+is bound. The summary's "items" are the uploaded MISSION_ITEM_INTs as
+pymavlink decoded them, with the command's MAV_CMD name.
 
 Usage: pymavlink_vehicle.py --port 14600 [--key HEX] [--seconds 8] [--serve-upload]
+                            [--autopilot px4|ardupilot]
 """
 import argparse
 import json
@@ -33,7 +36,12 @@ def main():
     ap.add_argument("--key", default="")
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--serve-upload", action="store_true")
+    ap.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
     args = ap.parse_args()
+    if args.autopilot == "px4":
+        autopilot, custom_mode = mav.MAV_AUTOPILOT_PX4, (4 << 16) | (3 << 24)  # AUTO.LOITER
+    else:
+        autopilot, custom_mode = mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 5  # LOITER
 
     m = mavutil.mavlink_connection(
         f"udpin:127.0.0.1:{args.port}", source_system=1, source_component=1, dialect="common"
@@ -54,8 +62,8 @@ def main():
         now = time.time()
         if now >= next_hb:  # mavutil udpin sends only once a peer has spoken
             m.mav.heartbeat_send(
-                mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                (4 << 16) | (3 << 24), mav.MAV_STATE_STANDBY,
+                mav.MAV_TYPE_QUADROTOR, autopilot, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                custom_mode, mav.MAV_STATE_STANDBY,
             )
             next_hb = now + 0.5
         if count is not None and nxt < count and now - last_req > 0.3:
@@ -85,7 +93,9 @@ def main():
             last_req = time.time()
         elif t == "MISSION_ITEM_INT" and count is not None and msg.seq == nxt:
             items.append({
-                "seq": msg.seq, "frame": msg.frame, "command": msg.command, "current": msg.current,
+                "seq": msg.seq, "frame": msg.frame, "command": msg.command,
+                "command_name": mav.enums["MAV_CMD"][msg.command].name if msg.command in mav.enums["MAV_CMD"] else None,
+                "current": msg.current,
                 "autocontinue": msg.autocontinue,
                 "params": [clean(msg.param1), clean(msg.param2), clean(msg.param3), clean(msg.param4)],
                 "x": msg.x, "y": msg.y, "z": clean(msg.z), "mission_type": msg.mission_type,

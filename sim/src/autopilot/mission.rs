@@ -449,7 +449,10 @@ impl MissionProtocol {
                 | MAV_CMD_IMAGE_STOP_CAPTURE
                 | MAV_CMD_DO_DIGICAM_CONTROL
                 | MAV_CMD_DO_CHANGE_SPEED
-        ) || (ardu && item.command == MAV_CMD_CONDITION_YAW);
+        ) || (ardu && item.command == MAV_CMD_CONDITION_YAW)
+            // PX4 runs it as a command from the autopilot; ArduPilot's
+            // mission has no handler for it.
+            || (!ardu && item.command == MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE);
         if !supported {
             return Err(MAV_MISSION_UNSUPPORTED);
         }
@@ -483,6 +486,18 @@ impl MissionProtocol {
                 }
                 if !(p[1].is_finite() && p[1] >= 0.0) {
                     return Err(MAV_MISSION_INVALID_PARAM2);
+                }
+            }
+            MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE => {
+                let ok = |v: f32| v.is_finite() && (-3.0..=255.0).contains(&v);
+                let errs = [
+                    MAV_MISSION_INVALID_PARAM1,
+                    MAV_MISSION_INVALID_PARAM2,
+                    MAV_MISSION_INVALID_PARAM3,
+                    MAV_MISSION_INVALID_PARAM4,
+                ];
+                if let Some(i) = p.iter().position(|v| !ok(*v)) {
+                    return Err(errs[i]);
                 }
             }
             MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {

@@ -11,7 +11,9 @@
 //! ATTITUDE 10, GLOBAL_POSITION_INT 5, LOCAL_POSITION_NED 5,
 //! GIMBAL_DEVICE_ATTITUDE_STATUS 5, HOME_POSITION 0.5. MAV_CMD_SET_MESSAGE_INTERVAL
 //! changes them (-1 stops a stream, 0 restores the default) and
-//! MAV_CMD_REQUEST_MESSAGE sends one at once. The ArduPilot flavour also
+//! MAV_CMD_REQUEST_MESSAGE sends one at once (also GIMBAL_MANAGER_INFORMATION,
+//! which is not streamed). GIMBAL_MANAGER_STATUS streams at 0.5 Hz and is
+//! sent at once when control changes. The ArduPilot flavour also
 //! honours the legacy REQUEST_DATA_STREAM (groups ALL, EXTENDED_STATUS,
 //! POSITION, EXTRA1, EXTRA3).
 //!
@@ -24,6 +26,24 @@
 //! SET_MESSAGE_INTERVAL, GET_MESSAGE_INTERVAL, REQUEST_MESSAGE,
 //! GET_HOME_POSITION, REQUEST_AUTOPILOT_CAPABILITIES; anything else is
 //! MAV_RESULT_UNSUPPORTED.
+//!
+//! Gimbal protocol v2: the autopilot is the gimbal manager of one
+//! non-MAVLink gimbal (device id 1). DO_GIMBAL_MANAGER_CONFIGURE sets the
+//! primary controller (param1/param2: a sysid/compid, 0 nobody, -1
+//! unchanged, -2 the sender itself, -3 release if the sender holds it;
+//! param7 device 0 or 1, else FAILED). A DO_GIMBAL_MANAGER_PITCHYAW command
+//! from anyone but the primary controller is DENIED with a STATUSTEXT, as
+//! PX4's gimbal manager does. In missions the autopilot is the sender: the
+//! PX4 flavour takes the CONFIGURE mission item (-2 = the autopilot, PX4's
+//! and MAVSDK's way) and runs a mission PITCHYAW only while the autopilot
+//! holds control; the ArduPilot flavour refuses CONFIGURE as a mission item
+//! (ArduPilot's AP_Mission has no handler for it) and runs a mission
+//! PITCHYAW only while the autopilot or the ground station it talks to
+//! holds control. That is stricter than ArduPilot (which does not check) on
+//! purpose: a ground station that forgets to take control is caught. A
+//! refused mission PITCHYAW leaves the gimbal where it is, says so in a
+//! STATUSTEXT and the mission goes on. DO_MOUNT_CONTROL (protocol v1, for
+//! older firmware) is not checked.
 //!
 //! Mission execution (mode AUTO.MISSION / ArduPilot AUTO, armed): items run
 //! from the current one. NAV_TAKEOFF climbs over the current position (and
@@ -50,12 +70,13 @@ pub mod mission;
 use mavlink::MavHeader;
 use mavlink::dialects::common::{
     ATTITUDE_DATA, AUTOPILOT_VERSION_DATA, CAMERA_IMAGE_CAPTURED_DATA, COMMAND_ACK_DATA,
-    EXTENDED_SYS_STATE_DATA, GIMBAL_DEVICE_ATTITUDE_STATUS_DATA, GLOBAL_POSITION_INT_DATA,
-    GPS_RAW_INT_DATA, GimbalDeviceErrorFlags, GimbalDeviceFlags, GpsFixType, HEARTBEAT_DATA,
+    EXTENDED_SYS_STATE_DATA, GIMBAL_DEVICE_ATTITUDE_STATUS_DATA, GIMBAL_MANAGER_INFORMATION_DATA,
+    GIMBAL_MANAGER_STATUS_DATA, GLOBAL_POSITION_INT_DATA, GPS_RAW_INT_DATA, GimbalDeviceErrorFlags,
+    GimbalDeviceFlags, GimbalManagerCapFlags, GimbalManagerFlags, GpsFixType, HEARTBEAT_DATA,
     HOME_POSITION_DATA, LOCAL_POSITION_NED_DATA, MESSAGE_INTERVAL_DATA, MISSION_ITEM_REACHED_DATA,
     MavAutopilot, MavBool, MavCmd, MavLandedState, MavMessage, MavModeFlag, MavProtocolCapability,
-    MavResult, MavState, MavSysStatusSensor, MavSysStatusSensorExtended, MavType, MavVtolState,
-    MissionState, SYS_STATUS_DATA, SYSTEM_TIME_DATA,
+    MavResult, MavSeverity, MavState, MavSysStatusSensor, MavSysStatusSensorExtended, MavType,
+    MavVtolState, MissionState, STATUSTEXT_DATA, SYS_STATUS_DATA, SYSTEM_TIME_DATA,
 };
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 
@@ -256,7 +277,7 @@ impl Default for AutopilotParams {
 }
 
 /// Telemetry messages we can stream, with their default intervals (s).
-const STREAMS: [(u32, f64); 11] = [
+const STREAMS: [(u32, f64); 12] = [
     (0, 1.0),   // HEARTBEAT
     (1, 1.0),   // SYS_STATUS
     (2, 1.0),   // SYSTEM_TIME
@@ -268,7 +289,12 @@ const STREAMS: [(u32, f64); 11] = [
     (32, 0.2),  // LOCAL_POSITION_NED
     (285, 0.2), // GIMBAL_DEVICE_ATTITUDE_STATUS
     (242, 2.0), // HOME_POSITION
+    (281, 2.0), // GIMBAL_MANAGER_STATUS
 ];
+
+/// The gimbal device id the autopilot's gimbal manager answers for (a
+/// non-MAVLink gimbal: ids 1 to 6).
+pub const GIMBAL_DEVICE_ID: u8 = 1;
 
 #[derive(Debug, Clone, Copy)]
 struct Stream {
@@ -362,6 +388,12 @@ pub struct Autopilot {
     interval_capture: Option<IntervalCapture>,
     gcs: Option<Peer>,
     used_mah: f64,
+    /// Who holds primary gimbal control (system, component); (0, 0): nobody.
+    gimbal_primary: (u8, u8),
+    /// Who holds secondary gimbal control.
+    gimbal_secondary: (u8, u8),
+    /// Mission PITCHYAW items refused (nobody suitable in control).
+    gimbal_refusals: u32,
 }
 
 fn cmd_ack(to: Peer, command: MavCmd, result: MavResult) -> MavMessage {
@@ -372,6 +404,28 @@ fn cmd_ack(to: Peer, command: MavCmd, result: MavResult) -> MavMessage {
         result_param2: 0,
         target_system: to.system,
         target_component: to.component,
+    })
+}
+
+/// Gimbal device id param (param7) addresses our gimbal: 0 (all) or ours.
+fn gimbal_device_ok(v: f32) -> bool {
+    v.is_finite() && (v.round() == 0.0 || v.round() == f32::from(GIMBAL_DEVICE_ID))
+}
+
+/// A STATUSTEXT (cut to the 50 bytes the message holds).
+fn statustext(severity: MavSeverity, text: &str) -> MavMessage {
+    let mut t = String::new();
+    for ch in text.chars() {
+        if t.len() + ch.len_utf8() > 50 {
+            break;
+        }
+        t.push(ch);
+    }
+    MavMessage::STATUSTEXT(STATUSTEXT_DATA {
+        severity,
+        text: t.as_str().into(),
+        id: 0,
+        chunk_seq: 0,
     })
 }
 
@@ -437,6 +491,9 @@ impl Autopilot {
             interval_capture: None,
             gcs: None,
             used_mah: 0.0,
+            gimbal_primary: (0, 0),
+            gimbal_secondary: (0, 0),
+            gimbal_refusals: 0,
             params,
         }
     }
@@ -476,6 +533,14 @@ impl Autopilot {
     /// The ground station last heard from (the target of our messages).
     pub fn gcs(&self) -> Option<Peer> {
         self.gcs
+    }
+    /// Who holds primary gimbal control (system, component); (0, 0) nobody.
+    pub fn gimbal_primary(&self) -> (u8, u8) {
+        self.gimbal_primary
+    }
+    /// Mission gimbal commands refused because nobody suitable held control.
+    pub fn gimbal_refusals(&self) -> u32 {
+        self.gimbal_refusals
     }
 
     /// Capture requests produced since the last call.
@@ -583,7 +648,7 @@ impl Autopilot {
         };
         if let Some(c) = cmd {
             self.gcs.get_or_insert(from);
-            let result = self.command(&c, &mut out);
+            let result = self.command(&c, from, &mut out);
             out.push(cmd_ack(from, c.command, result));
             return out;
         }
@@ -616,7 +681,7 @@ impl Autopilot {
         let _ = out;
     }
 
-    fn command(&mut self, c: &Command, out: &mut Vec<MavMessage>) -> MavResult {
+    fn command(&mut self, c: &Command, from: Peer, out: &mut Vec<MavMessage>) -> MavResult {
         use MavCmd::*;
         let p = c.p;
         let ardu = self.params.flavour == Flavour::ArduPilot;
@@ -712,8 +777,27 @@ impl Autopilot {
                 MavResult::MAV_RESULT_ACCEPTED
             }
             MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
+                if !gimbal_device_ok(p[6]) {
+                    return MavResult::MAV_RESULT_FAILED;
+                }
+                if (from.system, from.component) != self.gimbal_primary {
+                    out.push(self.gimbal_refused_text(from));
+                    return MavResult::MAV_RESULT_DENIED;
+                }
                 self.gimbal_pitch_yaw(p[0], p[1], p[4]);
                 MavResult::MAV_RESULT_ACCEPTED
+            }
+            MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE => {
+                if !gimbal_device_ok(p[6]) {
+                    return MavResult::MAV_RESULT_FAILED;
+                }
+                match self.gimbal_configure(&p, from) {
+                    Ok(()) => {
+                        out.extend(self.build(281));
+                        MavResult::MAV_RESULT_ACCEPTED
+                    }
+                    Err(()) => MavResult::MAV_RESULT_DENIED,
+                }
             }
             MAV_CMD_DO_MOUNT_CONTROL => {
                 self.vehicle
@@ -841,6 +925,69 @@ impl Autopilot {
             f64::from(yaw)
         };
         self.vehicle.set_gimbal_target(f64::from(pitch), yaw);
+    }
+
+    /// DO_GIMBAL_MANAGER_CONFIGURE from `from` (params as in the command):
+    /// the new primary and secondary controllers. Err for a value out of range.
+    fn gimbal_configure(&mut self, p: &[f32; 7], from: Peer) -> Result<(), ()> {
+        let pick = |v: f32, current: u8, own: u8, held_by_sender: bool| -> Result<u8, ()> {
+            if !v.is_finite() {
+                return Err(());
+            }
+            match v.round() as i32 {
+                x @ 0..=255 => Ok(x as u8),
+                -1 => Ok(current),
+                -2 => Ok(own),
+                -3 if held_by_sender => Ok(0),
+                -3 => Ok(current),
+                _ => Err(()),
+            }
+        };
+        let held = self.gimbal_primary == (from.system, from.component);
+        let primary = (
+            pick(p[0], self.gimbal_primary.0, from.system, held)?,
+            pick(p[1], self.gimbal_primary.1, from.component, held)?,
+        );
+        let held2 = self.gimbal_secondary == (from.system, from.component);
+        let secondary = (
+            pick(p[2], self.gimbal_secondary.0, from.system, held2)?,
+            pick(p[3], self.gimbal_secondary.1, from.component, held2)?,
+        );
+        self.gimbal_primary = primary;
+        self.gimbal_secondary = secondary;
+        Ok(())
+    }
+
+    /// The autopilot itself as a MAVLink peer (the sender of mission commands).
+    fn own_peer(&self) -> Peer {
+        Peer {
+            system: self.params.system_id,
+            component: self.params.component_id,
+        }
+    }
+
+    /// Whether a mission gimbal command may move the gimbal (see the module
+    /// documentation).
+    fn mission_gimbal_allowed(&self) -> bool {
+        let own = self.own_peer();
+        let holder = self.gimbal_primary;
+        if holder == (own.system, own.component) {
+            return true;
+        }
+        self.params.flavour == Flavour::ArduPilot
+            && holder != (0, 0)
+            && self.gcs.is_some_and(|g| (g.system, g.component) == holder)
+    }
+
+    fn gimbal_refused_text(&self, from: Peer) -> MavMessage {
+        let (s, c) = self.gimbal_primary;
+        statustext(
+            MavSeverity::MAV_SEVERITY_WARNING,
+            &format!(
+                "Gimbal: PITCHYAW from {}/{} denied, in control: {s}/{c}",
+                from.system, from.component
+            ),
+        )
     }
 
     fn start_capture(&mut self, interval: f64, total: u32) {
@@ -1112,7 +1259,7 @@ impl Autopilot {
         self.mission.mission_current(state)
     }
 
-    fn start_item(&mut self, seq: u16) {
+    fn start_item(&mut self, seq: u16, out: &mut Vec<MavMessage>) {
         let Some(item) = self.mission.items().get(usize::from(seq)).cloned() else {
             return;
         };
@@ -1153,7 +1300,20 @@ impl Autopilot {
             }
             MAV_CMD_NAV_RETURN_TO_LAUNCH => Phase::Rtl(RtlStage::Climb),
             MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
-                self.gimbal_pitch_yaw(p[0], p[1], item.x as f32);
+                if self.mission_gimbal_allowed() {
+                    self.gimbal_pitch_yaw(p[0], p[1], item.x as f32);
+                } else {
+                    self.gimbal_refusals += 1;
+                    out.push(self.gimbal_refused_text(self.own_peer()));
+                }
+                Phase::Instant
+            }
+            MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE => {
+                let pp = [p[0], p[1], p[2], p[3], item.x as f32, item.y as f32, item.z];
+                let own = self.own_peer();
+                if self.gimbal_configure(&pp, own).is_ok() {
+                    out.extend(self.build(281));
+                }
                 Phase::Instant
             }
             MAV_CMD_DO_MOUNT_CONTROL => {
@@ -1230,7 +1390,7 @@ impl Autopilot {
                 out.push(self.mission_current_msg());
                 return self.hold_here();
             }
-            self.start_item(cur);
+            self.start_item(cur, out);
             out.push(self.mission_current_msg());
         }
         let p = self.vehicle.p_ned();
@@ -1576,6 +1736,35 @@ impl Autopilot {
                     gimbal_device_id: 1,
                 })
             }
+            280 => {
+                let g = &self.params.vehicle.gimbal;
+                MavMessage::GIMBAL_MANAGER_INFORMATION(GIMBAL_MANAGER_INFORMATION_DATA {
+                    time_boot_ms: t_ms,
+                    cap_flags: GimbalManagerCapFlags::GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_AXIS
+                        | GimbalManagerCapFlags::GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_LOCK
+                        | GimbalManagerCapFlags::GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_LOCK
+                        | GimbalManagerCapFlags::GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_AXIS
+                        | GimbalManagerCapFlags::GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_FOLLOW,
+                    roll_min: 0.0,
+                    roll_max: 0.0,
+                    pitch_min: g.pitch_min_deg.to_radians() as f32,
+                    pitch_max: g.pitch_max_deg.to_radians() as f32,
+                    yaw_min: g.yaw_min_deg.to_radians() as f32,
+                    yaw_max: g.yaw_max_deg.to_radians() as f32,
+                    gimbal_device_id: GIMBAL_DEVICE_ID,
+                })
+            }
+            281 => MavMessage::GIMBAL_MANAGER_STATUS(GIMBAL_MANAGER_STATUS_DATA {
+                time_boot_ms: t_ms,
+                flags: GimbalManagerFlags::GIMBAL_MANAGER_FLAGS_ROLL_LOCK
+                    | GimbalManagerFlags::GIMBAL_MANAGER_FLAGS_PITCH_LOCK
+                    | GimbalManagerFlags::GIMBAL_MANAGER_FLAGS_YAW_IN_VEHICLE_FRAME,
+                gimbal_device_id: GIMBAL_DEVICE_ID,
+                primary_control_sysid: self.gimbal_primary.0,
+                primary_control_compid: self.gimbal_primary.1,
+                secondary_control_sysid: self.gimbal_secondary.0,
+                secondary_control_compid: self.gimbal_secondary.1,
+            }),
             242 => MavMessage::HOME_POSITION(HOME_POSITION_DATA {
                 latitude: (home.lat_deg * 1e7).round() as i32,
                 longitude: (home.lon_deg * 1e7).round() as i32,

@@ -1,7 +1,7 @@
 use super::*;
 use mavlink::dialects::common::{
-    COMMAND_LONG_DATA, MISSION_COUNT_DATA, MISSION_ITEM_INT_DATA, MavFrame, MavMissionResult,
-    MavMissionType,
+    COMMAND_LONG_DATA, GIMBAL_MANAGER_STATUS_DATA, MISSION_COUNT_DATA, MISSION_ITEM_INT_DATA,
+    MavFrame, MavMissionResult, MavMissionType,
 };
 
 const DT: f64 = 0.02;
@@ -296,6 +296,14 @@ fn flies_a_mission_with_takeoff_waypoints_gimbal_capture_and_rtl() {
             0.0,
         ),
     ]);
+    // The mission's gimbal item runs as the autopilot (1/1): give it control.
+    assert_eq!(
+        s.command(
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+            [1.0, 1.0, -1.0, -1.0, 0.0, 0.0, 0.0]
+        ),
+        MavResult::MAV_RESULT_ACCEPTED
+    );
     assert_eq!(
         s.command(
             MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
@@ -636,6 +644,10 @@ fn mount_control_moves_the_gimbal_and_the_status_reports_it() {
     s.ap.vehicle_mut()
         .teleport(Vector3::new(0.0, 0.0, 0.0), 90f64.to_radians());
     s.command(
+        MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+        [-2.0, -2.0, -1.0, -1.0, 0.0, 0.0, 0.0],
+    );
+    s.command(
         MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
         [-10.0, 120.0, f32::NAN, f32::NAN, 16.0, 0.0, 0.0],
     );
@@ -645,5 +657,294 @@ fn mount_control_moves_the_gimbal_and_the_status_reports_it() {
         (yaw.to_degrees() - 30.0).abs() < 1e-6,
         "{}",
         yaw.to_degrees()
+    );
+}
+
+/// The flavours, for tests that run on both.
+const FLAVOURS: [Flavour; 2] = [Flavour::Px4, Flavour::ArduPilot];
+
+fn manager_status(s: &Sim) -> GIMBAL_MANAGER_STATUS_DATA {
+    match s.ap.build(281) {
+        Some(MavMessage::GIMBAL_MANAGER_STATUS(d)) => d,
+        other => panic!("no GIMBAL_MANAGER_STATUS: {other:?}"),
+    }
+}
+
+#[test]
+fn gimbal_manager_denies_pitchyaw_until_configured_and_releases() {
+    for flavour in FLAVOURS {
+        let mut s = Sim::new(flavour);
+        // Discovery: GIMBAL_MANAGER_INFORMATION on request, status streamed.
+        let out = s.send(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1: 280.0,
+            command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
+            target_system: 1,
+            target_component: 1,
+            ..Default::default()
+        }));
+        let Some(MavMessage::GIMBAL_MANAGER_INFORMATION(info)) = out.first() else {
+            panic!("{out:?}")
+        };
+        assert_eq!(info.gimbal_device_id, GIMBAL_DEVICE_ID);
+        assert!((info.pitch_min.to_degrees() + 90.0).abs() < 1e-3);
+        use mavlink::Message;
+        let streamed = s.run(4.1);
+        let n = streamed
+            .iter()
+            .filter(|(_, m)| m.message_id() == 281)
+            .count();
+        assert!((2..=3).contains(&n), "{flavour:?}: {n} statuses in 4 s");
+        assert_eq!(
+            manager_status(&s).primary_control_sysid,
+            0,
+            "nobody at boot"
+        );
+
+        // Not in control: denied with a STATUSTEXT, the gimbal stays.
+        let out = s.send(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1: -40.0,
+            param2: 0.0,
+            param3: f32::NAN,
+            param4: f32::NAN,
+            param5: 44.0,
+            command: MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+            target_system: 1,
+            target_component: 1,
+            ..Default::default()
+        }));
+        assert!(
+            out.iter()
+                .any(|m| matches!(m, MavMessage::STATUSTEXT(t) if t.severity == MavSeverity::MAV_SEVERITY_WARNING)),
+            "{out:?}"
+        );
+        assert!(matches!(
+            out.last(),
+            Some(MavMessage::COMMAND_ACK(a)) if a.result == MavResult::MAV_RESULT_DENIED
+        ));
+        s.run(2.0);
+        assert!(s.ap.vehicle().gimbal_angles().0.to_degrees().abs() < 1e-6);
+
+        // Configure: the GCS (255/190) takes primary control, the status says so.
+        let r = s.command(
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+            [
+                255.0,
+                190.0,
+                -1.0,
+                -1.0,
+                0.0,
+                0.0,
+                f32::from(GIMBAL_DEVICE_ID),
+            ],
+        );
+        assert_eq!(r, MavResult::MAV_RESULT_ACCEPTED);
+        let st = manager_status(&s);
+        assert_eq!(
+            (st.primary_control_sysid, st.primary_control_compid),
+            (255, 190)
+        );
+        assert_eq!(st.gimbal_device_id, GIMBAL_DEVICE_ID);
+        let r = s.command(
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+            [-40.0, 0.0, f32::NAN, f32::NAN, 44.0, 0.0, 0.0],
+        );
+        assert_eq!(r, MavResult::MAV_RESULT_ACCEPTED);
+        s.run(3.0);
+        let pitch = s.ap.vehicle().gimbal_angles().0.to_degrees();
+        assert!((pitch + 40.0).abs() < 0.5, "{flavour:?}: pitch {pitch}");
+
+        // Another gimbal device, a bad value: refused, control unchanged.
+        let r = s.command(
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+            [0.0, 0.0, -1.0, -1.0, 0.0, 0.0, 155.0],
+        );
+        assert_eq!(r, MavResult::MAV_RESULT_FAILED);
+        let r = s.command(
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+            [-7.0, 0.0, -1.0, -1.0, 0.0, 0.0, 0.0],
+        );
+        assert_eq!(r, MavResult::MAV_RESULT_DENIED);
+        assert_eq!(s.ap.gimbal_primary(), (255, 190));
+
+        // Release (-3) from someone else does nothing; from the holder it frees.
+        let other = MavHeader {
+            system_id: 1,
+            component_id: 191,
+            sequence: 0,
+        };
+        let release = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1: -3.0,
+            param2: -3.0,
+            param3: -1.0,
+            param4: -1.0,
+            command: MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+            target_system: 1,
+            target_component: 1,
+            ..Default::default()
+        });
+        s.ap.handle(&other, &release);
+        assert_eq!(s.ap.gimbal_primary(), (255, 190));
+        s.send(release);
+        assert_eq!(s.ap.gimbal_primary(), (0, 0));
+        let r = s.command(
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+            [-10.0, 0.0, f32::NAN, f32::NAN, 44.0, 0.0, 0.0],
+        );
+        assert_eq!(r, MavResult::MAV_RESULT_DENIED);
+    }
+}
+
+/// A one-waypoint mission 20 m north at 10 m with a gimbal item; the
+/// gimbal pitch at the end.
+fn fly_gimbal_mission(s: &mut Sim, configure_item: bool) -> f64 {
+    let ardu = s.ap.params().flavour == Flavour::ArduPilot;
+    let (la, lo) = latlon(20.0, 0.0);
+    let mut items = Vec::new();
+    if ardu {
+        items.push(item(
+            0,
+            MavCmd::MAV_CMD_NAV_WAYPOINT,
+            MavFrame::MAV_FRAME_GLOBAL,
+            [0.0; 4],
+            la,
+            lo,
+            0.0,
+        ));
+    }
+    if configure_item {
+        items.push(item(
+            0,
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+            MavFrame::MAV_FRAME_MISSION,
+            [-2.0, -2.0, -1.0, -1.0],
+            0,
+            0,
+            0.0,
+        ));
+    }
+    items.push(item(
+        0,
+        MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+        MavFrame::MAV_FRAME_MISSION,
+        [-55.0, 0.0, f32::NAN, f32::NAN],
+        44,
+        0,
+        0.0,
+    ));
+    items.push(item(
+        0,
+        MavCmd::MAV_CMD_NAV_WAYPOINT,
+        REL,
+        [1.0, 1.0, 0.0, 0.0],
+        la,
+        lo,
+        10.0,
+    ));
+    for (i, it) in items.iter_mut().enumerate() {
+        it.seq = i as u16;
+    }
+    s.upload(items);
+    assert_eq!(
+        s.command(
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+        ),
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    assert_eq!(
+        s.command(MavCmd::MAV_CMD_MISSION_START, [0.0; 7]),
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    for _ in 0..(60.0 / DT) as usize {
+        s.run(DT);
+        if s.ap.mission_finished() {
+            break;
+        }
+    }
+    assert!(s.ap.mission_finished());
+    s.run(3.0);
+    s.ap.vehicle().gimbal_angles().0.to_degrees()
+}
+
+#[test]
+fn mission_gimbal_items_need_control_on_both_flavours() {
+    // PX4: the mission's own CONFIGURE item (-2) makes the autopilot the
+    // controller; without it the PITCHYAW item is refused.
+    let mut s = Sim::new(Flavour::Px4);
+    let pitch = fly_gimbal_mission(&mut s, true);
+    assert!(
+        (pitch + 55.0).abs() < 1.0,
+        "PX4 with configure item: {pitch}"
+    );
+    assert_eq!(s.ap.gimbal_primary(), (1, 1));
+    assert_eq!(s.ap.gimbal_refusals(), 0);
+    let mut s = Sim::new(Flavour::Px4);
+    let pitch = fly_gimbal_mission(&mut s, false);
+    assert!(
+        pitch.abs() < 1e-6,
+        "PX4 without configure: gimbal moved to {pitch}"
+    );
+    assert_eq!(s.ap.gimbal_refusals(), 1);
+    // PX4: the GCS holding control is not the autopilot: still refused.
+    let mut s = Sim::new(Flavour::Px4);
+    s.command(
+        MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+        [-2.0, -2.0, -1.0, -1.0, 0.0, 0.0, 0.0],
+    );
+    let pitch = fly_gimbal_mission(&mut s, false);
+    assert!(pitch.abs() < 1e-6, "{pitch}");
+
+    // ArduPilot: no CONFIGURE mission item; the GCS's control lets the item run.
+    let mut s = Sim::new(Flavour::ArduPilot);
+    let pitch = fly_gimbal_mission(&mut s, false);
+    assert!(
+        pitch.abs() < 1e-6,
+        "ArduPilot, nobody in control: gimbal moved to {pitch}"
+    );
+    assert_eq!(s.ap.gimbal_refusals(), 1);
+    let mut s = Sim::new(Flavour::ArduPilot);
+    s.command(
+        MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+        [255.0, 190.0, -1.0, -1.0, 0.0, 0.0, 0.0],
+    );
+    let pitch = fly_gimbal_mission(&mut s, false);
+    assert!(
+        (pitch + 55.0).abs() < 1.0,
+        "ArduPilot with GCS control: {pitch}"
+    );
+    assert_eq!(s.ap.gimbal_refusals(), 0);
+}
+
+#[test]
+fn ardupilot_refuses_the_configure_mission_item() {
+    let mut s = Sim::new(Flavour::ArduPilot);
+    let _ = s.send(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+        count: 2,
+        target_system: 1,
+        target_component: 1,
+        mission_type: MavMissionType::MAV_MISSION_TYPE_MISSION,
+        opaque_id: 0,
+    }));
+    let _ = s.send(MavMessage::MISSION_ITEM_INT(item(
+        0,
+        MavCmd::MAV_CMD_NAV_WAYPOINT,
+        MavFrame::MAV_FRAME_GLOBAL,
+        [0.0; 4],
+        0,
+        0,
+        0.0,
+    )));
+    let out = s.send(MavMessage::MISSION_ITEM_INT(item(
+        1,
+        MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+        MavFrame::MAV_FRAME_MISSION,
+        [-2.0, -2.0, -1.0, -1.0],
+        0,
+        0,
+        0.0,
+    )));
+    assert!(
+        out.iter().any(|m| matches!(m, MavMessage::MISSION_ACK(a) if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED)),
+        "{out:?}"
     );
 }

@@ -97,12 +97,17 @@ def main():
         (1, frame, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 2.0, 1.0, 0.0, 90.0, a[0], a[1], 15.0),
         (2, frame, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 1.0, 0.0, float("nan"), b[0], b[1], 15.0),
     ]
-    if args.capture:
-        items = items[:2] + [
-            (2, m2.MAV_FRAME_MISSION, m2.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, 0, 1, -90.0, 0.0, float("nan"), float("nan"), 0, 0, 0.0),
-            (3, m2.MAV_FRAME_MISSION, m2.MAV_CMD_IMAGE_START_CAPTURE, 0, 1, 0.0, 0.0, 1.0, 0.0, 0, 0, 0.0),
-        ] + [(4,) + items[2][1:]]
     ardupilot = hb.autopilot == m2.MAV_AUTOPILOT_ARDUPILOTMEGA
+    if args.capture:
+        # Gimbal protocol v2: PX4 runs mission gimbal items as the autopilot,
+        # which must be in control (a CONFIGURE item, -2: itself); ArduPilot
+        # has no such item, the ground station takes control before the start.
+        gimbal = [(2, m2.MAV_FRAME_MISSION, m2.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, 0, 1, -90.0, 0.0, float("nan"), float("nan"), 0, 0, 0.0)]
+        if not ardupilot:
+            gimbal = [(2, m2.MAV_FRAME_MISSION, m2.MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, 0, 1, -2.0, -2.0, -1.0, -1.0, 0, 0, 0.0)] + gimbal
+        rest = [(m2.MAV_FRAME_MISSION, m2.MAV_CMD_IMAGE_START_CAPTURE, 0, 1, 0.0, 0.0, 1.0, 0.0, 0, 0, 0.0), items[2][1:]]
+        items = items[:2] + [(2 + i,) + g[1:] for i, g in enumerate(gimbal)] + [
+            (2 + len(gimbal) + i,) + r for i, r in enumerate(rest)]
     if ardupilot:
         # ArduPilot: item 0 is home (its content is replaced by the vehicle).
         items = [(0, m2.MAV_FRAME_GLOBAL, m2.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 0.0, 0.0, 0.0,
@@ -139,6 +144,8 @@ def main():
         return 1
 
     # Arm and start.
+    if args.capture and ardupilot:
+        command(conn, m2.MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, [-2, -2, -1, -1, 0, 0, 0])
     arm = command(conn, m2.MAV_CMD_COMPONENT_ARM_DISARM, [1])
     start = command(conn, m2.MAV_CMD_MISSION_START, [0, 0])
     summary["arm_result"] = arm
