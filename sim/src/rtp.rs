@@ -861,7 +861,7 @@ mod tests {
         for k in 0..60u32 {
             // A textured picture panning a pixel per frame.
             let img = GrayImage::from_fn(w, h, |x, y| {
-                let v = ((x + k) * 37 ^ y * 91) % 251;
+                let v = (((x + k) * 37) ^ (y * 91)) % 251;
                 image::Luma([v as u8])
             });
             let pic = enc.encode(&img, u64::from(k) * 66).unwrap();
