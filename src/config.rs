@@ -281,8 +281,14 @@ pub struct SimSection {
     /// Seed of the bias's walk (unset: `seed`, so each world has its own).
     pub gps_seed: Option<u64>,
     /// The video URI its camera announces in VIDEO_STREAM_INFORMATION (for
-    /// `[video] url = "auto"`); unset: its own MJPEG URL.
+    /// `[video] url = "auto"`); unset: its H.264 RTP stream's
+    /// `udp://HOST:PORT` when `rtp_out` is set, else its own MJPEG URL.
     pub video_stream_uri: Option<String>,
+    /// Also send its camera as H.264 over RTP/UDP to `HOST:PORT` (RTCP
+    /// sender reports to the next port); unset: MJPEG only.
+    pub rtp_out: Option<String>,
+    /// Target bitrate of the H.264 stream, kbit/s.
+    pub rtp_bitrate_kbps: u32,
     /// Realism of the simulated camera, vehicle and radio: `ideal`,
     /// `field` or `harsh`, then any `-EFFECT` or `+EFFECT[@PRESET]`
     /// (see `shotpilot_sim::realism`), e.g. `field-blur`.
@@ -308,6 +314,8 @@ impl Default for SimSection {
             gps_tau_s: 120.0,
             gps_seed: None,
             video_stream_uri: None,
+            rtp_out: None,
+            rtp_bitrate_kbps: 1500,
             realism: "ideal".into(),
             world: "town".into(),
         }
@@ -315,6 +323,32 @@ impl Default for SimSection {
 }
 
 impl SimSection {
+    /// The H.264 RTP output these keys describe (None: `rtp_out` unset);
+    /// an error names what is wrong.
+    pub fn rtp_out(&self) -> Result<Option<shotpilot_sim::rtp::RtpOutParams>, String> {
+        let Some(dest) = &self.rtp_out else {
+            return Ok(None);
+        };
+        let dest = std::net::ToSocketAddrs::to_socket_addrs(dest.as_str())
+            .map_err(|e| format!("{dest:?}: expected HOST:PORT ({e})"))?
+            .next()
+            .ok_or_else(|| format!("{dest:?}: no address"))?;
+        let p = shotpilot_sim::rtp::RtpOutParams {
+            dest,
+            bitrate_bps: self.rtp_bitrate_kbps.saturating_mul(1000),
+            ..Default::default()
+        };
+        p.check().map_err(|(field, reason)| {
+            let key = if field == "bitrate_bps" {
+                "rtp_bitrate_kbps"
+            } else {
+                field
+            };
+            format!("{key}: {reason}")
+        })?;
+        Ok(Some(p))
+    }
+
     /// The vehicle's GPS bias model these keys describe (its walk seeded
     /// from `gps_seed`, else `seed`, mixed as the scenario mixes its own).
     pub fn gps_bias(&self) -> shotpilot_sim::vehicle::GpsBiasParams {
@@ -663,6 +697,9 @@ impl Config {
             if !(self.sim.video_fps > 0.0 && self.sim.video_fps <= 120.0) {
                 return Err(invalid("sim", "video_fps", "must be in (0, 120]".into()));
             }
+            if let Err(e) = self.sim.rtp_out() {
+                return Err(invalid("sim", "rtp_out", e));
+            }
             if let Err((field, reason)) = self.sim.gps_bias().check() {
                 return Err(invalid(
                     "sim",
@@ -834,6 +871,12 @@ mod tests {
             ("[sim]\ngps_sigma_z_m = nan\n", "[sim] gps_sigma_z_m"),
             ("[sim]\ngps_tau_s = -5.0\n", "[sim] gps_tau_s"),
             ("[sim]\ngps_sigma_xy_m = 80.0\n", "gps_sigma_xy_m"),
+            ("[sim]\nrtp_out = \"nowhere\"\n", "[sim] rtp_out"),
+            ("[sim]\nrtp_out = \"127.0.0.1:0\"\n", "[sim] rtp_out"),
+            (
+                "[sim]\nrtp_out = \"127.0.0.1:5600\"\nrtp_bitrate_kbps = 1\n",
+                "rtp_bitrate_kbps",
+            ),
         ] {
             let e = Config::from_toml(text, Path::new("x.toml"))
                 .unwrap_err()

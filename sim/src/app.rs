@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
+use image::GrayImage;
 use mavlink::dialects::common::MavMessage;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
@@ -34,6 +35,7 @@ use crate::link::{Endpoint, LinkError, LinkParams, LinkStats, RadioParams, spawn
 use crate::live::{LIVE_EXPOSURE_LAG_S, PoseHistory};
 use crate::realism::Realism;
 use crate::render::{RenderParams, Renderer};
+use crate::rtp::{RtpOutParams, RtpSender};
 use crate::script::{Script, ScriptKind, ScriptParams};
 use crate::vehicle::VehicleDisturbances;
 use crate::video::{VideoFrame, serve_video, try_encode_jpeg};
@@ -119,6 +121,11 @@ pub struct SimConfig {
     pub realism: Realism,
     /// The world.
     pub world: WorldKind,
+    /// The camera's H.264 stream over RTP/UDP ([`crate::rtp`]), beside the
+    /// MJPEG server (None: off). With it on and no
+    /// `autopilot.video_stream_uri` set, the camera announces it
+    /// (`udp://HOST:PORT`) in VIDEO_STREAM_INFORMATION.
+    pub rtp_out: Option<RtpOutParams>,
 }
 
 impl Default for SimConfig {
@@ -142,6 +149,7 @@ impl Default for SimConfig {
             max_renders_in_flight: 2,
             realism: Realism::ideal(),
             world: WorldKind::Town,
+            rtp_out: None,
         }
     }
 }
@@ -233,6 +241,11 @@ impl SimConfig {
                 );
             }
         }
+        if let Some(r) = &self.rtp_out
+            && let Err((field, reason)) = r.check()
+        {
+            return bad("rtp_out", format!("{field} ({r:?})"), reason);
+        }
         self.realism.validate()?;
         Ok(())
     }
@@ -251,6 +264,8 @@ pub struct RunSummary {
     pub captures: u64,
     /// Link counters at the end.
     pub link: LinkStats,
+    /// The H.264 RTP output's counters at the end (None: off).
+    pub rtp: Option<crate::rtp::RtpStatsSnapshot>,
 }
 
 fn unix_now() -> f64 {
@@ -300,7 +315,7 @@ pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSumm
 /// (`shotpilot-sim bound: video=ADDR mavlink=ADDR`, `-` for none), so a
 /// caller that asked for port 0 knows where to connect.
 pub async fn run_announcing(
-    config: SimConfig,
+    mut config: SimConfig,
     cancel: CancellationToken,
     announce: bool,
 ) -> Result<RunSummary, SimError> {
@@ -316,6 +331,13 @@ pub async fn run_announcing(
                 source,
             })?;
         video_bound = listener.local_addr().ok();
+        // Without an RTP stream, the camera announces its MJPEG stream.
+        if config.rtp_out.is_none()
+            && config.autopilot.video_stream_uri.is_none()
+            && let Some(a) = video_bound
+        {
+            config.autopilot.video_stream_uri = Some(format!("http://{a}/video.mjpg"));
+        }
         let c = cancel.clone();
         tokio::spawn(async move {
             if let Err(e) = serve_video(listener, video_rx, c).await {
@@ -419,8 +441,23 @@ async fn run_inner(
         config.autopilot.flavour,
         config.radio
     );
+    // The camera's H.264 stream, encoded on its own thread.
+    let rtp = match config.rtp_out {
+        Some(p) => Some(Arc::new(
+            RtpSender::start(p, config.video_fps, config.seed).map_err(|e| SimError::Io {
+                what: "starting the RTP output to",
+                path: PathBuf::from(p.dest.to_string()),
+                source: std::io::Error::other(e.to_string()),
+            })?,
+        )),
+        None => None,
+    };
+    let mut ap_params = config.autopilot.clone();
+    if ap_params.video_stream_uri.is_none() {
+        ap_params.video_stream_uri = config.rtp_out.map(|r| r.uri());
+    }
     let unix_at_boot = unix_now();
-    let mut ap = Autopilot::new(config.autopilot.clone(), unix_at_boot);
+    let mut ap = Autopilot::new(ap_params, unix_at_boot);
     let mut script = config.script.map(|kind| {
         let w = world.clone();
         Script::new(kind, config.script_params.clone(), &move |x, y, r| {
@@ -500,7 +537,8 @@ async fn run_inner(
         while frame_done_rx.try_recv().is_ok() {
             renders_in_flight = renders_in_flight.saturating_sub(1);
         }
-        let want_frames = video_tx.receiver_count() > 0 || config.truth_dir.is_some();
+        let want_frames =
+            video_tx.receiver_count() > 0 || config.truth_dir.is_some() || rtp.is_some();
         if want_frames && t + 1e-9 >= next_frame_t {
             next_frame_t += frame_dt;
             if next_frame_t < t {
@@ -551,20 +589,30 @@ async fn run_inner(
                 let publish_at = latency.as_ref().map(|l| {
                     clock_start + Duration::from_secs_f64((t_frame + l.at(t_frame)).max(0.0))
                 });
-                let render = move || -> Option<VideoFrame> {
+                let rtp = rtp.clone();
+                // The frame and the picture it shows (for the H.264 stream).
+                let render = move || -> Option<(VideoFrame, GrayImage)> {
                     let result = match (&imager, &window) {
                         (Some(imager), Some(window)) => {
                             let mut imager = imager.lock().unwrap_or_else(|p| p.into_inner());
                             imager
                                 .capture(t_frame, &|s| window.world_from_cam(s), noise)
-                                .and_then(|shot| match shot.encoded {
-                                    // The stream's own bytes.
-                                    Some(jpeg) => Ok(VideoFrame {
-                                        jpeg,
-                                        capture_time_unix_s: capture_time,
-                                        seq,
-                                    }),
-                                    None => VideoFrame::encode(&shot.image, q, capture_time, seq),
+                                .and_then(|shot| {
+                                    let jpeg = shot.encoded.filter(|_| {
+                                        shot.encoded_kind == Some(crate::imaging::EncodedKind::Jpeg)
+                                    });
+                                    let frame = match jpeg {
+                                        // The stream's own bytes.
+                                        Some(jpeg) => VideoFrame {
+                                            jpeg,
+                                            capture_time_unix_s: capture_time,
+                                            seq,
+                                        },
+                                        None => {
+                                            VideoFrame::encode(&shot.image, q, capture_time, seq)?
+                                        }
+                                    };
+                                    Ok((frame, shot.image))
                                 })
                         }
                         _ => {
@@ -572,15 +620,18 @@ async fn run_inner(
                                 Some(s) => renderer.render_noisy(&wfc, s),
                                 None => renderer.render(&wfc),
                             };
-                            VideoFrame::encode(&img, q, capture_time, seq)
+                            VideoFrame::encode(&img, q, capture_time, seq).map(|f| (f, img))
                         }
                     };
                     result.map_err(|e| tracing::warn!("video frame: {e}")).ok()
                 };
-                let publish = move |frame: VideoFrame| {
+                let publish = move |(frame, img): (VideoFrame, GrayImage)| {
                     tx.send_if_modified(|slot| {
                         use std::sync::atomic::Ordering;
                         if seq == 0 || newest.fetch_max(seq, Ordering::AcqRel) < seq {
+                            if let Some(rtp) = &rtp {
+                                rtp.offer(Arc::new(img), frame.capture_time_unix_s);
+                            }
                             *slot = Some(Arc::new(frame));
                             true
                         } else {
@@ -613,5 +664,6 @@ async fn run_inner(
         summary.sim_seconds = t;
     }
     summary.link = *link.stats.borrow();
+    summary.rtp = rtp.map(|r| r.stats());
     Ok(summary)
 }

@@ -434,7 +434,15 @@ fn write_dataset(
         exposure_total += shot.exposure_s;
         samples_total += shot.blur_samples;
         let w1 = Instant::now();
-        let name = match &shot.encoded {
+        if shot.encoded_kind == Some(crate::imaging::EncodedKind::H264) {
+            // The stream's bytes are H.264: counted, the decoded frame saved.
+            bytes_total += shot.encoded.as_ref().map_or(0, Vec::len);
+        }
+        let jpeg = shot
+            .encoded
+            .as_ref()
+            .filter(|_| shot.encoded_kind == Some(crate::imaging::EncodedKind::Jpeg));
+        let name = match jpeg {
             Some(bytes) => {
                 // The stream's own bytes: decoding them gives `shot.image`.
                 let name = format!("{t:.6}.jpg");

@@ -19,9 +19,10 @@
 //!    the signal clips at full scale;
 //! 4. applies the camera's tone curve (display gamma) and quantises to 8
 //!    bits;
-//! 5. compresses the frame for the stream ([`FrameCodec`]: JPEG now; an
-//!    H.264 codec plugs in at the same seam) and returns the decoded frame,
-//!    artefacts and all, with the encoded bytes.
+//! 5. compresses the frame for the stream ([`FrameCodec`]: JPEG per frame
+//!    as an MJPEG camera does, or H.264 through OpenH264 as an RTSP/RTP
+//!    camera does, its predicted pictures and IDR pictures included) and
+//!    returns the decoded frame, artefacts and all, with the encoded bytes.
 //!
 //! Ground truth stays exact: the returned [`Exposure`] holds the pose at
 //! the frame's time (centre row, mid-exposure) and, with a rolling shutter,
@@ -50,13 +51,24 @@ pub const ROW_KNOT_STEP: usize = 16;
 pub const REFERENCE_SUN_ELEVATION_DEG: f64 = 50.0;
 
 /// A stream codec: encodes a frame as the camera's stream would and
-/// decodes it as the ground station would. JPEG (the MJPEG stream) now; an
-/// H.264 codec is stateful across frames, hence `&mut self`.
+/// decodes it as the ground station would. JPEG (the MJPEG stream) or
+/// H.264 (stateful across frames, hence `&mut self`).
 pub trait FrameCodec: Send {
     /// Short description, e.g. `jpeg q50`.
     fn describe(&self) -> String;
     /// The encoded bytes and the decoded frame.
     fn transcode(&mut self, frame: &GrayImage) -> Result<(Vec<u8>, GrayImage), VideoError>;
+    /// What the encoded bytes are.
+    fn kind(&self) -> EncodedKind;
+}
+
+/// What a codec's bytes are.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EncodedKind {
+    /// A JPEG file.
+    Jpeg,
+    /// An H.264 access unit (Annex B).
+    H264,
 }
 
 /// Baseline JPEG at a fixed quality (the MJPEG stream).
@@ -69,6 +81,10 @@ pub struct JpegCodec {
 impl FrameCodec for JpegCodec {
     fn describe(&self) -> String {
         format!("jpeg q{}", self.quality)
+    }
+
+    fn kind(&self) -> EncodedKind {
+        EncodedKind::Jpeg
     }
 
     fn transcode(&mut self, frame: &GrayImage) -> Result<(Vec<u8>, GrayImage), VideoError> {
@@ -84,10 +100,118 @@ impl FrameCodec for JpegCodec {
     }
 }
 
+/// H.264 through OpenH264 at a target bitrate (bitrate rate control, an
+/// IDR picture every `idr_period` frames), decoded by OpenH264 as the
+/// ground station decodes it: the frames in between are predicted from the
+/// ones before, so the artefacts depend on the motion, as a real stream's.
+pub struct H264Codec {
+    /// Target bitrate, bits per second.
+    pub bitrate_bps: u32,
+    /// The encoder's frame rate, frames/s (its per-frame bit budget is
+    /// `bitrate_bps / fps`).
+    pub fps: f64,
+    /// Frames between IDR pictures.
+    pub idr_period: u32,
+    enc: Option<crate::rtp::H264Encoder>,
+    dec: Option<openh264::decoder::Decoder>,
+    frames: u64,
+}
+
+impl H264Codec {
+    /// A codec (the encoder starts with the first frame's size).
+    pub fn new(bitrate_bps: u32, fps: f64, idr_period: u32) -> Self {
+        Self {
+            bitrate_bps,
+            fps,
+            idr_period,
+            enc: None,
+            dec: None,
+            frames: 0,
+        }
+    }
+}
+
+impl std::fmt::Debug for H264Codec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.describe())
+    }
+}
+
+fn h264_error(reason: String) -> VideoError {
+    VideoError::H264 { reason }
+}
+
+impl FrameCodec for H264Codec {
+    fn describe(&self) -> String {
+        format!(
+            "h264 {:.0} kbit/s at {} fps, IDR every {}",
+            f64::from(self.bitrate_bps) / 1e3,
+            self.fps,
+            self.idr_period
+        )
+    }
+
+    fn kind(&self) -> EncodedKind {
+        EncodedKind::H264
+    }
+
+    fn transcode(&mut self, frame: &GrayImage) -> Result<(Vec<u8>, GrayImage), VideoError> {
+        use openh264::formats::YUVSource;
+        let (w, h) = frame.dimensions();
+        if self
+            .enc
+            .as_ref()
+            .is_none_or(|e| (e.width(), e.height()) != (w, h))
+        {
+            self.enc = Some(crate::rtp::H264Encoder::new(
+                w,
+                h,
+                self.fps,
+                self.bitrate_bps,
+                self.idr_period,
+            )?);
+            self.dec = Some(
+                openh264::decoder::Decoder::new()
+                    .map_err(|e| h264_error(format!("starting the decoder: {e}")))?,
+            );
+        }
+        let (Some(enc), Some(dec)) = (self.enc.as_mut(), self.dec.as_mut()) else {
+            return Err(h264_error("no encoder".into()));
+        };
+        let ms = (self.frames as f64 * 1000.0 / self.fps.max(1e-3)) as u64;
+        self.frames += 1;
+        let bytes = enc.encode(frame, ms)?.annexb();
+        let yuv = dec
+            .decode(&bytes)
+            .map_err(|e| h264_error(format!("decoding: {e}")))?
+            .ok_or_else(|| h264_error("the decoder gave no picture".into()))?;
+        let (dw, dh) = yuv.dimensions();
+        let stride = yuv.strides().0;
+        let y = yuv.y();
+        if (dw, dh) != (w as usize, h as usize) || stride < dw || y.len() < stride * (dh - 1) + dw {
+            return Err(h264_error(format!(
+                "decoded {dw}x{dh} (stride {stride}) for a {w}x{h} frame"
+            )));
+        }
+        let mut luma = Vec::with_capacity(dw * dh);
+        for row in 0..dh {
+            luma.extend_from_slice(&y[row * stride..row * stride + dw]);
+        }
+        let img =
+            GrayImage::from_raw(w, h, luma).ok_or_else(|| h264_error("luma plane size".into()))?;
+        Ok((bytes, img))
+    }
+}
+
 /// The codec for a compression setting.
 pub fn codec_for(c: &Compression) -> Box<dyn FrameCodec> {
     match *c {
         Compression::Jpeg { quality } => Box::new(JpegCodec { quality }),
+        Compression::H264 {
+            bitrate_bps,
+            fps,
+            idr_period,
+        } => Box::new(H264Codec::new(bitrate_bps, fps, idr_period)),
     }
 }
 
@@ -109,6 +233,8 @@ pub struct Exposure {
     pub image: GrayImage,
     /// The encoded bytes (when a codec is on).
     pub encoded: Option<Vec<u8>>,
+    /// What `encoded` is (when a codec is on).
+    pub encoded_kind: Option<EncodedKind>,
     /// The frame's time: the centre row's mid-exposure, seconds.
     pub time_s: f64,
     /// The camera pose at `time_s`.
@@ -550,16 +676,17 @@ impl Imager {
         row_knots: Vec<RowKnot>,
         blur_samples: usize,
     ) -> Result<Exposure, VideoError> {
-        let (image, encoded) = match self.codec.as_mut() {
+        let (image, encoded, encoded_kind) = match self.codec.as_mut() {
             Some(c) => {
                 let (bytes, decoded) = c.transcode(&img)?;
-                (decoded, Some(bytes))
+                (decoded, Some(bytes), Some(c.kind()))
             }
-            None => (img, None),
+            None => (img, None, None),
         };
         Ok(Exposure {
             image,
             encoded,
+            encoded_kind,
             time_s: t_s,
             world_from_cam,
             exposure_s,

@@ -23,6 +23,7 @@ pub mod imaging;
 pub mod paths;
 pub mod realism;
 pub mod render;
+pub mod rtp;
 pub mod texture;
 pub mod video;
 pub mod world;

@@ -15,6 +15,7 @@ use shotpilot_sim::link::{Endpoint, RadioDirParams, RadioParams};
 use shotpilot_sim::paths::PathSpec;
 use shotpilot_sim::realism::Realism;
 use shotpilot_sim::render::RenderParams;
+use shotpilot_sim::rtp::{H264Encoder, RtpOutParams, sdp};
 use shotpilot_sim::script::ScriptKind;
 use shotpilot_sim::world::WorldKind;
 use tokio_util::sync::CancellationToken;
@@ -51,6 +52,7 @@ z forward. The render world uses the same frame (the fixed transform is the iden
 Examples:\n  shotpilot-sim --script explore --truth-dir truth\n  \
 shotpilot-sim --mavlink udpin:0.0.0.0:14550 --drop 0.3 --baud 57600 --latency-ms 80\n  \
 shotpilot-sim --mavlink serial:/dev/pts/3:57600 --flavour ardupilot\n  \
+shotpilot-sim --script explore --rtp-out 127.0.0.1:5600 --sdp sim.sdp\n  \
 shotpilot-sim render --path orbit --frames 600 --out dataset\n\n\
 A ground station (QGroundControl, MAVProxy, pymavlink) listening on UDP 14550 sees the vehicle \
 with the default --mavlink."
@@ -75,6 +77,33 @@ struct Cli {
     /// Video frames per second.
     #[arg(long, default_value_t = 15.0, value_name = "N")]
     video_fps: f64,
+
+    /// Also send the camera as H.264 over RTP/UDP to HOST:PORT (RFC 6184,
+    /// RTCP sender reports to PORT+1; what an OpenIPC / wfb-ng link or a
+    /// gimbal camera's raw RTP output sends). The camera then announces
+    /// udp://HOST:PORT in VIDEO_STREAM_INFORMATION, so a ground station
+    /// listening there (shotpilot with `[video] url = "auto"` or
+    /// "udp://HOST:PORT", QGroundControl's UDP H.264 source) shows it.
+    #[arg(long, value_name = "HOST:PORT")]
+    rtp_out: Option<String>,
+
+    /// H.264 target bitrate of --rtp-out, kbit/s.
+    #[arg(long, default_value_t = 1500, value_name = "KBIT_S")]
+    rtp_bitrate: u32,
+
+    /// Seconds between IDR pictures of --rtp-out.
+    #[arg(long, default_value_t = 1.0, value_name = "S")]
+    rtp_idr_interval: f64,
+
+    /// Largest RTP packet of --rtp-out, bytes.
+    #[arg(long, default_value_t = 1200, value_name = "BYTES")]
+    rtp_mtu: usize,
+
+    /// Write the session description of --rtp-out to FILE ("-": print it
+    /// on stdout) before starting, for receivers that read an SDP
+    /// (shotpilot's `[video] url = "FILE.sdp"`, ffplay, VLC, GStreamer).
+    #[arg(long, value_name = "FILE", requires = "rtp_out")]
+    sdp: Option<String>,
 
     /// Which autopilot to imitate.
     #[arg(long, value_enum, default_value = "px4")]
@@ -144,7 +173,7 @@ struct Cli {
     /// Realism: a preset (ideal, field, harsh) then any -EFFECT (off) or
     /// +EFFECT[@PRESET] (on), e.g. field-blur or ideal+wind@harsh. Effects:
     /// blur, rolling_shutter, auto_exposure, sun, clouds, vignetting, noise,
-    /// compression, wind, gimbal, gps, gps_dropouts, baro, telemetry,
+    /// compression, h264 (H.264 in place of JPEG), wind, gimbal, gps, gps_dropouts, baro, telemetry,
     /// video_latency (see the shotpilot_sim::realism documentation).
     #[arg(long, default_value = "ideal", value_name = "PRESET", global = true)]
     realism: String,
@@ -190,6 +219,26 @@ fn parse_home(s: &str) -> Result<Geodetic> {
     })
 }
 
+fn rtp_from(cli: &Cli) -> Result<Option<RtpOutParams>> {
+    let Some(dest) = &cli.rtp_out else {
+        return Ok(None);
+    };
+    let dest = std::net::ToSocketAddrs::to_socket_addrs(dest.as_str())
+        .with_context(|| format!("--rtp-out {dest:?}: expected HOST:PORT"))?
+        .next()
+        .with_context(|| format!("--rtp-out {dest:?}: no address"))?;
+    let p = RtpOutParams {
+        dest,
+        bitrate_bps: cli.rtp_bitrate.saturating_mul(1000),
+        idr_interval_s: cli.rtp_idr_interval,
+        mtu: cli.rtp_mtu,
+        ..RtpOutParams::default()
+    };
+    p.check()
+        .map_err(|(field, reason)| anyhow::anyhow!("--rtp-*: {field} {reason}"))?;
+    Ok(Some(p))
+}
+
 fn config_from(cli: &Cli) -> Result<SimConfig> {
     let video_listen = if cli.video_listen == "off" {
         None
@@ -233,6 +282,7 @@ fn config_from(cli: &Cli) -> Result<SimConfig> {
         autopilot,
         sensor_noise: !cli.no_noise,
         world: cli.world.parse().context("--world")?,
+        rtp_out: rtp_from(cli)?,
         ..defaults
     }
     .with_realism(cli.realism.parse().context("--realism")?))
@@ -281,6 +331,18 @@ fn main() -> Result<()> {
         return Ok(());
     }
     let config = config_from(&cli)?;
+    if let (Some(rtp), Some(to)) = (&config.rtp_out, &cli.sdp) {
+        let cam = &config.camera;
+        let sets =
+            H264Encoder::parameter_sets(cam.width, cam.height, config.video_fps, rtp.bitrate_bps)
+                .context("H.264 parameter sets for the SDP")?;
+        let text = sdp(rtp, config.video_fps, &sets);
+        if to == "-" {
+            print!("{text}");
+        } else {
+            std::fs::write(to, text).with_context(|| format!("writing the SDP to {to}"))?;
+        }
+    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -312,6 +374,9 @@ fn main() -> Result<()> {
             summary.captures,
             summary.link
         );
+        if let Some(r) = summary.rtp {
+            tracing::info!("RTP H.264: {r:?}");
+        }
         Ok(())
     })
 }

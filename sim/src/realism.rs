@@ -31,7 +31,7 @@
 //! | `clouds` | cloud shadows drifting over the scene | cover, size, edge, opacity, altitude, drift velocity |
 //! | `vignetting` | lens falloff towards the corners | relative illumination at the image corner |
 //! | `noise` | sensor noise: photon shot noise (grows with the signal) and read noise | full well and read noise per photosite, photosites per pixel |
-//! | `compression` | the stream's compression (JPEG for the MJPEG stream now; H.264 when the video issue lands, see [`crate::imaging::FrameCodec`]) | JPEG quality |
+//! | `compression` | the stream's compression, JPEG per frame as the MJPEG stream sends it (see [`crate::imaging::FrameCodec`]) | JPEG quality |
 //! | `wind` | wind with gusts pushing the vehicle off its setpoint | mean speed and direction, gust intensity and length scale, drag |
 //! | `gimbal` | gimbal stabilisation error and jitter | low-frequency error and jitter, rms degrees |
 //! | `gps` | GNSS error: a slow bias (Gauss-Markov) and fast noise | sigmas, correlation times |
@@ -39,6 +39,12 @@
 //! | `baro` | barometric altitude drift | drift rate |
 //! | `telemetry` | telemetry at a real autopilot's stream rates over a lossy radio | PX4 stream rates; drop probability, latency, baud |
 //! | `video_latency` | a video latency that varies | mean, deviation, correlation time |
+//!
+//! `+h264[@PRESET]` switches `compression` on as H.264 instead of JPEG:
+//! encoded and decoded by OpenH264, predicted pictures between IDR
+//! pictures, as an RTSP/RTP camera sends ([`crate::imaging::H264Codec`];
+//! bitrate and IDR period from [`Realism::h264_stream`]), e.g.
+//! `field+h264` or `field+h264@harsh`; `-h264` switches it off again.
 //!
 //! # Sources of the `field` numbers
 //!
@@ -72,6 +78,10 @@
 //! - Compression: JPEG quality 50 (the IJG quality scale of ITU-T T.81's
 //!   example tables), about 5 Mbit/s at 640x480 and 15 frames/s on the
 //!   town; the bitrate is reported with every render.
+//! - H.264 (`+h264`, in place of the JPEG): a SIYI A8 mini sends
+//!   1280x720 at about 1.5 Mbit/s (issue 18), 1.63 bit per pixel and
+//!   second; the same density on this 640x480 camera is 0.5 Mbit/s, at 15
+//!   frames/s with an IDR picture each second (15 frames).
 //! - Wind: a light-to-gentle breeze of 4 m/s at 6 m (Beaufort 3 starts at
 //!   3.4 m/s) with the low-altitude Dryden turbulence model of
 //!   MIL-F-8785C: sigma_u = 0.1 W20 / (0.177 + 0.000823 h)^0.4 and
@@ -98,7 +108,9 @@
 //!
 //! `harsh` changes: wind 9 m/s (Beaufort 5) with sigma_u 1.55 m/s; the sun
 //! at 5.7 degrees, azimuth 251 (15 October, 18:00 local); cloud cover 0.5; JPEG
-//! quality 25; rolling-shutter readout 33 ms; gimbal jitter 0.05 and
+//! quality 25 (H.264: 0.25 Mbit/s, half the field bitrate, as an adaptive
+//! digital link such as OpenIPC / wfb-ng lowers its encoder's bitrate at
+//! the edge of its range); rolling-shutter readout 33 ms; gimbal jitter 0.05 and
 //! error 0.3 degrees; a u-blox M8-class 2.5 m CEP GNSS losing its fix for
 //! 5 s every 2 minutes; barometer drift 0.2 m per minute; the radio
 //! losing 10 % with 50 ms latency; video latency 300 ± 80 ms.
@@ -256,6 +268,17 @@ pub enum Compression {
     Jpeg {
         /// Quality.
         quality: u8,
+    },
+    /// H.264 (OpenH264, bitrate rate control): what an RTSP or RTP camera
+    /// sends ([`crate::imaging::H264Codec`]).
+    H264 {
+        /// Target bitrate, bits per second.
+        bitrate_bps: u32,
+        /// The encoder's frame rate (its per-frame bit budget is
+        /// `bitrate_bps / fps`).
+        fps: f64,
+        /// Frames between IDR pictures.
+        idr_period: u32,
     },
 }
 
@@ -699,6 +722,16 @@ impl Realism {
             "vignetting" => self.camera.vignetting = src.camera.vignetting,
             "noise" => self.camera.noise = src.camera.noise,
             "compression" => self.camera.compression = src.camera.compression,
+            "h264" => {
+                self.camera.compression = match from {
+                    Some(f) => Some(f.h264_stream()),
+                    // Off: no compression where H.264 was on.
+                    None => self
+                        .camera
+                        .compression
+                        .filter(|c| !matches!(c, Compression::H264 { .. })),
+                }
+            }
             "sun" => self.lighting.sun = src.lighting.sun,
             "clouds" => self.lighting.clouds = src.lighting.clouds,
             "wind" => self.vehicle.wind = src.vehicle.wind,
@@ -716,6 +749,18 @@ impl Realism {
             }
         }
         Ok(())
+    }
+
+    /// The H.264 stream of this preset's camera (`+h264`, see the module
+    /// documentation): 0.5 Mbit/s for `field` (and `ideal`), 0.25 Mbit/s
+    /// for `harsh`, 15 frames/s, an IDR picture each second.
+    pub fn h264_stream(&self) -> Compression {
+        let harsh = self.name.starts_with("harsh");
+        Compression::H264 {
+            bitrate_bps: if harsh { 250_000 } else { 500_000 },
+            fps: 15.0,
+            idr_period: 15,
+        }
     }
 
     /// The names of the effects switched on.
@@ -849,6 +894,26 @@ impl Realism {
             && !(1..=100).contains(&quality)
         {
             return bad("compression.quality", quality as f64, "1-100");
+        }
+        if let Some(Compression::H264 {
+            bitrate_bps,
+            fps,
+            idr_period,
+        }) = c.compression
+        {
+            if !(50_000..=50_000_000).contains(&bitrate_bps) {
+                return bad(
+                    "compression.bitrate_bps",
+                    f64::from(bitrate_bps),
+                    "[5e4, 5e7]",
+                );
+            }
+            if !(fps > 0.0 && fps <= 120.0) {
+                return bad("compression.fps", fps, "(0, 120]");
+            }
+            if !(1..=600).contains(&idr_period) {
+                return bad("compression.idr_period", f64::from(idr_period), "1-600");
+            }
         }
         if let Some(s) = &self.lighting.sun {
             if !(-90.0..=90.0).contains(&s.lat_deg) {
@@ -1054,6 +1119,25 @@ mod tests {
             Err(RealismError::Syntax { .. })
         ));
         assert!(Realism::parse("field-blur@harsh").is_err());
+        // H.264 in place of the JPEG, at each preset's bitrate, and off.
+        let h = |spec: &str| Realism::parse(spec).unwrap().camera.compression;
+        assert!(matches!(
+            h("field+h264"),
+            Some(Compression::H264 {
+                bitrate_bps: 500_000,
+                idr_period: 15,
+                ..
+            })
+        ));
+        assert!(matches!(
+            h("field+h264@harsh"),
+            Some(Compression::H264 {
+                bitrate_bps: 250_000,
+                ..
+            })
+        ));
+        assert_eq!(h("field+h264-h264"), None);
+        assert_eq!(h("field-h264"), Realism::field().camera.compression);
         for name in EFFECTS {
             let mut r = Realism::ideal();
             r.set_effect(name, Some(&Realism::field())).unwrap();

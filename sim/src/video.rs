@@ -42,6 +42,12 @@ pub enum VideoError {
         /// The encoder's error.
         source: image::ImageError,
     },
+    /// H.264 encoding or its RTP output failed.
+    #[error("H.264: {reason}")]
+    H264 {
+        /// What failed.
+        reason: String,
+    },
 }
 
 /// Every tunable number of the video module.

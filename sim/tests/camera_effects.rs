@@ -370,6 +370,69 @@ fn compression_at_a_low_quality_leaves_blocking_and_costs_fewer_bits() {
     assert!(k25 > 1.15 && k25 > k90 + 0.08, "q25 {k25} q90 {k90}");
 }
 
+/// H.264 through OpenH264: the stream's bytes decode to exactly the frame
+/// the imager returns, the bitrate follows the target, and the harsh
+/// preset's lower bitrate leaves a worse picture than the field's.
+#[test]
+fn h264_compression_decodes_to_the_frame_at_its_bitrate() {
+    let world = Arc::new(World::generate_with(3, &WorldParams::small()).unwrap());
+    let r = Arc::new(Renderer::new(
+        world,
+        SimCamera::default(),
+        RenderParams::default(),
+    ));
+    let run = |spec: &str| {
+        let realism = Realism::parse(spec).unwrap();
+        let mut cam = Realism::ideal().camera;
+        cam.compression = realism.camera.compression;
+        let mut imager = Imager::new(r.clone(), cam, &no_light());
+        let mut dec = openh264::decoder::Decoder::new().unwrap();
+        let (mut bytes, mut err) = (0usize, 0.0f64);
+        const N: usize = 30;
+        for k in 0..N {
+            // Panning half a degree per frame.
+            let pose = camera_from_yaw_pitch(
+                Point3::new(-40.0, 10.0, -30.0),
+                0.3 + 0.5f64.to_radians() * k as f64,
+                45f64.to_radians(),
+            );
+            let raw = r.render_noisy(&pose, k as u64);
+            let shot = imager.capture(0.0, &|_| pose, Some(k as u64)).unwrap();
+            let au = shot.encoded.as_ref().unwrap();
+            bytes += au.len();
+            // The ground station's decoder, fed the same bytes, shows the
+            // same picture.
+            use openh264::formats::YUVSource;
+            let yuv = dec.decode(au).unwrap().unwrap();
+            let (w, h) = yuv.dimensions();
+            let stride = yuv.strides().0;
+            let luma: Vec<u8> = (0..h)
+                .flat_map(|y| yuv.y()[y * stride..y * stride + w].to_vec())
+                .collect();
+            assert_eq!(luma, *shot.image.as_raw(), "frame {k}");
+            err += shot
+                .image
+                .as_raw()
+                .iter()
+                .zip(raw.as_raw())
+                .map(|(a, b)| (f64::from(*a) - f64::from(*b)).abs())
+                .sum::<f64>()
+                / raw.as_raw().len() as f64;
+        }
+        let kbit_s = bytes as f64 * 8.0 / (N as f64 / 15.0) / 1e3;
+        (kbit_s, err / N as f64)
+    };
+    let (field_kbps, field_err) = run("field+h264");
+    let (harsh_kbps, harsh_err) = run("field+h264@harsh");
+    eprintln!(
+        "H.264 field {field_kbps:.0} kbit/s, mean abs error {field_err:.2}; harsh {harsh_kbps:.0} kbit/s, {harsh_err:.2}"
+    );
+    // Rate control over two seconds: within 40 % of the target.
+    assert!((300.0..700.0).contains(&field_kbps), "{field_kbps}");
+    assert!((150.0..350.0).contains(&harsh_kbps), "{harsh_kbps}");
+    assert!(harsh_err > field_err, "{harsh_err} {field_err}");
+}
+
 #[test]
 fn cloud_shadows_drift_with_their_wind_and_take_their_share_of_the_sunlight() {
     let world = flat_world(150.0);

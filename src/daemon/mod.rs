@@ -125,44 +125,50 @@ fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimCo
         "hover" => Some(ScriptKind::Hover),
         _ => None,
     };
+    let rtp_out = s
+        .rtp_out()
+        .map_err(|e| DaemonError::Sim(format!("rtp_out: {e}")))?;
     let flavour = if s.flavour == "ardupilot" {
         Flavour::ArduPilot
     } else {
         Flavour::Px4
     };
     let defaults = shotpilot_sim::app::SimConfig::default();
-    let sc = shotpilot_sim::app::SimConfig {
-        video_listen: Some(video_listen),
-        mavlink,
-        video_fps: s.video_fps,
-        seed: s.seed,
-        script,
-        autopilot: shotpilot_sim::autopilot::AutopilotParams {
-            flavour,
-            vehicle: shotpilot_sim::vehicle::VehicleParams {
-                gps_bias: s.gps_bias(),
-                ..defaults.autopilot.vehicle
+    let sc =
+        shotpilot_sim::app::SimConfig {
+            video_listen: Some(video_listen),
+            mavlink,
+            video_fps: s.video_fps,
+            seed: s.seed,
+            script,
+            autopilot: shotpilot_sim::autopilot::AutopilotParams {
+                flavour,
+                vehicle: shotpilot_sim::vehicle::VehicleParams {
+                    gps_bias: s.gps_bias(),
+                    ..defaults.autopilot.vehicle
+                },
+                video_stream_uri: Some(s.video_stream_uri.clone().unwrap_or_else(
+                    || match &rtp_out {
+                        Some(r) => r.uri(),
+                        None => format!("http://{video_listen}/video.mjpg"),
+                    },
+                )),
+                ..defaults.autopilot.clone()
             },
-            video_stream_uri: Some(
-                s.video_stream_uri
-                    .clone()
-                    .unwrap_or_else(|| format!("http://{video_listen}/video.mjpg")),
-            ),
-            ..defaults.autopilot.clone()
-        },
-        capture_dir: data_dir.join("captures"),
-        truth_dir: s.truth_dir.as_ref().map(|d| data_dir.join(d)),
-        world: s
-            .world
-            .parse()
-            .map_err(|e| DaemonError::Sim(format!("world {:?}: {e}", s.world)))?,
-        ..defaults
-    }
-    .with_realism(
-        s.realism
-            .parse()
-            .map_err(|e| DaemonError::Sim(format!("realism {:?}: {e}", s.realism)))?,
-    );
+            capture_dir: data_dir.join("captures"),
+            truth_dir: s.truth_dir.as_ref().map(|d| data_dir.join(d)),
+            rtp_out,
+            world: s
+                .world
+                .parse()
+                .map_err(|e| DaemonError::Sim(format!("world {:?}: {e}", s.world)))?,
+            ..defaults
+        }
+        .with_realism(
+            s.realism
+                .parse()
+                .map_err(|e| DaemonError::Sim(format!("realism {:?}: {e}", s.realism)))?,
+        );
     Ok(sc)
 }
 
