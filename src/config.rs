@@ -221,7 +221,7 @@ impl SimSection {
 }
 
 /// `[refine]`: the daemon's refinement loop, mapped onto
-/// [`crate::daemon::refine_loop::Params`] by [`RefineSection::params`];
+/// [`crate::refine::loop_params::LoopParams`] by [`RefineSection::params`];
 /// numbers not listed here keep their defaults there.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -262,7 +262,7 @@ pub struct RefineSection {
 
 impl Default for RefineSection {
     fn default() -> Self {
-        let p = crate::daemon::refine_loop::Params::default();
+        let p = crate::refine::loop_params::LoopParams::default();
         let c = &p.refine.controller;
         let a = &p.refine.arrival;
         let e = &p.refine.error;
@@ -289,8 +289,8 @@ impl Default for RefineSection {
 impl RefineSection {
     /// The loop's parameters (call after [`Config::validate`]: durations
     /// out of range are clamped, not refused, here).
-    pub fn params(&self) -> crate::daemon::refine_loop::Params {
-        let mut p = crate::daemon::refine_loop::Params::default();
+    pub fn params(&self) -> crate::refine::loop_params::LoopParams {
+        let mut p = crate::refine::loop_params::LoopParams::default();
         let c = &mut p.refine.controller;
         c.threshold_pct = self.threshold_pct;
         c.max_rounds = self.max_rounds;
@@ -691,7 +691,7 @@ mod tests {
 
     #[test]
     fn refine_section_maps_onto_the_loop_params() {
-        let d = crate::daemon::refine_loop::Params::default();
+        let d = crate::refine::loop_params::LoopParams::default();
         let p = RefineSection::default().params();
         assert_eq!(p.refine, d.refine);
         assert_eq!(

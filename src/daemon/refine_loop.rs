@@ -31,45 +31,12 @@ use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
 use crate::refine::{
     ArrivalDetector, Context, Observation, Reachable, Session, Step, reachable_from_anchors,
 };
-use crate::shot::LocalizeParams;
-use crate::shot::anchors::{AnchorParams, desired_shot_from_anchors};
+use crate::shot::anchors::desired_shot_from_anchors;
 use crate::slam::{KeyFrameId, Map};
 use crate::vehicle::LinkHandle;
 use crate::video::live::{Frame, Ingest};
 
-/// Every tunable number of the daemon's loop (the session's own are in
-/// [`crate::refine::Params`]).
-#[derive(Debug, Clone)]
-pub struct Params {
-    /// The session: shot error, controller, arrival rule.
-    pub refine: crate::refine::Params,
-    /// Localisation of the live frame.
-    pub localize: LocalizeParams,
-    /// The desired picture of an anchors shot.
-    pub anchors: AnchorParams,
-    /// Telemetry polling period.
-    pub poll: Duration,
-    /// Longest flight to one target before the loop gives up.
-    pub max_flight: Duration,
-    /// Telemetry older than this counts as missing.
-    pub max_telemetry_age: Duration,
-    /// Longest wait for a video frame received after the arrival.
-    pub frame_wait: Duration,
-}
-
-impl Default for Params {
-    fn default() -> Self {
-        Self {
-            refine: crate::refine::Params::default(),
-            localize: LocalizeParams::default(),
-            anchors: AnchorParams::default(),
-            poll: Duration::from_millis(100),
-            max_flight: Duration::from_secs(120),
-            max_telemetry_age: Duration::from_secs(2),
-            frame_wait: Duration::from_secs(3),
-        }
-    }
-}
+pub use crate::refine::loop_params::LoopParams as Params;
 
 /// What the loop is told.
 #[derive(Debug)]
