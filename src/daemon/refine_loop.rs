@@ -23,15 +23,15 @@ use tokio_util::sync::CancellationToken;
 
 use super::geo_service::GeoService;
 use super::refine_service::{record_abort, record_rounds};
-use super::slam_view::SlamShared;
-use super::vehicle_view::upload_verified;
-use crate::api::store::{Shot, ShotSource, ShotStore};
+use super::slam_shared::SlamShared;
 use crate::geo::{Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
 use crate::refine::{
     ArrivalDetector, Context, Observation, Reachable, Session, Step, reachable_from_anchors,
 };
 use crate::shot::anchors::desired_shot_from_anchors;
+use crate::shot::record::{Shot, ShotSource};
+use crate::shot::store::ShotStore;
 use crate::slam::{KeyFrameId, Map};
 use crate::vehicle::LinkHandle;
 use crate::video::live::{Frame, Ingest};
@@ -700,7 +700,8 @@ async fn fly(
     if cancel.is_cancelled() {
         return Err("cancelled".into());
     }
-    upload_verified(&deps.link, &items, flavour)
+    deps.link
+        .upload_verified(&items, flavour)
         .await
         .map_err(|e| e.to_string())?;
     deps.link
