@@ -637,10 +637,14 @@ async fn shot_target(
     Ok(Json(v.shot_target(&shot)?))
 }
 
-async fn vehicle_mission(State(st): State<AppState>) -> Result<Json<VehicleMissionView>, ApiError> {
+/// The vehicle's mission, read back. Written through `serde_json::Value`
+/// (as the shot's `details.planned_items` are), so an item's `f32`
+/// parameters read the same in both and compare equal.
+async fn vehicle_mission(State(st): State<AppState>) -> Result<Json<Value>, ApiError> {
     let v = vehicle(&st)?;
     let _guard = st.actions.lock().await;
-    Ok(Json(v.download_mission().await?))
+    let mission: VehicleMissionView = v.download_mission().await?;
+    Ok(Json(json!(mission)))
 }
 
 /// Starts the mission of THE shot asked for: 409 `no_mission` when it has
