@@ -15,8 +15,8 @@ use image::{GrayImage, Luma};
 use libfuzzer_sys::fuzz_target;
 use nalgebra::Point2;
 use shotpilot::api::parse_shot_request;
-use shotpilot::shot::request::{KeyframeImages, Params, ShotRequestError, WarpOnly};
 use shotpilot::geometry::homography4::apply_homography;
+use shotpilot::shot::request::{KeyframeImages, Params, ShotRequestError, WarpOnly};
 
 /// Keyframe 0 does not exist; every other id is one 64x48 picture.
 struct OneKeyframe(Arc<GrayImage>);
@@ -54,7 +54,8 @@ fuzz_target!(|data: &[u8]| {
     };
     match computer.anchor_shot(kf, &anchors, size) {
         Err(ShotRequestError::UnknownKeyframe { id }) => assert_eq!((id, kf), (0, 0)),
-        Err(e @ ShotRequestError::BadAnchors { .. }) | Err(e @ ShotRequestError::BadImage { .. }) => {
+        Err(e @ ShotRequestError::BadAnchors { .. })
+        | Err(e @ ShotRequestError::BadImage { .. }) => {
             assert!(!e.to_string().is_empty());
         }
         Err(e) => panic!("unexpected refusal {e:?}"),
