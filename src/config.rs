@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, CameraError, Distortion};
+pub use crate::video::source::{VideoConfig, VideoSource};
 
 /// Errors reading the configuration.
 #[derive(Debug, thiserror::Error)]
@@ -71,114 +72,6 @@ pub struct Config {
     /// (threshold, rounds, controller gains and steps, arrival rule,
     /// waiting limits).
     pub refine: RefineSection,
-}
-
-/// How video frames are fetched.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum VideoSource {
-    /// `multipart/x-mixed-replace` stream.
-    Mjpeg,
-    /// Poll a JPEG snapshot URL.
-    Snapshot,
-}
-
-/// `[video]`: the live video source.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct VideoConfig {
-    /// For `http://` URLs: `mjpeg` or `snapshot`.
-    pub source: VideoSource,
-    /// Where the video comes from: `rtsp://[user:pass@]host[:port]/path`
-    /// (H.264), `udp://HOST:PORT` (raw RTP H.264, e.g. `udp://0.0.0.0:5600`),
-    /// a path to an `.sdp` file, `http://` (MJPEG stream or JPEG
-    /// snapshots, per `source`), or `auto` (the URL the vehicle's camera
-    /// announces over MAVLink in VIDEO_STREAM_INFORMATION).
-    pub url: String,
-    /// RTSP transport for RTP: `tcp` (interleaved, default) or `udp`.
-    pub transport: crate::video::source::RtspTransport,
-    /// RTSP user name, when the URL carries none.
-    pub username: Option<String>,
-    /// RTSP password, when the URL carries none.
-    pub password: Option<String>,
-    /// `auto`: the MAVLink component asked for VIDEO_STREAM_INFORMATION
-    /// (100: MAV_COMP_ID_CAMERA).
-    pub camera_component: u8,
-    /// `auto`: how long to wait for the vehicle and its camera's answer, s
-    /// (asking again each second).
-    pub auto_timeout_s: f64,
-    /// H.264: access units queued ahead of the decoder before the oldest
-    /// are dropped and decoding resumes at the next key frame.
-    pub decode_queue: usize,
-    /// Decimate the picture by this integer factor before SLAM (1: full
-    /// resolution; any source); the camera intrinsics are scaled to match.
-    pub downscale: u32,
-    /// Snapshot polling rate, Hz.
-    pub snapshot_hz: f64,
-    /// Connect timeout, ms.
-    pub connect_timeout_ms: u64,
-    /// A connection silent this long is reopened, ms.
-    pub read_timeout_ms: u64,
-    /// First reconnect delay, ms (doubles per failure).
-    pub reconnect_min_ms: u64,
-    /// Largest reconnect delay, ms.
-    pub reconnect_max_ms: u64,
-    /// Largest accepted JPEG, bytes.
-    pub max_frame_bytes: usize,
-}
-
-impl Default for VideoConfig {
-    fn default() -> Self {
-        let p = crate::video::mjpeg::Params::default();
-        Self {
-            source: VideoSource::Mjpeg,
-            url: "http://127.0.0.1:8554/video.mjpg".into(),
-            transport: Default::default(),
-            username: None,
-            password: None,
-            camera_component: 100,
-            auto_timeout_s: 30.0,
-            decode_queue: 8,
-            downscale: 1,
-            snapshot_hz: 5.0,
-            connect_timeout_ms: p.connect_timeout_ms,
-            read_timeout_ms: p.read_timeout_ms,
-            reconnect_min_ms: p.reconnect_min_ms,
-            reconnect_max_ms: p.reconnect_max_ms,
-            max_frame_bytes: p.max_part_bytes,
-        }
-    }
-}
-
-impl VideoConfig {
-    /// The client tunables.
-    pub fn params(&self) -> crate::video::mjpeg::Params {
-        crate::video::mjpeg::Params {
-            connect_timeout_ms: self.connect_timeout_ms,
-            read_timeout_ms: self.read_timeout_ms,
-            reconnect_min_ms: self.reconnect_min_ms,
-            reconnect_max_ms: self.reconnect_max_ms,
-            max_part_bytes: self.max_frame_bytes,
-            ..Default::default()
-        }
-    }
-
-    /// The H.264 sources' tunables.
-    pub fn h264_params(&self) -> crate::video::source::H264Params {
-        crate::video::source::H264Params {
-            transport: self.transport,
-            username: self.username.clone(),
-            password: self.password.clone(),
-            connect_timeout_ms: self.connect_timeout_ms,
-            read_timeout_ms: self.read_timeout_ms,
-            reconnect_min_ms: self.reconnect_min_ms,
-            reconnect_max_ms: self.reconnect_max_ms,
-            decode: crate::video::h264::DecodeParams {
-                queue: self.decode_queue,
-                downscale: self.downscale,
-            },
-        }
-    }
 }
 
 /// `[server]`: the HTTP API.
@@ -362,7 +255,7 @@ impl SimSection {
 }
 
 /// `[refine]`: the daemon's refinement loop, mapped onto
-/// [`crate::daemon::refine_loop::Params`] by [`RefineSection::params`];
+/// [`crate::refine::loop_params::LoopParams`] by [`RefineSection::params`];
 /// numbers not listed here keep their defaults there.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -403,7 +296,7 @@ pub struct RefineSection {
 
 impl Default for RefineSection {
     fn default() -> Self {
-        let p = crate::daemon::refine_loop::Params::default();
+        let p = crate::refine::loop_params::LoopParams::default();
         let c = &p.refine.controller;
         let a = &p.refine.arrival;
         let e = &p.refine.error;
@@ -430,8 +323,8 @@ impl Default for RefineSection {
 impl RefineSection {
     /// The loop's parameters (call after [`Config::validate`]: durations
     /// out of range are clamped, not refused, here).
-    pub fn params(&self) -> crate::daemon::refine_loop::Params {
-        let mut p = crate::daemon::refine_loop::Params::default();
+    pub fn params(&self) -> crate::refine::loop_params::LoopParams {
+        let mut p = crate::refine::loop_params::LoopParams::default();
         let c = &mut p.refine.controller;
         c.threshold_pct = self.threshold_pct;
         c.max_rounds = self.max_rounds;
@@ -835,7 +728,7 @@ mod tests {
 
     #[test]
     fn refine_section_maps_onto_the_loop_params() {
-        let d = crate::daemon::refine_loop::Params::default();
+        let d = crate::refine::loop_params::LoopParams::default();
         let p = RefineSection::default().params();
         assert_eq!(p.refine, d.refine);
         assert_eq!(

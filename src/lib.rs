@@ -38,17 +38,20 @@
 //! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
 //! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
 //! | [`slam`] | map, tracking, local mapping, map file |
-//! | [`shot`] | desired shot from four anchors (warp) and its localisation in the map |
+//! | [`shot`] | desired shot from four anchors (warp) and its localisation in the map; the operator's request, the shot model (records, statuses) and the shot store |
 //! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
 //! | [`geo`] | map ↔ NED ↔ WGS84: telemetry history, camera mounting, robust Sim(3), targets |
 //! | [`vehicle`] | MAVLink link actor, transports, telemetry |
-//! | [`api`] | the HTTP API (`/api/v1`), shot store, operator page |
+//! | [`api`] | the HTTP API (`/api/v1`): one error type, typed replies, the views it reads (SLAM, vehicle); the operator page |
 //! | [`daemon`] | `shotpilot run`: wires sim, video, SLAM, link and API; shutdown |
 //! | [`mission`] | mission planning (pure) and upload protocol |
-//! | [`refine`] | closing the loop: shot error (homography), correction controller, simulator scenario |
+//! | [`refine`] | closing the loop: shot error (homography), correction controller, the daemon loop's tunables, simulator scenario |
 //!
 //! The synchronous core never imports tokio or axum; I/O lives in
-//! `vehicle`, `video` (live sources) and `mission::upload`.
+//! `vehicle`, `video` (live sources) and `mission::upload`. Every module
+//! imports only modules on lower floors (no import circles,
+//! `.ci/import-circles`); `ARCHITECTURE.md` at the repository root has the
+//! floors, the layout and the conventions.
 
 pub mod api;
 pub mod bow;

@@ -9,12 +9,15 @@ use std::time::Duration;
 
 use image::{GrayImage, Luma};
 use serde_json::{Value, json};
-use shotpilot::api::shots::{PhotoIntrinsics, ShotComputation, ShotComputer, ShotError, WarpOnly};
-use shotpilot::api::store::{Localisation, MissionRecord, PoseJson, Shot, ShotStore};
 use shotpilot::api::{
-    self, ApiParams, AppState, BoxFuture, KeyframeInfo, MapView, SlamStatus, SlamView,
-    VehicleError, VehicleView,
+    self, ApiParams, AppState, BoxFuture, KeyframeInfo, MapView, MissionProgressView, SlamStatus,
+    SlamView, VehicleError, VehicleStatus, VehicleView,
 };
+use shotpilot::shot::record::{
+    Localisation, MissionRecord, MissionState, PhotoIntrinsics, PoseJson, Shot,
+};
+use shotpilot::shot::request::{ShotComputation, ShotComputer, ShotRequestError, WarpOnly};
+use shotpilot::shot::store::ShotStore;
 use shotpilot::video::live::{Ingest, RawPart, unix_now};
 
 fn kf_image() -> GrayImage {
@@ -73,7 +76,7 @@ impl ShotComputer for LocalisingOnKf1 {
         kf: u64,
         a: &[[f64; 2]; 4],
         size: Option<(u32, u32)>,
-    ) -> Result<ShotComputation, ShotError> {
+    ) -> Result<ShotComputation, ShotRequestError> {
         let mut c = self.0.shot_from_anchors(kf, a, size)?;
         if kf == 1 {
             c.localisation = Ok(Localisation {
@@ -92,20 +95,26 @@ impl ShotComputer for LocalisingOnKf1 {
         &self,
         p: &GrayImage,
         i: Option<&PhotoIntrinsics>,
-    ) -> Result<ShotComputation, ShotError> {
+    ) -> Result<ShotComputation, ShotRequestError> {
         self.0.shot_from_photo(p, i)
     }
 }
 
+/// A vehicle that holds the mission of the shot uploaded last, and starts
+/// only that one (as the daemon's link vehicle does).
 #[derive(Default)]
 struct FakeVehicle {
     uploads: Mutex<Vec<String>>,
-    started: Mutex<u32>,
+    started: Mutex<Vec<String>>,
 }
 
 impl VehicleView for FakeVehicle {
-    fn status(&self) -> Value {
-        json!({"configured": true, "connected": true})
+    fn status(&self) -> VehicleStatus {
+        VehicleStatus {
+            configured: true,
+            connected: true,
+            ..Default::default()
+        }
     }
     fn upload_shot<'a>(
         &'a self,
@@ -114,7 +123,7 @@ impl VehicleView for FakeVehicle {
         Box::pin(async move {
             self.uploads.lock().unwrap().push(shot.id.clone());
             Ok(MissionRecord {
-                state: "uploaded".into(),
+                state: MissionState::Uploaded,
                 items: 3,
                 uploaded_unix: unix_now(),
                 started_unix: None,
@@ -123,14 +132,27 @@ impl VehicleView for FakeVehicle {
             })
         })
     }
-    fn start_mission(&self) -> BoxFuture<'_, Result<(), VehicleError>> {
+    fn start_mission<'a>(&'a self, shot: &'a Shot) -> BoxFuture<'a, Result<(), VehicleError>> {
         Box::pin(async move {
-            *self.started.lock().unwrap() += 1;
+            let holder = self.uploads.lock().unwrap().last().cloned();
+            if holder.as_deref() != Some(shot.id.as_str()) {
+                return Err(VehicleError::NotOnVehicle {
+                    shot: shot.id.clone(),
+                    holder,
+                });
+            }
+            self.started.lock().unwrap().push(shot.id.clone());
             Ok(())
         })
     }
-    fn progress(&self) -> Value {
-        json!({"current_seq": 1})
+    fn progress(&self) -> Option<MissionProgressView> {
+        Some(MissionProgressView {
+            current_seq: Some(1),
+            total: Some(3),
+            state: Some(3),
+            last_reached: None,
+            age_s: 0.1,
+        })
     }
 }
 
@@ -610,14 +632,64 @@ fn endpoints_and_bad_input() {
         b"",
     );
     assert_eq!(r.0, 200);
-    assert_eq!(json_of(&r.2)["mission"]["state"], "started");
-    assert_eq!(*srv.vehicle.started.lock().unwrap(), 1);
+    let started = json_of(&r.2);
+    assert_eq!(started["id"], id.as_str());
+    assert_eq!(started["mission"]["state"], "started");
+    assert!(started["mission"]["started_unix"].as_f64().is_some());
+    assert_eq!(*srv.vehicle.started.lock().unwrap(), vec![id.clone()]);
     let p = json_of(&http(a, "GET", &format!("/api/v1/shots/{id}/progress"), &[], b"").2);
     assert_eq!(p["progress"]["current_seq"], 1);
     assert_eq!(
         json_of(&http(a, "GET", "/api/v1/shots", &[], b"").2)["count"],
         4
     );
+
+    // A second shot uploaded: the vehicle holds its mission now. Starting
+    // the first shot again starts nothing (the vehicle would fly the
+    // second's); starting the second starts and refines the second.
+    let r = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(1));
+    assert_eq!(r.0, 201);
+    let id2 = json_of(&r.2)["id"].as_str().unwrap().to_owned();
+    let r = http(
+        a,
+        "POST",
+        &format!("/api/v1/shots/{id2}/mission"),
+        &[AUTH],
+        b"",
+    );
+    assert_eq!(r.0, 200, "{}", String::from_utf8_lossy(&r.2));
+    let r = http(
+        a,
+        "POST",
+        &format!("/api/v1/shots/{id}/start"),
+        &[AUTH],
+        b"",
+    );
+    assert_error(&r, 409, "not_on_vehicle");
+    assert!(
+        json_of(&r.2)["error"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains(&id2)),
+        "{}",
+        String::from_utf8_lossy(&r.2)
+    );
+    assert_eq!(*srv.vehicle.started.lock().unwrap(), vec![id.clone()]);
+    let r = http(
+        a,
+        "POST",
+        &format!("/api/v1/shots/{id2}/start"),
+        &[AUTH],
+        b"",
+    );
+    assert_eq!(r.0, 200, "{}", String::from_utf8_lossy(&r.2));
+    assert_eq!(json_of(&r.2)["id"], id2.as_str());
+    assert_eq!(
+        *srv.vehicle.started.lock().unwrap(),
+        vec![id.clone(), id2.clone()]
+    );
+    // The first shot's record still says what happened to it.
+    let first = json_of(&http(a, "GET", &format!("/api/v1/shots/{id}"), &[], b"").2);
+    assert_eq!(first["mission"]["state"], "started");
 }
 
 #[test]
@@ -714,4 +786,35 @@ fn events_and_video_are_served() {
     assert_eq!(snap.0, 200);
     assert_eq!(snap.2, *jpeg);
     cancel.cancel();
+}
+
+/// A shot that cannot be written (the data directory is gone): the request
+/// fails with 500 `store`, and the status carries the failed write (the
+/// page shows it) until a write succeeds again.
+#[test]
+fn a_failed_shot_write_is_in_the_status_until_a_write_succeeds() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("shots");
+    let srv = start(&data, None, true);
+    let a = srv.addr;
+    let status = || json_of(&http(a, "GET", "/api/v1/status", &[], b"").2);
+    assert_eq!(status()["errors"], json!([]));
+    std::fs::remove_dir_all(&data).unwrap();
+    let r = http(a, "POST", "/api/v1/shots", &[JSON_CT], &good_shot(1));
+    assert_error(&r, 500, "store");
+    let s = status();
+    let errors = s["errors"].as_array().unwrap();
+    assert_eq!(errors.len(), 1, "{s}");
+    assert_eq!(errors[0]["what"], "shot");
+    assert!(
+        errors[0]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("shot-1")),
+        "{s}"
+    );
+    assert!(errors[0]["at_unix"].as_f64().is_some_and(|t| t > 0.0));
+    std::fs::create_dir_all(&data).unwrap();
+    let r = http(a, "POST", "/api/v1/shots", &[JSON_CT], &good_shot(1));
+    assert_eq!(r.0, 201, "{}", String::from_utf8_lossy(&r.2));
+    assert_eq!(status()["errors"], json!([]));
 }

@@ -21,10 +21,13 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
-use shotpilot::api::store::{Localisation, MissionRecord, PoseJson, Shot, ShotSource, ShotStore};
 use shotpilot::daemon::refine_service::record_abort;
 use shotpilot::mission::plan::Target;
 use shotpilot::refine::{Correction, Decision, RoundRecord};
+use shotpilot::shot::record::{
+    Localisation, MissionRecord, MissionState, PoseJson, Shot, ShotSource, ShotStatus,
+};
+use shotpilot::shot::store::ShotStore;
 use tokio_util::sync::CancellationToken;
 
 /// A refinement round as the daemon records it.
@@ -107,7 +110,7 @@ fn seed_refined_shots(dir: &Path) -> Vec<String> {
     .enumerate()
     {
         let mut mission = MissionRecord {
-            state: "started".into(),
+            state: MissionState::Started,
             items: 4,
             uploaded_unix: 1.7e9,
             started_unix: Some(1.7e9 + 1.0),
@@ -124,7 +127,7 @@ fn seed_refined_shots(dir: &Path) -> Vec<String> {
                 keyframe_id: 0,
                 anchors: [[40.0, 30.0], [600.0, 30.0], [600.0, 450.0], [40.0, 450.0]],
             },
-            status: "localised".into(),
+            status: ShotStatus::Localised,
             localisation: Some(Localisation {
                 world_from_cam: PoseJson {
                     translation: [0.1, -0.2, 0.3],

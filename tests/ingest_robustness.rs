@@ -91,8 +91,8 @@ proptest! {
             prop_assert!(r.is_ok());
         } else {
             let e = r.unwrap_err();
-            prop_assert_eq!(e.status.as_u16(), 400);
-            prop_assert_eq!(e.code, "bad_anchors");
+            prop_assert_eq!(e.status().as_u16(), 400);
+            prop_assert_eq!(e.code(), "bad_anchors");
         }
     }
 }

@@ -37,7 +37,8 @@ function showStatus(s) {
     `SLAM ${sl.state || '?'} · kf ${sl.keyframes ?? 0} · pts ${sl.points ?? 0} · inliers ${sl.last_inliers ?? 0}` +
     ` | video ${(v.received_fps || 0).toFixed(1)} fps` +
     ` | vehicle ${ve.configured === false ? 'none' : (ve.connected ? (ve.mode || 'connected') + (ve.armed ? ' ARMED' : '') : 'not connected')}` +
-    geoText(ve.georeference) + mapStartText(sl.map_start);
+    geoText(ve.georeference) + mapStartText(sl.map_start) + errorsText(s.errors);
+  $('status').dataset.errors = String((s.errors || []).length);
   const src = v.source || {};
   $('videostats').textContent =
     (src.kind ? `${src.kind} ${src.url || ''} ${src.codec || ''}${src.transport ? '/' + src.transport : ''} · ` : '') +
@@ -46,6 +47,12 @@ function showStatus(s) {
     (v.width ? ` · ${v.width}x${v.height}` : '') +
     (src.last_error ? ` · ${src.last_error}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
+}
+// Writes that failed (map file, georeference, shot records) and are not
+// repaired yet: the daemon keeps running, but what it learns is not kept.
+function errorsText(errors) {
+  if (!errors || !errors.length) return '';
+  return errors.map((e) => ` | ERROR writing ${e.what}: ${e.message}`).join('');
 }
 // Where the SLAM's map came from: the saved map continued (and whether
 // tracking has relocalised into it yet), or why it was not used.

@@ -1,6 +1,6 @@
 //! Fuzz the body of `POST /api/v1/shots`: the JSON parsing and checks
 //! (`shotpilot::api::parse_shot_request`), then the anchor validation and
-//! the desired-shot warp (`shotpilot::api::shots::anchor_shot`, i.e.
+//! the desired-shot warp (`shotpilot::shot::request::anchor_shot`, i.e.
 //! `shotpilot::shot`'s) on a small synthetic keyframe.
 //!
 //! Checked: no panic; every refusal is a 4xx with a known code; a request
@@ -15,8 +15,8 @@ use image::{GrayImage, Luma};
 use libfuzzer_sys::fuzz_target;
 use nalgebra::Point2;
 use shotpilot::api::parse_shot_request;
-use shotpilot::api::shots::{KeyframeImages, Params, ShotError, WarpOnly};
 use shotpilot::geometry::homography4::apply_homography;
+use shotpilot::shot::request::{KeyframeImages, Params, ShotRequestError, WarpOnly};
 
 /// Keyframe 0 does not exist; every other id is one 64x48 picture.
 struct OneKeyframe(Arc<GrayImage>);
@@ -34,9 +34,9 @@ fuzz_target!(|data: &[u8]| {
     let (kf, anchors, size) = match parse_shot_request(data) {
         Ok(p) => p,
         Err(e) => {
-            assert_eq!(e.status.as_u16(), 400, "{e:?}");
+            assert_eq!(e.status().as_u16(), 400, "{e:?}");
             assert!(
-                matches!(e.code, "bad_json" | "bad_anchors" | "bad_size"),
+                matches!(e.code(), "bad_json" | "bad_anchors" | "bad_size"),
                 "{e:?}"
             );
             return;
@@ -53,8 +53,9 @@ fuzz_target!(|data: &[u8]| {
         },
     };
     match computer.anchor_shot(kf, &anchors, size) {
-        Err(ShotError::UnknownKeyframe { id }) => assert_eq!((id, kf), (0, 0)),
-        Err(e @ ShotError::BadAnchors { .. }) | Err(e @ ShotError::BadImage { .. }) => {
+        Err(ShotRequestError::UnknownKeyframe { id }) => assert_eq!((id, kf), (0, 0)),
+        Err(e @ ShotRequestError::BadAnchors { .. })
+        | Err(e @ ShotRequestError::BadImage { .. }) => {
             assert!(!e.to_string().is_empty());
         }
         Err(e) => panic!("unexpected refusal {e:?}"),

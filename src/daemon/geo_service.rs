@@ -1006,9 +1006,9 @@ fn check_restored(st: &mut State, params: &Params) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::api::store::PoseJson;
     use crate::geo::{LocalFrame, MountParams, ned_from_cam};
     use crate::geometry::Sim3;
+    use crate::shot::record::PoseJson;
     use nalgebra::{Point3, UnitQuaternion, Vector3};
 
     const HOME: Geodetic = Geodetic {

@@ -22,6 +22,7 @@ pub mod reconcile;
 pub mod refine_loop;
 pub mod refine_service;
 pub mod shot_service;
+pub mod slam_shared;
 pub mod slam_view;
 pub mod vehicle_view;
 
@@ -34,13 +35,14 @@ use serde::Serialize;
 use tokio::sync::oneshot;
 use tokio_util::sync::CancellationToken;
 
-use crate::api::shots::WarpOnly;
-use crate::api::store::ShotStore;
 use crate::api::{self, ApiParams, AppState, SlamView, VehicleView};
 use crate::config::Config;
+use crate::shot::request::WarpOnly;
+use crate::shot::store::ShotStore;
 use crate::video::live::{Closed, Frame, Ingest, unix_now};
 use crate::video::mjpeg;
-pub use slam_view::{FrameProcessor, ProcessOutcome, SlamShared};
+pub use slam_shared::{ProcessOutcome, SlamShared};
+pub use slam_view::FrameProcessor;
 
 /// Errors that stop the daemon.
 #[derive(Debug, thiserror::Error)]
@@ -56,7 +58,7 @@ pub enum DaemonError {
     },
     /// The data directory could not be used.
     #[error("data directory: {0}")]
-    Store(#[from] crate::api::store::StoreError),
+    Store(#[from] crate::shot::store::StoreError),
     /// The camera configuration is unusable.
     #[error("camera: {0}")]
     Camera(#[from] crate::camera::CameraError),

@@ -16,10 +16,10 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use super::geo_service::GeoService;
-use super::slam_view::SlamShared;
+use super::slam_shared::SlamShared;
 use crate::api::MapSaved;
-use crate::api::store::write_atomic;
 use crate::geo::saved::SavedGeoreference;
+use crate::shot::store::write_atomic;
 use crate::slam::mapfile::{self, KeyframeImages, MapFileError};
 use crate::slam::{KeyFrameId, Map};
 use crate::video::live::unix_now;
@@ -44,7 +44,7 @@ pub fn load_geo(map_file: &Path) -> Option<SavedGeoreference> {
     match serde_json::from_slice::<SavedGeoreference>(&bytes) {
         Ok(s) => Some(s),
         Err(e) => {
-            let aside = super::slam_view::set_aside(&path, "unusable");
+            let aside = set_aside(&path, "unusable");
             tracing::warn!(
                 path = %path.display(),
                 moved_to = ?aside,
@@ -191,6 +191,20 @@ impl MapPersist {
         geo: Option<&GeoService>,
         reason: &str,
     ) -> Result<MapSaved, MapFileError> {
+        let r = self.save_map(map, geo, reason);
+        if let Err(e) = &r {
+            self.shared
+                .set_map_save_error("map", Some(format!("{}: {e}", self.path().display())));
+        }
+        r
+    }
+
+    fn save_map(
+        &self,
+        map: &Map,
+        geo: Option<&GeoService>,
+        reason: &str,
+    ) -> Result<MapSaved, MapFileError> {
         let _w = lock(&self.writing);
         let path = self.path();
         if let Some(dir) = path.parent() {
@@ -239,17 +253,17 @@ impl MapPersist {
         let saved = geo.saved()?;
         let path = geo_path(&self.path());
         let n = saved.pairs.len();
-        let text = match serde_json::to_vec_pretty(&saved) {
-            Ok(t) => t,
-            Err(e) => {
-                tracing::error!("encoding the georeference: {e}");
-                return None;
+        let written = serde_json::to_vec_pretty(&saved)
+            .map_err(|e| format!("encoding the georeference: {e}"))
+            .and_then(|text| write_atomic(&path, &text).map_err(|e| e.to_string()));
+        match written {
+            Ok(()) => {
+                self.shared.set_map_save_error("georeference", None);
+                Some(n)
             }
-        };
-        match write_atomic(&path, &text) {
-            Ok(()) => Some(n),
             Err(e) => {
                 tracing::error!("saving the georeference: {e}");
+                self.shared.set_map_save_error("georeference", Some(e));
                 None
             }
         }
@@ -281,6 +295,49 @@ fn signature(map: &Map) -> (usize, usize, u32) {
         map.point_count(),
         map.next_keyframe_id().0,
     )
+}
+
+/// A name beside `path` that is not taken: `<name>.<tag>-<unix seconds>`,
+/// with `-2`, `-3`, ... appended when needed.
+pub fn unused_name(path: &Path, tag: &str) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "map".into());
+    let stamp = unix_now().max(0.0) as u64;
+    let base = path.with_file_name(format!("{name}.{tag}-{stamp}"));
+    let mut candidate = base.clone();
+    let mut n = 2;
+    while candidate.exists() {
+        candidate = path.with_file_name(format!("{name}.{tag}-{stamp}-{n}"));
+        n += 1;
+    }
+    candidate
+}
+
+/// Move `path` to an unused name beside it; the new path, or None (logged)
+/// when it cannot be moved. A map file takes the georeference saved beside
+/// it along (same tag).
+pub fn set_aside(path: &Path, tag: &str) -> Option<PathBuf> {
+    let geo = geo_path(path);
+    if path.extension().is_some_and(|e| e != "json") && geo.exists() {
+        let to = unused_name(&geo, tag);
+        if let Err(e) = std::fs::rename(&geo, &to) {
+            tracing::error!(path = %geo.display(), "cannot move the saved georeference aside: {e}");
+        }
+    }
+    let to = unused_name(path, tag);
+    match std::fs::rename(path, &to) {
+        Ok(()) => Some(to),
+        Err(e) => {
+            tracing::error!(
+                path = %path.display(),
+                to = %to.display(),
+                "cannot move the map file aside: {e}"
+            );
+            None
+        }
+    }
 }
 
 #[cfg(test)]
@@ -320,5 +377,33 @@ mod tests {
             assert!(f.exists(), "{}", f.display());
         }
         assert_eq!(geo_path(&map), d.join("map.spmap.geo.json"));
+    }
+
+    /// A map file that cannot be written (its folder is a file) shows in
+    /// the status as `map_save_error` until a write succeeds.
+    #[test]
+    fn a_failed_map_save_is_in_the_status_until_a_save_succeeds() {
+        use crate::api::SlamView;
+        use crate::camera::{Camera, Distortion};
+        use crate::slam::ScaleInfo;
+        let dir = tempfile::tempdir().unwrap();
+        let blocker = dir.path().join("not-a-folder");
+        std::fs::write(&blocker, b"x").unwrap();
+        let shared = Arc::new(SlamShared::new(true));
+        let persist = MapPersist::new(blocker.join("map.spmap"), shared.clone());
+        let camera = Camera::new(64, 48, [50.0, 50.0, 31.5, 23.5], Distortion::default()).unwrap();
+        let map = Map::new(camera, ScaleInfo::new(1.2, 8));
+        assert!(persist.save(&map, None, "checkpoint").is_err());
+        let e = shared
+            .status()
+            .map_save_error
+            .expect("the failure is reported");
+        assert_eq!(e.what, "map");
+        assert!(e.message.contains("not-a-folder"), "{}", e.message);
+        assert!(shared.status().map_saved.is_none());
+        persist.set_path(dir.path().join("map.spmap"));
+        let saved = persist.save(&map, None, "checkpoint").unwrap();
+        assert_eq!(shared.status().map_saved, Some(saved));
+        assert_eq!(shared.status().map_save_error, None);
     }
 }

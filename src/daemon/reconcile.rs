@@ -18,10 +18,10 @@
 
 use serde_json::{Value, json};
 
-use crate::api::store::Shot;
 use crate::mission::MissionItem;
 use crate::mission::upload::same_mission;
-use crate::vehicle::MissionProgress;
+use crate::shot::record::{MissionState, Shot};
+use crate::vehicle::{LinkError, MissionProgress};
 
 /// MAV_MISSION_STATE values of MISSION_CURRENT.
 const STATE_NOT_STARTED: u8 = 2;
@@ -41,25 +41,6 @@ pub struct VehicleMission {
     pub skip_home: bool,
 }
 
-/// The states a reconciled mission can take (besides the API's own
-/// `uploaded` and `started`).
-pub mod state {
-    /// The vehicle flies it.
-    pub const ACTIVE: &str = "active";
-    /// The vehicle holds it, not started.
-    pub const UPLOADED: &str = "uploaded";
-    /// The vehicle flew it to its last item.
-    pub const FINISHED: &str = "finished";
-    /// The vehicle holds it but does not say how far it is.
-    pub const ON_VEHICLE: &str = "on_vehicle";
-    /// The vehicle holds another mission.
-    pub const REPLACED: &str = "replaced";
-    /// The vehicle holds no mission.
-    pub const CLEARED: &str = "cleared";
-    /// The vehicle's mission could not be read.
-    pub const UNKNOWN: &str = "unknown";
-}
-
 /// The item lists that mean "this shot's mission": what was planned at
 /// upload (`details.planned_items`) and, given by the caller, any replanned
 /// ones (the refinement loop's latest target).
@@ -69,29 +50,38 @@ pub fn planned_items(shot: &Shot) -> Option<Vec<MissionItem>> {
 }
 
 /// The state of the mission the vehicle holds, for the shot that owns it.
-fn owner_state(v: &VehicleMission) -> (&'static str, String) {
+fn owner_state(v: &VehicleMission) -> (MissionState, String) {
     let n = v.items.len();
     let last = n.checked_sub(1).and_then(|l| u16::try_from(l).ok());
     let Some(p) = v.progress else {
         return (
-            state::ON_VEHICLE,
+            MissionState::OnVehicle,
             "the vehicle holds this mission and has not said how far it is".into(),
         );
     };
     let reached_last = last.is_some() && p.last_reached == last;
     match p.state {
-        Some(STATE_COMPLETE) => (state::FINISHED, "the vehicle reports it complete".into()),
+        Some(STATE_COMPLETE) => (
+            MissionState::Finished,
+            "the vehicle reports it complete".into(),
+        ),
         Some(STATE_ACTIVE) | Some(STATE_PAUSED) => (
-            state::ACTIVE,
+            MissionState::Active,
             format!(
                 "the vehicle flies it (item {} of {n})",
                 p.current_seq.map_or("?".into(), |s| s.to_string())
             ),
         ),
-        _ if reached_last => (state::FINISHED, "the vehicle reached its last item".into()),
-        Some(STATE_NOT_STARTED) => (state::UPLOADED, "the vehicle holds it, not started".into()),
+        _ if reached_last => (
+            MissionState::Finished,
+            "the vehicle reached its last item".into(),
+        ),
+        Some(STATE_NOT_STARTED) => (
+            MissionState::Uploaded,
+            "the vehicle holds it, not started".into(),
+        ),
         _ => (
-            state::ON_VEHICLE,
+            MissionState::OnVehicle,
             "the vehicle holds this mission and has not said how far it is".into(),
         ),
     }
@@ -104,7 +94,7 @@ fn owner_state(v: &VehicleMission) -> (&'static str, String) {
 /// the id of the shot that owns the vehicle's mission, if one does.
 pub fn reconcile(
     shots: &[Shot],
-    vehicle: &Result<VehicleMission, String>,
+    vehicle: &Result<VehicleMission, LinkError>,
     alternatives: impl Fn(&Shot) -> Vec<Vec<MissionItem>>,
     now_unix: f64,
 ) -> (Vec<Shot>, Option<String>) {
@@ -129,16 +119,18 @@ pub fn reconcile(
     let mut changed = Vec::new();
     for shot in shots {
         let Some(m) = &shot.mission else { continue };
-        let (new_state, reason): (&str, String) = match vehicle {
+        let (new_state, reason): (MissionState, String) = match vehicle {
             Err(why) => (
-                state::UNKNOWN,
+                MissionState::Unknown,
                 format!("the vehicle's mission could not be read: {why}"),
             ),
             Ok(v) if owner.as_deref() == Some(shot.id.as_str()) => owner_state(v),
-            Ok(_) if m.state == state::FINISHED => continue,
-            Ok(v) if v.items.is_empty() => (state::CLEARED, "the vehicle holds no mission".into()),
+            Ok(_) if m.state == MissionState::Finished => continue,
+            Ok(v) if v.items.is_empty() => {
+                (MissionState::Cleared, "the vehicle holds no mission".into())
+            }
             Ok(v) => (
-                state::REPLACED,
+                MissionState::Replaced,
                 format!(
                     "the vehicle holds another mission ({} items)",
                     v.items.len()
@@ -168,7 +160,7 @@ pub fn reconcile(
             })),
         });
         super::refine_service::set_detail(m, "vehicle", record);
-        m.state = new_state.into();
+        m.state = new_state;
         changed.push(shot);
     }
     (changed, owner)
@@ -203,7 +195,7 @@ pub fn interrupt_refinement(shot: &Shot, reason: &str) -> Option<Shot> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::api::store::{MissionRecord, ShotSource};
+    use crate::shot::record::{MissionRecord, ShotSource};
 
     fn item(seq: u16, x: i32) -> MissionItem {
         MissionItem {
@@ -227,12 +219,12 @@ mod tests {
                 keyframe_id: 1,
                 anchors: [[0.0; 2]; 4],
             },
-            status: "localised".into(),
+            status: crate::shot::record::ShotStatus::Localised,
             localisation: None,
             reason: None,
             has_image: false,
             mission: Some(MissionRecord {
-                state: state.into(),
+                state: serde_json::from_value(json!(state)).unwrap(),
                 items: items.len(),
                 uploaded_unix: uploaded,
                 started_unix: None,
@@ -289,13 +281,13 @@ mod tests {
         assert_eq!(rec["vehicle_items"], 3);
         // Done, by state or by the last item reached.
         let (c, _) = reconcile(&shots, &held(progress(5, 2, Some(2))), |_| vec![], 1e9);
-        assert_eq!(c[0].mission.as_ref().unwrap().state, "finished");
+        assert_eq!(c[0].mission.as_ref().unwrap().state.as_str(), "finished");
         let (c, _) = reconcile(&shots, &held(progress(0, 2, Some(2))), |_| vec![], 1e9);
-        assert_eq!(c[0].mission.as_ref().unwrap().state, "finished");
+        assert_eq!(c[0].mission.as_ref().unwrap().state.as_str(), "finished");
         let (c, _) = reconcile(&shots, &held(progress(2, 0, None)), |_| vec![], 1e9);
-        assert_eq!(c[0].mission.as_ref().unwrap().state, "uploaded");
+        assert_eq!(c[0].mission.as_ref().unwrap().state.as_str(), "uploaded");
         let (c, _) = reconcile(&shots, &held(None), |_| vec![], 1e9);
-        assert_eq!(c[0].mission.as_ref().unwrap().state, "on_vehicle");
+        assert_eq!(c[0].mission.as_ref().unwrap().state.as_str(), "on_vehicle");
         // A refinement's correction is shot-2's mission too.
         let (_, owner) = reconcile(
             &shots,
@@ -320,14 +312,22 @@ mod tests {
         assert_eq!(owner, None);
         assert!(
             c.iter()
-                .all(|s| s.mission.as_ref().unwrap().state == "cleared")
+                .all(|s| s.mission.as_ref().unwrap().state.as_str() == "cleared")
         );
         assert_eq!(c.len(), 3, "finished stays finished");
-        let (c, _) = reconcile(&shots, &Err("timeout".into()), |_| vec![], 1e9);
+        let (c, _) = reconcile(
+            &shots,
+            &Err(LinkError::Timeout {
+                what: "MISSION_COUNT",
+                seconds: 3.0,
+            }),
+            |_| vec![],
+            1e9,
+        );
         assert_eq!(c.len(), 4);
         assert!(
             c.iter()
-                .all(|s| s.mission.as_ref().unwrap().state == "unknown")
+                .all(|s| s.mission.as_ref().unwrap().state.as_str() == "unknown")
         );
         // Reconciled again with the same truth: nothing to write.
         let again: Vec<Shot> = shots

@@ -23,53 +23,20 @@ use tokio_util::sync::CancellationToken;
 
 use super::geo_service::GeoService;
 use super::refine_service::{record_abort, record_rounds};
-use super::slam_view::SlamShared;
-use super::vehicle_view::upload_verified;
-use crate::api::store::{Shot, ShotSource, ShotStore};
+use super::slam_shared::SlamShared;
 use crate::geo::{Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
 use crate::refine::{
     ArrivalDetector, Context, Observation, Reachable, Session, Step, reachable_from_anchors,
 };
-use crate::shot::LocalizeParams;
-use crate::shot::anchors::{AnchorParams, desired_shot_from_anchors};
+use crate::shot::anchors::desired_shot_from_anchors;
+use crate::shot::record::{Shot, ShotSource};
+use crate::shot::store::ShotStore;
 use crate::slam::{KeyFrameId, Map};
 use crate::vehicle::LinkHandle;
 use crate::video::live::{Frame, Ingest};
 
-/// Every tunable number of the daemon's loop (the session's own are in
-/// [`crate::refine::Params`]).
-#[derive(Debug, Clone)]
-pub struct Params {
-    /// The session: shot error, controller, arrival rule.
-    pub refine: crate::refine::Params,
-    /// Localisation of the live frame.
-    pub localize: LocalizeParams,
-    /// The desired picture of an anchors shot.
-    pub anchors: AnchorParams,
-    /// Telemetry polling period.
-    pub poll: Duration,
-    /// Longest flight to one target before the loop gives up.
-    pub max_flight: Duration,
-    /// Telemetry older than this counts as missing.
-    pub max_telemetry_age: Duration,
-    /// Longest wait for a video frame received after the arrival.
-    pub frame_wait: Duration,
-}
-
-impl Default for Params {
-    fn default() -> Self {
-        Self {
-            refine: crate::refine::Params::default(),
-            localize: LocalizeParams::default(),
-            anchors: AnchorParams::default(),
-            poll: Duration::from_millis(100),
-            max_flight: Duration::from_secs(120),
-            max_telemetry_age: Duration::from_secs(2),
-            frame_wait: Duration::from_secs(3),
-        }
-    }
-}
+pub use crate::refine::loop_params::LoopParams as Params;
 
 /// What the loop is told.
 #[derive(Debug)]
@@ -733,7 +700,8 @@ async fn fly(
     if cancel.is_cancelled() {
         return Err("cancelled".into());
     }
-    upload_verified(&deps.link, &items, flavour)
+    deps.link
+        .upload_verified(&items, flavour)
         .await
         .map_err(|e| e.to_string())?;
     deps.link

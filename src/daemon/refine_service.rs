@@ -12,8 +12,8 @@
 
 use serde_json::{Value, json};
 
-use crate::api::store::MissionRecord;
 use crate::refine::Session;
+use crate::shot::record::MissionRecord;
 
 /// The session's rounds and end as JSON: `{"rounds": [...], "stop": ...,
 /// "reason": ...}` (`stop` is null while the loop goes on).
@@ -95,6 +95,7 @@ mod tests {
     use crate::mission::plan::{Fence, Home, Target};
     use crate::refine::{Context, Params, Step, Stop};
     use crate::shot::LocalizeParams;
+    use crate::shot::record::MissionState;
     use crate::slam::{Map, ScaleInfo};
     use image::GrayImage;
     use nalgebra::Isometry3;
@@ -142,7 +143,7 @@ mod tests {
             Step::Done(Stop::MaxRounds)
         );
         let mut m = MissionRecord {
-            state: "started".into(),
+            state: MissionState::Started,
             items: 3,
             uploaded_unix: 1.0,
             started_unix: Some(2.0),

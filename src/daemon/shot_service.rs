@@ -1,5 +1,5 @@
 //! The daemon's shot service: anchor validation and the desired shot
-//! ([`crate::api::shots::anchor_shot`]: the keyframe warped once, at its own
+//! ([`crate::shot::request::anchor_shot`]: the keyframe warped once, at its own
 //! size, with [`crate::shot`]'s pixel convention), then localisation of that
 //! shot against a copy of the SLAM's map with [`crate::shot::localize`] (ORB
 //! on the shot with its black fill masked, candidate keyframes, PnP RANSAC,
@@ -11,15 +11,15 @@ use std::sync::Arc;
 use image::GrayImage;
 
 use crate::api::SlamView;
-use crate::api::shots::{
-    PhotoIntrinsics, ShotComputation, ShotComputer, ShotError, WarpOnly, anchor_shot,
-};
-use crate::api::store::{Localisation, PoseJson};
 use crate::camera::Camera;
 use crate::shot::localize::{Localization, LocalizeParams, assumed_camera, localize_with_camera};
+use crate::shot::record::{Localisation, PhotoIntrinsics, PoseJson};
+use crate::shot::request::{
+    ShotComputation, ShotComputer, ShotRequestError, WarpOnly, anchor_shot,
+};
 use crate::slam::{KeyFrameId, Map};
 
-use super::slam_view::SlamShared;
+use super::slam_shared::SlamShared;
 
 /// Desired shots warped once and localised in the SLAM map.
 pub struct LocalizingShots {
@@ -70,7 +70,7 @@ impl ShotComputer for LocalizingShots {
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
         size: Option<(u32, u32)>,
-    ) -> Result<ShotComputation, ShotError> {
+    ) -> Result<ShotComputation, ShotRequestError> {
         let Some(map) = self.slam.map_snapshot() else {
             let mut out = self.warp.shot_from_anchors(keyframe_id, anchors, size)?;
             out.localisation = Err("not localised: no map yet".into());
@@ -81,7 +81,7 @@ impl ShotComputer for LocalizingShots {
             .ok()
             .and_then(|id| map.keyframe(KeyFrameId(id)))
             .and_then(|k| k.image.clone())
-            .ok_or(ShotError::UnknownKeyframe { id: keyframe_id })?;
+            .ok_or(ShotRequestError::UnknownKeyframe { id: keyframe_id })?;
         let shot = anchor_shot(&image, anchors, size, &self.warp.params)?;
         let localisation =
             self.localise(&map, &map.camera, &shot.shot.image, Some(&shot.shot.mask));
@@ -95,7 +95,7 @@ impl ShotComputer for LocalizingShots {
         &self,
         photo: &GrayImage,
         intrinsics: Option<&PhotoIntrinsics>,
-    ) -> Result<ShotComputation, ShotError> {
+    ) -> Result<ShotComputation, ShotRequestError> {
         let given = self.warp.check_photo(photo, intrinsics)?;
         let Some(map) = self.slam.map_snapshot() else {
             return Ok(ShotComputation {
@@ -106,14 +106,14 @@ impl ShotComputer for LocalizingShots {
         let (w, h) = photo.dimensions();
         let camera = match given {
             Some(c) => c,
-            None => {
-                assumed_camera(&map.camera, w, h).map_err(|_| ShotError::IntrinsicsRequired {
+            None => assumed_camera(&map.camera, w, h).map_err(|_| {
+                ShotRequestError::IntrinsicsRequired {
                     width: w,
                     height: h,
                     camera_width: map.camera.width,
                     camera_height: map.camera.height,
-                })?
-            }
+                }
+            })?,
         };
         let localisation = self.localise(&map, &camera, photo, None);
         Ok(ShotComputation {

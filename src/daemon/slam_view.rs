@@ -1,49 +1,19 @@
 //! The SLAM side of the daemon: the [`FrameProcessor`] the SLAM thread
 //! drives, and [`SlamShared`], the status and map view the API reads.
 
-use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
 
 use image::GrayImage;
 
-use crate::api::store::PoseJson;
-use crate::api::{KeyframeInfo, MapSaved, MapStart, MapView, SlamStatus, SlamView, TrackedFrame};
+use super::persist::{set_aside, unused_name};
+use super::slam_shared::{MapSource, ProcessOutcome, SlamShared};
+use crate::api::{KeyframeInfo, MapStart, MapView, TrackedFrame};
 use crate::camera::Camera;
 use crate::config::Config;
+use crate::shot::record::PoseJson;
 use crate::slam::{self, KeyFrameId, Map, Slam, TrackState};
-use crate::video::live::{Frame, RateMeter, unix_now};
-
-/// What processing one frame gave.
-#[derive(Debug, Clone, Default)]
-pub struct ProcessOutcome {
-    /// `not_initialized`, `tracking`, `lost`, `unavailable`.
-    pub state: String,
-    /// The frame's pose was estimated.
-    pub tracked: bool,
-    /// Inliers of the pose.
-    pub inliers: usize,
-    /// Keyframes in the map after the frame.
-    pub keyframes: usize,
-    /// Points in the map after the frame.
-    pub points: usize,
-}
-
-/// The map as the API sees it (provided by the SLAM adapter).
-pub trait MapSource: Send + Sync {
-    /// Keyframes in id order.
-    fn keyframes(&self) -> Vec<KeyframeInfo>;
-    /// A keyframe's image.
-    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>>;
-    /// Points (at most `max_points`) and trajectory.
-    fn map(&self, max_points: usize) -> MapView;
-    /// A copy of the whole map (for shot localisation, which must not hold
-    /// the SLAM's lock while it works).
-    fn snapshot(&self) -> Option<Map> {
-        None
-    }
-}
+use crate::video::live::Frame;
 
 /// Something that eats frames on the SLAM thread.
 pub trait FrameProcessor: Send {
@@ -226,49 +196,6 @@ fn continue_on(
         .map_err(|e| e.to_string())
 }
 
-/// A name beside `path` that is not taken: `<name>.<tag>-<unix seconds>`,
-/// with `-2`, `-3`, ... appended when needed.
-fn unused_name(path: &Path, tag: &str) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "map".into());
-    let stamp = unix_now().max(0.0) as u64;
-    let base = path.with_file_name(format!("{name}.{tag}-{stamp}"));
-    let mut candidate = base.clone();
-    let mut n = 2;
-    while candidate.exists() {
-        candidate = path.with_file_name(format!("{name}.{tag}-{stamp}-{n}"));
-        n += 1;
-    }
-    candidate
-}
-
-/// Move `path` to an unused name beside it; the new path, or None (logged)
-/// when it cannot be moved. A map file takes the georeference saved beside
-/// it along (same tag).
-pub(crate) fn set_aside(path: &Path, tag: &str) -> Option<PathBuf> {
-    let geo = super::persist::geo_path(path);
-    if path.extension().is_some_and(|e| e != "json") && geo.exists() {
-        let to = unused_name(&geo, tag);
-        if let Err(e) = std::fs::rename(&geo, &to) {
-            tracing::error!(path = %geo.display(), "cannot move the saved georeference aside: {e}");
-        }
-    }
-    let to = unused_name(path, tag);
-    match std::fs::rename(path, &to) {
-        Ok(()) => Some(to),
-        Err(e) => {
-            tracing::error!(
-                path = %path.display(),
-                to = %to.display(),
-                "cannot move the map file aside: {e}"
-            );
-            None
-        }
-    }
-}
-
 /// The SLAM on the SLAM thread.
 pub struct SlamProcessor {
     slam: Slam,
@@ -448,156 +375,10 @@ impl MapSource for SlamMapSource {
     }
 }
 
-#[derive(Default)]
-struct Inner {
-    status: SlamStatus,
-    latencies_ms: VecDeque<f64>,
-    source: Option<Arc<dyn MapSource>>,
-    last_tracked: Option<TrackedFrame>,
-}
-
-/// Status and map view shared by the SLAM thread and the API.
-pub struct SlamShared {
-    inner: Mutex<Inner>,
-    rate: RateMeter,
-}
-
-/// Frames in the latency median.
-const LATENCY_WINDOW: usize = 100;
-
-impl SlamShared {
-    /// A view; `available` says whether a SLAM runs.
-    pub fn new(available: bool) -> Self {
-        let status = SlamStatus {
-            available,
-            state: if available {
-                "waiting_for_video"
-            } else {
-                "disabled"
-            }
-            .into(),
-            ..Default::default()
-        };
-        Self {
-            inner: Mutex::new(Inner {
-                status,
-                ..Default::default()
-            }),
-            rate: RateMeter::new(Duration::from_secs(2)),
-        }
-    }
-
-    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
-        self.inner.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
-    /// Record where the map came from at start.
-    pub fn set_map_start(&self, start: MapStart) {
-        self.lock().status.map_start = Some(start);
-    }
-
-    /// Record the first frame tracked in a continued map.
-    pub fn set_relocalised(&self, seq: u64) {
-        if let Some(s) = self.lock().status.map_start.as_mut() {
-            s.relocalised_at_frame = Some(seq);
-        }
-    }
-
-    /// Record the newest tracked frame.
-    pub fn set_last_tracked(&self, frame: TrackedFrame) {
-        self.lock().last_tracked = Some(frame);
-    }
-
-    /// Record the map file last written.
-    pub fn set_map_saved(&self, saved: MapSaved) {
-        self.lock().status.map_saved = Some(saved);
-    }
-
-    /// Attach the SLAM's map.
-    pub fn set_source(&self, source: Arc<dyn MapSource>) {
-        self.lock().source = Some(source);
-    }
-
-    /// Record one processed frame.
-    pub fn record(&self, frame: &Frame, outcome: &ProcessOutcome, ms: f64) {
-        self.rate.tick();
-        let mut g = self.lock();
-        let s = &mut g.status;
-        s.state = outcome.state.clone();
-        s.available = outcome.state != "unavailable";
-        s.frames += 1;
-        s.last_frame_ms = ms;
-        s.last_inliers = outcome.inliers;
-        s.keyframes = outcome.keyframes;
-        s.points = outcome.points;
-        if outcome.tracked {
-            s.tracked += 1;
-            let latency = (unix_now() - frame.timestamp()) * 1e3;
-            if latency.is_finite() {
-                if g.latencies_ms.len() == LATENCY_WINDOW {
-                    g.latencies_ms.pop_front();
-                }
-                g.latencies_ms.push_back(latency);
-            }
-        }
-    }
-
-    /// 95th percentile of recent capture-to-pose latencies, ms.
-    fn latency_p95(g: &Inner) -> Option<f64> {
-        let mut v: Vec<f64> = g.latencies_ms.iter().copied().collect();
-        if v.is_empty() {
-            return None;
-        }
-        v.sort_by(f64::total_cmp);
-        let k = ((v.len() as f64 * 0.95).ceil() as usize).clamp(1, v.len()) - 1;
-        Some(v[k])
-    }
-
-    /// Median of recent capture-to-pose latencies, ms.
-    fn latency_median(g: &Inner) -> Option<f64> {
-        let v: Vec<f64> = g.latencies_ms.iter().copied().collect();
-        crate::stats::median(&v)
-    }
-}
-
-impl SlamShared {
-    /// A copy of the SLAM's map, when a SLAM runs.
-    pub fn map_snapshot(&self) -> Option<Map> {
-        let src = self.lock().source.clone();
-        src.and_then(|s| s.snapshot())
-    }
-}
-
-impl SlamView for SlamShared {
-    fn status(&self) -> SlamStatus {
-        let g = self.lock();
-        let mut s = g.status.clone();
-        s.latency_ms_median = Self::latency_median(&g);
-        s.latency_ms_p95 = Self::latency_p95(&g);
-        drop(g);
-        s.fps = self.rate.rate();
-        s
-    }
-    fn keyframes(&self) -> Vec<KeyframeInfo> {
-        let src = self.lock().source.clone();
-        src.map(|s| s.keyframes()).unwrap_or_default()
-    }
-    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>> {
-        let src = self.lock().source.clone();
-        src.and_then(|s| s.keyframe_image(id))
-    }
-    fn map(&self, max_points: usize) -> MapView {
-        let src = self.lock().source.clone();
-        src.map(|s| s.map(max_points)).unwrap_or_default()
-    }
-    fn last_tracked(&self) -> Option<TrackedFrame> {
-        self.lock().last_tracked
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::api::SlamView;
 
     fn setup() -> (tempfile::TempDir, Config, Camera, PathBuf) {
         let dir = tempfile::tempdir().unwrap();

@@ -11,13 +11,16 @@ use tokio_util::sync::CancellationToken;
 
 use super::geo_service::GeoService;
 use super::reconcile::{VehicleMission, reconcile};
-use crate::api::store::{MissionRecord, Shot, ShotStore};
-use crate::api::{BoxFuture, VehicleError, VehicleView};
+use crate::api::{
+    AlignmentView, BoxFuture, GimbalManagerView, MissionProgressView, ShotTarget, TargetView,
+    VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition, VehicleStatus, VehicleView,
+};
 use crate::geo::{GeoAlignment, GeoError, GeoTarget};
 use crate::mission::MissionItem;
 use crate::mission::plan::{Flavour, Home, plan};
-use crate::mission::upload::{UploadReport, same_mission};
-use crate::vehicle::LinkHandle;
+use crate::shot::record::{MissionRecord, MissionState, PoseJson, Shot};
+use crate::shot::store::ShotStore;
+use crate::vehicle::{LinkError, LinkHandle};
 use crate::video::live::unix_now;
 
 /// [`VehicleView`] over a [`LinkHandle`] and the daemon's georeference.
@@ -30,58 +33,46 @@ pub struct LinkVehicle {
     last_uploaded: std::sync::Mutex<Option<(Shot, crate::mission::plan::Target)>>,
 }
 
-/// Uploads `items`, then reads the vehicle's mission back and compares:
-/// `Some(true)` when it holds exactly the planned items, `None` when the
-/// read-back failed. A read-back that differs is an error.
-pub async fn upload_verified(
-    link: &LinkHandle,
-    items: &[MissionItem],
-    flavour: Flavour,
-) -> Result<(UploadReport, Option<bool>), VehicleError> {
-    let report = link
-        .upload_mission(items.to_vec())
-        .await
-        .map_err(|e| VehicleError::Failed {
-            reason: e.to_string(),
-        })?;
-    let verified = match link.download_mission().await {
-        Ok(d) => Some(same_mission(items, &d.items, flavour == Flavour::ArduPilot)),
-        Err(e) => {
-            tracing::warn!("mission read-back failed: {e}");
-            None
-        }
-    };
-    if verified == Some(false) {
-        return Err(VehicleError::Failed {
-            reason: "the mission read back from the vehicle differs from the one uploaded".into(),
-        });
+fn target_view(t: &GeoTarget) -> TargetView {
+    TargetView {
+        lat_deg: t.lat_deg,
+        lon_deg: t.lon_deg,
+        alt_above_home_m: t.alt_above_home_m,
+        alt_m: t.alt_m,
+        yaw_deg: t.yaw_deg,
+        gimbal_pitch_deg: t.gimbal_pitch_deg,
+        residual_roll_deg: t.residual_roll_deg,
+        axis_error_deg: t.axis_error_deg,
+        p_ned_vehicle: [t.p_ned_vehicle.x, t.p_ned_vehicle.y, t.p_ned_vehicle.z],
+        camera_ned: PoseJson::from_isometry(&t.ned_from_cam),
     }
-    Ok((report, verified))
 }
 
-fn target_json(t: &GeoTarget) -> Value {
-    json!({
-        "lat_deg": t.lat_deg,
-        "lon_deg": t.lon_deg,
-        "alt_above_home_m": t.alt_above_home_m,
-        "alt_m": t.alt_m,
-        "yaw_deg": t.yaw_deg,
-        "gimbal_pitch_deg": t.gimbal_pitch_deg,
-        "residual_roll_deg": t.residual_roll_deg,
-        "axis_error_deg": t.axis_error_deg,
-        "p_ned_vehicle": [t.p_ned_vehicle.x, t.p_ned_vehicle.y, t.p_ned_vehicle.z],
-        "camera_ned": crate::api::store::PoseJson::from_isometry(&t.ned_from_cam),
-    })
+fn alignment_view(a: &GeoAlignment) -> AlignmentView {
+    AlignmentView {
+        scale: a.ned_from_map.scale,
+        rms_m: a.quality.rms_m,
+        keyframes_used: a.quality.inliers,
+        pairs: a.quality.pairs,
+        time_offset_s: a.quality.time_offset_s,
+    }
 }
 
-fn alignment_json(a: &GeoAlignment) -> Value {
-    json!({
-        "scale": a.ned_from_map.scale,
-        "rms_m": a.quality.rms_m,
-        "keyframes_used": a.quality.inliers,
-        "pairs": a.quality.pairs,
-        "time_offset_s": a.quality.time_offset_s,
-    })
+/// The target `shot`'s mission flies, when the vehicle holds that
+/// mission: `last` is the shot whose mission was uploaded last (or found
+/// on the vehicle by reconciliation) with its target. Starting another
+/// shot's mission would fly (and refine) the wrong shot.
+fn mission_to_start(
+    last: Option<&(Shot, crate::mission::plan::Target)>,
+    shot: &Shot,
+) -> Result<crate::mission::plan::Target, VehicleError> {
+    match last {
+        Some((s, target)) if s.id == shot.id => Ok(*target),
+        _ => Err(VehicleError::NotOnVehicle {
+            shot: shot.id.clone(),
+            holder: last.map(|(s, _)| s.id.clone()),
+        }),
+    }
 }
 
 impl LinkVehicle {
@@ -155,8 +146,8 @@ impl LinkVehicle {
     async fn read_vehicle_mission(
         &self,
         since: tokio::time::Instant,
-    ) -> Result<VehicleMission, String> {
-        let mut last_err = String::new();
+    ) -> Result<VehicleMission, LinkError> {
+        let mut last_err = None;
         let mut items = None;
         for attempt in 0..3 {
             match self.link.download_mission().await {
@@ -165,13 +156,15 @@ impl LinkVehicle {
                     break;
                 }
                 Err(e) => {
-                    last_err = e.to_string();
                     tracing::warn!(attempt, "reconcile: mission download failed: {e}");
+                    last_err = Some(e);
                     tokio::time::sleep(Duration::from_secs(1)).await;
                 }
             }
         }
-        let items = items.ok_or(last_err)?;
+        let Some(items) = items else {
+            return Err(last_err.unwrap_or(LinkError::NoVehicle));
+        };
         let mut rx = self.link.telemetry.progress.clone();
         let fresh = |p: &Option<crate::vehicle::Stamped<crate::vehicle::MissionProgress>>| {
             p.filter(|p| tokio::time::Instant::from_std(p.received) >= since)
@@ -231,7 +224,7 @@ impl LinkVehicle {
             // into the record as it is now: a refinement loop may have
             // written its rounds since the list was read.
             let (state, vehicle_detail) = match m {
-                Some(m) => (m.state.clone(), m.details.get("vehicle").cloned()),
+                Some(m) => (m.state, m.details.get("vehicle").cloned()),
                 None => continue,
             };
             let apply = |cur: &mut Shot| {
@@ -306,38 +299,38 @@ pub async fn run_reconciler(
 }
 
 impl VehicleView for LinkVehicle {
-    fn status(&self) -> Value {
+    fn status(&self) -> VehicleStatus {
         let v = self.link.telemetry.vehicle.borrow().clone();
         let gp = *self.link.telemetry.global_position.borrow();
         let manager = *self.link.telemetry.gimbal_manager.borrow();
         let control = self.link.telemetry.gimbal_control.borrow().clone();
-        json!({
-            "configured": true,
-            "connected": v.connected && !v.link_lost,
-            "transport_open": v.connected,
-            "connections": v.connections,
-            "system_id": v.system_id,
-            "flavour": v.flavour.map(|f| format!("{f:?}")),
-            "mode": v.mode,
-            "armed": v.armed,
-            "last_heartbeat_age_s": v.last_heartbeat.map(|t| t.elapsed().as_secs_f64()),
-            "position": gp.map(|p| json!({
-                "lat_deg": p.value.lat_deg,
-                "lon_deg": p.value.lon_deg,
-                "rel_alt_m": p.value.rel_alt_m,
-                "heading_deg": p.value.heading_deg,
-            })),
-            "georeference": self.geo.status(),
-            "gimbal": {
-                "manager": manager.map(|m| json!({
-                    "gimbal_device_id": m.value.gimbal_device_id,
-                    "primary": [m.value.primary.0, m.value.primary.1],
-                    "secondary": [m.value.secondary.0, m.value.secondary.1],
-                    "age_s": m.received.elapsed().as_secs_f64(),
-                })),
-                "control": control,
+        VehicleStatus {
+            configured: true,
+            connected: v.connected && !v.link_lost,
+            transport_open: v.connected,
+            connections: v.connections,
+            system_id: v.system_id,
+            flavour: v.flavour.map(|f| format!("{f:?}")),
+            mode: v.mode,
+            armed: v.armed,
+            last_heartbeat_age_s: v.last_heartbeat.map(|t| t.elapsed().as_secs_f64()),
+            position: gp.map(|p| VehiclePosition {
+                lat_deg: p.value.lat_deg,
+                lon_deg: p.value.lon_deg,
+                rel_alt_m: p.value.rel_alt_m,
+                heading_deg: p.value.heading_deg,
+            }),
+            georeference: self.geo.status(),
+            gimbal: VehicleGimbal {
+                manager: manager.map(|m| GimbalManagerView {
+                    gimbal_device_id: m.value.gimbal_device_id,
+                    primary: [m.value.primary.0, m.value.primary.1],
+                    secondary: [m.value.secondary.0, m.value.secondary.1],
+                    age_s: m.received.elapsed().as_secs_f64(),
+                }),
+                control,
             },
-        })
+        }
     }
 
     fn upload_shot<'a>(
@@ -376,7 +369,13 @@ impl VehicleView for LinkVehicle {
             if let Some(r) = &self.refine {
                 r.uploading(shot.clone());
             }
-            let (report, verified) = upload_verified(&self.link, &items, flavour).await?;
+            let (report, verified) =
+                self.link
+                    .upload_verified(&items, flavour)
+                    .await
+                    .map_err(|e| VehicleError::Failed {
+                        reason: e.to_string(),
+                    })?;
             if let Ok(mut last) = self.last_uploaded.lock() {
                 *last = Some((shot.clone(), flown));
             }
@@ -391,14 +390,14 @@ impl VehicleView for LinkVehicle {
                 "mission uploaded"
             );
             Ok(MissionRecord {
-                state: "uploaded".into(),
+                state: MissionState::Uploaded,
                 items: items.len(),
                 uploaded_unix: unix_now(),
                 started_unix: None,
                 target_lat_lon_alt: Some([target.lat_deg, target.lon_deg, target.alt_m]),
                 details: json!({
-                    "target": target_json(&target),
-                    "georeference": alignment_json(&alignment),
+                    "target": target_view(&target),
+                    "georeference": alignment_view(&alignment),
                     "flavour": flavour,
                     "planned_items": items,
                     "upload": report,
@@ -408,16 +407,16 @@ impl VehicleView for LinkVehicle {
         })
     }
 
-    fn shot_target(&self, shot: &Shot) -> Result<Value, VehicleError> {
+    fn shot_target(&self, shot: &Shot) -> Result<ShotTarget, VehicleError> {
         let (target, alignment) = self.target_of(shot)?;
-        Ok(json!({
-            "shot": shot.id,
-            "target": target_json(&target),
-            "georeference": alignment_json(&alignment),
-        }))
+        Ok(ShotTarget {
+            shot: shot.id.clone(),
+            target: target_view(&target),
+            georeference: alignment_view(&alignment),
+        })
     }
 
-    fn download_mission(&self) -> BoxFuture<'_, Result<Value, VehicleError>> {
+    fn download_mission(&self) -> BoxFuture<'_, Result<VehicleMissionView, VehicleError>> {
         Box::pin(async move {
             self.heard()?;
             let d = self
@@ -427,18 +426,20 @@ impl VehicleView for LinkVehicle {
                 .map_err(|e| VehicleError::Failed {
                     reason: e.to_string(),
                 })?;
-            Ok(json!({
-                "count": d.items.len(),
-                "items": d.items,
-                "retries": d.retries,
-                "seconds": d.seconds,
-            }))
+            Ok(VehicleMissionView {
+                count: d.items.len(),
+                items: d.items,
+                retries: d.retries,
+                seconds: d.seconds,
+            })
         })
     }
 
-    fn start_mission(&self) -> BoxFuture<'_, Result<(), VehicleError>> {
+    fn start_mission<'a>(&'a self, shot: &'a Shot) -> BoxFuture<'a, Result<(), VehicleError>> {
         Box::pin(async move {
             self.heard()?;
+            let last = self.last_uploaded.lock().ok().and_then(|l| l.clone());
+            let flown = mission_to_start(last.as_ref(), shot)?;
             self.link
                 .start_mission()
                 .await
@@ -446,26 +447,74 @@ impl VehicleView for LinkVehicle {
                     reason: e.to_string(),
                 })?;
             if let Some(r) = &self.refine {
-                let shot = self.last_uploaded.lock().ok().and_then(|l| l.clone());
-                if let Some((shot, flown)) = shot {
-                    r.start(shot, flown);
-                }
+                r.start(shot.clone(), flown);
             }
             Ok(())
         })
     }
 
-    fn progress(&self) -> Value {
-        let p = *self.link.telemetry.progress.borrow();
-        match p {
-            Some(p) => json!({
-                "current_seq": p.value.current_seq,
-                "total": p.value.total,
-                "state": p.value.state,
-                "last_reached": p.value.last_reached,
-                "age_s": p.received.elapsed().as_secs_f64(),
-            }),
-            None => Value::Null,
+    fn progress(&self) -> Option<MissionProgressView> {
+        let p = (*self.link.telemetry.progress.borrow())?;
+        Some(MissionProgressView {
+            current_seq: p.value.current_seq,
+            total: p.value.total,
+            state: p.value.state,
+            last_reached: p.value.last_reached,
+            age_s: p.received.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mission::plan::Target;
+    use crate::shot::record::{ShotSource, ShotStatus};
+
+    fn shot(id: &str) -> Shot {
+        Shot {
+            id: id.into(),
+            created_unix: 0.0,
+            source: ShotSource::Anchors {
+                keyframe_id: 1,
+                anchors: [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]],
+            },
+            status: ShotStatus::Localised,
+            localisation: None,
+            reason: None,
+            has_image: false,
+            mission: None,
         }
+    }
+
+    fn target(lat: f64) -> Target {
+        Target {
+            lat_deg: lat,
+            lon_deg: 8.0,
+            alt_m: 20.0,
+            yaw_deg: 90.0,
+            gimbal_pitch_deg: -30.0,
+            photo: true,
+        }
+    }
+
+    /// `start` flies and refines the shot asked for, never the one
+    /// uploaded last whatever the id.
+    #[test]
+    fn start_refines_the_shot_asked_for_or_refuses() {
+        let last = (shot("shot-2"), target(47.2));
+        let t = mission_to_start(Some(&last), &shot("shot-2")).unwrap();
+        assert_eq!(t.lat_deg, 47.2);
+        match mission_to_start(Some(&last), &shot("shot-1")) {
+            Err(VehicleError::NotOnVehicle { shot, holder }) => {
+                assert_eq!(shot, "shot-1");
+                assert_eq!(holder.as_deref(), Some("shot-2"));
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(
+            mission_to_start(None, &shot("shot-1")),
+            Err(VehicleError::NotOnVehicle { holder: None, .. })
+        ));
     }
 }

@@ -27,6 +27,7 @@
 pub mod arrival;
 pub mod controller;
 pub mod error;
+pub mod loop_params;
 pub mod reachable;
 pub mod scenario;
 pub mod session;

@@ -13,6 +13,9 @@
 
 pub mod anchors;
 pub mod localize;
+pub mod record;
+pub mod request;
+pub mod store;
 
 pub use anchors::{
     AnchorParams, DesiredShot, desired_shot_from_anchors, homography_from_anchors, warp_perspective,

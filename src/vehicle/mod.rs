@@ -100,6 +100,9 @@ pub enum LinkError {
         /// MAV_AUTOPILOT number.
         autopilot: u8,
     },
+    /// The mission read back after an upload is not the one uploaded.
+    #[error("the mission read back from the vehicle differs from the one uploaded")]
+    ReadBackDiffers,
     /// The link actor has stopped.
     #[error("the link actor has stopped")]
     ActorGone,
@@ -524,6 +527,33 @@ impl LinkHandle {
         self.gimbal
             .send_modify(|g| g.mission_points_gimbal = points);
         Ok(report)
+    }
+
+    /// Uploads `items`, then reads the vehicle's mission back and compares
+    /// (without item 0 for ArduPilot, which keeps home there): `Some(true)`
+    /// when it holds exactly the items, `None` when the read-back failed
+    /// (logged). A read-back that differs is [`LinkError::ReadBackDiffers`].
+    pub async fn upload_verified(
+        &self,
+        items: &[MissionItem],
+        flavour: Flavour,
+    ) -> Result<(UploadReport, Option<bool>), LinkError> {
+        let report = self.upload_mission(items.to_vec()).await?;
+        let verified = match self.download_mission().await {
+            Ok(d) => Some(crate::mission::upload::same_mission(
+                items,
+                &d.items,
+                flavour == Flavour::ArduPilot,
+            )),
+            Err(e) => {
+                tracing::warn!("mission read-back failed: {e}");
+                None
+            }
+        };
+        if verified == Some(false) {
+            return Err(LinkError::ReadBackDiffers);
+        }
+        Ok((report, verified))
     }
 
     /// Downloads the vehicle's mission.

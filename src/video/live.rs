@@ -561,7 +561,7 @@ impl Ingest {
                     image: Arc::new({
                         let grey = img.to_luma8();
                         match self.jpeg_downscale.load(Ordering::Relaxed) {
-                            f if f > 1 => crate::video::h264::downscale(&grey, f),
+                            f if f > 1 => downscale(&grey, f),
                             _ => grey,
                         }
                     }),
@@ -606,6 +606,33 @@ impl Ingest {
                 }
             })
     }
+}
+
+/// Average `img` over `f`x`f` blocks (integer decimation; the intrinsics
+/// scale by `1/f` with the principal point at `(c + 0.5) / f - 0.5`).
+pub fn downscale(img: &GrayImage, f: u32) -> GrayImage {
+    if f <= 1 {
+        return img.clone();
+    }
+    let (w, h) = (img.width() / f, img.height() / f);
+    let src = img.as_raw();
+    let sw = img.width() as usize;
+    let fu = f as usize;
+    let area = (fu * fu) as u32;
+    let mut out = Vec::with_capacity(w as usize * h as usize);
+    for y in 0..h as usize {
+        for x in 0..w as usize {
+            let mut sum = 0u32;
+            for dy in 0..fu {
+                let row = (y * fu + dy) * sw + x * fu;
+                for &p in &src[row..row + fu] {
+                    sum += u32::from(p);
+                }
+            }
+            out.push(((sum + area / 2) / area) as u8);
+        }
+    }
+    GrayImage::from_raw(w, h, out).unwrap_or_else(|| GrayImage::new(w, h))
 }
 
 #[cfg(test)]

@@ -3,7 +3,8 @@
 //! live MJPEG streams and snapshot URLs over HTTP into the latest-frame
 //! pipeline of [`live`]. [`source`] picks the source by `[video] url`:
 //! [`rtsp`] (H.264 over RTSP, on `retina`), [`udp`] (raw RTP H.264,
-//! depacketised by [`rtp`]), both decoded by [`h264`] (OpenH264).
+//! depacketised by [`rtp`]), both decoded by [`h264`] (OpenH264), sharing
+//! [`stream`]'s parameters, sink and errors.
 
 pub mod dataset;
 pub mod h264;
@@ -12,4 +13,5 @@ pub mod mjpeg;
 pub mod rtp;
 pub mod rtsp;
 pub mod source;
+pub mod stream;
 pub mod udp;

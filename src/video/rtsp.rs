@@ -18,7 +18,7 @@ use tokio_util::sync::CancellationToken;
 use crate::video::h264::{AccessUnit, H264Error};
 use crate::video::live::unix_now;
 use crate::video::rtp::RtpClock;
-use crate::video::source::{H264Params, H264Sink, RtspTransport, SourceError, backoff, codec_name};
+use crate::video::stream::{H264Params, H264Sink, RtspTransport, SourceError, backoff, codec_name};
 
 /// Errors of one RTSP session.
 #[derive(Debug, thiserror::Error)]

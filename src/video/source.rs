@@ -16,70 +16,118 @@ use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 
-use crate::video::h264::{self, AuQueue, DecodeParams, H264Error};
+use crate::video::h264::{self, AuQueue, H264Error};
 use crate::video::live::Ingest;
-use crate::video::rtp::sdp::SdpError;
+pub use crate::video::stream::{
+    H264Params, H264Sink, RtspTransport, SourceError, backoff, codec_name,
+};
 
-/// Errors choosing or running a video source.
-#[derive(Debug, thiserror::Error)]
-pub enum SourceError {
-    /// The URL names no source shotpilot can read.
-    #[error("video url {url:?}: {reason}")]
-    BadUrl {
-        /// The URL (password removed).
-        url: String,
-        /// What is wrong.
-        reason: String,
-    },
-    /// The SDP file could not be read.
-    #[error("cannot read the SDP file {path}: {reason}")]
-    ReadSdp {
-        /// The file.
-        path: PathBuf,
-        /// The OS error.
-        reason: String,
-    },
-    /// The SDP file is malformed.
-    #[error("SDP file {path}: {source}")]
-    Sdp {
-        /// The file.
-        path: PathBuf,
-        /// The parse error.
-        #[source]
-        source: SdpError,
-    },
-    /// The stream's codec cannot be decoded.
-    #[error(transparent)]
-    Codec(#[from] H264Error),
-    /// The UDP port could not be bound.
-    #[error("cannot listen for RTP on {addr}: {reason}")]
-    Bind {
-        /// The address.
-        addr: SocketAddr,
-        /// The OS error.
-        reason: String,
-    },
-    /// A thread could not be started.
-    #[error("cannot start the H.264 decode thread: {0}")]
-    Thread(String),
-    /// `auto` found no stream.
-    #[error("auto: {reason}")]
-    Auto {
-        /// What happened.
-        reason: String,
-    },
+/// How video frames are fetched.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VideoSource {
+    /// `multipart/x-mixed-replace` stream.
+    Mjpeg,
+    /// Poll a JPEG snapshot URL.
+    Snapshot,
 }
 
-/// RTSP's RTP transport.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum RtspTransport {
-    /// RTP interleaved in the RTSP TCP connection (works through NAT and
-    /// firewalls; the default).
-    #[default]
-    Tcp,
-    /// RTP over separate UDP ports (lower latency on a clean LAN).
-    Udp,
+/// `[video]` of `config.toml`: the live video source.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct VideoConfig {
+    /// For `http://` URLs: `mjpeg` or `snapshot`.
+    pub source: VideoSource,
+    /// Where the video comes from: `rtsp://[user:pass@]host[:port]/path`
+    /// (H.264), `udp://HOST:PORT` (raw RTP H.264, e.g. `udp://0.0.0.0:5600`),
+    /// a path to an `.sdp` file, `http://` (MJPEG stream or JPEG
+    /// snapshots, per `source`), or `auto` (the URL the vehicle's camera
+    /// announces over MAVLink in VIDEO_STREAM_INFORMATION).
+    pub url: String,
+    /// RTSP transport for RTP: `tcp` (interleaved, default) or `udp`.
+    pub transport: RtspTransport,
+    /// RTSP user name, when the URL carries none.
+    pub username: Option<String>,
+    /// RTSP password, when the URL carries none.
+    pub password: Option<String>,
+    /// `auto`: the MAVLink component asked for VIDEO_STREAM_INFORMATION
+    /// (100: MAV_COMP_ID_CAMERA).
+    pub camera_component: u8,
+    /// `auto`: how long to wait for the vehicle and its camera's answer, s
+    /// (asking again each second).
+    pub auto_timeout_s: f64,
+    /// H.264: access units queued ahead of the decoder before the oldest
+    /// are dropped and decoding resumes at the next key frame.
+    pub decode_queue: usize,
+    /// Decimate the picture by this integer factor before SLAM (1: full
+    /// resolution; any source); the camera intrinsics are scaled to match.
+    pub downscale: u32,
+    /// Snapshot polling rate, Hz.
+    pub snapshot_hz: f64,
+    /// Connect timeout, ms.
+    pub connect_timeout_ms: u64,
+    /// A connection silent this long is reopened, ms.
+    pub read_timeout_ms: u64,
+    /// First reconnect delay, ms (doubles per failure).
+    pub reconnect_min_ms: u64,
+    /// Largest reconnect delay, ms.
+    pub reconnect_max_ms: u64,
+    /// Largest accepted JPEG, bytes.
+    pub max_frame_bytes: usize,
+}
+
+impl Default for VideoConfig {
+    fn default() -> Self {
+        let p = crate::video::mjpeg::Params::default();
+        Self {
+            source: VideoSource::Mjpeg,
+            url: "http://127.0.0.1:8554/video.mjpg".into(),
+            transport: Default::default(),
+            username: None,
+            password: None,
+            camera_component: 100,
+            auto_timeout_s: 30.0,
+            decode_queue: 8,
+            downscale: 1,
+            snapshot_hz: 5.0,
+            connect_timeout_ms: p.connect_timeout_ms,
+            read_timeout_ms: p.read_timeout_ms,
+            reconnect_min_ms: p.reconnect_min_ms,
+            reconnect_max_ms: p.reconnect_max_ms,
+            max_frame_bytes: p.max_part_bytes,
+        }
+    }
+}
+
+impl VideoConfig {
+    /// The client tunables.
+    pub fn params(&self) -> crate::video::mjpeg::Params {
+        crate::video::mjpeg::Params {
+            connect_timeout_ms: self.connect_timeout_ms,
+            read_timeout_ms: self.read_timeout_ms,
+            reconnect_min_ms: self.reconnect_min_ms,
+            reconnect_max_ms: self.reconnect_max_ms,
+            max_part_bytes: self.max_frame_bytes,
+            ..Default::default()
+        }
+    }
+
+    /// The H.264 sources' tunables.
+    pub fn h264_params(&self) -> H264Params {
+        H264Params {
+            transport: self.transport,
+            username: self.username.clone(),
+            password: self.password.clone(),
+            connect_timeout_ms: self.connect_timeout_ms,
+            read_timeout_ms: self.read_timeout_ms,
+            reconnect_min_ms: self.reconnect_min_ms,
+            reconnect_max_ms: self.reconnect_max_ms,
+            decode: crate::video::h264::DecodeParams {
+                queue: self.decode_queue,
+                downscale: self.downscale,
+            },
+        }
+    }
 }
 
 /// A parsed `[video] url`.
@@ -243,107 +291,6 @@ pub fn redact(url: &str) -> String {
             format!("{}{}:***@{}", &url[..scheme_end + 3], user, &rest[at + 1..])
         }
         None => url.to_owned(),
-    }
-}
-
-/// Tunables of the H.264 sources.
-#[derive(Debug, Clone, PartialEq)]
-pub struct H264Params {
-    /// RTSP transport.
-    pub transport: RtspTransport,
-    /// RTSP user name when the URL has none.
-    pub username: Option<String>,
-    /// RTSP password when the URL has none.
-    pub password: Option<String>,
-    /// Connect (and RTSP setup) timeout, ms.
-    pub connect_timeout_ms: u64,
-    /// A stream silent this long is reopened, ms.
-    pub read_timeout_ms: u64,
-    /// First reconnect delay, ms (doubles per failure).
-    pub reconnect_min_ms: u64,
-    /// Largest reconnect delay, ms.
-    pub reconnect_max_ms: u64,
-    /// The decode thread's tunables.
-    pub decode: DecodeParams,
-}
-
-impl Default for H264Params {
-    fn default() -> Self {
-        Self {
-            transport: RtspTransport::Tcp,
-            username: None,
-            password: None,
-            connect_timeout_ms: 5_000,
-            read_timeout_ms: 5_000,
-            reconnect_min_ms: 250,
-            reconnect_max_ms: 2_000,
-            decode: DecodeParams::default(),
-        }
-    }
-}
-
-/// Reconnect delay after `failures` consecutive failures (exponential
-/// from `min`, capped at `max`).
-pub fn backoff(min_ms: u64, max_ms: u64, failures: u32) -> Duration {
-    let ms = min_ms
-        .saturating_mul(1u64 << failures.min(20))
-        .min(max_ms.max(min_ms));
-    Duration::from_millis(ms)
-}
-
-/// The shared parts every H.264 reader hands access units through.
-#[derive(Debug, Clone)]
-pub struct H264Sink {
-    /// The ingest (counters, source info, frame slot).
-    pub ingest: Arc<Ingest>,
-    /// The queue to the decode thread.
-    pub queue: Arc<AuQueue>,
-    /// Bumped on each new connection (the decoder waits for a sync point).
-    pub resets: Arc<AtomicU64>,
-}
-
-impl H264Sink {
-    /// Queue one access unit (never waits on the decoder).
-    pub fn push(&self, au: h264::AccessUnit) {
-        use crate::video::live::Counters;
-        let c = &self.ingest.counters;
-        Counters::inc(&c.received);
-        Counters::add(&c.bytes, au.data.len() as u64);
-        self.ingest.received_rate.tick();
-        self.ingest.byte_rate.add(au.data.len() as u64);
-        let dropped = self.queue.push(au);
-        if dropped > 0 {
-            Counters::add(&c.late, dropped as u64);
-            Counters::add(&c.dropped_undecoded, dropped as u64);
-        }
-    }
-
-    /// A new connection starts.
-    pub fn new_connection(&self) {
-        use crate::video::live::Counters;
-        self.resets
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        Counters::inc(&self.ingest.counters.connects);
-    }
-
-    /// Note an error for the status and the log (the log only when it
-    /// differs from the previous one, so a dead camera does not flood it).
-    pub fn error(&self, msg: String) {
-        use crate::video::live::Counters;
-        Counters::inc(&self.ingest.counters.errors);
-        let mut changed = false;
-        self.ingest.update_source(|s| {
-            s.connected = false;
-            if s.last_error.as_deref() != Some(msg.as_str()) {
-                changed = true;
-                s.last_error = Some(msg.clone());
-            }
-        });
-        if changed {
-            tracing::warn!("video: {msg}");
-        } else {
-            tracing::debug!("video: {msg}");
-        }
     }
 }
 
@@ -580,7 +527,7 @@ pub async fn resolve_auto(
 /// snapshots (`http://`), H.264 (`rtsp://`, `udp://`, SDP), or `auto` (the
 /// link is awaited, the camera asked, then the URL it gave is run).
 pub async fn run_configured(
-    cfg: crate::config::VideoConfig,
+    cfg: VideoConfig,
     ingest: Arc<Ingest>,
     cancel: CancellationToken,
     link: Option<tokio::sync::oneshot::Receiver<crate::vehicle::LinkHandle>>,
@@ -614,8 +561,8 @@ pub async fn run_configured(
         VideoUrl::Http(u) => {
             ingest.update_source(|s| {
                 s.kind = match cfg.source {
-                    crate::config::VideoSource::Mjpeg => "mjpeg",
-                    crate::config::VideoSource::Snapshot => "snapshot",
+                    VideoSource::Mjpeg => "mjpeg",
+                    VideoSource::Snapshot => "snapshot",
                 }
                 .into();
                 s.url = redact(&u);
@@ -623,10 +570,8 @@ pub async fn run_configured(
             });
             let p = cfg.params();
             let r = match cfg.source {
-                crate::config::VideoSource::Mjpeg => {
-                    crate::video::mjpeg::run_mjpeg(&u, &p, ingest, cancel).await
-                }
-                crate::config::VideoSource::Snapshot => {
+                VideoSource::Mjpeg => crate::video::mjpeg::run_mjpeg(&u, &p, ingest, cancel).await,
+                VideoSource::Snapshot => {
                     crate::video::mjpeg::run_snapshots(&u, cfg.snapshot_hz, &p, ingest, cancel)
                         .await
                 }
@@ -671,16 +616,6 @@ async fn log_status(ingest: Arc<Ingest>, cancel: CancellationToken) {
             c.connects.saturating_sub(1),
             s.last_error.map(|e| format!("; last error: {e}")).unwrap_or_default()
         );
-    }
-}
-
-/// The operator's name for a codec as SDP or RTSP spell it.
-pub fn codec_name(encoding: &str) -> String {
-    match encoding.to_ascii_uppercase().as_str() {
-        "H265" | "HEVC" => "H.265 (HEVC)".into(),
-        "JPEG" => "Motion JPEG over RTP".into(),
-        "MP2T" => "MPEG-TS".into(),
-        other => other.to_owned(),
     }
 }
 

@@ -19,7 +19,7 @@ use crate::video::rtp::sdp::SdpVideo;
 use crate::video::rtp::{
     H264Depacketizer, RtpClock, looks_like_h265, parse_rtp, parse_sender_report,
 };
-use crate::video::source::{H264Params, H264Sink, SourceError};
+use crate::video::stream::{H264Params, H264Sink, SourceError};
 
 async fn bind(addr: SocketAddr) -> Result<UdpSocket, SourceError> {
     let err = |e: std::io::Error| SourceError::Bind {

@@ -1,4 +1,6 @@
-//! Shot computation behind a trait, and the anchor shot of the API.
+//! The operator's shot request: anchor validation, the anchor shot (the
+//! keyframe warped), photo checks, and the computation behind a trait
+//! ([`ShotComputer`]) that the API calls and the daemon implements.
 //!
 //! One pixel convention throughout, [`crate::shot::anchors`]'s: pixel
 //! centres at integer coordinates (the camera model's), so the four anchors
@@ -18,13 +20,13 @@ use std::sync::Arc;
 use image::GrayImage;
 use nalgebra::{Matrix3, Point2};
 
-use super::store::Localisation;
-use crate::camera::{Camera, Distortion};
+use super::record::{Localisation, PhotoIntrinsics};
+use crate::camera::Camera;
 use crate::shot::{AnchorParams, DesiredShot, homography_from_anchors, warp_perspective};
 
 /// Why a shot request cannot be computed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum ShotError {
+pub enum ShotRequestError {
     /// No keyframe with this id.
     #[error("no keyframe {id}")]
     UnknownKeyframe {
@@ -68,40 +70,6 @@ pub enum ShotError {
         /// Map camera height, pixels.
         camera_height: u32,
     },
-}
-
-/// The intrinsics of a photo from another camera (pinhole with OpenCV's
-/// radial-tangential distortion, pixel centres at integers, for the photo's
-/// own size).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PhotoIntrinsics {
-    /// Focal length x, pixels.
-    pub fx: f64,
-    /// Focal length y, pixels.
-    pub fy: f64,
-    /// Principal point x, pixels.
-    pub cx: f64,
-    /// Principal point y, pixels.
-    pub cy: f64,
-    /// Distortion (zero when not given).
-    #[serde(default)]
-    pub distortion: Distortion,
-}
-
-impl PhotoIntrinsics {
-    /// The camera of a `width` x `height` photo with these intrinsics.
-    pub fn camera(&self, width: u32, height: u32) -> Result<Camera, ShotError> {
-        Camera::new(
-            width,
-            height,
-            [self.fx, self.fy, self.cx, self.cy],
-            self.distortion,
-        )
-        .map_err(|e| ShotError::BadIntrinsics {
-            reason: e.to_string(),
-        })
-    }
 }
 
 /// Why a JPEG is not whole, if it is not: walks the segments from SOI
@@ -182,7 +150,7 @@ pub trait ShotComputer: Send + Sync {
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
         size: Option<(u32, u32)>,
-    ) -> Result<ShotComputation, ShotError>;
+    ) -> Result<ShotComputation, ShotRequestError>;
     /// A shot given as a photograph, with its camera's intrinsics when it
     /// is not the map camera's (None: the map camera, scaled to the photo's
     /// size when that has the same aspect ratio).
@@ -190,7 +158,7 @@ pub trait ShotComputer: Send + Sync {
         &self,
         photo: &GrayImage,
         intrinsics: Option<&PhotoIntrinsics>,
-    ) -> Result<ShotComputation, ShotError>;
+    ) -> Result<ShotComputation, ShotRequestError>;
 }
 
 /// Tunables of the anchor shot.
@@ -219,16 +187,16 @@ fn points(anchors: &[[f64; 2]; 4]) -> [Point2<f64>; 4] {
 /// [`crate::shot::homography_from_anchors`] (integer pixel centres; order
 /// top-left, top-right, bottom-right, bottom-left, image axes x right, y
 /// down). Each refusal is its own [`crate::shot::ShotError`] case inside
-/// [`ShotError::BadAnchors`].
+/// [`ShotRequestError::BadAnchors`].
 pub fn validate_anchors(
     anchors: &[[f64; 2]; 4],
     width: u32,
     height: u32,
     params: &Params,
-) -> Result<(), ShotError> {
+) -> Result<(), ShotRequestError> {
     homography_from_anchors(width, height, &points(anchors), &params.anchors)
         .map(|_| ())
-        .map_err(|source| ShotError::BadAnchors { source })
+        .map_err(|source| ShotRequestError::BadAnchors { source })
 }
 
 /// The desired shot of four anchors on a keyframe: the keyframe warped once
@@ -263,23 +231,25 @@ pub fn anchor_shot(
     anchors: &[[f64; 2]; 4],
     size: Option<(u32, u32)>,
     params: &Params,
-) -> Result<AnchorShot, ShotError> {
+) -> Result<AnchorShot, ShotRequestError> {
     let (kw, kh) = keyframe.dimensions();
     let max = params.max_output_side;
     if let Some((w, h)) = size
         && !((2..=max).contains(&w) && (2..=max).contains(&h))
     {
-        return Err(ShotError::BadImage {
+        return Err(ShotRequestError::BadImage {
             reason: format!("output size {w}x{h} outside 2..={max}"),
         });
     }
     let hm =
         homography_from_anchors(kw, kh, &points(anchors), &params.anchors).map_err(|source| {
             match source {
-                crate::shot::ShotError::ImageSize { width, height, .. } => ShotError::BadImage {
-                    reason: format!("keyframe image of {width}x{height} is too small to warp"),
-                },
-                source => ShotError::BadAnchors { source },
+                crate::shot::ShotError::ImageSize { width, height, .. } => {
+                    ShotRequestError::BadImage {
+                        reason: format!("keyframe image of {width}x{height} is too small to warp"),
+                    }
+                }
+                source => ShotRequestError::BadAnchors { source },
             }
         })?;
     let (image, mask) = warp_perspective(keyframe, &hm, kw, kh);
@@ -323,11 +293,11 @@ impl<K: KeyframeImages> WarpOnly<K> {
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
         size: Option<(u32, u32)>,
-    ) -> Result<AnchorShot, ShotError> {
+    ) -> Result<AnchorShot, ShotRequestError> {
         let img = self
             .keyframes
             .keyframe_image(keyframe_id)
-            .ok_or(ShotError::UnknownKeyframe { id: keyframe_id })?;
+            .ok_or(ShotRequestError::UnknownKeyframe { id: keyframe_id })?;
         anchor_shot(&img, anchors, size, &self.params)
     }
 
@@ -337,14 +307,20 @@ impl<K: KeyframeImages> WarpOnly<K> {
         &self,
         photo: &GrayImage,
         intrinsics: Option<&PhotoIntrinsics>,
-    ) -> Result<Option<Camera>, ShotError> {
+    ) -> Result<Option<Camera>, ShotRequestError> {
         if photo.width() < 32 || photo.height() < 32 {
-            return Err(ShotError::BadImage {
+            return Err(ShotRequestError::BadImage {
                 reason: format!("{}x{} is too small", photo.width(), photo.height()),
             });
         }
         intrinsics
-            .map(|i| i.camera(photo.width(), photo.height()))
+            .map(|i| {
+                i.camera(photo.width(), photo.height()).map_err(|e| {
+                    ShotRequestError::BadIntrinsics {
+                        reason: e.to_string(),
+                    }
+                })
+            })
             .transpose()
     }
 }
@@ -357,7 +333,7 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         keyframe_id: u64,
         anchors: &[[f64; 2]; 4],
         size: Option<(u32, u32)>,
-    ) -> Result<ShotComputation, ShotError> {
+    ) -> Result<ShotComputation, ShotRequestError> {
         let shot = self.anchor_shot(keyframe_id, anchors, size)?;
         Ok(ShotComputation {
             desired: Some(shot.into_picture()),
@@ -369,7 +345,7 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         &self,
         photo: &GrayImage,
         intrinsics: Option<&PhotoIntrinsics>,
-    ) -> Result<ShotComputation, ShotError> {
+    ) -> Result<ShotComputation, ShotRequestError> {
         self.check_photo(photo, intrinsics)?;
         Ok(ShotComputation {
             desired: Some(photo.clone()),
@@ -397,7 +373,7 @@ mod tests {
         let p = Params::default();
         assert!(validate_anchors(&SQ, 640, 480, &p).is_ok());
         let refusal = |a: [[f64; 2]; 4]| match validate_anchors(&a, 640, 480, &p) {
-            Err(ShotError::BadAnchors { source }) => source,
+            Err(ShotRequestError::BadAnchors { source }) => source,
             other => panic!("{a:?}: {other:?}"),
         };
         let nan = [[f64::NAN, 0.0], SQ[1], SQ[2], SQ[3]];
@@ -466,7 +442,7 @@ mod tests {
         for bad in [(1, 150), (200, 0), (5000, 10)] {
             assert!(matches!(
                 anchor_shot(&src, &SQ, Some(bad), &Params::default()),
-                Err(ShotError::BadImage { .. })
+                Err(ShotRequestError::BadImage { .. })
             ));
         }
     }

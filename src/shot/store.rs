@@ -7,7 +7,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-use serde::{Deserialize, Serialize};
+use super::record::Shot;
 
 /// Errors of the shot store.
 #[derive(Debug, thiserror::Error)]
@@ -33,124 +33,15 @@ pub enum StoreError {
     },
 }
 
-/// A camera pose as JSON: `world_from_cam` translation and rotation.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct PoseJson {
-    /// Camera centre in the map frame.
-    pub translation: [f64; 3],
-    /// Rotation quaternion (x, y, z, w) of `world_from_cam`.
-    pub rotation_xyzw: [f64; 4],
-}
-
-impl PoseJson {
-    /// From an isometry (`world_from_cam`).
-    pub fn from_isometry(world_from_cam: &nalgebra::Isometry3<f64>) -> Self {
-        let t = world_from_cam.translation.vector;
-        let q = world_from_cam.rotation.coords;
-        Self {
-            translation: [t.x, t.y, t.z],
-            rotation_xyzw: [q.x, q.y, q.z, q.w],
-        }
-    }
-
-    /// Back to an isometry (`world_from_cam`); None when a number is not
-    /// finite or the quaternion is (nearly) zero. The quaternion is
-    /// normalised.
-    pub fn to_isometry(&self) -> Option<nalgebra::Isometry3<f64>> {
-        let [x, y, z, w] = self.rotation_xyzw;
-        let q = nalgebra::Quaternion::new(w, x, y, z);
-        let t = nalgebra::Vector3::from(self.translation);
-        if !(q.coords.iter().all(|v| v.is_finite()) && t.iter().all(|v| v.is_finite()))
-            || q.norm() < 1e-9
-        {
-            return None;
-        }
-        Some(nalgebra::Isometry3::from_parts(
-            t.into(),
-            nalgebra::UnitQuaternion::from_quaternion(q),
-        ))
-    }
-}
-
-/// Where a desired shot came from.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum ShotSource {
-    /// Four anchors on a keyframe (pixels, clockwise from top-left of the
-    /// desired picture).
-    Anchors {
-        /// The keyframe.
-        keyframe_id: u64,
-        /// The corners of the desired picture in the keyframe, pixels.
-        anchors: [[f64; 2]; 4],
-    },
-    /// An uploaded photograph.
-    Photo {
-        /// Its size in bytes.
-        bytes: usize,
-        /// Width, pixels.
-        width: u32,
-        /// Height, pixels.
-        height: u32,
-        /// The intrinsics given with it (None: the map camera's, scaled).
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        intrinsics: Option<super::shots::PhotoIntrinsics>,
-    },
-}
-
-/// The localisation of a desired shot: the camera pose that takes it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Localisation {
-    /// The target camera pose in the map frame.
-    pub world_from_cam: PoseJson,
-    /// PnP inliers.
-    pub inliers: usize,
-    /// RMS reprojection error of the inliers, pixels.
-    pub rms_error_px: f64,
-    /// The keyframe the match went through.
-    pub keyframe_id: Option<u64>,
-}
-
-/// A shot's mission on the vehicle.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MissionRecord {
-    /// `uploaded`, `started` (this session's actions), and as read back
-    /// from the vehicle at start and at every reconnection (see
-    /// `crate::daemon::reconcile`): `active`, `uploaded`, `finished`,
-    /// `on_vehicle`, `replaced`, `cleared`, `unknown`; `details.vehicle`
-    /// says why.
-    pub state: String,
-    /// Mission items uploaded.
-    pub items: usize,
-    /// Upload confirmed (unix seconds).
-    pub uploaded_unix: f64,
-    /// Started (unix seconds).
-    pub started_unix: Option<f64>,
-    /// Target position, WGS84 degrees and metres AMSL, when georeferenced.
-    pub target_lat_lon_alt: Option<[f64; 3]>,
-    /// Free-form details from the planner/uploader.
-    pub details: serde_json::Value,
-}
-
-/// One desired shot and what became of it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Shot {
-    /// Id (`shot-<n>`).
+/// A shot write that failed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WriteFault {
+    /// The shot.
     pub id: String,
-    /// Created, unix seconds.
-    pub created_unix: f64,
-    /// What the operator gave.
-    pub source: ShotSource,
-    /// `localised` or `not_localised`.
-    pub status: String,
-    /// The localisation, when it succeeded.
-    pub localisation: Option<Localisation>,
-    /// Why it did not, otherwise.
-    pub reason: Option<String>,
-    /// Whether a desired-shot image was stored (`GET .../image.jpg`).
-    pub has_image: bool,
-    /// The mission, once uploaded.
-    pub mission: Option<MissionRecord>,
+    /// The error.
+    pub message: String,
+    /// When, unix seconds.
+    pub at_unix: f64,
 }
 
 /// The shots, in memory and in `dir`.
@@ -158,6 +49,8 @@ pub struct Shot {
 pub struct ShotStore {
     dir: PathBuf,
     shots: Mutex<BTreeMap<u64, Shot>>,
+    /// The last write that failed, until a write succeeds again.
+    fault: Mutex<Option<WriteFault>>,
 }
 
 fn io<'a>(what: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> StoreError + 'a {
@@ -216,6 +109,7 @@ impl ShotStore {
         Ok(Self {
             dir: dir.to_owned(),
             shots: Mutex::new(shots),
+            fault: Mutex::new(None),
         })
     }
 
@@ -229,8 +123,39 @@ impl ShotStore {
         format!("shot-{n}")
     }
 
+    /// The last write that failed, while no write has succeeded since
+    /// (the daemon's status shows it).
+    pub fn write_error(&self) -> Option<WriteFault> {
+        self.fault.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    /// Remembers how a write of shot `id` ended.
+    fn note<T>(&self, id: &str, r: Result<T, StoreError>) -> Result<T, StoreError> {
+        let mut f = self.fault.lock().unwrap_or_else(|e| e.into_inner());
+        match &r {
+            Ok(_) => *f = None,
+            Err(e) => {
+                tracing::error!(shot = id, "writing the shot: {e}");
+                *f = Some(WriteFault {
+                    id: id.to_owned(),
+                    message: e.to_string(),
+                    at_unix: std::time::SystemTime::now()
+                        .duration_since(std::time::UNIX_EPOCH)
+                        .map_or(0.0, |d| d.as_secs_f64()),
+                });
+            }
+        }
+        r
+    }
+
     /// Store (create or replace) a shot, and its desired-shot image if given.
     pub fn put(&self, shot: Shot, image_jpeg: Option<&[u8]>) -> Result<(), StoreError> {
+        let id = shot.id.clone();
+        let r = self.put_inner(shot, image_jpeg);
+        self.note(&id, r)
+    }
+
+    fn put_inner(&self, shot: Shot, image_jpeg: Option<&[u8]>) -> Result<(), StoreError> {
         let Some(n) = parse_id(&shot.id) else {
             return Err(StoreError::Encode {
                 id: shot.id.clone(),
@@ -255,6 +180,15 @@ impl ShotStore {
     /// its rounds, the reconciler the mission state) never undo each
     /// other's changes. Returns the shot as written; None: no such shot.
     pub fn update(
+        &self,
+        id: &str,
+        change: impl FnOnce(&mut Shot),
+    ) -> Result<Option<Shot>, StoreError> {
+        let r = self.update_inner(id, change);
+        self.note(id, r)
+    }
+
+    fn update_inner(
         &self,
         id: &str,
         change: impl FnOnce(&mut Shot),
@@ -296,6 +230,9 @@ impl ShotStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::shot::record::{
+        Localisation, MissionRecord, MissionState, PoseJson, ShotSource, ShotStatus,
+    };
 
     fn shot(id: &str) -> Shot {
         Shot {
@@ -305,7 +242,7 @@ mod tests {
                 keyframe_id: 3,
                 anchors: [[1.0, 2.0], [3.0, 2.0], [3.0, 4.0], [1.0, 4.0]],
             },
-            status: "localised".into(),
+            status: ShotStatus::Localised,
             localisation: Some(Localisation {
                 world_from_cam: PoseJson {
                     translation: [1.0, 2.0, 3.0],
@@ -342,6 +279,29 @@ mod tests {
         assert!(s.get("shot-x").is_none());
     }
 
+    /// A write that fails (the data directory is gone) is remembered until
+    /// a write succeeds again, and the record in memory is not changed.
+    #[test]
+    fn a_failed_write_is_remembered_until_a_write_succeeds() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("shots");
+        let s = ShotStore::open(&data).unwrap();
+        s.put(shot("shot-1"), None).unwrap();
+        assert_eq!(s.write_error(), None);
+        std::fs::remove_dir_all(&data).unwrap();
+        assert!(s.put(shot("shot-2"), None).is_err());
+        let f = s.write_error().expect("the failure is remembered");
+        assert_eq!(f.id, "shot-2");
+        assert!(f.message.contains("shot-2.json"), "{}", f.message);
+        assert!(s.update("shot-1", |x| x.has_image = false).is_err());
+        assert_eq!(s.write_error().unwrap().id, "shot-1");
+        assert!(s.get("shot-1").unwrap().has_image);
+        assert!(s.get("shot-2").is_none());
+        std::fs::create_dir_all(&data).unwrap();
+        s.put(shot("shot-2"), None).unwrap();
+        assert_eq!(s.write_error(), None);
+    }
+
     /// Two writers of one record, each from its own earlier read: with
     /// `update` neither undoes the other (the reconciler's state and the
     /// refinement loop's rounds both survive, also on disk).
@@ -351,7 +311,7 @@ mod tests {
         let s = ShotStore::open(dir.path()).unwrap();
         let mut a = shot("shot-1");
         a.mission = Some(MissionRecord {
-            state: "started".into(),
+            state: MissionState::Started,
             items: 3,
             uploaded_unix: 1.0,
             started_unix: Some(2.0),
@@ -365,7 +325,7 @@ mod tests {
             x.mission.as_mut().unwrap().details["refinement"] = serde_json::json!({"rounds": [1]});
         })
         .unwrap();
-        let state = "active".to_string();
+        let state = MissionState::Active;
         assert_eq!(
             seen_by_reconciler.mission.unwrap().details["refinement"],
             serde_json::Value::Null
@@ -380,7 +340,7 @@ mod tests {
         drop(s);
         let s = ShotStore::open(dir.path()).unwrap();
         let m = s.get("shot-1").unwrap().mission.unwrap();
-        assert_eq!(m.state, "active");
+        assert_eq!(m.state, MissionState::Active);
         assert_eq!(m.details["refinement"]["rounds"][0], 1);
     }
 }

@@ -1,0 +1,383 @@
+//! What the API reads from the parts below it: the SLAM ([`SlamView`]) and
+//! the vehicle ([`VehicleView`]), as traits the daemon implements over the
+//! real parts and tests implement over their own, with the typed replies
+//! they give.
+
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+
+use image::GrayImage;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use crate::shot::record::{MissionRecord, PoseJson, Shot};
+use crate::shot::request::KeyframeImages;
+
+/// A boxed future (the vehicle trait is object-safe).
+pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
+
+/// SLAM status as the API reports it.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct SlamStatus {
+    /// Whether a SLAM runs in this daemon.
+    pub available: bool,
+    /// `initializing`, `tracking`, `lost`, ... (`unavailable` without SLAM).
+    pub state: String,
+    /// Frames processed.
+    pub frames: u64,
+    /// Frames tracked.
+    pub tracked: u64,
+    /// Keyframes in the map.
+    pub keyframes: usize,
+    /// Map points.
+    pub points: usize,
+    /// Inliers of the last tracked frame.
+    pub last_inliers: usize,
+    /// Processing time of the last frame, ms.
+    pub last_frame_ms: f64,
+    /// Median latency from capture to tracked pose over recent frames, ms.
+    pub latency_ms_median: Option<f64>,
+    /// 95th percentile of the same latencies, ms.
+    pub latency_ms_p95: Option<f64>,
+    /// Frames per second processed.
+    pub fps: f64,
+    /// Where the map came from at start (None before the SLAM started).
+    pub map_start: Option<MapStart>,
+    /// The map file last written (a checkpoint, or at shutdown).
+    pub map_saved: Option<MapSaved>,
+    /// The last failed write of the map file or of the georeference
+    /// beside it (None: none since the last good write).
+    pub map_save_error: Option<WriteFailure>,
+}
+
+/// A write that failed: what, why, when. The status carries the last one
+/// of each kind until a write of that kind succeeds again.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct WriteFailure {
+    /// What was written: `map`, `georeference`, `shot`.
+    pub what: &'static str,
+    /// The error.
+    pub message: String,
+    /// When, unix seconds.
+    pub at_unix: f64,
+}
+
+/// The last map file written.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MapSaved {
+    /// `checkpoint` or `shutdown`.
+    pub reason: String,
+    /// Keyframes in it.
+    pub keyframes: usize,
+    /// Map points in it.
+    pub points: usize,
+    /// File size, bytes.
+    pub bytes: u64,
+    /// Pairs in the georeference written beside it (None: none written).
+    pub geo_pairs: Option<usize>,
+    /// When it was written, unix seconds.
+    pub at_unix: f64,
+}
+
+/// Where the SLAM's map came from when the daemon started.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct MapStart {
+    /// `fresh` (no saved map, or `[slam] continue_map = false`),
+    /// `continued` (the saved map was loaded and is relocalised into), or
+    /// `fresh_after_error` (the saved map could not be used).
+    pub mode: String,
+    /// Keyframes loaded from the saved map.
+    pub keyframes: usize,
+    /// Points loaded from the saved map.
+    pub points: usize,
+    /// The first frame (ingest sequence number) tracked in the loaded map.
+    pub relocalised_at_frame: Option<u64>,
+    /// Why the saved map was not used.
+    pub error: Option<String>,
+    /// Where a saved map that was not continued was moved to.
+    pub set_aside: Option<std::path::PathBuf>,
+}
+
+/// A keyframe in the API.
+#[derive(Debug, Clone, Serialize)]
+pub struct KeyframeInfo {
+    /// Id.
+    pub id: u64,
+    /// Timestamp, seconds.
+    pub timestamp: f64,
+    /// Pose.
+    pub world_from_cam: PoseJson,
+    /// Image width and height, pixels (0 when no image is kept).
+    pub width: u32,
+    /// See `width`.
+    pub height: u32,
+}
+
+/// The newest tracked frame, placed relative to its reference keyframe (so
+/// that it moves with it when bundle adjustment moves the keyframe): the
+/// georeference pairs such frames with telemetry.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackedFrame {
+    /// Ingest sequence number.
+    pub seq: u64,
+    /// Capture time, seconds (the keyframes' clock).
+    pub timestamp: f64,
+    /// The reference keyframe.
+    pub reference_kf: u64,
+    /// `cam ← ref_cam`: the frame's camera relative to the reference
+    /// keyframe's.
+    pub cam_from_ref: nalgebra::Isometry3<f64>,
+}
+
+/// The map for the top view.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct MapView {
+    /// Points (decimated), map frame.
+    pub points: Vec<[f32; 3]>,
+    /// Points in the map before decimation.
+    pub total_points: usize,
+    /// Keyframe camera centres, in id order.
+    pub trajectory: Vec<[f64; 3]>,
+}
+
+impl<T: SlamView + ?Sized> KeyframeImages for Arc<T> {
+    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>> {
+        SlamView::keyframe_image(self.as_ref(), id)
+    }
+}
+
+/// What the API reads from the SLAM.
+pub trait SlamView: Send + Sync {
+    /// The status.
+    fn status(&self) -> SlamStatus;
+    /// The keyframes, in id order.
+    fn keyframes(&self) -> Vec<KeyframeInfo>;
+    /// A keyframe's image.
+    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>>;
+    /// The map, with at most `max_points` points.
+    fn map(&self, max_points: usize) -> MapView;
+    /// The newest tracked frame (None: none yet, or no SLAM).
+    fn last_tracked(&self) -> Option<TrackedFrame> {
+        None
+    }
+}
+
+/// Errors of vehicle actions, each with its HTTP status.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum VehicleError {
+    /// No vehicle link, or the vehicle is not heard.
+    #[error("no vehicle: {reason}")]
+    NoVehicle {
+        /// Why.
+        reason: String,
+    },
+    /// The map is not tied to the world yet.
+    #[error("no georeference yet: {reason}")]
+    NoGeoreference {
+        /// Why.
+        reason: String,
+    },
+    /// The action does not fit the shot's state.
+    #[error("{reason}")]
+    Conflict {
+        /// Why.
+        reason: String,
+    },
+    /// The vehicle holds another shot's mission (or none this daemon
+    /// knows of): the shot's mission must be uploaded again first.
+    #[error(
+        "the vehicle does not hold shot {shot}'s mission ({}): upload it again",
+        holder.as_deref().map_or("it holds none this daemon uploaded".to_owned(), |h| format!("it holds shot {h}'s"))
+    )]
+    NotOnVehicle {
+        /// The shot asked for.
+        shot: String,
+        /// The shot whose mission the vehicle holds, if one does.
+        holder: Option<String>,
+    },
+    /// The vehicle refused or the transfer failed.
+    #[error("vehicle: {reason}")]
+    Failed {
+        /// Why.
+        reason: String,
+    },
+}
+
+/// The vehicle as `GET /status` reports it (under `vehicle`).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct VehicleStatus {
+    /// A link is configured (always true here; without one the status
+    /// says `{"configured": false}` alone).
+    pub configured: bool,
+    /// The vehicle is heard (transport open, heartbeats arriving).
+    pub connected: bool,
+    /// The transport is open.
+    pub transport_open: bool,
+    /// Times the transport was (re)opened.
+    pub connections: u32,
+    /// The vehicle's MAVLink system id, once heard.
+    pub system_id: Option<u8>,
+    /// `PX4` or `ArduPilot`, once heard.
+    pub flavour: Option<String>,
+    /// Flight mode name.
+    pub mode: String,
+    /// Armed.
+    pub armed: bool,
+    /// Age of the last heartbeat, seconds.
+    pub last_heartbeat_age_s: Option<f64>,
+    /// The last global position, when one came.
+    pub position: Option<VehiclePosition>,
+    /// The georeference's state and evidence (the daemon's geo service
+    /// report; its fields are documented in the OpenAPI document).
+    pub georeference: Value,
+    /// Gimbal protocol v2: the manager's last status and what the link did
+    /// about control.
+    pub gimbal: VehicleGimbal,
+}
+
+/// The gimbal part of the vehicle status.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct VehicleGimbal {
+    /// The gimbal manager's last GIMBAL_MANAGER_STATUS, when one came.
+    pub manager: Option<GimbalManagerView>,
+    /// What the link did about gimbal control.
+    pub control: crate::vehicle::GimbalControl,
+}
+
+/// A gimbal manager's status as the API shows it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct GimbalManagerView {
+    /// The gimbal device the manager is responsible for.
+    pub gimbal_device_id: u8,
+    /// (system, component) in primary control; [0, 0] nobody.
+    pub primary: [u8; 2],
+    /// (system, component) in secondary control; [0, 0] nobody.
+    pub secondary: [u8; 2],
+    /// Age of the status, seconds.
+    pub age_s: f64,
+}
+
+/// The vehicle's position in the status.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct VehiclePosition {
+    /// Latitude, degrees.
+    pub lat_deg: f64,
+    /// Longitude, degrees.
+    pub lon_deg: f64,
+    /// Altitude above home, metres.
+    pub rel_alt_m: f64,
+    /// Heading, degrees (None when unknown).
+    pub heading_deg: Option<f32>,
+}
+
+/// Mission progress as the vehicle last reported it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct MissionProgressView {
+    /// The item being executed.
+    pub current_seq: Option<u16>,
+    /// Items in the mission.
+    pub total: Option<u16>,
+    /// MAV_MISSION_STATE number (2 not started, 3 active, 4 paused, 5
+    /// complete).
+    pub state: Option<u8>,
+    /// The last item reached.
+    pub last_reached: Option<u16>,
+    /// Age of the report, seconds.
+    pub age_s: f64,
+}
+
+/// A localised shot's vehicle target (`GET /shots/{id}/target`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ShotTarget {
+    /// The shot.
+    pub shot: String,
+    /// Where the vehicle goes and how it points the camera.
+    pub target: TargetView,
+    /// The georeference it was computed with.
+    pub georeference: AlignmentView,
+}
+
+/// A vehicle target: position, yaw, gimbal pitch, and what the vehicle
+/// cannot reproduce of the camera pose.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TargetView {
+    /// Latitude, degrees (WGS84).
+    pub lat_deg: f64,
+    /// Longitude, degrees.
+    pub lon_deg: f64,
+    /// Altitude above home, metres.
+    pub alt_above_home_m: f64,
+    /// Altitude above mean sea level, metres.
+    pub alt_m: f64,
+    /// Vehicle heading, degrees clockwise from north.
+    pub yaw_deg: f64,
+    /// Gimbal pitch, degrees (negative looks down).
+    pub gimbal_pitch_deg: f64,
+    /// Camera roll the vehicle cannot reproduce, degrees.
+    pub residual_roll_deg: f64,
+    /// Angle between the wanted and the reproduced optical axis, degrees.
+    pub axis_error_deg: f64,
+    /// Vehicle position, local NED at home, metres.
+    pub p_ned_vehicle: [f64; 3],
+    /// The target camera pose in local NED (`ned_from_cam`).
+    pub camera_ned: PoseJson,
+}
+
+/// The georeference a target was computed with.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AlignmentView {
+    /// Metres per map unit.
+    pub scale: f64,
+    /// RMS residual of the fit, metres.
+    pub rms_m: f64,
+    /// Keyframes (pairs) the fit kept.
+    pub keyframes_used: usize,
+    /// Pairs offered to the fit.
+    pub pairs: usize,
+    /// Video-to-telemetry time offset found, seconds (None: not fitted).
+    pub time_offset_s: Option<f64>,
+}
+
+/// The mission the vehicle holds, read back (`GET /vehicle/mission`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct VehicleMissionView {
+    /// Items.
+    pub count: usize,
+    /// The items.
+    pub items: Vec<crate::mission::MissionItem>,
+    /// Retransmissions during the download.
+    pub retries: u32,
+    /// Download time, seconds.
+    pub seconds: f64,
+}
+
+/// What the API asks of the vehicle.
+pub trait VehicleView: Send + Sync {
+    /// Link and vehicle state.
+    fn status(&self) -> VehicleStatus;
+    /// Plan the localised shot's mission and upload it.
+    fn upload_shot<'a>(
+        &'a self,
+        shot: &'a Shot,
+    ) -> BoxFuture<'a, Result<MissionRecord, VehicleError>>;
+    /// Start `shot`'s uploaded mission (and refine that shot); refused
+    /// when the vehicle holds another shot's mission.
+    fn start_mission<'a>(&'a self, shot: &'a Shot) -> BoxFuture<'a, Result<(), VehicleError>>;
+    /// Mission progress (None: none reported yet).
+    fn progress(&self) -> Option<MissionProgressView>;
+    /// The vehicle target of a localised shot, without uploading anything.
+    fn shot_target(&self, shot: &Shot) -> Result<ShotTarget, VehicleError> {
+        Err(VehicleError::NoGeoreference {
+            reason: format!("no georeference for shot {}", shot.id),
+        })
+    }
+    /// The mission the vehicle holds, read back over the link.
+    fn download_mission(&self) -> BoxFuture<'_, Result<VehicleMissionView, VehicleError>> {
+        Box::pin(async {
+            Err(VehicleError::NoVehicle {
+                reason: "this vehicle cannot be read back".into(),
+            })
+        })
+    }
+}

@@ -1,0 +1,220 @@
+//! What the SLAM thread and the API share: the SLAM's status (state,
+//! counts, latencies, where the map came from, the last map write or its
+//! failure) and the map as the API reads it ([`MapSource`]), behind
+//! [`SlamShared`], which implements the API's [`SlamView`].
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use image::GrayImage;
+
+use crate::api::{
+    KeyframeInfo, MapSaved, MapStart, MapView, SlamStatus, SlamView, TrackedFrame, WriteFailure,
+};
+use crate::slam::Map;
+use crate::video::live::{Frame, RateMeter, unix_now};
+
+/// What processing one frame gave.
+#[derive(Debug, Clone, Default)]
+pub struct ProcessOutcome {
+    /// `not_initialized`, `tracking`, `lost`, `unavailable`.
+    pub state: String,
+    /// The frame's pose was estimated.
+    pub tracked: bool,
+    /// Inliers of the pose.
+    pub inliers: usize,
+    /// Keyframes in the map after the frame.
+    pub keyframes: usize,
+    /// Points in the map after the frame.
+    pub points: usize,
+}
+
+/// The map as the API sees it (provided by the SLAM adapter).
+pub trait MapSource: Send + Sync {
+    /// Keyframes in id order.
+    fn keyframes(&self) -> Vec<KeyframeInfo>;
+    /// A keyframe's image.
+    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>>;
+    /// Points (at most `max_points`) and trajectory.
+    fn map(&self, max_points: usize) -> MapView;
+    /// A copy of the whole map (for shot localisation, which must not hold
+    /// the SLAM's lock while it works).
+    fn snapshot(&self) -> Option<Map> {
+        None
+    }
+}
+
+#[derive(Default)]
+struct Inner {
+    status: SlamStatus,
+    latencies_ms: VecDeque<f64>,
+    source: Option<Arc<dyn MapSource>>,
+    last_tracked: Option<TrackedFrame>,
+}
+
+/// Status and map view shared by the SLAM thread and the API.
+pub struct SlamShared {
+    inner: Mutex<Inner>,
+    rate: RateMeter,
+}
+
+/// Frames in the latency median.
+const LATENCY_WINDOW: usize = 100;
+
+impl SlamShared {
+    /// A view; `available` says whether a SLAM runs.
+    pub fn new(available: bool) -> Self {
+        let status = SlamStatus {
+            available,
+            state: if available {
+                "waiting_for_video"
+            } else {
+                "disabled"
+            }
+            .into(),
+            ..Default::default()
+        };
+        Self {
+            inner: Mutex::new(Inner {
+                status,
+                ..Default::default()
+            }),
+            rate: RateMeter::new(Duration::from_secs(2)),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Record where the map came from at start.
+    pub fn set_map_start(&self, start: MapStart) {
+        self.lock().status.map_start = Some(start);
+    }
+
+    /// Record the first frame tracked in a continued map.
+    pub fn set_relocalised(&self, seq: u64) {
+        if let Some(s) = self.lock().status.map_start.as_mut() {
+            s.relocalised_at_frame = Some(seq);
+        }
+    }
+
+    /// Record the newest tracked frame.
+    pub fn set_last_tracked(&self, frame: TrackedFrame) {
+        self.lock().last_tracked = Some(frame);
+    }
+
+    /// Record the map file last written (a failure of the map file before
+    /// it is repaired).
+    pub fn set_map_saved(&self, saved: MapSaved) {
+        let mut g = self.lock();
+        g.status.map_saved = Some(saved);
+        g.status.map_save_error = None;
+    }
+
+    /// Record a failed write of the map file or the georeference (`what`),
+    /// or (None) that writes of `what` succeed again.
+    pub fn set_map_save_error(&self, what: &'static str, message: Option<String>) {
+        let mut g = self.lock();
+        match message {
+            Some(message) => {
+                g.status.map_save_error = Some(WriteFailure {
+                    what,
+                    message,
+                    at_unix: unix_now(),
+                })
+            }
+            None => {
+                if g.status
+                    .map_save_error
+                    .as_ref()
+                    .is_some_and(|e| e.what == what)
+                {
+                    g.status.map_save_error = None;
+                }
+            }
+        }
+    }
+
+    /// Attach the SLAM's map.
+    pub fn set_source(&self, source: Arc<dyn MapSource>) {
+        self.lock().source = Some(source);
+    }
+
+    /// Record one processed frame.
+    pub fn record(&self, frame: &Frame, outcome: &ProcessOutcome, ms: f64) {
+        self.rate.tick();
+        let mut g = self.lock();
+        let s = &mut g.status;
+        s.state = outcome.state.clone();
+        s.available = outcome.state != "unavailable";
+        s.frames += 1;
+        s.last_frame_ms = ms;
+        s.last_inliers = outcome.inliers;
+        s.keyframes = outcome.keyframes;
+        s.points = outcome.points;
+        if outcome.tracked {
+            s.tracked += 1;
+            let latency = (unix_now() - frame.timestamp()) * 1e3;
+            if latency.is_finite() {
+                if g.latencies_ms.len() == LATENCY_WINDOW {
+                    g.latencies_ms.pop_front();
+                }
+                g.latencies_ms.push_back(latency);
+            }
+        }
+    }
+
+    /// 95th percentile of recent capture-to-pose latencies, ms.
+    fn latency_p95(g: &Inner) -> Option<f64> {
+        let mut v: Vec<f64> = g.latencies_ms.iter().copied().collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        let k = ((v.len() as f64 * 0.95).ceil() as usize).clamp(1, v.len()) - 1;
+        Some(v[k])
+    }
+
+    /// Median of recent capture-to-pose latencies, ms.
+    fn latency_median(g: &Inner) -> Option<f64> {
+        let v: Vec<f64> = g.latencies_ms.iter().copied().collect();
+        crate::stats::median(&v)
+    }
+}
+
+impl SlamShared {
+    /// A copy of the SLAM's map, when a SLAM runs.
+    pub fn map_snapshot(&self) -> Option<Map> {
+        let src = self.lock().source.clone();
+        src.and_then(|s| s.snapshot())
+    }
+}
+
+impl SlamView for SlamShared {
+    fn status(&self) -> SlamStatus {
+        let g = self.lock();
+        let mut s = g.status.clone();
+        s.latency_ms_median = Self::latency_median(&g);
+        s.latency_ms_p95 = Self::latency_p95(&g);
+        drop(g);
+        s.fps = self.rate.rate();
+        s
+    }
+    fn keyframes(&self) -> Vec<KeyframeInfo> {
+        let src = self.lock().source.clone();
+        src.map(|s| s.keyframes()).unwrap_or_default()
+    }
+    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>> {
+        let src = self.lock().source.clone();
+        src.and_then(|s| s.keyframe_image(id))
+    }
+    fn map(&self, max_points: usize) -> MapView {
+        let src = self.lock().source.clone();
+        src.map(|s| s.map(max_points)).unwrap_or_default()
+    }
+    fn last_tracked(&self) -> Option<TrackedFrame> {
+        self.lock().last_tracked
+    }
+}

@@ -1,0 +1,253 @@
+//! The shot model: one desired shot and what became of it (where it came
+//! from, its localisation in the map, its mission on the vehicle), as the
+//! shot store keeps it on disk and the API returns it.
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::{Camera, CameraError, Distortion};
+
+/// A camera pose as JSON: `world_from_cam` translation and rotation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PoseJson {
+    /// Camera centre in the map frame.
+    pub translation: [f64; 3],
+    /// Rotation quaternion (x, y, z, w) of `world_from_cam`.
+    pub rotation_xyzw: [f64; 4],
+}
+
+impl PoseJson {
+    /// From an isometry (`world_from_cam`).
+    pub fn from_isometry(world_from_cam: &nalgebra::Isometry3<f64>) -> Self {
+        let t = world_from_cam.translation.vector;
+        let q = world_from_cam.rotation.coords;
+        Self {
+            translation: [t.x, t.y, t.z],
+            rotation_xyzw: [q.x, q.y, q.z, q.w],
+        }
+    }
+
+    /// Back to an isometry (`world_from_cam`); None when a number is not
+    /// finite or the quaternion is (nearly) zero. The quaternion is
+    /// normalised.
+    pub fn to_isometry(&self) -> Option<nalgebra::Isometry3<f64>> {
+        let [x, y, z, w] = self.rotation_xyzw;
+        let q = nalgebra::Quaternion::new(w, x, y, z);
+        let t = nalgebra::Vector3::from(self.translation);
+        if !(q.coords.iter().all(|v| v.is_finite()) && t.iter().all(|v| v.is_finite()))
+            || q.norm() < 1e-9
+        {
+            return None;
+        }
+        Some(nalgebra::Isometry3::from_parts(
+            t.into(),
+            nalgebra::UnitQuaternion::from_quaternion(q),
+        ))
+    }
+}
+
+/// Where a desired shot came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum ShotSource {
+    /// Four anchors on a keyframe (pixels, clockwise from top-left of the
+    /// desired picture).
+    Anchors {
+        /// The keyframe.
+        keyframe_id: u64,
+        /// The corners of the desired picture in the keyframe, pixels.
+        anchors: [[f64; 2]; 4],
+    },
+    /// An uploaded photograph.
+    Photo {
+        /// Its size in bytes.
+        bytes: usize,
+        /// Width, pixels.
+        width: u32,
+        /// Height, pixels.
+        height: u32,
+        /// The intrinsics given with it (None: the map camera's, scaled).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        intrinsics: Option<PhotoIntrinsics>,
+    },
+}
+
+/// The localisation of a desired shot: the camera pose that takes it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Localisation {
+    /// The target camera pose in the map frame.
+    pub world_from_cam: PoseJson,
+    /// PnP inliers.
+    pub inliers: usize,
+    /// RMS reprojection error of the inliers, pixels.
+    pub rms_error_px: f64,
+    /// The keyframe the match went through.
+    pub keyframe_id: Option<u64>,
+}
+
+/// Whether a desired shot was localised in the map.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShotStatus {
+    /// The camera pose that takes it was found (`localisation`).
+    Localised,
+    /// It was not (`reason` says why).
+    NotLocalised,
+}
+
+impl ShotStatus {
+    /// The name the API and the shot files use.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Localised => "localised",
+            Self::NotLocalised => "not_localised",
+        }
+    }
+}
+
+/// The state of a shot's mission: `Uploaded` and `Started` by this
+/// daemon's actions, and every state as read back from the vehicle at
+/// start and at every reconnection (the daemon's reconciler).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MissionState {
+    /// Uploaded (and confirmed), not started; or the vehicle holds it, not
+    /// started.
+    Uploaded,
+    /// Started by the operator in this session.
+    Started,
+    /// The vehicle flies it.
+    Active,
+    /// The vehicle flew it to its last item.
+    Finished,
+    /// The vehicle holds it but does not say how far it is.
+    OnVehicle,
+    /// The vehicle holds another mission.
+    Replaced,
+    /// The vehicle holds no mission.
+    Cleared,
+    /// The vehicle's mission could not be read.
+    Unknown,
+}
+
+impl MissionState {
+    /// The name the API and the shot files use.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Uploaded => "uploaded",
+            Self::Started => "started",
+            Self::Active => "active",
+            Self::Finished => "finished",
+            Self::OnVehicle => "on_vehicle",
+            Self::Replaced => "replaced",
+            Self::Cleared => "cleared",
+            Self::Unknown => "unknown",
+        }
+    }
+}
+
+impl std::fmt::Display for MissionState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// A shot's mission on the vehicle.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MissionRecord {
+    /// What became of it (see [`MissionState`]); `details.vehicle` says
+    /// why when the vehicle's mission set it.
+    pub state: MissionState,
+    /// Mission items uploaded.
+    pub items: usize,
+    /// Upload confirmed (unix seconds).
+    pub uploaded_unix: f64,
+    /// Started (unix seconds).
+    pub started_unix: Option<f64>,
+    /// Target position, WGS84 degrees and metres AMSL, when georeferenced.
+    pub target_lat_lon_alt: Option<[f64; 3]>,
+    /// Free-form details from the planner/uploader.
+    pub details: serde_json::Value,
+}
+
+/// One desired shot and what became of it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Shot {
+    /// Id (`shot-<n>`).
+    pub id: String,
+    /// Created, unix seconds.
+    pub created_unix: f64,
+    /// What the operator gave.
+    pub source: ShotSource,
+    /// Whether it was localised.
+    pub status: ShotStatus,
+    /// The localisation, when it succeeded.
+    pub localisation: Option<Localisation>,
+    /// Why it did not, otherwise.
+    pub reason: Option<String>,
+    /// Whether a desired-shot image was stored (`GET .../image.jpg`).
+    pub has_image: bool,
+    /// The mission, once uploaded.
+    pub mission: Option<MissionRecord>,
+}
+
+/// The intrinsics of a photo from another camera (pinhole with OpenCV's
+/// radial-tangential distortion, pixel centres at integers, for the photo's
+/// own size).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhotoIntrinsics {
+    /// Focal length x, pixels.
+    pub fx: f64,
+    /// Focal length y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Distortion (zero when not given).
+    #[serde(default)]
+    pub distortion: Distortion,
+}
+
+impl PhotoIntrinsics {
+    /// The camera of a `width` x `height` photo with these intrinsics.
+    pub fn camera(&self, width: u32, height: u32) -> Result<Camera, CameraError> {
+        Camera::new(
+            width,
+            height,
+            [self.fx, self.fy, self.cx, self.cy],
+            self.distortion,
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The API and the page read these names; shot files written before
+    /// the enums carry them too.
+    #[test]
+    fn states_serialise_to_the_names_the_api_uses() {
+        for s in [
+            MissionState::Uploaded,
+            MissionState::Started,
+            MissionState::Active,
+            MissionState::Finished,
+            MissionState::OnVehicle,
+            MissionState::Replaced,
+            MissionState::Cleared,
+            MissionState::Unknown,
+        ] {
+            let j = serde_json::to_value(s).unwrap();
+            assert_eq!(j, s.as_str());
+            assert_eq!(serde_json::from_value::<MissionState>(j).unwrap(), s);
+        }
+        for s in [ShotStatus::Localised, ShotStatus::NotLocalised] {
+            assert_eq!(serde_json::to_value(s).unwrap(), s.as_str());
+        }
+        assert_eq!(MissionState::OnVehicle.as_str(), "on_vehicle");
+        assert_eq!(ShotStatus::NotLocalised.as_str(), "not_localised");
+        assert!(serde_json::from_value::<MissionState>("flying".into()).is_err());
+    }
+}
