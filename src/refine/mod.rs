@@ -7,6 +7,8 @@
 //!   both poses are known.
 //! * [`arrival`]: when to look (waypoint reached, vehicle still, gimbal at
 //!   its commanded pitch, for a dwell time).
+//! * [`measure`]: the live framing over several frames (robust average,
+//!   outliers rejected, the spread as the measurement's noise).
 //! * [`controller`]: the correction that moves the camera from the
 //!   localised live pose to the desired pose through the georeference,
 //!   checked like the first target; when to stop.
@@ -27,6 +29,7 @@
 pub mod arrival;
 pub mod controller;
 pub mod error;
+pub mod measure;
 pub mod reachable;
 pub mod scenario;
 pub mod session;
@@ -37,8 +40,9 @@ pub use error::{
     PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
     pose_difference, shot_error,
 };
+pub use measure::{LiveFrame, MeasureParams};
 pub use reachable::{Reachable, reachable_from_anchors};
-pub use session::{Context, Observation, RoundRecord, Session, Step, Stop};
+pub use session::{Context, Observation, OffsetRecord, RoundRecord, Session, Step, Stop};
 
 /// Every tunable number of the refinement.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -49,6 +53,8 @@ pub struct Params {
     pub controller: ControllerParams,
     /// When the view counts as steady on arrival.
     pub arrival: ArrivalParams,
+    /// The measurement over several frames on arrival.
+    pub measure: MeasureParams,
 }
 
 /// Errors of the refinement.
