@@ -14,9 +14,9 @@
 //!   checked like the first target; when to stop.
 //! * [`reachable`]: the best framing a camera can reach for a desired shot
 //!   made from anchors (a zoom is no camera's view), the shot error's floor.
-//! * [`session`]: one shot's loop as a state machine (arrival → measure →
-//!   decide → localise the live frame → corrected target), whose rounds
-//!   are the record the API shows.
+//! * [`session`]: one shot's loop as a state machine (arrival → measure
+//!   the live frames → decide → localise them → filtered offset → corrected
+//!   target), whose rounds are the record the API shows.
 //! * [`scenario`]: the closed-loop experiment in the simulator (explore
 //!   flight → SLAM map and georeference → desired shots from hidden poses →
 //!   localise, plan, upload, fly, refine), run synchronously in simulated

@@ -4,8 +4,9 @@
 //! from four anchors on a keyframe that a small pan/tilt of that keyframe's
 //! camera would give), localised in the map, converted to a vehicle target,
 //! planned, uploaded to the simulated autopilot and flown; on arrival, once
-//! the view is steady, the live frame is compared with the desired shot
-//! ([`super::shot_error`]), localised, and a corrected mission is uploaded
+//! the view is steady, a few live frames ([`super::MeasureParams`], each
+//! with the position the vehicle reports then) are compared with the
+//! desired shot ([`super::shot_error`]), localised, and a corrected mission is uploaded
 //! ([`super::correct`]) until the shot error is under the threshold or the
 //! round budget is spent.
 //!
