@@ -267,8 +267,21 @@ pub struct RefineSection {
     /// Fraction of the measured pose error the first correction removes,
     /// in (0, 1].
     pub gain: f64,
-    /// Fraction the later corrections remove, in (0, 1].
+    /// Largest fraction the later corrections remove, in (0, 1] (each
+    /// removes what the measurement supports against the drift since the
+    /// last one, at most this).
     pub later_gain: f64,
+    /// Growth of the variance of the vehicle's position offset (GNSS bias)
+    /// per second between measurements, m²/s per axis (2σ²/τ of the
+    /// receiver's bias).
+    pub position_drift_m2_per_s: f64,
+    /// A target change within this many standard deviations of the
+    /// measurement is not flown.
+    pub gate_sigmas: f64,
+    /// Live frames measured per arrival.
+    pub measure_frames: usize,
+    /// Time between two measured frames, s.
+    pub measure_spacing_s: f64,
     /// Largest horizontal or vertical move of one correction, m.
     pub max_step_m: f64,
     /// Largest yaw or pitch change of one correction, degrees.
@@ -305,6 +318,10 @@ impl Default for RefineSection {
             max_rounds: c.max_rounds,
             gain: c.gain,
             later_gain: c.later_gain,
+            position_drift_m2_per_s: c.position_drift_m2_per_s,
+            gate_sigmas: c.gate_sigmas,
+            measure_frames: p.refine.measure.frames,
+            measure_spacing_s: p.refine.measure.spacing_s,
             max_step_m: c.max_step_m,
             max_step_deg: c.max_step_deg,
             arrival_speed_m_s: a.speed_m_s,
@@ -330,8 +347,12 @@ impl RefineSection {
         c.max_rounds = self.max_rounds;
         c.gain = self.gain;
         c.later_gain = self.later_gain;
+        c.position_drift_m2_per_s = self.position_drift_m2_per_s;
+        c.gate_sigmas = self.gate_sigmas;
         c.max_step_m = self.max_step_m;
         c.max_step_deg = self.max_step_deg;
+        p.refine.measure.frames = self.measure_frames;
+        p.refine.measure.spacing_s = self.measure_spacing_s;
         let a = &mut p.refine.arrival;
         a.speed_m_s = self.arrival_speed_m_s;
         a.gimbal_deg = self.arrival_gimbal_deg;
@@ -360,6 +381,18 @@ impl RefineSection {
         }
         if !(positive(self.later_gain) && self.later_gain <= 1.0) {
             return Err(("later_gain", "must be in (0, 1]".into()));
+        }
+        if !(self.position_drift_m2_per_s.is_finite() && self.position_drift_m2_per_s >= 0.0) {
+            return Err(("position_drift_m2_per_s", "must be finite and >= 0".into()));
+        }
+        if !(self.gate_sigmas.is_finite() && (0.0..=10.0).contains(&self.gate_sigmas)) {
+            return Err(("gate_sigmas", "must be in [0, 10]".into()));
+        }
+        if !(1..=30).contains(&self.measure_frames) {
+            return Err(("measure_frames", "must be in [1, 30]".into()));
+        }
+        if !(self.measure_spacing_s.is_finite() && (0.0..=5.0).contains(&self.measure_spacing_s)) {
+            return Err(("measure_spacing_s", "must be in [0, 5] s".into()));
         }
         if !positive(self.max_step_m) {
             return Err(("max_step_m", "must be finite and > 0 m".into()));

@@ -5,9 +5,10 @@
 //!
 //! The judges are the simulator's hidden camera poses and the images: the
 //! loop must bring the median shot error under the 1 % threshold from first
-//! flights that miss by more, every trial under 3 % of the diagonal, and a
-//! trial left above the threshold only after it used all its rounds; never
-//! leaving the geofence. (The issue's "90 % of trials <= 2 %" is a figure of
+//! flights that miss by more (on the ideal world every trial under 3 % of
+//! the diagonal), and a trial left above the threshold only after it used
+//! all its rounds or when what is left is within the measurement's noise;
+//! never leaving the geofence. Run on the ideal world and on `field`. (The issue's "90 % of trials <= 2 %" is a figure of
 //! the full 20-trial scenario over the whole survey, measured in the notes;
 //! the quick survey's map and georeference are rougher, and on 4 trials one
 //! trial over 2 % is already a p90 over 2 %.)
@@ -22,8 +23,9 @@ fn f(v: &Value, key: &str) -> f64 {
         .unwrap_or_else(|| panic!("{key} missing or not a number in {v}"))
 }
 
-#[test]
-fn a_short_scenario_converges_under_one_percent() {
+/// `shotpilot scenario --quick --trials 4 --anchor-every 2` on `realism`
+/// and `seed`: its JSON report, its trials printed.
+fn quick_scenario(realism: &str, seed: &str) -> Value {
     let out = Command::new(env!("CARGO_BIN_EXE_shotpilot"))
         .args([
             "--log",
@@ -33,9 +35,11 @@ fn a_short_scenario_converges_under_one_percent() {
             "--trials",
             "4",
             "--seed",
-            "3",
+            seed,
             "--anchor-every",
             "2",
+            "--realism",
+            realism,
             "--json",
         ])
         .output()
@@ -79,27 +83,68 @@ fn a_short_scenario_converges_under_one_percent() {
             && trials.iter().any(|t| t["kind"] == "render")
     );
     assert_eq!(r["fence_violations"], 0);
-    // The loop's figures.
-    assert!(f(&r, "median_final_shot_error_pct") <= 1.0);
     for t in trials {
-        assert!(f(t, "final_shot_error_pct") <= 3.0, "{t}");
-        if f(t, "final_shot_error_pct") >= 1.0 {
-            assert_eq!(
-                t["stop"], "max_rounds",
-                "stopped above the threshold early: {t}"
-            );
-        }
         assert!(t["inside_fence"].as_bool().unwrap_or(false));
         // Each measurement and correction is recorded.
         let rounds = t["round_reports"].as_array().expect("round_reports");
         assert_eq!(rounds.len() as u64, t["rounds"].as_u64().unwrap_or(0) + 1);
-        // The judge agrees with the image measure: a matched framing is a
-        // camera within a metre and a degree of the hidden pose.
+        // A trial left above the threshold used all its rounds, or its
+        // correction was within the measurement's noise (and it says so).
+        if f(t, "final_shot_error_pct") >= 1.0 {
+            assert!(
+                t["stop"] == "max_rounds" || t["stop"] == "within_noise",
+                "stopped above the threshold early: {t}"
+            );
+        }
+    }
+    r
+}
+
+/// The loop's figures every realism must meet: the median final shot error
+/// under the 1 % threshold, no trial left worse than its first flight, the
+/// judge agreeing with the image measure (a matched framing is a camera
+/// within a metre and a degree of the hidden pose), and the first flights
+/// missing by more: refinement did the work. With `max_final_pct`, every
+/// trial ends under it.
+fn check_loop(r: &Value, max_final_pct: Option<f64>) {
+    let trials = r["trial_reports"].as_array().expect("trial_reports");
+    assert!(f(r, "median_final_shot_error_pct") <= 1.0);
+    for t in trials {
+        if let Some(m) = max_final_pct {
+            assert!(f(t, "final_shot_error_pct") <= m, "{t}");
+        }
+        assert!(
+            f(t, "final_shot_error_pct") < f(t, "first_shot_error_pct")
+                || f(t, "final_shot_error_pct") < 1.0,
+            "{t}"
+        );
         assert!(f(t, "position_error_m") < 1.0, "{t}");
         assert!(f(t, "yaw_error_deg").abs() < 1.0 && f(t, "pitch_error_deg").abs() < 1.0);
     }
-    // The disturbances make the first flights miss: refinement did the work.
-    assert!(f(&r, "median_first_shot_error_pct") > 2.0 * f(&r, "median_final_shot_error_pct"));
-    assert!(f(&r, "median_first_position_error_m") > f(&r, "median_position_error_m"));
-    assert!(f(&r, "p90_first_shot_error_pct") >= f(&r, "median_first_shot_error_pct"));
+    assert!(f(r, "median_first_shot_error_pct") > 2.0 * f(r, "median_final_shot_error_pct"));
+    assert!(f(r, "median_first_position_error_m") > f(r, "median_position_error_m"));
+    assert!(f(r, "p90_first_shot_error_pct") >= f(r, "median_first_shot_error_pct"));
+}
+
+/// The ideal world with the scenario's own disturbances (GPS bias drift,
+/// gimbal pitch and camera heading calibration errors): every trial under
+/// 3 % of the diagonal.
+#[test]
+fn a_short_scenario_converges_under_one_percent() {
+    let r = quick_scenario("ideal", "3");
+    check_loop(&r, Some(3.0));
+}
+
+/// The `field` world (issue 19): rolling shutter, blur, auto-exposure,
+/// JPEG and the rest on every live frame; wind, gimbal error, the GNSS
+/// receiver's bias and noise on the vehicle; PX4's telemetry rates over a
+/// lossy radio. The median still ends under 1 %, but not every trial under
+/// 3 %: the receiver's bias (1.3 m, 120 s) drifts about 0.35 m per axis in
+/// a round's 4-5 s between the measurement and the next look, which on the
+/// quick survey's 6 m trial is 3-5 % of the diagonal (measured: seed 3,
+/// 14.8 % first, 4.8 % after 4 corrections, the camera 0.7 m off).
+#[test]
+fn a_short_field_scenario_converges_under_one_percent() {
+    let r = quick_scenario("field", "3");
+    check_loop(&r, None);
 }

@@ -322,6 +322,7 @@ pub async fn run(
             actions: actions.clone(),
             params: cfg.refine.params(),
             pictures: Default::default(),
+            epoch: std::time::Instant::now(),
         },
         cancel.child_token(),
     );

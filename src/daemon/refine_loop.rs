@@ -1,8 +1,10 @@
 //! The daemon's refinement loop: once a shot's mission is started
 //! (`POST /api/v1/shots/{id}/start`), watch the vehicle's telemetry with
 //! [`ArrivalDetector`] (waypoint reached, ground speed, gimbal pitch, dwell);
-//! on arrival run [`Session::on_arrival`] (on a blocking thread) with the
-//! newest video frame, a snapshot of the SLAM map and the georeference;
+//! on arrival run [`Session::on_arrival`] (on a blocking thread) with a few
+//! video frames received after it ([`crate::refine::MeasureParams`], each
+//! with the position the vehicle reported then), a snapshot of the SLAM map
+//! and the georeference;
 //! when the session asks for a correction, plan, upload (read back) and
 //! start the corrected target like the first one; record each round on the
 //! shot, with what the vehicle reported and the frame's timing
@@ -17,7 +19,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use image::GrayImage;
-use nalgebra::{Isometry3, Point2};
+use nalgebra::{Isometry3, Point2, Vector3};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
@@ -27,7 +29,8 @@ use super::slam_shared::SlamShared;
 use crate::geo::{Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
 use crate::refine::{
-    ArrivalDetector, Context, Observation, Reachable, Session, Step, reachable_from_anchors,
+    ArrivalDetector, Context, LiveFrame, Observation, Reachable, Session, Step,
+    reachable_from_anchors,
 };
 use crate::shot::anchors::desired_shot_from_anchors;
 use crate::shot::record::{Shot, ShotSource};
@@ -89,6 +92,8 @@ pub struct Deps {
     pub params: Params,
     /// Desired pictures (and masks) by shot id, made at upload.
     pub pictures: std::sync::Mutex<Vec<(String, Picture)>>,
+    /// The loop's clock origin (measurement times are seconds since it).
+    pub epoch: Instant,
 }
 
 /// A desired picture, the mask of its valid pixels and, for a shot made
@@ -584,21 +589,73 @@ async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, 
 /// The session after the round, and the step or why there was none.
 type Looked = (Session, Result<Step, String>);
 
-/// The arrival: the newest frame received after it, a map snapshot and the
+/// The vehicle's reported position now (fresh telemetry only), local NED
+/// metres around home.
+fn reported_ned(deps: &Deps, frame: &LocalFrame, home: &Home) -> Option<Vector3<f64>> {
+    let max_age = deps.params.max_telemetry_age;
+    let g = (*deps.link.telemetry.global_position.borrow())
+        .filter(|g| g.received.elapsed() <= max_age)?;
+    let p = frame.geodetic_to_ned(&Geodetic {
+        lat_deg: g.value.lat_deg,
+        lon_deg: g.value.lon_deg,
+        alt_m: home.alt_amsl_m + g.value.rel_alt_m,
+    });
+    p.iter().all(|x| x.is_finite()).then_some(p)
+}
+
+/// The live frames of one measurement: `measure.frames` frames received
+/// after the arrival, at least `measure.spacing_s` apart, each with the
+/// position the vehicle reported when it came. Fewer when the video stalls
+/// (none: an error).
+async fn collect_frames(
+    deps: &Deps,
+    frame_ltp: &LocalFrame,
+    home: &Home,
+    arrived: Instant,
+) -> Result<Vec<(Arc<Frame>, Option<Vector3<f64>>)>, String> {
+    let p = &deps.params;
+    let m = p.refine.measure;
+    let want = m.frames.max(1);
+    let spacing = Duration::try_from_secs_f64(m.spacing_s.max(0.0)).unwrap_or_default();
+    let t0 = Instant::now();
+    let mut frames: Vec<(Arc<Frame>, Option<Vector3<f64>>)> = Vec::with_capacity(want);
+    let mut after = arrived;
+    while frames.len() < want {
+        match deps.ingest.latest() {
+            Some(f) if f.received > after => {
+                after = f.received + spacing;
+                let reported = reported_ned(deps, frame_ltp, home);
+                frames.push((f, reported));
+            }
+            // Each frame has its own wait, so a slow video still gives
+            // what it can.
+            _ if t0.elapsed() > p.frame_wait + spacing * (frames.len() as u32) => break,
+            _ => tokio::time::sleep(Duration::from_millis(20)).await,
+        }
+    }
+    if frames.is_empty() {
+        return Err("no video frame after the arrival".into());
+    }
+    Ok(frames)
+}
+
+/// The arrival: a few frames received after it, a map snapshot and the
 /// georeference, then the session's round on a blocking thread.
 async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: Instant) -> Looked {
     let p = &deps.params;
-    let t0 = Instant::now();
-    let frame = loop {
-        match deps.ingest.latest() {
-            Some(f) if f.received > arrived => break f,
-            _ if t0.elapsed() > p.frame_wait => {
-                return (session, Err("no video frame after the arrival".into()));
-            }
-            _ => tokio::time::sleep(Duration::from_millis(20)).await,
-        }
+    let frame_ltp = LocalFrame::new(Geodetic {
+        lat_deg: home.lat_deg,
+        lon_deg: home.lon_deg,
+        alt_m: home.alt_amsl_m,
+    });
+    let frames = match collect_frames(deps, &frame_ltp, home, arrived).await {
+        Ok(f) => f,
+        Err(e) => return (session, Err(e)),
     };
-    let observed = observe(deps, session.target(), &frame, arrived);
+    let t_s = frames.last().map_or(0.0, |(f, _)| {
+        f.received.duration_since(deps.epoch).as_secs_f64()
+    });
+    let observed = observe(deps, session.target(), &frames[0].0, arrived);
     let Some(map_from_desired) = shot
         .localisation
         .as_ref()
@@ -610,11 +667,6 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         Ok((_, a)) => a,
         Err(e) => return (session, Err(format!("georeference: {e}"))),
     };
-    let frame_ltp = LocalFrame::new(Geodetic {
-        lat_deg: home.lat_deg,
-        lon_deg: home.lon_deg,
-        alt_m: home.alt_amsl_m,
-    });
     let mount = deps.geo.params().mount.clone();
     let fence = deps.plan.fence;
     let localize = p.localize.clone();
@@ -636,7 +688,14 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
             localize: &localize,
         };
         let camera = map.camera;
-        let step = session.on_arrival(&frame.image, Some(&camera), &ctx);
+        let live: Vec<LiveFrame<'_>> = frames
+            .iter()
+            .map(|(f, r)| LiveFrame {
+                image: &f.image,
+                reported_ned_m: *r,
+            })
+            .collect();
+        let step = session.on_arrival(&live, t_s, Some(&camera), &ctx);
         session.observe(observed);
         (session, Ok(step))
     })

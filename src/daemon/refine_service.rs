@@ -139,7 +139,15 @@ mod tests {
             localize: &LocalizeParams::default(),
         };
         assert_eq!(
-            s.on_arrival(&blank, None, &ctx),
+            s.on_arrival(
+                &[crate::refine::LiveFrame {
+                    image: &blank,
+                    reported_ned_m: None,
+                }],
+                0.0,
+                None,
+                &ctx
+            ),
             Step::Done(Stop::MaxRounds)
         );
         let mut m = MissionRecord {

@@ -28,10 +28,25 @@ pub struct ControllerParams {
     /// Fraction of the measured error corrected by the first correction
     /// (1: all of it; the first error is mostly systematic).
     pub gain: f64,
-    /// Fraction corrected by the later ones: what is left is mostly the
-    /// live frame's localisation noise, which a gain g passes on with
-    /// variance g/(2-g) of its own in steady state (1/3 at 0.5).
+    /// Largest fraction corrected by the later ones. Each later
+    /// correction removes the share of the measured offset that the
+    /// measurement supports against what is already known (per axis, the
+    /// Kalman gain `P / (P + R)`: `P` the offset's variance, grown by the
+    /// drift since the last measurement, `R` the measurement's own), at
+    /// most this (1: the filter alone decides).
     pub later_gain: f64,
+    /// Growth of the variance of the vehicle's position offset (true minus
+    /// reported position) per second between two measurements, m²/s per
+    /// axis. A GNSS bias of deviation σ and correlation time τ drifts by
+    /// 2σ²/τ per second: 0.028 for the `field` receiver (1.3 m, 120 s),
+    /// 0.017 for 1 m and 120 s.
+    pub position_drift_m2_per_s: f64,
+    /// The same for the heading and gimbal pitch offsets (mounting and
+    /// compass errors hardly drift), deg²/s.
+    pub angle_drift_deg2_per_s: f64,
+    /// A change of the target smaller than this many standard deviations
+    /// of the measurement (per axis) is not flown: it is noise.
+    pub gate_sigmas: f64,
     /// Largest horizontal or vertical move of one correction, metres.
     pub max_step_m: f64,
     /// Largest yaw or pitch change of one correction, degrees.
@@ -44,7 +59,10 @@ impl Default for ControllerParams {
             threshold_pct: 1.0,
             max_rounds: 4,
             gain: 1.0,
-            later_gain: 0.5,
+            later_gain: 1.0,
+            position_drift_m2_per_s: 0.02,
+            angle_drift_deg2_per_s: 0.002,
+            gate_sigmas: 2.0,
             max_step_m: 10.0,
             max_step_deg: 20.0,
         }
@@ -59,6 +77,10 @@ pub enum Decision {
     Converged,
     /// The round budget is spent.
     MaxRounds,
+    /// The shot error is above the threshold, but the correction the
+    /// measurement asks for is within its own noise on every axis: the
+    /// camera stands where the localisation can tell, nothing to fly.
+    WithinNoise,
     /// The shot error is at the shot's own floor (no camera pose can
     /// reproduce the desired shot better; see [`super::reachable`]): the
     /// live view is within the threshold of the reachable framing.

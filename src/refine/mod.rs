@@ -7,14 +7,16 @@
 //!   both poses are known.
 //! * [`arrival`]: when to look (waypoint reached, vehicle still, gimbal at
 //!   its commanded pitch, for a dwell time).
+//! * [`measure`]: the live framing over several frames (robust average,
+//!   outliers rejected, the spread as the measurement's noise).
 //! * [`controller`]: the correction that moves the camera from the
 //!   localised live pose to the desired pose through the georeference,
 //!   checked like the first target; when to stop.
 //! * [`reachable`]: the best framing a camera can reach for a desired shot
 //!   made from anchors (a zoom is no camera's view), the shot error's floor.
-//! * [`session`]: one shot's loop as a state machine (arrival → measure →
-//!   decide → localise the live frame → corrected target), whose rounds
-//!   are the record the API shows.
+//! * [`session`]: one shot's loop as a state machine (arrival → measure
+//!   the live frames → decide → localise them → filtered offset → corrected
+//!   target), whose rounds are the record the API shows.
 //! * [`scenario`]: the closed-loop experiment in the simulator (explore
 //!   flight → SLAM map and georeference → desired shots from hidden poses →
 //!   localise, plan, upload, fly, refine), run synchronously in simulated
@@ -28,6 +30,7 @@ pub mod arrival;
 pub mod controller;
 pub mod error;
 pub mod loop_params;
+pub mod measure;
 pub mod reachable;
 pub mod scenario;
 pub mod session;
@@ -38,8 +41,9 @@ pub use error::{
     PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
     pose_difference, shot_error,
 };
+pub use measure::{LiveFrame, MeasureParams};
 pub use reachable::{Reachable, reachable_from_anchors};
-pub use session::{Context, Observation, RoundRecord, Session, Step, Stop};
+pub use session::{Context, Observation, OffsetRecord, RoundRecord, Session, Step, Stop};
 
 /// Every tunable number of the refinement.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -50,6 +54,8 @@ pub struct Params {
     pub controller: ControllerParams,
     /// When the view counts as steady on arrival.
     pub arrival: ArrivalParams,
+    /// The measurement over several frames on arrival.
+    pub measure: MeasureParams,
 }
 
 /// Errors of the refinement.

@@ -4,8 +4,9 @@
 //! from four anchors on a keyframe that a small pan/tilt of that keyframe's
 //! camera would give), localised in the map, converted to a vehicle target,
 //! planned, uploaded to the simulated autopilot and flown; on arrival, once
-//! the view is steady, the live frame is compared with the desired shot
-//! ([`super::shot_error`]), localised, and a corrected mission is uploaded
+//! the view is steady, a few live frames ([`super::MeasureParams`], each
+//! with the position the vehicle reports then) are compared with the
+//! desired shot ([`super::shot_error`]), localised, and a corrected mission is uploaded
 //! ([`super::correct`]) until the shot error is under the threshold or the
 //! round budget is spent.
 //!
@@ -41,7 +42,7 @@ use shotpilot_sim::vehicle::{GpsBiasParams, VehicleDisturbances};
 use shotpilot_sim::world::{World, WorldParams};
 
 use super::{
-    ArrivalDetector, ArrivalParams, Context, Params, RoundRecord, Session, Step, Stop,
+    ArrivalDetector, ArrivalParams, Context, LiveFrame, Params, RoundRecord, Session, Step, Stop,
     pose_difference,
 };
 use crate::camera::Camera;
@@ -359,6 +360,13 @@ pub struct RoundReport {
     pub yaw_error_deg: f64,
     /// Elevation error of the optical axis, degrees.
     pub pitch_error_deg: f64,
+    /// Angle of the whole rotation error (roll about the optical axis
+    /// included), degrees.
+    pub rotation_error_deg: f64,
+    /// The vehicle's true position minus the reported one (GNSS bias and
+    /// noise, barometric drift), local NED m: what the loop's measured
+    /// offset estimates, up to the georeference's own constant error.
+    pub true_offset_ned_m: [f64; 3],
     /// Simulated seconds of this round's flight.
     pub flight_s: f64,
 }
@@ -422,6 +430,9 @@ pub struct ScenarioReport {
     pub flown: usize,
     /// Trials that converged under the threshold.
     pub converged: usize,
+    /// Trials that stopped above the threshold because the correction was
+    /// within the measurement's noise (`within_noise`).
+    pub within_noise: usize,
     /// Threshold of the loop, % of the diagonal.
     pub threshold_pct: f64,
     /// Median final shot error over the flown trials, %.
@@ -662,6 +673,14 @@ impl Sim {
             Some(Ok(r)) => Ok(r),
             Some(Err(e)) => Err(e.to_string()),
             None => Err("upload did not finish".into()),
+        }
+    }
+
+    /// Lets `seconds` of simulated time pass (hovering where it is).
+    fn advance(&mut self, seconds: f64) {
+        let end = self.t + seconds;
+        while self.t + 0.5 * self.dt < end {
+            self.step(None);
         }
     }
 
@@ -1070,27 +1089,59 @@ fn run_trial(
             }
         };
         rep.flown = true;
-        let live_cam = sim.true_camera();
-        let live = sim.render();
-        let step = session.on_arrival(&live, Some(&cam_model), &ctx);
+        // The measurement: a few frames a little apart, each with the
+        // position the vehicle reports then (and the judge's pose error).
+        let m = params.refine.measure;
+        let mut images = Vec::new();
+        let mut reported = Vec::new();
+        let mut judged = Vec::new();
+        let mut true_offset = Vector3::zeros();
+        for i in 0..m.frames.max(1) {
+            if i > 0 {
+                sim.advance(m.spacing_s);
+            }
+            judged.push(pose_difference(&hidden.camera, &sim.true_camera()));
+            true_offset += sim.ap.vehicle().position_error() / m.frames.max(1) as f64;
+            images.push(sim.render());
+            reported.push(sim.ap.vehicle().p_ned());
+        }
+        let frames: Vec<LiveFrame<'_>> = images
+            .iter()
+            .zip(&reported)
+            .map(|(image, r)| LiveFrame {
+                image,
+                reported_ned_m: Some(*r),
+            })
+            .collect();
+        let step = session.on_arrival(&frames, sim.t, Some(&cam_model), &ctx);
         let Some(record) = session.rounds().last().cloned() else {
             return finish(rep, sim, "no_round".into());
         };
-        let d = pose_difference(&hidden.camera, &live_cam);
+        let judge = |f: &dyn Fn(&crate::refine::PoseDifference) -> f64| {
+            super::measure::median(&judged.iter().map(f).collect::<Vec<_>>()).unwrap_or(f64::NAN)
+        };
+        let (position_m, yaw_deg, pitch_deg, rotation_deg) = (
+            judge(&|d| d.position_m),
+            judge(&|d| d.yaw_deg),
+            judge(&|d| d.pitch_deg),
+            judge(&|d| d.rotation_deg),
+        );
         if record.round == 0 {
             rep.first_shot_error_pct = record.shot_error_pct;
-            rep.first_position_error_m = Some(d.position_m);
+            rep.first_position_error_m = Some(position_m);
         }
         rep.final_shot_error_pct = record.shot_error_pct;
-        rep.position_error_m = Some(d.position_m);
-        rep.yaw_error_deg = Some(d.yaw_deg);
-        rep.pitch_error_deg = Some(d.pitch_deg);
+        rep.position_error_m = Some(position_m);
+        rep.yaw_error_deg = Some(yaw_deg);
+        rep.pitch_error_deg = Some(pitch_deg);
         rep.rounds = record.round;
         rep.round_reports.push(RoundReport {
             record,
-            position_error_m: d.position_m,
-            yaw_error_deg: d.yaw_deg,
-            pitch_error_deg: d.pitch_deg,
+            position_error_m: position_m,
+            yaw_error_deg: yaw_deg,
+            pitch_error_deg: pitch_deg,
+            rotation_error_deg: rotation_deg,
+            true_offset_ned_m: true_offset.into(),
             flight_s,
         });
         if let Step::Done(stop) = step {
@@ -1258,6 +1309,7 @@ pub fn run(
         trials: trials.len(),
         flown: n,
         converged: trials.iter().filter(|t| t.stop == "converged").count(),
+        within_noise: trials.iter().filter(|t| t.stop == "within_noise").count(),
         threshold_pct: params.refine.controller.threshold_pct,
         median_final_shot_error_pct: quantile(&fin, 0.5),
         p90_final_shot_error_pct: quantile(&fin, 0.9),
