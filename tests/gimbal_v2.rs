@@ -158,7 +158,13 @@ async fn gimbal_pitch_reaches(link: &LinkHandle, pitch: f64, seconds: u64) -> an
     g.ok_or_else(|| anyhow::anyhow!("no gimbal attitude"))
 }
 
+/// One flight at a time: each test runs a simulator whose world generation
+/// takes seconds of CPU, and a flight timed by a simulator starved by the
+/// other one's start measures the machine, not the protocol.
+static ONE_FLIGHT: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 async fn fly(flavour: Flavour) -> anyhow::Result<()> {
+    let _one = ONE_FLIGHT.lock().await;
     let dir = tempfile::tempdir()?;
     let cancel = CancellationToken::new();
     let port = link_support::free_udp_port();
@@ -210,7 +216,28 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
     link.arm(true).await?;
     link.set_mode(FlightMode::Mission).await?;
     link.start_mission().await?;
-    let pitch = gimbal_pitch_reaches(&link, target.gimbal_pitch_deg, 60).await?;
+    let pitch = match gimbal_pitch_reaches(&link, target.gimbal_pitch_deg, 60).await {
+        Ok(p) => p,
+        Err(e) => {
+            // What the vehicle said, to tell a refused gimbal item from a
+            // mission that never ran (a preflight disarm, say).
+            let said: Vec<String> = snapshot(&trace)
+                .iter()
+                .filter_map(|f| match &f.msg {
+                    MavMessage::STATUSTEXT(t) if !f.up => {
+                        Some(t.text.to_str().unwrap_or("(not UTF-8)").to_owned())
+                    }
+                    _ => None,
+                })
+                .collect();
+            anyhow::bail!(
+                "{flavour:?}: {e}; vehicle {:?}; gimbal control {:?}; mission progress {:?}; STATUSTEXT {said:?}",
+                *link.telemetry.vehicle.borrow(),
+                *link.telemetry.gimbal_control.borrow(),
+                *link.telemetry.progress.borrow(),
+            );
+        }
+    };
     let mut progress = link.telemetry.progress.clone();
     wait_for("the mission to complete", &mut progress, 90, |p| {
         p.is_some_and(|p| p.value.state == Some(5))
