@@ -835,19 +835,13 @@ impl Actor {
                     continue;
                 }
             }
-            self.out.push(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-                param1: id as f32,
-                param2: (1e6 / hz).round(),
-                param3: 0.0,
-                param4: 0.0,
-                param5: 0.0,
-                param6: 0.0,
-                param7: 0.0, // response target: the requester
-                command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
-                target_system: sys,
-                target_component: comp,
-                confirmation: 0,
-            }));
+            // param7 0: the response target is the requester
+            self.out.push(MavMessage::COMMAND_LONG(command_long(
+                MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                [id as f32, (1e6 / hz).round(), 0.0, 0.0, 0.0, 0.0, 0.0],
+                sys,
+                comp,
+            )));
         }
     }
 
@@ -1131,19 +1125,12 @@ impl Actor {
                 reply,
             } => match self.peers() {
                 Some((peers, _)) => {
-                    self.out.push(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-                        param1: message_id as f32,
-                        param2: 0.0,
-                        param3: 0.0,
-                        param4: 0.0,
-                        param5: 0.0,
-                        param6: 0.0,
-                        param7: 0.0,
-                        command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
-                        target_system: peers.target_system,
+                    self.out.push(MavMessage::COMMAND_LONG(command_long(
+                        MavCmd::MAV_CMD_REQUEST_MESSAGE,
+                        [message_id as f32, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                        peers.target_system,
                         target_component,
-                        confirmation: 0,
-                    }));
+                    )));
                     let _ = reply.send(Ok(()));
                 }
                 None => {
@@ -1176,19 +1163,12 @@ impl Actor {
                 .borrow()
                 .map_or(peers.target_component, |s| s.value.manager_component);
             let p = super::release_params(g.device_id);
-            self.out.push(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-                param1: p[0],
-                param2: p[1],
-                param3: p[2],
-                param4: p[3],
-                param5: p[4],
-                param6: p[5],
-                param7: p[6],
-                command: MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
-                target_system: peers.target_system,
-                target_component: target,
-                confirmation: 0,
-            }));
+            self.out.push(MavMessage::COMMAND_LONG(command_long(
+                MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+                p,
+                peers.target_system,
+                target,
+            )));
             info!("mission complete: gimbal control released");
             self.gimbal_control.send_modify(|g| {
                 g.held = false;
@@ -1231,19 +1211,12 @@ impl Actor {
             let _ = reply.send(Err(LinkError::NoVehicle));
             return;
         };
-        let data = COMMAND_LONG_DATA {
-            param1: p[0],
-            param2: p[1],
-            param3: p[2],
-            param4: p[3],
-            param5: p[4],
-            param6: p[5],
-            param7: p[6],
+        let data = command_long(
             command,
-            target_system: peers.target_system,
-            target_component: target_component.unwrap_or(peers.target_component),
-            confirmation: 0,
-        };
+            p,
+            peers.target_system,
+            target_component.unwrap_or(peers.target_component),
+        );
         self.out.push(MavMessage::COMMAND_LONG(data.clone()));
         self.command = Some(PendingCommand {
             data,
@@ -1251,6 +1224,28 @@ impl Actor {
             deadline: now + Duration::from_millis(self.params.command_timeout_ms),
             reply,
         });
+    }
+}
+
+/// A COMMAND_LONG with its seven params in order (first transmission).
+fn command_long(
+    command: MavCmd,
+    p: [f32; 7],
+    target_system: u8,
+    target_component: u8,
+) -> COMMAND_LONG_DATA {
+    COMMAND_LONG_DATA {
+        param1: p[0],
+        param2: p[1],
+        param3: p[2],
+        param4: p[3],
+        param5: p[4],
+        param6: p[5],
+        param7: p[6],
+        command,
+        target_system,
+        target_component,
+        confirmation: 0,
     }
 }
 
