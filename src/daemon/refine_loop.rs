@@ -526,11 +526,22 @@ async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Sessio
     })
 }
 
+/// North and east (metres, WGS84 local frame at the target) of a
+/// reported position from a target.
+fn north_east_of(t: &Target, lat_deg: f64, lon_deg: f64) -> (f64, f64) {
+    let at = |lat_deg, lon_deg| Geodetic {
+        lat_deg,
+        lon_deg,
+        alt_m: 0.0,
+    };
+    let ned = LocalFrame::new(at(t.lat_deg, t.lon_deg)).geodetic_to_ned(&at(lat_deg, lon_deg));
+    (ned.x, ned.y)
+}
+
 /// Horizontal and vertical distance (metres) of a reported position from
-/// a target (equirectangular; the distances here are metres).
+/// a target.
 fn distance_to(t: &Target, lat_deg: f64, lon_deg: f64, rel_alt_m: f64) -> (f64, f64) {
-    let n = (lat_deg - t.lat_deg) * 111_132.0;
-    let e = (lon_deg - t.lon_deg) * 111_320.0 * t.lat_deg.to_radians().cos();
+    let (n, e) = north_east_of(t, lat_deg, lon_deg);
     (n.hypot(e), (rel_alt_m - t.alt_m).abs())
 }
 
@@ -723,8 +734,7 @@ fn observe(deps: &Deps, target: &Target, frame: &Frame, arrived: Instant) -> Obs
     };
     if let Some(g) = *tel.global_position.borrow() {
         let v = g.value;
-        let n = (v.lat_deg - target.lat_deg) * 111_132.0;
-        let e = (v.lon_deg - target.lon_deg) * 111_320.0 * target.lat_deg.to_radians().cos();
+        let (n, e) = north_east_of(target, v.lat_deg, v.lon_deg);
         o.vehicle_offset_ned_m = Some([n, e, target.alt_m - v.rel_alt_m]);
         o.speed_m_s = Some(
             f64::from(v.vel_ned_m_s[0])
