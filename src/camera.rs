@@ -150,23 +150,6 @@ pub struct Camera {
 }
 
 impl Camera {
-    /// The simulator's camera model as a [`Camera`] (same intrinsics and
-    /// OpenCV distortion coefficients).
-    pub fn from_sim(c: &shotpilot_sim::camera::SimCamera) -> Result<Self, CameraError> {
-        Self::new(
-            c.width,
-            c.height,
-            [c.fx, c.fy, c.cx, c.cy],
-            Distortion {
-                k1: c.k1,
-                k2: c.k2,
-                p1: c.p1,
-                p2: c.p2,
-                k3: c.k3,
-            },
-        )
-    }
-
     /// A camera, checked: positive size and focal lengths, finite numbers.
     pub fn new(
         width: u32,

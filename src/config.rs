@@ -184,7 +184,8 @@ pub struct SimSection {
     pub rtp_bitrate_kbps: u32,
     /// Realism of the simulated camera, vehicle and radio: `ideal`,
     /// `field` or `harsh`, then any `-EFFECT` or `+EFFECT[@PRESET]`
-    /// (see `shotpilot_sim::realism`), e.g. `field-blur`.
+    /// (see the simulator crate's `realism`), e.g. `field-blur`; checked by
+    /// `crate::simulator::check`.
     pub realism: String,
     /// The simulated world: town, grass, carpark, trees, water, traffic
     /// or aliasing.
@@ -211,45 +212,6 @@ impl Default for SimSection {
             rtp_bitrate_kbps: 1500,
             realism: "ideal".into(),
             world: "town".into(),
-        }
-    }
-}
-
-impl SimSection {
-    /// The H.264 RTP output these keys describe (None: `rtp_out` unset);
-    /// an error names what is wrong.
-    pub fn rtp_out(&self) -> Result<Option<shotpilot_sim::rtp::RtpOutParams>, String> {
-        let Some(dest) = &self.rtp_out else {
-            return Ok(None);
-        };
-        let dest = std::net::ToSocketAddrs::to_socket_addrs(dest.as_str())
-            .map_err(|e| format!("{dest:?}: expected HOST:PORT ({e})"))?
-            .next()
-            .ok_or_else(|| format!("{dest:?}: no address"))?;
-        let p = shotpilot_sim::rtp::RtpOutParams {
-            dest,
-            bitrate_bps: self.rtp_bitrate_kbps.saturating_mul(1000),
-            ..Default::default()
-        };
-        p.check().map_err(|(field, reason)| {
-            let key = if field == "bitrate_bps" {
-                "rtp_bitrate_kbps"
-            } else {
-                field
-            };
-            format!("{key}: {reason}")
-        })?;
-        Ok(Some(p))
-    }
-
-    /// The vehicle's GPS bias model these keys describe (its walk seeded
-    /// from `gps_seed`, else `seed`, mixed as the scenario mixes its own).
-    pub fn gps_bias(&self) -> shotpilot_sim::vehicle::GpsBiasParams {
-        shotpilot_sim::vehicle::GpsBiasParams {
-            sigma_xy_m: self.gps_sigma_xy_m,
-            sigma_z_m: self.gps_sigma_z_m,
-            tau_s: self.gps_tau_s,
-            seed: self.gps_seed.unwrap_or(self.seed) ^ 0x00b1_a5ed,
         }
     }
 }
@@ -614,36 +576,11 @@ impl Config {
                     format!("{:?}: use px4 or ardupilot", self.sim.flavour),
                 ));
             }
-            if let Err(e) = self.sim.realism.parse::<shotpilot_sim::realism::Realism>() {
-                return Err(invalid("sim", "realism", e.to_string()));
-            }
-            if let Err(e) = self.sim.world.parse::<shotpilot_sim::world::WorldKind>() {
-                return Err(invalid("sim", "world", e.to_string()));
-            }
             if !(self.sim.video_fps > 0.0 && self.sim.video_fps <= 120.0) {
                 return Err(invalid("sim", "video_fps", "must be in (0, 120]".into()));
             }
-            if let Err(e) = self.sim.rtp_out() {
-                return Err(invalid("sim", "rtp_out", e));
-            }
-            if let Err((field, reason)) = self.sim.gps_bias().check() {
-                return Err(invalid(
-                    "sim",
-                    match field {
-                        "sigma_xy_m" => "gps_sigma_xy_m",
-                        "sigma_z_m" => "gps_sigma_z_m",
-                        _ => "gps_tau_s",
-                    },
-                    reason.into(),
-                ));
-            }
-            if self.sim.gps_sigma_xy_m > 50.0 || self.sim.gps_sigma_z_m > 50.0 {
-                return Err(invalid(
-                    "sim",
-                    "gps_sigma_xy_m/gps_sigma_z_m",
-                    "at most 50 m".into(),
-                ));
-            }
+            // Realism, world, RTP output and GPS bias need the simulator:
+            // `crate::simulator::check`.
         }
         self.link
             .url
@@ -756,7 +693,6 @@ mod tests {
         assert_eq!(cfg.sim, SimSection::default());
         assert_eq!(cfg.geo, crate::geo::Params::default());
         assert_eq!(cfg.refine, RefineSection::default());
-        assert!(!cfg.sim.gps_bias().enabled());
     }
 
     #[test]
@@ -784,7 +720,7 @@ mod tests {
     }
 
     #[test]
-    fn refine_and_gps_bias_keys_are_checked() {
+    fn refine_keys_are_checked() {
         for (text, needle) in [
             ("[refine]\nthreshold_pct = 0.0\n", "[refine] threshold_pct"),
             ("[refine]\ngain = 1.5\n", "[refine] gain"),
@@ -793,30 +729,12 @@ mod tests {
             ("[refine]\nframe_wait_s = 0.0\n", "[refine] frame_wait_s"),
             ("[refine]\npoll_ms = 0\n", "[refine] poll_ms"),
             ("[refine]\nrounds = 3\n", "rounds"),
-            ("[sim]\ngps_sigma_xy_m = -1.0\n", "[sim] gps_sigma_xy_m"),
-            ("[sim]\ngps_sigma_z_m = nan\n", "[sim] gps_sigma_z_m"),
-            ("[sim]\ngps_tau_s = -5.0\n", "[sim] gps_tau_s"),
-            ("[sim]\ngps_sigma_xy_m = 80.0\n", "gps_sigma_xy_m"),
-            ("[sim]\nrtp_out = \"nowhere\"\n", "[sim] rtp_out"),
-            ("[sim]\nrtp_out = \"127.0.0.1:0\"\n", "[sim] rtp_out"),
-            (
-                "[sim]\nrtp_out = \"127.0.0.1:5600\"\nrtp_bitrate_kbps = 1\n",
-                "rtp_bitrate_kbps",
-            ),
         ] {
             let e = Config::from_toml(text, Path::new("x.toml"))
                 .unwrap_err()
                 .to_string();
             assert!(e.contains(needle), "{text}: {e}");
         }
-        let cfg = Config::from_toml(
-            "[sim]\nseed = 7\ngps_sigma_xy_m = 1.5\ngps_sigma_z_m = 0.5\ngps_tau_s = 60.0\n",
-            Path::new("x.toml"),
-        )
-        .unwrap();
-        let b = cfg.sim.gps_bias();
-        assert!(b.enabled());
-        assert_eq!((b.sigma_xy_m, b.sigma_z_m, b.tau_s), (1.5, 0.5, 60.0));
     }
 
     #[test]
@@ -827,9 +745,6 @@ mod tests {
             ("[video]\nurl = \"udp://cam:5600\"\n", "url"),
             ("[video]\ndownscale = 0\n", "downscale"),
             ("[sim]\nscript = \"loop\"\n", "script"),
-            ("[sim]\nrealism = \"sunny\"\n", "[sim] realism"),
-            ("[sim]\nrealism = \"field-fog\"\n", "[sim] realism"),
-            ("[sim]\nworld = \"moon\"\n", "[sim] world"),
             ("[server]\ntoken = \"\"\n", "token"),
             ("[server]\nport = 1\n", "port"),
         ] {

@@ -45,7 +45,8 @@
 //! | [`api`] | the HTTP API (`/api/v1`): one error type, typed replies, the views it reads (SLAM, vehicle); the operator page |
 //! | [`daemon`] | `shotpilot run`: wires sim, video, SLAM, link and API; shutdown |
 //! | [`mission`] | mission planning (pure) and upload protocol |
-//! | [`refine`] | closing the loop: shot error (homography), correction controller, the daemon loop's tunables, simulator scenario |
+//! | [`refine`] | closing the loop: shot error (homography), correction controller, the daemon loop's tunables |
+//! | [`simulator`] | the bundled simulator's adapters (camera, `[sim]`) and the closed-loop scenario in it; the only importer of `shotpilot_sim` outside tests |
 //!
 //! The synchronous core never imports tokio or axum; I/O lives in
 //! `vehicle`, `video` (live sources) and `mission::upload`. Every module
@@ -69,6 +70,7 @@ pub mod mission;
 pub mod optimize;
 pub mod refine;
 pub mod shot;
+pub mod simulator;
 pub mod slam;
 pub mod stats;
 pub mod vehicle;

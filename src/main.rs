@@ -123,14 +123,22 @@ fn error_chain(e: &anyhow::Error) -> String {
     line
 }
 
+/// A configuration file, with the `[sim]` keys only the simulator can
+/// check.
+fn load_checked(path: &Path) -> Result<Config> {
+    let cfg = Config::load(path)?;
+    shotpilot::simulator::check(&cfg, path)?;
+    Ok(cfg)
+}
+
 /// The configuration: `--config PATH`, else ./config.toml if present, else defaults.
 fn load_config(path: Option<&Path>) -> Result<Config> {
     match path {
-        Some(p) => Ok(Config::load(p)?),
+        Some(p) => load_checked(p),
         None => {
             let default = Path::new("config.toml");
             if default.is_file() {
-                Ok(Config::load(default)?)
+                load_checked(default)
             } else {
                 Ok(Config::default())
             }

@@ -11,7 +11,7 @@ use image::{GrayImage, Luma};
 use serde_json::{Value, json};
 use shotpilot::api::{
     self, ApiParams, AppState, BoxFuture, KeyframeInfo, MapView, MissionProgressView, SlamStatus,
-    SlamView, VehicleError, VehicleStatus, VehicleView,
+    SlamView, VehicleError, VehicleMissionView, VehicleStatus, VehicleView,
 };
 use shotpilot::shot::record::{
     Localisation, MissionRecord, MissionState, PhotoIntrinsics, PoseJson, Shot,
@@ -143,6 +143,27 @@ impl VehicleView for FakeVehicle {
             }
             self.started.lock().unwrap().push(shot.id.clone());
             Ok(())
+        })
+    }
+    fn download_mission(&self) -> BoxFuture<'_, Result<VehicleMissionView, VehicleError>> {
+        Box::pin(async {
+            let item = |seq: u16, command: u16| shotpilot::mission::MissionItem {
+                seq,
+                frame: 6,
+                command,
+                current: seq == 0,
+                autocontinue: true,
+                params: [0.0, 2.0, 0.0, 90.0],
+                x: 473_977_000,
+                y: 85_456_000,
+                z: 15.0,
+            };
+            Ok(VehicleMissionView {
+                count: 2,
+                items: vec![item(0, 22), item(1, 16)],
+                retries: 0,
+                seconds: 0.2,
+            })
         })
     }
     fn progress(&self) -> Option<MissionProgressView> {
@@ -817,4 +838,195 @@ fn a_failed_shot_write_is_in_the_status_until_a_write_succeeds() {
     let r = http(a, "POST", "/api/v1/shots", &[JSON_CT], &good_shot(1));
     assert_eq!(r.0, 201, "{}", String::from_utf8_lossy(&r.2));
     assert_eq!(status()["errors"], json!([]));
+}
+
+/// Checks `v` against `schema` of the OpenAPI document `doc` (the subset
+/// the document uses: `$ref`, `type` (one or a list), `required`,
+/// `properties`, `items`, `enum`, `oneOf`, `minItems`, `maxItems`);
+/// the first mismatch, with its JSON path.
+fn check_schema(doc: &Value, schema: &Value, v: &Value, at: &str) -> Result<(), String> {
+    if let Some(r) = schema["$ref"].as_str() {
+        let name = r
+            .strip_prefix("#/components/schemas/")
+            .ok_or_else(|| format!("{at}: unknown $ref {r}"))?;
+        let target = &doc["components"]["schemas"][name];
+        if target.is_null() {
+            return Err(format!("{at}: $ref {r} is not in the document"));
+        }
+        return check_schema(doc, target, v, at);
+    }
+    if let Some(alts) = schema["oneOf"].as_array() {
+        let ok = alts
+            .iter()
+            .filter(|s| check_schema(doc, s, v, at).is_ok())
+            .count();
+        return if ok == 1 {
+            Ok(())
+        } else {
+            Err(format!("{at}: {v} matches {ok} of oneOf's {}", alts.len()))
+        };
+    }
+    let kind_ok = |t: &str| match t {
+        "null" => v.is_null(),
+        "boolean" => v.is_boolean(),
+        "object" => v.is_object(),
+        "array" => v.is_array(),
+        "string" => v.is_string(),
+        "number" => v.is_number(),
+        "integer" => v.is_i64() || v.is_u64(),
+        _ => false,
+    };
+    let types: Vec<&str> = match &schema["type"] {
+        Value::String(t) => vec![t.as_str()],
+        Value::Array(ts) => ts.iter().filter_map(Value::as_str).collect(),
+        _ => vec![],
+    };
+    if !types.is_empty() && !types.iter().any(|t| kind_ok(t)) {
+        return Err(format!("{at}: {v} is not of type {types:?}"));
+    }
+    if let Some(e) = schema["enum"].as_array()
+        && !e.contains(v)
+    {
+        return Err(format!("{at}: {v} is not one of {e:?}"));
+    }
+    if let Some(o) = v.as_object() {
+        for key in schema["required"].as_array().into_iter().flatten() {
+            let key = key.as_str().unwrap_or_default();
+            if !o.contains_key(key) {
+                return Err(format!("{at}: the reply has no {key:?} (required)"));
+            }
+        }
+        if let Some(props) = schema["properties"].as_object() {
+            for (key, sub) in props {
+                if let Some(x) = o.get(key) {
+                    check_schema(doc, sub, x, &format!("{at}.{key}"))?;
+                }
+            }
+        }
+    }
+    if let Some(a) = v.as_array() {
+        if let Some(min) = schema["minItems"].as_u64()
+            && (a.len() as u64) < min
+        {
+            return Err(format!("{at}: {} items, at least {min}", a.len()));
+        }
+        if let Some(max) = schema["maxItems"].as_u64()
+            && (a.len() as u64) > max
+        {
+            return Err(format!("{at}: {} items, at most {max}", a.len()));
+        }
+        for (i, x) in a.iter().enumerate() {
+            check_schema(doc, &schema["items"], x, &format!("{at}[{i}]"))?;
+        }
+    }
+    Ok(())
+}
+
+/// The (method, path) pairs `api::router` serves under `/api/v1`, read
+/// from its source (axum cannot list a router's routes).
+fn router_routes() -> std::collections::BTreeSet<(String, String)> {
+    let src = include_str!("../src/api/mod.rs");
+    let body = &src[src.find("pub fn router(").expect("api::router")..];
+    let body = &body[..body.find(".nest(\"/api/v1\"").expect("the /api/v1 nest")];
+    let mut out = std::collections::BTreeSet::new();
+    for part in body.split(".route(").skip(1) {
+        let rest = part.trim_start().strip_prefix('"').expect("a literal path");
+        let (path, rest) = rest.split_once('"').unwrap();
+        let rest = rest.trim_start().trim_start_matches(',').trim_start();
+        let method = &rest[..rest.find('(').unwrap()];
+        out.insert((method.to_owned(), path.to_owned()));
+    }
+    out
+}
+
+/// The document served at /openapi.json has every route the router
+/// serves and no other, and real replies (status, keyframes, shots list
+/// and one shot, the vehicle's mission, a shot created, uploaded and
+/// started) have the fields and types its schemas say.
+#[test]
+fn the_openapi_document_matches_the_router_and_the_replies() {
+    let dir = tempfile::tempdir().unwrap();
+    let srv = start(dir.path(), Some(TOKEN), true);
+    let a = srv.addr;
+    let r = http(a, "GET", "/api/v1/openapi.json", &[], b"");
+    assert_eq!(r.0, 200);
+    let doc = json_of(&r.2);
+
+    let served = router_routes();
+    assert!(served.len() >= 17, "{served:?}");
+    let documented: std::collections::BTreeSet<(String, String)> = doc["paths"]
+        .as_object()
+        .unwrap()
+        .iter()
+        .flat_map(|(p, ops)| {
+            ops.as_object()
+                .unwrap()
+                .keys()
+                .map(move |m| (m.clone(), p.clone()))
+        })
+        .collect();
+    let undocumented: Vec<_> = served.difference(&documented).collect();
+    let unserved: Vec<_> = documented.difference(&served).collect();
+    assert!(
+        undocumented.is_empty() && unserved.is_empty(),
+        "routes the document lacks: {undocumented:?}; documented routes not served: {unserved:?}"
+    );
+
+    let reply_schema = |method: &str, path: &str, code: &str| {
+        let s =
+            doc["paths"][path][method]["responses"][code]["content"]["application/json"]["schema"]
+                .clone();
+        assert!(s.is_object(), "{method} {path} {code} has no schema");
+        s
+    };
+    let check = |method: &str, path: &str, code: &str, reply: &Value| {
+        check_schema(&doc, &reply_schema(method, path, code), reply, "$")
+            .unwrap_or_else(|e| panic!("{method} {path}: {e}\n{reply:#}"));
+    };
+    let created = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(1));
+    assert_eq!(created.0, 201);
+    let shot = json_of(&created.2);
+    check("post", "/shots", "201", &shot);
+    assert_eq!(shot["status"], "localised");
+    let id = shot["id"].as_str().unwrap().to_owned();
+    let other = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &good_shot(0));
+    assert_eq!(other.0, 201);
+    assert_eq!(json_of(&other.2)["status"], "not_localised");
+    check("post", "/shots", "201", &json_of(&other.2));
+    for (path, doc_path) in [
+        ("/api/v1/status".to_owned(), "/status"),
+        ("/api/v1/keyframes".to_owned(), "/keyframes"),
+        ("/api/v1/shots".to_owned(), "/shots"),
+        (format!("/api/v1/shots/{id}"), "/shots/{id}"),
+        ("/api/v1/vehicle/mission".to_owned(), "/vehicle/mission"),
+    ] {
+        let r = http(a, "GET", &path, &[], b"");
+        assert_eq!(r.0, 200, "{path}: {}", String::from_utf8_lossy(&r.2));
+        check("get", doc_path, "200", &json_of(&r.2));
+    }
+    for action in ["mission", "start"] {
+        let path = format!("/api/v1/shots/{id}/{action}");
+        let r = http(a, "POST", &path, &[AUTH], b"");
+        assert_eq!(r.0, 200, "{path}: {}", String::from_utf8_lossy(&r.2));
+        check(
+            "post",
+            &format!("/shots/{{id}}/{action}"),
+            "200",
+            &json_of(&r.2),
+        );
+    }
+
+    // The check can fail: a reply without a documented field, or with a
+    // field of another type, does not pass.
+    let mut kfs = json_of(&http(a, "GET", "/api/v1/keyframes", &[], b"").2);
+    let schema = reply_schema("get", "/keyframes", "200");
+    assert!(check_schema(&doc, &schema, &kfs, "$").is_ok());
+    kfs["keyframes"][0]["world_from_cam"]
+        .as_object_mut()
+        .unwrap()
+        .remove("translation");
+    assert!(check_schema(&doc, &schema, &kfs, "$").is_err());
+    let mut st = json_of(&http(a, "GET", "/api/v1/status", &[], b"").2);
+    st["slam"]["keyframes"] = json!("two");
+    assert!(check_schema(&doc, &reply_schema("get", "/status", "200"), &st, "$").is_err());
 }

@@ -249,8 +249,39 @@ fn daemon_with_simulator_end_to_end() {
     eprintln!("cropped photo with intrinsics: {d:.3} from the keyframe's centre");
     assert!(d < 0.1 * extent, "{d} vs extent {extent}");
 
-    // Its vehicle target: near home, inside the gimbal's range, and the
-    // camera placed in front of the keyframe's camera (the anchors zoom in).
+    // The pose the target is planned from looks at what the anchors
+    // enclose: its optical axis is the keyframe's ray through the anchors'
+    // centre (within 5 degrees: a tenth of the camera's field of view),
+    // and since the anchors zoom in (1.14x) the camera stands ahead of the
+    // keyframe's along that ray, more ahead than aside.
+    let kf_now = get_json(addr, "/api/v1/keyframes")["keyframes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|k| k["id"] == kid)
+        .cloned()
+        .unwrap_or_else(|| kf_of(&kfs, kid));
+    let (kf_rot, kf_centre) = pose_of(&kf_now["world_from_cam"]);
+    let (shot_rot, shot_centre) = pose_of(&shot["localisation"]["world_from_cam"]);
+    let c = &cam_cfg;
+    let anchors_centre = nalgebra::Vector3::new((320.0 - c.cx) / c.fx, (240.0 - c.cy) / c.fy, 1.0);
+    let ray = kf_rot * anchors_centre.normalize();
+    let axis = shot_rot * nalgebra::Vector3::z();
+    let off_axis_deg = axis.angle(&ray).to_degrees();
+    let ahead = kf_rot.inverse() * (shot_centre - kf_centre);
+    eprintln!(
+        "target pose: optical axis {off_axis_deg:.2} deg off the anchors' centre ray; \
+         {:.3} ahead of the keyframe, {:.3} aside (map units)",
+        ahead.z,
+        ahead.xy().norm()
+    );
+    assert!(off_axis_deg < 5.0, "{off_axis_deg} deg: {shot}");
+    assert!(
+        ahead.z > 0.0 && ahead.z > ahead.xy().norm(),
+        "the shot's camera is not ahead of keyframe {kid}'s: {ahead:?}"
+    );
+
+    // Its vehicle target: near home, inside the gimbal's range.
     let target = get_json(addr, &format!("/api/v1/shots/{sid}/target"));
     eprintln!("target: {target}");
     let t = &target["target"];
@@ -336,4 +367,30 @@ fn daemon_with_simulator_end_to_end() {
     );
     assert_eq!(summary.shots, posted);
     assert!(t0.elapsed() < Duration::from_secs(150));
+}
+
+/// A keyframe of a `/api/v1/keyframes` reply.
+fn kf_of(kfs: &Value, id: u64) -> Value {
+    kfs["keyframes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|k| k["id"] == id)
+        .cloned()
+        .unwrap()
+}
+
+/// Rotation and centre of a `world_from_cam` pose in the API's JSON.
+fn pose_of(p: &Value) -> (nalgebra::UnitQuaternion<f64>, nalgebra::Vector3<f64>) {
+    let f = |v: &Value, i: usize| v[i].as_f64().unwrap();
+    let (q, t) = (&p["rotation_xyzw"], &p["translation"]);
+    (
+        nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            f(q, 3),
+            f(q, 0),
+            f(q, 1),
+            f(q, 2),
+        )),
+        nalgebra::Vector3::new(f(t, 0), f(t, 1), f(t, 2)),
+    )
 }

@@ -66,7 +66,7 @@ fn sim_camera(width: u32, height: u32) -> SimCamera {
 }
 
 fn map_camera(c: &SimCamera) -> anyhow::Result<Camera> {
-    Ok(Camera::from_sim(c)?)
+    Ok(shotpilot::simulator::camera_from_sim(c)?)
 }
 
 /// The world, the renderer and the explore path.

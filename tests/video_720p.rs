@@ -141,7 +141,7 @@ fn slam_at_720p_full_versus_decimated() {
         .enumerate()
         .map(|(i, (_, p))| enc.encode(&renderer.render_noisy(p, i as u64)).unwrap())
         .collect();
-    let cam = Camera::from_sim(&cam720).unwrap();
+    let cam = shotpilot::simulator::camera_from_sim(&cam720).unwrap();
     for downscale in [1, 2] {
         let r = run(&aus, &gt, &cam, downscale);
         println!(

@@ -79,7 +79,7 @@ impl Default for GimbalParams {
 /// The GPS bias: true position = reported position + bias, each axis a
 /// first-order Gauss-Markov process (stationary standard deviation sigma,
 /// correlation time tau) starting at zero. The same model and step as the
-/// closed-loop scenario's disturbance (`shotpilot::refine::scenario`,
+/// closed-loop scenario's disturbance (`shotpilot::simulator::scenario`,
 /// which uses this type). Off (both sigmas zero) by default.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GpsBiasParams {

@@ -432,7 +432,7 @@ async fn store_shot(
     let _guard = st.actions.lock().await;
     let (status, localisation, reason) = match comp.localisation {
         Ok(l) => (ShotStatus::Localised, Some(l), None),
-        Err(r) => (ShotStatus::NotLocalised, None, Some(r)),
+        Err(r) => (ShotStatus::NotLocalised, None, Some(r.to_string())),
     };
     let shot = Shot {
         id: st.store.next_id(),

@@ -29,7 +29,9 @@ pub fn run(args: RunArgs, mut config: Config, path: Option<&Path>) -> Result<()>
     if args.no_sim {
         config.sim.enabled = false;
     }
-    config.validate(path.unwrap_or(Path::new("config.toml")))?;
+    let named = path.unwrap_or(Path::new("config.toml"));
+    config.validate(named)?;
+    shotpilot::simulator::check(&config, named)?;
     let base_dir = path
         .and_then(Path::parent)
         .map(Path::to_path_buf)

@@ -1,11 +1,11 @@
 //! `shotpilot scenario`: the closed-loop experiment in the simulator
-//! ([`shotpilot::refine::scenario`]): explore, then per trial a desired shot
+//! ([`shotpilot::simulator::scenario`]): explore, then per trial a desired shot
 //! from a hidden pose, localised, planned, uploaded, flown and refined.
 
 use anyhow::{Context, Result};
 use clap::Args;
 
-use shotpilot::refine::scenario::{self, ScenarioParams, TrialReport};
+use shotpilot::simulator::scenario::{self, ScenarioParams, TrialReport};
 
 /// Arguments of `shotpilot scenario`.
 #[derive(Args, Debug)]

@@ -64,7 +64,7 @@ pub enum DaemonError {
     Camera(#[from] crate::camera::CameraError),
     /// The simulator could not start.
     #[error("simulator: {0}")]
-    Sim(String),
+    Sim(#[from] crate::simulator::SimKeyError),
     /// The MAVLink link could not start.
     #[error("link: {0}")]
     Link(String),
@@ -110,70 +110,6 @@ pub struct Started {
     pub api_addr: SocketAddr,
 }
 
-fn sim_config(cfg: &Config, data_dir: &Path) -> Result<shotpilot_sim::app::SimConfig, DaemonError> {
-    use shotpilot_sim::autopilot::Flavour;
-    use shotpilot_sim::script::ScriptKind;
-    let s = &cfg.sim;
-    let video_listen = s
-        .video_listen
-        .parse()
-        .map_err(|e| DaemonError::Sim(format!("video_listen {:?}: {e}", s.video_listen)))?;
-    let mavlink = s
-        .mavlink
-        .parse()
-        .map_err(|e| DaemonError::Sim(format!("mavlink {:?}: {e}", s.mavlink)))?;
-    let script = match s.script.as_str() {
-        "explore" => Some(ScriptKind::Explore),
-        "hover" => Some(ScriptKind::Hover),
-        _ => None,
-    };
-    let rtp_out = s
-        .rtp_out()
-        .map_err(|e| DaemonError::Sim(format!("rtp_out: {e}")))?;
-    let flavour = if s.flavour == "ardupilot" {
-        Flavour::ArduPilot
-    } else {
-        Flavour::Px4
-    };
-    let defaults = shotpilot_sim::app::SimConfig::default();
-    let sc =
-        shotpilot_sim::app::SimConfig {
-            video_listen: Some(video_listen),
-            mavlink,
-            video_fps: s.video_fps,
-            seed: s.seed,
-            script,
-            autopilot: shotpilot_sim::autopilot::AutopilotParams {
-                flavour,
-                vehicle: shotpilot_sim::vehicle::VehicleParams {
-                    gps_bias: s.gps_bias(),
-                    ..defaults.autopilot.vehicle
-                },
-                video_stream_uri: Some(s.video_stream_uri.clone().unwrap_or_else(
-                    || match &rtp_out {
-                        Some(r) => r.uri(),
-                        None => format!("http://{video_listen}/video.mjpg"),
-                    },
-                )),
-                ..defaults.autopilot.clone()
-            },
-            capture_dir: data_dir.join("captures"),
-            truth_dir: s.truth_dir.as_ref().map(|d| data_dir.join(d)),
-            rtp_out,
-            world: s
-                .world
-                .parse()
-                .map_err(|e| DaemonError::Sim(format!("world {:?}: {e}", s.world)))?,
-            ..defaults
-        }
-        .with_realism(
-            s.realism
-                .parse()
-                .map_err(|e| DaemonError::Sim(format!("realism {:?}: {e}", s.realism)))?,
-        );
-    Ok(sc)
-}
-
 /// Run the daemon until `cancel` fires. `base_dir` resolves relative
 /// paths of the configuration; `started` receives the API address once
 /// it listens.
@@ -204,11 +140,11 @@ pub async fn run(
     // The simulator, first, so the video and the link find it.
     let sim_cancel = CancellationToken::new();
     let sim_task = if cfg.sim.enabled {
-        let sc = sim_config(&cfg, &data_dir)?;
+        let sc = crate::simulator::sim_config(&cfg, &data_dir)?;
         let c = sim_cancel.clone();
         tracing::info!(video = %cfg.sim.video_listen, mavlink = %cfg.sim.mavlink, "starting the simulator in-process");
         Some(tokio::spawn(
-            async move { shotpilot_sim::app::run(sc, c).await },
+            async move { crate::simulator::run(sc, c).await },
         ))
     } else {
         None

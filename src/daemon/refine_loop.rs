@@ -101,17 +101,106 @@ pub struct Deps {
 /// floor; None when it could not be computed).
 pub type Picture = (GrayImage, Option<GrayImage>, Option<Reachable>);
 
+/// Why the loop stopped a shot's refinement early; its Display is the
+/// `reason` recorded on the shot's mission (`details.refinement`).
+#[derive(Debug, thiserror::Error)]
+pub enum Abort {
+    /// The SLAM has no map.
+    #[error("no SLAM map")]
+    NoMap,
+    /// The shot has no pose in the map.
+    #[error("shot {shot} is not localised")]
+    NotLocalised {
+        /// The shot's id.
+        shot: String,
+    },
+    /// A photo shot (or an anchors shot whose keyframe left the map) has
+    /// no stored picture.
+    #[error("shot {shot} has no stored image")]
+    NoStoredImage {
+        /// The shot's id.
+        shot: String,
+    },
+    /// The stored picture does not decode.
+    #[error("shot image: {0}")]
+    StoredImage(#[from] image::ImageError),
+    /// The stored picture is not of the camera's size.
+    #[error(
+        "the shot's picture is {width}x{height}, the camera's images are {camera_width}x{camera_height}"
+    )]
+    PictureSize {
+        /// Its width, pixels.
+        width: u32,
+        /// Its height, pixels.
+        height: u32,
+        /// The camera's width, pixels.
+        camera_width: u32,
+        /// The camera's height, pixels.
+        camera_height: u32,
+    },
+    /// An anchors shot's keyframe left the map and its stored picture
+    /// cannot stand in.
+    #[error("keyframe {keyframe} has no image in the map, and {stored}")]
+    KeyframeGone {
+        /// The keyframe the anchors were drawn on.
+        keyframe: u64,
+        /// Why the stored picture cannot be used.
+        stored: Box<Abort>,
+    },
+    /// The anchors no longer make a desired picture.
+    #[error("desired shot: {0}")]
+    DesiredShot(#[from] crate::shot::ShotError),
+    /// A blocking task of the loop panicked or was cancelled.
+    #[error("the round failed: {0}")]
+    Task(#[from] tokio::task::JoinError),
+    /// The autopilot's flavour is not known.
+    #[error("the autopilot is neither PX4 nor ArduPilot")]
+    UnknownAutopilot,
+    /// No home position to plan from.
+    #[error("home position not known")]
+    NoHome,
+    /// The planner refused the (corrected) target.
+    #[error("plan: {0}")]
+    Plan(#[from] plan::PlanError),
+    /// The plan has no waypoint to wait for.
+    #[error("the plan has no waypoint")]
+    NoWaypoint,
+    /// The vehicle did not reach the waypoint and hold still in time.
+    #[error("waypoint {waypoint} not reached and steady within {waited_s:.0} s")]
+    NoArrival {
+        /// The waypoint's sequence number.
+        waypoint: u16,
+        /// How long the loop waited, s.
+        waited_s: f64,
+    },
+    /// No video frame came after the arrival.
+    #[error("no video frame after the arrival")]
+    NoFrame,
+    /// No georeference to turn the map pose into a target.
+    #[error("georeference: {0}")]
+    Georeference(#[from] crate::geo::GeoError),
+    /// The uploaded mission was not read back intact.
+    #[error("{0}")]
+    Upload(crate::vehicle::LinkError),
+    /// The vehicle refused to start the mission.
+    #[error("start: {0}")]
+    Start(crate::vehicle::LinkError),
+    /// The daemon stopped the loop (shutdown, another shot).
+    #[error("cancelled")]
+    Cancelled,
+}
+
 /// Desired pictures kept at most.
 const KEEP_PICTURES: usize = 8;
 
 /// Makes (or finds) the shot's desired picture and keeps it.
-fn picture_of(deps: &Deps, shot: &Shot) -> Result<Picture, String> {
+fn picture_of(deps: &Deps, shot: &Shot) -> Result<Picture, Abort> {
     if let Ok(p) = deps.pictures.lock()
         && let Some((_, pic)) = p.iter().find(|(id, _)| *id == shot.id)
     {
         return Ok(pic.clone());
     }
-    let map = deps.slam.map_snapshot().ok_or("no SLAM map")?;
+    let map = deps.slam.map_snapshot().ok_or(Abort::NoMap)?;
     let pic = desired_picture(&deps.store, &map, shot, &deps.params)?;
     if let Ok(mut p) = deps.pictures.lock() {
         p.retain(|(id, _)| *id != shot.id);
@@ -235,7 +324,7 @@ fn desired_picture(
     map: &Map,
     shot: &Shot,
     params: &Params,
-) -> Result<Picture, String> {
+) -> Result<Picture, Abort> {
     let anchors = &params.anchors;
     match &shot.source {
         ShotSource::Anchors {
@@ -250,8 +339,9 @@ fn desired_picture(
                 // The keyframe left the map (culled, or not in the map
                 // continued after a restart): the desired picture stored
                 // with the shot when it was made stands in for it.
-                let stored = stored_picture(store, map, shot).map_err(|e| {
-                    format!("keyframe {keyframe_id} has no image in the map, and {e}")
+                let stored = stored_picture(store, map, shot).map_err(|e| Abort::KeyframeGone {
+                    keyframe: *keyframe_id,
+                    stored: Box::new(e),
                 })?;
                 tracing::warn!(
                     shot = %shot.id,
@@ -261,8 +351,7 @@ fn desired_picture(
                 return Ok(stored);
             };
             let pts = a.map(|p| Point2::new(p[0], p[1]));
-            let s = desired_shot_from_anchors(&image, &pts, anchors)
-                .map_err(|e| format!("desired shot: {e}"))?;
+            let s = desired_shot_from_anchors(&image, &pts, anchors)?;
             let reachable = shot
                 .localisation
                 .as_ref()
@@ -296,27 +385,24 @@ fn desired_picture(
 
 /// The desired picture stored with the shot (a photo, or the picture an
 /// anchors shot made), at the camera's size.
-fn stored_picture(store: &ShotStore, map: &Map, shot: &Shot) -> Result<Picture, String> {
-    let jpeg = store
-        .image(&shot.id)
-        .ok_or_else(|| format!("shot {} has no stored image", shot.id))?;
-    let img = image::load_from_memory(&jpeg)
-        .map_err(|e| format!("shot image: {e}"))?
-        .to_luma8();
+fn stored_picture(store: &ShotStore, map: &Map, shot: &Shot) -> Result<Picture, Abort> {
+    let jpeg = store.image(&shot.id).ok_or_else(|| Abort::NoStoredImage {
+        shot: shot.id.clone(),
+    })?;
+    let img = image::load_from_memory(&jpeg)?.to_luma8();
     if img.dimensions() != (map.camera.width, map.camera.height) {
-        return Err(format!(
-            "the shot's picture is {}x{}, the camera's images are {}x{}",
-            img.width(),
-            img.height(),
-            map.camera.width,
-            map.camera.height
-        ));
+        return Err(Abort::PictureSize {
+            width: img.width(),
+            height: img.height(),
+            camera_width: map.camera.width,
+            camera_height: map.camera.height,
+        });
     }
     Ok((img, None, None))
 }
 
 /// Writes the session (and an abort reason, if any) into the stored shot.
-async fn save_rounds(deps: &Deps, shot_id: &str, session: &Session, abort: Option<&str>) {
+async fn save_rounds(deps: &Deps, shot_id: &str, session: &Session, abort: Option<&Abort>) {
     let Some(mut shot) = deps.store.get(shot_id) else {
         tracing::warn!(shot = %shot_id, "refinement: the shot is gone");
         return;
@@ -327,7 +413,7 @@ async fn save_rounds(deps: &Deps, shot_id: &str, session: &Session, abort: Optio
     };
     record_rounds(m, session);
     if let Some(why) = abort {
-        record_abort(m, why);
+        record_abort(m, &why.to_string());
     }
     let t = session.target();
     m.target_lat_lon_alt = Some([
@@ -393,26 +479,20 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
     };
     let flavour = deps.link.telemetry.vehicle.borrow().flavour;
     let Some(flavour) = flavour else {
-        save_rounds(
-            deps,
-            &id,
-            &session,
-            Some("the autopilot is neither PX4 nor ArduPilot"),
-        )
-        .await;
+        save_rounds(deps, &id, &session, Some(&Abort::UnknownAutopilot)).await;
         return;
     };
     let Some(home) = home_of(&deps.geo) else {
-        save_rounds(deps, &id, &session, Some("home position not known")).await;
+        save_rounds(deps, &id, &session, Some(&Abort::NoHome)).await;
         return;
     };
     let mut wp = match plan::plan(session.target(), &home, flavour, &deps.plan)
-        .map_err(|e| e.to_string())
-        .and_then(|items| waypoint_seq(&items).ok_or_else(|| "no waypoint".to_string()))
+        .map_err(Abort::from)
+        .and_then(|items| waypoint_seq(&items).ok_or(Abort::NoWaypoint))
     {
         Ok(w) => w,
         Err(e) => {
-            save_rounds(deps, &id, &session, Some(&format!("plan: {e}"))).await;
+            save_rounds(deps, &id, &session, Some(&e)).await;
             return;
         }
     };
@@ -423,7 +503,7 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
         let arrived = tokio::select! {
             _ = cancel.cancelled() => {
                 tracing::info!(shot = %id, "refinement: cancelled");
-                save_rounds(deps, &id, &session, Some("cancelled")).await;
+                save_rounds(deps, &id, &session, Some(&Abort::Cancelled)).await;
                 return;
             }
             a = wait_arrival(deps, wp, &target) => a,
@@ -440,7 +520,7 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
         let before = session.clone();
         let step = tokio::select! {
             _ = cancel.cancelled() => {
-                save_rounds(deps, &id, &before, Some("cancelled")).await;
+                save_rounds(deps, &id, &before, Some(&Abort::Cancelled)).await;
                 return;
             }
             s = look(deps, session, &shot, &home, arrived_at) => s,
@@ -484,7 +564,7 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
         };
         let started = tokio::select! {
             _ = cancel.cancelled() => {
-                save_rounds(deps, &id, &session, Some("cancelled")).await;
+                save_rounds(deps, &id, &session, Some(&Abort::Cancelled)).await;
                 return;
             }
             r = fly(deps, &next, &home, flavour, &cancel) => r,
@@ -502,16 +582,16 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
 
 /// The session of a started shot: its pose, desired picture and the
 /// target its mission flies.
-async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Session, String> {
+async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Session, Abort> {
     let map_from_desired = shot
         .localisation
         .as_ref()
         .and_then(|l| l.world_from_cam.to_isometry())
-        .ok_or_else(|| format!("shot {} is not localised", shot.id))?;
+        .ok_or_else(|| Abort::NotLocalised {
+            shot: shot.id.clone(),
+        })?;
     let (d, s) = (deps.clone(), shot.clone());
-    let picture = tokio::task::spawn_blocking(move || picture_of(&d, &s))
-        .await
-        .map_err(|e| e.to_string())??;
+    let picture = tokio::task::spawn_blocking(move || picture_of(&d, &s)).await??;
     let (image, mask, reachable) = picture;
     let session = Session::new(
         image,
@@ -554,7 +634,7 @@ fn distance_to(t: &Target, lat_deg: f64, lon_deg: f64, rel_alt_m: f64) -> (f64, 
 /// in the telemetry from the previous flight, and an upload to a vehicle
 /// in mission mode restarts the mission at once, so the report alone may
 /// be stale or already past. Returns the arrival time.
-async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, String> {
+async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, Abort> {
     let p = &deps.params;
     let tel = &deps.link.telemetry;
     let mut det = ArrivalDetector::new(p.refine.arrival, wp, target.gimbal_pitch_deg);
@@ -564,10 +644,10 @@ async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, 
     loop {
         tick.tick().await;
         if t0.elapsed() > p.max_flight {
-            return Err(format!(
-                "waypoint {wp} not reached and steady within {:.0} s",
-                p.max_flight.as_secs_f64()
-            ));
+            return Err(Abort::NoArrival {
+                waypoint: wp,
+                waited_s: p.max_flight.as_secs_f64(),
+            });
         }
         let fresh = |r: Instant| r.elapsed() <= p.max_telemetry_age;
         let progress = (*tel.progress.borrow()).map(|s| s.value);
@@ -598,7 +678,7 @@ async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, 
 }
 
 /// The session after the round, and the step or why there was none.
-type Looked = (Session, Result<Step, String>);
+type Looked = (Session, Result<Step, Abort>);
 
 /// The vehicle's reported position now (fresh telemetry only), local NED
 /// metres around home.
@@ -623,7 +703,7 @@ async fn collect_frames(
     frame_ltp: &LocalFrame,
     home: &Home,
     arrived: Instant,
-) -> Result<Vec<(Arc<Frame>, Option<Vector3<f64>>)>, String> {
+) -> Result<Vec<(Arc<Frame>, Option<Vector3<f64>>)>, Abort> {
     let p = &deps.params;
     let m = p.refine.measure;
     let want = m.frames.max(1);
@@ -645,7 +725,7 @@ async fn collect_frames(
         }
     }
     if frames.is_empty() {
-        return Err("no video frame after the arrival".into());
+        return Err(Abort::NoFrame);
     }
     Ok(frames)
 }
@@ -672,11 +752,16 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
         .as_ref()
         .and_then(|l| l.world_from_cam.to_isometry())
     else {
-        return (session, Err("shot not localised".into()));
+        return (
+            session,
+            Err(Abort::NotLocalised {
+                shot: shot.id.clone(),
+            }),
+        );
     };
     let alignment = match deps.geo.target(&map_from_desired) {
         Ok((_, a)) => a,
-        Err(e) => return (session, Err(format!("georeference: {e}"))),
+        Err(e) => return (session, Err(Abort::Georeference(e))),
     };
     let mount = deps.geo.params().mount.clone();
     let fence = deps.plan.fence;
@@ -687,7 +772,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
     let joined = tokio::task::spawn_blocking(move || {
         let mut session = session;
         let Some(map) = slam.map_snapshot() else {
-            return (session, Err("no SLAM map".to_string()));
+            return (session, Err(Abort::NoMap));
         };
         let ctx = Context {
             map: &map,
@@ -713,7 +798,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
     .await;
     match joined {
         Ok(r) => r,
-        Err(e) => (backup, Err(format!("the round failed: {e}"))),
+        Err(e) => (backup, Err(Abort::Task(e))),
     }
 }
 
@@ -762,21 +847,18 @@ async fn fly(
     home: &Home,
     flavour: Flavour,
     cancel: &CancellationToken,
-) -> Result<u16, String> {
-    let items = plan::plan(target, home, flavour, &deps.plan).map_err(|e| format!("plan: {e}"))?;
-    let wp = waypoint_seq(&items).ok_or("the plan has no waypoint")?;
+) -> Result<u16, Abort> {
+    let items = plan::plan(target, home, flavour, &deps.plan)?;
+    let wp = waypoint_seq(&items).ok_or(Abort::NoWaypoint)?;
     let _guard = deps.actions.lock().await;
     if cancel.is_cancelled() {
-        return Err("cancelled".into());
+        return Err(Abort::Cancelled);
     }
     deps.link
         .upload_verified(&items, flavour)
         .await
-        .map_err(|e| e.to_string())?;
-    deps.link
-        .start_mission()
-        .await
-        .map_err(|e| format!("start: {e}"))?;
+        .map_err(Abort::Upload)?;
+    deps.link.start_mission().await.map_err(Abort::Start)?;
     tracing::info!(
         lat = target.lat_deg,
         lon = target.lon_deg,

@@ -15,7 +15,7 @@ use crate::camera::Camera;
 use crate::shot::localize::{Localization, LocalizeParams, assumed_camera, localize_with_camera};
 use crate::shot::record::{Localisation, PhotoIntrinsics, PoseJson};
 use crate::shot::request::{
-    ShotComputation, ShotComputer, ShotRequestError, WarpOnly, anchor_shot,
+    NotLocalised, ShotComputation, ShotComputer, ShotRequestError, WarpOnly, anchor_shot,
 };
 use crate::slam::{KeyFrameId, Map};
 
@@ -39,7 +39,7 @@ impl LocalizingShots {
         camera: &Camera,
         shot: &GrayImage,
         mask: Option<&GrayImage>,
-    ) -> Result<Localisation, String> {
+    ) -> Result<Localisation, NotLocalised> {
         match localize_with_camera(map, camera, shot, mask, None, &self.params) {
             Ok(Localization::Localized(p)) => {
                 tracing::info!(
@@ -57,9 +57,9 @@ impl LocalizingShots {
             }
             Ok(Localization::NotLocalized { reason }) => {
                 tracing::info!(%reason, "shot not localised");
-                Err(format!("not localised: {reason}"))
+                Err(NotLocalised::Rejected(reason))
             }
-            Err(e) => Err(format!("not localised: {e}")),
+            Err(e) => Err(NotLocalised::Failed(e)),
         }
     }
 }
@@ -73,7 +73,7 @@ impl ShotComputer for LocalizingShots {
     ) -> Result<ShotComputation, ShotRequestError> {
         let Some(map) = self.slam.map_snapshot() else {
             let mut out = self.warp.shot_from_anchors(keyframe_id, anchors, size)?;
-            out.localisation = Err("not localised: no map yet".into());
+            out.localisation = Err(NotLocalised::NoMap);
             return Ok(out);
         };
         // The keyframe from the same snapshot the shot is localised in.
@@ -100,7 +100,7 @@ impl ShotComputer for LocalizingShots {
         let Some(map) = self.slam.map_snapshot() else {
             return Ok(ShotComputation {
                 desired: Some(photo.clone()),
-                localisation: Err("not localised: no map yet".into()),
+                localisation: Err(NotLocalised::NoMap),
             });
         };
         let (w, h) = photo.dimensions();

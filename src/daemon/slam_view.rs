@@ -95,7 +95,7 @@ pub fn make_processor(
                         moved_to = ?start.set_aside,
                         "the saved map cannot be continued, starting a fresh map: {reason}"
                     );
-                    start.error = Some(reason);
+                    start.error = Some(reason.to_string());
                 }
             }
         } else {
@@ -165,6 +165,42 @@ pub fn make_processor(
     })
 }
 
+/// Why a saved map cannot be continued (its Display is the status's
+/// `slam.start.error`).
+#[derive(Debug, thiserror::Error)]
+pub enum ContinueError {
+    /// The file cannot be read or is not a valid map.
+    #[error(transparent)]
+    File(#[from] slam::mapfile::MapFileError),
+    /// The map's camera is not `[camera]`.
+    #[error(
+        "the map was built with another camera ({map_width}x{map_height}, fx {map_fx}) than [camera] ({width}x{height}, fx {fx})"
+    )]
+    OtherCamera {
+        /// The map camera's width, pixels.
+        map_width: u32,
+        /// Its height, pixels.
+        map_height: u32,
+        /// Its focal length, pixels.
+        map_fx: f64,
+        /// `[camera]`'s width, pixels.
+        width: u32,
+        /// Its height, pixels.
+        height: u32,
+        /// Its focal length, pixels.
+        fx: f64,
+    },
+    /// Fewer than two keyframes.
+    #[error("the map holds {keyframes} keyframes, too few to relocalise in")]
+    TooFewKeyframes {
+        /// Keyframes in the map.
+        keyframes: usize,
+    },
+    /// The SLAM could not start on the map.
+    #[error(transparent)]
+    Slam(#[from] slam::SlamError),
+}
+
 /// Load the map file and start a SLAM on it; the reason when it cannot be
 /// used.
 fn continue_on(
@@ -172,28 +208,27 @@ fn continue_on(
     camera: &Camera,
     params: &slam::Params,
     vocabulary: &Arc<crate::bow::Vocabulary>,
-) -> Result<(Slam, slam::mapfile::KeyframeImages), String> {
-    let (map, images) = slam::mapfile::load_with_images(path).map_err(|e| e.to_string())?;
+) -> Result<(Slam, slam::mapfile::KeyframeImages), ContinueError> {
+    let (map, images) = slam::mapfile::load_with_images(path)?;
     if map.camera != *camera {
-        return Err(format!(
-            "the map was built with another camera ({}x{}, fx {}) than [camera] ({}x{}, fx {})",
-            map.camera.width,
-            map.camera.height,
-            map.camera.fx,
-            camera.width,
-            camera.height,
-            camera.fx
-        ));
+        return Err(ContinueError::OtherCamera {
+            map_width: map.camera.width,
+            map_height: map.camera.height,
+            map_fx: map.camera.fx,
+            width: camera.width,
+            height: camera.height,
+            fx: camera.fx,
+        });
     }
     if map.keyframe_count() < 2 {
-        return Err(format!(
-            "the map holds {} keyframes, too few to relocalise in",
-            map.keyframe_count()
-        ));
+        return Err(ContinueError::TooFewKeyframes {
+            keyframes: map.keyframe_count(),
+        });
     }
-    Slam::from_map(map, params.clone(), vocabulary.clone())
-        .map(|s| (s, images))
-        .map_err(|e| e.to_string())
+    Ok((
+        Slam::from_map(map, params.clone(), vocabulary.clone())?,
+        images,
+    ))
 }
 
 /// The SLAM on the SLAM thread.

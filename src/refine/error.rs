@@ -261,7 +261,7 @@ mod tests {
     }
 
     fn camera_of(c: &SimCamera) -> Camera {
-        Camera::from_sim(c).unwrap()
+        crate::simulator::camera_from_sim(c).unwrap()
     }
 
     fn view() -> Isometry3<f64> {

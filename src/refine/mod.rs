@@ -17,14 +17,10 @@
 //! * [`session`]: one shot's loop as a state machine (arrival → measure
 //!   the live frames → decide → localise them → filtered offset → corrected
 //!   target), whose rounds are the record the API shows.
-//! * [`scenario`]: the closed-loop experiment in the simulator (explore
-//!   flight → SLAM map and georeference → desired shots from hidden poses →
-//!   localise, plan, upload, fly, refine), run synchronously in simulated
-//!   time.
 //!
-//! Everything here is synchronous (no tokio); the scenario drives the
-//! simulator's autopilot in-process through the upload state machine of
-//! [`crate::mission::upload`].
+//! Everything here is synchronous (no tokio) and knows nothing of the
+//! simulator: the closed-loop experiment in it (`shotpilot scenario`) is
+//! `crate::simulator::scenario`, an upper floor that drives these parts.
 
 pub mod arrival;
 pub mod controller;
@@ -32,7 +28,6 @@ pub mod error;
 pub mod loop_params;
 pub mod measure;
 pub mod reachable;
-pub mod scenario;
 pub mod session;
 
 pub use arrival::{ArrivalDetector, ArrivalParams};

@@ -137,7 +137,25 @@ pub struct ShotComputation {
     /// The desired-shot image (the picture the operator asked for).
     pub desired: Option<GrayImage>,
     /// The localisation, or why there is none.
-    pub localisation: Result<Localisation, String>,
+    pub localisation: Result<Localisation, NotLocalised>,
+}
+
+/// Why a shot has no localisation; its Display is the shot's `reason` in
+/// the API.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NotLocalised {
+    /// This computer only makes the desired picture ([`WarpOnly`]).
+    #[error("shot localisation is not available in this build")]
+    Unavailable,
+    /// The SLAM has no map yet.
+    #[error("not localised: no map yet")]
+    NoMap,
+    /// Localisation ran and found no reliable pose.
+    #[error("not localised: {0}")]
+    Rejected(crate::shot::NotLocalizedReason),
+    /// Localisation refused its input.
+    #[error("not localised: {0}")]
+    Failed(crate::shot::ShotError),
 }
 
 /// Computes desired shots. The daemon plugs the real shot service in
@@ -325,8 +343,6 @@ impl<K: KeyframeImages> WarpOnly<K> {
     }
 }
 
-const NO_LOCALISATION: &str = "shot localisation is not available in this build";
-
 impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
     fn shot_from_anchors(
         &self,
@@ -337,7 +353,7 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         let shot = self.anchor_shot(keyframe_id, anchors, size)?;
         Ok(ShotComputation {
             desired: Some(shot.into_picture()),
-            localisation: Err(NO_LOCALISATION.into()),
+            localisation: Err(NotLocalised::Unavailable),
         })
     }
 
@@ -349,7 +365,7 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         self.check_photo(photo, intrinsics)?;
         Ok(ShotComputation {
             desired: Some(photo.clone()),
-            localisation: Err(NO_LOCALISATION.into()),
+            localisation: Err(NotLocalised::Unavailable),
         })
     }
 }

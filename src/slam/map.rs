@@ -178,13 +178,6 @@ pub enum Violation {
     },
 }
 
-/// The map file's reader reports its errors as text (`slam::mapfile`).
-impl From<MapError> for String {
-    fn from(e: MapError) -> String {
-        e.to_string()
-    }
-}
-
 /// The map behind its lock. A panic in another thread while holding the
 /// lock leaves the map as it was between two whole operations: keep going
 /// with it.

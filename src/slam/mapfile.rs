@@ -35,7 +35,9 @@ use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vect
 use crate::camera::{Camera, Distortion};
 use crate::features::KeyPoint;
 
-use super::map::{CulledKeyFrame, KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
+use super::map::{
+    CulledKeyFrame, KeyFrame, KeyFrameId, Map, MapError, MapPoint, PointId, ScaleInfo,
+};
 use crate::matching::{Bounds, FeatureGrid};
 
 /// The format version this build writes (it also reads version 1).
@@ -77,11 +79,107 @@ pub enum MapFileError {
         /// The file.
         path: PathBuf,
         /// What is wrong.
-        reason: String,
+        reason: Corruption,
     },
     /// A keyframe image could not be encoded.
     #[error("cannot encode keyframe image: {0}")]
     Encode(String),
+}
+
+/// What is wrong inside a damaged map file (the reason of
+/// [`MapFileError::Corrupt`]); byte offsets count from the payload's start
+/// (after the 28-byte header) except in the header's own errors.
+#[derive(Debug, thiserror::Error)]
+pub enum Corruption {
+    /// Shorter than the 28-byte header.
+    #[error("header truncated")]
+    HeaderTruncated,
+    /// The payload's length is not the header's.
+    #[error("payload is {found} bytes, header says {expected}")]
+    PayloadLength {
+        /// Bytes after the header.
+        found: usize,
+        /// Bytes the header announces.
+        expected: usize,
+    },
+    /// The payload's FNV-1a checksum is not the header's.
+    #[error("checksum mismatch")]
+    Checksum,
+    /// A length that overflows the address space.
+    #[error("length overflow")]
+    LengthOverflow,
+    /// The data ends inside a field.
+    #[error("truncated at byte {at}")]
+    Truncated {
+        /// Where the field starts.
+        at: usize,
+    },
+    /// A NaN where a number is stored.
+    #[error("NaN at byte {at}")]
+    NaN {
+        /// Where the number starts.
+        at: usize,
+    },
+    /// A count larger than the remaining bytes could hold.
+    #[error("count {count} at byte {at} exceeds the file")]
+    Count {
+        /// The count.
+        count: usize,
+        /// Where it is stored.
+        at: usize,
+    },
+    /// A pose whose quaternion is not of unit norm.
+    #[error("pose quaternion is not unit")]
+    NotUnitQuaternion,
+    /// The stored camera is not a valid camera.
+    #[error(transparent)]
+    Camera(#[from] crate::camera::CameraError),
+    /// The ORB scale pyramid is impossible.
+    #[error("bad scale levels ({scale_factor}, {levels})")]
+    ScaleLevels {
+        /// Scale between levels.
+        scale_factor: f64,
+        /// Number of levels.
+        levels: usize,
+    },
+    /// A keypoint on a level the pyramid does not have.
+    #[error("keypoint octave {octave} >= {levels} levels")]
+    Octave {
+        /// The keypoint's level.
+        octave: u8,
+        /// Levels of the pyramid.
+        levels: usize,
+    },
+    /// A keyframe image that does not decode.
+    #[error("keyframe {keyframe} image: {source}")]
+    KeyframeImage {
+        /// The keyframe.
+        keyframe: u32,
+        /// The decoder's error.
+        source: image::ImageError,
+    },
+    /// A keyframe image of another size than the camera's.
+    #[error(
+        "keyframe {keyframe} image is {width}x{height}, the camera's {camera_width}x{camera_height}"
+    )]
+    KeyframeImageSize {
+        /// The keyframe.
+        keyframe: u32,
+        /// Its image's width, pixels.
+        width: u32,
+        /// Its image's height, pixels.
+        height: u32,
+        /// The camera's width, pixels.
+        camera_width: u32,
+        /// The camera's height, pixels.
+        camera_height: u32,
+    },
+    /// Bytes after the last section.
+    #[error("{0} trailing bytes")]
+    TrailingBytes(usize),
+    /// The parts do not make a consistent map.
+    #[error(transparent)]
+    Map(#[from] MapError),
 }
 
 /// The stored bytes of keyframe images (JPEG or PNG), each known to decode
@@ -95,10 +193,8 @@ pub struct KeyframeImages {
 
 /// The grey image that stored image bytes decode to (JPEG or PNG; colour
 /// is converted as the video ingest converts it).
-pub fn decode_image(bytes: &[u8]) -> Result<GrayImage, String> {
-    image::load_from_memory(bytes)
-        .map(|i| i.to_luma8())
-        .map_err(|e| e.to_string())
+pub fn decode_image(bytes: &[u8]) -> Result<GrayImage, image::ImageError> {
+    image::load_from_memory(bytes).map(|i| i.to_luma8())
 }
 
 /// A lossless PNG of a grey image.
@@ -215,15 +311,15 @@ struct R<'a> {
     pos: usize,
 }
 
-type RResult<T> = Result<T, String>;
+type RResult<T> = Result<T, Corruption>;
 
 impl<'a> R<'a> {
     fn take(&mut self, n: usize) -> RResult<&'a [u8]> {
-        let end = self.pos.checked_add(n).ok_or("length overflow")?;
+        let end = self.pos.checked_add(n).ok_or(Corruption::LengthOverflow)?;
         let s = self
             .data
             .get(self.pos..end)
-            .ok_or_else(|| format!("truncated at byte {}", self.pos))?;
+            .ok_or(Corruption::Truncated { at: self.pos })?;
         self.pos = end;
         Ok(s)
     }
@@ -250,7 +346,7 @@ impl<'a> R<'a> {
         b.copy_from_slice(self.take(8)?);
         let v = f64::from_le_bytes(b);
         if v.is_nan() {
-            return Err(format!("NaN at byte {}", self.pos - 8));
+            return Err(Corruption::NaN { at: self.pos - 8 });
         }
         Ok(v)
     }
@@ -263,10 +359,10 @@ impl<'a> R<'a> {
         let n = self.u32()? as usize;
         let remaining = self.data.len() - self.pos;
         if n.saturating_mul(min_item_bytes.max(1)) > remaining {
-            return Err(format!(
-                "count {n} at byte {} exceeds the file",
-                self.pos - 4
-            ));
+            return Err(Corruption::Count {
+                count: n,
+                at: self.pos - 4,
+            });
         }
         Ok(n)
     }
@@ -277,7 +373,7 @@ impl<'a> R<'a> {
         }
         let q = Quaternion::new(v[6], v[3], v[4], v[5]);
         if (q.norm() - 1.0).abs() > 1e-6 {
-            return Err("pose quaternion is not unit".into());
+            return Err(Corruption::NotUnitQuaternion);
         }
         Ok(Isometry3::from_parts(
             Translation3::new(v[0], v[1], v[2]),
@@ -451,7 +547,7 @@ pub fn decode_with_images(
     bytes: &[u8],
     path: &Path,
 ) -> Result<(Map, KeyframeImages), MapFileError> {
-    let corrupt = |reason: String| MapFileError::Corrupt {
+    let corrupt = |reason: Corruption| MapFileError::Corrupt {
         path: path.to_owned(),
         reason,
     };
@@ -461,7 +557,7 @@ pub fn decode_with_images(
         });
     }
     if bytes.len() < 28 {
-        return Err(corrupt("header truncated".into()));
+        return Err(corrupt(Corruption::HeaderTruncated));
     }
     let mut hdr = R {
         data: bytes,
@@ -479,13 +575,13 @@ pub fn decode_with_images(
     let sum = hdr.u64().map_err(&corrupt)?;
     let payload = &bytes[28..];
     if payload.len() != len {
-        return Err(corrupt(format!(
-            "payload is {} bytes, header says {len}",
-            payload.len()
-        )));
+        return Err(corrupt(Corruption::PayloadLength {
+            found: payload.len(),
+            expected: len,
+        }));
     }
     if fnv1a(payload) != sum {
-        return Err(corrupt("checksum mismatch".into()));
+        return Err(corrupt(Corruption::Checksum));
     }
     parse_payload(payload).map_err(corrupt)
 }
@@ -511,12 +607,14 @@ fn parse_payload(payload: &[u8]) -> RResult<(Map, KeyframeImages)> {
             p2: v[7],
             k3: v[8],
         },
-    )
-    .map_err(|e| e.to_string())?;
+    )?;
     let scale_factor = r.f64()?;
     let n_levels = r.len(0)?;
     if !(scale_factor > 1.0 && (1..=32).contains(&n_levels)) {
-        return Err(format!("bad scale levels ({scale_factor}, {n_levels})"));
+        return Err(Corruption::ScaleLevels {
+            scale_factor,
+            levels: n_levels,
+        });
     }
     let scale = ScaleInfo::new(scale_factor, n_levels);
     let covis_th = r.u32()?;
@@ -541,7 +639,10 @@ fn parse_payload(payload: &[u8]) -> RResult<(Map, KeyframeImages)> {
             }
             let octave = r.u8()?;
             if octave as usize >= n_levels {
-                return Err(format!("keypoint octave {octave} >= {n_levels} levels"));
+                return Err(Corruption::Octave {
+                    octave,
+                    levels: n_levels,
+                });
             }
             keypoints.push(KeyPoint {
                 x: f[0],
@@ -569,14 +670,18 @@ fn parse_payload(payload: &[u8]) -> RResult<(Map, KeyframeImages)> {
         let n_image = r.len(1)?;
         let image = if n_image > 0 {
             let stored = r.take(n_image)?;
-            let img = decode_image(stored).map_err(|e| format!("keyframe {} image: {e}", id.0))?;
+            let img = decode_image(stored).map_err(|source| Corruption::KeyframeImage {
+                keyframe: id.0,
+                source,
+            })?;
             if img.dimensions() != (width, height) {
-                return Err(format!(
-                    "keyframe {} image is {}x{}, the camera's {width}x{height}",
-                    id.0,
-                    img.width(),
-                    img.height()
-                ));
+                return Err(Corruption::KeyframeImageSize {
+                    keyframe: id.0,
+                    width: img.width(),
+                    height: img.height(),
+                    camera_width: width,
+                    camera_height: height,
+                });
             }
             images.bytes.insert(id, Arc::new(stored.to_vec()));
             Some(Arc::new(img))
@@ -646,7 +751,7 @@ fn parse_payload(payload: &[u8]) -> RResult<(Map, KeyframeImages)> {
         ));
     }
     if r.pos != payload.len() {
-        return Err(format!("{} trailing bytes", payload.len() - r.pos));
+        return Err(Corruption::TrailingBytes(payload.len() - r.pos));
     }
     let map = Map::from_parts(camera, scale, covis_th, keyframes, points, culled)?;
     map.check_invariants()?;

@@ -4,10 +4,10 @@
 //! from four anchors on a keyframe that a small pan/tilt of that keyframe's
 //! camera would give), localised in the map, converted to a vehicle target,
 //! planned, uploaded to the simulated autopilot and flown; on arrival, once
-//! the view is steady, a few live frames ([`super::MeasureParams`], each
+//! the view is steady, a few live frames ([`crate::refine::MeasureParams`], each
 //! with the position the vehicle reports then) are compared with the
-//! desired shot ([`super::shot_error`]), localised, and a corrected mission is uploaded
-//! ([`super::correct`]) until the shot error is under the threshold or the
+//! desired shot ([`crate::refine::shot_error`]), localised, and a corrected mission is uploaded
+//! ([`crate::refine::correct`]) until the shot error is under the threshold or the
 //! round budget is spent.
 //!
 //! Everything runs synchronously in simulated time, with the daemon's own
@@ -41,10 +41,6 @@ use shotpilot_sim::script::{Level, Script, ScriptKind, ScriptParams};
 use shotpilot_sim::vehicle::{GpsBiasParams, VehicleDisturbances};
 use shotpilot_sim::world::{World, WorldParams};
 
-use super::{
-    ArrivalDetector, ArrivalParams, Context, LiveFrame, Params, RoundRecord, Session, Step, Stop,
-    pose_difference,
-};
 use crate::camera::Camera;
 use crate::geo::{
     self, GeoAlignment, Geodetic, GimbalAngles, LeverArmFrame, LocalFrame, MountParams,
@@ -52,6 +48,10 @@ use crate::geo::{
 };
 use crate::mission::plan::{self, Flavour, Home, MissionItem};
 use crate::mission::upload::{self, Peers, Uploader};
+use crate::refine::{
+    ArrivalDetector, ArrivalParams, Context, LiveFrame, Params, RoundRecord, Session, Step, Stop,
+    pose_difference,
+};
 use crate::shot::{
     AnchorParams, Localization, LocalizeParams, desired_shot_from_anchors, frame_corners, localize,
 };
@@ -283,6 +283,25 @@ impl ScenarioParams {
     }
 }
 
+/// Why a trial's flight failed (the trial's `reason`, a result).
+#[derive(Debug, thiserror::Error)]
+pub enum FlightError {
+    /// The mission upload state machine failed.
+    #[error("upload: {0}")]
+    Upload(#[from] crate::mission::upload::MissionError),
+    /// The upload did not finish within its message budget.
+    #[error("upload: did not finish")]
+    UploadUnfinished,
+    /// The vehicle did not reach the waypoint and hold still in time.
+    #[error("waypoint {waypoint} not reached and steady within {waited_s} s")]
+    NoArrival {
+        /// The waypoint's sequence number.
+        waypoint: u16,
+        /// Simulated seconds waited.
+        waited_s: f64,
+    },
+}
+
 /// Errors that stop the scenario (a failing trial is a result, not an error).
 #[derive(Debug, thiserror::Error)]
 pub enum ScenarioError {
@@ -474,7 +493,7 @@ pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
 }
 
 fn camera_of(c: &SimCamera) -> Result<Camera, crate::camera::CameraError> {
-    Camera::from_sim(c)
+    super::camera_from_sim(c)
 }
 
 const GCS: MavHeader = MavHeader {
@@ -627,7 +646,7 @@ impl Sim {
     }
 
     /// Uploads a mission through the upload state machine, in-process.
-    fn upload(&mut self, items: &[MissionItem]) -> Result<upload::UploadReport, String> {
+    fn upload(&mut self, items: &[MissionItem]) -> Result<upload::UploadReport, FlightError> {
         let peers = Peers {
             own_system: 255,
             own_component: 190,
@@ -647,8 +666,7 @@ impl Sim {
             upload::Params::default(),
             Instant::now(),
             &mut out,
-        )
-        .map_err(|e| e.to_string())?;
+        )?;
         for _ in 0..10_000 {
             if up.is_done() {
                 break;
@@ -671,8 +689,8 @@ impl Sim {
         self.reached = None;
         match up.take_outcome() {
             Some(Ok(r)) => Ok(r),
-            Some(Err(e)) => Err(e.to_string()),
-            None => Err("upload did not finish".into()),
+            Some(Err(e)) => Err(e.into()),
+            None => Err(FlightError::UploadUnfinished),
         }
     }
 
@@ -692,7 +710,7 @@ impl Sim {
         gimbal_pitch_deg: f64,
         arrival: &ArrivalParams,
         p: &SteadyParams,
-    ) -> Result<f64, String> {
+    ) -> Result<f64, FlightError> {
         let t0 = self.t;
         let mut det = ArrivalDetector::new(*arrival, wp_seq, gimbal_pitch_deg);
         while self.t - t0 < p.max_flight_s {
@@ -706,10 +724,10 @@ impl Sim {
                 return Ok(self.t - t0);
             }
         }
-        Err(format!(
-            "waypoint not reached and steady within {} s",
-            p.max_flight_s
-        ))
+        Err(FlightError::NoArrival {
+            waypoint: wp_seq,
+            waited_s: p.max_flight_s,
+        })
     }
 }
 
@@ -1035,7 +1053,7 @@ fn run_trial(
     );
     // An anchors shot knows its floor, as in the daemon.
     if let Some((id, h)) = hidden.anchors_on
-        && let Ok(r) = super::reachable_from_anchors(
+        && let Ok(r) = crate::refine::reachable_from_anchors(
             &ex.map,
             crate::slam::KeyFrameId(id),
             &h,
@@ -1069,7 +1087,7 @@ fn run_trial(
             return finish(rep, sim, "no_waypoint".into());
         };
         if let Err(e) = sim.upload(&items) {
-            rep.reason = Some(format!("upload: {e}"));
+            rep.reason = Some(e.to_string());
             return finish(rep, sim, "upload_failed".into());
         }
         if sim.ap.mode() != Mode::Mission {
@@ -1084,7 +1102,7 @@ fn run_trial(
         ) {
             Ok(s) => s,
             Err(e) => {
-                rep.reason = Some(e);
+                rep.reason = Some(e.to_string());
                 return finish(rep, sim, "not_arrived".into());
             }
         };
@@ -1118,7 +1136,8 @@ fn run_trial(
             return finish(rep, sim, "no_round".into());
         };
         let judge = |f: &dyn Fn(&crate::refine::PoseDifference) -> f64| {
-            super::measure::median(&judged.iter().map(f).collect::<Vec<_>>()).unwrap_or(f64::NAN)
+            crate::refine::measure::median(&judged.iter().map(f).collect::<Vec<_>>())
+                .unwrap_or(f64::NAN)
         };
         let (position_m, yaw_deg, pitch_deg, rotation_deg) = (
             judge(&|d| d.position_m),
