@@ -234,6 +234,9 @@ pub struct VehicleStatus {
     /// Gimbal protocol v2: the manager's last status and what the link did
     /// about control.
     pub gimbal: VehicleGimbal,
+    /// The geofence every target must lie in (circle around home,
+    /// altitude band).
+    pub fence: Option<crate::mission::plan::Fence>,
 }
 
 /// The gimbal part of the vehicle status.
@@ -269,6 +272,9 @@ pub struct VehiclePosition {
     pub rel_alt_m: f64,
     /// Heading, degrees (None when unknown).
     pub heading_deg: Option<f32>,
+    /// North, east, down from home, metres (WGS84 local NED at home; None
+    /// before home is known). The page's map draws the vehicle here.
+    pub ned_m: Option<[f64; 3]>,
 }
 
 /// Mission progress as the vehicle last reported it.

@@ -323,7 +323,21 @@ impl VehicleView for LinkVehicle {
                 lon_deg: p.value.lon_deg,
                 rel_alt_m: p.value.rel_alt_m,
                 heading_deg: p.value.heading_deg,
+                ned_m: self.geo.home().map(|h| {
+                    let frame = crate::geo::LocalFrame::new(crate::geo::Geodetic {
+                        lat_deg: h.lat_deg,
+                        lon_deg: h.lon_deg,
+                        alt_m: h.alt_amsl_m,
+                    });
+                    let n = frame.geodetic_to_ned(&crate::geo::Geodetic {
+                        lat_deg: p.value.lat_deg,
+                        lon_deg: p.value.lon_deg,
+                        alt_m: p.value.alt_amsl_m,
+                    });
+                    [n.x, n.y, n.z]
+                }),
             }),
+            fence: Some(self.plan.fence),
             georeference: self.geo.status(),
             gimbal: VehicleGimbal {
                 manager: manager.map(|m| GimbalManagerView {
