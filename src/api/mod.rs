@@ -717,8 +717,9 @@ async fn stop_vehicle(State(st): State<AppState>) -> Result<Json<StopView>, ApiE
     let mut marked = None;
     if let Some(id) = flown {
         let store = st.store.clone();
-        let shot = tokio::task::spawn_blocking(move || {
-            store.update(&id, |s| {
+        let (shot, changed) = tokio::task::spawn_blocking(move || {
+            let mut changed = false;
+            let shot = store.update(&id, |s| {
                 if let Some(m) = s.mission.as_mut()
                     && matches!(
                         m.state,
@@ -737,13 +738,14 @@ async fn stop_vehicle(State(st): State<AppState>) -> Result<Json<StopView>, ApiE
                     if let Some(d) = m.details.as_object_mut() {
                         d.insert("stop".into(), ack);
                     }
+                    changed = true;
                 }
-            })
+            })?;
+            Ok::<_, crate::shot::store::StoreError>((shot, changed))
         })
         .await??;
-        marked = shot
-            .filter(|s| s.mission.as_ref().map(|m| m.state) == Some(MissionState::Stopped))
-            .map(|s| s.id);
+        // Only a shot this stop changed (a second stop marks nothing new).
+        marked = shot.filter(|_| changed).map(|s| s.id);
     }
     tracing::info!(shot = ?marked, mode = %out.ack.mode, "vehicle stopped by the operator");
     Ok(Json(StopView {
