@@ -11,7 +11,7 @@ use image::{GrayImage, Luma};
 use serde_json::{Value, json};
 use shotpilot::api::{
     self, ApiParams, AppState, BoxFuture, KeyframeInfo, MapView, MissionProgressView, SlamStatus,
-    SlamView, VehicleError, VehicleMissionView, VehicleStatus, VehicleView,
+    SlamView, StopOutcome, VehicleError, VehicleMissionView, VehicleStatus, VehicleView,
 };
 use shotpilot::shot::record::{
     Localisation, MissionRecord, MissionState, PhotoIntrinsics, PoseJson, Shot,
@@ -106,6 +106,9 @@ impl ShotComputer for LocalisingOnKf1 {
 struct FakeVehicle {
     uploads: Mutex<Vec<String>>,
     started: Mutex<Vec<String>>,
+    /// Answer a stop with MAV_RESULT_DENIED.
+    refuse_stop: std::sync::atomic::AtomicBool,
+    stops: Mutex<u32>,
 }
 
 impl VehicleView for FakeVehicle {
@@ -163,6 +166,28 @@ impl VehicleView for FakeVehicle {
                 items: vec![item(0, 22), item(1, 16)],
                 retries: 0,
                 seconds: 0.2,
+            })
+        })
+    }
+    fn stop<'a>(&'a self, _reason: &'a str) -> BoxFuture<'a, Result<StopOutcome, VehicleError>> {
+        Box::pin(async move {
+            *self.stops.lock().unwrap() += 1;
+            if self.refuse_stop.load(std::sync::atomic::Ordering::SeqCst) {
+                return Err(VehicleError::Failed {
+                    reason:
+                        "the vehicle did not hold: vehicle rejected command 176: MAV_RESULT_DENIED"
+                            .into(),
+                });
+            }
+            let flying = self.started.lock().unwrap().last().cloned();
+            Ok(StopOutcome {
+                ack: shotpilot::vehicle::HoldAck {
+                    command: "MAV_CMD_DO_SET_MODE",
+                    mode: "AUTO.LOITER".into(),
+                    result: "MAV_RESULT_ACCEPTED",
+                },
+                refinement_cancelled: flying.clone(),
+                flying,
             })
         })
     }
@@ -1029,4 +1054,74 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
     let mut st = json_of(&http(a, "GET", "/api/v1/status", &[], b"").2);
     st["slam"]["keyframes"] = json!("two");
     assert!(check_schema(&doc, &reply_schema("get", "/status", "200"), &st, "$").is_err());
+}
+
+/// `POST /vehicle/stop`: needs the token; a refusal is 502 and changes no
+/// shot; an acknowledged stop marks the started shot `stopped` with the
+/// reason and the acknowledgement; without a vehicle, 503.
+#[test]
+fn stop_holds_and_marks_the_flown_shot_stopped() {
+    let dir = tempfile::tempdir().unwrap();
+    let srv = start(dir.path(), Some("sekrit"), true);
+    let a = srv.addr;
+    let auth = ("Authorization", "Bearer sekrit");
+    let ct = ("Content-Type", "application/json");
+    assert_error(
+        &http(a, "POST", "/api/v1/vehicle/stop", &[], b""),
+        401,
+        "unauthorized",
+    );
+    assert_eq!(*srv.vehicle.stops.lock().unwrap(), 0);
+    let r = http(a, "POST", "/api/v1/shots", &[auth, ct], &good_shot(1));
+    assert_eq!(r.0, 201);
+    let id = json_of(&r.2)["id"].as_str().unwrap().to_owned();
+    for step in ["mission", "start"] {
+        let r = http(
+            a,
+            "POST",
+            &format!("/api/v1/shots/{id}/{step}"),
+            &[auth],
+            b"",
+        );
+        assert_eq!(r.0, 200, "{step}: {}", String::from_utf8_lossy(&r.2));
+    }
+    // Refused: an error naming the result; the shot is still started.
+    srv.vehicle
+        .refuse_stop
+        .store(true, std::sync::atomic::Ordering::SeqCst);
+    let r = http(a, "POST", "/api/v1/vehicle/stop", &[auth], b"");
+    assert_error(&r, 502, "vehicle_failed");
+    assert!(String::from_utf8_lossy(&r.2).contains("MAV_RESULT_DENIED"));
+    let s = json_of(&http(a, "GET", &format!("/api/v1/shots/{id}"), &[], b"").2);
+    assert_eq!(s["mission"]["state"], "started");
+    // Acknowledged.
+    srv.vehicle
+        .refuse_stop
+        .store(false, std::sync::atomic::Ordering::SeqCst);
+    let r = http(a, "POST", "/api/v1/vehicle/stop", &[auth], b"");
+    assert_eq!(r.0, 200, "{}", String::from_utf8_lossy(&r.2));
+    let v = json_of(&r.2);
+    assert_eq!(v["stopped"], true);
+    assert_eq!(v["ack"], "MAV_RESULT_ACCEPTED");
+    assert_eq!(v["mode"], "AUTO.LOITER");
+    assert_eq!(v["shot"], id.as_str());
+    assert_eq!(v["refinement_cancelled"], id.as_str());
+    let s = json_of(&http(a, "GET", &format!("/api/v1/shots/{id}"), &[], b"").2);
+    assert_eq!(s["mission"]["state"], "stopped", "{s}");
+    let stop = &s["mission"]["details"]["stop"];
+    assert_eq!(stop["reason"], "stopped by the operator");
+    assert_eq!(stop["ack"], "MAV_RESULT_ACCEPTED");
+    assert_eq!(stop["at_unix"], v["at_unix"]);
+    // A second stop holds again but marks nothing new.
+    let v = json_of(&http(a, "POST", "/api/v1/vehicle/stop", &[auth], b"").2);
+    assert!(v["shot"].is_null(), "{v}");
+    assert_eq!(*srv.vehicle.stops.lock().unwrap(), 3);
+    // No vehicle link: 503.
+    let dir2 = tempfile::tempdir().unwrap();
+    let srv2 = start(dir2.path(), None, false);
+    assert_error(
+        &http(srv2.addr, "POST", "/api/v1/vehicle/stop", &[], b""),
+        503,
+        "no_vehicle",
+    );
 }

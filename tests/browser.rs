@@ -5,7 +5,11 @@
 //! keyframe, submits it and sees the result; the shots panel shows each
 //! shot's refinement rounds and stop reason (two refined shots are in the
 //! data directory before the daemon starts), and the status line says the
-//! damaged map file found there was not used; a screenshot is saved.
+//! damaged map file found there was not used; once georeferenced, the world
+//! map draws the vehicle within 1 m of the simulator's truth, a keyframe
+//! clicked on the map opens in the editor, and Stop during the scripted
+//! flight is acknowledged and the vehicle holds (the truth). A screenshot
+//! of each stage is saved beside the main one.
 //!
 //! Needs `node`, `npm ci` in `tests/browser` and Chromium; `.ci/run` sets
 //! them up. Environment: `SHOTPILOT_CHROMIUM` (default `/usr/bin/chromium`),
@@ -222,8 +226,11 @@ fn operator_page_in_headless_chromium() {
     // A damaged map file: the daemon starts a fresh map, keeps the file
     // aside, and the page says so.
     std::fs::write(dir.path().join("data/map.spmap"), b"not a map").unwrap();
-    let cfg = daemon_support::sim_config();
+    let mut cfg = daemon_support::sim_config();
+    // The simulator's truth: camera poses (local NED at home) per frame.
+    cfg.sim.truth_dir = Some("truth".into());
     cfg.validate(Path::new("test")).unwrap();
+    let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
 
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -345,6 +352,69 @@ fn operator_page_in_headless_chromium() {
     assert_eq!(seen["shot_image"], serde_json::json!([640, 480]));
     let png = std::fs::metadata(&shot_png).expect("the screenshot was saved");
     assert!(png.len() > 10_000, "screenshot of {} bytes", png.len());
+    for st in seen["stages"].as_array().unwrap() {
+        let p = st.as_str().unwrap();
+        let len = std::fs::metadata(p).map_or(0, |m| m.len());
+        assert!(len > 10_000, "stage screenshot {p}: {len} bytes");
+        eprintln!("stage screenshot: {p}");
+    }
+
+    // The map's vehicle marker against the simulator's truth (the camera's
+    // centre, 13 cm from the vehicle's), each sample at the truth frame
+    // nearest its time.
+    let truth = shotpilot_sim::dataset::read_truth_frames(&truth_dir.join("frames.txt"))
+        .expect("the simulator's truth frames");
+    let at = |t: f64| -> [f64; 2] {
+        let (_, p) = truth
+            .iter()
+            .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+            .expect("truth frames");
+        [p.translation.vector.x, p.translation.vector.y]
+    };
+    let samples = seen["vehicle_samples"].as_array().unwrap();
+    assert!(samples.len() >= 4, "{samples:?}");
+    let mut worst: f64 = 0.0;
+    for smp in samples {
+        let t = smp["t"].as_f64().unwrap();
+        let [n, e] = at(t);
+        let d = (smp["n"].as_f64().unwrap() - n).hypot(smp["e"].as_f64().unwrap() - e);
+        worst = worst.max(d);
+    }
+    let last_t = samples.last().unwrap()["t"].as_f64().unwrap();
+    let d_last = {
+        let s = samples.last().unwrap();
+        let [n, e] = at(last_t);
+        (s["n"].as_f64().unwrap() - n).hypot(s["e"].as_f64().unwrap() - e)
+    };
+    // Held: where the truth is at the end against where it was when the
+    // stop was acknowledged, and its drift over the last 4 s.
+    let stop_t = seen["stop"]["at_unix"].as_f64().unwrap();
+    let dist = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]);
+    let from_stop = dist(at(last_t), at(stop_t));
+    let drift = dist(at(last_t), at(last_t - 4.0));
+    eprintln!(
+        "map marker vs truth: last {d_last:.2} m, worst of {} samples over {:.1} s after the stop {worst:.2} m; \
+         truth: {from_stop:.2} m from where it was at the stop's ACK, drift over the last 4 s {drift:.3} m",
+        samples.len(),
+        last_t - stop_t
+    );
+    assert!(
+        d_last < 1.0,
+        "the map's vehicle is {d_last:.2} m from the truth"
+    );
+    assert!(drift < 0.2, "the vehicle drifts {drift:.3} m while holding");
+    assert!(
+        from_stop < 1.5,
+        "the vehicle holds {from_stop:.2} m from where it was when the stop was acknowledged"
+    );
+    // The stopped flight is the scripted survey (no shot flies): the hold
+    // mode is in the status.
+    let st = get_json(addr, "/api/v1/status");
+    let mode = st["vehicle"]["mode"].as_str().unwrap_or("");
+    assert!(
+        mode == "AUTO.LOITER" || mode == "LOITER",
+        "vehicle mode after the stop: {mode}"
+    );
 
     cancel.cancel();
     rt.block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })

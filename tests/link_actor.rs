@@ -286,3 +286,92 @@ async fn reconnects_when_tcp_peer_goes_away() -> anyhow::Result<()> {
     cancel.cancel();
     Ok(())
 }
+
+/// The operator's stop: DO_SET_MODE to each flavour's hold mode (PX4
+/// AUTO.LOITER = custom main 4 / sub 3, ArduPilot LOITER = 5), answered
+/// only once the vehicle's COMMAND_ACK came, with what was acknowledged.
+#[tokio::test(start_paused = true)]
+async fn stop_is_a_hold_acknowledged_by_the_vehicle() -> anyhow::Result<()> {
+    for (habit, mode, want) in [
+        (Habit::Px4, "AUTO.LOITER", [1.0, 4.0, 3.0]),
+        (Habit::ArduPilot, "LOITER", [1.0, 5.0, 0.0]),
+    ] {
+        let cancel = CancellationToken::new();
+        let (addr, fake) = start_fake(FakeConfig::clean(habit), &cancel);
+        let (link, _task) = vehicle::spawn(
+            params(format!("udpout:{addr}")),
+            upload::Params::default(),
+            cancel.clone(),
+        )?;
+        link.wait_for_vehicle(Duration::from_secs(5)).await?;
+        let ack = link.hold().await?;
+        assert_eq!(ack.command, "MAV_CMD_DO_SET_MODE");
+        assert_eq!(ack.mode, mode, "{habit:?}");
+        assert_eq!(ack.result, "MAV_RESULT_ACCEPTED");
+        let sent: Vec<[f32; 7]> = fake
+            .lock()
+            .expect("lock")
+            .command_params
+            .iter()
+            .filter(|(c, _)| *c == MavCmd::MAV_CMD_DO_SET_MODE)
+            .map(|(_, p)| *p)
+            .collect();
+        assert_eq!(sent.len(), 1, "{habit:?}: {sent:?}");
+        assert_eq!(sent[0][..3], want, "{habit:?}");
+        cancel.cancel();
+    }
+    Ok(())
+}
+
+/// A stop the vehicle refuses, or never acknowledges, is an error naming
+/// the command and the result (never a silent success).
+#[tokio::test(start_paused = true)]
+async fn stop_refused_or_unacknowledged_is_an_error() -> anyhow::Result<()> {
+    use mavlink::dialects::common::MavResult;
+    static DENIED: [(MavCmd, Option<MavResult>); 1] = [(
+        MavCmd::MAV_CMD_DO_SET_MODE,
+        Some(MavResult::MAV_RESULT_DENIED),
+    )];
+    static SILENT: [(MavCmd, Option<MavResult>); 1] = [(MavCmd::MAV_CMD_DO_SET_MODE, None)];
+    for (results, denied) in [(&DENIED[..], true), (&SILENT[..], false)] {
+        let cancel = CancellationToken::new();
+        let cfg = FakeConfig {
+            command_results: results,
+            ..FakeConfig::clean(Habit::Px4)
+        };
+        let (addr, fake) = start_fake(cfg, &cancel);
+        let (link, _task) = vehicle::spawn(
+            params(format!("udpout:{addr}")),
+            upload::Params::default(),
+            cancel.clone(),
+        )?;
+        link.wait_for_vehicle(Duration::from_secs(5)).await?;
+        let err = link.hold().await.expect_err("no hold without an ACCEPTED");
+        let sends = fake
+            .lock()
+            .expect("lock")
+            .commands
+            .iter()
+            .filter(|(c, _)| *c == MavCmd::MAV_CMD_DO_SET_MODE)
+            .count();
+        if denied {
+            assert_eq!(
+                err,
+                LinkError::CommandRejected {
+                    command: 176,
+                    result: "MAV_RESULT_DENIED".into()
+                }
+            );
+            assert_eq!(sends, 1);
+        } else {
+            let LinkError::CommandTimeout { command, attempts } = err else {
+                panic!("expected a timeout, got {err:?}");
+            };
+            assert_eq!(command, 176);
+            assert_eq!(sends as u32, attempts);
+            assert!(attempts >= 2, "retried: {attempts}");
+        }
+        cancel.cancel();
+    }
+    Ok(())
+}

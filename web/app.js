@@ -6,6 +6,7 @@
 const API = '/api/v1';
 const $ = (id) => document.getElementById(id);
 const state = {
+  status: null, shots: [], mapProject: null,
   keyframes: [], kf: null, kfImage: null, anchors: null, drag: -1,
   shot: null, map: null, srcPixels: null,
 };
@@ -31,13 +32,33 @@ async function api(method, path, body) {
 }
 
 // ---- status (server-sent events) -----------------------------------------
+function badge(id, level, text) {
+  const b = $(id);
+  b.dataset.level = level; b.textContent = text; b.hidden = false;
+}
 function showStatus(s) {
   const v = s.video || {}, c = v.counters || {}, sl = s.slam || {}, ve = s.vehicle || {};
-  $('status').textContent =
-    `SLAM ${sl.state || '?'} · kf ${sl.keyframes ?? 0} · pts ${sl.points ?? 0} · inliers ${sl.last_inliers ?? 0}` +
-    ` | video ${(v.received_fps || 0).toFixed(1)} fps` +
-    ` | vehicle ${ve.configured === false ? 'none' : (ve.connected ? (ve.mode || 'connected') + (ve.armed ? ' ARMED' : '') : 'not connected')}` +
-    geoText(ve.georeference) + mapStartText(sl.map_start) + errorsText(s.errors);
+  state.status = s;
+  // Badges: link, GPS fix, battery (when sent), SLAM state, georeference.
+  if (ve.configured === false) badge('b-link', 'warn', 'no vehicle link');
+  else if (ve.connected) badge('b-link', 'ok', `${ve.flavour || 'vehicle'} · ${ve.mode || '?'}${ve.armed ? ' · ARMED' : ''}`);
+  else badge('b-link', 'bad', 'vehicle not heard');
+  if (ve.position) badge('b-gps', 'ok', `GPS fix · ${ve.position.rel_alt_m.toFixed(1)} m`);
+  else badge('b-gps', ve.configured === false ? 'warn' : 'bad', 'no GPS position');
+  if (ve.battery && ve.battery.remaining_pct != null) {
+    const pct = ve.battery.remaining_pct;
+    badge('b-battery', pct > 30 ? 'ok' : pct > 15 ? 'warn' : 'bad', `battery ${pct.toFixed(0)} %`);
+  }
+  const slamLevel = sl.state === 'tracking' ? 'ok' : (sl.state === 'initializing' ? 'warn' : 'bad');
+  badge('b-slam', slamLevel, `SLAM ${sl.state || '?'} · ${sl.keyframes ?? 0} kf · ${sl.points ?? 0} pts`);
+  const g = ve.georeference || {};
+  if (g.state === 'ok') badge('b-geo', 'ok', `georef ok · rms ${(g.rms_m * 100).toFixed(1)} cm`);
+  else badge('b-geo', g.state === 'waiting' ? 'warn' : 'bad', `georef ${g.state || 'none'}`);
+  $('b-geo').title = geoText(g);
+  // The line beside the badges: only what needs the operator's attention.
+  const msgs = (mapStartText(sl.map_start) + errorsText(s.errors) + (g.state && g.state !== 'ok' ? geoText(g) : ''))
+    .split(' | ').map((x) => x.trim()).filter(Boolean);
+  $('status').textContent = msgs.join(' · ');
   $('status').dataset.errors = String((s.errors || []).length);
   const src = v.source || {};
   $('videostats').textContent =
@@ -47,9 +68,8 @@ function showStatus(s) {
     (v.width ? ` · ${v.width}x${v.height}` : '') +
     (src.last_error ? ` · ${src.last_error}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
+  drawMap();
 }
-// Writes that failed (map file, georeference, shot records) and are not
-// repaired yet: the daemon keeps running, but what it learns is not kept.
 function errorsText(errors) {
   if (!errors || !errors.length) return '';
   return errors.map((e) => ` | ERROR writing ${e.what}: ${e.message}`).join('');
@@ -75,16 +95,131 @@ function geoText(g) {
 function connectEvents() {
   const es = new EventSource(API + '/events');
   es.addEventListener('status', (e) => { try { showStatus(JSON.parse(e.data)); } catch (_) {} });
-  es.onerror = () => { $('status').textContent = 'daemon unreachable, retrying…'; };
+  es.onerror = () => { $('status').textContent = 'daemon unreachable, retrying…'; badge('b-link', 'bad', 'daemon unreachable'); };
 }
 
-// ---- map top view ---------------------------------------------------------
-// Camera axes x right, y down, z forward; the map frame is the first
-// camera's. Top view: x to the right, z upwards on the canvas.
+// ---- map --------------------------------------------------------------------
+// With a georeference: a world map, north up, local NED metres at home
+// (east to the right, north up), with a scale bar; the SLAM map goes
+// through the georeference's ned_from_map (p_ned = s R p_map + t).
+// Without one: the SLAM map's top view (camera axes x right, y down, z
+// forward; x to the right, z up on the canvas), and the reason.
+const view = { zoom: 1, pan: [0, 0], fit: true };
+function quatRotate(q, p) {
+  const [x, y, z, w] = q;
+  const tx = 2 * (y * p[2] - z * p[1]), ty = 2 * (z * p[0] - x * p[2]), tz = 2 * (x * p[1] - y * p[0]);
+  return [p[0] + w * tx + (y * tz - z * ty), p[1] + w * ty + (z * tx - x * tz), p[2] + w * tz + (x * ty - y * tx)];
+}
+function nedFromMap(g) {
+  const t = g && g.state === 'ok' && g.ned_from_map;
+  if (!t) return null;
+  return (p) => { const r = quatRotate(t.rotation_xyzw, p); return [t.scale * r[0] + t.translation[0], t.scale * r[1] + t.translation[1], t.scale * r[2] + t.translation[2]]; };
+}
+// Flat-earth offset from home, metres north/east (for mission items, which
+// carry lat/lon only; under a centimetre off over the geofence's hundreds of metres).
+function nedOfLatLon(home, lat, lon) {
+  const R = 6378137.0, la = home.lat_deg * Math.PI / 180;
+  return [(lat - home.lat_deg) * Math.PI / 180 * R, (lon - home.lon_deg) * Math.PI / 180 * R * Math.cos(la)];
+}
+function shotsOnMap() {
+  const out = [];
+  for (const s of state.shots || []) {
+    const d = s.mission && s.mission.details;
+    const rt = d && d.refinement && d.refinement.target;
+    const t = d && d.target;
+    if (!t || !t.p_ned_vehicle) continue;
+    out.push({ id: s.id, p: t.p_ned_vehicle, yaw: t.yaw_deg, pitch: t.gimbal_pitch_deg, items: d.planned_items || [], state: s.mission.state, refined: rt });
+  }
+  return out;
+}
 function drawMap() {
   const cv = $('map'), g = cv.getContext('2d');
   g.fillStyle = '#0b0d10'; g.fillRect(0, 0, cv.width, cv.height);
-  const m = state.map;
+  const m = state.map, s = state.status || {}, ve = s.vehicle || {}, geo = ve.georeference || {};
+  const toNed = nedFromMap(geo);
+  if (!toNed) { $('mapmode').textContent = `(SLAM view: no georeference${geo.reason ? ' — ' + geo.reason : geo.state ? ' — ' + geo.state : ''})`; cv.dataset.mode = 'slam'; delete cv.dataset.vehicleNed; drawSlamView(cv, g, m); return; }
+  $('mapmode').textContent = '(north up, metres from home)';
+  $('maplegend').textContent = 'green: home and geofence · grey: map points · blue: keyframes (click one to choose it) · yellow: vehicle · red: target cameras, viewing direction and aim on the ground · dashed: mission path';
+  cv.dataset.mode = 'world';
+  // world (north, east) -> canvas
+  const pts = (m ? m.points : []).map((p) => toNed(p));
+  const kfs = (m ? m.trajectory : []).map((p) => toNed(p));
+  // the keyframes the gallery lists (ids known), for drawing and choosing
+  const kfList = state.keyframes.map((k) => ({ id: k.id, p: toNed(k.world_from_cam.translation) }));
+  const shots = shotsOnMap();
+  const pos = ve.position, veh = pos && pos.ned_m;
+  if (view.fit) {
+    const ns = [0], es = [0];
+    for (const k of kfs) { ns.push(k[0]); es.push(k[1]); }
+    for (const t of shots) { ns.push(t.p[0]); es.push(t.p[1]); }
+    if (veh) { ns.push(veh[0]); es.push(veh[1]); }
+    const span = Math.max(Math.max(...ns) - Math.min(...ns), Math.max(...es) - Math.min(...es), 20) * 1.3;
+    view.zoom = Math.min(cv.width, cv.height) / span;
+    view.pan = [(Math.max(...ns) + Math.min(...ns)) / 2, (Math.max(...es) + Math.min(...es)) / 2];
+  }
+  const sc = view.zoom, [cn, ce] = view.pan;
+  const P = (n, e) => [cv.width / 2 + (e - ce) * sc, cv.height / 2 - (n - cn) * sc];
+  state.mapProject = { P, kfs: kfList };
+  // geofence and home
+  const fence = ve.fence;
+  const [hu, hv] = P(0, 0);
+  if (fence) { g.strokeStyle = '#3fae5a'; g.setLineDash([6, 4]); g.beginPath(); g.arc(hu, hv, fence.radius_m * sc, 0, 2 * Math.PI); g.stroke(); g.setLineDash([]); }
+  g.fillStyle = '#3fae5a'; g.fillRect(hu - 5, hv - 5, 10, 10);
+  g.font = '11px sans-serif'; g.fillText('H', hu + 7, hv - 7);
+  // map points (downsampled by the API) and keyframe trajectory
+  g.fillStyle = '#8a9199';
+  for (const p of pts) { const [u, v] = P(p[0], p[1]); g.fillRect(u, v, 1.5, 1.5); }
+  g.strokeStyle = '#4da3ff'; g.lineWidth = 1.5; g.beginPath();
+  kfs.forEach((k, i) => { const [u, v] = P(k[0], k[1]); i ? g.lineTo(u, v) : g.moveTo(u, v); });
+  g.stroke();
+  kfList.forEach((k) => {
+    const [u, v] = P(k.p[0], k.p[1]);
+    const sel = state.kf && k.id === state.kf.id;
+    g.fillStyle = sel ? '#ffd24d' : '#4da3ff'; g.beginPath(); g.arc(u, v, sel ? 5 : 3, 0, 2 * Math.PI); g.fill();
+  });
+  // shots: target camera, viewing direction, aim on the ground, mission path
+  for (const t of shots) {
+    const [u, v] = P(t.p[0], t.p[1]);
+    const home = geo.home || (ve.georeference && ve.georeference.home);
+    if (home && t.items.length) {
+      g.strokeStyle = '#ff9a9a'; g.setLineDash([4, 4]); g.beginPath(); g.moveTo(hu, hv);
+      for (const it of t.items) {
+        if (!(it.command === 16 || it.command === 22) || !it.x || !it.y) continue;
+        const [n, e] = nedOfLatLon(home, it.x / 1e7, it.y / 1e7); const [a, b] = P(n, e); g.lineTo(a, b);
+      }
+      g.stroke(); g.setLineDash([]);
+    }
+    const yaw = (t.yaw || 0) * Math.PI / 180, pitch = (t.pitch || 0) * Math.PI / 180;
+    const alt = -t.p[2];
+    // where the optical axis meets the ground (home's altitude)
+    const reach = pitch < -0.02 ? Math.min(alt / Math.tan(-pitch), 500) : 30;
+    const [gu, gv] = P(t.p[0] + reach * Math.cos(yaw), t.p[1] + reach * Math.sin(yaw));
+    g.strokeStyle = '#ff4d4d'; g.lineWidth = 1.5; g.beginPath(); g.moveTo(u, v); g.lineTo(gu, gv); g.stroke();
+    g.beginPath(); g.arc(gu, gv, 4, 0, 2 * Math.PI); g.stroke();
+    g.fillStyle = '#ff4d4d'; g.beginPath(); g.arc(u, v, 5, 0, 2 * Math.PI); g.fill();
+    g.fillText(t.id.replace('shot-', '#'), u + 7, v + 4);
+  }
+  // vehicle: position and heading
+  if (veh) {
+    const [u, v] = P(veh[0], veh[1]);
+    const h = ((pos.heading_deg ?? 0) * Math.PI) / 180;
+    g.save(); g.translate(u, v); g.rotate(h);
+    g.fillStyle = '#ffd24d'; g.beginPath(); g.moveTo(0, -10); g.lineTo(6, 7); g.lineTo(0, 3); g.lineTo(-6, 7); g.closePath(); g.fill();
+    g.restore();
+    // Hook for tests and tools: the drawn position, metres north, east.
+    cv.dataset.vehicleNed = `${veh[0].toFixed(3)},${veh[1].toFixed(3)}`;
+    cv.dataset.vehicleCanvas = `${u.toFixed(1)},${v.toFixed(1)}`;
+  } else delete cv.dataset.vehicleNed;
+  // scale bar: 1, 2 or 5 x 10^k metres, about a fifth of the width
+  const want = cv.width / 5 / sc, k = Math.pow(10, Math.floor(Math.log10(want)));
+  const len = [1, 2, 5, 10].map((f) => f * k).filter((l) => l <= want).pop() || k;
+  g.strokeStyle = '#e4e6e8'; g.lineWidth = 2; g.beginPath();
+  g.moveTo(10, cv.height - 12); g.lineTo(10 + len * sc, cv.height - 12); g.stroke();
+  g.fillStyle = '#e4e6e8'; g.fillText(`${len} m`, 12, cv.height - 16);
+  cv.dataset.scaleBarM = String(len);
+  g.fillText('N ↑', cv.width - 28, 14);
+}
+function drawSlamView(cv, g, m) {
   if (!m) return;
   const target = state.shot && state.shot.localisation ? state.shot.localisation.world_from_cam.translation : null;
   const xs = [], zs = [];
@@ -102,11 +237,45 @@ function drawMap() {
   g.strokeStyle = '#4da3ff'; g.lineWidth = 2; g.beginPath();
   m.trajectory.forEach((t, i) => { const [u, v] = P(t[0], t[2]); i ? g.lineTo(u, v) : g.moveTo(u, v); });
   g.stroke();
+  state.mapProject = { P, kfs: state.keyframes.map((k) => ({ id: k.id, p: [k.world_from_cam.translation[0], k.world_from_cam.translation[2]] })) };
   if (target) {
     const [u, v] = P(target[0], target[2]);
     g.fillStyle = '#ff4d4d'; g.beginPath(); g.arc(u, v, 6, 0, 2 * Math.PI); g.fill();
   }
 }
+// pan (drag), zoom (wheel, + / -, keyboard), click a keyframe to choose it
+(function mapControls() {
+  const cv = $('map');
+  let drag = null;
+  const canvasXY = (e) => { const r = cv.getBoundingClientRect(); return [(e.clientX - r.left) * cv.width / r.width, (e.clientY - r.top) * cv.height / r.height]; };
+  const zoomBy = (f) => { view.fit = false; view.zoom *= f; drawMap(); };
+  const panBy = (du, dv) => { view.fit = false; view.pan = [view.pan[0] + dv / view.zoom, view.pan[1] - du / view.zoom]; drawMap(); };
+  cv.addEventListener('pointerdown', (e) => { drag = { at: canvasXY(e), moved: 0 }; cv.setPointerCapture(e.pointerId); });
+  cv.addEventListener('pointermove', (e) => {
+    if (!drag) return;
+    const [u, v] = canvasXY(e), du = u - drag.at[0], dv = v - drag.at[1];
+    drag.moved += Math.abs(du) + Math.abs(dv); drag.at = [u, v];
+    if (cv.dataset.mode === 'world' && drag.moved > 3) panBy(-du, -dv);
+  });
+  cv.addEventListener('pointerup', (e) => {
+    const d = drag; drag = null;
+    if (!d || d.moved > 3) return;
+    const [u, v] = canvasXY(e), pr = state.mapProject;
+    if (!pr) return;
+    let best = null, bd = 10;
+    for (const k of pr.kfs) { const [a, b] = pr.P(k.p[0], k.p[1]); const dd = Math.hypot(a - u, b - v); if (dd < bd) { bd = dd; best = k.id; } }
+    const kf = best != null && state.keyframes.find((x) => x.id === best);
+    if (kf) chooseKeyframe(kf);
+  });
+  cv.addEventListener('wheel', (e) => { if (cv.dataset.mode !== 'world') return; e.preventDefault(); zoomBy(e.deltaY < 0 ? 1.25 : 0.8); }, { passive: false });
+  cv.addEventListener('keydown', (e) => {
+    const step = 40, keys = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowUp: [0, -step], ArrowDown: [0, step] };
+    if (keys[e.key]) { e.preventDefault(); panBy(...keys[e.key]); } else if (e.key === '+' || e.key === '=') zoomBy(1.25); else if (e.key === '-') zoomBy(0.8); else if (e.key === '0') { view.fit = true; drawMap(); }
+  });
+  $('zoomin').addEventListener('click', () => zoomBy(1.25));
+  $('zoomout').addEventListener('click', () => zoomBy(0.8));
+  $('zoomfit').addEventListener('click', () => { view.fit = true; drawMap(); });
+})();
 async function refreshMap() {
   try { state.map = await api('GET', '/map?max_points=5000'); drawMap(); } catch (_) {}
 }
@@ -139,6 +308,10 @@ async function refreshKeyframes() {
       cap.textContent = `#${kf.id}`;
       fig.append(img, cap);
       fig.addEventListener('click', () => chooseKeyframe(kf));
+      fig.tabIndex = 0;
+      fig.setAttribute('role', 'button');
+      fig.setAttribute('aria-label', `keyframe ${kf.id}`);
+      fig.addEventListener('keydown', (e) => { if (e.key === 'Enter' || e.key === ' ') { e.preventDefault(); chooseKeyframe(kf); } });
       gal.append(fig);
     }
   } catch (_) {
@@ -307,7 +480,8 @@ function showShot(s) {
   }
   $('result').dataset.shotId = s.id;
   showResult(lines.join('\n'), false, s.status);
-  if (s.has_image) $('shotimg').src = `${API}/shots/${s.id}/image.jpg?t=${Date.now()}`;
+  // No image element shown (no broken-image placeholder) until there is one.
+  if (s.has_image) { $('shotimg').src = `${API}/shots/${s.id}/image.jpg?t=${Date.now()}`; $('shotimg').hidden = false; } else { $('shotimg').hidden = true; }
   $('upload').disabled = !l;
   $('start').disabled = !s.mission;
   for (const c of document.querySelectorAll('.shotcard')) c.classList.toggle('selected', c.dataset.id === s.id);
@@ -424,6 +598,7 @@ async function refreshShots() {
   shotsBusy = true;
   try {
     const r = await api('GET', '/shots');
+    state.shots = r.shots;
     const text = JSON.stringify(r.shots);
     if (text !== shotsSeen) {
       shotsSeen = text;
@@ -441,6 +616,24 @@ async function refreshShots() {
   } catch (_) {
   } finally { shotsBusy = false; }
 }
+
+// ---- stop -------------------------------------------------------------------------
+// Holds the vehicle and cancels the refinement loop; the daemon replies once
+// the vehicle acknowledged (or says why it did not).
+$('stop').addEventListener('click', async () => {
+  const out = $('stopresult');
+  $('stop').disabled = true;
+  out.dataset.state = 'busy'; out.textContent = 'stopping…';
+  try {
+    const r = await api('POST', '/vehicle/stop');
+    out.dataset.state = 'ok';
+    out.textContent = `holding: ${r.mode} acknowledged (${r.ack})` + (r.shot ? ` · ${r.shot} stopped` : '') + (r.refinement_cancelled ? ' · refinement cancelled' : '');
+    out.dataset.ack = r.ack; out.dataset.mode = r.mode;
+    refreshShots();
+  } catch (e) {
+    out.dataset.state = 'error'; out.textContent = `stop failed: ${e.message}`;
+  } finally { $('stop').disabled = false; }
+});
 
 // ---- start ------------------------------------------------------------------------
 connectEvents();

@@ -14,8 +14,9 @@ pub use error::ApiError;
 use error::body_rejection;
 pub use views::{
     AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, MapSaved, MapStart, MapView,
-    MissionProgressView, ShotTarget, SlamStatus, SlamView, TargetView, TrackedFrame, VehicleError,
-    VehicleGimbal, VehicleMissionView, VehiclePosition, VehicleStatus, VehicleView, WriteFailure,
+    MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome, StopView, TargetView,
+    TrackedFrame, VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition, VehicleStatus,
+    VehicleView, WriteFailure,
 };
 
 use std::sync::Arc;
@@ -106,6 +107,7 @@ pub fn router(state: AppState) -> Router {
         .route("/shots/photo", post(create_shot_from_photo))
         .route("/shots/{id}/mission", post(upload_mission))
         .route("/shots/{id}/start", post(start_mission))
+        .route("/vehicle/stop", post(stop_vehicle))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_token));
     let api = Router::new()
         .route("/openapi.json", get(openapi))
@@ -689,4 +691,71 @@ async fn progress(
     Ok(Json(
         json!({"shot": shot.id, "mission": shot.mission, "progress": v.progress()}),
     ))
+}
+
+/// The reason a stop records on the shot.
+const STOP_REASON: &str = "stopped by the operator";
+
+/// Stops the vehicle where it is (hold), cancels the refinement loop, and
+/// marks the shot it was flying `stopped`. Replies after the vehicle's
+/// COMMAND_ACK; a refused or unacknowledged command is a 502 `vehicle_failed`.
+/// Not serialised behind other mission actions: a stop never waits for an
+/// upload.
+async fn stop_vehicle(State(st): State<AppState>) -> Result<Json<StopView>, ApiError> {
+    let v = vehicle(&st)?;
+    let out = v.stop(STOP_REASON).await?;
+    let at = unix_now();
+    let ack = json!({
+        "reason": STOP_REASON,
+        "at_unix": at,
+        "command": out.ack.command,
+        "mode": out.ack.mode,
+        "ack": out.ack.result,
+    });
+    // The shot flown: the one whose loop ran, else the one started last.
+    let flown = out.refinement_cancelled.clone().or(out.flying.clone());
+    let mut marked = None;
+    if let Some(id) = flown {
+        let store = st.store.clone();
+        let (shot, changed) = tokio::task::spawn_blocking(move || {
+            let mut changed = false;
+            let shot = store.update(&id, |s| {
+                if let Some(m) = s.mission.as_mut()
+                    && matches!(
+                        m.state,
+                        MissionState::Started | MissionState::Active | MissionState::OnVehicle
+                    )
+                {
+                    m.state = MissionState::Stopped;
+                    if !m.details.is_object() {
+                        let previous = std::mem::take(&mut m.details);
+                        m.details = if previous.is_null() {
+                            json!({})
+                        } else {
+                            json!({ "previous": previous })
+                        };
+                    }
+                    if let Some(d) = m.details.as_object_mut() {
+                        d.insert("stop".into(), ack);
+                    }
+                    changed = true;
+                }
+            })?;
+            Ok::<_, crate::shot::store::StoreError>((shot, changed))
+        })
+        .await??;
+        // Only a shot this stop changed (a second stop marks nothing new).
+        marked = shot.filter(|_| changed).map(|s| s.id);
+    }
+    tracing::info!(shot = ?marked, mode = %out.ack.mode, "vehicle stopped by the operator");
+    Ok(Json(StopView {
+        stopped: true,
+        command: out.ack.command,
+        mode: out.ack.mode,
+        ack: out.ack.result,
+        refinement_cancelled: out.refinement_cancelled,
+        shot: marked,
+        reason: STOP_REASON.to_owned(),
+        at_unix: at,
+    }))
 }

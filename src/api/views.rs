@@ -234,6 +234,9 @@ pub struct VehicleStatus {
     /// Gimbal protocol v2: the manager's last status and what the link did
     /// about control.
     pub gimbal: VehicleGimbal,
+    /// The geofence every target must lie in (circle around home,
+    /// altitude band).
+    pub fence: Option<crate::mission::plan::Fence>,
 }
 
 /// The gimbal part of the vehicle status.
@@ -269,6 +272,9 @@ pub struct VehiclePosition {
     pub rel_alt_m: f64,
     /// Heading, degrees (None when unknown).
     pub heading_deg: Option<f32>,
+    /// North, east, down from home, metres (WGS84 local NED at home; None
+    /// before home is known). The page's map draws the vehicle here.
+    pub ned_m: Option<[f64; 3]>,
 }
 
 /// Mission progress as the vehicle last reported it.
@@ -352,6 +358,41 @@ pub struct VehicleMissionView {
     pub seconds: f64,
 }
 
+/// The reply of `POST /vehicle/stop`: what the vehicle acknowledged and
+/// what was stopped.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StopView {
+    /// Always true in a reply: the vehicle acknowledged the hold.
+    pub stopped: bool,
+    /// The command sent (`MAV_CMD_DO_SET_MODE`).
+    pub command: &'static str,
+    /// The mode asked for, as the autopilot names it (`AUTO.LOITER`, `LOITER`).
+    pub mode: String,
+    /// The COMMAND_ACK result (`MAV_RESULT_ACCEPTED`).
+    pub ack: &'static str,
+    /// The shot whose refinement loop was cancelled (None: none ran).
+    pub refinement_cancelled: Option<String>,
+    /// The shot whose mission the vehicle was flying, now marked
+    /// `stopped` (None: no started shot).
+    pub shot: Option<String>,
+    /// Why, as recorded on the shot.
+    pub reason: String,
+    /// When the ACK came, unix seconds.
+    pub at_unix: f64,
+}
+
+/// What [`VehicleView::stop`] did: the vehicle's acknowledgement, the
+/// loop it cancelled, the shot whose mission it flew last.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StopOutcome {
+    /// The acknowledged hold.
+    pub ack: crate::vehicle::HoldAck,
+    /// The shot whose refinement loop was cancelled.
+    pub refinement_cancelled: Option<String>,
+    /// The shot whose mission was started last (the one flown).
+    pub flying: Option<String>,
+}
+
 /// What the API asks of the vehicle.
 pub trait VehicleView: Send + Sync {
     /// Link and vehicle state.
@@ -370,6 +411,16 @@ pub trait VehicleView: Send + Sync {
     fn shot_target(&self, shot: &Shot) -> Result<ShotTarget, VehicleError> {
         Err(VehicleError::NoGeoreference {
             reason: format!("no georeference for shot {}", shot.id),
+        })
+    }
+    /// Stops the vehicle where it is: cancels the refinement loop (so it
+    /// uploads nothing more), then switches the vehicle to hold and waits
+    /// for its COMMAND_ACK (a refusal or no ACK is an error).
+    fn stop<'a>(&'a self, _reason: &'a str) -> BoxFuture<'a, Result<StopOutcome, VehicleError>> {
+        Box::pin(async {
+            Err(VehicleError::NoVehicle {
+                reason: "this vehicle cannot be stopped from here".into(),
+            })
         })
     }
     /// The mission the vehicle holds, read back over the link.

@@ -12,6 +12,9 @@
 //! the mission cannot be read, the states are `unknown`, with the reason.
 //! Each decision is written into the mission record's `details.vehicle`.
 //!
+//! A mission the operator stopped (`stopped`) stays stopped while the
+//! vehicle still holds it, paused or not said.
+//!
 //! A refinement loop that was running when the daemon stopped (its record
 //! has no stop) is marked `interrupted` at start, with the reason; the
 //! operator restarts it by starting the shot's mission again.
@@ -124,7 +127,16 @@ pub fn reconcile(
                 MissionState::Unknown,
                 format!("the vehicle's mission could not be read: {why}"),
             ),
-            Ok(v) if owner.as_deref() == Some(shot.id.as_str()) => owner_state(v),
+            Ok(v) if owner.as_deref() == Some(shot.id.as_str()) => match owner_state(v) {
+                // The operator stopped it: a held (paused) mission the
+                // vehicle still holds stays stopped.
+                (MissionState::Active | MissionState::OnVehicle, _)
+                    if m.state == MissionState::Stopped =>
+                {
+                    continue;
+                }
+                s => s,
+            },
             Ok(_) if m.state == MissionState::Finished => continue,
             Ok(v) if v.items.is_empty() => {
                 (MissionState::Cleared, "the vehicle holds no mission".into())

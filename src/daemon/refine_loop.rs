@@ -49,6 +49,14 @@ enum Request {
     /// Another mission replaces it: stop, and make this shot's desired
     /// picture now, while its keyframe is in the map.
     Stop(Box<Shot>),
+    /// The operator stopped the vehicle: end the running loop, record it
+    /// as stopped with the reason, and reply with the shot it refined.
+    Halt {
+        /// Why (shown on the shot).
+        reason: String,
+        /// The shot whose loop ran (None: none ran).
+        reply: tokio::sync::oneshot::Sender<Option<String>>,
+    },
 }
 
 /// The handle the vehicle view uses to start and stop the loop.
@@ -69,6 +77,16 @@ impl RefineHandle {
     /// leave the map).
     pub fn uploading(&self, shot: Shot) {
         let _ = self.tx.send(Request::Stop(Box::new(shot)));
+    }
+
+    /// The operator stops the vehicle: ends the running loop (it uploads
+    /// and starts nothing more) and records its end as `stopped` with
+    /// `reason`. Returns the shot whose loop ran, once it has ended and
+    /// its record is written (None: no loop ran).
+    pub async fn halt(&self, reason: String) -> Option<String> {
+        let (reply, rx) = tokio::sync::oneshot::channel();
+        self.tx.send(Request::Halt { reason, reply }).ok()?;
+        rx.await.ok().flatten()
     }
 }
 
@@ -231,9 +249,20 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
                 None => break,
             },
         };
-        if let Some((c, t, _)) = current.take() {
-            c.cancel();
-            let _ = t.await;
+        let ended = match current.take() {
+            Some((c, t, id)) => {
+                c.cancel();
+                let _ = t.await;
+                Some(id)
+            }
+            None => None,
+        };
+        if let Request::Halt { reason, reply } = req {
+            if let Some(id) = &ended {
+                mark_stopped(&deps, id, &reason).await;
+            }
+            let _ = reply.send(ended);
+            continue;
         }
         if let Request::Stop(shot) = &req {
             let d = deps.clone();
@@ -261,6 +290,38 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
         c.cancel();
         let _ = t.await;
         mark_interrupted(&deps, &id).await;
+    }
+}
+
+/// The operator stopped `id`'s loop: the loop recorded itself as
+/// cancelled (or had stopped on its own, which stays); the record says
+/// `stopped`, with the operator's reason.
+async fn mark_stopped(deps: &Deps, id: &str, reason: &str) {
+    let (store, id, reason) = (deps.store.clone(), id.to_owned(), reason.to_owned());
+    let write = move || {
+        store.update(&id, |s| {
+            if let Some(r) = s
+                .mission
+                .as_mut()
+                .and_then(|m| m.details.get_mut("refinement"))
+                .and_then(serde_json::Value::as_object_mut)
+            {
+                let cancelled = r.get("stop").and_then(serde_json::Value::as_str)
+                    == Some("aborted")
+                    && r.get("reason").and_then(serde_json::Value::as_str) == Some("cancelled");
+                if cancelled || r.get("stop").is_none_or(serde_json::Value::is_null) {
+                    r.insert("stop".into(), "stopped".into());
+                    r.insert("reason".into(), reason.clone().into());
+                } else {
+                    r.insert("daemon_note".into(), reason.clone().into());
+                }
+            }
+        })
+    };
+    match tokio::task::spawn_blocking(write).await {
+        Ok(Ok(_)) => {}
+        Ok(Err(e)) => tracing::warn!("refinement: saving the shot: {e}"),
+        Err(e) => tracing::warn!("refinement: saving the shot: {e}"),
     }
 }
 

@@ -12,8 +12,9 @@ use tokio_util::sync::CancellationToken;
 use super::geo_service::GeoService;
 use super::reconcile::{VehicleMission, reconcile};
 use crate::api::{
-    AlignmentView, BoxFuture, GimbalManagerView, MissionProgressView, ShotTarget, TargetView,
-    VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition, VehicleStatus, VehicleView,
+    AlignmentView, BoxFuture, GimbalManagerView, MissionProgressView, ShotTarget, StopOutcome,
+    TargetView, VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition, VehicleStatus,
+    VehicleView,
 };
 use crate::geo::{GeoAlignment, GeoError, GeoTarget};
 use crate::mission::MissionItem;
@@ -31,6 +32,8 @@ pub struct LinkVehicle {
     refine: Option<super::refine_loop::RefineHandle>,
     /// The shot last uploaded and the target its mission flies.
     last_uploaded: std::sync::Mutex<Option<(Shot, crate::mission::plan::Target)>>,
+    /// The shot whose mission was started last.
+    last_started: std::sync::Mutex<Option<String>>,
 }
 
 fn target_view(t: &GeoTarget) -> TargetView {
@@ -84,6 +87,7 @@ impl LinkVehicle {
             geo,
             refine: None,
             last_uploaded: std::sync::Mutex::new(None),
+            last_started: std::sync::Mutex::new(None),
         }
     }
 
@@ -319,7 +323,21 @@ impl VehicleView for LinkVehicle {
                 lon_deg: p.value.lon_deg,
                 rel_alt_m: p.value.rel_alt_m,
                 heading_deg: p.value.heading_deg,
+                ned_m: self.geo.home().map(|h| {
+                    let frame = crate::geo::LocalFrame::new(crate::geo::Geodetic {
+                        lat_deg: h.lat_deg,
+                        lon_deg: h.lon_deg,
+                        alt_m: h.alt_amsl_m,
+                    });
+                    let n = frame.geodetic_to_ned(&crate::geo::Geodetic {
+                        lat_deg: p.value.lat_deg,
+                        lon_deg: p.value.lon_deg,
+                        alt_m: p.value.alt_amsl_m,
+                    });
+                    [n.x, n.y, n.z]
+                }),
             }),
+            fence: Some(self.plan.fence),
             georeference: self.geo.status(),
             gimbal: VehicleGimbal {
                 manager: manager.map(|m| GimbalManagerView {
@@ -446,10 +464,40 @@ impl VehicleView for LinkVehicle {
                 .map_err(|e| VehicleError::Failed {
                     reason: e.to_string(),
                 })?;
+            if let Ok(mut s) = self.last_started.lock() {
+                *s = Some(shot.id.clone());
+            }
             if let Some(r) = &self.refine {
                 r.start(shot.clone(), flown);
             }
             Ok(())
+        })
+    }
+
+    fn stop<'a>(&'a self, reason: &'a str) -> BoxFuture<'a, Result<StopOutcome, VehicleError>> {
+        Box::pin(async move {
+            self.heard()?;
+            // The loop first: it must not upload or start a correction
+            // after the vehicle holds.
+            let refinement_cancelled = match &self.refine {
+                Some(r) => r.halt(reason.to_owned()).await,
+                None => None,
+            };
+            let ack = self.link.hold().await.map_err(|e| VehicleError::Failed {
+                reason: format!("the vehicle did not hold: {e}"),
+            })?;
+            let flying = self.last_started.lock().ok().and_then(|s| s.clone());
+            tracing::info!(
+                refined = ?refinement_cancelled,
+                shot = ?flying,
+                mode = %ack.mode,
+                "vehicle holds (operator's stop)"
+            );
+            Ok(StopOutcome {
+                ack,
+                refinement_cancelled,
+                flying,
+            })
         })
     }
 

@@ -127,6 +127,9 @@ pub enum MissionState {
     Cleared,
     /// The vehicle's mission could not be read.
     Unknown,
+    /// The operator stopped the vehicle (held in place) while it flew this
+    /// mission; `details.stop` says why and what the vehicle acknowledged.
+    Stopped,
 }
 
 impl MissionState {
@@ -141,6 +144,7 @@ impl MissionState {
             Self::Replaced => "replaced",
             Self::Cleared => "cleared",
             Self::Unknown => "unknown",
+            Self::Stopped => "stopped",
         }
     }
 }

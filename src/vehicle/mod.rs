@@ -371,6 +371,17 @@ pub enum FlightMode {
     Rtl,
 }
 
+/// The vehicle's acknowledgement of a stop ([`LinkHandle::hold`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct HoldAck {
+    /// The command sent.
+    pub command: &'static str,
+    /// The mode asked for, as the autopilot names it (`AUTO.LOITER`, `LOITER`).
+    pub mode: String,
+    /// The COMMAND_ACK's result.
+    pub result: &'static str,
+}
+
 /// The latest telemetry, one watch channel each.
 #[derive(Debug, Clone)]
 pub struct Telemetry {
@@ -586,6 +597,42 @@ impl LinkHandle {
             warn!(error = %e, "gimbal release after the mode change failed");
         }
         Ok(())
+    }
+
+    /// Stops the vehicle where it is (operator action): `MAV_CMD_DO_SET_MODE`
+    /// to hold (PX4 AUTO.LOITER, ArduPilot LOITER), which pauses the
+    /// mission. Replies once the vehicle's COMMAND_ACK came: ACCEPTED is
+    /// `Ok` with what was sent; any other result is
+    /// [`LinkError::CommandRejected`], no ACK after the link's retries
+    /// [`LinkError::CommandTimeout`]. A stop must not be lost to another
+    /// command in flight (a gimbal command, say): while the link is busy
+    /// with one, it is tried again for up to three command timeouts.
+    pub async fn hold(&self) -> Result<HoldAck, LinkError> {
+        let flavour = self
+            .telemetry
+            .vehicle
+            .borrow()
+            .flavour
+            .ok_or(LinkError::NoVehicle)?;
+        let deadline = tokio::time::Instant::now() + 3 * self.command_timeout;
+        loop {
+            match self.set_mode(FlightMode::Hold).await {
+                Err(LinkError::Busy { .. }) if tokio::time::Instant::now() < deadline => {
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                Err(e) => return Err(e),
+                Ok(()) => break,
+            }
+        }
+        let (_, main, sub) = mode_params(flavour, FlightMode::Hold);
+        Ok(HoldAck {
+            command: "MAV_CMD_DO_SET_MODE",
+            mode: match flavour {
+                Flavour::Px4 => px4_mode_name(((sub as u32) << 24) | ((main as u32) << 16)),
+                Flavour::ArduPilot => ardupilot_mode_name(main as u32),
+            },
+            result: "MAV_RESULT_ACCEPTED",
+        })
     }
 
     /// Starts the uploaded mission (operator action). When the mission

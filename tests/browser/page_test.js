@@ -12,7 +12,11 @@
 // the preview shows the warped shot; submitting shows the daemon's answer
 // (localised with pose and inliers, or not localised with its reason) and
 // the desired-shot image; the shots panel lists every shot with its
-// refinement rounds and stop reason. Prints one JSON line of what it saw.
+// refinement rounds and stop reason; the world map draws the vehicle
+// (data-vehicle-ned, compared with the simulator's truth by the caller);
+// clicking a keyframe on the map chooses it; Stop (reached by keyboard) is
+// acknowledged by the vehicle. A screenshot of each stage is saved beside
+// SHOTPILOT_SCREENSHOT. Prints one JSON line of what it saw.
 'use strict';
 
 const { chromium } = require('playwright-core');
@@ -46,6 +50,15 @@ async function videoLook(page) {
   });
 }
 
+// A screenshot of one stage, beside SHOTPILOT_SCREENSHOT.
+const stages = [];
+async function stage(page, name, full = true) {
+  const path = require('path');
+  const file = path.join(path.dirname(SHOT), `stage_${String(stages.length + 1).padStart(2, '0')}_${name}.png`);
+  await page.screenshot({ path: file, fullPage: full });
+  stages.push(file);
+}
+
 async function main() {
   check(BASE, 'SHOTPILOT_URL is set');
   const t0 = Date.now();
@@ -74,7 +87,10 @@ async function main() {
     check(first.mean > 5, `live video is not black (mean ${first.mean})`);
     check(second.hash !== first.hash, 'live video frames advance within 10 s');
     // The status line follows the daemon (server-sent events).
-    await page.waitForFunction(() => /SLAM tracking/.test(document.getElementById('status').textContent), null, { timeout: 20000 });
+    await page.waitForFunction(() => /SLAM tracking/.test(document.getElementById('b-slam').textContent), null, { timeout: 20000 });
+    // No broken-image placeholder before the first shot.
+    check(await page.$eval('#shotimg', (i) => i.hidden), 'no desired-shot image element is shown before a shot');
+    await stage(page, 'status');
     out.video = { width: first.w, height: first.h, frames_advance: true };
     out.status_line = await page.textContent('#status');
 
@@ -185,6 +201,60 @@ async function main() {
 
     await page.screenshot({ path: SHOT, fullPage: true });
     out.screenshot = SHOT;
+
+    // The world map: once georeferenced, north up in metres with the
+    // vehicle drawn at its telemetry position (data-vehicle-ned).
+    await page.waitForFunction(() => {
+      const m = document.getElementById('map');
+      return m.dataset.mode === 'world' && !!m.dataset.vehicleNed;
+    }, null, { timeout: 120000 });
+    out.map = await page.$eval('#map', (m) => ({ mode: m.dataset.mode, vehicle_ned: m.dataset.vehicleNed, scale_bar_m: Number(m.dataset.scaleBarM) }));
+    await page.$eval('#map', (m) => m.scrollIntoView());
+    await stage(page, 'map_world');
+    // Clicking a keyframe on the map chooses it in the anchor editor.
+    const pick = await page.evaluate(() => {
+      const pr = state.mapProject, cv = document.getElementById('map');
+      if (!pr || !pr.kfs.length) return null;
+      const cur = document.getElementById('editor').dataset.keyframe;
+      const k = pr.kfs.find((x) => String(x.id) !== cur) || pr.kfs[0];
+      const [u, v] = pr.P(k.p[0], k.p[1]);
+      const r = cv.getBoundingClientRect();
+      return { id: k.id, x: r.left + u * r.width / cv.width, y: r.top + v * r.height / cv.height, inside: u >= 0 && v >= 0 && u <= cv.width && v <= cv.height };
+    });
+    check(pick && pick.inside, `a keyframe is drawn on the map: ${JSON.stringify(pick)}`);
+    await page.mouse.click(pick.x, pick.y);
+    await page.waitForFunction((id) => document.getElementById('editor').dataset.keyframe === String(id), pick.id, { timeout: 10000 });
+    out.map_pick = pick.id;
+
+    // Stop during the flight: the vehicle acknowledges the hold.
+    await page.focus('#stop');
+    await page.keyboard.press('Enter');
+    await page.waitForFunction(() => ['ok', 'error'].includes(document.getElementById('stopresult').dataset.state), null, { timeout: 30000 });
+    const stopText = await page.textContent('#stopresult');
+    check(await page.$eval('#stopresult', (e) => e.dataset.state === 'ok' && e.dataset.ack === 'MAV_RESULT_ACCEPTED'), `the stop is acknowledged: ${stopText}`);
+    out.stop = { text: stopText, at_unix: Date.now() / 1000 };
+    await stage(page, 'stopped');
+    // The marker while the vehicle holds: samples until 4 s of them lie
+    // within 0.1 m (bounded), each with its time, compared with the
+    // simulator's truth on the Rust side.
+    const samples = [];
+    for (let i = 0; i < 80; i++) {
+      const v = await page.$eval('#map', (m) => m.dataset.vehicleNed || '');
+      const [n, e] = v.split(',').map(Number);
+      if (Number.isFinite(n) && Number.isFinite(e)) samples.push({ t: Date.now() / 1000, n, e });
+      const recent = samples.filter((x) => x.t >= samples[samples.length - 1].t - 4);
+      const spread = recent.length ? Math.max(...recent.map((x) => Math.hypot(x.n - recent[0].n, x.e - recent[0].e))) : Infinity;
+      if (samples.length && samples[samples.length - 1].t - out.stop.at_unix > 8 && spread < 0.1) break;
+      await page.waitForTimeout(500);
+    }
+    out.vehicle_samples = samples;
+    await stage(page, 'holding');
+    // Layouts: a laptop and a tablet.
+    await page.setViewportSize({ width: 1280, height: 800 });
+    await stage(page, 'laptop_1280x800', false);
+    await page.setViewportSize({ width: 768, height: 1024 });
+    await stage(page, 'tablet_768x1024', false);
+    out.stages = stages;
     check(errors.length === 0, `no script errors on the page: ${errors.join('; ')}`);
     out.ms = Date.now() - t0;
   } finally {

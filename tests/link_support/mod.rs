@@ -52,6 +52,9 @@ pub struct FakeConfig {
     pub heartbeats: bool,
     /// Drop the first final ACCEPTED of each upload.
     pub lose_final_ack: bool,
+    /// Answers to particular commands instead of ACCEPTED (None: no
+    /// COMMAND_ACK at all).
+    pub command_results: &'static [(MavCmd, Option<MavResult>)],
 }
 
 impl FakeConfig {
@@ -70,6 +73,7 @@ impl FakeConfig {
             final_result: None,
             heartbeats: true,
             lose_final_ack: false,
+            command_results: &[],
         }
     }
 }
@@ -89,6 +93,8 @@ pub struct FakeState {
     pub gcs_heartbeats: u32,
     /// Commands received (command numbers).
     pub commands: Vec<(MavCmd, f32)>,
+    /// Commands received with all seven parameters.
+    pub command_params: Vec<(MavCmd, [f32; 7])>,
     /// Mission transfer messages that carried a wrong mission_type or target.
     pub misaddressed: u32,
     /// Every frame that arrived (dropped by `drop_in` or not), by message id.
@@ -239,7 +245,14 @@ pub async fn run_fake(
                         state.lock().map(|mut s| s.gcs_heartbeats += 1).ok();
                     }
                     MavMessage::COMMAND_LONG(c) if c.target_system == cfg.system_id => {
-                        state.lock().map(|mut s| s.commands.push((c.command, c.param1))).ok();
+                        state.lock().map(|mut s| {
+                            s.commands.push((c.command, c.param1));
+                            s.command_params.push((c.command, [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7]));
+                        }).ok();
+                        let scripted = cfg.command_results.iter().find(|(k, _)| *k == c.command).map(|(_, r)| *r);
+                        if scripted == Some(None) {
+                            continue;
+                        }
                         if c.command == MavCmd::MAV_CMD_MISSION_START && !mission.is_empty() {
                             flying = Some(0);
                         }
@@ -252,7 +265,9 @@ pub async fn run_fake(
                         );
                         out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
                             command: c.command,
-                            result: if gimbal_manager {
+                            result: if let Some(Some(r)) = scripted {
+                                r
+                            } else if gimbal_manager {
                                 MavResult::MAV_RESULT_UNSUPPORTED
                             } else {
                                 MavResult::MAV_RESULT_ACCEPTED

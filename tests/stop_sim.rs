@@ -1,0 +1,180 @@
+//! The operator's stop against the simulator (in-process, both autopilot
+//! flavours): a mission flying to a waypoint 80 m away is stopped half way
+//! with [`LinkHandle::hold`]; the vehicle acknowledges, reports its hold
+//! mode, and stays where it was stopped. The simulator runs without GPS
+//! bias (checked), so LOCAL_POSITION_NED is its true position.
+
+mod link_support;
+
+use std::time::Duration;
+
+use shotpilot::mission::plan::{self, Flavour, Home, Target};
+use shotpilot::mission::upload;
+use shotpilot::vehicle::{self, FlightMode, LinkHandle, Params};
+use shotpilot_sim::app::{self, SimConfig};
+use shotpilot_sim::autopilot::Flavour as SimFlavour;
+use shotpilot_sim::link::Endpoint;
+use tokio_util::sync::CancellationToken;
+
+/// One flight at a time (world generation and flight compete for CPU).
+static ONE_FLIGHT: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+async fn wait_for<T>(
+    what: &str,
+    rx: &mut tokio::sync::watch::Receiver<T>,
+    seconds: u64,
+    f: impl FnMut(&T) -> bool,
+) -> anyhow::Result<()> {
+    tokio::time::timeout(Duration::from_secs(seconds), rx.wait_for(f))
+        .await
+        .map_err(|_| anyhow::anyhow!("timed out after {seconds} s waiting for {what}"))??;
+    Ok(())
+}
+
+/// The vehicle's local NED position and its autopilot time, ms.
+fn local(link: &LinkHandle) -> Option<([f64; 3], u32)> {
+    (*link.telemetry.local_position.borrow())
+        .map(|p| (p.value.pos_ned_m.map(f64::from), p.value.time_boot_ms))
+}
+
+fn horizontal(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (a[0] - b[0]).hypot(a[1] - b[1])
+}
+
+async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
+    let _one = ONE_FLIGHT.lock().await;
+    let dir = tempfile::tempdir()?;
+    let cancel = CancellationToken::new();
+    let port = link_support::free_udp_port();
+    let mut cfg = SimConfig::default().with_flavour(match flavour {
+        Flavour::Px4 => SimFlavour::Px4,
+        Flavour::ArduPilot => SimFlavour::ArduPilot,
+    });
+    anyhow::ensure!(
+        !cfg.autopilot.vehicle.gps_bias.enabled(),
+        "the reported position is the truth only without GPS bias"
+    );
+    cfg.mavlink = Endpoint::UdpIn(format!("127.0.0.1:{port}"));
+    cfg.video_listen = None;
+    cfg.capture_dir = dir.path().join("captures");
+    cfg.sensor_noise = false;
+    let _sim = tokio::spawn(app::run(cfg, cancel.child_token()));
+    let (link, _task) = vehicle::spawn(
+        Params {
+            url: format!("udpout:127.0.0.1:{port}"),
+            ..Params::default()
+        },
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(60)).await?;
+    let mut home_rx = link.telemetry.home.clone();
+    wait_for("HOME_POSITION", &mut home_rx, 30, Option::is_some).await?;
+    let h = (*home_rx.borrow())
+        .map(|s| s.value)
+        .ok_or_else(|| anyhow::anyhow!("no home"))?;
+    let home = Home {
+        lat_deg: h.lat_deg,
+        lon_deg: h.lon_deg,
+        alt_amsl_m: h.alt_amsl_m,
+    };
+    let target = Target {
+        lat_deg: home.lat_deg + 80.0 / 111_195.0,
+        lon_deg: home.lon_deg,
+        alt_m: 10.0,
+        yaw_deg: 0.0,
+        gimbal_pitch_deg: -30.0,
+        photo: false,
+    };
+    let items = plan::plan(&target, &home, flavour, &plan::Params::default())?;
+    link.upload_mission(items).await?;
+    link.arm(true).await?;
+    link.set_mode(FlightMode::Mission).await?;
+    link.start_mission().await?;
+    // Half way, at speed.
+    let mut lp = link.telemetry.local_position.clone();
+    wait_for("the vehicle 30 m out, at speed", &mut lp, 120, |p| {
+        p.is_some_and(|p| {
+            let [n, e, _] = p.value.pos_ned_m;
+            let [vn, ve, _] = p.value.vel_ned_m_s;
+            n.hypot(e) > 30.0 && vn.hypot(ve) > 1.5
+        })
+    })
+    .await?;
+    let (before, _) = local(&link).ok_or_else(|| anyhow::anyhow!("no position"))?;
+    let ack = link.hold().await?;
+    let (stopped, t0) = local(&link).ok_or_else(|| anyhow::anyhow!("no position"))?;
+    let want = match flavour {
+        Flavour::Px4 => "AUTO.LOITER",
+        Flavour::ArduPilot => "LOITER",
+    };
+    anyhow::ensure!(
+        ack.mode == want && ack.result == "MAV_RESULT_ACCEPTED",
+        "{ack:?}"
+    );
+    let mut state = link.telemetry.vehicle.clone();
+    wait_for("the hold mode in the heartbeat", &mut state, 5, |v| {
+        v.mode == want
+    })
+    .await?;
+    // Ten seconds of the autopilot's clock, every position on the way.
+    let mut track = Vec::new();
+    let end = t0.saturating_add(10_000);
+    tokio::time::timeout(Duration::from_secs(60), async {
+        loop {
+            lp.changed().await?;
+            if let Some((p, t)) = local(&link) {
+                track.push((t, p));
+                if t >= end {
+                    return anyhow::Ok(());
+                }
+            }
+        }
+    })
+    .await
+    .map_err(|_| anyhow::anyhow!("no 10 s of positions within 60 s"))??;
+    let (_, last) = *track.last().ok_or_else(|| anyhow::anyhow!("no track"))?;
+    let furthest = track
+        .iter()
+        .map(|(_, p)| horizontal(*p, stopped))
+        .fold(0.0, f64::max);
+    // The last 5 s: still.
+    let settled: Vec<[f64; 3]> = track
+        .iter()
+        .filter(|(t, _)| *t >= t0 + 5_000)
+        .map(|(_, p)| *p)
+        .collect();
+    let drift = settled
+        .iter()
+        .map(|p| horizontal(*p, last))
+        .fold(0.0, f64::max);
+    let off = horizontal(last, stopped);
+    let dz = (last[2] - stopped[2]).abs();
+    eprintln!(
+        "{flavour:?}: stopped {:.1} m out (moved {:.2} m during the command), after 10 s {off:.2} m from there \
+         (furthest {furthest:.2} m), drift over the last 5 s {drift:.3} m, height change {dz:.2} m",
+        stopped[0].hypot(stopped[1]),
+        horizontal(before, stopped),
+    );
+    anyhow::ensure!(
+        off < 1.0,
+        "{flavour:?}: {off:.2} m from where it was stopped"
+    );
+    anyhow::ensure!(
+        drift < 0.2,
+        "{flavour:?}: drifted {drift:.3} m while holding"
+    );
+    anyhow::ensure!(dz < 0.5, "{flavour:?}: height changed {dz:.2} m");
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stop_holds_px4() -> anyhow::Result<()> {
+    stop_holds(Flavour::Px4).await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stop_holds_ardupilot() -> anyhow::Result<()> {
+    stop_holds(Flavour::ArduPilot).await
+}
