@@ -560,9 +560,10 @@ pub fn refine_pose_and_intrinsics(
 /// (`Ω = inv_sigma2·I`, weighted by the Huber kernel when `huber_delta` is
 /// given, as in a robust round), scaled by the noise the residuals show.
 /// The scale `ŝ² = Σ chi2 / (c·(2n − p))` divides by `c`, the mean chi2 of a
-/// 2-DoF Gaussian residual truncated at `chi2_threshold` over its
-/// untruncated mean (`1 − a·e^(−a)/(1 − e^(−a))`, `a = threshold/2`: 0.842
-/// at 5.991), since only residuals under the threshold are inliers.
+/// 2-DoF Gaussian residual of scale ŝ truncated at `chi2_threshold` over
+/// its untruncated mean (`1 − a·e^(−a)/(1 − e^(−a))`, `a = threshold/(2ŝ²)`:
+/// 0.842 for ŝ = 1 at 5.991), since only residuals under the threshold are
+/// inliers; solved as a fixed point.
 ///
 /// With `uncertain` intrinsics (estimated with the pose), `H` grows by a
 /// column per free intrinsic (the focal scale's log and `k1`) and their
@@ -610,14 +611,24 @@ pub fn pose_covariance(
     if n < 4 {
         return None;
     }
-    let a = 0.5 * chi2_threshold;
-    let c = if a > 0.0 && a.is_finite() {
-        1.0 - a * (-a).exp() / (1.0 - (-a).exp())
-    } else {
-        1.0
-    };
+    // The truncation depends on the scale itself (a residual of scale ŝ is
+    // cut at threshold/ŝ²): a fixed point, from the untruncated estimate.
     let dof = (2 * n).saturating_sub(dim).max(1) as f64;
-    let noise_scale2 = chi2 / (c.max(1e-3) * dof);
+    let mut noise_scale2 = chi2 / dof;
+    for _ in 0..50 {
+        let a = 0.5 * chi2_threshold / noise_scale2.max(1e-12);
+        let c = if a > 0.0 && a.is_finite() {
+            1.0 - a * (-a).exp() / (1.0 - (-a).exp())
+        } else {
+            1.0
+        };
+        let next = chi2 / (c.max(1e-3) * dof);
+        let done = (next - noise_scale2).abs() <= 1e-9 * next;
+        noise_scale2 = next;
+        if done {
+            break;
+        }
+    }
     // The priors are on the parameters themselves, whatever the noise.
     for (k, sd) in sigmas.iter().enumerate() {
         h[(6 + k, 6 + k)] += noise_scale2 / (sd * sd);
@@ -798,6 +809,59 @@ mod tests {
             (0.75..=1.25).contains(&ratio),
             "RMS error / RMS sigma {ratio}"
         );
+    }
+
+    /// A camera whose focal length is 3 % longer than believed and whose
+    /// lens has k1 = -0.05: the pose refined with its intrinsics is back on
+    /// the truth (the corrections found), the fixed-intrinsics pose is not.
+    #[test]
+    fn pose_and_uncertain_intrinsics_are_recovered_together() {
+        let k = intr();
+        let truth_corr = IntrinsicsCorrection {
+            focal_scale: 1.03,
+            k1: -0.05,
+            k2: 0.0,
+        };
+        let truth = Isometry3::from_parts(
+            Translation3::new(0.1, -0.1, 0.2),
+            UnitQuaternion::from_euler_angles(0.03, 0.02, -0.04),
+        );
+        let mut rng = SmallRng::seed_from_u64(5);
+        let mut obs = Vec::new();
+        for _ in 0..300 {
+            let pc = Vector3::new(
+                rng.random_range(-3.0..3.0),
+                rng.random_range(-2.0..2.0),
+                rng.random_range(4.0..12.0),
+            );
+            let Some(uv) = truth_corr.project(&k, &pc) else {
+                continue;
+            };
+            obs.push(PoseObservation {
+                p_world: truth.inverse_transform_point(&Point3::from(pc)),
+                uv,
+                inv_sigma2: 1.0,
+            });
+        }
+        let params = PoseParams {
+            chi2_threshold: 1e9,
+            ..PoseParams::default()
+        };
+        let fixed = optimize_pose(truth, &obs, &k, &params).unwrap();
+        let unc = IntrinsicsUncertainty {
+            focal_rel: 0.05,
+            k1: 0.1,
+            k2: 0.02,
+        };
+        let (pose, corr) =
+            refine_pose_and_intrinsics(fixed.cam_from_world, &obs, &fixed.inliers, &k, &unc);
+        let centre = |p: &Isometry3<f64>| p.inverse().translation.vector;
+        let err_fixed = (centre(&fixed.cam_from_world) - centre(&truth)).norm();
+        let err = (centre(&pose) - centre(&truth)).norm();
+        assert!(err_fixed > 0.05, "fixed intrinsics off by only {err_fixed}");
+        assert!(err < 0.005, "refined off by {err} (fixed {err_fixed})");
+        assert!((corr.focal_scale - 1.03).abs() < 0.002, "{corr:?}");
+        assert!((corr.k1 + 0.05).abs() < 0.005, "{corr:?}");
     }
 
     #[test]
