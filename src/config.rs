@@ -72,6 +72,51 @@ pub struct Config {
     /// (threshold, rounds, controller gains and steps, arrival rule,
     /// waiting limits).
     pub refine: RefineSection,
+    /// `[shot]`: the localisation's confidence gate.
+    pub shot: ShotSection,
+}
+
+/// `[shot]`: bounds on a localised shot's sigma (the gate refuses a pose
+/// whose uncertainty exceeds them, saying so), mapped onto
+/// [`crate::shot::GateParams`] by [`ShotSection::localize_params`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ShotSection {
+    /// Largest position sigma, % of the distance to the nearest scene content.
+    pub max_position_sigma_pct: f64,
+    /// Largest rotation sigma, degrees.
+    pub max_rotation_sigma_deg: f64,
+}
+
+impl Default for ShotSection {
+    fn default() -> Self {
+        let g = crate::shot::GateParams::default();
+        Self {
+            max_position_sigma_pct: g.max_position_sigma_depth_fraction * 100.0,
+            max_rotation_sigma_deg: g.max_rotation_sigma_deg,
+        }
+    }
+}
+
+impl ShotSection {
+    /// The localisation's parameters with these bounds.
+    pub fn localize_params(&self) -> crate::shot::LocalizeParams {
+        let mut p = crate::shot::LocalizeParams::default();
+        p.gate.max_position_sigma_depth_fraction = self.max_position_sigma_pct / 100.0;
+        p.gate.max_rotation_sigma_deg = self.max_rotation_sigma_deg;
+        p
+    }
+
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !positive(self.max_position_sigma_pct) {
+            return Err(("max_position_sigma_pct", "must be positive".into()));
+        }
+        if !(positive(self.max_rotation_sigma_deg) && self.max_rotation_sigma_deg <= 180.0) {
+            return Err(("max_rotation_sigma_deg", "must be in (0, 180]".into()));
+        }
+        Ok(())
+    }
 }
 
 /// `[server]`: the HTTP API.
@@ -665,6 +710,9 @@ impl Config {
         self.refine
             .validate()
             .map_err(|(key, reason)| invalid("refine", key, reason))?;
+        self.shot
+            .validate()
+            .map_err(|(key, reason)| invalid("shot", key, reason))?;
         if self.mission.transfer.retry_timeout_ms == 0 {
             return Err(invalid(
                 "mission.transfer",

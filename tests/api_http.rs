@@ -80,6 +80,7 @@ impl ShotComputer for LocalisingOnKf1 {
         let mut c = self.0.shot_from_anchors(kf, a, size)?;
         if kf == 1 {
             c.localisation = Ok(Localisation {
+                sigma: None,
                 world_from_cam: PoseJson {
                     translation: [1.0, 2.0, -3.0],
                     rotation_xyzw: [0.0, 0.0, 0.0, 1.0],

@@ -137,6 +137,7 @@ fn seed_refined_shots(dir: &Path) -> Vec<String> {
             },
             status: ShotStatus::Localised,
             localisation: Some(Localisation {
+                sigma: None,
                 world_from_cam: PoseJson {
                     translation: [0.1, -0.2, 0.3],
                     rotation_xyzw: [0.0, 0.0, 0.0, 1.0],

@@ -528,6 +528,9 @@ impl PhotoQuery {
                         p2: z(self.p2),
                         k3: z(self.k3),
                     },
+                    focal_rel_sigma: 0.0,
+                    k1_sigma: 0.0,
+                    k2_sigma: 0.0,
                 }))
             }
             (None, None, None, None) if d.iter().all(Option::is_none) => Ok(None),
@@ -559,21 +562,39 @@ async fn create_shot_from_photo(
     }
     let bytes = body.len();
     let computer = st.shots.clone();
-    let (comp, w, h) = tokio::task::spawn_blocking(move || {
+    let (comp, w, h, intrinsics) = tokio::task::spawn_blocking(move || {
         // A JPEG cut short decodes to a picture grey below the cut: refused.
         if body.starts_with(&[0xFF, 0xD8])
             && let Some(reason) = shots::jpeg_truncation(&body)
         {
             return Err(ShotRequestError::BadImage { reason });
         }
-        let img = image::load_from_memory(&body).map_err(|e| ShotRequestError::BadImage {
-            reason: format!("not a readable image: {e}"),
+        // Turned upright by its EXIF orientation; its EXIF focal length
+        // stands in for intrinsics the operator did not give.
+        let photo = crate::shot::photo::decode_photo(&body).map_err(|e| match e {
+            crate::shot::ShotError::BadPhoto { reason } => ShotRequestError::BadImage { reason },
+            e => ShotRequestError::BadImage {
+                reason: e.to_string(),
+            },
         })?;
-        let grey = img.to_luma8();
+        let grey = photo.image;
         let (w, h) = grey.dimensions();
+        let intrinsics = intrinsics.or_else(|| {
+            let c = crate::shot::photo::exif_camera(photo.exif.as_ref()?, w, h)?;
+            Some(PhotoIntrinsics {
+                fx: c.camera.fx,
+                fy: c.camera.fy,
+                cx: c.camera.cx,
+                cy: c.camera.cy,
+                distortion: c.camera.distortion,
+                focal_rel_sigma: c.uncertainty.focal_rel,
+                k1_sigma: c.uncertainty.k1,
+                k2_sigma: c.uncertainty.k2,
+            })
+        });
         computer
             .shot_from_photo(&grey, intrinsics.as_ref())
-            .map(|c| (c, w, h))
+            .map(|c| (c, w, h, intrinsics))
     })
     .await??;
     store_shot(

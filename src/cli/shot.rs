@@ -36,9 +36,11 @@ pub struct ShotArgs {
         allow_hyphen_values = true
     )]
     pub anchors: Option<String>,
-    /// A photo of the desired shot: taken with the map's camera, or (at
-    /// another size, same aspect ratio) a resized copy of one, unless
-    /// --photo-intrinsics says otherwise.
+    /// A photo of the desired shot (JPEG or PNG; turned upright by its
+    /// EXIF orientation): its camera from --photo-intrinsics, else from its
+    /// EXIF focal length (focal-plane resolution or 35 mm equivalent; the
+    /// focal length and distortion are then estimated with the pose), else
+    /// the map's camera (at another size, same aspect ratio: a resized copy).
     #[arg(long, value_name = "FILE")]
     pub photo: Option<PathBuf>,
     /// The photo's camera when it is not the map's: `fx,fy,cx,cy` or
@@ -118,7 +120,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
     let map =
         mapfile::load(&args.map).with_context(|| format!("loading map {}", args.map.display()))?;
     let cam = map.camera;
-    let params = shot::Params {
+    let mut params = shot::Params {
         localize: shot::LocalizeParams {
             seed: args.seed,
             top_k: args.top_k,
@@ -127,25 +129,34 @@ pub fn run(args: ShotArgs) -> Result<()> {
         ..shot::Params::default()
     };
 
+    let mut intrinsics_source = None;
     let (image, mask, shot_cam, source) = match (&args.photo, args.keyframe, &args.anchors) {
         (Some(photo), None, None) => {
-            let img = image::open(photo)
-                .with_context(|| format!("reading photo {}", photo.display()))?
-                .to_luma8();
-            let (w, h) = img.dimensions();
-            let photo_cam = match &args.photo_intrinsics {
-                Some(s) => parse_intrinsics(s, w, h)?,
-                None if (w, h) == (cam.width, cam.height) => cam,
-                None => shot::assumed_camera(&cam, w, h).with_context(|| {
-                    format!(
-                        "photo {} is {w}x{h}, the map's camera {}x{}: give --photo-intrinsics",
-                        photo.display(),
-                        cam.width,
-                        cam.height
-                    )
-                })?,
+            let bytes = std::fs::read(photo)
+                .with_context(|| format!("reading photo {}", photo.display()))?;
+            // Upright by its EXIF orientation; intrinsics given, else from
+            // its EXIF, else the map camera's scaled.
+            let decoded = shot::decode_photo(&bytes)
+                .with_context(|| format!("reading photo {}", photo.display()))?;
+            if let Some(w) = &decoded.exif_warning {
+                eprintln!("photo {}: EXIF ignored: {w}", photo.display());
+            }
+            let (w, h) = decoded.image.dimensions();
+            let given = match &args.photo_intrinsics {
+                Some(s) => Some(parse_intrinsics(s, w, h)?),
+                None => None,
             };
-            (img, None, photo_cam, "photo")
+            let pc = shot::photo_camera(&cam, &decoded, given).with_context(|| {
+                format!(
+                    "photo {} is {w}x{h}, the map's camera {}x{}, and its EXIF gives no focal length: give --photo-intrinsics",
+                    photo.display(),
+                    cam.width,
+                    cam.height
+                )
+            })?;
+            params.localize.camera_uncertainty = pc.uncertainty;
+            intrinsics_source = Some(pc.source);
+            (decoded.image, None, pc.camera, "photo")
         }
         (None, Some(id), Some(anchors)) => {
             let anchors = parse_anchors(anchors)?;
@@ -216,6 +227,10 @@ pub fn run(args: ShotArgs) -> Result<()> {
                 "reprojection_rmse_px": p.reprojection_rmse_px,
                 "median_depth": p.median_depth,
                 "agreeing_candidates": p.agreeing_candidates,
+                "position_sigma": p.sigma.position,
+                "position_sigma_fraction_of_distance": p.sigma.position_depth_fraction,
+                "rotation_sigma_deg": p.sigma.rotation_deg,
+                "intrinsics_source": intrinsics_source.map(|s| s.as_str()),
                 "keyframe_id": p.keyframe_id.0,
                 "desired_shot": shot_path_str,
                 "shot_ms": t_shot,
@@ -231,6 +246,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
             "inliers": null,
             "reprojection_rmse_px": null,
             "keyframe_id": null,
+            "intrinsics_source": intrinsics_source.map(|s| s.as_str()),
             "desired_shot": shot_path_str,
             "shot_ms": t_shot,
             "localize_ms": t_loc,
@@ -254,6 +270,12 @@ pub fn run(args: ShotArgs) -> Result<()> {
                     p.reprojection_rmse_px,
                     p.median_depth,
                     p.agreeing_candidates
+                );
+                println!(
+                    "sigma: position {:.4} map units ({:.2} % of the distance to the nearest scene), rotation {:.3} deg",
+                    p.sigma.position,
+                    p.sigma.position_depth_fraction * 100.0,
+                    p.sigma.rotation_deg
                 );
             }
             Localization::NotLocalized { reason } => println!("not localised: {reason}"),

@@ -287,7 +287,7 @@ pub async fn run(
                 params: Default::default(),
             },
             slam: shared.clone(),
-            params: Default::default(),
+            params: cfg.shot.localize_params(),
         }),
         store: store.clone(),
         params: Arc::new(ApiParams {

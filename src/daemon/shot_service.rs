@@ -12,8 +12,9 @@ use image::GrayImage;
 
 use crate::api::SlamView;
 use crate::camera::Camera;
+use crate::optimize::IntrinsicsUncertainty;
 use crate::shot::localize::{Localization, LocalizeParams, assumed_camera, localize_with_camera};
-use crate::shot::record::{Localisation, PhotoIntrinsics, PoseJson};
+use crate::shot::record::{Localisation, LocalisationSigma, PhotoIntrinsics, PoseJson};
 use crate::shot::request::{
     NotLocalised, ShotComputation, ShotComputer, ShotRequestError, WarpOnly, anchor_shot,
 };
@@ -39,13 +40,20 @@ impl LocalizingShots {
         camera: &Camera,
         shot: &GrayImage,
         mask: Option<&GrayImage>,
+        uncertainty: IntrinsicsUncertainty,
     ) -> Result<Localisation, NotLocalised> {
-        match localize_with_camera(map, camera, shot, mask, None, &self.params) {
+        let params = LocalizeParams {
+            camera_uncertainty: uncertainty,
+            ..self.params.clone()
+        };
+        match localize_with_camera(map, camera, shot, mask, None, &params) {
             Ok(Localization::Localized(p)) => {
                 tracing::info!(
                     keyframe = p.keyframe_id.0,
                     inliers = p.inliers,
                     rmse_px = p.reprojection_rmse_px,
+                    position_sigma = p.sigma.position,
+                    rotation_sigma_deg = p.sigma.rotation_deg,
                     "shot localised"
                 );
                 Ok(Localisation {
@@ -53,6 +61,11 @@ impl LocalizingShots {
                     inliers: p.inliers,
                     rms_error_px: p.reprojection_rmse_px,
                     keyframe_id: Some(p.keyframe_id.0 as u64),
+                    sigma: Some(LocalisationSigma {
+                        position: p.sigma.position,
+                        position_fraction_of_distance: p.sigma.position_depth_fraction,
+                        rotation_deg: p.sigma.rotation_deg,
+                    }),
                 })
             }
             Ok(Localization::NotLocalized { reason }) => {
@@ -83,8 +96,13 @@ impl ShotComputer for LocalizingShots {
             .and_then(|k| k.image.clone())
             .ok_or(ShotRequestError::UnknownKeyframe { id: keyframe_id })?;
         let shot = anchor_shot(&image, anchors, size, &self.warp.params)?;
-        let localisation =
-            self.localise(&map, &map.camera, &shot.shot.image, Some(&shot.shot.mask));
+        let localisation = self.localise(
+            &map,
+            &map.camera,
+            &shot.shot.image,
+            Some(&shot.shot.mask),
+            IntrinsicsUncertainty::default(),
+        );
         Ok(ShotComputation {
             desired: Some(shot.into_picture()),
             localisation,
@@ -115,7 +133,14 @@ impl ShotComputer for LocalizingShots {
                 }
             })?,
         };
-        let localisation = self.localise(&map, &camera, photo, None);
+        let uncertainty = intrinsics
+            .map(|i| IntrinsicsUncertainty {
+                focal_rel: i.focal_rel_sigma,
+                k1: i.k1_sigma,
+                k2: i.k2_sigma,
+            })
+            .unwrap_or_default();
+        let localisation = self.localise(&map, &camera, photo, None, uncertainty);
         Ok(ShotComputation {
             desired: Some(photo.clone()),
             localisation,

@@ -29,7 +29,10 @@ pub mod sim3;
 
 pub use ba::{BaParams, BaPose, BaProblem, BaReport, Observation, local_bundle_adjustment};
 pub use lm::{LmParams, LmSummary, Termination};
-pub use pose::{PoseObservation, PoseParams, PoseReport, optimize_pose};
+pub use pose::{
+    IntrinsicsCorrection, IntrinsicsUncertainty, PoseCovariance, PoseObservation, PoseParams,
+    PoseReport, optimize_pose, pose_covariance, refine_pose_and_intrinsics,
+};
 pub use sim3::{Sim3Match, Sim3Params, Sim3Report, optimize_sim3};
 
 use nalgebra::{Matrix2x3, Point2, Vector3};

@@ -291,6 +291,363 @@ pub fn optimize_pose(
     })
 }
 
+/// The covariance of a pose from [`optimize_pose`] (see
+/// [`pose_covariance`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseCovariance {
+    /// 6x6 covariance of the left perturbation `δ = (ρ, φ)` of
+    /// `cam_from_world` (`exp(δ)·T`), translation first, map units and radians.
+    pub cam_from_world: Matrix6<f64>,
+    /// Covariance of the camera centre in the world frame (`Rᵀ Σ_ρρ R`).
+    pub center: nalgebra::Matrix3<f64>,
+    /// The noise scale `ŝ²` the information matrix was divided by: the
+    /// inliers' mean chi2 per degree of freedom over its expectation for
+    /// Gaussian residuals truncated at the inlier threshold.
+    pub noise_scale2: f64,
+    /// Inliers that went into it.
+    pub inliers: usize,
+}
+
+impl PoseCovariance {
+    /// RMS of the camera centre's error, `√trace(Σ_c)` (map units).
+    pub fn position_sigma(&self) -> f64 {
+        self.center.trace().max(0.0).sqrt()
+    }
+
+    /// RMS of the rotation error's angle, `√trace(Σ_φφ)`, radians.
+    pub fn rotation_sigma(&self) -> f64 {
+        self.cam_from_world
+            .fixed_view::<3, 3>(3, 3)
+            .trace()
+            .max(0.0)
+            .sqrt()
+    }
+}
+
+/// Intrinsics the optimisation held fixed but that are not known exactly
+/// (a photo's camera read from EXIF): their prior standard deviations. The
+/// pose covariance treats them as nuisance parameters, so the pose's
+/// uncertainty includes what they leave open. Zero: known exactly.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct IntrinsicsUncertainty {
+    /// Focal length (fx and fy together), as a fraction of it.
+    pub focal_rel: f64,
+    /// The radial distortion's r² coefficient `k1` (normalised coordinates).
+    pub k1: f64,
+    /// The radial distortion's r⁴ coefficient `k2`.
+    pub k2: f64,
+}
+
+/// Corrections of the intrinsics estimated with the pose
+/// ([`refine_pose_and_intrinsics`]): the projection becomes
+/// `u = cx + focal_scale·fx·x·(1 + k1·r² + k2·r⁴)` (and `v` alike) with `(x, y)`
+/// the normalised coordinates and `r² = x² + y²`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IntrinsicsCorrection {
+    /// Factor on fx and fy.
+    pub focal_scale: f64,
+    /// Radial distortion added (OpenCV's `k1`, distorting).
+    pub k1: f64,
+    /// Radial distortion added (OpenCV's `k2`).
+    pub k2: f64,
+}
+
+impl IntrinsicsCorrection {
+    /// The corrected projection of `pc` (camera frame); None behind the
+    /// camera.
+    pub fn project(&self, intr: &Intrinsics, pc: &nalgebra::Vector3<f64>) -> Option<Point2<f64>> {
+        if pc.z <= 1e-9 {
+            return None;
+        }
+        let (x, y) = (pc.x / pc.z, pc.y / pc.z);
+        let r2 = x * x + y * y;
+        let d = self.focal_scale * (1.0 + r2 * (self.k1 + self.k2 * r2));
+        Some(Point2::new(
+            intr.cx + intr.fx * x * d,
+            intr.cy + intr.fy * y * d,
+        ))
+    }
+}
+
+impl Default for IntrinsicsCorrection {
+    fn default() -> Self {
+        Self {
+            focal_scale: 1.0,
+            k1: 0.0,
+            k2: 0.0,
+        }
+    }
+}
+
+/// The projection of `pc` (camera frame) with corrected intrinsics and its
+/// 2x(6 + k) Jacobian in `j` (pose left perturbation, then the focal
+/// scale's log, `k1` and `k2` when they are free); None behind the camera.
+fn corrected_projection(
+    pc: &nalgebra::Vector3<f64>,
+    intr: &Intrinsics,
+    corr: &IntrinsicsCorrection,
+    free: (bool, bool, bool),
+    j: &mut nalgebra::DMatrix<f64>,
+) -> Option<Point2<f64>> {
+    if pc.z <= 1e-9 {
+        return None;
+    }
+    let iz = 1.0 / pc.z;
+    let (x, y) = (pc.x * iz, pc.y * iz);
+    let r2 = x * x + y * y;
+    let d = 1.0 + r2 * (corr.k1 + corr.k2 * r2);
+    let (fx, fy) = (corr.focal_scale * intr.fx, corr.focal_scale * intr.fy);
+    let uv = Point2::new(intr.cx + fx * x * d, intr.cy + fy * y * d);
+    // ∂(x·d, y·d)/∂(x, y) (∂d/∂x = 2x·(k1 + 2·k2·r²)), then ∂(x, y)/∂pc.
+    let dr = corr.k1 + 2.0 * corr.k2 * r2;
+    let dd = nalgebra::Matrix2::new(
+        d + 2.0 * x * x * dr,
+        2.0 * x * y * dr,
+        2.0 * x * y * dr,
+        d + 2.0 * y * y * dr,
+    );
+    let dxy = nalgebra::Matrix2x3::new(iz, 0.0, -x * iz, 0.0, iz, -y * iz);
+    let jp = nalgebra::Matrix2::new(fx, 0.0, 0.0, fy) * dd * dxy;
+    let jr = -(jp * skew(pc));
+    j.fill(0.0);
+    j.view_mut((0, 0), (2, 3)).copy_from(&jp);
+    j.view_mut((0, 3), (2, 3)).copy_from(&jr);
+    let mut col = 6;
+    if free.0 {
+        // ∂/∂ln(focal_scale).
+        j[(0, col)] = uv.x - intr.cx;
+        j[(1, col)] = uv.y - intr.cy;
+        col += 1;
+    }
+    if free.1 {
+        j[(0, col)] = fx * x * r2;
+        j[(1, col)] = fy * y * r2;
+        col += 1;
+    }
+    if free.2 {
+        j[(0, col)] = fx * x * r2 * r2;
+        j[(1, col)] = fy * y * r2 * r2;
+    }
+    Some(uv)
+}
+
+fn free_intrinsics(uncertain: &IntrinsicsUncertainty) -> (bool, bool, bool) {
+    let free = |v: f64| v > 0.0 && v.is_finite();
+    (
+        free(uncertain.focal_rel),
+        free(uncertain.k1),
+        free(uncertain.k2),
+    )
+}
+
+/// The free intrinsics' prior sigmas, in the order of the Jacobian's columns.
+fn prior_sigmas(uncertain: &IntrinsicsUncertainty) -> Vec<f64> {
+    let free = free_intrinsics(uncertain);
+    [
+        (free.0, uncertain.focal_rel),
+        (free.1, uncertain.k1),
+        (free.2, uncertain.k2),
+    ]
+    .into_iter()
+    .filter(|(f, _)| *f)
+    .map(|(_, s)| s)
+    .collect()
+}
+
+/// The free intrinsics' current values, in the order of the columns.
+fn correction_values(free: (bool, bool, bool), c: &IntrinsicsCorrection) -> Vec<f64> {
+    [(free.0, c.focal_scale.ln()), (free.1, c.k1), (free.2, c.k2)]
+        .into_iter()
+        .filter(|(f, _)| *f)
+        .map(|(_, v)| v)
+        .collect()
+}
+
+/// Refines a pose from [`optimize_pose`] together with the intrinsics that
+/// `uncertain` leaves open (Gauss-Newton on the `inliers`, with the priors
+/// `1/σ²` pulling the corrections towards none, relative to the declared
+/// keypoint sigma); a photo from a camera known only by its EXIF. Returns
+/// the refined pose and the corrections; the input unchanged when nothing
+/// is uncertain or a step fails.
+pub fn refine_pose_and_intrinsics(
+    cam_from_world: Isometry3<f64>,
+    obs: &[PoseObservation],
+    inliers: &[bool],
+    intr: &Intrinsics,
+    uncertain: &IntrinsicsUncertainty,
+) -> (Isometry3<f64>, IntrinsicsCorrection) {
+    let free = free_intrinsics(uncertain);
+    let mut pose = cam_from_world;
+    let mut corr = IntrinsicsCorrection::default();
+    if !(free.0 || free.1 || free.2) {
+        return (pose, corr);
+    }
+    let sigmas = prior_sigmas(uncertain);
+    let dim = 6 + sigmas.len();
+    let mut j = nalgebra::DMatrix::<f64>::zeros(2, dim);
+    let cost = |pose: &Isometry3<f64>, corr: &IntrinsicsCorrection| -> f64 {
+        let mut jj = nalgebra::DMatrix::<f64>::zeros(2, dim);
+        let mut c = 0.0;
+        for (o, _) in obs.iter().zip(inliers).filter(|(_, a)| **a) {
+            let pc = pose.transform_point(&o.p_world).coords;
+            if let Some(uv) = corrected_projection(&pc, intr, corr, free, &mut jj) {
+                c += (uv - o.uv).norm_squared() * o.inv_sigma2;
+            }
+        }
+        for (v, s) in correction_values(free, corr).iter().zip(&sigmas) {
+            c += (v / s).powi(2);
+        }
+        c
+    };
+    let mut current = cost(&pose, &corr);
+    for _ in 0..10 {
+        let mut h = nalgebra::DMatrix::<f64>::zeros(dim, dim);
+        let mut g = nalgebra::DVector::<f64>::zeros(dim);
+        for (o, _) in obs.iter().zip(inliers).filter(|(_, a)| **a) {
+            let pc = pose.transform_point(&o.p_world).coords;
+            let Some(uv) = corrected_projection(&pc, intr, &corr, free, &mut j) else {
+                continue;
+            };
+            let r = nalgebra::DVector::from_column_slice(&[uv.x - o.uv.x, uv.y - o.uv.y]);
+            h += j.transpose() * &j * o.inv_sigma2;
+            g += j.transpose() * r * o.inv_sigma2;
+        }
+        for (k, (v, s)) in correction_values(free, &corr)
+            .iter()
+            .zip(&sigmas)
+            .enumerate()
+        {
+            let w = 1.0 / (s * s);
+            h[(6 + k, 6 + k)] += w;
+            g[6 + k] += w * v;
+        }
+        let Some(step) = h.lu().solve(&(-g)) else {
+            break;
+        };
+        let delta = Vector6::from_column_slice(&step.as_slice()[..6]);
+        let new_pose = se3_exp(&delta) * pose;
+        let mut new_corr = corr;
+        let mut col = 6;
+        if free.0 {
+            new_corr.focal_scale = (corr.focal_scale.ln() + step[col]).exp();
+            col += 1;
+        }
+        if free.1 {
+            new_corr.k1 = corr.k1 + step[col];
+            col += 1;
+        }
+        if free.2 {
+            new_corr.k2 = corr.k2 + step[col];
+        }
+        let c = cost(&new_pose, &new_corr);
+        if !(c.is_finite() && c <= current) {
+            break;
+        }
+        let done = current - c < 1e-9 * current.max(1e-12);
+        pose = new_pose;
+        corr = new_corr;
+        current = c;
+        if done {
+            break;
+        }
+    }
+    (pose, corr)
+}
+
+/// The pose covariance at the optimum of [`optimize_pose`] (or of
+/// [`refine_pose_and_intrinsics`], with its `correction`): the inverse of
+/// the Gauss-Newton information matrix `H = Σ Jᵀ Ω J` over the inliers
+/// (`Ω = inv_sigma2·I`, weighted by the Huber kernel when `huber_delta` is
+/// given, as in a robust round), scaled by the noise the residuals show.
+/// The scale `ŝ² = Σ chi2 / (c·(2n − p))` divides by `c`, the mean chi2 of a
+/// 2-DoF Gaussian residual of scale ŝ truncated at `chi2_threshold` over
+/// its untruncated mean (`1 − a·e^(−a)/(1 − e^(−a))`, `a = threshold/(2ŝ²)`:
+/// 0.842 for ŝ = 1 at 5.991), since only residuals under the threshold are
+/// inliers; solved as a fixed point.
+///
+/// With `uncertain` intrinsics (estimated with the pose), `H` grows by a
+/// column per free intrinsic (the focal scale's log and `k1`) and their
+/// prior information `1/σ²`; the pose block of the inverse is the pose
+/// covariance with those parameters marginalised.
+///
+/// The map points are held exact: the errors of the map itself are not in
+/// it (a caller adds them). None with fewer than 4 inliers in front of the
+/// camera or a singular `H`.
+#[allow(clippy::too_many_arguments)]
+pub fn pose_covariance(
+    cam_from_world: &Isometry3<f64>,
+    obs: &[PoseObservation],
+    inliers: &[bool],
+    intr: &Intrinsics,
+    chi2_threshold: f64,
+    huber_delta: Option<f64>,
+    uncertain: &IntrinsicsUncertainty,
+    correction: &IntrinsicsCorrection,
+) -> Option<PoseCovariance> {
+    let rot = cam_from_world.rotation.to_rotation_matrix();
+    let t = cam_from_world.translation.vector;
+    let kernel = match huber_delta {
+        Some(delta) => RobustKernel::Huber { delta },
+        None => RobustKernel::None,
+    };
+    let free = free_intrinsics(uncertain);
+    let sigmas = prior_sigmas(uncertain);
+    let dim = 6 + sigmas.len();
+    let mut h = nalgebra::DMatrix::<f64>::zeros(dim, dim);
+    let mut j = nalgebra::DMatrix::<f64>::zeros(2, dim);
+    let mut chi2 = 0.0;
+    let mut n = 0usize;
+    for (o, _) in obs.iter().zip(inliers).filter(|(_, a)| **a) {
+        let pc = rot * o.p_world.coords + t;
+        let Some(uv) = corrected_projection(&pc, intr, correction, free, &mut j) else {
+            continue;
+        };
+        let s = (uv - o.uv).norm_squared() * o.inv_sigma2;
+        let (_, drho) = kernel.eval(s);
+        h += j.transpose() * &j * (drho * o.inv_sigma2);
+        chi2 += s;
+        n += 1;
+    }
+    if n < 4 {
+        return None;
+    }
+    // The truncation depends on the scale itself (a residual of scale ŝ is
+    // cut at threshold/ŝ²): a fixed point, from the untruncated estimate.
+    let dof = (2 * n).saturating_sub(dim).max(1) as f64;
+    let mut noise_scale2 = chi2 / dof;
+    for _ in 0..50 {
+        let a = 0.5 * chi2_threshold / noise_scale2.max(1e-12);
+        let c = if a > 0.0 && a.is_finite() {
+            1.0 - a * (-a).exp() / (1.0 - (-a).exp())
+        } else {
+            1.0
+        };
+        let next = chi2 / (c.max(1e-3) * dof);
+        let done = (next - noise_scale2).abs() <= 1e-9 * next;
+        noise_scale2 = next;
+        if done {
+            break;
+        }
+    }
+    // The priors are on the parameters themselves, whatever the noise.
+    for (k, sd) in sigmas.iter().enumerate() {
+        h[(6 + k, 6 + k)] += noise_scale2 / (sd * sd);
+    }
+    let full = h.try_inverse()? * noise_scale2;
+    let cov: Matrix6<f64> = full.fixed_view::<6, 6>(0, 0).into_owned();
+    if !cov.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let srr = cov.fixed_view::<3, 3>(0, 0).into_owned();
+    let rm = rot.matrix();
+    Some(PoseCovariance {
+        cam_from_world: cov,
+        center: rm.transpose() * srr * rm,
+        noise_scale2,
+        inliers: n,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -372,6 +729,139 @@ mod tests {
         assert!(!rep.inliers[0], "octave-0 3.5 px error kept");
         assert!(rep.inliers[1], "octave-5 3.5 px error rejected");
         assert_eq!(rep.n_inliers, 59);
+    }
+
+    /// The covariance brackets the error: over 200 noisy problems with
+    /// 1.5 px Gaussian noise declared as 1.2 px, the centre error is within the reported RMS
+    /// sigma (√trace) in 45-80 % of the runs and within 2 sigma in over
+    /// 90 % (a 3-D Gaussian: 61 % and 99 %), and the reported sigma is the
+    /// spread of the errors within 25 %.
+    #[test]
+    fn covariance_brackets_the_error() {
+        let k = intr();
+        let mut rng = SmallRng::seed_from_u64(11);
+        let truth = Isometry3::from_parts(
+            Translation3::new(0.1, -0.2, 0.3),
+            UnitQuaternion::from_euler_angles(0.02, -0.05, 0.1),
+        );
+        let normal = |rng: &mut SmallRng| {
+            // Box-Muller.
+            let u1: f64 = rng.random_range(1e-12..1.0);
+            let u2: f64 = rng.random_range(0.0..1.0);
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let (mut in1, mut in2, mut rot_in2) = (0, 0, 0);
+        let (mut sq_err, mut sq_sigma) = (0.0, 0.0);
+        let runs = 200;
+        for _ in 0..runs {
+            let mut obs = Vec::new();
+            for _ in 0..60 {
+                let pc = Vector3::new(
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(-1.5..1.5),
+                    rng.random_range(3.0..8.0),
+                );
+                // The noise (1.5 px) is larger than the declared sigma
+                // (1.2 px): the scale read from the residuals must see it.
+                let mut uv = k.project(&pc);
+                uv.x += 1.5 * normal(&mut rng);
+                uv.y += 1.5 * normal(&mut rng);
+                obs.push(PoseObservation {
+                    p_world: truth.inverse_transform_point(&Point3::from(pc)),
+                    uv,
+                    inv_sigma2: 1.0 / 1.44,
+                });
+            }
+            let rep = optimize_pose(truth, &obs, &k, &PoseParams::default()).unwrap();
+            let cov = pose_covariance(
+                &rep.cam_from_world,
+                &obs,
+                &rep.inliers,
+                &k,
+                5.991,
+                None,
+                &IntrinsicsUncertainty::default(),
+                &IntrinsicsCorrection::default(),
+            )
+            .unwrap();
+            let c_est = rep.cam_from_world.inverse().translation.vector;
+            let c_true = truth.inverse().translation.vector;
+            let e = (c_est - c_true).norm();
+            let s = cov.position_sigma();
+            in1 += usize::from(e <= s);
+            in2 += usize::from(e <= 2.0 * s);
+            let re = rep.cam_from_world.rotation.angle_to(&truth.rotation);
+            rot_in2 += usize::from(re <= 2.0 * cov.rotation_sigma());
+            sq_err += e * e;
+            sq_sigma += s * s;
+        }
+        let f1 = in1 as f64 / runs as f64;
+        let f2 = in2 as f64 / runs as f64;
+        assert!((0.45..=0.8).contains(&f1), "within 1 sigma {f1}");
+        assert!(f2 >= 0.9, "within 2 sigma {f2}");
+        assert!(
+            rot_in2 as f64 / runs as f64 >= 0.9,
+            "rotation within 2 sigma {rot_in2}"
+        );
+        let ratio = (sq_err / sq_sigma).sqrt();
+        println!("within 1 sigma {f1}, 2 sigma {f2}, RMS error / RMS sigma {ratio}");
+        assert!(
+            (0.75..=1.25).contains(&ratio),
+            "RMS error / RMS sigma {ratio}"
+        );
+    }
+
+    /// A camera whose focal length is 3 % longer than believed and whose
+    /// lens has k1 = -0.05: the pose refined with its intrinsics is back on
+    /// the truth (the corrections found), the fixed-intrinsics pose is not.
+    #[test]
+    fn pose_and_uncertain_intrinsics_are_recovered_together() {
+        let k = intr();
+        let truth_corr = IntrinsicsCorrection {
+            focal_scale: 1.03,
+            k1: -0.05,
+            k2: 0.0,
+        };
+        let truth = Isometry3::from_parts(
+            Translation3::new(0.1, -0.1, 0.2),
+            UnitQuaternion::from_euler_angles(0.03, 0.02, -0.04),
+        );
+        let mut rng = SmallRng::seed_from_u64(5);
+        let mut obs = Vec::new();
+        for _ in 0..300 {
+            let pc = Vector3::new(
+                rng.random_range(-3.0..3.0),
+                rng.random_range(-2.0..2.0),
+                rng.random_range(4.0..12.0),
+            );
+            let Some(uv) = truth_corr.project(&k, &pc) else {
+                continue;
+            };
+            obs.push(PoseObservation {
+                p_world: truth.inverse_transform_point(&Point3::from(pc)),
+                uv,
+                inv_sigma2: 1.0,
+            });
+        }
+        let params = PoseParams {
+            chi2_threshold: 1e9,
+            ..PoseParams::default()
+        };
+        let fixed = optimize_pose(truth, &obs, &k, &params).unwrap();
+        let unc = IntrinsicsUncertainty {
+            focal_rel: 0.05,
+            k1: 0.1,
+            k2: 0.02,
+        };
+        let (pose, corr) =
+            refine_pose_and_intrinsics(fixed.cam_from_world, &obs, &fixed.inliers, &k, &unc);
+        let centre = |p: &Isometry3<f64>| p.inverse().translation.vector;
+        let err_fixed = (centre(&fixed.cam_from_world) - centre(&truth)).norm();
+        let err = (centre(&pose) - centre(&truth)).norm();
+        assert!(err_fixed > 0.05, "fixed intrinsics off by only {err_fixed}");
+        assert!(err < 0.005, "refined off by {err} (fixed {err_fixed})");
+        assert!((corr.focal_scale - 1.03).abs() < 0.002, "{corr:?}");
+        assert!((corr.k1 + 0.05).abs() < 0.005, "{corr:?}");
     }
 
     #[test]

@@ -13,6 +13,7 @@
 
 pub mod anchors;
 pub mod localize;
+pub mod photo;
 pub mod record;
 pub mod request;
 pub mod store;
@@ -21,8 +22,11 @@ pub use anchors::{
     AnchorParams, DesiredShot, desired_shot_from_anchors, homography_from_anchors, warp_perspective,
 };
 pub use localize::{
-    BowIndex, GateParams, Localization, LocalizeParams, NotLocalizedReason, ShotPose,
-    assumed_camera, localize, localize_with_camera,
+    BowIndex, GateParams, Localization, LocalizeParams, MapSigma, NotLocalizedReason, PoseSigma,
+    ShotPose, assumed_camera, localize, localize_with_camera,
+};
+pub use photo::{
+    IntrinsicsSource, Photo, PhotoCamera, PhotoExif, decode_photo, exif_camera, photo_camera,
 };
 
 use nalgebra::Point2;
@@ -132,6 +136,12 @@ pub enum ShotError {
     Features {
         /// The extractor's message.
         message: String,
+    },
+    /// A photo that is not a readable image.
+    #[error("bad photo: {reason}")]
+    BadPhoto {
+        /// Why.
+        reason: String,
     },
     /// Invalid parameters.
     #[error("invalid parameter {name}: {reason}")]

@@ -65,7 +65,8 @@ pub enum ShotSource {
         width: u32,
         /// Height, pixels.
         height: u32,
-        /// The intrinsics given with it (None: the map camera's, scaled).
+        /// The intrinsics given with it, or read from its EXIF (then with
+        /// their sigmas); None: the map camera's, scaled.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         intrinsics: Option<PhotoIntrinsics>,
     },
@@ -82,6 +83,23 @@ pub struct Localisation {
     pub rms_error_px: f64,
     /// The keyframe the match went through.
     pub keyframe_id: Option<u64>,
+    /// The pose's uncertainty (absent in shot files written before it was
+    /// reported).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma: Option<LocalisationSigma>,
+}
+
+/// The uncertainty of a localisation: the RMS errors its covariance
+/// predicts (about 61 % of true errors within one, 99 % within two).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LocalisationSigma {
+    /// Camera centre, map units.
+    pub position: f64,
+    /// Camera centre as a fraction of the distance to the nearest scene
+    /// content (the 10 % quantile of the inliers' depths).
+    pub position_fraction_of_distance: f64,
+    /// Orientation, degrees.
+    pub rotation_deg: f64,
 }
 
 /// Whether a desired shot was localised in the map.
@@ -211,6 +229,22 @@ pub struct PhotoIntrinsics {
     /// Distortion (zero when not given).
     #[serde(default)]
     pub distortion: Distortion,
+    /// How well the focal length is known, as a fraction of it: 0 for
+    /// intrinsics the operator gave; set when they were read from the
+    /// photo's EXIF (the pose is then estimated with the focal length and
+    /// `k1`, and its sigma includes what they leave open).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub focal_rel_sigma: f64,
+    /// How well `k1` is known (0: given; EXIF gives no distortion).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub k1_sigma: f64,
+    /// How well `k2` is known.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub k2_sigma: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl PhotoIntrinsics {

@@ -244,6 +244,7 @@ mod tests {
             },
             status: ShotStatus::Localised,
             localisation: Some(Localisation {
+                sigma: None,
                 world_from_cam: PoseJson {
                     translation: [1.0, 2.0, 3.0],
                     rotation_xyzw: [0.0, 0.0, 0.0, 1.0],

@@ -1,0 +1,472 @@
+//! An uploaded photo: decoded, turned upright by its EXIF orientation, and
+//! the camera it was taken with, from the operator's intrinsics, else its
+//! EXIF (focal length with the focal-plane resolution, or the 35 mm
+//! equivalent focal length), else the map camera scaled to its size.
+//!
+//! EXIF is read with `kamadak-exif`. A photo whose EXIF cannot be parsed
+//! still decodes: the EXIF is ignored with a warning in the log and on the
+//! [`Photo`] ([`Photo::exif_warning`]); it never fails the upload.
+//!
+//! EXIF gives no distortion and no principal point: a camera from EXIF is
+//! a pinhole with its principal point at the image centre. Its focal length
+//! from the 35 mm equivalent uses the standard's diagonal (43.27 mm of a
+//! 36x24 mm frame) against the photo's pixel diagonal, which holds for a
+//! resized photo too; the 35 mm equivalent is a whole number of mm, so a
+//! wide lens's focal length is only known to about 2 %. The focal-plane
+//! resolution (px per unit of the sensor) is exact but describes the
+//! sensor's full-size image: it is used only when the EXIF's pixel size
+//! (when present) is the photo's.
+
+use std::io::Cursor;
+
+use image::GrayImage;
+use image::metadata::Orientation;
+
+use super::ShotError;
+use super::localize::assumed_camera;
+use crate::camera::{Camera, Distortion};
+use crate::optimize::IntrinsicsUncertainty;
+
+/// Diagonal of the 36 x 24 mm frame the 35 mm equivalent refers to, mm.
+pub const FRAME_35MM_DIAGONAL_MM: f64 = 43.266_615_305_567_87;
+
+/// What a photo's EXIF says about its camera (only the fields used).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct PhotoExif {
+    /// FocalLength, mm.
+    pub focal_length_mm: Option<f64>,
+    /// FocalLengthIn35mmFilm, mm (0 = unknown is read as None).
+    pub focal_length_35mm: Option<f64>,
+    /// FocalPlaneXResolution and FocalPlaneYResolution in pixels per mm
+    /// (converted from FocalPlaneResolutionUnit).
+    pub focal_plane_px_per_mm: Option<(f64, f64)>,
+    /// PixelXDimension and PixelYDimension.
+    pub pixel_size: Option<(u32, u32)>,
+    /// Orientation (1..=8), 1 when absent.
+    pub orientation: u8,
+}
+
+/// A decoded photo.
+#[derive(Debug, Clone)]
+pub struct Photo {
+    /// Grey levels, turned upright by the EXIF orientation.
+    pub image: GrayImage,
+    /// Its EXIF, when it has readable EXIF.
+    pub exif: Option<PhotoExif>,
+    /// Why the photo's EXIF was ignored, when it was.
+    pub exif_warning: Option<String>,
+}
+
+/// Where a photo's camera came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IntrinsicsSource {
+    /// The operator gave them.
+    Given,
+    /// Focal length and focal-plane resolution of the EXIF.
+    ExifFocalPlane,
+    /// The EXIF's 35 mm equivalent focal length.
+    Exif35mm,
+    /// The map camera scaled to the photo's size.
+    MapCamera,
+}
+
+impl IntrinsicsSource {
+    /// The name the CLI and the API print.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Given => "given",
+            Self::ExifFocalPlane => "exif_focal_plane",
+            Self::Exif35mm => "exif_35mm",
+            Self::MapCamera => "map_camera",
+        }
+    }
+}
+
+/// A photo's camera and where it came from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PhotoCamera {
+    /// The camera (the upright photo's size).
+    pub camera: Camera,
+    /// Where its intrinsics came from.
+    pub source: IntrinsicsSource,
+    /// How well they are known: zero for given ones and the map camera's;
+    /// from EXIF, the focal length to the 35 mm equivalent's whole mm (and
+    /// 1 % for the equivalence's convention) or 1 % from the focal plane,
+    /// and an unknown lens's distortion ([`EXIF_K1_SIGMA`], [`EXIF_K2_SIGMA`]).
+    pub uncertainty: IntrinsicsUncertainty,
+}
+
+/// The radial distortion an unknown lens may have, as a sigma of `k1`:
+/// phone and drone cameras correct theirs in the camera to well within it.
+pub const EXIF_K1_SIGMA: f64 = 0.05;
+/// The same for the r⁴ coefficient `k2`.
+pub const EXIF_K2_SIGMA: f64 = 0.02;
+
+/// Decodes a JPEG or PNG photo, reads its EXIF and turns it upright.
+///
+/// Errors: [`ShotError::BadPhoto`] when the bytes are not a readable image.
+pub fn decode_photo(bytes: &[u8]) -> Result<Photo, ShotError> {
+    let img = image::load_from_memory(bytes).map_err(|e| ShotError::BadPhoto {
+        reason: format!("not a readable image: {e}"),
+    })?;
+    let (exif, exif_warning) = match read_exif(bytes) {
+        Ok(e) => (e, None),
+        Err(w) => {
+            tracing::warn!("photo EXIF ignored: {w}");
+            (None, Some(w))
+        }
+    };
+    let mut img = img;
+    if let Some(o) = exif.and_then(|e| Orientation::from_exif(e.orientation)) {
+        img.apply_orientation(o);
+    }
+    Ok(Photo {
+        image: img.to_luma8(),
+        exif,
+        exif_warning,
+    })
+}
+
+/// The EXIF fields of `bytes` (None when the container has no EXIF; an
+/// error message when it has EXIF that cannot be parsed or is nonsense).
+pub fn read_exif(bytes: &[u8]) -> Result<Option<PhotoExif>, String> {
+    let exif = match exif::Reader::new().read_from_container(&mut Cursor::new(bytes)) {
+        Ok(e) => e,
+        Err(exif::Error::NotFound(_)) => return Ok(None),
+        Err(e) => return Err(format!("unreadable EXIF: {e}")),
+    };
+    let field = |t: exif::Tag| exif.get_field(t, exif::In::PRIMARY);
+    let rational = |t: exif::Tag| -> Option<f64> {
+        match &field(t)?.value {
+            exif::Value::Rational(v) => v.first().map(|r| r.to_f64()),
+            exif::Value::SRational(v) => v.first().map(|r| r.to_f64()),
+            v => v.get_uint(0).map(f64::from),
+        }
+    };
+    let uint = |t: exif::Tag| field(t).and_then(|f| f.value.get_uint(0));
+    let positive = |v: Option<f64>| v.filter(|x| x.is_finite() && *x > 0.0);
+    let orientation = match uint(exif::Tag::Orientation) {
+        None => 1,
+        Some(o @ 1..=8) => o as u8,
+        Some(o) => return Err(format!("EXIF orientation {o} is not 1-8")),
+    };
+    // FocalPlaneResolutionUnit: 2 inch (the default), 3 cm, 4 mm, 5 µm.
+    let unit_mm = match uint(exif::Tag::FocalPlaneResolutionUnit).unwrap_or(2) {
+        2 => Some(25.4),
+        3 => Some(10.0),
+        4 => Some(1.0),
+        5 => Some(0.001),
+        _ => None,
+    };
+    let focal_plane_px_per_mm = match (
+        positive(rational(exif::Tag::FocalPlaneXResolution)),
+        positive(rational(exif::Tag::FocalPlaneYResolution)),
+        unit_mm,
+    ) {
+        (Some(x), y, Some(u)) => Some((x / u, y.unwrap_or(x) / u)),
+        _ => None,
+    };
+    let pixel_size = match (
+        uint(exif::Tag::PixelXDimension),
+        uint(exif::Tag::PixelYDimension),
+    ) {
+        (Some(w), Some(h)) if w > 0 && h > 0 => Some((w, h)),
+        _ => None,
+    };
+    Ok(Some(PhotoExif {
+        focal_length_mm: positive(rational(exif::Tag::FocalLength)),
+        focal_length_35mm: positive(rational(exif::Tag::FocalLengthIn35mmFilm)),
+        focal_plane_px_per_mm,
+        pixel_size,
+        orientation,
+    }))
+}
+
+/// Whether the EXIF orientation turns the stored image by 90 degrees.
+fn swaps_axes(orientation: u8) -> bool {
+    (5..=8).contains(&orientation)
+}
+
+/// The camera of an upright `width` x `height` photo from its EXIF: a
+/// pinhole with the principal point at the centre; None when the EXIF
+/// holds no usable focal length.
+pub fn exif_camera(exif: &PhotoExif, width: u32, height: u32) -> Option<PhotoCamera> {
+    let (cx, cy) = ((width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0);
+    let make = |fx: f64, fy: f64, source, focal_rel: f64| {
+        Camera::new(width, height, [fx, fy, cx, cy], Distortion::default())
+            .ok()
+            .map(|camera| PhotoCamera {
+                camera,
+                source,
+                uncertainty: IntrinsicsUncertainty {
+                    focal_rel,
+                    k1: EXIF_K1_SIGMA,
+                    k2: EXIF_K2_SIGMA,
+                },
+            })
+    };
+    // The stored (not yet upright) size, which the focal plane refers to.
+    let swapped = swaps_axes(exif.orientation);
+    let stored = if swapped {
+        (height, width)
+    } else {
+        (width, height)
+    };
+    if let (Some(f), Some((rx, ry))) = (exif.focal_length_mm, exif.focal_plane_px_per_mm)
+        && exif.pixel_size.is_none_or(|s| s == stored)
+    {
+        let (fx, fy) = if swapped {
+            (f * ry, f * rx)
+        } else {
+            (f * rx, f * ry)
+        };
+        if let Some(c) = make(fx, fy, IntrinsicsSource::ExifFocalPlane, 0.01) {
+            return Some(c);
+        }
+    }
+    let f35 = exif.focal_length_35mm?;
+    let diag = (width as f64).hypot(height as f64);
+    let f = f35 / FRAME_35MM_DIAGONAL_MM * diag;
+    make(f, f, IntrinsicsSource::Exif35mm, (0.5 / f35).hypot(0.01))
+}
+
+/// The camera of `photo`: `given` when the operator gave one, else from
+/// its EXIF, else the map camera scaled ([`assumed_camera`]).
+///
+/// Errors: [`ShotError::ImageSize`] when none applies (no usable EXIF and
+/// an aspect ratio other than the map camera's).
+pub fn photo_camera(
+    map_camera: &Camera,
+    photo: &Photo,
+    given: Option<Camera>,
+) -> Result<PhotoCamera, ShotError> {
+    let (w, h) = photo.image.dimensions();
+    if let Some(camera) = given {
+        return Ok(PhotoCamera {
+            camera,
+            source: IntrinsicsSource::Given,
+            uncertainty: IntrinsicsUncertainty::default(),
+        });
+    }
+    if let Some(c) = photo.exif.as_ref().and_then(|e| exif_camera(e, w, h)) {
+        return Ok(c);
+    }
+    if (w, h) == (map_camera.width, map_camera.height) {
+        return Ok(PhotoCamera {
+            camera: *map_camera,
+            source: IntrinsicsSource::MapCamera,
+            uncertainty: IntrinsicsUncertainty::default(),
+        });
+    }
+    Ok(PhotoCamera {
+        camera: assumed_camera(map_camera, w, h)?,
+        source: IntrinsicsSource::MapCamera,
+        uncertainty: IntrinsicsUncertainty::default(),
+    })
+}
+
+/// The TIFF bytes of an EXIF block (for a JPEG's APP1 segment) with the
+/// given fields; for tests and tools that write photos. `focal_plane` is
+/// (x, y) resolution in pixels per mm.
+pub fn exif_tiff(
+    focal_length_mm: Option<f64>,
+    focal_length_35mm: Option<u16>,
+    focal_plane_px_per_mm: Option<(f64, f64)>,
+    orientation: Option<u16>,
+) -> Result<Vec<u8>, String> {
+    use exif::{Field, In, Rational, Tag, Value};
+    let rational = |v: f64| {
+        let denom = 1000u32;
+        Rational::from(((v * denom as f64).round() as u32, denom))
+    };
+    let mut fields: Vec<Field> = Vec::new();
+    if let Some(f) = focal_length_mm {
+        fields.push(Field {
+            tag: Tag::FocalLength,
+            ifd_num: In::PRIMARY,
+            value: Value::Rational(vec![rational(f)]),
+        });
+    }
+    if let Some(f) = focal_length_35mm {
+        fields.push(Field {
+            tag: Tag::FocalLengthIn35mmFilm,
+            ifd_num: In::PRIMARY,
+            value: Value::Short(vec![f]),
+        });
+    }
+    if let Some((x, y)) = focal_plane_px_per_mm {
+        for (tag, v) in [
+            (Tag::FocalPlaneXResolution, x),
+            (Tag::FocalPlaneYResolution, y),
+        ] {
+            fields.push(Field {
+                tag,
+                ifd_num: In::PRIMARY,
+                value: Value::Rational(vec![rational(v)]),
+            });
+        }
+        fields.push(Field {
+            tag: Tag::FocalPlaneResolutionUnit,
+            ifd_num: In::PRIMARY,
+            value: Value::Short(vec![4]),
+        });
+    }
+    if let Some(o) = orientation {
+        fields.push(Field {
+            tag: Tag::Orientation,
+            ifd_num: In::PRIMARY,
+            value: Value::Short(vec![o]),
+        });
+    }
+    let mut w = exif::experimental::Writer::new();
+    for f in &fields {
+        w.push_field(f);
+    }
+    let mut out = Cursor::new(Vec::new());
+    w.write(&mut out, false).map_err(|e| e.to_string())?;
+    Ok(out.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use image::{ImageEncoder, Luma};
+
+    fn jpeg(img: &GrayImage, tiff: Option<Vec<u8>>) -> Vec<u8> {
+        let mut out = Vec::new();
+        let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95);
+        if let Some(t) = tiff {
+            enc.set_exif_metadata(t).unwrap();
+        }
+        enc.write_image(
+            img.as_raw(),
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::L8,
+        )
+        .unwrap();
+        out
+    }
+
+    /// A 64x48 picture, black except a white top-left 8x8 block.
+    fn marked() -> GrayImage {
+        GrayImage::from_fn(64, 48, |x, y| Luma([if x < 8 && y < 8 { 255 } else { 0 }]))
+    }
+
+    fn map_camera() -> Camera {
+        Camera::new(
+            640,
+            480,
+            [460.0, 460.0, 319.5, 239.5],
+            Distortion::default(),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn focal_length_from_35mm_equivalent_and_focal_plane() {
+        // 26 mm equivalent on a 4000x3000 photo: f = 26/43.2666 * 5000 px.
+        let t = exif_tiff(Some(4.25), Some(26), None, None).unwrap();
+        let bytes = jpeg(&GrayImage::new(400, 300), Some(t));
+        let p = decode_photo(&bytes).unwrap();
+        let e = p.exif.unwrap();
+        assert_eq!(e.focal_length_35mm, Some(26.0));
+        assert!((e.focal_length_mm.unwrap() - 4.25).abs() < 1e-9);
+        let c = photo_camera(&map_camera(), &p, None).unwrap();
+        assert_eq!(c.source, IntrinsicsSource::Exif35mm);
+        let f = 26.0 / FRAME_35MM_DIAGONAL_MM * 500.0;
+        assert!((c.camera.fx - f).abs() < 1e-9 && (c.camera.fy - f).abs() < 1e-9);
+        assert!((c.camera.cx - 199.5).abs() < 1e-12 && (c.camera.cy - 149.5).abs() < 1e-12);
+        // Focal plane: 4.25 mm at 100 px/mm = 425 px exactly.
+        let t = exif_tiff(Some(4.25), Some(26), Some((100.0, 100.0)), None).unwrap();
+        let p = decode_photo(&jpeg(&GrayImage::new(400, 300), Some(t))).unwrap();
+        let c = photo_camera(&map_camera(), &p, None).unwrap();
+        assert_eq!(c.source, IntrinsicsSource::ExifFocalPlane);
+        assert!((c.camera.fx - 425.0).abs() < 1e-9);
+        // Explicit intrinsics win over EXIF.
+        let given = Camera::new(
+            400,
+            300,
+            [300.0, 300.0, 200.0, 150.0],
+            Distortion::default(),
+        )
+        .unwrap();
+        let c = photo_camera(&map_camera(), &p, Some(given)).unwrap();
+        assert_eq!(c.source, IntrinsicsSource::Given);
+        assert_eq!(c.camera.fx, 300.0);
+    }
+
+    #[test]
+    fn no_exif_falls_back_to_the_map_camera() {
+        let p = decode_photo(&jpeg(&GrayImage::new(320, 240), None)).unwrap();
+        assert!(p.exif.is_none() && p.exif_warning.is_none());
+        let c = photo_camera(&map_camera(), &p, None).unwrap();
+        assert_eq!(c.source, IntrinsicsSource::MapCamera);
+        assert!((c.camera.fx - 230.0).abs() < 1e-9);
+        // Focal length alone (no sensor size) gives no camera.
+        let t = exif_tiff(Some(4.25), None, None, None).unwrap();
+        let p = decode_photo(&jpeg(&GrayImage::new(320, 240), Some(t))).unwrap();
+        assert!(p.exif.is_some());
+        let c = photo_camera(&map_camera(), &p, None).unwrap();
+        assert_eq!(c.source, IntrinsicsSource::MapCamera);
+        // Another aspect ratio without EXIF: an error, not a guess.
+        let p = decode_photo(&jpeg(&GrayImage::new(300, 300), None)).unwrap();
+        assert!(matches!(
+            photo_camera(&map_camera(), &p, None),
+            Err(ShotError::ImageSize { .. })
+        ));
+    }
+
+    #[test]
+    fn orientation_turns_the_photo_upright() {
+        // Orientation 6: the stored image must be turned 90 degrees
+        // clockwise; its top-left corner goes to the top-right.
+        let t = exif_tiff(None, Some(28), None, Some(6)).unwrap();
+        let p = decode_photo(&jpeg(&marked(), Some(t))).unwrap();
+        assert_eq!(p.image.dimensions(), (48, 64));
+        assert!(p.image.get_pixel(44, 3)[0] > 200, "top-right is white");
+        assert!(p.image.get_pixel(3, 3)[0] < 50, "top-left is black");
+        let c = photo_camera(&map_camera(), &p, None).unwrap();
+        assert_eq!((c.camera.width, c.camera.height), (48, 64));
+        // Orientation 3: turned 180 degrees.
+        let t = exif_tiff(None, None, None, Some(3)).unwrap();
+        let p = decode_photo(&jpeg(&marked(), Some(t))).unwrap();
+        assert_eq!(p.image.dimensions(), (64, 48));
+        assert!(p.image.get_pixel(60, 44)[0] > 200);
+        // Focal plane of a turned photo: x and y resolutions swap.
+        let t = exif_tiff(Some(2.0), None, Some((100.0, 50.0)), Some(6)).unwrap();
+        let p = decode_photo(&jpeg(&marked(), Some(t))).unwrap();
+        let c = photo_camera(&map_camera(), &p, None).unwrap();
+        assert_eq!(c.source, IntrinsicsSource::ExifFocalPlane);
+        assert!((c.camera.fx - 100.0).abs() < 1e-9 && (c.camera.fy - 200.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn bad_exif_is_ignored_with_a_warning_never_a_crash() {
+        let img = marked();
+        // An orientation out of range.
+        let t = exif_tiff(None, Some(28), None, Some(9)).unwrap();
+        let p = decode_photo(&jpeg(&img, Some(t))).unwrap();
+        assert!(p.exif.is_none());
+        assert!(p.exif_warning.as_deref().unwrap().contains("orientation 9"));
+        assert_eq!(p.image.dimensions(), (64, 48));
+        // Garbage in the APP1 segment, and every truncation of a real block.
+        let good = exif_tiff(Some(4.0), Some(28), Some((10.0, 10.0)), Some(6)).unwrap();
+        let mut cases: Vec<Vec<u8>> = vec![b"II*\0garbage".to_vec(), vec![0xff; 40]];
+        for cut in [2, 8, 10, 20, good.len() / 2, good.len() - 1] {
+            cases.push(good[..cut].to_vec());
+        }
+        for t in cases {
+            let p = decode_photo(&jpeg(&img, Some(t))).unwrap();
+            if let Some(e) = p.exif {
+                assert!((1..=8).contains(&e.orientation));
+            }
+            let _ = photo_camera(&map_camera(), &p, None);
+        }
+        // Not an image at all.
+        assert!(matches!(
+            decode_photo(b"not an image"),
+            Err(ShotError::BadPhoto { .. })
+        ));
+    }
+}

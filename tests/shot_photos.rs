@@ -1,0 +1,587 @@
+//! Issue 21's measurement: desired photos from hidden poses AROUND the
+//! flown path (0 to 10 m and more off it, 0.5x to 2x the keyframes'
+//! distance to the scene, rolled), under the flight's light, with the sun
+//! moved by 30 and 60 degrees (another time of day: the world's shading and
+//! cast shadows move; its layout does not), and from another camera (other
+//! size, focal length and distortion; its focal length only in the EXIF the
+//! test writes into the JPEG).
+//!
+//! The map is SLAM's run over a rendered segment of the simulator's explore
+//! flight, aligned to the truth with a Sim(3) on the keyframes (as in
+//! `tests/shot_sim.rs`). Every photo goes through the path of
+//! `shotpilot shot --photo`: JPEG bytes, [`shot::photo_camera`] (explicit
+//! intrinsics, else EXIF, else the map camera scaled), localisation with
+//! the BoW candidates. Errors are against the hidden pose after the Sim(3):
+//! position as % of the distance to the scene, rotation in degrees.
+//!
+//! Printed per condition and per band (distance from the flown path; ratio
+//! of the distance to the scene to that of the keyframe the pose was made
+//! from): localised share, error median / p90, the share of localised
+//! photos whose true error lies within 1 and 2 reported sigma, and the
+//! count of photos the gate passed with an error over 10 % of the distance
+//! or 5 degrees (0 for the map camera under every light: asserted; the
+//! EXIF camera's 2 are an open defect, held at no more).
+//!
+//! `cargo test --release --test shot_photos -- --nocapture` (about 2 min).
+
+use std::io::Cursor;
+use std::sync::Arc;
+
+use nalgebra::{Isometry3, Point2, Point3, Translation3, Unit, UnitQuaternion, Vector3};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use shotpilot::bow::Vocabulary;
+use shotpilot::camera::{Camera, Distortion};
+use shotpilot::geometry::{Sim3, umeyama};
+use shotpilot::shot::{self, BowIndex, Localization};
+use shotpilot::slam::{self, Map, Slam};
+use shotpilot_sim::camera::SimCamera;
+use shotpilot_sim::paths::{CameraPath, Params as PathParams};
+use shotpilot_sim::render::{RenderParams, Renderer};
+use shotpilot_sim::world::{World, WorldParams};
+
+const SEED: u64 = 1;
+/// The mapped segment of the explore flight: start, end, step (s).
+const T0: f64 = 0.0;
+const T1: f64 = 30.0;
+const DT: f64 = 0.15;
+const PHOTOS: usize = 100;
+
+fn camera_of(c: &SimCamera) -> Camera {
+    Camera::new(
+        c.width,
+        c.height,
+        [c.fx, c.fy, c.cx, c.cy],
+        Distortion {
+            k1: c.k1,
+            k2: c.k2,
+            p1: c.p1,
+            p2: c.p2,
+            k3: c.k3,
+        },
+    )
+    .unwrap_or_else(|e| panic!("sim camera: {e}"))
+}
+
+/// The map, its alignment to the truth and what the sampling needs.
+struct Mapped {
+    world: Arc<World>,
+    path: CameraPath,
+    camera: Camera,
+    map: Map,
+    sim: Sim3,
+    points_world: Vec<Point3<f64>>,
+    kf_times: Vec<f64>,
+    /// The flown path's camera centres over the mapped segment.
+    flown: Vec<Vector3<f64>>,
+}
+
+fn build(world: Arc<World>) -> anyhow::Result<Mapped> {
+    let sc = SimCamera::default();
+    let renderer = Renderer::new(world.clone(), sc, RenderParams::default());
+    let path = CameraPath::explore(&world, PathParams::default());
+    let camera = camera_of(&sc);
+    let params = slam::Params {
+        sequential: true,
+        ..slam::Params::default()
+    };
+    let mut system = Slam::new(camera, params)?;
+    let n = ((T1 - T0) / DT).floor() as usize + 1;
+    let mut flown = Vec::new();
+    for i in 0..n {
+        let t = T0 + DT * i as f64;
+        let pose = path.world_from_cam(t);
+        flown.push(pose.translation.vector);
+        system.process(
+            i as u64,
+            t,
+            Arc::new(renderer.render_noisy(&pose, 1000 + i as u64)),
+        );
+    }
+    let map = system.finish().map;
+    anyhow::ensure!(map.keyframe_count() >= 10, "too few keyframes");
+    // Sim(3): keyframe centres, then points one median depth along their axes.
+    let mut src = Vec::new();
+    let mut dst = Vec::new();
+    let mut kfs = Vec::new();
+    for kf in map.keyframes() {
+        let truth = path.world_from_cam(kf.timestamp);
+        src.push(Point3::from(kf.center()));
+        dst.push(Point3::from(truth.translation.vector));
+        kfs.push((kf.world_from_cam(), truth));
+    }
+    let coarse = umeyama(&src, &dst, true)?;
+    let mut depths: Vec<f64> = map
+        .keyframes()
+        .filter_map(|k| map.median_depth(k.id))
+        .collect();
+    depths.sort_by(f64::total_cmp);
+    let d = depths.get(depths.len() / 2).copied().unwrap_or(1.0);
+    for (est, truth) in &kfs {
+        for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
+            src.push(est * Point3::from(axis * d));
+            dst.push(truth * Point3::from(axis * (d * coarse.scale)));
+        }
+    }
+    let sim = umeyama(&src, &dst, true)?;
+    let mut rot: Vec<f64> = kfs
+        .iter()
+        .map(|(e, t)| {
+            sim.transform_pose(e)
+                .rotation
+                .angle_to(&t.rotation)
+                .to_degrees()
+        })
+        .collect();
+    rot.sort_by(f64::total_cmp);
+    println!(
+        "map: explore t = {T0}..{T1} s every {DT} s, {} keyframes, {} points; keyframe orientation vs truth median {:.3} deg; Sim(3) scale {:.4}",
+        map.keyframe_count(),
+        map.point_count(),
+        rot[rot.len() / 2],
+        sim.scale
+    );
+    let points_world = map
+        .points()
+        .map(|p| sim.transform_point(&p.position))
+        .collect();
+    let mut kf_times: Vec<f64> = map.keyframes().map(|k| k.timestamp).collect();
+    kf_times.sort_by(f64::total_cmp);
+    Ok(Mapped {
+        world,
+        path,
+        camera,
+        map,
+        sim,
+        points_world,
+        kf_times,
+        flown,
+    })
+}
+
+/// Mapped points the camera sees unoccluded inside its image.
+fn visible(m: &Mapped, camera: &Camera, world_from_cam: &Isometry3<f64>) -> usize {
+    let cfw = world_from_cam.inverse();
+    let eye = Point3::from(world_from_cam.translation.vector);
+    let (w, h) = (camera.width as f64, camera.height as f64);
+    m.points_world
+        .iter()
+        .filter(|p| {
+            let pc = cfw * **p;
+            let Some(px) = camera.project(&pc.coords) else {
+                return false;
+            };
+            if !(px.x >= 0.0 && px.y >= 0.0 && px.x <= w - 1.0 && px.y <= h - 1.0) {
+                return false;
+            }
+            let d = **p - eye;
+            let dist = d.norm();
+            match m.world.ray_cast(&eye, &(d / dist), dist * 1.1) {
+                Some(hit) => hit.t > dist * 0.97,
+                None => true,
+            }
+        })
+        .count()
+}
+
+/// Median distance to the scene over a 7x7 grid of rays, metres.
+fn distance_to_scene(m: &Mapped, world_from_cam: &Isometry3<f64>) -> f64 {
+    let eye = Point3::from(world_from_cam.translation.vector);
+    let (w, h) = (m.camera.width as f64, m.camera.height as f64);
+    let mut d = Vec::new();
+    for j in 0..7 {
+        for i in 0..7 {
+            let px = Point2::new((i as f64 + 0.5) * w / 7.0, (j as f64 + 0.5) * h / 7.0);
+            let ray = world_from_cam.rotation * m.camera.unproject(px).into_inner();
+            if let Some(hit) = m.world.ray_cast(&eye, &ray, 2000.0) {
+                d.push(hit.t);
+            }
+        }
+    }
+    d.sort_by(f64::total_cmp);
+    d.get(d.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+fn random_unit(rng: &mut StdRng) -> Unit<Vector3<f64>> {
+    loop {
+        let v = Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        );
+        let n: f64 = v.norm();
+        if n > 0.1 && n <= 1.0 {
+            return Unit::new_normalize(v);
+        }
+    }
+}
+
+/// One hidden pose.
+#[derive(Debug, Clone, Copy)]
+struct Hidden {
+    pose: Isometry3<f64>,
+    /// Distance of the camera centre from the flown path, metres.
+    off_path_m: f64,
+    /// Its distance to the scene over that of the keyframe it was made from.
+    scale: f64,
+    /// Distance to the scene, metres.
+    dist_m: f64,
+}
+
+/// `n` hidden poses: from a keyframe's true pose, the camera moves up to
+/// 10 m in a random direction, then along the ray to the scene point on
+/// its old optical axis to 0.5x..2x (log-uniform) of the keyframe's
+/// distance to it, turns to look at that point, rolls by up to ±20 degrees
+/// and turns by up to 5 degrees more. Kept when the camera is in the open
+/// (above 2 m, nothing between it and the point) and sees at least 60
+/// mapped points.
+fn hidden_poses(m: &Mapped, n: usize, seed: u64) -> Vec<Hidden> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut out = Vec::new();
+    let mut attempts = 0;
+    while out.len() < n {
+        attempts += 1;
+        assert!(attempts < n * 50, "too few poses see the map");
+        let t = m.kf_times[rng.random_range(0..m.kf_times.len())];
+        let base = m.path.world_from_cam(t);
+        let eye = Point3::from(base.translation.vector);
+        let axis = base.rotation * Vector3::z();
+        let Some(hit) = m.world.ray_cast(&eye, &axis, 2000.0) else {
+            continue;
+        };
+        let target = eye + axis * hit.t;
+        let moved = eye + random_unit(&mut rng).into_inner() * rng.random_range(0.0..10.0);
+        let scale = (rng.random_range(0.5f64.ln()..2f64.ln())).exp();
+        let dir = (moved - target).normalize();
+        let new_eye = target + dir * (hit.t * scale);
+        if new_eye.z > -2.0 {
+            continue;
+        }
+        let view = -dir;
+        match m.world.ray_cast(&new_eye, &view, hit.t * scale * 1.1) {
+            Some(h) if h.t < hit.t * scale * 0.98 => continue,
+            _ => {}
+        }
+        let align = UnitQuaternion::rotation_between(&axis, &view).unwrap_or_default();
+        let roll = UnitQuaternion::from_axis_angle(
+            &Unit::new_normalize(Vector3::z()),
+            rng.random_range(-20f64..20.0).to_radians(),
+        );
+        let turn = UnitQuaternion::from_axis_angle(
+            &random_unit(&mut rng),
+            rng.random_range(0.0..5f64).to_radians(),
+        );
+        let pose = Isometry3::from_parts(
+            Translation3::from(new_eye.coords),
+            align * base.rotation * roll * turn,
+        );
+        if visible(m, &m.camera, &pose) < 60 {
+            continue;
+        }
+        let off_path_m = m
+            .flown
+            .iter()
+            .map(|c| (c - new_eye.coords).norm())
+            .fold(f64::INFINITY, f64::min);
+        out.push(Hidden {
+            pose,
+            off_path_m,
+            scale,
+            dist_m: distance_to_scene(m, &pose),
+        });
+    }
+    out
+}
+
+/// One photo's outcome.
+#[derive(Debug, Clone, Copy)]
+struct Outcome {
+    hidden: Hidden,
+    localized: bool,
+    pos_err_pct: f64,
+    rot_err_deg: f64,
+    /// Reported position sigma as % of the distance, rotation sigma in
+    /// degrees (NaN when none is reported).
+    pos_sigma_pct: f64,
+    rot_sigma_deg: f64,
+    /// Refused by the gate for its sigma.
+    uncertain: bool,
+}
+
+/// A rendered photo as the operator would upload it: JPEG, with the given
+/// EXIF (TIFF bytes of an APP1 segment) when there is one.
+fn jpeg_of(img: &image::GrayImage, exif_tiff: Option<&[u8]>) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(Cursor::new(&mut out), 92);
+    if let Some(tiff) = exif_tiff {
+        use image::ImageEncoder;
+        enc.set_exif_metadata(tiff.to_vec())
+            .unwrap_or_else(|e| panic!("exif: {e}"));
+    }
+    enc.encode_image(img)
+        .unwrap_or_else(|e| panic!("jpeg: {e}"));
+    out
+}
+
+/// Renders, encodes and localises every hidden pose through `renderer`.
+fn run_condition(
+    m: &Mapped,
+    index: &BowIndex<'_>,
+    renderer: &Renderer,
+    exif_tiff: Option<&[u8]>,
+    hidden: &[Hidden],
+    seed: u64,
+) -> anyhow::Result<Vec<Outcome>> {
+    let mut out = Vec::new();
+    for (k, h) in hidden.iter().enumerate() {
+        let img = renderer.render_noisy(&h.pose, seed ^ (70_000 + k as u64));
+        let bytes = jpeg_of(&img, exif_tiff);
+        let photo = shot::decode_photo(&bytes)?;
+        let camera = shot::photo_camera(&m.map.camera, &photo, None)?;
+        let params = shot::LocalizeParams {
+            camera_uncertainty: camera.uncertainty,
+            ..shot::LocalizeParams::default()
+        };
+        let o = match shot::localize_with_camera(
+            &m.map,
+            &camera.camera,
+            &photo.image,
+            None,
+            Some(index),
+            &params,
+        )? {
+            Localization::Localized(p) => {
+                let est = m.sim.transform_pose(&p.world_from_cam);
+                let (ps, rs) = (
+                    p.sigma.position * m.sim.scale / h.dist_m * 100.0,
+                    p.sigma.rotation_deg,
+                );
+                Outcome {
+                    hidden: *h,
+                    localized: true,
+                    pos_err_pct: (est.translation.vector - h.pose.translation.vector).norm()
+                        / h.dist_m
+                        * 100.0,
+                    rot_err_deg: est.rotation.angle_to(&h.pose.rotation).to_degrees(),
+                    pos_sigma_pct: ps,
+                    rot_sigma_deg: rs,
+                    uncertain: false,
+                }
+            }
+            Localization::NotLocalized { reason } => Outcome {
+                uncertain: matches!(reason, shot::NotLocalizedReason::Uncertain { .. }),
+                hidden: *h,
+                localized: false,
+                pos_err_pct: f64::NAN,
+                rot_err_deg: f64::NAN,
+                pos_sigma_pct: f64::NAN,
+                rot_sigma_deg: f64::NAN,
+            },
+        };
+        out.push(o);
+    }
+    Ok(out)
+}
+
+fn quantile(v: &mut [f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let i = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1;
+    v[i]
+}
+
+/// Prints one table row for the outcomes in `sel`; returns the number of
+/// photos localised with an error over 10 % of the distance or 5 degrees.
+fn row(label: &str, sel: &[&Outcome]) -> usize {
+    let n = sel.len();
+    let loc: Vec<&&Outcome> = sel.iter().filter(|o| o.localized).collect();
+    let mut pos: Vec<f64> = loc.iter().map(|o| o.pos_err_pct).collect();
+    let mut rot: Vec<f64> = loc.iter().map(|o| o.rot_err_deg).collect();
+    let with_sigma: Vec<&&&Outcome> = loc
+        .iter()
+        .filter(|o| o.pos_sigma_pct.is_finite() && o.rot_sigma_deg.is_finite())
+        .collect();
+    let within = |k: f64| {
+        if with_sigma.is_empty() {
+            return f64::NAN;
+        }
+        let c = with_sigma
+            .iter()
+            .filter(|o| {
+                o.pos_err_pct <= k * o.pos_sigma_pct && o.rot_err_deg <= k * o.rot_sigma_deg
+            })
+            .count();
+        100.0 * c as f64 / with_sigma.len() as f64
+    };
+    let wrong = loc
+        .iter()
+        .filter(|o| o.pos_err_pct > 10.0 || o.rot_err_deg > 5.0)
+        .count();
+    let uncertain = sel.iter().filter(|o| o.uncertain).count();
+    println!(
+        "{label:<18} {n:4} {:5.0} %  {:7.2} {:7.2}  {:7.3} {:7.3}  {:5.0} % {:5.0} %  {wrong:5}  {uncertain:5}",
+        if n == 0 {
+            f64::NAN
+        } else {
+            100.0 * loc.len() as f64 / n as f64
+        },
+        quantile(&mut pos.clone(), 0.5),
+        quantile(&mut pos, 0.9),
+        quantile(&mut rot.clone(), 0.5),
+        quantile(&mut rot, 0.9),
+        within(1.0),
+        within(2.0),
+    );
+    wrong
+}
+
+/// Prints the condition's table (and appends its photos to the CSV in the
+/// temporary directory); returns its count of gated gross errors.
+fn table(name: &str, out: &[Outcome]) -> usize {
+    use std::io::Write;
+    let csv = std::env::temp_dir().join("shot_photos.csv");
+    if let Ok(mut f) = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&csv)
+    {
+        for (k, o) in out.iter().enumerate() {
+            let _ = writeln!(
+                f,
+                "{name},{k},{:.2},{:.3},{:.1},{},{:.4},{:.4},{:.4},{:.4}",
+                o.hidden.off_path_m,
+                o.hidden.scale,
+                o.hidden.dist_m,
+                o.localized,
+                o.pos_err_pct,
+                o.rot_err_deg,
+                o.pos_sigma_pct,
+                o.rot_sigma_deg
+            );
+        }
+    }
+    println!("\n[{name}]");
+    println!(
+        "band                  n   loc.   pos %dist        rot deg       within    within  wrong  refused"
+    );
+    println!(
+        "                                med     p90      med     p90   1 sigma   2 sigma  >10%|>5d by sigma"
+    );
+    let all: Vec<&Outcome> = out.iter().collect();
+    let wrong = row("all", &all);
+    for (lo, hi) in [(0.0, 2.5), (2.5, 5.0), (5.0, 10.0), (10.0, f64::INFINITY)] {
+        let sel: Vec<&Outcome> = out
+            .iter()
+            .filter(|o| o.hidden.off_path_m >= lo && o.hidden.off_path_m < hi)
+            .collect();
+        row(&format!("off path {lo}-{hi} m"), &sel);
+    }
+    for (lo, hi) in [(0.5, 0.71), (0.71, 1.41), (1.41, 2.01)] {
+        let sel: Vec<&Outcome> = out
+            .iter()
+            .filter(|o| o.hidden.scale >= lo && o.hidden.scale < hi)
+            .collect();
+        row(&format!("scale {lo}-{hi}x"), &sel);
+    }
+    wrong
+}
+
+#[test]
+fn photos_around_the_flight_under_other_light_and_cameras() -> anyhow::Result<()> {
+    let t_start = std::time::Instant::now();
+    let wp = WorldParams::default();
+    let world = Arc::new(World::generate_with(SEED, &wp)?);
+    let m = build(world.clone())?;
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(&m.map, &vocabulary);
+    let hidden = hidden_poses(&m, PHOTOS, 0x9407);
+    println!(
+        "{} hidden poses: off the flown path {:.1}..{:.1} m, scale {:.2}..{:.2}x, distance to the scene {:.0}..{:.0} m ({:.0} s so far)",
+        hidden.len(),
+        hidden
+            .iter()
+            .map(|h| h.off_path_m)
+            .fold(f64::INFINITY, f64::min),
+        hidden.iter().map(|h| h.off_path_m).fold(0.0, f64::max),
+        hidden.iter().map(|h| h.scale).fold(f64::INFINITY, f64::min),
+        hidden.iter().map(|h| h.scale).fold(0.0, f64::max),
+        hidden
+            .iter()
+            .map(|h| h.dist_m)
+            .fold(f64::INFINITY, f64::min),
+        hidden.iter().map(|h| h.dist_m).fold(0.0, f64::max),
+        t_start.elapsed().as_secs_f64()
+    );
+    let mut wrong = 0;
+
+    let renderer = Renderer::new(world.clone(), SimCamera::default(), RenderParams::default());
+    let out = run_condition(&m, &index, &renderer, None, &hidden, 1)?;
+    wrong += table("flight's light, map camera", &out);
+
+    for moved in [30.0, 60.0] {
+        let p = WorldParams {
+            sun_azimuth_deg: wp.sun_azimuth_deg + moved,
+            ..wp.clone()
+        };
+        let w = Arc::new(World::generate_with(SEED, &p)?);
+        anyhow::ensure!(w.boxes == world.boxes, "the sun changed the layout");
+        let r = Renderer::new(w, SimCamera::default(), RenderParams::default());
+        let out = run_condition(&m, &index, &r, None, &hidden, 2)?;
+        wrong += table(&format!("sun azimuth +{moved} deg"), &out);
+    }
+
+    // Another camera: 800x600, wider (fx 480 px against the map's 460 at
+    // 640), barrel distortion, its focal length only in the EXIF.
+    let other = SimCamera {
+        width: 800,
+        height: 600,
+        fx: 480.0,
+        fy: 480.0,
+        cx: 399.5,
+        cy: 299.5,
+        k1: -0.06,
+        k2: 0.01,
+        p1: 0.0,
+        p2: 0.0,
+        k3: 0.0,
+    };
+    // A phone's EXIF: the focal length and its 35 mm equivalent (whole
+    // mm, by the frame diagonal), no sensor size.
+    let f35 = other.fx * shot::photo::FRAME_35MM_DIAGONAL_MM
+        / (other.width as f64).hypot(other.height as f64);
+    let exif = shot::photo::exif_tiff(Some(4.0), Some(f35.round() as u16), None, None)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    println!(
+        "\nother camera: 800x600, fx {} px, k1 {}, k2 {}; EXIF 35 mm equivalent {} mm (exact {f35:.2})",
+        other.fx,
+        other.k1,
+        other.k2,
+        f35.round()
+    );
+    let r = Renderer::new(world.clone(), other, RenderParams::default());
+    let out = run_condition(&m, &index, &r, None, &hidden, 3)?;
+    // Without EXIF the map camera's field of view is assumed: wrong here,
+    // reported but not held to the bound.
+    table("800x600 camera, no EXIF (map camera's field of view)", &out);
+    let out = run_condition(&m, &index, &r, Some(&exif), &hidden, 3)?;
+    let wrong_exif = table("800x600 camera, EXIF focal length", &out);
+
+    println!("\n{:.0} s in all", t_start.elapsed().as_secs_f64());
+    assert_eq!(
+        wrong, 0,
+        "photos passed by the gate with an error over 10 % of the distance or 5 deg"
+    );
+    // Open (issue 21): with the focal length only from a rounded 35 mm
+    // equivalent, 2 of these 100 photos (4.8 and 10.4 m from near scenery
+    // whose matched map points are all far away) pass the gate 11 % and
+    // 25 % off along the axis (focal length against distance); held here
+    // so that it cannot get worse unseen.
+    assert!(
+        wrong_exif <= 2,
+        "{wrong_exif} EXIF-camera photos passed by the gate with an error over 10 % or 5 deg"
+    );
+    Ok(())
+}
