@@ -563,9 +563,13 @@ fn photos_around_the_flight_under_other_light_and_cameras() -> anyhow::Result<()
     );
     let r = Renderer::new(world.clone(), other, RenderParams::default());
     let out = run_condition(&m, &index, &r, None, &hidden, 3)?;
-    // Without EXIF the map camera's field of view is assumed: wrong here,
-    // reported but not held to the bound.
-    table("800x600 camera, no EXIF (map camera's field of view)", &out);
+    // Without EXIF the map camera's field of view is assumed (fx 575 px
+    // for the true 480: 20 % too long), with a 30 % focal sigma estimated with the pose.
+    // Open (issue 21): the estimate stops short of the true focal length
+    // and sigma does not cover it, so the gate still passes 36 of these
+    // photos about 18 % off along the axis (63 before the focal
+    // sigma); held so that it cannot get worse unseen.
+    let wrong_no_exif = table("800x600 camera, no EXIF (map camera's field of view)", &out);
     let out = run_condition(&m, &index, &r, Some(&exif), &hidden, 3)?;
     let wrong_exif = table("800x600 camera, EXIF focal length", &out);
 
@@ -579,6 +583,10 @@ fn photos_around_the_flight_under_other_light_and_cameras() -> anyhow::Result<()
     // whose matched map points are all far away) pass the gate 11 % and
     // 25 % off along the axis (focal length against distance); held here
     // so that it cannot get worse unseen.
+    assert!(
+        wrong_no_exif <= 36,
+        "{wrong_no_exif} photos without EXIF passed by the gate with an error over 10 % or 5 deg"
+    );
     assert!(
         wrong_exif <= 2,
         "{wrong_exif} EXIF-camera photos passed by the gate with an error over 10 % or 5 deg"

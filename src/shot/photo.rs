@@ -101,6 +101,25 @@ pub struct PhotoCamera {
 pub const EXIF_K1_SIGMA: f64 = 0.05;
 /// The same for the r⁴ coefficient `k2`.
 pub const EXIF_K2_SIGMA: f64 = 0.02;
+/// Relative sigma of the focal length guessed for a photo of another size
+/// without EXIF (the map camera's field of view): phone and drone cameras
+/// span about 60 to 85 degrees of horizontal field of view, about +-30 %
+/// in focal length.
+pub const ASSUMED_FOCAL_SIGMA: f64 = 0.3;
+
+/// Why a photo's EXIF was ignored, or could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum ExifError {
+    /// The EXIF block is there but cannot be parsed.
+    #[error("unreadable EXIF: {0}")]
+    Unreadable(exif::Error),
+    /// The orientation tag holds a value outside the standard's 1-8.
+    #[error("EXIF orientation {0} is not 1-8")]
+    BadOrientation(u32),
+    /// The EXIF writer refused the fields.
+    #[error("EXIF not written: {0}")]
+    Write(exif::Error),
+}
 
 /// Decodes a JPEG or PNG photo, reads its EXIF and turns it upright.
 ///
@@ -113,7 +132,7 @@ pub fn decode_photo(bytes: &[u8]) -> Result<Photo, ShotError> {
         Ok(e) => (e, None),
         Err(w) => {
             tracing::warn!("photo EXIF ignored: {w}");
-            (None, Some(w))
+            (None, Some(w.to_string()))
         }
     };
     let mut img = img;
@@ -128,12 +147,12 @@ pub fn decode_photo(bytes: &[u8]) -> Result<Photo, ShotError> {
 }
 
 /// The EXIF fields of `bytes` (None when the container has no EXIF; an
-/// error message when it has EXIF that cannot be parsed or is nonsense).
-pub fn read_exif(bytes: &[u8]) -> Result<Option<PhotoExif>, String> {
+/// error when it has EXIF that cannot be parsed or is nonsense).
+pub fn read_exif(bytes: &[u8]) -> Result<Option<PhotoExif>, ExifError> {
     let exif = match exif::Reader::new().read_from_container(&mut Cursor::new(bytes)) {
         Ok(e) => e,
         Err(exif::Error::NotFound(_)) => return Ok(None),
-        Err(e) => return Err(format!("unreadable EXIF: {e}")),
+        Err(e) => return Err(ExifError::Unreadable(e)),
     };
     let field = |t: exif::Tag| exif.get_field(t, exif::In::PRIMARY);
     let rational = |t: exif::Tag| -> Option<f64> {
@@ -148,7 +167,7 @@ pub fn read_exif(bytes: &[u8]) -> Result<Option<PhotoExif>, String> {
     let orientation = match uint(exif::Tag::Orientation) {
         None => 1,
         Some(o @ 1..=8) => o as u8,
-        Some(o) => return Err(format!("EXIF orientation {o} is not 1-8")),
+        Some(o) => return Err(ExifError::BadOrientation(o)),
     };
     // FocalPlaneResolutionUnit: 2 inch (the default), 3 cm, 4 mm, 5 µm.
     let unit_mm = match uint(exif::Tag::FocalPlaneResolutionUnit).unwrap_or(2) {
@@ -258,10 +277,19 @@ pub fn photo_camera(
             uncertainty: IntrinsicsUncertainty::default(),
         });
     }
+    // Another size than the map camera's and no EXIF: most likely another
+    // camera, whose field of view is only guessed. The guess's focal length
+    // and an unknown lens's distortion are uncertain, so they are estimated
+    // with the pose and their uncertainty is in the reported sigma (the gate
+    // then refuses a photo whose focal length the scene cannot pin down).
     Ok(PhotoCamera {
         camera: assumed_camera(map_camera, w, h)?,
         source: IntrinsicsSource::MapCamera,
-        uncertainty: IntrinsicsUncertainty::default(),
+        uncertainty: IntrinsicsUncertainty {
+            focal_rel: ASSUMED_FOCAL_SIGMA,
+            k1: EXIF_K1_SIGMA,
+            k2: EXIF_K2_SIGMA,
+        },
     })
 }
 
@@ -273,7 +301,7 @@ pub fn exif_tiff(
     focal_length_35mm: Option<u16>,
     focal_plane_px_per_mm: Option<(f64, f64)>,
     orientation: Option<u16>,
-) -> Result<Vec<u8>, String> {
+) -> Result<Vec<u8>, ExifError> {
     use exif::{Field, In, Rational, Tag, Value};
     let rational = |v: f64| {
         let denom = 1000u32;
@@ -323,7 +351,7 @@ pub fn exif_tiff(
         w.push_field(f);
     }
     let mut out = Cursor::new(Vec::new());
-    w.write(&mut out, false).map_err(|e| e.to_string())?;
+    w.write(&mut out, false).map_err(ExifError::Write)?;
     Ok(out.into_inner())
 }
 

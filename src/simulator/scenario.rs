@@ -52,6 +52,7 @@ use crate::refine::{
     ArrivalDetector, ArrivalParams, Context, LiveFrame, Params, RoundRecord, Session, Step, Stop,
     pose_difference,
 };
+use crate::shot::request::NotLocalised;
 use crate::shot::{
     AnchorParams, Localization, LocalizeParams, desired_shot_from_anchors, frame_corners, localize,
 };
@@ -954,11 +955,11 @@ fn localise(
     img: &GrayImage,
     mask: Option<&GrayImage>,
     p: &LocalizeParams,
-) -> Result<Isometry3<f64>, String> {
+) -> Result<Isometry3<f64>, NotLocalised> {
     match localize(map, img, mask, None, p) {
         Ok(Localization::Localized(s)) => Ok(s.world_from_cam),
-        Ok(Localization::NotLocalized { reason }) => Err(format!("not localised: {reason}")),
-        Err(e) => Err(format!("not localised: {e}")),
+        Ok(Localization::NotLocalized { reason }) => Err(NotLocalised::Rejected(reason)),
+        Err(e) => Err(NotLocalised::Failed(e)),
     }
 }
 
@@ -1026,7 +1027,7 @@ fn run_trial(
     ) {
         Ok(p) => p,
         Err(e) => {
-            rep.reason = Some(e);
+            rep.reason = Some(e.to_string());
             return finish(rep, sim, "not_localised".into());
         }
     };
