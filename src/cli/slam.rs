@@ -270,6 +270,19 @@ pub fn run(args: SlamArgs) -> Result<()> {
         })
         .collect();
     let revisit = ate.as_ref().and_then(|e| revisit_drift(e, 10.0));
+    // Refused consistent candidates by the check they failed, and how many
+    // of them the ground truth puts more than 10 m from the keyframe that
+    // proposed them (look-alike places: false loops that were stopped).
+    let mut refusals: std::collections::BTreeMap<String, (usize, usize)> = Default::default();
+    for r in &run.loop_refusals {
+        let far = match (gt_at(r.current_t), gt_at(r.candidate_t)) {
+            (Some(a), Some(b)) => (a - b).norm() > 10.0,
+            _ => false,
+        };
+        let e = refusals.entry(format!("{:?}", r.reason)).or_default();
+        e.0 += 1;
+        e.1 += usize::from(far);
+    }
     let (med_ex, p95_ex) = med_p95(&extract_ms);
     let (med_tr, p95_tr) = med_p95(&track_ms);
     let (med_ex_cpu, p95_ex_cpu) = med_p95(&extract_cpu);
@@ -325,7 +338,7 @@ pub fn run(args: SlamArgs) -> Result<()> {
             "sequential": args.sequential,
             "loop_closing": !args.no_loop_closing,
             "loops": loops,
-            "loop_rejects": run.loop_rejects.iter().map(|(r, n)| json!({"reason": format!("{r:?}"), "count": n})).collect::<Vec<_>>(),
+            "loop_refusals": refusals.iter().map(|(r, (n, far))| json!({"reason": r, "count": n, "gt_farther_than_10m": gt.is_some().then_some(far)})).collect::<Vec<_>>(),
             "revisit_t": revisit.map(|r| r.0),
             "revisit_gt_gap_m": revisit.map(|r| r.1),
             "revisit_drift_m": revisit.map(|r| r.2),
@@ -399,10 +412,15 @@ pub fn run(args: SlamArgs) -> Result<()> {
                 "revisit of the start at t = {t:.2} s ({gap:.2} m from it): drift {drift:.4} m (aligned estimate's displacement against the ground truth's)"
             );
         }
-        let rejects: Vec<String> = run
-            .loop_rejects
+        let rejects: Vec<String> = refusals
             .iter()
-            .map(|(r, n)| format!("{r:?} {n}"))
+            .map(|(r, (n, far))| {
+                if gt.is_some() {
+                    format!("{r} {n} ({far} more than 10 m apart in the ground truth)")
+                } else {
+                    format!("{r} {n}")
+                }
+            })
             .collect();
         println!(
             "loop closing {}: {} loops closed{}",

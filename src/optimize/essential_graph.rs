@@ -395,8 +395,8 @@ mod tests {
         };
         let summary = optimize_pose_graph(&mut graph, &PoseGraphParams::default()).unwrap();
         assert!(summary.final_cost < 1e-10, "{summary:?}");
-        for k in 0..n {
-            let d = dist(&graph.poses[k], &truth[k]);
+        for (k, (est, t)) in graph.poses.iter().zip(&truth).enumerate() {
+            let d = dist(est, t);
             assert!(d < 1e-4, "vertex {k}: {d}");
         }
     }

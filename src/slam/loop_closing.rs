@@ -185,6 +185,21 @@ pub enum LoopReject {
     Implausible,
 }
 
+/// A consistent candidate that was refused.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoopRefusal {
+    /// The keyframe looking for a loop.
+    pub current: KeyFrameId,
+    /// The candidate.
+    pub candidate: KeyFrameId,
+    /// Timestamp of the current keyframe, seconds.
+    pub current_t: f64,
+    /// Timestamp of the candidate, seconds.
+    pub candidate_t: f64,
+    /// The check it failed.
+    pub reason: LoopReject,
+}
+
 /// A verified loop before correction.
 struct LoopMatch {
     loop_kf: KeyFrameId,
@@ -207,8 +222,8 @@ pub struct LoopCloser {
     last_loop: Option<KeyFrameId>,
     /// Loops closed.
     pub events: Vec<LoopEvent>,
-    /// Consistent candidates refused, by reason.
-    pub rejected: HashMap<LoopReject, usize>,
+    /// Consistent candidates refused, in order.
+    pub refusals: Vec<LoopRefusal>,
 }
 
 impl LoopCloser {
@@ -220,7 +235,7 @@ impl LoopCloser {
             groups: Vec::new(),
             last_loop: None,
             events: Vec::new(),
-            rejected: HashMap::new(),
+            refusals: Vec::new(),
         }
     }
 
@@ -358,7 +373,14 @@ impl LoopCloser {
                         ?why,
                         "loop candidate refused"
                     );
-                    *self.rejected.entry(why).or_insert(0) += 1;
+                    let t = |id| map.keyframe(id).map_or(f64::NAN, |k| k.timestamp);
+                    self.refusals.push(LoopRefusal {
+                        current: kf,
+                        candidate: c,
+                        current_t: t(kf),
+                        candidate_t: t(c),
+                        reason: why,
+                    });
                 }
             }
         }

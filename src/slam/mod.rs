@@ -59,7 +59,7 @@ use crate::eval::{StampedPose, Trajectory};
 use crate::optimize::BaParams;
 
 pub use initializer::InitFailure;
-pub use loop_closing::{LoopCloser, LoopEvent, LoopParams, LoopReject};
+pub use loop_closing::{LoopCloser, LoopEvent, LoopParams, LoopRefusal, LoopReject};
 pub use map::{KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
 pub use tracking::{FrameOutcome, FrameRecord, TrackFailure, TrackState, Tracker, TrackingParams};
@@ -179,8 +179,8 @@ pub struct SlamRun {
     pub last_reason: Option<TrackFailure>,
     /// Loops closed, in order.
     pub loops: Vec<LoopEvent>,
-    /// Consistent loop candidates refused, by reason.
-    pub loop_rejects: Vec<(LoopReject, usize)>,
+    /// Consistent loop candidates refused, in order.
+    pub loop_refusals: Vec<LoopRefusal>,
 }
 
 impl SlamRun {
@@ -369,12 +369,8 @@ impl Slam {
             }
         };
         let (reports, closer) = mappers.unwrap_or_default();
-        let (loops, loop_rejects) = match closer {
-            Some(c) => {
-                let mut rejects: Vec<(LoopReject, usize)> = c.rejected.into_iter().collect();
-                rejects.sort_by_key(|r| format!("{:?}", r.0));
-                (c.events, rejects)
-            }
+        let (loops, loop_refusals) = match closer {
+            Some(c) => (c.events, c.refusals),
             None => (Vec::new(), Vec::new()),
         };
         let mut map = {
@@ -405,7 +401,7 @@ impl Slam {
             frames: self.frames,
             last_reason: self.tracker.last_reason().cloned(),
             loops,
-            loop_rejects,
+            loop_refusals,
         }
     }
 }
