@@ -157,7 +157,13 @@ fn no_false_loop_on_the_aliasing_world() {
         on.loops.len(),
         on.loop_refusals.len(),
         far.len(),
-        far.iter().map(|r| r.reason).collect::<Vec<_>>()
+        far.iter().fold(
+            std::collections::BTreeMap::<String, usize>::new(),
+            |mut m, r| {
+                *m.entry(format!("{:?}", r.reason)).or_default() += 1;
+                m
+            }
+        )
     );
     assert!(
         !far.is_empty(),
