@@ -11,6 +11,7 @@ use clap::Args;
 use serde_json::json;
 
 use shotpilot::eval::{self, Trajectory};
+use shotpilot::optimize::BaParams;
 use shotpilot::slam::{self, Slam, TrackState};
 use shotpilot::stats;
 use shotpilot::video::dataset::Dataset;
@@ -58,6 +59,14 @@ pub struct SlamArgs {
     /// Run without loop closing.
     #[arg(long)]
     pub no_loop_closing: bool,
+    /// Loop closing: fit the loop's Sim(3) again on the matches found by
+    /// projection (experimental, off by default).
+    #[arg(long)]
+    pub loop_refit: bool,
+    /// Loop closing: a bundle adjustment over the whole map after each
+    /// loop's essential graph (experimental, off by default).
+    #[arg(long)]
+    pub loop_global_ba: bool,
 }
 
 /// The drift at the revisit of a trajectory that comes back to its start:
@@ -119,6 +128,10 @@ pub fn run(args: SlamArgs) -> Result<()> {
         params.loop_closing = None;
     } else if let Some(l) = &mut params.loop_closing {
         l.seed = args.seed;
+        l.refit_on_projection = args.loop_refit;
+        if args.loop_global_ba {
+            l.global_ba = Some(BaParams::default());
+        }
     }
     let mut system = Slam::new(ds.camera, params).context("starting the SLAM")?;
 
@@ -263,6 +276,8 @@ pub fn run(args: SlamArgs) -> Result<()> {
                 "fused": l.fused,
                 "graph_edges": l.graph_edges,
                 "correction_ms": l.correction_ms,
+                "global_ba_ms": l.global_ba_ms,
+                "global_ba_rmse_px": l.global_ba_rmse_px,
                 "keyframes_ate_before_m": ate_of(&l.keyframes_before),
                 "keyframes_ate_after_m": ate_of(&l.keyframes_after),
                 "gt_distance_m": gap,

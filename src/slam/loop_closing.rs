@@ -51,11 +51,12 @@ use crate::geometry::{Sim3RansacParams, sim3_ransac};
 use crate::lie::Sim3;
 use crate::matching::Bounds;
 use crate::optimize::{
-    Intrinsics, PoseGraph, PoseGraphParams, Sim3Edge, Sim3Match, Sim3Params, optimize_pose_graph,
-    optimize_sim3,
+    BaParams, Intrinsics, PoseGraph, PoseGraphParams, Sim3Edge, Sim3Match, Sim3Params,
+    optimize_pose_graph, optimize_sim3,
 };
 
-use super::map::{KeyFrameId, Map, Places, PointId, lock};
+use super::bundle::{apply_ba_result, build_ba_problem};
+use super::map::{KeyFrame, KeyFrameId, Map, Places, PointId, lock};
 use super::matcher::{self, MatcherParams};
 
 /// Tunable numbers of loop closing.
@@ -106,6 +107,16 @@ pub struct LoopParams {
     pub matcher: MatcherParams,
     /// Seed of the RANSAC (mixed with the keyframe ids).
     pub seed: u64,
+    /// Bundle adjustment over all keyframes and points after the essential
+    /// graph (the map's first keyframe fixed); `None` (default): none. It
+    /// runs on the loop closer's thread (in two-thread mode the mapping
+    /// thread, which queues keyframes meanwhile), the solve without the map
+    /// lock. Off by default: on the simulator renders it did not help (README).
+    pub global_ba: Option<BaParams>,
+    /// Fit the loop's Sim(3) again on the matches the projection search
+    /// found whose keypoint holds a point, and search once more. Off by
+    /// default: on the simulator renders it did not help (README).
+    pub refit_on_projection: bool,
 }
 
 impl Default for LoopParams {
@@ -131,6 +142,8 @@ impl Default for LoopParams {
             pose_graph: PoseGraphParams::default(),
             matcher: MatcherParams::default(),
             seed: 1,
+            refit_on_projection: false,
+            global_ba: None,
         }
     }
 }
@@ -166,8 +179,12 @@ pub struct LoopEvent {
     pub correction_ms: f64,
     /// Keyframe poses (world_from_cam) before the correction.
     pub keyframes_before: Trajectory,
-    /// Keyframe poses after it.
+    /// Keyframe poses after it (after the global BA when one ran).
     pub keyframes_after: Trajectory,
+    /// Reprojection RMSE after the global BA, px (`None`: none ran).
+    pub global_ba_rmse_px: Option<f64>,
+    /// Time of the global BA, ms.
+    pub global_ba_ms: Option<f64>,
 }
 
 /// Why a consistent candidate was refused (for logs and counts).
@@ -249,8 +266,16 @@ impl LoopCloser {
         }
         let found = self.verify(&m, kf, &candidates)?;
         let t0 = Instant::now();
-        let event = self.correct(&mut m, kf, found, t0);
+        let mut event = self.correct(&mut m, kf, found, t0);
         drop(m);
+        if let (Some(e), Some(ba)) = (&mut event, &self.params.global_ba) {
+            let t1 = Instant::now();
+            if let Some(rmse) = global_bundle_adjustment(map, ba) {
+                e.global_ba_rmse_px = Some(rmse);
+                e.keyframes_after = keyframe_trajectory(&lock(map));
+            }
+            e.global_ba_ms = Some(t1.elapsed().as_secs_f64() * 1e3);
+        }
         if let Some(e) = &event {
             tracing::info!(
                 current = e.current.0,
@@ -567,11 +592,85 @@ impl LoopCloser {
                 }
             }
         }
-        let iso_cw = sim3_to_isometry(&s_cw);
+        let (mut matched, mut in_view) =
+            self.search_by_projection(map, k1, &loop_points, &s_cw, matched);
+        let mut s_cw = s_cw;
+        let mut inliers = refined.n_inliers;
+        // The scale again from the larger set the projection found (ORB-SLAM
+        // stops at the BoW inliers): every match whose keypoint holds a point
+        // gives a 3D pair; the pose is refined on them at the scale held,
+        // the scale re-fitted robustly on that refinement's inliers, the pose
+        // refined at the new scale, and the projection search run once more.
+        if p.refit_on_projection
+            && let Some((s12, seeds, n)) =
+                self.refit_on_projection(map, k1, k2, cand, &matched, &refined.s12, &intr)
+        {
+            s_cw = s12.compose(&Sim3::from_isometry(&k2.cam_from_world));
+            (matched, in_view) = self.search_by_projection(map, k1, &loop_points, &s_cw, seeds);
+            inliers = n;
+        }
+        let n_matched = matched.iter().flatten().count();
+        if n_matched < p.min_projection_matches
+            || (n_matched as f64) < p.min_projection_ratio * in_view as f64
+        {
+            tracing::debug!(
+                current = kf.0,
+                candidate = cand.0,
+                n_matched,
+                in_view,
+                "loop: too few matches by projection"
+            );
+            return Err(LoopReject::Projection);
+        }
+        // Plausibility: the correction of the current pose.
+        let corr = s_cw.compose(&Sim3::from_isometry(&k1.cam_from_world.inverse()));
+        let rotation_deg = corr.rotation.angle().to_degrees();
+        let moved = (sim3_to_isometry(&s_cw).inverse().translation.vector - k1.center()).norm();
+        let flown = path_length(map, cand, kf);
+        let max_s = p.max_scale_change.max(1.0);
+        if !(corr.scale <= max_s && corr.scale >= 1.0 / max_s)
+            || rotation_deg > p.max_rotation_deg
+            || moved > p.max_translation_ratio * flown
+        {
+            tracing::debug!(
+                current = kf.0,
+                candidate = cand.0,
+                scale = corr.scale,
+                rotation_deg,
+                moved,
+                flown,
+                "loop: implausible correction"
+            );
+            return Err(LoopReject::Implausible);
+        }
+        Ok(LoopMatch {
+            loop_kf: cand,
+            s_cw,
+            matched,
+            loop_points,
+            inliers,
+            projection_matches: n_matched,
+        })
+    }
+
+    /// Keypoints of `k1` matched by the loop neighbourhood's points seen
+    /// through `s_cw`, starting from `matched`; also how many of the points
+    /// were in view (the seeds count as in view).
+    fn search_by_projection(
+        &self,
+        map: &Map,
+        k1: &KeyFrame,
+        loop_points: &[PointId],
+        s_cw: &Sim3,
+        mut matched: Vec<Option<PointId>>,
+    ) -> (Vec<Option<PointId>>, usize) {
+        let p = &self.params;
+        let mut cand_list = Vec::new();
+        let iso_cw = sim3_to_isometry(s_cw);
         let center = iso_cw.inverse().translation.vector;
         let already: HashSet<PointId> = matched.iter().flatten().copied().collect();
         let mut in_view = 0usize;
-        for pid in &loop_points {
+        for pid in loop_points {
             if already.contains(pid) {
                 in_view += 1;
                 continue;
@@ -606,48 +705,111 @@ impl LoopCloser {
                 matched[best.1] = Some(*pid);
             }
         }
-        let n_matched = matched.iter().flatten().count();
-        if n_matched < p.min_projection_matches
-            || (n_matched as f64) < p.min_projection_ratio * in_view as f64
-        {
-            tracing::debug!(
-                current = kf.0,
-                candidate = cand.0,
-                n_matched,
-                in_view,
-                "loop: too few matches by projection"
-            );
-            return Err(LoopReject::Projection);
+        (matched, in_view)
+    }
+
+    /// The loop's Sim(3) (camera 2 → camera 1) fitted again on the
+    /// projection matches whose keypoint in `k1` holds a point: pose refined
+    /// at the scale of `s12`, scale re-fitted with [`robust_scale_fit`] on
+    /// that refinement's inliers, pose refined at the new scale. Returns the
+    /// Sim(3), its inliers as seeds of a new search, and their count; `None`
+    /// when too few remain (the caller keeps the BoW fit).
+    #[allow(clippy::too_many_arguments)]
+    fn refit_on_projection(
+        &self,
+        map: &Map,
+        k1: &KeyFrame,
+        k2: &KeyFrame,
+        cand: KeyFrameId,
+        matched: &[Option<PointId>],
+        s12: &Sim3,
+        intr: &Intrinsics,
+    ) -> Option<(Sim3, Vec<Option<PointId>>, usize)> {
+        let p = &self.params;
+        let sigma2 = &map.scale.inv_level_sigma2;
+        let mut ms: Vec<Sim3Match> = Vec::new();
+        let mut keep: Vec<(usize, PointId)> = Vec::new();
+        for (i1, m) in matched.iter().enumerate() {
+            let Some(p2) = *m else { continue };
+            let Some(Some(p1)) = k1.points.get(i1) else {
+                continue;
+            };
+            if *p1 == p2 {
+                continue;
+            }
+            let (Some(mp1), Some(mp2), Some(kp1)) =
+                (map.point(*p1), map.point(p2), k1.keypoints.get(i1))
+            else {
+                continue;
+            };
+            let x2 = k2.cam_from_world * mp2.position;
+            // The loop-side point's keypoint in the candidate if it has one,
+            // else its projection there (it was seen by a neighbour).
+            let (uv2, s2) = match mp2
+                .index_in(cand)
+                .and_then(|i2| k2.keypoints.get(i2 as usize))
+            {
+                Some(kp2) => (
+                    Point2::new(kp2.ux as f64, kp2.uy as f64),
+                    *sigma2.get(kp2.octave as usize)?,
+                ),
+                None => {
+                    if x2.z <= p.sim3.min_depth {
+                        continue;
+                    }
+                    (
+                        Point2::new(
+                            intr.fx * x2.x / x2.z + intr.cx,
+                            intr.fy * x2.y / x2.z + intr.cy,
+                        ),
+                        *sigma2.get(kp1.octave as usize)?,
+                    )
+                }
+            };
+            ms.push(Sim3Match {
+                x1_cam1: k1.cam_from_world * mp1.position,
+                x2_cam2: x2,
+                uv1: Point2::new(kp1.ux as f64, kp1.uy as f64),
+                uv2,
+                inv_sigma2_1: *sigma2.get(kp1.octave as usize)?,
+                inv_sigma2_2: s2,
+            });
+            keep.push((i1, p2));
         }
-        // Plausibility: the correction of the current pose.
-        let corr = s_cw.compose(&Sim3::from_isometry(&k1.cam_from_world.inverse()));
-        let rotation_deg = corr.rotation.angle().to_degrees();
-        let moved = (iso_cw.inverse().translation.vector - k1.center()).norm();
-        let flown = path_length(map, cand, kf);
-        let max_s = p.max_scale_change.max(1.0);
-        if !(corr.scale <= max_s && corr.scale >= 1.0 / max_s)
-            || rotation_deg > p.max_rotation_deg
-            || moved > p.max_translation_ratio * flown
-        {
-            tracing::debug!(
-                current = kf.0,
-                candidate = cand.0,
-                scale = corr.scale,
-                rotation_deg,
-                moved,
-                flown,
-                "loop: implausible correction"
-            );
-            return Err(LoopReject::Implausible);
+        let fixed = Sim3Params {
+            fix_scale: true,
+            ..p.sim3.clone()
+        };
+        let first = optimize_sim3(s12, &ms, intr, &fixed).ok()?;
+        if first.n_inliers < p.min_sim3_inliers {
+            return None;
         }
-        Ok(LoopMatch {
-            loop_kf: cand,
-            s_cw,
-            matched,
-            loop_points,
-            inliers: refined.n_inliers,
-            projection_matches: n_matched,
-        })
+        let (src, dst): (Vec<_>, Vec<_>) = ms
+            .iter()
+            .zip(&first.inliers)
+            .filter(|(_, ok)| **ok)
+            .map(|(m, _)| (m.x2_cam2, m.x1_cam1))
+            .unzip();
+        let aligned = robust_scale_fit(&src, &dst, &first.s12)?;
+        let refit = optimize_sim3(&aligned, &ms, intr, &fixed).ok()?;
+        if refit.n_inliers < p.min_sim3_inliers {
+            return None;
+        }
+        tracing::debug!(
+            bow_scale = s12.scale,
+            refit_scale = refit.s12.scale,
+            pairs = ms.len(),
+            scale_inliers = first.n_inliers,
+            refit_inliers = refit.n_inliers,
+            "loop: Sim(3) refitted on the projection matches"
+        );
+        let mut seeds = vec![None; matched.len()];
+        for ((i1, p2), ok) in keep.iter().zip(&refit.inliers) {
+            if *ok {
+                seeds[*i1] = Some(*p2);
+            }
+        }
+        Some((refit.s12, seeds, refit.n_inliers))
     }
 
     /// The correction (see the module doc).
@@ -800,8 +962,39 @@ impl LoopCloser {
             correction_ms: t0.elapsed().as_secs_f64() * 1e3,
             keyframes_before: before,
             keyframes_after: after,
+            global_ba_rmse_px: None,
+            global_ba_ms: None,
         })
     }
+}
+
+/// Bundle adjustment over every keyframe and point, the map's first
+/// keyframe fixed: the problem is built and written back under the map
+/// lock, solved without it (keyframes added meanwhile keep their poses).
+/// Returns the final reprojection RMSE, px.
+fn global_bundle_adjustment(map: &Mutex<Map>, params: &BaParams) -> Option<f64> {
+    let mut setup = {
+        let m = lock(map);
+        let kfs: Vec<KeyFrameId> = m.keyframes().map(|k| k.id).collect();
+        let fixed: Vec<KeyFrameId> = kfs.first().copied().into_iter().collect();
+        if kfs.len() < 2 {
+            return None;
+        }
+        build_ba_problem(&m, &kfs, &fixed)?
+    };
+    let report = crate::optimize::local_bundle_adjustment(&mut setup.problem, params).ok()?;
+    tracing::debug!(
+        keyframes = setup.keyframes.len(),
+        points = setup.points.len(),
+        before = report.initial_rmse_px,
+        after = report.final_rmse_px,
+        outliers = report.n_outliers,
+        "loop: global BA"
+    );
+    let mut m = lock(map);
+    apply_ba_result(&mut m, &setup, &report.outliers);
+    m.note_correction();
+    Some(report.final_rmse_px)
 }
 
 /// The similarity mapping `src` onto `dst` with the rotation of `guess`,
