@@ -172,6 +172,9 @@ pub struct SlamConfig {
     /// Extra time spent per frame, ms (0: none; to test that a slow SLAM
     /// never stalls the video).
     pub artificial_delay_ms: u64,
+    /// Close loops: a place seen again corrects the drift of the map
+    /// (on the mapping thread; see `slam::loop_closing`).
+    pub loop_closing: bool,
 }
 
 impl Default for SlamConfig {
@@ -182,6 +185,7 @@ impl Default for SlamConfig {
             checkpoint_s: 30.0,
             continue_map: true,
             artificial_delay_ms: 0,
+            loop_closing: true,
         }
     }
 }

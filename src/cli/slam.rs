@@ -11,6 +11,7 @@ use clap::Args;
 use serde_json::json;
 
 use shotpilot::eval::{self, Trajectory};
+use shotpilot::optimize::BaParams;
 use shotpilot::slam::{self, Slam, TrackState};
 use shotpilot::stats;
 use shotpilot::video::dataset::Dataset;
@@ -20,7 +21,10 @@ use shotpilot::video::dataset::Dataset;
 pub struct SlamArgs {
     /// Dataset folder (TUM or EuRoC layout).
     pub dataset: PathBuf,
-    /// Folder for trajectory.txt and keyframes.txt (created if missing).
+    /// Folder for trajectory.txt, keyframes.txt and, per loop closed, the
+    /// keyframes just before and after its correction
+    /// (loopN_keyframes_before.txt, loopN_keyframes_after.txt); created if
+    /// missing.
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Ground truth (TUM format); default: the dataset's own, if any.
@@ -52,6 +56,42 @@ pub struct SlamArgs {
     /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     pub json: bool,
+    /// Run without loop closing.
+    #[arg(long)]
+    pub no_loop_closing: bool,
+    /// Loop closing: fit the loop's Sim(3) again on the matches found by
+    /// projection (experimental, off by default).
+    #[arg(long)]
+    pub loop_refit: bool,
+    /// Loop closing: a bundle adjustment over the whole map after each
+    /// loop's essential graph (experimental, off by default).
+    #[arg(long)]
+    pub loop_global_ba: bool,
+}
+
+/// The drift at the revisit of a trajectory that comes back to its start:
+/// the frame after the first half of the run whose ground-truth position
+/// is closest to the first matched frame's, and the error of the aligned
+/// estimate's displacement between the two, metres. Returns (time of the
+/// revisit, ground-truth distance of the two frames, drift), or `None`
+/// when nothing comes within `max_gap` metres of the start.
+fn revisit_drift(e: &eval::Evaluation, max_gap: f64) -> Option<(f64, f64, f64)> {
+    let n = e.errors.len();
+    if n < 4 {
+        return None;
+    }
+    let g0 = e.gt_positions[0];
+    let x0 = e.est_positions[0];
+    let t_mid = 0.5 * (e.errors[0].0 + e.errors[n - 1].0);
+    let (j, gap) = (0..n)
+        .filter(|&j| e.errors[j].0 > t_mid)
+        .map(|j| (j, (e.gt_positions[j] - g0).norm()))
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    if gap > max_gap {
+        return None;
+    }
+    let drift = ((e.est_positions[j] - x0) - (e.gt_positions[j] - g0)).norm();
+    Some((e.errors[j].0, gap, drift))
 }
 
 /// Lower median and 95th percentile (nearest rank) of a list of
@@ -84,6 +124,15 @@ pub fn run(args: SlamArgs) -> Result<()> {
     params.tracking.features.n_features = args.features;
     params.tracking.init_features = args.features * 2;
     params.tracking.seed = args.seed;
+    if args.no_loop_closing {
+        params.loop_closing = None;
+    } else if let Some(l) = &mut params.loop_closing {
+        l.seed = args.seed;
+        l.refit_on_projection = args.loop_refit;
+        if args.loop_global_ba {
+            l.global_ba = Some(BaParams::default());
+        }
+    }
     let mut system = Slam::new(ds.camera, params).context("starting the SLAM")?;
 
     // Decode frames ahead on a reader thread (decoding is not tracking).
@@ -164,6 +213,12 @@ pub fn run(args: SlamArgs) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         traj.write_tum(&dir.join("trajectory.txt"))?;
         kf_traj.write_tum(&dir.join("keyframes.txt"))?;
+        for (n, l) in run.loops.iter().enumerate() {
+            l.keyframes_before
+                .write_tum(&dir.join(format!("loop{n}_keyframes_before.txt")))?;
+            l.keyframes_after
+                .write_tum(&dir.join(format!("loop{n}_keyframes_after.txt")))?;
+        }
     }
     if let Some(path) = &args.save_map {
         if initialized {
@@ -184,6 +239,65 @@ pub fn run(args: SlamArgs) -> Result<()> {
         ),
         _ => (None, None),
     };
+    // Each loop: the keyframes' ATE just before and just after its
+    // correction, and the ground-truth distance between its two keyframes
+    // (a loop between places far apart is a false loop).
+    let gt_at = |t: f64| -> Option<nalgebra::Vector3<f64>> {
+        let g = gt.as_ref()?;
+        g.poses
+            .iter()
+            .min_by(|a, b| (a.t - t).abs().total_cmp(&(b.t - t).abs()))
+            .filter(|p| (p.t - t).abs() <= args.max_dt)
+            .map(|p| p.position())
+    };
+    let loops: Vec<serde_json::Value> = run
+        .loops
+        .iter()
+        .map(|l| {
+            let ate_of = |t: &Trajectory| {
+                gt.as_ref()
+                    .and_then(|g| eval::evaluate(g, t, &eval_params).ok())
+                    .map(|e| e.ate.rmse)
+            };
+            let gap = match (gt_at(l.current_t), gt_at(l.loop_t)) {
+                (Some(a), Some(b)) => Some((a - b).norm()),
+                _ => None,
+            };
+            json!({
+                "current_kf": l.current.0,
+                "loop_kf": l.loop_kf.0,
+                "current_t": l.current_t,
+                "loop_t": l.loop_t,
+                "inliers": l.inliers,
+                "projection_matches": l.projection_matches,
+                "scale": l.scale,
+                "rotation_deg": l.rotation_deg,
+                "translation": l.translation,
+                "fused": l.fused,
+                "graph_edges": l.graph_edges,
+                "correction_ms": l.correction_ms,
+                "global_ba_ms": l.global_ba_ms,
+                "global_ba_rmse_px": l.global_ba_rmse_px,
+                "keyframes_ate_before_m": ate_of(&l.keyframes_before),
+                "keyframes_ate_after_m": ate_of(&l.keyframes_after),
+                "gt_distance_m": gap,
+            })
+        })
+        .collect();
+    let revisit = ate.as_ref().and_then(|e| revisit_drift(e, 10.0));
+    // Refused consistent candidates by the check they failed, and how many
+    // of them the ground truth puts more than 10 m from the keyframe that
+    // proposed them (look-alike places: false loops that were stopped).
+    let mut refusals: std::collections::BTreeMap<String, (usize, usize)> = Default::default();
+    for r in &run.loop_refusals {
+        let far = match (gt_at(r.current_t), gt_at(r.candidate_t)) {
+            (Some(a), Some(b)) => (a - b).norm() > 10.0,
+            _ => false,
+        };
+        let e = refusals.entry(format!("{:?}", r.reason)).or_default();
+        e.0 += 1;
+        e.1 += usize::from(far);
+    }
     let (med_ex, p95_ex) = med_p95(&extract_ms);
     let (med_tr, p95_tr) = med_p95(&track_ms);
     let (med_ex_cpu, p95_ex_cpu) = med_p95(&extract_cpu);
@@ -237,6 +351,12 @@ pub fn run(args: SlamArgs) -> Result<()> {
             "ate_keyframes_rmse_m": ate_kf.as_ref().map(|e| e.ate.rmse),
             "gt_path_length_m": gt.as_ref().map(|g| g.path_length()),
             "sequential": args.sequential,
+            "loop_closing": !args.no_loop_closing,
+            "loops": loops,
+            "loop_refusals": refusals.iter().map(|(r, (n, far))| json!({"reason": r, "count": n, "gt_farther_than_10m": gt.is_some().then_some(far)})).collect::<Vec<_>>(),
+            "revisit_t": revisit.map(|r| r.0),
+            "revisit_gt_gap_m": revisit.map(|r| r.1),
+            "revisit_drift_m": revisit.map(|r| r.2),
         });
         println!("{out}");
     } else {
@@ -301,6 +421,52 @@ pub fn run(args: SlamArgs) -> Result<()> {
             ),
             _ if gt.is_some() => println!("ATE: too few poses matched the ground truth"),
             _ => {}
+        }
+        if let Some((t, gap, drift)) = revisit {
+            println!(
+                "revisit of the start at t = {t:.2} s ({gap:.2} m from it): drift {drift:.4} m (aligned estimate's displacement against the ground truth's)"
+            );
+        }
+        let rejects: Vec<String> = refusals
+            .iter()
+            .map(|(r, (n, far))| {
+                if gt.is_some() {
+                    format!("{r} {n} ({far} more than 10 m apart in the ground truth)")
+                } else {
+                    format!("{r} {n}")
+                }
+            })
+            .collect();
+        println!(
+            "loop closing {}: {} loops closed{}",
+            if args.no_loop_closing { "off" } else { "on" },
+            run.loops.len(),
+            if rejects.is_empty() {
+                String::new()
+            } else {
+                format!(" (consistent candidates refused: {})", rejects.join(", "))
+            }
+        );
+        for l in &loops {
+            let f = |k: &str| l[k].as_f64().map_or("-".to_string(), |v| format!("{v:.4}"));
+            println!(
+                "  loop keyframe {} (t {:.2} s) -> {} (t {:.2} s): {} Sim(3) inliers, {} matches by projection, scale {:.4}, rotation {:.3} deg, move {:.3}, {} fused, {} graph edges, {:.1} ms; keyframes ATE before {} m after {} m; ground-truth distance of the two keyframes {} m",
+                l["current_kf"],
+                l["current_t"].as_f64().unwrap_or(0.0),
+                l["loop_kf"],
+                l["loop_t"].as_f64().unwrap_or(0.0),
+                l["inliers"],
+                l["projection_matches"],
+                l["scale"].as_f64().unwrap_or(0.0),
+                l["rotation_deg"].as_f64().unwrap_or(0.0),
+                l["translation"].as_f64().unwrap_or(0.0),
+                l["fused"],
+                l["graph_edges"],
+                l["correction_ms"].as_f64().unwrap_or(0.0),
+                f("keyframes_ate_before_m"),
+                f("keyframes_ate_after_m"),
+                f("gt_distance_m"),
+            );
         }
     }
     Ok(())

@@ -63,7 +63,10 @@ pub fn make_processor(
         return Box::new(NoSlam);
     }
     let (w, h) = (camera.width, camera.height);
-    let params = slam::Params::default();
+    let mut params = slam::Params::default();
+    if !cfg.slam.loop_closing {
+        params.loop_closing = None;
+    }
     let vocabulary = match crate::bow::Vocabulary::builtin() {
         Ok(v) => Arc::new(v),
         Err(e) => {

@@ -1,7 +1,9 @@
 //! Multiple-view geometry: two-view initialisation (fundamental matrix,
 //! homography, their decompositions), triangulation, PnP (Lambda Twist P3P
 //! and EPnP inside RANSAC, then robust refinement with [`crate::optimize`]),
-//! the homography from exactly four point pairs, and Umeyama alignment.
+//! the homography from exactly four point pairs, Umeyama alignment, and
+//! the Sim(3) between two keyframes by RANSAC over three-point Umeyama
+//! samples (loop closing).
 //! SE(3)/Sim(3) live below both this module and `optimize`, in
 //! [`crate::lie`]; [`Sim3`] is re-exported here for callers that align
 //! with [`umeyama()`].
@@ -13,6 +15,7 @@
 
 pub mod homography4;
 pub mod pnp;
+pub mod sim3_ransac;
 pub mod triangulate;
 pub mod two_view;
 pub mod umeyama;
@@ -20,6 +23,7 @@ pub mod umeyama;
 pub use crate::lie::Sim3;
 pub use homography4::homography_from_4;
 pub use pnp::{PnpParams, PnpResult, solve_pnp_ransac};
+pub use sim3_ransac::{Sim3RansacParams, Sim3RansacResult, sim3_ransac};
 pub use triangulate::{TriangulationChecks, TriangulationReject, triangulate, triangulate_checked};
 pub use two_view::{
     HomographyFit, HomographyParams, Model, TwoViewParams, TwoViewResult, find_homography,

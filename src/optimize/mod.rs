@@ -6,7 +6,10 @@
 //! * [`ba`]: local bundle adjustment over keyframes and points, points
 //!   eliminated by the Schur complement, the reduced camera system solved by
 //!   faer's dense Cholesky, fixed keyframes as the gauge;
-//! * [`sim3`]: the Sim(3) between two keyframes from their matched points.
+//! * [`sim3`]: the Sim(3) between two keyframes from their matched points;
+//! * [`essential_graph`]: the Sim(3) pose graph of loop closing (keyframe
+//!   poses only), its block-sparse normal equations solved by faer's sparse
+//!   Cholesky.
 //!
 //! # Conventions
 //!
@@ -23,11 +26,13 @@
 //!   kernel `ρ`.
 
 pub mod ba;
+pub mod essential_graph;
 pub mod lm;
 pub mod pose;
 pub mod sim3;
 
 pub use ba::{BaParams, BaPose, BaProblem, BaReport, Observation, local_bundle_adjustment};
+pub use essential_graph::{PoseGraph, PoseGraphParams, Sim3Edge, optimize_pose_graph};
 pub use lm::{LmParams, LmSummary, Termination};
 pub use pose::{
     IntrinsicsCorrection, IntrinsicsUncertainty, PoseCovariance, PoseObservation, PoseParams,

@@ -369,6 +369,12 @@ pub struct Map {
     /// Keyframes with fewer shared points are not covisibility neighbours.
     pub covisibility_threshold: u32,
     places: Option<Places>,
+    /// Loop edges of the essential graph (keyframes joined by a loop
+    /// closure); their keyframes are never culled.
+    loop_edges: Vec<(KeyFrameId, KeyFrameId)>,
+    /// Loop corrections applied (tracking re-places its last frame when
+    /// this changes).
+    corrections: u64,
 }
 
 /// The bag-of-words index of the live keyframes: the keyframe database
@@ -407,7 +413,36 @@ impl Map {
             culled: HashMap::new(),
             covisibility_threshold: 15,
             places: None,
+            loop_edges: Vec::new(),
+            corrections: 0,
         }
+    }
+
+    /// The loop edges (keyframe pairs joined by a loop closure).
+    pub fn loop_edges(&self) -> &[(KeyFrameId, KeyFrameId)] {
+        &self.loop_edges
+    }
+
+    /// Record a loop edge between two live keyframes (false when one is
+    /// not live).
+    pub fn add_loop_edge(&mut self, a: KeyFrameId, b: KeyFrameId) -> bool {
+        if a == b || self.keyframe(a).is_none() || self.keyframe(b).is_none() {
+            return false;
+        }
+        if !self.loop_edges.contains(&(a, b)) && !self.loop_edges.contains(&(b, a)) {
+            self.loop_edges.push((a, b));
+        }
+        true
+    }
+
+    /// Count a loop correction (poses moved by more than local mapping).
+    pub fn note_correction(&mut self) {
+        self.corrections += 1;
+    }
+
+    /// Loop corrections applied so far.
+    pub fn corrections(&self) -> u64 {
+        self.corrections
     }
 
     /// The bag-of-words index of the keyframes, once one was indexed.
@@ -734,7 +769,8 @@ impl Map {
     /// Erase a keyframe: its observations are removed (points left with
     /// fewer than 2 are erased), its children move to its parent, its
     /// covisibility edges go, and its pose relative to its parent is kept in
-    /// [`Map::culled`]. The first keyframe (no parent) is never erased.
+    /// [`Map::culled`]. The first keyframe (no parent) and the keyframes of
+    /// loop edges are never erased.
     pub fn erase_keyframe(&mut self, id: KeyFrameId) -> bool {
         let Some(kf) = self.keyframe(id) else {
             return false;
@@ -742,6 +778,9 @@ impl Map {
         let Some(parent) = kf.parent else {
             return false;
         };
+        if self.loop_edges.iter().any(|e| e.0 == id || e.1 == id) {
+            return false;
+        }
         let Some(parent_kf) = self.keyframe(parent) else {
             return false;
         };

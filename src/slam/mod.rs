@@ -5,7 +5,11 @@
 //! bounded channel; or inline after each keyframe in sequential mode, so
 //! runs repeat exactly). Tracking never waits for mapping: it only inserts a
 //! keyframe when mapping is idle, and mapping solves its bundle adjustment
-//! outside the map lock.
+//! outside the map lock. Loop closing ([`loop_closing`]) runs after each
+//! mapped keyframe on the mapping thread (inline in sequential mode), so
+//! it never races local BA; its correction holds the map lock, as
+//! ORB-SLAM's holds the map-update mutex, and tracking re-places its last
+//! frame on the corrected reference keyframe.
 //!
 //! # Layout
 //!
@@ -20,6 +24,7 @@
 //! | `frame` | the frame being tracked, the tracker's context, motion-only BA of a frame |
 //! | [`params`] | [`TrackingParams`], the tunables of all of the above |
 //! | [`mapping`] | the [`LocalMapper`]: triangulation, fusion, local BA, keyframe culling |
+//! | [`loop_closing`] | the [`LoopCloser`]: loop detection, Sim(3) check, correction, essential graph |
 //! | [`bundle`] | the map ↔ [`crate::optimize`] glue of every bundle adjustment |
 //! | [`matcher`] | descriptor matching for each of the stages |
 //! | [`map`] | keyframes and points in arenas, covisibility, spanning tree, place index |
@@ -31,6 +36,7 @@ mod frame;
 pub mod initializer;
 mod keyframe_decision;
 mod local_map;
+pub mod loop_closing;
 pub mod map;
 pub mod mapfile;
 pub mod mapping;
@@ -53,6 +59,7 @@ use crate::eval::{StampedPose, Trajectory};
 use crate::optimize::BaParams;
 
 pub use initializer::InitFailure;
+pub use loop_closing::{LoopCloser, LoopEvent, LoopParams, LoopRefusal, LoopReject};
 pub use map::{KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
 pub use tracking::{FrameOutcome, FrameRecord, TrackFailure, TrackState, Tracker, TrackingParams};
@@ -101,6 +108,8 @@ pub struct Params {
     pub keyframe_queue: usize,
     /// Bundle adjustment over all keyframes when the run finishes.
     pub final_ba: Option<BaParams>,
+    /// Loop closing (`None`: off).
+    pub loop_closing: Option<LoopParams>,
 }
 
 impl Default for Params {
@@ -115,15 +124,31 @@ impl Default for Params {
                 second_pass_iterations: 15,
                 ..BaParams::default()
             }),
+            loop_closing: Some(LoopParams::default()),
+        }
+    }
+}
+
+/// The mapping thread's workers: the local mapper, then the loop closer.
+struct Mappers {
+    mapper: LocalMapper,
+    closer: Option<LoopCloser>,
+}
+
+impl Mappers {
+    fn process(&mut self, map: &Mutex<Map>, kf: KeyFrameId, more_waiting: bool) {
+        self.mapper.process_keyframe(map, kf, more_waiting);
+        if let Some(c) = &mut self.closer {
+            c.process_keyframe(map, kf);
         }
     }
 }
 
 enum Mapping {
-    Inline(Box<LocalMapper>),
+    Inline(Box<Mappers>),
     Thread {
         tx: Option<SyncSender<KeyFrameId>>,
-        handle: Option<JoinHandle<LocalMapper>>,
+        handle: Option<JoinHandle<Mappers>>,
         busy: Arc<AtomicBool>,
         queued: Arc<AtomicUsize>,
     },
@@ -152,6 +177,10 @@ pub struct SlamRun {
     pub frames: u64,
     /// The last reason for not tracking / not initialising.
     pub last_reason: Option<TrackFailure>,
+    /// Loops closed, in order.
+    pub loops: Vec<LoopEvent>,
+    /// Consistent loop candidates refused, in order.
+    pub loop_refusals: Vec<LoopRefusal>,
 }
 
 impl SlamRun {
@@ -248,13 +277,18 @@ impl Slam {
             tracker.vocabulary().clone(),
             params.tracking.bow.direct_index_level,
         );
+        let closer = params
+            .loop_closing
+            .clone()
+            .map(|p| LoopCloser::new(p, bounds));
+        let mappers = Mappers { mapper, closer };
         let mapping = if params.sequential {
-            Mapping::Inline(Box::new(mapper))
+            Mapping::Inline(Box::new(mappers))
         } else {
             let (tx, rx) = sync_channel::<KeyFrameId>(params.keyframe_queue.max(1));
             let busy = Arc::new(AtomicBool::new(false));
             let queued = Arc::new(AtomicUsize::new(0));
-            let handle = spawn_mapper(mapper, rx, map.clone(), busy.clone(), queued.clone())?;
+            let handle = spawn_mapper(mappers, rx, map.clone(), busy.clone(), queued.clone())?;
             Mapping::Thread {
                 tx: Some(tx),
                 handle: Some(handle),
@@ -298,8 +332,8 @@ impl Slam {
         let outcome = self.tracker.track(&self.map, index, timestamp, image, idle);
         if let Some(kf) = outcome.new_keyframe {
             match &mut self.mapping {
-                Mapping::Inline(mapper) => {
-                    mapper.process_keyframe(&self.map, kf, false);
+                Mapping::Inline(mappers) => {
+                    mappers.process(&self.map, kf, false);
                 }
                 Mapping::Thread { tx, queued, .. } => {
                     if let Some(tx) = tx {
@@ -324,15 +358,20 @@ impl Slam {
     /// Stop mapping (it finishes its queue), run the final optimisation and
     /// return the map and the frame records.
     pub fn finish(mut self) -> SlamRun {
-        let reports = match &mut self.mapping {
-            Mapping::Inline(m) => std::mem::take(&mut m.reports),
+        let mappers = match &mut self.mapping {
+            Mapping::Inline(m) => Some((std::mem::take(&mut m.mapper.reports), m.closer.take())),
             Mapping::Thread { tx, handle, .. } => {
                 drop(tx.take());
                 match handle.take().map(|h| h.join()) {
-                    Some(Ok(m)) => m.reports,
-                    _ => Vec::new(),
+                    Some(Ok(m)) => Some((m.mapper.reports, m.closer)),
+                    _ => None,
                 }
             }
+        };
+        let (reports, closer) = mappers.unwrap_or_default();
+        let (loops, loop_refusals) = match closer {
+            Some(c) => (c.events, c.refusals),
+            None => (Vec::new(), Vec::new()),
         };
         let mut map = {
             let guard = self.map.lock().unwrap_or_else(|e| e.into_inner());
@@ -361,17 +400,19 @@ impl Slam {
             initialized_at: self.tracker.initialized_at(),
             frames: self.frames,
             last_reason: self.tracker.last_reason().cloned(),
+            loops,
+            loop_refusals,
         }
     }
 }
 
 fn spawn_mapper(
-    mut mapper: LocalMapper,
+    mut mappers: Mappers,
     rx: Receiver<KeyFrameId>,
     map: Arc<Mutex<Map>>,
     busy: Arc<AtomicBool>,
     queued: Arc<AtomicUsize>,
-) -> Result<JoinHandle<LocalMapper>, SlamError> {
+) -> Result<JoinHandle<Mappers>, SlamError> {
     std::thread::Builder::new()
         .name("slam-mapping".into())
         .spawn(move || {
@@ -379,10 +420,10 @@ fn spawn_mapper(
                 busy.store(true, Ordering::Release);
                 queued.fetch_sub(1, Ordering::AcqRel);
                 let more = queued.load(Ordering::Acquire) > 0;
-                mapper.process_keyframe(&map, kf, more);
+                mappers.process(&map, kf, more);
                 busy.store(false, Ordering::Release);
             }
-            mapper
+            mappers
         })
         .map_err(SlamError::Thread)
 }

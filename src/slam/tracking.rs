@@ -140,6 +140,8 @@ pub struct Tracker {
     initialized_at: Option<u64>,
     last_reason: Option<TrackFailure>,
     marks: Marks,
+    /// The map's loop corrections when the last frame was tracked.
+    corrections_seen: u64,
 }
 
 impl Tracker {
@@ -171,6 +173,7 @@ impl Tracker {
             initialized_at: None,
             last_reason: None,
             marks: Marks::default(),
+            corrections_seen: 0,
         })
     }
 
@@ -331,6 +334,10 @@ impl Tracker {
         frame: &mut Frame,
         mapping_idle: bool,
     ) -> Result<Tracked, TrackFailure> {
+        if map.corrections() != self.corrections_seen {
+            self.corrections_seen = map.corrections();
+            self.follow_correction(map);
+        }
         let mut cam_from_world: Option<Isometry3<f64>> = None;
         if self.state == TrackState::Tracking {
             if let (Some(v), Some(last)) = (self.velocity, self.last.as_ref()) {
@@ -427,6 +434,18 @@ impl Tracker {
             inliers,
             new_keyframe,
         })
+    }
+
+    /// A loop correction moved the keyframes: the last frame follows its
+    /// reference keyframe (the constant-velocity model is relative and
+    /// stays).
+    fn follow_correction(&mut self, map: &Map) {
+        let (Some(last), Some(rec)) = (self.last.as_mut(), self.records.last()) else {
+            return;
+        };
+        if let Some(ref_pose) = map.keyframe_pose(rec.reference) {
+            last.cam_from_world = renormalized(rec.cam_from_ref * ref_pose);
+        }
     }
 
     /// Add a keyframe made from `frame` to the map. It is indexed in the

@@ -1,0 +1,1249 @@
+//! Loop closing (ORB-SLAM's `LoopClosing`, as stella_vslam's
+//! `loop_detector` and `graph_optimizer` modules): after local mapping has
+//! processed a keyframe, look for a place seen long before, check it
+//! geometrically, and spread the correction over the map.
+//!
+//! Detection, per keyframe:
+//! 1. BoW candidates from the keyframe database outside the keyframe's
+//!    covisibility neighbourhood, scoring at least the lowest score
+//!    between the keyframe and its own covisible keyframes
+//!    ([`crate::bow::KeyFrameDatabase::detect_candidates`]);
+//! 2. consistency: each candidate with its covisible keyframes forms a
+//!    group; a group must overlap a group of the previous keyframe's,
+//!    `consistency` keyframes in a row (ORB-SLAM's rule of three);
+//! 3. for each consistent candidate: BoW-guided matches between the two
+//!    keyframes' map points, a Sim(3) by RANSAC over three-point Umeyama
+//!    samples ([`crate::geometry::sim3_ransac`]), a guided search by
+//!    projection through that Sim(3) for more matches, the robust
+//!    refinement ([`crate::optimize::optimize_sim3`]) of rotation and
+//!    translation with the scale held, the scale from the inliers' 3D
+//!    points (median ratio of pairwise distances, [`robust_scale_fit`]:
+//!    reprojection barely sees the scale when the two cameras
+//!    nearly coincide, as at a revisit: ORB-SLAM's free-scale refinement
+//!    drifted 10 % there on the simulator), a second refinement at that
+//!    scale and its inlier count, then the candidate's and its neighbours' points projected
+//!    through the corrected pose must match enough keypoints of the
+//!    keyframe, and a fair share of those that land in the image;
+//! 4. plausibility: the correction the loop implies (the current pose
+//!    moved to where the loop puts it) stays within monocular drift
+//!    bounds: scale, rotation, and translation relative to the path flown
+//!    since the loop keyframe.
+//!
+//! Correction: the Sim(3) is propagated to the current keyframe's
+//! covisible keyframes and their points, the loop's matched points are
+//! fused into the current neighbourhood (duplicates merged), connections
+//! are updated, and the essential graph (spanning tree, covisibility edges
+//! of weight ≥ `essential_min_weight`, all loop edges, the new loop
+//! connections) is optimised in Sim(3) with the loop keyframe fixed
+//! ([`crate::optimize::optimize_pose_graph`]); every point then follows
+//! the keyframe it was corrected with (or its reference keyframe).
+
+use std::collections::{HashMap, HashSet};
+use std::sync::Mutex;
+use std::time::Instant;
+
+use nalgebra::{Isometry3, Point2, Translation3};
+
+use crate::bow::CandidateParams;
+use crate::eval::{StampedPose, Trajectory};
+use crate::features::hamming;
+use crate::geometry::{Sim3RansacParams, sim3_ransac};
+use crate::lie::Sim3;
+use crate::matching::Bounds;
+use crate::optimize::{
+    BaParams, Intrinsics, PoseGraph, PoseGraphParams, Sim3Edge, Sim3Match, Sim3Params,
+    optimize_pose_graph, optimize_sim3,
+};
+
+use super::bundle::{apply_ba_result, build_ba_problem};
+use super::map::{KeyFrame, KeyFrameId, Map, Places, PointId, lock};
+use super::matcher::{self, MatcherParams};
+
+/// Tunable numbers of loop closing.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoopParams {
+    /// Look for loops only once the map holds this many keyframes, and
+    /// this many keyframes after the last loop (ORB-SLAM: 10).
+    pub min_keyframes: usize,
+    /// Consecutive keyframes whose candidate groups must overlap (3).
+    pub consistency: usize,
+    /// Covisible neighbours that form a candidate's group.
+    pub group_neighbours: usize,
+    /// BoW-guided matches a candidate needs before RANSAC (20).
+    pub min_bow_matches: usize,
+    /// Ratio test of the BoW-guided matching (0.75).
+    pub bow_ratio: f32,
+    /// RANSAC of the Sim(3).
+    pub ransac: Sim3RansacParams,
+    /// Refinement of the Sim(3).
+    pub sim3: Sim3Params,
+    /// Inliers the refined Sim(3) needs (20).
+    pub min_sim3_inliers: usize,
+    /// Radius of the guided search through the Sim(3), pixels at level 0.
+    pub sim3_search_radius: f64,
+    /// Radius of the search of the loop neighbourhood's points through the
+    /// corrected pose, pixels at level 0 (ORB-SLAM: 10).
+    pub projection_radius: f64,
+    /// Keypoints of the keyframe the loop neighbourhood's points must
+    /// match through the corrected pose (ORB-SLAM: 40).
+    pub min_projection_matches: usize,
+    /// Of the loop neighbourhood's points that project into the keyframe
+    /// at a plausible scale and angle, the share that must match.
+    pub min_projection_ratio: f64,
+    /// Largest scale change a loop may imply (`1/x ..= x`).
+    pub max_scale_change: f64,
+    /// Largest rotation a loop may imply, degrees.
+    pub max_rotation_deg: f64,
+    /// Largest move of the current camera a loop may imply, as a share of
+    /// the path flown (keyframe to keyframe) since the loop keyframe.
+    pub max_translation_ratio: f64,
+    /// Radius of the fusion of the loop's points, pixels at level 0 (4).
+    pub fuse_radius: f64,
+    /// Covisibility edges of the essential graph need this weight (100).
+    pub essential_min_weight: u32,
+    /// The essential graph's optimisation.
+    pub pose_graph: PoseGraphParams,
+    /// The matcher's thresholds.
+    pub matcher: MatcherParams,
+    /// Seed of the RANSAC (mixed with the keyframe ids).
+    pub seed: u64,
+    /// Bundle adjustment over all keyframes and points after the essential
+    /// graph (the map's first keyframe fixed); `None` (default): none. It
+    /// runs on the loop closer's thread (in two-thread mode the mapping
+    /// thread, which queues keyframes meanwhile), the solve without the map
+    /// lock. Off by default: on the simulator renders it did not help (README).
+    pub global_ba: Option<BaParams>,
+    /// Fit the loop's Sim(3) again on the matches the projection search
+    /// found whose keypoint holds a point, and search once more. Off by
+    /// default: on the simulator renders it did not help (README).
+    pub refit_on_projection: bool,
+}
+
+impl Default for LoopParams {
+    fn default() -> Self {
+        LoopParams {
+            min_keyframes: 10,
+            consistency: 3,
+            group_neighbours: 10,
+            min_bow_matches: 20,
+            bow_ratio: 0.75,
+            ransac: Sim3RansacParams::default(),
+            sim3: Sim3Params::default(),
+            min_sim3_inliers: 20,
+            sim3_search_radius: 7.5,
+            projection_radius: 10.0,
+            min_projection_matches: 40,
+            min_projection_ratio: 0.25,
+            max_scale_change: 2.0,
+            max_rotation_deg: 30.0,
+            max_translation_ratio: 0.5,
+            fuse_radius: 4.0,
+            essential_min_weight: 100,
+            pose_graph: PoseGraphParams::default(),
+            matcher: MatcherParams::default(),
+            seed: 1,
+            refit_on_projection: false,
+            global_ba: None,
+        }
+    }
+}
+
+/// A loop closed: the two keyframes, the evidence, the correction, and the
+/// keyframe trajectory just before and just after it.
+#[derive(Debug, Clone)]
+pub struct LoopEvent {
+    /// The keyframe that saw the old place again.
+    pub current: KeyFrameId,
+    /// The old keyframe it matched.
+    pub loop_kf: KeyFrameId,
+    /// Timestamp of the current keyframe, seconds.
+    pub current_t: f64,
+    /// Timestamp of the loop keyframe, seconds.
+    pub loop_t: f64,
+    /// Inliers of the refined Sim(3).
+    pub inliers: usize,
+    /// Keypoints of the current keyframe matched by the loop
+    /// neighbourhood's points through the corrected pose.
+    pub projection_matches: usize,
+    /// Scale of the correction (the current side's drift, loop / current).
+    pub scale: f64,
+    /// Rotation of the correction, degrees.
+    pub rotation_deg: f64,
+    /// Move of the current camera, in map units.
+    pub translation: f64,
+    /// Points fused.
+    pub fused: usize,
+    /// Edges of the essential graph.
+    pub graph_edges: usize,
+    /// Time of the whole correction, ms.
+    pub correction_ms: f64,
+    /// Keyframe poses (world_from_cam) before the correction.
+    pub keyframes_before: Trajectory,
+    /// Keyframe poses after it (after the global BA when one ran).
+    pub keyframes_after: Trajectory,
+    /// Reprojection RMSE after the global BA, px (`None`: none ran).
+    pub global_ba_rmse_px: Option<f64>,
+    /// Time of the global BA, ms.
+    pub global_ba_ms: Option<f64>,
+}
+
+/// Why a consistent candidate was refused (for logs and counts).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum LoopReject {
+    /// Too few BoW-guided matches.
+    BowMatches,
+    /// RANSAC found no Sim(3).
+    Ransac,
+    /// The refined Sim(3) kept too few inliers.
+    Sim3Inliers,
+    /// Too few matches by projection through the corrected pose.
+    Projection,
+    /// The implied correction is beyond the drift bounds.
+    Implausible,
+}
+
+/// A consistent candidate that was refused.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoopRefusal {
+    /// The keyframe looking for a loop.
+    pub current: KeyFrameId,
+    /// The candidate.
+    pub candidate: KeyFrameId,
+    /// Timestamp of the current keyframe, seconds.
+    pub current_t: f64,
+    /// Timestamp of the candidate, seconds.
+    pub candidate_t: f64,
+    /// The check it failed.
+    pub reason: LoopReject,
+}
+
+/// A verified loop before correction.
+struct LoopMatch {
+    loop_kf: KeyFrameId,
+    /// Corrected pose of the current keyframe: world → camera, a Sim(3).
+    s_cw: Sim3,
+    /// Per keypoint of the current keyframe: the loop-side point matched.
+    matched: Vec<Option<PointId>>,
+    /// Points of the loop keyframe and its neighbours.
+    loop_points: Vec<PointId>,
+    inliers: usize,
+    projection_matches: usize,
+}
+
+/// The loop closer (runs after local mapping, off the tracking thread).
+pub struct LoopCloser {
+    params: LoopParams,
+    bounds: Bounds,
+    /// Candidate groups of the previous keyframe with their consistency.
+    groups: Vec<(HashSet<KeyFrameId>, usize)>,
+    last_loop: Option<KeyFrameId>,
+    /// Loops closed.
+    pub events: Vec<LoopEvent>,
+    /// Consistent candidates refused, in order.
+    pub refusals: Vec<LoopRefusal>,
+}
+
+impl LoopCloser {
+    /// A loop closer for images bounded by `bounds`.
+    pub fn new(params: LoopParams, bounds: Bounds) -> Self {
+        LoopCloser {
+            params,
+            bounds,
+            groups: Vec::new(),
+            last_loop: None,
+            events: Vec::new(),
+            refusals: Vec::new(),
+        }
+    }
+
+    /// Look for a loop at keyframe `kf` (mapped already) and close it.
+    /// Returns the loop closed, if any.
+    pub fn process_keyframe(&mut self, map: &Mutex<Map>, kf: KeyFrameId) -> Option<LoopEvent> {
+        let mut m = lock(map);
+        let candidates = self.detect(&m, kf);
+        if candidates.is_empty() {
+            return None;
+        }
+        let found = self.verify(&m, kf, &candidates)?;
+        let t0 = Instant::now();
+        let mut event = self.correct(&mut m, kf, found, t0);
+        drop(m);
+        if let (Some(e), Some(ba)) = (&mut event, &self.params.global_ba) {
+            let t1 = Instant::now();
+            if let Some(rmse) = global_bundle_adjustment(map, ba) {
+                e.global_ba_rmse_px = Some(rmse);
+                e.keyframes_after = keyframe_trajectory(&lock(map));
+            }
+            e.global_ba_ms = Some(t1.elapsed().as_secs_f64() * 1e3);
+        }
+        if let Some(e) = &event {
+            tracing::info!(
+                current = e.current.0,
+                loop_kf = e.loop_kf.0,
+                inliers = e.inliers,
+                projection_matches = e.projection_matches,
+                scale = e.scale,
+                rotation_deg = e.rotation_deg,
+                fused = e.fused,
+                edges = e.graph_edges,
+                ms = e.correction_ms,
+                "loop closed"
+            );
+            self.events.push(e.clone());
+            self.last_loop = Some(kf);
+            self.groups.clear();
+        }
+        event
+    }
+
+    /// Steps 1 and 2: the candidates consistent over enough keyframes.
+    fn detect(&mut self, map: &Map, kf: KeyFrameId) -> Vec<KeyFrameId> {
+        let p = &self.params;
+        let Some(k) = map.keyframe(kf) else {
+            return Vec::new();
+        };
+        let Some(places) = map.places() else {
+            return Vec::new();
+        };
+        let Some(bow) = places.database.bow(Places::db_id(kf)) else {
+            return Vec::new();
+        };
+        if map.keyframe_count() < p.min_keyframes
+            || self
+                .last_loop
+                .is_some_and(|l| (kf.0 as usize) < l.0 as usize + p.min_keyframes)
+        {
+            self.groups.clear();
+            return Vec::new();
+        }
+        let connected: HashSet<KeyFrameId> = k.covisible.iter().map(|c| c.0).collect();
+        let mut min_score = f32::INFINITY;
+        for c in &connected {
+            if let Some(b) = places.database.bow(Places::db_id(*c)) {
+                min_score = min_score.min(bow.l1_score(b));
+            }
+        }
+        if !min_score.is_finite() {
+            self.groups.clear();
+            return Vec::new();
+        }
+        let cp = CandidateParams {
+            min_score,
+            ..CandidateParams::default()
+        };
+        let neighbours = cp.covisible_neighbours;
+        let candidates = places.database.detect_candidates(
+            bow,
+            &cp,
+            |id| Places::map_id(id).is_none_or(|id| id == kf || connected.contains(&id)),
+            |id, out| {
+                if let Some(k) = Places::map_id(id).and_then(|id| map.keyframe(id)) {
+                    out.extend(k.best_covisible(neighbours).map(Places::db_id));
+                }
+            },
+        );
+        // Consistency with the previous keyframe's groups.
+        let mut current_groups: Vec<(HashSet<KeyFrameId>, usize)> = Vec::new();
+        let mut extended = vec![false; self.groups.len()];
+        let mut consistent = Vec::new();
+        for c in candidates {
+            let Some(cid) = Places::map_id(c.id) else {
+                continue;
+            };
+            let Some(ck) = map.keyframe(cid) else {
+                continue;
+            };
+            let group: HashSet<KeyFrameId> = std::iter::once(cid)
+                .chain(ck.best_covisible(p.group_neighbours))
+                .collect();
+            let mut enough = false;
+            let mut consistent_for_some = false;
+            for (g, (prev, n)) in self.groups.iter().enumerate() {
+                if prev.is_disjoint(&group) {
+                    continue;
+                }
+                consistent_for_some = true;
+                let count = n + 1;
+                if !extended[g] {
+                    current_groups.push((group.clone(), count));
+                    extended[g] = true;
+                }
+                if count >= p.consistency && !enough {
+                    consistent.push(cid);
+                    enough = true;
+                }
+            }
+            if !consistent_for_some {
+                current_groups.push((group, 0));
+            }
+        }
+        self.groups = current_groups;
+        consistent
+    }
+
+    /// Step 3 and 4: the first candidate whose Sim(3) holds.
+    fn verify(
+        &mut self,
+        map: &Map,
+        kf: KeyFrameId,
+        candidates: &[KeyFrameId],
+    ) -> Option<LoopMatch> {
+        for &c in candidates {
+            match self.verify_one(map, kf, c) {
+                Ok(m) => return Some(m),
+                Err(why) => {
+                    tracing::debug!(
+                        current = kf.0,
+                        candidate = c.0,
+                        ?why,
+                        "loop candidate refused"
+                    );
+                    let t = |id| map.keyframe(id).map_or(f64::NAN, |k| k.timestamp);
+                    self.refusals.push(LoopRefusal {
+                        current: kf,
+                        candidate: c,
+                        current_t: t(kf),
+                        candidate_t: t(c),
+                        reason: why,
+                    });
+                }
+            }
+        }
+        None
+    }
+
+    fn verify_one(
+        &self,
+        map: &Map,
+        kf: KeyFrameId,
+        cand: KeyFrameId,
+    ) -> Result<LoopMatch, LoopReject> {
+        let p = &self.params;
+        let (Some(k1), Some(k2)) = (map.keyframe(kf), map.keyframe(cand)) else {
+            return Err(LoopReject::BowMatches);
+        };
+        let places = map.places().ok_or(LoopReject::BowMatches)?;
+        let (Some(fv1), Some(fv2)) = (places.features.get(&kf), places.features.get(&cand)) else {
+            return Err(LoopReject::BowMatches);
+        };
+        let cam = &map.camera;
+        let intr = Intrinsics {
+            fx: cam.fx,
+            fy: cam.fy,
+            cx: cam.cx,
+            cy: cam.cy,
+        };
+        let sigma2 = &map.scale.inv_level_sigma2;
+        // BoW-guided matches: keypoints of kf that hold a point, to points of cand.
+        let bow = matcher::search_by_bow(
+            map,
+            cand,
+            fv2,
+            &k1.descriptors,
+            &k1.keypoints,
+            fv1,
+            &p.matcher,
+            p.bow_ratio,
+        );
+        let mut pairs: Vec<(usize, PointId, PointId)> = Vec::new();
+        let mut used2: HashSet<PointId> = HashSet::new();
+        for (i1, p2) in bow {
+            if let Some(Some(p1)) = k1.points.get(i1)
+                && *p1 != p2
+                && map.point(*p1).is_some()
+                && used2.insert(p2)
+            {
+                pairs.push((i1, *p1, p2));
+            }
+        }
+        if pairs.len() < p.min_bow_matches {
+            return Err(LoopReject::BowMatches);
+        }
+        let make = |i1: usize, p1: PointId, p2: PointId| -> Option<Sim3Match> {
+            let mp1 = map.point(p1)?;
+            let mp2 = map.point(p2)?;
+            let i2 = mp2.index_in(cand)? as usize;
+            let kp1 = k1.keypoints.get(i1)?;
+            let kp2 = k2.keypoints.get(i2)?;
+            Some(Sim3Match {
+                x1_cam1: k1.cam_from_world * mp1.position,
+                x2_cam2: k2.cam_from_world * mp2.position,
+                uv1: Point2::new(kp1.ux as f64, kp1.uy as f64),
+                uv2: Point2::new(kp2.ux as f64, kp2.uy as f64),
+                inv_sigma2_1: *sigma2.get(kp1.octave as usize)?,
+                inv_sigma2_2: *sigma2.get(kp2.octave as usize)?,
+            })
+        };
+        let mut ms: Vec<Sim3Match> = Vec::with_capacity(pairs.len());
+        let mut keep: Vec<(usize, PointId, PointId)> = Vec::with_capacity(pairs.len());
+        for &(i1, p1, p2) in &pairs {
+            if let Some(m) = make(i1, p1, p2) {
+                ms.push(m);
+                keep.push((i1, p1, p2));
+            }
+        }
+        let seed = p
+            .seed
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            .wrapping_add(((kf.0 as u64) << 32) | cand.0 as u64);
+        let ransac = sim3_ransac(&ms, &intr, &p.ransac, seed).map_err(|_| LoopReject::Ransac)?;
+        // Guided search: the candidate's other points through S12 into kf.
+        let s12 = ransac.s12;
+        let mut taken1: HashSet<usize> = keep.iter().map(|m| m.0).collect();
+        let mut taken2: HashSet<PointId> = keep.iter().map(|m| m.2).collect();
+        let s_1w = s12.compose(&Sim3::from_isometry(&k2.cam_from_world));
+        let iso_1w = sim3_to_isometry(&s_1w);
+        let center1 = iso_1w.inverse().translation.vector;
+        let mut cand_list = Vec::new();
+        for p2 in k2.points.iter().flatten() {
+            if taken2.contains(p2) {
+                continue;
+            }
+            let Some(pr) = matcher::project_point(map, *p2, &iso_1w, &center1, &self.bounds, 0.5)
+            else {
+                continue;
+            };
+            let Some(mp2) = map.point(*p2) else { continue };
+            let r = p.sim3_search_radius * map.scale.scale_factors[pr.level];
+            k1.grid.features_in_area(
+                &k1.keypoints,
+                pr.uv.x,
+                pr.uv.y,
+                r,
+                pr.level as i32 - 1,
+                pr.level as i32 + 1,
+                &mut cand_list,
+            );
+            let mut best = (u32::MAX, usize::MAX);
+            for &i in &cand_list {
+                if taken1.contains(&i) || k1.points.get(i).copied().flatten().is_none() {
+                    continue;
+                }
+                let d = hamming(&mp2.descriptor, &k1.descriptors[i]);
+                if d < best.0 {
+                    best = (d, i);
+                }
+            }
+            if best.0 <= p.matcher.th_high
+                && let Some(Some(p1)) = k1.points.get(best.1)
+                && *p1 != *p2
+                && let Some(m) = make(best.1, *p1, *p2)
+            {
+                taken1.insert(best.1);
+                taken2.insert(*p2);
+                ms.push(m);
+                keep.push((best.1, *p1, *p2));
+            }
+        }
+        // Reprojection hardly constrains the scale when the two cameras
+        // nearly coincide (a revisit): points scaled about the camera
+        // project to the same pixels. So the rotation and translation are
+        // refined on reprojection with the scale held, the scale comes
+        // from the 3D alignment (Umeyama) of the inliers, and the pose is
+        // refined again at that scale.
+        let fixed = Sim3Params {
+            fix_scale: true,
+            ..p.sim3.clone()
+        };
+        let first = optimize_sim3(&s12, &ms, &intr, &fixed).map_err(|_| LoopReject::Sim3Inliers)?;
+        if first.n_inliers < p.min_sim3_inliers {
+            return Err(LoopReject::Sim3Inliers);
+        }
+        let (src, dst): (Vec<_>, Vec<_>) = ms
+            .iter()
+            .zip(&first.inliers)
+            .filter(|(_, ok)| **ok)
+            .map(|(m, _)| (m.x2_cam2, m.x1_cam1))
+            .unzip();
+        let aligned = robust_scale_fit(&src, &dst, &first.s12).ok_or(LoopReject::Sim3Inliers)?;
+        let refined =
+            optimize_sim3(&aligned, &ms, &intr, &fixed).map_err(|_| LoopReject::Sim3Inliers)?;
+        if refined.n_inliers < p.min_sim3_inliers {
+            return Err(LoopReject::Sim3Inliers);
+        }
+        tracing::debug!(
+            current = kf.0,
+            candidate = cand.0,
+            ransac_scale = s12.scale,
+            ransac_inliers = ransac.n_inliers,
+            refined_scale = refined.s12.scale,
+            refined_inliers = refined.n_inliers,
+            matches = ms.len(),
+            "loop: Sim(3)"
+        );
+        let s_cw = refined
+            .s12
+            .compose(&Sim3::from_isometry(&k2.cam_from_world));
+        // The loop neighbourhood's points through the corrected pose.
+        let mut matched: Vec<Option<PointId>> = vec![None; k1.keypoints.len()];
+        for ((i1, _, p2), ok) in keep.iter().zip(&refined.inliers) {
+            if *ok {
+                matched[*i1] = Some(*p2);
+            }
+        }
+        let mut loop_points: Vec<PointId> = Vec::new();
+        let mut seen: HashSet<PointId> = HashSet::new();
+        for id in std::iter::once(cand).chain(k2.covisible.iter().map(|c| c.0)) {
+            if let Some(k) = map.keyframe(id) {
+                for pid in k.points.iter().flatten() {
+                    if seen.insert(*pid) {
+                        loop_points.push(*pid);
+                    }
+                }
+            }
+        }
+        let (mut matched, mut in_view) =
+            self.search_by_projection(map, k1, &loop_points, &s_cw, matched);
+        let mut s_cw = s_cw;
+        let mut inliers = refined.n_inliers;
+        // The scale again from the larger set the projection found (ORB-SLAM
+        // stops at the BoW inliers): every match whose keypoint holds a point
+        // gives a 3D pair; the pose is refined on them at the scale held,
+        // the scale re-fitted robustly on that refinement's inliers, the pose
+        // refined at the new scale, and the projection search run once more.
+        if p.refit_on_projection
+            && let Some((s12, seeds, n)) =
+                self.refit_on_projection(map, k1, k2, cand, &matched, &refined.s12, &intr)
+        {
+            s_cw = s12.compose(&Sim3::from_isometry(&k2.cam_from_world));
+            (matched, in_view) = self.search_by_projection(map, k1, &loop_points, &s_cw, seeds);
+            inliers = n;
+        }
+        let n_matched = matched.iter().flatten().count();
+        if n_matched < p.min_projection_matches
+            || (n_matched as f64) < p.min_projection_ratio * in_view as f64
+        {
+            tracing::debug!(
+                current = kf.0,
+                candidate = cand.0,
+                n_matched,
+                in_view,
+                "loop: too few matches by projection"
+            );
+            return Err(LoopReject::Projection);
+        }
+        // Plausibility: the correction of the current pose.
+        let corr = s_cw.compose(&Sim3::from_isometry(&k1.cam_from_world.inverse()));
+        let rotation_deg = corr.rotation.angle().to_degrees();
+        let moved = (sim3_to_isometry(&s_cw).inverse().translation.vector - k1.center()).norm();
+        let flown = path_length(map, cand, kf);
+        let max_s = p.max_scale_change.max(1.0);
+        if !(corr.scale <= max_s && corr.scale >= 1.0 / max_s)
+            || rotation_deg > p.max_rotation_deg
+            || moved > p.max_translation_ratio * flown
+        {
+            tracing::debug!(
+                current = kf.0,
+                candidate = cand.0,
+                scale = corr.scale,
+                rotation_deg,
+                moved,
+                flown,
+                "loop: implausible correction"
+            );
+            return Err(LoopReject::Implausible);
+        }
+        Ok(LoopMatch {
+            loop_kf: cand,
+            s_cw,
+            matched,
+            loop_points,
+            inliers,
+            projection_matches: n_matched,
+        })
+    }
+
+    /// Keypoints of `k1` matched by the loop neighbourhood's points seen
+    /// through `s_cw`, starting from `matched`; also how many of the points
+    /// were in view (the seeds count as in view).
+    fn search_by_projection(
+        &self,
+        map: &Map,
+        k1: &KeyFrame,
+        loop_points: &[PointId],
+        s_cw: &Sim3,
+        mut matched: Vec<Option<PointId>>,
+    ) -> (Vec<Option<PointId>>, usize) {
+        let p = &self.params;
+        let mut cand_list = Vec::new();
+        let iso_cw = sim3_to_isometry(s_cw);
+        let center = iso_cw.inverse().translation.vector;
+        let already: HashSet<PointId> = matched.iter().flatten().copied().collect();
+        let mut in_view = 0usize;
+        for pid in loop_points {
+            if already.contains(pid) {
+                in_view += 1;
+                continue;
+            }
+            let Some(pr) = matcher::project_point(map, *pid, &iso_cw, &center, &self.bounds, 0.5)
+            else {
+                continue;
+            };
+            let Some(mp) = map.point(*pid) else { continue };
+            in_view += 1;
+            let r = p.projection_radius * map.scale.scale_factors[pr.level];
+            k1.grid.features_in_area(
+                &k1.keypoints,
+                pr.uv.x,
+                pr.uv.y,
+                r,
+                pr.level as i32 - 1,
+                pr.level as i32 + 1,
+                &mut cand_list,
+            );
+            let mut best = (u32::MAX, usize::MAX);
+            for &i in &cand_list {
+                if matched[i].is_some() {
+                    continue;
+                }
+                let d = hamming(&mp.descriptor, &k1.descriptors[i]);
+                if d < best.0 {
+                    best = (d, i);
+                }
+            }
+            if best.0 <= p.matcher.th_low {
+                matched[best.1] = Some(*pid);
+            }
+        }
+        (matched, in_view)
+    }
+
+    /// The loop's Sim(3) (camera 2 → camera 1) fitted again on the
+    /// projection matches whose keypoint in `k1` holds a point: pose refined
+    /// at the scale of `s12`, scale re-fitted with [`robust_scale_fit`] on
+    /// that refinement's inliers, pose refined at the new scale. Returns the
+    /// Sim(3), its inliers as seeds of a new search, and their count; `None`
+    /// when too few remain (the caller keeps the BoW fit).
+    #[allow(clippy::too_many_arguments)]
+    fn refit_on_projection(
+        &self,
+        map: &Map,
+        k1: &KeyFrame,
+        k2: &KeyFrame,
+        cand: KeyFrameId,
+        matched: &[Option<PointId>],
+        s12: &Sim3,
+        intr: &Intrinsics,
+    ) -> Option<(Sim3, Vec<Option<PointId>>, usize)> {
+        let p = &self.params;
+        let sigma2 = &map.scale.inv_level_sigma2;
+        let mut ms: Vec<Sim3Match> = Vec::new();
+        let mut keep: Vec<(usize, PointId)> = Vec::new();
+        for (i1, m) in matched.iter().enumerate() {
+            let Some(p2) = *m else { continue };
+            let Some(Some(p1)) = k1.points.get(i1) else {
+                continue;
+            };
+            if *p1 == p2 {
+                continue;
+            }
+            let (Some(mp1), Some(mp2), Some(kp1)) =
+                (map.point(*p1), map.point(p2), k1.keypoints.get(i1))
+            else {
+                continue;
+            };
+            let x2 = k2.cam_from_world * mp2.position;
+            // The loop-side point's keypoint in the candidate if it has one,
+            // else its projection there (it was seen by a neighbour).
+            let (uv2, s2) = match mp2
+                .index_in(cand)
+                .and_then(|i2| k2.keypoints.get(i2 as usize))
+            {
+                Some(kp2) => (
+                    Point2::new(kp2.ux as f64, kp2.uy as f64),
+                    *sigma2.get(kp2.octave as usize)?,
+                ),
+                None => {
+                    if x2.z <= p.sim3.min_depth {
+                        continue;
+                    }
+                    (
+                        Point2::new(
+                            intr.fx * x2.x / x2.z + intr.cx,
+                            intr.fy * x2.y / x2.z + intr.cy,
+                        ),
+                        *sigma2.get(kp1.octave as usize)?,
+                    )
+                }
+            };
+            ms.push(Sim3Match {
+                x1_cam1: k1.cam_from_world * mp1.position,
+                x2_cam2: x2,
+                uv1: Point2::new(kp1.ux as f64, kp1.uy as f64),
+                uv2,
+                inv_sigma2_1: *sigma2.get(kp1.octave as usize)?,
+                inv_sigma2_2: s2,
+            });
+            keep.push((i1, p2));
+        }
+        let fixed = Sim3Params {
+            fix_scale: true,
+            ..p.sim3.clone()
+        };
+        let first = optimize_sim3(s12, &ms, intr, &fixed).ok()?;
+        if first.n_inliers < p.min_sim3_inliers {
+            return None;
+        }
+        let (src, dst): (Vec<_>, Vec<_>) = ms
+            .iter()
+            .zip(&first.inliers)
+            .filter(|(_, ok)| **ok)
+            .map(|(m, _)| (m.x2_cam2, m.x1_cam1))
+            .unzip();
+        let aligned = robust_scale_fit(&src, &dst, &first.s12)?;
+        let refit = optimize_sim3(&aligned, &ms, intr, &fixed).ok()?;
+        if refit.n_inliers < p.min_sim3_inliers {
+            return None;
+        }
+        tracing::debug!(
+            bow_scale = s12.scale,
+            refit_scale = refit.s12.scale,
+            pairs = ms.len(),
+            scale_inliers = first.n_inliers,
+            refit_inliers = refit.n_inliers,
+            "loop: Sim(3) refitted on the projection matches"
+        );
+        let mut seeds = vec![None; matched.len()];
+        for ((i1, p2), ok) in keep.iter().zip(&refit.inliers) {
+            if *ok {
+                seeds[*i1] = Some(*p2);
+            }
+        }
+        Some((refit.s12, seeds, refit.n_inliers))
+    }
+
+    /// The correction (see the module doc).
+    fn correct(
+        &mut self,
+        map: &mut Map,
+        kf: KeyFrameId,
+        lm: LoopMatch,
+        t0: Instant,
+    ) -> Option<LoopEvent> {
+        let p = &self.params;
+        let before = keyframe_trajectory(map);
+        map.update_connections(kf);
+        let k = map.keyframe(kf)?;
+        let current_t = k.timestamp;
+        let t_wc = k.cam_from_world.inverse();
+        let center_before = k.center();
+        let mut connected: Vec<KeyFrameId> = vec![kf];
+        connected.extend(k.covisible.iter().map(|c| c.0));
+        // Poses: corrected and as they were.
+        let mut corrected: HashMap<KeyFrameId, Sim3> = HashMap::new();
+        let mut uncorrected: HashMap<KeyFrameId, Sim3> = HashMap::new();
+        for &id in &connected {
+            let Some(ki) = map.keyframe(id) else { continue };
+            let s_ic = Sim3::from_isometry(&(ki.cam_from_world * t_wc));
+            corrected.insert(id, s_ic.compose(&lm.s_cw));
+            uncorrected.insert(id, Sim3::from_isometry(&ki.cam_from_world));
+        }
+        // Points of the neighbourhood follow their keyframe.
+        let mut corrected_by: HashMap<PointId, KeyFrameId> = HashMap::new();
+        for &id in &connected {
+            let (Some(s_new), Some(s_old)) = (corrected.get(&id), uncorrected.get(&id)) else {
+                continue;
+            };
+            let s_move = s_new.inverse().compose(s_old);
+            let pids: Vec<PointId> = map
+                .keyframe(id)
+                .map(|k| k.points.iter().flatten().copied().collect())
+                .unwrap_or_default();
+            for pid in pids {
+                if corrected_by.contains_key(&pid) {
+                    continue;
+                }
+                if let Some(mp) = map.point_mut(pid) {
+                    mp.position = s_move.transform_point(&mp.position);
+                    corrected_by.insert(pid, id);
+                }
+            }
+        }
+        for (&id, s) in &corrected {
+            if let Some(ki) = map.keyframe_mut(id) {
+                ki.cam_from_world = sim3_to_isometry(s);
+            }
+        }
+        for pid in corrected_by.keys().copied().collect::<Vec<_>>() {
+            map.update_point_normal_and_depth(pid);
+        }
+        let neighbours_before: HashMap<KeyFrameId, HashSet<KeyFrameId>> = connected
+            .iter()
+            .filter_map(|id| {
+                map.keyframe(*id)
+                    .map(|k| (*id, k.covisible.iter().map(|c| c.0).collect()))
+            })
+            .collect();
+        // Fuse the loop's matched points into the current keyframe.
+        let mut fused = 0;
+        for (i, m) in lm.matched.iter().enumerate() {
+            let Some(lp) = m else { continue };
+            if map.point(*lp).is_none() {
+                continue;
+            }
+            let existing = map
+                .keyframe(kf)
+                .and_then(|k| k.points.get(i).copied().flatten());
+            match existing {
+                Some(cp) if cp != *lp => {
+                    map.replace_point(cp, *lp);
+                    fused += 1;
+                }
+                Some(_) => {}
+                None => {
+                    if map.add_observation(*lp, kf, i as u32) {
+                        fused += 1;
+                    }
+                }
+            }
+            map.update_point_descriptor(*lp);
+        }
+        // And the loop neighbourhood's points into the current neighbourhood.
+        let loop_points: Vec<PointId> = lm
+            .loop_points
+            .iter()
+            .copied()
+            .filter(|p| map.point(*p).is_some())
+            .collect();
+        for &id in &connected {
+            fused += matcher::fuse(
+                map,
+                id,
+                &loop_points,
+                p.fuse_radius,
+                &self.bounds,
+                &p.matcher,
+            );
+        }
+        for &id in &connected {
+            map.update_connections(id);
+        }
+        // New links between the two sides.
+        let connected_set: HashSet<KeyFrameId> = connected.iter().copied().collect();
+        let mut loop_links: Vec<(KeyFrameId, KeyFrameId)> = Vec::new();
+        for &id in &connected {
+            let Some(ki) = map.keyframe(id) else { continue };
+            let before = neighbours_before.get(&id);
+            for (o, _) in &ki.covisible {
+                if connected_set.contains(o) || before.is_some_and(|b| b.contains(o)) {
+                    continue;
+                }
+                loop_links.push((id, *o));
+            }
+        }
+        map.add_loop_edge(kf, lm.loop_kf);
+        let graph_edges = optimize_essential_graph(
+            map,
+            lm.loop_kf,
+            kf,
+            &corrected,
+            &uncorrected,
+            &corrected_by,
+            &loop_links,
+            p,
+        );
+        map.note_correction();
+        let after = keyframe_trajectory(map);
+        let corr = lm.s_cw.compose(&Sim3::from_isometry(&t_wc));
+        let center_after = sim3_to_isometry(&lm.s_cw).inverse().translation.vector;
+        let loop_t = map.keyframe(lm.loop_kf).map_or(0.0, |k| k.timestamp);
+        Some(LoopEvent {
+            current: kf,
+            loop_kf: lm.loop_kf,
+            current_t,
+            loop_t,
+            inliers: lm.inliers,
+            projection_matches: lm.projection_matches,
+            scale: corr.scale,
+            rotation_deg: corr.rotation.angle().to_degrees(),
+            translation: (center_after - center_before).norm(),
+            fused,
+            graph_edges,
+            correction_ms: t0.elapsed().as_secs_f64() * 1e3,
+            keyframes_before: before,
+            keyframes_after: after,
+            global_ba_rmse_px: None,
+            global_ba_ms: None,
+        })
+    }
+}
+
+/// Bundle adjustment over every keyframe and point, the map's first
+/// keyframe fixed: the problem is built and written back under the map
+/// lock, solved without it (keyframes added meanwhile keep their poses).
+/// Returns the final reprojection RMSE, px.
+fn global_bundle_adjustment(map: &Mutex<Map>, params: &BaParams) -> Option<f64> {
+    let mut setup = {
+        let m = lock(map);
+        let kfs: Vec<KeyFrameId> = m.keyframes().map(|k| k.id).collect();
+        let fixed: Vec<KeyFrameId> = kfs.first().copied().into_iter().collect();
+        if kfs.len() < 2 {
+            return None;
+        }
+        build_ba_problem(&m, &kfs, &fixed)?
+    };
+    let report = crate::optimize::local_bundle_adjustment(&mut setup.problem, params).ok()?;
+    tracing::debug!(
+        keyframes = setup.keyframes.len(),
+        points = setup.points.len(),
+        before = report.initial_rmse_px,
+        after = report.final_rmse_px,
+        outliers = report.n_outliers,
+        "loop: global BA"
+    );
+    let mut m = lock(map);
+    apply_ba_result(&mut m, &setup, &report.outliers);
+    m.note_correction();
+    Some(report.final_rmse_px)
+}
+
+/// The similarity mapping `src` onto `dst` with the rotation of `guess`,
+/// the scale the median of the ratios of distances between point pairs
+/// (each point with the one half the list away): unlike a least-squares
+/// fit, noise on either side's depths does not pull it towards zero and a
+/// few bad depths do not move it. The translation aligns the centroids.
+pub fn robust_scale_fit(
+    src: &[nalgebra::Point3<f64>],
+    dst: &[nalgebra::Point3<f64>],
+    guess: &Sim3,
+) -> Option<Sim3> {
+    let n = src.len().min(dst.len());
+    if n < 3 {
+        return None;
+    }
+    let logs: Vec<f64> = (0..n)
+        .filter_map(|i| {
+            let j = (i + n / 2) % n;
+            let a = (dst[i] - dst[j]).norm();
+            let b = (src[i] - src[j]).norm();
+            (a > 0.0 && b > 0.0).then(|| (a / b).ln())
+        })
+        .filter(|v| v.is_finite())
+        .collect();
+    let scale = crate::stats::quantile(&logs, 0.5)?.exp();
+    let c_src = src.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f64>>() / n as f64;
+    let c_dst = dst.iter().map(|p| p.coords).sum::<nalgebra::Vector3<f64>>() / n as f64;
+    let t = c_dst - guess.rotation * c_src * scale;
+    Some(Sim3::new(guess.rotation, t, scale))
+}
+
+/// The rigid pose of a similarity `S_cw` (world → camera): the same
+/// camera, `(R, t/s)`.
+pub fn sim3_to_isometry(s: &Sim3) -> Isometry3<f64> {
+    Isometry3::from_parts(Translation3::from(s.translation / s.scale), s.rotation)
+}
+
+/// Length of the path through the live keyframes between two keyframes
+/// (by id, so by time), in map units.
+fn path_length(map: &Map, from: KeyFrameId, to: KeyFrameId) -> f64 {
+    let (a, b) = (from.min(to), from.max(to));
+    let mut last: Option<nalgebra::Vector3<f64>> = None;
+    let mut len = 0.0;
+    for k in map.keyframes().filter(|k| k.id >= a && k.id <= b) {
+        let c = k.center();
+        if let Some(l) = last {
+            len += (c - l).norm();
+        }
+        last = Some(c);
+    }
+    len
+}
+
+fn keyframe_trajectory(map: &Map) -> Trajectory {
+    let mut poses: Vec<StampedPose> = map
+        .keyframes()
+        .map(|k| StampedPose {
+            t: k.timestamp,
+            world_from_cam: k.world_from_cam(),
+        })
+        .collect();
+    poses.sort_by(|a, b| a.t.total_cmp(&b.t));
+    Trajectory { poses }
+}
+
+/// The essential graph in Sim(3) over every live keyframe, the loop
+/// keyframe fixed; keyframe poses and points updated. Returns the number
+/// of edges.
+#[allow(clippy::too_many_arguments)]
+fn optimize_essential_graph(
+    map: &mut Map,
+    loop_kf: KeyFrameId,
+    current: KeyFrameId,
+    corrected: &HashMap<KeyFrameId, Sim3>,
+    uncorrected: &HashMap<KeyFrameId, Sim3>,
+    corrected_by: &HashMap<PointId, KeyFrameId>,
+    loop_links: &[(KeyFrameId, KeyFrameId)],
+    p: &LoopParams,
+) -> usize {
+    let ids: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
+    let index: HashMap<KeyFrameId, usize> =
+        ids.iter().enumerate().map(|(i, id)| (*id, i)).collect();
+    let mut poses = Vec::with_capacity(ids.len());
+    let mut plain = Vec::with_capacity(ids.len());
+    for id in &ids {
+        let Some(k) = map.keyframe(*id) else { continue };
+        let s = corrected
+            .get(id)
+            .copied()
+            .unwrap_or_else(|| Sim3::from_isometry(&k.cam_from_world));
+        poses.push(s);
+        plain.push(uncorrected.get(id).copied().unwrap_or(s));
+    }
+    let mut fixed = vec![false; ids.len()];
+    if let Some(&l) = index.get(&loop_kf) {
+        fixed[l] = true;
+    } else if let Some(f) = fixed.first_mut() {
+        *f = true;
+    }
+    let mut edges: Vec<Sim3Edge> = Vec::new();
+    let mut have: HashSet<(usize, usize)> = HashSet::new();
+    let mut push = |i: usize, j: usize, s_ji: Sim3, edges: &mut Vec<Sim3Edge>| {
+        let key = (i.min(j), i.max(j));
+        if i != j && have.insert(key) {
+            edges.push(Sim3Edge {
+                i,
+                j,
+                s_ji,
+                weight: 1.0,
+            });
+        }
+    };
+    // New loop links, measured with the corrected poses.
+    for (a, b) in loop_links {
+        let (Some(&i), Some(&j)) = (index.get(a), index.get(b)) else {
+            continue;
+        };
+        let w = map.keyframe(*a).map_or(0, |k| k.weight(*b));
+        let is_loop = (*a == current && *b == loop_kf) || (*b == current && *a == loop_kf);
+        if !is_loop && w < p.essential_min_weight {
+            continue;
+        }
+        push(i, j, poses[j].compose(&poses[i].inverse()), &mut edges);
+    }
+    // The closing edge itself, measured with the corrected poses.
+    if let (Some(&i), Some(&j)) = (index.get(&current), index.get(&loop_kf)) {
+        push(i, j, poses[j].compose(&poses[i].inverse()), &mut edges);
+    }
+    for (i, id) in ids.iter().enumerate() {
+        let Some(k) = map.keyframe(*id) else { continue };
+        let s_wi = plain[i].inverse();
+        if let Some(parent) = k.parent
+            && let Some(&j) = index.get(&parent)
+        {
+            push(i, j, plain[j].compose(&s_wi), &mut edges);
+        }
+        for (a, b) in map.loop_edges() {
+            let other = if *a == *id {
+                *b
+            } else if *b == *id {
+                *a
+            } else {
+                continue;
+            };
+            if let Some(&j) = index.get(&other) {
+                push(i, j, plain[j].compose(&s_wi), &mut edges);
+            }
+        }
+        for (o, w) in &k.covisible {
+            if *w < p.essential_min_weight {
+                break;
+            }
+            if let Some(&j) = index.get(o) {
+                push(i, j, plain[j].compose(&s_wi), &mut edges);
+            }
+        }
+    }
+    let n_edges = edges.len();
+    let initial = poses.clone();
+    let mut graph = PoseGraph {
+        poses,
+        fixed,
+        edges,
+    };
+    match optimize_pose_graph(&mut graph, &p.pose_graph) {
+        Ok(summary) => tracing::debug!(?summary, edges = n_edges, "essential graph optimised"),
+        Err(e) => {
+            tracing::warn!("essential graph not optimised: {e}");
+            return n_edges;
+        }
+    }
+    for (i, id) in ids.iter().enumerate() {
+        if let Some(k) = map.keyframe_mut(*id) {
+            k.cam_from_world = sim3_to_isometry(&graph.poses[i]);
+        }
+    }
+    let pids: Vec<PointId> = map.points().map(|mp| mp.id).collect();
+    for pid in pids {
+        let Some(mp) = map.point(pid) else { continue };
+        let r = corrected_by
+            .get(&pid)
+            .copied()
+            .filter(|r| index.contains_key(r))
+            .or_else(|| Some(mp.ref_kf).filter(|r| index.contains_key(r)))
+            .or_else(|| {
+                mp.observations
+                    .iter()
+                    .map(|o| o.0)
+                    .find(|r| index.contains_key(r))
+            });
+        let Some(r) = r else { continue };
+        let i = index[&r];
+        let s_move = graph.poses[i].inverse().compose(&initial[i]);
+        if let Some(mp) = map.point_mut(pid) {
+            mp.position = s_move.transform_point(&mp.position);
+        }
+        map.update_point_normal_and_depth(pid);
+    }
+    n_edges
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Point3, UnitQuaternion, Vector3};
+    use rand::{Rng, SeedableRng, rngs::SmallRng};
+
+    /// Two monocular maps of one scene seen from one place: each point's
+    /// depth along its ray is off by up to ±15 % on each side,
+    /// independently. The least-squares (Umeyama) scale is pulled down by
+    /// the noise on the source side; the median of pairwise distance
+    /// ratios stays within 2 % of the truth.
+    #[test]
+    fn robust_scale_is_not_pulled_by_depth_noise() {
+        let truth = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.01, -0.02, 0.03),
+            Vector3::new(0.1, -0.05, 0.2),
+            1.25,
+        );
+        let mut rng = SmallRng::seed_from_u64(4);
+        let noisy_depth = |p: Point3<f64>, rng: &mut SmallRng| -> Point3<f64> {
+            let f = 1.0 + rng.random_range(-0.15..0.15);
+            Point3::from(p.coords * f)
+        };
+        let (mut src, mut dst) = (Vec::new(), Vec::new());
+        for _ in 0..300 {
+            let x2 = Point3::new(
+                rng.random_range(-20.0..20.0),
+                rng.random_range(-15.0..15.0),
+                rng.random_range(30.0..50.0),
+            );
+            let x1 = truth.transform_point(&x2);
+            src.push(noisy_depth(x2, &mut rng));
+            dst.push(noisy_depth(x1, &mut rng));
+        }
+        let guess = Sim3::new(truth.rotation, Vector3::zeros(), 1.0);
+        let robust = robust_scale_fit(&src, &dst, &guess).unwrap();
+        let ls = crate::geometry::umeyama(&src, &dst, true).unwrap();
+        assert!(
+            (robust.scale / truth.scale - 1.0).abs() < 0.02,
+            "robust scale {}",
+            robust.scale
+        );
+        assert!(
+            ls.scale / truth.scale < 0.95,
+            "least squares scale {}: the test needs its bias",
+            ls.scale
+        );
+        assert!(robust_scale_fit(&src[..2], &dst[..2], &guess).is_none());
+    }
+}
