@@ -564,11 +564,12 @@ fn photos_around_the_flight_under_other_light_and_cameras() -> anyhow::Result<()
     let r = Renderer::new(world.clone(), other, RenderParams::default());
     let out = run_condition(&m, &index, &r, None, &hidden, 3)?;
     // Without EXIF the map camera's field of view is assumed (fx 575 px
-    // for the true 480: 20 % too long), with a 30 % focal sigma estimated with the pose.
-    // Open (issue 21): the estimate stops short of the true focal length
-    // and sigma does not cover it, so the gate still passes 36 of these
-    // photos about 18 % off along the axis (63 before the focal
-    // sigma); held so that it cannot get worse unseen.
+    // for the true 480: 20 % too long) as exact. Open (issue 21): the gate
+    // cannot see a wrongly assumed focal length and passes 63 of these
+    // photos about 19 % off along the axis. A 30 % focal sigma estimated
+    // with the pose lowered that to 36 but refused a resized photo of the
+    // map's own camera (tests/shot_cli.rs), so it is not in; held here so
+    // that it cannot get worse unseen.
     let wrong_no_exif = table("800x600 camera, no EXIF (map camera's field of view)", &out);
     let out = run_condition(&m, &index, &r, Some(&exif), &hidden, 3)?;
     let wrong_exif = table("800x600 camera, EXIF focal length", &out);
@@ -584,7 +585,7 @@ fn photos_around_the_flight_under_other_light_and_cameras() -> anyhow::Result<()
     // 25 % off along the axis (focal length against distance); held here
     // so that it cannot get worse unseen.
     assert!(
-        wrong_no_exif <= 36,
+        wrong_no_exif <= 63,
         "{wrong_no_exif} photos without EXIF passed by the gate with an error over 10 % or 5 deg"
     );
     assert!(

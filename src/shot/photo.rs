@@ -101,11 +101,6 @@ pub struct PhotoCamera {
 pub const EXIF_K1_SIGMA: f64 = 0.05;
 /// The same for the r⁴ coefficient `k2`.
 pub const EXIF_K2_SIGMA: f64 = 0.02;
-/// Relative sigma of the focal length guessed for a photo of another size
-/// without EXIF (the map camera's field of view): phone and drone cameras
-/// span about 60 to 85 degrees of horizontal field of view, about +-30 %
-/// in focal length.
-pub const ASSUMED_FOCAL_SIGMA: f64 = 0.3;
 
 /// Why a photo's EXIF was ignored, or could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -277,19 +272,10 @@ pub fn photo_camera(
             uncertainty: IntrinsicsUncertainty::default(),
         });
     }
-    // Another size than the map camera's and no EXIF: most likely another
-    // camera, whose field of view is only guessed. The guess's focal length
-    // and an unknown lens's distortion are uncertain, so they are estimated
-    // with the pose and their uncertainty is in the reported sigma (the gate
-    // then refuses a photo whose focal length the scene cannot pin down).
     Ok(PhotoCamera {
         camera: assumed_camera(map_camera, w, h)?,
         source: IntrinsicsSource::MapCamera,
-        uncertainty: IntrinsicsUncertainty {
-            focal_rel: ASSUMED_FOCAL_SIGMA,
-            k1: EXIF_K1_SIGMA,
-            k2: EXIF_K2_SIGMA,
-        },
+        uncertainty: IntrinsicsUncertainty::default(),
     })
 }
 
