@@ -230,8 +230,32 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
                     _ => None,
                 })
                 .collect();
+            // The commands each way, in order, to tell which CONFIGURE put
+            // whom in control when a mission PITCHYAW is denied.
+            let commands: Vec<String> = snapshot(&trace)
+                .iter()
+                .filter_map(|f| match &f.msg {
+                    MavMessage::COMMAND_LONG(c) if f.up => Some(format!(
+                        "up {:?} p1 {} p2 {} p7 {} conf {}",
+                        c.command, c.param1, c.param2, c.param7, c.confirmation
+                    )),
+                    MavMessage::COMMAND_ACK(a) if !f.up => {
+                        Some(format!("down ACK {:?} {:?}", a.command, a.result))
+                    }
+                    MavMessage::MISSION_CURRENT(m) if !f.up => {
+                        Some(format!("down MISSION_CURRENT {}", m.seq))
+                    }
+                    _ => None,
+                })
+                .fold(Vec::new(), |mut v: Vec<String>, line| {
+                    // MISSION_CURRENT repeats at its rate: keep changes only.
+                    if v.last() != Some(&line) {
+                        v.push(line);
+                    }
+                    v
+                });
             anyhow::bail!(
-                "{flavour:?}: {e}; vehicle {:?}; gimbal control {:?}; mission progress {:?}; STATUSTEXT {said:?}",
+                "{flavour:?}: {e}; vehicle {:?}; gimbal control {:?}; mission progress {:?}; STATUSTEXT {said:?}; commands {commands:?}",
                 *link.telemetry.vehicle.borrow(),
                 *link.telemetry.gimbal_control.borrow(),
                 *link.telemetry.progress.borrow(),

@@ -94,11 +94,13 @@ async function main() {
     out.video = { width: first.w, height: first.h, frames_advance: true };
     out.status_line = await page.textContent('#status');
 
-    // Keyframes listed, with their pictures.
+    // Keyframes listed, with their pictures. Bounded at 60 s: on a loaded
+    // two-core CI run (daemon, simulator and Chromium together) this wait
+    // once ran out at 20 s while it takes about 5 s alone.
     await page.waitForFunction(() => {
       const imgs = [...document.querySelectorAll('#gallery figure img')];
       return imgs.length >= 3 && imgs.every((i) => i.complete && i.naturalWidth > 0);
-    }, null, { timeout: 20000 });
+    }, null, { timeout: 60000 });
     // The count and the gallery are refreshed together; while the map grows
     // and culls, one look may fall between two refreshes, so wait (bounded)
     // for a look at which they agree.
