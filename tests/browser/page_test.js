@@ -96,7 +96,7 @@ async function main() {
 
     // Keyframes listed, with their pictures. Bounded at 60 s: on a loaded
     // two-core CI run (daemon, simulator and Chromium together) this wait
-    // once ran out at 20 s while it takes about 5 s alone.
+    // once ran out at 20 s; the whole test takes 25 s alone.
     await page.waitForFunction(() => {
       const imgs = [...document.querySelectorAll('#gallery figure img')];
       return imgs.length >= 3 && imgs.every((i) => i.complete && i.naturalWidth > 0);
