@@ -32,7 +32,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use shotpilot::bow::Vocabulary;
-use shotpilot::camera::{Camera, Distortion};
+use shotpilot::camera::Camera;
 use shotpilot::geometry::{Sim3, umeyama};
 use shotpilot::shot::{self, BowIndex, Localization};
 use shotpilot::slam::{self, Map, Slam};
@@ -47,22 +47,6 @@ const T0: f64 = 0.0;
 const T1: f64 = 30.0;
 const DT: f64 = 0.15;
 const PHOTOS: usize = 100;
-
-fn camera_of(c: &SimCamera) -> Camera {
-    Camera::new(
-        c.width,
-        c.height,
-        [c.fx, c.fy, c.cx, c.cy],
-        Distortion {
-            k1: c.k1,
-            k2: c.k2,
-            p1: c.p1,
-            p2: c.p2,
-            k3: c.k3,
-        },
-    )
-    .unwrap_or_else(|e| panic!("sim camera: {e}"))
-}
 
 /// The map, its alignment to the truth and what the sampling needs.
 struct Mapped {
@@ -81,7 +65,7 @@ fn build(world: Arc<World>) -> anyhow::Result<Mapped> {
     let sc = SimCamera::default();
     let renderer = Renderer::new(world.clone(), sc, RenderParams::default());
     let path = CameraPath::explore(&world, PathParams::default());
-    let camera = camera_of(&sc);
+    let camera = shotpilot::simulator::camera_from_sim(&sc)?;
     let params = slam::Params {
         sequential: true,
         ..slam::Params::default()

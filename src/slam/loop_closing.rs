@@ -46,7 +46,7 @@ use nalgebra::{Isometry3, Point2, Translation3};
 
 use crate::bow::CandidateParams;
 use crate::eval::{StampedPose, Trajectory};
-use crate::features::hamming;
+use crate::features::{Descriptor, hamming};
 use crate::geometry::{Sim3RansacParams, sim3_ransac};
 use crate::lie::Sim3;
 use crate::matching::Bounds;
@@ -505,25 +505,9 @@ impl LoopCloser {
             };
             let Some(mp2) = map.point(*p2) else { continue };
             let r = p.sim3_search_radius * map.scale.scale_factors[pr.level];
-            k1.grid.features_in_area(
-                &k1.keypoints,
-                pr.uv.x,
-                pr.uv.y,
-                r,
-                pr.level as i32 - 1,
-                pr.level as i32 + 1,
-                &mut cand_list,
-            );
-            let mut best = (u32::MAX, usize::MAX);
-            for &i in &cand_list {
-                if taken1.contains(&i) || k1.points.get(i).copied().flatten().is_none() {
-                    continue;
-                }
-                let d = hamming(&mp2.descriptor, &k1.descriptors[i]);
-                if d < best.0 {
-                    best = (d, i);
-                }
-            }
+            let best = nearest_in_window(k1, &pr, r, &mp2.descriptor, &mut cand_list, |i| {
+                taken1.contains(&i) || k1.points.get(i).copied().flatten().is_none()
+            });
             if best.0 <= p.matcher.th_high
                 && let Some(Some(p1)) = k1.points.get(best.1)
                 && *p1 != *p2
@@ -682,25 +666,9 @@ impl LoopCloser {
             let Some(mp) = map.point(*pid) else { continue };
             in_view += 1;
             let r = p.projection_radius * map.scale.scale_factors[pr.level];
-            k1.grid.features_in_area(
-                &k1.keypoints,
-                pr.uv.x,
-                pr.uv.y,
-                r,
-                pr.level as i32 - 1,
-                pr.level as i32 + 1,
-                &mut cand_list,
-            );
-            let mut best = (u32::MAX, usize::MAX);
-            for &i in &cand_list {
-                if matched[i].is_some() {
-                    continue;
-                }
-                let d = hamming(&mp.descriptor, &k1.descriptors[i]);
-                if d < best.0 {
-                    best = (d, i);
-                }
-            }
+            let best = nearest_in_window(k1, &pr, r, &mp.descriptor, &mut cand_list, |i| {
+                matched[i].is_some()
+            });
             if best.0 <= p.matcher.th_low {
                 matched[best.1] = Some(*pid);
             }
@@ -1195,6 +1163,41 @@ fn optimize_essential_graph(
         map.update_point_normal_and_depth(pid);
     }
     n_edges
+}
+
+/// The keypoint of `k1` nearest to `descriptor` (Hamming distance, first
+/// wins a tie) among those within `radius` px of the projection `pr` and
+/// one pyramid level of it, skipping those `skip` names; `(u32::MAX,
+/// usize::MAX)` when none. `cand` is a reused buffer.
+fn nearest_in_window(
+    k1: &KeyFrame,
+    pr: &matcher::Projected,
+    radius: f64,
+    descriptor: &Descriptor,
+    cand: &mut Vec<usize>,
+    skip: impl Fn(usize) -> bool,
+) -> (u32, usize) {
+    let lvl = pr.level as i32;
+    k1.grid.features_in_area(
+        &k1.keypoints,
+        pr.uv.x,
+        pr.uv.y,
+        radius,
+        lvl - 1,
+        lvl + 1,
+        cand,
+    );
+    let mut best = (u32::MAX, usize::MAX);
+    for &i in cand.iter() {
+        if skip(i) {
+            continue;
+        }
+        let d = hamming(descriptor, &k1.descriptors[i]);
+        if d < best.0 {
+            best = (d, i);
+        }
+    }
+    best
 }
 
 #[cfg(test)]
