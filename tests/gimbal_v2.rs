@@ -215,6 +215,19 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
     // Operator: arm, mission mode, start (as `shotpilot mission start --arm`).
     link.arm(true).await?;
     link.set_mode(FlightMode::Mission).await?;
+    if flavour == Flavour::Px4 {
+        // On PX4 the mode change starts the armed vehicle's mission, whose
+        // first item makes the autopilot the gimbal's primary controller.
+        // Start only once the link has heard that, the order in which a
+        // ground station that takes control again for `start` gets the
+        // mission's own PITCHYAW denied (seen in CI as a flake).
+        let autopilot = (v.system_id.unwrap_or(1), v.component_id);
+        let mut manager = link.telemetry.gimbal_manager.clone();
+        wait_for("the mission's configure item", &mut manager, 20, |m| {
+            m.is_some_and(|m| m.value.primary == autopilot)
+        })
+        .await?;
+    }
     link.start_mission().await?;
     let pitch = match gimbal_pitch_reaches(&link, target.gimbal_pitch_deg, 60).await {
         Ok(p) => p,
@@ -314,6 +327,13 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
         .iter()
         .filter(|f| is_command(f, MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE))
         .count();
+    // Control is taken once for the mission: never again while it runs (on
+    // PX4 that would take it from the mission's own configure item).
+    let takes = frames[..start].iter().filter(|f| is_take(f)).count();
+    anyhow::ensure!(
+        takes == 1,
+        "{flavour:?}: {takes} CONFIGURE (255/190) before MISSION_START, expected 1"
+    );
     if flavour == Flavour::ArduPilot {
         let release = find(&frames, start, is_release).ok_or_else(|| {
             anyhow::anyhow!("ArduPilot: control not given back after the mission")

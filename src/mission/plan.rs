@@ -430,6 +430,17 @@ pub fn points_gimbal_v2(items: &[MissionItem]) -> bool {
         .any(|i| i.command == cmd::DO_GIMBAL_MANAGER_PITCHYAW)
 }
 
+/// Whether a mission makes the autopilot itself the gimbal's primary
+/// controller (a `DO_GIMBAL_MANAGER_CONFIGURE` item with param1
+/// [`GIMBAL_CONTROL_SELF`], as PX4 missions get): once that item ran, the
+/// mission's own gimbal items need the autopilot in control, and a ground
+/// station taking control back would get them denied.
+pub fn takes_gimbal_control(items: &[MissionItem]) -> bool {
+    items.iter().any(|i| {
+        i.command == cmd::DO_GIMBAL_MANAGER_CONFIGURE && i.params[0] == GIMBAL_CONTROL_SELF
+    })
+}
+
 /// Plans the mission that takes the camera to `target` for `flavour`.
 ///
 /// Refuses targets outside the fence. Items come numbered from 0.
@@ -709,6 +720,10 @@ mod tests {
             ]
         );
         assert!(points_gimbal_v2(&items));
+        assert!(
+            takes_gimbal_control(&items),
+            "the PX4 mission configures itself"
+        );
         assert_eq!(
             items.iter().map(|i| i.seq).collect::<Vec<_>>(),
             [0, 1, 2, 3, 4]
@@ -771,6 +786,10 @@ mod tests {
             ]
         );
         assert!(points_gimbal_v2(&items));
+        assert!(
+            !takes_gimbal_control(&items),
+            "ArduPilot's mission leaves control to the ground station"
+        );
         assert_eq!(
             items[0].frame,
             frame::GLOBAL,

@@ -679,6 +679,12 @@ impl Actor {
                         "gimbal primary control changed"
                     );
                 }
+                // The status first, then the control it changes: a reader
+                // that sees control passed finds who has it.
+                self.gimbal_manager.send_replace(Some(Stamped {
+                    value,
+                    received: now,
+                }));
                 let own = (self.params.system_id, self.params.component_id);
                 if self.gimbal_control.borrow().held && value.primary != own {
                     // Someone (a PX4 mission's own configure item, another
@@ -692,10 +698,6 @@ impl Actor {
                         g.last_event = Some(format!("gimbal control passed to {s}/{c}"));
                     });
                 }
-                self.gimbal_manager.send_replace(Some(Stamped {
-                    value,
-                    received: now,
-                }));
             }
             MavMessage::MISSION_ITEM_REACHED(d) => {
                 let mut p = self.progress.borrow().map(|s| s.value).unwrap_or_default();

@@ -353,6 +353,10 @@ pub struct GimbalControl {
     pub previous: Option<(u8, u8)>,
     /// The last uploaded mission points the gimbal with DO_GIMBAL_MANAGER_PITCHYAW.
     pub mission_points_gimbal: bool,
+    /// The last uploaded mission makes the autopilot take gimbal control
+    /// itself (PX4's configure item): control it holds is the mission's and
+    /// is never taken back for that mission.
+    pub mission_takes_control: bool,
     /// What happened last, in words.
     pub last_event: Option<String>,
     /// The last refusal or missing answer, in words (cleared on success).
@@ -532,11 +536,14 @@ impl LinkHandle {
     /// Uploads a mission and waits for the vehicle's ACK.
     pub async fn upload_mission(&self, items: Vec<MissionItem>) -> Result<UploadReport, LinkError> {
         let points = crate::mission::plan::points_gimbal_v2(&items);
+        let takes = crate::mission::plan::takes_gimbal_control(&items);
         let report = self
             .call(|reply| Command::UploadMission { items, reply })
             .await?;
-        self.gimbal
-            .send_modify(|g| g.mission_points_gimbal = points);
+        self.gimbal.send_modify(|g| {
+            g.mission_points_gimbal = points;
+            g.mission_takes_control = takes;
+        });
         Ok(report)
     }
 
@@ -646,10 +653,37 @@ impl LinkHandle {
 
     /// Takes gimbal control for the uploaded mission when it points the
     /// gimbal; a failure is logged and kept in [`GimbalControl::warning`].
+    ///
+    /// Not when the autopilot already holds control and the mission is one
+    /// that takes it itself: on PX4, switching an armed vehicle to the
+    /// mission mode starts the mission, whose first item makes the
+    /// autopilot the primary controller; taking control back then (the
+    /// operator's `start` after the mode change) would get the mission's
+    /// own PITCHYAW denied.
     async fn acquire_for_mission(&self) {
         {
             let g = self.telemetry.gimbal_control.borrow();
             if !g.mission_points_gimbal || (g.held && g.for_mission) {
+                return;
+            }
+            let takes_itself = g.mission_takes_control;
+            drop(g);
+            let vehicle = self.telemetry.vehicle.borrow().clone();
+            let primary = self
+                .telemetry
+                .gimbal_manager
+                .borrow()
+                .map(|s| s.value.primary);
+            if takes_itself
+                && vehicle
+                    .system_id
+                    .is_some_and(|s| primary == Some((s, vehicle.component_id)))
+            {
+                info!("gimbal: the running mission holds control itself; not taking it back");
+                self.note(
+                    "the mission's own configure item holds gimbal control".into(),
+                    None,
+                );
                 return;
             }
         }
