@@ -129,8 +129,9 @@ pub struct LocalizeParams {
     /// exact) does not see; added to it in quadrature.
     pub map_sigma: MapSigma,
     /// Merge the pairs of every agreeing candidate into one final pose
-    /// optimisation (the union of evidence); off: the best candidate's
-    /// pairs alone.
+    /// optimisation (the union of evidence; not for an assumed camera,
+    /// [`LocalizeParams::focal_unknown`]); off: the best candidate's pairs
+    /// alone.
     pub union_of_evidence: bool,
     /// True when the shot camera is only assumed: a photo of another size
     /// than the map camera's, without EXIF or given intrinsics, taken with
@@ -802,7 +803,11 @@ pub fn localize_with_camera(
     // keypoint or a point already paired by a better candidate keeps that
     // pair) in one final optimisation from the best pose; kept when it
     // passes the gate too.
-    let merged = if agreeing_slots.is_empty() || !params.union_of_evidence {
+    // Not for an assumed camera: the other candidates' pairs were matched
+    // through its focal length, and merged they bias the other camera's
+    // fit (shot_photos, no EXIF: median error 0.47 -> 1.83 %, true errors
+    // within 2 sigma 91 -> 23 %).
+    let merged = if agreeing_slots.is_empty() || !params.union_of_evidence || params.focal_unknown {
         None
     } else {
         let mut slots = best.slots.clone();
