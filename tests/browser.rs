@@ -147,6 +147,7 @@ fn seed_refined_shots(dir: &Path) -> Vec<String> {
                 keyframe_id: Some(0),
             }),
             reason: None,
+            nearest_keyframes: Vec::new(),
             has_image: false,
             mission: Some(mission),
         };

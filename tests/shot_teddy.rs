@@ -253,6 +253,52 @@ fn shots_outside_the_map_are_not_localised() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// "Fly towards here": the keyframes a shot looks most like. A keyframe's
+/// own picture lists that keyframe first, at its camera centre; the
+/// scores fall from first to last.
+#[test]
+fn a_keyframe_picture_lists_itself_first_among_the_nearest_keyframes() -> anyhow::Result<()> {
+    let Some(dir) = data_dir() else {
+        return Ok(());
+    };
+    let map = full_map(&dir)?;
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(map, &vocabulary);
+    let params = shot::LocalizeParams::default();
+    let mut ids: Vec<_> = map.keyframes().map(|k| k.id).collect();
+    ids.sort_unstable();
+    let mut checked = 0;
+    for id in ids.iter().step_by(3) {
+        let Some(kf) = map.keyframe(*id) else {
+            continue;
+        };
+        let Some(img) = kf.image.as_ref() else {
+            continue;
+        };
+        let near = shot::nearest_keyframes(map, &map.camera, img, None, &index, &params, 3)?;
+        println!(
+            "keyframe {}: {:?}",
+            id.0,
+            near.iter()
+                .map(|n| (n.keyframe_id.0, (n.score * 1000.0).round() / 1000.0))
+                .collect::<Vec<_>>()
+        );
+        assert_eq!(near.len(), 3, "keyframe {}", id.0);
+        assert_eq!(near[0].keyframe_id, *id, "keyframe {}: {near:?}", id.0);
+        assert!((near[0].position.coords - kf.center()).norm() < 1e-12);
+        assert!(
+            near.windows(2).all(|w| w[0].score >= w[1].score),
+            "{near:?}"
+        );
+        checked += 1;
+    }
+    assert!(checked >= 5, "only {checked} keyframes with pictures");
+    // A picture of another size than the camera's is an error, not a list.
+    let small = image::GrayImage::new(map.camera.width / 2, map.camera.height / 2);
+    assert!(shot::nearest_keyframes(map, &map.camera, &small, None, &index, &params, 3).is_err());
+    Ok(())
+}
+
 /// A keyframe's pose, estimated (map frame) and true.
 type PosePair = (Isometry3<f64>, Isometry3<f64>);
 
@@ -398,6 +444,12 @@ fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
                     image::imageops::FilterType::Triangle,
                 )
             };
+            // As `shotpilot shot --photo` takes a photo of another size
+            // without EXIF: the map camera scaled, its focal length weighed.
+            let params = shot::LocalizeParams {
+                focal_unknown: photo_camera.width != map.camera.width,
+                ..params.clone()
+            };
             match shot::localize_with_camera(&map, &photo_camera, &photo, None, bow_index, &params)?
             {
                 Localization::Localized(p) => {
@@ -442,7 +494,12 @@ fn held_out_frames_localise_against_ground_truth() -> anyhow::Result<()> {
                 .unwrap_or(f64::NAN)
         );
         assert!(n_total >= 10, "{n_total} query frames with ground truth");
-        if n_loc * 3 < n_total * 2 {
+        // Two thirds with the map camera's size; half for the resized
+        // photo, whose focal length is weighed as unknown (9/15 measured,
+        // the others refused as too uncertain, 13/15 when the assumed
+        // camera was taken as exact).
+        let floor = if mode.contains("480x360") { 2 } else { 3 };
+        if n_loc * floor < n_total * (floor - 1) {
             failures.push(format!("[{mode}] only {n_loc}/{n_total} localised"));
         }
     }

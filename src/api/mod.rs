@@ -432,6 +432,7 @@ async fn store_shot(
         None => None,
     };
     let _guard = st.actions.lock().await;
+    let nearest_keyframes = comp.nearest_keyframes;
     let (status, localisation, reason) = match comp.localisation {
         Ok(l) => (ShotStatus::Localised, Some(l), None),
         Err(r) => (ShotStatus::NotLocalised, None, Some(r.to_string())),
@@ -445,6 +446,7 @@ async fn store_shot(
         reason,
         has_image: jpeg.is_some(),
         mission: None,
+        nearest_keyframes,
     };
     let store = st.store.clone();
     let saved = shot.clone();

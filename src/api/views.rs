@@ -302,6 +302,9 @@ pub struct ShotTarget {
     pub target: TargetView,
     /// The georeference it was computed with.
     pub georeference: AlignmentView,
+    /// The shot's position sigma in metres (its sigma in map units times
+    /// the georeference's scale); None when the shot reports no sigma.
+    pub position_sigma_m: Option<f64>,
 }
 
 /// A vehicle target: position, yaw, gimbal pitch, and what the vehicle

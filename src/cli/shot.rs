@@ -114,6 +114,9 @@ fn parse_intrinsics(s: &str, w: u32, h: u32) -> Result<Camera> {
         .context("--photo-intrinsics are not a usable camera")
 }
 
+/// Keyframes listed for a shot that was not localised.
+const NEAREST_KEYFRAMES: usize = 3;
+
 /// Makes the desired shot, localises it in the map and prints the result.
 pub fn run(args: ShotArgs) -> Result<()> {
     let t0 = Instant::now();
@@ -155,6 +158,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
                 )
             })?;
             params.localize.camera_uncertainty = pc.uncertainty;
+            params.localize.focal_unknown = pc.focal_unknown;
             intrinsics_source = Some(pc.source);
             (decoded.image, None, pc.camera, "photo")
         }
@@ -206,6 +210,48 @@ pub fn run(args: ShotArgs) -> Result<()> {
         &params.localize,
     )?;
     let t_loc = t1.elapsed().as_secs_f64() * 1e3;
+    // Not localised: the keyframes the shot resembles most, by BoW score,
+    // with where they are ("fly towards here").
+    let nearest = match &result {
+        Localization::Localized(_) => Vec::new(),
+        Localization::NotLocalized { .. } => {
+            let own;
+            let own_index;
+            let idx = match &index {
+                Some(i) => i,
+                None => {
+                    own = shotpilot::bow::Vocabulary::builtin()
+                        .context("loading the built-in vocabulary")?;
+                    own_index = shot::BowIndex::build(&map, &own);
+                    &own_index
+                }
+            };
+            shot::nearest_keyframes(
+                &map,
+                &shot_cam,
+                &image,
+                mask.as_ref(),
+                idx,
+                &params.localize,
+                NEAREST_KEYFRAMES,
+            )?
+        }
+    };
+    let nearest_json: Vec<serde_json::Value> = nearest
+        .iter()
+        .map(|n| {
+            json!({
+                "keyframe_id": n.keyframe_id.0,
+                "score": n.score,
+                "position": [n.position.x, n.position.y, n.position.z],
+            })
+        })
+        .collect();
+    // Metres per map unit, when a georeference was saved beside the map.
+    let metres_per_unit = shotpilot::daemon::persist::load_geo(&args.map)
+        .and_then(|g| g.fit)
+        .map(|f| f.scale)
+        .filter(|s| s.is_finite() && *s > 0.0);
 
     let shot_path_str = shot_path
         .as_ref()
@@ -228,6 +274,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
                 "median_depth": p.median_depth,
                 "agreeing_candidates": p.agreeing_candidates,
                 "position_sigma": p.sigma.position,
+                "position_sigma_m": metres_per_unit.map(|k| k * p.sigma.position),
                 "position_sigma_fraction_of_distance": p.sigma.position_depth_fraction,
                 "rotation_sigma_deg": p.sigma.rotation_deg,
                 "intrinsics_source": intrinsics_source.map(|s| s.as_str()),
@@ -246,6 +293,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
             "inliers": null,
             "reprojection_rmse_px": null,
             "keyframe_id": null,
+            "nearest_keyframes": nearest_json,
             "intrinsics_source": intrinsics_source.map(|s| s.as_str()),
             "desired_shot": shot_path_str,
             "shot_ms": t_shot,
@@ -271,14 +319,28 @@ pub fn run(args: ShotArgs) -> Result<()> {
                     p.median_depth,
                     p.agreeing_candidates
                 );
+                let metres = metres_per_unit
+                    .map(|k| format!(" = {:.3} m", k * p.sigma.position))
+                    .unwrap_or_default();
                 println!(
-                    "sigma: position {:.4} map units ({:.2} % of the distance to the nearest scene), rotation {:.3} deg",
+                    "sigma: position {:.4} map units{metres} ({:.2} % of the distance to the nearest scene), rotation {:.3} deg",
                     p.sigma.position,
                     p.sigma.position_depth_fraction * 100.0,
                     p.sigma.rotation_deg
                 );
             }
-            Localization::NotLocalized { reason } => println!("not localised: {reason}"),
+            Localization::NotLocalized { reason } => {
+                println!("not localised: {reason}");
+                if !nearest.is_empty() {
+                    println!("the photo looks most like these keyframes (fly towards them):");
+                }
+                for n in &nearest {
+                    println!(
+                        "  keyframe {}: BoW score {:.3}, at [{:.3}, {:.3}, {:.3}] (map)",
+                        n.keyframe_id.0, n.score, n.position.x, n.position.y, n.position.z
+                    );
+                }
+            }
         }
         if let Some(p) = &shot_path {
             println!("desired shot written to {}", p.display());

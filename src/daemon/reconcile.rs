@@ -234,6 +234,7 @@ mod tests {
             status: crate::shot::record::ShotStatus::Localised,
             localisation: None,
             reason: None,
+            nearest_keyframes: Vec::new(),
             has_image: false,
             mission: Some(MissionRecord {
                 state: serde_json::from_value(json!(state)).unwrap(),

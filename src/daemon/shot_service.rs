@@ -6,21 +6,44 @@
 //! refinement, the reliability gate). A shot that fails the gate is stored
 //! as not localised with the gate's reason.
 
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use image::GrayImage;
 
 use crate::api::SlamView;
+use crate::bow::Vocabulary;
 use crate::camera::Camera;
 use crate::optimize::IntrinsicsUncertainty;
-use crate::shot::localize::{Localization, LocalizeParams, assumed_camera, localize_with_camera};
-use crate::shot::record::{Localisation, LocalisationSigma, PhotoIntrinsics, PoseJson};
+use crate::shot::localize::{
+    BowIndex, Localization, LocalizeParams, assumed_camera, localize_with_camera, nearest_keyframes,
+};
+use crate::shot::record::{
+    Localisation, LocalisationSigma, NearKeyframeJson, PhotoIntrinsics, PoseJson,
+};
 use crate::shot::request::{
     NotLocalised, ShotComputation, ShotComputer, ShotRequestError, WarpOnly, anchor_shot,
 };
 use crate::slam::{KeyFrameId, Map};
 
 use super::slam_shared::SlamShared;
+
+/// Keyframes listed for a shot that was not localised.
+const NEAREST_KEYFRAMES: usize = 3;
+
+/// The built-in vocabulary, loaded once, for the nearest keyframes of a
+/// shot that was not localised (None when it cannot be loaded).
+fn vocabulary() -> Option<&'static Vocabulary> {
+    static VOCABULARY: OnceLock<Option<Vocabulary>> = OnceLock::new();
+    VOCABULARY
+        .get_or_init(|| match Vocabulary::builtin() {
+            Ok(v) => Some(v),
+            Err(e) => {
+                tracing::error!("no nearest keyframes for shots not localised: {e}");
+                None
+            }
+        })
+        .as_ref()
+}
 
 /// Desired shots warped once and localised in the SLAM map.
 pub struct LocalizingShots {
@@ -41,12 +64,14 @@ impl LocalizingShots {
         shot: &GrayImage,
         mask: Option<&GrayImage>,
         uncertainty: IntrinsicsUncertainty,
-    ) -> Result<Localisation, NotLocalised> {
+        focal_unknown: bool,
+    ) -> (Result<Localisation, NotLocalised>, Vec<NearKeyframeJson>) {
         let params = LocalizeParams {
             camera_uncertainty: uncertainty,
+            focal_unknown,
             ..self.params.clone()
         };
-        match localize_with_camera(map, camera, shot, mask, None, &params) {
+        let result = match localize_with_camera(map, camera, shot, mask, None, &params) {
             Ok(Localization::Localized(p)) => {
                 tracing::info!(
                     keyframe = p.keyframe_id.0,
@@ -73,7 +98,25 @@ impl LocalizingShots {
                 Err(NotLocalised::Rejected(reason))
             }
             Err(e) => Err(NotLocalised::Failed(e)),
-        }
+        };
+        // Not localised: the keyframes it looks most like ("fly towards
+        // here"), by BoW score.
+        let nearest = match (&result, vocabulary()) {
+            (Err(NotLocalised::Rejected(_)), Some(v)) => {
+                let index = BowIndex::build(map, v);
+                nearest_keyframes(map, camera, shot, mask, &index, &params, NEAREST_KEYFRAMES)
+                    .unwrap_or_default()
+                    .into_iter()
+                    .map(|n| NearKeyframeJson {
+                        keyframe_id: u64::from(n.keyframe_id.0),
+                        score: n.score,
+                        position: [n.position.x, n.position.y, n.position.z],
+                    })
+                    .collect()
+            }
+            _ => Vec::new(),
+        };
+        (result, nearest)
     }
 }
 
@@ -96,16 +139,18 @@ impl ShotComputer for LocalizingShots {
             .and_then(|k| k.image.clone())
             .ok_or(ShotRequestError::UnknownKeyframe { id: keyframe_id })?;
         let shot = anchor_shot(&image, anchors, size, &self.warp.params)?;
-        let localisation = self.localise(
+        let (localisation, nearest_keyframes) = self.localise(
             &map,
             &map.camera,
             &shot.shot.image,
             Some(&shot.shot.mask),
             IntrinsicsUncertainty::default(),
+            false,
         );
         Ok(ShotComputation {
             desired: Some(shot.into_picture()),
             localisation,
+            nearest_keyframes,
         })
     }
 
@@ -119,9 +164,13 @@ impl ShotComputer for LocalizingShots {
             return Ok(ShotComputation {
                 desired: Some(photo.clone()),
                 localisation: Err(NotLocalised::NoMap),
+                nearest_keyframes: Vec::new(),
             });
         };
         let (w, h) = photo.dimensions();
+        // Neither given nor from EXIF, at another size than the map
+        // camera's: the map camera scaled is only one explanation.
+        let focal_unknown = given.is_none() && (w, h) != (map.camera.width, map.camera.height);
         let camera = match given {
             Some(c) => c,
             None => assumed_camera(&map.camera, w, h).map_err(|_| {
@@ -140,10 +189,12 @@ impl ShotComputer for LocalizingShots {
                 k2: i.k2_sigma,
             })
             .unwrap_or_default();
-        let localisation = self.localise(&map, &camera, photo, None, uncertainty);
+        let (localisation, nearest_keyframes) =
+            self.localise(&map, &camera, photo, None, uncertainty, focal_unknown);
         Ok(ShotComputation {
             desired: Some(photo.clone()),
             localisation,
+            nearest_keyframes,
         })
     }
 }

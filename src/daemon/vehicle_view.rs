@@ -427,10 +427,16 @@ impl VehicleView for LinkVehicle {
 
     fn shot_target(&self, shot: &Shot) -> Result<ShotTarget, VehicleError> {
         let (target, alignment) = self.target_of(shot)?;
+        let position_sigma_m = shot
+            .localisation
+            .as_ref()
+            .and_then(|l| l.sigma.as_ref())
+            .map(|s| s.position * alignment.ned_from_map.scale);
         Ok(ShotTarget {
             shot: shot.id.clone(),
             target: target_view(&target),
             georeference: alignment_view(&alignment),
+            position_sigma_m,
         })
     }
 
@@ -530,6 +536,7 @@ mod tests {
             status: ShotStatus::Localised,
             localisation: None,
             reason: None,
+            nearest_keyframes: Vec::new(),
             has_image: false,
             mission: None,
         }

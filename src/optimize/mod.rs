@@ -37,6 +37,7 @@ pub use lm::{LmParams, LmSummary, Termination};
 pub use pose::{
     IntrinsicsCorrection, IntrinsicsUncertainty, PoseCovariance, PoseObservation, PoseParams,
     PoseReport, optimize_pose, pose_covariance, refine_pose_and_intrinsics,
+    refine_pose_and_intrinsics_from,
 };
 pub use sim3::{Sim3Match, Sim3Params, Sim3Report, optimize_sim3};
 

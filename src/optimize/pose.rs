@@ -306,6 +306,10 @@ pub struct PoseCovariance {
     pub noise_scale2: f64,
     /// Inliers that went into it.
     pub inliers: usize,
+    /// Covariance of the intrinsics estimated with the pose, in the order
+    /// (ln of the focal scale, `k1`, `k2`) of [`IntrinsicsCorrection`]; rows
+    /// and columns of the intrinsics held fixed are zero.
+    pub intrinsics: nalgebra::Matrix3<f64>,
 }
 
 impl PoseCovariance {
@@ -464,11 +468,11 @@ fn correction_values(free: (bool, bool, bool), c: &IntrinsicsCorrection) -> Vec<
 }
 
 /// Refines a pose from [`optimize_pose`] together with the intrinsics that
-/// `uncertain` leaves open (Gauss-Newton on the `inliers`, with the priors
-/// `1/σ²` pulling the corrections towards none, relative to the declared
-/// keypoint sigma); a photo from a camera known only by its EXIF. Returns
-/// the refined pose and the corrections; the input unchanged when nothing
-/// is uncertain or a step fails.
+/// `uncertain` leaves open (Levenberg-Marquardt on the `inliers`, with the
+/// priors `1/σ²` pulling the corrections towards none, relative to the
+/// declared keypoint sigma); a photo from a camera known only by its EXIF.
+/// Returns the refined pose and the corrections; the input unchanged when
+/// nothing is uncertain or no step lowers the cost.
 pub fn refine_pose_and_intrinsics(
     cam_from_world: Isometry3<f64>,
     obs: &[PoseObservation],
@@ -476,9 +480,29 @@ pub fn refine_pose_and_intrinsics(
     intr: &Intrinsics,
     uncertain: &IntrinsicsUncertainty,
 ) -> (Isometry3<f64>, IntrinsicsCorrection) {
+    refine_pose_and_intrinsics_from(
+        cam_from_world,
+        IntrinsicsCorrection::default(),
+        obs,
+        inliers,
+        intr,
+        uncertain,
+    )
+}
+
+/// [`refine_pose_and_intrinsics`] from the corrections `start` (the priors
+/// stay centred on none): one start of a search over the focal length.
+pub fn refine_pose_and_intrinsics_from(
+    cam_from_world: Isometry3<f64>,
+    start: IntrinsicsCorrection,
+    obs: &[PoseObservation],
+    inliers: &[bool],
+    intr: &Intrinsics,
+    uncertain: &IntrinsicsUncertainty,
+) -> (Isometry3<f64>, IntrinsicsCorrection) {
     let free = free_intrinsics(uncertain);
     let mut pose = cam_from_world;
-    let mut corr = IntrinsicsCorrection::default();
+    let mut corr = start;
     if !(free.0 || free.1 || free.2) {
         return (pose, corr);
     }
@@ -490,8 +514,10 @@ pub fn refine_pose_and_intrinsics(
         let mut c = 0.0;
         for (o, _) in obs.iter().zip(inliers).filter(|(_, a)| **a) {
             let pc = pose.transform_point(&o.p_world).coords;
-            if let Some(uv) = corrected_projection(&pc, intr, corr, free, &mut jj) {
-                c += (uv - o.uv).norm_squared() * o.inv_sigma2;
+            match corrected_projection(&pc, intr, corr, free, &mut jj) {
+                Some(uv) => c += (uv - o.uv).norm_squared() * o.inv_sigma2,
+                // Behind the camera: a step there is refused.
+                None => return f64::INFINITY,
             }
         }
         for (v, s) in correction_values(free, corr).iter().zip(&sigmas) {
@@ -500,7 +526,13 @@ pub fn refine_pose_and_intrinsics(
         c
     };
     let mut current = cost(&pose, &corr);
-    for _ in 0..10 {
+    if !current.is_finite() {
+        return (cam_from_world, start);
+    }
+    let mut lambda = 1e-4;
+    let mut iterations = 0;
+    while iterations < 50 {
+        iterations += 1;
         let mut h = nalgebra::DMatrix::<f64>::zeros(dim, dim);
         let mut g = nalgebra::DVector::<f64>::zeros(dim);
         for (o, _) in obs.iter().zip(inliers).filter(|(_, a)| **a) {
@@ -521,28 +553,43 @@ pub fn refine_pose_and_intrinsics(
             h[(6 + k, 6 + k)] += w;
             g[6 + k] += w * v;
         }
-        let Some(step) = h.lu().solve(&(-g)) else {
+        // Damped steps until one lowers the cost (or the damping gives up).
+        let mut accepted = None;
+        while lambda < 1e8 {
+            let mut hd = h.clone();
+            for k in 0..dim {
+                hd[(k, k)] += lambda * h[(k, k)].max(1e-12);
+            }
+            let Some(step) = hd.lu().solve(&(-&g)) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let delta = Vector6::from_column_slice(&step.as_slice()[..6]);
+            let new_pose = se3_exp(&delta) * pose;
+            let mut new_corr = corr;
+            let mut col = 6;
+            if free.0 {
+                new_corr.focal_scale = (corr.focal_scale.ln() + step[col]).exp();
+                col += 1;
+            }
+            if free.1 {
+                new_corr.k1 = corr.k1 + step[col];
+                col += 1;
+            }
+            if free.2 {
+                new_corr.k2 = corr.k2 + step[col];
+            }
+            let c = cost(&new_pose, &new_corr);
+            if c.is_finite() && c <= current {
+                accepted = Some((new_pose, new_corr, c));
+                lambda = (lambda * 0.1).max(1e-9);
+                break;
+            }
+            lambda *= 10.0;
+        }
+        let Some((new_pose, new_corr, c)) = accepted else {
             break;
         };
-        let delta = Vector6::from_column_slice(&step.as_slice()[..6]);
-        let new_pose = se3_exp(&delta) * pose;
-        let mut new_corr = corr;
-        let mut col = 6;
-        if free.0 {
-            new_corr.focal_scale = (corr.focal_scale.ln() + step[col]).exp();
-            col += 1;
-        }
-        if free.1 {
-            new_corr.k1 = corr.k1 + step[col];
-            col += 1;
-        }
-        if free.2 {
-            new_corr.k2 = corr.k2 + step[col];
-        }
-        let c = cost(&new_pose, &new_corr);
-        if !(c.is_finite() && c <= current) {
-            break;
-        }
         let done = current - c < 1e-9 * current.max(1e-12);
         pose = new_pose;
         corr = new_corr;
@@ -640,11 +687,25 @@ pub fn pose_covariance(
     }
     let srr = cov.fixed_view::<3, 3>(0, 0).into_owned();
     let rm = rot.matrix();
+    // The free intrinsics' block, placed at their fixed slots.
+    let slots: Vec<usize> = [free.0, free.1, free.2]
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| **f)
+        .map(|(k, _)| k)
+        .collect();
+    let mut intrinsics = nalgebra::Matrix3::zeros();
+    for (a, &sa) in slots.iter().enumerate() {
+        for (b, &sb) in slots.iter().enumerate() {
+            intrinsics[(sa, sb)] = full[(6 + a, 6 + b)];
+        }
+    }
     Some(PoseCovariance {
         cam_from_world: cov,
         center: rm.transpose() * srr * rm,
         noise_scale2,
         inliers: n,
+        intrinsics,
     })
 }
 

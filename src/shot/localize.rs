@@ -21,10 +21,14 @@
 //! own intrinsics and distortion are used for the features, the PnP, the
 //! projection (with the predicted pyramid level corrected for the focal
 //! length ratio) and the refinement; [`assumed_camera`] gives the camera of
-//! a resized photo when the intrinsics are not known.
+//! a resized photo when the intrinsics are not known, and then the map
+//! camera resized and another camera (focal length and distortion fitted
+//! with the pose) are weighed as two hypotheses ([`UnknownFocal`]).
 //! 4. A reliability gate: enough inliers, a small reprojection RMSE, a high
 //!    inlier ratio, the inliers in front of the camera, and agreement with
-//!    every other candidate that passes the gate too. Failing it gives
+//!    every other candidate that passes the gate too. The pairs of all
+//!    agreeing candidates then go into one final pose optimisation (the
+//!    union of evidence), kept when it passes the gate too. Failing it gives
 //!    [`Localization::NotLocalized`] with the reason; no pose is returned then.
 
 use std::collections::HashSet;
@@ -40,7 +44,7 @@ use crate::geometry::{PnpParams, solve_pnp_ransac};
 use crate::matching::{Bounds, FeatureGrid};
 use crate::optimize::{
     Intrinsics, IntrinsicsCorrection, IntrinsicsUncertainty, PoseObservation, PoseParams,
-    optimize_pose, pose_covariance, refine_pose_and_intrinsics,
+    optimize_pose, pose_covariance, refine_pose_and_intrinsics, refine_pose_and_intrinsics_from,
 };
 use crate::slam::matcher::{MatcherParams, Projected, SearchTarget, search_local_points};
 use crate::slam::{KeyFrameId, Map, PointId};
@@ -62,8 +66,7 @@ pub struct GateParams {
     /// Largest angle between the orientations of two gated candidates, degrees.
     pub max_disagreement_deg: f64,
     /// Largest position sigma ([`PoseSigma::position_depth_fraction`]), as
-    /// a fraction of the distance to the nearest scene content (10 %
-    /// quantile of the inliers' depths).
+    /// a fraction of the distance to the nearest scene content.
     pub max_position_sigma_depth_fraction: f64,
     /// Largest rotation sigma ([`PoseSigma::rotation_deg`]), degrees.
     pub max_rotation_sigma_deg: f64,
@@ -125,6 +128,19 @@ pub struct LocalizeParams {
     /// The map's own error, which the pose covariance (map points held
     /// exact) does not see; added to it in quadrature.
     pub map_sigma: MapSigma,
+    /// Merge the pairs of every agreeing candidate into one final pose
+    /// optimisation (the union of evidence; not for an assumed camera,
+    /// [`LocalizeParams::focal_unknown`]); off: the best candidate's pairs
+    /// alone.
+    pub union_of_evidence: bool,
+    /// True when the shot camera is only assumed: a photo of another size
+    /// than the map camera's, without EXIF or given intrinsics, taken with
+    /// the map camera scaled ([`assumed_camera`]). Its focal length and
+    /// distortion are then estimated too, and the two explanations weighed
+    /// ([`UnknownFocal`]).
+    pub focal_unknown: bool,
+    /// The priors of that weighing.
+    pub unknown_focal: UnknownFocal,
     /// Seed of the RANSAC.
     pub seed: u64,
 }
@@ -159,6 +175,9 @@ impl Default for LocalizeParams {
             gate: GateParams::default(),
             camera_uncertainty: IntrinsicsUncertainty::default(),
             map_sigma: MapSigma::default(),
+            union_of_evidence: true,
+            focal_unknown: false,
+            unknown_focal: UnknownFocal::default(),
             seed: 1,
         }
     }
@@ -185,6 +204,42 @@ impl Default for MapSigma {
         MapSigma {
             depth_fraction: 0.0025,
             rotation_deg: 0.16,
+        }
+    }
+}
+
+/// A photo whose camera is only assumed ([`LocalizeParams::focal_unknown`])
+/// has two explanations: H0, the map camera's frame resized (the assumed
+/// camera exact), and H1, another camera (focal length and distortion
+/// unknown, with these priors around the assumed ones). Both are fitted
+/// with the pose; H0's posterior probability comes from its prior and the
+/// Savage-Dickey density ratio (H1's posterior density of the intrinsics
+/// at H0's values over its prior density there), and the reported sigma is
+/// the second moment of the two hypotheses' mixture about the likelier
+/// one's pose. When the data cannot tell the focal length (a far, shallow
+/// scene) the mixture keeps H1's wide spread and the gate refuses; when
+/// they pin it, the likelier camera wins and the pose is its.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UnknownFocal {
+    /// Prior probability of H0 (the photo is a resized frame of the map
+    /// camera).
+    pub same_camera_prior: f64,
+    /// H1's prior sigma of the focal length's log (0.35: a factor of 2 at
+    /// 2 sigma, ultra-wide to short tele).
+    pub focal_log_sigma: f64,
+    /// H1's prior sigma of the radial distortion's `k1`.
+    pub k1_sigma: f64,
+    /// H1's prior sigma of `k2`.
+    pub k2_sigma: f64,
+}
+
+impl Default for UnknownFocal {
+    fn default() -> Self {
+        UnknownFocal {
+            same_camera_prior: 0.5,
+            focal_log_sigma: 0.35,
+            k1_sigma: crate::shot::photo::EXIF_K1_SIGMA,
+            k2_sigma: crate::shot::photo::EXIF_K2_SIGMA,
         }
     }
 }
@@ -225,8 +280,10 @@ pub struct PoseSigma {
     /// Camera centre, map units.
     pub position: f64,
     /// Camera centre as a fraction of the distance to the nearest scene
-    /// content: the 10 % quantile of the inliers' depths (a position error
-    /// moves the near content most in the picture).
+    /// content: the smaller of the 10 % quantiles of the inliers' depths
+    /// and of the depths of all map points in the shot's view (a position
+    /// error moves the near content most in the picture, and the matched
+    /// points may all be far).
     pub position_depth_fraction: f64,
     /// Orientation, degrees.
     pub rotation_deg: f64,
@@ -445,6 +502,8 @@ struct CandidatePose {
     median_depth: f64,
     near_depth: f64,
     sigma: Option<PoseSigma>,
+    /// Keypoint -> map point after the last round (outliers dropped).
+    slots: Vec<Option<PointId>>,
 }
 
 /// Localises a desired shot taken with the map's camera (see the module
@@ -502,20 +561,15 @@ pub fn assumed_camera(map_camera: &Camera, width: u32, height: u32) -> Result<Ca
     .map_err(|_| size_err())
 }
 
-/// Localises a desired shot taken with `camera` (any intrinsics and size:
-/// a photo from another camera) against `map`; otherwise as [`localize`].
-///
-/// Errors: [`ShotError::ImageSize`] when the shot or the mask does not have
-/// `camera`'s size; [`ShotError::Features`] when the extractor refuses the
-/// settings.
-pub fn localize_with_camera(
+/// ORB on the shot with the map's pyramid (scale factor and levels),
+/// after checking that the shot and the mask have `camera`'s size.
+fn extract_shot_features(
     map: &Map,
     camera: &Camera,
     shot: &GrayImage,
     mask: Option<&GrayImage>,
-    bow_index: Option<&BowIndex<'_>>,
     params: &LocalizeParams,
-) -> Result<Localization, ShotError> {
+) -> Result<features::Features, ShotError> {
     let cam = camera;
     for img in std::iter::once(shot).chain(mask) {
         if img.dimensions() != (cam.width, cam.height) {
@@ -543,6 +597,72 @@ pub fn localize_with_camera(
         }
         None => extractor.extract(shot, Some(cam)),
     };
+    Ok(feats)
+}
+
+/// A keyframe a shot resembles: for a shot that was not localised, where
+/// the drone could fly to see what the shot shows ("fly towards here").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NearKeyframe {
+    /// The keyframe.
+    pub keyframe_id: KeyFrameId,
+    /// Its bag-of-words similarity to the shot (L1 score, 0 to 1).
+    pub score: f64,
+    /// Its camera centre, map coordinates.
+    pub position: Point3<f64>,
+}
+
+/// The `k` keyframes of `map` most similar to the shot by bag-of-words
+/// score, best first, with where they are. ORB on the shot as in
+/// [`localize_with_camera`].
+///
+/// Errors: as [`localize_with_camera`]'s.
+pub fn nearest_keyframes(
+    map: &Map,
+    camera: &Camera,
+    shot: &GrayImage,
+    mask: Option<&GrayImage>,
+    index: &BowIndex<'_>,
+    params: &LocalizeParams,
+    k: usize,
+) -> Result<Vec<NearKeyframe>, ShotError> {
+    let feats = extract_shot_features(map, camera, shot, mask, params)?;
+    if feats.is_empty() || k == 0 {
+        return Ok(Vec::new());
+    }
+    let q = index.vocabulary.transform(&feats.descriptors);
+    Ok(index
+        .database
+        .query(&q, k)
+        .into_iter()
+        .filter_map(|r| {
+            let id = KeyFrameId(u32::try_from(r.id.0).ok()?);
+            let kf = map.keyframe(id)?;
+            Some(NearKeyframe {
+                keyframe_id: id,
+                score: f64::from(r.score),
+                position: Point3::from(kf.center()),
+            })
+        })
+        .collect())
+}
+
+/// Localises a desired shot taken with `camera` (any intrinsics and size:
+/// a photo from another camera) against `map`; otherwise as [`localize`].
+///
+/// Errors: [`ShotError::ImageSize`] when the shot or the mask does not have
+/// `camera`'s size; [`ShotError::Features`] when the extractor refuses the
+/// settings.
+pub fn localize_with_camera(
+    map: &Map,
+    camera: &Camera,
+    shot: &GrayImage,
+    mask: Option<&GrayImage>,
+    bow_index: Option<&BowIndex<'_>>,
+    params: &LocalizeParams,
+) -> Result<Localization, ShotError> {
+    let cam = camera;
+    let feats = extract_shot_features(map, cam, shot, mask, params)?;
     let needed = params.min_candidate_matches.max(params.gate.min_inliers);
     if feats.len() < needed {
         return Ok(not(NotLocalizedReason::TooFewFeatures {
@@ -656,6 +776,7 @@ pub fn localize_with_camera(
     }
     let best_wfc = best.cam_from_world.inverse();
     let mut agreeing = 0;
+    let mut agreeing_slots: Vec<&[Option<PointId>]> = Vec::new();
     let (mut spread_pos2, mut spread_rot2) = (0.0, 0.0);
     for other in poses.iter().skip(1) {
         if gate(other).is_some() {
@@ -674,9 +795,52 @@ pub fn localize_with_camera(
             }));
         }
         agreeing += 1;
+        agreeing_slots.push(&other.slots);
         spread_pos2 += dist * dist;
         spread_rot2 += ang * ang;
     }
+    // The union of evidence: the pairs of every agreeing candidate (a
+    // keypoint or a point already paired by a better candidate keeps that
+    // pair) in one final optimisation from the best pose; kept when it
+    // passes the gate too.
+    // Not for an assumed camera: the other candidates' pairs were matched
+    // through its focal length, and merged they bias the other camera's
+    // fit (shot_photos, no EXIF: median error 0.47 -> 1.83 %, true errors
+    // within 2 sigma 91 -> 23 %).
+    let merged = if agreeing_slots.is_empty() || !params.union_of_evidence || params.focal_unknown {
+        None
+    } else {
+        let mut slots = best.slots.clone();
+        let mut used: HashSet<PointId> = slots.iter().flatten().copied().collect();
+        for other in &agreeing_slots {
+            for (i, s) in other.iter().enumerate() {
+                if let Some(p) = s
+                    && let Some(slot) = slots.get_mut(i)
+                    && slot.is_none()
+                    && used.insert(*p)
+                {
+                    *slot = Some(*p);
+                }
+            }
+        }
+        let (obs, _) = observations(map, &feats, &slots);
+        optimize_pose(best.cam_from_world, &obs, &intr, &params.pose)
+            .ok()
+            .and_then(|r| {
+                evaluate_candidate(
+                    best.kf,
+                    r.cam_from_world,
+                    &obs,
+                    &r.inliers,
+                    slots,
+                    &intr,
+                    params,
+                )
+            })
+            .filter(|c| gate(c).is_none() && c.sigma.is_some())
+    };
+    let best = merged.as_ref().unwrap_or(best);
+    let best_wfc = best.cam_from_world.inverse();
     let Some(pose_sigma) = best.sigma else {
         return Ok(not(NotLocalizedReason::NoCovariance));
     };
@@ -697,9 +861,13 @@ pub fn localize_with_camera(
         )
     };
     let position = pose_sigma.position.hypot(map_pos * best.median_depth);
+    // The nearest scene content: the matched points may all be far while
+    // nearer mapped content (unmatched from this view) is in the picture.
+    let near = frustum_near_depth(map, &view, &best.cam_from_world)
+        .map_or(best.near_depth, |d| d.min(best.near_depth));
     let sigma = PoseSigma {
         position,
-        position_depth_fraction: position / best.near_depth.max(1e-12),
+        position_depth_fraction: position / near.max(1e-12),
         rotation_deg: pose_sigma.rotation_deg.hypot(map_rot),
     };
     if !(sigma.position_depth_fraction <= g.max_position_sigma_depth_fraction
@@ -728,6 +896,34 @@ pub fn localize_with_camera(
 
 fn not(reason: NotLocalizedReason) -> Localization {
     Localization::NotLocalized { reason }
+}
+
+/// The 10 % quantile of the depths of all map points in the shot's view
+/// from `cam_from_world` (in front, inside the image; occlusion ignored: a
+/// hidden point lies behind nearer content, so the quantile never
+/// overstates the distance to the nearest content); None with fewer than
+/// 10 such points.
+fn frustum_near_depth(
+    map: &Map,
+    view: &ShotView<'_>,
+    cam_from_world: &Isometry3<f64>,
+) -> Option<f64> {
+    let depths: Vec<f64> = map
+        .points()
+        .filter_map(|p| {
+            let pc = cam_from_world * p.position;
+            if pc.z <= 0.0 {
+                return None;
+            }
+            let u = view.cam.fx * pc.x / pc.z + view.cam.cx;
+            let v = view.cam.fy * pc.y / pc.z + view.cam.cy;
+            view.bounds.contains(u, v).then_some(pc.z)
+        })
+        .collect();
+    if depths.len() < 10 {
+        return None;
+    }
+    crate::stats::quantile(&depths, 0.1)
 }
 
 /// The shot's camera as the projection of map points into it needs it.
@@ -826,6 +1022,219 @@ fn local_points(
     local
 }
 
+/// One explanation of a candidate's matches: the pose with the intrinsics'
+/// corrections estimated with it, its inliers and its covariance.
+struct Hypothesis {
+    cam_from_world: Isometry3<f64>,
+    correction: IntrinsicsCorrection,
+    inliers: Vec<bool>,
+    cov: Option<crate::optimize::PoseCovariance>,
+}
+
+/// Fits the pose from motion-only BA together with the intrinsics that
+/// `uncertain` leaves open (none: the pose as it is), classifies the
+/// inliers again and takes the covariance with those intrinsics
+/// marginalised.
+fn fit_hypothesis(
+    cam_from_world: Isometry3<f64>,
+    obs: &[PoseObservation],
+    inliers: &[bool],
+    intr: &Intrinsics,
+    uncertain: &IntrinsicsUncertainty,
+    params: &LocalizeParams,
+) -> Hypothesis {
+    let (cam_from_world, correction, inliers) = if *uncertain == IntrinsicsUncertainty::default() {
+        (
+            cam_from_world,
+            IntrinsicsCorrection::default(),
+            inliers.to_vec(),
+        )
+    } else {
+        let (pose, corr) =
+            refine_pose_and_intrinsics(cam_from_world, obs, inliers, intr, uncertain);
+        let inliers = obs
+            .iter()
+            .map(|o| {
+                corr.project(intr, &(pose * o.p_world).coords)
+                    .is_some_and(|uv| {
+                        (uv - o.uv).norm_squared() * o.inv_sigma2 <= params.pose.chi2_threshold
+                    })
+            })
+            .collect();
+        (pose, corr, inliers)
+    };
+    let cov = pose_covariance(
+        &cam_from_world,
+        obs,
+        &inliers,
+        intr,
+        params.pose.chi2_threshold,
+        None,
+        uncertain,
+        &correction,
+    );
+    Hypothesis {
+        cam_from_world,
+        correction,
+        inliers,
+        cov,
+    }
+}
+
+/// Focal scales the search for another camera's focal length starts from
+/// (with the pose re-optimised at each): the joint fit from the assumed
+/// focal length alone stays where the pose has already traded distance
+/// for focal length.
+const FOCAL_STARTS: [f64; 7] = [0.6, 0.72, 0.85, 1.0, 1.18, 1.4, 1.66];
+
+/// H1 of [`UnknownFocal`]: pose, focal length and distortion fitted from
+/// several focal lengths ([`FOCAL_STARTS`]: the pose by motion-only BA with
+/// the scaled camera on all of `obs`, then all together with the priors
+/// `wide`), the start whose robust cost (chi2 capped at the inlier
+/// threshold, plus the prior) is least kept.
+fn fit_other_camera(
+    cam_from_world: Isometry3<f64>,
+    obs: &[PoseObservation],
+    intr: &Intrinsics,
+    wide: &IntrinsicsUncertainty,
+    params: &LocalizeParams,
+) -> Hypothesis {
+    let th = params.pose.chi2_threshold;
+    let mut best: Option<(f64, Isometry3<f64>, IntrinsicsCorrection, Vec<bool>)> = None;
+    for s in FOCAL_STARTS {
+        let scaled = Intrinsics {
+            fx: intr.fx * s,
+            fy: intr.fy * s,
+            ..*intr
+        };
+        let Ok(r) = optimize_pose(cam_from_world, obs, &scaled, &params.pose) else {
+            continue;
+        };
+        let start = IntrinsicsCorrection {
+            focal_scale: s,
+            ..IntrinsicsCorrection::default()
+        };
+        let (pose, corr) =
+            refine_pose_and_intrinsics_from(r.cam_from_world, start, obs, &r.inliers, intr, wide);
+        let mut cost = 0.0;
+        let inliers: Vec<bool> = obs
+            .iter()
+            .map(|o| {
+                let chi2 = corr
+                    .project(intr, &(pose * o.p_world).coords)
+                    .map_or(f64::INFINITY, |uv| {
+                        (uv - o.uv).norm_squared() * o.inv_sigma2
+                    });
+                cost += chi2.min(th);
+                chi2 <= th
+            })
+            .collect();
+        cost += (corr.focal_scale.ln() / wide.focal_rel).powi(2)
+            + (corr.k1 / wide.k1).powi(2)
+            + (corr.k2 / wide.k2).powi(2);
+        if cost.is_finite() && best.as_ref().is_none_or(|b| cost < b.0) {
+            best = Some((cost, pose, corr, inliers));
+        }
+    }
+    let Some((_, pose, corr, inliers)) = best else {
+        return Hypothesis {
+            cam_from_world,
+            correction: IntrinsicsCorrection::default(),
+            inliers: vec![false; obs.len()],
+            cov: None,
+        };
+    };
+    // The covariance at the fit, with the intrinsics marginalised.
+    let cov = pose_covariance(&pose, obs, &inliers, intr, th, None, wide, &corr);
+    Hypothesis {
+        cam_from_world: pose,
+        correction: corr,
+        inliers,
+        cov,
+    }
+}
+
+/// H0's posterior probability ([`UnknownFocal`]): `prior·B / (prior·B + 1 −
+/// prior)` with the Savage-Dickey Bayes factor `B = p(θ = 0 | data, H1) /
+/// p(θ = 0 | H1)`, θ the intrinsics' corrections (focal scale's log, `k1`,
+/// `k2`) with H1's Gaussian prior `wide` and its Laplace posterior. 0 when
+/// H1 has no covariance (the data say nothing usable about H0 then).
+fn same_camera_probability(h1: &Hypothesis, wide: &IntrinsicsUncertainty, prior: f64) -> f64 {
+    let Some(cov) = h1.cov else {
+        return 0.0;
+    };
+    let mu = [
+        h1.correction.focal_scale.ln(),
+        h1.correction.k1,
+        h1.correction.k2,
+    ];
+    let prior_sd = [wide.focal_rel, wide.k1, wide.k2];
+    // Only the intrinsics H1 frees (a zero prior sigma holds one fixed).
+    let free: Vec<usize> = (0..3)
+        .filter(|&k| prior_sd[k] > 0.0 && prior_sd[k].is_finite())
+        .collect();
+    if free.is_empty() {
+        return prior.clamp(0.0, 1.0);
+    }
+    let n = free.len();
+    let post = nalgebra::DMatrix::from_fn(n, n, |a, b| cov.intrinsics[(free[a], free[b])]);
+    let mu = nalgebra::DVector::from_fn(n, |a, _| mu[free[a]]);
+    let Some(chol) = post.cholesky() else {
+        return 0.0;
+    };
+    // ln N(0; μ, Σ_post) − ln N(0; 0, Σ_prior), the 2π terms cancel.
+    let maha = mu.dot(&chol.solve(&mu));
+    let log_det_post = chol
+        .l()
+        .diagonal()
+        .iter()
+        .map(|d| 2.0 * d.ln())
+        .sum::<f64>();
+    let log_det_prior = free.iter().map(|&k| 2.0 * prior_sd[k].ln()).sum::<f64>();
+    let log_b = -0.5 * maha - 0.5 * log_det_post + 0.5 * log_det_prior;
+    let prior = prior.clamp(0.0, 1.0);
+    if prior <= 0.0 {
+        return 0.0;
+    }
+    // p0 = 1 / (1 + (1 − prior) / (prior·B)), in logs.
+    let log_odds = log_b + prior.ln() - (1.0 - prior).max(1e-300).ln();
+    if !log_odds.is_finite() {
+        return if log_odds > 0.0 { 1.0 } else { 0.0 };
+    }
+    1.0 / (1.0 + (-log_odds).exp())
+}
+
+/// The RMS position and rotation (radians) errors of the two hypotheses'
+/// mixture (`p0`, `1 − p0`) about the likelier one's pose: each one's
+/// covariance, plus the other's squared offset weighted by its
+/// probability. None when a hypothesis with weight has no covariance.
+fn mixture_sigma(h0: &Hypothesis, h1: &Hypothesis, p0: f64) -> Option<(f64, f64)> {
+    let p1 = 1.0 - p0;
+    // Each hypothesis' own second moments, weighted.
+    let own = |h: &Hypothesis, p: f64| -> Option<(f64, f64)> {
+        if p <= 0.0 {
+            return Some((0.0, 0.0));
+        }
+        let c = h.cov?;
+        Some((
+            p * c.center.trace().max(0.0),
+            p * c.cam_from_world.fixed_view::<3, 3>(3, 3).trace().max(0.0),
+        ))
+    };
+    let (a_pos, a_rot) = own(h0, p0)?;
+    let (b_pos, b_rot) = own(h1, p1)?;
+    // The other hypothesis' offset from the reported one.
+    let w0 = h0.cam_from_world.inverse();
+    let w1 = h1.cam_from_world.inverse();
+    let d_pos = (w0.translation.vector - w1.translation.vector).norm_squared();
+    let d_rot = w0.rotation.angle_to(&w1.rotation).powi(2);
+    let other = p0.min(p1);
+    Some((
+        (a_pos + b_pos + other * d_pos).sqrt(),
+        (a_rot + b_rot + other * d_rot).sqrt(),
+    ))
+}
+
 /// PnP on a candidate's matches, then projection rounds with motion-only BA.
 #[allow(clippy::too_many_arguments)]
 fn refine_candidate(
@@ -892,26 +1301,7 @@ fn refine_candidate(
         for (i, p) in found {
             slots[i] = Some(p);
         }
-        let mut obs = Vec::new();
-        let mut obs_slot = Vec::new();
-        for (i, s) in slots.iter().enumerate() {
-            if let Some(p) = s
-                && let Some(mp) = map.point(*p)
-            {
-                let k = &feats.keypoints[i];
-                obs.push(PoseObservation {
-                    p_world: mp.position,
-                    uv: Point2::new(k.ux as f64, k.uy as f64),
-                    inv_sigma2: map
-                        .scale
-                        .inv_level_sigma2
-                        .get(k.octave as usize)
-                        .copied()
-                        .unwrap_or(1.0),
-                });
-                obs_slot.push(i);
-            }
-        }
+        let (obs, obs_slot) = observations(map, feats, &slots);
         let r = optimize_pose(cam_from_world, &obs, intr, &params.pose).ok()?;
         cam_from_world = r.cam_from_world;
         // Drop the outliers from the slots so the next round can re-match them.
@@ -923,30 +1313,91 @@ fn refine_candidate(
         report = Some((r, obs));
     }
     let (r, obs) = report?;
+    evaluate_candidate(
+        kf_id,
+        r.cam_from_world,
+        &obs,
+        &r.inliers,
+        slots,
+        intr,
+        params,
+    )
+}
+
+/// The 2D-3D pairs of `slots` (keypoint -> map point) as observations, and
+/// the keypoint of each.
+fn observations(
+    map: &Map,
+    feats: &features::Features,
+    slots: &[Option<PointId>],
+) -> (Vec<PoseObservation>, Vec<usize>) {
+    let mut obs = Vec::new();
+    let mut obs_slot = Vec::new();
+    for (i, s) in slots.iter().enumerate() {
+        if let Some(p) = s
+            && let Some(mp) = map.point(*p)
+            && let Some(k) = feats.keypoints.get(i)
+        {
+            obs.push(PoseObservation {
+                p_world: mp.position,
+                uv: Point2::new(k.ux as f64, k.uy as f64),
+                inv_sigma2: map
+                    .scale
+                    .inv_level_sigma2
+                    .get(k.octave as usize)
+                    .copied()
+                    .unwrap_or(1.0),
+            });
+            obs_slot.push(i);
+        }
+    }
+    (obs, obs_slot)
+}
+
+/// A candidate's pose from motion-only BA on `obs` (`inliers` its
+/// classification): the camera's hypotheses fitted and weighed, the
+/// statistics the gate reads and the sigma.
+fn evaluate_candidate(
+    kf_id: KeyFrameId,
+    cam_from_world: Isometry3<f64>,
+    obs: &[PoseObservation],
+    inliers: &[bool],
+    slots: Vec<Option<PointId>>,
+    intr: &Intrinsics,
+    params: &LocalizeParams,
+) -> Option<CandidatePose> {
     // A camera known only by its EXIF: its focal length and distortion
     // are estimated with the pose, the inliers classified again.
-    let (cam_from_world, correction, inliers) =
-        if params.camera_uncertainty == IntrinsicsUncertainty::default() {
-            (cam_from_world, IntrinsicsCorrection::default(), r.inliers)
-        } else {
-            let (pose, corr) = refine_pose_and_intrinsics(
-                cam_from_world,
-                &obs,
-                &r.inliers,
-                intr,
-                &params.camera_uncertainty,
-            );
-            let inliers = obs
-                .iter()
-                .map(|o| {
-                    corr.project(intr, &(pose * o.p_world).coords)
-                        .is_some_and(|uv| {
-                            (uv - o.uv).norm_squared() * o.inv_sigma2 <= params.pose.chi2_threshold
-                        })
-                })
-                .collect();
-            (pose, corr, inliers)
+    let h0 = fit_hypothesis(
+        cam_from_world,
+        obs,
+        inliers,
+        intr,
+        &params.camera_uncertainty,
+        params,
+    );
+    let (chosen, sigma) = if params.focal_unknown {
+        let u = &params.unknown_focal;
+        let wide = IntrinsicsUncertainty {
+            focal_rel: u.focal_log_sigma,
+            k1: u.k1_sigma,
+            k2: u.k2_sigma,
         };
+        let h1 = fit_other_camera(cam_from_world, obs, intr, &wide, params);
+        let p0 = same_camera_probability(&h1, &wide, u.same_camera_prior);
+        let sigma = mixture_sigma(&h0, &h1, p0);
+        let chosen = if p0 >= 0.5 { h0 } else { h1 };
+        (chosen, sigma)
+    } else {
+        let sigma = h0.cov.map(|c| (c.position_sigma(), c.rotation_sigma()));
+        (h0, sigma)
+    };
+    let Hypothesis {
+        cam_from_world,
+        correction,
+        inliers,
+        ..
+    } = chosen;
     let mut sq = 0.0;
     let mut n_in = 0usize;
     let mut in_front = 0usize;
@@ -971,20 +1422,10 @@ fn refine_candidate(
     // The lower median (nearest-rank 50 % quantile).
     let median_depth = crate::stats::quantile(&depths, 0.5).unwrap_or(f64::NAN);
     let near_depth = crate::stats::quantile(&depths, 0.1).unwrap_or(f64::NAN);
-    let sigma = pose_covariance(
-        &cam_from_world,
-        &obs,
-        &inliers,
-        intr,
-        params.pose.chi2_threshold,
-        None,
-        &params.camera_uncertainty,
-        &correction,
-    )
-    .map(|c| PoseSigma {
-        position: c.position_sigma(),
-        position_depth_fraction: c.position_sigma() / near_depth,
-        rotation_deg: c.rotation_sigma().to_degrees(),
+    let sigma = sigma.map(|(position, rotation)| PoseSigma {
+        position,
+        position_depth_fraction: position / near_depth,
+        rotation_deg: rotation.to_degrees(),
     });
     Some(CandidatePose {
         kf: kf_id,
@@ -996,6 +1437,7 @@ fn refine_candidate(
         median_depth,
         near_depth,
         sigma,
+        slots,
     })
 }
 
@@ -1022,6 +1464,101 @@ mod tests {
             let v = ((x / 9 + y / 7) % 2) as u8 * 180 + ((x * 31 + y * 17) % 37) as u8;
             image::Luma([v])
         })
+    }
+
+    /// Observations of random points (x, y in ±half the depth's span, z in
+    /// `depths`) by a camera at the origin whose focal length is
+    /// `focal_scale` times `intr`'s, with 0.5 px of noise; deterministic.
+    fn synthetic_obs(
+        intr: &Intrinsics,
+        focal_scale: f64,
+        depths: (f64, f64),
+        seed: u64,
+    ) -> Vec<PoseObservation> {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::SmallRng::seed_from_u64(seed);
+        let mut obs = Vec::new();
+        while obs.len() < 150 {
+            let z = rng.random_range(depths.0..depths.1);
+            let x = rng.random_range(-0.55..0.55) * z;
+            let y = rng.random_range(-0.4..0.4) * z;
+            let u = intr.cx + focal_scale * intr.fx * x / z + rng.random_range(-0.5..0.5);
+            let v = intr.cy + focal_scale * intr.fy * y / z + rng.random_range(-0.5..0.5);
+            if !(0.0..640.0).contains(&u) || !(0.0..480.0).contains(&v) {
+                continue;
+            }
+            obs.push(PoseObservation {
+                p_world: Point3::new(x, y, z),
+                uv: Point2::new(u, v),
+                inv_sigma2: 1.0,
+            });
+        }
+        obs
+    }
+
+    /// H0 and H1 of [`UnknownFocal`] on `obs`: H0's probability, the
+    /// reported camera centre and the mixture's position sigma.
+    fn weigh(intr: &Intrinsics, obs: &[PoseObservation]) -> (f64, Point3<f64>, f64, f64) {
+        let params = LocalizeParams::default();
+        let start = Isometry3::translation(0.05, -0.03, 0.1);
+        let r = optimize_pose(start, obs, intr, &params.pose).unwrap_or_else(|e| panic!("{e}"));
+        let h0 = fit_hypothesis(
+            r.cam_from_world,
+            obs,
+            &r.inliers,
+            intr,
+            &IntrinsicsUncertainty::default(),
+            &params,
+        );
+        let u = UnknownFocal::default();
+        let wide = IntrinsicsUncertainty {
+            focal_rel: u.focal_log_sigma,
+            k1: u.k1_sigma,
+            k2: u.k2_sigma,
+        };
+        let h1 = fit_other_camera(r.cam_from_world, obs, intr, &wide, &params);
+        let p0 = same_camera_probability(&h1, &wide, u.same_camera_prior);
+        let (pos_sigma, _) = mixture_sigma(&h0, &h1, p0).unwrap_or((f64::INFINITY, 0.0));
+        let chosen = if p0 >= 0.5 { &h0 } else { &h1 };
+        let centre = Point3::from(chosen.cam_from_world.inverse().translation.vector);
+        (p0, centre, pos_sigma, h1.correction.focal_scale)
+    }
+
+    #[test]
+    fn an_unknown_focal_length_is_found_or_widens_the_sigma() {
+        let intr = Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 319.5,
+            cy: 239.5,
+        };
+        // A deep scene (4 to 12 m) tells the focal length.
+        for seed in 1..4 {
+            // The map camera's own frame resized: H0, tight.
+            let (p0, c, sigma, _) = weigh(&intr, &synthetic_obs(&intr, 1.0, (4.0, 12.0), seed));
+            assert!(p0 > 0.9, "seed {seed}: same camera p0 {p0}");
+            assert!(c.coords.norm() < 0.02, "seed {seed}: centre {c}");
+            assert!(sigma < 0.02 * 4.0, "seed {seed}: sigma {sigma}");
+            // Another camera, 17 % shorter focal length: H1 finds it.
+            let (p0, c, _, f) = weigh(&intr, &synthetic_obs(&intr, 0.83, (4.0, 12.0), seed));
+            assert!(p0 < 0.01, "seed {seed}: other camera p0 {p0}");
+            assert!((f - 0.83).abs() < 0.02, "seed {seed}: focal scale {f}");
+            assert!(c.coords.norm() < 0.05, "seed {seed}: centre {c}");
+        }
+        // A flat far scene (a 2 cm slab at 50 m) cannot tell the focal
+        // length from the distance: whichever pose is reported, the sigma
+        // covers its error (or is over the gate's 2 %, which refuses).
+        for seed in 1..4 {
+            let (p0, c, sigma, f) = weigh(&intr, &synthetic_obs(&intr, 0.83, (49.99, 50.01), seed));
+            let err = c.coords.norm();
+            println!(
+                "flat scene, seed {seed}: p0 {p0:.3}, focal scale {f:.3}, error {err:.2} m, sigma {sigma:.2} m"
+            );
+            assert!(
+                err < 2.0 * sigma || sigma > 0.02 * 49.99,
+                "seed {seed}: error {err:.2} m with sigma {sigma:.2} m"
+            );
+        }
     }
 
     #[test]

@@ -94,6 +94,12 @@ pub struct PhotoCamera {
     /// 1 % for the equivalence's convention) or 1 % from the focal plane,
     /// and an unknown lens's distortion ([`EXIF_K1_SIGMA`], [`EXIF_K2_SIGMA`]).
     pub uncertainty: IntrinsicsUncertainty,
+    /// True when the camera is only assumed: a photo of another size than
+    /// the map camera's with neither given intrinsics nor an EXIF focal
+    /// length, taken as the map camera scaled ([`assumed_camera`]); the
+    /// localisation then weighs another camera too
+    /// ([`crate::shot::localize::UnknownFocal`]).
+    pub focal_unknown: bool,
 }
 
 /// The radial distortion an unknown lens may have, as a sigma of `k1`:
@@ -217,6 +223,7 @@ pub fn exif_camera(exif: &PhotoExif, width: u32, height: u32) -> Option<PhotoCam
                     k1: EXIF_K1_SIGMA,
                     k2: EXIF_K2_SIGMA,
                 },
+                focal_unknown: false,
             })
     };
     // The stored (not yet upright) size, which the focal plane refers to.
@@ -245,7 +252,9 @@ pub fn exif_camera(exif: &PhotoExif, width: u32, height: u32) -> Option<PhotoCam
 }
 
 /// The camera of `photo`: `given` when the operator gave one, else from
-/// its EXIF, else the map camera scaled ([`assumed_camera`]).
+/// its EXIF, else the map camera (exact for a photo of its size; scaled
+/// by [`assumed_camera`] and marked [`PhotoCamera::focal_unknown`] for
+/// another size).
 ///
 /// Errors: [`ShotError::ImageSize`] when none applies (no usable EXIF and
 /// an aspect ratio other than the map camera's).
@@ -260,6 +269,7 @@ pub fn photo_camera(
             camera,
             source: IntrinsicsSource::Given,
             uncertainty: IntrinsicsUncertainty::default(),
+            focal_unknown: false,
         });
     }
     if let Some(c) = photo.exif.as_ref().and_then(|e| exif_camera(e, w, h)) {
@@ -270,12 +280,14 @@ pub fn photo_camera(
             camera: *map_camera,
             source: IntrinsicsSource::MapCamera,
             uncertainty: IntrinsicsUncertainty::default(),
+            focal_unknown: false,
         });
     }
     Ok(PhotoCamera {
         camera: assumed_camera(map_camera, w, h)?,
         source: IntrinsicsSource::MapCamera,
         uncertainty: IntrinsicsUncertainty::default(),
+        focal_unknown: true,
     })
 }
 

@@ -96,7 +96,8 @@ pub struct LocalisationSigma {
     /// Camera centre, map units.
     pub position: f64,
     /// Camera centre as a fraction of the distance to the nearest scene
-    /// content (the 10 % quantile of the inliers' depths).
+    /// content (the smaller of the 10 % quantiles of the inliers' depths
+    /// and of the depths of the map points in the shot's view).
     pub position_fraction_of_distance: f64,
     /// Orientation, degrees.
     pub rotation_deg: f64,
@@ -210,6 +211,22 @@ pub struct Shot {
     pub has_image: bool,
     /// The mission, once uploaded.
     pub mission: Option<MissionRecord>,
+    /// When it was not localised: the keyframes the shot looks most like,
+    /// best first, with where they are ("fly towards here"); empty
+    /// otherwise (and in shot files written before it was reported).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub nearest_keyframes: Vec<NearKeyframeJson>,
+}
+
+/// A keyframe a shot that was not localised looks like.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NearKeyframeJson {
+    /// The keyframe (`GET /keyframes/{id}/image.jpg` shows it).
+    pub keyframe_id: u64,
+    /// Bag-of-words similarity to the shot, 0 to 1.
+    pub score: f64,
+    /// The keyframe's camera centre, map frame.
+    pub position: [f64; 3],
 }
 
 /// The intrinsics of a photo from another camera (pinhole with OpenCV's

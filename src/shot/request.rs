@@ -138,6 +138,9 @@ pub struct ShotComputation {
     pub desired: Option<GrayImage>,
     /// The localisation, or why there is none.
     pub localisation: Result<Localisation, NotLocalised>,
+    /// When not localised: the keyframes the shot looks most like
+    /// ([`crate::shot::nearest_keyframes`]); may be empty.
+    pub nearest_keyframes: Vec<crate::shot::record::NearKeyframeJson>,
 }
 
 /// Why a shot has no localisation; its Display is the shot's `reason` in
@@ -354,6 +357,7 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         Ok(ShotComputation {
             desired: Some(shot.into_picture()),
             localisation: Err(NotLocalised::Unavailable),
+            nearest_keyframes: Vec::new(),
         })
     }
 
@@ -366,6 +370,7 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         Ok(ShotComputation {
             desired: Some(photo.clone()),
             localisation: Err(NotLocalised::Unavailable),
+            nearest_keyframes: Vec::new(),
         })
     }
 }

@@ -254,6 +254,7 @@ mod tests {
                 keyframe_id: Some(3),
             }),
             reason: None,
+            nearest_keyframes: Vec::new(),
             has_image: true,
             mission: None,
         }
