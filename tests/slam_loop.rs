@@ -64,7 +64,13 @@ fn run(ds: &Dataset, loop_closing: bool) -> SlamRun {
         let f = ds.frame(i).unwrap();
         s.process(i as u64, f.timestamp, Arc::new(f.image));
     }
-    s.finish()
+    // What the daemon's status reports while the SLAM runs: the loops the
+    // run ends with.
+    let live = s.loops_since(0);
+    let run = s.finish();
+    let summaries: Vec<_> = run.loops.iter().map(|l| l.summary()).collect();
+    assert_eq!(live, summaries);
+    run
 }
 
 /// The ground-truth camera position nearest in time to `t`.
