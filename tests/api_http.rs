@@ -10,8 +10,9 @@ use std::time::Duration;
 use image::{GrayImage, Luma};
 use serde_json::{Value, json};
 use shotpilot::api::{
-    self, ApiParams, AppState, BoxFuture, KeyframeInfo, MapView, MissionProgressView, SlamStatus,
-    SlamView, StopOutcome, VehicleError, VehicleMissionView, VehicleStatus, VehicleView,
+    self, ApiParams, AppState, BoxFuture, KeyframeInfo, LoopInfo, MapView, MissionProgressView,
+    SlamStatus, SlamView, StopOutcome, VehicleError, VehicleMissionView, VehicleStatus,
+    VehicleView,
 };
 use shotpilot::shot::record::{
     Localisation, MissionRecord, MissionState, PhotoIntrinsics, PoseJson, Shot,
@@ -37,6 +38,20 @@ impl SlamView for FakeSlam {
             state: "tracking".into(),
             keyframes: 2,
             points: 3,
+            loops_closed: 1,
+            loops: vec![LoopInfo {
+                current_kf: 1,
+                loop_kf: 0,
+                current_t: 1.0,
+                loop_t: 0.0,
+                inliers: 91,
+                projection_matches: 203,
+                scale: 0.98,
+                rotation_deg: 0.35,
+                fused: 280,
+                correction_ms: 80.0,
+                at_unix: 1.0e9,
+            }],
             ..Default::default()
         }
     }
@@ -780,7 +795,14 @@ fn events_and_video_are_served() {
         .unwrap();
     let mut got = Vec::new();
     let mut buf = [0u8; 4096];
-    while !String::from_utf8_lossy(&got).contains("\"slam\"") {
+    // Up to the end of the first event (its data is one chunk).
+    let first_event = |got: &[u8]| {
+        let text = String::from_utf8_lossy(got).into_owned();
+        let start = text.find("data:")? + 5;
+        let len = text[start..].find("\n\n")?;
+        Some(text[start..start + len].trim().to_owned())
+    };
+    while first_event(&got).is_none() {
         let n = s.read(&mut buf).unwrap();
         assert!(n > 0);
         got.extend_from_slice(&buf[..n]);
@@ -790,6 +812,12 @@ fn events_and_video_are_served() {
         text.contains("text/event-stream") && text.contains("event: status"),
         "{text}"
     );
+    // The page sees the loops closed in the event stream.
+    let status = json_of(first_event(&got).unwrap().as_bytes());
+    assert_eq!(status["slam"]["loops_closed"], 1, "{status:#}");
+    assert_eq!(status["slam"]["loops"][0]["current_kf"], 1, "{status:#}");
+    assert_eq!(status["slam"]["loops"][0]["loop_kf"], 0, "{status:#}");
+    assert_eq!(status["slam"]["loops"][0]["scale"], 0.98, "{status:#}");
 
     // Video: frames pushed into the ingest come out of /video.mjpg, read by
     // the daemon's own MJPEG client.

@@ -16,7 +16,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use shotpilot::eval::{self, Trajectory};
-use shotpilot::slam::{self, Slam, SlamRun};
+use shotpilot::slam::{self, Slam, SlamRun, mapfile};
 use shotpilot::video::dataset::Dataset;
 use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::dataset::render_path_dataset;
@@ -64,7 +64,13 @@ fn run(ds: &Dataset, loop_closing: bool) -> SlamRun {
         let f = ds.frame(i).unwrap();
         s.process(i as u64, f.timestamp, Arc::new(f.image));
     }
-    s.finish()
+    // What the daemon's status reports while the SLAM runs: the loops the
+    // run ends with.
+    let live = s.loops_since(0);
+    let run = s.finish();
+    let summaries: Vec<_> = run.loops.iter().map(|l| l.summary()).collect();
+    assert_eq!(live, summaries);
+    run
 }
 
 /// The ground-truth camera position nearest in time to `t`.
@@ -136,6 +142,41 @@ fn a_lap_closes_its_loop_and_the_drift_at_the_revisit_drops() {
         ate_on < ate_off,
         "ATE {ate_on} m with loop closing, {ate_off} m without"
     );
+
+    // The map file keeps the loop: saved and loaded back equal, loop edges
+    // included; damaged copies are refused with an error.
+    let file = dir.join("lap.map");
+    mapfile::save(&on.map, &file).unwrap();
+    let back = mapfile::load(&file).unwrap();
+    assert!(!on.map.loop_edges().is_empty());
+    assert_eq!(back.loop_edges(), on.map.loop_edges());
+    assert_eq!(back.keyframe_count(), on.map.keyframe_count());
+    assert_eq!(back.point_count(), on.map.point_count());
+    for (a, b) in on.map.keyframes().zip(back.keyframes()) {
+        assert_eq!(a.id, b.id);
+        assert_eq!(a.cam_from_world, b.cam_from_world);
+        assert_eq!(a.points, b.points);
+        assert_eq!(a.covisible, b.covisible);
+        assert_eq!(a.parent, b.parent);
+        assert_eq!(a.image.as_deref(), b.image.as_deref());
+    }
+    for (a, b) in on.map.points().zip(back.points()) {
+        assert_eq!(a.id, b.id);
+        assert_eq!(a.position, b.position);
+        assert_eq!(a.observations, b.observations);
+    }
+    let bytes = std::fs::read(&file).unwrap();
+    let n = bytes.len();
+    let mut edge = bytes.clone();
+    edge[n - 1] ^= 0x01;
+    assert!(matches!(
+        mapfile::decode(&edge, &file),
+        Err(mapfile::MapFileError::Corrupt { .. })
+    ));
+    assert!(matches!(
+        mapfile::decode(&bytes[..n - 4], &file),
+        Err(mapfile::MapFileError::Corrupt { .. })
+    ));
 }
 
 #[test]

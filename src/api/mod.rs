@@ -13,10 +13,10 @@ mod views;
 pub use error::ApiError;
 use error::body_rejection;
 pub use views::{
-    AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, MapSaved, MapStart, MapView,
-    MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome, StopView, TargetView,
-    TrackedFrame, VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition, VehicleStatus,
-    VehicleView, WriteFailure,
+    AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, LoopInfo, MapSaved, MapStart,
+    MapView, MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome, StopView,
+    TargetView, TrackedFrame, VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition,
+    VehicleStatus, VehicleView, WriteFailure,
 };
 
 use std::sync::Arc;

@@ -49,6 +49,43 @@ pub struct SlamStatus {
     /// The last failed write of the map file or of the georeference
     /// beside it (None: none since the last good write).
     pub map_save_error: Option<WriteFailure>,
+    /// Loops closed since the SLAM started.
+    pub loops_closed: u64,
+    /// The latest loops closed, oldest first (at most
+    /// [`SlamStatus::MAX_LOOPS`]).
+    pub loops: Vec<LoopInfo>,
+}
+
+impl SlamStatus {
+    /// Loops the status lists at most (the count goes on).
+    pub const MAX_LOOPS: usize = 20;
+}
+
+/// A loop closed by the SLAM, as the status reports it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LoopInfo {
+    /// The keyframe that saw an old place again.
+    pub current_kf: u64,
+    /// The old keyframe it matched.
+    pub loop_kf: u64,
+    /// Capture time of the current keyframe, seconds (the keyframes' clock).
+    pub current_t: f64,
+    /// Capture time of the loop keyframe, seconds.
+    pub loop_t: f64,
+    /// Inliers of the loop's Sim(3).
+    pub inliers: usize,
+    /// Keypoints matched by projection through the corrected pose.
+    pub projection_matches: usize,
+    /// Scale of the correction (1: no scale drift).
+    pub scale: f64,
+    /// Rotation of the correction, degrees.
+    pub rotation_deg: f64,
+    /// Points fused.
+    pub fused: usize,
+    /// Time the correction took, ms.
+    pub correction_ms: f64,
+    /// When the daemon saw the loop closed, unix seconds.
+    pub at_unix: f64,
 }
 
 /// A write that failed: what, why, when. The status carries the last one

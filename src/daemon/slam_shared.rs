@@ -10,7 +10,8 @@ use std::time::Duration;
 use image::GrayImage;
 
 use crate::api::{
-    KeyframeInfo, MapSaved, MapStart, MapView, SlamStatus, SlamView, TrackedFrame, WriteFailure,
+    KeyframeInfo, LoopInfo, MapSaved, MapStart, MapView, SlamStatus, SlamView, TrackedFrame,
+    WriteFailure,
 };
 use crate::slam::Map;
 use crate::video::live::{Frame, RateMeter, unix_now};
@@ -97,6 +98,19 @@ impl SlamShared {
     pub fn set_relocalised(&self, seq: u64) {
         if let Some(s) = self.lock().status.map_start.as_mut() {
             s.relocalised_at_frame = Some(seq);
+        }
+    }
+
+    /// Record a loop closed: counted, and listed among the latest
+    /// [`SlamStatus::MAX_LOOPS`].
+    pub fn add_loop(&self, info: LoopInfo) {
+        let mut g = self.lock();
+        g.status.loops_closed += 1;
+        let loops = &mut g.status.loops;
+        loops.push(info);
+        if loops.len() > SlamStatus::MAX_LOOPS {
+            let extra = loops.len() - SlamStatus::MAX_LOOPS;
+            loops.drain(..extra);
         }
     }
 
@@ -216,5 +230,50 @@ impl SlamView for SlamShared {
     }
     fn last_tracked(&self) -> Option<TrackedFrame> {
         self.lock().last_tracked
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn info(current_kf: u64) -> LoopInfo {
+        LoopInfo {
+            current_kf,
+            loop_kf: 0,
+            current_t: current_kf as f64,
+            loop_t: 0.0,
+            inliers: 91,
+            projection_matches: 203,
+            scale: 0.98,
+            rotation_deg: 0.35,
+            fused: 280,
+            correction_ms: 80.0,
+            at_unix: 1.0e9 + current_kf as f64,
+        }
+    }
+
+    #[test]
+    fn loops_closed_are_counted_and_the_latest_listed() {
+        let shared = SlamShared::new(true);
+        assert_eq!(shared.status().loops_closed, 0);
+        assert!(shared.status().loops.is_empty());
+        shared.add_loop(info(224));
+        let s = shared.status();
+        assert_eq!(s.loops_closed, 1);
+        assert_eq!(s.loops, vec![info(224)]);
+        let v = serde_json::to_value(&s).unwrap();
+        assert_eq!(v["loops"][0]["current_kf"], 224);
+        assert_eq!(v["loops"][0]["loop_kf"], 0);
+        assert_eq!(v["loops_closed"], 1);
+        // Many loops: the count goes on, the list keeps the newest.
+        for k in 0..30 {
+            shared.add_loop(info(300 + k));
+        }
+        let s = shared.status();
+        assert_eq!(s.loops_closed, 31);
+        assert_eq!(s.loops.len(), SlamStatus::MAX_LOOPS);
+        assert_eq!(s.loops.first().unwrap().current_kf, 310);
+        assert_eq!(s.loops.last().unwrap().current_kf, 329);
     }
 }

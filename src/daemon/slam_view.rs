@@ -8,12 +8,12 @@ use image::GrayImage;
 
 use super::persist::{set_aside, unused_name};
 use super::slam_shared::{MapSource, ProcessOutcome, SlamShared};
-use crate::api::{KeyframeInfo, MapStart, MapView, TrackedFrame};
+use crate::api::{KeyframeInfo, LoopInfo, MapStart, MapView, TrackedFrame};
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::shot::record::PoseJson;
 use crate::slam::{self, KeyFrameId, Map, Slam, TrackState};
-use crate::video::live::Frame;
+use crate::video::live::{Frame, unix_now};
 
 /// Something that eats frames on the SLAM thread.
 pub trait FrameProcessor: Send {
@@ -165,6 +165,7 @@ pub fn make_processor(
         clock: cfg.geo.history.clone(),
         shared,
         awaiting_reloc,
+        loops_seen: 0,
     })
 }
 
@@ -250,6 +251,8 @@ pub struct SlamProcessor {
     shared: Arc<SlamShared>,
     /// A saved map was continued and no frame is tracked in it yet.
     awaiting_reloc: bool,
+    /// Loops closed already passed to the status.
+    loops_seen: usize,
 }
 
 fn state_name(s: TrackState) -> &'static str {
@@ -306,6 +309,23 @@ impl FrameProcessor for SlamProcessor {
                 timestamp: t,
                 reference_kf: u64::from(r.reference.0),
                 cam_from_ref: r.cam_from_ref,
+            });
+        }
+        // Loops the mapping thread closed since the last frame.
+        for l in self.slam.loops_since(self.loops_seen) {
+            self.loops_seen += 1;
+            self.shared.add_loop(LoopInfo {
+                current_kf: u64::from(l.current.0),
+                loop_kf: u64::from(l.loop_kf.0),
+                current_t: l.current_t,
+                loop_t: l.loop_t,
+                inliers: l.inliers,
+                projection_matches: l.projection_matches,
+                scale: l.scale,
+                rotation_deg: l.rotation_deg,
+                fused: l.fused,
+                correction_ms: l.correction_ms,
+                at_unix: unix_now(),
             });
         }
         if self.awaiting_reloc && out.state == TrackState::Tracking {

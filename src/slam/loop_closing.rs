@@ -187,6 +187,57 @@ pub struct LoopEvent {
     pub global_ba_ms: Option<f64>,
 }
 
+/// A loop closed, without the trajectories: what the daemon's status
+/// reports while the SLAM runs ([`LoopCloser::log`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoopSummary {
+    /// The keyframe that saw the old place again.
+    pub current: KeyFrameId,
+    /// The old keyframe it matched.
+    pub loop_kf: KeyFrameId,
+    /// Timestamp of the current keyframe, seconds.
+    pub current_t: f64,
+    /// Timestamp of the loop keyframe, seconds.
+    pub loop_t: f64,
+    /// Inliers of the refined Sim(3).
+    pub inliers: usize,
+    /// Keypoints matched by projection through the corrected pose.
+    pub projection_matches: usize,
+    /// Scale of the correction.
+    pub scale: f64,
+    /// Rotation of the correction, degrees.
+    pub rotation_deg: f64,
+    /// Move of the current camera, map units.
+    pub translation: f64,
+    /// Points fused.
+    pub fused: usize,
+    /// Time of the correction (and the global BA when one ran), ms.
+    pub correction_ms: f64,
+}
+
+impl LoopEvent {
+    /// The event without its trajectories.
+    pub fn summary(&self) -> LoopSummary {
+        LoopSummary {
+            current: self.current,
+            loop_kf: self.loop_kf,
+            current_t: self.current_t,
+            loop_t: self.loop_t,
+            inliers: self.inliers,
+            projection_matches: self.projection_matches,
+            scale: self.scale,
+            rotation_deg: self.rotation_deg,
+            translation: self.translation,
+            fused: self.fused,
+            correction_ms: self.correction_ms + self.global_ba_ms.unwrap_or(0.0),
+        }
+    }
+}
+
+/// The loops a [`LoopCloser`] closed, shared with whoever reports them
+/// while it runs on the mapping thread (one summary per loop, in order).
+pub type LoopLog = std::sync::Arc<Mutex<Vec<LoopSummary>>>;
+
 /// Why a consistent candidate was refused (for logs and counts).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum LoopReject {
@@ -241,6 +292,7 @@ pub struct LoopCloser {
     pub events: Vec<LoopEvent>,
     /// Consistent candidates refused, in order.
     pub refusals: Vec<LoopRefusal>,
+    log: LoopLog,
 }
 
 impl LoopCloser {
@@ -253,7 +305,13 @@ impl LoopCloser {
             last_loop: None,
             events: Vec::new(),
             refusals: Vec::new(),
+            log: LoopLog::default(),
         }
+    }
+
+    /// The summaries of the loops closed, shared: it fills as loops close.
+    pub fn log(&self) -> LoopLog {
+        self.log.clone()
     }
 
     /// Look for a loop at keyframe `kf` (mapped already) and close it.
@@ -290,6 +348,10 @@ impl LoopCloser {
                 "loop closed"
             );
             self.events.push(e.clone());
+            self.log
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(e.summary());
             self.last_loop = Some(kf);
             self.groups.clear();
         }

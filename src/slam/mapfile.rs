@@ -8,7 +8,8 @@
 //! payload           camera, scale, keyframes (pose, keypoints, descriptors,
 //!                   point slots, covisibility, parent, image), points
 //!                   (position, descriptor, normal, scale range, counters,
-//!                   observations), culled keyframes
+//!                   observations), culled keyframes, loop edges
+//!                   (version 3: pairs of live keyframe ids)
 //! ```
 //!
 //! Keyframe images are stored so that they load back pixel for pixel
@@ -19,6 +20,12 @@
 //! continued map): an anchors shot, which warps the keyframe's image,
 //! then matched the map with different pixels than before the save (up to
 //! 0.4 px more reprojection RMSE). Version 1 files are still read.
+//!
+//! Version 3 appends the loop edges of the essential graph (the keyframe
+//! pairs loop closing joined, [`Map::loop_edges`]): a reloaded map keeps
+//! them, so its loop keyframes stay uncullable and a later loop's
+//! essential graph holds the earlier loops. Version 1 and 2 files load with
+//! no loop edges (they were written before loop closing existed).
 //!
 //! Loading checks the magic, the version, the length and the checksum, every
 //! index, and the map's invariants; any failure is a typed error.
@@ -40,8 +47,8 @@ use super::map::{
 };
 use crate::matching::{Bounds, FeatureGrid};
 
-/// The format version this build writes (it also reads version 1).
-pub const FORMAT_VERSION: u32 = 2;
+/// The format version this build writes (it also reads versions 1 and 2).
+pub const FORMAT_VERSION: u32 = 3;
 /// The oldest version this build reads.
 pub const OLDEST_VERSION: u32 = 1;
 const MAGIC: &[u8; 8] = b"SHOTMAP\0";
@@ -173,6 +180,14 @@ pub enum Corruption {
         camera_width: u32,
         /// The camera's height, pixels.
         camera_height: u32,
+    },
+    /// A loop edge whose keyframes are not two live keyframes.
+    #[error("loop edge {a} - {b} does not join two live keyframes")]
+    LoopEdge {
+        /// One keyframe id.
+        a: u32,
+        /// The other.
+        b: u32,
     },
     /// Bytes after the last section.
     #[error("{0} trailing bytes")]
@@ -475,6 +490,12 @@ pub fn encode_with(map: &Map, images: &mut KeyframeImages) -> Result<Vec<u8>, Ma
         w.u32(c.parent.0);
         w.pose(&c.cam_from_parent);
     }
+    let edges = map.loop_edges();
+    w.len(edges.len());
+    for (a, b) in edges {
+        w.u32(a.0);
+        w.u32(b.0);
+    }
     let payload = w.0;
     let mut out = Vec::with_capacity(payload.len() + 28);
     out.extend_from_slice(MAGIC);
@@ -583,10 +604,10 @@ pub fn decode_with_images(
     if fnv1a(payload) != sum {
         return Err(corrupt(Corruption::Checksum));
     }
-    parse_payload(payload).map_err(corrupt)
+    parse_payload(payload, version).map_err(corrupt)
 }
 
-fn parse_payload(payload: &[u8]) -> RResult<(Map, KeyframeImages)> {
+fn parse_payload(payload: &[u8], version: u32) -> RResult<(Map, KeyframeImages)> {
     let mut r = R {
         data: payload,
         pos: 0,
@@ -750,10 +771,22 @@ fn parse_payload(payload: &[u8]) -> RResult<(Map, KeyframeImages)> {
             },
         ));
     }
+    let mut loop_edges = Vec::new();
+    if version >= 3 {
+        let n_l = r.len(8)?;
+        for _ in 0..n_l {
+            loop_edges.push((r.u32()?, r.u32()?));
+        }
+    }
     if r.pos != payload.len() {
         return Err(Corruption::TrailingBytes(payload.len() - r.pos));
     }
-    let map = Map::from_parts(camera, scale, covis_th, keyframes, points, culled)?;
+    let mut map = Map::from_parts(camera, scale, covis_th, keyframes, points, culled)?;
+    for (a, b) in loop_edges {
+        if !map.add_loop_edge(KeyFrameId(a), KeyFrameId(b)) {
+            return Err(Corruption::LoopEdge { a, b });
+        }
+    }
     map.check_invariants()?;
     Ok((map, images))
 }
@@ -849,17 +882,148 @@ mod tests {
         let mut m = map.clone();
         m.keyframe_mut(KeyFrameId(0)).unwrap().image = Some(Arc::new(decoded.clone()));
         assert!(known.offer(KeyFrameId(0), Arc::new(jpeg), &decoded));
-        let mut v1 = encode_with(&m, &mut known).unwrap();
-        v1[8..12].copy_from_slice(&1u32.to_le_bytes());
+        let mut v1 = before_version_3(&encode_with(&m, &mut known).unwrap(), 1);
         let back = decode(&v1, Path::new("v1")).unwrap();
         assert_eq!(
             *back.keyframe(KeyFrameId(0)).unwrap().image.clone().unwrap(),
             decoded
         );
-        v1[8..12].copy_from_slice(&3u32.to_le_bytes());
+        v1[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
+        let found = FORMAT_VERSION + 1;
         assert!(matches!(
-            decode(&v1, Path::new("v3")),
-            Err(MapFileError::Version { found: 3, .. })
+            decode(&v1, Path::new("v4")),
+            Err(MapFileError::Version { found: f, .. }) if f == found
         ));
+    }
+
+    /// The file a version 1 or 2 build wrote for a map without loop edges:
+    /// this build's bytes without the loop-edge section (version 3 appended
+    /// it, the 4-byte count, after the culled keyframes), with the header's
+    /// version, length and checksum of that payload.
+    fn before_version_3(v3: &[u8], version: u32) -> Vec<u8> {
+        let payload = &v3[28..];
+        let (old, count) = payload.split_at(payload.len() - 4);
+        assert_eq!(count, &0u32.to_le_bytes(), "only maps without loop edges");
+        let mut out = Vec::with_capacity(v3.len() - 4);
+        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(&version.to_le_bytes());
+        out.extend_from_slice(&(old.len() as u64).to_le_bytes());
+        out.extend_from_slice(&fnv1a(old).to_le_bytes());
+        out.extend_from_slice(old);
+        out
+    }
+
+    /// Rewrite the header's checksum after editing the payload (a damaged
+    /// file that passes the checksum, so the parser itself must refuse it).
+    fn with_checksum(mut bytes: Vec<u8>) -> Vec<u8> {
+        let sum = fnv1a(&bytes[28..]);
+        bytes[20..28].copy_from_slice(&sum.to_le_bytes());
+        bytes
+    }
+
+    /// Two keyframes (ids 0 and 3) without images, no points.
+    fn two_keyframes() -> Map {
+        let (map, _) = map_with_image();
+        let mut k0 = map.keyframe(KeyFrameId(0)).unwrap().clone();
+        k0.image = None;
+        let mut k3 = k0.clone();
+        k3.id = KeyFrameId(3);
+        k3.frame_index = 40;
+        k3.timestamp = 9.0;
+        k3.cam_from_world = Isometry3::translation(0.5, 0.0, 0.0);
+        Map::from_parts(
+            map.camera.clone(),
+            ScaleInfo::new(1.2, 8),
+            15,
+            vec![k0, k3],
+            Vec::new(),
+            Vec::new(),
+        )
+        .unwrap()
+    }
+
+    /// [`two_keyframes`] joined by a loop edge.
+    fn map_with_loop_edge() -> Map {
+        let mut m = two_keyframes();
+        assert!(m.add_loop_edge(KeyFrameId(3), KeyFrameId(0)));
+        m
+    }
+
+    #[test]
+    fn loop_edges_load_back_and_version_2_files_load_without_them() {
+        let m = map_with_loop_edge();
+        let bytes = encode(&m).unwrap();
+        assert_eq!(bytes[8..12], 3u32.to_le_bytes());
+        let back = decode(&bytes, Path::new("v3")).unwrap();
+        assert_eq!(back.loop_edges(), &[(KeyFrameId(3), KeyFrameId(0))]);
+        assert_eq!(back.keyframe_count(), 2);
+        // Saved again: the same bytes.
+        assert_eq!(encode(&back).unwrap(), bytes);
+
+        // A version 2 file (written before loop edges existed) loads with none.
+        let v2 = before_version_3(&encode(&two_keyframes()).unwrap(), 2);
+        let old = decode(&v2, Path::new("v2")).unwrap();
+        assert!(old.loop_edges().is_empty());
+        assert_eq!(old.keyframe_count(), 2);
+        assert_eq!(
+            old.keyframe(KeyFrameId(3)).unwrap().cam_from_world,
+            m.keyframe(KeyFrameId(3)).unwrap().cam_from_world
+        );
+        // The same bytes announced as version 3 lack the loop section.
+        let mut v2_as_3 = v2.clone();
+        v2_as_3[8..12].copy_from_slice(&3u32.to_le_bytes());
+        assert!(matches!(
+            decode(&v2_as_3, Path::new("v2 as v3")),
+            Err(MapFileError::Corrupt {
+                reason: Corruption::Truncated { .. },
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn damaged_loop_edges_are_refused() {
+        let bytes = encode(&map_with_loop_edge()).unwrap();
+        let n = bytes.len();
+        // The last 8 bytes are the edge (3, 0), the 4 before them the count.
+        let edit = |at: usize, v: u32| {
+            let mut b = bytes.clone();
+            b[at..at + 4].copy_from_slice(&v.to_le_bytes());
+            with_checksum(b)
+        };
+        let corrupt = |b: &[u8]| match decode(b, Path::new("damaged")) {
+            Err(MapFileError::Corrupt { reason, .. }) => reason,
+            other => panic!(
+                "not refused as corrupt: {:?}",
+                other.map(|m| m.loop_edges().to_vec())
+            ),
+        };
+        // An edge to a keyframe the map does not hold (1 is not live).
+        assert!(matches!(
+            corrupt(&edit(n - 4, 1)),
+            Corruption::LoopEdge { a: 3, b: 1 }
+        ));
+        // An edge from a keyframe to itself.
+        assert!(matches!(
+            corrupt(&edit(n - 4, 3)),
+            Corruption::LoopEdge { a: 3, b: 3 }
+        ));
+        // A count larger than the file.
+        assert!(matches!(
+            corrupt(&edit(n - 12, 1000)),
+            Corruption::Count { .. }
+        ));
+        // Cut inside the section, with a header that matches the cut: the
+        // count promises more than is left.
+        let mut cut = bytes[..n - 4].to_vec();
+        cut[12..20].copy_from_slice(&((n - 4 - 28) as u64).to_le_bytes());
+        assert!(matches!(
+            corrupt(&with_checksum(cut)),
+            Corruption::Count { count: 1, .. }
+        ));
+        // A bit flipped without the checksum mended.
+        let mut flipped = bytes.clone();
+        flipped[n - 3] ^= 0x10;
+        assert!(matches!(corrupt(&flipped), Corruption::Checksum));
     }
 }

@@ -59,7 +59,9 @@ use crate::eval::{StampedPose, Trajectory};
 use crate::optimize::BaParams;
 
 pub use initializer::InitFailure;
-pub use loop_closing::{LoopCloser, LoopEvent, LoopParams, LoopRefusal, LoopReject};
+pub use loop_closing::{
+    LoopCloser, LoopEvent, LoopLog, LoopParams, LoopRefusal, LoopReject, LoopSummary,
+};
 pub use map::{KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
 pub use tracking::{FrameOutcome, FrameRecord, TrackFailure, TrackState, Tracker, TrackingParams};
@@ -161,6 +163,8 @@ pub struct Slam {
     mapping: Mapping,
     params: Params,
     frames: u64,
+    /// The loop closer's summaries (None: loop closing off).
+    loop_log: Option<LoopLog>,
 }
 
 /// The result of a finished run.
@@ -281,6 +285,7 @@ impl Slam {
             .loop_closing
             .clone()
             .map(|p| LoopCloser::new(p, bounds));
+        let loop_log = closer.as_ref().map(LoopCloser::log);
         let mappers = Mappers { mapper, closer };
         let mapping = if params.sequential {
             Mapping::Inline(Box::new(mappers))
@@ -302,6 +307,16 @@ impl Slam {
             mapping,
             params,
             frames: 0,
+            loop_log,
+        })
+    }
+
+    /// The loops closed so far after the first `n` (all with `n` = 0), in
+    /// order; they come from the mapping thread as it closes them.
+    pub fn loops_since(&self, n: usize) -> Vec<LoopSummary> {
+        self.loop_log.as_ref().map_or_else(Vec::new, |log| {
+            let g = log.lock().unwrap_or_else(|e| e.into_inner());
+            g.get(n..).map_or_else(Vec::new, <[LoopSummary]>::to_vec)
         })
     }
 
