@@ -1,5 +1,6 @@
 //! The link actor: one task owns the connection and everything that talks on it.
 
+use std::net::{SocketAddr, UdpSocket};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -38,16 +39,51 @@ const RATE_RECHECK: Duration = Duration::from_secs(5);
 const RATE_ROUNDS: u32 = 5;
 
 /// Starts the link actor. Fails at once on a bad URL or signing key; the
-/// connection itself is (re)tried in the background.
+/// connection itself (for `udpin:`, binding the socket) is (re)tried in the
+/// background. Once a `udpin:` socket is bound, [`LinkHandle::bound_addr`]
+/// gives its address (the port the kernel chose for port 0).
 pub fn spawn(
     params: Params,
     transfer: upload::Params,
     cancel: CancellationToken,
 ) -> Result<(LinkHandle, JoinHandle<()>), LinkError> {
+    spawn_inner(params, transfer, cancel, None)
+}
+
+/// [`spawn`] on a UDP socket the caller has already bound: the link listens
+/// on it as on a `udpin:` URL (replies go to the last sender), whatever
+/// `params.url` says, and never rebinds. For callers (tests, a supervisor)
+/// that hold a port before the peer needs to know it.
+pub fn spawn_with_socket(
+    params: Params,
+    transfer: upload::Params,
+    cancel: CancellationToken,
+    socket: UdpSocket,
+) -> Result<(LinkHandle, JoinHandle<()>), LinkError> {
+    spawn_inner(params, transfer, cancel, Some(socket))
+}
+
+fn spawn_inner(
+    mut params: Params,
+    transfer: upload::Params,
+    cancel: CancellationToken,
+    socket: Option<UdpSocket>,
+) -> Result<(LinkHandle, JoinHandle<()>), LinkError> {
+    let bound_now = match &socket {
+        Some(s) => Some(s.local_addr().map_err(|e| LinkError::BadUrl {
+            url: params.url.clone(),
+            reason: format!("the given UDP socket has no local address: {e}"),
+        })?),
+        None => None,
+    };
+    if let Some(a) = bound_now {
+        params.url = format!("udpin:{a}");
+    }
     let url: LinkUrl = params.url.parse()?;
     if let Some(s) = &params.signing {
         s.key()?;
     }
+    let bound = watch::channel(bound_now);
     let (cmd_tx, cmd_rx) = mpsc::channel(CMD_QUEUE);
     let (io_tx, io_rx) = mpsc::channel(IO_QUEUE);
     let vehicle = watch::channel(VehicleState {
@@ -69,6 +105,7 @@ pub fn spawn(
         gimbal: gimbal_tx.clone(),
         own: (params.system_id, params.component_id),
         command_timeout: Duration::from_millis(params.command_timeout_ms.max(1)),
+        bound: bound.1,
         telemetry: Telemetry {
             vehicle: vehicle.1,
             global_position: gp.1,
@@ -90,6 +127,8 @@ pub fn spawn(
     let io_cancel = cancel.child_token();
     let io = IoTask {
         url,
+        udp_in: socket,
+        bound: bound.0,
         version,
         signing: params.signing.clone(),
         backoff_min: Duration::from_millis(params.reconnect_min_ms.max(1)),
@@ -141,6 +180,10 @@ enum IoEvent {
 /// Connects, reads, and reconnects with exponential backoff.
 struct IoTask {
     url: LinkUrl,
+    /// The `udpin:` socket once bound (kept across reconnections).
+    udp_in: Option<UdpSocket>,
+    /// Its address, for [`LinkHandle::bound_addr`].
+    bound: watch::Sender<Option<SocketAddr>>,
     version: MavlinkVersion,
     signing: Option<transport::Signing>,
     backoff_min: Duration,
@@ -150,12 +193,37 @@ struct IoTask {
 }
 
 impl IoTask {
-    async fn run(self) {
+    /// Binds the `udpin:` socket if it is not yet bound.
+    async fn bind(&mut self) -> std::io::Result<()> {
+        if self.udp_in.is_none()
+            && let Some(socket) = transport::bind_udp_in(&self.url).await?
+        {
+            let addr = socket.local_addr()?;
+            info!(%addr, "link listening");
+            self.bound.send_replace(Some(addr));
+            self.udp_in = Some(socket);
+        }
+        Ok(())
+    }
+
+    async fn open(&mut self) -> std::io::Result<Connection> {
+        self.bind().await?;
+        transport::connect(
+            &self.url,
+            self.udp_in.as_ref(),
+            self.version,
+            self.signing.as_ref(),
+        )
+        .await
+    }
+
+    async fn run(mut self) {
         let mut backoff = self.backoff_min;
         loop {
+            let cancel = self.cancel.clone();
             let attempt = tokio::select! {
-                _ = self.cancel.cancelled() => return,
-                r = transport::connect(&self.url, self.version, self.signing.as_ref()) => r,
+                _ = cancel.cancelled() => return,
+                r = self.open() => r,
             };
             match attempt {
                 Ok(conn) => {

@@ -44,7 +44,7 @@ use tracing::{info, warn};
 
 use crate::mission::{Download, Flavour, MissionError, MissionItem, UploadReport};
 
-pub use actor::spawn;
+pub use actor::{spawn, spawn_with_socket};
 pub use transport::{LinkUrl, Signing};
 
 /// Errors of the link.
@@ -507,6 +507,8 @@ pub struct LinkHandle {
     gimbal: std::sync::Arc<watch::Sender<GimbalControl>>,
     own: (u8, u8),
     command_timeout: Duration,
+    /// The `udpin:` socket's address once bound.
+    bound: watch::Receiver<Option<std::net::SocketAddr>>,
 }
 
 /// MAVLink message id of GIMBAL_MANAGER_STATUS.
@@ -868,6 +870,21 @@ impl LinkHandle {
             reply,
         })
         .await
+    }
+
+    /// The local address of a `udpin:` link's socket (the kernel's port for
+    /// `udpin:HOST:0`), waiting up to `timeout` for the bind. A link of
+    /// another scheme never binds one: it times out.
+    pub async fn bound_addr(&self, timeout: Duration) -> Result<std::net::SocketAddr, LinkError> {
+        let mut rx = self.bound.clone();
+        match tokio::time::timeout(timeout, rx.wait_for(Option::is_some)).await {
+            Ok(Ok(addr)) => (*addr).ok_or(LinkError::ActorGone),
+            Ok(Err(_)) => Err(LinkError::ActorGone),
+            Err(_) => Err(LinkError::Timeout {
+                what: "the link's UDP socket",
+                seconds: timeout.as_secs_f64(),
+            }),
+        }
     }
 
     /// Waits until a vehicle heartbeat has been heard and the link is up.
