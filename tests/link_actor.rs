@@ -433,6 +433,91 @@ async fn stop_is_a_hold_acknowledged_by_the_vehicle() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A stop is never held up by another command in flight: with a gimbal
+/// command the vehicle never answers, the stop's DO_SET_MODE goes out at
+/// once (before the gimbal command's first retry), comes back with the
+/// vehicle's ACK, and the gimbal command runs out its own retries.
+#[tokio::test(start_paused = true)]
+async fn stop_goes_out_while_another_command_waits() -> anyhow::Result<()> {
+    static SILENT: [(MavCmd, Option<mavlink::dialects::common::MavResult>); 1] =
+        [(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, None)];
+    let cancel = CancellationToken::new();
+    let cfg = FakeConfig {
+        command_results: &SILENT,
+        ..FakeConfig::clean(Habit::Px4)
+    };
+    let (addr, fake) = start_fake(cfg, &cancel);
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let gimbal = {
+        let link = link.clone();
+        tokio::spawn(async move {
+            link.command_long(
+                MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+                [-30.0, 0.0, f32::NAN, f32::NAN, 0.0, 0.0, 0.0],
+                None,
+            )
+            .await
+        })
+    };
+    let seen = |c: MavCmd| {
+        fake.lock()
+            .map(|s| s.commands.iter().filter(|(k, _)| *k == c).count())
+            .unwrap_or(0)
+    };
+    let mut waited = 0;
+    while seen(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW) == 0 {
+        anyhow::ensure!(waited < 100, "the gimbal command never reached the vehicle");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+        waited += 1;
+    }
+    let ack = link.hold().await?;
+    assert_eq!(ack.command, "MAV_CMD_DO_SET_MODE");
+    assert_eq!(ack.mode, "AUTO.LOITER");
+    assert_eq!(ack.result, "MAV_RESULT_ACCEPTED");
+    let r = gimbal.await?;
+    let Err(LinkError::CommandTimeout { command, attempts }) = r else {
+        panic!("the unanswered gimbal command times out by itself: {r:?}");
+    };
+    assert_eq!(command, 1000);
+    assert!(attempts >= 2, "{attempts}");
+    let order: Vec<MavCmd> = fake
+        .lock()
+        .expect("lock")
+        .commands
+        .iter()
+        .map(|(c, _)| *c)
+        .filter(|c| {
+            matches!(
+                c,
+                MavCmd::MAV_CMD_DO_SET_MODE | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW
+            )
+        })
+        .collect();
+    assert_eq!(
+        order
+            .iter()
+            .filter(|c| **c == MavCmd::MAV_CMD_DO_SET_MODE)
+            .count(),
+        1,
+        "{order:?}"
+    );
+    assert_eq!(
+        order[..2],
+        [
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+            MavCmd::MAV_CMD_DO_SET_MODE
+        ],
+        "the stop went out before the gimbal command's first retry: {order:?}"
+    );
+    cancel.cancel();
+    Ok(())
+}
+
 /// A stop the vehicle refuses, or never acknowledges, is an error naming
 /// the command and the result (never a silent success).
 #[tokio::test(start_paused = true)]

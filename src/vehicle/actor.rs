@@ -17,9 +17,10 @@ use tracing::{Span, debug, info, info_span, warn};
 
 use super::transport::{self, Connection, LinkUrl};
 use super::{
-    Attitude, Command, GimbalAttitude, GimbalControl, GimbalManagerStatus, GlobalPosition,
-    HomePosition, LinkError, LinkHandle, LocalPosition, MissionProgress, Params, Stamped,
-    Telemetry, VehicleState, ardupilot_mode_name, mode_params, px4_mode_name, quat_to_euler_deg,
+    Attitude, Command, FlightMode, GimbalAttitude, GimbalControl, GimbalManagerStatus,
+    GlobalPosition, HoldAck, HomePosition, LinkError, LinkHandle, LocalPosition, MissionProgress,
+    Params, Stamped, Telemetry, VehicleState, ardupilot_mode_name, mode_params, px4_mode_name,
+    quat_to_euler_deg,
 };
 use crate::mission::upload::{self, Downloader, MissionError, Peers, Uploader, same_mission};
 use crate::mission::{Download, Flavour, MissionItem, UploadReport};
@@ -154,6 +155,7 @@ fn spawn_inner(
         gimbal_control: gimbal_tx,
         transfer: None,
         command: None,
+        stop: None,
         next_heartbeat: now,
         rates_requested: None,
         rate_rounds: 0,
@@ -467,7 +469,72 @@ struct PendingCommand {
     data: COMMAND_LONG_DATA,
     attempts: u32,
     deadline: Instant,
-    reply: oneshot::Sender<Result<(), LinkError>>,
+    reply: Reply,
+}
+
+/// Who waits for a command's COMMAND_ACK.
+enum Reply {
+    /// `Ok(())` on ACCEPTED.
+    Done(oneshot::Sender<Result<(), LinkError>>),
+    /// The operator's stop: the ACK itself, with the mode asked for.
+    Hold {
+        mode: String,
+        reply: oneshot::Sender<Result<HoldAck, LinkError>>,
+    },
+}
+
+impl Reply {
+    fn accepted(self, result: MavResult) {
+        match self {
+            Self::Done(r) => {
+                let _ = r.send(Ok(()));
+            }
+            Self::Hold { mode, reply } => {
+                let _ = reply.send(Ok(HoldAck {
+                    command: "MAV_CMD_DO_SET_MODE",
+                    mode,
+                    result: format!("{result:?}"),
+                }));
+            }
+        }
+    }
+
+    fn fail(self, e: LinkError) {
+        match self {
+            Self::Done(r) => {
+                let _ = r.send(Err(e));
+            }
+            Self::Hold { reply, .. } => {
+                let _ = reply.send(Err(e));
+            }
+        }
+    }
+}
+
+/// Resends a command whose ACK is late, or gives up after the link's
+/// attempts (the waiter gets [`LinkError::CommandTimeout`]).
+fn retry_late(
+    slot: &mut Option<PendingCommand>,
+    params: &Params,
+    now: Instant,
+    out: &mut Vec<MavMessage>,
+) {
+    if slot.as_ref().is_some_and(|c| c.deadline <= now)
+        && let Some(mut c) = slot.take()
+    {
+        if c.attempts >= params.command_attempts.max(1) {
+            c.reply.fail(LinkError::CommandTimeout {
+                command: cmd_number(c.data.command),
+                attempts: c.attempts,
+            });
+        } else {
+            c.attempts += 1;
+            c.data.confirmation = c.data.confirmation.saturating_add(1);
+            c.deadline = now + Duration::from_millis(params.command_timeout_ms);
+            out.push(MavMessage::COMMAND_LONG(c.data.clone()));
+            *slot = Some(c);
+        }
+    }
 }
 
 struct Actor {
@@ -486,6 +553,8 @@ struct Actor {
     gimbal_control: Arc<watch::Sender<GimbalControl>>,
     transfer: Option<Transfer>,
     command: Option<PendingCommand>,
+    /// The operator's stop, beside any other command in flight.
+    stop: Option<PendingCommand>,
     next_heartbeat: Instant,
     rates_requested: Option<Instant>,
     rate_rounds: u32,
@@ -550,7 +619,7 @@ impl Actor {
         if let Some(d) = self.transfer.as_ref().and_then(Transfer::deadline) {
             wake = wake.min(d);
         }
-        if let Some(c) = &self.command {
+        for c in [&self.command, &self.stop].into_iter().flatten() {
             wake = wake.min(c.deadline);
         }
         wake
@@ -961,30 +1030,33 @@ impl Actor {
         if target_system != 0 && target_system != self.params.system_id {
             return;
         }
-        let Some(pending) = &mut self.command else {
-            return;
-        };
-        if pending.data.command != command {
-            return;
-        }
-        let outcome = match result {
-            MavResult::MAV_RESULT_ACCEPTED => Ok(()),
-            MavResult::MAV_RESULT_IN_PROGRESS => {
-                pending.deadline = now + Duration::from_millis(self.params.command_timeout_ms);
+        let timeout = Duration::from_millis(self.params.command_timeout_ms);
+        // The stop and the other command never share a command id (a
+        // DO_SET_MODE in flight gives way to a stop), so the ACK is theirs.
+        for slot in [&mut self.stop, &mut self.command] {
+            let Some(pending) = slot else {
+                continue;
+            };
+            if pending.data.command != command {
+                continue;
+            }
+            if result == MavResult::MAV_RESULT_IN_PROGRESS {
+                pending.deadline = now + timeout;
                 return;
             }
-            other => Err(LinkError::CommandRejected {
-                command: cmd_number(command),
-                result: format!("{other:?}"),
-            }),
-        };
-        if let Some(p) = self.command.take() {
-            info!(
-                command = cmd_number(command),
-                ok = outcome.is_ok(),
-                "command acknowledged"
-            );
-            let _ = p.reply.send(outcome);
+            if let Some(p) = slot.take() {
+                let ok = result == MavResult::MAV_RESULT_ACCEPTED;
+                info!(command = cmd_number(command), ok, "command acknowledged");
+                if ok {
+                    p.reply.accepted(result);
+                } else {
+                    p.reply.fail(LinkError::CommandRejected {
+                        command: cmd_number(command),
+                        result: format!("{result:?}"),
+                    });
+                }
+            }
+            return;
         }
     }
 
@@ -1025,22 +1097,8 @@ impl Actor {
             t.on_timeout(now, &mut self.out);
             self.deliver_if_done();
         }
-        if self.command.as_ref().is_some_and(|c| c.deadline <= now)
-            && let Some(mut c) = self.command.take()
-        {
-            if c.attempts >= self.params.command_attempts.max(1) {
-                let _ = c.reply.send(Err(LinkError::CommandTimeout {
-                    command: cmd_number(c.data.command),
-                    attempts: c.attempts,
-                }));
-            } else {
-                c.attempts += 1;
-                c.data.confirmation = c.data.confirmation.saturating_add(1);
-                c.deadline = now + Duration::from_millis(self.params.command_timeout_ms);
-                self.out.push(MavMessage::COMMAND_LONG(c.data.clone()));
-                self.command = Some(c);
-            }
-        }
+        retry_late(&mut self.stop, &self.params, now, &mut self.out);
+        retry_late(&mut self.command, &self.params, now, &mut self.out);
         self.flush().await;
     }
 
@@ -1147,7 +1205,7 @@ impl Actor {
                 self.start_command(
                     MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
                     [if arm { 1.0 } else { 0.0 }, 0.0, 0.0],
-                    reply,
+                    Reply::Done(reply),
                     now,
                 );
             }
@@ -1160,7 +1218,7 @@ impl Actor {
                         self.start_command(
                             MavCmd::MAV_CMD_DO_SET_MODE,
                             [base, main, sub],
-                            reply,
+                            Reply::Done(reply),
                             now,
                         );
                     }
@@ -1174,9 +1232,15 @@ impl Actor {
                     }
                 }
             }
+            Command::Hold { reply } => self.start_stop(reply, now),
             Command::StartMission { reply } => {
                 info!("operator: start mission");
-                self.start_command(MavCmd::MAV_CMD_MISSION_START, [0.0, 0.0, 0.0], reply, now);
+                self.start_command(
+                    MavCmd::MAV_CMD_MISSION_START,
+                    [0.0, 0.0, 0.0],
+                    Reply::Done(reply),
+                    now,
+                );
             }
             Command::Long {
                 command,
@@ -1185,7 +1249,7 @@ impl Actor {
                 reply,
             } => {
                 info!(command = cmd_number(command), ?params, "command");
-                self.start_command7(command, params, target_component, reply, now);
+                self.start_command7(command, params, target_component, Reply::Done(reply), now);
             }
             Command::RequestMessage {
                 message_id,
@@ -1247,13 +1311,7 @@ impl Actor {
         }
     }
 
-    fn start_command(
-        &mut self,
-        command: MavCmd,
-        p: [f32; 3],
-        reply: oneshot::Sender<Result<(), LinkError>>,
-        now: Instant,
-    ) {
+    fn start_command(&mut self, command: MavCmd, p: [f32; 3], reply: Reply, now: Instant) {
         self.start_command7(
             command,
             [p[0], p[1], p[2], 0.0, 0.0, 0.0, 0.0],
@@ -1268,15 +1326,24 @@ impl Actor {
         command: MavCmd,
         p: [f32; 7],
         target_component: Option<u8>,
-        reply: oneshot::Sender<Result<(), LinkError>>,
+        reply: Reply,
         now: Instant,
     ) {
         if self.command.is_some() {
-            let _ = reply.send(Err(LinkError::Busy { what: "command" }));
+            reply.fail(LinkError::Busy { what: "command" });
+            return;
+        }
+        // Its ACK could not be told from the stop's.
+        if self
+            .stop
+            .as_ref()
+            .is_some_and(|s| s.data.command == command)
+        {
+            reply.fail(LinkError::Busy { what: "stop" });
             return;
         }
         let Some((peers, _)) = self.peers() else {
-            let _ = reply.send(Err(LinkError::NoVehicle));
+            reply.fail(LinkError::NoVehicle);
             return;
         };
         let data = command_long(
@@ -1291,6 +1358,51 @@ impl Actor {
             attempts: 1,
             deadline: now + Duration::from_millis(self.params.command_timeout_ms),
             reply,
+        });
+    }
+
+    /// The operator's stop: DO_SET_MODE to the hold mode, sent now whatever
+    /// else waits for an ACK. A DO_SET_MODE in flight gives way (its waiter
+    /// gets [`LinkError::Superseded`]): the two ACKs could not be told apart.
+    fn start_stop(&mut self, reply: oneshot::Sender<Result<HoldAck, LinkError>>, now: Instant) {
+        info!("operator: stop (hold)");
+        if self.stop.is_some() {
+            let _ = reply.send(Err(LinkError::Busy { what: "stop" }));
+            return;
+        }
+        let flavour = self.vehicle.borrow().flavour;
+        let (Some(flavour), Some((peers, _))) = (flavour, self.peers()) else {
+            let _ = reply.send(Err(LinkError::NoVehicle));
+            return;
+        };
+        if self
+            .command
+            .as_ref()
+            .is_some_and(|c| c.data.command == MavCmd::MAV_CMD_DO_SET_MODE)
+            && let Some(c) = self.command.take()
+        {
+            warn!("a mode change in flight gives way to the stop");
+            c.reply.fail(LinkError::Superseded {
+                command: cmd_number(MavCmd::MAV_CMD_DO_SET_MODE),
+            });
+        }
+        let (base, main, sub) = mode_params(flavour, FlightMode::Hold);
+        let mode = match flavour {
+            Flavour::Px4 => px4_mode_name(((sub as u32) << 24) | ((main as u32) << 16)),
+            Flavour::ArduPilot => ardupilot_mode_name(main as u32),
+        };
+        let data = command_long(
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            [base, main, sub, 0.0, 0.0, 0.0, 0.0],
+            peers.target_system,
+            peers.target_component,
+        );
+        self.out.push(MavMessage::COMMAND_LONG(data.clone()));
+        self.stop = Some(PendingCommand {
+            data,
+            attempts: 1,
+            deadline: now + Duration::from_millis(self.params.command_timeout_ms),
+            reply: Reply::Hold { mode, reply },
         });
     }
 }
