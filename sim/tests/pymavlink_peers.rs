@@ -61,6 +61,7 @@ fn run_peer(script: &str, sim_extra: &[&str], extra: &[&str], timeout: Duration)
         .expect("start python");
     let Some(stdout) = child.stdout.take() else {
         let _ = child.kill();
+        let _ = child.wait();
         return (false, "no stdout".into());
     };
     let mut stdout = BufReader::new(stdout);
