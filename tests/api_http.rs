@@ -200,7 +200,7 @@ impl VehicleView for FakeVehicle {
                 ack: shotpilot::vehicle::HoldAck {
                     command: "MAV_CMD_DO_SET_MODE",
                     mode: "AUTO.LOITER".into(),
-                    result: "MAV_RESULT_ACCEPTED",
+                    result: "MAV_RESULT_ACCEPTED".into(),
                 },
                 refinement_cancelled: flying.clone(),
                 flying,

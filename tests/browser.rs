@@ -228,7 +228,7 @@ fn operator_page_in_headless_chromium() {
     // A damaged map file: the daemon starts a fresh map, keeps the file
     // aside, and the page says so.
     std::fs::write(dir.path().join("data/map.spmap"), b"not a map").unwrap();
-    let mut cfg = daemon_support::sim_config();
+    let (mut cfg, sockets) = daemon_support::sim_config();
     // The simulator's truth: camera poses (local NED at home) per frame.
     cfg.sim.truth_dir = Some("truth".into());
     cfg.validate(Path::new("test")).unwrap();
@@ -243,7 +243,8 @@ fn operator_page_in_headless_chromium() {
     let (tx, rx) = tokio::sync::oneshot::channel();
     let base = dir.path().to_owned();
     let c = cancel.clone();
-    let daemon = rt.spawn(async move { shotpilot::daemon::run(cfg, &base, c, Some(tx)).await });
+    let daemon =
+        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
     let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
     let t0 = Instant::now();
 

@@ -29,7 +29,7 @@ fn post_png(addr: SocketAddr, path: &str, img: &image::GrayImage) -> (u16, Vec<u
 #[test]
 fn daemon_with_simulator_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = daemon_support::sim_config();
+    let (cfg, sockets) = daemon_support::sim_config();
     cfg.validate(Path::new("test")).unwrap();
     let cam_cfg = cfg.camera.clone();
 
@@ -42,7 +42,8 @@ fn daemon_with_simulator_end_to_end() {
     let (tx, rx) = tokio::sync::oneshot::channel();
     let base = dir.path().to_owned();
     let c = cancel.clone();
-    let daemon = rt.spawn(async move { shotpilot::daemon::run(cfg, &base, c, Some(tx)).await });
+    let daemon =
+        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
     let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
     let t0 = Instant::now();
 

@@ -244,7 +244,7 @@ struct Running {
 
 fn start(tweak: impl FnOnce(&mut Config)) -> Running {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = daemon_support::sim_config();
+    let (mut cfg, sockets) = daemon_support::sim_config();
     cfg.sim.truth_dir = Some("truth".into());
     // Another world and flight, to reproduce the figures over seeds.
     if let Some(seed) = std::env::var("SHOTPILOT_REFINE_SEED")
@@ -266,7 +266,8 @@ fn start(tweak: impl FnOnce(&mut Config)) -> Running {
     let (tx, rx) = tokio::sync::oneshot::channel();
     let base = dir.path().to_owned();
     let c = cancel.clone();
-    let daemon = rt.spawn(async move { shotpilot::daemon::run(cfg, &base, c, Some(tx)).await });
+    let daemon =
+        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
     let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
     Running {
         rt,

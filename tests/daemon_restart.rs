@@ -30,7 +30,7 @@ struct Running {
 }
 
 fn start(base: &Path) -> Running {
-    let cfg = daemon_support::sim_config();
+    let (cfg, sockets) = daemon_support::sim_config();
     assert!(cfg.slam.continue_map, "continuing is the default");
     cfg.validate(Path::new("test")).unwrap();
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -41,7 +41,8 @@ fn start(base: &Path) -> Running {
     let cancel = CancellationToken::new();
     let (tx, rx) = tokio::sync::oneshot::channel();
     let (c, b) = (cancel.clone(), base.to_owned());
-    let task = rt.spawn(async move { shotpilot::daemon::run(cfg, &b, c, Some(tx)).await });
+    let task =
+        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &b, c, Some(tx), sockets).await });
     let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
     Running {
         rt,

@@ -23,7 +23,7 @@
 
 mod daemon_support;
 
-use daemon_support::{free_tcp_port, free_udp_port, get_json, request};
+use daemon_support::{get_json, request};
 
 use std::net::{SocketAddr, UdpSocket};
 use std::path::Path;
@@ -44,14 +44,17 @@ use tokio_util::sync::CancellationToken;
 /// Forwards the simulator's MAVLink datagrams to the daemon, each after
 /// `delay ± jitter/2` (uniform), and the daemon's back at once.
 struct Relay {
+    /// Where the simulator sends (bound on port 0 here).
+    addr: SocketAddr,
     stop: Arc<AtomicBool>,
     threads: Vec<std::thread::JoinHandle<()>>,
 }
 
 impl Relay {
-    fn start(sim_side: u16, daemon_port: u16, delay_s: f64, jitter_s: f64, seed: u64) -> Relay {
+    fn start(daemon: SocketAddr, delay_s: f64, jitter_s: f64, seed: u64) -> Relay {
         let stop = Arc::new(AtomicBool::new(false));
-        let from_sim = UdpSocket::bind(("127.0.0.1", sim_side)).unwrap();
+        let from_sim = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let addr = from_sim.local_addr().unwrap();
         from_sim
             .set_read_timeout(Some(Duration::from_millis(50)))
             .unwrap();
@@ -100,7 +103,7 @@ impl Relay {
                     let now = Instant::now();
                     queue.retain(|(t, b)| {
                         if *t <= now {
-                            let _ = s.send_to(b, ("127.0.0.1", daemon_port));
+                            let _ = s.send_to(b, daemon);
                             false
                         } else {
                             true
@@ -123,7 +126,11 @@ impl Relay {
                 }
             }));
         }
-        Relay { stop, threads }
+        Relay {
+            addr,
+            stop,
+            threads,
+        }
     }
 
     fn stop(self) {
@@ -173,29 +180,38 @@ fn angle_diff_deg(a: f64, b: f64) -> f64 {
 
 fn fly(stress: Option<f64>, flight_s: Option<f64>) -> Run {
     let dir = tempfile::tempdir().unwrap();
-    let video_port = free_tcp_port();
-    let mav_port = free_udp_port();
+    // The simulator's video and the daemon's link on sockets bound here
+    // (port 0) and handed to the daemon.
+    let video = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let link = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let video_addr = video.local_addr().unwrap();
+    let link_addr = link.local_addr().unwrap();
     let mut cfg = Config::default();
-    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
-    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
-    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
+    cfg.sim.video_listen = video_addr.to_string();
+    cfg.video.url = format!("http://{video_addr}/video.mjpg");
+    cfg.link.url = format!("udpin:{link_addr}");
     cfg.server.bind = "127.0.0.1:0".into();
     cfg.sim.truth_dir = Some("truth".into());
     // The simulator's camera mount: the lever arm turns with the heading.
     cfg.geo.mount.lever_arm_frame = LeverArmFrame::Heading;
     let relay = match stress {
         None => {
-            cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
+            cfg.sim.mavlink = format!("udpout:{link_addr}");
             None
         }
         Some(latency_s) => {
-            let relay_port = free_udp_port();
-            cfg.sim.mavlink = format!("udpout:127.0.0.1:{relay_port}");
+            let relay = Relay::start(link_addr, 0.1, 0.1, 7);
+            cfg.sim.mavlink = format!("udpout:{}", relay.addr);
             cfg.geo.history.telemetry_clock = TelemetryClock::Received;
             cfg.geo.history.use_frame_timestamps = false;
             cfg.geo.history.video_latency_s = latency_s;
-            Some(Relay::start(relay_port, mav_port, 0.1, 0.1, 7))
+            Some(relay)
         }
+    };
+    let sockets = shotpilot::daemon::Sockets {
+        link: Some(link),
+        sim_video: Some(video),
+        ..Default::default()
     };
     cfg.validate(Path::new("test")).unwrap();
     let vehicle = shotpilot_sim::vehicle::VehicleParams::default();
@@ -211,7 +227,8 @@ fn fly(stress: Option<f64>, flight_s: Option<f64>) -> Run {
     let (tx, rx) = tokio::sync::oneshot::channel();
     let base = dir.path().to_owned();
     let c = cancel.clone();
-    let daemon = rt.spawn(async move { shotpilot::daemon::run(cfg, &base, c, Some(tx)).await });
+    let daemon =
+        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
     let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
     let t0 = Instant::now();
 

@@ -167,17 +167,21 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
     let _one = ONE_FLIGHT.lock().await;
     let dir = tempfile::tempdir()?;
     let cancel = CancellationToken::new();
-    let port = link_support::free_udp_port();
+    let (socket, addr) = link_support::bound_udp();
     let mut cfg = SimConfig::default().with_flavour(match flavour {
         Flavour::Px4 => SimFlavour::Px4,
         Flavour::ArduPilot => SimFlavour::ArduPilot,
     });
-    cfg.mavlink = Endpoint::UdpIn(format!("127.0.0.1:{port}"));
+    cfg.mavlink = Endpoint::UdpIn(addr.to_string());
     cfg.video_listen = None;
     cfg.capture_dir = dir.path().join("captures");
     cfg.sensor_noise = false;
-    let sim = tokio::spawn(app::run(cfg, cancel.child_token()));
-    let (relay, trace) = start_relay(format!("127.0.0.1:{port}"), &cancel).await?;
+    let sockets = app::Sockets {
+        mavlink: Some(socket),
+        ..Default::default()
+    };
+    let sim = tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
+    let (relay, trace) = start_relay(addr.to_string(), &cancel).await?;
     let (link, _task) = vehicle::spawn(
         Params {
             url: format!("udpout:{relay}"),

@@ -104,7 +104,17 @@ async fn tracks_vehicle_and_caches_telemetry() -> anyhow::Result<()> {
 async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let fake_cancel = CancellationToken::new();
-    let (addr, _fake) = start_fake(FakeConfig::clean(Habit::ArduPilot), &fake_cancel);
+    // The port stays ours for the second vehicle: each fake gets a
+    // duplicate of one socket bound here.
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0")?;
+    let addr = socket.local_addr()?;
+    let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
+    tokio::spawn(link_support::run_fake_on(
+        socket.try_clone()?,
+        FakeConfig::clean(Habit::ArduPilot),
+        state,
+        fake_cancel.child_token(),
+    ));
     let (link, _task) = vehicle::spawn(
         params(format!("udpout:{addr}")),
         upload::Params::default(),
@@ -135,8 +145,8 @@ async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
     // a new vehicle process on the same port: the link comes back
     let cfg = FakeConfig::clean(Habit::ArduPilot);
     let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
-    tokio::spawn(link_support::run_fake(
-        format!("udpin:{addr}"),
+    tokio::spawn(link_support::run_fake_on(
+        socket,
         cfg,
         state,
         cancel.child_token(),
@@ -235,19 +245,119 @@ async fn operator_commands_are_acknowledged() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `udpin:127.0.0.1:0`: the link binds a port the kernel picks and tells
+/// it (no port is guessed); a vehicle sending there is heard, and the
+/// link's answers reach it (a mission upload completes both ways).
+#[tokio::test(start_paused = true)]
+async fn udpin_on_port_zero_reports_the_bound_port() -> anyhow::Result<()> {
+    use shotpilot::mission::plan::{self, Home, Target};
+    let cancel = CancellationToken::new();
+    let (link, _task) = vehicle::spawn(
+        params("udpin:127.0.0.1:0".into()),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    let bound = link.bound_addr(Duration::from_secs(5)).await?;
+    assert_eq!(bound.ip(), std::net::Ipv4Addr::LOCALHOST);
+    assert_ne!(bound.port(), 0);
+    let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
+    tokio::spawn(link_support::run_fake(
+        format!("udpout:{bound}"),
+        FakeConfig::clean(Habit::Px4),
+        state.clone(),
+        cancel.child_token(),
+    ));
+    let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    assert_eq!(v.flavour, Some(Flavour::Px4));
+    let home = Home {
+        lat_deg: HOME.0,
+        lon_deg: HOME.1,
+        alt_amsl_m: HOME.2,
+    };
+    let t = Target {
+        lat_deg: HOME.0 + 0.0002,
+        lon_deg: HOME.1,
+        alt_m: 12.0,
+        yaw_deg: 90.0,
+        gimbal_pitch_deg: -45.0,
+        photo: true,
+    };
+    let items = plan::plan(&t, &home, Flavour::Px4, &plan::Params::default())?;
+    link.upload_mission(items.clone()).await?;
+    let (uploads, received) = {
+        let s = state.lock().expect("lock");
+        (s.uploads, s.received.len())
+    };
+    assert_eq!((uploads, received), (1, items.len()));
+    cancel.cancel();
+    Ok(())
+}
+
+/// `spawn_with_socket`: the link listens on a socket the caller bound,
+/// reports that socket's address at once, and keeps it when the vehicle
+/// restarts from another port (the reply address is learnt again).
+#[tokio::test(start_paused = true)]
+async fn listens_on_a_socket_the_caller_bound() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0")?;
+    let addr = socket.local_addr()?;
+    // The URL's address is never bound: the socket's is used.
+    let (link, _task) = vehicle::spawn_with_socket(
+        params("udpin:127.0.0.1:9".into()),
+        upload::Params::default(),
+        cancel.clone(),
+        socket,
+    )?;
+    assert_eq!(link.bound_addr(Duration::ZERO).await?, addr);
+    let fake_cancel = cancel.child_token();
+    let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
+    tokio::spawn(link_support::run_fake(
+        format!("udpout:{addr}"),
+        FakeConfig::clean(Habit::ArduPilot),
+        state,
+        fake_cancel.clone(),
+    ));
+    let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    assert_eq!(v.flavour, Some(Flavour::ArduPilot));
+    fake_cancel.cancel();
+    let mut rx = link.telemetry.vehicle.clone();
+    tokio::time::timeout(Duration::from_secs(4), rx.wait_for(|v| v.link_lost)).await??;
+    // The next vehicle sends from a new port: heard, and answered there
+    // (its upload completes).
+    let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
+    tokio::spawn(link_support::run_fake(
+        format!("udpout:{addr}"),
+        FakeConfig::clean(Habit::Px4),
+        state.clone(),
+        cancel.child_token(),
+    ));
+    let v = link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    assert_eq!(v.flavour, Some(Flavour::Px4));
+    assert_eq!(link.bound_addr(Duration::ZERO).await?, addr);
+    let n = link.download_mission().await?.items.len();
+    assert_eq!(n, 0, "the new vehicle holds no mission");
+    cancel.cancel();
+    Ok(())
+}
+
 #[tokio::test(start_paused = true)]
 async fn reconnects_when_tcp_peer_goes_away() -> anyhow::Result<()> {
     use mavlink::dialects::common::*;
-    use mavlink::{AsyncMavConnection, MavHeader};
-    let port = link_support::free_udp_port();
-    let addr = format!("127.0.0.1:{port}");
+    use mavlink::{AsyncConnectable, AsyncMavConnection, ConnectionAddress, MavHeader, TcpConfig};
+    // The vehicle's port, bound here but not yet listening: connecting is
+    // refused until the server below listens.
+    let socket = tokio::net::TcpSocket::new_v4()?;
+    socket.bind("127.0.0.1:0".parse()?)?;
+    let addr = socket.local_addr()?;
     let cancel = CancellationToken::new();
-    let server_addr = addr.clone();
     // a vehicle that accepts, sends two heartbeats and hangs up, twice
     let server = tokio::spawn(async move {
+        let listener = socket.listen(4)?;
         for _ in 0..2 {
-            let conn =
-                mavlink::connect_async::<MavMessage>(&format!("tcpin:{server_addr}")).await?;
+            let (stream, _) = listener.accept().await?;
+            let conn = ConnectionAddress::Tcp(TcpConfig::from_stream(stream.into_std()?)?)
+                .connect_async::<MavMessage>()
+                .await?;
             let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
                 custom_mode: 0,
                 mavtype: MavType::MAV_TYPE_QUADROTOR,
@@ -320,6 +430,91 @@ async fn stop_is_a_hold_acknowledged_by_the_vehicle() -> anyhow::Result<()> {
         assert_eq!(sent[0][..3], want, "{habit:?}");
         cancel.cancel();
     }
+    Ok(())
+}
+
+/// A stop is never held up by another command in flight: with a gimbal
+/// command the vehicle never answers, the stop's DO_SET_MODE goes out at
+/// once (before the gimbal command's first retry), comes back with the
+/// vehicle's ACK, and the gimbal command runs out its own retries.
+#[tokio::test(start_paused = true)]
+async fn stop_goes_out_while_another_command_waits() -> anyhow::Result<()> {
+    static SILENT: [(MavCmd, Option<mavlink::dialects::common::MavResult>); 1] =
+        [(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, None)];
+    let cancel = CancellationToken::new();
+    let cfg = FakeConfig {
+        command_results: &SILENT,
+        ..FakeConfig::clean(Habit::Px4)
+    };
+    let (addr, fake) = start_fake(cfg, &cancel);
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let gimbal = {
+        let link = link.clone();
+        tokio::spawn(async move {
+            link.command_long(
+                MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+                [-30.0, 0.0, f32::NAN, f32::NAN, 0.0, 0.0, 0.0],
+                None,
+            )
+            .await
+        })
+    };
+    let seen = |c: MavCmd| {
+        fake.lock()
+            .map(|s| s.commands.iter().filter(|(k, _)| *k == c).count())
+            .unwrap_or(0)
+    };
+    let mut waited = 0;
+    while seen(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW) == 0 {
+        anyhow::ensure!(waited < 100, "the gimbal command never reached the vehicle");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+        waited += 1;
+    }
+    let ack = link.hold().await?;
+    assert_eq!(ack.command, "MAV_CMD_DO_SET_MODE");
+    assert_eq!(ack.mode, "AUTO.LOITER");
+    assert_eq!(ack.result, "MAV_RESULT_ACCEPTED");
+    let r = gimbal.await?;
+    let Err(LinkError::CommandTimeout { command, attempts }) = r else {
+        panic!("the unanswered gimbal command times out by itself: {r:?}");
+    };
+    assert_eq!(command, 1000);
+    assert!(attempts >= 2, "{attempts}");
+    let order: Vec<MavCmd> = fake
+        .lock()
+        .expect("lock")
+        .commands
+        .iter()
+        .map(|(c, _)| *c)
+        .filter(|c| {
+            matches!(
+                c,
+                MavCmd::MAV_CMD_DO_SET_MODE | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW
+            )
+        })
+        .collect();
+    assert_eq!(
+        order
+            .iter()
+            .filter(|c| **c == MavCmd::MAV_CMD_DO_SET_MODE)
+            .count(),
+        1,
+        "{order:?}"
+    );
+    assert_eq!(
+        order[..2],
+        [
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+            MavCmd::MAV_CMD_DO_SET_MODE
+        ],
+        "the stop went out before the gimbal command's first retry: {order:?}"
+    );
+    cancel.cancel();
     Ok(())
 }
 

@@ -11,7 +11,6 @@ use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use link_support::free_udp_port;
 use shotpilot::mission::plan::{self, Flavour, Home, Target};
 use shotpilot::mission::upload;
 use shotpilot::vehicle::{self, LinkError, Params, Signing};
@@ -30,24 +29,22 @@ fn python() -> String {
     })
 }
 
+/// A running pymavlink vehicle: the process, its stdout, and the port it
+/// bound (it binds port 0 and says which it got).
+type Peer = (Child, BufReader<std::process::ChildStdout>, u16);
+
 /// Starts the pymavlink vehicle; returns once its socket is bound.
-fn start_peer(
-    port: u16,
-    key: Option<&str>,
-    seconds: f64,
-    serve_upload: bool,
-) -> anyhow::Result<(Child, BufReader<std::process::ChildStdout>)> {
-    start_peer_as(port, key, seconds, serve_upload, "px4")
+fn start_peer(key: Option<&str>, seconds: f64, serve_upload: bool) -> anyhow::Result<Peer> {
+    start_peer_as(key, seconds, serve_upload, "px4")
 }
 
 /// [`start_peer`] with the autopilot it claims to be (`px4`, `ardupilot`).
 fn start_peer_as(
-    port: u16,
     key: Option<&str>,
     seconds: f64,
     serve_upload: bool,
     autopilot: &str,
-) -> anyhow::Result<(Child, BufReader<std::process::ChildStdout>)> {
+) -> anyhow::Result<Peer> {
     let script = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/tests/peers/pymavlink_vehicle.py"
@@ -55,7 +52,7 @@ fn start_peer_as(
     let mut cmd = Command::new(python());
     cmd.arg(script)
         .arg("--port")
-        .arg(port.to_string())
+        .arg("0")
         .arg("--seconds")
         .arg(seconds.to_string());
     if let Some(k) = key {
@@ -73,8 +70,12 @@ fn start_peer_as(
     let mut reader = BufReader::new(stdout);
     let mut line = String::new();
     reader.read_line(&mut line)?;
-    anyhow::ensure!(line.trim() == "ready", "peer said {line:?}");
-    Ok((child, reader))
+    let port = line
+        .trim()
+        .strip_prefix("ready ")
+        .and_then(|p| p.parse::<u16>().ok())
+        .ok_or_else(|| anyhow::anyhow!("peer said {line:?}"))?;
+    Ok((child, reader, port))
 }
 
 fn finish_peer(
@@ -102,8 +103,7 @@ fn link_params(port: u16, key: Option<&str>) -> Params {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs pymavlink"]
 async fn pymavlink_decodes_heartbeat_and_items() -> anyhow::Result<()> {
-    let port = free_udp_port();
-    let (child, reader) = start_peer(port, None, 10.0, true)?;
+    let (child, reader, port) = start_peer(None, 10.0, true)?;
     let cancel = CancellationToken::new();
     let (link, _task) = vehicle::spawn(
         link_params(port, None),
@@ -172,8 +172,7 @@ async fn pymavlink_decodes_heartbeat_and_items() -> anyhow::Result<()> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs pymavlink"]
 async fn signed_frames_verify_with_the_right_key() -> anyhow::Result<()> {
-    let port = free_udp_port();
-    let (child, reader) = start_peer(port, Some(KEY), 4.0, false)?;
+    let (child, reader, port) = start_peer(Some(KEY), 4.0, false)?;
     let cancel = CancellationToken::new();
     let (link, _task) = vehicle::spawn(
         link_params(port, Some(KEY)),
@@ -199,8 +198,7 @@ async fn signed_frames_verify_with_the_right_key() -> anyhow::Result<()> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "needs pymavlink"]
 async fn signed_frames_are_rejected_with_a_wrong_key() -> anyhow::Result<()> {
-    let port = free_udp_port();
-    let (child, reader) = start_peer(port, Some(WRONG), 4.0, false)?;
+    let (child, reader, port) = start_peer(Some(WRONG), 4.0, false)?;
     let cancel = CancellationToken::new();
     let (link, _task) = vehicle::spawn(
         link_params(port, Some(KEY)),
@@ -228,8 +226,7 @@ async fn signed_frames_are_rejected_with_a_wrong_key() -> anyhow::Result<()> {
 async fn unsigned_frames_are_rejected_by_a_signing_peer() -> anyhow::Result<()> {
     // control: without a key on our side, our frames are unsigned, and a
     // pymavlink vehicle that insists on signatures rejects them
-    let port = free_udp_port();
-    let (child, reader) = start_peer(port, Some(KEY), 3.0, false)?;
+    let (child, reader, port) = start_peer(Some(KEY), 3.0, false)?;
     let cancel = CancellationToken::new();
     let (_link, _task) = vehicle::spawn(
         link_params(port, None),
@@ -247,8 +244,7 @@ async fn unsigned_frames_are_rejected_by_a_signing_peer() -> anyhow::Result<()> 
 fn upload_via_cli(
     autopilot: &str,
 ) -> anyhow::Result<(Vec<serde_json::Value>, Vec<serde_json::Value>)> {
-    let port = free_udp_port();
-    let (child, reader) = start_peer_as(port, None, 15.0, true, autopilot)?;
+    let (child, reader, port) = start_peer_as(None, 15.0, true, autopilot)?;
     let target = "47.3981,8.5452,22.5,135,-40";
     let home = "47.397742,8.545594,488";
     let up = Command::new(env!("CARGO_BIN_EXE_shotpilot"))

@@ -5,13 +5,10 @@
 //! Needs `mavsdk` in the Python at `$SHOTPILOT_PYTHON` (default
 //! `/work/venv/bin/python`).
 
-mod link_support;
-
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use link_support::free_udp_port;
 use shotpilot::mission::plan::{self, Flavour, Home, Target};
 use shotpilot::mission::upload;
 use shotpilot::vehicle::{self, Params};
@@ -28,14 +25,22 @@ fn python() -> String {
 }
 
 async fn mavsdk_receives(flavour: Flavour) -> anyhow::Result<()> {
-    let port = free_udp_port();
+    // Our link listens on a port the kernel picks; MAVSDK sends there (it
+    // cannot report a port it bound itself).
+    let cancel = CancellationToken::new();
+    let p = Params {
+        url: "udpin:127.0.0.1:0".into(),
+        ..Params::default()
+    };
+    let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
+    let port = link.bound_addr(Duration::from_secs(5)).await?.port();
     let script = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/tests/peers/mavsdk_autopilot.py"
     );
     let mut child = Command::new(python())
         .arg(script)
-        .arg("--port")
+        .arg("--gcs-port")
         .arg(port.to_string())
         .stdout(Stdio::piped())
         .spawn()?;
@@ -48,12 +53,6 @@ async fn mavsdk_receives(flavour: Flavour) -> anyhow::Result<()> {
     reader.read_line(&mut line)?;
     anyhow::ensure!(line.trim() == "ready", "peer said {line:?}");
 
-    let cancel = CancellationToken::new();
-    let p = Params {
-        url: format!("udpout:127.0.0.1:{port}"),
-        ..Params::default()
-    };
-    let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
     let v = link.wait_for_vehicle(Duration::from_secs(8)).await?;
     let home = Home {
         lat_deg: -35.363261,

@@ -130,17 +130,21 @@ fn report(what: &str, n: usize, f: &Figures) {
 
 async fn lossy_udp(flavour: Flavour, n: usize, seed: u64) -> anyhow::Result<()> {
     let dir = tempfile::tempdir()?;
-    let port = link_support::free_udp_port();
+    let (socket, addr) = link_support::bound_udp();
     let cancel = CancellationToken::new();
     let cfg = sim_config(
-        Endpoint::UdpIn(format!("127.0.0.1:{port}")),
+        Endpoint::UdpIn(addr.to_string()),
         flavour,
         bad_radio(seed),
         dir.path(),
     );
-    let sim = tokio::spawn(app::run(cfg, cancel.child_token()));
+    let sockets = app::Sockets {
+        mavlink: Some(socket),
+        ..Default::default()
+    };
+    let sim = tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
     let p = Params {
-        url: format!("udpout:127.0.0.1:{port}"),
+        url: format!("udpout:{addr}"),
         link_lost_after_ms: 8000,
         ..Params::default()
     };

@@ -45,7 +45,7 @@ async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
     let _one = ONE_FLIGHT.lock().await;
     let dir = tempfile::tempdir()?;
     let cancel = CancellationToken::new();
-    let port = link_support::free_udp_port();
+    let (socket, addr) = link_support::bound_udp();
     let mut cfg = SimConfig::default().with_flavour(match flavour {
         Flavour::Px4 => SimFlavour::Px4,
         Flavour::ArduPilot => SimFlavour::ArduPilot,
@@ -54,14 +54,18 @@ async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
         !cfg.autopilot.vehicle.gps_bias.enabled(),
         "the reported position is the truth only without GPS bias"
     );
-    cfg.mavlink = Endpoint::UdpIn(format!("127.0.0.1:{port}"));
+    cfg.mavlink = Endpoint::UdpIn(addr.to_string());
     cfg.video_listen = None;
     cfg.capture_dir = dir.path().join("captures");
     cfg.sensor_noise = false;
-    let _sim = tokio::spawn(app::run(cfg, cancel.child_token()));
+    let sockets = app::Sockets {
+        mavlink: Some(socket),
+        ..Default::default()
+    };
+    let _sim = tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
     let (link, _task) = vehicle::spawn(
         Params {
-            url: format!("udpout:127.0.0.1:{port}"),
+            url: format!("udpout:{addr}"),
             ..Params::default()
         },
         upload::Params::default(),

@@ -34,6 +34,7 @@ use daemon_support::{get_json, http};
 use serde_json::Value;
 use shotpilot::config::VideoConfig;
 use shotpilot::video::live::Ingest;
+use shotpilot::video::udp::RtpSockets;
 use tokio_util::sync::CancellationToken;
 
 /// A peer process, killed when dropped.
@@ -466,20 +467,21 @@ fn refine(addr: std::net::SocketAddr, sid: &str) -> (Value, f64) {
 /// stops.
 fn end_to_end<P, Q>(
     name: &str,
-    setup: impl FnOnce(&mut shotpilot::config::Config) -> P,
+    setup: impl FnOnce(&mut shotpilot::config::Config, &mut shotpilot::daemon::Sockets) -> P,
     after_start: impl FnOnce(std::net::SocketAddr) -> Q,
 ) -> Figures {
     let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = daemon_support::sim_config();
-    let _peers = setup(&mut cfg);
+    let (mut cfg, mut sockets) = daemon_support::sim_config();
+    let _peers = setup(&mut cfg, &mut sockets);
     cfg.validate(Path::new("test")).unwrap();
     let rt = runtime();
     let cancel = CancellationToken::new();
     let (tx, rx) = tokio::sync::oneshot::channel();
     let base = dir.path().to_owned();
     let c = cancel.clone();
-    let daemon = rt.spawn(async move { shotpilot::daemon::run(cfg, &base, c, Some(tx)).await });
+    let daemon =
+        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
     let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
     let t0 = Instant::now();
     let _late_peers = after_start(addr);
@@ -613,20 +615,21 @@ fn sim_mjpeg_url(cfg: &shotpilot::config::Config) -> String {
     format!("http://{}/video.mjpg", cfg.sim.video_listen)
 }
 
-/// A port for the simulator's RTP whose next port (RTCP) is free too.
-fn free_rtp_port() -> u16 {
-    loop {
-        let p = daemon_support::free_udp_port();
-        if p < u16::MAX && std::net::UdpSocket::bind(("127.0.0.1", p + 1)).is_ok() {
-            return p;
-        }
-    }
+/// The daemon's RTP and RTCP sockets, bound here (an RTP port the kernel
+/// picks with a free one beside it) and handed to the daemon; the
+/// simulator sends to the returned port.
+fn rtp_sockets(sockets: &mut shotpilot::daemon::Sockets) -> u16 {
+    let pair =
+        RtpSockets::bind_pair(std::net::Ipv4Addr::LOCALHOST.into()).expect("an RTP/RTCP port pair");
+    let port = pair.rtp_addr().expect("the RTP address").port();
+    sockets.video_rtp = Some(pair);
+    port
 }
 
 /// The MJPEG baseline (no peer).
 #[test]
 fn end_to_end_mjpeg_baseline() {
-    end_to_end("mjpeg", |_| (), |_| ());
+    end_to_end("mjpeg", |_, _| (), |_| ());
 }
 
 #[test]
@@ -634,7 +637,7 @@ fn end_to_end_mjpeg_baseline() {
 fn end_to_end_rtsp_h264() {
     end_to_end(
         "rtsp",
-        |cfg| {
+        |cfg, _| {
             let (srv, port) = rtsp_server(&["--mjpeg", &sim_mjpeg_url(cfg)]);
             cfg.video.url = format!("rtsp://127.0.0.1:{port}/main.264");
             srv
@@ -648,8 +651,8 @@ fn end_to_end_rtsp_h264() {
 fn end_to_end_rtp_udp_from_the_simulator() {
     end_to_end(
         "rtp-udp",
-        |cfg| {
-            let port = free_rtp_port();
+        |cfg, sockets| {
+            let port = rtp_sockets(sockets);
             cfg.sim.rtp_out = Some(format!("127.0.0.1:{port}"));
             cfg.video.url = format!("udp://127.0.0.1:{port}");
         },
@@ -663,8 +666,8 @@ fn end_to_end_rtp_udp_from_the_simulator() {
 fn end_to_end_auto_finds_the_simulators_rtp() {
     end_to_end(
         "auto",
-        |cfg| {
-            let port = free_rtp_port();
+        |cfg, sockets| {
+            let port = rtp_sockets(sockets);
             cfg.sim.rtp_out = Some(format!("127.0.0.1:{port}"));
             cfg.video.url = "auto".into();
         },

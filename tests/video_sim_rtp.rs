@@ -8,9 +8,6 @@
 //! the capture time it was sent with once the first sender report is in.
 //! The SDP the simulator writes is read back by the daemon's SDP parser.
 
-#[path = "ports/mod.rs"]
-mod ports;
-
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -23,16 +20,6 @@ use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::rtp::{H264Encoder, RtpOutParams, RtpSender, sdp};
 use shotpilot_sim::world::World;
 use tokio_util::sync::CancellationToken;
-
-/// A port whose next port (RTCP) is free too.
-fn free_rtp_port() -> u16 {
-    loop {
-        let p = ports::free_udp_port();
-        if p < u16::MAX && std::net::UdpSocket::bind(("127.0.0.1", p + 1)).is_ok() {
-            return p;
-        }
-    }
-}
 
 fn psnr(a: &GrayImage, b: &GrayImage) -> f64 {
     let mse = a
@@ -71,14 +58,15 @@ fn simulator_rtp_reaches_the_daemon_with_capture_times_and_quality() {
         })
         .collect();
 
-    let port = free_rtp_port();
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .unwrap();
     let cfg = VideoConfig {
-        url: format!("udp://127.0.0.1:{port}"),
+        // Port 0: the source binds an RTP port the kernel picks, with its
+        // RTCP port beside it, and shows it in its URL.
+        url: "udp://127.0.0.1:0".into(),
         decode_queue: 64,
         ..Default::default()
     };
@@ -90,10 +78,16 @@ fn simulator_rtp_reaches_the_daemon_with_capture_times_and_quality() {
         cancel.clone(),
         None,
     ));
-    assert!(poll(Duration::from_secs(10), || ingest
-        .source_info()
-        .url
-        .ends_with(&format!(":{port}"))));
+    let bound = || {
+        ingest
+            .source_info()
+            .url
+            .strip_prefix("udp://")
+            .and_then(|a| a.parse::<std::net::SocketAddr>().ok())
+            .filter(|a| a.port() != 0)
+    };
+    assert!(poll(Duration::from_secs(10), || bound().is_some()));
+    let port = bound().map(|a| a.port()).unwrap_or(0);
     // Every decoded frame: (decoded frame number, capture time, image).
     let mut rx = ingest.subscribe();
     let seen = rt.spawn(async move {

@@ -31,7 +31,7 @@ use crate::camera::SimCamera;
 use crate::dataset::{TruthWriter, renderer_for, world_params_for};
 use crate::disturbance::LatencyProcess;
 use crate::imaging::Imager;
-use crate::link::{Endpoint, LinkError, LinkParams, LinkStats, RadioParams, spawn_link};
+use crate::link::{Endpoint, LinkError, LinkParams, LinkStats, RadioParams, spawn_link_on};
 use crate::live::{LIVE_EXPOSURE_LAG_S, PoseHistory};
 use crate::realism::Realism;
 use crate::render::{RenderParams, Renderer};
@@ -307,7 +307,29 @@ fn write_capture(
 /// Run the simulator until `cancel` fires, serving video on
 /// `config.video_listen` (if set).
 pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSummary, SimError> {
-    run_announcing(config, cancel, false).await
+    run_on(config, cancel, Sockets::default()).await
+}
+
+/// Sockets a caller bound before starting the simulator (as mini-redis's
+/// `server::run` takes its listener): a test binds port 0, keeps the
+/// socket, knows the port, and no other process can take it meanwhile.
+#[derive(Debug, Default)]
+pub struct Sockets {
+    /// The video server's listener, used instead of binding
+    /// `video_listen` (the server runs even if `video_listen` is None).
+    pub video: Option<std::net::TcpListener>,
+    /// The MAVLink endpoint's UDP socket: a `udpin:` endpoint listens on
+    /// it, a `udpout:` one sends from it (its own address is not bound).
+    pub mavlink: Option<std::net::UdpSocket>,
+}
+
+/// [`run`] on sockets the caller has already bound.
+pub async fn run_on(
+    config: SimConfig,
+    cancel: CancellationToken,
+    sockets: Sockets,
+) -> Result<RunSummary, SimError> {
+    run_bound(config, cancel, sockets, false).await
 }
 
 /// [`run`]; with `announce`, once the video server and the MAVLink
@@ -315,21 +337,45 @@ pub async fn run(config: SimConfig, cancel: CancellationToken) -> Result<RunSumm
 /// (`shotpilot-sim bound: video=ADDR mavlink=ADDR`, `-` for none), so a
 /// caller that asked for port 0 knows where to connect.
 pub async fn run_announcing(
+    config: SimConfig,
+    cancel: CancellationToken,
+    announce: bool,
+) -> Result<RunSummary, SimError> {
+    run_bound(config, cancel, Sockets::default(), announce).await
+}
+
+async fn run_bound(
     mut config: SimConfig,
     cancel: CancellationToken,
+    sockets: Sockets,
     announce: bool,
 ) -> Result<RunSummary, SimError> {
     config.validate()?;
     let (video_tx, video_rx) = watch::channel(None);
     let mut video_bound = None;
-    if let Some(addr) = config.video_listen {
-        let listener = tokio::net::TcpListener::bind(addr)
-            .await
-            .map_err(|source| SimError::Io {
-                what: "binding the video server on",
-                path: PathBuf::from(addr.to_string()),
-                source,
-            })?;
+    let video_err = |addr: String| {
+        move |source| SimError::Io {
+            what: "binding the video server on",
+            path: PathBuf::from(addr),
+            source,
+        }
+    };
+    let listener = match (sockets.video, config.video_listen) {
+        (Some(l), _) => {
+            let named = l
+                .local_addr()
+                .map_or_else(|_| "a given listener".into(), |a| a.to_string());
+            l.set_nonblocking(true).map_err(video_err(named.clone()))?;
+            Some(tokio::net::TcpListener::from_std(l).map_err(video_err(named))?)
+        }
+        (None, Some(addr)) => Some(
+            tokio::net::TcpListener::bind(addr)
+                .await
+                .map_err(video_err(addr.to_string()))?,
+        ),
+        (None, None) => None,
+    };
+    if let Some(listener) = listener {
         video_bound = listener.local_addr().ok();
         // Without an RTP stream, the camera announces its MJPEG stream.
         if config.rtp_out.is_none()
@@ -347,7 +393,14 @@ pub async fn run_announcing(
     } else {
         drop(video_rx);
     }
-    run_inner(config, cancel, video_tx, announce.then_some(video_bound)).await
+    run_inner(
+        config,
+        cancel,
+        video_tx,
+        sockets.mavlink,
+        announce.then_some(video_bound),
+    )
+    .await
 }
 
 /// [`run`] without its video server: frames are published on `video_tx`
@@ -358,7 +411,7 @@ pub async fn run_with(
     cancel: CancellationToken,
     video_tx: watch::Sender<Option<Arc<VideoFrame>>>,
 ) -> Result<RunSummary, SimError> {
-    run_inner(config, cancel, video_tx, None).await
+    run_inner(config, cancel, video_tx, None, None).await
 }
 
 /// The simulation; `announce` (Some: the video server's bound address)
@@ -367,6 +420,7 @@ async fn run_inner(
     config: SimConfig,
     cancel: CancellationToken,
     video_tx: watch::Sender<Option<Arc<VideoFrame>>>,
+    mavlink_socket: Option<std::net::UdpSocket>,
     announce: Option<Option<SocketAddr>>,
 ) -> Result<RunSummary, SimError> {
     config.validate()?;
@@ -415,13 +469,14 @@ async fn run_inner(
             realism.effects_on().join(", ")
         );
     }
-    let mut link = spawn_link(
+    let mut link = spawn_link_on(
         LinkParams {
             endpoint: config.mavlink.clone(),
             radio: config.radio,
             system_id: config.autopilot.system_id,
             component_id: config.autopilot.component_id,
         },
+        mavlink_socket,
         cancel.clone(),
     )
     .await?;

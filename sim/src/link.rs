@@ -590,7 +590,11 @@ struct Transport {
     local: Option<SocketAddr>,
 }
 
-async fn open_transport(ep: &Endpoint, cancel: CancellationToken) -> Result<Transport, LinkError> {
+async fn open_transport(
+    ep: &Endpoint,
+    socket: Option<std::net::UdpSocket>,
+    cancel: CancellationToken,
+) -> Result<Transport, LinkError> {
     let (in_tx, in_rx) = mpsc::channel::<Vec<u8>>(256);
     let (out_tx, mut out_rx) = mpsc::channel::<Vec<u8>>(256);
     let open_err = |source| LinkError::Open {
@@ -598,15 +602,24 @@ async fn open_transport(ep: &Endpoint, cancel: CancellationToken) -> Result<Tran
         source,
     };
     let mut local = None;
+    if socket.is_some() && !matches!(ep, Endpoint::UdpIn(_) | Endpoint::UdpOut(_)) {
+        return Err(open_err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "a bound UDP socket needs a udpin: or udpout: endpoint",
+        )));
+    }
     match ep {
         Endpoint::UdpIn(addr) | Endpoint::UdpOut(addr) => {
             let listen = matches!(ep, Endpoint::UdpIn(_));
-            let sock = if listen {
-                tokio::net::UdpSocket::bind(addr).await.map_err(open_err)?
-            } else {
-                tokio::net::UdpSocket::bind("0.0.0.0:0")
+            let sock = match socket {
+                Some(s) => {
+                    s.set_nonblocking(true).map_err(open_err)?;
+                    tokio::net::UdpSocket::from_std(s).map_err(open_err)?
+                }
+                None if listen => tokio::net::UdpSocket::bind(addr).await.map_err(open_err)?,
+                None => tokio::net::UdpSocket::bind("0.0.0.0:0")
                     .await
-                    .map_err(open_err)?
+                    .map_err(open_err)?,
             };
             if listen {
                 local = sock.local_addr().ok();
@@ -771,7 +784,19 @@ pub async fn spawn_link(
     params: LinkParams,
     cancel: CancellationToken,
 ) -> Result<LinkHandle, LinkError> {
-    let mut transport = open_transport(&params.endpoint, cancel.clone()).await?;
+    spawn_link_on(params, None, cancel).await
+}
+
+/// [`spawn_link`] on a UDP socket the caller has already bound (a
+/// `udpin:`/`udpout:` endpoint then reads and writes through it instead of
+/// binding its address), so a caller that bound port 0 knows the port
+/// before the simulator starts.
+pub async fn spawn_link_on(
+    params: LinkParams,
+    socket: Option<std::net::UdpSocket>,
+    cancel: CancellationToken,
+) -> Result<LinkHandle, LinkError> {
+    let mut transport = open_transport(&params.endpoint, socket, cancel.clone()).await?;
     let local_addr = transport.local;
     let (to_link, mut app_rx) = mpsc::channel::<MavMessage>(1024);
     let (app_tx, from_link) = mpsc::channel::<(MavHeader, MavMessage)>(1024);
@@ -1036,6 +1061,51 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn udpin_link_on_a_socket_the_caller_bound() {
+        let cancel = CancellationToken::new();
+        let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+        let addr = socket.local_addr().expect("addr");
+        let mut link = spawn_link_on(
+            LinkParams {
+                // The address is the socket's: the URL's is not bound.
+                endpoint: Endpoint::UdpIn("127.0.0.1:9".into()),
+                radio: RadioParams::default(),
+                system_id: 1,
+                component_id: 1,
+            },
+            Some(socket),
+            cancel.clone(),
+        )
+        .await
+        .expect("link");
+        assert_eq!(link.local_addr, Some(addr));
+        let peer = tokio::net::UdpSocket::bind("127.0.0.1:0")
+            .await
+            .expect("bind");
+        let hello = encode_v2(header(4), &hb());
+        peer.send_to(&hello, addr).await.expect("send");
+        let (h, m) = tokio::time::timeout(Duration::from_secs(10), link.from_link.recv())
+            .await
+            .expect("the link hears the peer")
+            .expect("msg");
+        assert_eq!(h.sequence, 4);
+        assert!(matches!(m, MavMessage::HEARTBEAT(_)));
+        // Replies go to the peer it heard.
+        link.to_link.send(hb()).await.expect("send");
+        let mut buf = [0u8; 512];
+        let (n, from) = tokio::time::timeout(Duration::from_secs(10), peer.recv_from(&mut buf))
+            .await
+            .expect("the peer hears the link")
+            .expect("recv");
+        assert_eq!(from, addr);
+        let mut p = FrameParser::new();
+        p.push(&buf[..n]);
+        let (h, _, _) = decode_frame(&p.next_frame().expect("frame")).expect("decode");
+        assert_eq!(h.system_id, 1);
+        cancel.cancel();
+    }
+
+    #[tokio::test]
     async fn udp_link_round_trip_with_a_peer_socket() {
         let cancel = CancellationToken::new();
         let peer = tokio::net::UdpSocket::bind("127.0.0.1:0")
@@ -1089,13 +1159,9 @@ mod tests {
     #[tokio::test]
     async fn tcpin_link_with_a_client_and_a_bandwidth_cap() {
         let cancel = CancellationToken::new();
-        let port = {
-            let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
-            l.local_addr().expect("addr").port()
-        };
         let link = spawn_link(
             LinkParams {
-                endpoint: Endpoint::TcpIn(format!("127.0.0.1:{port}")),
+                endpoint: Endpoint::TcpIn("127.0.0.1:0".into()),
                 radio: RadioParams {
                     down: RadioDirParams {
                         baud: Some(9600),
@@ -1111,7 +1177,8 @@ mod tests {
         )
         .await
         .expect("link");
-        let mut client = tokio::net::TcpStream::connect(("127.0.0.1", port))
+        let bound = link.local_addr.expect("tcpin reports its bound address");
+        let mut client = tokio::net::TcpStream::connect(bound)
             .await
             .expect("connect");
         tokio::time::sleep(Duration::from_millis(100)).await;

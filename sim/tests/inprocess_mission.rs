@@ -15,7 +15,7 @@ use mavlink::dialects::common::{
     MavCmd, MavFrame, MavMessage, MavMissionResult, MavMissionType, MavResult, MavType,
     MissionState,
 };
-use shotpilot_sim::app::{SimConfig, run};
+use shotpilot_sim::app::{SimConfig, Sockets, run_on};
 use shotpilot_sim::geodesy::LocalFrame;
 use shotpilot_sim::link::{Endpoint, FrameParser, decode_frame, encode_v2};
 use tokio::net::UdpSocket;
@@ -102,23 +102,27 @@ fn command(cmd: MavCmd, p1: f32) -> MavMessage {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn in_process_sim_flies_an_uploaded_mission_and_captures() {
-    let port = {
-        let s = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
-        s.local_addr().expect("addr").port()
-    };
+    // The simulator's socket, bound here (port 0) and handed over: the
+    // port is known and stays taken.
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+    let addr = socket.local_addr().expect("addr");
     let dir = tempfile::tempdir().expect("tempdir");
     let config = SimConfig {
-        mavlink: Endpoint::UdpIn(format!("127.0.0.1:{port}")),
+        mavlink: Endpoint::UdpIn(addr.to_string()),
         video_listen: None,
         capture_dir: dir.path().join("captures"),
         ..SimConfig::default()
     };
     let home = config.autopilot.vehicle.home;
     let cancel = CancellationToken::new();
-    let sim = tokio::spawn(run(config, cancel.clone()));
+    let sockets = Sockets {
+        mavlink: Some(socket),
+        ..Default::default()
+    };
+    let sim = tokio::spawn(run_on(config, cancel.clone(), sockets));
 
     let sock = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
-    sock.connect(("127.0.0.1", port)).await.expect("connect");
+    sock.connect(addr).await.expect("connect");
     let mut g = Gcs {
         sock,
         seq: 0,

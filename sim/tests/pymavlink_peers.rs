@@ -3,6 +3,7 @@
 //! `SHOTPILOT_PYTHON` (default `/work/venv/bin/python` if it exists, else
 //! `python3`) and run `cargo test -p shotpilot-sim --release -- --ignored`.
 
+use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
@@ -19,10 +20,6 @@ fn python() -> PathBuf {
     }
 }
 
-#[path = "../../tests/ports/mod.rs"]
-mod ports;
-use ports::free_udp_port;
-
 struct Sim(Child);
 
 impl Drop for Sim {
@@ -32,11 +29,11 @@ impl Drop for Sim {
     }
 }
 
-fn start_sim(port: u16, extra: &[&str]) -> Sim {
+fn start_sim(peer: &str, extra: &[&str]) -> Sim {
     let dir = tempfile::tempdir().expect("tempdir");
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_shotpilot-sim"));
     cmd.arg("--mavlink")
-        .arg(format!("udpout:127.0.0.1:{port}"))
+        .arg(format!("udpout:{peer}"))
         .arg("--video-listen")
         .arg("off")
         .arg("--capture-dir")
@@ -47,30 +44,55 @@ fn start_sim(port: u16, extra: &[&str]) -> Sim {
     Sim(cmd.spawn().expect("start shotpilot-sim"))
 }
 
-fn run_peer(script: &str, port: u16, extra: &[&str], timeout: Duration) -> (bool, String) {
+/// Runs a peer script listening on a port the kernel picks (it says which
+/// on its first line), starts the simulator sending there, and waits for
+/// the peer's verdict: (success, its stdout).
+fn run_peer(script: &str, sim_extra: &[&str], extra: &[&str], timeout: Duration) -> (bool, String) {
     let path = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/peers")
         .join(script);
     let mut child = Command::new(python())
         .arg(path)
         .arg("--listen")
-        .arg(format!("udpin:127.0.0.1:{port}"))
+        .arg("udpin:127.0.0.1:0")
         .args(extra)
         .stdout(Stdio::piped())
         .spawn()
         .expect("start python");
+    let Some(stdout) = child.stdout.take() else {
+        let _ = child.kill();
+        let _ = child.wait();
+        return (false, "no stdout".into());
+    };
+    let mut stdout = BufReader::new(stdout);
+    let mut first = String::new();
+    let _ = stdout.read_line(&mut first);
+    let Some(port) = first
+        .trim()
+        .strip_prefix("listening ")
+        .and_then(|p| p.parse::<u16>().ok())
+    else {
+        let _ = child.kill();
+        let _ = child.wait();
+        return (false, format!("the peer did not say its port: {first:?}"));
+    };
+    let _sim = start_sim(&format!("127.0.0.1:{port}"), sim_extra);
+    // The verdict comes on stdout when the peer exits (read on a thread, so
+    // a hung peer is killed at `timeout`).
+    let reader = std::thread::spawn(move || {
+        let mut out = String::new();
+        let _ = stdout.read_to_string(&mut out);
+        out
+    });
     let start = std::time::Instant::now();
     loop {
         if let Some(status) = child.try_wait().expect("wait") {
-            let mut out = String::new();
-            if let Some(mut s) = child.stdout.take() {
-                use std::io::Read;
-                let _ = s.read_to_string(&mut out);
-            }
+            let out = reader.join().unwrap_or_default();
             return (status.success(), out);
         }
         if start.elapsed() > timeout {
             let _ = child.kill();
+            let _ = child.wait();
             return (false, "timeout".into());
         }
         std::thread::sleep(Duration::from_millis(100));
@@ -80,9 +102,7 @@ fn run_peer(script: &str, port: u16, extra: &[&str], timeout: Duration) -> (bool
 #[test]
 #[ignore = "needs pymavlink"]
 fn pymavlink_uploads_downloads_and_flies_a_three_item_mission() {
-    let port = free_udp_port();
-    let _sim = start_sim(port, &[]);
-    let (ok, out) = run_peer("fly_mission.py", port, &[], Duration::from_secs(200));
+    let (ok, out) = run_peer("fly_mission.py", &[], &[], Duration::from_secs(200));
     assert!(ok, "{out}");
     assert!(out.contains("\"identical\": true"), "{out}");
 }
@@ -90,8 +110,6 @@ fn pymavlink_uploads_downloads_and_flies_a_three_item_mission() {
 #[test]
 #[ignore = "needs pymavlink"]
 fn qgc_like_upload_survives_30_percent_drop_each_way() {
-    let port = free_udp_port();
-    let _sim = start_sim(port, &["--drop", "0.3", "--seed", "21"]);
     // QGroundControl's scheme (1.5 s timeout, re-send the pending message)
     // with 10 re-sends instead of its 5: with 30 % loss each way a message
     // and its answer both get through with p = 0.49, so 6 straight failures
@@ -99,7 +117,7 @@ fn qgc_like_upload_survives_30_percent_drop_each_way() {
     // ten in a CI run; 11 straight failures happen with p = 0.06 %.
     let (ok, out) = run_peer(
         "lossy_upload.py",
-        port,
+        &["--drop", "0.3", "--seed", "21"],
         &[
             "--tries",
             "10",

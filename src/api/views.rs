@@ -408,8 +408,8 @@ pub struct StopView {
     pub command: &'static str,
     /// The mode asked for, as the autopilot names it (`AUTO.LOITER`, `LOITER`).
     pub mode: String,
-    /// The COMMAND_ACK result (`MAV_RESULT_ACCEPTED`).
-    pub ack: &'static str,
+    /// The COMMAND_ACK's result, as the vehicle sent it (`MAV_RESULT_ACCEPTED`).
+    pub ack: String,
     /// The shot whose refinement loop was cancelled (None: none ran).
     pub refinement_cancelled: Option<String>,
     /// The shot whose mission the vehicle was flying, now marked

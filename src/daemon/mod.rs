@@ -110,6 +110,28 @@ pub struct Started {
     pub api_addr: SocketAddr,
 }
 
+/// Sockets the starter bound before the daemon starts, used instead of
+/// binding the configured addresses (as mini-redis's `server::run` takes
+/// its listener): a test binds port 0, keeps the socket, writes its
+/// address into the configuration, and no other process can take the port
+/// in between.
+#[derive(Debug, Default)]
+pub struct Sockets {
+    /// The API's listener (else `[server] bind`).
+    pub api: Option<std::net::TcpListener>,
+    /// The link's UDP socket: the link listens on it as on a `udpin:` URL
+    /// (else `[link] url` is opened).
+    pub link: Option<std::net::UdpSocket>,
+    /// The in-process simulator's video listener (else `[sim] video_listen`).
+    pub sim_video: Option<std::net::TcpListener>,
+    /// The in-process simulator's MAVLink UDP socket (else its `[sim]
+    /// mavlink` endpoint binds its own).
+    pub sim_mavlink: Option<std::net::UdpSocket>,
+    /// The RTP/RTCP sockets of a `udp://` video source (else `[video]
+    /// url`'s port is bound).
+    pub video_rtp: Option<crate::video::udp::RtpSockets>,
+}
+
 /// Run the daemon until `cancel` fires. `base_dir` resolves relative
 /// paths of the configuration; `started` receives the API address once
 /// it listens.
@@ -118,6 +140,17 @@ pub async fn run(
     base_dir: &Path,
     cancel: CancellationToken,
     started: Option<oneshot::Sender<Started>>,
+) -> Result<Summary, DaemonError> {
+    run_on(cfg, base_dir, cancel, started, Sockets::default()).await
+}
+
+/// [`run`] on sockets the starter has already bound.
+pub async fn run_on(
+    cfg: Config,
+    base_dir: &Path,
+    cancel: CancellationToken,
+    started: Option<oneshot::Sender<Started>>,
+    sockets: Sockets,
 ) -> Result<Summary, DaemonError> {
     let t0 = Instant::now();
     let data_dir = base_dir.join(&cfg.server.data_dir);
@@ -143,9 +176,10 @@ pub async fn run(
         let sc = crate::simulator::sim_config(&cfg, &data_dir)?;
         let c = sim_cancel.clone();
         tracing::info!(video = %cfg.sim.video_listen, mavlink = %cfg.sim.mavlink, "starting the simulator in-process");
-        Some(tokio::spawn(
-            async move { crate::simulator::run(sc, c).await },
-        ))
+        let (video, mavlink) = (sockets.sim_video, sockets.sim_mavlink);
+        Some(tokio::spawn(async move {
+            crate::simulator::run_on(sc, c, video, mavlink).await
+        }))
     } else {
         None
     };
@@ -168,8 +202,10 @@ pub async fn run(
     let (link_for_video, link_rx) = oneshot::channel();
     let reader = {
         let (vcfg, ing, c) = (cfg.video.clone(), ingest.clone(), video_cancel.clone());
+        let rtp = sockets.video_rtp;
         tokio::spawn(async move {
-            if let Err(e) = crate::video::source::run_configured(vcfg, ing, c, Some(link_rx)).await
+            if let Err(e) =
+                crate::video::source::run_configured_on(vcfg, ing, c, Some(link_rx), rtp).await
             {
                 tracing::error!("video: {e}");
             }
@@ -216,9 +252,16 @@ pub async fn run(
 
     // The MAVLink link actor.
     let link_cancel = cancel.child_token();
-    let (link, link_task) =
-        crate::vehicle::spawn(cfg.link.clone(), cfg.mission.transfer, link_cancel.clone())
-            .map_err(|e| DaemonError::Link(e.to_string()))?;
+    let (link, link_task) = match sockets.link {
+        Some(socket) => crate::vehicle::spawn_with_socket(
+            cfg.link.clone(),
+            cfg.mission.transfer,
+            link_cancel.clone(),
+            socket,
+        ),
+        None => crate::vehicle::spawn(cfg.link.clone(), cfg.mission.transfer, link_cancel.clone()),
+    }
+    .map_err(|e| DaemonError::Link(e.to_string()))?;
     let _ = link_for_video.send(link.clone());
     // The georeference worker: telemetry and keyframes in.
     let geo_task = tokio::spawn(geo.clone().run(
@@ -301,12 +344,19 @@ pub async fn run(
         started_unix: unix_now(),
         shutdown: cancel.clone(),
     };
-    let listener = tokio::net::TcpListener::bind(&cfg.server.bind)
-        .await
-        .map_err(|source| DaemonError::Bind {
-            addr: cfg.server.bind.clone(),
-            source,
-        })?;
+    let bind_err = |source| DaemonError::Bind {
+        addr: cfg.server.bind.clone(),
+        source,
+    };
+    let listener = match sockets.api {
+        Some(l) => {
+            l.set_nonblocking(true).map_err(bind_err)?;
+            tokio::net::TcpListener::from_std(l).map_err(bind_err)?
+        }
+        None => tokio::net::TcpListener::bind(&cfg.server.bind)
+            .await
+            .map_err(bind_err)?,
+    };
     let api_addr = listener.local_addr().map_err(DaemonError::Serve)?;
     tracing::info!("operator page: http://{api_addr}/");
     if let Some(tx) = started {

@@ -210,12 +210,17 @@ pub fn sim_config(cfg: &Config, data_dir: &Path) -> Result<SimConfig, SimKeyErro
 }
 
 /// Runs the simulator `cfg` describes until `cancel` fires (the daemon
-/// spawns it first, so the video and the link find it).
-pub async fn run(
+/// spawns it first, so the video and the link find it), on sockets the
+/// caller may have bound already: the video server's listener and the
+/// MAVLink endpoint's UDP socket (each None: bound from the configuration).
+pub async fn run_on(
     sc: SimConfig,
     cancel: tokio_util::sync::CancellationToken,
+    video: Option<std::net::TcpListener>,
+    mavlink: Option<std::net::UdpSocket>,
 ) -> Result<shotpilot_sim::app::RunSummary, shotpilot_sim::app::SimError> {
-    shotpilot_sim::app::run(sc, cancel).await
+    let sockets = shotpilot_sim::app::Sockets { video, mavlink };
+    shotpilot_sim::app::run_on(sc, cancel, sockets).await
 }
 
 #[cfg(test)]

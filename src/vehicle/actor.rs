@@ -1,5 +1,6 @@
 //! The link actor: one task owns the connection and everything that talks on it.
 
+use std::net::{SocketAddr, UdpSocket};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -16,9 +17,10 @@ use tracing::{Span, debug, info, info_span, warn};
 
 use super::transport::{self, Connection, LinkUrl};
 use super::{
-    Attitude, Command, GimbalAttitude, GimbalControl, GimbalManagerStatus, GlobalPosition,
-    HomePosition, LinkError, LinkHandle, LocalPosition, MissionProgress, Params, Stamped,
-    Telemetry, VehicleState, ardupilot_mode_name, mode_params, px4_mode_name, quat_to_euler_deg,
+    Attitude, Command, FlightMode, GimbalAttitude, GimbalControl, GimbalManagerStatus,
+    GlobalPosition, HoldAck, HomePosition, LinkError, LinkHandle, LocalPosition, MissionProgress,
+    Params, Stamped, Telemetry, VehicleState, ardupilot_mode_name, mode_params, px4_mode_name,
+    quat_to_euler_deg,
 };
 use crate::mission::upload::{self, Downloader, MissionError, Peers, Uploader, same_mission};
 use crate::mission::{Download, Flavour, MissionItem, UploadReport};
@@ -38,16 +40,51 @@ const RATE_RECHECK: Duration = Duration::from_secs(5);
 const RATE_ROUNDS: u32 = 5;
 
 /// Starts the link actor. Fails at once on a bad URL or signing key; the
-/// connection itself is (re)tried in the background.
+/// connection itself (for `udpin:`, binding the socket) is (re)tried in the
+/// background. Once a `udpin:` socket is bound, [`LinkHandle::bound_addr`]
+/// gives its address (the port the kernel chose for port 0).
 pub fn spawn(
     params: Params,
     transfer: upload::Params,
     cancel: CancellationToken,
 ) -> Result<(LinkHandle, JoinHandle<()>), LinkError> {
+    spawn_inner(params, transfer, cancel, None)
+}
+
+/// [`spawn`] on a UDP socket the caller has already bound: the link listens
+/// on it as on a `udpin:` URL (replies go to the last sender), whatever
+/// `params.url` says, and never rebinds. For callers (tests, a supervisor)
+/// that hold a port before the peer needs to know it.
+pub fn spawn_with_socket(
+    params: Params,
+    transfer: upload::Params,
+    cancel: CancellationToken,
+    socket: UdpSocket,
+) -> Result<(LinkHandle, JoinHandle<()>), LinkError> {
+    spawn_inner(params, transfer, cancel, Some(socket))
+}
+
+fn spawn_inner(
+    mut params: Params,
+    transfer: upload::Params,
+    cancel: CancellationToken,
+    socket: Option<UdpSocket>,
+) -> Result<(LinkHandle, JoinHandle<()>), LinkError> {
+    let bound_now = match &socket {
+        Some(s) => Some(s.local_addr().map_err(|e| LinkError::BadUrl {
+            url: params.url.clone(),
+            reason: format!("the given UDP socket has no local address: {e}"),
+        })?),
+        None => None,
+    };
+    if let Some(a) = bound_now {
+        params.url = format!("udpin:{a}");
+    }
     let url: LinkUrl = params.url.parse()?;
     if let Some(s) = &params.signing {
         s.key()?;
     }
+    let bound = watch::channel(bound_now);
     let (cmd_tx, cmd_rx) = mpsc::channel(CMD_QUEUE);
     let (io_tx, io_rx) = mpsc::channel(IO_QUEUE);
     let vehicle = watch::channel(VehicleState {
@@ -69,6 +106,7 @@ pub fn spawn(
         gimbal: gimbal_tx.clone(),
         own: (params.system_id, params.component_id),
         command_timeout: Duration::from_millis(params.command_timeout_ms.max(1)),
+        bound: bound.1,
         telemetry: Telemetry {
             vehicle: vehicle.1,
             global_position: gp.1,
@@ -90,6 +128,8 @@ pub fn spawn(
     let io_cancel = cancel.child_token();
     let io = IoTask {
         url,
+        udp_in: socket,
+        bound: bound.0,
         version,
         signing: params.signing.clone(),
         backoff_min: Duration::from_millis(params.reconnect_min_ms.max(1)),
@@ -115,6 +155,7 @@ pub fn spawn(
         gimbal_control: gimbal_tx,
         transfer: None,
         command: None,
+        stop: None,
         next_heartbeat: now,
         rates_requested: None,
         rate_rounds: 0,
@@ -141,6 +182,10 @@ enum IoEvent {
 /// Connects, reads, and reconnects with exponential backoff.
 struct IoTask {
     url: LinkUrl,
+    /// The `udpin:` socket once bound (kept across reconnections).
+    udp_in: Option<UdpSocket>,
+    /// Its address, for [`LinkHandle::bound_addr`].
+    bound: watch::Sender<Option<SocketAddr>>,
     version: MavlinkVersion,
     signing: Option<transport::Signing>,
     backoff_min: Duration,
@@ -150,12 +195,37 @@ struct IoTask {
 }
 
 impl IoTask {
-    async fn run(self) {
+    /// Binds the `udpin:` socket if it is not yet bound.
+    async fn bind(&mut self) -> std::io::Result<()> {
+        if self.udp_in.is_none()
+            && let Some(socket) = transport::bind_udp_in(&self.url).await?
+        {
+            let addr = socket.local_addr()?;
+            info!(%addr, "link listening");
+            self.bound.send_replace(Some(addr));
+            self.udp_in = Some(socket);
+        }
+        Ok(())
+    }
+
+    async fn open(&mut self) -> std::io::Result<Connection> {
+        self.bind().await?;
+        transport::connect(
+            &self.url,
+            self.udp_in.as_ref(),
+            self.version,
+            self.signing.as_ref(),
+        )
+        .await
+    }
+
+    async fn run(mut self) {
         let mut backoff = self.backoff_min;
         loop {
+            let cancel = self.cancel.clone();
             let attempt = tokio::select! {
-                _ = self.cancel.cancelled() => return,
-                r = transport::connect(&self.url, self.version, self.signing.as_ref()) => r,
+                _ = cancel.cancelled() => return,
+                r = self.open() => r,
             };
             match attempt {
                 Ok(conn) => {
@@ -399,7 +469,72 @@ struct PendingCommand {
     data: COMMAND_LONG_DATA,
     attempts: u32,
     deadline: Instant,
-    reply: oneshot::Sender<Result<(), LinkError>>,
+    reply: Reply,
+}
+
+/// Who waits for a command's COMMAND_ACK.
+enum Reply {
+    /// `Ok(())` on ACCEPTED.
+    Done(oneshot::Sender<Result<(), LinkError>>),
+    /// The operator's stop: the ACK itself, with the mode asked for.
+    Hold {
+        mode: String,
+        reply: oneshot::Sender<Result<HoldAck, LinkError>>,
+    },
+}
+
+impl Reply {
+    fn accepted(self, result: MavResult) {
+        match self {
+            Self::Done(r) => {
+                let _ = r.send(Ok(()));
+            }
+            Self::Hold { mode, reply } => {
+                let _ = reply.send(Ok(HoldAck {
+                    command: "MAV_CMD_DO_SET_MODE",
+                    mode,
+                    result: format!("{result:?}"),
+                }));
+            }
+        }
+    }
+
+    fn fail(self, e: LinkError) {
+        match self {
+            Self::Done(r) => {
+                let _ = r.send(Err(e));
+            }
+            Self::Hold { reply, .. } => {
+                let _ = reply.send(Err(e));
+            }
+        }
+    }
+}
+
+/// Resends a command whose ACK is late, or gives up after the link's
+/// attempts (the waiter gets [`LinkError::CommandTimeout`]).
+fn retry_late(
+    slot: &mut Option<PendingCommand>,
+    params: &Params,
+    now: Instant,
+    out: &mut Vec<MavMessage>,
+) {
+    if slot.as_ref().is_some_and(|c| c.deadline <= now)
+        && let Some(mut c) = slot.take()
+    {
+        if c.attempts >= params.command_attempts.max(1) {
+            c.reply.fail(LinkError::CommandTimeout {
+                command: cmd_number(c.data.command),
+                attempts: c.attempts,
+            });
+        } else {
+            c.attempts += 1;
+            c.data.confirmation = c.data.confirmation.saturating_add(1);
+            c.deadline = now + Duration::from_millis(params.command_timeout_ms);
+            out.push(MavMessage::COMMAND_LONG(c.data.clone()));
+            *slot = Some(c);
+        }
+    }
 }
 
 struct Actor {
@@ -418,6 +553,8 @@ struct Actor {
     gimbal_control: Arc<watch::Sender<GimbalControl>>,
     transfer: Option<Transfer>,
     command: Option<PendingCommand>,
+    /// The operator's stop, beside any other command in flight.
+    stop: Option<PendingCommand>,
     next_heartbeat: Instant,
     rates_requested: Option<Instant>,
     rate_rounds: u32,
@@ -482,7 +619,7 @@ impl Actor {
         if let Some(d) = self.transfer.as_ref().and_then(Transfer::deadline) {
             wake = wake.min(d);
         }
-        if let Some(c) = &self.command {
+        for c in [&self.command, &self.stop].into_iter().flatten() {
             wake = wake.min(c.deadline);
         }
         wake
@@ -895,30 +1032,33 @@ impl Actor {
         if target_system != 0 && target_system != self.params.system_id {
             return;
         }
-        let Some(pending) = &mut self.command else {
-            return;
-        };
-        if pending.data.command != command {
-            return;
-        }
-        let outcome = match result {
-            MavResult::MAV_RESULT_ACCEPTED => Ok(()),
-            MavResult::MAV_RESULT_IN_PROGRESS => {
-                pending.deadline = now + Duration::from_millis(self.params.command_timeout_ms);
+        let timeout = Duration::from_millis(self.params.command_timeout_ms);
+        // The stop and the other command never share a command id (a
+        // DO_SET_MODE in flight gives way to a stop), so the ACK is theirs.
+        for slot in [&mut self.stop, &mut self.command] {
+            let Some(pending) = slot else {
+                continue;
+            };
+            if pending.data.command != command {
+                continue;
+            }
+            if result == MavResult::MAV_RESULT_IN_PROGRESS {
+                pending.deadline = now + timeout;
                 return;
             }
-            other => Err(LinkError::CommandRejected {
-                command: cmd_number(command),
-                result: format!("{other:?}"),
-            }),
-        };
-        if let Some(p) = self.command.take() {
-            info!(
-                command = cmd_number(command),
-                ok = outcome.is_ok(),
-                "command acknowledged"
-            );
-            let _ = p.reply.send(outcome);
+            if let Some(p) = slot.take() {
+                let ok = result == MavResult::MAV_RESULT_ACCEPTED;
+                info!(command = cmd_number(command), ok, "command acknowledged");
+                if ok {
+                    p.reply.accepted(result);
+                } else {
+                    p.reply.fail(LinkError::CommandRejected {
+                        command: cmd_number(command),
+                        result: format!("{result:?}"),
+                    });
+                }
+            }
+            return;
         }
     }
 
@@ -959,22 +1099,8 @@ impl Actor {
             t.on_timeout(now, &mut self.out);
             self.deliver_if_done();
         }
-        if self.command.as_ref().is_some_and(|c| c.deadline <= now)
-            && let Some(mut c) = self.command.take()
-        {
-            if c.attempts >= self.params.command_attempts.max(1) {
-                let _ = c.reply.send(Err(LinkError::CommandTimeout {
-                    command: cmd_number(c.data.command),
-                    attempts: c.attempts,
-                }));
-            } else {
-                c.attempts += 1;
-                c.data.confirmation = c.data.confirmation.saturating_add(1);
-                c.deadline = now + Duration::from_millis(self.params.command_timeout_ms);
-                self.out.push(MavMessage::COMMAND_LONG(c.data.clone()));
-                self.command = Some(c);
-            }
-        }
+        retry_late(&mut self.stop, &self.params, now, &mut self.out);
+        retry_late(&mut self.command, &self.params, now, &mut self.out);
         self.flush().await;
     }
 
@@ -1081,7 +1207,7 @@ impl Actor {
                 self.start_command(
                     MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
                     [if arm { 1.0 } else { 0.0 }, 0.0, 0.0],
-                    reply,
+                    Reply::Done(reply),
                     now,
                 );
             }
@@ -1094,7 +1220,7 @@ impl Actor {
                         self.start_command(
                             MavCmd::MAV_CMD_DO_SET_MODE,
                             [base, main, sub],
-                            reply,
+                            Reply::Done(reply),
                             now,
                         );
                     }
@@ -1108,9 +1234,15 @@ impl Actor {
                     }
                 }
             }
+            Command::Hold { reply } => self.start_stop(reply, now),
             Command::StartMission { reply } => {
                 info!("operator: start mission");
-                self.start_command(MavCmd::MAV_CMD_MISSION_START, [0.0, 0.0, 0.0], reply, now);
+                self.start_command(
+                    MavCmd::MAV_CMD_MISSION_START,
+                    [0.0, 0.0, 0.0],
+                    Reply::Done(reply),
+                    now,
+                );
             }
             Command::Long {
                 command,
@@ -1119,7 +1251,7 @@ impl Actor {
                 reply,
             } => {
                 info!(command = cmd_number(command), ?params, "command");
-                self.start_command7(command, params, target_component, reply, now);
+                self.start_command7(command, params, target_component, Reply::Done(reply), now);
             }
             Command::RequestMessage {
                 message_id,
@@ -1181,13 +1313,7 @@ impl Actor {
         }
     }
 
-    fn start_command(
-        &mut self,
-        command: MavCmd,
-        p: [f32; 3],
-        reply: oneshot::Sender<Result<(), LinkError>>,
-        now: Instant,
-    ) {
+    fn start_command(&mut self, command: MavCmd, p: [f32; 3], reply: Reply, now: Instant) {
         self.start_command7(
             command,
             [p[0], p[1], p[2], 0.0, 0.0, 0.0, 0.0],
@@ -1202,15 +1328,24 @@ impl Actor {
         command: MavCmd,
         p: [f32; 7],
         target_component: Option<u8>,
-        reply: oneshot::Sender<Result<(), LinkError>>,
+        reply: Reply,
         now: Instant,
     ) {
         if self.command.is_some() {
-            let _ = reply.send(Err(LinkError::Busy { what: "command" }));
+            reply.fail(LinkError::Busy { what: "command" });
+            return;
+        }
+        // Its ACK could not be told from the stop's.
+        if self
+            .stop
+            .as_ref()
+            .is_some_and(|s| s.data.command == command)
+        {
+            reply.fail(LinkError::Busy { what: "stop" });
             return;
         }
         let Some((peers, _)) = self.peers() else {
-            let _ = reply.send(Err(LinkError::NoVehicle));
+            reply.fail(LinkError::NoVehicle);
             return;
         };
         let data = command_long(
@@ -1225,6 +1360,51 @@ impl Actor {
             attempts: 1,
             deadline: now + Duration::from_millis(self.params.command_timeout_ms),
             reply,
+        });
+    }
+
+    /// The operator's stop: DO_SET_MODE to the hold mode, sent now whatever
+    /// else waits for an ACK. A DO_SET_MODE in flight gives way (its waiter
+    /// gets [`LinkError::Superseded`]): the two ACKs could not be told apart.
+    fn start_stop(&mut self, reply: oneshot::Sender<Result<HoldAck, LinkError>>, now: Instant) {
+        info!("operator: stop (hold)");
+        if self.stop.is_some() {
+            let _ = reply.send(Err(LinkError::Busy { what: "stop" }));
+            return;
+        }
+        let flavour = self.vehicle.borrow().flavour;
+        let (Some(flavour), Some((peers, _))) = (flavour, self.peers()) else {
+            let _ = reply.send(Err(LinkError::NoVehicle));
+            return;
+        };
+        if self
+            .command
+            .as_ref()
+            .is_some_and(|c| c.data.command == MavCmd::MAV_CMD_DO_SET_MODE)
+            && let Some(c) = self.command.take()
+        {
+            warn!("a mode change in flight gives way to the stop");
+            c.reply.fail(LinkError::Superseded {
+                command: cmd_number(MavCmd::MAV_CMD_DO_SET_MODE),
+            });
+        }
+        let (base, main, sub) = mode_params(flavour, FlightMode::Hold);
+        let mode = match flavour {
+            Flavour::Px4 => px4_mode_name(((sub as u32) << 24) | ((main as u32) << 16)),
+            Flavour::ArduPilot => ardupilot_mode_name(main as u32),
+        };
+        let data = command_long(
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            [base, main, sub, 0.0, 0.0, 0.0, 0.0],
+            peers.target_system,
+            peers.target_component,
+        );
+        self.out.push(MavMessage::COMMAND_LONG(data.clone()));
+        self.stop = Some(PendingCommand {
+            data,
+            attempts: 1,
+            deadline: now + Duration::from_millis(self.params.command_timeout_ms),
+            reply: Reply::Hold { mode, reply },
         });
     }
 }

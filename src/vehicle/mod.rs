@@ -3,7 +3,9 @@
 //! One tokio task (the *link actor*, [`spawn`]) owns the connection. It
 //!
 //! - connects from a URL ([`transport`]) and reconnects with exponential
-//!   backoff when the device vanishes or the socket fails;
+//!   backoff when the device vanishes or the socket fails; a `udpin:` socket
+//!   is bound once and kept (port 0: [`LinkHandle::bound_addr`] says which
+//!   port), or handed in already bound ([`spawn_with_socket`]);
 //! - sends the GCS `HEARTBEAT` at 1 Hz;
 //! - tracks the vehicle (system id, PX4/ArduPilot from its heartbeat, mode,
 //!   armed, link lost after a configurable silence) in a watch channel;
@@ -15,6 +17,9 @@
 //! - takes [`Command`]s with oneshot replies: mission upload/download/cancel
 //!   (the [`crate::mission::upload`] state machines, driven here), and arming,
 //!   mode and mission start, which are only ever sent when an operator asks;
+//! - keeps one command waiting for its COMMAND_ACK at a time, and beside it
+//!   the operator's stop ([`LinkHandle::hold`]), which is sent at once
+//!   whatever else is in flight (a mode change in flight gives way to it);
 //! - follows MAVLink's gimbal protocol v2 for every caller of the handle:
 //!   before a mission that points the gimbal starts
 //!   ([`LinkHandle::start_mission`]) and before a direct gimbal command
@@ -44,7 +49,7 @@ use tracing::{info, warn};
 
 use crate::mission::{Download, Flavour, MissionError, MissionItem, UploadReport};
 
-pub use actor::spawn;
+pub use actor::{spawn, spawn_with_socket};
 pub use transport::{LinkUrl, Signing};
 
 /// Errors of the link.
@@ -91,6 +96,13 @@ pub enum LinkError {
         command: u16,
         /// Sends.
         attempts: u32,
+    },
+    /// A command in flight gave way to the operator's stop (a DO_SET_MODE
+    /// whose ACK the stop's could not be told apart from).
+    #[error("command {command} was superseded by a stop")]
+    Superseded {
+        /// MAV_CMD number.
+        command: u16,
     },
     /// The requested mode is not known for the vehicle's autopilot.
     #[error("mode {mode:?} is not available for autopilot {autopilot}")]
@@ -382,8 +394,8 @@ pub struct HoldAck {
     pub command: &'static str,
     /// The mode asked for, as the autopilot names it (`AUTO.LOITER`, `LOITER`).
     pub mode: String,
-    /// The COMMAND_ACK's result.
-    pub result: &'static str,
+    /// The COMMAND_ACK's result, as the vehicle sent it.
+    pub result: String,
 }
 
 /// The latest telemetry, one watch channel each.
@@ -473,6 +485,13 @@ pub enum Command {
         /// The outcome.
         reply: oneshot::Sender<Result<(), LinkError>>,
     },
+    /// The operator's stop: DO_SET_MODE to the hold mode, sent at once even
+    /// while another command waits for its ACK (a DO_SET_MODE in flight is
+    /// superseded). Replies with the vehicle's COMMAND_ACK.
+    Hold {
+        /// The outcome.
+        reply: oneshot::Sender<Result<HoldAck, LinkError>>,
+    },
     /// MAV_CMD_MISSION_START. Operator action only.
     StartMission {
         /// The outcome.
@@ -511,6 +530,8 @@ pub struct LinkHandle {
     gimbal: std::sync::Arc<watch::Sender<GimbalControl>>,
     own: (u8, u8),
     command_timeout: Duration,
+    /// The `udpin:` socket's address once bound.
+    bound: watch::Receiver<Option<std::net::SocketAddr>>,
 }
 
 /// MAVLink message id of GIMBAL_MANAGER_STATUS.
@@ -608,38 +629,20 @@ impl LinkHandle {
 
     /// Stops the vehicle where it is (operator action): `MAV_CMD_DO_SET_MODE`
     /// to hold (PX4 AUTO.LOITER, ArduPilot LOITER), which pauses the
-    /// mission. Replies once the vehicle's COMMAND_ACK came: ACCEPTED is
-    /// `Ok` with what was sent; any other result is
-    /// [`LinkError::CommandRejected`], no ACK after the link's retries
-    /// [`LinkError::CommandTimeout`]. A stop must not be lost to another
-    /// command in flight (a gimbal command, say): while the link is busy
-    /// with one, it is tried again for up to three command timeouts.
+    /// mission. Replies once the vehicle's COMMAND_ACK came, with that ACK:
+    /// ACCEPTED is `Ok`; any other result is [`LinkError::CommandRejected`],
+    /// no ACK after the link's retries [`LinkError::CommandTimeout`]. A stop
+    /// is never held up by another command in flight (a gimbal command,
+    /// say): the actor sends it at once beside it. Gimbal control taken for
+    /// a mission is given back after, as on any mode change.
     pub async fn hold(&self) -> Result<HoldAck, LinkError> {
-        let flavour = self
-            .telemetry
-            .vehicle
-            .borrow()
-            .flavour
-            .ok_or(LinkError::NoVehicle)?;
-        let deadline = tokio::time::Instant::now() + 3 * self.command_timeout;
-        loop {
-            match self.set_mode(FlightMode::Hold).await {
-                Err(LinkError::Busy { .. }) if tokio::time::Instant::now() < deadline => {
-                    tokio::time::sleep(Duration::from_millis(20)).await;
-                }
-                Err(e) => return Err(e),
-                Ok(()) => break,
-            }
+        let ack = self.call(|reply| Command::Hold { reply }).await?;
+        if self.telemetry.gimbal_control.borrow().for_mission
+            && let Err(e) = self.release_gimbal().await
+        {
+            warn!(error = %e, "gimbal release after the stop failed");
         }
-        let (_, main, sub) = mode_params(flavour, FlightMode::Hold);
-        Ok(HoldAck {
-            command: "MAV_CMD_DO_SET_MODE",
-            mode: match flavour {
-                Flavour::Px4 => px4_mode_name(((sub as u32) << 24) | ((main as u32) << 16)),
-                Flavour::ArduPilot => ardupilot_mode_name(main as u32),
-            },
-            result: "MAV_RESULT_ACCEPTED",
-        })
+        Ok(ack)
     }
 
     /// Starts the uploaded mission (operator action). When the mission
@@ -902,6 +905,21 @@ impl LinkHandle {
             reply,
         })
         .await
+    }
+
+    /// The local address of a `udpin:` link's socket (the kernel's port for
+    /// `udpin:HOST:0`), waiting up to `timeout` for the bind. A link of
+    /// another scheme never binds one: it times out.
+    pub async fn bound_addr(&self, timeout: Duration) -> Result<std::net::SocketAddr, LinkError> {
+        let mut rx = self.bound.clone();
+        match tokio::time::timeout(timeout, rx.wait_for(Option::is_some)).await {
+            Ok(Ok(addr)) => (*addr).ok_or(LinkError::ActorGone),
+            Ok(Err(_)) => Err(LinkError::ActorGone),
+            Err(_) => Err(LinkError::Timeout {
+                what: "the link's UDP socket",
+                seconds: timeout.as_secs_f64(),
+            }),
+        }
     }
 
     /// Waits until a vehicle heartbeat has been heard and the link is up.

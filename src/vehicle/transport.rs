@@ -10,9 +10,16 @@
 //! The connection is the mavlink crate's async one, set to receive MAVLink 1
 //! and 2 frames alike and, with a key, to sign what it sends and check
 //! what it receives.
+//!
+//! A `udpin:` socket is bound once ([`bind_udp_in`], or handed in already
+//! bound) and kept for the link's life: each (re)connection parses
+//! datagrams from a duplicate of it (the mavlink crate's
+//! `UdpConfig::from_socket`), so `udpin:127.0.0.1:0` keeps the port the
+//! kernel chose and the caller can read it (`LinkHandle::bound_addr`).
 
 use std::fmt;
 use std::io;
+use std::net::UdpSocket;
 use std::str::FromStr;
 
 use mavlink::dialects::common::MavMessage;
@@ -170,10 +177,26 @@ impl Signing {
     }
 }
 
+/// Binds the socket of a `udpin:` URL (port 0: one the kernel picks; read
+/// it with `local_addr`). None for the other schemes, which open on
+/// connecting.
+pub async fn bind_udp_in(url: &LinkUrl) -> io::Result<Option<UdpSocket>> {
+    match url {
+        LinkUrl::UdpIn { addr } => {
+            let socket = tokio::net::UdpSocket::bind(addr.as_str()).await?;
+            Ok(Some(socket.into_std()?))
+        }
+        _ => Ok(None),
+    }
+}
+
 /// Opens the transport and sets it up: receive MAVLink 1 and 2, send
-/// `version`, sign with `signing`.
+/// `version`, sign with `signing`. A `udpin:` URL reads and writes through
+/// `udp_in` (bound by [`bind_udp_in`] or by the caller; the socket stays
+/// the caller's, the connection uses a duplicate) and fails without it.
 pub async fn connect(
     url: &LinkUrl,
+    udp_in: Option<&UdpSocket>,
     version: MavlinkVersion,
     signing: Option<&Signing>,
 ) -> io::Result<Connection> {
@@ -182,7 +205,13 @@ pub async fn connect(
             ConnectionAddress::Serial(SerialConfig::new(path.clone(), *baud))
         }
         LinkUrl::UdpIn { addr } => {
-            ConnectionAddress::Udp(UdpConfig::new(addr.clone(), UdpMode::Udpin))
+            let socket = udp_in.ok_or_else(|| {
+                io::Error::new(
+                    io::ErrorKind::NotConnected,
+                    format!("udpin:{addr}: the socket is not bound"),
+                )
+            })?;
+            ConnectionAddress::Udp(UdpConfig::from_socket(socket.try_clone()?, UdpMode::Udpin)?)
         }
         LinkUrl::UdpOut { addr } => {
             ConnectionAddress::Udp(UdpConfig::new(addr.clone(), UdpMode::Udpout))

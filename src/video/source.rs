@@ -303,6 +303,18 @@ pub async fn run_h264(
     ingest: Arc<Ingest>,
     cancel: CancellationToken,
 ) -> Result<(), SourceError> {
+    run_h264_on(url, params, ingest, cancel, None).await
+}
+
+/// [`run_h264`]; a `udp://` source receives on `rtp` when given (sockets
+/// the caller bound, whatever port the URL names).
+async fn run_h264_on(
+    url: VideoUrl,
+    params: H264Params,
+    ingest: Arc<Ingest>,
+    cancel: CancellationToken,
+    rtp: Option<crate::video::udp::RtpSockets>,
+) -> Result<(), SourceError> {
     let queue = Arc::new(AuQueue::new(params.decode.queue));
     let resets = Arc::new(AtomicU64::new(0));
     let decoder = h264::spawn_decoder(
@@ -348,7 +360,12 @@ pub async fn run_h264(
         }
         VideoUrl::Udp { bind } => {
             ingest.update_source(|s| s.kind = "rtp".into());
-            crate::video::udp::run(bind, None, &params, &sink, &cancel).await
+            match rtp {
+                Some(sockets) => {
+                    crate::video::udp::run_on(sockets, None, &params, &sink, &cancel).await
+                }
+                None => crate::video::udp::run(bind, None, &params, &sink, &cancel).await,
+            }
         }
         VideoUrl::Sdp { path } => {
             ingest.update_source(|s| s.kind = "rtp".into());
@@ -532,6 +549,18 @@ pub async fn run_configured(
     cancel: CancellationToken,
     link: Option<tokio::sync::oneshot::Receiver<crate::vehicle::LinkHandle>>,
 ) -> Result<(), SourceError> {
+    run_configured_on(cfg, ingest, cancel, link, None).await
+}
+
+/// [`run_configured`]; a `udp://` source receives on `rtp`, sockets the
+/// caller bound (port 0, so it knew the port before the sender started).
+pub async fn run_configured_on(
+    cfg: VideoConfig,
+    ingest: Arc<Ingest>,
+    cancel: CancellationToken,
+    link: Option<tokio::sync::oneshot::Receiver<crate::vehicle::LinkHandle>>,
+    rtp: Option<crate::video::udp::RtpSockets>,
+) -> Result<(), SourceError> {
     let mut url = VideoUrl::parse(&cfg.url)?;
     tokio::spawn(log_status(ingest.clone(), cancel.clone()));
     if url == VideoUrl::Auto {
@@ -581,7 +610,7 @@ pub async fn run_configured(
                 reason: e.to_string(),
             })
         }
-        other => run_h264(other, cfg.h264_params(), ingest, cancel).await,
+        other => run_h264_on(other, cfg.h264_params(), ingest, cancel, rtp).await,
     }
 }
 

@@ -48,10 +48,68 @@ async fn bind(addr: SocketAddr) -> Result<UdpSocket, SourceError> {
     }
 }
 
+/// How many ports 0 are tried for an RTP port whose next one is free too.
+const PAIR_TRIES: usize = 64;
+
+/// An RTP socket and, beside it (port + 1), its RTCP socket, bound before
+/// the sender is told where to send: with both held, no other process can
+/// take either port.
+#[derive(Debug)]
+pub struct RtpSockets {
+    /// The RTP socket.
+    pub rtp: std::net::UdpSocket,
+    /// The RTCP socket on the next port (None: not bound; a raw camera link
+    /// sends no RTCP).
+    pub rtcp: Option<std::net::UdpSocket>,
+}
+
+impl RtpSockets {
+    /// Binds a free RTP port on `ip` whose next port is free too (the
+    /// kernel picks the RTP port; the pair is kept when the next one binds,
+    /// else another is tried).
+    pub fn bind_pair(ip: std::net::IpAddr) -> std::io::Result<Self> {
+        let mut last = None;
+        for _ in 0..PAIR_TRIES {
+            let rtp = std::net::UdpSocket::bind(SocketAddr::new(ip, 0))?;
+            let port = rtp.local_addr()?.port();
+            let Some(next) = port.checked_add(1) else {
+                continue;
+            };
+            match std::net::UdpSocket::bind(SocketAddr::new(ip, next)) {
+                Ok(rtcp) => {
+                    return Ok(Self {
+                        rtp,
+                        rtcp: Some(rtcp),
+                    });
+                }
+                Err(e) => last = Some(e),
+            }
+        }
+        Err(last.unwrap_or_else(|| {
+            std::io::Error::new(
+                std::io::ErrorKind::AddrNotAvailable,
+                "no RTP port with a free RTCP port beside it",
+            )
+        }))
+    }
+
+    /// The RTP socket's address.
+    pub fn rtp_addr(&self) -> std::io::Result<SocketAddr> {
+        self.rtp.local_addr()
+    }
+}
+
+fn to_tokio(s: std::net::UdpSocket) -> std::io::Result<UdpSocket> {
+    s.set_nonblocking(true)?;
+    UdpSocket::from_std(s)
+}
+
 /// Receive RTP H.264 on `addr` until `cancel` fires. `sdp` (from an SDP
 /// file) gives the payload type and parameter sets; without it any dynamic
 /// payload type is taken as H.264 and an H.265 stream is recognised by its
-/// NAL headers and refused.
+/// NAL headers and refused. Port 0 (unicast): an RTP port the kernel picks
+/// with a free RTCP port beside it ([`RtpSockets::bind_pair`]); the source's
+/// URL then shows the port.
 pub async fn run(
     addr: SocketAddr,
     sdp: Option<SdpVideo>,
@@ -59,11 +117,16 @@ pub async fn run(
     sink: &H264Sink,
     cancel: &CancellationToken,
 ) -> Result<(), SourceError> {
-    let sock = bind(addr).await?;
-    let local = sock.local_addr().map_err(|e| SourceError::Bind {
+    let err = |e: std::io::Error| SourceError::Bind {
         addr,
         reason: e.to_string(),
-    })?;
+    };
+    if addr.port() == 0 && !addr.ip().is_multicast() {
+        let pair = RtpSockets::bind_pair(addr.ip()).map_err(err)?;
+        return run_on(pair, sdp, params, sink, cancel).await;
+    }
+    let sock = bind(addr).await?;
+    let local = sock.local_addr().map_err(err)?;
     // RTCP beside it, when that port is free (raw camera links send none).
     let rtcp_addr = SocketAddr::new(local.ip(), local.port().wrapping_add(1));
     let rtcp = match UdpSocket::bind(rtcp_addr).await {
@@ -73,6 +136,45 @@ pub async fn run(
             None
         }
     };
+    receive(sock, rtcp, sdp, params, sink, cancel).await
+}
+
+/// [`run`] on sockets the caller has already bound.
+pub async fn run_on(
+    sockets: RtpSockets,
+    sdp: Option<SdpVideo>,
+    params: &H264Params,
+    sink: &H264Sink,
+    cancel: &CancellationToken,
+) -> Result<(), SourceError> {
+    let addr = sockets
+        .rtp
+        .local_addr()
+        .unwrap_or_else(|_| SocketAddr::from(([0, 0, 0, 0], 0)));
+    let err = |e: std::io::Error| SourceError::Bind {
+        addr,
+        reason: e.to_string(),
+    };
+    let sock = to_tokio(sockets.rtp).map_err(err)?;
+    let rtcp = match sockets.rtcp {
+        Some(s) => Some(to_tokio(s).map_err(err)?),
+        None => None,
+    };
+    receive(sock, rtcp, sdp, params, sink, cancel).await
+}
+
+async fn receive(
+    sock: UdpSocket,
+    rtcp: Option<UdpSocket>,
+    sdp: Option<SdpVideo>,
+    params: &H264Params,
+    sink: &H264Sink,
+    cancel: &CancellationToken,
+) -> Result<(), SourceError> {
+    let local = sock.local_addr().map_err(|e| SourceError::Bind {
+        addr: SocketAddr::from(([0, 0, 0, 0], 0)),
+        reason: e.to_string(),
+    })?;
     tracing::info!(%local, "video: listening for RTP H.264");
     sink.ingest
         .update_source(|s| s.url = format!("udp://{local}"));

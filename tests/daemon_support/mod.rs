@@ -1,6 +1,7 @@
 //! Shared by the tests that start the daemon with the in-process simulator
-//! (`daemon_e2e`, `daemon_refine`, `geo_daemon`, `browser`): free ports and
-//! a minimal HTTP/1.1 client (one request per connection).
+//! (`daemon_e2e`, `daemon_refine`, `geo_daemon`, `browser`): sockets bound
+//! on port 0 for the daemon, and a minimal HTTP/1.1 client (one request per
+//! connection).
 #![allow(dead_code)] // each test binary uses its own subset
 
 use std::io::{Read, Write};
@@ -12,25 +13,30 @@ use serde_json::Value;
 /// The bearer token the daemon tests configure and send.
 pub const TOKEN: &str = "e2e";
 
-#[path = "../ports/mod.rs"]
-mod ports;
-pub use ports::{free_tcp_port, free_udp_port};
-
-/// The daemon's configuration for a test: the in-process simulator's
-/// video and MAVLink on fresh local ports, the API on an OS-chosen port,
-/// [`TOKEN`] as the bearer token. Validated by the caller after its own
-/// changes.
-pub fn sim_config() -> shotpilot::config::Config {
-    let video_port = free_tcp_port();
-    let mav_port = free_udp_port();
+/// The daemon's configuration for a test, and the sockets it runs on: the
+/// in-process simulator's video listener and the link's UDP socket are
+/// bound here on port 0 and handed to the daemon (`daemon::run_on`), so
+/// their ports are known before it starts and no other test can take them;
+/// the API binds its own port 0 and reports it (`Started`). [`TOKEN`] is
+/// the bearer token. Validated by the caller after its own changes.
+pub fn sim_config() -> (shotpilot::config::Config, shotpilot::daemon::Sockets) {
+    let video = std::net::TcpListener::bind("127.0.0.1:0").expect("bind the video listener");
+    let link = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind the link socket");
+    let video_addr = video.local_addr().expect("video listener address");
+    let link_addr = link.local_addr().expect("link socket address");
     let mut cfg = shotpilot::config::Config::default();
-    cfg.sim.video_listen = format!("127.0.0.1:{video_port}");
-    cfg.video.url = format!("http://127.0.0.1:{video_port}/video.mjpg");
-    cfg.sim.mavlink = format!("udpout:127.0.0.1:{mav_port}");
-    cfg.link.url = format!("udpin:127.0.0.1:{mav_port}");
+    cfg.sim.video_listen = video_addr.to_string();
+    cfg.video.url = format!("http://{video_addr}/video.mjpg");
+    cfg.sim.mavlink = format!("udpout:{link_addr}");
+    cfg.link.url = format!("udpin:{link_addr}");
     cfg.server.bind = "127.0.0.1:0".into();
     cfg.server.token = Some(TOKEN.into());
-    cfg
+    let sockets = shotpilot::daemon::Sockets {
+        link: Some(link),
+        sim_video: Some(video),
+        ..Default::default()
+    };
+    (cfg, sockets)
 }
 
 /// One request with [`TOKEN`] as bearer token (a daemon without a token

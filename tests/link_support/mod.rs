@@ -12,7 +12,10 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use mavlink::dialects::common::*;
-use mavlink::{AsyncMavConnection, MavHeader, MavlinkVersion};
+use mavlink::{
+    AsyncConnectable, AsyncMavConnection, ConnectionAddress, MavHeader, MavlinkVersion, UdpConfig,
+    UdpMode,
+};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use tokio::time::Instant;
@@ -114,17 +117,45 @@ enum Rx {
     },
 }
 
-/// Runs the fake autopilot on a mavlink-crate address (`udpin:ADDR`,
-/// `serial:PATH:BAUD`) until `cancel`, or until its serial device vanishes.
+/// Runs the fake autopilot on a mavlink-crate address (`serial:PATH:BAUD`)
+/// until `cancel`, or until its serial device vanishes.
 pub async fn run_fake(
     url: String,
     cfg: FakeConfig,
     state: Arc<Mutex<FakeState>>,
     cancel: CancellationToken,
 ) {
-    let mut conn = match mavlink::connect_async::<MavMessage>(&url).await {
+    let address = match ConnectionAddress::parse_address(&url) {
+        Ok(a) => a,
+        Err(e) => panic!("fake autopilot: bad address {url}: {e}"),
+    };
+    run_fake_at(address, cfg, state, cancel).await
+}
+
+/// [`run_fake`] listening on a UDP socket the caller bound (replies go to
+/// the last sender), so the caller knows its port before the fake runs.
+pub async fn run_fake_on(
+    socket: std::net::UdpSocket,
+    cfg: FakeConfig,
+    state: Arc<Mutex<FakeState>>,
+    cancel: CancellationToken,
+) {
+    let address = match UdpConfig::from_socket(socket, UdpMode::Udpin) {
+        Ok(c) => ConnectionAddress::Udp(c),
+        Err(e) => panic!("fake autopilot: unusable socket: {e}"),
+    };
+    run_fake_at(address, cfg, state, cancel).await
+}
+
+async fn run_fake_at(
+    address: ConnectionAddress,
+    cfg: FakeConfig,
+    state: Arc<Mutex<FakeState>>,
+    cancel: CancellationToken,
+) {
+    let mut conn = match address.connect_async::<MavMessage>().await {
         Ok(c) => c,
-        Err(e) => panic!("fake autopilot cannot open {url}: {e}"),
+        Err(e) => panic!("fake autopilot cannot open {address}: {e}"),
     };
     conn.set_protocol_version(cfg.version);
     conn.set_allow_recv_any_version(true);
@@ -427,16 +458,23 @@ fn request(habit: Habit, gs: u8, gc: u8, seq: u16) -> MavMessage {
     }
 }
 
-#[path = "../ports/mod.rs"]
-mod ports;
-pub use ports::free_udp_port;
+/// A UDP socket bound on 127.0.0.1 port 0 and its address: the caller
+/// keeps the socket (hands it to whatever listens), so the port is known
+/// and no other process can take it.
+pub fn bound_udp() -> (std::net::UdpSocket, std::net::SocketAddr) {
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind a UDP socket");
+    let addr = socket.local_addr().expect("its address");
+    (socket, addr)
+}
 
-/// Starts a fake on a free port; returns its address and shared state.
+/// Starts a fake on a socket bound here on port 0; returns its address
+/// and shared state.
 pub fn start_fake(cfg: FakeConfig, cancel: &CancellationToken) -> (String, Arc<Mutex<FakeState>>) {
-    let addr = format!("127.0.0.1:{}", free_udp_port());
+    let (socket, addr) = bound_udp();
+    let addr = addr.to_string();
     let state = Arc::new(Mutex::new(FakeState::default()));
-    tokio::spawn(run_fake(
-        format!("udpin:{addr}"),
+    tokio::spawn(run_fake_on(
+        socket,
         cfg,
         state.clone(),
         cancel.child_token(),

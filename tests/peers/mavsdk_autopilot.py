@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
 """MAVSDK (PyPI `mavsdk`, the C++ library in-process) acting as an autopilot.
 
-It configures MAVSDK with ComponentType.AUTOPILOT, listens on UDP, and
-uses the MissionRawServer plugin to receive a mission from shotpilot. It
-prints "ready" once listening, then one JSON line with the items MAVSDK
-received (or a timeout note).
+It configures MAVSDK with ComponentType.AUTOPILOT, sends to the ground
+station's UDP port (shotpilot's link listens on a port it bound and told
+the test; MAVSDK cannot say which port it bound itself), and uses the
+MissionRawServer plugin to receive a mission from shotpilot. It prints
+"ready" once connected, then one JSON line with the items MAVSDK received
+(or a timeout note).
 
-Usage: mavsdk_autopilot.py --port 14650 [--seconds 15]
+Usage: mavsdk_autopilot.py --gcs-port 14550 [--seconds 15]
 """
 import argparse
 import json
@@ -27,13 +29,13 @@ def clean(v):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--port", type=int, required=True)
+    ap.add_argument("--gcs-port", type=int, required=True)
     ap.add_argument("--seconds", type=float, default=15.0)
     args = ap.parse_args()
 
     cfg = Configuration.create_with_component_type(ComponentType.AUTOPILOT)
     sdk = Mavsdk(cfg)
-    result = sdk.add_any_connection(f"udpin://127.0.0.1:{args.port}")
+    result = sdk.add_any_connection(f"udpout://127.0.0.1:{args.gcs_port}")
     server_component = sdk.server_component()
     if server_component is None:
         print(json.dumps({"error": f"no server component (connection {result})"}), flush=True)

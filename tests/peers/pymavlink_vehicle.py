@@ -4,11 +4,11 @@
 It listens on UDP, decodes what the ground station sends (heartbeats, a
 mission upload), optionally with MAVLink 2 signing, answers as a PX4-like
 autopilot (or an ArduPilot-like one with --autopilot ardupilot), and prints
-one JSON summary on stdout. The first stdout line is "ready" once the socket
-is bound. The summary's "items" are the uploaded MISSION_ITEM_INTs as
+one JSON summary on stdout. The first stdout line is "ready PORT" once the
+socket is bound (PORT: the bound one; `--port 0` lets the kernel pick it). The summary's "items" are the uploaded MISSION_ITEM_INTs as
 pymavlink decoded them, with the command's MAV_CMD name.
 
-Usage: pymavlink_vehicle.py --port 14600 [--key HEX] [--seconds 8] [--serve-upload]
+Usage: pymavlink_vehicle.py --port 0 [--key HEX] [--seconds 8] [--serve-upload]
                             [--autopilot px4|ardupilot]
 """
 import argparse
@@ -48,7 +48,7 @@ def main():
     )
     if args.key:
         m.setup_signing(bytes.fromhex(args.key), sign_outgoing=True, link_id=0)
-    print("ready", flush=True)
+    print(f"ready {m.port.getsockname()[1]}", flush=True)
 
     out = {"heartbeats": 0, "signed_heartbeats": 0, "first_heartbeat": None, "items": None, "badsig": 0}
     deadline = time.time() + args.seconds

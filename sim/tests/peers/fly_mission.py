@@ -5,6 +5,8 @@ it and record the position trace until the mission completes.
 
 Usage: fly_mission.py [--listen udpin:127.0.0.1:14550] [--trace trace.csv]
 Prints a JSON summary on stdout; exits non-zero on failure.
+With --listen udpin:HOST:0 the first line is "listening PORT", the port the
+kernel picked (where the simulator must send).
 """
 import argparse
 import json
@@ -63,6 +65,9 @@ def main():
     args = ap.parse_args()
 
     conn = mavutil.mavlink_connection(args.listen, source_system=255, source_component=190)
+    if args.listen.endswith(":0"):
+        # Port 0: the kernel picked one; the simulator is told to send there.
+        print(f"listening {conn.port.getsockname()[1]}", flush=True)
     t0 = time.time()
     hb = conn.wait_heartbeat(timeout=10)
     if hb is None:

@@ -16,6 +16,8 @@ Client rules (QGC-like):
 
 Usage: lossy_upload.py [--listen udpin:127.0.0.1:14550] [--tries 10] [--items 8]
 Prints a JSON summary; exits non-zero unless every try succeeded.
+With --listen udpin:HOST:0 the first line is "listening PORT", the port the
+kernel picked (where the simulator must send).
 """
 import argparse
 import json
@@ -151,6 +153,9 @@ def main():
                     help="retries of the verifying download (not part of the upload under test)")
     args = ap.parse_args()
     conn = mavutil.mavlink_connection(args.listen, source_system=255, source_component=190)
+    if args.listen.endswith(":0"):
+        # Port 0: the kernel picked one; the simulator is told to send there.
+        print(f"listening {conn.port.getsockname()[1]}", flush=True)
     if conn.wait_heartbeat(timeout=15) is None:
         print(json.dumps({"ok": False, "error": "no heartbeat"}))
         return 1
