@@ -247,6 +247,7 @@ pub async fn run(
     // The refinement loop: started with a shot's mission, stopped by the
     // next upload or the shutdown.
     let actions: Arc<tokio::sync::Mutex<()>> = Default::default();
+    let events: Arc<api::ShotEvents> = Default::default();
     let (refine, refine_task) = refine_loop::spawn(
         refine_loop::Deps {
             store: store.clone(),
@@ -259,6 +260,7 @@ pub async fn run(
             params: cfg.refine.params(),
             pictures: Default::default(),
             epoch: std::time::Instant::now(),
+            events: events.clone(),
         },
         cancel.child_token(),
     );
@@ -300,6 +302,7 @@ pub async fn run(
         actions,
         started_unix: unix_now(),
         shutdown: cancel.clone(),
+        events,
     };
     let listener = tokio::net::TcpListener::bind(&cfg.server.bind)
         .await

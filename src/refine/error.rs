@@ -127,6 +127,30 @@ fn corners(width: u32, height: u32, camera: Option<&Camera>) -> [Point2<f64>; 4]
     }
 }
 
+/// The desired picture's corners (top-left, top-right, bottom-right,
+/// bottom-left) in the live frame's pixels: the report's homography
+/// `live ← desired` applied to them (in undistorted pixels with `camera`,
+/// then distorted again, as the frame is shown). None when a corner maps
+/// to infinity.
+pub fn outline_in_live(
+    report: &ShotErrorReport,
+    width: u32,
+    height: u32,
+    camera: Option<&Camera>,
+) -> Option<[[f64; 2]; 4]> {
+    let h = Matrix3::from_row_slice(&report.live_from_desired.concat());
+    let mut out = [[0.0; 2]; 4];
+    for (o, c) in out.iter_mut().zip(corners(width, height, camera)) {
+        let m = apply_homography(&h, &c)?;
+        let p = camera.map_or(m, |cam| cam.distort_pixel(m));
+        if !(p.x.is_finite() && p.y.is_finite()) {
+            return None;
+        }
+        *o = [p.x, p.y];
+    }
+    Some(out)
+}
+
 /// The shot error of `live` against `desired` (whose pixels where
 /// `desired_mask` is 0 are black fill and yield no feature). Both images
 /// have the same size; with `camera` the keypoints and corners are
