@@ -5,8 +5,8 @@
 //! stopped) and the daemon's refinement loop (flying with the distance to
 //! the target, arrived, each round with its error, the live outline of the
 //! desired shot, done) publish; every `/events` client first gets the
-//! kept history (milestones only: the frequent `flying` and `overlay`
-//! events are not kept, the newest of each per shot is), then the live
+//! kept history (milestones, and of the frequent `flying` and `overlay`
+//! events only the newest per shot and round), then the live
 //! events. The hub also keeps, per shot, the live frame of its last
 //! refinement round ([`Achieved`]) for the before/after view.
 
@@ -125,9 +125,14 @@ pub enum ShotEvent {
 }
 
 impl ShotEvent {
-    /// Frequent events: only the newest per shot is kept.
-    fn is_frequent(&self) -> bool {
-        matches!(self, ShotEvent::Flying { .. } | ShotEvent::Overlay { .. })
+    /// Frequent events: only the newest per shot (and round, for
+    /// `flying`) is kept; this is its key.
+    fn frequent_key(&self) -> Option<(u8, usize)> {
+        match self {
+            ShotEvent::Flying { round, .. } => Some((0, *round)),
+            ShotEvent::Overlay { .. } => Some((1, 0)),
+            _ => None,
+        }
     }
 }
 
@@ -190,9 +195,8 @@ impl ShotEvents {
             shot: shot.to_owned(),
             event,
         });
-        if rec.event.is_frequent() {
-            let kind = std::mem::discriminant(&rec.event);
-            log.retain(|r| r.shot != shot || std::mem::discriminant(&r.event) != kind);
+        if let Some(key) = rec.event.frequent_key() {
+            log.retain(|r| r.shot != shot || r.event.frequent_key() != Some(key));
         }
         log.push_back(rec.clone());
         while log.len() > KEEP_EVENTS {
@@ -259,18 +263,33 @@ mod tests {
             },
         );
         hub.publish("shot-1", ShotEvent::Arrived { round: 0 });
+        // The next round's flight is kept beside the first's.
+        hub.publish(
+            "shot-1",
+            ShotEvent::Flying {
+                round: 1,
+                distance_m: 2.0,
+                vertical_m: 0.0,
+            },
+        );
         // Live: every event, in order.
         let mut seqs = Vec::new();
         while let Ok(r) = rx.try_recv() {
             seqs.push(r.seq);
         }
-        assert_eq!(seqs, [1, 2, 3, 4, 5, 6]);
+        assert_eq!(seqs, [1, 2, 3, 4, 5, 6, 7]);
         // History: the milestones and the newest flying event per shot.
         let (hist, _) = hub.subscribe();
         let kinds: Vec<(u64, &str)> = hist.iter().map(|r| (r.seq, r.shot.as_str())).collect();
         assert_eq!(
             kinds,
-            [(1, "shot-1"), (4, "shot-1"), (5, "shot-2"), (6, "shot-1")]
+            [
+                (1, "shot-1"),
+                (4, "shot-1"),
+                (5, "shot-2"),
+                (6, "shot-1"),
+                (7, "shot-1")
+            ]
         );
         assert_eq!(
             hist[1].event,

@@ -268,9 +268,10 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
         };
         let ended = match current.take() {
             Some((c, t, id)) => {
+                let running = !t.is_finished();
                 c.cancel();
                 let _ = t.await;
-                if !matches!(req, Request::Halt { .. }) {
+                if running && !matches!(req, Request::Halt { .. }) {
                     deps.events.publish(
                         &id,
                         ShotEvent::Done {
