@@ -328,6 +328,42 @@ mod tests {
             );
         }
         assert!(got.inliers >= 100, "{} inliers", got.inliers);
+        // The desired picture's outline in the live frame: its corners
+        // through the known live ← desired.
+        let outline = outline_in_live(&got, w, h, None).unwrap();
+        for (o, c) in outline.iter().zip(frame_corners(w, h)) {
+            let want = apply_homography(&inv, &c).unwrap();
+            let d = (o[0] - want.x).hypot(o[1] - want.y);
+            assert!(d < 1.0, "outline corner {o:?} vs {want}: {d:.2} px");
+        }
+    }
+
+    #[test]
+    fn the_outline_is_in_distorted_pixels() {
+        // A barrel lens; the same framing (identity in undistorted pixels)
+        // outlines the frame's own corners, not the undistorted ones.
+        let cam = Camera::new(
+            640,
+            480,
+            [500.0, 500.0, 320.0, 240.0],
+            crate::camera::Distortion {
+                k1: -0.2,
+                k2: 0.05,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let rep = corner_error(&Matrix3::identity(), 640, 480, Some(&cam), 0, 0, (0, 0)).unwrap();
+        let outline = outline_in_live(&rep, 640, 480, Some(&cam)).unwrap();
+        for (o, c) in outline.iter().zip(frame_corners(640, 480)) {
+            let d = (o[0] - c.x).hypot(o[1] - c.y);
+            assert!(d < 0.05, "{o:?} vs {c}: {d} px");
+            let u = cam.undistort_pixel(c);
+            assert!(
+                (u - c).norm() > 5.0,
+                "the lens moves the corner: {u} vs {c}"
+            );
+        }
     }
 
     #[test]
