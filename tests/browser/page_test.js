@@ -314,7 +314,10 @@ async function main() {
       images: ['ba-desired', 'ba-achieved', 'ba-under', 'ba-over'].map((i) => [document.getElementById(i).naturalWidth, document.getElementById(i).naturalHeight]),
     }));
     check(out.before_after.state === 'ready', `the before/after view shows: ${JSON.stringify(out.before_after)}`);
-    await page.fill('#ba-slider', '20');
+    // The slider fades the desired picture over the achieved frame.
+    await page.$eval('#ba-slider', (s) => { s.value = '80'; s.dispatchEvent(new Event('input')); });
+    const opacity = await page.$eval('#ba-over', (i) => Number(i.style.opacity));
+    check(Math.abs(opacity - 0.2) < 1e-6, `the slider at 80 shows the desired picture at opacity 0.2, got ${opacity}`);
     await page.$eval('#beforeafter', (b) => b.scrollIntoView());
     await stage(page, 'before_after');
     const [download] = await Promise.all([page.waitForEvent('download', { timeout: 30000 }), page.click('#ba-download')]);
