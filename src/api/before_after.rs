@@ -120,8 +120,8 @@ pub fn compose_before_after(desired: &GrayImage, achieved: &Achieved) -> RgbImag
     if let Some(c) = achieved.corners_px {
         for panel in [1, 2] {
             let p = (panel * (w + GAP), BAND, w, h);
-            for i in 0..4 {
-                line(&mut out, c[i], c[(i + 1) % 4], p, outline);
+            for (i, a) in c.iter().enumerate() {
+                line(&mut out, *a, c[(i + 1) % 4], p, outline);
             }
         }
     }
