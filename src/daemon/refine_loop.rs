@@ -660,7 +660,7 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
                     round: r.round,
                     shot_error_pct: r.shot_error_pct,
                     floor_pct: r.floor_pct,
-                    decision: serde_json::to_value(&r.decision)
+                    decision: serde_json::to_value(r.decision)
                         .ok()
                         .and_then(|v| v.as_str().map(str::to_owned))
                         .unwrap_or_else(|| format!("{:?}", r.decision)),
