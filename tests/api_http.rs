@@ -254,6 +254,7 @@ fn start(dir: &std::path::Path, token: Option<&str>, with_vehicle: bool) -> Serv
         actions: Default::default(),
         started_unix: unix_now(),
         shutdown: Default::default(),
+        events: Default::default(),
     };
     let listener = rt
         .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
@@ -993,6 +994,36 @@ fn router_routes() -> std::collections::BTreeSet<(String, String)> {
     out
 }
 
+/// The `shot` events of `/events` (their JSON data), read until `enough`
+/// says so (each read bounded by a 10 s timeout).
+fn shot_events(addr: SocketAddr, enough: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    s.write_all(b"GET /api/v1/events HTTP/1.1\r\nHost: x\r\n\r\n")
+        .unwrap();
+    let mut got = Vec::new();
+    let mut buf = [0u8; 8192];
+    loop {
+        let text = String::from_utf8_lossy(&got);
+        let events: Vec<Value> = text
+            .split("\n\n")
+            .filter(|block| block.contains("event: shot\n") || block.ends_with("event: shot"))
+            .filter_map(|block| {
+                block
+                    .lines()
+                    .find_map(|l| l.strip_prefix("data: "))
+                    .and_then(|d| serde_json::from_str(d).ok())
+            })
+            .collect();
+        if enough(&events) {
+            return events;
+        }
+        let n = s.read(&mut buf).expect("the event stream goes on");
+        assert!(n > 0, "the event stream ended: {text}");
+        got.extend_from_slice(&buf[..n]);
+    }
+}
+
 /// The document served at /openapi.json has every route the router
 /// serves and no other, and real replies (status, keyframes, shots list
 /// and one shot, the vehicle's mission, a shot created, uploaded and
@@ -1069,6 +1100,40 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
             &json_of(&r.2),
         );
     }
+
+    // The shot events on /events: each as its schema says, this shot's
+    // in the order they happened (history replayed to a late client).
+    let r = http(a, "POST", "/api/v1/vehicle/stop", &[AUTH], b"");
+    assert_eq!(r.0, 200, "{}", String::from_utf8_lossy(&r.2));
+    let events = shot_events(a, |evs| {
+        evs.iter()
+            .any(|e| e["kind"] == "stopped" && e["shot"] == id.as_str())
+    });
+    let event_schema = json!({"$ref": "#/components/schemas/ShotEvent"});
+    for e in &events {
+        check_schema(&doc, &event_schema, e, "$").unwrap_or_else(|err| panic!("{err}\n{e:#}"));
+    }
+    let kinds: Vec<&str> = events
+        .iter()
+        .filter(|e| e["shot"] == id.as_str())
+        .map(|e| e["kind"].as_str().unwrap())
+        .filter(|k| *k != "georeferenced")
+        .collect();
+    assert_eq!(
+        kinds,
+        ["localised", "uploaded", "started", "stopped"],
+        "{events:?}"
+    );
+    assert!(
+        events.iter().any(|e| e["kind"] == "not_localised"),
+        "{events:?}"
+    );
+    let seqs: Vec<u64> = events.iter().map(|e| e["seq"].as_u64().unwrap()).collect();
+    assert!(seqs.windows(2).all(|w| w[0] < w[1]), "{seqs:?}");
+    // A variant without a required field does not pass.
+    let mut bad = events[0].clone();
+    bad.as_object_mut().unwrap().remove("shot");
+    assert!(check_schema(&doc, &event_schema, &bad, "$").is_err());
 
     // The check can fail: a reply without a documented field, or with a
     // field of another type, does not pass.

@@ -196,6 +196,104 @@ fn check_refinement_card(card: &Value, rf: &Value) {
     }
 }
 
+/// The page's timeline of the whole shot shows what the daemon stored
+/// (each round's shot error, how it ended), the outline overlay was drawn
+/// with four finite corners inside a frame's reach and a shot error, and
+/// the downloaded before/after PNG is the three panels of the camera's
+/// frame.
+fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
+    let a = seen["shot_a"]["id"].as_str().unwrap();
+    let stored = get_json(addr, &format!("/api/v1/shots/{a}"));
+    let rf = &stored["mission"]["details"]["refinement"];
+    let rounds = rf["rounds"].as_array().expect("rounds recorded");
+    let tl = seen["timeline_a"].as_array().unwrap();
+    eprintln!("timeline of {a}:");
+    for l in tl {
+        eprintln!("  {}", l["text"].as_str().unwrap_or(""));
+    }
+    let kinds: Vec<&str> = tl.iter().map(|l| l["kind"].as_str().unwrap()).collect();
+    let pos = |k: &str| kinds.iter().position(|x| *x == k);
+    let order = [
+        "localised",
+        "georeferenced",
+        "uploaded",
+        "started",
+        "flying",
+        "arrived",
+        "round",
+    ];
+    let at: Vec<Option<usize>> = order.iter().map(|k| pos(k)).collect();
+    assert!(
+        at.iter().all(Option::is_some) && at.windows(2).all(|w| w[0] < w[1]),
+        "the timeline of {a} is out of order or lacks a step: {kinds:?}"
+    );
+    let shown: Vec<&Value> = tl.iter().filter(|l| l["kind"] == "round").collect();
+    assert_eq!(shown.len(), rounds.len(), "{kinds:?} vs {rf}");
+    for (l, r) in shown.iter().zip(rounds) {
+        assert_eq!(l["round"], r["round"], "{l} vs {r}");
+        match r["shot_error_pct"].as_f64() {
+            Some(e) => {
+                let got = l["error"].as_f64().unwrap();
+                assert!((got - e).abs() < 1e-9, "{l} vs {r}");
+            }
+            None => assert!(l["error"].is_null(), "{l} vs {r}"),
+        }
+    }
+    let last = tl.last().unwrap();
+    assert_eq!(last["kind"], "done", "{kinds:?}");
+    let stop = rf["stop"].as_str().unwrap();
+    assert!(
+        last["text"]
+            .as_str()
+            .unwrap()
+            .contains(&format!("done: {stop}")),
+        "{last} vs {rf}"
+    );
+
+    let ov = &seen["overlay"];
+    assert_eq!(ov["shot"], a, "{ov}");
+    assert!(ov["visible"].as_bool().unwrap(), "{ov}");
+    let corners = ov["corners"].as_array().unwrap();
+    assert_eq!(corners.len(), 4, "{ov}");
+    for c in corners {
+        for k in 0..2 {
+            let v = c[k].as_f64().unwrap();
+            // Finite, and within a frame's width of the 640x480 frame.
+            assert!((-640.0..1280.0).contains(&v), "{ov}");
+        }
+    }
+    let err = ov["error"].as_f64().unwrap();
+    assert!((0.0..100.0).contains(&err), "{ov}");
+    assert!(ov["info"].as_str().unwrap().contains("shot error"), "{ov}");
+
+    let ba = &seen["before_after"];
+    assert_eq!(ba["state"], "ready", "{ba}");
+    for wh in ba["images"].as_array().unwrap() {
+        assert_eq!(wh, &serde_json::json!([640, 480]), "{ba}");
+    }
+    // The final error shown is the last round's.
+    let final_err = rounds.last().and_then(|r| r["shot_error_pct"].as_f64());
+    let shown = ba["error"].as_str().and_then(|e| e.parse::<f64>().ok());
+    match (final_err, shown) {
+        (Some(e), Some(s)) => assert!((e - s).abs() < 1e-9, "{ba} vs {e}"),
+        (None, None) => {}
+        (e, s) => panic!("final error {e:?}, the page shows {s:?}: {ba}"),
+    }
+    assert!(
+        ba["title"].as_str().unwrap().contains("final shot error"),
+        "{ba}"
+    );
+    let png = seen["before_after_png"].as_str().unwrap();
+    let img = image::open(png).unwrap_or_else(|e| panic!("{png}: {e}"));
+    // Three 640x480 panels 8 px apart under a 27 px band of text.
+    assert_eq!(
+        (img.width(), img.height()),
+        (3 * 640 + 16, 480 + 27),
+        "{png}"
+    );
+    eprintln!("before/after PNG: {png}");
+}
+
 #[test]
 #[ignore = "needs chromium and playwright-core"]
 fn operator_page_in_headless_chromium() {
@@ -288,7 +386,12 @@ fn operator_page_in_headless_chromium() {
     // What the page showed is what the daemon holds.
     assert!(seen["keyframes_listed"].as_u64().unwrap() >= 3);
     let shots = get_json(addr, "/api/v1/shots");
-    assert_eq!(shots["count"], 1 + seeded.len(), "{shots}");
+    // The first shot, then the whole shot's, then the second shot (which
+    // may have taken a few keyframes to localise).
+    assert!(
+        shots["count"].as_u64().unwrap() >= 3 + seeded.len() as u64,
+        "{shots}"
+    );
     let id = seen["shot"]["id"].as_str().unwrap();
     let shot = get_json(addr, &format!("/api/v1/shots/{id}"));
     assert_eq!(shot["status"], seen["shot"]["state"], "{shot}");
@@ -362,6 +465,10 @@ fn operator_page_in_headless_chromium() {
         eprintln!("stage screenshot: {p}");
     }
 
+    // The whole shot: its timeline as the daemon recorded it, the outline
+    // overlay and the before/after PNG.
+    check_whole_shot(addr, &seen);
+
     // The map's vehicle marker against the simulator's truth (the camera's
     // centre, 13 cm from the vehicle's), each sample at the truth frame
     // nearest its time.
@@ -410,14 +517,26 @@ fn operator_page_in_headless_chromium() {
         from_stop < 1.5,
         "the vehicle holds {from_stop:.2} m from where it was when the stop was acknowledged"
     );
-    // The stopped flight is the scripted survey (no shot flies): the hold
-    // mode is in the status.
+    // The stopped flight is the second shot's: the hold mode is in the
+    // status, and the shot is marked stopped.
     let st = get_json(addr, "/api/v1/status");
     let mode = st["vehicle"]["mode"].as_str().unwrap_or("");
     assert!(
         mode == "AUTO.LOITER" || mode == "LOITER",
         "vehicle mode after the stop: {mode}"
     );
+    let b = seen["shot_b"]["id"].as_str().unwrap();
+    let shot_b = get_json(addr, &format!("/api/v1/shots/{b}"));
+    assert_eq!(shot_b["mission"]["state"], "stopped", "{shot_b}");
+    let kinds: Vec<&str> = seen["timeline_b"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["kind"].as_str().unwrap())
+        .collect();
+    for k in ["localised", "uploaded", "started", "flying", "stopped"] {
+        assert!(kinds.contains(&k), "{b}'s timeline lacks {k}: {kinds:?}");
+    }
 
     cancel.cancel();
     rt.block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })

@@ -69,6 +69,7 @@ function showStatus(s) {
     (src.last_error ? ` · ${src.last_error}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
   drawMap();
+  drawOverlay();
 }
 function errorsText(errors) {
   if (!errors || !errors.length) return '';
@@ -95,8 +96,142 @@ function geoText(g) {
 function connectEvents() {
   const es = new EventSource(API + '/events');
   es.addEventListener('status', (e) => { try { showStatus(JSON.parse(e.data)); } catch (_) {} });
+  es.addEventListener('shot', (e) => { try { onShotEvent(JSON.parse(e.data)); } catch (_) {} });
+  // The daemon replays its kept history on each connection.
+  es.onopen = () => { timelines.clear(); $('timeline').textContent = 'no shot events yet'; };
   es.onerror = () => { $('status').textContent = 'daemon unreachable, retrying…'; badge('b-link', 'bad', 'daemon unreachable'); };
 }
+
+// ---- shot events: timeline, live overlay, before/after ----------------------
+// `shot` events (see openapi.json, ShotEvent): localised / not_localised,
+// georeferenced, uploaded, started, flying (distance, at most 1 Hz), arrived,
+// round (shot error), overlay (the desired outline in the live frame),
+// done, stopped. Hooks for tests and tools: each timeline is
+// `.tl[data-shot]` with `li[data-kind]` entries (one `flying` line per
+// round, updated); #overlay's data-state (none, outline, lost, ended),
+// data-shot, data-error, data-corners; #beforeafter's data-state (none,
+// loading, ready, unavailable) and data-shot.
+const timelines = new Map();
+let overlay = null;
+const MILESTONES = new Set(['localised', 'not_localised', 'georeferenced', 'uploaded', 'started', 'arrived', 'round', 'done', 'stopped']);
+function eventText(e) {
+  switch (e.kind) {
+    case 'localised': return `localised: ${e.inliers} inliers, ${fmt(e.rms_error_px, 2)} px`;
+    case 'not_localised': return `not localised: ${e.reason}`;
+    case 'georeferenced': return `georeferenced: target ${fmt(e.lat_deg, 7)}, ${fmt(e.lon_deg, 7)}, ${fmt(e.alt_m, 1)} m, yaw ${fmt(e.yaw_deg, 1)}°, pitch ${fmt(e.gimbal_pitch_deg, 1)}°`;
+    case 'uploaded': return `mission uploaded: ${e.items} items`;
+    case 'started': return 'mission started';
+    case 'flying': return `round ${e.round}: flying, ${fmt(e.distance_m, 1)} m to the target (${fmt(e.vertical_m, 1)} m vertically)`;
+    case 'arrived': return `round ${e.round}: arrived`;
+    case 'round': return `round ${e.round}: shot error ${e.shot_error_pct == null ? '–' : fmt(e.shot_error_pct, 2) + ' %'}${e.floor_pct == null ? '' : `, floor ${fmt(e.floor_pct, 2)} %`} → ${e.decision}${e.note ? ` (${e.note})` : ''}`;
+    case 'done': return `done: ${e.stop}${e.reason ? ` (${e.reason})` : ''}`;
+    case 'stopped': return `stopped: ${e.reason}`;
+    default: return e.kind;
+  }
+}
+function renderTimeline(id) {
+  const t = timelines.get(id);
+  const box = $('timeline');
+  if (box.firstChild && box.firstChild.nodeType === Node.TEXT_NODE) box.textContent = '';
+  let div = box.querySelector(`.tl[data-shot="${id}"]`);
+  if (!div) { div = el('div', { class: 'tl', 'data-shot': id }); box.prepend(div); }
+  div.textContent = '';
+  div.append(el('div', { class: 'head' }, id));
+  const ol = el('ol');
+  for (const e of t.entries) {
+    const li = el('li', { 'data-kind': e.kind }, `${new Date(e.at_unix * 1000).toLocaleTimeString()} ${eventText(e)}`);
+    if (e.round != null) li.dataset.round = e.round;
+    if (e.shot_error_pct != null) li.dataset.error = e.shot_error_pct;
+    ol.append(li);
+  }
+  div.append(ol);
+  div.dataset.last = t.entries.length ? t.entries[t.entries.length - 1].kind : '';
+}
+function onShotEvent(e) {
+  if (!timelines.has(e.shot)) timelines.set(e.shot, { entries: [] });
+  const t = timelines.get(e.shot);
+  if (e.kind === 'overlay') { showOverlay(e); return; }
+  if (e.kind === 'flying') {
+    // One line per round's flight, updated in place.
+    const i = t.entries.findIndex((x) => x.kind === 'flying' && x.round === e.round);
+    if (i >= 0) t.entries[i] = e; else t.entries.push(e);
+  } else t.entries.push(e);
+  renderTimeline(e.shot);
+  if (e.kind === 'started') { overlay = { shot: e.shot, ev: null }; drawOverlay(); }
+  if (e.kind === 'done' || e.kind === 'stopped') {
+    if (overlay && overlay.shot === e.shot) { overlay.ended = true; drawOverlay(); }
+    showBeforeAfter(e.shot, e);
+  }
+  // Milestones change the stored shot: the shots panel follows.
+  if (MILESTONES.has(e.kind)) refreshShots();
+}
+function showOverlay(e) {
+  if (!overlay || overlay.shot !== e.shot || overlay.ended) overlay = { shot: e.shot, ev: null };
+  overlay.ev = e;
+  drawOverlay();
+}
+function drawOverlay() {
+  const cv = $('overlay'), g = cv.getContext('2d');
+  cv.hidden = !$('overlaytoggle').checked;
+  g.clearRect(0, 0, cv.width, cv.height);
+  const sl = (state.status && state.status.slam) || {};
+  // The tracking state, always.
+  g.font = '14px sans-serif'; g.fillStyle = sl.state === 'tracking' ? '#7fd67f' : '#ff9a6b';
+  g.fillText(`SLAM ${sl.state || '?'}`, 8, cv.height - 10);
+  if (!overlay) { cv.dataset.state = 'none'; return; }
+  cv.dataset.shot = overlay.shot;
+  const e = overlay.ev;
+  if (overlay.ended) { cv.dataset.state = 'ended'; $('overlayinfo').textContent = `${overlay.shot}: refinement ended`; return; }
+  if (!e) { cv.dataset.state = 'none'; return; }
+  if (e.width && e.height && (cv.width !== e.width || cv.height !== e.height)) { cv.width = e.width; cv.height = e.height; }
+  if (!e.corners_px) {
+    cv.dataset.state = 'lost'; delete cv.dataset.corners; delete cv.dataset.error;
+    $('overlayinfo').textContent = `${overlay.shot}: no outline (${e.note || 'no homography'})`;
+    return;
+  }
+  cv.dataset.state = 'outline';
+  cv.dataset.corners = JSON.stringify(e.corners_px);
+  cv.dataset.error = String(e.shot_error_pct);
+  g.strokeStyle = '#ff4d4d'; g.lineWidth = 3; g.beginPath();
+  e.corners_px.forEach((c, i) => (i ? g.lineTo(c[0], c[1]) : g.moveTo(c[0], c[1])));
+  g.closePath(); g.stroke();
+  g.font = 'bold 18px sans-serif'; g.fillStyle = '#ffd24d';
+  const txt = `${overlay.shot}: shot error ${fmt(e.shot_error_pct, 2)} %`;
+  g.fillText(txt, 8, 22);
+  $('overlayinfo').textContent = `${txt} · ${e.inliers} inliers`;
+}
+$('overlaytoggle').addEventListener('change', drawOverlay);
+// The desired picture and the live frame of the last round, side by side
+// and overlaid (the slider sets the desired picture's opacity), and the
+// server-composed PNG.
+async function showBeforeAfter(id, ended) {
+  const box = $('beforeafter');
+  box.dataset.shot = id; box.dataset.state = 'loading';
+  const t = Date.now();
+  const achieved = `${API}/shots/${id}/achieved.jpg?t=${t}`, desired = `${API}/shots/${id}/image.jpg?t=${t}`;
+  const ok = await fetch(achieved, { method: 'HEAD' }).then((r) => r.ok, () => false);
+  if (box.dataset.shot !== id) return;
+  const rounds = (timelines.get(id) || { entries: [] }).entries.filter((x) => x.kind === 'round');
+  const last = rounds[rounds.length - 1];
+  $('ba-title').textContent = `${id} · ${eventText(ended)}${last ? ` · final shot error ${last.shot_error_pct == null ? '–' : fmt(last.shot_error_pct, 2) + ' %'}` : ''}`;
+  box.dataset.error = last && last.shot_error_pct != null ? String(last.shot_error_pct) : '';
+  if (!ok) {
+    box.dataset.state = 'unavailable';
+    box.querySelector('.ba').hidden = true; $('ba-download').hidden = true;
+    $('ba-msg').textContent = `${id}: no live frame was measured (no refinement round reached)`;
+    return;
+  }
+  const imgs = [[$('ba-desired'), desired], [$('ba-achieved'), achieved], [$('ba-under'), achieved], [$('ba-over'), desired]];
+  await Promise.all(imgs.map(([i, src]) => new Promise((res) => { i.onload = res; i.onerror = res; i.src = src; })));
+  if (box.dataset.shot !== id) return;
+  $('ba-msg').textContent = '';
+  box.querySelector('.ba').hidden = false;
+  $('ba-over').style.opacity = String(1 - $('ba-slider').value / 100);
+  const dl = $('ba-download');
+  dl.href = `${API}/shots/${id}/before_after.png`; dl.download = `${id}_before_after.png`; dl.hidden = false;
+  box.dataset.state = 'ready';
+}
+$('ba-slider').addEventListener('input', () => { $('ba-over').style.opacity = String(1 - $('ba-slider').value / 100); });
 
 // ---- map --------------------------------------------------------------------
 // With a georeference: a world map, north up, local NED metres at home
@@ -505,17 +640,9 @@ $('upload').addEventListener('click', async () => {
 });
 $('start').addEventListener('click', async () => {
   if (!state.shot) return;
-  try { showShot(await api('POST', `/shots/${state.shot.id}/start`)); pollProgress(); } catch (e) { showResult(String(e.message || e), true); }
+  // Progress follows from the event stream (the timeline).
+  try { showShot(await api('POST', `/shots/${state.shot.id}/start`)); } catch (e) { showResult(String(e.message || e), true); }
 });
-async function pollProgress() {
-  if (!state.shot || !state.shot.mission) return;
-  try {
-    const p = await api('GET', `/shots/${state.shot.id}/progress`);
-    const pr = p.progress || {};
-    $('result').textContent += `\nprogress: item ${pr.current_seq ?? '?'} of ${pr.total ?? '?'}`;
-    if (!(pr.total && pr.last_reached === pr.total - 1)) setTimeout(pollProgress, 1000);
-  } catch (_) {}
-}
 
 // ---- shots and their refinement rounds ----------------------------------------
 // One card per shot (newest first): status, source, mission, and, once its
@@ -642,4 +769,5 @@ refreshMap();
 setInterval(refreshMap, 2000);
 setInterval(refreshKeyframes, 3000);
 refreshShots();
-setInterval(refreshShots, 2000);
+// Shot events refresh the shots panel; this only catches what they miss.
+setInterval(refreshShots, 10000);

@@ -7,11 +7,15 @@
 //! the matching status; state-changing endpoints need `Authorization:
 //! Bearer <token>` when a token is configured; bodies are size-limited.
 
+mod before_after;
 mod error;
+mod events;
 mod views;
 
+pub use before_after::compose_before_after;
 pub use error::ApiError;
 use error::body_rejection;
+pub use events::{Achieved, ShotEvent, ShotEventRecord, ShotEvents};
 pub use views::{
     AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, LoopInfo, MapSaved, MapStart,
     MapView, MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome, StopView,
@@ -89,6 +93,8 @@ pub struct AppState {
     /// Cancelled at shutdown: ends the endless responses (events, video)
     /// so that the graceful shutdown does not wait for their clients.
     pub shutdown: tokio_util::sync::CancellationToken,
+    /// Shot events (the `shot` events of `/events`) and achieved frames.
+    pub events: Arc<ShotEvents>,
 }
 
 /// The OpenAPI document.
@@ -123,6 +129,8 @@ pub fn router(state: AppState) -> Router {
         .route("/shots/{id}/image.jpg", get(shot_image))
         .route("/shots/{id}/progress", get(progress))
         .route("/shots/{id}/target", get(shot_target))
+        .route("/shots/{id}/achieved.jpg", get(achieved_image))
+        .route("/shots/{id}/before_after.png", get(before_after_png))
         .route("/vehicle/mission", get(vehicle_mission))
         .merge(changing)
         .fallback(|| async { ApiError::not_found("endpoint") });
@@ -227,21 +235,62 @@ async fn status(State(st): State<AppState>) -> Json<Value> {
     Json(status_json(&st))
 }
 
+/// The `/events` stream's state: the history still to send, the live
+/// shot events, the next status time.
+struct EventsState {
+    st: AppState,
+    replay: std::collections::VecDeque<Arc<ShotEventRecord>>,
+    rx: tokio::sync::broadcast::Receiver<Arc<ShotEventRecord>>,
+    next_status: tokio::time::Instant,
+    period: Duration,
+}
+
+fn shot_event(r: &ShotEventRecord) -> Event {
+    Event::default()
+        .event("shot")
+        .data(serde_json::to_string(r).unwrap_or_else(|_| "{}".into()))
+}
+
+/// `status` events (the /status document) at `events_hz`, the first at
+/// once, and `shot` events ([`ShotEventRecord`]): first the kept history,
+/// then each as it happens.
 async fn events(
     State(st): State<AppState>,
 ) -> Sse<impl futures_util::Stream<Item = Result<Event, std::convert::Infallible>>> {
     let period = Duration::from_secs_f64(1.0 / st.params.events_hz.clamp(0.1, 50.0));
-    let stream = futures_util::stream::unfold((st, true), move |(st, first)| async move {
-        if !first {
+    let (history, rx) = st.events.subscribe();
+    let state = EventsState {
+        st,
+        replay: history.into(),
+        rx,
+        next_status: tokio::time::Instant::now(),
+        period,
+    };
+    let stream = futures_util::stream::unfold(state, |mut s| async move {
+        use tokio::sync::broadcast::error::RecvError;
+        loop {
+            let now = tokio::time::Instant::now();
+            if s.next_status <= now {
+                s.next_status = (s.next_status + s.period).max(now);
+                let ev = Event::default()
+                    .event("status")
+                    .data(status_json(&s.st).to_string());
+                return Some((Ok(ev), s));
+            }
+            if let Some(r) = s.replay.pop_front() {
+                return Some((Ok(shot_event(&r)), s));
+            }
             tokio::select! {
-                _ = st.shutdown.cancelled() => return None,
-                _ = tokio::time::sleep(period) => {}
+                _ = s.st.shutdown.cancelled() => return None,
+                _ = tokio::time::sleep_until(s.next_status) => {}
+                r = s.rx.recv() => match r {
+                    Ok(r) => return Some((Ok(shot_event(&r)), s)),
+                    // A slow client skips what it missed.
+                    Err(RecvError::Lagged(_)) => {}
+                    Err(RecvError::Closed) => return None,
+                },
             }
         }
-        let ev = Event::default()
-            .event("status")
-            .data(status_json(&st).to_string());
-        Some((Ok(ev), (st, false)))
     });
     Sse::new(stream).keep_alive(KeepAlive::default())
 }
@@ -452,6 +501,18 @@ async fn store_shot(
     let saved = shot.clone();
     tokio::task::spawn_blocking(move || store.put(saved, jpeg.as_deref())).await??;
     tracing::info!(id = %shot.id, status = status.as_str(), "shot created");
+    st.events.publish(
+        &shot.id,
+        match (&shot.localisation, &shot.reason) {
+            (Some(l), _) => ShotEvent::Localised {
+                inliers: l.inliers,
+                rms_error_px: l.rms_error_px,
+            },
+            (None, r) => ShotEvent::NotLocalised {
+                reason: r.clone().unwrap_or_default(),
+            },
+        },
+    );
     Ok((StatusCode::CREATED, Json(shot)).into_response())
 }
 
@@ -645,10 +706,34 @@ async fn upload_mission(
     let v = vehicle(&st)?;
     let _guard = st.actions.lock().await;
     let record = v.upload_shot(&shot).await?;
+    let target = &record.details["target"];
+    let num = |k: &str| target[k].as_f64();
+    if let (Some(lat_deg), Some(lon_deg), Some(alt_m), Some(yaw_deg), Some(gimbal_pitch_deg)) = (
+        num("lat_deg"),
+        num("lon_deg"),
+        num("alt_above_home_m"),
+        num("yaw_deg"),
+        num("gimbal_pitch_deg"),
+    ) {
+        st.events.publish(
+            &id,
+            ShotEvent::Georeferenced {
+                lat_deg,
+                lon_deg,
+                alt_m,
+                yaw_deg,
+                gimbal_pitch_deg,
+            },
+        );
+    }
+    let items = record.items;
     let store = st.store.clone();
-    let shot = tokio::task::spawn_blocking(move || store.update(&id, |s| s.mission = Some(record)))
-        .await??
-        .ok_or(ApiError::not_found("shot"))?;
+    let sid = id.clone();
+    let shot =
+        tokio::task::spawn_blocking(move || store.update(&sid, |s| s.mission = Some(record)))
+            .await??
+            .ok_or(ApiError::not_found("shot"))?;
+    st.events.publish(&id, ShotEvent::Uploaded { items });
     Ok(Json(shot))
 }
 
@@ -691,6 +776,7 @@ async fn start_mission(
     let _guard = st.actions.lock().await;
     v.start_mission(&shot).await?;
     let started = unix_now();
+    st.events.publish(&id, ShotEvent::Started);
     let store = st.store.clone();
     let shot = tokio::task::spawn_blocking(move || {
         store.update(&id, |s| {
@@ -771,6 +857,14 @@ async fn stop_vehicle(State(st): State<AppState>) -> Result<Json<StopView>, ApiE
         marked = shot.filter(|_| changed).map(|s| s.id);
     }
     tracing::info!(shot = ?marked, mode = %out.ack.mode, "vehicle stopped by the operator");
+    if let Some(id) = marked.as_ref().or(out.refinement_cancelled.as_ref()) {
+        st.events.publish(
+            id,
+            ShotEvent::Stopped {
+                reason: STOP_REASON.to_owned(),
+            },
+        );
+    }
     Ok(Json(StopView {
         stopped: true,
         command: out.ack.command,
@@ -781,4 +875,58 @@ async fn stop_vehicle(State(st): State<AppState>) -> Result<Json<StopView>, ApiE
         reason: STOP_REASON.to_owned(),
         at_unix: at,
     }))
+}
+
+/// The live frame of the shot's last refinement round (JPEG); 404 when
+/// no round was measured in this daemon run.
+async fn achieved_image(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    find_shot(&st, &id)?;
+    let a = st
+        .events
+        .achieved(&id)
+        .ok_or_else(|| ApiError::not_found("achieved frame"))?;
+    let q = st.params.jpeg_quality;
+    let jpeg = tokio::task::spawn_blocking(move || encode_jpeg(&a.frame, q)).await??;
+    Ok(jpeg_response(jpeg))
+}
+
+/// One PNG of a refined shot: the desired picture, the achieved live
+/// frame with the desired outline, and the two blended, under a line with
+/// the final shot error ([`compose_before_after`]).
+async fn before_after_png(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    find_shot(&st, &id)?;
+    let a = st
+        .events
+        .achieved(&id)
+        .ok_or_else(|| ApiError::not_found("achieved frame"))?;
+    let jpeg = st
+        .store
+        .image(&id)
+        .ok_or_else(|| ApiError::not_found("shot image"))?;
+    let png = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, ApiError> {
+        let desired = image::load_from_memory(&jpeg)?.to_luma8();
+        let img = compose_before_after(&desired, &a);
+        let mut out = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut out, image::ImageFormat::Png)?;
+        Ok(out.into_inner())
+    })
+    .await??;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/png".to_owned()),
+            (header::CACHE_CONTROL, "no-cache".to_owned()),
+            (
+                header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"{id}_before_after.png\""),
+            ),
+        ],
+        png,
+    )
+        .into_response())
 }

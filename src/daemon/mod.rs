@@ -290,6 +290,7 @@ pub async fn run_on(
     // The refinement loop: started with a shot's mission, stopped by the
     // next upload or the shutdown.
     let actions: Arc<tokio::sync::Mutex<()>> = Default::default();
+    let events: Arc<api::ShotEvents> = Default::default();
     let (refine, refine_task) = refine_loop::spawn(
         refine_loop::Deps {
             store: store.clone(),
@@ -302,6 +303,7 @@ pub async fn run_on(
             params: cfg.refine.params(),
             pictures: Default::default(),
             epoch: std::time::Instant::now(),
+            events: events.clone(),
         },
         cancel.child_token(),
     );
@@ -343,6 +345,7 @@ pub async fn run_on(
         actions,
         started_unix: unix_now(),
         shutdown: cancel.clone(),
+        events,
     };
     let bind_err = |source| DaemonError::Bind {
         addr: cfg.server.bind.clone(),

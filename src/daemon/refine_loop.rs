@@ -14,6 +14,12 @@
 //! `at_floor` instead of spending its rounds. It stops on convergence, the
 //! floor, the round budget or a refusal, and is cancelled by the daemon's
 //! shutdown or when another shot is uploaded or started.
+//!
+//! It publishes the shot's progress as [`ShotEvent`]s (flying with the
+//! distance to the target at most once a second, arrived, each round,
+//! done), the desired shot's outline in the live frame about once a second
+//! while it runs ([`OVERLAY_PERIOD`]), and keeps each round's live frame
+//! for the before/after view ([`Achieved`]).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -26,11 +32,12 @@ use tokio_util::sync::CancellationToken;
 use super::geo_service::GeoService;
 use super::refine_service::{record_abort, record_rounds};
 use super::slam_shared::SlamShared;
+use crate::api::{Achieved, ShotEvent, ShotEvents};
 use crate::geo::{Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
 use crate::refine::{
-    ArrivalDetector, Context, LiveFrame, Observation, Reachable, Session, Step,
-    reachable_from_anchors,
+    ArrivalDetector, Context, LiveFrame, Observation, Reachable, Session, Step, outline_in_live,
+    reachable_from_anchors, shot_error,
 };
 use crate::shot::anchors::desired_shot_from_anchors;
 use crate::shot::record::{Shot, ShotSource};
@@ -112,7 +119,17 @@ pub struct Deps {
     pub pictures: std::sync::Mutex<Vec<(String, Picture)>>,
     /// The loop's clock origin (measurement times are seconds since it).
     pub epoch: Instant,
+    /// Where the shot's progress is published.
+    pub events: Arc<ShotEvents>,
 }
+
+/// How often the desired shot's outline in the live frame is measured
+/// while a loop runs (one shot error: two ORB extractions and a RANSAC
+/// homography, some 50 ms on one core).
+pub const OVERLAY_PERIOD: Duration = Duration::from_secs(1);
+
+/// How often a `flying` event is published at most.
+const FLYING_PERIOD: Duration = Duration::from_secs(1);
 
 /// A desired picture, the mask of its valid pixels and, for a shot made
 /// from anchors, the best framing a camera can reach (the shot error's
@@ -251,8 +268,18 @@ async fn run(deps: Arc<Deps>, mut rx: mpsc::UnboundedReceiver<Request>, cancel: 
         };
         let ended = match current.take() {
             Some((c, t, id)) => {
+                let running = !t.is_finished();
                 c.cancel();
                 let _ = t.await;
+                if running && !matches!(req, Request::Halt { .. }) {
+                    deps.events.publish(
+                        &id,
+                        ShotEvent::Done {
+                            stop: "aborted".into(),
+                            reason: Some("another shot's mission replaced it".into()),
+                        },
+                    );
+                }
                 Some(id)
             }
             None => None,
@@ -475,6 +502,15 @@ async fn save_rounds(deps: &Deps, shot_id: &str, session: &Session, abort: Optio
     record_rounds(m, session);
     if let Some(why) = abort {
         record_abort(m, &why.to_string());
+        if !matches!(why, Abort::Cancelled) {
+            deps.events.publish(
+                shot_id,
+                ShotEvent::Done {
+                    stop: "aborted".into(),
+                    reason: Some(why.to_string()),
+                },
+            );
+        }
     }
     let t = session.target();
     m.target_lat_lon_alt = Some([
@@ -538,6 +574,10 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
             return;
         }
     };
+    // The live outline, while this loop runs.
+    let overlay_cancel = cancel.child_token();
+    let _overlay_guard = overlay_cancel.clone().drop_guard();
+    tokio::spawn(overlay_loop(deps.clone(), shot.clone(), overlay_cancel));
     let flavour = deps.link.telemetry.vehicle.borrow().flavour;
     let Some(flavour) = flavour else {
         save_rounds(deps, &id, &session, Some(&Abort::UnknownAutopilot)).await;
@@ -567,7 +607,7 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
                 save_rounds(deps, &id, &session, Some(&Abort::Cancelled)).await;
                 return;
             }
-            a = wait_arrival(deps, wp, &target) => a,
+            a = wait_arrival(deps, wp, &target, (&id, session.rounds().len())) => a,
         };
         let arrived_at = match arrived {
             Ok(t) => t,
@@ -578,6 +618,12 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
             }
         };
         let flight_s = t_fly.elapsed().as_secs_f64();
+        deps.events.publish(
+            &id,
+            ShotEvent::Arrived {
+                round: session.rounds().len(),
+            },
+        );
         let before = session.clone();
         let step = tokio::select! {
             _ = cancel.cancelled() => {
@@ -608,6 +654,19 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
                 note = r.note.as_deref().unwrap_or(""),
                 "refinement: round"
             );
+            deps.events.publish(
+                &id,
+                ShotEvent::Round {
+                    round: r.round,
+                    shot_error_pct: r.shot_error_pct,
+                    floor_pct: r.floor_pct,
+                    decision: serde_json::to_value(r.decision)
+                        .ok()
+                        .and_then(|v| v.as_str().map(str::to_owned))
+                        .unwrap_or_else(|| format!("{:?}", r.decision)),
+                    note: r.note.clone(),
+                },
+            );
         }
         save_rounds(deps, &id, &session, None).await;
         let next = match step {
@@ -618,6 +677,18 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
                     rounds = session.rounds().len(),
                     seconds = t_loop.elapsed().as_secs_f64(),
                     "refinement: done"
+                );
+                let reason = match &stop {
+                    crate::refine::Stop::LiveNotLocalised(r)
+                    | crate::refine::Stop::CorrectionRefused(r) => Some(r.clone()),
+                    _ => None,
+                };
+                deps.events.publish(
+                    &id,
+                    ShotEvent::Done {
+                        stop: stop.name().into(),
+                        reason,
+                    },
                 );
                 return;
             }
@@ -695,13 +766,19 @@ fn distance_to(t: &Target, lat_deg: f64, lon_deg: f64, rel_alt_m: f64) -> (f64, 
 /// in the telemetry from the previous flight, and an upload to a vehicle
 /// in mission mode restarts the mission at once, so the report alone may
 /// be stale or already past. Returns the arrival time.
-async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, Abort> {
+async fn wait_arrival(
+    deps: &Deps,
+    wp: u16,
+    target: &Target,
+    (shot, round): (&str, usize),
+) -> Result<Instant, Abort> {
     let p = &deps.params;
     let tel = &deps.link.telemetry;
     let mut det = ArrivalDetector::new(p.refine.arrival, wp, target.gimbal_pitch_deg);
     let t0 = Instant::now();
     let radius = f64::from(deps.plan.acceptance_radius_m).max(0.1);
     let mut tick = tokio::time::interval(p.poll);
+    let mut last_flying: Option<Instant> = None;
     loop {
         tick.tick().await;
         if t0.elapsed() > p.max_flight {
@@ -715,10 +792,24 @@ async fn wait_arrival(deps: &Deps, wp: u16, target: &Target) -> Result<Instant, 
         let passed = progress
             .is_some_and(|pr| pr.last_reached.is_some_and(|r| r >= wp) || pr.state == Some(5));
         let gp = (*tel.global_position.borrow()).filter(|g| fresh(g.received));
-        let near = gp.is_some_and(|g| {
-            let (h, v) = distance_to(target, g.value.lat_deg, g.value.lon_deg, g.value.rel_alt_m);
-            h <= radius && v <= radius
-        });
+        let dist =
+            gp.map(|g| distance_to(target, g.value.lat_deg, g.value.lon_deg, g.value.rel_alt_m));
+        let near = dist.is_some_and(|(h, v)| h <= radius && v <= radius);
+        if let Some((h, v)) = dist
+            && h.is_finite()
+            && v.is_finite()
+            && last_flying.is_none_or(|t| t.elapsed() >= FLYING_PERIOD)
+        {
+            last_flying = Some(Instant::now());
+            deps.events.publish(
+                shot,
+                ShotEvent::Flying {
+                    round,
+                    distance_m: h,
+                    vertical_m: v,
+                },
+            );
+        }
         if passed && near {
             det.on_reached(wp);
         }
@@ -793,7 +884,13 @@ async fn collect_frames(
 
 /// The arrival: a few frames received after it, a map snapshot and the
 /// georeference, then the session's round on a blocking thread.
-async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: Instant) -> Looked {
+async fn look(
+    deps: &Arc<Deps>,
+    session: Session,
+    shot: &Shot,
+    home: &Home,
+    arrived: Instant,
+) -> Looked {
     let p = &deps.params;
     let frame_ltp = LocalFrame::new(Geodetic {
         lat_deg: home.lat_deg,
@@ -830,6 +927,7 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
     let slam = deps.slam.clone();
     let home = *home;
     let backup = session.clone();
+    let (d, s) = (deps.clone(), shot.clone());
     let joined = tokio::task::spawn_blocking(move || {
         let mut session = session;
         let Some(map) = slam.map_snapshot() else {
@@ -854,12 +952,101 @@ async fn look(deps: &Deps, session: Session, shot: &Shot, home: &Home, arrived: 
             .collect();
         let step = session.on_arrival(&live, t_s, Some(&camera), &ctx);
         session.observe(observed);
+        // The round's first frame, with the desired outline, for the
+        // before/after view; its error is the round's.
+        if let (Some(r), Some((f, _))) = (session.rounds().last(), frames.first()) {
+            let corners_px = picture_of(&d, &s).ok().and_then(|(img, mask, _)| {
+                let rep = shot_error(
+                    &f.image,
+                    &img,
+                    mask.as_ref(),
+                    Some(&camera),
+                    &d.params.refine.error,
+                )
+                .ok()?;
+                outline_in_live(&rep, img.width(), img.height(), Some(&camera))
+            });
+            d.events.set_achieved(
+                &s.id,
+                Achieved {
+                    frame: f.image.clone(),
+                    round: r.round,
+                    shot_error_pct: r.shot_error_pct,
+                    corners_px,
+                },
+            );
+        }
         (session, Ok(step))
     })
     .await;
     match joined {
         Ok(r) => r,
         Err(e) => (backup, Err(Abort::Task(e))),
+    }
+}
+
+/// Publishes the desired shot's outline in the newest live frame every
+/// [`OVERLAY_PERIOD`] until `cancel`.
+async fn overlay_loop(deps: Arc<Deps>, shot: Shot, cancel: CancellationToken) {
+    let d = deps.clone();
+    let camera = tokio::task::spawn_blocking(move || d.slam.map_snapshot().map(|m| m.camera))
+        .await
+        .ok()
+        .flatten();
+    let mut tick = tokio::time::interval(OVERLAY_PERIOD);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut last_seq = None;
+    loop {
+        tokio::select! {
+            _ = cancel.cancelled() => return,
+            _ = tick.tick() => {}
+        }
+        let Some(frame) = deps.ingest.latest() else {
+            continue;
+        };
+        if last_seq == Some(frame.seq) {
+            continue;
+        }
+        last_seq = Some(frame.seq);
+        let (d, s) = (deps.clone(), shot.clone());
+        let measured = tokio::task::spawn_blocking(move || {
+            let (w, h) = frame.image.dimensions();
+            let (img, mask, _) = picture_of(&d, &s)?;
+            let ev = match shot_error(
+                &frame.image,
+                &img,
+                mask.as_ref(),
+                camera.as_ref(),
+                &d.params.refine.error,
+            ) {
+                Ok(rep) => ShotEvent::Overlay {
+                    width: w,
+                    height: h,
+                    corners_px: outline_in_live(&rep, img.width(), img.height(), camera.as_ref()),
+                    shot_error_pct: Some(rep.corner_error_pct),
+                    inliers: Some(rep.inliers),
+                    note: None,
+                },
+                Err(e) => ShotEvent::Overlay {
+                    width: w,
+                    height: h,
+                    corners_px: None,
+                    shot_error_pct: None,
+                    inliers: None,
+                    note: Some(e.to_string()),
+                },
+            };
+            Ok::<_, Abort>(ev)
+        })
+        .await;
+        match measured {
+            Ok(Ok(ev)) if !cancel.is_cancelled() => deps.events.publish(&shot.id, ev),
+            Ok(Err(e)) => {
+                tracing::debug!("refinement: overlay: {e}");
+                return;
+            }
+            _ => {}
+        }
     }
 }
 

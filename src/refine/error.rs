@@ -127,6 +127,30 @@ fn corners(width: u32, height: u32, camera: Option<&Camera>) -> [Point2<f64>; 4]
     }
 }
 
+/// The desired picture's corners (top-left, top-right, bottom-right,
+/// bottom-left) in the live frame's pixels: the report's homography
+/// `live ← desired` applied to them (in undistorted pixels with `camera`,
+/// then distorted again, as the frame is shown). None when a corner maps
+/// to infinity.
+pub fn outline_in_live(
+    report: &ShotErrorReport,
+    width: u32,
+    height: u32,
+    camera: Option<&Camera>,
+) -> Option<[[f64; 2]; 4]> {
+    let h = Matrix3::from_row_slice(&report.live_from_desired.concat());
+    let mut out = [[0.0; 2]; 4];
+    for (o, c) in out.iter_mut().zip(corners(width, height, camera)) {
+        let m = apply_homography(&h, &c)?;
+        let p = camera.map_or(m, |cam| cam.distort_pixel(m));
+        if !(p.x.is_finite() && p.y.is_finite()) {
+            return None;
+        }
+        *o = [p.x, p.y];
+    }
+    Some(out)
+}
+
 /// The shot error of `live` against `desired` (whose pixels where
 /// `desired_mask` is 0 are black fill and yield no feature). Both images
 /// have the same size; with `camera` the keypoints and corners are
@@ -304,6 +328,42 @@ mod tests {
             );
         }
         assert!(got.inliers >= 100, "{} inliers", got.inliers);
+        // The desired picture's outline in the live frame: its corners
+        // through the known live ← desired.
+        let outline = outline_in_live(&got, w, h, None).unwrap();
+        for (o, c) in outline.iter().zip(frame_corners(w, h)) {
+            let want = apply_homography(&inv, &c).unwrap();
+            let d = (o[0] - want.x).hypot(o[1] - want.y);
+            assert!(d < 1.0, "outline corner {o:?} vs {want}: {d:.2} px");
+        }
+    }
+
+    #[test]
+    fn the_outline_is_in_distorted_pixels() {
+        // A barrel lens; the same framing (identity in undistorted pixels)
+        // outlines the frame's own corners, not the undistorted ones.
+        let cam = Camera::new(
+            640,
+            480,
+            [500.0, 500.0, 320.0, 240.0],
+            crate::camera::Distortion {
+                k1: -0.2,
+                k2: 0.05,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let rep = corner_error(&Matrix3::identity(), 640, 480, Some(&cam), 0, 0, (0, 0)).unwrap();
+        let outline = outline_in_live(&rep, 640, 480, Some(&cam)).unwrap();
+        for (o, c) in outline.iter().zip(frame_corners(640, 480)) {
+            let d = (o[0] - c.x).hypot(o[1] - c.y);
+            assert!(d < 0.05, "{o:?} vs {c}: {d} px");
+            let u = cam.undistort_pixel(c);
+            assert!(
+                (u - c).norm() > 5.0,
+                "the lens moves the corner: {u} vs {c}"
+            );
+        }
     }
 
     #[test]

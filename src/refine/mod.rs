@@ -34,7 +34,7 @@ pub use arrival::{ArrivalDetector, ArrivalParams};
 pub use controller::{ControllerParams, Correction, Decision, correct, correct_targets, decide};
 pub use error::{
     PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
-    pose_difference, shot_error,
+    outline_in_live, pose_difference, shot_error,
 };
 pub use measure::{LiveFrame, MeasureParams};
 pub use reachable::{Reachable, reachable_from_anchors};

@@ -124,62 +124,83 @@ async function main() {
     check(!(await page.isDisabled('#submit')), 'submit is enabled once a keyframe is chosen');
     out.keyframe = kfId;
 
-    // Drag the four anchors (they start at 25 % / 75 % of the picture) out
-    // to 5 % inside each corner: a shot a little closer than the keyframe,
-    // which the daemon can localise (at 10 % its fit is just over the
-    // 3 px reprojection gate, and the page then shows that refusal).
-    await page.locator('#editor').scrollIntoViewIfNeeded();
-    const ed = await page.$eval('#editor', (c) => {
-      const r = c.getBoundingClientRect();
-      return { left: r.left, top: r.top, cw: r.width, ch: r.height, w: c.width, h: c.height, anchors: JSON.parse(c.dataset.anchors) };
-    });
-    const W = ed.w, H = ed.h;
-    const targets = [[0.05 * W, 0.05 * H], [0.95 * W, 0.05 * H], [0.95 * W, 0.95 * H], [0.05 * W, 0.95 * H]];
-    // Anchors are keyframe pixels with pixel centres at integers: canvas +0.5.
-    const toClient = (p) => [ed.left + ((p[0] + 0.5) * ed.cw) / W, ed.top + ((p[1] + 0.5) * ed.ch) / H];
-    for (let i = 0; i < 4; i++) {
-      const [sx, sy] = toClient(ed.anchors[i]);
-      const [tx, ty] = toClient(targets[i]);
-      await page.mouse.move(sx, sy);
-      await page.mouse.down();
-      await page.mouse.move(tx, ty, { steps: 12 });
-      await page.mouse.up();
-    }
-    const anchors = await page.$eval('#editor', (c) => JSON.parse(c.dataset.anchors));
-    const px = W / ed.cw; // one screen pixel in picture pixels
-    for (let i = 0; i < 4; i++) {
-      const d = Math.hypot(anchors[i][0] - targets[i][0], anchors[i][1] - targets[i][1]);
-      check(d <= 1.5 * px + 0.1, `anchor ${i} dropped at (${anchors[i]}), wanted (${targets[i].map((v) => v.toFixed(1))})`);
-    }
-    out.anchors = anchors;
-    // The live preview shows the warped picture (not black).
-    const preview = await page.$eval('#preview', (c) => {
-      const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
-      let lit = 0;
-      for (let i = 0; i < d.length; i += 4) if (d[i] + d[i + 1] + d[i + 2] > 30) lit++;
-      return lit / (d.length / 4);
-    });
-    check(preview > 0.5, `preview is the warped shot (lit fraction ${preview.toFixed(2)})`);
-    out.preview_lit_fraction = Number(preview.toFixed(3));
+    // Drags the four anchors of the keyframe in the editor; returns them.
+    const dragAnchors = async () => {
+      // Drag the four anchors (they start at 25 % / 75 % of the picture) out
+      // to 5 % inside each corner: a shot a little closer than the keyframe,
+      // which the daemon can localise (at 10 % its fit is just over the
+      // 3 px reprojection gate, and the page then shows that refusal).
+      await page.locator('#editor').scrollIntoViewIfNeeded();
+      const look = () => page.$eval('#editor', (c) => {
+        const r = c.getBoundingClientRect();
+        return { left: r.left, top: r.top, cw: r.width, ch: r.height, w: c.width, h: c.height, anchors: JSON.parse(c.dataset.anchors) };
+      });
+      let ed = await look();
+      const W = ed.w, H = ed.h;
+      const targets = [[0.05 * W, 0.05 * H], [0.95 * W, 0.05 * H], [0.95 * W, 0.95 * H], [0.05 * W, 0.95 * H]];
+      // Anchors are keyframe pixels with pixel centres at integers: canvas +0.5.
+      const toClient = (p) => [ed.left + ((p[0] + 0.5) * ed.cw) / W, ed.top + ((p[1] + 0.5) * ed.ch) / H];
+      const px = W / ed.cw; // one screen pixel in picture pixels
+      const off = (a, i) => Math.hypot(a[i][0] - targets[i][0], a[i][1] - targets[i][1]);
+      for (let i = 0; i < 4; i++) {
+        // The page's layout can move while a drag runs (a status line
+        // wraps): each drag starts from a fresh look at the editor, and
+        // one that landed elsewhere is dragged again from where it is
+        // (at most three times).
+        for (let attempt = 0; attempt < 3; attempt++) {
+          ed = await look();
+          if (off(ed.anchors, i) <= 1.5 * px + 0.1) break;
+          const [sx, sy] = toClient(ed.anchors[i]);
+          const [tx, ty] = toClient(targets[i]);
+          await page.mouse.move(sx, sy);
+          await page.mouse.down();
+          await page.mouse.move(tx, ty, { steps: 12 });
+          await page.mouse.up();
+        }
+      }
+      const anchors = await page.$eval('#editor', (c) => JSON.parse(c.dataset.anchors));
+      for (let i = 0; i < 4; i++) {
+        check(off(anchors, i) <= 1.5 * px + 0.1, `anchor ${i} dropped at (${anchors[i]}), wanted (${targets[i].map((v) => v.toFixed(1))})`);
+      }
+      // The live preview shows the warped picture (not black).
+      const preview = await page.$eval('#preview', (c) => {
+        const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+        let lit = 0;
+        for (let i = 0; i < d.length; i += 4) if (d[i] + d[i + 1] + d[i + 2] > 30) lit++;
+        return lit / (d.length / 4);
+      });
+      check(preview > 0.5, `preview is the warped shot (lit fraction ${preview.toFixed(2)})`);
+      out.preview_lit_fraction = Number(preview.toFixed(3));
 
-    // Submit and see the daemon's answer.
-    await page.click('#submit');
-    await page.waitForFunction(() => {
-      const s = document.getElementById('result').dataset.state;
-      return s !== 'idle' && s !== 'busy';
-    }, null, { timeout: 60000 });
-    const state = await page.$eval('#result', (r) => r.dataset.state);
-    const text = await page.textContent('#result');
-    check(state === 'localised' || state === 'not_localised', `a shot was created, page says: ${state}: ${text}`);
-    const shotId = await page.$eval('#result', (r) => r.dataset.shotId);
-    check(text.includes(`shot ${shotId}: ${state}`), `result names the shot: ${text}`);
-    if (state === 'localised') {
-      check(/camera at \(-?\d/.test(text) && /inliers \d+, rms error \d/.test(text), `a localised shot shows pose, inliers and error: ${text}`);
-      check(!(await page.isDisabled('#upload')), 'upload is offered for a localised shot');
-    } else {
-      check(/reason: \S/.test(text), `a refused shot says why: ${text}`);
-      check(await page.isDisabled('#upload'), 'upload is not offered for an unlocalised shot');
-    }
+      return anchors;
+    };
+    // Submits the shot; returns the page's answer (with `lenient`, a
+    // refusal such as a keyframe culled meanwhile is returned, not failed).
+    const submitShot = async (lenient = false) => {
+      // Submit and see the daemon's answer.
+      const before = await page.$eval('#result', (r) => r.dataset.shotId || '');
+      await page.click('#submit');
+      await page.waitForFunction((before) => {
+        const r = document.getElementById('result');
+        return r.dataset.state === 'error' || (r.dataset.state !== 'idle' && r.dataset.state !== 'busy' && r.dataset.shotId !== before);
+      }, before, { timeout: 60000 });
+      const state = await page.$eval('#result', (r) => r.dataset.state);
+      const text = await page.textContent('#result');
+      if (lenient && state === 'error') return { id: null, state, text };
+      check(state === 'localised' || state === 'not_localised', `a shot was created, page says: ${state}: ${text}`);
+      const shotId = await page.$eval('#result', (r) => r.dataset.shotId);
+      check(text.includes(`shot ${shotId}: ${state}`), `result names the shot: ${text}`);
+      if (state === 'localised') {
+        check(/camera at \(-?\d/.test(text) && /inliers \d+, rms error \d/.test(text), `a localised shot shows pose, inliers and error: ${text}`);
+        check(!(await page.isDisabled('#upload')), 'upload is offered for a localised shot');
+      } else {
+        check(/reason: \S/.test(text), `a refused shot says why: ${text}`);
+        check(await page.isDisabled('#upload'), 'upload is not offered for an unlocalised shot');
+      }
+      return { id: shotId, state, text };
+    };
+    out.anchors = await dragAnchors();
+    const { id: shotId, state, text } = await submitShot();
     await page.waitForFunction(() => {
       const i = document.getElementById('shotimg');
       return i.complete && i.naturalWidth > 0;
@@ -214,27 +235,130 @@ async function main() {
     await page.$eval('#map', (m) => m.scrollIntoView());
     await stage(page, 'map_world');
     // Clicking a keyframe on the map chooses it in the anchor editor.
-    const pick = await page.evaluate(() => {
-      const pr = state.mapProject, cv = document.getElementById('map');
-      if (!pr || !pr.kfs.length) return null;
-      const cur = document.getElementById('editor').dataset.keyframe;
-      const k = pr.kfs.find((x) => String(x.id) !== cur) || pr.kfs[0];
-      const [u, v] = pr.P(k.p[0], k.p[1]);
-      const r = cv.getBoundingClientRect();
-      return { id: k.id, x: r.left + u * r.width / cv.width, y: r.top + v * r.height / cv.height, inside: u >= 0 && v >= 0 && u <= cv.width && v <= cv.height };
-    });
-    check(pick && pick.inside, `a keyframe is drawn on the map: ${JSON.stringify(pick)}`);
-    await page.mouse.click(pick.x, pick.y);
-    await page.waitForFunction((id) => document.getElementById('editor').dataset.keyframe === String(id), pick.id, { timeout: 10000 });
-    out.map_pick = pick.id;
+    const mapPick = async (choose) => {
+      const pick = await page.evaluate((choose) => {
+        const pr = state.mapProject, cv = document.getElementById('map');
+        if (!pr || !pr.kfs.length) return null;
+        const cur = document.getElementById('editor').dataset.keyframe;
+        const veh = (cv.dataset.vehicleNed || '0,0').split(',').map(Number);
+        let k;
+        if (choose === 'other') k = pr.kfs.find((x) => String(x.id) !== cur) || pr.kfs[0];
+        else if (choose === 'first') k = pr.kfs.reduce((a, b) => (b.id < a.id ? b : a));
+        else {
+          // The n-th keyframe farthest from the vehicle (a shot it must fly to).
+          const far = [...pr.kfs].sort((a, b) => Math.hypot(b.p[0] - veh[0], b.p[1] - veh[1]) - Math.hypot(a.p[0] - veh[0], a.p[1] - veh[1]));
+          k = far[Math.min(choose, far.length - 1)];
+        }
+        const [u, v] = pr.P(k.p[0], k.p[1]);
+        const inside = u >= 0 && v >= 0 && u <= cv.width && v <= cv.height;
+        // Keyframes can lie close together (hovering, turning): centre the
+        // view on this one and zoom until its nearest neighbour is 15 px
+        // away, so the click cannot choose another (the view stays put
+        // until the pick is done).
+        const near = Math.min(...pr.kfs.filter((x) => x.id !== k.id).map((x) => Math.hypot(x.p[0] - k.p[0], x.p[1] - k.p[1])), 1e9);
+        view.fit = false; view.pan = [k.p[0], k.p[1]];
+        view.zoom = Math.min(Math.max(view.zoom, 15 / Math.max(near, 1e-4)), 2000);
+        drawMap();
+        return { id: k.id, inside, near_m: near };
+      }, choose);
+      check(pick && pick.inside, `a keyframe is drawn on the map: ${JSON.stringify(pick)}`);
+      await page.$eval('#map', (m) => m.scrollIntoView());
+      const again = await page.evaluate((id) => {
+        const pr = state.mapProject, cv = document.getElementById('map');
+        const k = pr.kfs.find((x) => x.id === id);
+        const [u, v] = pr.P(k.p[0], k.p[1]);
+        const r = cv.getBoundingClientRect();
+        return { x: r.left + u * r.width / cv.width, y: r.top + v * r.height / cv.height };
+      }, pick.id);
+      await page.mouse.click(again.x, again.y);
+      await page.waitForFunction((id) => document.getElementById('editor').dataset.keyframe === String(id), pick.id, { timeout: 10000 });
+      await page.evaluate(() => { view.fit = true; });
+      return pick.id;
+    };
+    out.map_pick = await mapPick('other');
 
-    // Stop during the flight: the vehicle acknowledges the hold.
+    // A whole shot: the first keyframe chosen on the map, anchors dragged,
+    // submitted, uploaded, started; the timeline through arrival and a
+    // refinement round, the outline overlay, the before/after view.
+    const kfA = await mapPick('first');
+    await dragAnchors();
+    const shotA = await submitShot();
+    check(shotA.state === 'localised', `the shot on keyframe ${kfA} is localised: ${shotA.text}`);
+    const timeline = (id) => page.$$eval(`#timeline .tl[data-shot="${id}"] li`, (ls) => ls.map((l) => ({ kind: l.dataset.kind, round: l.dataset.round == null ? null : Number(l.dataset.round), error: l.dataset.error == null ? null : Number(l.dataset.error), text: l.textContent })));
+    const waitKind = (id, kind, timeout) => page.waitForFunction(([id, kind]) => !!document.querySelector(`#timeline .tl[data-shot="${id}"] li[data-kind="${kind}"]`), [id, kind], { timeout });
+    await page.click('#upload');
+    await page.waitForFunction(() => !document.getElementById('start').disabled, null, { timeout: 60000 });
+    await waitKind(shotA.id, 'uploaded', 10000);
+    await page.click('#start');
+    await waitKind(shotA.id, 'started', 30000);
+    // The outline overlay while the loop runs (measured about once a second).
+    await page.waitForFunction((id) => {
+      const o = document.getElementById('overlay');
+      return o.dataset.shot === id && o.dataset.state === 'outline';
+    }, shotA.id, { timeout: 240000 });
+    out.overlay = await page.$eval('#overlay', (o) => ({ state: o.dataset.state, shot: o.dataset.shot, corners: JSON.parse(o.dataset.corners), error: Number(o.dataset.error), visible: !o.hidden, info: document.getElementById('overlayinfo').textContent }));
+    await page.$eval('#video', (v) => v.scrollIntoView());
+    await stage(page, 'overlay');
+    // The toggle hides and shows it.
+    await page.click('#overlaytoggle');
+    check(await page.$eval('#overlay', (o) => o.hidden), 'the overlay toggle hides the overlay');
+    await page.click('#overlaytoggle');
+    check(!(await page.$eval('#overlay', (o) => o.hidden)), 'the overlay toggle shows the overlay again');
+    await waitKind(shotA.id, 'arrived', 240000);
+    await waitKind(shotA.id, 'round', 240000);
+    await page.$eval('#timeline', (t) => t.scrollIntoView());
+    await stage(page, 'timeline_round');
+    await page.waitForFunction((id) => {
+      const l = document.querySelector(`#timeline .tl[data-shot="${id}"]`);
+      return l && (l.dataset.last === 'done' || l.dataset.last === 'stopped');
+    }, shotA.id, { timeout: 400000 });
+    out.timeline_a = await timeline(shotA.id);
+    // Before/after of the finished shot, and its PNG downloaded.
+    await page.waitForFunction((id) => {
+      const b = document.getElementById('beforeafter');
+      return b.dataset.shot === id && ['ready', 'unavailable'].includes(b.dataset.state);
+    }, shotA.id, { timeout: 30000 });
+    out.before_after = await page.$eval('#beforeafter', (b) => ({
+      state: b.dataset.state, shot: b.dataset.shot, error: b.dataset.error, title: document.getElementById('ba-title').textContent,
+      images: ['ba-desired', 'ba-achieved', 'ba-under', 'ba-over'].map((i) => [document.getElementById(i).naturalWidth, document.getElementById(i).naturalHeight]),
+    }));
+    check(out.before_after.state === 'ready', `the before/after view shows: ${JSON.stringify(out.before_after)}`);
+    // The slider fades the desired picture over the achieved frame.
+    await page.$eval('#ba-slider', (s) => { s.value = '80'; s.dispatchEvent(new Event('input')); });
+    const opacity = await page.$eval('#ba-over', (i) => Number(i.style.opacity));
+    check(Math.abs(opacity - 0.2) < 1e-6, `the slider at 80 shows the desired picture at opacity 0.2, got ${opacity}`);
+    await page.$eval('#beforeafter', (b) => b.scrollIntoView());
+    await stage(page, 'before_after');
+    const [download] = await Promise.all([page.waitForEvent('download', { timeout: 30000 }), page.click('#ba-download')]);
+    const path = require('path');
+    out.before_after_png = path.join(path.dirname(SHOT), `${shotA.id}_before_after.png`);
+    await download.saveAs(out.before_after_png);
+    out.shot_a = shotA;
+
+    // A second shot, on a keyframe away from the vehicle; Stop while it
+    // flies there: acknowledged, the shot stopped on its timeline.
+    let shotB = null;
+    for (let n = 0; n < 4 && !(shotB && shotB.state === 'localised'); n++) {
+      await mapPick(n);
+      await dragAnchors();
+      shotB = await submitShot(true);
+    }
+    check(shotB.state === 'localised', `a second shot is localised: ${shotB.text}`);
+    await page.click('#upload');
+    await page.waitForFunction(() => !document.getElementById('start').disabled, null, { timeout: 60000 });
+    await page.click('#start');
+    await page.waitForFunction((id) => [...document.querySelectorAll(`#timeline .tl[data-shot="${id}"] li[data-kind="flying"]`)].some((l) => /flying, ([3-9]|\d\d+)\./.test(l.textContent)), shotB.id, { timeout: 120000 });
+    await stage(page, 'flying_second_shot');
     await page.focus('#stop');
     await page.keyboard.press('Enter');
     await page.waitForFunction(() => ['ok', 'error'].includes(document.getElementById('stopresult').dataset.state), null, { timeout: 30000 });
     const stopText = await page.textContent('#stopresult');
     check(await page.$eval('#stopresult', (e) => e.dataset.state === 'ok' && e.dataset.ack === 'MAV_RESULT_ACCEPTED'), `the stop is acknowledged: ${stopText}`);
+    check(stopText.includes(`${shotB.id} stopped`), `the stop names the shot flown: ${stopText}`);
     out.stop = { text: stopText, at_unix: Date.now() / 1000 };
+    await waitKind(shotB.id, 'stopped', 10000);
+    out.timeline_b = await timeline(shotB.id);
+    out.shot_b = shotB;
     await stage(page, 'stopped');
     // The marker while the vehicle holds: samples until 4 s of them lie
     // within 0.1 m (bounded), each with its time, compared with the
