@@ -238,11 +238,17 @@ impl Default for UnknownFocal {
         UnknownFocal {
             same_camera_prior: 0.5,
             focal_log_sigma: 0.35,
-            k1_sigma: crate::shot::photo::EXIF_K1_SIGMA,
-            k2_sigma: crate::shot::photo::EXIF_K2_SIGMA,
+            k1_sigma: EXIF_K1_SIGMA,
+            k2_sigma: EXIF_K2_SIGMA,
         }
     }
 }
+
+/// The radial distortion an unknown lens may have, as a sigma of `k1`:
+/// phone and drone cameras correct theirs in the camera to well within it.
+pub const EXIF_K1_SIGMA: f64 = 0.05;
+/// The same for the r⁴ coefficient `k2`.
+pub const EXIF_K2_SIGMA: f64 = 0.02;
 
 /// A localised desired shot.
 #[derive(Debug, Clone, PartialEq)]

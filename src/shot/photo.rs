@@ -102,11 +102,9 @@ pub struct PhotoCamera {
     pub focal_unknown: bool,
 }
 
-/// The radial distortion an unknown lens may have, as a sigma of `k1`:
-/// phone and drone cameras correct theirs in the camera to well within it.
-pub const EXIF_K1_SIGMA: f64 = 0.05;
-/// The same for the r⁴ coefficient `k2`.
-pub const EXIF_K2_SIGMA: f64 = 0.02;
+/// The distortion sigmas of an unknown lens, defined beside the
+/// localisation that weighs them (this module sits above it).
+pub use super::localize::{EXIF_K1_SIGMA, EXIF_K2_SIGMA};
 
 /// Why a photo's EXIF was ignored, or could not be written.
 #[derive(Debug, thiserror::Error)]
