@@ -932,7 +932,7 @@ mod tests {
         k3.timestamp = 9.0;
         k3.cam_from_world = Isometry3::translation(0.5, 0.0, 0.0);
         Map::from_parts(
-            map.camera.clone(),
+            map.camera,
             ScaleInfo::new(1.2, 8),
             15,
             vec![k0, k3],
