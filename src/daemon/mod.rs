@@ -222,6 +222,15 @@ pub async fn run_on(
     let shared = Arc::new(SlamShared::new(cfg.slam.enabled));
     let map_file = data_dir.join(&cfg.slam.map_file);
     persist::remove_leftovers(&data_dir, &map_file);
+    // The stored shots' keyframes stay in the continued map (culling would
+    // take a keyframe the operator drew a shot on and may ask again on).
+    if cfg.slam.enabled && cfg.slam.continue_map && map_file.exists() {
+        for shot in store.list() {
+            if let crate::shot::record::ShotSource::Anchors { keyframe_id, .. } = shot.source {
+                shared.pin_keyframe(keyframe_id);
+            }
+        }
+    }
     // The georeference saved with the map: restored onto it once the SLAM
     // has loaded it (dropped if the map is not continued).
     if cfg.slam.enabled

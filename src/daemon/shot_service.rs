@@ -139,6 +139,8 @@ impl ShotComputer for LocalizingShots {
             .and_then(|k| k.image.clone())
             .ok_or(ShotRequestError::UnknownKeyframe { id: keyframe_id })?;
         let shot = anchor_shot(&image, anchors, size, &self.warp.params)?;
+        // The operator may ask again on this keyframe: culling keeps it.
+        self.slam.pin_keyframe(keyframe_id);
         let (localisation, nearest_keyframes) = self.localise(
             &map,
             &map.camera,

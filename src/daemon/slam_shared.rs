@@ -44,6 +44,11 @@ pub trait MapSource: Send + Sync {
     fn snapshot(&self) -> Option<Map> {
         None
     }
+    /// Keeps keyframe `id` from culling (a shot is drawn on it); false when
+    /// the map has no such keyframe.
+    fn pin_keyframe(&self, _id: u64) -> bool {
+        false
+    }
 }
 
 #[derive(Default)]
@@ -52,6 +57,8 @@ struct Inner {
     latencies_ms: VecDeque<f64>,
     source: Option<Arc<dyn MapSource>>,
     last_tracked: Option<TrackedFrame>,
+    /// Keyframes shots are drawn on, pinned again in every new source.
+    pinned: Vec<u64>,
 }
 
 /// Status and map view shared by the SLAM thread and the API.
@@ -153,7 +160,26 @@ impl SlamShared {
 
     /// Attach the SLAM's map.
     pub fn set_source(&self, source: Arc<dyn MapSource>) {
-        self.lock().source = Some(source);
+        let mut g = self.lock();
+        for &id in &g.pinned {
+            if !source.pin_keyframe(id) {
+                tracing::warn!(keyframe = id, "a shot's keyframe is not in the map");
+            }
+        }
+        g.source = Some(source);
+    }
+
+    /// Keeps keyframe `id` in the map (an operator's shot is drawn on it):
+    /// in the running SLAM's map now and in any map set later (a restart
+    /// pins its stored shots' keyframes before the map is loaded).
+    pub fn pin_keyframe(&self, id: u64) {
+        let mut g = self.lock();
+        if !g.pinned.contains(&id) {
+            g.pinned.push(id);
+        }
+        if let Some(s) = &g.source {
+            s.pin_keyframe(id);
+        }
     }
 
     /// Record one processed frame.

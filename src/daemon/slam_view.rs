@@ -376,6 +376,9 @@ impl SlamMapSource {
 }
 
 impl MapSource for SlamMapSource {
+    fn pin_keyframe(&self, id: u64) -> bool {
+        u32::try_from(id).is_ok_and(|id| self.lock().pin_keyframe(KeyFrameId(id)))
+    }
     fn keyframes(&self) -> Vec<KeyframeInfo> {
         let m = self.lock();
         let mut v: Vec<KeyframeInfo> = m

@@ -372,6 +372,10 @@ pub struct Map {
     /// Loop edges of the essential graph (keyframes joined by a loop
     /// closure); their keyframes are never culled.
     loop_edges: Vec<(KeyFrameId, KeyFrameId)>,
+    /// Keyframes the operator drew a shot on: never culled, so the shot
+    /// can be asked again on them (not saved: the daemon pins its shots'
+    /// keyframes again when it loads a map).
+    pinned: std::collections::HashSet<KeyFrameId>,
     /// Loop corrections applied (tracking re-places its last frame when
     /// this changes).
     corrections: u64,
@@ -414,6 +418,7 @@ impl Map {
             covisibility_threshold: 15,
             places: None,
             loop_edges: Vec::new(),
+            pinned: std::collections::HashSet::new(),
             corrections: 0,
         }
     }
@@ -766,11 +771,22 @@ impl Map {
         self.update_point_normal_and_depth(new);
     }
 
+    /// Keeps keyframe `id` from culling (an operator's shot is drawn on
+    /// it); false when no such keyframe lives in the map.
+    pub fn pin_keyframe(&mut self, id: KeyFrameId) -> bool {
+        if self.keyframe(id).is_none() {
+            return false;
+        }
+        self.pinned.insert(id);
+        true
+    }
+
     /// Erase a keyframe: its observations are removed (points left with
     /// fewer than 2 are erased), its children move to its parent, its
     /// covisibility edges go, and its pose relative to its parent is kept in
-    /// [`Map::culled`]. The first keyframe (no parent) and the keyframes of
-    /// loop edges are never erased.
+    /// [`Map::culled`]. The first keyframe (no parent), the keyframes of
+    /// loop edges and pinned keyframes ([`Map::pin_keyframe`]) are never
+    /// erased.
     pub fn erase_keyframe(&mut self, id: KeyFrameId) -> bool {
         let Some(kf) = self.keyframe(id) else {
             return false;
@@ -778,7 +794,7 @@ impl Map {
         let Some(parent) = kf.parent else {
             return false;
         };
-        if self.loop_edges.iter().any(|e| e.0 == id || e.1 == id) {
+        if self.loop_edges.iter().any(|e| e.0 == id || e.1 == id) || self.pinned.contains(&id) {
             return false;
         }
         let Some(parent_kf) = self.keyframe(parent) else {
@@ -1209,6 +1225,10 @@ mod tests {
         // Erasing a keyframe re-parents its children and leaves no dangling id.
         let child_of_1: Vec<KeyFrameId> = m.keyframe(KeyFrameId(1)).unwrap().children.clone();
         let pose_before = m.keyframe(KeyFrameId(1)).unwrap().cam_from_world;
+        // A keyframe a shot is drawn on is kept; a missing one cannot be pinned.
+        assert!(m.pin_keyframe(KeyFrameId(2)));
+        assert!(!m.erase_keyframe(KeyFrameId(2)));
+        assert!(!m.pin_keyframe(KeyFrameId(99)));
         assert!(m.erase_keyframe(KeyFrameId(1)));
         m.check_invariants().unwrap();
         for c in child_of_1 {
