@@ -259,24 +259,25 @@ pub fn run(args: SlamArgs) -> Result<()> {
                     .and_then(|g| eval::evaluate(g, t, &eval_params).ok())
                     .map(|e| e.ate.rmse)
             };
-            let gap = match (gt_at(l.current_t), gt_at(l.loop_t)) {
+            let s = &l.summary;
+            let gap = match (gt_at(s.current_t), gt_at(s.loop_t)) {
                 (Some(a), Some(b)) => Some((a - b).norm()),
                 _ => None,
             };
             json!({
-                "current_kf": l.current.0,
-                "loop_kf": l.loop_kf.0,
-                "current_t": l.current_t,
-                "loop_t": l.loop_t,
-                "inliers": l.inliers,
-                "projection_matches": l.projection_matches,
-                "scale": l.scale,
-                "rotation_deg": l.rotation_deg,
-                "translation": l.translation,
-                "fused": l.fused,
+                "current_kf": s.current.0,
+                "loop_kf": s.loop_kf.0,
+                "current_t": s.current_t,
+                "loop_t": s.loop_t,
+                "inliers": s.inliers,
+                "projection_matches": s.projection_matches,
+                "scale": s.scale,
+                "rotation_deg": s.rotation_deg,
+                "translation": s.translation,
+                "fused": s.fused,
                 "graph_edges": l.graph_edges,
-                "correction_ms": l.correction_ms,
-                "global_ba_ms": l.global_ba_ms,
+                "correction_ms": s.correction_ms,
+                "global_ba_ms": s.global_ba_ms,
                 "global_ba_rmse_px": l.global_ba_rmse_px,
                 "keyframes_ate_before_m": ate_of(&l.keyframes_before),
                 "keyframes_ate_after_m": ate_of(&l.keyframes_after),

@@ -324,7 +324,7 @@ impl FrameProcessor for SlamProcessor {
                 scale: l.scale,
                 rotation_deg: l.rotation_deg,
                 fused: l.fused,
-                correction_ms: l.correction_ms,
+                correction_ms: l.total_ms(),
                 at_unix: unix_now(),
             });
         }

@@ -152,6 +152,23 @@ impl Default for LoopParams {
 /// keyframe trajectory just before and just after it.
 #[derive(Debug, Clone)]
 pub struct LoopEvent {
+    /// What the daemon's status reports of it (keyframes, evidence,
+    /// correction, times).
+    pub summary: LoopSummary,
+    /// Edges of the essential graph.
+    pub graph_edges: usize,
+    /// Keyframe poses (world_from_cam) before the correction.
+    pub keyframes_before: Trajectory,
+    /// Keyframe poses after it (after the global BA when one ran).
+    pub keyframes_after: Trajectory,
+    /// Reprojection RMSE after the global BA, px (`None`: none ran).
+    pub global_ba_rmse_px: Option<f64>,
+}
+
+/// A loop closed, without the trajectories: what the daemon's status
+/// reports while the SLAM runs ([`LoopCloser::log`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoopSummary {
     /// The keyframe that saw the old place again.
     pub current: KeyFrameId,
     /// The old keyframe it matched.
@@ -173,64 +190,16 @@ pub struct LoopEvent {
     pub translation: f64,
     /// Points fused.
     pub fused: usize,
-    /// Edges of the essential graph.
-    pub graph_edges: usize,
-    /// Time of the whole correction, ms.
+    /// Time of the correction (propagation, fusion, essential graph), ms.
     pub correction_ms: f64,
-    /// Keyframe poses (world_from_cam) before the correction.
-    pub keyframes_before: Trajectory,
-    /// Keyframe poses after it (after the global BA when one ran).
-    pub keyframes_after: Trajectory,
-    /// Reprojection RMSE after the global BA, px (`None`: none ran).
-    pub global_ba_rmse_px: Option<f64>,
-    /// Time of the global BA, ms.
+    /// Time of the global BA after it, ms (`None`: none ran).
     pub global_ba_ms: Option<f64>,
 }
 
-/// A loop closed, without the trajectories: what the daemon's status
-/// reports while the SLAM runs ([`LoopCloser::log`]).
-#[derive(Debug, Clone, PartialEq)]
-pub struct LoopSummary {
-    /// The keyframe that saw the old place again.
-    pub current: KeyFrameId,
-    /// The old keyframe it matched.
-    pub loop_kf: KeyFrameId,
-    /// Timestamp of the current keyframe, seconds.
-    pub current_t: f64,
-    /// Timestamp of the loop keyframe, seconds.
-    pub loop_t: f64,
-    /// Inliers of the refined Sim(3).
-    pub inliers: usize,
-    /// Keypoints matched by projection through the corrected pose.
-    pub projection_matches: usize,
-    /// Scale of the correction.
-    pub scale: f64,
-    /// Rotation of the correction, degrees.
-    pub rotation_deg: f64,
-    /// Move of the current camera, map units.
-    pub translation: f64,
-    /// Points fused.
-    pub fused: usize,
-    /// Time of the correction (and the global BA when one ran), ms.
-    pub correction_ms: f64,
-}
-
-impl LoopEvent {
-    /// The event without its trajectories.
-    pub fn summary(&self) -> LoopSummary {
-        LoopSummary {
-            current: self.current,
-            loop_kf: self.loop_kf,
-            current_t: self.current_t,
-            loop_t: self.loop_t,
-            inliers: self.inliers,
-            projection_matches: self.projection_matches,
-            scale: self.scale,
-            rotation_deg: self.rotation_deg,
-            translation: self.translation,
-            fused: self.fused,
-            correction_ms: self.correction_ms + self.global_ba_ms.unwrap_or(0.0),
-        }
+impl LoopSummary {
+    /// Time of the whole correction, the global BA included, ms.
+    pub fn total_ms(&self) -> f64 {
+        self.correction_ms + self.global_ba_ms.unwrap_or(0.0)
     }
 }
 
@@ -332,26 +301,27 @@ impl LoopCloser {
                 e.global_ba_rmse_px = Some(rmse);
                 e.keyframes_after = keyframe_trajectory(&lock(map));
             }
-            e.global_ba_ms = Some(t1.elapsed().as_secs_f64() * 1e3);
+            e.summary.global_ba_ms = Some(t1.elapsed().as_secs_f64() * 1e3);
         }
         if let Some(e) = &event {
+            let l = &e.summary;
             tracing::info!(
-                current = e.current.0,
-                loop_kf = e.loop_kf.0,
-                inliers = e.inliers,
-                projection_matches = e.projection_matches,
-                scale = e.scale,
-                rotation_deg = e.rotation_deg,
-                fused = e.fused,
+                current = l.current.0,
+                loop_kf = l.loop_kf.0,
+                inliers = l.inliers,
+                projection_matches = l.projection_matches,
+                scale = l.scale,
+                rotation_deg = l.rotation_deg,
+                fused = l.fused,
                 edges = e.graph_edges,
-                ms = e.correction_ms,
+                ms = l.correction_ms,
                 "loop closed"
             );
             self.events.push(e.clone());
             self.log
                 .lock()
                 .unwrap_or_else(|e| e.into_inner())
-                .push(e.summary());
+                .push(e.summary.clone());
             self.last_loop = Some(kf);
             self.groups.clear();
         }
@@ -978,22 +948,24 @@ impl LoopCloser {
         let center_after = sim3_to_isometry(&lm.s_cw).inverse().translation.vector;
         let loop_t = map.keyframe(lm.loop_kf).map_or(0.0, |k| k.timestamp);
         Some(LoopEvent {
-            current: kf,
-            loop_kf: lm.loop_kf,
-            current_t,
-            loop_t,
-            inliers: lm.inliers,
-            projection_matches: lm.projection_matches,
-            scale: corr.scale,
-            rotation_deg: corr.rotation.angle().to_degrees(),
-            translation: (center_after - center_before).norm(),
-            fused,
+            summary: LoopSummary {
+                current: kf,
+                loop_kf: lm.loop_kf,
+                current_t,
+                loop_t,
+                inliers: lm.inliers,
+                projection_matches: lm.projection_matches,
+                scale: corr.scale,
+                rotation_deg: corr.rotation.angle().to_degrees(),
+                translation: (center_after - center_before).norm(),
+                fused,
+                correction_ms: t0.elapsed().as_secs_f64() * 1e3,
+                global_ba_ms: None,
+            },
             graph_edges,
-            correction_ms: t0.elapsed().as_secs_f64() * 1e3,
             keyframes_before: before,
             keyframes_after: after,
             global_ba_rmse_px: None,
-            global_ba_ms: None,
         })
     }
 }
