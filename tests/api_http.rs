@@ -2,8 +2,9 @@
 //! (each with its 4xx while the server keeps serving), and shots that
 //! survive a restart.
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream};
+mod http_support;
+
+use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -269,7 +270,8 @@ fn start(dir: &std::path::Path, token: Option<&str>, with_vehicle: bool) -> Serv
     }
 }
 
-/// One HTTP/1.1 request; returns status, lower-cased headers and body.
+/// One request through the tests' HTTP client; returns the status, the
+/// lower-cased header lines and the body.
 fn http(
     addr: SocketAddr,
     method: &str,
@@ -277,44 +279,8 @@ fn http(
     headers: &[(&str, &str)],
     body: &[u8],
 ) -> (u16, String, Vec<u8>) {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
-    let mut req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Length: {}\r\n",
-        body.len()
-    );
-    for (k, v) in headers {
-        req.push_str(&format!("{k}: {v}\r\n"));
-    }
-    req.push_str("\r\n");
-    s.write_all(req.as_bytes()).unwrap();
-    // The server may answer (413) and close before the body is sent.
-    let _ = s.write_all(body);
-    let mut resp = Vec::new();
-    let _ = s.read_to_end(&mut resp);
-    let split = resp
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .expect("a response head");
-    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
-    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
-    let mut body = resp[split + 4..].to_vec();
-    if head.contains("transfer-encoding: chunked") {
-        let mut out = Vec::new();
-        let mut i = 0;
-        loop {
-            let lf = body[i..].iter().position(|&c| c == b'\n').unwrap() + i;
-            let n =
-                usize::from_str_radix(String::from_utf8_lossy(&body[i..lf]).trim(), 16).unwrap();
-            if n == 0 {
-                break;
-            }
-            out.extend_from_slice(&body[lf + 1..lf + 1 + n]);
-            i = lf + 1 + n + 2;
-        }
-        body = out;
-    }
-    (status, head, body)
+    let r = http_support::send(addr, method, path, headers, body, Duration::from_secs(20));
+    (r.status, r.head, r.body)
 }
 
 fn json_of(b: &[u8]) -> Value {
@@ -502,8 +468,18 @@ fn endpoints_and_bad_input() {
         415,
         "bad_content_type",
     );
-    let big = vec![b' '; 50 << 20];
-    let r = http(a, "POST", "/api/v1/shots", &[AUTH, JSON_CT], &big);
+    // A 50 MiB upload: the server answers once it has more than its limit
+    // (1 MiB here), without waiting for the rest.
+    let r = http_support::send_partial(
+        a,
+        "POST",
+        "/api/v1/shots",
+        &[AUTH, JSON_CT],
+        50 << 20,
+        2 << 20,
+        Duration::from_secs(20),
+    );
+    let r = (r.status, r.head, r.body);
     assert_error(&r, 413, "body_too_large");
     // The answer names the limit (and the setting that raises it).
     let e = &json_of(&r.2)["error"];
@@ -790,12 +766,14 @@ fn events_and_video_are_served() {
     let dir = tempfile::tempdir().unwrap();
     let srv = start(dir.path(), None, false);
     // SSE: the first status event arrives at once.
-    let mut s = TcpStream::connect(srv.addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-    s.write_all(b"GET /api/v1/events HTTP/1.1\r\nHost: x\r\n\r\n")
-        .unwrap();
+    let mut s = http_support::open_stream(srv.addr, "/api/v1/events", &[]);
+    assert_eq!(s.status, 200);
+    assert!(
+        s.head.contains("content-type: text/event-stream"),
+        "{}",
+        s.head
+    );
     let mut got = Vec::new();
-    let mut buf = [0u8; 4096];
     // Up to the end of the first event (its data is one chunk).
     let first_event = |got: &[u8]| {
         let text = String::from_utf8_lossy(got).into_owned();
@@ -804,15 +782,13 @@ fn events_and_video_are_served() {
         Some(text[start..start + len].trim().to_owned())
     };
     while first_event(&got).is_none() {
-        let n = s.read(&mut buf).unwrap();
-        assert!(n > 0);
-        got.extend_from_slice(&buf[..n]);
+        let chunk = s
+            .next(Duration::from_secs(5))
+            .expect("the event stream goes on");
+        got.extend_from_slice(&chunk);
     }
     let text = String::from_utf8_lossy(&got);
-    assert!(
-        text.contains("text/event-stream") && text.contains("event: status"),
-        "{text}"
-    );
+    assert!(text.contains("event: status"), "{text}");
     // The page sees the loops closed in the event stream.
     let status = json_of(first_event(&got).unwrap().as_bytes());
     assert_eq!(status["slam"]["loops_closed"], 1, "{status:#}");
@@ -997,12 +973,9 @@ fn router_routes() -> std::collections::BTreeSet<(String, String)> {
 /// The `shot` events of `/events` (their JSON data), read until `enough`
 /// says so (each read bounded by a 10 s timeout).
 fn shot_events(addr: SocketAddr, enough: impl Fn(&[Value]) -> bool) -> Vec<Value> {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    s.write_all(b"GET /api/v1/events HTTP/1.1\r\nHost: x\r\n\r\n")
-        .unwrap();
+    let mut s = http_support::open_stream(addr, "/api/v1/events", &[]);
+    assert_eq!(s.status, 200);
     let mut got = Vec::new();
-    let mut buf = [0u8; 8192];
     loop {
         let text = String::from_utf8_lossy(&got);
         let events: Vec<Value> = text
@@ -1018,9 +991,10 @@ fn shot_events(addr: SocketAddr, enough: impl Fn(&[Value]) -> bool) -> Vec<Value
         if enough(&events) {
             return events;
         }
-        let n = s.read(&mut buf).expect("the event stream goes on");
-        assert!(n > 0, "the event stream ended: {text}");
-        got.extend_from_slice(&buf[..n]);
+        let chunk = s
+            .next(Duration::from_secs(10))
+            .unwrap_or_else(|| panic!("the event stream ended: {text}"));
+        got.extend_from_slice(&chunk);
     }
 }
 

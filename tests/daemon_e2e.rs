@@ -10,8 +10,7 @@ mod daemon_support;
 
 use daemon_support::{get_json, http, request};
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream};
+use std::net::SocketAddr;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
@@ -338,12 +337,11 @@ fn daemon_with_simulator_end_to_end() {
     // map is saved, the shot is on disk.
     let mut open_streams = Vec::new();
     for path in ["/api/v1/events", "/api/v1/video.mjpg"] {
-        let mut s = TcpStream::connect(addr).unwrap();
-        s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes())
-            .unwrap();
-        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-        let mut buf = [0u8; 256];
-        assert!(s.read(&mut buf).unwrap() > 0, "{path} answers");
+        let auth = format!("Bearer {}", daemon_support::TOKEN);
+        let mut s =
+            daemon_support::http_support::open_stream(addr, path, &[("authorization", &auth)]);
+        assert_eq!(s.status, 200, "{path}");
+        assert!(s.next(Duration::from_secs(10)).is_some(), "{path} answers");
         open_streams.push(s);
     }
     let t_stop = Instant::now();

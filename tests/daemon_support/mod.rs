@@ -1,12 +1,14 @@
 //! Shared by the tests that start the daemon with the in-process simulator
 //! (`daemon_e2e`, `daemon_refine`, `geo_daemon`, `browser`): sockets bound
-//! on port 0 for the daemon, and a minimal HTTP/1.1 client (one request per
-//! connection).
+//! on port 0 for the daemon, and requests through the tests' one HTTP
+//! client (`tests/http_support`).
 #![allow(dead_code)] // each test binary uses its own subset
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream};
+use std::net::SocketAddr;
 use std::time::Duration;
+
+#[path = "../http_support/mod.rs"]
+pub mod http_support;
 
 use serde_json::Value;
 
@@ -40,8 +42,7 @@ pub fn sim_config() -> (shotpilot::config::Config, shotpilot::daemon::Sockets) {
 }
 
 /// One request with [`TOKEN`] as bearer token (a daemon without a token
-/// ignores it); returns the status and the body. The daemon's answers are
-/// never chunked.
+/// ignores it); returns the status and the body.
 pub fn request(
     addr: SocketAddr,
     method: &str,
@@ -49,24 +50,16 @@ pub fn request(
     content_type: &str,
     body: &[u8],
 ) -> (u16, Vec<u8>) {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
-    let head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nAuthorization: Bearer {TOKEN}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n\r\n",
-        body.len()
+    let auth = format!("Bearer {TOKEN}");
+    let r = http_support::send(
+        addr,
+        method,
+        path,
+        &[("authorization", &auth), ("content-type", content_type)],
+        body,
+        Duration::from_secs(60),
     );
-    s.write_all(head.as_bytes()).unwrap();
-    s.write_all(body).unwrap();
-    let mut resp = Vec::new();
-    s.read_to_end(&mut resp).unwrap();
-    let split = resp.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
-    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
-    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
-    assert!(
-        !head.contains("transfer-encoding: chunked"),
-        "unexpected chunked response to {path}"
-    );
-    (status, resp[split + 4..].to_vec())
+    (r.status, r.body)
 }
 
 /// A request with an optional JSON body.
