@@ -131,7 +131,8 @@ pub struct ServerConfig {
     pub body_limit_bytes: usize,
     /// Where shots and the map are kept (relative to the config file).
     pub data_dir: PathBuf,
-    /// Status events per second on `/api/v1/events`.
+    /// Status updates per second on `/api/v1/events` at most (the whole
+    /// status on connect, then only what changed).
     pub events_hz: f64,
     /// Most map points `/api/v1/map` returns.
     pub map_max_points: usize,

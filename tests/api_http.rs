@@ -970,22 +970,25 @@ fn router_routes() -> std::collections::BTreeSet<(String, String)> {
     out
 }
 
-/// The `shot` events of `/events` (their JSON data), read until `enough`
-/// says so (each read bounded by a 10 s timeout).
-fn shot_events(addr: SocketAddr, enough: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+/// The events of `/events` (name, JSON data), from the first, read until
+/// `enough` says so (each read bounded by a 10 s timeout).
+fn sse_events(
+    addr: SocketAddr,
+    enough: impl Fn(&[(String, Value)]) -> bool,
+) -> Vec<(String, Value)> {
     let mut s = http_support::open_stream(addr, "/api/v1/events", &[]);
     assert_eq!(s.status, 200);
     let mut got = Vec::new();
     loop {
         let text = String::from_utf8_lossy(&got);
-        let events: Vec<Value> = text
+        // Whole events only: each ends with an empty line.
+        let whole = text.rfind("\n\n").map_or("", |end| &text[..end]);
+        let events: Vec<(String, Value)> = whole
             .split("\n\n")
-            .filter(|block| block.contains("event: shot\n") || block.ends_with("event: shot"))
             .filter_map(|block| {
-                block
-                    .lines()
-                    .find_map(|l| l.strip_prefix("data: "))
-                    .and_then(|d| serde_json::from_str(d).ok())
+                let name = block.lines().find_map(|l| l.strip_prefix("event: "))?;
+                let data = block.lines().find_map(|l| l.strip_prefix("data: "))?;
+                Some((name.to_owned(), serde_json::from_str(data).ok()?))
             })
             .collect();
         if enough(&events) {
@@ -996,6 +999,18 @@ fn shot_events(addr: SocketAddr, enough: impl Fn(&[Value]) -> bool) -> Vec<Value
             .unwrap_or_else(|| panic!("the event stream ended: {text}"));
         got.extend_from_slice(&chunk);
     }
+}
+
+/// The `shot` events of `/events` (their JSON data), read until `enough`
+/// says so.
+fn shot_events(addr: SocketAddr, enough: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+    let shots = |evs: &[(String, Value)]| -> Vec<Value> {
+        evs.iter()
+            .filter(|(n, _)| n == "shot")
+            .map(|(_, v)| v.clone())
+            .collect()
+    };
+    shots(&sse_events(addr, |evs| enough(&shots(evs))))
 }
 
 /// The document served at /openapi.json has every route the router
@@ -1108,6 +1123,44 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
     let mut bad = events[0].clone();
     bad.as_object_mut().unwrap().remove("shot");
     assert!(check_schema(&doc, &event_schema, &bad, "$").is_err());
+
+    // The status as deltas: the whole document first, then patches with
+    // only what changed; applied in order they give documents of the
+    // Status schema, the last one the daemon's status now.
+    let status_schema = reply_schema("get", "/status", "200");
+    let evs = sse_events(a, |evs| {
+        evs.iter().filter(|(n, _)| n == "status_patch").count() >= 4
+    });
+    let statuses: Vec<&(String, Value)> = evs
+        .iter()
+        .filter(|(n, _)| n.starts_with("status"))
+        .collect();
+    assert_eq!(statuses[0].0, "status", "{statuses:?}");
+    let whole = statuses[0].1.to_string().len();
+    let mut page = statuses[0].1.clone();
+    check_schema(&doc, &status_schema, &page, "$").unwrap_or_else(|e| panic!("{e}\n{page:#}"));
+    let patch_schema = json!({"$ref": "#/components/schemas/StatusPatch"});
+    for (name, patch) in &statuses[1..] {
+        assert_eq!(name, "status_patch", "one whole status per connection");
+        check_schema(&doc, &patch_schema, patch, "$").unwrap_or_else(|e| panic!("{e}\n{patch:#}"));
+        // Only what changed: the vehicle, slam and shot counts of this
+        // server stand still; the uptime moves.
+        let len = patch.to_string().len();
+        assert!(
+            len * 4 < whole,
+            "a patch of {len} bytes against the whole {whole}: {patch}"
+        );
+        assert!(patch["uptime_s"].is_f64(), "{patch}");
+        assert!(patch.get("shots").is_none(), "{patch}");
+        let before = page["uptime_s"].as_f64().unwrap();
+        shotpilot::api::apply_status_patch(&mut page, patch);
+        assert!(page["uptime_s"].as_f64().unwrap() > before, "{patch}");
+        check_schema(&doc, &status_schema, &page, "$").unwrap_or_else(|e| panic!("{e}\n{page:#}"));
+    }
+    let now = json_of(&http(a, "GET", "/api/v1/status", &[], b"").2);
+    assert_eq!(page["shots"], now["shots"]);
+    assert_eq!(page["slam"], now["slam"]);
+    assert_eq!(page["video"]["counters"], now["video"]["counters"]);
 
     // The check can fail: a reply without a documented field, or with a
     // field of another type, does not pass.

@@ -8,8 +8,13 @@
 //! damaged map file found there was not used; once georeferenced, the world
 //! map draws the vehicle within 1 m of the simulator's truth, a keyframe
 //! clicked on the map opens in the editor, and Stop during the scripted
-//! flight is acknowledged and the vehicle holds (the truth). A screenshot
-//! of each stage is saved beside the main one.
+//! flight is acknowledged and the vehicle holds (the truth). The whole
+//! shot's first flight lands off its target (the simulated GNSS altitude
+//! drifts, seeded), so its timeline shows a correction flown and a smaller
+//! error after it, and the localisation's sigma. The keyframe gallery is
+//! bounded (3 newest and those shots use, here); the loops-closed badge and
+//! the map's loops follow the status. A screenshot of each stage is saved
+//! beside the main one.
 //!
 //! Needs `node`, `npm ci` in `tests/browser` and Chromium; `.ci/run` sets
 //! them up. Environment: `SHOTPILOT_CHROMIUM` (default `/usr/bin/chromium`),
@@ -33,6 +38,14 @@ use shotpilot::shot::record::{
 };
 use shotpilot::shot::store::ShotStore;
 use tokio_util::sync::CancellationToken;
+
+/// The simulated GNSS's vertical bias (`[sim] gps_*`): a Gauss-Markov walk
+/// of this deviation, m, ...
+const GPS_SIGMA_Z_M: f64 = 2.0;
+/// ... correlation time, s, ...
+const GPS_TAU_S: f64 = 300.0;
+/// ... and seed.
+const GPS_SEED: u64 = 2658;
 
 /// A refinement round as the daemon records it.
 fn round(
@@ -229,6 +242,50 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
     );
     let shown: Vec<&Value> = tl.iter().filter(|l| l["kind"] == "round").collect();
     assert_eq!(shown.len(), rounds.len(), "{kinds:?} vs {rf}");
+    // The first flight lands off (the vertical GPS bias drifted since the
+    // georeference was fitted): a correction is uploaded and flown, and
+    // the shot error it measures there is smaller.
+    assert!(rounds.len() >= 2, "no correction was flown: {rf}");
+    assert_eq!(rounds[0]["decision"], "correct", "{rf}");
+    assert!(rounds[0]["correction"].is_object(), "{rf}");
+    let pct = |r: &Value| r["shot_error_pct"].as_f64();
+    let (first, last) = (pct(&rounds[0]), rounds.last().and_then(pct));
+    eprintln!(
+        "refinement of {a}: shot error per round {:?} %, stop {}",
+        rounds.iter().map(pct).collect::<Vec<_>>(),
+        rf["stop"]
+    );
+    match (first, last) {
+        (Some(f), Some(l)) => assert!(l < f, "the error grew from {f} to {l}: {rf}"),
+        _ => panic!("rounds without a shot error: {rf}"),
+    }
+    // The localisation's sigma on the timeline: % of the distance and
+    // degrees at `localised`, metres (through the georeference's scale)
+    // at `georeferenced`.
+    let sigma = &stored["localisation"]["sigma"];
+    let at = |k: &str| tl.iter().find(|l| l["kind"] == k).unwrap();
+    let close = |a: &Value, b: f64| (a.as_f64().unwrap() - b).abs() <= 1e-9 * b.abs().max(1.0);
+    if let Some(f) = sigma["position_fraction_of_distance"].as_f64() {
+        let l = at("localised");
+        assert!(close(&l["sigma_pct"], 100.0 * f), "{l} vs {sigma}");
+        assert!(
+            close(&l["sigma_deg"], sigma["rotation_deg"].as_f64().unwrap()),
+            "{l} vs {sigma}"
+        );
+        assert!(l["text"].as_str().unwrap().contains("sigma"), "{l}");
+        let scale = stored["mission"]["details"]["georeference"]["scale"]
+            .as_f64()
+            .unwrap();
+        let g = at("georeferenced");
+        let m = sigma["position"].as_f64().unwrap() * scale;
+        assert!(close(&g["sigma_m"], m), "{g} vs {sigma} x {scale}");
+        assert!(
+            g["text"].as_str().unwrap().contains("position sigma"),
+            "{g}"
+        );
+    } else {
+        panic!("the shot reports no sigma: {stored}");
+    }
     for (l, r) in shown.iter().zip(rounds) {
         assert_eq!(l["round"], r["round"], "{l} vs {r}");
         match r["shot_error_pct"].as_f64() {
@@ -329,6 +386,15 @@ fn operator_page_in_headless_chromium() {
     let (mut cfg, sockets) = daemon_support::sim_config();
     // The simulator's truth: camera poses (local NED at home) per frame.
     cfg.sim.truth_dir = Some("truth".into());
+    // A GNSS whose altitude drifts (a Gauss-Markov bias, seeded): the
+    // vehicle truly flies higher or lower than it reports, so the whole
+    // shot's first flight lands off its target by what the bias moved
+    // since the georeference was fitted, and the refinement loop corrects
+    // it. Vertical only: the map's vehicle marker (horizontal) is checked
+    // against the truth within 1 m. Walk GPS_SEED ... (see GPS_*).
+    cfg.sim.gps_sigma_z_m = GPS_SIGMA_Z_M;
+    cfg.sim.gps_tau_s = GPS_TAU_S;
+    cfg.sim.gps_seed = Some(GPS_SEED);
     cfg.validate(Path::new("test")).unwrap();
     let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
 
@@ -385,6 +451,29 @@ fn operator_page_in_headless_chromium() {
 
     // What the page showed is what the daemon holds.
     assert!(seen["keyframes_listed"].as_u64().unwrap() >= 3);
+    // The gallery is bounded: the newest 3 and those shots use (the page
+    // compared them with the daemon's lists), fewer than the map holds.
+    let g = &seen["gallery"];
+    let shown = g["shown"].as_array().unwrap().len();
+    assert!(
+        shown <= 3 + g["pins"].as_array().unwrap().len()
+            && (shown as u64) < g["total"].as_u64().unwrap(),
+        "{g}"
+    );
+    // Loops closed: the badge counts them, the map joins the keyframes
+    // each closed (those still in the map).
+    let lp = &seen["loops"];
+    let n = lp["status"]["loops_closed"].as_u64().unwrap();
+    assert_eq!(
+        lp["badge"],
+        format!("{n} loop{} closed", if n == 1 { "" } else { "s" }),
+        "{lp}"
+    );
+    let pairs = lp["status"]["loops"].as_array().unwrap();
+    for d in lp["drawn"].as_array().unwrap() {
+        assert!(pairs.contains(d), "drawn {d}, closed {pairs:?}");
+    }
+    eprintln!("loops: {lp}");
     let shots = get_json(addr, "/api/v1/shots");
     // The first shot, then the whole shot's, then the second shot (which
     // may have taken a few keyframes to localise).

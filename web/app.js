@@ -7,7 +7,7 @@ const API = '/api/v1';
 const $ = (id) => document.getElementById(id);
 const state = {
   status: null, shots: [], mapProject: null,
-  keyframes: [], kf: null, kfImage: null, anchors: null, drag: -1,
+  keyframes: [], kf: null, kfChosen: null, kfImage: null, anchors: null, drag: -1,
   shot: null, map: null, srcPixels: null,
 };
 
@@ -51,6 +51,9 @@ function showStatus(s) {
   }
   const slamLevel = sl.state === 'tracking' ? 'ok' : (sl.state === 'initializing' ? 'warn' : 'bad');
   badge('b-slam', slamLevel, `SLAM ${sl.state || '?'} · ${sl.keyframes ?? 0} kf · ${sl.points ?? 0} pts`);
+  const nl = sl.loops_closed ?? 0;
+  badge('b-loops', nl ? 'ok' : 'none', `${nl} loop${nl === 1 ? '' : 's'} closed`);
+  $('b-loops').title = (sl.loops || []).map((l) => `keyframe #${l.current_kf} joined #${l.loop_kf} (${l.inliers} inliers, scale ${fmt(l.scale, 3)}, ${fmt(l.rotation_deg, 2)}°)`).join('\n');
   const g = ve.georeference || {};
   if (g.state === 'ok') badge('b-geo', 'ok', `georef ok · rms ${(g.rms_m * 100).toFixed(1)} cm`);
   else badge('b-geo', g.state === 'waiting' ? 'warn' : 'bad', `georef ${g.state || 'none'}`);
@@ -93,13 +96,24 @@ function geoText(g) {
   if (g.state === 'ok') return ` | georef ok: scale ${g.scale.toFixed(3)}, rms ${(g.rms_m * 100).toFixed(1)} cm, ${g.keyframes_used} kf${restored}`;
   return ` | georef ${g.state}: ${g.reason || ''}`;
 }
+const isObj = (v) => v !== null && typeof v === 'object' && !Array.isArray(v);
+function mergePatch(doc, patch) {
+  for (const [k, v] of Object.entries(patch)) {
+    if (isObj(v) && isObj(doc[k])) mergePatch(doc[k], v); else doc[k] = v;
+  }
+}
 function connectEvents() {
   const es = new EventSource(API + '/events');
-  es.addEventListener('status', (e) => { try { showStatus(JSON.parse(e.data)); } catch (_) {} });
+  // The whole status on (re)connection, then only what changed (a JSON
+  // merge patch: objects merge member by member, anything else replaces,
+  // null reads as absent); a patch before a whole status is not applied.
+  let doc = null;
+  es.addEventListener('status', (e) => { try { doc = JSON.parse(e.data); showStatus(doc); } catch (_) {} });
+  es.addEventListener('status_patch', (e) => { try { if (doc) { mergePatch(doc, JSON.parse(e.data)); showStatus(doc); } } catch (_) {} });
   es.addEventListener('shot', (e) => { try { onShotEvent(JSON.parse(e.data)); } catch (_) {} });
   // The daemon replays its kept history on each connection.
   es.onopen = () => { timelines.clear(); $('timeline').textContent = 'no shot events yet'; };
-  es.onerror = () => { $('status').textContent = 'daemon unreachable, retrying…'; badge('b-link', 'bad', 'daemon unreachable'); };
+  es.onerror = () => { doc = null; $('status').textContent = 'daemon unreachable, retrying…'; badge('b-link', 'bad', 'daemon unreachable'); };
 }
 
 // ---- shot events: timeline, live overlay, before/after ----------------------
@@ -116,9 +130,9 @@ let overlay = null;
 const MILESTONES = new Set(['localised', 'not_localised', 'georeferenced', 'uploaded', 'started', 'arrived', 'round', 'done', 'stopped']);
 function eventText(e) {
   switch (e.kind) {
-    case 'localised': return `localised: ${e.inliers} inliers, ${fmt(e.rms_error_px, 2)} px`;
+    case 'localised': return `localised: ${e.inliers} inliers, ${fmt(e.rms_error_px, 2)} px${e.position_sigma_pct == null ? '' : `, sigma ${fmt(e.position_sigma_pct, 2)} % of the distance, ${fmt(e.rotation_sigma_deg, 2)}°`}`;
     case 'not_localised': return `not localised: ${e.reason}`;
-    case 'georeferenced': return `georeferenced: target ${fmt(e.lat_deg, 7)}, ${fmt(e.lon_deg, 7)}, ${fmt(e.alt_m, 1)} m, yaw ${fmt(e.yaw_deg, 1)}°, pitch ${fmt(e.gimbal_pitch_deg, 1)}°`;
+    case 'georeferenced': return `georeferenced: target ${fmt(e.lat_deg, 7)}, ${fmt(e.lon_deg, 7)}, ${fmt(e.alt_m, 1)} m, yaw ${fmt(e.yaw_deg, 1)}°, pitch ${fmt(e.gimbal_pitch_deg, 1)}°${e.position_sigma_m == null ? '' : `, position sigma ${fmt(e.position_sigma_m, 2)} m`}`;
     case 'uploaded': return `mission uploaded: ${e.items} items`;
     case 'started': return 'mission started';
     case 'flying': return `round ${e.round}: flying, ${fmt(e.distance_m, 1)} m to the target (${fmt(e.vertical_m, 1)} m vertically)`;
@@ -142,6 +156,10 @@ function renderTimeline(id) {
     const li = el('li', { 'data-kind': e.kind }, `${new Date(e.at_unix * 1000).toLocaleTimeString()} ${eventText(e)}`);
     if (e.round != null) li.dataset.round = e.round;
     if (e.shot_error_pct != null) li.dataset.error = e.shot_error_pct;
+    // Hooks for tests and tools: the localisation's sigma.
+    if (e.position_sigma_pct != null) li.dataset.sigmaPct = e.position_sigma_pct;
+    if (e.rotation_sigma_deg != null) li.dataset.sigmaDeg = e.rotation_sigma_deg;
+    if (e.position_sigma_m != null) li.dataset.sigmaM = e.position_sigma_m;
     ol.append(li);
   }
   div.append(ol);
@@ -274,7 +292,7 @@ function drawMap() {
   const toNed = nedFromMap(geo);
   if (!toNed) { $('mapmode').textContent = `(SLAM view: no georeference${geo.reason ? ' — ' + geo.reason : geo.state ? ' — ' + geo.state : ''})`; cv.dataset.mode = 'slam'; delete cv.dataset.vehicleNed; drawSlamView(cv, g, m); return; }
   $('mapmode').textContent = '(north up, metres from home)';
-  $('maplegend').textContent = 'green: home and geofence · grey: map points · blue: keyframes (click one to choose it) · yellow: vehicle · red: target cameras, viewing direction and aim on the ground · dashed: mission path';
+  $('maplegend').textContent = 'green: home and geofence · grey: map points · blue: keyframes (click one to choose it) · magenta: keyframes a closed loop joined · yellow: vehicle · red: target cameras, viewing direction and aim on the ground · dashed: mission path';
   cv.dataset.mode = 'world';
   // world (north, east) -> canvas
   const pts = (m ? m.points : []).map((p) => toNed(p));
@@ -312,6 +330,7 @@ function drawMap() {
     const sel = state.kf && k.id === state.kf.id;
     g.fillStyle = sel ? '#ffd24d' : '#4da3ff'; g.beginPath(); g.arc(u, v, sel ? 5 : 3, 0, 2 * Math.PI); g.fill();
   });
+  drawLoops(cv, g, P, kfList);
   // shots: target camera, viewing direction, aim on the ground, mission path
   for (const t of shots) {
     const [u, v] = P(t.p[0], t.p[1]);
@@ -354,6 +373,24 @@ function drawMap() {
   cv.dataset.scaleBarM = String(len);
   g.fillText('N ↑', cv.width - 28, 14);
 }
+// The loops closed (status slam.loops, the latest few): the two keyframes
+// each joined, linked in magenta, over the keyframes `kfs` ({id, p}) drawn
+// by `P`. Hook for tests and tools: the map's data-loops, the pairs drawn.
+function drawLoops(cv, g, P, kfs) {
+  const loops = ((state.status && state.status.slam) || {}).loops || [];
+  const at = new Map(kfs.map((k) => [k.id, k.p]));
+  const drawn = [];
+  g.strokeStyle = '#e05cff'; g.fillStyle = '#e05cff'; g.lineWidth = 2;
+  for (const l of loops) {
+    const a = at.get(l.current_kf), b = at.get(l.loop_kf);
+    if (!a || !b) continue;
+    const [au, av] = P(a[0], a[1]), [bu, bv] = P(b[0], b[1]);
+    g.setLineDash([3, 3]); g.beginPath(); g.moveTo(au, av); g.lineTo(bu, bv); g.stroke(); g.setLineDash([]);
+    for (const [u, v] of [[au, av], [bu, bv]]) { g.beginPath(); g.arc(u, v, 6, 0, 2 * Math.PI); g.stroke(); }
+    drawn.push([l.current_kf, l.loop_kf]);
+  }
+  cv.dataset.loops = JSON.stringify(drawn);
+}
 function drawSlamView(cv, g, m) {
   if (!m) return;
   const target = state.shot && state.shot.localisation ? state.shot.localisation.world_from_cam.translation : null;
@@ -373,6 +410,7 @@ function drawSlamView(cv, g, m) {
   m.trajectory.forEach((t, i) => { const [u, v] = P(t[0], t[2]); i ? g.lineTo(u, v) : g.moveTo(u, v); });
   g.stroke();
   state.mapProject = { P, kfs: state.keyframes.map((k) => ({ id: k.id, p: [k.world_from_cam.translation[0], k.world_from_cam.translation[2]] })) };
+  drawLoops(cv, g, P, state.mapProject.kfs);
   if (target) {
     const [u, v] = P(target[0], target[2]);
     g.fillStyle = '#ff4d4d'; g.beginPath(); g.arc(u, v, 6, 0, 2 * Math.PI); g.fill();
@@ -416,45 +454,87 @@ async function refreshMap() {
 }
 
 // ---- keyframes ------------------------------------------------------------
+// A bounded gallery: the newest GALLERY_LATEST keyframes, the ones shots
+// were drawn on or localised through, and the chosen one; every other
+// keyframe is reached on the map (click it) or by its number (#kfgo).
+// `?kf_gallery=N` in the page's address sets the bound. Hooks for tests
+// and tools: #gallery's data-total (the map's keyframes) and data-shown.
+const GALLERY_LATEST = Math.max(1, Number(new URLSearchParams(location.search).get('kf_gallery')) || 24);
 let kfBusy = false;
+function shotKeyframes() {
+  const out = new Set();
+  for (const s of state.shots || []) {
+    if (s.source && s.source.kind === 'anchors' && s.source.keyframe_id != null) out.add(s.source.keyframe_id);
+    if (s.localisation && s.localisation.keyframe_id != null) out.add(s.localisation.keyframe_id);
+  }
+  return out;
+}
+function galleryFigure(kf) {
+  const fig = document.createElement('figure');
+  fig.dataset.id = kf.id;
+  const img = document.createElement('img');
+  img.loading = 'lazy';
+  img.src = `${API}/keyframes/${kf.id}/image.jpg`;
+  const cap = document.createElement('figcaption');
+  cap.textContent = `#${kf.id}`;
+  fig.append(img, cap);
+  fig.addEventListener('click', () => chooseKeyframe(kf));
+  fig.tabIndex = 0;
+  fig.setAttribute('role', 'button');
+  fig.setAttribute('aria-label', `keyframe ${kf.id}`);
+  fig.addEventListener('keydown', (e) => { if (e.key === 'Enter' || e.key === ' ') { e.preventDefault(); chooseKeyframe(kf); } });
+  return fig;
+}
+function renderGallery() {
+  const gal = $('gallery'), all = state.keyframes;
+  const ids = all.map((k) => k.id).sort((x, y) => x - y);
+  const pinned = shotKeyframes();
+  if (state.kfChosen != null) pinned.add(state.kfChosen);
+  // Keyframes the map has culled leave the gallery (a shot on one would be
+  // refused as unknown_keyframe).
+  const want = new Set([...ids.slice(-GALLERY_LATEST), ...ids.filter((id) => pinned.has(id))]);
+  const have = new Map();
+  for (const f of [...gal.querySelectorAll('figure')]) {
+    if (!want.has(Number(f.dataset.id))) f.remove(); else have.set(Number(f.dataset.id), f);
+  }
+  // In id order, the new ones inserted where they belong.
+  let prev = null;
+  for (const kf of [...all].sort((x, y) => x.id - y.id)) {
+    if (!want.has(kf.id)) continue;
+    let fig = have.get(kf.id);
+    if (!fig) { fig = galleryFigure(kf); if (prev) prev.after(fig); else gal.prepend(fig); }
+    fig.classList.toggle('selected', kf.id === state.kfChosen);
+    prev = fig;
+  }
+  gal.dataset.total = String(all.length);
+  gal.dataset.shown = String(want.size);
+  $('kfcount').textContent = want.size < all.length ? `(${want.size} of ${all.length})` : `(${all.length})`;
+  $('kfnote').textContent = want.size < all.length
+    ? `the newest ${GALLERY_LATEST}, those shots use and the chosen one; choose any other on the map or by number`
+    : '';
+}
 async function refreshKeyframes() {
   if (kfBusy) return;
   kfBusy = true;
   try {
     const r = await api('GET', '/keyframes');
-    const gal = $('gallery');
-    const have = new Set(state.keyframes.map((k) => k.id));
     state.keyframes = r.keyframes;
-    $('kfcount').textContent = `(${r.count})`;
-    // Keyframes the map has culled leave the gallery (a shot on one would be
-    // refused as unknown_keyframe).
-    const now = new Set(r.keyframes.map((k) => String(k.id)));
-    for (const f of [...gal.querySelectorAll('figure')]) {
-      if (!now.has(f.dataset.id)) { f.remove(); have.delete(Number(f.dataset.id)); }
-    }
-    for (const kf of r.keyframes) {
-      if (have.has(kf.id)) continue;
-      const fig = document.createElement('figure');
-      fig.dataset.id = kf.id;
-      const img = document.createElement('img');
-      img.loading = 'lazy';
-      img.src = `${API}/keyframes/${kf.id}/image.jpg`;
-      const cap = document.createElement('figcaption');
-      cap.textContent = `#${kf.id}`;
-      fig.append(img, cap);
-      fig.addEventListener('click', () => chooseKeyframe(kf));
-      fig.tabIndex = 0;
-      fig.setAttribute('role', 'button');
-      fig.setAttribute('aria-label', `keyframe ${kf.id}`);
-      fig.addEventListener('keydown', (e) => { if (e.key === 'Enter' || e.key === ' ') { e.preventDefault(); chooseKeyframe(kf); } });
-      gal.append(fig);
-    }
+    renderGallery();
   } catch (_) {
   } finally { kfBusy = false; }
 }
+function goToKeyframe() {
+  const id = Number($('kfgo').value);
+  const kf = state.keyframes.find((k) => k.id === id);
+  $('kfgoinfo').textContent = kf ? '' : `no keyframe #${$('kfgo').value} in the map`;
+  if (kf) chooseKeyframe(kf);
+}
+$('kfgobtn').addEventListener('click', goToKeyframe);
+$('kfgo').addEventListener('keydown', (e) => { if (e.key === 'Enter') goToKeyframe(); });
 
 function chooseKeyframe(kf) {
-  for (const f of document.querySelectorAll('.gallery figure')) f.classList.toggle('selected', f.dataset.id == kf.id);
+  state.kfChosen = kf.id;
+  renderGallery();
   const img = new Image();
   img.onload = () => {
     state.kf = kf; state.kfImage = img;
@@ -726,6 +806,7 @@ async function refreshShots() {
   try {
     const r = await api('GET', '/shots');
     state.shots = r.shots;
+    renderGallery();
     const text = JSON.stringify(r.shots);
     if (text !== shotsSeen) {
       shotsSeen = text;

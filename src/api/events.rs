@@ -9,6 +9,12 @@
 //! events only the newest per shot and round), then the live
 //! events. The hub also keeps, per shot, the live frame of its last
 //! refinement round ([`Achieved`]) for the before/after view.
+//!
+//! The `status` events of the same stream are sent as deltas: the whole
+//! status document when a client connects, then only what changed
+//! ([`status_patch`], a JSON merge patch, `event: status_patch`), and
+//! nothing when nothing did. A client that reconnects gets the whole
+//! document again, so it never builds on a patch it missed.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -16,6 +22,7 @@ use std::sync::{Arc, Mutex};
 
 use image::GrayImage;
 use serde::Serialize;
+use serde_json::{Map, Value};
 use tokio::sync::broadcast;
 
 use crate::video::live::unix_now;
@@ -37,6 +44,11 @@ pub enum ShotEvent {
         inliers: usize,
         /// Reprojection error, pixels.
         rms_error_px: f64,
+        /// The pose's position sigma, % of the distance to the nearest
+        /// scene content (None: the shot reports no sigma).
+        position_sigma_pct: Option<f64>,
+        /// The pose's rotation sigma, degrees.
+        rotation_sigma_deg: Option<f64>,
     },
     /// The shot could not be localised.
     NotLocalised {
@@ -55,6 +67,9 @@ pub enum ShotEvent {
         yaw_deg: f64,
         /// Gimbal pitch, degrees.
         gimbal_pitch_deg: f64,
+        /// The shot's position sigma in metres (its sigma in map units
+        /// times the georeference's scale; None: no sigma reported).
+        position_sigma_m: Option<f64>,
     },
     /// Its mission was uploaded (and read back).
     Uploaded {
@@ -234,9 +249,130 @@ impl ShotEvents {
     }
 }
 
+/// The JSON merge patch (RFC 7386) that turns `old` into `new`, None when
+/// they are equal: objects are compared member by member (recursively),
+/// anything else (numbers, strings, arrays) is sent whole when it changed.
+/// A member `new` no longer has is sent as `null`; so is a member whose
+/// value became `null` (a client applying the patch with
+/// [`apply_status_patch`] reads both as null).
+pub fn status_patch(old: &Value, new: &Value) -> Option<Value> {
+    if old == new {
+        return None;
+    }
+    match (old, new) {
+        (Value::Object(o), Value::Object(n)) => {
+            let mut patch = Map::new();
+            for (k, nv) in n {
+                match o.get(k) {
+                    Some(ov) => {
+                        if let Some(p) = status_patch(ov, nv) {
+                            patch.insert(k.clone(), p);
+                        }
+                    }
+                    None => {
+                        patch.insert(k.clone(), nv.clone());
+                    }
+                }
+            }
+            for k in o.keys() {
+                if !n.contains_key(k) {
+                    patch.insert(k.clone(), Value::Null);
+                }
+            }
+            Some(Value::Object(patch))
+        }
+        // An object replacing a non-object is sent whole; it is applied
+        // whole (see apply_status_patch).
+        _ => Some(new.clone()),
+    }
+}
+
+/// Applies a [`status_patch`] to `doc` as the operator's page does: an
+/// object patch onto an object merges member by member, anything else
+/// replaces the value (`null` included: the member reads as null).
+pub fn apply_status_patch(doc: &mut Value, patch: &Value) {
+    match (doc, patch) {
+        (Value::Object(d), Value::Object(p)) => {
+            for (k, pv) in p {
+                match d.get_mut(k) {
+                    Some(dv) if dv.is_object() && pv.is_object() => apply_status_patch(dv, pv),
+                    _ => {
+                        d.insert(k.clone(), pv.clone());
+                    }
+                }
+            }
+        }
+        (d, p) => *d = p.clone(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `v` without its null members (a member sent as null reads as absent).
+    fn without_nulls(v: &Value) -> Value {
+        match v {
+            Value::Object(m) => Value::Object(
+                m.iter()
+                    .filter(|(_, x)| !x.is_null())
+                    .map(|(k, x)| (k.clone(), without_nulls(x)))
+                    .collect(),
+            ),
+            Value::Array(a) => Value::Array(a.iter().map(without_nulls).collect()),
+            x => x.clone(),
+        }
+    }
+
+    #[test]
+    fn status_patches_carry_only_what_changed_and_rebuild_the_document() {
+        use serde_json::json;
+        let docs = [
+            json!({"uptime_s": 1.0, "video": {"counters": {"received": 10, "bad": 0}, "width": null, "source": {"kind": "mjpeg"}},
+                   "slam": {"state": "tracking", "loops": []}, "vehicle": {"configured": false}, "shots": 0}),
+            // The uptime and one counter move; the width appears.
+            json!({"uptime_s": 1.5, "video": {"counters": {"received": 17, "bad": 0}, "width": 640, "source": {"kind": "mjpeg"}},
+                   "slam": {"state": "tracking", "loops": []}, "vehicle": {"configured": false}, "shots": 0}),
+            // Nothing changed.
+            json!({"uptime_s": 1.5, "video": {"counters": {"received": 17, "bad": 0}, "width": 640, "source": {"kind": "mjpeg"}},
+                   "slam": {"state": "tracking", "loops": []}, "vehicle": {"configured": false}, "shots": 0}),
+            // A loop closed (an array grows), the vehicle object is new,
+            // the source lost a member, the width went back to null.
+            json!({"uptime_s": 2.0, "video": {"counters": {"received": 17, "bad": 0}, "width": null, "source": {}},
+                   "slam": {"state": "tracking", "loops": [{"current_kf": 9, "loop_kf": 1}]},
+                   "vehicle": {"configured": true, "position": {"ned_m": [1.0, 2.0, -3.0]}}, "shots": 1}),
+            // An object becomes a scalar and back.
+            json!({"uptime_s": 2.5, "video": 7, "slam": {"state": "lost", "loops": []}, "vehicle": {"configured": true}, "shots": 1}),
+            json!({"uptime_s": 3.0, "video": {"counters": {"received": 30}}, "slam": {"state": "lost", "loops": []}, "vehicle": {"configured": true}, "shots": 1}),
+        ];
+        let mut page = docs[0].clone();
+        let mut sent = Vec::new();
+        for w in docs.windows(2) {
+            let p = status_patch(&w[0], &w[1]);
+            if let Some(p) = &p {
+                apply_status_patch(&mut page, p);
+            }
+            assert_eq!(without_nulls(&page), without_nulls(&w[1]), "{p:?}");
+            sent.push(p);
+        }
+        assert_eq!(
+            sent[0],
+            Some(json!({"uptime_s": 1.5, "video": {"counters": {"received": 17}, "width": 640}}))
+        );
+        assert_eq!(sent[1], None);
+        assert_eq!(
+            sent[2],
+            Some(
+                json!({"uptime_s": 2.0, "video": {"width": null, "source": {"kind": null}},
+                        "slam": {"loops": [{"current_kf": 9, "loop_kf": 1}]},
+                        "vehicle": {"configured": true, "position": {"ned_m": [1.0, 2.0, -3.0]}}, "shots": 1})
+            )
+        );
+        // A patch is applied whole where the page holds no object.
+        let mut d = json!({"a": 1});
+        apply_status_patch(&mut d, &json!({"a": {"b": null, "c": 2}}));
+        assert_eq!(d, json!({"a": {"b": null, "c": 2}}));
+    }
 
     #[test]
     fn history_keeps_milestones_and_only_the_newest_frequent_event() {

@@ -15,7 +15,9 @@ mod views;
 pub use before_after::compose_before_after;
 pub use error::ApiError;
 use error::body_rejection;
-pub use events::{Achieved, ShotEvent, ShotEventRecord, ShotEvents};
+pub use events::{
+    Achieved, ShotEvent, ShotEventRecord, ShotEvents, apply_status_patch, status_patch,
+};
 pub use views::{
     AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, LoopInfo, MapSaved, MapStart,
     MapView, MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome, StopView,
@@ -53,7 +55,8 @@ pub struct ApiParams {
     pub body_limit: usize,
     /// Most points `GET /map` returns.
     pub map_max_points: usize,
-    /// Status events per second on `/events`.
+    /// Status updates per second on `/events` at most (patches; none
+    /// while nothing changed).
     pub events_hz: f64,
     /// JPEG quality of keyframe and shot images.
     pub jpeg_quality: u8,
@@ -236,13 +239,14 @@ async fn status(State(st): State<AppState>) -> Json<Value> {
 }
 
 /// The `/events` stream's state: the history still to send, the live
-/// shot events, the next status time.
+/// shot events, the next status time, the status document last sent.
 struct EventsState {
     st: AppState,
     replay: std::collections::VecDeque<Arc<ShotEventRecord>>,
     rx: tokio::sync::broadcast::Receiver<Arc<ShotEventRecord>>,
     next_status: tokio::time::Instant,
     period: Duration,
+    sent_status: Option<Value>,
 }
 
 fn shot_event(r: &ShotEventRecord) -> Event {
@@ -251,9 +255,11 @@ fn shot_event(r: &ShotEventRecord) -> Event {
         .data(serde_json::to_string(r).unwrap_or_else(|_| "{}".into()))
 }
 
-/// `status` events (the /status document) at `events_hz`, the first at
-/// once, and `shot` events ([`ShotEventRecord`]): first the kept history,
-/// then each as it happens.
+/// The status as deltas: a `status` event (the whole /status document) at
+/// once, then at most `events_hz` times a second a `status_patch` event
+/// with what changed since the last one sent ([`status_patch`]), none when
+/// nothing did; and `shot` events ([`ShotEventRecord`]): first the kept
+/// history, then each as it happens.
 async fn events(
     State(st): State<AppState>,
 ) -> Sse<impl futures_util::Stream<Item = Result<Event, std::convert::Infallible>>> {
@@ -265,6 +271,7 @@ async fn events(
         rx,
         next_status: tokio::time::Instant::now(),
         period,
+        sent_status: None,
     };
     let stream = futures_util::stream::unfold(state, |mut s| async move {
         use tokio::sync::broadcast::error::RecvError;
@@ -272,10 +279,16 @@ async fn events(
             let now = tokio::time::Instant::now();
             if s.next_status <= now {
                 s.next_status = (s.next_status + s.period).max(now);
-                let ev = Event::default()
-                    .event("status")
-                    .data(status_json(&s.st).to_string());
-                return Some((Ok(ev), s));
+                let doc = status_json(&s.st);
+                let ev = match &s.sent_status {
+                    None => Some(Event::default().event("status").data(doc.to_string())),
+                    Some(old) => status_patch(old, &doc)
+                        .map(|p| Event::default().event("status_patch").data(p.to_string())),
+                };
+                s.sent_status = Some(doc);
+                if let Some(ev) = ev {
+                    return Some((Ok(ev), s));
+                }
             }
             if let Some(r) = s.replay.pop_front() {
                 return Some((Ok(shot_event(&r)), s));
@@ -507,6 +520,8 @@ async fn store_shot(
             (Some(l), _) => ShotEvent::Localised {
                 inliers: l.inliers,
                 rms_error_px: l.rms_error_px,
+                position_sigma_pct: l.sigma.map(|s| s.position_fraction_of_distance * 100.0),
+                rotation_sigma_deg: l.sigma.map(|s| s.rotation_deg),
             },
             (None, r) => ShotEvent::NotLocalised {
                 reason: r.clone().unwrap_or_default(),
@@ -708,6 +723,12 @@ async fn upload_mission(
     let record = v.upload_shot(&shot).await?;
     let target = &record.details["target"];
     let num = |k: &str| target[k].as_f64();
+    let position_sigma_m = shot
+        .localisation
+        .as_ref()
+        .and_then(|l| l.sigma)
+        .zip(record.details["georeference"]["scale"].as_f64())
+        .map(|(s, scale)| s.position * scale);
     if let (Some(lat_deg), Some(lon_deg), Some(alt_m), Some(yaw_deg), Some(gimbal_pitch_deg)) = (
         num("lat_deg"),
         num("lon_deg"),
@@ -723,6 +744,7 @@ async fn upload_mission(
                 alt_m,
                 yaw_deg,
                 gimbal_pitch_deg,
+                position_sigma_m,
             },
         );
     }

@@ -7,15 +7,19 @@
 //
 // Checks, each failing the run with a message: live video shows (the MJPEG
 // <img> has a size and its pixels change between two looks); keyframes are
-// listed with their images; a chosen keyframe opens in the anchor editor;
+// listed with their images in a bounded gallery (the newest few and those
+// shots use; another opens by its number); a chosen keyframe opens in the
+// anchor editor;
 // the four anchors, dragged with the mouse, land where they were dropped;
 // the preview shows the warped shot; submitting shows the daemon's answer
 // (localised with pose and inliers, or not localised with its reason) and
 // the desired-shot image; the shots panel lists every shot with its
 // refinement rounds and stop reason; the world map draws the vehicle
 // (data-vehicle-ned, compared with the simulator's truth by the caller);
-// clicking a keyframe on the map chooses it; Stop (reached by keyboard) is
-// acknowledged by the vehicle. A screenshot of each stage is saved beside
+// clicking a keyframe on the map chooses it; a whole shot is flown with at
+// least one correction round on its timeline (with the localisation's
+// sigma); Stop (reached by keyboard) is acknowledged by the vehicle; the
+// loops-closed badge and the loops drawn on the map. A screenshot of each stage is saved beside
 // SHOTPILOT_SCREENSHOT. Prints one JSON line of what it saw.
 'use strict';
 
@@ -25,6 +29,8 @@ const BASE = process.env.SHOTPILOT_URL;
 const TOKEN = process.env.SHOTPILOT_TOKEN || '';
 const EXE = process.env.SHOTPILOT_CHROMIUM || '/usr/bin/chromium';
 const SHOT = process.env.SHOTPILOT_SCREENSHOT || 'operator_page.png';
+
+const GALLERY = 3;
 
 function check(cond, msg) {
   if (!cond) throw new Error('check failed: ' + msg);
@@ -72,7 +78,9 @@ async function main() {
     const page = await browser.newPage({ viewport: { width: 1400, height: 1300 } });
     const errors = [];
     page.on('pageerror', (e) => errors.push(String(e)));
-    await page.goto(BASE + '/', { waitUntil: 'domcontentloaded' });
+    // A gallery of the newest 3 keyframes (and those shots use): the
+    // bound is exercised with the few keyframes of the test's map.
+    await page.goto(BASE + `/?kf_gallery=${GALLERY}`, { waitUntil: 'domcontentloaded' });
     if (TOKEN) await page.fill('#token', TOKEN);
 
     // Live video: a picture with a size, whose pixels change.
@@ -101,18 +109,40 @@ async function main() {
       const imgs = [...document.querySelectorAll('#gallery figure img')];
       return imgs.length >= 3 && imgs.every((i) => i.complete && i.naturalWidth > 0);
     }, null, { timeout: 60000 });
-    // The count and the gallery are refreshed together; while the map grows
-    // and culls, one look may fall between two refreshes, so wait (bounded)
-    // for a look at which they agree.
-    const agreed = await page.waitForFunction(() => {
-      const n = document.querySelectorAll('#gallery figure').length;
-      const c = Number(document.getElementById('kfcount').textContent.replace(/[()]/g, ''));
-      return n === c ? n : null;
-    }, null, { timeout: 10000 }).then(() => true, () => false);
-    const ids = await page.$$eval('#gallery figure', (fs) => fs.map((f) => Number(f.dataset.id)));
-    const count = await page.textContent('#kfcount');
-    check(agreed, `keyframe count ${count} never matched the ${ids.length} keyframes shown`);
+    // The gallery is bounded: the newest GALLERY keyframes and those the
+    // shots use (the seeded shots' keyframe 0), in id order, as the daemon
+    // lists them now. The map grows and culls while this looks: look again
+    // (bounded) until one look agrees.
+    const galleryLook = () => page.evaluate(async (n) => {
+      const shown = [...document.querySelectorAll('#gallery figure')].map((f) => Number(f.dataset.id));
+      const kfs = (await (await fetch('/api/v1/keyframes')).json()).keyframes.map((k) => k.id).sort((a, b) => a - b);
+      const shots = (await (await fetch('/api/v1/shots')).json()).shots;
+      const pins = new Set();
+      for (const s of shots) {
+        if (s.source && s.source.kind === 'anchors') pins.add(s.source.keyframe_id);
+        if (s.localisation && s.localisation.keyframe_id != null) pins.add(s.localisation.keyframe_id);
+      }
+      const chosen = document.getElementById('editor').dataset.keyframe;
+      if (chosen) pins.add(Number(chosen));
+      const want = [...new Set([...kfs.slice(-n), ...kfs.filter((id) => pins.has(id))])].sort((a, b) => a - b);
+      const g = document.getElementById('gallery');
+      return { shown, want, total: kfs.length, pins: [...pins], page_total: Number(g.dataset.total), count: document.getElementById('kfcount').textContent, agree: JSON.stringify(shown) === JSON.stringify(want) };
+    }, GALLERY);
+    let gl = await galleryLook();
+    for (let i = 0; i < 20 && !gl.agree; i++) { await page.waitForTimeout(500); gl = await galleryLook(); }
+    check(gl.agree, `the gallery shows the newest ${GALLERY} keyframes and those shots use: ${JSON.stringify(gl)}`);
+    check(gl.total > gl.shown.length, `the map has more keyframes than the gallery shows: ${JSON.stringify(gl)}`);
+    check(gl.count === `(${gl.shown.length} of ${gl.page_total})`, `the count says what is shown: ${JSON.stringify(gl)}`);
+    const ids = gl.shown;
     out.keyframes_listed = ids.length;
+    // One the gallery does not show is reached by its number.
+    const hiddenKf = await page.evaluate(() => state.keyframes.map((k) => k.id).find((id) => !document.querySelector(`#gallery figure[data-id="${id}"]`)));
+    check(hiddenKf != null, 'a keyframe is not in the gallery');
+    await page.fill('#kfgo', String(hiddenKf));
+    await page.press('#kfgo', 'Enter');
+    await page.waitForFunction((id) => document.getElementById('editor').dataset.keyframe === String(id), hiddenKf, { timeout: 10000 });
+    check(await page.$eval(`#gallery figure[data-id="${hiddenKf}"]`, (f) => f.classList.contains('selected')), 'the keyframe opened by number joins the gallery, highlighted');
+    out.gallery = { ...gl, opened_by_number: hiddenKf };
 
     // Choose the map's first keyframe: the SLAM never culls it, so it is
     // still there when the shot is submitted (a culled keyframe is refused
@@ -284,7 +314,9 @@ async function main() {
     await dragAnchors();
     const shotA = await submitShot();
     check(shotA.state === 'localised', `the shot on keyframe ${kfA} is localised: ${shotA.text}`);
-    const timeline = (id) => page.$$eval(`#timeline .tl[data-shot="${id}"] li`, (ls) => ls.map((l) => ({ kind: l.dataset.kind, round: l.dataset.round == null ? null : Number(l.dataset.round), error: l.dataset.error == null ? null : Number(l.dataset.error), text: l.textContent })));
+    const num = (v) => (v == null ? null : Number(v));
+    const timeline = (id) => page.$$eval(`#timeline .tl[data-shot="${id}"] li`, (ls) => ls.map((l) => ({ kind: l.dataset.kind, round: l.dataset.round, error: l.dataset.error, sigma_pct: l.dataset.sigmaPct, sigma_deg: l.dataset.sigmaDeg, sigma_m: l.dataset.sigmaM, text: l.textContent })))
+      .then((ls) => ls.map((l) => ({ ...l, round: num(l.round), error: num(l.error), sigma_pct: num(l.sigma_pct), sigma_deg: num(l.sigma_deg), sigma_m: num(l.sigma_m) })));
     const waitKind = (id, kind, timeout) => page.waitForFunction(([id, kind]) => !!document.querySelector(`#timeline .tl[data-shot="${id}"] li[data-kind="${kind}"]`), [id, kind], { timeout });
     await page.click('#upload');
     await page.waitForFunction(() => !document.getElementById('start').disabled, null, { timeout: 60000 });
@@ -313,6 +345,8 @@ async function main() {
       return l && (l.dataset.last === 'done' || l.dataset.last === 'stopped');
     }, shotA.id, { timeout: 400000 });
     out.timeline_a = await timeline(shotA.id);
+    await page.$eval(`#timeline .tl[data-shot="${shotA.id}"]`, (t) => t.scrollIntoView());
+    await stage(page, 'timeline_corrected');
     // Before/after of the finished shot, and its PNG downloaded.
     await page.waitForFunction((id) => {
       const b = document.getElementById('beforeafter');
@@ -375,6 +409,22 @@ async function main() {
     }
     out.vehicle_samples = samples;
     await stage(page, 'holding');
+    // Loops closed: the badge's count and the pairs the map drew, against
+    // the status (compared on the Rust side); a loop closing between the
+    // two looks is looked at again (bounded).
+    const loopsLook = () => page.evaluate(async () => {
+      const s = await (await fetch('/api/v1/status')).json();
+      return {
+        badge: document.getElementById('b-loops').textContent,
+        drawn: JSON.parse(document.getElementById('map').dataset.loops || '[]'),
+        status: { loops_closed: s.slam.loops_closed, loops: s.slam.loops.map((l) => [l.current_kf, l.loop_kf]) },
+      };
+    });
+    out.loops = await loopsLook();
+    for (let i = 0; i < 10 && !out.loops.badge.startsWith(`${out.loops.status.loops_closed} loop`); i++) {
+      await page.waitForTimeout(500);
+      out.loops = await loopsLook();
+    }
     // Layouts: a laptop and a tablet.
     await page.setViewportSize({ width: 1280, height: 800 });
     await stage(page, 'laptop_1280x800', false);
