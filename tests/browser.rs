@@ -249,16 +249,23 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
     assert_eq!(rounds[0]["decision"], "correct", "{rf}");
     assert!(rounds[0]["correction"].is_object(), "{rf}");
     let pct = |r: &Value| r["shot_error_pct"].as_f64();
-    let (first, last) = (pct(&rounds[0]), rounds.last().and_then(pct));
     eprintln!(
         "refinement of {a}: shot error per round {:?} %, stop {}",
         rounds.iter().map(pct).collect::<Vec<_>>(),
         rf["stop"]
     );
-    match (first, last) {
-        (Some(f), Some(l)) => assert!(l < f, "the error grew from {f} to {l}: {rf}"),
-        _ => panic!("rounds without a shot error: {rf}"),
-    }
+    // The GPS bias keeps drifting while the corrections are flown, so one
+    // round may measure worse than the one before; the corrections must
+    // still reach a framing better than the first flight's.
+    let first = pct(&rounds[0]).unwrap_or_else(|| panic!("round 0 without a shot error: {rf}"));
+    let best = rounds[1..]
+        .iter()
+        .map(|r| pct(r).unwrap_or_else(|| panic!("a round without a shot error: {rf}")))
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        best < first,
+        "no correction improved on the first flight's {first} %: {rf}"
+    );
     // The localisation's sigma on the timeline: % of the distance and
     // degrees at `localised`, metres (through the georeference's scale)
     // at `georeferenced`.
