@@ -24,8 +24,11 @@
 //! `SHOT_PHOTOS_SEED=N` draws another set of hidden poses;
 //! `SHOT_PHOTOS_ASSUME_MAP_FOCAL=1` takes the assumed camera of a photo
 //! without EXIF as exact, `SHOT_PHOTOS_NO_UNION=1` localises on the best
-//! candidate's pairs alone (both as before they were in, for a
-//! before/after).
+//! candidate's pairs alone, `SHOT_PHOTOS_REMATCH_ROUNDS=0` skips the
+//! projection rounds through the estimated camera of a photo whose focal
+//! length was weighed (each as before it was in, for a before/after);
+//! `SHOT_PHOTOS_CLAHE=TILES,CLIP` normalises the photos' contrast before
+//! ORB ([`shot::Clahe`]).
 //!
 //! `cargo test --release --test shot_photos -- --nocapture` (about 2 min).
 
@@ -323,19 +326,47 @@ fn run_condition(
     seed: u64,
 ) -> anyhow::Result<Vec<Outcome>> {
     let mut out = Vec::new();
+    // SHOT_PHOTOS_CLAHE=TILES,CLIP: the photos' contrast normalised before
+    // ORB (shot::Clahe), e.g. 8,2.
+    let query_contrast = match std::env::var("SHOT_PHOTOS_CLAHE") {
+        Ok(v) => {
+            let (t, c) = v
+                .split_once(',')
+                .ok_or_else(|| anyhow::anyhow!("SHOT_PHOTOS_CLAHE=TILES,CLIP"))?;
+            Some(shot::Clahe {
+                tiles: t.trim().parse()?,
+                clip_limit: c.trim().parse()?,
+            })
+        }
+        Err(_) => None,
+    };
+    let mut clahe_s = 0.0;
     for (k, h) in hidden.iter().enumerate() {
         let img = renderer.render_noisy(&h.pose, seed ^ (70_000 + k as u64));
         let bytes = jpeg_of(&img, exif_tiff);
         let photo = shot::decode_photo(&bytes)?;
         let camera = shot::photo_camera(&m.map.camera, &photo, None)?;
+        if let Some(c) = &query_contrast {
+            // Its cost, once more on its own (not asserted).
+            let t = std::time::Instant::now();
+            std::hint::black_box(shot::clahe(&photo.image, c));
+            clahe_s += t.elapsed().as_secs_f64();
+        }
         let params = shot::LocalizeParams {
             camera_uncertainty: camera.uncertainty,
             // SHOT_PHOTOS_ASSUME_MAP_FOCAL=1: the assumed camera taken as
             // exact, as before the focal length was weighed (a before/after).
             // SHOT_PHOTOS_NO_UNION=1: the best candidate's pairs alone.
             union_of_evidence: std::env::var_os("SHOT_PHOTOS_NO_UNION").is_none(),
+            query_contrast,
             focal_unknown: camera.focal_unknown
                 && std::env::var_os("SHOT_PHOTOS_ASSUME_MAP_FOCAL").is_none(),
+            // SHOT_PHOTOS_REMATCH_ROUNDS=N: projection rounds through the
+            // estimated camera (0: none, as before they were in).
+            rematch_rounds: match std::env::var("SHOT_PHOTOS_REMATCH_ROUNDS") {
+                Ok(n) => n.trim().parse()?,
+                Err(_) => shot::LocalizeParams::default().rematch_rounds,
+            },
             ..shot::LocalizeParams::default()
         };
         let o = match shot::localize_with_camera(
@@ -375,6 +406,12 @@ fn run_condition(
             },
         };
         out.push(o);
+    }
+    if query_contrast.is_some() {
+        println!(
+            "CLAHE {:.2} ms per photo",
+            clahe_s * 1e3 / hidden.len().max(1) as f64
+        );
     }
     Ok(out)
 }
@@ -592,9 +629,11 @@ fn photos_around_the_flight_under_other_light_and_cameras() -> anyhow::Result<()
         "photos without EXIF passed by the gate with an error over 10 % or 5 deg"
     );
     // Not by refusing them all: the other camera's focal length is found
-    // (67 % localised on the default poses, 0.5 % median error).
+    // and the local map searched again through it (85 % localised on the
+    // default poses, 86 % with SHOT_PHOTOS_SEED=2, 0.45 % median error;
+    // 67 % and 70 % without that search).
     assert!(
-        loc_no_exif >= 50,
+        loc_no_exif >= 75,
         "only {loc_no_exif} of the photos without EXIF localised"
     );
     // The nearest scene content is also judged from the map points in the
