@@ -26,9 +26,7 @@
 //! without EXIF as exact, `SHOT_PHOTOS_NO_UNION=1` localises on the best
 //! candidate's pairs alone, `SHOT_PHOTOS_REMATCH_ROUNDS=0` skips the
 //! projection rounds through the estimated camera of a photo whose focal
-//! length was weighed (each as before it was in, for a before/after);
-//! `SHOT_PHOTOS_CLAHE=TILES,CLIP` normalises the photos' contrast before
-//! ORB ([`shot::Clahe`]).
+//! length was weighed (each as before it was in, for a before/after).
 //!
 //! `cargo test --release --test shot_photos -- --nocapture` (about 2 min).
 
@@ -326,39 +324,17 @@ fn run_condition(
     seed: u64,
 ) -> anyhow::Result<Vec<Outcome>> {
     let mut out = Vec::new();
-    // SHOT_PHOTOS_CLAHE=TILES,CLIP: the photos' contrast normalised before
-    // ORB (shot::Clahe), e.g. 8,2.
-    let query_contrast = match std::env::var("SHOT_PHOTOS_CLAHE") {
-        Ok(v) => {
-            let (t, c) = v
-                .split_once(',')
-                .ok_or_else(|| anyhow::anyhow!("SHOT_PHOTOS_CLAHE=TILES,CLIP"))?;
-            Some(shot::Clahe {
-                tiles: t.trim().parse()?,
-                clip_limit: c.trim().parse()?,
-            })
-        }
-        Err(_) => None,
-    };
-    let mut clahe_s = 0.0;
     for (k, h) in hidden.iter().enumerate() {
         let img = renderer.render_noisy(&h.pose, seed ^ (70_000 + k as u64));
         let bytes = jpeg_of(&img, exif_tiff);
         let photo = shot::decode_photo(&bytes)?;
         let camera = shot::photo_camera(&m.map.camera, &photo, None)?;
-        if let Some(c) = &query_contrast {
-            // Its cost, once more on its own (not asserted).
-            let t = std::time::Instant::now();
-            std::hint::black_box(shot::clahe(&photo.image, c));
-            clahe_s += t.elapsed().as_secs_f64();
-        }
         let params = shot::LocalizeParams {
             camera_uncertainty: camera.uncertainty,
             // SHOT_PHOTOS_ASSUME_MAP_FOCAL=1: the assumed camera taken as
             // exact, as before the focal length was weighed (a before/after).
             // SHOT_PHOTOS_NO_UNION=1: the best candidate's pairs alone.
             union_of_evidence: std::env::var_os("SHOT_PHOTOS_NO_UNION").is_none(),
-            query_contrast,
             focal_unknown: camera.focal_unknown
                 && std::env::var_os("SHOT_PHOTOS_ASSUME_MAP_FOCAL").is_none(),
             // SHOT_PHOTOS_REMATCH_ROUNDS=N: projection rounds through the
@@ -406,12 +382,6 @@ fn run_condition(
             },
         };
         out.push(o);
-    }
-    if query_contrast.is_some() {
-        println!(
-            "CLAHE {:.2} ms per photo",
-            clahe_s * 1e3 / hidden.len().max(1) as f64
-        );
     }
     Ok(out)
 }

@@ -26,8 +26,7 @@
 //! with the pose) are weighed as two hypotheses ([`UnknownFocal`]); the
 //! local map is then searched again through the camera the weighing chose
 //! and both are weighed again on the grown pairs
-//! ([`LocalizeParams::rematch_rounds`]). The shot's contrast may be
-//! normalised before ORB ([`LocalizeParams::query_contrast`]).
+//! ([`LocalizeParams::rematch_rounds`]).
 //! 4. A reliability gate: enough inliers, a small reprojection RMSE, a high
 //!    inlier ratio, the inliers in front of the camera, and agreement with
 //!    every other candidate that passes the gate too. The pairs of all
@@ -41,7 +40,6 @@ use image::GrayImage;
 use nalgebra::{Isometry3, Point2, Point3};
 
 use super::ShotError;
-use super::contrast::{Clahe, clahe};
 use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
 use crate::camera::Camera;
 use crate::features::{self, Descriptor, OrbExtractor, hamming};
@@ -151,10 +149,6 @@ pub struct LocalizeParams {
     /// estimated focal length and distortion, both cameras weighed again
     /// on the grown pairs); 0: none.
     pub rematch_rounds: usize,
-    /// Contrast normalisation of the shot before ORB (CLAHE,
-    /// [`super::contrast`]), for photos under another light; None: the
-    /// shot as it is.
-    pub query_contrast: Option<Clahe>,
     /// Seed of the RANSAC.
     pub seed: u64,
 }
@@ -193,7 +187,6 @@ impl Default for LocalizeParams {
             focal_unknown: false,
             unknown_focal: UnknownFocal::default(),
             rematch_rounds: 1,
-            query_contrast: None,
             seed: 1,
         }
     }
@@ -614,14 +607,6 @@ fn extract_shot_features(
     let mut extractor = OrbExtractor::new(fparams).map_err(|e| ShotError::Features {
         message: e.to_string(),
     })?;
-    let normalised;
-    let shot = match &params.query_contrast {
-        Some(c) => {
-            normalised = clahe(shot, c);
-            &normalised
-        }
-        None => shot,
-    };
     let feats = match mask {
         Some(m) => {
             extractor

@@ -10,11 +10,8 @@
 //!   covisible keyframes' points), PnP RANSAC + motion-only refinement gives
 //!   `world_from_cam`, and a reliability gate refuses doubtful answers with a
 //!   typed reason.
-//! * [`contrast`]: CLAHE, a photo's contrast normalised before ORB (for
-//!   photos under another light; off by default).
 
 pub mod anchors;
-pub mod contrast;
 pub mod localize;
 pub mod photo;
 pub mod record;
@@ -24,7 +21,6 @@ pub mod store;
 pub use anchors::{
     AnchorParams, DesiredShot, desired_shot_from_anchors, homography_from_anchors, warp_perspective,
 };
-pub use contrast::{Clahe, clahe};
 pub use localize::{
     BowIndex, GateParams, Localization, LocalizeParams, MapSigma, NearKeyframe, NotLocalizedReason,
     PoseSigma, ShotPose, UnknownFocal, assumed_camera, localize, localize_with_camera,
