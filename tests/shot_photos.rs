@@ -343,15 +343,6 @@ fn run_condition(
                 Ok(n) => n.trim().parse()?,
                 Err(_) => shot::LocalizeParams::default().rematch_rounds,
             },
-            features: shotpilot::features::Params {
-                // SHOT_PHOTOS_CELL_CONTRAST=K: the photo's FAST threshold
-                // per cell, K times the cell's contrast (0: off).
-                cell_contrast_factor: match std::env::var("SHOT_PHOTOS_CELL_CONTRAST") {
-                    Ok(k) => k.trim().parse()?,
-                    Err(_) => 0.0,
-                },
-                ..shot::LocalizeParams::default().features
-            },
             ..shot::LocalizeParams::default()
         };
         let o = match shot::localize_with_camera(

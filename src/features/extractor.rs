@@ -381,28 +381,6 @@ fn detect_fallback(level: &mut Level, g: &CellGrid, threshold: u8) {
     }
 }
 
-/// The mean absolute difference of horizontally and vertically
-/// neighbouring pixels inside `r` of a `w`-wide image (the cell's contrast
-/// for [`Params::cell_contrast_factor`](super::Params::cell_contrast_factor)).
-fn cell_contrast(img: &[u8], w: usize, r: Rect) -> f32 {
-    let (mut sum, mut n) = (0u64, 0u64);
-    for y in r.y0..r.y1 {
-        let row = &img[y * w + r.x0..y * w + r.x1];
-        for p in row.windows(2) {
-            sum += u64::from(p[0].abs_diff(p[1]));
-        }
-        n += row.len().saturating_sub(1) as u64;
-        if y + 1 < r.y1 {
-            let next = &img[(y + 1) * w + r.x0..(y + 1) * w + r.x1];
-            for (a, b) in row.iter().zip(next) {
-                sum += u64::from(a.abs_diff(*b));
-            }
-            n += row.len() as u64;
-        }
-    }
-    if n == 0 { 0.0 } else { sum as f32 / n as f32 }
-}
-
 /// Drop the corners from index `from` on whose patch (radius in level-0
 /// pixels: half the patch plus 3, times the level `scale`) reaches a masked
 /// pixel.
@@ -462,50 +440,21 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         x1: w - edge,
         y1: h - edge,
     };
+    detect(
+        &level.image,
+        w,
+        h,
+        area,
+        p.ini_th_fast,
+        &mut level.fast,
+        &mut level.corners,
+    );
+
+    // Cells where the first threshold found nothing get the second.
     let (aw, ah) = (area.x1 - area.x0, area.y1 - area.y0);
     let n_cols = (aw / p.cell_size).max(1);
     let n_rows = (ah / p.cell_size).max(1);
     let (cw, ch) = (aw.div_ceil(n_cols), ah.div_ceil(n_rows));
-    if p.cell_contrast_factor > 0.0 {
-        // Each cell with the first threshold its own contrast calls for.
-        for j in 0..n_rows {
-            for i in 0..n_cols {
-                let cell = Rect {
-                    x0: area.x0 + i * cw,
-                    y0: area.y0 + j * ch,
-                    x1: (area.x0 + (i + 1) * cw).min(area.x1),
-                    y1: (area.y0 + (j + 1) * ch).min(area.y1),
-                };
-                if cell.x1 <= cell.x0 || cell.y1 <= cell.y0 {
-                    continue;
-                }
-                let t = (p.cell_contrast_factor * cell_contrast(&level.image, w, cell))
-                    .round()
-                    .clamp(0.0, 255.0) as u8;
-                detect(
-                    &level.image,
-                    w,
-                    h,
-                    cell,
-                    t.clamp(p.min_th_fast, p.ini_th_fast),
-                    &mut level.fast,
-                    &mut level.corners,
-                );
-            }
-        }
-    } else {
-        detect(
-            &level.image,
-            w,
-            h,
-            area,
-            p.ini_th_fast,
-            &mut level.fast,
-            &mut level.corners,
-        );
-    }
-
-    // Cells where the first threshold found nothing get the second.
     level.cell_counts.clear();
     level.cell_counts.resize(n_cols * n_rows, 0);
     for c in &level.corners {

@@ -157,14 +157,6 @@ pub struct Params {
     /// (ORB-SLAM), which spreads more but lets weak, less repeatable fallback
     /// corners displace strong ones.
     pub fallback_fills_only: bool,
-    /// Per-cell FAST threshold adapting to local contrast: when above 0,
-    /// each detection cell is searched with its own first threshold,
-    /// `cell_contrast_factor` times the cell's mean absolute difference of
-    /// neighbouring pixels (horizontal and vertical), clamped to
-    /// `[min_th_fast, ini_th_fast]`; so a face in shadow (the same corners
-    /// at a lower contrast) is searched as finely as a sunlit one. 0 (the
-    /// default): `ini_th_fast` everywhere, ORB-SLAM's scheme.
-    pub cell_contrast_factor: f32,
 }
 
 impl Default for Params {
@@ -182,7 +174,6 @@ impl Default for Params {
             threads: 1,
             noise_threshold_factor: 5.0,
             fallback_fills_only: true,
-            cell_contrast_factor: 0.0,
         }
     }
 }
