@@ -24,8 +24,9 @@
 //! `SHOT_PHOTOS_SEED=N` draws another set of hidden poses;
 //! `SHOT_PHOTOS_ASSUME_MAP_FOCAL=1` takes the assumed camera of a photo
 //! without EXIF as exact, `SHOT_PHOTOS_NO_UNION=1` localises on the best
-//! candidate's pairs alone (both as before they were in, for a
-//! before/after).
+//! candidate's pairs alone, `SHOT_PHOTOS_REMATCH_ROUNDS=0` skips the
+//! projection rounds through the estimated camera of a photo whose focal
+//! length was weighed (each as before it was in, for a before/after).
 //!
 //! `cargo test --release --test shot_photos -- --nocapture` (about 2 min).
 
@@ -336,6 +337,12 @@ fn run_condition(
             union_of_evidence: std::env::var_os("SHOT_PHOTOS_NO_UNION").is_none(),
             focal_unknown: camera.focal_unknown
                 && std::env::var_os("SHOT_PHOTOS_ASSUME_MAP_FOCAL").is_none(),
+            // SHOT_PHOTOS_REMATCH_ROUNDS=N: projection rounds through the
+            // estimated camera (0: none, as before they were in).
+            rematch_rounds: match std::env::var("SHOT_PHOTOS_REMATCH_ROUNDS") {
+                Ok(n) => n.trim().parse()?,
+                Err(_) => shot::LocalizeParams::default().rematch_rounds,
+            },
             ..shot::LocalizeParams::default()
         };
         let o = match shot::localize_with_camera(
@@ -592,9 +599,11 @@ fn photos_around_the_flight_under_other_light_and_cameras() -> anyhow::Result<()
         "photos without EXIF passed by the gate with an error over 10 % or 5 deg"
     );
     // Not by refusing them all: the other camera's focal length is found
-    // (67 % localised on the default poses, 0.5 % median error).
+    // and the local map searched again through it (85 % localised on the
+    // default poses, 86 % with SHOT_PHOTOS_SEED=2, 0.45 % median error;
+    // 67 % and 70 % without that search).
     assert!(
-        loc_no_exif >= 50,
+        loc_no_exif >= 75,
         "only {loc_no_exif} of the photos without EXIF localised"
     );
     // The nearest scene content is also judged from the map points in the

@@ -111,6 +111,7 @@ impl LocalizingShots {
                         keyframe_id: u64::from(n.keyframe_id.0),
                         score: n.score,
                         position: [n.position.x, n.position.y, n.position.z],
+                        image_url: NearKeyframeJson::image_url_of(u64::from(n.keyframe_id.0)),
                     })
                     .collect()
             }

@@ -23,7 +23,10 @@
 //! length ratio) and the refinement; [`assumed_camera`] gives the camera of
 //! a resized photo when the intrinsics are not known, and then the map
 //! camera resized and another camera (focal length and distortion fitted
-//! with the pose) are weighed as two hypotheses ([`UnknownFocal`]).
+//! with the pose) are weighed as two hypotheses ([`UnknownFocal`]); the
+//! local map is then searched again through the camera the weighing chose
+//! and both are weighed again on the grown pairs
+//! ([`LocalizeParams::rematch_rounds`]).
 //! 4. A reliability gate: enough inliers, a small reprojection RMSE, a high
 //!    inlier ratio, the inliers in front of the camera, and agreement with
 //!    every other candidate that passes the gate too. The pairs of all
@@ -141,6 +144,11 @@ pub struct LocalizeParams {
     pub focal_unknown: bool,
     /// The priors of that weighing.
     pub unknown_focal: UnknownFocal,
+    /// For such a photo, projection rounds through the camera the weighing
+    /// chose after the first fit (the local map searched again with the
+    /// estimated focal length and distortion, both cameras weighed again
+    /// on the grown pairs); 0: none.
+    pub rematch_rounds: usize,
     /// Seed of the RANSAC.
     pub seed: u64,
 }
@@ -178,6 +186,7 @@ impl Default for LocalizeParams {
             union_of_evidence: true,
             focal_unknown: false,
             unknown_focal: UnknownFocal::default(),
+            rematch_rounds: 1,
             seed: 1,
         }
     }
@@ -510,6 +519,11 @@ struct CandidatePose {
     sigma: Option<PoseSigma>,
     /// Keypoint -> map point after the last round (outliers dropped).
     slots: Vec<Option<PointId>>,
+    /// The chosen camera's correction of the shot camera (identity unless
+    /// the focal length was weighed and another camera won).
+    correction: IntrinsicsCorrection,
+    /// The chosen camera's inliers among the pairs the pose was fitted on.
+    obs_inliers: Vec<bool>,
 }
 
 /// Localises a desired shot taken with the map's camera (see the module
@@ -732,6 +746,7 @@ pub fn localize_with_camera(
         cam,
         bounds,
         distance_factor: (map.camera.fx + map.camera.fy) / (cam.fx + cam.fy),
+        correction: IntrinsicsCorrection::default(),
     };
     let mut poses: Vec<CandidatePose> = Vec::new();
     let mut tried = 0;
@@ -933,10 +948,14 @@ fn frustum_near_depth(
 }
 
 /// The shot's camera as the projection of map points into it needs it.
+#[derive(Clone, Copy)]
 struct ShotView<'c> {
     cam: &'c Camera,
     bounds: Bounds,
     distance_factor: f64,
+    /// The estimated camera's correction of `cam` (identity but for a
+    /// photo whose focal length was weighed, [`rematch_with_estimated_camera`]).
+    correction: IntrinsicsCorrection,
 }
 
 /// Whether map point `id` is in the shot camera's frustum (in front, inside
@@ -955,8 +974,21 @@ fn project_into_shot(
     if pc.z <= 0.0 {
         return None;
     }
-    let u = view.cam.fx * pc.x / pc.z + view.cam.cx;
-    let v = view.cam.fy * pc.y / pc.z + view.cam.cy;
+    let (u, v) = if view.correction == IntrinsicsCorrection::default() {
+        (
+            view.cam.fx * pc.x / pc.z + view.cam.cx,
+            view.cam.fy * pc.y / pc.z + view.cam.cy,
+        )
+    } else {
+        let intr = Intrinsics {
+            fx: view.cam.fx,
+            fy: view.cam.fy,
+            cx: view.cam.cx,
+            cy: view.cam.cy,
+        };
+        let uv = view.correction.project(&intr, &pc.coords)?;
+        (uv.x, uv.y)
+    };
     if !view.bounds.contains(u, v) {
         return None;
     }
@@ -1310,16 +1342,17 @@ fn refine_candidate(
         let (obs, obs_slot) = observations(map, feats, &slots);
         let r = optimize_pose(cam_from_world, &obs, intr, &params.pose).ok()?;
         cam_from_world = r.cam_from_world;
+        let matched = slots.clone();
         // Drop the outliers from the slots so the next round can re-match them.
         for (k, &i) in obs_slot.iter().enumerate() {
             if !r.inliers[k] {
                 slots[i] = None;
             }
         }
-        report = Some((r, obs));
+        report = Some((r, obs, obs_slot, matched));
     }
-    let (r, obs) = report?;
-    evaluate_candidate(
+    let (r, obs, obs_slot, matched) = report?;
+    let cand = evaluate_candidate(
         kf_id,
         r.cam_from_world,
         &obs,
@@ -1327,7 +1360,138 @@ fn refine_candidate(
         slots,
         intr,
         params,
-    )
+    )?;
+    if !params.focal_unknown || params.rematch_rounds == 0 {
+        return Some(cand);
+    }
+    let fitted = Fitted {
+        cand,
+        h0_pose: r.cam_from_world,
+        obs_slot,
+        matched,
+    };
+    Some(rematch_with_estimated_camera(
+        map, kf_id, fitted, feats, grid, view, intr, params,
+    ))
+}
+
+/// A candidate's pose with what a further projection round starts from.
+struct Fitted {
+    /// The pose, its statistics and the chosen camera.
+    cand: CandidatePose,
+    /// The pose fitted with the assumed camera (H0 of [`UnknownFocal`]).
+    h0_pose: Isometry3<f64>,
+    /// The keypoint of each pair the pose was fitted on.
+    obs_slot: Vec<usize>,
+    /// Keypoint -> map point of those pairs (outliers included).
+    matched: Vec<Option<PointId>>,
+}
+
+/// For a photo whose focal length was weighed
+/// ([`LocalizeParams::focal_unknown`]): the local map searched again by
+/// projection through the camera the weighing chose (its focal length and
+/// distortion, and the pyramid level predicted with that focal length),
+/// seeded with that camera's inliers; then the assumed camera's pose
+/// re-optimised on the grown pairs and both cameras weighed again on them
+/// ([`evaluate_candidate`]). The first rounds matched through the assumed
+/// camera alone, which misses the points its wrong focal length projects
+/// off; more pairs also pin the focal length, so the weighing decides
+/// where it could not. [`LocalizeParams::rematch_rounds`] times at most,
+/// fewer when a round finds no new pair.
+#[allow(clippy::too_many_arguments)]
+fn rematch_with_estimated_camera(
+    map: &Map,
+    kf_id: KeyFrameId,
+    mut fitted: Fitted,
+    feats: &features::Features,
+    grid: &FeatureGrid,
+    view: &ShotView<'_>,
+    intr: &Intrinsics,
+    params: &LocalizeParams,
+) -> CandidatePose {
+    let radius = params.projection_radius_px.last().copied().unwrap_or(2.5);
+    for _ in 0..params.rematch_rounds {
+        let cand = &fitted.cand;
+        // The chosen camera's inliers.
+        let mut slots: Vec<Option<PointId>> = vec![None; feats.len()];
+        for (k, &i) in fitted.obs_slot.iter().enumerate() {
+            if cand.obs_inliers.get(k).copied().unwrap_or(false)
+                && let (Some(slot), Some(p)) = (slots.get_mut(i), fitted.matched.get(i))
+            {
+                *slot = *p;
+            }
+        }
+        let est_view = ShotView {
+            correction: cand.correction,
+            distance_factor: view.distance_factor / cand.correction.focal_scale.max(1e-6),
+            ..*view
+        };
+        let local = local_points(map, kf_id, &slots, params);
+        let used: HashSet<PointId> = slots.iter().flatten().copied().collect();
+        let center = cand.cam_from_world.inverse().translation.vector;
+        let projected: Vec<_> = local
+            .iter()
+            .filter(|p| !used.contains(p))
+            .filter_map(|p| {
+                project_into_shot(
+                    map,
+                    &est_view,
+                    *p,
+                    &cand.cam_from_world,
+                    &center,
+                    params.min_view_cos,
+                )
+            })
+            .collect();
+        let target = SearchTarget {
+            keypoints: &feats.keypoints,
+            descriptors: &feats.descriptors,
+            grid,
+            points: &slots,
+        };
+        let found = search_local_points(
+            &target,
+            &projected,
+            map,
+            &map.scale,
+            radius,
+            &params.matcher,
+        );
+        if found.is_empty() {
+            break;
+        }
+        for (i, p) in found {
+            slots[i] = Some(p);
+        }
+        let (obs, obs_slot) = observations(map, feats, &slots);
+        let Ok(r) = optimize_pose(fitted.h0_pose, &obs, intr, &params.pose) else {
+            break;
+        };
+        let matched = slots.clone();
+        for (k, &i) in obs_slot.iter().enumerate() {
+            if !r.inliers[k] {
+                slots[i] = None;
+            }
+        }
+        let Some(next) = evaluate_candidate(
+            kf_id,
+            r.cam_from_world,
+            &obs,
+            &r.inliers,
+            slots,
+            intr,
+            params,
+        ) else {
+            break;
+        };
+        fitted = Fitted {
+            cand: next,
+            h0_pose: r.cam_from_world,
+            obs_slot,
+            matched,
+        };
+    }
+    fitted.cand
 }
 
 /// The 2D-3D pairs of `slots` (keypoint -> map point) as observations, and
@@ -1444,6 +1608,8 @@ fn evaluate_candidate(
         near_depth,
         sigma,
         slots,
+        correction,
+        obs_inliers: inliers,
     })
 }
 

@@ -227,6 +227,17 @@ pub struct NearKeyframeJson {
     pub score: f64,
     /// The keyframe's camera centre, map frame.
     pub position: [f64; 3],
+    /// Where its picture is served (`/api/v1/keyframes/{id}/image.jpg`;
+    /// empty in shot files written before it was reported).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub image_url: String,
+}
+
+impl NearKeyframeJson {
+    /// The API path of keyframe `id`'s picture.
+    pub fn image_url_of(id: u64) -> String {
+        format!("/api/v1/keyframes/{id}/image.jpg")
+    }
 }
 
 /// The intrinsics of a photo from another camera (pinhole with OpenCV's
