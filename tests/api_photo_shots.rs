@@ -9,9 +9,10 @@
 //! `.ci/run` requires it).
 
 mod data_support;
+mod http_support;
 
-use std::io::{Cursor, Read, Write};
-use std::net::{SocketAddr, TcpStream};
+use std::io::Cursor;
+use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -131,8 +132,8 @@ fn start(dir: &std::path::Path, map: Map) -> anyhow::Result<Server> {
     Ok(Server { addr, _rt: rt })
 }
 
-/// One HTTP/1.1 request (the server closes the connection); status,
-/// lower-cased head and body.
+/// One request through the tests' HTTP client; status, lower-cased
+/// header lines and body.
 fn http(
     addr: SocketAddr,
     method: &str,
@@ -140,31 +141,15 @@ fn http(
     content_type: &str,
     body: &[u8],
 ) -> anyhow::Result<(u16, String, Vec<u8>)> {
-    let mut s = TcpStream::connect(addr)?;
-    s.set_read_timeout(Some(Duration::from_secs(60)))?;
-    let req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n\r\n",
-        body.len()
+    let r = http_support::send(
+        addr,
+        method,
+        path,
+        &[("content-type", content_type)],
+        body,
+        Duration::from_secs(60),
     );
-    s.write_all(req.as_bytes())?;
-    s.write_all(body)?;
-    let mut resp = Vec::new();
-    s.read_to_end(&mut resp)?;
-    let split = resp
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .ok_or_else(|| anyhow::anyhow!("no response head"))?;
-    let head = String::from_utf8_lossy(&resp[..split]).to_lowercase();
-    let status = head
-        .split_whitespace()
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .ok_or_else(|| anyhow::anyhow!("no status in {head}"))?;
-    anyhow::ensure!(
-        !head.contains("transfer-encoding: chunked"),
-        "chunked reply: {head}"
-    );
-    Ok((status, head, resp[split + 4..].to_vec()))
+    Ok((r.status, r.head, r.body))
 }
 
 fn png_of(img: &GrayImage) -> anyhow::Result<Vec<u8>> {
