@@ -317,7 +317,6 @@ impl Priors {
 mod tests {
     use super::*;
     use crate::camera::{Camera, Distortion};
-    use crate::features::KeyPoint;
     use crate::matching::FeatureGrid;
     use crate::slam::map::{KeyFrame, KeyFrameId, ScaleInfo};
     use nalgebra::{Isometry3, Translation3, UnitQuaternion};
@@ -356,7 +355,7 @@ mod tests {
             frame_index: 0,
             timestamp: t,
             cam_from_world: world_from_cam.inverse(),
-            keypoints: vec![KeyPoint::default(); 0],
+            keypoints: Vec::new(),
             descriptors: Vec::new(),
             points: Vec::new(),
             grid: FeatureGrid::default(),
