@@ -8,7 +8,17 @@
 //! - `groundtruth.txt`: `timestamp tx ty tz qx qy qz qw`, the camera's
 //!   `world_from_cam` with the quaternion scalar last;
 //! - `render_info.json`: seed, path, camera, world, realism (the effects
-//!   on, the codec, the stream's bitrate) and timing of the render.
+//!   on, the codec, the stream's bitrate) and timing of the render;
+//! - `telemetry.txt`: what the autopilot would report at each frame's
+//!   timestamp (see [`TELEMETRY_HEADER`]): the GNSS position in local NED
+//!   with the realism's GNSS error (bias, noise, the drift while the fix is
+//!   lost, `fix` 0 then), the receiver's reported accuracy, the barometric
+//!   altitude with the realism's drift, the body attitude and the gimbal
+//!   angles (from the true camera pose: a rendered path has no body tilt
+//!   and no attitude error). The errors come from the same processes and
+//!   seed as the live vehicle's ([`crate::vehicle::SensorErrors`]); with a
+//!   realism without `gps` and `baro` (e.g. `ideal`) they are exact and the
+//!   reported accuracy is 0.
 //!
 //! With any realism effect on, frames carry their exact truth:
 //! `groundtruth.txt`'s pose is the camera's at the frame's timestamp, the
@@ -40,11 +50,21 @@ use crate::imaging::Imager;
 use crate::paths::{CameraPath, Params as PathParams, PathError, PathSpec, parse_tum, tum_line};
 use crate::realism::{Realism, RealismError};
 use crate::render::{RenderParams, Renderer};
+use crate::vehicle::SensorErrors;
 use crate::world::{World, WorldError, WorldKind, WorldParams};
 
 /// The header naming the frames, written atop trajectory files.
 pub const WORLD_FRAME_HEADER: &str = "# world frame: local NED at home (x north, y east, z down, metres); \
 poses are world_from_cam, camera axes x right, y down, z forward";
+
+/// The header of `telemetry.txt`.
+pub const TELEMETRY_HEADER: &str = "# world frame: local NED at home (x north, y east, z down, metres)\n\
+# timestamp fix gps_n gps_e gps_d h_acc v_acc baro_alt roll_deg pitch_deg yaw_deg gimbal_pitch_deg gimbal_yaw_deg\n\
+# timestamp: the frame's (groundtruth.txt's); fix: 1 with a GNSS fix, 0 while it is lost (the position is then the \
+estimator's drifting dead reckoning, which an autopilot does not send); gps_n gps_e gps_d: the GNSS position of the \
+camera, m; h_acc v_acc: the receiver's reported 1-sigma accuracy, horizontal per axis and vertical, m (0: no error \
+model); baro_alt: barometric altitude above home, m (up); roll pitch yaw: body attitude (NED, yaw from north to \
+east); gimbal pitch (positive up, -90 straight down) and yaw relative to the body, degrees";
 
 /// Errors of dataset writing.
 #[derive(Debug, thiserror::Error)]
@@ -374,6 +394,14 @@ fn write_dataset(
     writeln!(rgb, "{WORLD_FRAME_HEADER}\n# timestamp filename").map_err(io_err(&rgb_txt))?;
     writeln!(gt, "{WORLD_FRAME_HEADER}\n# timestamp tx ty tz qx qy qz qw")
         .map_err(io_err(&gt_txt))?;
+    let tel_txt = out_dir.join("telemetry.txt");
+    let mut tel = BufWriter::new(File::create(&tel_txt).map_err(io_err(&tel_txt))?);
+    writeln!(tel, "{TELEMETRY_HEADER}").map_err(io_err(&tel_txt))?;
+    let mut sensors = SensorErrors::new(&crate::vehicle::VehicleDisturbances::from_realism(
+        &job.realism,
+        seed,
+    ));
+    let mut t_sensors = path.start();
     // Exposure and rolling-shutter truth, only when the camera is not ideal.
     let realistic = !job.realism.is_ideal();
     let exp_txt = out_dir.join("exposures.txt");
@@ -465,6 +493,10 @@ fn write_dataset(
         };
         writeln!(rgb, "{t:.6} rgb/{name}").map_err(io_err(&rgb_txt))?;
         writeln!(gt, "{}", tum_line(t, &shot.world_from_cam)).map_err(io_err(&gt_txt))?;
+        sensors.step(t, t - t_sensors);
+        t_sensors = t;
+        writeln!(tel, "{}", telemetry_line(t, &shot.world_from_cam, &sensors))
+            .map_err(io_err(&tel_txt))?;
         if let Some(e) = exposures.as_mut() {
             writeln!(
                 e,
@@ -500,6 +532,7 @@ fn write_dataset(
     }
     rgb.flush().map_err(io_err(&rgb_txt))?;
     gt.flush().map_err(io_err(&gt_txt))?;
+    tel.flush().map_err(io_err(&tel_txt))?;
     if let Some(mut e) = exposures {
         e.flush().map_err(io_err(&exp_txt))?;
     }
@@ -548,6 +581,32 @@ fn write_dataset(
     })?;
     std::fs::write(&info_path, text).map_err(io_err(&info_path))?;
     Ok(report)
+}
+
+/// One line of `telemetry.txt` (see [`TELEMETRY_HEADER`]) for a camera
+/// truly at `world_from_cam` with the sensors' errors now.
+fn telemetry_line(t: f64, world_from_cam: &Isometry3<f64>, sensors: &SensorErrors) -> String {
+    let c = world_from_cam.translation.vector;
+    let gps = c - sensors.gnss_error();
+    let baro_alt = -c.z + sensors.baro_error();
+    let (h_acc, v_acc) = sensors.reported_accuracy();
+    // The camera's forward (z) and up (-y) axes in NED: its pitch, and the
+    // heading of the body (the gimbal is stabilised, the body level).
+    let r = world_from_cam.rotation;
+    let f = r * nalgebra::Vector3::z();
+    let u = -(r * nalgebra::Vector3::y());
+    let pitch = (-f.z).clamp(-1.0, 1.0).asin();
+    let h = f.xy() * pitch.cos() - u.xy() * pitch.sin();
+    let yaw = h.y.atan2(h.x);
+    format!(
+        "{t:.6} {} {:.4} {:.4} {:.4} {h_acc:.3} {v_acc:.3} {baro_alt:.4} 0.000 0.000 {:.3} {:.3} 0.000",
+        u8::from(sensors.fix()),
+        gps.x,
+        gps.y,
+        gps.z,
+        yaw.to_degrees(),
+        pitch.to_degrees(),
+    )
 }
 
 /// Appends live ground truth to a folder while the simulator runs:
@@ -710,6 +769,88 @@ mod tests {
             vec![115.0, 115.0, 79.5, 59.5, -0.05, 0.01, 0.0005, -0.0003, 0.0]
         );
         assert!(dir.path().join("render_info.json").exists());
+        // Ideal realism: the telemetry is the truth, one line per frame.
+        let tel = std::fs::read_to_string(dir.path().join("telemetry.txt")).unwrap();
+        let rows: Vec<Vec<f64>> = tel
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
+            .collect();
+        assert_eq!(rows.len(), 5);
+        for (row, (t, pose)) in rows.iter().zip(&gt) {
+            assert_eq!(row.len(), 13);
+            assert!((row[0] - t).abs() < 1e-6);
+            assert_eq!(row[1], 1.0);
+            let c = pose.translation.vector;
+            assert!((nalgebra::Vector3::new(row[2], row[3], row[4]) - c).norm() < 1e-3);
+            assert!((row[7] + c.z).abs() < 1e-3);
+        }
+    }
+
+    #[test]
+    fn telemetry_attitude_and_sensor_errors_follow_the_realism() {
+        // A camera 30 m up, looking 40 degrees down towards the east: yaw
+        // 90, gimbal pitch -40. (Built with the exact matrix-to-quaternion
+        // conversion: `paths::camera_from_yaw_pitch`'s iterative one stalls
+        // on this pose, a half turn from the identity.)
+        let cam = |eye: Point3<f64>, yaw: f64, pitch: f64| {
+            let (sy, cy) = yaw.to_radians().sin_cos();
+            let (sp, cp) = pitch.to_radians().sin_cos();
+            let forward = nalgebra::Vector3::new(cp * cy, cp * sy, sp);
+            let right = nalgebra::Vector3::new(-sy, cy, 0.0);
+            let down = forward.cross(&right);
+            let m = nalgebra::Matrix3::from_columns(&[right, down, forward]);
+            Isometry3::from_parts(
+                nalgebra::Translation3::from(eye.coords),
+                nalgebra::UnitQuaternion::from_rotation_matrix(
+                    &nalgebra::Rotation3::from_matrix_unchecked(m),
+                ),
+            )
+        };
+        let eye = Point3::new(5.0, -3.0, -30.0);
+        let pose = cam(eye, 90.0, 40.0);
+        let ideal = SensorErrors::new(&crate::vehicle::VehicleDisturbances::default());
+        let line = telemetry_line(1.0, &pose, &ideal);
+        let v: Vec<f64> = line
+            .split_whitespace()
+            .map(|x| x.parse().unwrap())
+            .collect();
+        assert!((v[10] - 90.0).abs() < 0.01, "{line}");
+        assert!((v[11] + 40.0).abs() < 0.01, "{line}");
+        assert!((v[7] - 30.0).abs() < 1e-3, "{line}");
+        // Straight down keeps the heading of the image's top.
+        let down = cam(eye, 30.0, 90.0);
+        let v: Vec<f64> = telemetry_line(1.0, &down, &ideal)
+            .split_whitespace()
+            .map(|x| x.parse().unwrap())
+            .collect();
+        assert!((v[11] + 90.0).abs() < 0.01);
+        assert!((v[10] - 30.0).abs() < 0.01);
+        // The field preset's GNSS: errors of its sigma over a long flight,
+        // a reported accuracy of its sigmas, fix losses now and then.
+        let field = Realism::field();
+        let mut s = SensorErrors::new(&crate::vehicle::VehicleDisturbances::from_realism(
+            &field, 7,
+        ));
+        let dt = 1.0 / 15.0;
+        let (mut sum2, mut n, mut lost) = (0.0, 0usize, 0usize);
+        for k in 1..=(15 * 7200) {
+            s.step(k as f64 * dt, dt);
+            sum2 += s.gnss_error().x.powi(2);
+            n += 1;
+            lost += usize::from(!s.fix());
+        }
+        let rms = (sum2 / n as f64).sqrt();
+        let (h_acc, v_acc) = s.reported_accuracy();
+        assert!((h_acc - 1.3f64.hypot(0.05)).abs() < 1e-9);
+        assert!((v_acc - 0.8f64.hypot(0.05)).abs() < 1e-9);
+        // Two hours hold 60 correlation times: the rms is the sigma to
+        // about 20 %.
+        assert!(rms > 0.6 * 1.3 && rms < 1.5 * 1.3, "rms {rms}");
+        assert!(
+            lost > 0 && (lost as f64) < 0.05 * n as f64,
+            "lost {lost} of {n}"
+        );
     }
 
     #[test]

@@ -272,6 +272,38 @@ struct DisturbanceState {
     /// Integral of the velocity loop (m/s^2), compensating the wind.
     wind_integral: Vector3<f64>,
     gimbal: Option<GimbalJitter>,
+    sensors: SensorErrors,
+}
+
+impl DisturbanceState {
+    fn new(d: &VehicleDisturbances) -> Self {
+        Self {
+            wind: d.wind.map(|w| WindField::new(w, d.seed)),
+            wind_integral: Vector3::zeros(),
+            gimbal: d.gimbal.map(|g| GimbalJitter::new(g, d.seed)),
+            sensors: SensorErrors::new(d),
+        }
+    }
+
+    /// Advance the GNSS and barometer processes to time `t` by `dt`.
+    fn step_sensors(&mut self, t: f64, dt: f64) {
+        self.sensors.step(t, dt);
+    }
+
+    /// True position minus the estimate, NED m.
+    fn position_error(&self) -> Vector3<f64> {
+        self.sensors.gnss_error() + Vector3::new(0.0, 0.0, self.sensors.baro_error())
+    }
+}
+
+/// The GNSS and barometer error processes of [`VehicleDisturbances`]
+/// (`gps`, `gps_dropouts`, `baro`): what the vehicle flies on and what a
+/// rendered dataset's `telemetry.txt` reports. Seeded by the disturbances'
+/// seed, so a render and a live flight with the same seed see the same
+/// errors at the same times.
+#[derive(Debug, Clone)]
+pub struct SensorErrors {
+    d: VehicleDisturbances,
     gps_bias: Option<GpsBias>,
     gps_noise: Option<GpsBias>,
     /// Fix lost until this time (s on the vehicle's clock).
@@ -285,8 +317,9 @@ struct DisturbanceState {
     rng: SmallRng,
 }
 
-impl DisturbanceState {
-    fn new(d: &VehicleDisturbances) -> Self {
+impl SensorErrors {
+    /// The processes of `d` at time zero (all errors zero).
+    pub fn new(d: &VehicleDisturbances) -> Self {
         let mut rng = SmallRng::seed_from_u64(d.seed ^ 0x0DD5_EED5);
         let gm = |sxy: f64, sz: f64, tau: f64, salt: u64| {
             GpsBias::new(GpsBiasParams {
@@ -300,9 +333,7 @@ impl DisturbanceState {
             .gps_dropouts
             .map_or(f64::INFINITY, |g| exponential(&mut rng, g.mean_interval_s));
         Self {
-            wind: d.wind.map(|w| WindField::new(w, d.seed)),
-            wind_integral: Vector3::zeros(),
-            gimbal: d.gimbal.map(|g| GimbalJitter::new(g, d.seed)),
+            d: *d,
             gps_bias: d
                 .gps
                 .map(|g| gm(g.bias_sigma_xy_m, g.bias_sigma_z_m, g.bias_tau_s, 0xB1A5)),
@@ -318,7 +349,8 @@ impl DisturbanceState {
     }
 
     /// Advance the GNSS and barometer processes to time `t` by `dt`.
-    fn step_sensors(&mut self, d: &VehicleDisturbances, t: f64, dt: f64) {
+    pub fn step(&mut self, t: f64, dt: f64) {
+        let d = self.d;
         if let Some(b) = &mut self.gps_bias {
             b.step(dt);
         }
@@ -351,9 +383,10 @@ impl DisturbanceState {
         }
     }
 
-    /// True position minus the estimate, NED m.
-    fn position_error(&self) -> Vector3<f64> {
-        let mut e = self.drift + Vector3::new(0.0, 0.0, self.baro);
+    /// True position minus the GNSS estimate, NED m: bias, noise and the
+    /// drift while the fix is lost (no barometer).
+    pub fn gnss_error(&self) -> Vector3<f64> {
+        let mut e = self.drift;
         if let Some(b) = &self.gps_bias {
             e += b.bias();
         }
@@ -361,6 +394,29 @@ impl DisturbanceState {
             e += n.bias();
         }
         e
+    }
+
+    /// Barometric height error, m, down positive: true z = barometric z
+    /// + it (so the reported altitude is the true one plus it).
+    pub fn baro_error(&self) -> f64 {
+        self.baro
+    }
+
+    /// False while the GNSS fix is lost.
+    pub fn fix(&self) -> bool {
+        self.lost_until.is_none()
+    }
+
+    /// The receiver's reported 1-sigma accuracy, (horizontal per axis,
+    /// vertical) m: the configured bias and noise sigmas combined (what a
+    /// receiver's hAcc/vAcc estimate stands for); zero without `gps`.
+    pub fn reported_accuracy(&self) -> (f64, f64) {
+        self.d.gps.map_or((0.0, 0.0), |g| {
+            (
+                g.bias_sigma_xy_m.hypot(g.noise_sigma_m),
+                g.bias_sigma_z_m.hypot(g.noise_sigma_m),
+            )
+        })
     }
 }
 
@@ -658,7 +714,7 @@ impl Vehicle {
                     self.dist.wind_integral = -wind.drag_accel(self.clock, &Vector3::zeros());
                 }
             }
-            self.dist.step_sensors(&d, self.clock, dt);
+            self.dist.step_sensors(self.clock, dt);
         }
     }
 
@@ -717,7 +773,7 @@ impl Vehicle {
     }
     /// False while the GNSS fix is lost (realism `gps_dropouts`).
     pub fn gps_fix(&self) -> bool {
-        self.dist.lost_until.is_none()
+        self.dist.sensors.fix()
     }
     /// The vehicle's clock: seconds of [`Self::step`] so far.
     pub fn clock(&self) -> f64 {

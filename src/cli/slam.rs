@@ -11,7 +11,10 @@ use clap::Args;
 use serde_json::json;
 
 use shotpilot::eval::{self, Trajectory};
+use shotpilot::geo::align::{Pair, fit_pairs};
 use shotpilot::optimize::BaParams;
+use shotpilot::slam::MapMode;
+use shotpilot::slam::priors::{PriorParams, Priors, TelemetryLog};
 use shotpilot::slam::{self, Slam, TrackState};
 use shotpilot::stats;
 use shotpilot::video::dataset::Dataset;
@@ -67,6 +70,26 @@ pub struct SlamArgs {
     /// loop's essential graph (experimental, off by default).
     #[arg(long)]
     pub loop_global_ba: bool,
+    /// Telemetry priors from the dataset's telemetry.txt (GNSS fixes with
+    /// their reported accuracy, barometric altitude): the map is put in
+    /// local NED once the fixes span a baseline, and bundle adjustment keeps
+    /// it there. Without the file the run is vision-only.
+    #[arg(long)]
+    pub priors: bool,
+}
+
+/// The trajectory moved by a similarity.
+fn transformed(t: &Trajectory, s: &shotpilot::lie::Sim3) -> Trajectory {
+    Trajectory {
+        poses: t
+            .poses
+            .iter()
+            .map(|p| eval::StampedPose {
+                t: p.t,
+                world_from_cam: s.transform_pose(&p.world_from_cam),
+            })
+            .collect(),
+    }
 }
 
 /// The drift at the revisit of a trajectory that comes back to its start:
@@ -131,6 +154,29 @@ pub fn run(args: SlamArgs) -> Result<()> {
         l.refit_on_projection = args.loop_refit;
         if args.loop_global_ba {
             l.global_ba = Some(BaParams::default());
+        }
+    }
+    // The dataset's telemetry: priors with --priors, and the after-the-fact
+    // georeference of a vision-only map either way.
+    let tel_path = args.dataset.join("telemetry.txt");
+    let telemetry = if tel_path.exists() {
+        Some(TelemetryLog::read(&tel_path)?)
+    } else {
+        None
+    };
+    let prior_params = PriorParams::default();
+    if args.priors {
+        match &telemetry {
+            Some(log) => {
+                params.priors = Some(Priors {
+                    params: prior_params.clone(),
+                    log: Arc::new(log.clone()),
+                })
+            }
+            None => tracing::warn!(
+                path = %tel_path.display(),
+                "--priors: no telemetry.txt, the map stays vision-only"
+            ),
         }
     }
     let mut system = Slam::new(ds.camera, params).context("starting the SLAM")?;
@@ -208,10 +254,47 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let traj = run.trajectory();
     let kf_traj = run.keyframe_trajectory();
     let initialized = run.initialized_at.is_some();
+    let mode = run.map.mode();
+    // The map in local NED: as it stands when gps-aided; for a vision-only
+    // map, moved by a Sim(3) fitted to the telemetry's fixes after the fact.
+    let ned_from_map: Option<(shotpilot::lie::Sim3, &str)> = match (mode, &telemetry) {
+        (MapMode::GpsAided, _) => Some((shotpilot::lie::Sim3::identity(), "map")),
+        (MapMode::VisionOnly, Some(log)) if initialized => {
+            let pairs: Vec<Pair> = run
+                .map
+                .keyframes()
+                .filter_map(|k| {
+                    let s = log
+                        .at(k.timestamp, prior_params.max_dt_s)
+                        .filter(|s| s.fix)?;
+                    Some(Pair {
+                        kf_id: k.id.0 as u64,
+                        p_map: nalgebra::Point3::from(k.center()),
+                        p_ned: nalgebra::Point3::from(s.gps_ned),
+                        time: k.timestamp,
+                        orientations: None,
+                        v_ned: None,
+                    })
+                })
+                .collect();
+            match fit_pairs(&pairs, &prior_params.align, None, prior_params.align.seed) {
+                Ok(f) => Some((f.ned_from_map, "after_the_fact")),
+                Err(e) => {
+                    tracing::warn!(error = %e, "no after-the-fact georeference");
+                    None
+                }
+            }
+        }
+        _ => None,
+    };
+    let ned_traj = ned_from_map.map(|(s, _)| transformed(&traj, &s));
 
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         traj.write_tum(&dir.join("trajectory.txt"))?;
+        if let Some(t) = &ned_traj {
+            t.write_tum(&dir.join("trajectory_ned.txt"))?;
+        }
         kf_traj.write_tum(&dir.join("keyframes.txt"))?;
         for (n, l) in run.loops.iter().enumerate() {
             l.keyframes_before
@@ -231,6 +314,24 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let eval_params = eval::Params {
         max_dt: args.max_dt,
         ..Default::default()
+    };
+    // In NED: the error a user sees (no alignment) and the scale the
+    // ground truth still finds (Sim(3) alignment of the NED trajectory).
+    let ned_eval = match (&gt, &ned_traj) {
+        (Some(gt), Some(t)) => {
+            let none = eval::evaluate(
+                gt,
+                t,
+                &eval::Params {
+                    align: eval::AlignMode::None,
+                    ..eval_params
+                },
+            )
+            .ok();
+            let sim3 = eval::evaluate(gt, t, &eval_params).ok();
+            none.zip(sim3)
+        }
+        _ => None,
     };
     let (ate, ate_kf) = match (&gt, initialized) {
         (Some(gt), true) => (
@@ -320,7 +421,7 @@ pub fn run(args: SlamArgs) -> Result<()> {
         run.last_reason.as_ref().map(ToString::to_string)
     };
     if args.json {
-        let out = json!({
+        let mut out = json!({
             "dataset": args.dataset.display().to_string(),
             "frames": n,
             "initialized": initialized,
@@ -353,12 +454,28 @@ pub fn run(args: SlamArgs) -> Result<()> {
             "gt_path_length_m": gt.as_ref().map(|g| g.path_length()),
             "sequential": args.sequential,
             "loop_closing": !args.no_loop_closing,
+
             "loops": loops,
             "loop_refusals": refusals.iter().map(|(r, (n, far))| json!({"reason": r, "count": n, "gt_farther_than_10m": gt.is_some().then_some(far)})).collect::<Vec<_>>(),
             "revisit_t": revisit.map(|r| r.0),
             "revisit_gt_gap_m": revisit.map(|r| r.1),
             "revisit_drift_m": revisit.map(|r| r.2),
         });
+        // The map's frame and its figures in local NED (a second object:
+        // one json! of every field overflows the macro's recursion limit).
+        let ned = json!({
+            "map_mode": mode,
+            "georeferenced_at_kf": run.georeferenced.map(|g| g.0.0),
+            "georeference_fit_scale": run.georeferenced.map(|g| g.1.ned_from_map.scale),
+            "georeference_fit_rms_m": run.georeferenced.map(|g| g.1.rms_m),
+            "ned_frame": ned_from_map.map(|n| n.1),
+            "ned_ate_rmse_m": ned_eval.as_ref().map(|e| e.0.ate.rmse),
+            "ned_ate_max_m": ned_eval.as_ref().map(|e| e.0.ate.max),
+            "ned_scale_error": ned_eval.as_ref().map(|e| e.1.alignment.scale - 1.0),
+        });
+        if let (Some(o), serde_json::Value::Object(n)) = (out.as_object_mut(), ned) {
+            o.extend(n);
+        }
         println!("{out}");
     } else {
         if !initialized {
@@ -422,6 +539,26 @@ pub fn run(args: SlamArgs) -> Result<()> {
             ),
             _ if gt.is_some() => println!("ATE: too few poses matched the ground truth"),
             _ => {}
+        }
+        match &run.georeferenced {
+            Some((kf, g)) => println!(
+                "map mode {mode}: put in local NED by telemetry at keyframe {} (Sim(3) scale {:.4}, {} of {} keyframes with a fix inliers, rms {:.3} m)",
+                kf.0, g.ned_from_map.scale, g.inliers, g.pairs, g.rms_m
+            ),
+            None => println!("map mode {mode}"),
+        }
+        if let (Some((_, frame)), Some((none, sim3))) = (&ned_from_map, &ned_eval) {
+            println!(
+                "in local NED ({}): ATE rmse {:.4} m max {:.4} m without alignment; scale error {:+.4} % (Sim(3) to the ground truth)",
+                if *frame == "map" {
+                    "the map's own frame"
+                } else {
+                    "vision-only map, Sim(3) fitted to the GNSS fixes after the fact"
+                },
+                none.ate.rmse,
+                none.ate.max,
+                (sim3.alignment.scale - 1.0) * 100.0
+            );
         }
         if let Some((t, gap, drift)) = revisit {
             println!(

@@ -975,6 +975,7 @@ fn refine_two_view(
         points: Vec::new(),
         observations: Vec::new(),
         intrinsics: intr,
+        priors: Vec::new(),
     };
     let mut which = Vec::new();
     for (i, p) in points.iter().enumerate() {

@@ -20,6 +20,14 @@
 //! `5.991` or behind the camera are set aside, and a second pass without
 //! kernel (10 iterations) refines on the rest; the observations that are
 //! outliers at the end are reported so the map can drop them.
+//!
+//! Position priors ([`PositionPrior`], e.g. a GNSS fix and a barometric
+//! altitude) pull a free keyframe's camera centre `c = -Rᵀt` towards a
+//! measured position with an information matrix `Ω`: the residual
+//! `c - c_meas` costs `ρ(rᵀΩr)` under [`BaParams::prior_kernel`] (Huber by
+//! default, so a fix far off weighs linearly) in both passes. Under the
+//! left perturbation `T ← exp(δ)·T`, `∂c/∂δ = [-Rᵀ, 0]`: a prior adds
+//! `R·Ω·Rᵀ` to the translation block of its pose and nothing to the points.
 
 use faer::prelude::Solve;
 use faer::{Col, Mat, Side};
@@ -53,6 +61,19 @@ pub struct Observation {
     pub inv_sigma2: f64,
 }
 
+/// A prior on a keyframe's camera centre: `information` is the inverse
+/// covariance of `centre` (metres, world frame); a singular one constrains
+/// only some directions (a barometric altitude: `diag(0, 0, 1/σ²)`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionPrior {
+    /// Index into [`BaProblem::poses`] (ignored when that pose is fixed).
+    pub pose: usize,
+    /// The measured camera centre, world frame.
+    pub centre: Point3<f64>,
+    /// Its information matrix (symmetric, positive semi-definite).
+    pub information: Matrix3<f64>,
+}
+
 /// A bundle-adjustment problem; optimised in place.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BaProblem {
@@ -64,6 +85,8 @@ pub struct BaProblem {
     pub observations: Vec<Observation>,
     /// Pinhole intrinsics shared by all keyframes.
     pub intrinsics: Intrinsics,
+    /// Priors on camera centres (empty: vision only).
+    pub priors: Vec<PositionPrior>,
 }
 
 /// Tunables of [`local_bundle_adjustment`]. Defaults are ORB-SLAM's.
@@ -81,6 +104,8 @@ pub struct BaParams {
     pub min_depth: f64,
     /// LM settings (its `max_iterations` is overridden by the passes).
     pub lm: LmParams,
+    /// Robust kernel of the position priors (both passes), on `rᵀΩr`.
+    pub prior_kernel: RobustKernel,
 }
 
 impl Default for BaParams {
@@ -94,6 +119,10 @@ impl Default for BaParams {
             outlier_chi2: 5.991,
             min_depth: 1e-6,
             lm: LmParams::default(),
+            // 3 DoF, 95 %.
+            prior_kernel: RobustKernel::Huber {
+                delta: 7.815f64.sqrt(),
+            },
         }
     }
 }
@@ -137,6 +166,7 @@ struct BaLs<'a> {
     problem: &'a mut BaProblem,
     active: Vec<bool>,
     kernel: RobustKernel,
+    prior_kernel: RobustKernel,
     min_depth: f64,
     behind_chi2: f64,
     /// Free-pose index per pose.
@@ -200,6 +230,7 @@ impl<'a> BaLs<'a> {
         Self {
             active,
             kernel,
+            prior_kernel: BaParams::default().prior_kernel,
             min_depth,
             behind_chi2: 1e4,
             free,
@@ -282,6 +313,25 @@ impl LeastSquares for BaLs<'_> {
                 self.g_c[fi] += jct * r * w;
                 lin.jc = jc;
                 lin.wblock = jct * jp * w;
+            }
+        }
+        for pr in &self.problem.priors {
+            let Some(fi) = self.free.get(pr.pose).copied().flatten() else {
+                continue;
+            };
+            let r_cw = &rots[pr.pose];
+            let (r, chi2) = prior_residual(&self.problem.poses[pr.pose].cam_from_world, pr);
+            let (rho, drho) = self.prior_kernel.eval(chi2);
+            cost += 0.5 * rho;
+            // J = [-Rᵀ, 0]: JᵀΩJ = RΩRᵀ, JᵀΩr = -RΩr.
+            let h = r_cw * pr.information * r_cw.transpose() * drho;
+            let g = -(r_cw * (pr.information * r)) * drho;
+            let a = &mut self.a_blocks[fi];
+            for i in 0..3 {
+                for j in 0..3 {
+                    a[(i, j)] += h[(i, j)];
+                }
+                self.g_c[fi][i] += g[i];
             }
         }
         let mut gmax: f64 = 0.0;
@@ -443,6 +493,13 @@ impl LeastSquares for BaLs<'_> {
             let s = obs_chi2(self.problem, o, self.min_depth).unwrap_or(self.behind_chi2);
             cost += 0.5 * self.kernel.eval(s).0;
         }
+        for pr in &self.problem.priors {
+            if self.free.get(pr.pose).copied().flatten().is_none() {
+                continue;
+            }
+            let (_, chi2) = prior_residual(&self.problem.poses[pr.pose].cam_from_world, pr);
+            cost += 0.5 * self.prior_kernel.eval(chi2).0;
+        }
         cost
     }
 
@@ -457,6 +514,14 @@ impl LeastSquares for BaLs<'_> {
         }
         n2.sqrt()
     }
+}
+
+/// A prior's residual `c - c_meas` (c the camera centre) and its `rᵀΩr`.
+#[inline]
+fn prior_residual(cam_from_world: &Isometry3<f64>, prior: &PositionPrior) -> (Vector3<f64>, f64) {
+    let c = -(cam_from_world.rotation.inverse() * cam_from_world.translation.vector);
+    let r = c - prior.centre.coords;
+    (r, r.dot(&(prior.information * r)))
 }
 
 /// Inverse of a symmetric positive-definite 3×3 matrix by cofactors;
@@ -534,6 +599,17 @@ fn validate(problem: &BaProblem) -> Result<(), OptimizeError> {
             });
         }
     }
+    for (i, p) in problem.priors.iter().enumerate() {
+        if p.pose >= problem.poses.len()
+            || !p.centre.coords.iter().all(|v| v.is_finite())
+            || !p.information.iter().all(|v| v.is_finite())
+        {
+            return Err(OptimizeError::InvalidInput {
+                what: "position prior",
+                index: i,
+            });
+        }
+    }
     for (i, p) in problem.poses.iter().enumerate() {
         let t = &p.cam_from_world.translation.vector;
         let q = &p.cam_from_world.rotation;
@@ -588,6 +664,7 @@ pub fn local_bundle_adjustment(
     let nobs = problem.observations.len();
     let first_pass = {
         let mut ls = BaLs::new(problem, vec![true; nobs], params.kernel, params.min_depth);
+        ls.prior_kernel = params.prior_kernel;
         levenberg_marquardt(
             &mut ls,
             &LmParams {
@@ -613,6 +690,7 @@ pub fn local_bundle_adjustment(
             RobustKernel::None,
             params.min_depth,
         );
+        ls.prior_kernel = params.prior_kernel;
         let s = levenberg_marquardt(
             &mut ls,
             &LmParams {
@@ -664,6 +742,158 @@ mod tests {
         assert!(inverse_spd3(&bad).is_none());
     }
 
+    /// A survey strip seen from 30 m straight down: the true poses and
+    /// ground points, and the observations with a deterministic pixel noise.
+    fn survey_strip() -> (BaProblem, Vec<Vector3<f64>>) {
+        let intr = Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+        };
+        // Camera x east, y south, z down.
+        let r_wc = nalgebra::Rotation3::from_matrix_unchecked(Matrix3::new(
+            0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+        ));
+        let centres: Vec<Vector3<f64>> = (0..10)
+            .map(|k| {
+                let k = k as f64;
+                Vector3::new(5.0 * k, 0.3 * k * k, -30.0 - 0.5 * k)
+            })
+            .collect();
+        let poses: Vec<BaPose> = centres
+            .iter()
+            .enumerate()
+            .map(|(i, c)| BaPose {
+                cam_from_world: Isometry3::from_parts(
+                    Translation3::from(*c),
+                    UnitQuaternion::from_rotation_matrix(&r_wc),
+                )
+                .inverse(),
+                fixed: i == 0,
+            })
+            .collect();
+        let mut points = Vec::new();
+        for a in 0..30 {
+            for b in 0..14 {
+                let (x, y) = (
+                    -15.0 + 2.3 * a as f64,
+                    -14.0 + 2.9 * b as f64 + 0.3 * a as f64,
+                );
+                let h = -((a * 7 + b * 13) % 11) as f64;
+                points.push(Point3::new(x, y, h));
+            }
+        }
+        let mut observations = Vec::new();
+        for (i, p) in poses.iter().enumerate() {
+            for (j, x) in points.iter().enumerate() {
+                let pc = p.cam_from_world.transform_point(x).coords;
+                let uv = intr.project(&pc);
+                if pc.z <= 0.0 || !(0.0..640.0).contains(&uv.x) || !(0.0..480.0).contains(&uv.y) {
+                    continue;
+                }
+                let n = ((i * 31 + j * 17) % 9) as f64 / 8.0 - 0.5;
+                let m = ((i * 13 + j * 29) % 7) as f64 / 6.0 - 0.5;
+                observations.push(Observation {
+                    pose: i,
+                    point: j,
+                    uv: Point2::new(uv.x + n, uv.y + m),
+                    inv_sigma2: 1.0,
+                });
+            }
+        }
+        let problem = BaProblem {
+            poses,
+            points,
+            observations,
+            intrinsics: intr,
+            priors: Vec::new(),
+        };
+        (problem, centres)
+    }
+
+    fn centre(p: &BaPose) -> Vector3<f64> {
+        p.cam_from_world.inverse().translation.vector
+    }
+
+    /// The strip as monocular vision leaves it: every pose and point
+    /// scaled by `s` about the first (fixed) camera.
+    fn scaled(problem: &BaProblem, c0: &Vector3<f64>, s: f64) -> BaProblem {
+        let mut out = problem.clone();
+        for p in out.poses.iter_mut() {
+            let c = c0 + (centre(p) - c0) * s;
+            let r = p.cam_from_world.rotation;
+            p.cam_from_world = Isometry3::from_parts(Translation3::from(-(r * c)), r);
+        }
+        for x in out.points.iter_mut() {
+            *x = Point3::from(c0 + (x.coords - c0) * s);
+        }
+        out
+    }
+
+    fn gnss_priors(centres: &[Vector3<f64>], bias: Vector3<f64>, sigma: f64) -> Vec<PositionPrior> {
+        centres
+            .iter()
+            .enumerate()
+            .map(|(i, c)| PositionPrior {
+                pose: i,
+                centre: Point3::from(c + bias),
+                information: Matrix3::identity() / (sigma * sigma),
+            })
+            .collect()
+    }
+
+    /// A map 5 % too long: without priors BA keeps the wrong scale (vision
+    /// cannot see it); GNSS priors on every camera (which then fix the
+    /// gauge: no pose is held) pull it back within 0.5 %; a biased GNSS
+    /// leaves every camera within its bias of the truth, not worse, and the
+    /// scale still right.
+    #[test]
+    fn position_priors_restore_the_metric_scale() {
+        let (truth, centres) = survey_strip();
+        assert!(truth.observations.len() > 500);
+        let params = BaParams {
+            first_pass_iterations: 20,
+            second_pass_iterations: 20,
+            ..BaParams::default()
+        };
+        let length = |p: &BaProblem| (centre(&p.poses[9]) - centre(&p.poses[0])).norm();
+        let true_length = (centres[9] - centres[0]).norm();
+
+        let mut vision = scaled(&truth, &centres[0], 1.05);
+        local_bundle_adjustment(&mut vision, &params).unwrap();
+        let scale = length(&vision) / true_length;
+        assert!((scale - 1.05).abs() < 0.005, "vision-only scale {scale}");
+
+        let free = |mut p: BaProblem| {
+            for pose in p.poses.iter_mut() {
+                pose.fixed = false;
+            }
+            p
+        };
+        let mut aided = free(scaled(&truth, &centres[0], 1.05));
+        aided.priors = gnss_priors(&centres, Vector3::zeros(), 0.1);
+        let report = local_bundle_adjustment(&mut aided, &params).unwrap();
+        let scale = length(&aided) / true_length;
+        assert!((scale - 1.0).abs() < 0.005, "aided scale {scale}");
+        assert!(report.final_rmse_px < 0.5, "{report:?}");
+
+        let bias = Vector3::new(1.0, -0.6, 0.4);
+        let mut biased = free(scaled(&truth, &centres[0], 1.05));
+        biased.priors = gnss_priors(&centres, bias, 1.3);
+        local_bundle_adjustment(&mut biased, &params).unwrap();
+        for (i, p) in biased.poses.iter().enumerate() {
+            let e = (centre(p) - centres[i]).norm();
+            assert!(
+                e <= bias.norm() + 0.05,
+                "camera {i}: error {e} m, bias {}",
+                bias.norm()
+            );
+        }
+        let scale = length(&biased) / true_length;
+        assert!((scale - 1.0).abs() < 0.005, "biased scale {scale}");
+    }
+
     /// The Schur solve equals a dense solve of the full damped system, and
     /// the analytic Jacobians match finite differences through it.
     #[test]
@@ -707,11 +937,39 @@ mod tests {
                 });
             }
         }
+        // Priors on the free poses' centres (one full, one vertical only),
+        // off their true centres.
+        let info = Matrix3::from_diagonal(&Vector3::new(4.0, 1.0, 9.0));
+        let priors = vec![
+            PositionPrior {
+                pose: 1,
+                centre: Point3::from(
+                    poses[1].cam_from_world.inverse().translation.vector
+                        + Vector3::new(0.2, -0.1, 0.3),
+                ),
+                information: info,
+            },
+            PositionPrior {
+                pose: 2,
+                centre: Point3::from(
+                    poses[2].cam_from_world.inverse().translation.vector
+                        + Vector3::new(0.0, 0.0, -0.25),
+                ),
+                information: Matrix3::from_diagonal(&Vector3::new(0.0, 0.0, 16.0)),
+            },
+            // On the fixed pose: ignored.
+            PositionPrior {
+                pose: 0,
+                centre: Point3::new(5.0, 5.0, 5.0),
+                information: info,
+            },
+        ];
         let mut problem = BaProblem {
             poses,
             points,
             observations,
             intrinsics: intr,
+            priors,
         };
         let base = problem.clone();
         // Residual vector (weighted by sqrt(inv_sigma2)) as a function of the
@@ -726,7 +984,8 @@ mod tests {
             for j in 0..6 {
                 p.points[j] += Vector3::new(x[12 + 3 * j], x[13 + 3 * j], x[14 + 3 * j]);
             }
-            let mut out = nalgebra::DVector::zeros(2 * p.observations.len());
+            let nobs = p.observations.len();
+            let mut out = nalgebra::DVector::zeros(2 * nobs + 6);
             for (k, o) in p.observations.iter().enumerate() {
                 let pc = p.poses[o.pose]
                     .cam_from_world
@@ -735,6 +994,13 @@ mod tests {
                 let r = (intr.project(&pc) - o.uv) * o.inv_sigma2.sqrt();
                 out[2 * k] = r.x;
                 out[2 * k + 1] = r.y;
+            }
+            // The priors on free poses, whitened (diagonal information).
+            for (m, pr) in p.priors.iter().take(2).enumerate() {
+                let (r, _) = prior_residual(&p.poses[pr.pose].cam_from_world, pr);
+                for a in 0..3 {
+                    out[2 * nobs + 3 * m + a] = r[a] * pr.information[(a, a)].sqrt();
+                }
             }
             out
         };
@@ -758,6 +1024,7 @@ mod tests {
         let dense = hd.cholesky().unwrap().solve(&(-&g));
 
         let mut ls = BaLs::new(&mut problem, vec![true; 18], RobustKernel::None, 1e-6);
+        ls.prior_kernel = RobustKernel::None;
         let (cost, _) = ls.linearize();
         assert!((cost - 0.5 * r0.norm_squared()).abs() < 1e-9 * cost.max(1.0));
         ls.solve_damped(lambda).unwrap();

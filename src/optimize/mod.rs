@@ -31,7 +31,9 @@ pub mod lm;
 pub mod pose;
 pub mod sim3;
 
-pub use ba::{BaParams, BaPose, BaProblem, BaReport, Observation, local_bundle_adjustment};
+pub use ba::{
+    BaParams, BaPose, BaProblem, BaReport, Observation, PositionPrior, local_bundle_adjustment,
+};
 pub use essential_graph::{PoseGraph, PoseGraphParams, Sim3Edge, optimize_pose_graph};
 pub use lm::{LmParams, LmSummary, Termination};
 pub use pose::{

@@ -116,6 +116,7 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
                 cx: cam.cx,
                 cy: cam.cy,
             },
+            priors: Vec::new(),
         },
         keyframes: pose_ids,
         points: point_ids,

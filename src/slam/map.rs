@@ -18,6 +18,7 @@ use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, hamming};
 
 use crate::bow::{self, BowVector, FeatureVector, KeyFrameDatabase};
+use crate::lie::{Sim3, renormalized};
 use crate::matching::FeatureGrid;
 
 /// Errors of the map: a map rebuilt from parts that do not fit, or a
@@ -353,6 +354,34 @@ pub struct CulledKeyFrame {
     pub cam_from_parent: Isometry3<f64>,
 }
 
+/// What frame the map is in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MapMode {
+    /// Monocular vision only: an arbitrary frame and scale.
+    #[default]
+    VisionOnly,
+    /// Re-expressed in local NED (metres) by GNSS fixes, held there by
+    /// position and altitude priors in bundle adjustment.
+    GpsAided,
+}
+
+impl MapMode {
+    /// The name the output and the API use.
+    pub fn name(self) -> &'static str {
+        match self {
+            MapMode::VisionOnly => "vision_only",
+            MapMode::GpsAided => "gps_aided",
+        }
+    }
+}
+
+impl std::fmt::Display for MapMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Keyframes, points and the graphs between them.
 #[derive(Debug, Clone)]
 pub struct Map {
@@ -379,6 +408,13 @@ pub struct Map {
     /// Loop corrections applied (tracking re-places its last frame when
     /// this changes).
     corrections: u64,
+    /// The frame the map is in (not in the map file: a loaded map is
+    /// vision-only).
+    mode: MapMode,
+    /// Product of the scales of the similarities applied to the whole map
+    /// ([`Map::apply_sim3`]; tracking rescales its relative poses when this
+    /// changes).
+    scale_applied: f64,
 }
 
 /// The bag-of-words index of the live keyframes: the keyframe database
@@ -420,7 +456,48 @@ impl Map {
             loop_edges: Vec::new(),
             pinned: std::collections::HashSet::new(),
             corrections: 0,
+            mode: MapMode::VisionOnly,
+            scale_applied: 1.0,
         }
+    }
+
+    /// The frame the map is in.
+    pub fn mode(&self) -> MapMode {
+        self.mode
+    }
+
+    /// Say which frame the map is in.
+    pub fn set_mode(&mut self, mode: MapMode) {
+        self.mode = mode;
+    }
+
+    /// Product of the scales of the similarities applied so far (1 when
+    /// none).
+    pub fn scale_applied(&self) -> f64 {
+        self.scale_applied
+    }
+
+    /// Move the whole map by the similarity `s` (new world ← old world):
+    /// every keyframe pose, every point, the culled keyframes' relative
+    /// poses (their translations scale); counts as a correction, so
+    /// tracking re-places its last frame.
+    pub fn apply_sim3(&mut self, s: &Sim3) {
+        for kf in self.keyframes.iter_mut().flatten() {
+            let world_from_cam = s.transform_pose(&kf.cam_from_world.inverse());
+            kf.cam_from_world = renormalized(world_from_cam.inverse());
+        }
+        for p in self.points.iter_mut().flatten() {
+            p.position = s.transform_point(&p.position);
+        }
+        for c in self.culled.values_mut() {
+            c.cam_from_parent.translation.vector *= s.scale;
+        }
+        let ids: Vec<PointId> = self.points().map(|p| p.id).collect();
+        for id in ids {
+            self.update_point_normal_and_depth(id);
+        }
+        self.scale_applied *= s.scale;
+        self.note_correction();
     }
 
     /// The loop edges (keyframe pairs joined by a loop closure).
@@ -1240,6 +1317,35 @@ mod tests {
         // The first keyframe is never erased.
         assert!(!m.erase_keyframe(KeyFrameId(0)));
         assert_eq!(m.keyframe_count(), 3);
+    }
+
+    #[test]
+    fn a_similarity_moves_every_pose_point_and_culled_keyframe() {
+        let mut m = map_with(4, 10);
+        assert!(m.erase_keyframe(KeyFrameId(2)));
+        let ids = [0, 1, 2, 3].map(KeyFrameId);
+        let before: Vec<Isometry3<f64>> = ids
+            .iter()
+            .map(|&k| m.keyframe_pose(k).unwrap().inverse())
+            .collect();
+        let p_before = m.point(PointId(4)).unwrap().position;
+        let s = Sim3::new(
+            nalgebra::UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
+            Vector3::new(5.0, -2.0, -30.0),
+            12.5,
+        );
+        m.apply_sim3(&s);
+        assert_eq!(m.scale_applied(), 12.5);
+        assert_eq!(m.corrections(), 1);
+        for (k, b) in ids.iter().zip(&before) {
+            let after = m.keyframe_pose(*k).unwrap().inverse();
+            let want = s.transform_pose(b);
+            assert!((after.translation.vector - want.translation.vector).norm() < 1e-9);
+            assert!(after.rotation.angle_to(&want.rotation) < 1e-9);
+        }
+        let p = m.point(PointId(4)).unwrap();
+        assert!((p.position - s.transform_point(&p_before)).norm() < 1e-9);
+        m.check_invariants().unwrap();
     }
 
     #[test]

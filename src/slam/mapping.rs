@@ -4,6 +4,10 @@
 //! scale checks), fuse duplicates with the neighbours, run local bundle
 //! adjustment (the solve outside the map lock, so tracking never waits for
 //! it), and cull keyframes whose points are seen by enough others.
+//!
+//! With telemetry priors ([`Priors`]), each keyframe first tries to put a
+//! vision-only map in local NED ([`Priors::try_georeference`]); once it is,
+//! local BA carries the GNSS and altitude priors of its free keyframes.
 
 use std::collections::HashSet;
 use std::sync::{Arc, Mutex};
@@ -18,6 +22,7 @@ use crate::optimize::{self, BaParams};
 use super::bundle::{apply_ba_result, build_ba_problem};
 use super::map::{KeyFrameId, Map, PointId, lock};
 use super::matcher::{self, MatcherParams};
+use super::priors::{Georeferenced, Priors};
 use crate::matching::Bounds;
 
 /// Tunable numbers of local mapping.
@@ -97,8 +102,11 @@ pub struct LocalMapper {
     vocabulary: Arc<Vocabulary>,
     bow_level: u32,
     recent: Vec<(PointId, KeyFrameId)>,
+    priors: Option<Priors>,
     /// Reports of every processed keyframe.
     pub reports: Vec<MappingReport>,
+    /// When the map was put in NED by telemetry: the keyframe and the fit.
+    pub georeferenced: Option<(KeyFrameId, Georeferenced)>,
 }
 
 impl LocalMapper {
@@ -117,8 +125,15 @@ impl LocalMapper {
             vocabulary,
             bow_level,
             recent: Vec::new(),
+            priors: None,
             reports: Vec::new(),
+            georeferenced: None,
         }
+    }
+
+    /// Use telemetry priors (`None`: vision only).
+    pub fn set_priors(&mut self, priors: Option<Priors>) {
+        self.priors = priors;
     }
 
     /// Process one new keyframe. `more_waiting` skips the expensive steps
@@ -147,6 +162,20 @@ impl LocalMapper {
             report.new_points = self.create_new_points(&mut m, kf);
             if !more_waiting {
                 report.fused = self.fuse_neighbours(&mut m, kf);
+            }
+        }
+        if let Some(p) = &self.priors {
+            let mut m = lock(map);
+            if let Some(g) = p.try_georeference(&mut m) {
+                tracing::info!(
+                    kf = kf.0,
+                    scale = g.ned_from_map.scale,
+                    pairs = g.pairs,
+                    inliers = g.inliers,
+                    rms_m = g.rms_m,
+                    "map put in local NED by telemetry (gps-aided)"
+                );
+                self.georeferenced = Some((kf, g));
             }
         }
         if !more_waiting {
@@ -393,7 +422,11 @@ impl LocalMapper {
             local.extend(k.covisible.iter().map(|c| c.0));
             let first = m.keyframes().next().map(|k| k.id);
             let fixed: Vec<KeyFrameId> = first.into_iter().collect();
-            build_ba_problem(&m, &local, &fixed)?
+            let mut setup = build_ba_problem(&m, &local, &fixed)?;
+            if let Some(p) = &self.priors {
+                setup.problem.priors = p.priors_for(&m, &setup);
+            }
+            setup
         };
         if !setup.problem.poses.iter().any(|p| !p.fixed) {
             return None;

@@ -24,6 +24,7 @@
 //! | `frame` | the frame being tracked, the tracker's context, motion-only BA of a frame |
 //! | [`params`] | [`TrackingParams`], the tunables of all of the above |
 //! | [`mapping`] | the [`LocalMapper`]: triangulation, fusion, local BA, keyframe culling |
+//! | [`priors`] | telemetry priors: the map put in local NED, GNSS and altitude priors in BA |
 //! | [`loop_closing`] | the [`LoopCloser`]: loop detection, Sim(3) check, correction, essential graph |
 //! | [`bundle`] | the map ↔ [`crate::optimize`] glue of every bundle adjustment |
 //! | [`matcher`] | descriptor matching for each of the stages |
@@ -43,6 +44,7 @@ pub mod mapping;
 pub mod matcher;
 pub mod params;
 pub mod planar;
+pub mod priors;
 mod relocalizer;
 pub mod tracking;
 
@@ -62,7 +64,7 @@ pub use initializer::InitFailure;
 pub use loop_closing::{
     LoopCloser, LoopEvent, LoopLog, LoopParams, LoopRefusal, LoopReject, LoopSummary,
 };
-pub use map::{KeyFrame, KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
+pub use map::{KeyFrame, KeyFrameId, Map, MapMode, MapPoint, PointId, ScaleInfo};
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
 pub use tracking::{FrameOutcome, FrameRecord, TrackFailure, TrackState, Tracker, TrackingParams};
 
@@ -112,6 +114,8 @@ pub struct Params {
     pub final_ba: Option<BaParams>,
     /// Loop closing (`None`: off).
     pub loop_closing: Option<LoopParams>,
+    /// Telemetry priors (`None`: vision only, the default).
+    pub priors: Option<priors::Priors>,
 }
 
 impl Default for Params {
@@ -127,6 +131,7 @@ impl Default for Params {
                 ..BaParams::default()
             }),
             loop_closing: Some(LoopParams::default()),
+            priors: None,
         }
     }
 }
@@ -185,6 +190,9 @@ pub struct SlamRun {
     pub loops: Vec<LoopEvent>,
     /// Consistent loop candidates refused, in order.
     pub loop_refusals: Vec<LoopRefusal>,
+    /// When telemetry put the map in local NED: the keyframe it happened
+    /// at and the fit (the map's mode is [`Map::mode`]).
+    pub georeferenced: Option<(KeyFrameId, priors::Georeferenced)>,
 }
 
 impl SlamRun {
@@ -275,12 +283,13 @@ impl Slam {
         let camera = map.camera;
         let map = Arc::new(Mutex::new(map));
         let bounds = crate::matching::Bounds::of(&camera);
-        let mapper = LocalMapper::new(
+        let mut mapper = LocalMapper::new(
             params.mapping.clone(),
             bounds,
             tracker.vocabulary().clone(),
             params.tracking.bow.direct_index_level,
         );
+        mapper.set_priors(params.priors.clone());
         let closer = params
             .loop_closing
             .clone()
@@ -374,16 +383,20 @@ impl Slam {
     /// return the map and the frame records.
     pub fn finish(mut self) -> SlamRun {
         let mappers = match &mut self.mapping {
-            Mapping::Inline(m) => Some((std::mem::take(&mut m.mapper.reports), m.closer.take())),
+            Mapping::Inline(m) => Some((
+                std::mem::take(&mut m.mapper.reports),
+                m.closer.take(),
+                m.mapper.georeferenced,
+            )),
             Mapping::Thread { tx, handle, .. } => {
                 drop(tx.take());
                 match handle.take().map(|h| h.join()) {
-                    Some(Ok(m)) => Some((m.mapper.reports, m.closer)),
+                    Some(Ok(m)) => Some((m.mapper.reports, m.closer, m.mapper.georeferenced)),
                     _ => None,
                 }
             }
         };
-        let (reports, closer) = mappers.unwrap_or_default();
+        let (reports, closer, georeferenced) = mappers.unwrap_or_default();
         let (loops, loop_refusals) = match closer {
             Some(c) => (c.events, c.refusals),
             None => (Vec::new(), Vec::new()),
@@ -396,7 +409,21 @@ impl Slam {
             let kfs: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
             if kfs.len() >= 2 {
                 let fixed = vec![kfs[0]];
-                if let Some(r) = bundle::run_bundle_adjustment(&mut map, &kfs, &fixed, ba) {
+                let solved = match &self.params.priors {
+                    Some(p) if map.mode() == MapMode::GpsAided => {
+                        // The priors fix the gauge: no keyframe is held.
+                        bundle::build_ba_problem(&map, &kfs, &[]).and_then(|mut setup| {
+                            setup.problem.priors = p.priors_for(&map, &setup);
+                            let r =
+                                crate::optimize::local_bundle_adjustment(&mut setup.problem, ba)
+                                    .ok()?;
+                            bundle::apply_ba_result(&mut map, &setup, &r.outliers);
+                            Some(r)
+                        })
+                    }
+                    _ => bundle::run_bundle_adjustment(&mut map, &kfs, &fixed, ba),
+                };
+                if let Some(r) = solved {
                     tracing::info!(
                         keyframes = kfs.len(),
                         rmse_before = r.initial_rmse_px,
@@ -417,6 +444,7 @@ impl Slam {
             last_reason: self.tracker.last_reason().cloned(),
             loops,
             loop_refusals,
+            georeferenced,
         }
     }
 }

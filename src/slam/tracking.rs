@@ -142,6 +142,8 @@ pub struct Tracker {
     marks: Marks,
     /// The map's loop corrections when the last frame was tracked.
     corrections_seen: u64,
+    /// The map's [`Map::scale_applied`] when the last frame was tracked.
+    scale_seen: f64,
 }
 
 impl Tracker {
@@ -174,6 +176,7 @@ impl Tracker {
             last_reason: None,
             marks: Marks::default(),
             corrections_seen: 0,
+            scale_seen: 1.0,
         })
     }
 
@@ -334,6 +337,18 @@ impl Tracker {
         frame: &mut Frame,
         mapping_idle: bool,
     ) -> Result<Tracked, TrackFailure> {
+        if map.scale_applied() != self.scale_seen {
+            // The whole map was scaled (put in NED by telemetry): the
+            // relative poses (records, constant-velocity model) scale too.
+            let k = map.scale_applied() / self.scale_seen;
+            self.scale_seen = map.scale_applied();
+            for r in &mut self.records {
+                r.cam_from_ref.translation.vector *= k;
+            }
+            if let Some(v) = &mut self.velocity {
+                v.translation.vector *= k;
+            }
+        }
         if map.corrections() != self.corrections_seen {
             self.corrections_seen = map.corrections();
             self.follow_correction(map);

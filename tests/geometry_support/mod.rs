@@ -109,6 +109,7 @@ pub fn ba_scene(
         points,
         observations,
         intrinsics: intr,
+        priors: Vec::new(),
     };
     let mut perturbed = truth.clone();
     let r = rot_deg.to_radians();

@@ -1,0 +1,480 @@
+//! Telemetry priors: a monocular map made metric in local NED by the
+//! drone's own GNSS fixes and barometric altitude (issue 20, point 3).
+//!
+//! The map starts [`MapMode::VisionOnly`]. Once enough keyframes with a
+//! GNSS fix span a baseline that fixes a Sim(3) (the checks of
+//! [`crate::geo::align`]: extent, not a line), the map→NED Sim(3) is
+//! fitted robustly ([`fit_pairs`]) and the whole map is re-expressed in NED
+//! ([`Map::apply_sim3`]); the map is then [`MapMode::GpsAided`]. From then
+//! on every bundle adjustment (local mapping's and the final one) carries,
+//! per free keyframe with a fix, a prior on its camera centre with the
+//! receiver's reported covariance (floored at
+//! [`PriorParams::min_sigma_m`]) and a barometric-altitude prior on its
+//! height, both under the BA's robust prior kernel (Huber), so the map
+//! keeps the metric scale vision alone cannot see. Samples flagged as
+//! dropouts (no fix) give no GNSS prior.
+//!
+//! The telemetry is a [`TelemetryLog`], read from a dataset's
+//! `telemetry.txt` (the simulator's `render` writes it; its header is
+//! `shotpilot_sim::dataset::TELEMETRY_HEADER`).
+
+use std::path::Path;
+
+use nalgebra::{Matrix3, Point3, Vector3};
+
+use crate::geo::align::{AlignParams, Pair, fit_pairs};
+use crate::lie::Sim3;
+use crate::optimize::PositionPrior;
+
+use super::bundle::BaSetup;
+use super::map::{Map, MapMode};
+
+/// One telemetry sample at a frame's time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TelemetrySample {
+    /// Time, seconds (the frames' clock).
+    pub t: f64,
+    /// A GNSS fix (false: the position is dead reckoning, not used).
+    pub fix: bool,
+    /// GNSS position of the camera, local NED, m.
+    pub gps_ned: Vector3<f64>,
+    /// Reported 1-sigma horizontal accuracy per axis, m.
+    pub h_acc: f64,
+    /// Reported 1-sigma vertical accuracy, m.
+    pub v_acc: f64,
+    /// Barometric altitude above home, m (up).
+    pub baro_alt: Option<f64>,
+}
+
+/// Errors of reading a telemetry file.
+#[derive(Debug, thiserror::Error)]
+pub enum TelemetryError {
+    /// The file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// A line is not `timestamp fix n e d h_acc v_acc baro_alt ...`.
+    #[error("{path} line {line}: {what}")]
+    Parse {
+        /// The file.
+        path: String,
+        /// 1-based line number.
+        line: usize,
+        /// What is wrong.
+        what: String,
+    },
+}
+
+/// Telemetry samples sorted by time.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TelemetryLog {
+    samples: Vec<TelemetrySample>,
+}
+
+impl TelemetryLog {
+    /// A log of `samples` (sorted here; non-finite ones dropped).
+    pub fn new(mut samples: Vec<TelemetrySample>) -> Self {
+        samples.retain(|s| {
+            s.t.is_finite()
+                && s.gps_ned.iter().all(|v| v.is_finite())
+                && s.h_acc.is_finite()
+                && s.v_acc.is_finite()
+                && s.h_acc >= 0.0
+                && s.v_acc >= 0.0
+        });
+        samples.sort_by(|a, b| a.t.total_cmp(&b.t));
+        TelemetryLog { samples }
+    }
+
+    /// Reads `telemetry.txt` (`#` lines are comments): `timestamp fix
+    /// gps_n gps_e gps_d h_acc v_acc baro_alt` and more columns, ignored.
+    pub fn read(path: &Path) -> Result<Self, TelemetryError> {
+        let text = std::fs::read_to_string(path).map_err(|source| TelemetryError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    /// Parses the text of a telemetry file (`name` for errors).
+    pub fn parse(text: &str, name: &str) -> Result<Self, TelemetryError> {
+        let mut samples = Vec::new();
+        for (i, line) in text.lines().enumerate() {
+            let line = line.trim();
+            if line.is_empty() || line.starts_with('#') {
+                continue;
+            }
+            let err = |what: String| TelemetryError::Parse {
+                path: name.to_string(),
+                line: i + 1,
+                what,
+            };
+            let v: Vec<f64> = line
+                .split_whitespace()
+                .take(8)
+                .map(|x| x.parse::<f64>())
+                .collect::<Result<_, _>>()
+                .map_err(|e| err(format!("not a number: {e}")))?;
+            if v.len() < 8 {
+                return Err(err(format!("{} columns, need 8", v.len())));
+            }
+            if !v.iter().all(|x| x.is_finite()) {
+                return Err(err("non-finite value".into()));
+            }
+            if v[5] < 0.0 || v[6] < 0.0 {
+                return Err(err("negative accuracy".into()));
+            }
+            samples.push(TelemetrySample {
+                t: v[0],
+                fix: v[1] != 0.0,
+                gps_ned: Vector3::new(v[2], v[3], v[4]),
+                h_acc: v[5],
+                v_acc: v[6],
+                baro_alt: Some(v[7]),
+            });
+        }
+        Ok(Self::new(samples))
+    }
+
+    /// The samples, by time.
+    pub fn samples(&self) -> &[TelemetrySample] {
+        &self.samples
+    }
+
+    /// The sample nearest `t` within `max_dt` seconds.
+    pub fn at(&self, t: f64, max_dt: f64) -> Option<&TelemetrySample> {
+        let i = self.samples.partition_point(|s| s.t < t);
+        let before = i.checked_sub(1).and_then(|j| self.samples.get(j));
+        let after = self.samples.get(i);
+        [before, after]
+            .into_iter()
+            .flatten()
+            .filter(|s| (s.t - t).abs() <= max_dt)
+            .min_by(|a, b| (a.t - t).abs().total_cmp(&(b.t - t).abs()))
+    }
+}
+
+/// Tunables of the telemetry priors.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PriorParams {
+    /// A keyframe takes the sample nearest its time within this, s.
+    pub max_dt_s: f64,
+    /// Fewest keyframes with a fix before the map is put in NED.
+    pub min_keyframes: usize,
+    /// The map→NED fit (its motion checks decide when the baseline is enough).
+    pub align: AlignParams,
+    /// Floor of a reported accuracy, m (a receiver reporting 0 is not exact,
+    /// and a prior must not outweigh every pixel).
+    pub min_sigma_m: f64,
+    /// Standard deviation of the barometric altitude, m (`None`: no
+    /// altitude prior).
+    pub baro_sigma_m: Option<f64>,
+}
+
+impl Default for PriorParams {
+    fn default() -> Self {
+        PriorParams {
+            max_dt_s: 0.05,
+            min_keyframes: 8,
+            align: AlignParams {
+                // The GNSS bias is common to nearby keyframes; what differs
+                // between them is noise and the map's drift.
+                inlier_threshold_m: 2.0,
+                refine_with_orientations: false,
+                estimate_time_offset: false,
+                ..AlignParams::default()
+            },
+            min_sigma_m: 0.1,
+            baro_sigma_m: Some(0.5),
+        }
+    }
+}
+
+/// The telemetry priors of a SLAM run: the log and its tunables.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Priors {
+    /// Tunables.
+    pub params: PriorParams,
+    /// The telemetry.
+    pub log: std::sync::Arc<TelemetryLog>,
+}
+
+/// What putting the map in NED did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Georeferenced {
+    /// The Sim(3) applied (NED ← old map).
+    pub ned_from_map: Sim3,
+    /// Keyframes with a fix used.
+    pub pairs: usize,
+    /// Their inliers.
+    pub inliers: usize,
+    /// Residual RMS of the fit, m.
+    pub rms_m: f64,
+}
+
+impl Priors {
+    /// Priors from `log` with default tunables.
+    pub fn new(log: TelemetryLog) -> Self {
+        Priors {
+            params: PriorParams::default(),
+            log: std::sync::Arc::new(log),
+        }
+    }
+
+    /// The keyframe's sample with a fix, if any.
+    fn fix_at(&self, t: f64) -> Option<&TelemetrySample> {
+        self.log.at(t, self.params.max_dt_s).filter(|s| s.fix)
+    }
+
+    /// While the map is vision-only: when enough keyframes with a fix span
+    /// a baseline, fit the map→NED Sim(3), apply it to the whole map and
+    /// switch the map to [`MapMode::GpsAided`]. `None` while not yet (or
+    /// when the map is already aided).
+    pub fn try_georeference(&self, map: &mut Map) -> Option<Georeferenced> {
+        if map.mode() != MapMode::VisionOnly {
+            return None;
+        }
+        let pairs: Vec<Pair> = map
+            .keyframes()
+            .filter_map(|k| {
+                let s = self.fix_at(k.timestamp)?;
+                Some(Pair {
+                    kf_id: k.id.0 as u64,
+                    p_map: Point3::from(k.center()),
+                    p_ned: Point3::from(s.gps_ned),
+                    time: k.timestamp,
+                    orientations: None,
+                    v_ned: None,
+                })
+            })
+            .collect();
+        if pairs.len() < self.params.min_keyframes {
+            return None;
+        }
+        let fit = fit_pairs(&pairs, &self.params.align, None, self.params.align.seed).ok()?;
+        let s = fit.ned_from_map;
+        if !(s.scale.is_finite() && s.scale > 0.0) {
+            return None;
+        }
+        map.apply_sim3(&s);
+        map.set_mode(MapMode::GpsAided);
+        Some(Georeferenced {
+            ned_from_map: s,
+            pairs: fit.quality.pairs,
+            inliers: fit.quality.inliers,
+            rms_m: fit.quality.rms_m,
+        })
+    }
+
+    /// The priors of `setup`'s free keyframes (nothing unless the map is
+    /// [`MapMode::GpsAided`]): a GNSS position prior per keyframe with a
+    /// fix, a barometric altitude prior per keyframe with a baro sample.
+    pub fn priors_for(&self, map: &Map, setup: &BaSetup) -> Vec<PositionPrior> {
+        let mut out = Vec::new();
+        if map.mode() != MapMode::GpsAided {
+            return out;
+        }
+        let floor = self.params.min_sigma_m.max(1e-6);
+        for (i, kf) in setup.keyframes.iter().enumerate() {
+            if setup.problem.poses.get(i).is_none_or(|p| p.fixed) {
+                continue;
+            }
+            let Some(k) = map.keyframe(*kf) else { continue };
+            let Some(s) = self.log.at(k.timestamp, self.params.max_dt_s) else {
+                continue;
+            };
+            if s.fix {
+                let h = s.h_acc.max(floor);
+                let v = s.v_acc.max(floor);
+                out.push(PositionPrior {
+                    pose: i,
+                    centre: Point3::from(s.gps_ned),
+                    information: Matrix3::from_diagonal(&Vector3::new(
+                        1.0 / (h * h),
+                        1.0 / (h * h),
+                        1.0 / (v * v),
+                    )),
+                });
+            }
+            if let (Some(alt), Some(sb)) = (s.baro_alt, self.params.baro_sigma_m) {
+                let sb = sb.max(floor);
+                out.push(PositionPrior {
+                    pose: i,
+                    centre: Point3::new(0.0, 0.0, -alt),
+                    information: Matrix3::from_diagonal(&Vector3::new(0.0, 0.0, 1.0 / (sb * sb))),
+                });
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Camera, Distortion};
+    use crate::matching::FeatureGrid;
+    use crate::slam::map::{KeyFrame, KeyFrameId, ScaleInfo};
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+    #[test]
+    fn telemetry_files_parse_and_refuse_bad_lines() {
+        let text = "# header\n\
+                    0.0 1 1.0 2.0 -30.0 1.3 0.8 30.1 0 0 90 -45 0\n\
+                    \n\
+                    0.2 0 9.0 9.0 -9.0 1.3 0.8 30.2 0 0 90 -45 0\n\
+                    0.1 1 1.5 2.0 -30.0 0 0 30.0\n";
+        let log = TelemetryLog::parse(text, "t").unwrap();
+        assert_eq!(log.samples().len(), 3);
+        // Sorted by time; the nearest within the bound.
+        assert_eq!(log.samples()[1].t, 0.1);
+        let s = log.at(0.12, 0.05).unwrap();
+        assert_eq!(s.t, 0.1);
+        assert!(s.fix);
+        assert!(!log.at(0.19, 0.05).unwrap().fix);
+        assert!(log.at(0.5, 0.05).is_none());
+        for (bad, what) in [
+            ("0.0 1 1.0 2.0\n", "columns"),
+            ("0.0 1 x 2.0 3 1 1 1\n", "not a number"),
+            ("0.0 1 1 2 3 -1 1 1\n", "negative"),
+            ("0.0 1 1 2 inf 1 1 1\n", "non-finite"),
+        ] {
+            let e = TelemetryLog::parse(&format!("# h\n{bad}"), "t").unwrap_err();
+            let msg = e.to_string();
+            assert!(msg.contains("line 2") && msg.contains(what), "{msg}");
+        }
+    }
+
+    fn keyframe(t: f64, world_from_cam: Isometry3<f64>) -> KeyFrame {
+        KeyFrame {
+            id: KeyFrameId(0),
+            frame_index: 0,
+            timestamp: t,
+            cam_from_world: world_from_cam.inverse(),
+            keypoints: Vec::new(),
+            descriptors: Vec::new(),
+            points: Vec::new(),
+            grid: FeatureGrid::default(),
+            covisible: Vec::new(),
+            parent: None,
+            children: Vec::new(),
+            image: None,
+        }
+    }
+
+    /// Keyframes along an L (north, then east) at 30 m, seen by a map whose
+    /// frame is an unknown similarity of NED; telemetry with the true
+    /// positions except during a dropout, where the positions are wrong.
+    fn flight(n: usize) -> (Map, TelemetryLog, Sim3, Vec<Vector3<f64>>) {
+        let cam = Camera::new(
+            640,
+            480,
+            [500.0, 500.0, 320.0, 240.0],
+            Distortion::default(),
+        )
+        .unwrap();
+        let mut map = Map::new(cam, ScaleInfo::new(1.2, 8));
+        let map_from_ned = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.4, 0.1, -1.2),
+            Vector3::new(0.3, -0.2, 1.0),
+            1.0 / 37.0,
+        );
+        let mut samples = Vec::new();
+        let mut truth = Vec::new();
+        for i in 0..n {
+            let t = i as f64;
+            let (x, y) = if i < n / 2 {
+                (4.0 * t, 0.0)
+            } else {
+                (4.0 * (n / 2) as f64, 4.0 * (t - (n / 2) as f64))
+            };
+            let c = Vector3::new(x, y, -30.0 - 0.2 * t);
+            truth.push(c);
+            let ned_from_cam =
+                Isometry3::from_parts(Translation3::from(c), UnitQuaternion::identity());
+            map.add_keyframe(keyframe(t, map_from_ned.transform_pose(&ned_from_cam)));
+            let dropout = i == 3 || i == n - 2;
+            samples.push(TelemetrySample {
+                t,
+                fix: !dropout,
+                gps_ned: if dropout {
+                    c + Vector3::new(40.0, -25.0, 3.0)
+                } else {
+                    c
+                },
+                h_acc: 1.3,
+                v_acc: 0.8,
+                baro_alt: Some(-c.z),
+            });
+        }
+        (map, TelemetryLog::new(samples), map_from_ned, truth)
+    }
+
+    #[test]
+    fn the_map_goes_to_ned_once_the_fixes_span_a_baseline() {
+        let priors = Priors::new(flight(12).1);
+        // Too few keyframes with a fix: vision-only still.
+        let (mut short, ..) = flight(6);
+        assert!(priors.try_georeference(&mut short).is_none());
+        assert_eq!(short.mode(), MapMode::VisionOnly);
+
+        let (mut map, log, map_from_ned, truth) = flight(12);
+        let priors = Priors::new(log);
+        let g = priors.try_georeference(&mut map).unwrap();
+        assert_eq!(map.mode(), MapMode::GpsAided);
+        assert_eq!(g.pairs, 10, "the two dropouts are not used");
+        assert!((g.ned_from_map.scale * map_from_ned.scale - 1.0).abs() < 1e-9);
+        for (k, c) in map.keyframes().zip(&truth) {
+            assert!((k.center() - c).norm() < 1e-6);
+        }
+        assert_eq!(map.scale_applied(), g.ned_from_map.scale);
+        // Once aided, not again.
+        assert!(priors.try_georeference(&mut map).is_none());
+    }
+
+    #[test]
+    fn priors_go_on_free_keyframes_with_their_accuracy() {
+        let (mut map, log, ..) = flight(12);
+        let priors = Priors::new(log);
+        let all: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
+        let setup = BaSetup {
+            problem: crate::optimize::BaProblem {
+                poses: all
+                    .iter()
+                    .map(|&k| crate::optimize::BaPose {
+                        cam_from_world: map.keyframe(k).unwrap().cam_from_world,
+                        fixed: k.0 == 0,
+                    })
+                    .collect(),
+                points: Vec::new(),
+                observations: Vec::new(),
+                intrinsics: crate::optimize::Intrinsics {
+                    fx: 500.0,
+                    fy: 500.0,
+                    cx: 320.0,
+                    cy: 240.0,
+                },
+                priors: Vec::new(),
+            },
+            keyframes: all.clone(),
+            points: Vec::new(),
+        };
+        // Vision-only: no priors.
+        assert!(priors.priors_for(&map, &setup).is_empty());
+        priors.try_georeference(&mut map).unwrap();
+        let p = priors.priors_for(&map, &setup);
+        // 11 free keyframes, two without a fix: 9 GNSS + 11 baro priors.
+        let gnss: Vec<&PositionPrior> = p.iter().filter(|p| p.information[(0, 0)] > 0.0).collect();
+        assert_eq!(gnss.len(), 9);
+        assert_eq!(p.len() - gnss.len(), 11);
+        assert!(p.iter().all(|p| p.pose != 0));
+        assert!((gnss[0].information[(0, 0)] - 1.0 / 1.69).abs() < 1e-12);
+        assert!((gnss[0].information[(2, 2)] - 1.0 / 0.64).abs() < 1e-12);
+        let baro = p.iter().find(|p| p.information[(0, 0)] == 0.0).unwrap();
+        assert!((baro.information[(2, 2)] - 4.0).abs() < 1e-12);
+    }
+}
