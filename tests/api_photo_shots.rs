@@ -19,11 +19,10 @@ use std::time::Duration;
 use image::GrayImage;
 use serde_json::Value;
 
-use shotpilot::api::{self, ApiParams, AppState, KeyframeInfo, MapView, SlamView};
+use shotpilot::api::{self, ApiParams, AppState, SlamView};
 use shotpilot::daemon::SlamShared;
 use shotpilot::daemon::shot_service::LocalizingShots;
-use shotpilot::daemon::slam_shared::MapSource;
-use shotpilot::shot::record::PoseJson;
+use shotpilot::daemon::slam_view::SlamMapSource;
 use shotpilot::shot::request::WarpOnly;
 use shotpilot::shot::store::ShotStore;
 use shotpilot::slam::{self, KeyFrameId, Map, Slam};
@@ -32,46 +31,6 @@ use shotpilot::video::live::{Ingest, unix_now};
 
 /// Frames of teddy the map is built from.
 const MAPPED: usize = 40;
-
-/// A map that does not change, as the SLAM's map source would show it.
-struct FixedMap(Mutex<Map>);
-
-impl FixedMap {
-    fn lock(&self) -> std::sync::MutexGuard<'_, Map> {
-        self.0.lock().unwrap_or_else(|e| e.into_inner())
-    }
-}
-
-impl MapSource for FixedMap {
-    fn keyframes(&self) -> Vec<KeyframeInfo> {
-        let m = self.lock();
-        let mut v: Vec<KeyframeInfo> = m
-            .keyframes()
-            .map(|k| {
-                let (width, height) = k.image.as_ref().map_or((0, 0), |i| i.dimensions());
-                KeyframeInfo {
-                    id: u64::from(k.id.0),
-                    timestamp: k.timestamp,
-                    world_from_cam: PoseJson::from_isometry(&k.cam_from_world.inverse()),
-                    width,
-                    height,
-                }
-            })
-            .collect();
-        v.sort_by_key(|k| k.id);
-        v
-    }
-    fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>> {
-        let id = u32::try_from(id).ok()?;
-        self.lock().keyframe(KeyFrameId(id))?.image.clone()
-    }
-    fn map(&self, _max_points: usize) -> MapView {
-        MapView::default()
-    }
-    fn snapshot(&self) -> Option<Map> {
-        Some(self.lock().clone())
-    }
-}
 
 fn build_map(ds: &Dataset) -> anyhow::Result<Map> {
     let params = slam::Params {
@@ -98,7 +57,7 @@ fn start(dir: &std::path::Path, map: Map) -> anyhow::Result<Server> {
         .enable_all()
         .build()?;
     let shared = Arc::new(SlamShared::new(true));
-    shared.set_source(Arc::new(FixedMap(Mutex::new(map))));
+    shared.set_source(Arc::new(SlamMapSource::new(Arc::new(Mutex::new(map)))));
     let slam_view: Arc<dyn SlamView> = shared.clone();
     let state = AppState {
         ingest: Arc::new(Ingest::new()),

@@ -150,7 +150,7 @@ pub fn make_processor(
     };
     let awaiting_reloc = start.mode == "continued";
     shared.set_map_start(start);
-    shared.set_source(Arc::new(SlamMapSource { map: slam.map() }));
+    shared.set_source(Arc::new(SlamMapSource::new(slam.map())));
     Box::new(SlamProcessor {
         next_kf: slam
             .map()
@@ -364,12 +364,18 @@ impl FrameProcessor for SlamProcessor {
     }
 }
 
-/// The SLAM's map as the API sees it.
-struct SlamMapSource {
+/// The SLAM's map as the API sees it (the daemon's [`MapSource`]: a
+/// shared map, read under its lock).
+pub struct SlamMapSource {
     map: Arc<Mutex<Map>>,
 }
 
 impl SlamMapSource {
+    /// The source over a shared map.
+    pub fn new(map: Arc<Mutex<Map>>) -> Self {
+        Self { map }
+    }
+
     fn lock(&self) -> std::sync::MutexGuard<'_, Map> {
         self.map.lock().unwrap_or_else(|e| e.into_inner())
     }

@@ -1312,43 +1312,22 @@ fn refine_candidate(
     let mut report = None;
     for &radius in &params.projection_radius_px {
         // The local map, grown from the keyframes that see the matched points.
-        let local = local_points(map, kf_id, &slots, params);
-        let used: HashSet<PointId> = slots.iter().flatten().copied().collect();
-        let center = cam_from_world.inverse().translation.vector;
-        let projected: Vec<_> = local
-            .iter()
-            .filter(|p| !used.contains(p))
-            .filter_map(|p| {
-                project_into_shot(map, view, *p, &cam_from_world, &center, params.min_view_cos)
-            })
-            .collect();
-        let target = SearchTarget {
-            keypoints: &feats.keypoints,
-            descriptors: &feats.descriptors,
-            grid,
-            points: &slots,
-        };
-        let found = search_local_points(
-            &target,
-            &projected,
+        let found = search_by_projection(
             map,
-            &map.scale,
+            kf_id,
+            view,
+            &cam_from_world,
+            &slots,
+            (feats, grid),
             radius,
-            &params.matcher,
+            params,
         );
         for (i, p) in found {
             slots[i] = Some(p);
         }
-        let (obs, obs_slot) = observations(map, feats, &slots);
-        let r = optimize_pose(cam_from_world, &obs, intr, &params.pose).ok()?;
+        let (r, obs, obs_slot, matched) =
+            refit_on_slots(map, feats, &mut slots, cam_from_world, intr, params)?;
         cam_from_world = r.cam_from_world;
-        let matched = slots.clone();
-        // Drop the outliers from the slots so the next round can re-match them.
-        for (k, &i) in obs_slot.iter().enumerate() {
-            if !r.inliers[k] {
-                slots[i] = None;
-            }
-        }
         report = Some((r, obs, obs_slot, matched));
     }
     let (r, obs, obs_slot, matched) = report?;
@@ -1426,36 +1405,15 @@ fn rematch_with_estimated_camera(
             distance_factor: view.distance_factor / cand.correction.focal_scale.max(1e-6),
             ..*view
         };
-        let local = local_points(map, kf_id, &slots, params);
-        let used: HashSet<PointId> = slots.iter().flatten().copied().collect();
-        let center = cand.cam_from_world.inverse().translation.vector;
-        let projected: Vec<_> = local
-            .iter()
-            .filter(|p| !used.contains(p))
-            .filter_map(|p| {
-                project_into_shot(
-                    map,
-                    &est_view,
-                    *p,
-                    &cand.cam_from_world,
-                    &center,
-                    params.min_view_cos,
-                )
-            })
-            .collect();
-        let target = SearchTarget {
-            keypoints: &feats.keypoints,
-            descriptors: &feats.descriptors,
-            grid,
-            points: &slots,
-        };
-        let found = search_local_points(
-            &target,
-            &projected,
+        let found = search_by_projection(
             map,
-            &map.scale,
+            kf_id,
+            &est_view,
+            &cand.cam_from_world,
+            &slots,
+            (feats, grid),
             radius,
-            &params.matcher,
+            params,
         );
         if found.is_empty() {
             break;
@@ -1463,16 +1421,11 @@ fn rematch_with_estimated_camera(
         for (i, p) in found {
             slots[i] = Some(p);
         }
-        let (obs, obs_slot) = observations(map, feats, &slots);
-        let Ok(r) = optimize_pose(fitted.h0_pose, &obs, intr, &params.pose) else {
+        let Some((r, obs, obs_slot, matched)) =
+            refit_on_slots(map, feats, &mut slots, fitted.h0_pose, intr, params)
+        else {
             break;
         };
-        let matched = slots.clone();
-        for (k, &i) in obs_slot.iter().enumerate() {
-            if !r.inliers[k] {
-                slots[i] = None;
-            }
-        }
         let Some(next) = evaluate_candidate(
             kf_id,
             r.cam_from_world,
@@ -1492,6 +1445,78 @@ fn rematch_with_estimated_camera(
         };
     }
     fitted.cand
+}
+
+/// One search by projection: the points of the keyframe's local map not
+/// yet in `slots`, projected into the photo through `cam_from_world` and
+/// `view`'s camera, matched to the photo's keypoints within `radius` px.
+/// Returns (keypoint, point) pairs for keypoints still free.
+#[allow(clippy::too_many_arguments)]
+fn search_by_projection(
+    map: &Map,
+    kf_id: KeyFrameId,
+    view: &ShotView<'_>,
+    cam_from_world: &Isometry3<f64>,
+    slots: &[Option<PointId>],
+    (feats, grid): (&features::Features, &FeatureGrid),
+    radius: f64,
+    params: &LocalizeParams,
+) -> Vec<(usize, PointId)> {
+    let local = local_points(map, kf_id, slots, params);
+    let used: HashSet<PointId> = slots.iter().flatten().copied().collect();
+    let center = cam_from_world.inverse().translation.vector;
+    let projected: Vec<_> = local
+        .iter()
+        .filter(|p| !used.contains(p))
+        .filter_map(|p| {
+            project_into_shot(map, view, *p, cam_from_world, &center, params.min_view_cos)
+        })
+        .collect();
+    let target = SearchTarget {
+        keypoints: &feats.keypoints,
+        descriptors: &feats.descriptors,
+        grid,
+        points: slots,
+    };
+    search_local_points(
+        &target,
+        &projected,
+        map,
+        &map.scale,
+        radius,
+        &params.matcher,
+    )
+}
+
+/// What [`refit_on_slots`] returns: the report, the observations, the
+/// keypoint of each, and the slots as they were fitted (outliers included).
+type Refit = (
+    crate::optimize::PoseReport,
+    Vec<PoseObservation>,
+    Vec<usize>,
+    Vec<Option<PointId>>,
+);
+
+/// Motion-only BA from `start` on the pairs in `slots`; the outliers are
+/// then dropped from `slots` so a later round can match their keypoints
+/// again.
+fn refit_on_slots(
+    map: &Map,
+    feats: &features::Features,
+    slots: &mut [Option<PointId>],
+    start: Isometry3<f64>,
+    intr: &Intrinsics,
+    params: &LocalizeParams,
+) -> Option<Refit> {
+    let (obs, obs_slot) = observations(map, feats, slots);
+    let r = optimize_pose(start, &obs, intr, &params.pose).ok()?;
+    let matched = slots.to_vec();
+    for (k, &i) in obs_slot.iter().enumerate() {
+        if !r.inliers[k] {
+            slots[i] = None;
+        }
+    }
+    Some((r, obs, obs_slot, matched))
 }
 
 /// The 2D-3D pairs of `slots` (keypoint -> map point) as observations, and

@@ -22,7 +22,21 @@ pub fn run_bundle_adjustment(
     fixed: &[KeyFrameId],
     params: &BaParams,
 ) -> Option<optimize::BaReport> {
+    run_bundle_adjustment_with(map, kfs, fixed, params, |_, _| Vec::new())
+}
+
+/// [`run_bundle_adjustment`] with position priors on its keyframes, chosen
+/// by `priors` once the problem is built (telemetry priors:
+/// [`super::priors::Priors::priors_for`]).
+pub fn run_bundle_adjustment_with(
+    map: &mut Map,
+    kfs: &[KeyFrameId],
+    fixed: &[KeyFrameId],
+    params: &BaParams,
+    priors: impl FnOnce(&Map, &BaSetup) -> Vec<optimize::PositionPrior>,
+) -> Option<optimize::BaReport> {
     let mut setup = build_ba_problem(map, kfs, fixed)?;
+    setup.problem.priors = priors(map, &setup);
     let report = optimize::local_bundle_adjustment(&mut setup.problem, params).ok()?;
     apply_ba_result(map, &setup, &report.outliers);
     Some(report)

@@ -408,21 +408,19 @@ impl Slam {
         if let Some(ba) = &self.params.final_ba {
             let kfs: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
             if kfs.len() >= 2 {
-                let fixed = vec![kfs[0]];
-                let solved = match &self.params.priors {
-                    Some(p) if map.mode() == MapMode::GpsAided => {
-                        // The priors fix the gauge: no keyframe is held.
-                        bundle::build_ba_problem(&map, &kfs, &[]).and_then(|mut setup| {
-                            setup.problem.priors = p.priors_for(&map, &setup);
-                            let r =
-                                crate::optimize::local_bundle_adjustment(&mut setup.problem, ba)
-                                    .ok()?;
-                            bundle::apply_ba_result(&mut map, &setup, &r.outliers);
-                            Some(r)
-                        })
-                    }
-                    _ => bundle::run_bundle_adjustment(&mut map, &kfs, &fixed, ba),
+                let aided = (map.mode() == MapMode::GpsAided)
+                    .then_some(self.params.priors.as_ref())
+                    .flatten();
+                // With priors the priors fix the gauge: no keyframe is held.
+                let fixed = if aided.is_some() {
+                    Vec::new()
+                } else {
+                    vec![kfs[0]]
                 };
+                let solved =
+                    bundle::run_bundle_adjustment_with(&mut map, &kfs, &fixed, ba, |m, s| {
+                        aided.map_or_else(Vec::new, |p| p.priors_for(m, s))
+                    });
                 if let Some(r) = solved {
                     tracing::info!(
                         keyframes = kfs.len(),

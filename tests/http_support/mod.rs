@@ -100,6 +100,23 @@ async fn next_chunk(body: &mut Incoming) -> Option<Bytes> {
     }
 }
 
+/// A response read to its end within `timeout`.
+async fn whole(r: hyper::Response<Incoming>, method: &str, path: &str, timeout: Duration) -> Reply {
+    let status = r.status().as_u16();
+    let head = head_of(&r);
+    let mut incoming = r.into_body();
+    let mut body = Vec::new();
+    let read = async {
+        while let Some(c) = next_chunk(&mut incoming).await {
+            body.extend_from_slice(&c);
+        }
+    };
+    tokio::time::timeout(timeout, read)
+        .await
+        .unwrap_or_else(|_| panic!("{method} {path}: body not read in {timeout:?}"));
+    Reply { status, head, body }
+}
+
 /// One request; waits up to `timeout` for the whole response.
 pub fn send(
     addr: SocketAddr,
@@ -112,19 +129,7 @@ pub fn send(
     runtime().block_on(async {
         let body = Full::new(Bytes::copy_from_slice(body));
         let r = start(addr, method, path, headers, body, timeout).await;
-        let status = r.status().as_u16();
-        let head = head_of(&r);
-        let mut incoming = r.into_body();
-        let mut body = Vec::new();
-        let read = async {
-            while let Some(c) = next_chunk(&mut incoming).await {
-                body.extend_from_slice(&c);
-            }
-        };
-        tokio::time::timeout(timeout, read)
-            .await
-            .unwrap_or_else(|_| panic!("{method} {path}: body not read in {timeout:?}"));
-        Reply { status, head, body }
+        whole(r, method, path, timeout).await
     })
 }
 
@@ -147,19 +152,7 @@ pub fn send_partial(
     runtime().block_on(async {
         let body = Partial { left: sent };
         let r = start(addr, method, path, &headers, body, timeout).await;
-        let status = r.status().as_u16();
-        let head = head_of(&r);
-        let mut incoming = r.into_body();
-        let mut body = Vec::new();
-        let read = async {
-            while let Some(c) = next_chunk(&mut incoming).await {
-                body.extend_from_slice(&c);
-            }
-        };
-        tokio::time::timeout(timeout, read)
-            .await
-            .unwrap_or_else(|_| panic!("{method} {path}: body not read in {timeout:?}"));
-        Reply { status, head, body }
+        whole(r, method, path, timeout).await
     })
 }
 
