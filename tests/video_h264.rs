@@ -292,6 +292,48 @@ fn rtp_clock_uses_sender_reports_else_the_least_delayed_arrival() {
     assert_eq!((ssrc, ntp, rtp), (7, ntp_of(1010.0), ts300));
 }
 
+/// RTCP and RTP come on two sockets read in either order, and a sender
+/// sends its first report right after its first picture: a report read
+/// before the sender's first RTP packet must still time that sender's
+/// pictures, and a report from another sender must not.
+#[test]
+fn a_sender_report_before_the_first_packet_is_kept_for_its_sender() {
+    let ntp_of = |unix: f64| {
+        let s = unix + shotpilot::video::rtp::NTP_UNIX_OFFSET_S;
+        ((s.floor() as u64) << 32) | ((s.fract() * 4_294_967_296.0) as u64)
+    };
+    // The report comes first (RTP clock 90 000 at unix 2000.0).
+    let mut c = RtpClock::new(90_000);
+    assert!(!c.sender_report_from(7, 90_000, ntp_of(2000.0)));
+    assert!(!c.has_sender_report());
+    assert!(c.stream_from(7), "the early report is taken");
+    assert!(!c.stream_from(7), "and only once");
+    // A picture 1 s later on the RTP clock, arriving 0.3 s late.
+    let t = c.capture_time(180_000, 2001.3);
+    assert!((t - 2001.0).abs() < 1e-4, "{t}");
+    // Later reports from the same sender are taken at once.
+    assert!(c.sender_report_from(7, 270_000, ntp_of(2002.5)));
+    let t = c.capture_time(270_000, 2002.9);
+    assert!((t - 2002.5).abs() < 1e-4, "{t}");
+
+    // A report from a sender that is not the stream's is not used, and a
+    // restarted sender (new SSRC) starts the clock afresh.
+    let mut c = RtpClock::new(90_000);
+    assert!(!c.sender_report_from(8, 90_000, ntp_of(2000.0)));
+    assert!(!c.stream_from(7));
+    assert!(!c.has_sender_report());
+    let t = c.capture_time(180_000, 2001.3);
+    assert!((t - 2001.3).abs() < 1e-4, "arrival-mapped: {t}");
+    assert!(c.sender_report_from(7, 180_000, ntp_of(2001.0)));
+    assert!(
+        !c.sender_report_from(9, 0, ntp_of(3000.0)),
+        "kept for sender 9"
+    );
+    assert!(c.stream_from(9), "the restarted sender's early report");
+    let t = c.capture_time(45_000, 3007.0);
+    assert!((t - 3000.5).abs() < 1e-4, "{t}");
+}
+
 #[test]
 fn h265_payloads_are_recognised() {
     // VPS, SPS, PPS, FU and a TRAIL_R-in-FU as rtph265pay sends them.

@@ -242,6 +242,9 @@ pub struct Counters {
     pub late: AtomicU64,
     /// Frames refused (a resolution other than the stream's first).
     pub refused: AtomicU64,
+    /// RTCP sender reports taken: capture times then follow the sender's
+    /// own clock instead of arrival times.
+    pub sender_reports: AtomicU64,
 }
 
 /// A copy of the counters at one moment.
@@ -275,6 +278,8 @@ pub struct CountersSnapshot {
     pub late: u64,
     /// See [`Counters::refused`].
     pub refused: u64,
+    /// See [`Counters::sender_reports`].
+    pub sender_reports: u64,
 }
 
 impl Counters {
@@ -298,6 +303,7 @@ impl Counters {
             lost_packets: l(&self.lost_packets),
             late: l(&self.late),
             refused: l(&self.refused),
+            sender_reports: l(&self.sender_reports),
         }
     }
 

@@ -224,6 +224,7 @@ async fn session(
                 for p in pkt.pkts() {
                     if let Ok(Some(sr)) = p.as_sender_report() {
                         clock.sender_report(sr.rtp_timestamp(), sr.ntp_timestamp().0);
+                        crate::video::live::Counters::inc(&sink.ingest.counters.sender_reports);
                     }
                 }
             }

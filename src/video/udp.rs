@@ -216,9 +216,9 @@ async fn receive(
             r = rtcp_recv => {
                 if let Ok(n) = r
                     && let Some((s, ntp, rtp)) = parse_sender_report(&rbuf[..n])
-                    && Some(s) == ssrc
+                    && clock.sender_report_from(s, rtp, ntp)
                 {
-                    clock.sender_report(rtp, ntp);
+                    Counters::inc(&sink.ingest.counters.sender_reports);
                 }
                 continue;
             }
@@ -261,7 +261,9 @@ async fn receive(
                     "video: RTP sender on {local} restarted (new SSRC {:08x})",
                     pkt.ssrc
                 );
-                clock.reset();
+            }
+            if clock.stream_from(pkt.ssrc) {
+                Counters::inc(&sink.ingest.counters.sender_reports);
             }
             ssrc = Some(pkt.ssrc);
             sink.new_connection();

@@ -407,6 +407,12 @@ pub struct RtpClock {
     /// (arrival unix seconds, arrival - rtp seconds).
     offsets: VecDeque<(f64, f64)>,
     window_s: f64,
+    /// The SSRC of the RTP stream being timed, once its first packet came.
+    ssrc: Option<u32>,
+    /// A sender report (ssrc, rtp, ntp) from a sender whose RTP has not
+    /// come yet: RTCP and RTP arrive on two sockets read in either order,
+    /// and a sender sends its first report right after its first picture.
+    early: Option<(u32, u32, u64)>,
 }
 
 /// Seconds between the NTP epoch (1900) and the unix epoch (1970).
@@ -426,6 +432,8 @@ impl RtpClock {
             sr: None,
             offsets: VecDeque::new(),
             window_s: 10.0,
+            ssrc: None,
+            early: None,
         }
     }
 
@@ -434,6 +442,44 @@ impl RtpClock {
         self.ext = None;
         self.sr = None;
         self.offsets.clear();
+        self.ssrc = None;
+        self.early = None;
+    }
+
+    /// The RTP stream's packets come from `ssrc`. A sender other than the
+    /// one timed so far (a restarted camera) starts the clock afresh; a
+    /// sender report it sent before its first packet is taken now. Returns
+    /// whether a report was taken.
+    pub fn stream_from(&mut self, ssrc: u32) -> bool {
+        if self.ssrc == Some(ssrc) {
+            return false;
+        }
+        if self.ssrc.is_some() {
+            let early = self.early.take();
+            self.reset();
+            self.early = early;
+        }
+        self.ssrc = Some(ssrc);
+        match self.early.take() {
+            Some((s, rtp, ntp)) if s == ssrc => {
+                self.sender_report(rtp, ntp);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Take an RTCP sender report from `ssrc`: at once when it is the
+    /// stream's sender, kept for later when no RTP has come from it yet
+    /// (see [`RtpClock::stream_from`]). Returns whether it was taken now.
+    pub fn sender_report_from(&mut self, ssrc: u32, rtp: u32, ntp: u64) -> bool {
+        if self.ssrc == Some(ssrc) {
+            self.sender_report(rtp, ntp);
+            true
+        } else {
+            self.early = Some((ssrc, rtp, ntp));
+            false
+        }
     }
 
     /// Extend a 32-bit timestamp to 64 bits near the previous one.
