@@ -20,7 +20,9 @@
 use std::f64::consts::TAU;
 use std::path::{Path, PathBuf};
 
-use nalgebra::{Isometry3, Matrix3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Point3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3,
+};
 
 use crate::world::World;
 
@@ -175,7 +177,12 @@ pub fn camera_from_yaw_pitch(eye: Point3<f64>, yaw: f64, pitch: f64) -> Isometry
     let forward = Vector3::new(cp * cy, cp * sy, sp);
     let right = Vector3::new(-sy, cy, 0.0);
     let down = forward.cross(&right);
-    let q = UnitQuaternion::from_matrix(&Matrix3::from_columns(&[right, down, forward]));
+    // The columns are orthonormal by construction: the closed-form
+    // conversion, not `from_matrix`'s iteration from the identity, which
+    // stalls on a half-turn (yaw 90 deg looking straight down, say).
+    let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(
+        Matrix3::from_columns(&[right, down, forward]),
+    ));
     Isometry3::from_parts(Translation3::from(eye.coords), q)
 }
 
@@ -566,6 +573,33 @@ pub fn tum_line(timestamp: f64, world_from_cam: &Isometry3<f64>) -> String {
 mod tests {
     use super::*;
     use crate::world::WorldParams;
+    use std::f64::consts::PI;
+
+    #[test]
+    fn camera_axes_follow_yaw_and_pitch_at_every_angle_including_half_turns() {
+        // Straight down with yaw 90 deg is a half-turn from the identity
+        // camera (right = x, down = y, forward = z): the case an iterative
+        // matrix-to-quaternion fit from the identity cannot leave.
+        let eye = Point3::new(1.0, 2.0, -3.0);
+        let mut angles = vec![(0.5 * PI, 0.5 * PI), (PI, 0.0), (-0.5 * PI, -0.5 * PI)];
+        for i in 0..24 {
+            for j in -6..=6 {
+                angles.push((i as f64 * PI / 12.0, j as f64 * PI / 12.0));
+            }
+        }
+        for (yaw, pitch) in angles {
+            let pose = camera_from_yaw_pitch(eye, yaw, pitch);
+            let (sy, cy) = yaw.sin_cos();
+            let (sp, cp) = pitch.sin_cos();
+            let forward = Vector3::new(cp * cy, cp * sy, sp);
+            let right = Vector3::new(-sy, cy, 0.0);
+            let r = pose.rotation;
+            assert!((r * Vector3::z() - forward).norm() < 1e-12, "{yaw} {pitch}");
+            assert!((r * Vector3::x() - right).norm() < 1e-12, "{yaw} {pitch}");
+            assert!((r * Vector3::y() - forward.cross(&right)).norm() < 1e-12);
+            assert_eq!(pose.translation.vector, eye.coords);
+        }
+    }
 
     #[test]
     fn explore_is_smooth_translating_pitched_and_clear_of_roofs() {
