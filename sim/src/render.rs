@@ -990,20 +990,12 @@ pub(crate) fn gaussian(seed: u64, index: u64) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::paths::look_at;
     use crate::world::WorldParams;
-    use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
+    use nalgebra::{Point3, Vector3};
 
     fn small_world() -> Arc<World> {
         Arc::new(World::generate_with(3, &WorldParams::small()).unwrap())
-    }
-
-    fn look_at(eye: Point3<f64>, target: Point3<f64>) -> Isometry3<f64> {
-        let f = (target - eye).normalize();
-        let right = Vector3::z().cross(&f).normalize();
-        let down = f.cross(&right);
-        let m = nalgebra::Matrix3::from_columns(&[right, down, f]);
-        let q = UnitQuaternion::from_matrix(&m);
-        Isometry3::from_parts(Translation3::from(eye.coords), q)
     }
 
     #[test]

@@ -445,7 +445,18 @@ impl SensorYaml {
         }
         let m = Matrix4::from_row_slice(&t);
         let r: Matrix3<f64> = m.fixed_view::<3, 3>(0, 0).into_owned();
-        let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&r));
+        // The nearest rotation (polar decomposition by SVD): the file's
+        // digits leave it a little off orthonormal, and an iterative fit
+        // from the identity would stall on a half-turn mount.
+        let svd = r.svd(true, true);
+        let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+            return Err(parse_err(path, l, "`T_BS` has no rotation part"));
+        };
+        let nearest = u * v_t;
+        if !(nearest.determinant() > 0.5) || (nearest - r).norm() > 1e-3 {
+            return Err(parse_err(path, l, "`T_BS` is not a rigid transform"));
+        }
+        let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(nearest));
         let body_from_cam =
             Isometry3::from_parts(Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]), rot);
         if w < 1.0 || h < 1.0 || w.fract() != 0.0 || h.fract() != 0.0 {
@@ -563,6 +574,28 @@ mod tests {
         write(&cam0.join("data.csv"), "#h\n100,100.png\nabc,200.png\n");
         let e = Dataset::open(d.path()).unwrap_err().to_string();
         assert!(e.contains("data.csv:3"), "{e}");
+        write(&cam0.join("data.csv"), "#h\n100,100.png\n200,200.png\n");
+        let yaml = |data: &str| {
+            format!(
+                "%YAML:1.0\nT_BS:\n  cols: 4\n  rows: 4\n  data: [{data}]\nrate_hz: 20\nresolution: [8, 6]\nintrinsics: [10.0, 11.0, 4.0, 3.0]\ndistortion_coefficients: [-0.1, 0.01, 0.001, 0.002]\n"
+            )
+        };
+        // A camera mounted upside down (a half-turn about the optical
+        // axis): the ground truth's camera x axis is the body's -x.
+        write(
+            &cam0.join("sensor.yaml"),
+            &yaml("-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1"),
+        );
+        let gt = Dataset::open(d.path()).unwrap().groundtruth.unwrap();
+        let x = gt.poses[0].world_from_cam.rotation * nalgebra::Vector3::x();
+        assert!((x + nalgebra::Vector3::x()).norm() < 1e-12, "{x}");
+        // A scaled or sheared T_BS is not a camera mount: refused.
+        write(
+            &cam0.join("sensor.yaml"),
+            &yaml("2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 1"),
+        );
+        let e = Dataset::open(d.path()).unwrap_err().to_string();
+        assert!(e.contains("not a rigid transform"), "{e}");
     }
 
     #[test]

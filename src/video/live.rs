@@ -663,13 +663,11 @@ mod tests {
     fn take_fresh_wakes_on_put_from_another_thread() {
         let s = Arc::new(Latest::new());
         let s2 = s.clone();
-        let t = std::thread::spawn(move || {
-            std::thread::sleep(Duration::from_millis(30));
-            s2.put(7u32);
-        });
-        let t0 = Instant::now();
-        assert_eq!(s.take_fresh(Duration::from_secs(5)), Ok(Some(7)));
-        assert!(t0.elapsed() < Duration::from_secs(4));
+        let t = std::thread::spawn(move || s2.put(7u32));
+        // No deadline to hide behind: the wait ends only when the put wakes
+        // it (or finds the value already there, if the other thread ran
+        // first); a lost wake-up hangs here instead of passing late.
+        assert_eq!(s.take_fresh(Duration::from_secs(86_400)), Ok(Some(7)));
         t.join().unwrap();
     }
 
