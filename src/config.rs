@@ -205,7 +205,8 @@ pub struct SimSection {
     pub mavlink: String,
     /// World and noise seed.
     pub seed: u64,
-    /// Scripted flight: `explore`, `hover` or `none`.
+    /// Scripted flight: `explore`, `hover`, `patrol` (the survey flown lap
+    /// after lap until the operator takes over) or `none`.
     pub script: String,
     /// Autopilot flavour: `px4` or `ardupilot`.
     pub flavour: String,
@@ -612,11 +613,11 @@ impl Config {
                 .video_listen
                 .parse::<std::net::SocketAddr>()
                 .map_err(|e| invalid("sim", "video_listen", e.to_string()))?;
-            if !["explore", "hover", "none"].contains(&self.sim.script.as_str()) {
+            if !["explore", "hover", "patrol", "none"].contains(&self.sim.script.as_str()) {
                 return Err(invalid(
                     "sim",
                     "script",
-                    format!("{:?}: use explore, hover or none", self.sim.script),
+                    format!("{:?}: use explore, hover, patrol or none", self.sim.script),
                 ));
             }
             if !["px4", "ardupilot"].contains(&self.sim.flavour.as_str()) {

@@ -35,6 +35,9 @@ enum ScriptArg {
     Explore,
     /// Take off and hover over home.
     Hover,
+    /// Fly the survey lap after lap until the operator takes over (soak
+    /// runs: a long flight that keeps revisiting mapped places).
+    Patrol,
 }
 
 /// The simulated world for shotpilot: a PX4-like quadrotor with a gimbal
@@ -276,6 +279,7 @@ fn config_from(cli: &Cli) -> Result<SimConfig> {
         script: cli.script.map(|s| match s {
             ScriptArg::Explore => ScriptKind::Explore,
             ScriptArg::Hover => ScriptKind::Hover,
+            ScriptArg::Patrol => ScriptKind::Patrol,
         }),
         capture_dir: cli.capture_dir.clone(),
         truth_dir: cli.truth_dir.clone(),

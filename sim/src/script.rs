@@ -13,6 +13,10 @@
 //! `hover` arms, climbs to the hover altitude over home with the camera
 //! pitched down and holds there in AUTO.LOITER.
 //!
+//! `patrol` flies the `explore` route, then back over home and round it
+//! again, lap after lap, until the operator takes over: a long flight that
+//! keeps revisiting mapped places (loops) for soak runs.
+//!
 //! The script flies in OFFBOARD (ArduPilot: GUIDED) through
 //! [`Autopilot::set_external_setpoint`]; if the operator changes the mode
 //! (starts a mission, lands, returns) the script stops at once.
@@ -29,6 +33,8 @@ pub enum ScriptKind {
     Explore,
     /// Climb and hover.
     Hover,
+    /// The survey flown again and again until the operator takes over.
+    Patrol,
 }
 
 /// One level of the exploration pattern.
@@ -126,7 +132,9 @@ enum State {
 #[derive(Debug, Clone)]
 pub struct Script {
     params: ScriptParams,
+    kind: ScriptKind,
     legs: Vec<Leg>,
+    laps: usize,
     idx: usize,
     leg_from: Vector3<f64>,
     yaw_from: f64,
@@ -162,11 +170,13 @@ impl Script {
                     gimbal_pitch_deg: params.hover_gimbal_pitch_deg,
                 }]
             }
-            ScriptKind::Explore => Self::explore_legs(&params, clearance),
+            ScriptKind::Explore | ScriptKind::Patrol => Self::explore_legs(&params, clearance),
         };
         Self {
             params,
+            kind,
             legs,
+            laps: 0,
             idx: 0,
             leg_from: Vector3::zeros(),
             yaw_from: 0.0,
@@ -300,6 +310,12 @@ impl Script {
         self.idx
     }
 
+    /// Laps of the route completed (`patrol` starts the next one over
+    /// home; the others finish after one).
+    pub fn laps(&self) -> usize {
+        self.laps
+    }
+
     /// Advance the script at sim time `now`.
     pub fn step(&mut self, ap: &mut Autopilot, now: f64) {
         match self.state {
@@ -352,7 +368,14 @@ impl Script {
                     self.yaw_from = leg.yaw;
                     self.pitch_from = leg.gimbal_pitch_deg;
                     if self.idx >= self.legs.len() {
-                        self.finish(ap);
+                        self.laps += 1;
+                        if self.kind == ScriptKind::Patrol {
+                            // Back over home (the first leg ends there at
+                            // the climb's altitude) and round again.
+                            self.idx = 0;
+                        } else {
+                            self.finish(ap);
+                        }
                     }
                     return;
                 }
@@ -413,6 +436,33 @@ mod tests {
             }
         }
         (ap, s, trace)
+    }
+
+    #[test]
+    fn patrol_flies_the_survey_lap_after_lap_until_the_operator_takes_over() {
+        let (_, explore, trace) = fly(ScriptKind::Explore, ScriptParams::default(), 900.0);
+        assert!(explore.finished());
+        let lap_s = trace.last().map_or(0.0, |t| t.0);
+        let (mut ap, mut s, trace) = fly(ScriptKind::Patrol, ScriptParams::default(), 2.5 * lap_s);
+        assert!(!s.finished(), "patrol never hands over by itself");
+        assert_eq!(s.laps(), 2, "two laps in 2.5 lap times");
+        assert_eq!(s.legs(), explore.legs(), "the same route as explore");
+        // The second lap passes over the first lap's corners again.
+        let near = |p: &Vector3<f64>, from: f64, to: f64| {
+            trace
+                .iter()
+                .filter(|x| x.0 >= from && x.0 < to)
+                .map(|x| (x.1 - p).norm())
+                .fold(f64::INFINITY, f64::min)
+        };
+        for leg in s.legs().iter().step_by(7) {
+            assert!(near(&leg.to, 0.0, lap_s) < 1.0);
+            assert!(near(&leg.to, lap_s, 2.5 * lap_s) < 1.0, "{:?}", leg.to);
+        }
+        // The operator takes over: the script lets go at once.
+        ap.set_mode(Mode::Hold);
+        s.step(&mut ap, 2.5 * lap_s + 0.02);
+        assert!(s.finished());
     }
 
     #[test]

@@ -36,6 +36,9 @@ pub struct SlamStatus {
     pub last_inliers: usize,
     /// Processing time of the last frame, ms.
     pub last_frame_ms: f64,
+    /// 95th percentile of the processing time over recent frames, ms (the
+    /// tracking thread keeps up while it stays below the frame interval).
+    pub frame_ms_p95: Option<f64>,
     /// Median latency from capture to tracked pose over recent frames, ms.
     pub latency_ms_median: Option<f64>,
     /// 95th percentile of the same latencies, ms.

@@ -55,6 +55,8 @@ pub trait MapSource: Send + Sync {
 struct Inner {
     status: SlamStatus,
     latencies_ms: VecDeque<f64>,
+    /// Processing times of recent frames, ms.
+    frame_ms: VecDeque<f64>,
     source: Option<Arc<dyn MapSource>>,
     last_tracked: Option<TrackedFrame>,
     /// Keyframes shots are drawn on, pinned again in every new source.
@@ -186,6 +188,12 @@ impl SlamShared {
     pub fn record(&self, frame: &Frame, outcome: &ProcessOutcome, ms: f64) {
         self.rate.tick();
         let mut g = self.lock();
+        if ms.is_finite() {
+            if g.frame_ms.len() == LATENCY_WINDOW {
+                g.frame_ms.pop_front();
+            }
+            g.frame_ms.push_back(ms);
+        }
         let s = &mut g.status;
         s.state = outcome.state.clone();
         s.available = outcome.state != "unavailable";
@@ -208,13 +216,7 @@ impl SlamShared {
 
     /// 95th percentile of recent capture-to-pose latencies, ms.
     fn latency_p95(g: &Inner) -> Option<f64> {
-        let mut v: Vec<f64> = g.latencies_ms.iter().copied().collect();
-        if v.is_empty() {
-            return None;
-        }
-        v.sort_by(f64::total_cmp);
-        let k = ((v.len() as f64 * 0.95).ceil() as usize).clamp(1, v.len()) - 1;
-        Some(v[k])
+        p95(&g.latencies_ms)
     }
 
     /// Median of recent capture-to-pose latencies, ms.
@@ -222,6 +224,12 @@ impl SlamShared {
         let v: Vec<f64> = g.latencies_ms.iter().copied().collect();
         crate::stats::median(&v)
     }
+}
+
+/// The 95th percentile of `v` (the nearest rank), `None` when empty.
+fn p95(v: &VecDeque<f64>) -> Option<f64> {
+    let v: Vec<f64> = v.iter().copied().collect();
+    crate::stats::quantile(&v, 0.95)
 }
 
 impl SlamShared {
@@ -238,6 +246,7 @@ impl SlamView for SlamShared {
         let mut s = g.status.clone();
         s.latency_ms_median = Self::latency_median(&g);
         s.latency_ms_p95 = Self::latency_p95(&g);
+        s.frame_ms_p95 = p95(&g.frame_ms);
         drop(g);
         s.fps = self.rate.rate();
         s

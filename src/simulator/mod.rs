@@ -162,6 +162,7 @@ pub fn sim_config(cfg: &Config, data_dir: &Path) -> Result<SimConfig, SimKeyErro
     let script = match s.script.as_str() {
         "explore" => Some(ScriptKind::Explore),
         "hover" => Some(ScriptKind::Hover),
+        "patrol" => Some(ScriptKind::Patrol),
         _ => None,
     };
     let rtp_out = rtp_out(s)?;

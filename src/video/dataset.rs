@@ -453,7 +453,9 @@ impl SensorYaml {
             return Err(parse_err(path, l, "`T_BS` has no rotation part"));
         };
         let nearest = u * v_t;
-        if !(nearest.determinant() > 0.5) || (nearest - r).norm() > 1e-3 {
+        let (det, off) = (nearest.determinant(), (nearest - r).norm());
+        let rigid = det.is_finite() && det > 0.5 && off.is_finite() && off <= 1e-3;
+        if !rigid {
             return Err(parse_err(path, l, "`T_BS` is not a rigid transform"));
         }
         let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(nearest));

@@ -1,0 +1,160 @@
+//! A long flight: the daemon with the in-process simulator flying its
+//! `patrol` script (the survey lap after lap over the same town, so the
+//! map keeps meeting places it has mapped) for `SOAK_MINUTES` minutes
+//! (default 30). Every 30 s it samples the process's resident memory and
+//! the SLAM's status (frames, tracked, keyframes, points, the frame
+//! processing time's 95th percentile, loops) and prints one row; at the
+//! end it checks that what a long flight must keep holds: tracking, a
+//! bounded map and bounded memory once the patrol repeats itself.
+//!
+//! Measured (2 cores, 30 min, 26 578 frames, 99.6 % tracked): RSS 479 MiB
+//! at 5 min, 581 at 10 (the first lap done), 618 at 25, 643 at 30;
+//! keyframes 294 / 353 / 363 / 365; the frame time's p95 (over the last
+//! 100 frames) averaged 18.3 ms over the samples of minutes 0.5-7.5 and
+//! 15.9 ms over 22.5-30 (15 frames/s: 66 ms a frame). No loop closed:
+//! tracking never lost the mapped town, so the revisits were tracked in
+//! the local map.
+//!
+//! `cargo test --release --test soak -- --ignored --nocapture`
+
+mod daemon_support;
+
+use daemon_support::get_json;
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use tokio_util::sync::CancellationToken;
+
+/// The process's resident set, MiB (Linux `/proc/self/status`).
+fn rss_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kb: f64 = s
+        .lines()
+        .find(|l| l.starts_with("VmRSS:"))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()?;
+    Some(kb / 1024.0)
+}
+
+/// One sample of the run.
+#[derive(Debug, Clone, Copy)]
+struct Row {
+    min: f64,
+    rss: f64,
+    frames: u64,
+    tracked: u64,
+    keyframes: u64,
+    points: u64,
+    frame_p95: f64,
+    latency_p95: f64,
+    loops: u64,
+}
+
+#[test]
+#[ignore = "a 30-minute soak run: cargo test --release --test soak -- --ignored --nocapture (SOAK_MINUTES sets its length)"]
+fn a_long_patrol_keeps_tracking_and_memory_bounded() {
+    let minutes: f64 = std::env::var("SOAK_MINUTES")
+        .ok()
+        .and_then(|m| m.parse().ok())
+        .unwrap_or(30.0);
+    let dir = tempfile::tempdir().unwrap();
+    let (mut cfg, sockets) = daemon_support::sim_config();
+    cfg.sim.script = "patrol".into();
+    cfg.validate(Path::new("test")).unwrap();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let cancel = CancellationToken::new();
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let base = dir.path().to_owned();
+    let c = cancel.clone();
+    let daemon =
+        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
+    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let t0 = Instant::now();
+    let mut rows: Vec<Row> = Vec::new();
+    eprintln!(
+        "  min   RSS MiB   frames  tracked  keyframes  points  frame p95 ms  latency p95 ms  loops"
+    );
+    let mut next = 0.0;
+    while t0.elapsed().as_secs_f64() < minutes * 60.0 + 1.0 {
+        let now = t0.elapsed().as_secs_f64();
+        if now < next {
+            std::thread::sleep(Duration::from_secs_f64((next - now).min(1.0)));
+            continue;
+        }
+        next += 30.0;
+        let st = get_json(addr, "/api/v1/status");
+        let s = &st["slam"];
+        let u = |k: &str| s[k].as_u64().unwrap_or(0);
+        let f = |k: &str| s[k].as_f64().unwrap_or(f64::NAN);
+        let row = Row {
+            min: now / 60.0,
+            rss: rss_mib().unwrap_or(f64::NAN),
+            frames: u("frames"),
+            tracked: u("tracked"),
+            keyframes: u("keyframes"),
+            points: u("points"),
+            frame_p95: f("frame_ms_p95"),
+            latency_p95: f("latency_ms_p95"),
+            loops: u("loops_closed"),
+        };
+        eprintln!(
+            "{:5.1} {:9.1} {:8} {:8} {:10} {:7} {:13.1} {:15.1} {:6}",
+            row.min,
+            row.rss,
+            row.frames,
+            row.tracked,
+            row.keyframes,
+            row.points,
+            row.frame_p95,
+            row.latency_p95,
+            row.loops
+        );
+        rows.push(row);
+    }
+    cancel.cancel();
+    rt.block_on(daemon)
+        .expect("the daemon task")
+        .expect("the daemon stops cleanly");
+    let at = |m: f64| {
+        rows.iter()
+            .min_by(|a, b| (a.min - m).abs().total_cmp(&(b.min - m).abs()))
+            .copied()
+            .expect("samples")
+    };
+    let (first, last) = (at(5.0), at(minutes));
+    eprintln!("at 5 min: {first:?}\nat {minutes} min: {last:?}");
+    // Tracking holds over the whole flight.
+    let share = last.tracked as f64 / last.frames.max(1) as f64;
+    assert!(share > 0.9, "tracked {share:.3} of the frames");
+    assert!(
+        last.frames as f64 > minutes * 60.0 * 10.0,
+        "frames {}",
+        last.frames
+    );
+    // The first lap (about 7.5 min) maps the town; the later ones fly over
+    // it again and must track in the map they have, not map it anew: a
+    // second copy of the map would add as many keyframes and as much
+    // memory as the first lap did (about 350 keyframes and 450 MiB).
+    if minutes >= 20.0 {
+        let lap = at(10.0);
+        assert!(
+            last.keyframes as f64 <= 1.15 * lap.keyframes as f64,
+            "keyframes {} at 10 min, {} at the end",
+            lap.keyframes,
+            last.keyframes
+        );
+        assert!(
+            last.rss <= 1.2 * lap.rss,
+            "RSS {:.0} MiB at 10 min, {:.0} MiB at the end",
+            lap.rss,
+            last.rss
+        );
+    }
+}
