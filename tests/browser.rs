@@ -37,7 +37,6 @@ use shotpilot::shot::record::{
     Localisation, MissionRecord, MissionState, PoseJson, Shot, ShotSource, ShotStatus,
 };
 use shotpilot::shot::store::ShotStore;
-use tokio_util::sync::CancellationToken;
 
 /// The simulated GNSS's vertical bias (`[sim] gps_*`): a Gauss-Markov walk
 /// of this deviation, m, ...
@@ -405,18 +404,8 @@ fn operator_page_in_headless_chromium() {
     cfg.validate(Path::new("test")).unwrap();
     let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let cancel = CancellationToken::new();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let base = dir.path().to_owned();
-    let c = cancel.clone();
-    let daemon =
-        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
-    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let daemon = daemon_support::start(cfg, sockets, dir.path());
+    let addr = daemon.addr;
     let t0 = Instant::now();
 
     // SLAM tracks and has keyframes before the page is opened.
@@ -634,9 +623,5 @@ fn operator_page_in_headless_chromium() {
         assert!(kinds.contains(&k), "{b}'s timeline lacks {k}: {kinds:?}");
     }
 
-    cancel.cancel();
-    rt.block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })
-        .expect("the daemon stops")
-        .unwrap()
-        .unwrap();
+    daemon.stop(Duration::from_secs(30));
 }

@@ -15,7 +15,6 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
-use tokio_util::sync::CancellationToken;
 
 /// POST a PNG image; returns status and body.
 fn post_png(addr: SocketAddr, path: &str, img: &image::GrayImage) -> (u16, Vec<u8>) {
@@ -32,18 +31,8 @@ fn daemon_with_simulator_end_to_end() {
     cfg.validate(Path::new("test")).unwrap();
     let cam_cfg = cfg.camera.clone();
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let cancel = CancellationToken::new();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let base = dir.path().to_owned();
-    let c = cancel.clone();
-    let daemon =
-        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
-    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let daemon = daemon_support::start(cfg, sockets, dir.path());
+    let addr = daemon.addr;
     let t0 = Instant::now();
 
     // SLAM reaches tracking and makes keyframes.
@@ -345,12 +334,7 @@ fn daemon_with_simulator_end_to_end() {
         open_streams.push(s);
     }
     let t_stop = Instant::now();
-    cancel.cancel();
-    let summary = rt
-        .block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })
-        .expect("the daemon stops with streams open")
-        .unwrap()
-        .unwrap();
+    let summary = daemon.stop(Duration::from_secs(30));
     eprintln!("stopped in {:.2} s", t_stop.elapsed().as_secs_f64());
     drop(open_streams);
     eprintln!("summary: {}", serde_json::to_string(&summary).unwrap());

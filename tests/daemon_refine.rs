@@ -32,7 +32,6 @@ use shotpilot::camera::{Camera, Distortion};
 use shotpilot::config::Config;
 use shotpilot::geo::{Geodetic, GimbalAngles, LocalFrame, MountParams, VehicleState, ned_from_cam};
 use shotpilot::refine::pose_difference;
-use tokio_util::sync::CancellationToken;
 
 /// The simulator's truth: capture time (unix s) and true camera pose (NED at home) of each video frame.
 /// The simulator's per-frame truth so far (empty until its file exists).
@@ -232,10 +231,7 @@ static ONE_DAEMON: std::sync::Mutex<()> = std::sync::Mutex::new(());
 /// A daemon with the simulator in-process on free ports, its truth
 /// written; `tweak` edits the configuration first.
 struct Running {
-    rt: tokio::runtime::Runtime,
-    cancel: CancellationToken,
-    daemon:
-        tokio::task::JoinHandle<Result<shotpilot::daemon::Summary, shotpilot::daemon::DaemonError>>,
+    daemon: daemon_support::Running,
     addr: SocketAddr,
     truth_dir: std::path::PathBuf,
     t0: Instant,
@@ -257,23 +253,10 @@ fn start(tweak: impl FnOnce(&mut Config)) -> Running {
     let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
     cfg.validate(Path::new("test")).unwrap();
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let cancel = CancellationToken::new();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let base = dir.path().to_owned();
-    let c = cancel.clone();
-    let daemon =
-        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
-    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let daemon = daemon_support::start(cfg, sockets, dir.path());
     Running {
-        rt,
-        cancel,
+        addr: daemon.addr,
         daemon,
-        addr,
         truth_dir,
         t0: Instant::now(),
         _dir: dir,
@@ -316,13 +299,7 @@ impl Running {
 
     /// Stops the daemon, which must stop cleanly.
     fn stop(self) {
-        self.cancel.cancel();
-        let daemon = self.daemon;
-        self.rt
-            .block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })
-            .expect("the daemon stops")
-            .unwrap()
-            .unwrap();
+        self.daemon.stop(Duration::from_secs(30));
         eprintln!("total {:.1} s", self.t0.elapsed().as_secs_f64());
     }
 }

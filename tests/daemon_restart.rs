@@ -18,50 +18,12 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use serde_json::{Value, json};
-use tokio_util::sync::CancellationToken;
 
-/// A daemon running on its own runtime.
-struct Running {
-    rt: tokio::runtime::Runtime,
-    cancel: CancellationToken,
-    task:
-        tokio::task::JoinHandle<Result<shotpilot::daemon::Summary, shotpilot::daemon::DaemonError>>,
-    addr: SocketAddr,
-}
-
-fn start(base: &Path) -> Running {
+fn start(base: &Path) -> daemon_support::Running {
     let (cfg, sockets) = daemon_support::sim_config();
     assert!(cfg.slam.continue_map, "continuing is the default");
     cfg.validate(Path::new("test")).unwrap();
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let cancel = CancellationToken::new();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let (c, b) = (cancel.clone(), base.to_owned());
-    let task =
-        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &b, c, Some(tx), sockets).await });
-    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
-    Running {
-        rt,
-        cancel,
-        task,
-        addr,
-    }
-}
-
-impl Running {
-    fn stop(self) -> shotpilot::daemon::Summary {
-        self.cancel.cancel();
-        let task = self.task;
-        self.rt
-            .block_on(async { tokio::time::timeout(Duration::from_secs(60), task).await })
-            .expect("the daemon stops")
-            .unwrap()
-            .unwrap()
-    }
+    daemon_support::start(cfg, sockets, base)
 }
 
 /// Poll the status until `done` holds (or the time runs out); returns the
@@ -192,7 +154,7 @@ fn the_daemon_continues_on_its_saved_map() {
     assert_eq!(st, 200);
     let (psid, photo1_pose) = photo_shot(d.addr, &photo);
     let photo1_pose = photo1_pose.expect("the photo is localised in run 1");
-    let summary1 = d.stop();
+    let summary1 = d.stop(Duration::from_secs(60));
     let map_file = summary1.map_file.clone().expect("run 1 saved its map");
     let saved = shotpilot::slam::mapfile::load(&map_file).unwrap();
     let old: BTreeMap<u64, (f64, Isometry3<f64>)> = saved
@@ -308,7 +270,7 @@ fn the_daemon_continues_on_its_saved_map() {
     // which map points are matched, and the map has grown since. Seen:
     // 0.3-1.1 % of the extent, 0.1-0.5 deg; bound 3 % and 1.5 deg.
     assert!(dp < 0.03 * old_extent && da < 1.5, "{dp} {da}");
-    let summary2 = d.stop();
+    let summary2 = d.stop(Duration::from_secs(60));
     eprintln!(
         "run 2 summary: {}",
         serde_json::to_string(&summary2).unwrap()
@@ -351,6 +313,6 @@ fn the_daemon_continues_on_its_saved_map() {
         summary1.shots + 2,
         "the shots of runs 1 and 2 are listed"
     );
-    d.stop();
+    d.stop(Duration::from_secs(60));
     eprintln!("total {:.1} s", t0.elapsed().as_secs_f64());
 }

@@ -39,7 +39,6 @@ use shotpilot::geo::{LeverArmFrame, TelemetryClock};
 use shotpilot::geometry::umeyama;
 use shotpilot_sim::dataset::read_truth_frames;
 use shotpilot_sim::geodesy::{Geodetic as SimGeodetic, LocalFrame as SimFrame};
-use tokio_util::sync::CancellationToken;
 
 /// Forwards the simulator's MAVLink datagrams to the daemon, each after
 /// `delay ± jitter/2` (uniform), and the daemon's back at once.
@@ -218,18 +217,8 @@ fn fly(stress: Option<f64>, flight_s: Option<f64>) -> Run {
     let frame = SimFrame::new(vehicle.home);
     let lever = Vector3::from(vehicle.camera_offset_body);
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let cancel = CancellationToken::new();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let base = dir.path().to_owned();
-    let c = cancel.clone();
-    let daemon =
-        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
-    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let daemon = daemon_support::start(cfg, sockets, dir.path());
+    let addr = daemon.addr;
     let t0 = Instant::now();
 
     // Fly, noting the georeference's refusals on the way.
@@ -410,8 +399,7 @@ fn fly(stress: Option<f64>, flight_s: Option<f64>) -> Run {
         let s = umeyama(&shot_map, &shot_true, true).unwrap();
         run.scale_err_shots = (scale / s.scale - 1.0).abs();
     }
-    cancel.cancel();
-    let _ = rt.block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await });
+    let _ = daemon.stop_within(Duration::from_secs(30));
     if let Some(r) = relay {
         r.stop();
     }

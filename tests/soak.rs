@@ -24,8 +24,6 @@ use daemon_support::get_json;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use tokio_util::sync::CancellationToken;
-
 /// The process's resident set, MiB (Linux `/proc/self/status`).
 fn rss_mib() -> Option<f64> {
     let s = std::fs::read_to_string("/proc/self/status").ok()?;
@@ -64,18 +62,8 @@ fn a_long_patrol_keeps_tracking_and_memory_bounded() {
     let (mut cfg, sockets) = daemon_support::sim_config();
     cfg.sim.script = "patrol".into();
     cfg.validate(Path::new("test")).unwrap();
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let cancel = CancellationToken::new();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let base = dir.path().to_owned();
-    let c = cancel.clone();
-    let daemon =
-        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
-    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let daemon = daemon_support::start(cfg, sockets, dir.path());
+    let addr = daemon.addr;
     let t0 = Instant::now();
     let mut rows: Vec<Row> = Vec::new();
     eprintln!(
@@ -118,10 +106,7 @@ fn a_long_patrol_keeps_tracking_and_memory_bounded() {
         );
         rows.push(row);
     }
-    cancel.cancel();
-    rt.block_on(daemon)
-        .expect("the daemon task")
-        .expect("the daemon stops cleanly");
+    daemon.stop(Duration::from_secs(60));
     let at = |m: f64| {
         rows.iter()
             .min_by(|a, b| (a.min - m).abs().total_cmp(&(b.min - m).abs()))

@@ -307,6 +307,7 @@ fn a_sender_report_before_the_first_packet_is_kept_for_its_sender() {
     assert!(!c.sender_report_from(7, 90_000, ntp_of(2000.0)));
     assert!(!c.has_sender_report());
     assert!(c.stream_from(7), "the early report is taken");
+    assert_eq!(c.ssrc(), Some(7));
     assert!(!c.stream_from(7), "and only once");
     // A picture 1 s later on the RTP clock, arriving 0.3 s late.
     let t = c.capture_time(180_000, 2001.3);

@@ -475,14 +475,8 @@ fn end_to_end<P, Q>(
     let (mut cfg, mut sockets) = daemon_support::sim_config();
     let _peers = setup(&mut cfg, &mut sockets);
     cfg.validate(Path::new("test")).unwrap();
-    let rt = runtime();
-    let cancel = CancellationToken::new();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let base = dir.path().to_owned();
-    let c = cancel.clone();
-    let daemon =
-        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &base, c, Some(tx), sockets).await });
-    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    let daemon = daemon_support::start(cfg, sockets, dir.path());
+    let addr = daemon.addr;
     let t0 = Instant::now();
     let _late_peers = after_start(addr);
     let mut first_frame_s = f64::NAN;
@@ -595,12 +589,7 @@ fn end_to_end<P, Q>(
         serde_json::to_string(&figures).unwrap(),
         status["video"]
     );
-    cancel.cancel();
-    let summary = rt
-        .block_on(async { tokio::time::timeout(Duration::from_secs(30), daemon).await })
-        .expect("the daemon stops")
-        .unwrap()
-        .unwrap();
+    let summary = daemon.stop(Duration::from_secs(30));
     assert_eq!(summary.video.bad, 0, "{name}: {:?}", summary.video);
     assert!(shot_error_rel < 0.1, "{name}: {figures:?}");
     // A photograph of a keyframe is a view the camera can take again: the

@@ -790,22 +790,9 @@ mod tests {
     #[test]
     fn telemetry_attitude_and_sensor_errors_follow_the_realism() {
         // A camera 30 m up, looking 40 degrees down towards the east: yaw
-        // 90, gimbal pitch -40. (Built with the exact matrix-to-quaternion
-        // conversion: `paths::camera_from_yaw_pitch`'s iterative one stalls
-        // on this pose, a half turn from the identity.)
+        // 90, gimbal pitch -40 (a half turn from the identity camera).
         let cam = |eye: Point3<f64>, yaw: f64, pitch: f64| {
-            let (sy, cy) = yaw.to_radians().sin_cos();
-            let (sp, cp) = pitch.to_radians().sin_cos();
-            let forward = nalgebra::Vector3::new(cp * cy, cp * sy, sp);
-            let right = nalgebra::Vector3::new(-sy, cy, 0.0);
-            let down = forward.cross(&right);
-            let m = nalgebra::Matrix3::from_columns(&[right, down, forward]);
-            Isometry3::from_parts(
-                nalgebra::Translation3::from(eye.coords),
-                nalgebra::UnitQuaternion::from_rotation_matrix(
-                    &nalgebra::Rotation3::from_matrix_unchecked(m),
-                ),
-            )
+            crate::paths::camera_from_yaw_pitch(eye, yaw.to_radians(), pitch.to_radians())
         };
         let eye = Point3::new(5.0, -3.0, -30.0);
         let pose = cam(eye, 90.0, 40.0);

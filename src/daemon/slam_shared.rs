@@ -214,11 +214,6 @@ impl SlamShared {
         }
     }
 
-    /// 95th percentile of recent capture-to-pose latencies, ms.
-    fn latency_p95(g: &Inner) -> Option<f64> {
-        p95(&g.latencies_ms)
-    }
-
     /// Median of recent capture-to-pose latencies, ms.
     fn latency_median(g: &Inner) -> Option<f64> {
         let v: Vec<f64> = g.latencies_ms.iter().copied().collect();
@@ -245,7 +240,7 @@ impl SlamView for SlamShared {
         let g = self.lock();
         let mut s = g.status.clone();
         s.latency_ms_median = Self::latency_median(&g);
-        s.latency_ms_p95 = Self::latency_p95(&g);
+        s.latency_ms_p95 = p95(&g.latencies_ms);
         s.frame_ms_p95 = p95(&g.frame_ms);
         drop(g);
         s.fps = self.rate.rate();

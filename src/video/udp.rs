@@ -188,7 +188,6 @@ async fn receive(
     let mut last_packet: Option<Instant> = None;
     let mut last_lost = 0u64;
     let mut h265_votes = 0u32;
-    let mut ssrc: Option<u32> = None;
     let mut wrong_pt_logged = false;
     loop {
         let rtcp_recv = async {
@@ -255,6 +254,7 @@ async fn receive(
                 }));
             }
         }
+        let ssrc = clock.ssrc();
         if last_packet.is_none() || ssrc != Some(pkt.ssrc) {
             if ssrc.is_some_and(|s| s != pkt.ssrc) {
                 tracing::info!(
@@ -265,7 +265,6 @@ async fn receive(
             if clock.stream_from(pkt.ssrc) {
                 Counters::inc(&sink.ingest.counters.sender_reports);
             }
-            ssrc = Some(pkt.ssrc);
             sink.new_connection();
             sink.ingest.update_source(|s| {
                 s.connected = true;

@@ -5,12 +5,14 @@
 #![allow(dead_code)] // each test binary uses its own subset
 
 use std::net::SocketAddr;
+use std::path::Path;
 use std::time::Duration;
 
 #[path = "../http_support/mod.rs"]
 pub mod http_support;
 
 use serde_json::Value;
+use tokio_util::sync::CancellationToken;
 
 /// The bearer token the daemon tests configure and send.
 pub const TOKEN: &str = "e2e";
@@ -39,6 +41,72 @@ pub fn sim_config() -> (shotpilot::config::Config, shotpilot::daemon::Sockets) {
         ..Default::default()
     };
     (cfg, sockets)
+}
+
+/// The daemon's task: its summary, or why it failed.
+pub type DaemonTask =
+    tokio::task::JoinHandle<Result<shotpilot::daemon::Summary, shotpilot::daemon::DaemonError>>;
+
+/// A daemon running on its own two-worker runtime, its API at `addr`.
+pub struct Running {
+    /// The runtime the daemon runs on (tests may spawn on it too).
+    pub rt: tokio::runtime::Runtime,
+    /// Cancels the daemon (a clean stop).
+    pub cancel: CancellationToken,
+    /// The daemon's task.
+    pub task: DaemonTask,
+    /// Where its API listens.
+    pub addr: SocketAddr,
+}
+
+/// Starts the daemon with `cfg` (validated by the caller) on `sockets`,
+/// its data under `base`; returns once the API listens.
+pub fn start(
+    cfg: shotpilot::config::Config,
+    sockets: shotpilot::daemon::Sockets,
+    base: &Path,
+) -> Running {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("a runtime");
+    let cancel = CancellationToken::new();
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let (c, b) = (cancel.clone(), base.to_owned());
+    let task =
+        rt.spawn(async move { shotpilot::daemon::run_on(cfg, &b, c, Some(tx), sockets).await });
+    let addr = rt.block_on(rx).expect("the daemon starts").api_addr;
+    Running {
+        rt,
+        cancel,
+        task,
+        addr,
+    }
+}
+
+impl Running {
+    /// Cancels the daemon and waits up to `limit` for it to stop: the
+    /// task's outcome, or `None` when it did not stop in time.
+    pub fn stop_within(
+        self,
+        limit: Duration,
+    ) -> Option<Result<shotpilot::daemon::Summary, shotpilot::daemon::DaemonError>> {
+        self.cancel.cancel();
+        let task = self.task;
+        self.rt
+            .block_on(async { tokio::time::timeout(limit, task).await })
+            .ok()
+            .map(|joined| joined.expect("the daemon task does not panic"))
+    }
+
+    /// Cancels the daemon, which must stop cleanly within `limit`; its
+    /// summary.
+    pub fn stop(self, limit: Duration) -> shotpilot::daemon::Summary {
+        self.stop_within(limit)
+            .expect("the daemon stops")
+            .expect("the daemon stops cleanly")
+    }
 }
 
 /// One request with [`TOKEN`] as bearer token (a daemon without a token

@@ -469,6 +469,11 @@ impl RtpClock {
         }
     }
 
+    /// The SSRC of the RTP stream being timed, once its first packet came.
+    pub fn ssrc(&self) -> Option<u32> {
+        self.ssrc
+    }
+
     /// Take an RTCP sender report from `ssrc`: at once when it is the
     /// stream's sender, kept for later when no RTP has come from it yet
     /// (see [`RtpClock::stream_from`]). Returns whether it was taken now.
