@@ -61,7 +61,8 @@ pub(super) fn fit_hypothesis(
         None,
         uncertain,
         &correction,
-    );
+    )
+    .map(|c| c.with_focal_error(params.map_sigma.focal_rel));
     Hypothesis {
         cam_from_world,
         correction,

@@ -116,7 +116,8 @@ pub(super) fn fit_other_camera(
         };
     };
     // The covariance at the fit, with the intrinsics marginalised.
-    let cov = pose_covariance(&pose, obs, &inliers, intr, th, None, wide, &corr);
+    let cov = pose_covariance(&pose, obs, &inliers, intr, th, None, wide, &corr)
+        .map(|c| c.with_focal_error(params.map_sigma.focal_rel));
     Hypothesis {
         cam_from_world: pose,
         correction: corr,
