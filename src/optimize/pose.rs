@@ -310,9 +310,41 @@ pub struct PoseCovariance {
     /// (ln of the focal scale, `k1`, `k2`) of [`IntrinsicsCorrection`]; rows
     /// and columns of the intrinsics held fixed are zero.
     pub intrinsics: nalgebra::Matrix3<f64>,
+    /// Cross-covariance of the pose (`cam_from_world`'s perturbation) with
+    /// the focal scale's log; zero when the focal length is held fixed.
+    pub pose_focal: Vector6<f64>,
+    /// Cross-covariance of the camera centre with the focal scale's log.
+    pub center_focal: nalgebra::Vector3<f64>,
 }
 
 impl PoseCovariance {
+    /// The covariance when the estimated focal length carries a further
+    /// error of `sigma_log` (in its log) that the residuals cannot show,
+    /// independent of theirs: the map's own deformation, which a focal
+    /// length fitted on map points absorbs. The pose follows the focal
+    /// length along the data's regression of the pose on it
+    /// (`b = Σ_pf / Σ_ff`, mostly a move along the optical axis), so the
+    /// pose block grows by `b·bᵀ·sigma_log²` (and the centre's, the focal
+    /// length's own variance alike; the cross terms scale with them). The
+    /// covariance unchanged when the focal length was held fixed.
+    pub fn with_focal_error(&self, sigma_log: f64) -> PoseCovariance {
+        let var_f = self.intrinsics[(0, 0)];
+        if !(var_f > 0.0 && sigma_log > 0.0 && sigma_log.is_finite()) {
+            return *self;
+        }
+        let extra = sigma_log * sigma_log;
+        let b = self.pose_focal / var_f;
+        let bc = self.center_focal / var_f;
+        let mut out = *self;
+        out.cam_from_world += b * b.transpose() * extra;
+        out.center += bc * bc.transpose() * extra;
+        out.intrinsics[(0, 0)] += extra;
+        // Cov(p, f) for p = b·f + e: b·Var(f).
+        out.pose_focal += b * extra;
+        out.center_focal += bc * extra;
+        out
+    }
+
     /// RMS of the camera centre's error, `√trace(Σ_c)` (map units).
     pub fn position_sigma(&self) -> f64 {
         self.center.trace().max(0.0).sqrt()
@@ -700,19 +732,28 @@ pub fn pose_covariance(
             intrinsics[(sa, sb)] = full[(6 + a, 6 + b)];
         }
     }
+    let (mut pose_focal, mut center_focal) = (Vector6::zeros(), nalgebra::Vector3::zeros());
+    if free.0 {
+        // The focal scale's log is the first free intrinsic (column 6).
+        pose_focal = Vector6::from_fn(|r, _| full[(r, 6)]);
+        // δc = −Rᵀ·δρ for the left perturbation.
+        center_focal = -(rm.transpose() * pose_focal.fixed_rows::<3>(0));
+    }
     Some(PoseCovariance {
         cam_from_world: cov,
         center: rm.transpose() * srr * rm,
         noise_scale2,
         inliers: n,
         intrinsics,
+        pose_focal,
+        center_focal,
     })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+    use nalgebra::{Translation3, UnitQuaternion, Vector2, Vector3};
     use rand::{Rng, SeedableRng, rngs::SmallRng};
 
     fn intr() -> Intrinsics {
@@ -875,6 +916,84 @@ mod tests {
     /// A camera whose focal length is 3 % longer than believed and whose
     /// lens has k1 = -0.05: the pose refined with its intrinsics is back on
     /// the truth (the corrections found), the fixed-intrinsics pose is not.
+    #[test]
+    fn a_further_focal_error_moves_the_centre_as_a_refit_does() {
+        // A shallow scene 9 to 11 m ahead: focal length and distance trade.
+        let k = intr();
+        let mut rng = SmallRng::seed_from_u64(11);
+        let mut obs = Vec::new();
+        while obs.len() < 200 {
+            let pc = Vector3::new(
+                rng.random_range(-4.0..4.0),
+                rng.random_range(-3.0..3.0),
+                rng.random_range(9.0..11.0),
+            );
+            let Some(uv) = IntrinsicsCorrection::default().project(&k, &pc) else {
+                continue;
+            };
+            let noise = Vector2::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5));
+            obs.push(PoseObservation {
+                p_world: Point3::from(pc),
+                uv: uv + noise,
+                inv_sigma2: 1.0,
+            });
+        }
+        let params = PoseParams {
+            chi2_threshold: 1e9,
+            ..PoseParams::default()
+        };
+        let base = optimize_pose(Isometry3::identity(), &obs, &k, &params).unwrap();
+        let unc = IntrinsicsUncertainty {
+            focal_rel: 0.35,
+            k1: 0.0,
+            k2: 0.0,
+        };
+        let (pose, corr) =
+            refine_pose_and_intrinsics(base.cam_from_world, &obs, &base.inliers, &k, &unc);
+        let all = vec![true; obs.len()];
+        let cov = pose_covariance(&pose, &obs, &all, &k, 1e9, None, &unc, &corr).unwrap();
+        // Held fixed: nothing to add.
+        let fixed = pose_covariance(
+            &pose,
+            &obs,
+            &all,
+            &k,
+            1e9,
+            None,
+            &IntrinsicsUncertainty::default(),
+            &IntrinsicsCorrection::default(),
+        )
+        .unwrap();
+        assert_eq!(fixed.with_focal_error(0.01), fixed);
+        assert_eq!(cov.with_focal_error(0.0), cov);
+        // The centre's regression on the focal length's log, against a
+        // refit with the focal length 1 % longer (held there).
+        let bc = cov.center_focal / cov.intrinsics[(0, 0)];
+        let longer = Intrinsics {
+            fx: k.fx * corr.focal_scale * 1.01,
+            fy: k.fy * corr.focal_scale * 1.01,
+            ..k
+        };
+        let refit = optimize_pose(pose, &obs, &longer, &params).unwrap();
+        let centre = |p: &Isometry3<f64>| p.inverse().translation.vector;
+        let moved = centre(&refit.cam_from_world) - centre(&pose);
+        let predicted = bc * 0.01_f64.ln_1p();
+        assert!(
+            (moved - predicted).norm() < 0.1 * moved.norm(),
+            "refit moved {moved}, regression says {predicted}"
+        );
+        // About the depth times the focal error, along the optical axis
+        // (backwards for a longer focal length).
+        assert!(moved.z < -0.07 && moved.z > -0.13, "{moved}");
+        // The covariance grows by it: the centre's variance along the axis
+        // by (b·σ)², the focal length's by σ².
+        let grown = cov.with_focal_error(0.01);
+        let dz = grown.center[(2, 2)] - cov.center[(2, 2)];
+        assert!((dz - (bc.z * 0.01).powi(2)).abs() < 1e-9, "{dz}");
+        assert!((grown.intrinsics[(0, 0)] - cov.intrinsics[(0, 0)] - 1e-4).abs() < 1e-12);
+        assert!(grown.position_sigma() > cov.position_sigma());
+    }
+
     #[test]
     fn pose_and_uncertain_intrinsics_are_recovered_together() {
         let k = intr();

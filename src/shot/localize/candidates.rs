@@ -1,0 +1,226 @@
+//! Candidate keyframes of a shot: its ORB features, the bag-of-words
+//! index of the map's keyframes, descriptor matching against each
+//! candidate's map points; and the nearest keyframes of a shot that was not
+//! localised.
+
+use std::collections::HashSet;
+
+use image::GrayImage;
+use nalgebra::Point3;
+
+use super::outcome::NotLocalizedReason;
+use super::params::LocalizeParams;
+use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
+use crate::camera::Camera;
+use crate::features::{self, Descriptor, OrbExtractor, hamming};
+use crate::shot::ShotError;
+use crate::slam::{KeyFrameId, Map, PointId};
+
+/// A bag-of-words index of a map's keyframes: the vocabulary and a database
+/// holding every keyframe's BoW vector.
+pub struct BowIndex<'v> {
+    vocabulary: &'v Vocabulary,
+    database: KeyFrameDatabase,
+}
+
+impl<'v> BowIndex<'v> {
+    /// Indexes every keyframe of `map` (its descriptors through `vocabulary`).
+    pub fn build(map: &Map, vocabulary: &'v Vocabulary) -> Self {
+        let mut database = KeyFrameDatabase::new(vocabulary.word_count());
+        for kf in map.keyframes() {
+            let v: BowVector = vocabulary.transform(&kf.descriptors);
+            // Ids are unique in a map, so adding cannot collide.
+            let _ = database.add(bow::KeyFrameId(kf.id.0 as u64), v);
+        }
+        BowIndex {
+            vocabulary,
+            database,
+        }
+    }
+
+    /// Keyframes indexed.
+    pub fn len(&self) -> usize {
+        self.database.len()
+    }
+
+    /// True when no keyframe is indexed.
+    pub fn is_empty(&self) -> bool {
+        self.database.is_empty()
+    }
+}
+
+/// For every shot descriptor, its best match among `cand` (point, descriptor)
+/// under `max_d` and the ratio test; one-to-one on points (the closest wins).
+fn match_descriptors(
+    shot: &[Descriptor],
+    cand: &[(PointId, Descriptor)],
+    max_d: u32,
+    ratio: f32,
+) -> Vec<(usize, PointId)> {
+    let mut m: Vec<(u32, usize, PointId)> = Vec::new();
+    for (i, d) in shot.iter().enumerate() {
+        let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+        for (j, (_, c)) in cand.iter().enumerate() {
+            let h = hamming(d, c);
+            if h < b1 {
+                b2 = b1;
+                b1 = h;
+                bi = j;
+            } else if h < b2 {
+                b2 = h;
+            }
+        }
+        if b1 <= max_d && (b2 == u32::MAX || (b1 as f32) < ratio * b2 as f32) {
+            m.push((b1, i, cand[bi].0));
+        }
+    }
+    m.sort_unstable_by_key(|x| x.0);
+    let mut used = HashSet::new();
+    m.into_iter()
+        .filter(|(_, _, p)| used.insert(*p))
+        .map(|(_, i, p)| (i, p))
+        .collect()
+}
+
+/// ORB on the shot with the map's pyramid (scale factor and levels),
+/// after checking that the shot and the mask have `camera`'s size.
+pub(super) fn extract_shot_features(
+    map: &Map,
+    camera: &Camera,
+    shot: &GrayImage,
+    mask: Option<&GrayImage>,
+    params: &LocalizeParams,
+) -> Result<features::Features, ShotError> {
+    let cam = camera;
+    for img in std::iter::once(shot).chain(mask) {
+        if img.dimensions() != (cam.width, cam.height) {
+            return Err(ShotError::ImageSize {
+                width: img.width(),
+                height: img.height(),
+                expected_width: cam.width,
+                expected_height: cam.height,
+            });
+        }
+    }
+    let mut fparams = params.features;
+    fparams.scale_factor = map.scale.scale_factor as f32;
+    fparams.n_levels = map.scale.n_levels();
+    let mut extractor = OrbExtractor::new(fparams).map_err(|e| ShotError::Features {
+        message: e.to_string(),
+    })?;
+    let feats = match mask {
+        Some(m) => {
+            extractor
+                .extract_masked(shot, m, Some(cam))
+                .map_err(|e| ShotError::Features {
+                    message: e.to_string(),
+                })?
+        }
+        None => extractor.extract(shot, Some(cam)),
+    };
+    Ok(feats)
+}
+
+/// A keyframe a shot resembles: for a shot that was not localised, where
+/// the drone could fly to see what the shot shows ("fly towards here").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NearKeyframe {
+    /// The keyframe.
+    pub keyframe_id: KeyFrameId,
+    /// Its bag-of-words similarity to the shot (L1 score, 0 to 1).
+    pub score: f64,
+    /// Its camera centre, map coordinates.
+    pub position: Point3<f64>,
+}
+
+/// The `k` keyframes of `map` most similar to the shot by bag-of-words
+/// score, best first, with where they are. ORB on the shot as in
+/// [`localize_with_camera`].
+///
+/// Errors: as [`localize_with_camera`]'s.
+pub fn nearest_keyframes(
+    map: &Map,
+    camera: &Camera,
+    shot: &GrayImage,
+    mask: Option<&GrayImage>,
+    index: &BowIndex<'_>,
+    params: &LocalizeParams,
+    k: usize,
+) -> Result<Vec<NearKeyframe>, ShotError> {
+    let feats = extract_shot_features(map, camera, shot, mask, params)?;
+    if feats.is_empty() || k == 0 {
+        return Ok(Vec::new());
+    }
+    let q = index.vocabulary.transform(&feats.descriptors);
+    Ok(index
+        .database
+        .query(&q, k)
+        .into_iter()
+        .filter_map(|r| {
+            let id = KeyFrameId(u32::try_from(r.id.0).ok()?);
+            let kf = map.keyframe(id)?;
+            Some(NearKeyframe {
+                keyframe_id: id,
+                score: f64::from(r.score),
+                position: Point3::from(kf.center()),
+            })
+        })
+        .collect())
+}
+
+/// A candidate keyframe and the shot's descriptor matches to its map points
+/// (keypoint, point).
+pub(super) type Candidate = (KeyFrameId, Vec<(usize, PointId)>);
+
+/// The candidate keyframes of a shot, most descriptor matches first (at
+/// most [`LocalizeParams::top_k`]): with a [`BowIndex`] the top k of a
+/// bag-of-words query, else every keyframe, each matched by descriptor
+/// against its map points. The reason when there is none, or when the best
+/// has too few matches.
+pub(super) fn rank_candidates(
+    map: &Map,
+    feats: &features::Features,
+    bow_index: Option<&BowIndex<'_>>,
+    params: &LocalizeParams,
+) -> Result<Vec<Candidate>, NotLocalizedReason> {
+    let mut ranked: Vec<Candidate> = Vec::new();
+    let mut pts: Vec<(PointId, Descriptor)> = Vec::new();
+    let candidates: Vec<KeyFrameId> = match bow_index {
+        Some(index) => {
+            let q = index.vocabulary.transform(&feats.descriptors);
+            index
+                .database
+                .query(&q, params.top_k.max(1))
+                .into_iter()
+                .filter_map(|r| u32::try_from(r.id.0).ok().map(KeyFrameId))
+                .collect()
+        }
+        None => map.keyframes().map(|k| k.id).collect(),
+    };
+    for kf in candidates.iter().filter_map(|id| map.keyframe(*id)) {
+        pts.clear();
+        for p in kf.points.iter().flatten() {
+            if let Some(mp) = map.point(*p) {
+                pts.push((*p, mp.descriptor));
+            }
+        }
+        if pts.is_empty() {
+            continue;
+        }
+        let m = match_descriptors(&feats.descriptors, &pts, params.max_hamming, params.ratio);
+        ranked.push((kf.id, m));
+    }
+    if ranked.is_empty() {
+        return Err(NotLocalizedReason::NoCandidate);
+    }
+    ranked.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(&b.0)));
+    ranked.truncate(params.top_k.max(1));
+    let best_count = ranked[0].1.len();
+    if best_count < params.min_candidate_matches {
+        return Err(NotLocalizedReason::TooFewMatches {
+            found: best_count,
+            needed: params.min_candidate_matches,
+        });
+    }
+    Ok(ranked)
+}

@@ -1,0 +1,131 @@
+//! The pose's uncertainty: a hypothesis' covariance (the camera's
+//! uncertain intrinsics marginalised), the mixture of two hypotheses, and
+//! the sigma reported with the map's own error.
+
+use nalgebra::Isometry3;
+
+use super::outcome::PoseSigma;
+use super::params::{LocalizeParams, MapSigma};
+use crate::optimize::{
+    Intrinsics, IntrinsicsCorrection, IntrinsicsUncertainty, PoseObservation, pose_covariance,
+    refine_pose_and_intrinsics,
+};
+
+/// One explanation of a candidate's matches: the pose with the intrinsics'
+/// corrections estimated with it, its inliers and its covariance.
+pub(super) struct Hypothesis {
+    pub(super) cam_from_world: Isometry3<f64>,
+    pub(super) correction: IntrinsicsCorrection,
+    pub(super) inliers: Vec<bool>,
+    pub(super) cov: Option<crate::optimize::PoseCovariance>,
+}
+
+/// Fits the pose from motion-only BA together with the intrinsics that
+/// `uncertain` leaves open (none: the pose as it is), classifies the
+/// inliers again and takes the covariance with those intrinsics
+/// marginalised.
+pub(super) fn fit_hypothesis(
+    cam_from_world: Isometry3<f64>,
+    obs: &[PoseObservation],
+    inliers: &[bool],
+    intr: &Intrinsics,
+    uncertain: &IntrinsicsUncertainty,
+    params: &LocalizeParams,
+) -> Hypothesis {
+    let (cam_from_world, correction, inliers) = if *uncertain == IntrinsicsUncertainty::default() {
+        (
+            cam_from_world,
+            IntrinsicsCorrection::default(),
+            inliers.to_vec(),
+        )
+    } else {
+        let (pose, corr) =
+            refine_pose_and_intrinsics(cam_from_world, obs, inliers, intr, uncertain);
+        let inliers = obs
+            .iter()
+            .map(|o| {
+                corr.project(intr, &(pose * o.p_world).coords)
+                    .is_some_and(|uv| {
+                        (uv - o.uv).norm_squared() * o.inv_sigma2 <= params.pose.chi2_threshold
+                    })
+            })
+            .collect();
+        (pose, corr, inliers)
+    };
+    let cov = pose_covariance(
+        &cam_from_world,
+        obs,
+        &inliers,
+        intr,
+        params.pose.chi2_threshold,
+        None,
+        uncertain,
+        &correction,
+    )
+    .map(|c| c.with_focal_error(params.map_sigma.focal_rel));
+    Hypothesis {
+        cam_from_world,
+        correction,
+        inliers,
+        cov,
+    }
+}
+
+/// The RMS position and rotation (radians) errors of the two hypotheses'
+/// mixture (`p0`, `1 − p0`) about the likelier one's pose: each one's
+/// covariance, plus the other's squared offset weighted by its
+/// probability. None when a hypothesis with weight has no covariance.
+pub(super) fn mixture_sigma(h0: &Hypothesis, h1: &Hypothesis, p0: f64) -> Option<(f64, f64)> {
+    let p1 = 1.0 - p0;
+    // Each hypothesis' own second moments, weighted.
+    let own = |h: &Hypothesis, p: f64| -> Option<(f64, f64)> {
+        if p <= 0.0 {
+            return Some((0.0, 0.0));
+        }
+        let c = h.cov?;
+        Some((
+            p * c.center.trace().max(0.0),
+            p * c.cam_from_world.fixed_view::<3, 3>(3, 3).trace().max(0.0),
+        ))
+    };
+    let (a_pos, a_rot) = own(h0, p0)?;
+    let (b_pos, b_rot) = own(h1, p1)?;
+    // The other hypothesis' offset from the reported one.
+    let w0 = h0.cam_from_world.inverse();
+    let w1 = h1.cam_from_world.inverse();
+    let d_pos = (w0.translation.vector - w1.translation.vector).norm_squared();
+    let d_rot = w0.rotation.angle_to(&w1.rotation).powi(2);
+    let other = p0.min(p1);
+    Some((
+        (a_pos + b_pos + other * d_pos).sqrt(),
+        (a_rot + b_rot + other * d_rot).sqrt(),
+    ))
+}
+
+/// The sigma reported for the final pose: its covariance's (`pose`) and
+/// the map's own error in quadrature, the latter the larger of the floor
+/// `map_sigma` and the RMS `spread` of the agreeing candidates around the
+/// chosen pose (position as a fraction of `median_depth`, rotation in
+/// degrees); the position also as a fraction of `near`, the distance to
+/// the nearest scene content.
+pub(super) fn reported_sigma(
+    pose: &PoseSigma,
+    spread: Option<(f64, f64)>,
+    map_sigma: &MapSigma,
+    median_depth: f64,
+    near: f64,
+) -> PoseSigma {
+    let (map_pos, map_rot) = match spread {
+        Some((pos, rot)) => (
+            pos.max(map_sigma.depth_fraction),
+            rot.max(map_sigma.rotation_deg),
+        ),
+        None => (map_sigma.depth_fraction, map_sigma.rotation_deg),
+    };
+    let position = pose.position.hypot(map_pos * median_depth);
+    PoseSigma {
+        position,
+        position_depth_fraction: position / near.max(1e-12),
+        rotation_deg: pose.rotation_deg.hypot(map_rot),
+    }
+}

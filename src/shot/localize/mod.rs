@@ -1,0 +1,288 @@
+//! Localisation of a desired shot in the map: which camera pose
+//! (`world_from_cam`, map coordinates) takes it.
+//!
+//! 1. ORB on the shot, with the validity mask (the black fill never yields a
+//!    feature).
+//! 2. Candidate keyframes: with a [`BowIndex`], the top k of a bag-of-words
+//!    query of the shot against the keyframe database; without one, every
+//!    keyframe is ranked by descriptor matching (one brute-force pass per
+//!    keyframe, fine for maps of up to a few hundred keyframes). Each
+//!    candidate's map points are matched by descriptor (nearest neighbour
+//!    under a Hamming bound, ratio test, one-to-one).
+//! 3. Per candidate: PnP RANSAC on its matches; then the local map (the
+//!    points of the candidate, its best covisible keyframes and the keyframes
+//!    that observe the points matched so far, most shared points first) is
+//!    projected with that pose and matched in the shot (search by
+//!    projection), and motion-only bundle adjustment (Huber, then outliers
+//!    dropped) refines the pose on all pairs; twice, the second time with the
+//!    local map regrown from the refined matches and a tighter window.
+//!
+//! The shot may come from another camera ([`localize_with_camera`]): its
+//! own intrinsics and distortion are used for the features, the PnP, the
+//! projection (with the predicted pyramid level corrected for the focal
+//! length ratio) and the refinement; [`assumed_camera`] gives the camera of
+//! a resized photo when the intrinsics are not known, and then the map
+//! camera resized and another camera (focal length and distortion fitted
+//! with the pose) are weighed as two hypotheses ([`UnknownFocal`]); the
+//! local map is then searched again through the camera the weighing chose
+//! and both are weighed again on the grown pairs
+//! ([`LocalizeParams::rematch_rounds`]).
+//! 4. A reliability gate: enough inliers, a small reprojection RMSE, a high
+//!    inlier ratio, the inliers in front of the camera, and agreement with
+//!    every other candidate that passes the gate too. The pairs of all
+//!    agreeing candidates then go into one final pose optimisation (the
+//!    union of evidence), kept when it passes the gate too. Failing it gives
+//!    [`Localization::NotLocalized`] with the reason; no pose is returned then.
+
+mod candidates;
+mod covariance;
+mod focal;
+mod gate;
+mod outcome;
+mod params;
+mod projection;
+mod refine;
+
+use image::GrayImage;
+
+pub use self::candidates::{BowIndex, NearKeyframe, nearest_keyframes};
+pub use self::focal::assumed_camera;
+pub use self::outcome::{Localization, NotLocalizedReason, PoseSigma, ShotPose};
+pub use self::params::{
+    EXIF_K1_SIGMA, EXIF_K2_SIGMA, GateParams, LocalizeParams, MapSigma, UnknownFocal,
+};
+
+use self::candidates::{extract_shot_features, rank_candidates};
+use self::covariance::reported_sigma;
+use self::gate::{agreement, gate_reason, union_of_evidence};
+use self::outcome::not;
+use self::projection::{ShotView, frustum_near_depth};
+use self::refine::{CandidatePose, refine_candidate};
+use crate::camera::Camera;
+use crate::matching::{Bounds, FeatureGrid};
+use crate::optimize::{Intrinsics, IntrinsicsCorrection};
+use crate::shot::ShotError;
+use crate::slam::Map;
+
+/// Localises a desired shot taken with the map's camera (see the module
+/// documentation). `mask` (same size as the shot, 0 = no data) keeps
+/// features off the black fill.
+///
+/// Errors: [`ShotError::ImageSize`] when the shot or the mask does not have
+/// the map camera's size; [`ShotError::Features`] when the extractor refuses
+/// the settings.
+pub fn localize(
+    map: &Map,
+    shot: &GrayImage,
+    mask: Option<&GrayImage>,
+    bow_index: Option<&BowIndex<'_>>,
+    params: &LocalizeParams,
+) -> Result<Localization, ShotError> {
+    localize_with_camera(map, &map.camera, shot, mask, bow_index, params)
+}
+
+/// Localises a desired shot taken with `camera` (any intrinsics and size:
+/// a photo from another camera) against `map`; otherwise as [`localize`].
+///
+/// Errors: [`ShotError::ImageSize`] when the shot or the mask does not have
+/// `camera`'s size; [`ShotError::Features`] when the extractor refuses the
+/// settings.
+pub fn localize_with_camera(
+    map: &Map,
+    camera: &Camera,
+    shot: &GrayImage,
+    mask: Option<&GrayImage>,
+    bow_index: Option<&BowIndex<'_>>,
+    params: &LocalizeParams,
+) -> Result<Localization, ShotError> {
+    let cam = camera;
+    let feats = extract_shot_features(map, cam, shot, mask, params)?;
+    let needed = params.min_candidate_matches.max(params.gate.min_inliers);
+    if feats.len() < needed {
+        return Ok(not(NotLocalizedReason::TooFewFeatures {
+            found: feats.len(),
+            needed,
+        }));
+    }
+    let ranked = match rank_candidates(map, &feats, bow_index, params) {
+        Ok(r) => r,
+        Err(reason) => return Ok(not(reason)),
+    };
+
+    let intr = Intrinsics {
+        fx: cam.fx,
+        fy: cam.fy,
+        cx: cam.cx,
+        cy: cam.cy,
+    };
+    let bounds = Bounds::of(cam);
+    let grid = FeatureGrid::new(&feats.keypoints, bounds);
+    // A point at distance d looks, to the shot camera, as it would to the
+    // map camera at d·f_map/f_shot (for the predicted pyramid level).
+    let view = ShotView {
+        cam,
+        bounds,
+        distance_factor: (map.camera.fx + map.camera.fy) / (cam.fx + cam.fy),
+        correction: IntrinsicsCorrection::default(),
+    };
+    let mut poses: Vec<CandidatePose> = Vec::new();
+    let mut tried = 0;
+    for (kf_id, matches) in &ranked {
+        if matches.len() < params.min_candidate_matches {
+            continue;
+        }
+        tried += 1;
+        if let Some(c) = refine_candidate(map, *kf_id, matches, &feats, &grid, &view, &intr, params)
+        {
+            poses.push(c);
+        }
+    }
+    if poses.is_empty() {
+        return Ok(not(NotLocalizedReason::PnpFailed { candidates: tried }));
+    }
+    poses.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rmse.total_cmp(&b.rmse)));
+    let g = &params.gate;
+    if let Some(reason) = gate_reason(&poses[0], g) {
+        return Ok(not(reason));
+    }
+    let agreeing = match agreement(&poses, g) {
+        Ok(a) => a,
+        Err(reason) => return Ok(not(reason)),
+    };
+    let merged = union_of_evidence(map, &feats, &poses[0], &agreeing, &intr, params);
+    let best = merged.as_ref().unwrap_or(&poses[0]);
+    let best_wfc = best.cam_from_world.inverse();
+    let Some(pose_sigma) = best.sigma else {
+        return Ok(not(NotLocalizedReason::NoCovariance));
+    };
+    // The nearest scene content: the matched points may all be far while
+    // nearer mapped content (unmatched from this view) is in the picture.
+    let near = frustum_near_depth(map, &view, &best.cam_from_world)
+        .map_or(best.near_depth, |d| d.min(best.near_depth));
+    let sigma = reported_sigma(
+        &pose_sigma,
+        agreeing.rms_spread(),
+        &params.map_sigma,
+        best.median_depth,
+        near,
+    );
+    if !(sigma.position_depth_fraction <= g.max_position_sigma_depth_fraction
+        && sigma.rotation_deg <= g.max_rotation_sigma_deg)
+    {
+        return Ok(not(NotLocalizedReason::Uncertain {
+            position_depth_fraction: sigma.position_depth_fraction,
+            max_position_depth_fraction: g.max_position_sigma_depth_fraction,
+            rotation_deg: sigma.rotation_deg,
+            max_rotation_deg: g.max_rotation_sigma_deg,
+        }));
+    }
+    Ok(Localization::Localized(ShotPose {
+        world_from_cam: best_wfc,
+        keyframe_id: best.kf,
+        inliers: best.inliers,
+        matches: best.matches,
+        reprojection_rmse_px: best.rmse,
+        inlier_ratio: best.inliers as f64 / best.matches.max(1) as f64,
+        in_front_fraction: best.in_front,
+        median_depth: best.median_depth,
+        agreeing_candidates: agreeing.count,
+        sigma,
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Point2;
+
+    use crate::camera::{Camera, Distortion};
+    use crate::slam::ScaleInfo;
+
+    fn empty_map() -> Map {
+        let cam = Camera::new(
+            320,
+            240,
+            [300.0, 300.0, 160.0, 120.0],
+            Distortion::default(),
+        )
+        .unwrap_or_else(|e| panic!("camera: {e}"));
+        Map::new(cam, ScaleInfo::new(1.2, 8))
+    }
+
+    /// A textured image with plenty of corners.
+    fn checker(w: u32, h: u32) -> GrayImage {
+        GrayImage::from_fn(w, h, |x, y| {
+            let v = ((x / 9 + y / 7) % 2) as u8 * 180 + ((x * 31 + y * 17) % 37) as u8;
+            image::Luma([v])
+        })
+    }
+
+    #[test]
+    fn wrong_sizes_are_errors() {
+        let map = empty_map();
+        let p = LocalizeParams::default();
+        assert!(matches!(
+            localize(&map, &checker(640, 480), None, None, &p),
+            Err(ShotError::ImageSize { width: 640, .. })
+        ));
+        let mask = GrayImage::from_pixel(100, 100, image::Luma([255]));
+        assert!(matches!(
+            localize(&map, &checker(320, 240), Some(&mask), None, &p),
+            Err(ShotError::ImageSize { width: 100, .. })
+        ));
+    }
+
+    #[test]
+    fn assumed_camera_scales_the_map_camera_and_refuses_other_aspects() {
+        let map = empty_map();
+        let c = assumed_camera(&map.camera, 640, 480).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((c.width, c.height), (640, 480));
+        assert!((c.fx - 600.0).abs() < 1e-12 && (c.fy - 600.0).abs() < 1e-12);
+        // Pixel centres: (160 + 0.5)·2 − 0.5.
+        assert!((c.cx - 320.5).abs() < 1e-12 && (c.cy - 240.5).abs() < 1e-12);
+        // The same ray through corresponding pixels.
+        let r0 = map.camera.unproject(Point2::new(10.0, 20.0)).into_inner();
+        let r1 = c.unproject(Point2::new(20.5, 40.5)).into_inner();
+        assert!((r0 - r1).norm() < 1e-12, "{r0} vs {r1}");
+        assert!(matches!(
+            assumed_camera(&map.camera, 400, 240),
+            Err(ShotError::ImageSize { width: 400, .. })
+        ));
+        assert!(assumed_camera(&map.camera, 0, 0).is_err());
+        // A shot must have the size of the camera it is localised with.
+        let p = LocalizeParams::default();
+        assert!(matches!(
+            localize_with_camera(&map, &c, &checker(320, 240), None, None, &p),
+            Err(ShotError::ImageSize {
+                expected_width: 640,
+                ..
+            })
+        ));
+        assert_eq!(
+            localize_with_camera(&map, &c, &checker(640, 480), None, None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::NoCandidate
+            })
+        );
+    }
+
+    #[test]
+    fn empty_map_gives_no_candidate_and_blank_shot_too_few_features() {
+        let map = empty_map();
+        let p = LocalizeParams::default();
+        assert_eq!(
+            localize(&map, &checker(320, 240), None, None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::NoCandidate
+            })
+        );
+        // A fully masked shot yields no feature at all.
+        let mask = GrayImage::new(320, 240);
+        assert!(matches!(
+            localize(&map, &checker(320, 240), Some(&mask), None, &p),
+            Ok(Localization::NotLocalized {
+                reason: NotLocalizedReason::TooFewFeatures { found: 0, .. }
+            })
+        ));
+    }
+}

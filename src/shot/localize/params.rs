@@ -1,0 +1,231 @@
+//! Every tunable number of the localisation: the gate, the matching, the
+//! map's own error and the priors of an unknown camera.
+
+use crate::features;
+use crate::geometry::PnpParams;
+use crate::optimize::{IntrinsicsUncertainty, PoseParams};
+use crate::slam::matcher::MatcherParams;
+
+/// Thresholds of the reliability gate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GateParams {
+    /// Fewest inliers after refinement.
+    pub min_inliers: usize,
+    /// Largest RMSE of the inliers' reprojection errors, pixels.
+    pub max_rmse_px: f64,
+    /// Smallest fraction of the refined pairs that are inliers.
+    pub min_inlier_ratio: f64,
+    /// Smallest fraction of the inliers lying in front of the camera.
+    pub min_in_front_fraction: f64,
+    /// Largest distance between the positions of two gated candidates, as a
+    /// fraction of the scene's median depth.
+    pub max_disagreement_depth_fraction: f64,
+    /// Largest angle between the orientations of two gated candidates, degrees.
+    pub max_disagreement_deg: f64,
+    /// Largest position sigma ([`PoseSigma::position_depth_fraction`]), as
+    /// a fraction of the distance to the nearest scene content.
+    pub max_position_sigma_depth_fraction: f64,
+    /// Largest rotation sigma ([`PoseSigma::rotation_deg`]), degrees.
+    pub max_rotation_sigma_deg: f64,
+}
+
+impl Default for GateParams {
+    fn default() -> Self {
+        GateParams {
+            min_inliers: 30,
+            max_rmse_px: 3.0,
+            min_inlier_ratio: 0.5,
+            min_in_front_fraction: 0.99,
+            max_disagreement_depth_fraction: 0.05,
+            max_disagreement_deg: 2.0,
+            max_position_sigma_depth_fraction: 0.02,
+            max_rotation_sigma_deg: 1.0,
+        }
+    }
+}
+
+/// Every tunable number of the localisation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LocalizeParams {
+    /// ORB settings for the shot (scale factor and levels are taken from the map).
+    pub features: features::Params,
+    /// Candidate keyframes kept.
+    pub top_k: usize,
+    /// Largest Hamming distance of a descriptor match against a candidate.
+    pub max_hamming: u32,
+    /// Ratio test: best distance below `ratio` times the second best.
+    pub ratio: f32,
+    /// Fewest descriptor matches for a keyframe to be tried.
+    pub min_candidate_matches: usize,
+    /// Covisible keyframes of a candidate whose points are projected in the
+    /// first projection round.
+    pub covisible: usize,
+    /// Largest number of keyframes whose points make the local map of the
+    /// later rounds: the keyframes that observe the points matched so far,
+    /// most shared points first (ORB-SLAM's local keyframes).
+    pub local_keyframes: usize,
+    /// Search windows (pixels at level 0) of the projection rounds.
+    pub projection_radius_px: [f64; 2],
+    /// Smallest cosine between the viewing ray and a point's mean viewing
+    /// direction for it to be projected.
+    pub min_view_cos: f64,
+    /// Matcher settings for the search by projection.
+    pub matcher: MatcherParams,
+    /// PnP RANSAC settings.
+    pub pnp: PnpParams,
+    /// Motion-only bundle adjustment settings.
+    pub pose: PoseParams,
+    /// The reliability gate.
+    pub gate: GateParams,
+    /// How well the shot camera's intrinsics are known (zero: exactly, as
+    /// the map camera's or the operator's; a photo's EXIF leaves the focal
+    /// length and the distortion open: [`crate::shot::PhotoCamera`]).
+    /// Widens the reported sigma, never changes the pose.
+    pub camera_uncertainty: IntrinsicsUncertainty,
+    /// The map's own error, which the pose covariance (map points held
+    /// exact) does not see; added to it in quadrature.
+    pub map_sigma: MapSigma,
+    /// Merge the pairs of every agreeing candidate into one final pose
+    /// optimisation (the union of evidence; not for an assumed camera,
+    /// [`LocalizeParams::focal_unknown`]); off: the best candidate's pairs
+    /// alone.
+    pub union_of_evidence: bool,
+    /// True when the shot camera is only assumed: a photo of another size
+    /// than the map camera's, without EXIF or given intrinsics, taken with
+    /// the map camera scaled ([`assumed_camera`]). Its focal length and
+    /// distortion are then estimated too, and the two explanations weighed
+    /// ([`UnknownFocal`]).
+    pub focal_unknown: bool,
+    /// The priors of that weighing.
+    pub unknown_focal: UnknownFocal,
+    /// For such a photo, projection rounds through the camera the weighing
+    /// chose after the first fit (the local map searched again with the
+    /// estimated focal length and distortion, both cameras weighed again
+    /// on the grown pairs); 0: none.
+    pub rematch_rounds: usize,
+    /// Seed of the RANSAC.
+    pub seed: u64,
+}
+
+impl Default for LocalizeParams {
+    fn default() -> Self {
+        let features = features::Params {
+            n_features: 1500,
+            ..features::Params::default()
+        };
+        let pnp = PnpParams {
+            min_inliers: 12,
+            max_iterations: 2000,
+            ..PnpParams::default()
+        };
+        LocalizeParams {
+            features,
+            top_k: 5,
+            max_hamming: 50,
+            ratio: 0.8,
+            min_candidate_matches: 15,
+            covisible: 10,
+            local_keyframes: 20,
+            projection_radius_px: [5.0, 2.5],
+            min_view_cos: 0.5,
+            matcher: MatcherParams {
+                th_high: 64,
+                ..MatcherParams::default()
+            },
+            pnp,
+            pose: PoseParams::default(),
+            gate: GateParams::default(),
+            camera_uncertainty: IntrinsicsUncertainty::default(),
+            map_sigma: MapSigma::default(),
+            union_of_evidence: true,
+            focal_unknown: false,
+            unknown_focal: UnknownFocal::default(),
+            rematch_rounds: 1,
+            seed: 1,
+        }
+    }
+}
+
+/// The map's own error as the localisation's sigma includes it: the larger
+/// of this floor and the spread of the poses of the agreeing candidates
+/// (each refined on its own local map) around the chosen one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapSigma {
+    /// Position, as a fraction of the median depth of the inliers.
+    pub depth_fraction: f64,
+    /// Rotation, degrees.
+    pub rotation_deg: f64,
+    /// The map's error as a focal length estimated with the pose sees it
+    /// (a photo known by its EXIF, or whose camera was only assumed), in
+    /// the focal length's log: a stretch of the local map across the view
+    /// against along it reads as a focal length change, and the pose
+    /// follows it along the optical axis. The residuals cannot show it (the
+    /// focal length absorbs it), so the pose covariance gets it as a
+    /// further independent error of the focal length
+    /// ([`crate::optimize::PoseCovariance::with_focal_error`]).
+    pub focal_rel: f64,
+}
+
+impl Default for MapSigma {
+    /// Position and rotation calibrated on the simulator's explore map (`tests/shot_photos.rs`):
+    /// photos of the map camera under the flight's light are off by 0.21 %
+    /// of the distance and 0.14 degrees (medians) while their pose
+    /// covariance alone says a few hundredths of that; for a 3-D Gaussian
+    /// the median error is 0.89 sigma.
+    fn default() -> Self {
+        let depth_fraction = 0.0025;
+        MapSigma {
+            depth_fraction,
+            rotation_deg: 0.16,
+            // A stretch is the difference of two points' errors (each
+            // `depth_fraction` of the depth) over a span of the order of
+            // the depth: √2·depth_fraction, 0.35 %. On the explore map the
+            // focal lengths fitted to the other camera's photos are off by
+            // 0.30 % and 0.33 % (median |error|, poses of seeds 1 and 2,
+            // no EXIF) where their covariance alone says 0.2 %.
+            focal_rel: std::f64::consts::SQRT_2 * depth_fraction,
+        }
+    }
+}
+
+/// A photo whose camera is only assumed ([`LocalizeParams::focal_unknown`])
+/// has two explanations: H0, the map camera's frame resized (the assumed
+/// camera exact), and H1, another camera (focal length and distortion
+/// unknown, with these priors around the assumed ones). Both are fitted
+/// with the pose; H0's posterior probability comes from its prior and the
+/// Savage-Dickey density ratio (H1's posterior density of the intrinsics
+/// at H0's values over its prior density there), and the reported sigma is
+/// the second moment of the two hypotheses' mixture about the likelier
+/// one's pose. When the data cannot tell the focal length (a far, shallow
+/// scene) the mixture keeps H1's wide spread and the gate refuses; when
+/// they pin it, the likelier camera wins and the pose is its.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UnknownFocal {
+    /// Prior probability of H0 (the photo is a resized frame of the map
+    /// camera).
+    pub same_camera_prior: f64,
+    /// H1's prior sigma of the focal length's log (0.35: a factor of 2 at
+    /// 2 sigma, ultra-wide to short tele).
+    pub focal_log_sigma: f64,
+    /// H1's prior sigma of the radial distortion's `k1`.
+    pub k1_sigma: f64,
+    /// H1's prior sigma of `k2`.
+    pub k2_sigma: f64,
+}
+
+impl Default for UnknownFocal {
+    fn default() -> Self {
+        UnknownFocal {
+            same_camera_prior: 0.5,
+            focal_log_sigma: 0.35,
+            k1_sigma: EXIF_K1_SIGMA,
+            k2_sigma: EXIF_K2_SIGMA,
+        }
+    }
+}
+
+/// The radial distortion an unknown lens may have, as a sigma of `k1`:
+/// phone and drone cameras correct theirs in the camera to well within it.
+pub const EXIF_K1_SIGMA: f64 = 0.05;
+/// The same for the r⁴ coefficient `k2`.
+pub const EXIF_K2_SIGMA: f64 = 0.02;
