@@ -8,7 +8,7 @@ use image::GrayImage;
 
 use super::persist::{set_aside, unused_name};
 use super::slam_shared::{MapSource, ProcessOutcome, SlamShared};
-use crate::api::{KeyframeInfo, LoopInfo, MapStart, MapView, TrackedFrame};
+use crate::api::{KeyframeInfo, LoopInfo, MapStart, MapView, MergeInfo, TrackedFrame};
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::shot::record::PoseJson;
@@ -166,6 +166,7 @@ pub fn make_processor(
         shared,
         awaiting_reloc,
         loops_seen: 0,
+        merges_seen: 0,
     })
 }
 
@@ -253,6 +254,8 @@ pub struct SlamProcessor {
     awaiting_reloc: bool,
     /// Loops closed already passed to the status.
     loops_seen: usize,
+    /// Merges already passed to the status.
+    merges_seen: usize,
 }
 
 fn state_name(s: TrackState) -> &'static str {
@@ -328,6 +331,28 @@ impl FrameProcessor for SlamProcessor {
                 at_unix: unix_now(),
             });
         }
+        // Maps merged by the mapping thread since the last frame (the
+        // same path as the loops: status `slam.merges`, the /events stream).
+        for m in self.slam.merges_since(self.merges_seen) {
+            self.merges_seen += 1;
+            self.shared.add_merge(MergeInfo {
+                current_kf: u64::from(m.current.0),
+                merge_kf: u64::from(m.merge_kf.0),
+                current_t: m.current_t,
+                merge_t: m.merge_t,
+                from_map: m.from_map.0,
+                into_map: m.into_map.0,
+                inliers: m.inliers,
+                projection_matches: m.projection_matches,
+                scale: m.scale,
+                keyframes_moved: m.keyframes_moved,
+                fused: m.fused,
+                correction_ms: m.correction_ms,
+                at_unix: unix_now(),
+            });
+        }
+        self.shared
+            .set_maps_started(self.slam.map_starts().len() as u64);
         if self.awaiting_reloc && out.state == TrackState::Tracking {
             self.awaiting_reloc = false;
             tracing::info!(
