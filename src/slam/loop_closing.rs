@@ -36,7 +36,40 @@
 //! of weight ≥ `essential_min_weight`, all loop edges, the new loop
 //! connections) is optimised in Sim(3) with the loop keyframe fixed
 //! ([`crate::optimize::optimize_pose_graph`]); every point then follows
-//! the keyframe it was corrected with (or its reference keyframe).
+//! the keyframe it was corrected with (or its reference keyframe). Loops
+//! are looked for inside the keyframe's own map only.
+//!
+//! Map merging (ORB-SLAM3's "welding" merge, monocular): after a tracking
+//! loss tracking starts a new map ([`super::tracking`]); the map holds
+//! every map of the atlas ([`super::map::MapId`]). Before looking for a
+//! loop at a keyframe of the active map, the closer looks for a place of
+//! another map:
+//! 1. BoW candidates in the other maps only, by normalised score without
+//!    the loop's score floor or words-in-common pre-filter (a young map's
+//!    keyframes resemble each other far more than any view of the old map,
+//!    and the old map's two initialisation keyframes, with twice the
+//!    features, share the most words with anything);
+//! 2. the same consistency over `consistency` keyframes, the same Sim(3)
+//!    RANSAC, guided search, refinement and projection check as a loop,
+//!    but not the drift bounds (two maps' frames and scales are unrelated);
+//! 3. agreement: the map similarity (old world ← active world) found at
+//!    this keyframe must agree with the one found at the previous keyframe
+//!    (`merge_confirmations` in a row: scale ratio, rotation, and where
+//!    both put the current camera relative to the old keyframe's scene
+//!    depth); a look-alike place gives a similarity that the next keyframe
+//!    does not confirm.
+//!
+//! The merge: the whole active map (keyframes, culled keyframes, points)
+//! is moved by the similarity into the old map's frame and becomes part of
+//! it ([`Map::merge_maps`]: its spanning tree hangs from the old keyframe
+//! through the current one); the place's points are fused as for a loop;
+//! a bundle adjustment welds the current keyframe's neighbourhood to the
+//! old keyframe's (the old side fixed); then the essential graph of the
+//! merged map is optimised with every keyframe of the old map fixed, so
+//! the weld's correction spreads over the new part. Tracking follows:
+//! its records and its motion model on the moved keyframes scale with the
+//! similarity ([`super::Tracker::follow_merges`]). Each merge's summary
+//! goes to a shared [`MergeLog`], which the daemon reports as loops.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Mutex;

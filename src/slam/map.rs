@@ -1,12 +1,20 @@
 //! The map: keyframes and map points in arenas with typed ids, observations
 //! kept both ways, the covisibility graph with weights and its spanning tree.
 //!
+//! It is an atlas: every keyframe belongs to one map ([`MapId`]; a point to
+//! its observers' map). Tracking extends the active map; after a tracking
+//! loss a new map is started beside the old ones ([`Map::start_map`]), and
+//! loop closing merges it into an old one ([`Map::merge_maps`]) when it sees
+//! a common place. Each map has its own root keyframe (the first, never
+//! culled, the gauge of its bundle adjustments).
+//!
 //! Invariants (checked by [`Map::check_invariants`]):
 //! - a point lists keyframe `k` at keypoint `i` exactly when keyframe `k`'s
 //!   slot `i` holds that point;
 //! - no live object refers to an erased id;
 //! - covisibility weights are symmetric;
-//! - the place index (BoW database) holds exactly the indexed live keyframes.
+//! - the place index (BoW database) holds exactly the indexed live keyframes;
+//! - no covisibility edge, parent link or point joins two maps.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};

@@ -9,7 +9,10 @@
 //! mapped keyframe on the mapping thread (inline in sequential mode), so
 //! it never races local BA; its correction holds the map lock, as
 //! ORB-SLAM's holds the map-update mutex, and tracking re-places its last
-//! frame on the corrected reference keyframe.
+//! frame on the corrected reference keyframe. After a tracking loss a new
+//! map is started beside the old one (the [`Map`] is an atlas) and the
+//! loop closer merges them when it finds a common place; with telemetry
+//! priors no new map is started (tracking relocalises).
 //!
 //! # Layout
 //!

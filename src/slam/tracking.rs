@@ -5,7 +5,13 @@
 //! (`slam/keyframe_decision.rs`). States: not initialised
 //! ([`super::initializer`] builds the map), tracking, lost (the
 //! relocaliser, `slam/relocalizer.rs`, finds the frame again through the
-//! keyframe database).
+//! keyframe database, in any map of the atlas). Lost for
+//! [`TrackingParams::new_map_after_lost_frames`] frames after tracking, a
+//! new map starts at once: the initializer takes the next frames while
+//! relocalisation into the old maps is still tried on each (success
+//! abandons the new map); loop closing merges it back later
+//! ([`super::loop_closing`]). A map loaded from a file starts lost and only
+//! relocalises until its first tracked frame.
 
 use std::sync::{Arc, Mutex};
 
