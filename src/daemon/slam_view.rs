@@ -410,10 +410,14 @@ impl MapSource for SlamMapSource {
     fn pin_keyframe(&self, id: u64) -> bool {
         u32::try_from(id).is_ok_and(|id| self.lock().pin_keyframe(KeyFrameId(id)))
     }
+    /// The first map's keyframes (a map started after a tracking loss is
+    /// in its own frame until it is merged: it is not shown).
     fn keyframes(&self) -> Vec<KeyframeInfo> {
         let m = self.lock();
+        let first = m.first_map();
         let mut v: Vec<KeyframeInfo> = m
             .keyframes()
+            .filter(|k| m.map_of(k.id) == first)
             .map(|k| {
                 let (width, height) = k.image.as_ref().map_or((0, 0), |i| i.dimensions());
                 KeyframeInfo {
@@ -435,15 +439,21 @@ impl MapSource for SlamMapSource {
     }
 
     fn snapshot(&self) -> Option<Map> {
-        Some(self.lock().clone())
+        let m = self.lock();
+        Some(match m.first_map() {
+            Some(first) if m.maps().len() > 1 => m.only(first),
+            _ => m.clone(),
+        })
     }
 
     fn map(&self, max_points: usize) -> MapView {
         let m = self.lock();
+        let first = m.first_map();
         let total = m.point_count();
         let step = total.div_ceil(max_points.max(1)).max(1);
         let points = m
             .points()
+            .filter(|p| m.map_of_point(p.id) == first)
             .step_by(step)
             .take(max_points)
             .map(|p| {
@@ -456,6 +466,7 @@ impl MapSource for SlamMapSource {
             .collect();
         let mut kfs: Vec<_> = m
             .keyframes()
+            .filter(|k| m.map_of(k.id) == first)
             .map(|k| (k.id.0, slam::center_of(&k.cam_from_world)))
             .collect();
         kfs.sort_by_key(|k| k.0);

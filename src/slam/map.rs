@@ -573,6 +573,24 @@ impl Map {
         self.roots.get(&id).copied()
     }
 
+    /// The map of the oldest live keyframe: the one the first frames were
+    /// tracked in, with every map merged into it (what the daemon shows and
+    /// georeferences while a newer map is not merged yet).
+    pub fn first_map(&self) -> Option<MapId> {
+        self.keyframes().next().and_then(|k| self.map_of(k.id))
+    }
+
+    /// This map with every map but `id` erased (a snapshot of one map).
+    pub fn only(&self, id: MapId) -> Map {
+        let mut m = self.clone();
+        for (other, _) in self.maps() {
+            if other != id {
+                m.discard_map(other);
+            }
+        }
+        m
+    }
+
     /// The merges so far, in order.
     pub fn merges(&self) -> &[MergeRecord] {
         &self.merges
@@ -1661,6 +1679,71 @@ mod tests {
         }
         let p = m.point(PointId(4)).unwrap();
         assert!((p.position - s.transform_point(&p_before)).norm() < 1e-9);
+        m.check_invariants().unwrap();
+    }
+
+    /// A second map beside `map_with`'s, merged into it by a similarity:
+    /// the keyframes move, the tree stays a tree, one map is left.
+    #[test]
+    fn a_second_map_is_kept_apart_then_merged() {
+        let mut m = map_with(3, 10);
+        assert_eq!(m.first_map(), Some(MapId(0)));
+        let b = m.start_map();
+        assert_eq!(b, MapId(1));
+        let ids: Vec<KeyFrameId> = (0..3)
+            .map(|i| m.add_keyframe(kf(10, 5.0 + i as f64)))
+            .collect();
+        for j in 0..10 {
+            let p = m.add_point(
+                Point3::new(j as f64 * 0.01, 1.0, 2.0),
+                [j as u64; 4],
+                ids[0],
+            );
+            for &k in &ids {
+                assert!(m.add_observation(p, k, j as u32));
+            }
+            m.update_point_normal_and_depth(p);
+        }
+        for &k in &ids {
+            m.update_connections(k);
+        }
+        m.check_invariants().unwrap();
+        assert_eq!(m.maps(), vec![(MapId(0), 3), (MapId(1), 3)]);
+        assert_eq!(m.root_of(b), Some(ids[0]));
+        assert_eq!(m.keyframe(ids[0]).unwrap().parent, None, "a new map's root");
+        assert_eq!(m.only(MapId(0)).keyframe_count(), 3);
+        // Merge: the new map moved by s into map 0, hung from keyframe 2
+        // through its keyframe ids[2].
+        let s = Sim3::new(
+            nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.1, 0.0),
+            Vector3::new(1.0, 0.0, 0.0),
+            2.0,
+        );
+        let before = m.keyframe(ids[1]).unwrap().world_from_cam();
+        assert!(
+            !m.merge_maps(b, MapId(0), &s, KeyFrameId(2), ids[2]),
+            "wrong sides"
+        );
+        assert!(m.merge_maps(b, MapId(0), &s, ids[2], KeyFrameId(2)));
+        m.check_invariants().unwrap();
+        assert_eq!(m.maps(), vec![(MapId(0), 6)]);
+        assert_eq!(m.active_map(), MapId(0));
+        let after = m.keyframe(ids[1]).unwrap().world_from_cam();
+        let want = s.transform_pose(&before);
+        assert!((after.translation.vector - want.translation.vector).norm() < 1e-9);
+        assert_eq!(m.keyframe(ids[2]).unwrap().parent, Some(KeyFrameId(2)));
+        assert!(
+            m.keyframe(ids[0]).unwrap().parent.is_some(),
+            "the old root hangs below"
+        );
+        assert_eq!(m.merges().len(), 1);
+        assert_eq!(m.merges()[0].keyframes, ids);
+        // A new map whose initialisation failed is erased, the rest kept.
+        let c = m.start_map();
+        let k = m.add_keyframe(kf(10, 9.0));
+        m.discard_map(c);
+        assert!(m.keyframe(k).is_none());
+        assert_eq!(m.discarded(), &[k]);
         m.check_invariants().unwrap();
     }
 
