@@ -11,9 +11,9 @@ use std::time::Duration;
 use image::{GrayImage, Luma};
 use serde_json::{Value, json};
 use shotpilot::api::{
-    self, ApiParams, AppState, BoxFuture, KeyframeInfo, LoopInfo, MapView, MissionProgressView,
-    SlamStatus, SlamView, StopOutcome, VehicleError, VehicleMissionView, VehicleStatus,
-    VehicleView,
+    self, ApiParams, AppState, BoxFuture, KeyframeInfo, LoopInfo, MapView, MergeInfo,
+    MissionProgressView, SlamStatus, SlamView, StopOutcome, VehicleError, VehicleMissionView,
+    VehicleStatus, VehicleView,
 };
 use shotpilot::shot::record::{
     Localisation, MissionRecord, MissionState, PhotoIntrinsics, PoseJson, Shot,
@@ -51,6 +51,23 @@ impl SlamView for FakeSlam {
                 rotation_deg: 0.35,
                 fused: 280,
                 correction_ms: 80.0,
+                at_unix: 1.0e9,
+            }],
+            maps_started: 1,
+            merges_made: 1,
+            merges: vec![MergeInfo {
+                current_kf: 304,
+                merge_kf: 3,
+                current_t: 99.7,
+                merge_t: 1.3,
+                from_map: 1,
+                into_map: 0,
+                inliers: 302,
+                projection_matches: 493,
+                scale: 0.97,
+                keyframes_moved: 118,
+                fused: 1006,
+                correction_ms: 150.0,
                 at_unix: 1.0e9,
             }],
             ..Default::default()
@@ -795,6 +812,12 @@ fn events_and_video_are_served() {
     assert_eq!(status["slam"]["loops"][0]["current_kf"], 1, "{status:#}");
     assert_eq!(status["slam"]["loops"][0]["loop_kf"], 0, "{status:#}");
     assert_eq!(status["slam"]["loops"][0]["scale"], 0.98, "{status:#}");
+    // And the maps merged after a tracking loss, on the same path.
+    assert_eq!(status["slam"]["maps_started"], 1, "{status:#}");
+    assert_eq!(status["slam"]["merges_made"], 1, "{status:#}");
+    assert_eq!(status["slam"]["merges"][0]["current_kf"], 304, "{status:#}");
+    assert_eq!(status["slam"]["merges"][0]["from_map"], 1, "{status:#}");
+    assert_eq!(status["slam"]["merges"][0]["into_map"], 0, "{status:#}");
 
     // Video: frames pushed into the ingest come out of /video.mjpg, read by
     // the daemon's own MJPEG client.

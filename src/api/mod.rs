@@ -20,9 +20,9 @@ pub use events::{
 };
 pub use views::{
     AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, LoopInfo, MapSaved, MapStart,
-    MapView, MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome, StopView,
-    TargetView, TrackedFrame, VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition,
-    VehicleStatus, VehicleView, WriteFailure,
+    MapView, MergeInfo, MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome,
+    StopView, TargetView, TrackedFrame, VehicleError, VehicleGimbal, VehicleMissionView,
+    VehiclePosition, VehicleStatus, VehicleView, WriteFailure,
 };
 
 use std::sync::Arc;

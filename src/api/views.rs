@@ -57,11 +57,52 @@ pub struct SlamStatus {
     /// The latest loops closed, oldest first (at most
     /// [`SlamStatus::MAX_LOOPS`]).
     pub loops: Vec<LoopInfo>,
+    /// New maps started after tracking losses since the SLAM started.
+    pub maps_started: u64,
+    /// Maps merged since the SLAM started.
+    pub merges_made: u64,
+    /// The latest merges, oldest first (at most
+    /// [`SlamStatus::MAX_MERGES`]).
+    pub merges: Vec<MergeInfo>,
 }
 
 impl SlamStatus {
     /// Loops the status lists at most (the count goes on).
     pub const MAX_LOOPS: usize = 20;
+    /// Merges the status lists at most (the count goes on).
+    pub const MAX_MERGES: usize = 20;
+}
+
+/// A map started after a tracking loss merged into an older one, as the
+/// status reports it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MergeInfo {
+    /// The keyframe of the new map that saw the old place.
+    pub current_kf: u64,
+    /// The old map's keyframe it matched.
+    pub merge_kf: u64,
+    /// Capture time of the current keyframe, seconds (the keyframes' clock).
+    pub current_t: f64,
+    /// Capture time of the old keyframe, seconds.
+    pub merge_t: f64,
+    /// The map merged (it no longer exists).
+    pub from_map: u32,
+    /// The map it joined.
+    pub into_map: u32,
+    /// Inliers of the Sim(3).
+    pub inliers: usize,
+    /// Keypoints matched by projection through the Sim(3).
+    pub projection_matches: usize,
+    /// Scale of the similarity (old map units per merged map unit).
+    pub scale: f64,
+    /// Keyframes moved into the old map.
+    pub keyframes_moved: usize,
+    /// Points fused.
+    pub fused: usize,
+    /// Time the merge took, ms.
+    pub correction_ms: f64,
+    /// When the daemon saw the merge, unix seconds.
+    pub at_unix: f64,
 }
 
 /// A loop closed by the SLAM, as the status reports it.

@@ -76,6 +76,26 @@ pub struct SlamArgs {
     /// it there. Without the file the run is vision-only.
     #[arg(long)]
     pub priors: bool,
+    /// Replace COUNT frames from frame START on by black frames (a forced
+    /// tracking loss); may be given more than once.
+    #[arg(long, value_name = "START:COUNT", value_parser = parse_blackout)]
+    pub blackout: Vec<(usize, usize)>,
+    /// After a tracking loss, only relocalise (no new map).
+    #[arg(long)]
+    pub no_new_maps: bool,
+    /// Start new maps after a loss but never merge them.
+    #[arg(long)]
+    pub no_merging: bool,
+}
+
+/// `START:COUNT` of `--blackout`.
+fn parse_blackout(s: &str) -> std::result::Result<(usize, usize), String> {
+    let (a, b) = s
+        .split_once(':')
+        .ok_or_else(|| format!("{s:?}: expected START:COUNT"))?;
+    let start = a.trim().parse().map_err(|e| format!("{a:?}: {e}"))?;
+    let count = b.trim().parse().map_err(|e| format!("{b:?}: {e}"))?;
+    Ok((start, count))
 }
 
 /// The trajectory moved by a similarity.
@@ -147,11 +167,15 @@ pub fn run(args: SlamArgs) -> Result<()> {
     params.tracking.features.n_features = args.features;
     params.tracking.init_features = args.features * 2;
     params.tracking.seed = args.seed;
+    if args.no_new_maps {
+        params.tracking.new_map_after_lost_frames = None;
+    }
     if args.no_loop_closing {
         params.loop_closing = None;
     } else if let Some(l) = &mut params.loop_closing {
         l.seed = args.seed;
         l.refit_on_projection = args.loop_refit;
+        l.merging = !args.no_merging;
         if args.loop_global_ba {
             l.global_ba = Some(BaParams::default());
         }
@@ -184,11 +208,17 @@ pub fn run(args: SlamArgs) -> Result<()> {
     // Decode frames ahead on a reader thread (decoding is not tracking).
     let (tx, rx) = sync_channel(8);
     let reader_ds = ds.clone();
+    let blackout = args.blackout.clone();
     let reader = std::thread::Builder::new()
         .name("frame-reader".into())
         .spawn(move || {
             for i in 0..n {
-                let f = reader_ds.frame(i);
+                let mut f = reader_ds.frame(i);
+                if blackout.iter().any(|&(a, c)| i >= a && i < a + c)
+                    && let Ok(fr) = &mut f
+                {
+                    fr.image = image::GrayImage::new(fr.image.width(), fr.image.height());
+                }
                 let stop = f.is_err();
                 if tx.send(f).is_err() || stop {
                     break;
@@ -386,6 +416,73 @@ pub fn run(args: SlamArgs) -> Result<()> {
             })
         })
         .collect();
+    // Each merge: the old map's and the new map's keyframes' ATE before
+    // it (each aligned on its own), the merged map's after, and the
+    // ground-truth distance of the two keyframes it joined.
+    let merges: Vec<serde_json::Value> = run
+        .merges
+        .iter()
+        .map(|m| {
+            let ate_of = |t: &Trajectory| {
+                gt.as_ref()
+                    .and_then(|g| eval::evaluate(g, t, &eval_params).ok())
+                    .map(|e| e.ate.rmse)
+            };
+            let s = &m.summary;
+            let gap = match (gt_at(s.current_t), gt_at(s.merge_t)) {
+                (Some(a), Some(b)) => Some((a - b).norm()),
+                _ => None,
+            };
+            json!({
+                "current_kf": s.current.0,
+                "merge_kf": s.merge_kf.0,
+                "current_t": s.current_t,
+                "merge_t": s.merge_t,
+                "from_map": s.from_map.0,
+                "into_map": s.into_map.0,
+                "inliers": s.inliers,
+                "projection_matches": s.projection_matches,
+                "scale": s.scale,
+                "keyframes_moved": s.keyframes_moved,
+                "fused": s.fused,
+                "graph_edges": m.graph_edges,
+                "correction_ms": s.correction_ms,
+                "old_map_keyframes_ate_before_m": ate_of(&m.old_map_before),
+                "new_map_keyframes_ate_before_m": ate_of(&m.new_map_before),
+                "keyframes_ate_after_m": ate_of(&m.keyframes_after),
+                "gt_distance_m": gap,
+            })
+        })
+        .collect();
+    let map_starts: Vec<serde_json::Value> = run
+        .map_starts
+        .iter()
+        .map(|m| {
+            json!({
+                "map": m.map.0,
+                "lost_at_frame": m.lost_at,
+                "started_at_frame": m.started_at,
+                "initialized_at_frame": m.initialized_at,
+                "relocalized_at_frame": m.relocalized_at,
+            })
+        })
+        .collect();
+    let maps_at_end: Vec<serde_json::Value> = run
+        .map
+        .maps()
+        .iter()
+        .map(|(id, n)| json!({"map": id.0, "keyframes": n, "frames": run.trajectory_in(*id).len()}))
+        .collect();
+    let mut merge_refusals: std::collections::BTreeMap<String, (usize, usize)> = Default::default();
+    for r in &run.merge_refusals {
+        let far = match (gt_at(r.current_t), gt_at(r.candidate_t)) {
+            (Some(a), Some(b)) => (a - b).norm() > 10.0,
+            _ => false,
+        };
+        let e = merge_refusals.entry(format!("{:?}", r.reason)).or_default();
+        e.0 += 1;
+        e.1 += usize::from(far);
+    }
     let revisit = ate.as_ref().and_then(|e| revisit_drift(e, 10.0));
     // Refused consistent candidates by the check they failed, and how many
     // of them the ground truth puts more than 10 m from the keyframe that
@@ -474,6 +571,18 @@ pub fn run(args: SlamArgs) -> Result<()> {
             "ned_scale_error": ned_eval.as_ref().map(|e| e.1.alignment.scale - 1.0),
         });
         if let (Some(o), serde_json::Value::Object(n)) = (out.as_object_mut(), ned) {
+            o.extend(n);
+        }
+        let atlas = json!({
+            "blackout": args.blackout,
+            "new_maps": !args.no_new_maps,
+            "merging": !args.no_merging && !args.no_loop_closing,
+            "map_starts": map_starts,
+            "merges": merges,
+            "merge_refusals": merge_refusals.iter().map(|(r, (n, far))| json!({"reason": r, "count": n, "gt_farther_than_10m": gt.is_some().then_some(far)})).collect::<Vec<_>>(),
+            "maps_at_end": maps_at_end,
+        });
+        if let (Some(o), serde_json::Value::Object(n)) = (out.as_object_mut(), atlas) {
             o.extend(n);
         }
         println!("{out}");
@@ -602,6 +711,67 @@ pub fn run(args: SlamArgs) -> Result<()> {
                 l["graph_edges"],
                 l["correction_ms"].as_f64().unwrap_or(0.0),
                 f("keyframes_ate_before_m"),
+                f("keyframes_ate_after_m"),
+                f("gt_distance_m"),
+            );
+        }
+        for m in &run.map_starts {
+            let opt = |v: Option<u64>| v.map_or("-".to_string(), |v| v.to_string());
+            println!(
+                "new map {} after a loss at frame {}: initialising from frame {}, initialised at frame {}{}",
+                m.map.0,
+                m.lost_at,
+                m.started_at,
+                opt(m.initialized_at),
+                m.relocalized_at.map_or(String::new(), |r| format!(
+                    ", abandoned: relocalised at frame {r}"
+                ))
+            );
+        }
+        let mrejects: Vec<String> = merge_refusals
+            .iter()
+            .map(|(r, (n, far))| format!("{r} {n} ({far} more than 10 m apart)"))
+            .collect();
+        println!(
+            "{} maps started, {} merges{}; maps at the end: {}",
+            run.map_starts.len(),
+            run.merges.len(),
+            if mrejects.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    " (consistent merge candidates refused: {})",
+                    mrejects.join(", ")
+                )
+            },
+            maps_at_end
+                .iter()
+                .map(|m| format!(
+                    "map {} ({} keyframes, {} frames)",
+                    m["map"], m["keyframes"], m["frames"]
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        for m in &merges {
+            let f = |k: &str| m[k].as_f64().map_or("-".to_string(), |v| format!("{v:.4}"));
+            println!(
+                "  merge map {} -> {}: keyframe {} (t {:.2} s) -> {} (t {:.2} s): {} Sim(3) inliers, {} matches by projection, scale {:.4}, {} keyframes moved, {} fused, {} graph edges, {:.1} ms; keyframes ATE before: old map {} m, new map {} m (each aligned alone), merged after {} m; ground-truth distance of the two keyframes {} m",
+                m["from_map"],
+                m["into_map"],
+                m["current_kf"],
+                m["current_t"].as_f64().unwrap_or(0.0),
+                m["merge_kf"],
+                m["merge_t"].as_f64().unwrap_or(0.0),
+                m["inliers"],
+                m["projection_matches"],
+                m["scale"].as_f64().unwrap_or(0.0),
+                m["keyframes_moved"],
+                m["fused"],
+                m["graph_edges"],
+                m["correction_ms"].as_f64().unwrap_or(0.0),
+                f("old_map_keyframes_ate_before_m"),
+                f("new_map_keyframes_ate_before_m"),
                 f("keyframes_ate_after_m"),
                 f("gt_distance_m"),
             );

@@ -10,8 +10,8 @@ use std::time::Duration;
 use image::GrayImage;
 
 use crate::api::{
-    KeyframeInfo, LoopInfo, MapSaved, MapStart, MapView, SlamStatus, SlamView, TrackedFrame,
-    WriteFailure,
+    KeyframeInfo, LoopInfo, MapSaved, MapStart, MapView, MergeInfo, SlamStatus, SlamView,
+    TrackedFrame, WriteFailure,
 };
 use crate::slam::Map;
 use crate::video::live::{Frame, RateMeter, unix_now};
@@ -121,6 +121,24 @@ impl SlamShared {
             let extra = loops.len() - SlamStatus::MAX_LOOPS;
             loops.drain(..extra);
         }
+    }
+
+    /// Record a merge: counted, and listed among the latest
+    /// [`SlamStatus::MAX_MERGES`].
+    pub fn add_merge(&self, info: MergeInfo) {
+        let mut g = self.lock();
+        g.status.merges_made += 1;
+        let merges = &mut g.status.merges;
+        merges.push(info);
+        if merges.len() > SlamStatus::MAX_MERGES {
+            let extra = merges.len() - SlamStatus::MAX_MERGES;
+            merges.drain(..extra);
+        }
+    }
+
+    /// Record how many new maps tracking started after losses.
+    pub fn set_maps_started(&self, n: u64) {
+        self.lock().status.maps_started = n;
     }
 
     /// Record the newest tracked frame.
@@ -305,5 +323,42 @@ mod tests {
         assert_eq!(s.loops.len(), SlamStatus::MAX_LOOPS);
         assert_eq!(s.loops.first().unwrap().current_kf, 310);
         assert_eq!(s.loops.last().unwrap().current_kf, 329);
+    }
+
+    #[test]
+    fn merges_are_counted_and_the_latest_listed() {
+        let shared = SlamShared::new(true);
+        let merge = |current_kf: u64| MergeInfo {
+            current_kf,
+            merge_kf: 3,
+            current_t: 99.7,
+            merge_t: 1.3,
+            from_map: 1,
+            into_map: 0,
+            inliers: 302,
+            projection_matches: 493,
+            scale: 0.97,
+            keyframes_moved: 118,
+            fused: 1006,
+            correction_ms: 150.0,
+            at_unix: 1.0,
+        };
+        let s = shared.status();
+        assert_eq!((s.maps_started, s.merges_made), (0, 0));
+        shared.set_maps_started(1);
+        shared.add_merge(merge(304));
+        let v = serde_json::to_value(shared.status()).unwrap();
+        assert_eq!(v["maps_started"], 1);
+        assert_eq!(v["merges_made"], 1);
+        assert_eq!(v["merges"][0]["current_kf"], 304);
+        assert_eq!(v["merges"][0]["from_map"], 1);
+        assert_eq!(v["merges"][0]["into_map"], 0);
+        for k in 0..25 {
+            shared.add_merge(merge(400 + k));
+        }
+        let s = shared.status();
+        assert_eq!(s.merges_made, 26);
+        assert_eq!(s.merges.len(), SlamStatus::MAX_MERGES);
+        assert_eq!(s.merges.last().unwrap().current_kf, 424);
     }
 }

@@ -8,7 +8,7 @@ use image::GrayImage;
 
 use super::persist::{set_aside, unused_name};
 use super::slam_shared::{MapSource, ProcessOutcome, SlamShared};
-use crate::api::{KeyframeInfo, LoopInfo, MapStart, MapView, TrackedFrame};
+use crate::api::{KeyframeInfo, LoopInfo, MapStart, MapView, MergeInfo, TrackedFrame};
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::shot::record::PoseJson;
@@ -166,6 +166,7 @@ pub fn make_processor(
         shared,
         awaiting_reloc,
         loops_seen: 0,
+        merges_seen: 0,
     })
 }
 
@@ -253,6 +254,8 @@ pub struct SlamProcessor {
     awaiting_reloc: bool,
     /// Loops closed already passed to the status.
     loops_seen: usize,
+    /// Merges already passed to the status.
+    merges_seen: usize,
 }
 
 fn state_name(s: TrackState) -> &'static str {
@@ -328,6 +331,28 @@ impl FrameProcessor for SlamProcessor {
                 at_unix: unix_now(),
             });
         }
+        // Maps merged by the mapping thread since the last frame (the
+        // same path as the loops: status `slam.merges`, the /events stream).
+        for m in self.slam.merges_since(self.merges_seen) {
+            self.merges_seen += 1;
+            self.shared.add_merge(MergeInfo {
+                current_kf: u64::from(m.current.0),
+                merge_kf: u64::from(m.merge_kf.0),
+                current_t: m.current_t,
+                merge_t: m.merge_t,
+                from_map: m.from_map.0,
+                into_map: m.into_map.0,
+                inliers: m.inliers,
+                projection_matches: m.projection_matches,
+                scale: m.scale,
+                keyframes_moved: m.keyframes_moved,
+                fused: m.fused,
+                correction_ms: m.correction_ms,
+                at_unix: unix_now(),
+            });
+        }
+        self.shared
+            .set_maps_started(self.slam.map_starts().len() as u64);
         if self.awaiting_reloc && out.state == TrackState::Tracking {
             self.awaiting_reloc = false;
             tracing::info!(
@@ -385,10 +410,14 @@ impl MapSource for SlamMapSource {
     fn pin_keyframe(&self, id: u64) -> bool {
         u32::try_from(id).is_ok_and(|id| self.lock().pin_keyframe(KeyFrameId(id)))
     }
+    /// The first map's keyframes (a map started after a tracking loss is
+    /// in its own frame until it is merged: it is not shown).
     fn keyframes(&self) -> Vec<KeyframeInfo> {
         let m = self.lock();
+        let first = m.first_map();
         let mut v: Vec<KeyframeInfo> = m
             .keyframes()
+            .filter(|k| m.map_of(k.id) == first)
             .map(|k| {
                 let (width, height) = k.image.as_ref().map_or((0, 0), |i| i.dimensions());
                 KeyframeInfo {
@@ -410,15 +439,21 @@ impl MapSource for SlamMapSource {
     }
 
     fn snapshot(&self) -> Option<Map> {
-        Some(self.lock().clone())
+        let m = self.lock();
+        Some(match m.first_map() {
+            Some(first) if m.maps().len() > 1 => m.only(first),
+            _ => m.clone(),
+        })
     }
 
     fn map(&self, max_points: usize) -> MapView {
         let m = self.lock();
+        let first = m.first_map();
         let total = m.point_count();
         let step = total.div_ceil(max_points.max(1)).max(1);
         let points = m
             .points()
+            .filter(|p| m.map_of_point(p.id) == first)
             .step_by(step)
             .take(max_points)
             .map(|p| {
@@ -431,6 +466,7 @@ impl MapSource for SlamMapSource {
             .collect();
         let mut kfs: Vec<_> = m
             .keyframes()
+            .filter(|k| m.map_of(k.id) == first)
             .map(|k| (k.id.0, slam::center_of(&k.cam_from_world)))
             .collect();
         kfs.sort_by_key(|k| k.0);

@@ -145,7 +145,8 @@ impl Initializer {
     }
 
     /// One step with `frame`: `Ok(Some)` when the map was initialised
-    /// (into `map`, which must be empty), `Ok(None)` when the frame became
+    /// (into `map`'s active map, which must be empty; the other maps of
+    /// the atlas are left as they are), `Ok(None)` when the frame became
     /// the first frame of a new attempt, `Err` while not initialised.
     pub fn step(
         &mut self,
@@ -280,6 +281,7 @@ fn create_initial_map(
     });
     let id1 = map.add_keyframe(kf1);
     let id2 = map.add_keyframe(kf2);
+    let mut new_points: Vec<PointId> = Vec::with_capacity(matches.len());
     let words = ctx.vocabulary.word_count();
     for (id, (bow, fv)) in [id1, id2].into_iter().zip(bows.iter_mut()) {
         map.index_keyframe(id, std::mem::take(bow), std::mem::take(fv), words);
@@ -289,6 +291,7 @@ fn create_initial_map(
             continue;
         };
         let pid = map.add_point(p, f1.descriptors[i], id1);
+        new_points.push(pid);
         map.add_observation(pid, id1, i as u32);
         map.add_observation(pid, id2, j as u32);
         map.update_point_descriptor(pid);
@@ -316,7 +319,11 @@ fn create_initial_map(
     if let Some(k) = map.keyframe_mut(id2) {
         k.cam_from_world.translation.vector *= s;
     }
-    let pids: Vec<PointId> = map.points().map(|p| p.id).collect();
+    // Only this map's points (the BA may have erased some).
+    let pids: Vec<PointId> = new_points
+        .into_iter()
+        .filter(|p| map.point(*p).is_some())
+        .collect();
     for pid in &pids {
         if let Some(mp) = map.point_mut(*pid) {
             mp.position.coords *= s;
@@ -360,7 +367,13 @@ fn create_initial_map(
     })
 }
 
-/// Empty the map (a failed initialisation).
+/// Undo a failed initialisation: the whole map emptied when it was the
+/// only one, else only the new (active) map erased, the others kept.
 fn reset_map(map: &mut Map) {
-    *map = Map::new(map.camera, map.scale.clone());
+    let active = map.active_map();
+    if map.keyframes().all(|k| map.map_of(k.id) == Some(active)) {
+        *map = Map::new(map.camera, map.scale.clone());
+    } else {
+        map.discard_map(active);
+    }
 }

@@ -30,7 +30,9 @@ pub(super) fn need_new_keyframe(
     map: &Map,
     candidate: &KeyFrameCandidate,
 ) -> bool {
-    let n_kfs = map.keyframe_count();
+    // The active map's keyframes (a new map after a loss starts small).
+    let active = map.active_map();
+    let n_kfs = map.keyframes_in(active).count();
     let max_frames = params.max_frames_between_keyframes;
     if candidate.recently_relocalized && n_kfs as u64 > max_frames {
         return false;

@@ -36,7 +36,40 @@
 //! of weight ≥ `essential_min_weight`, all loop edges, the new loop
 //! connections) is optimised in Sim(3) with the loop keyframe fixed
 //! ([`crate::optimize::optimize_pose_graph`]); every point then follows
-//! the keyframe it was corrected with (or its reference keyframe).
+//! the keyframe it was corrected with (or its reference keyframe). Loops
+//! are looked for inside the keyframe's own map only.
+//!
+//! Map merging (ORB-SLAM3's "welding" merge, monocular): after a tracking
+//! loss tracking starts a new map ([`super::tracking`]); the map holds
+//! every map of the atlas ([`super::map::MapId`]). Before looking for a
+//! loop at a keyframe of the active map, the closer looks for a place of
+//! another map:
+//! 1. BoW candidates in the other maps only, by normalised score without
+//!    the loop's score floor or words-in-common pre-filter (a young map's
+//!    keyframes resemble each other far more than any view of the old map,
+//!    and the old map's two initialisation keyframes, with twice the
+//!    features, share the most words with anything);
+//! 2. the same consistency over `consistency` keyframes, the same Sim(3)
+//!    RANSAC, guided search, refinement and projection check as a loop,
+//!    but not the drift bounds (two maps' frames and scales are unrelated);
+//! 3. agreement: the map similarity (old world ← active world) found at
+//!    this keyframe must agree with the one found at the previous keyframe
+//!    (`merge_confirmations` in a row: scale ratio, rotation, and where
+//!    both put the current camera relative to the old keyframe's scene
+//!    depth); a look-alike place gives a similarity that the next keyframe
+//!    does not confirm.
+//!
+//! The merge: the whole active map (keyframes, culled keyframes, points)
+//! is moved by the similarity into the old map's frame and becomes part of
+//! it ([`Map::merge_maps`]: its spanning tree hangs from the old keyframe
+//! through the current one); the place's points are fused as for a loop;
+//! a bundle adjustment welds the current keyframe's neighbourhood to the
+//! old keyframe's (the old side fixed); then the essential graph of the
+//! merged map is optimised with every keyframe of the old map fixed, so
+//! the weld's correction spreads over the new part. Tracking follows:
+//! its records and its motion model on the moved keyframes scale with the
+//! similarity ([`super::Tracker::follow_merges`]). Each merge's summary
+//! goes to a shared [`MergeLog`], which the daemon reports as loops.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Mutex;
@@ -55,8 +88,9 @@ use crate::optimize::{
     optimize_pose_graph, optimize_sim3,
 };
 
+use super::bundle::run_bundle_adjustment;
 use super::bundle::{apply_ba_result, build_ba_problem};
-use super::map::{KeyFrame, KeyFrameId, Map, Places, PointId, lock};
+use super::map::{KeyFrame, KeyFrameId, Map, MapId, Places, PointId, lock};
 use super::matcher::{self, MatcherParams};
 
 /// Tunable numbers of loop closing.
@@ -117,6 +151,26 @@ pub struct LoopParams {
     /// found whose keypoint holds a point, and search once more. Off by
     /// default: on the simulator renders it did not help (README).
     pub refit_on_projection: bool,
+    /// Merge the active map into an inactive one (left after a tracking
+    /// loss) when a place common to both is found.
+    pub merging: bool,
+    /// Keyframes the active map needs before merges are looked for.
+    pub merge_min_keyframes: usize,
+    /// Consecutive keyframes whose verified map similarities must agree
+    /// before a merge (the first one plus this many more; 1).
+    pub merge_confirmations: usize,
+    /// Largest scale ratio between two agreeing merge similarities
+    /// (`1/x ..= x`).
+    pub merge_max_scale_ratio: f64,
+    /// Largest rotation between two agreeing merge similarities, degrees.
+    pub merge_max_rotation_deg: f64,
+    /// Largest distance between where two agreeing merge similarities put
+    /// the current camera, as a share of the old keyframe's median scene
+    /// depth.
+    pub merge_max_shift_ratio: f64,
+    /// The bundle adjustment that welds the two maps at the merge (the
+    /// current keyframe's neighbourhood free, the old map's side fixed).
+    pub merge_ba: BaParams,
 }
 
 impl Default for LoopParams {
@@ -144,6 +198,13 @@ impl Default for LoopParams {
             seed: 1,
             refit_on_projection: false,
             global_ba: None,
+            merging: true,
+            merge_min_keyframes: 5,
+            merge_confirmations: 1,
+            merge_max_scale_ratio: 1.15,
+            merge_max_rotation_deg: 5.0,
+            merge_max_shift_ratio: 0.25,
+            merge_ba: BaParams::default(),
         }
     }
 }
@@ -203,6 +264,56 @@ impl LoopSummary {
     }
 }
 
+/// Two maps merged: the keyframes, the evidence, the similarity, and the
+/// keyframe trajectories just before and just after it.
+#[derive(Debug, Clone)]
+pub struct MergeEvent {
+    /// What the daemon's status reports of it.
+    pub summary: MergeSummary,
+    /// Edges of the essential graph.
+    pub graph_edges: usize,
+    /// The old map's keyframes (world_from_cam) before the merge.
+    pub old_map_before: Trajectory,
+    /// The merged map's keyframes before the merge, in their own frame.
+    pub new_map_before: Trajectory,
+    /// The merged map's keyframes after it (both maps).
+    pub keyframes_after: Trajectory,
+}
+
+/// A merge, without the trajectories: what the daemon's status reports
+/// ([`LoopCloser::merge_log`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MergeSummary {
+    /// The keyframe of the active map that saw the old place.
+    pub current: KeyFrameId,
+    /// The old map's keyframe it matched.
+    pub merge_kf: KeyFrameId,
+    /// Timestamp of the current keyframe, seconds.
+    pub current_t: f64,
+    /// Timestamp of the old keyframe, seconds.
+    pub merge_t: f64,
+    /// The map merged (it no longer exists).
+    pub from_map: MapId,
+    /// The map it joined (the old one; the active one now).
+    pub into_map: MapId,
+    /// Inliers of the refined Sim(3).
+    pub inliers: usize,
+    /// Keypoints of the current keyframe matched by the old
+    /// neighbourhood's points through the Sim(3).
+    pub projection_matches: usize,
+    /// Scale of the similarity (old map units per new map unit).
+    pub scale: f64,
+    /// Live keyframes moved into the old map.
+    pub keyframes_moved: usize,
+    /// Points fused.
+    pub fused: usize,
+    /// Time of the merge (transform, fusion, welding BA, essential graph), ms.
+    pub correction_ms: f64,
+}
+
+/// The merges a [`LoopCloser`] made, shared like [`LoopLog`].
+pub type MergeLog = std::sync::Arc<Mutex<Vec<MergeSummary>>>;
+
 /// The loops a [`LoopCloser`] closed, shared with whoever reports them
 /// while it runs on the mapping thread (one summary per loop, in order).
 pub type LoopLog = std::sync::Arc<Mutex<Vec<LoopSummary>>>;
@@ -220,6 +331,9 @@ pub enum LoopReject {
     Projection,
     /// The implied correction is beyond the drift bounds.
     Implausible,
+    /// A merge: the map similarity of this keyframe disagrees with the
+    /// previous keyframe's.
+    Disagreement,
 }
 
 /// A consistent candidate that was refused.
@@ -262,6 +376,16 @@ pub struct LoopCloser {
     /// Consistent candidates refused, in order.
     pub refusals: Vec<LoopRefusal>,
     log: LoopLog,
+    /// Merge candidate groups of the previous keyframe.
+    merge_groups: Vec<(HashSet<KeyFrameId>, usize)>,
+    /// The previous keyframe's verified merge: the other map, the map
+    /// similarity (other ← active), how many keyframes in a row agreed.
+    pending_merge: Option<(MapId, Sim3, usize)>,
+    /// Maps merged.
+    pub merges: Vec<MergeEvent>,
+    /// Consistent merge candidates refused, in order.
+    pub merge_refusals: Vec<LoopRefusal>,
+    merge_log: MergeLog,
 }
 
 impl LoopCloser {
@@ -275,6 +399,11 @@ impl LoopCloser {
             events: Vec::new(),
             refusals: Vec::new(),
             log: LoopLog::default(),
+            merge_groups: Vec::new(),
+            pending_merge: None,
+            merges: Vec::new(),
+            merge_refusals: Vec::new(),
+            merge_log: MergeLog::default(),
         }
     }
 
@@ -283,11 +412,27 @@ impl LoopCloser {
         self.log.clone()
     }
 
-    /// Look for a loop at keyframe `kf` (mapped already) and close it.
-    /// Returns the loop closed, if any.
+    /// The summaries of the merges, shared: it fills as maps merge.
+    pub fn merge_log(&self) -> MergeLog {
+        self.merge_log.clone()
+    }
+
+    /// Look for a place of another map at keyframe `kf` (mapped already)
+    /// and merge the maps; else look for a loop and close it. Returns the
+    /// loop closed, if any (merges go to [`LoopCloser::merges`]).
     pub fn process_keyframe(&mut self, map: &Mutex<Map>, kf: KeyFrameId) -> Option<LoopEvent> {
         let mut m = lock(map);
-        let candidates = self.detect(&m, kf);
+        if self.params.merging && self.look_for_merge(&mut m, kf) {
+            return None;
+        }
+        let candidates = Self::detect(
+            &self.params,
+            self.last_loop,
+            &mut self.groups,
+            &m,
+            kf,
+            false,
+        );
         if candidates.is_empty() {
             return None;
         }
@@ -297,7 +442,7 @@ impl LoopCloser {
         drop(m);
         if let (Some(e), Some(ba)) = (&mut event, &self.params.global_ba) {
             let t1 = Instant::now();
-            if let Some(rmse) = global_bundle_adjustment(map, ba) {
+            if let Some(rmse) = global_bundle_adjustment(map, kf, ba) {
                 e.global_ba_rmse_px = Some(rmse);
                 e.keyframes_after = keyframe_trajectory(&lock(map));
             }
@@ -328,9 +473,250 @@ impl LoopCloser {
         event
     }
 
-    /// Steps 1 and 2: the candidates consistent over enough keyframes.
-    fn detect(&mut self, map: &Map, kf: KeyFrameId) -> Vec<KeyFrameId> {
+    /// Merge detection at `kf` (see the module doc): consistent BoW
+    /// candidates in other maps, verified like loops, and a map similarity
+    /// that consecutive keyframes agree on; then the merge. True when the
+    /// maps were merged.
+    fn look_for_merge(&mut self, map: &mut Map, kf: KeyFrameId) -> bool {
+        if map.map_of(kf) != Some(map.active_map()) {
+            self.merge_groups.clear();
+            self.pending_merge = None;
+            return false;
+        }
+        let candidates = Self::detect(&self.params, None, &mut self.merge_groups, map, kf, true);
+        let mut verified = None;
+        for &c in &candidates {
+            match self.verify_one(map, kf, c, false) {
+                Ok(m) => {
+                    verified = Some(m);
+                    break;
+                }
+                Err(why) => self.refuse_merge(map, kf, c, why),
+            }
+        }
+        let Some(lm) = verified else {
+            self.pending_merge = None;
+            return false;
+        };
+        let (Some(k1), Some(other)) = (map.keyframe(kf), map.map_of(lm.loop_kf)) else {
+            return false;
+        };
+        // The map similarity: old world <- active world.
+        let s = lm
+            .s_cw
+            .inverse()
+            .compose(&Sim3::from_isometry(&k1.cam_from_world));
+        let agreed = match self.pending_merge {
+            Some((m, prev, n)) if m == other => {
+                if self.similarities_agree(map, &prev, &s, k1, lm.loop_kf) {
+                    n + 1
+                } else {
+                    self.refuse_merge(map, kf, lm.loop_kf, LoopReject::Disagreement);
+                    0
+                }
+            }
+            _ => 0,
+        };
+        if agreed < self.params.merge_confirmations {
+            self.pending_merge = Some((other, s, agreed));
+            return false;
+        }
+        self.pending_merge = None;
+        let t0 = Instant::now();
+        let Some(event) = self.merge(map, kf, other, &s, lm, t0) else {
+            return false;
+        };
+        let l = &event.summary;
+        tracing::info!(
+            current = l.current.0,
+            merge_kf = l.merge_kf.0,
+            from_map = l.from_map.0,
+            into_map = l.into_map.0,
+            inliers = l.inliers,
+            projection_matches = l.projection_matches,
+            scale = l.scale,
+            moved = l.keyframes_moved,
+            fused = l.fused,
+            ms = l.correction_ms,
+            "maps merged"
+        );
+        self.merge_log
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(event.summary.clone());
+        self.merges.push(event);
+        self.merge_groups.clear();
+        self.groups.clear();
+        self.last_loop = Some(kf);
+        true
+    }
+
+    fn refuse_merge(&mut self, map: &Map, kf: KeyFrameId, c: KeyFrameId, why: LoopReject) {
+        tracing::debug!(
+            current = kf.0,
+            candidate = c.0,
+            ?why,
+            "merge candidate refused"
+        );
+        let t = |id| map.keyframe(id).map_or(f64::NAN, |k| k.timestamp);
+        self.merge_refusals.push(LoopRefusal {
+            current: kf,
+            candidate: c,
+            current_t: t(kf),
+            candidate_t: t(c),
+            reason: why,
+        });
+    }
+
+    /// Whether two map similarities (old ← active) found at consecutive
+    /// keyframes agree: scale, rotation, and where they put the current
+    /// camera (relative to the old keyframe's scene depth).
+    fn similarities_agree(
+        &self,
+        map: &Map,
+        a: &Sim3,
+        b: &Sim3,
+        k1: &KeyFrame,
+        old_kf: KeyFrameId,
+    ) -> bool {
         let p = &self.params;
+        let ratio = a.scale / b.scale;
+        let max_r = p.merge_max_scale_ratio.max(1.0);
+        let rot = (a.rotation.inverse() * b.rotation).angle().to_degrees();
+        let c = nalgebra::Point3::from(k1.center());
+        let shift = (a.transform_point(&c) - b.transform_point(&c)).norm();
+        let depth = map.median_depth(old_kf).unwrap_or(0.0);
+        let ok = ratio <= max_r
+            && ratio >= 1.0 / max_r
+            && rot <= p.merge_max_rotation_deg
+            && shift <= p.merge_max_shift_ratio * depth;
+        tracing::debug!(ratio, rot, shift, depth, ok, "merge: similarities compared");
+        ok
+    }
+
+    /// The merge (see the module doc): the active map moved by `s` into
+    /// `other`, the common place's points fused, the weld bundle-adjusted,
+    /// the essential graph of the merged map optimised with the old map
+    /// anchored.
+    fn merge(
+        &mut self,
+        map: &mut Map,
+        kf: KeyFrameId,
+        other: MapId,
+        s: &Sim3,
+        lm: LoopMatch,
+        t0: Instant,
+    ) -> Option<MergeEvent> {
+        let p = &self.params;
+        let from = map.map_of(kf)?;
+        let old_map_before = map_trajectory(map, other);
+        let new_map_before = map_trajectory(map, from);
+        let anchored: HashSet<KeyFrameId> = map.keyframes_in(other).map(|k| k.id).collect();
+        let keyframes_moved = map.keyframes_in(from).count();
+        if !map.merge_maps(from, other, s, kf, lm.loop_kf) {
+            return None;
+        }
+        map.update_connections(kf);
+        let k = map.keyframe(kf)?;
+        let current_t = k.timestamp;
+        let mut connected: Vec<KeyFrameId> = vec![kf];
+        connected.extend(
+            k.covisible
+                .iter()
+                .map(|c| c.0)
+                .filter(|id| !anchored.contains(id)),
+        );
+        let (fused, loop_links) = fuse_and_link(map, kf, &connected, &lm, &self.bounds, p);
+        map.add_loop_edge(kf, lm.loop_kf);
+        // Weld: the current neighbourhood free, the old side fixed.
+        let before_ba: HashMap<KeyFrameId, Sim3> = connected
+            .iter()
+            .filter_map(|id| {
+                map.keyframe(*id)
+                    .map(|k| (*id, Sim3::from_isometry(&k.cam_from_world)))
+            })
+            .collect();
+        let mut weld: Vec<KeyFrameId> = connected.clone();
+        let old_side: Vec<KeyFrameId> = std::iter::once(lm.loop_kf)
+            .chain(
+                map.keyframe(lm.loop_kf)
+                    .map_or_else(Vec::new, |k| k.covisible.iter().map(|c| c.0).collect()),
+            )
+            .filter(|id| anchored.contains(id))
+            .collect();
+        weld.extend(old_side.iter().copied());
+        let report = run_bundle_adjustment(map, &weld, &old_side, &p.merge_ba);
+        if let Some(r) = &report {
+            tracing::debug!(
+                before = r.initial_rmse_px,
+                after = r.final_rmse_px,
+                outliers = r.n_outliers,
+                "merge: welding BA"
+            );
+        }
+        let after_ba: HashMap<KeyFrameId, Sim3> = connected
+            .iter()
+            .filter_map(|id| {
+                map.keyframe(*id)
+                    .map(|k| (*id, Sim3::from_isometry(&k.cam_from_world)))
+            })
+            .collect();
+        let mut corrected_by: HashMap<PointId, KeyFrameId> = HashMap::new();
+        for &id in &connected {
+            if let Some(k) = map.keyframe(id) {
+                for pid in k.points.iter().flatten() {
+                    corrected_by.entry(*pid).or_insert(id);
+                }
+            }
+        }
+        let graph_kfs: Vec<KeyFrameId> = map.keyframes_in(other).map(|k| k.id).collect();
+        let graph_edges = optimize_essential_graph(
+            map,
+            graph_kfs,
+            &anchored,
+            lm.loop_kf,
+            kf,
+            &after_ba,
+            &before_ba,
+            &corrected_by,
+            &loop_links,
+            p,
+        );
+        map.note_correction();
+        Some(MergeEvent {
+            summary: MergeSummary {
+                current: kf,
+                merge_kf: lm.loop_kf,
+                current_t,
+                merge_t: map.keyframe(lm.loop_kf).map_or(0.0, |k| k.timestamp),
+                from_map: from,
+                into_map: other,
+                inliers: lm.inliers,
+                projection_matches: lm.projection_matches,
+                scale: s.scale,
+                keyframes_moved,
+                fused,
+                correction_ms: t0.elapsed().as_secs_f64() * 1e3,
+            },
+            graph_edges,
+            old_map_before,
+            new_map_before,
+            keyframes_after: map_trajectory(map, other),
+        })
+    }
+
+    /// Steps 1 and 2: the candidates consistent over enough keyframes;
+    /// loop candidates in `kf`'s own map, merge candidates (`merge`) in
+    /// the other maps. `groups` are the previous keyframe's candidate
+    /// groups of that kind.
+    fn detect(
+        p: &LoopParams,
+        last_loop: Option<KeyFrameId>,
+        groups: &mut Vec<(HashSet<KeyFrameId>, usize)>,
+        map: &Map,
+        kf: KeyFrameId,
+        merge: bool,
+    ) -> Vec<KeyFrameId> {
         let Some(k) = map.keyframe(kf) else {
             return Vec::new();
         };
@@ -340,12 +726,16 @@ impl LoopCloser {
         let Some(bow) = places.database.bow(Places::db_id(kf)) else {
             return Vec::new();
         };
-        if map.keyframe_count() < p.min_keyframes
-            || self
-                .last_loop
-                .is_some_and(|l| (kf.0 as usize) < l.0 as usize + p.min_keyframes)
-        {
-            self.groups.clear();
+        let my_map = map.map_of(kf);
+        let in_my_map = my_map.map_or(0, |id| map.keyframes_in(id).count());
+        let too_early = if merge {
+            in_my_map < p.merge_min_keyframes || map.maps().len() < 2
+        } else {
+            in_my_map < p.min_keyframes
+                || last_loop.is_some_and(|l| (kf.0 as usize) < l.0 as usize + p.min_keyframes)
+        };
+        if too_early {
+            groups.clear();
             return Vec::new();
         }
         let connected: HashSet<KeyFrameId> = k.covisible.iter().map(|c| c.0).collect();
@@ -356,18 +746,39 @@ impl LoopCloser {
             }
         }
         if !min_score.is_finite() {
-            self.groups.clear();
+            groups.clear();
             return Vec::new();
         }
-        let cp = CandidateParams {
-            min_score,
-            ..CandidateParams::default()
+        // A merge looks into other maps: a young map's few keyframes
+        // resemble each other far more than any view of another map does,
+        // so the loop's score floor would hide every candidate (ORB-SLAM3
+        // takes the best groups for merges, without the floor). Nor are
+        // keyframes pre-filtered by words in common: the old map's two
+        // initialisation keyframes (twice the features) share the most
+        // words with anything and would be the only ones scored; the
+        // normalised score does not favour them.
+        let cp = if merge {
+            CandidateParams {
+                min_score: 0.0,
+                min_common_words_ratio: 0.0,
+                ..CandidateParams::default()
+            }
+        } else {
+            CandidateParams {
+                min_score,
+                ..CandidateParams::default()
+            }
         };
         let neighbours = cp.covisible_neighbours;
         let candidates = places.database.detect_candidates(
             bow,
             &cp,
-            |id| Places::map_id(id).is_none_or(|id| id == kf || connected.contains(&id)),
+            |id| {
+                Places::map_id(id).is_none_or(|id| {
+                    let same = map.map_of(id) == my_map;
+                    id == kf || connected.contains(&id) || same == merge
+                })
+            },
             |id, out| {
                 if let Some(k) = Places::map_id(id).and_then(|id| map.keyframe(id)) {
                     out.extend(k.best_covisible(neighbours).map(Places::db_id));
@@ -376,7 +787,7 @@ impl LoopCloser {
         );
         // Consistency with the previous keyframe's groups.
         let mut current_groups: Vec<(HashSet<KeyFrameId>, usize)> = Vec::new();
-        let mut extended = vec![false; self.groups.len()];
+        let mut extended = vec![false; groups.len()];
         let mut consistent = Vec::new();
         for c in candidates {
             let Some(cid) = Places::map_id(c.id) else {
@@ -390,7 +801,7 @@ impl LoopCloser {
                 .collect();
             let mut enough = false;
             let mut consistent_for_some = false;
-            for (g, (prev, n)) in self.groups.iter().enumerate() {
+            for (g, (prev, n)) in groups.iter().enumerate() {
                 if prev.is_disjoint(&group) {
                     continue;
                 }
@@ -409,7 +820,7 @@ impl LoopCloser {
                 current_groups.push((group, 0));
             }
         }
-        self.groups = current_groups;
+        *groups = current_groups;
         consistent
     }
 
@@ -421,7 +832,7 @@ impl LoopCloser {
         candidates: &[KeyFrameId],
     ) -> Option<LoopMatch> {
         for &c in candidates {
-            match self.verify_one(map, kf, c) {
+            match self.verify_one(map, kf, c, true) {
                 Ok(m) => return Some(m),
                 Err(why) => {
                     tracing::debug!(
@@ -444,11 +855,14 @@ impl LoopCloser {
         None
     }
 
+    /// Steps 3 and 4 for one candidate; the drift bounds of step 4 only
+    /// when `drift_bounds` (a loop: a merge's maps have unrelated frames).
     fn verify_one(
         &self,
         map: &Map,
         kf: KeyFrameId,
         cand: KeyFrameId,
+        drift_bounds: bool,
     ) -> Result<LoopMatch, LoopReject> {
         let p = &self.params;
         let (Some(k1), Some(k2)) = (map.keyframe(kf), map.keyframe(cand)) else {
@@ -644,9 +1058,10 @@ impl LoopCloser {
         let moved = (sim3_to_isometry(&s_cw).inverse().translation.vector - k1.center()).norm();
         let flown = path_length(map, cand, kf);
         let max_s = p.max_scale_change.max(1.0);
-        if !(corr.scale <= max_s && corr.scale >= 1.0 / max_s)
-            || rotation_deg > p.max_rotation_deg
-            || moved > p.max_translation_ratio * flown
+        if drift_bounds
+            && (!(corr.scale <= max_s && corr.scale >= 1.0 / max_s)
+                || rotation_deg > p.max_rotation_deg
+                || moved > p.max_translation_ratio * flown)
         {
             tracing::debug!(
                 current = kf.0,
@@ -867,73 +1282,16 @@ impl LoopCloser {
         for pid in corrected_by.keys().copied().collect::<Vec<_>>() {
             map.update_point_normal_and_depth(pid);
         }
-        let neighbours_before: HashMap<KeyFrameId, HashSet<KeyFrameId>> = connected
-            .iter()
-            .filter_map(|id| {
-                map.keyframe(*id)
-                    .map(|k| (*id, k.covisible.iter().map(|c| c.0).collect()))
-            })
-            .collect();
-        // Fuse the loop's matched points into the current keyframe.
-        let mut fused = 0;
-        for (i, m) in lm.matched.iter().enumerate() {
-            let Some(lp) = m else { continue };
-            if map.point(*lp).is_none() {
-                continue;
-            }
-            let existing = map
-                .keyframe(kf)
-                .and_then(|k| k.points.get(i).copied().flatten());
-            match existing {
-                Some(cp) if cp != *lp => {
-                    map.replace_point(cp, *lp);
-                    fused += 1;
-                }
-                Some(_) => {}
-                None => {
-                    if map.add_observation(*lp, kf, i as u32) {
-                        fused += 1;
-                    }
-                }
-            }
-            map.update_point_descriptor(*lp);
-        }
-        // And the loop neighbourhood's points into the current neighbourhood.
-        let loop_points: Vec<PointId> = lm
-            .loop_points
-            .iter()
-            .copied()
-            .filter(|p| map.point(*p).is_some())
-            .collect();
-        for &id in &connected {
-            fused += matcher::fuse(
-                map,
-                id,
-                &loop_points,
-                p.fuse_radius,
-                &self.bounds,
-                &p.matcher,
-            );
-        }
-        for &id in &connected {
-            map.update_connections(id);
-        }
-        // New links between the two sides.
-        let connected_set: HashSet<KeyFrameId> = connected.iter().copied().collect();
-        let mut loop_links: Vec<(KeyFrameId, KeyFrameId)> = Vec::new();
-        for &id in &connected {
-            let Some(ki) = map.keyframe(id) else { continue };
-            let before = neighbours_before.get(&id);
-            for (o, _) in &ki.covisible {
-                if connected_set.contains(o) || before.is_some_and(|b| b.contains(o)) {
-                    continue;
-                }
-                loop_links.push((id, *o));
-            }
-        }
+        let (fused, loop_links) = fuse_and_link(map, kf, &connected, &lm, &self.bounds, p);
         map.add_loop_edge(kf, lm.loop_kf);
+        let graph_kfs: Vec<KeyFrameId> = match map.map_of(kf) {
+            Some(id) => map.keyframes_in(id).map(|k| k.id).collect(),
+            None => map.keyframes().map(|k| k.id).collect(),
+        };
         let graph_edges = optimize_essential_graph(
             map,
+            graph_kfs,
+            &HashSet::from([lm.loop_kf]),
             lm.loop_kf,
             kf,
             &corrected,
@@ -970,15 +1328,89 @@ impl LoopCloser {
     }
 }
 
-/// Bundle adjustment over every keyframe and point, the map's first
-/// keyframe fixed: the problem is built and written back under the map
+/// Fuse a verified place's points into the current side: the matched
+/// loop-side points replace the current keyframe's (or are added to it),
+/// the loop neighbourhood's points are fused into every keyframe of
+/// `connected`, whose connections are then updated. Returns the points
+/// fused and the new covisibility links between the two sides.
+fn fuse_and_link(
+    map: &mut Map,
+    kf: KeyFrameId,
+    connected: &[KeyFrameId],
+    lm: &LoopMatch,
+    bounds: &Bounds,
+    p: &LoopParams,
+) -> (usize, Vec<(KeyFrameId, KeyFrameId)>) {
+    let neighbours_before: HashMap<KeyFrameId, HashSet<KeyFrameId>> = connected
+        .iter()
+        .filter_map(|id| {
+            map.keyframe(*id)
+                .map(|k| (*id, k.covisible.iter().map(|c| c.0).collect()))
+        })
+        .collect();
+    // Fuse the loop's matched points into the current keyframe.
+    let mut fused = 0;
+    for (i, m) in lm.matched.iter().enumerate() {
+        let Some(lp) = m else { continue };
+        if map.point(*lp).is_none() {
+            continue;
+        }
+        let existing = map
+            .keyframe(kf)
+            .and_then(|k| k.points.get(i).copied().flatten());
+        match existing {
+            Some(cp) if cp != *lp => {
+                map.replace_point(cp, *lp);
+                fused += 1;
+            }
+            Some(_) => {}
+            None => {
+                if map.add_observation(*lp, kf, i as u32) {
+                    fused += 1;
+                }
+            }
+        }
+        map.update_point_descriptor(*lp);
+    }
+    // And the loop neighbourhood's points into the current neighbourhood.
+    let loop_points: Vec<PointId> = lm
+        .loop_points
+        .iter()
+        .copied()
+        .filter(|p| map.point(*p).is_some())
+        .collect();
+    for &id in connected {
+        fused += matcher::fuse(map, id, &loop_points, p.fuse_radius, bounds, &p.matcher);
+    }
+    for &id in connected {
+        map.update_connections(id);
+    }
+    // New links between the two sides.
+    let connected_set: HashSet<KeyFrameId> = connected.iter().copied().collect();
+    let mut loop_links: Vec<(KeyFrameId, KeyFrameId)> = Vec::new();
+    for &id in connected {
+        let Some(ki) = map.keyframe(id) else { continue };
+        let before = neighbours_before.get(&id);
+        for (o, _) in &ki.covisible {
+            if connected_set.contains(o) || before.is_some_and(|b| b.contains(o)) {
+                continue;
+            }
+            loop_links.push((id, *o));
+        }
+    }
+    (fused, loop_links)
+}
+
+/// Bundle adjustment over every keyframe and point of `kf`'s map, the
+/// map's first keyframe fixed: the problem is built and written back under the map
 /// lock, solved without it (keyframes added meanwhile keep their poses).
 /// Returns the final reprojection RMSE, px.
-fn global_bundle_adjustment(map: &Mutex<Map>, params: &BaParams) -> Option<f64> {
+fn global_bundle_adjustment(map: &Mutex<Map>, kf: KeyFrameId, params: &BaParams) -> Option<f64> {
     let mut setup = {
         let m = lock(map);
-        let kfs: Vec<KeyFrameId> = m.keyframes().map(|k| k.id).collect();
-        let fixed: Vec<KeyFrameId> = kfs.first().copied().into_iter().collect();
+        let id = m.map_of(kf)?;
+        let kfs: Vec<KeyFrameId> = m.keyframes_in(id).map(|k| k.id).collect();
+        let fixed: Vec<KeyFrameId> = m.root_of(id).into_iter().collect();
         if kfs.len() < 2 {
             return None;
         }
@@ -1051,6 +1483,19 @@ fn path_length(map: &Map, from: KeyFrameId, to: KeyFrameId) -> f64 {
     len
 }
 
+/// The live keyframes of map `id` (world_from_cam), by time.
+fn map_trajectory(map: &Map, id: MapId) -> Trajectory {
+    let mut poses: Vec<StampedPose> = map
+        .keyframes_in(id)
+        .map(|k| StampedPose {
+            t: k.timestamp,
+            world_from_cam: k.world_from_cam(),
+        })
+        .collect();
+    poses.sort_by(|a, b| a.t.total_cmp(&b.t));
+    Trajectory { poses }
+}
+
 fn keyframe_trajectory(map: &Map) -> Trajectory {
     let mut poses: Vec<StampedPose> = map
         .keyframes()
@@ -1063,12 +1508,15 @@ fn keyframe_trajectory(map: &Map) -> Trajectory {
     Trajectory { poses }
 }
 
-/// The essential graph in Sim(3) over every live keyframe, the loop
-/// keyframe fixed; keyframe poses and points updated. Returns the number
-/// of edges.
+/// The essential graph in Sim(3) over the keyframes `graph_kfs` (one
+/// map's), those in `anchored` fixed (a loop: the loop keyframe; a merge:
+/// the old map's keyframes); keyframe poses and the points of those
+/// keyframes updated. Returns the number of edges.
 #[allow(clippy::too_many_arguments)]
 fn optimize_essential_graph(
     map: &mut Map,
+    graph_kfs: Vec<KeyFrameId>,
+    anchored: &HashSet<KeyFrameId>,
     loop_kf: KeyFrameId,
     current: KeyFrameId,
     corrected: &HashMap<KeyFrameId, Sim3>,
@@ -1077,7 +1525,7 @@ fn optimize_essential_graph(
     loop_links: &[(KeyFrameId, KeyFrameId)],
     p: &LoopParams,
 ) -> usize {
-    let ids: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
+    let ids = graph_kfs;
     let index: HashMap<KeyFrameId, usize> =
         ids.iter().enumerate().map(|(i, id)| (*id, i)).collect();
     let mut poses = Vec::with_capacity(ids.len());
@@ -1091,10 +1539,10 @@ fn optimize_essential_graph(
         poses.push(s);
         plain.push(uncorrected.get(id).copied().unwrap_or(s));
     }
-    let mut fixed = vec![false; ids.len()];
-    if let Some(&l) = index.get(&loop_kf) {
-        fixed[l] = true;
-    } else if let Some(f) = fixed.first_mut() {
+    let mut fixed: Vec<bool> = ids.iter().map(|id| anchored.contains(id)).collect();
+    if !fixed.iter().any(|f| *f)
+        && let Some(f) = fixed.first_mut()
+    {
         *f = true;
     }
     let mut edges: Vec<Sim3Edge> = Vec::new();

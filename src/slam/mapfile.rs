@@ -9,7 +9,9 @@
 //!                   point slots, covisibility, parent, image), points
 //!                   (position, descriptor, normal, scale range, counters,
 //!                   observations), culled keyframes, loop edges
-//!                   (version 3: pairs of live keyframe ids)
+//!                   (version 3: pairs of live keyframe ids), maps
+//!                   (version 4: the active map id, then the map id of
+//!                   every live and culled keyframe)
 //! ```
 //!
 //! Keyframe images are stored so that they load back pixel for pixel
@@ -27,6 +29,14 @@
 //! essential graph holds the earlier loops. Version 1 and 2 files load with
 //! no loop edges (they were written before loop closing existed).
 //!
+//! Version 4 appends the atlas: which map each keyframe belongs to and
+//! which map is active. A map merged before the save is one map; a new map
+//! started after a tracking loss and not merged yet is saved as it is,
+//! beside the old one (the next run relocalises into either and can merge
+//! them when it sees a common place). Files of versions 1 to 3 load as one
+//! map (id 0). A keyframe listed twice, missing, or not in the file, and
+//! maps linked by a covisibility edge, a parent or a point are refused.
+//!
 //! Loading checks the magic, the version, the length and the checksum, every
 //! index, and the map's invariants; any failure is a typed error.
 
@@ -43,12 +53,12 @@ use crate::camera::{Camera, Distortion};
 use crate::features::KeyPoint;
 
 use super::map::{
-    CulledKeyFrame, KeyFrame, KeyFrameId, Map, MapError, MapPoint, PointId, ScaleInfo,
+    CulledKeyFrame, KeyFrame, KeyFrameId, Map, MapError, MapId, MapPoint, PointId, ScaleInfo,
 };
 use crate::matching::{Bounds, FeatureGrid};
 
-/// The format version this build writes (it also reads versions 1 and 2).
-pub const FORMAT_VERSION: u32 = 3;
+/// The format version this build writes (it also reads versions 1 to 3).
+pub const FORMAT_VERSION: u32 = 4;
 /// The oldest version this build reads.
 pub const OLDEST_VERSION: u32 = 1;
 const MAGIC: &[u8; 8] = b"SHOTMAP\0";
@@ -188,6 +198,15 @@ pub enum Corruption {
         a: u32,
         /// The other.
         b: u32,
+    },
+    /// The atlas section does not give each live and culled keyframe
+    /// exactly one map.
+    #[error("keyframe {keyframe}: {what} in the maps section")]
+    KeyFrameMap {
+        /// The keyframe id.
+        keyframe: u32,
+        /// What is wrong ("listed twice", "not in the file", "missing").
+        what: &'static str,
     },
     /// Bytes after the last section.
     #[error("{0} trailing bytes")]
@@ -496,6 +515,13 @@ pub fn encode_with(map: &Map, images: &mut KeyframeImages) -> Result<Vec<u8>, Ma
         w.u32(a.0);
         w.u32(b.0);
     }
+    w.u32(map.active_map().0);
+    let maps = map.keyframe_maps();
+    w.len(maps.len());
+    for (kf, m) in maps {
+        w.u32(kf.0);
+        w.u32(m.0);
+    }
     let payload = w.0;
     let mut out = Vec::with_capacity(payload.len() + 28);
     out.extend_from_slice(MAGIC);
@@ -778,10 +804,50 @@ fn parse_payload(payload: &[u8], version: u32) -> RResult<(Map, KeyframeImages)>
             loop_edges.push((r.u32()?, r.u32()?));
         }
     }
+    let mut atlas = None;
+    if version >= 4 {
+        let active = MapId(r.u32()?);
+        let n_m = r.len(8)?;
+        let mut maps = Vec::with_capacity(n_m);
+        for _ in 0..n_m {
+            maps.push((KeyFrameId(r.u32()?), MapId(r.u32()?)));
+        }
+        atlas = Some((active, maps));
+    }
     if r.pos != payload.len() {
         return Err(Corruption::TrailingBytes(payload.len() - r.pos));
     }
     let mut map = Map::from_parts(camera, scale, covis_th, keyframes, points, culled)?;
+    if let Some((active, maps)) = atlas {
+        let mut seen = std::collections::HashSet::new();
+        for (kf, _) in &maps {
+            let what = if map.keyframe(*kf).is_none() && !map.culled.contains_key(kf) {
+                Some("not in the file")
+            } else if !seen.insert(*kf) {
+                Some("listed twice")
+            } else {
+                None
+            };
+            if let Some(what) = what {
+                return Err(Corruption::KeyFrameMap {
+                    keyframe: kf.0,
+                    what,
+                });
+            }
+        }
+        let missing = map
+            .keyframes()
+            .map(|k| k.id)
+            .chain(map.culled.keys().copied())
+            .find(|k| !seen.contains(k));
+        if let Some(kf) = missing {
+            return Err(Corruption::KeyFrameMap {
+                keyframe: kf.0,
+                what: "missing",
+            });
+        }
+        map.set_keyframe_maps(&maps, active);
+    }
     for (a, b) in loop_edges {
         if !map.add_loop_edge(KeyFrameId(a), KeyFrameId(b)) {
             return Err(Corruption::LoopEdge { a, b });
@@ -882,7 +948,7 @@ mod tests {
         let mut m = map.clone();
         m.keyframe_mut(KeyFrameId(0)).unwrap().image = Some(Arc::new(decoded.clone()));
         assert!(known.offer(KeyFrameId(0), Arc::new(jpeg), &decoded));
-        let mut v1 = before_version_3(&encode_with(&m, &mut known).unwrap(), 1);
+        let mut v1 = before_version_3(&encode_with(&m, &mut known).unwrap(), 1, 1);
         let back = decode(&v1, Path::new("v1")).unwrap();
         assert_eq!(
             *back.keyframe(KeyFrameId(0)).unwrap().image.clone().unwrap(),
@@ -891,16 +957,40 @@ mod tests {
         v1[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
         let found = FORMAT_VERSION + 1;
         assert!(matches!(
-            decode(&v1, Path::new("v4")),
+            decode(&v1, Path::new("v5")),
             Err(MapFileError::Version { found: f, .. }) if f == found
         ));
     }
 
-    /// The file a version 1 or 2 build wrote for a map without loop edges:
-    /// this build's bytes without the loop-edge section (version 3 appended
-    /// it, the 4-byte count, after the culled keyframes), with the header's
-    /// version, length and checksum of that payload.
-    fn before_version_3(v3: &[u8], version: u32) -> Vec<u8> {
+    /// Bytes of the atlas section of a map with `n` live and culled
+    /// keyframes (active map, count, one id pair each).
+    fn atlas_len(n: usize) -> usize {
+        8 + 8 * n
+    }
+
+    /// The file a version 3 build wrote: this build's bytes (of a map all
+    /// in map 0, `n` live and culled keyframes) without the atlas section
+    /// that version 4 appended, with the header's version, length and
+    /// checksum of that payload.
+    fn before_version_4(v4: &[u8], n: usize, version: u32) -> Vec<u8> {
+        let payload = &v4[28..];
+        let (old, atlas) = payload.split_at(payload.len() - atlas_len(n));
+        assert_eq!(&atlas[..4], &0u32.to_le_bytes(), "only maps all in map 0");
+        let mut out = Vec::with_capacity(v4.len());
+        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(&version.to_le_bytes());
+        out.extend_from_slice(&(old.len() as u64).to_le_bytes());
+        out.extend_from_slice(&fnv1a(old).to_le_bytes());
+        out.extend_from_slice(old);
+        out
+    }
+
+    /// The file a version 1 or 2 build wrote for a map without loop edges
+    /// (`n` live and culled keyframes): without the atlas and without the
+    /// loop-edge section (version 3 appended it, the 4-byte count, after
+    /// the culled keyframes).
+    fn before_version_3(v4: &[u8], n: usize, version: u32) -> Vec<u8> {
+        let v3 = before_version_4(v4, n, 3);
         let payload = &v3[28..];
         let (old, count) = payload.split_at(payload.len() - 4);
         assert_eq!(count, &0u32.to_le_bytes(), "only maps without loop edges");
@@ -953,15 +1043,15 @@ mod tests {
     fn loop_edges_load_back_and_version_2_files_load_without_them() {
         let m = map_with_loop_edge();
         let bytes = encode(&m).unwrap();
-        assert_eq!(bytes[8..12], 3u32.to_le_bytes());
-        let back = decode(&bytes, Path::new("v3")).unwrap();
+        assert_eq!(bytes[8..12], 4u32.to_le_bytes());
+        let back = decode(&bytes, Path::new("v4")).unwrap();
         assert_eq!(back.loop_edges(), &[(KeyFrameId(3), KeyFrameId(0))]);
         assert_eq!(back.keyframe_count(), 2);
         // Saved again: the same bytes.
         assert_eq!(encode(&back).unwrap(), bytes);
 
         // A version 2 file (written before loop edges existed) loads with none.
-        let v2 = before_version_3(&encode(&two_keyframes()).unwrap(), 2);
+        let v2 = before_version_3(&encode(&two_keyframes()).unwrap(), 2, 2);
         let old = decode(&v2, Path::new("v2")).unwrap();
         assert!(old.loop_edges().is_empty());
         assert_eq!(old.keyframe_count(), 2);
@@ -969,6 +1059,20 @@ mod tests {
             old.keyframe(KeyFrameId(3)).unwrap().cam_from_world,
             m.keyframe(KeyFrameId(3)).unwrap().cam_from_world
         );
+        // A version 3 file (written before the atlas) loads as one map.
+        let v3 = before_version_4(&bytes, 2, 3);
+        let old3 = decode(&v3, Path::new("v3")).unwrap();
+        assert_eq!(old3.loop_edges(), back.loop_edges());
+        assert_eq!(old3.maps(), vec![(MapId(0), 2)]);
+        let mut v3_as_4 = v3.clone();
+        v3_as_4[8..12].copy_from_slice(&4u32.to_le_bytes());
+        assert!(matches!(
+            decode(&v3_as_4, Path::new("v3 as v4")),
+            Err(MapFileError::Corrupt {
+                reason: Corruption::Truncated { .. },
+                ..
+            })
+        ));
         // The same bytes announced as version 3 lack the loop section.
         let mut v2_as_3 = v2.clone();
         v2_as_3[8..12].copy_from_slice(&3u32.to_le_bytes());
@@ -983,7 +1087,8 @@ mod tests {
 
     #[test]
     fn damaged_loop_edges_are_refused() {
-        let bytes = encode(&map_with_loop_edge()).unwrap();
+        // A version 3 file: the loop edges are its last section.
+        let bytes = before_version_4(&encode(&map_with_loop_edge()).unwrap(), 2, 3);
         let n = bytes.len();
         // The last 8 bytes are the edge (3, 0), the 4 before them the count.
         let edit = |at: usize, v: u32| {
@@ -1025,5 +1130,95 @@ mod tests {
         let mut flipped = bytes.clone();
         flipped[n - 3] ^= 0x10;
         assert!(matches!(corrupt(&flipped), Corruption::Checksum));
+    }
+
+    /// [`two_keyframes`] in two maps (0 holds keyframe 0, 1 holds keyframe
+    /// 3 and is active), as a new map after a loss is before it merges.
+    fn two_maps() -> Map {
+        let mut m = two_keyframes();
+        m.set_keyframe_maps(
+            &[(KeyFrameId(0), MapId(0)), (KeyFrameId(3), MapId(1))],
+            MapId(1),
+        );
+        m
+    }
+
+    #[test]
+    fn an_unmerged_map_is_saved_beside_the_old_one_and_a_damaged_atlas_is_refused() {
+        let m = two_maps();
+        m.check_invariants().unwrap();
+        let bytes = encode(&m).unwrap();
+        let back = decode(&bytes, Path::new("atlas")).unwrap();
+        assert_eq!(back.maps(), vec![(MapId(0), 1), (MapId(1), 1)]);
+        assert_eq!(back.active_map(), MapId(1));
+        assert_eq!(back.root_of(MapId(0)), Some(KeyFrameId(0)));
+        assert_eq!(back.root_of(MapId(1)), Some(KeyFrameId(3)));
+        assert_eq!(encode(&back).unwrap(), bytes);
+        // A map started after this one gets a new id.
+        let mut more = back.clone();
+        assert_eq!(more.start_map(), MapId(2));
+
+        let n = bytes.len();
+        let corrupt = |b: &[u8]| match decode(b, Path::new("damaged")) {
+            Err(MapFileError::Corrupt { reason, .. }) => reason,
+            other => panic!("not refused as corrupt: {:?}", other.map(|m| m.maps())),
+        };
+        // The last pair is (3, 1): its keyframe changed to one not in the
+        // file, then to one listed already.
+        let edit = |at: usize, v: u32| {
+            let mut b = bytes.clone();
+            b[at..at + 4].copy_from_slice(&v.to_le_bytes());
+            with_checksum(b)
+        };
+        assert!(matches!(
+            corrupt(&edit(n - 8, 1)),
+            Corruption::KeyFrameMap {
+                keyframe: 1,
+                what: "not in the file"
+            }
+        ));
+        assert!(matches!(
+            corrupt(&edit(n - 8, 0)),
+            Corruption::KeyFrameMap {
+                keyframe: 0,
+                what: "listed twice"
+            }
+        ));
+        // The last pair dropped (count and header mended): keyframe 3 has
+        // no map.
+        let mut cut = bytes[..n - 8].to_vec();
+        let at = cut.len() - 12;
+        cut[at..at + 4].copy_from_slice(&1u32.to_le_bytes());
+        cut[12..20].copy_from_slice(&((n - 8 - 28) as u64).to_le_bytes());
+        assert!(matches!(
+            corrupt(&with_checksum(cut)),
+            Corruption::KeyFrameMap {
+                keyframe: 3,
+                what: "missing"
+            }
+        ));
+        // A count larger than the file.
+        assert!(matches!(
+            corrupt(&edit(n - 20, 1000)),
+            Corruption::Count { .. }
+        ));
+        // Two maps joined by a parent link: refused by the invariants.
+        let mut linked = two_keyframes();
+        linked.keyframe_mut(KeyFrameId(3)).unwrap().parent = Some(KeyFrameId(0));
+        linked
+            .keyframe_mut(KeyFrameId(0))
+            .unwrap()
+            .children
+            .push(KeyFrameId(3));
+        linked.set_keyframe_maps(
+            &[(KeyFrameId(0), MapId(0)), (KeyFrameId(3), MapId(1))],
+            MapId(1),
+        );
+        assert!(matches!(
+            corrupt(&encode(&linked).unwrap()),
+            Corruption::Map(MapError::Invariant(
+                crate::slam::map::Violation::CrossMap { .. }
+            ))
+        ));
     }
 }

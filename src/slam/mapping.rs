@@ -411,8 +411,8 @@ impl LocalMapper {
         fused
     }
 
-    /// Local BA: the keyframe and its covisible keyframes free (the map's
-    /// first keyframe fixed), other observers fixed. The solve runs without
+    /// Local BA: the keyframe and its covisible keyframes free (the first
+    /// keyframe of the keyframe's map fixed), other observers fixed. The solve runs without
     /// the map lock. Returns the final reprojection RMSE.
     fn local_bundle_adjustment(&mut self, map: &Mutex<Map>, kf: KeyFrameId) -> Option<f64> {
         let mut setup = {
@@ -420,7 +420,8 @@ impl LocalMapper {
             let k = m.keyframe(kf)?;
             let mut local: Vec<KeyFrameId> = vec![kf];
             local.extend(k.covisible.iter().map(|c| c.0));
-            let first = m.keyframes().next().map(|k| k.id);
+            // The root of the keyframe's map (the gauge of a monocular map).
+            let first = m.map_of(kf).and_then(|id| m.root_of(id));
             let fixed: Vec<KeyFrameId> = first.into_iter().collect();
             let mut setup = build_ba_problem(&m, &local, &fixed)?;
             if let Some(p) = &self.priors {

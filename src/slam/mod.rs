@@ -9,7 +9,10 @@
 //! mapped keyframe on the mapping thread (inline in sequential mode), so
 //! it never races local BA; its correction holds the map lock, as
 //! ORB-SLAM's holds the map-update mutex, and tracking re-places its last
-//! frame on the corrected reference keyframe.
+//! frame on the corrected reference keyframe. After a tracking loss a new
+//! map is started beside the old one (the [`Map`] is an atlas) and the
+//! loop closer merges them when it finds a common place; with telemetry
+//! priors no new map is started (tracking relocalises).
 //!
 //! # Layout
 //!
@@ -62,11 +65,16 @@ use crate::optimize::BaParams;
 
 pub use initializer::InitFailure;
 pub use loop_closing::{
-    LoopCloser, LoopEvent, LoopLog, LoopParams, LoopRefusal, LoopReject, LoopSummary,
+    LoopCloser, LoopEvent, LoopLog, LoopParams, LoopRefusal, LoopReject, LoopSummary, MergeEvent,
+    MergeLog, MergeSummary,
 };
-pub use map::{KeyFrame, KeyFrameId, Map, MapMode, MapPoint, PointId, ScaleInfo};
+pub use map::{
+    KeyFrame, KeyFrameId, Map, MapId, MapMode, MapPoint, MergeRecord, PointId, ScaleInfo,
+};
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
-pub use tracking::{FrameOutcome, FrameRecord, TrackFailure, TrackState, Tracker, TrackingParams};
+pub use tracking::{
+    FrameOutcome, FrameRecord, MapStart, TrackFailure, TrackState, Tracker, TrackingParams,
+};
 
 /// Errors of the SLAM.
 #[derive(Debug, thiserror::Error)]
@@ -170,6 +178,8 @@ pub struct Slam {
     frames: u64,
     /// The loop closer's summaries (None: loop closing off).
     loop_log: Option<LoopLog>,
+    /// The loop closer's merge summaries (None: loop closing off).
+    merge_log: Option<MergeLog>,
 }
 
 /// The result of a finished run.
@@ -190,6 +200,12 @@ pub struct SlamRun {
     pub loops: Vec<LoopEvent>,
     /// Consistent loop candidates refused, in order.
     pub loop_refusals: Vec<LoopRefusal>,
+    /// New maps started after tracking losses, in order.
+    pub map_starts: Vec<MapStart>,
+    /// Maps merged, in order.
+    pub merges: Vec<MergeEvent>,
+    /// Consistent merge candidates refused, in order.
+    pub merge_refusals: Vec<LoopRefusal>,
     /// When telemetry put the map in local NED: the keyframe it happened
     /// at and the fit (the map's mode is [`Map::mode`]).
     pub georeferenced: Option<(KeyFrameId, priors::Georeferenced)>,
@@ -197,10 +213,29 @@ pub struct SlamRun {
 
 impl SlamRun {
     /// Every tracked frame's pose (world_from_cam), placed relative to its
-    /// reference keyframe as the map stands now.
+    /// reference keyframe as the map stands now, in the first map (the
+    /// one the first posed frame is in; maps merged into it included).
+    /// Frames in a map never merged into it are left out
+    /// ([`SlamRun::trajectory_in`] gives them).
     pub fn trajectory(&self) -> Trajectory {
+        let first = self
+            .records
+            .iter()
+            .find_map(|r| self.map.map_of(r.reference));
+        match first {
+            Some(id) => self.trajectory_in(id),
+            None => Trajectory { poses: Vec::new() },
+        }
+    }
+
+    /// The tracked frames whose reference keyframe is in map `id`.
+    pub fn trajectory_in(&self, id: MapId) -> Trajectory {
         let mut poses = Vec::with_capacity(self.records.len());
-        for r in &self.records {
+        for r in self
+            .records
+            .iter()
+            .filter(|r| self.map.map_of(r.reference) == Some(id))
+        {
             if let Some(ref_pose) = self.map.keyframe_pose(r.reference) {
                 let cam_from_world = r.cam_from_ref * ref_pose;
                 poses.push(StampedPose {
@@ -212,11 +247,17 @@ impl SlamRun {
         Trajectory { poses }
     }
 
-    /// The live keyframes' poses (world_from_cam), by time.
+    /// The live keyframes' poses (world_from_cam) of the first map (as
+    /// [`SlamRun::trajectory`]), by time.
     pub fn keyframe_trajectory(&self) -> Trajectory {
+        let first = self
+            .records
+            .iter()
+            .find_map(|r| self.map.map_of(r.reference));
         let mut poses: Vec<StampedPose> = self
             .map
             .keyframes()
+            .filter(|k| first.is_none_or(|f| self.map.map_of(k.id) == Some(f)))
             .map(|k| StampedPose {
                 t: k.timestamp,
                 world_from_cam: k.world_from_cam(),
@@ -241,7 +282,7 @@ impl Slam {
         params: Params,
         vocabulary: Arc<crate::bow::Vocabulary>,
     ) -> Result<Self, SlamError> {
-        let tracker = Tracker::new(camera, params.tracking.clone(), vocabulary)?;
+        let tracker = Tracker::new(camera, tracking_params(&params), vocabulary)?;
         let map = Map::new(camera, tracker.scale().clone());
         Self::start(tracker, map, params)
     }
@@ -256,7 +297,7 @@ impl Slam {
         params: Params,
         vocabulary: Arc<crate::bow::Vocabulary>,
     ) -> Result<Self, SlamError> {
-        let mut tracker = Tracker::new(map.camera, params.tracking.clone(), vocabulary.clone())?;
+        let mut tracker = Tracker::new(map.camera, tracking_params(&params), vocabulary.clone())?;
         let scale = tracker.scale();
         if scale.n_levels() != map.scale.n_levels()
             || (scale.scale_factor - map.scale.scale_factor).abs() > 1e-6
@@ -295,6 +336,7 @@ impl Slam {
             .clone()
             .map(|p| LoopCloser::new(p, bounds));
         let loop_log = closer.as_ref().map(LoopCloser::log);
+        let merge_log = closer.as_ref().map(LoopCloser::merge_log);
         let mappers = Mappers { mapper, closer };
         let mapping = if params.sequential {
             Mapping::Inline(Box::new(mappers))
@@ -317,6 +359,7 @@ impl Slam {
             params,
             frames: 0,
             loop_log,
+            merge_log,
         })
     }
 
@@ -327,6 +370,20 @@ impl Slam {
             let g = log.lock().unwrap_or_else(|e| e.into_inner());
             g.get(n..).map_or_else(Vec::new, <[LoopSummary]>::to_vec)
         })
+    }
+
+    /// The merges made so far after the first `n` (all with `n` = 0), in
+    /// order; they come from the mapping thread as it makes them.
+    pub fn merges_since(&self, n: usize) -> Vec<MergeSummary> {
+        self.merge_log.as_ref().map_or_else(Vec::new, |log| {
+            let g = log.lock().unwrap_or_else(|e| e.into_inner());
+            g.get(n..).map_or_else(Vec::new, <[MergeSummary]>::to_vec)
+        })
+    }
+
+    /// The new maps started after tracking losses so far.
+    pub fn map_starts(&self) -> &[MapStart] {
+        self.tracker.map_starts()
     }
 
     /// The shared map (read it under the lock; the API takes snapshots).
@@ -397,14 +454,16 @@ impl Slam {
             }
         };
         let (reports, closer, georeferenced) = mappers.unwrap_or_default();
-        let (loops, loop_refusals) = match closer {
-            Some(c) => (c.events, c.refusals),
-            None => (Vec::new(), Vec::new()),
+        let (loops, loop_refusals, merges, merge_refusals) = match closer {
+            Some(c) => (c.events, c.refusals, c.merges, c.merge_refusals),
+            None => (Vec::new(), Vec::new(), Vec::new(), Vec::new()),
         };
         let mut map = {
             let guard = self.map.lock().unwrap_or_else(|e| e.into_inner());
             guard.clone()
         };
+        // Merges made after the last frame: the records follow them.
+        self.tracker.follow_merges(&map);
         if let Some(ba) = &self.params.final_ba {
             let kfs: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
             if kfs.len() >= 2 {
@@ -412,10 +471,21 @@ impl Slam {
                     .then_some(self.params.priors.as_ref())
                     .flatten();
                 // With priors the priors fix the gauge: no keyframe is held.
+                // Else each map's first keyframe (maps never merged are
+                // separate problems in one).
                 let fixed = if aided.is_some() {
                     Vec::new()
                 } else {
-                    vec![kfs[0]]
+                    let roots: Vec<KeyFrameId> = map
+                        .maps()
+                        .iter()
+                        .filter_map(|(id, _)| map.root_of(*id))
+                        .collect();
+                    if roots.is_empty() {
+                        vec![kfs[0]]
+                    } else {
+                        roots
+                    }
                 };
                 let solved =
                     bundle::run_bundle_adjustment_with(&mut map, &kfs, &fixed, ba, |m, s| {
@@ -442,9 +512,23 @@ impl Slam {
             last_reason: self.tracker.last_reason().cloned(),
             loops,
             loop_refusals,
+            map_starts: self.tracker.map_starts().to_vec(),
+            merges,
+            merge_refusals,
             georeferenced,
         }
     }
+}
+
+/// The tracking parameters as the SLAM uses them: with telemetry priors
+/// no new map is started after a loss (a new map would have to start in
+/// local NED from GNSS, which is not done yet): tracking relocalises.
+fn tracking_params(params: &Params) -> TrackingParams {
+    let mut t = params.tracking.clone();
+    if params.priors.is_some() {
+        t.new_map_after_lost_frames = None;
+    }
+    t
 }
 
 fn spawn_mapper(

@@ -63,6 +63,11 @@ pub struct TrackingParams {
     pub pnp: PnpParams,
     /// Bundle adjustment of the initial map.
     pub init_ba: BaParams,
+    /// After tracking is lost, relocalisation is tried for this many
+    /// frames; then a new map starts at once: the initializer runs on the
+    /// next frames while relocalisation into the old maps is still tried
+    /// on each of them (`None`: relocalise only, forever).
+    pub new_map_after_lost_frames: Option<u64>,
     /// Seed of the randomised steps.
     pub seed: u64,
 }
@@ -98,6 +103,7 @@ impl Default for TrackingParams {
                 second_pass_iterations: 10,
                 ..BaParams::default()
             },
+            new_map_after_lost_frames: Some(1),
             seed: 1,
         }
     }

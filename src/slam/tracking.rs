@@ -5,7 +5,13 @@
 //! (`slam/keyframe_decision.rs`). States: not initialised
 //! ([`super::initializer`] builds the map), tracking, lost (the
 //! relocaliser, `slam/relocalizer.rs`, finds the frame again through the
-//! keyframe database).
+//! keyframe database, in any map of the atlas). Lost for
+//! [`TrackingParams::new_map_after_lost_frames`] frames after tracking, a
+//! new map starts at once: the initializer takes the next frames while
+//! relocalisation into the old maps is still tried on each (success
+//! abandons the new map); loop closing merges it back later
+//! ([`super::loop_closing`]). A map loaded from a file starts lost and only
+//! relocalises until its first tracked frame.
 
 use std::sync::{Arc, Mutex};
 
@@ -24,7 +30,7 @@ use super::frame::{Context, Frame, LastFrame, Marks, PoseFit};
 use super::initializer::{InitFailure, InitialMap, Initializer};
 use super::keyframe_decision::{KeyFrameCandidate, need_new_keyframe};
 use super::local_map::LocalMapTracker;
-use super::map::{KeyFrameId, Map, ScaleInfo, lock};
+use super::map::{KeyFrameId, Map, MapId, ScaleInfo, lock};
 use super::matcher;
 use super::relocalizer::relocalize;
 
@@ -83,6 +89,24 @@ pub struct FrameRecord {
     pub reference: KeyFrameId,
     /// cam_from_world of the frame = `cam_from_ref` * ref.cam_from_world.
     pub cam_from_ref: Isometry3<f64>,
+}
+
+/// A new map started after a tracking loss (see
+/// [`TrackingParams::new_map_after_lost_frames`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MapStart {
+    /// The first frame tracking failed on (the loss).
+    pub lost_at: u64,
+    /// The first frame given to the initializer for the new map.
+    pub started_at: u64,
+    /// The new map's id.
+    pub map: MapId,
+    /// The frame the new map was initialised with (`None`: not yet, or
+    /// abandoned).
+    pub initialized_at: Option<u64>,
+    /// The frame that relocalised into an old map before the new one was
+    /// initialised (the new map abandoned).
+    pub relocalized_at: Option<u64>,
 }
 
 /// What tracking did with one frame.
@@ -144,6 +168,15 @@ pub struct Tracker {
     corrections_seen: u64,
     /// The map's [`Map::scale_applied`] when the last frame was tracked.
     scale_seen: f64,
+    /// The map's merges already followed ([`Map::merges`]).
+    merges_seen: usize,
+    /// The frame tracking was lost at (reset when tracked again).
+    lost_since: Option<u64>,
+    /// A new map is being initialised (its entry is the last of
+    /// `map_starts`).
+    new_map_pending: bool,
+    /// The new maps started, in order.
+    map_starts: Vec<MapStart>,
 }
 
 impl Tracker {
@@ -177,6 +210,10 @@ impl Tracker {
             marks: Marks::default(),
             corrections_seen: 0,
             scale_seen: 1.0,
+            merges_seen: 0,
+            lost_since: None,
+            new_map_pending: false,
+            map_starts: Vec::new(),
         })
     }
 
@@ -221,6 +258,41 @@ impl Tracker {
         &self.records
     }
 
+    /// The new maps started after tracking losses, in order.
+    pub fn map_starts(&self) -> &[MapStart] {
+        &self.map_starts
+    }
+
+    /// Follow the map's merges not followed yet: the records placed on a
+    /// merged map's keyframes (and the constant-velocity model when the
+    /// last frame was) scale their translations as the merge scaled that
+    /// map. Tracking does it before each frame; [`super::Slam::finish`]
+    /// once more at the end.
+    pub fn follow_merges(&mut self, map: &Map) {
+        let merges = map.merges();
+        if merges.len() < self.merges_seen {
+            // The map was emptied (a failed first initialisation).
+            self.merges_seen = merges.len();
+        }
+        for m in &merges[self.merges_seen..] {
+            let moved: std::collections::HashSet<KeyFrameId> =
+                m.keyframes.iter().copied().collect();
+            let k = m.sim3.scale;
+            if let Some(last) = self.records.last()
+                && moved.contains(&last.reference)
+                && let Some(v) = &mut self.velocity
+            {
+                v.translation.vector *= k;
+            }
+            for r in &mut self.records {
+                if moved.contains(&r.reference) {
+                    r.cam_from_ref.translation.vector *= k;
+                }
+            }
+        }
+        self.merges_seen = merges.len();
+    }
+
     /// Track one frame. `mapping_idle` says whether mapping can take a
     /// keyframe now (tracking never waits for it).
     pub fn track(
@@ -232,7 +304,7 @@ impl Tracker {
         mapping_idle: bool,
     ) -> FrameOutcome {
         let t0 = Stopwatch::start();
-        let initializing = self.state == TrackState::NotInitialized;
+        let initializing = self.state == TrackState::NotInitialized || self.new_map_pending;
         let feats = if initializing {
             self.init_extractor.extract(&image, Some(&self.ctx.camera))
         } else {
@@ -264,7 +336,9 @@ impl Tracker {
             extract_cpu_ms,
             track_cpu_ms: None,
         };
-        let result = if initializing {
+        let result = if self.new_map_pending {
+            self.track_or_start_new_map(map, frame, mapping_idle, &mut out)
+        } else if initializing {
             match self.initializer.step(&self.ctx, map, frame) {
                 Ok(Some(initial)) => {
                     out.initialized = true;
@@ -280,6 +354,7 @@ impl Tracker {
         match result {
             Ok(Some(tracked)) => {
                 self.state = TrackState::Tracking;
+                self.lost_since = None;
                 out.cam_from_world = Some(tracked.cam_from_world);
                 out.inliers = tracked.inliers;
                 out.new_keyframe = tracked.new_keyframe;
@@ -287,8 +362,12 @@ impl Tracker {
             Ok(None) => {}
             Err(failure) => {
                 if !initializing {
+                    if self.state == TrackState::Tracking {
+                        self.lost_since = Some(index);
+                    }
                     self.state = TrackState::Lost;
                     self.velocity = None;
+                    self.maybe_start_new_map(map, index);
                 }
                 out.reason = Some(failure.clone());
                 self.last_reason = Some(failure);
@@ -300,10 +379,94 @@ impl Tracker {
         out
     }
 
+    /// Lost for long enough: start a new map (the initializer takes the
+    /// next frames; the old maps are kept and relocalisation into them is
+    /// still tried).
+    fn maybe_start_new_map(&mut self, map: &Mutex<Map>, index: u64) {
+        let (Some(after), Some(lost_at)) =
+            (self.ctx.params.new_map_after_lost_frames, self.lost_since)
+        else {
+            return;
+        };
+        if self.new_map_pending || index < lost_at + after {
+            return;
+        }
+        let id = lock(map).start_map();
+        self.initializer.reset();
+        self.new_map_pending = true;
+        tracing::info!(
+            lost_at,
+            frame = index,
+            map = id.0,
+            "tracking lost: starting a new map"
+        );
+        self.map_starts.push(MapStart {
+            lost_at,
+            started_at: index + 1,
+            map: id,
+            initialized_at: None,
+            relocalized_at: None,
+        });
+    }
+
+    /// A frame while a new map is being initialised: relocalisation into
+    /// the old maps first (success abandons the new map), else the
+    /// initializer.
+    fn track_or_start_new_map(
+        &mut self,
+        map: &Mutex<Map>,
+        mut frame: Frame,
+        mapping_idle: bool,
+        out: &mut FrameOutcome,
+    ) -> Result<Option<Tracked>, TrackFailure> {
+        let index = frame.index;
+        if let Some(start) = self.map_starts.last_mut()
+            && start.started_at > index
+        {
+            start.started_at = index;
+        }
+        let relocalised = {
+            let mut m = lock(map);
+            self.track_frame(&mut m, &mut frame, mapping_idle)
+        };
+        if let Ok(tracked) = relocalised {
+            self.new_map_pending = false;
+            self.initializer.reset();
+            if let Some(start) = self.map_starts.last_mut() {
+                start.relocalized_at = Some(index);
+            }
+            tracing::info!(
+                frame = index,
+                "relocalised in an old map: the new map is abandoned"
+            );
+            return Ok(Some(tracked));
+        }
+        frame.clear_matches();
+        if let Some(start) = self.map_starts.last() {
+            // A relocalisation that then failed on the local map may have
+            // switched the active map: the initializer builds the new one.
+            lock(map).set_active_map(start.map);
+        }
+        match self.initializer.step(&self.ctx, map, frame) {
+            Ok(Some(initial)) => {
+                out.initialized = true;
+                self.new_map_pending = false;
+                if let Some(start) = self.map_starts.last_mut() {
+                    start.initialized_at = Some(initial.second.index);
+                }
+                Ok(Some(self.start_tracking(initial)))
+            }
+            Ok(None) => Err(TrackFailure::RelocalizationFailed),
+            Err(failure) => Err(TrackFailure::Init(failure)),
+        }
+    }
+
     /// Start tracking on a new initial map: both frames are recorded at
     /// their keyframes, the second is the last frame and the reference.
     fn start_tracking(&mut self, initial: InitialMap) -> Tracked {
-        self.initialized_at = Some(initial.second.index);
+        if self.initialized_at.is_none() {
+            self.initialized_at = Some(initial.second.index);
+        }
         self.state = TrackState::Tracking;
         self.last_reason = None;
         for f in [initial.first, initial.second] {
@@ -349,6 +512,7 @@ impl Tracker {
                 v.translation.vector *= k;
             }
         }
+        self.follow_merges(map);
         if map.corrections() != self.corrections_seen {
             self.corrections_seen = map.corrections();
             self.follow_correction(map);
@@ -368,6 +532,16 @@ impl Tracker {
                 relocalize(&self.ctx, &mut self.marks, map, frame).map(|fit| fit.cam_from_world);
             if cam_from_world.is_some() {
                 self.last_reloc_frame = Some(frame.index);
+                // Relocalised into whichever map it found: that one is
+                // extended from now on.
+                if let Some(m) = frame
+                    .points
+                    .iter()
+                    .flatten()
+                    .find_map(|p| map.map_of_point(*p))
+                {
+                    map.set_active_map(m);
+                }
             }
         }
         let p = &self.ctx.params;
