@@ -66,7 +66,10 @@ pub use loop_closing::{
 };
 pub use map::{KeyFrame, KeyFrameId, Map, MapMode, MapPoint, PointId, ScaleInfo};
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
-pub use tracking::{FrameOutcome, FrameRecord, TrackFailure, TrackState, Tracker, TrackingParams};
+pub use tracking::{
+    FrameOutcome, FrameRecord, KeypointState, TrackFailure, TrackState, TrackedKeypoint, Tracker,
+    TrackingParams,
+};
 
 /// Errors of the SLAM.
 #[derive(Debug, thiserror::Error)]

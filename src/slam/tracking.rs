@@ -21,6 +21,7 @@ use crate::matching::FeatureGrid;
 use super::SlamError;
 use super::cpu_time::Stopwatch;
 use super::frame::{Context, Frame, LastFrame, Marks, PoseFit};
+pub use super::frame::{KeypointState, TrackedKeypoint};
 use super::initializer::{InitFailure, InitialMap, Initializer};
 use super::keyframe_decision::{KeyFrameCandidate, need_new_keyframe};
 use super::local_map::LocalMapTracker;
@@ -108,6 +109,9 @@ pub struct FrameOutcome {
     pub extract_cpu_ms: Option<f64>,
     /// Whole frame (extraction included), this thread's CPU ms.
     pub track_cpu_ms: Option<f64>,
+    /// The frame's keypoints and what tracking made of each (all
+    /// unmatched while the map is being initialised).
+    pub keypoints: Vec<TrackedKeypoint>,
 }
 
 /// A tracked frame.
@@ -251,6 +255,7 @@ impl Tracker {
             points: vec![None; n],
             image,
             bow: None,
+            rejected: vec![false; n],
         };
         let mut out = FrameOutcome {
             state: self.state,
@@ -263,8 +268,10 @@ impl Tracker {
             track_ms: 0.0,
             extract_cpu_ms,
             track_cpu_ms: None,
+            keypoints: Vec::new(),
         };
         let result = if initializing {
+            out.keypoints = frame.keypoint_states();
             match self.initializer.step(&self.ctx, map, frame) {
                 Ok(Some(initial)) => {
                     out.initialized = true;
@@ -275,7 +282,9 @@ impl Tracker {
             }
         } else {
             let mut m = lock(map);
-            self.track_frame(&mut m, &mut frame, mapping_idle).map(Some)
+            let r = self.track_frame(&mut m, &mut frame, mapping_idle).map(Some);
+            out.keypoints = frame.keypoint_states();
+            r
         };
         match result {
             Ok(Some(tracked)) => {
