@@ -237,15 +237,22 @@ $('overlaytoggle').addEventListener('change', drawOverlay);
 // not carry them). Hooks for tests and tools: #features's data-state
 // (off, waiting, drawn, none), data-seq, data-slam (the tracking state
 // after the frame), data-counts (the frame's keypoints per state, as the
-// API reported them), data-drawn (the keypoints drawn per state) and
-// data-colors (each state's colour).
+// API reported them), data-drawn (the keypoints drawn per state),
+// data-colors (each state's colour) and data-order (the drawing order).
 const FEATURE_STATES = ['inlier', 'outlier', 'unmatched'];
 const FEATURE_COLORS = { inlier: '#39d353', outlier: '#ff3b3b', unmatched: '#4da3ff' };
-const FEATURES_HZ = 5;
-// Each keypoint is a square of 2 FEATURE_HALF + 1 pixels a side.
+// `?features_hz=N` in the page's address sets the rate (0.2 to 15; each
+// look costs the frame's JPEG, some 75 kB on the simulator's video).
+const FEATURES_HZ = Math.min(15, Math.max(0.2, Number(new URLSearchParams(location.search).get('features_hz')) || 5));
+// Each keypoint is a square of 2 FEATURE_HALF + 1 pixels a side, drawn
+// state by state in FEATURE_ORDER: the many unmatched at the bottom, the
+// few outliers on top (they often lie on an inlier: the same corner
+// found on two pyramid levels, one kept, one rejected).
 const FEATURE_HALF = 2;
+const FEATURE_ORDER = ['unmatched', 'inlier', 'outlier'];
 let featuresRun = 0;
 $('features').dataset.colors = JSON.stringify(FEATURE_COLORS);
+$('features').dataset.order = JSON.stringify(FEATURE_ORDER);
 // The packed keypoints (see GET /features' `encoding`): x, y in pixels and
 // the state's index in FEATURE_STATES.
 function unpackFeatures(b64) {
@@ -266,10 +273,10 @@ function drawFeatures(cv, f, img) {
   const pts = unpackFeatures(f.points);
   const drawn = { inlier: 0, outlier: 0, unmatched: 0 };
   // A square centred on each keypoint's pixel (pixel centres at
-  // integers), unmatched first and inliers last, on top.
+  // integers), in FEATURE_ORDER.
   const side = 2 * FEATURE_HALF + 1;
-  for (const s of [2, 1, 0]) {
-    const name = FEATURE_STATES[s];
+  for (const name of FEATURE_ORDER) {
+    const s = FEATURE_STATES.indexOf(name);
     g.fillStyle = FEATURE_COLORS[name];
     for (const p of pts) {
       if (p.s !== s) continue;

@@ -128,18 +128,19 @@ async function main() {
       const f = await r.json();
       const hex = (i) => '#' + [d[i], d[i + 1], d[i + 2]].map((v) => v.toString(16).padStart(2, '0')).join('');
       // Under each keypoint: its state's colour, or, where a keypoint of a
-      // state drawn later (unmatched first, then outliers, then inliers)
-      // lies within its square's reach, that one's colour.
-      const pts = unpackFeatures(f.points).map((p) => ({ u: Math.round(p.x), v: Math.round(p.y), s: p.s }));
+      // state drawn later (data-order) lies within its square's reach,
+      // that one's colour.
+      const order = JSON.parse(c.dataset.order);
+      const pts = unpackFeatures(f.points).map((p) => ({ u: Math.round(p.x), v: Math.round(p.y), st: FEATURE_STATES[p.s] }));
       const coloured = { inlier: 0, outlier: 0, unmatched: 0 }, covered = { inlier: 0, outlier: 0, unmatched: 0 }, wrong = [];
       for (const p of pts) {
-        const st = FEATURE_STATES[p.s], px = hex((p.v * c.width + p.u) * 4);
-        const over = pts.filter((q) => q.s < p.s && Math.abs(q.u - p.u) <= FEATURE_HALF && Math.abs(q.v - p.v) <= FEATURE_HALF);
-        if (px === colors[st]) coloured[st]++;
-        else if (over.some((q) => colors[FEATURE_STATES[q.s]] === px)) covered[st]++;
+        const px = hex((p.v * c.width + p.u) * 4);
+        const over = pts.filter((q) => order.indexOf(q.st) > order.indexOf(p.st) && Math.abs(q.u - p.u) <= FEATURE_HALF && Math.abs(q.v - p.v) <= FEATURE_HALF);
+        if (px === colors[p.st]) coloured[p.st]++;
+        else if (over.some((q) => colors[q.st] === px)) covered[p.st]++;
         else wrong.push({ ...p, px });
       }
-      return { seq, drawn, counts, colors, coloured, covered, wrong: wrong.slice(0, 10), size: [c.width, c.height], api: { seq: f.seq, state: f.state, counts: f.counts, shown: f.shown, width: f.width, height: f.height } };
+      return { seq, drawn, counts, colors, order, coloured, covered, wrong: wrong.slice(0, 10), size: [c.width, c.height], api: { seq: f.seq, state: f.state, counts: f.counts, shown: f.shown, width: f.width, height: f.height } };
     });
     let fl = await featuresLook();
     for (let i = 0; i < 5 && fl.gone; i++) fl = await featuresLook();
@@ -152,12 +153,13 @@ async function main() {
     check(shown > 0 && shown <= 500 && shown <= fl.api.counts.inlier + fl.api.counts.outlier + fl.api.counts.unmatched, `at most [server] features_max keypoints are drawn: ${JSON.stringify(fl)}`);
     check(fl.size[0] === fl.api.width && fl.size[1] === fl.api.height, `the canvas is the frame's size: ${JSON.stringify(fl)}`);
     // Every keypoint shows its state's colour, or that of a keypoint drawn
-    // over it (the same corner found on two pyramid levels); inliers,
-    // drawn last, always their own.
+    // over it (the same corner found on two pyramid levels); those drawn
+    // last always their own.
     for (const k of FEATURE_STATES_T) {
       check(fl.coloured[k] + fl.covered[k] === fl.drawn[k], `every ${k} keypoint is drawn in its colour or under a later one: ${JSON.stringify(fl)}`);
     }
-    check(fl.wrong.length === 0 && fl.covered.inlier === 0, `no keypoint shows another colour: ${JSON.stringify(fl)}`);
+    const top = fl.order[fl.order.length - 1];
+    check(fl.wrong.length === 0 && fl.covered[top] === 0, `no keypoint shows another colour: ${JSON.stringify(fl)}`);
     out.features = fl;
     await page.$eval('#video', (v) => v.closest('.panel').scrollIntoView());
     await stage(page, 'features', false);
