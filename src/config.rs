@@ -136,6 +136,9 @@ pub struct ServerConfig {
     pub events_hz: f64,
     /// Most map points `/api/v1/map` returns.
     pub map_max_points: usize,
+    /// Most keypoints `/api/v1/features` returns (the page's feature
+    /// overlay): inliers first, then outliers, then unmatched.
+    pub features_max: usize,
 }
 
 impl Default for ServerConfig {
@@ -147,6 +150,7 @@ impl Default for ServerConfig {
             data_dir: PathBuf::from("data"),
             events_hz: 2.0,
             map_max_points: 20_000,
+            features_max: 500,
         }
     }
 }

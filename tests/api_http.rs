@@ -12,7 +12,8 @@ use image::{GrayImage, Luma};
 use serde_json::{Value, json};
 use shotpilot::api::{
     self, ApiParams, AppState, BoxFuture, KeyframeInfo, LoopInfo, MapView, MergeInfo,
-    MissionProgressView, SlamStatus, SlamView, StopOutcome, VehicleError, VehicleMissionView,
+    MissionProgressView, SlamStatus, SlamView, StopOutcome, TrackedFeatures, VehicleError,
+    VehicleMissionView,
     VehicleStatus, VehicleView,
 };
 use shotpilot::shot::record::{
@@ -20,7 +21,8 @@ use shotpilot::shot::record::{
 };
 use shotpilot::shot::request::{ShotComputation, ShotComputer, ShotRequestError, WarpOnly};
 use shotpilot::shot::store::ShotStore;
-use shotpilot::video::live::{Ingest, RawPart, unix_now};
+use shotpilot::slam::{KeypointState, TrackedKeypoint};
+use shotpilot::video::live::{Frame, Ingest, RawPart, unix_now};
 
 fn kf_image() -> GrayImage {
     GrayImage::from_fn(640, 480, |x, y| {
@@ -30,6 +32,27 @@ fn kf_image() -> GrayImage {
 
 struct FakeSlam {
     img: Arc<GrayImage>,
+}
+
+/// The sequence number of the one processed frame the fake SLAM keeps.
+const FEATURES_SEQ: u64 = 7;
+
+/// 600 keypoints over the frame: every 10th an outlier, every 3rd of the
+/// others an inlier, the rest unmatched (60, 180, 360).
+fn fake_keypoints() -> Vec<TrackedKeypoint> {
+    (0..600u32)
+        .map(|i| TrackedKeypoint {
+            x: (i * 7 % 600) as f32 + 20.25,
+            y: (i * 13 % 440) as f32 + 20.5,
+            state: if i % 10 == 0 {
+                KeypointState::Outlier
+            } else if i % 3 == 0 {
+                KeypointState::Inlier
+            } else {
+                KeypointState::Unmatched
+            },
+        })
+        .collect()
 }
 
 impl SlamView for FakeSlam {
@@ -89,6 +112,21 @@ impl SlamView for FakeSlam {
     }
     fn keyframe_image(&self, id: u64) -> Option<Arc<GrayImage>> {
         (id < 2).then(|| self.img.clone())
+    }
+    fn features(&self, seq: Option<u64>) -> Option<Arc<TrackedFeatures>> {
+        seq.is_none_or(|s| s == FEATURES_SEQ).then(|| {
+            Arc::new(TrackedFeatures {
+                frame: Arc::new(Frame::from_image(
+                    FEATURES_SEQ,
+                    Some(1.0e9),
+                    std::time::Instant::now(),
+                    1.0e9,
+                    self.img.clone(),
+                )),
+                state: "tracking".into(),
+                keypoints: fake_keypoints().into(),
+            })
+        })
     }
     fn map(&self, max_points: usize) -> MapView {
         let pts = vec![[0.0f32, 1.0, 2.0]; 3];
@@ -333,6 +371,84 @@ fn good_shot(kf: u64) -> Vec<u8> {
     json!({"keyframe_id": kf, "anchors": [[100, 100], [299, 100], [299, 249], [100, 249]], "width": 200, "height": 150})
         .to_string()
         .into_bytes()
+}
+
+/// A recent frame's keypoints: counts per state, at most `features_max`
+/// (or `max`) of them packed, inliers first; the frame's picture beside
+/// them; a frame not kept, or a bad number, is refused.
+#[test]
+fn the_features_of_a_processed_frame_are_bounded_packed_and_have_their_picture() {
+    let dir = tempfile::tempdir().unwrap();
+    let srv = start(dir.path(), None, false);
+    let a = srv.addr;
+    let all = fake_keypoints();
+    let r = http(a, "GET", "/api/v1/features", &[], b"");
+    assert_eq!(r.0, 200, "{}", String::from_utf8_lossy(&r.2));
+    let f = json_of(&r.2);
+    assert_eq!(f["seq"], FEATURES_SEQ);
+    assert_eq!(
+        (f["width"].as_u64(), f["height"].as_u64()),
+        (Some(640), Some(480))
+    );
+    assert_eq!(f["state"], "tracking");
+    assert_eq!(
+        f["counts"],
+        json!({"inlier": 180, "outlier": 60, "unmatched": 360})
+    );
+    // The default bound (500): every inlier and outlier, 260 unmatched.
+    let limit = ApiParams::default().features_max;
+    assert_eq!(limit, 500);
+    assert_eq!(
+        f["shown"],
+        json!({"inlier": 180, "outlier": 60, "unmatched": 260})
+    );
+    let shown = api::unpack(f["points"].as_str().unwrap()).expect("packed keypoints");
+    assert_eq!(shown.len(), limit);
+    for p in &shown {
+        // Each is one of the frame's, at its place to 1/16 pixel.
+        assert!(
+            all.iter().any(|k| k.state == p.state
+                && (k.x - p.x).abs() <= 1.0 / 16.0
+                && (k.y - p.y).abs() <= 1.0 / 16.0),
+            "{p:?}"
+        );
+    }
+    // Fewer asked for: the inliers first.
+    let f = json_of(&http(a, "GET", "/api/v1/features?max=100", &[], b"").2);
+    assert_eq!(
+        f["shown"],
+        json!({"inlier": 100, "outlier": 0, "unmatched": 0})
+    );
+    // More than the bound asked for: the bound.
+    let f = json_of(&http(a, "GET", "/api/v1/features?max=100000&seq=7", &[], b"").2);
+    assert_eq!(
+        api::unpack(f["points"].as_str().unwrap()).unwrap().len(),
+        limit
+    );
+    // The frame's picture, where the reply says.
+    let url = f["frame_url"].as_str().unwrap();
+    assert_eq!(url, format!("/api/v1/features/{FEATURES_SEQ}/frame.jpg"));
+    let r = http(a, "GET", url, &[], b"");
+    assert_eq!(r.0, 200);
+    assert!(r.1.contains("content-type: image/jpeg"), "{}", r.1);
+    let img = image::load_from_memory(&r.2).unwrap();
+    assert_eq!((img.width(), img.height()), (640, 480));
+    // A frame no longer kept, and a bad number.
+    assert_error(
+        &http(a, "GET", "/api/v1/features?seq=8", &[], b""),
+        404,
+        "not_found",
+    );
+    assert_error(
+        &http(a, "GET", "/api/v1/features/8/frame.jpg", &[], b""),
+        404,
+        "not_found",
+    );
+    assert_error(
+        &http(a, "GET", "/api/v1/features/x/frame.jpg", &[], b""),
+        400,
+        "bad_id",
+    );
 }
 
 #[test]
@@ -1096,6 +1212,7 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
         ("/api/v1/shots".to_owned(), "/shots"),
         (format!("/api/v1/shots/{id}"), "/shots/{id}"),
         ("/api/v1/vehicle/mission".to_owned(), "/vehicle/mission"),
+        ("/api/v1/features".to_owned(), "/features"),
     ] {
         let r = http(a, "GET", &path, &[], b"");
         assert_eq!(r.0, 200, "{path}: {}", String::from_utf8_lossy(&r.2));

@@ -12,8 +12,12 @@
 //! shot's first flight lands off its target (the simulated GNSS altitude
 //! drifts, seeded), so its timeline shows a correction flown and a smaller
 //! error after it, and the localisation's sigma. The keyframe gallery is
-//! bounded (3 newest and those shots use, here); the loops-closed badge and
-//! the map's loops follow the status. A screenshot of each stage is saved
+//! bounded (3 newest and those shots use, here); the loops-closed badge,
+//! the map's loops and its list of map events follow the status. The
+//! tracked-features toggle (by keyboard) draws a tracked frame's keypoints
+//! on that frame in their states' colours, as many per state as the API
+//! says of the same frame. Each correction's flight on the timeline began
+//! the correction's length away. A screenshot of each stage is saved
 //! beside the main one.
 //!
 //! Needs `node`, `npm ci` in `tests/browser` and Chromium; `.ci/run` sets
@@ -292,6 +296,31 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
     } else {
         panic!("the shot reports no sigma: {stored}");
     }
+    // Each correction's flight on the timeline began its length away (the
+    // straight line: the simulated GNSS bias is vertical, so a correction
+    // is mostly vertical and its horizontal part about 0). The vehicle
+    // held the last round's target, by its own report, when it began.
+    for w in rounds.windows(2) {
+        let Some(step) = w[0]["correction"]["step_ned_m"].as_array() else {
+            continue;
+        };
+        let len = step
+            .iter()
+            .map(|v| v.as_f64().unwrap().powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let r = w[1]["round"].as_u64().unwrap();
+        let fl = tl
+            .iter()
+            .find(|l| l["kind"] == "flying" && l["round"].as_u64() == Some(r))
+            .unwrap_or_else(|| panic!("no flying line for round {r}: {kinds:?}"));
+        let start = fl["start"].as_f64().unwrap();
+        eprintln!("round {r}: correction of {len:.3} m, flight began {start:.3} m away");
+        assert!(
+            (start - len).abs() <= (0.3 * len).max(0.3),
+            "round {r}'s flight began {start} m away for a correction of {len} m: {fl}"
+        );
+    }
     for (l, r) in shown.iter().zip(rounds) {
         assert_eq!(l["round"], r["round"], "{l} vs {r}");
         match r["shot_error_pct"].as_f64() {
@@ -447,6 +476,17 @@ fn operator_page_in_headless_chromium() {
 
     // What the page showed is what the daemon holds.
     assert!(seen["keyframes_listed"].as_u64().unwrap() >= 3);
+    // The tracked features (the page compared them with the API's reply
+    // for the frame drawn): a tracked frame has inliers, and at most
+    // `[server] features_max` keypoints were drawn.
+    let fl = &seen["features"];
+    eprintln!("tracked features drawn: {fl}");
+    assert!(fl["counts"]["inlier"].as_u64().unwrap() > 0, "{fl}");
+    let drawn: u64 = ["inlier", "outlier", "unmatched"]
+        .iter()
+        .map(|k| fl["drawn"][k].as_u64().unwrap())
+        .sum();
+    assert!(drawn > 0 && drawn <= 500, "{fl}");
     // The gallery is bounded: the newest 3 and those shots use (the page
     // compared them with the daemon's lists), fewer than the map holds.
     let g = &seen["gallery"];
@@ -469,6 +509,10 @@ fn operator_page_in_headless_chromium() {
     for d in lp["drawn"].as_array().unwrap() {
         assert!(pairs.contains(d), "drawn {d}, closed {pairs:?}");
     }
+    // The map's events list every loop the status lists, newest first.
+    let listed: Vec<&Value> = lp["events"].as_array().unwrap().iter().collect();
+    let newest_first: Vec<&Value> = pairs.iter().rev().collect();
+    assert_eq!(listed, newest_first, "{lp}");
     eprintln!("loops: {lp}");
     let shots = get_json(addr, "/api/v1/shots");
     // The first shot, then the whole shot's, then the second shot (which

@@ -25,7 +25,7 @@ use nalgebra::{Isometry3, Point3};
 
 use shotpilot::eval::{self, Trajectory};
 use shotpilot::geometry;
-use shotpilot::slam::{self, Slam, TrackState};
+use shotpilot::slam::{self, KeypointState, Slam, TrackState};
 use shotpilot::video::dataset::Dataset;
 use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::dataset::render_path_dataset;
@@ -94,10 +94,31 @@ fn explore_initialises_over_flat_ground_and_tracks_every_frame_after() {
         },
     )
     .unwrap();
+    // What tracking made of each keypoint (the page's feature overlay):
+    // on every frame tracked against the map, the inliers are the
+    // keypoints it kept, and some matches are rejected as outliers.
+    let (mut checked, mut outliers) = (0, 0);
     for i in 0..n {
         let f = ds.frame(i).unwrap();
-        s.process(i as u64, f.timestamp, Arc::new(f.image));
+        let (w, h) = (f.image.width() as f32, f.image.height() as f32);
+        let out = s.process(i as u64, f.timestamp, Arc::new(f.image));
+        assert!(!out.keypoints.is_empty(), "frame {i}: no keypoints");
+        assert!(
+            out.keypoints
+                .iter()
+                .all(|k| (0.0..w).contains(&k.x) && (0.0..h).contains(&k.y)),
+            "frame {i}: a keypoint outside the image"
+        );
+        let count = |st: KeypointState| out.keypoints.iter().filter(|k| k.state == st).count();
+        if out.cam_from_world.is_some() && !out.initialized {
+            assert_eq!(count(KeypointState::Inlier), out.inliers, "frame {i}");
+            outliers += count(KeypointState::Outlier);
+            checked += 1;
+        }
     }
+    assert!(checked >= n / 2, "{checked} tracked frames of {n}");
+    assert!(outliers > 0, "no match was ever rejected as an outlier");
+    println!("keypoint states: {outliers} outliers over {checked} tracked frames");
     let run = s.finish();
     let init = run.initialized_at.expect("the flight initialises");
     assert!(init <= 15, "initialised at frame {init}");

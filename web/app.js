@@ -71,6 +71,7 @@ function showStatus(s) {
     (v.width ? ` · ${v.width}x${v.height}` : '') +
     (src.last_error ? ` · ${src.last_error}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();
+  renderMapEvents(sl);
   drawMap();
   drawOverlay();
 }
@@ -135,7 +136,11 @@ function eventText(e) {
     case 'georeferenced': return `georeferenced: target ${fmt(e.lat_deg, 7)}, ${fmt(e.lon_deg, 7)}, ${fmt(e.alt_m, 1)} m, yaw ${fmt(e.yaw_deg, 1)}°, pitch ${fmt(e.gimbal_pitch_deg, 1)}°${e.position_sigma_m == null ? '' : `, position sigma ${fmt(e.position_sigma_m, 2)} m`}`;
     case 'uploaded': return `mission uploaded: ${e.items} items`;
     case 'started': return 'mission started';
-    case 'flying': return `round ${e.round}: flying, ${fmt(e.distance_m, 1)} m to the target (${fmt(e.vertical_m, 1)} m vertically)`;
+    case 'flying': {
+      // The straight line (a correction may be all vertical), then its parts.
+      const v = e.vertical_m, up = typeof v === 'number' && v < 0 ? 'down' : 'up';
+      return `round ${e.round}: flying, ${fmtM(e.distance_m)} m to the target (${fmtM(e.horizontal_m)} m horizontally, ${fmtM(Math.abs(v))} m ${up}; ${fmtM(e.start_m)} m when the flight began)`;
+    }
     case 'arrived': return `round ${e.round}: arrived`;
     case 'round': return `round ${e.round}: shot error ${e.shot_error_pct == null ? '–' : fmt(e.shot_error_pct, 2) + ' %'}${e.floor_pct == null ? '' : `, floor ${fmt(e.floor_pct, 2)} %`} → ${e.decision}${e.note ? ` (${e.note})` : ''}`;
     case 'done': return `done: ${e.stop}${e.reason ? ` (${e.reason})` : ''}`;
@@ -156,6 +161,7 @@ function renderTimeline(id) {
     const li = el('li', { 'data-kind': e.kind }, `${new Date(e.at_unix * 1000).toLocaleTimeString()} ${eventText(e)}`);
     if (e.round != null) li.dataset.round = e.round;
     if (e.shot_error_pct != null) li.dataset.error = e.shot_error_pct;
+    if (e.kind === 'flying') { li.dataset.distance = e.distance_m; li.dataset.start = e.start_m; }
     // Hooks for tests and tools: the localisation's sigma.
     if (e.position_sigma_pct != null) li.dataset.sigmaPct = e.position_sigma_pct;
     if (e.rotation_sigma_deg != null) li.dataset.sigmaDeg = e.rotation_sigma_deg;
@@ -219,6 +225,105 @@ function drawOverlay() {
   $('overlayinfo').textContent = `${txt} · ${e.inliers} inliers`;
 }
 $('overlaytoggle').addEventListener('change', drawOverlay);
+
+// ---- tracked features over the live video ----------------------------------
+// With the toggle on, the page asks for the SLAM's keypoints of its newest
+// processed frame (GET /features: at most [server] features_max of them,
+// inliers first, packed in 5 bytes each) and for that frame's picture
+// (GET /features/{seq}/frame.jpg), and draws the keypoints on the very
+// frame they were found in (the live video underneath runs ahead by the
+// SLAM's latency). At most FEATURES_HZ looks a second, one after the
+// other; nothing is asked while the toggle is off (the event stream does
+// not carry them). Hooks for tests and tools: #features's data-state
+// (off, waiting, drawn, none), data-seq, data-slam (the tracking state
+// after the frame), data-counts (the frame's keypoints per state, as the
+// API reported them), data-drawn (the keypoints drawn per state),
+// data-colors (each state's colour) and data-order (the drawing order).
+const FEATURE_STATES = ['inlier', 'outlier', 'unmatched'];
+const FEATURE_COLORS = { inlier: '#39d353', outlier: '#ff3b3b', unmatched: '#4da3ff' };
+// `?features_hz=N` in the page's address sets the rate (0.2 to 15; each
+// look costs the frame's JPEG, some 75 kB on the simulator's video).
+const FEATURES_HZ = Math.min(15, Math.max(0.2, Number(new URLSearchParams(location.search).get('features_hz')) || 5));
+// Each keypoint is a square of 2 FEATURE_HALF + 1 pixels a side, drawn
+// state by state in FEATURE_ORDER: the many unmatched at the bottom, the
+// few outliers on top (they often lie on an inlier: the same corner
+// found on two pyramid levels, one kept, one rejected).
+const FEATURE_HALF = 2;
+const FEATURE_ORDER = ['unmatched', 'inlier', 'outlier'];
+let featuresRun = 0;
+$('features').dataset.colors = JSON.stringify(FEATURE_COLORS);
+$('features').dataset.order = JSON.stringify(FEATURE_ORDER);
+// The packed keypoints (see GET /features' `encoding`): x, y in pixels and
+// the state's index in FEATURE_STATES.
+function unpackFeatures(b64) {
+  const bin = atob(b64), n = Math.floor(bin.length / 5), out = new Array(n);
+  for (let i = 0; i < n; i++) {
+    const c = (k) => bin.charCodeAt(i * 5 + k);
+    out[i] = { x: (c(0) | (c(1) << 8)) / 8, y: (c(2) | (c(3) << 8)) / 8, s: c(4) };
+  }
+  return out;
+}
+function loadImage(src) {
+  return new Promise((res, rej) => { const i = new Image(); i.onload = () => res(i); i.onerror = () => rej(new Error('the frame is gone')); i.src = src; });
+}
+function drawFeatures(cv, f, img) {
+  if (cv.width !== f.width || cv.height !== f.height) { cv.width = f.width; cv.height = f.height; }
+  const g = cv.getContext('2d');
+  g.drawImage(img, 0, 0, cv.width, cv.height);
+  const pts = unpackFeatures(f.points);
+  const drawn = { inlier: 0, outlier: 0, unmatched: 0 };
+  // A square centred on each keypoint's pixel (pixel centres at
+  // integers), in FEATURE_ORDER.
+  const side = 2 * FEATURE_HALF + 1;
+  for (const name of FEATURE_ORDER) {
+    const s = FEATURE_STATES.indexOf(name);
+    g.fillStyle = FEATURE_COLORS[name];
+    for (const p of pts) {
+      if (p.s !== s) continue;
+      g.fillRect(Math.round(p.x) - FEATURE_HALF, Math.round(p.y) - FEATURE_HALF, side, side);
+      drawn[name]++;
+    }
+  }
+  Object.assign(cv.dataset, { state: 'drawn', seq: String(f.seq), slam: f.state, counts: JSON.stringify(f.counts), drawn: JSON.stringify(drawn) });
+  const c = f.counts, total = c.inlier + c.outlier + c.unmatched, shown = pts.length;
+  $('featuresinfo').textContent = `frame #${f.seq} (SLAM ${f.state}): ${c.inlier} inliers (green), ${c.outlier} outliers (red), ${c.unmatched} unmatched (blue)` +
+    (shown < total ? ` · ${shown} of ${total} drawn` : '');
+}
+async function featuresLoop(run) {
+  const cv = $('features');
+  let seen = null;
+  while (run === featuresRun) {
+    const t0 = performance.now();
+    try {
+      const f = await api('GET', '/features');
+      if (f.seq !== seen) {
+        const img = await loadImage(f.frame_url);
+        if (run !== featuresRun) return;
+        drawFeatures(cv, f, img);
+        seen = f.seq;
+      }
+    } catch (e) {
+      if (run !== featuresRun) return;
+      if (seen == null) cv.dataset.state = 'none';
+      $('featuresinfo').textContent = `tracked features: ${e.message}${seen == null ? '' : ` (showing frame #${seen})`}`;
+    }
+    await new Promise((r) => setTimeout(r, Math.max(0, 1000 / FEATURES_HZ - (performance.now() - t0))));
+  }
+}
+function setFeatures() {
+  const on = $('featurestoggle').checked, cv = $('features');
+  featuresRun++;
+  cv.hidden = !on;
+  if (on) {
+    cv.dataset.state = 'waiting';
+    $('featuresinfo').textContent = 'tracked features: waiting for a processed frame…';
+    featuresLoop(featuresRun);
+  } else {
+    cv.dataset.state = 'off';
+    $('featuresinfo').textContent = '';
+  }
+}
+$('featurestoggle').addEventListener('change', setFeatures);
 // The desired picture and the live frame of the last round, side by side
 // and overlaid (the slider sets the desired picture's opacity), and the
 // server-composed PNG.
@@ -390,6 +495,41 @@ function drawLoops(cv, g, P, kfs) {
     drawn.push([l.current_kf, l.loop_kf]);
   }
   cv.dataset.loops = JSON.stringify(drawn);
+}
+// The map's events, newest first: each loop closed (status slam.loops,
+// the latest few) with its figures; its keyframes are buttons that choose
+// the keyframe in the editor and centre the world map on it. Hooks for
+// tests and tools: #mapevents li[data-kind] with data-current, data-loop
+// (the two keyframes) and data-at (unix seconds).
+let mapEventsSeen = '';
+function renderMapEvents(sl) {
+  const loops = sl.loops || [];
+  const key = JSON.stringify(loops.map((l) => [l.current_kf, l.loop_kf, l.at_unix]));
+  if (key === mapEventsSeen) return;
+  mapEventsSeen = key;
+  const box = $('mapevents');
+  box.textContent = '';
+  if (!loops.length) { box.append(el('li', { class: 'none' }, 'no loops closed yet')); return; }
+  const kfButton = (id) => {
+    const b = el('button', { class: 'kf', 'data-kf': id, 'aria-label': `keyframe ${id}: choose it and show it on the map` }, `#${id}`);
+    b.addEventListener('click', () => showKeyframe(id));
+    return b;
+  };
+  for (const l of [...loops].reverse()) {
+    const li = el('li', { 'data-kind': 'loop', 'data-current': l.current_kf, 'data-loop': l.loop_kf, 'data-at': l.at_unix });
+    li.append(`${new Date(l.at_unix * 1000).toLocaleTimeString()} loop closed: keyframe `, kfButton(l.current_kf), ' saw ', kfButton(l.loop_kf),
+      ` again (${l.inliers} inliers, scale ${fmt(l.scale, 3)}, rotation ${fmt(l.rotation_deg, 2)}°, ${l.fused} points fused)`);
+    box.append(li);
+  }
+}
+// Choose keyframe `id` in the editor and centre the world map on it (a
+// keyframe the map culled since says so).
+function showKeyframe(id) {
+  const kf = state.keyframes.find((k) => k.id === id);
+  if (!kf) { $('kfgoinfo').textContent = `no keyframe #${id} in the map (culled)`; return; }
+  chooseKeyframe(kf);
+  const pr = state.mapProject, k = pr && pr.kfs.find((x) => x.id === id);
+  if (k && $('map').dataset.mode === 'world') { view.fit = false; view.pan = [k.p[0], k.p[1]]; drawMap(); }
 }
 function drawSlamView(cv, g, m) {
   if (!m) return;
@@ -730,6 +870,8 @@ $('start').addEventListener('click', async () => {
 // stopped (or that it is still running). Hooks for tests and tools: each
 // card has data-id, each round row data-round, the stop line data-stop.
 const fmt = (v, d) => (typeof v === 'number' && isFinite(v) ? v.toFixed(d) : '–');
+// Metres: centimetres under 10 m (a correction is often a few decimetres).
+const fmtM = (v) => fmt(v, typeof v === 'number' && Math.abs(v) < 10 ? 2 : 1);
 function el(tag, attrs, text) {
   const e = document.createElement(tag);
   for (const [k, v] of Object.entries(attrs || {})) {

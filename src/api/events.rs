@@ -82,10 +82,16 @@ pub enum ShotEvent {
     Flying {
         /// The refinement round (0: the first flight).
         round: usize,
-        /// Horizontal distance to the target, metres.
+        /// Straight-line distance to the target, metres.
         distance_m: f64,
-        /// Vertical distance to the target, metres.
+        /// Its horizontal part, metres.
+        horizontal_m: f64,
+        /// Its vertical part, metres: the target's altitude less the
+        /// vehicle's (positive: the target is higher).
         vertical_m: f64,
+        /// The straight-line distance when this round's flight began
+        /// (its first report), metres: a correction's length.
+        start_m: f64,
     },
     /// The vehicle reached the round's target and holds still.
     Arrived {
@@ -386,7 +392,9 @@ mod tests {
                 ShotEvent::Flying {
                     round: 0,
                     distance_m: d,
+                    horizontal_m: d,
                     vertical_m: 0.0,
+                    start_m: 30.0,
                 },
             );
         }
@@ -395,7 +403,9 @@ mod tests {
             ShotEvent::Flying {
                 round: 0,
                 distance_m: 5.0,
+                horizontal_m: 4.9,
                 vertical_m: 1.0,
+                start_m: 5.0,
             },
         );
         hub.publish("shot-1", ShotEvent::Arrived { round: 0 });
@@ -405,7 +415,9 @@ mod tests {
             ShotEvent::Flying {
                 round: 1,
                 distance_m: 2.0,
+                horizontal_m: 2.0,
                 vertical_m: 0.0,
+                start_m: 2.0,
             },
         );
         // Live: every event, in order.
@@ -432,7 +444,9 @@ mod tests {
             ShotEvent::Flying {
                 round: 0,
                 distance_m: 10.0,
-                vertical_m: 0.0
+                horizontal_m: 10.0,
+                vertical_m: 0.0,
+                start_m: 30.0,
             }
         );
         let json = serde_json::to_value(&*hist[3]).unwrap();

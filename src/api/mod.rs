@@ -10,6 +10,7 @@
 mod before_after;
 mod error;
 mod events;
+mod features;
 mod views;
 
 pub use before_after::compose_before_after;
@@ -18,6 +19,7 @@ use error::body_rejection;
 pub use events::{
     Achieved, ShotEvent, ShotEventRecord, ShotEvents, apply_status_patch, status_patch,
 };
+pub use features::{FeaturesView, StateCounts, TrackedFeatures, pack, select, unpack};
 pub use views::{
     AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, LoopInfo, MapSaved, MapStart,
     MapView, MergeInfo, MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome,
@@ -60,6 +62,8 @@ pub struct ApiParams {
     pub events_hz: f64,
     /// JPEG quality of keyframe and shot images.
     pub jpeg_quality: u8,
+    /// Most keypoints `GET /features` returns.
+    pub features_max: usize,
 }
 
 impl Default for ApiParams {
@@ -70,6 +74,7 @@ impl Default for ApiParams {
             map_max_points: 20_000,
             events_hz: 2.0,
             jpeg_quality: 85,
+            features_max: 500,
         }
     }
 }
@@ -127,6 +132,8 @@ pub fn router(state: AppState) -> Router {
         .route("/keyframes", get(keyframes))
         .route("/keyframes/{id}/image.jpg", get(keyframe_image))
         .route("/map", get(map))
+        .route("/features", get(features_of))
+        .route("/features/{seq}/frame.jpg", get(features_frame))
         .route("/shots", get(list_shots))
         .route("/shots/{id}", get(get_shot))
         .route("/shots/{id}/image.jpg", get(shot_image))
@@ -392,6 +399,45 @@ async fn keyframe_image(
     let q = st.params.jpeg_quality;
     let jpeg = tokio::task::spawn_blocking(move || encode_jpeg(&img, q)).await??;
     Ok(jpeg_response(jpeg))
+}
+
+#[derive(Deserialize)]
+struct FeaturesQuery {
+    /// Most keypoints (at most `[server] features_max`).
+    max: Option<usize>,
+    /// The frame (default: the newest processed).
+    seq: Option<u64>,
+}
+
+/// The keypoints of a recent frame and what tracking made of them.
+async fn features_of(
+    State(st): State<AppState>,
+    Query(q): Query<FeaturesQuery>,
+) -> Result<Json<FeaturesView>, ApiError> {
+    let f = st
+        .slam
+        .features(q.seq)
+        .ok_or_else(|| ApiError::not_found("tracked frame"))?;
+    let max = q
+        .max
+        .unwrap_or(st.params.features_max)
+        .min(st.params.features_max);
+    Ok(Json(FeaturesView::of(&f, max)))
+}
+
+/// The picture of a frame `GET /features` described.
+async fn features_frame(
+    State(st): State<AppState>,
+    Path(seq): Path<String>,
+) -> Result<Response, ApiError> {
+    let seq = parse_u64(&seq, "frame")?;
+    let f = st
+        .slam
+        .features(Some(seq))
+        .ok_or_else(|| ApiError::not_found("tracked frame"))?;
+    let frame = f.frame.clone();
+    let jpeg = tokio::task::spawn_blocking(move || frame.jpeg()).await?;
+    Ok(jpeg_response(jpeg.as_ref().clone()))
 }
 
 #[derive(Deserialize)]

@@ -242,6 +242,11 @@ pub trait SlamView: Send + Sync {
     fn last_tracked(&self) -> Option<TrackedFrame> {
         None
     }
+    /// The keypoints of frame `seq` (None: the newest processed), while
+    /// it is among the few recent frames kept (None: not kept, or no SLAM).
+    fn features(&self, _seq: Option<u64>) -> Option<Arc<super::features::TrackedFeatures>> {
+        None
+    }
 }
 
 /// Errors of vehicle actions, each with its HTTP status.

@@ -348,6 +348,7 @@ pub async fn run_on(
             token: cfg.server.token.clone(),
             body_limit: cfg.server.body_limit_bytes,
             map_max_points: cfg.server.map_max_points,
+            features_max: cfg.server.features_max,
             events_hz: cfg.server.events_hz,
             ..Default::default()
         }),
@@ -449,7 +450,7 @@ fn slam_loop(
         if !delay.is_zero() {
             std::thread::sleep(delay);
         }
-        shared.record(&frame, &outcome, t.elapsed().as_secs_f64() * 1e3);
+        shared.record(&frame, outcome, t.elapsed().as_secs_f64() * 1e3);
     }
     processor.finish()
 }

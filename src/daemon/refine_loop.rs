@@ -750,11 +750,47 @@ fn north_east_of(t: &Target, lat_deg: f64, lon_deg: f64) -> (f64, f64) {
     (ned.x, ned.y)
 }
 
-/// Horizontal and vertical distance (metres) of a reported position from
-/// a target.
-fn distance_to(t: &Target, lat_deg: f64, lon_deg: f64, rel_alt_m: f64) -> (f64, f64) {
-    let (n, e) = north_east_of(t, lat_deg, lon_deg);
-    (n.hypot(e), (rel_alt_m - t.alt_m).abs())
+/// How far a reported position is from a target, metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Distance {
+    /// Horizontal.
+    horizontal: f64,
+    /// The target's altitude less the vehicle's (positive: climb).
+    vertical: f64,
+}
+
+impl Distance {
+    /// Of a reported position (relative altitude above home) from `t`.
+    fn to(t: &Target, lat_deg: f64, lon_deg: f64, rel_alt_m: f64) -> Self {
+        let (n, e) = north_east_of(t, lat_deg, lon_deg);
+        Self {
+            horizontal: n.hypot(e),
+            vertical: t.alt_m - rel_alt_m,
+        }
+    }
+
+    /// The straight-line distance.
+    fn straight(&self) -> f64 {
+        self.horizontal.hypot(self.vertical)
+    }
+
+    /// Within `radius` horizontally and vertically.
+    fn within(&self, radius: f64) -> bool {
+        self.horizontal <= radius && self.vertical.abs() <= radius
+    }
+
+    /// The `flying` event of `round`, whose flight began `start_m` away.
+    /// The distance shown is the straight line: a correction that is
+    /// mostly vertical (a GNSS altitude bias) is not "0.0 m" away.
+    fn event(&self, round: usize, start_m: f64) -> ShotEvent {
+        ShotEvent::Flying {
+            round,
+            distance_m: self.straight(),
+            horizontal_m: self.horizontal,
+            vertical_m: self.vertical,
+            start_m,
+        }
+    }
 }
 
 /// Waits for the vehicle to reach waypoint `wp` of the mission flying
@@ -779,6 +815,8 @@ async fn wait_arrival(
     let radius = f64::from(deps.plan.acceptance_radius_m).max(0.1);
     let mut tick = tokio::time::interval(p.poll);
     let mut last_flying: Option<Instant> = None;
+    // The distance at this round's first report.
+    let mut start_m: Option<f64> = None;
     loop {
         tick.tick().await;
         if t0.elapsed() > p.max_flight {
@@ -793,22 +831,15 @@ async fn wait_arrival(
             .is_some_and(|pr| pr.last_reached.is_some_and(|r| r >= wp) || pr.state == Some(5));
         let gp = (*tel.global_position.borrow()).filter(|g| fresh(g.received));
         let dist =
-            gp.map(|g| distance_to(target, g.value.lat_deg, g.value.lon_deg, g.value.rel_alt_m));
-        let near = dist.is_some_and(|(h, v)| h <= radius && v <= radius);
-        if let Some((h, v)) = dist
-            && h.is_finite()
-            && v.is_finite()
+            gp.map(|g| Distance::to(target, g.value.lat_deg, g.value.lon_deg, g.value.rel_alt_m));
+        let near = dist.is_some_and(|d| d.within(radius));
+        if let Some(d) = dist
+            && d.straight().is_finite()
             && last_flying.is_none_or(|t| t.elapsed() >= FLYING_PERIOD)
         {
             last_flying = Some(Instant::now());
-            deps.events.publish(
-                shot,
-                ShotEvent::Flying {
-                    round,
-                    distance_m: h,
-                    vertical_m: v,
-                },
-            );
+            let start_m = *start_m.get_or_insert(d.straight());
+            deps.events.publish(shot, d.event(round, start_m));
         }
         if passed && near {
             det.on_reached(wp);
@@ -1155,16 +1186,58 @@ mod tests {
     #[test]
     fn distance_to_the_target_in_metres() {
         let t = target();
-        let (h, v) = distance_to(&t, t.lat_deg, t.lon_deg, t.alt_m);
-        assert!(h < 1e-9 && v < 1e-9);
-        // 1e-5 deg of latitude is 1.11 m; 2 m lower.
-        let (h, v) = distance_to(&t, t.lat_deg + 1e-5, t.lon_deg, t.alt_m - 2.0);
-        assert!((h - 1.111).abs() < 0.01, "{h}");
-        assert!((v - 2.0).abs() < 1e-9);
+        let d = Distance::to(&t, t.lat_deg, t.lon_deg, t.alt_m);
+        assert!(d.horizontal < 1e-9 && d.vertical.abs() < 1e-9);
+        // 1e-5 deg of latitude is 1.11 m; 2 m lower (the target is 2 m up).
+        let d = Distance::to(&t, t.lat_deg + 1e-5, t.lon_deg, t.alt_m - 2.0);
+        assert!((d.horizontal - 1.111).abs() < 0.01, "{d:?}");
+        assert!((d.vertical - 2.0).abs() < 1e-9);
+        assert!((d.straight() - 1.111f64.hypot(2.0)).abs() < 0.01, "{d:?}");
         // 1e-5 deg of longitude at 47.4 deg is 0.754 m.
-        let (h, _) = distance_to(&t, t.lat_deg, t.lon_deg + 1e-5, t.alt_m);
-        assert!((h - 0.754).abs() < 0.01, "{h}");
-        let (h, _) = distance_to(&t, f64::NAN, t.lon_deg, t.alt_m);
-        assert!(h.is_nan(), "NaN never counts as near");
+        let d = Distance::to(&t, t.lat_deg, t.lon_deg + 1e-5, t.alt_m);
+        assert!((d.horizontal - 0.754).abs() < 0.01, "{d:?}");
+        let d = Distance::to(&t, f64::NAN, t.lon_deg, t.alt_m);
+        assert!(d.horizontal.is_nan(), "NaN never counts as near");
+        assert!(!d.within(1.0));
+    }
+
+    /// A correction of 0.6 m straight up (a GNSS altitude bias), seen as
+    /// the correction's flight begins with the vehicle where the last
+    /// round measured: the timeline said "flying, 0.0 m to the target"
+    /// (the horizontal part only); the event's distance is 0.6 m.
+    #[test]
+    fn a_vertical_correction_is_flown_its_length() {
+        let here = target();
+        let next = Target {
+            alt_m: here.alt_m + 0.6,
+            ..here
+        };
+        let d = Distance::to(&next, here.lat_deg, here.lon_deg, here.alt_m);
+        assert!(d.within(1.0), "inside the acceptance radius");
+        match d.event(1, d.straight()) {
+            ShotEvent::Flying {
+                round,
+                distance_m,
+                horizontal_m,
+                vertical_m,
+                start_m,
+            } => {
+                assert_eq!(round, 1);
+                assert!((distance_m - 0.6).abs() < 1e-9, "{distance_m}");
+                assert!(horizontal_m < 1e-9, "{horizontal_m}");
+                assert!((vertical_m - 0.6).abs() < 1e-9, "climb 0.6 m: {vertical_m}");
+                assert_eq!(start_m, distance_m);
+            }
+            e => panic!("{e:?}"),
+        }
+        // Half way up: 0.3 m to go of a 0.6 m flight.
+        let d = Distance::to(&next, here.lat_deg, here.lon_deg, here.alt_m + 0.3);
+        let json = serde_json::to_value(d.event(1, 0.6)).unwrap();
+        assert!(
+            (json["distance_m"].as_f64().unwrap() - 0.3).abs() < 1e-9,
+            "{json}"
+        );
+        assert_eq!(json["start_m"], 0.6);
+        assert_eq!(json["kind"], "flying");
     }
 }

@@ -11,9 +11,10 @@ use image::GrayImage;
 
 use crate::api::{
     KeyframeInfo, LoopInfo, MapSaved, MapStart, MapView, MergeInfo, SlamStatus, SlamView,
+    TrackedFeatures,
     TrackedFrame, WriteFailure,
 };
-use crate::slam::Map;
+use crate::slam::{Map, TrackedKeypoint};
 use crate::video::live::{Frame, RateMeter, unix_now};
 
 /// What processing one frame gave.
@@ -29,6 +30,9 @@ pub struct ProcessOutcome {
     pub keyframes: usize,
     /// Points in the map after the frame.
     pub points: usize,
+    /// The frame's keypoints and what tracking made of each (none
+    /// without a SLAM).
+    pub keypoints: Vec<TrackedKeypoint>,
 }
 
 /// The map as the API sees it (provided by the SLAM adapter).
@@ -61,6 +65,9 @@ struct Inner {
     last_tracked: Option<TrackedFrame>,
     /// Keyframes shots are drawn on, pinned again in every new source.
     pinned: Vec<u64>,
+    /// The keypoints of the latest processed frames, oldest first (at
+    /// most [`FEATURE_FRAMES`]).
+    features: VecDeque<Arc<TrackedFeatures>>,
 }
 
 /// Status and map view shared by the SLAM thread and the API.
@@ -71,6 +78,11 @@ pub struct SlamShared {
 
 /// Frames in the latency median.
 const LATENCY_WINDOW: usize = 100;
+
+/// Processed frames whose keypoints (and picture) are kept for
+/// `GET /features`: about a second of video, so that a page that read a
+/// frame's keypoints still finds its picture when it asks next.
+pub const FEATURE_FRAMES: usize = 16;
 
 impl SlamShared {
     /// A view; `available` says whether a SLAM runs.
@@ -202,8 +214,9 @@ impl SlamShared {
         }
     }
 
-    /// Record one processed frame.
-    pub fn record(&self, frame: &Frame, outcome: &ProcessOutcome, ms: f64) {
+    /// Record one processed frame (and keep its keypoints, when it has
+    /// any, among the [`FEATURE_FRAMES`] latest).
+    pub fn record(&self, frame: &Arc<Frame>, outcome: ProcessOutcome, ms: f64) {
         self.rate.tick();
         let mut g = self.lock();
         if ms.is_finite() {
@@ -211,6 +224,16 @@ impl SlamShared {
                 g.frame_ms.pop_front();
             }
             g.frame_ms.push_back(ms);
+        }
+        if !outcome.keypoints.is_empty() {
+            if g.features.len() == FEATURE_FRAMES {
+                g.features.pop_front();
+            }
+            g.features.push_back(Arc::new(TrackedFeatures {
+                frame: frame.clone(),
+                state: outcome.state.clone(),
+                keypoints: outcome.keypoints.into(),
+            }));
         }
         let s = &mut g.status;
         s.state = outcome.state.clone();
@@ -279,6 +302,18 @@ impl SlamView for SlamShared {
     fn last_tracked(&self) -> Option<TrackedFrame> {
         self.lock().last_tracked
     }
+    fn features(&self, seq: Option<u64>) -> Option<Arc<TrackedFeatures>> {
+        let g = self.lock();
+        match seq {
+            None => g.features.back().cloned(),
+            Some(seq) => g
+                .features
+                .iter()
+                .rev()
+                .find(|f| f.frame.seq == seq)
+                .cloned(),
+        }
+    }
 }
 
 #[cfg(test)]
@@ -299,6 +334,52 @@ mod tests {
             correction_ms: 80.0,
             at_unix: 1.0e9 + current_kf as f64,
         }
+    }
+
+    #[test]
+    fn the_latest_frames_keypoints_are_kept_by_sequence_number() {
+        use crate::slam::KeypointState;
+        let shared = SlamShared::new(true);
+        assert!(shared.features(None).is_none());
+        let frame = |seq: u64| {
+            Arc::new(Frame::from_image(
+                seq,
+                None,
+                std::time::Instant::now(),
+                unix_now(),
+                Arc::new(GrayImage::new(64, 48)),
+            ))
+        };
+        let outcome = |n: usize| ProcessOutcome {
+            state: "tracking".into(),
+            tracked: true,
+            keypoints: (0..n)
+                .map(|i| TrackedKeypoint {
+                    x: i as f32,
+                    y: 1.0,
+                    state: KeypointState::Inlier,
+                })
+                .collect(),
+            ..Default::default()
+        };
+        for seq in 0..(FEATURE_FRAMES as u64 + 4) {
+            shared.record(&frame(seq), outcome(seq as usize + 1), 1.0);
+        }
+        // A frame without keypoints (no SLAM) is counted, not kept.
+        shared.record(&frame(1000), ProcessOutcome::default(), 1.0);
+        let newest = shared.features(None).unwrap();
+        assert_eq!(newest.frame.seq, FEATURE_FRAMES as u64 + 3);
+        assert_eq!(newest.keypoints.len(), FEATURE_FRAMES + 4);
+        let f = shared.features(Some(10)).unwrap();
+        assert_eq!(
+            (f.frame.seq, f.keypoints.len(), f.state.as_str()),
+            (10, 11, "tracking")
+        );
+        // The oldest went, and a frame never processed is not there.
+        assert!(shared.features(Some(3)).is_none());
+        assert!(shared.features(Some(4)).is_some());
+        assert!(shared.features(Some(1000)).is_none());
+        assert_eq!(shared.status().frames, FEATURE_FRAMES as u64 + 5);
     }
 
     #[test]

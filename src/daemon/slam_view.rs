@@ -369,6 +369,7 @@ impl FrameProcessor for SlamProcessor {
             inliers: out.inliers,
             keyframes,
             points,
+            keypoints: out.keypoints,
         }
     }
 

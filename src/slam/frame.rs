@@ -19,6 +19,28 @@ use super::map::{KeyFrame, KeyFrameId, Map, PointId, ScaleInfo};
 use super::matcher::SearchTarget;
 use super::params::TrackingParams;
 
+/// What tracking made of a keypoint of a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum KeypointState {
+    /// Matched to a map point and kept by the frame's pose.
+    Inlier,
+    /// Matched to a map point, then rejected by a pose optimisation.
+    Outlier,
+    /// Not matched to a map point (new ground, or tracking failed).
+    Unmatched,
+}
+
+/// A keypoint of a tracked (or lost) frame, where it was detected.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackedKeypoint {
+    /// Column, image pixels (level 0, as detected: distorted).
+    pub x: f32,
+    /// Row, image pixels.
+    pub y: f32,
+    /// What tracking made of it.
+    pub state: KeypointState,
+}
+
 /// A frame being tracked.
 pub(super) struct Frame {
     /// Frame index in the input.
@@ -37,6 +59,10 @@ pub(super) struct Frame {
     pub image: Arc<GrayImage>,
     /// BoW vector and direct index, computed when first needed.
     pub bow: Option<(BowVector, FeatureVector)>,
+    /// Keypoints whose match a pose optimisation rejected as an outlier
+    /// since the matches were last cleared (a keypoint matched again
+    /// leaves it).
+    pub rejected: Vec<bool>,
 }
 
 impl Frame {
@@ -59,15 +85,17 @@ impl Frame {
             .collect()
     }
 
-    /// Forget every match.
+    /// Forget every match (and every rejection).
     pub fn clear_matches(&mut self) {
         self.points.iter_mut().for_each(|p| *p = None);
+        self.rejected.iter_mut().for_each(|r| *r = false);
     }
 
     /// Match the keypoints listed in `matches` (others keep theirs).
     pub fn set_matches(&mut self, matches: impl IntoIterator<Item = (usize, PointId)>) {
         for (i, p) in matches {
             self.points[i] = Some(p);
+            self.rejected[i] = false;
         }
     }
 
@@ -76,8 +104,31 @@ impl Frame {
         for (i, p) in found {
             if self.points[i].is_none() {
                 self.points[i] = Some(p);
+                self.rejected[i] = false;
             }
         }
+    }
+
+    /// Each keypoint where it was detected (image pixels) and what
+    /// tracking made of it: matched to a map point and kept by the pose
+    /// (inlier), matched but rejected by a pose optimisation (outlier), or
+    /// unmatched.
+    pub fn keypoint_states(&self) -> Vec<TrackedKeypoint> {
+        self.keypoints
+            .iter()
+            .enumerate()
+            .map(|(i, k)| TrackedKeypoint {
+                x: k.x,
+                y: k.y,
+                state: if self.points[i].is_some() {
+                    KeypointState::Inlier
+                } else if self.rejected.get(i).copied().unwrap_or(false) {
+                    KeypointState::Outlier
+                } else {
+                    KeypointState::Unmatched
+                },
+            })
+            .collect()
     }
 
     /// A keyframe made from the frame at `cam_from_world` (its id is set
@@ -200,6 +251,7 @@ impl Context {
         for (k, &i) in idx.iter().enumerate() {
             if !report.inliers[k] {
                 frame.points[i] = None;
+                frame.rejected[i] = true;
             }
         }
         Some(PoseFit {

@@ -73,7 +73,8 @@ pub use map::{
 };
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
 pub use tracking::{
-    FrameOutcome, FrameRecord, MapStart, TrackFailure, TrackState, Tracker, TrackingParams,
+    FrameOutcome, FrameRecord, KeypointState, MapStart, TrackFailure, TrackState, TrackedKeypoint,
+    Tracker, TrackingParams,
 };
 
 /// Errors of the SLAM.

@@ -27,6 +27,7 @@ use crate::matching::FeatureGrid;
 use super::SlamError;
 use super::cpu_time::Stopwatch;
 use super::frame::{Context, Frame, LastFrame, Marks, PoseFit};
+pub use super::frame::{KeypointState, TrackedKeypoint};
 use super::initializer::{InitFailure, InitialMap, Initializer};
 use super::keyframe_decision::{KeyFrameCandidate, need_new_keyframe};
 use super::local_map::LocalMapTracker;
@@ -132,6 +133,9 @@ pub struct FrameOutcome {
     pub extract_cpu_ms: Option<f64>,
     /// Whole frame (extraction included), this thread's CPU ms.
     pub track_cpu_ms: Option<f64>,
+    /// The frame's keypoints and what tracking made of each (all
+    /// unmatched while the map is being initialised).
+    pub keypoints: Vec<TrackedKeypoint>,
 }
 
 /// A tracked frame.
@@ -323,6 +327,7 @@ impl Tracker {
             points: vec![None; n],
             image,
             bow: None,
+            rejected: vec![false; n],
         };
         let mut out = FrameOutcome {
             state: self.state,
@@ -335,10 +340,12 @@ impl Tracker {
             track_ms: 0.0,
             extract_cpu_ms,
             track_cpu_ms: None,
+            keypoints: Vec::new(),
         };
         let result = if self.new_map_pending {
             self.track_or_start_new_map(map, frame, mapping_idle, &mut out)
         } else if initializing {
+            out.keypoints = frame.keypoint_states();
             match self.initializer.step(&self.ctx, map, frame) {
                 Ok(Some(initial)) => {
                     out.initialized = true;
@@ -349,7 +356,9 @@ impl Tracker {
             }
         } else {
             let mut m = lock(map);
-            self.track_frame(&mut m, &mut frame, mapping_idle).map(Some)
+            let r = self.track_frame(&mut m, &mut frame, mapping_idle).map(Some);
+            out.keypoints = frame.keypoint_states();
+            r
         };
         match result {
             Ok(Some(tracked)) => {
@@ -430,6 +439,7 @@ impl Tracker {
             self.track_frame(&mut m, &mut frame, mapping_idle)
         };
         if let Ok(tracked) = relocalised {
+            out.keypoints = frame.keypoint_states();
             self.new_map_pending = false;
             self.initializer.reset();
             if let Some(start) = self.map_starts.last_mut() {
@@ -442,6 +452,7 @@ impl Tracker {
             return Ok(Some(tracked));
         }
         frame.clear_matches();
+        out.keypoints = frame.keypoint_states();
         if let Some(start) = self.map_starts.last() {
             // A relocalisation that then failed on the local map may have
             // switched the active map: the initializer builds the new one.

@@ -5,7 +5,8 @@
 //
 //   node tests/browser/heap.js http://127.0.0.1:8080/ 30
 //
-// Environment: SHOTPILOT_CHROMIUM (default /usr/bin/chromium).
+// Environment: SHOTPILOT_CHROMIUM (default /usr/bin/chromium),
+// SHOTPILOT_FEATURES=1 (the tracked-features overlay on).
 'use strict';
 
 const { chromium } = require('playwright-core');
@@ -24,6 +25,9 @@ const { chromium } = require('playwright-core');
     page.on('pageerror', (e) => errors.push(String(e)));
     const cdp = await page.context().newCDPSession(page);
     await page.goto(url, { waitUntil: 'domcontentloaded' });
+    // SHOTPILOT_FEATURES=1: with the tracked-features overlay on (it
+    // loads a frame up to 5 times a second).
+    if (process.env.SHOTPILOT_FEATURES === '1') await page.check('#featurestoggle');
     const t0 = Date.now();
     const marks = [1];
     for (let m = 5; m <= minutes; m += 5) marks.push(m);
@@ -38,6 +42,7 @@ const { chromium } = require('playwright-core');
         gallery: document.querySelectorAll('#gallery figure').length,
         keyframes: Number(document.getElementById('gallery').dataset.total || 0),
         loops: document.getElementById('b-loops').textContent,
+        features: document.getElementById('features').dataset.state,
       }));
       console.log(JSON.stringify({ minute: m, used_mb: +(h.usedSize / 1048576).toFixed(2), total_mb: +(h.totalSize / 1048576).toFixed(2), ...look, page_errors: errors.length }));
     }

@@ -7,7 +7,8 @@
 #   tests/browser/measure_page.sh BIN_DIR OUT_DIR [MINUTES]
 #
 # Writes OUT_DIR/{config.toml,daemon.log,idle_events.txt,flying_events.txt,
-# heap.log} and prints kB per minute of each event kind.
+# heap.log} and prints kB per minute of each event kind, and what the
+# tracked-features overlay costs while it is on (features_bw.js).
 set -u
 BIN=$1/shotpilot; D=$2; MIN=${3:-30}
 HERE=$(cd "$(dirname "$0")" && pwd); REPO=$(cd "$HERE/../.." && pwd)
@@ -50,6 +51,10 @@ print('  total %.1f kB: ' % (len(text) / 1e3) + ', '.join('%s %d events %.1f kB'
 PY
 }
 echo "idle: /events for 60 s"; curl -sN --max-time 60 "${U}api/v1/events" > "$D/idle_events.txt"; kinds "$D/idle_events.txt"
+if [ -f "$HERE/features_bw.js" ]; then
+  echo "the tracked-features overlay switched on, for 60 s:"
+  (cd "$HERE" && node features_bw.js "$U" 60)
+fi
 KF=$(curl -s "${U}api/v1/keyframes" | python3 -c "import json,sys; print(min(k['id'] for k in json.load(sys.stdin)['keyframes']))")
 ID=$(curl -s -H 'Content-Type: application/json' -d "{\"keyframe_id\": $KF, \"anchors\": [[32,24],[608,24],[608,456],[32,456]]}" "${U}api/v1/shots" | python3 -c "import json,sys; s=json.load(sys.stdin); print(s['id'], s['status'])")
 echo "shot: $ID"; ID=${ID%% *}

@@ -18,9 +18,13 @@
 // (data-vehicle-ned, compared with the simulator's truth by the caller);
 // clicking a keyframe on the map chooses it; a whole shot is flown with at
 // least one correction round on its timeline (with the localisation's
-// sigma); Stop (reached by keyboard) is acknowledged by the vehicle; the
-// loops-closed badge and the loops drawn on the map. A screenshot of each stage is saved beside
-// SHOTPILOT_SCREENSHOT. Prints one JSON line of what it saw.
+// sigma, and each correction's flight with the distance it began at);
+// Stop (reached by keyboard) is acknowledged by the vehicle; the
+// loops-closed badge, the loops drawn on the map and its list of map
+// events; the tracked-features toggle (by keyboard) draws a tracked
+// frame's keypoints in their states' colours, as the API describes that
+// frame. A screenshot of each stage is saved beside SHOTPILOT_SCREENSHOT.
+// Prints one JSON line of what it saw.
 'use strict';
 
 const { chromium } = require('playwright-core');
@@ -31,6 +35,7 @@ const EXE = process.env.SHOTPILOT_CHROMIUM || '/usr/bin/chromium';
 const SHOT = process.env.SHOTPILOT_SCREENSHOT || 'operator_page.png';
 
 const GALLERY = 3;
+const FEATURE_STATES_T = ['inlier', 'outlier', 'unmatched'];
 
 function check(cond, msg) {
   if (!cond) throw new Error('check failed: ' + msg);
@@ -100,6 +105,66 @@ async function main() {
     check(await page.$eval('#shotimg', (i) => i.hidden), 'no desired-shot image element is shown before a shot');
     await stage(page, 'status');
     out.video = { width: first.w, height: first.h, frames_advance: true };
+
+    // Tracked features over the video: the toggle, reached by keyboard,
+    // draws the SLAM's keypoints of a tracked frame on that frame, each
+    // in its state's colour; what the page drew is what the API says of
+    // the same frame (counts per state, the keypoints shown, and the
+    // colour under each keypoint).
+    await page.focus('#featurestoggle');
+    await page.keyboard.press('Space');
+    check(await page.$eval('#featurestoggle', (t) => t.checked), 'the features toggle is switched on by keyboard');
+    await page.waitForFunction(() => {
+      const c = document.getElementById('features');
+      return !c.hidden && c.dataset.state === 'drawn' && c.dataset.slam === 'tracking' && JSON.parse(c.dataset.counts).inlier > 0;
+    }, null, { timeout: 30000 });
+    const featuresLook = () => page.evaluate(async () => {
+      // The canvas and its hooks first, in one go (no draw between).
+      const c = document.getElementById('features');
+      const seq = Number(c.dataset.seq), drawn = JSON.parse(c.dataset.drawn), counts = JSON.parse(c.dataset.counts), colors = JSON.parse(c.dataset.colors);
+      const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+      const r = await fetch(`/api/v1/features?seq=${seq}`);
+      if (!r.ok) return { seq, gone: r.status };
+      const f = await r.json();
+      const hex = (i) => '#' + [d[i], d[i + 1], d[i + 2]].map((v) => v.toString(16).padStart(2, '0')).join('');
+      // Under each keypoint: its state's colour, or, where a keypoint of a
+      // state drawn later (data-order) lies within its square's reach,
+      // that one's colour.
+      const order = JSON.parse(c.dataset.order);
+      const pts = unpackFeatures(f.points).map((p) => ({ u: Math.round(p.x), v: Math.round(p.y), st: FEATURE_STATES[p.s] }));
+      const coloured = { inlier: 0, outlier: 0, unmatched: 0 }, covered = { inlier: 0, outlier: 0, unmatched: 0 }, wrong = [];
+      for (const p of pts) {
+        const px = hex((p.v * c.width + p.u) * 4);
+        const over = pts.filter((q) => order.indexOf(q.st) > order.indexOf(p.st) && Math.abs(q.u - p.u) <= FEATURE_HALF && Math.abs(q.v - p.v) <= FEATURE_HALF);
+        if (px === colors[p.st]) coloured[p.st]++;
+        else if (over.some((q) => colors[q.st] === px)) covered[p.st]++;
+        else wrong.push({ ...p, px });
+      }
+      return { seq, drawn, counts, colors, order, coloured, covered, wrong: wrong.slice(0, 10), size: [c.width, c.height], api: { seq: f.seq, state: f.state, counts: f.counts, shown: f.shown, width: f.width, height: f.height } };
+    });
+    let fl = await featuresLook();
+    for (let i = 0; i < 5 && fl.gone; i++) fl = await featuresLook();
+    check(!fl.gone, `the API still has the drawn frame's keypoints: ${JSON.stringify(fl)}`);
+    const same = (a, b) => FEATURE_STATES_T.every((k) => a[k] === b[k]);
+    check(fl.api.seq === fl.seq && fl.api.state === 'tracking', `the API's frame is the drawn one: ${JSON.stringify(fl)}`);
+    check(same(fl.counts, fl.api.counts), `the counts per state are the API's: ${JSON.stringify(fl)}`);
+    check(same(fl.drawn, fl.api.shown), `the keypoints drawn per state are those the API sent: ${JSON.stringify(fl)}`);
+    const shown = fl.drawn.inlier + fl.drawn.outlier + fl.drawn.unmatched;
+    check(shown > 0 && shown <= 500 && shown <= fl.api.counts.inlier + fl.api.counts.outlier + fl.api.counts.unmatched, `at most [server] features_max keypoints are drawn: ${JSON.stringify(fl)}`);
+    check(fl.size[0] === fl.api.width && fl.size[1] === fl.api.height, `the canvas is the frame's size: ${JSON.stringify(fl)}`);
+    // Every keypoint shows its state's colour, or that of a keypoint drawn
+    // over it (the same corner found on two pyramid levels); those drawn
+    // last always their own.
+    for (const k of FEATURE_STATES_T) {
+      check(fl.coloured[k] + fl.covered[k] === fl.drawn[k], `every ${k} keypoint is drawn in its colour or under a later one: ${JSON.stringify(fl)}`);
+    }
+    const top = fl.order[fl.order.length - 1];
+    check(fl.wrong.length === 0 && fl.covered[top] === 0, `no keypoint shows another colour: ${JSON.stringify(fl)}`);
+    out.features = fl;
+    await page.$eval('#video', (v) => v.closest('.panel').scrollIntoView());
+    await stage(page, 'features', false);
+    await page.keyboard.press('Space');
+    check(await page.$eval('#features', (c) => c.hidden && c.dataset.state === 'off'), 'the features toggle hides them again');
     out.status_line = await page.textContent('#status');
 
     // Keyframes listed, with their pictures. Bounded at 60 s: on a loaded
@@ -315,8 +380,8 @@ async function main() {
     const shotA = await submitShot();
     check(shotA.state === 'localised', `the shot on keyframe ${kfA} is localised: ${shotA.text}`);
     const num = (v) => (v == null ? null : Number(v));
-    const timeline = (id) => page.$$eval(`#timeline .tl[data-shot="${id}"] li`, (ls) => ls.map((l) => ({ kind: l.dataset.kind, round: l.dataset.round, error: l.dataset.error, sigma_pct: l.dataset.sigmaPct, sigma_deg: l.dataset.sigmaDeg, sigma_m: l.dataset.sigmaM, text: l.textContent })))
-      .then((ls) => ls.map((l) => ({ ...l, round: num(l.round), error: num(l.error), sigma_pct: num(l.sigma_pct), sigma_deg: num(l.sigma_deg), sigma_m: num(l.sigma_m) })));
+    const timeline = (id) => page.$$eval(`#timeline .tl[data-shot="${id}"] li`, (ls) => ls.map((l) => ({ kind: l.dataset.kind, round: l.dataset.round, error: l.dataset.error, sigma_pct: l.dataset.sigmaPct, sigma_deg: l.dataset.sigmaDeg, sigma_m: l.dataset.sigmaM, distance: l.dataset.distance, start: l.dataset.start, text: l.textContent })))
+      .then((ls) => ls.map((l) => ({ ...l, round: num(l.round), error: num(l.error), sigma_pct: num(l.sigma_pct), sigma_deg: num(l.sigma_deg), sigma_m: num(l.sigma_m), distance: num(l.distance), start: num(l.start) })));
     const waitKind = (id, kind, timeout) => page.waitForFunction(([id, kind]) => !!document.querySelector(`#timeline .tl[data-shot="${id}"] li[data-kind="${kind}"]`), [id, kind], { timeout });
     await page.click('#upload');
     await page.waitForFunction(() => !document.getElementById('start').disabled, null, { timeout: 60000 });
@@ -417,6 +482,7 @@ async function main() {
       return {
         badge: document.getElementById('b-loops').textContent,
         drawn: JSON.parse(document.getElementById('map').dataset.loops || '[]'),
+        events: [...document.querySelectorAll('#mapevents li[data-kind="loop"]')].map((li) => [Number(li.dataset.current), Number(li.dataset.loop)]),
         status: { loops_closed: s.slam.loops_closed, loops: s.slam.loops.map((l) => [l.current_kf, l.loop_kf]) },
       };
     });
