@@ -13,8 +13,7 @@ use serde_json::{Value, json};
 use shotpilot::api::{
     self, ApiParams, AppState, BoxFuture, KeyframeInfo, LoopInfo, MapView, MergeInfo,
     MissionProgressView, SlamStatus, SlamView, StopOutcome, TrackedFeatures, VehicleError,
-    VehicleMissionView,
-    VehicleStatus, VehicleView,
+    VehicleMissionView, VehicleStatus, VehicleView,
 };
 use shotpilot::shot::record::{
     Localisation, MissionRecord, MissionState, PhotoIntrinsics, PoseJson, Shot,

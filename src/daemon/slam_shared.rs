@@ -11,8 +11,7 @@ use image::GrayImage;
 
 use crate::api::{
     KeyframeInfo, LoopInfo, MapSaved, MapStart, MapView, MergeInfo, SlamStatus, SlamView,
-    TrackedFeatures,
-    TrackedFrame, WriteFailure,
+    TrackedFeatures, TrackedFrame, WriteFailure,
 };
 use crate::slam::{Map, TrackedKeypoint};
 use crate::video::live::{Frame, RateMeter, unix_now};
