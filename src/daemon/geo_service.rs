@@ -692,6 +692,10 @@ impl GeoService {
                 let t = a.ned_from_map.translation;
                 json!({
                     "state": "ok",
+                    "held": georef.held().map(|e| format!(
+                        "the last fit is kept: a refit now is refused ({e}) and the {} pairs held agree with it",
+                        georef.pairs().len()
+                    )),
                     "scale": a.ned_from_map.scale,
                     "rms_m": q.rms_m,
                     "max_residual_m": q.max_residual_m,
