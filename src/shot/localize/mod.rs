@@ -53,7 +53,7 @@ pub use self::params::{
 };
 
 use self::candidates::{extract_shot_features, rank_candidates};
-use self::covariance::reported_sigma;
+use self::covariance::{MapError, reported_sigma};
 use self::gate::{agreement, gate_reason, union_of_evidence};
 use self::outcome::not;
 use self::projection::{ShotView, frustum_near_depth};
@@ -125,6 +125,7 @@ pub fn localize_with_camera(
         distance_factor: (map.camera.fx + map.camera.fy) / (cam.fx + cam.fy),
         correction: IntrinsicsCorrection::default(),
     };
+    let map_error = MapError::of(map, &params.map_sigma);
     let mut poses: Vec<CandidatePose> = Vec::new();
     let mut tried = 0;
     for (kf_id, matches) in &ranked {
@@ -132,8 +133,9 @@ pub fn localize_with_camera(
             continue;
         }
         tried += 1;
-        if let Some(c) = refine_candidate(map, *kf_id, matches, &feats, &grid, &view, &intr, params)
-        {
+        if let Some(c) = refine_candidate(
+            map, *kf_id, matches, &feats, &grid, &view, &intr, params, &map_error,
+        ) {
             poses.push(c);
         }
     }
@@ -149,7 +151,7 @@ pub fn localize_with_camera(
         Ok(a) => a,
         Err(reason) => return Ok(not(reason)),
     };
-    let merged = union_of_evidence(map, &feats, &poses[0], &agreeing, &intr, params);
+    let merged = union_of_evidence(map, &feats, &poses[0], &agreeing, &intr, params, &map_error);
     let best = merged.as_ref().unwrap_or(&poses[0]);
     let best_wfc = best.cam_from_world.inverse();
     let Some(pose_sigma) = best.sigma else {
@@ -162,7 +164,7 @@ pub fn localize_with_camera(
     let sigma = reported_sigma(
         &pose_sigma,
         agreeing.rms_spread(),
-        &params.map_sigma,
+        &map_error,
         best.median_depth,
         near,
     );
