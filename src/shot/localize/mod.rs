@@ -3,12 +3,13 @@
 //!
 //! 1. ORB on the shot, with the validity mask (the black fill never yields a
 //!    feature).
-//! 2. Candidate keyframes: with a [`BowIndex`], the top k of a bag-of-words
-//!    query of the shot against the keyframe database; without one, every
-//!    keyframe is ranked by descriptor matching (one brute-force pass per
-//!    keyframe, fine for maps of up to a few hundred keyframes). Each
-//!    candidate's map points are matched by descriptor (nearest neighbour
-//!    under a Hamming bound, ratio test, one-to-one).
+//! 2. Candidate keyframes: with a [`BowIndex`], the first
+//!    [`LocalizeParams::bow_candidates`] of a bag-of-words query of the shot
+//!    against the keyframe database; without one, every keyframe (one
+//!    brute-force pass per keyframe, fine for maps of up to a few hundred
+//!    keyframes). Each one's map points are matched by descriptor (nearest
+//!    neighbour under a Hamming bound, ratio test, one-to-one), and the top
+//!    k by matches are the candidates.
 //! 3. Per candidate: PnP RANSAC on its matches; then the local map (the
 //!    points of the candidate, its best covisible keyframes and the keyframes
 //!    that observe the points matched so far, most shared points first) is

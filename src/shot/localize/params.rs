@@ -49,8 +49,16 @@ impl Default for GateParams {
 pub struct LocalizeParams {
     /// ORB settings for the shot (scale factor and levels are taken from the map).
     pub features: features::Params,
-    /// Candidate keyframes kept.
+    /// Candidate keyframes kept (the most descriptor matches among those
+    /// retrieved).
     pub top_k: usize,
+    /// Keyframes a bag-of-words query retrieves and matches by descriptor
+    /// before the best `top_k` are kept (at least `top_k`): a photo much
+    /// closer or farther than the keyframes shares few words with the
+    /// right ones (its fine detail is their coarse pyramid levels), so
+    /// they often rank below the first few by BoW score while they still
+    /// have the most matches.
+    pub bow_candidates: usize,
     /// Largest Hamming distance of a descriptor match against a candidate.
     pub max_hamming: u32,
     /// Ratio test: best distance below `ratio` times the second best.
@@ -121,6 +129,7 @@ impl Default for LocalizeParams {
         LocalizeParams {
             features,
             top_k: 5,
+            bow_candidates: 15,
             max_hamming: 50,
             ratio: 0.8,
             min_candidate_matches: 15,
