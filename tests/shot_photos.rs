@@ -27,6 +27,10 @@
 //! candidate's pairs alone, `SHOT_PHOTOS_REMATCH_ROUNDS=0` skips the
 //! projection rounds through the estimated camera of a photo whose focal
 //! length was weighed (each as before it was in, for a before/after).
+//! `SHOT_PHOTOS_DEBUG=1` prints a line per photo: where the keyframe its
+//! pose was made from ranks in the bag-of-words query (-1: not at all), and
+//! the error, sigma and error in the camera's frame (x right, y down, z
+//! along the optical axis; % of the distance), or why it was refused.
 //!
 //! `cargo test --release --test shot_photos -- --nocapture` (about 2 min).
 
@@ -217,6 +221,8 @@ struct Hidden {
     scale: f64,
     /// Distance to the scene, metres.
     dist_m: f64,
+    /// Timestamp of the keyframe it was made from.
+    kf_time: f64,
 }
 
 /// `n` hidden poses: from a keyframe's true pose, the camera moves up to
@@ -279,6 +285,7 @@ fn hidden_poses(m: &Mapped, n: usize, seed: u64) -> Vec<Hidden> {
             off_path_m,
             scale,
             dist_m: distance_to_scene(m, &pose),
+            kf_time: t,
         });
     }
     out
@@ -345,14 +352,63 @@ fn run_condition(
             },
             ..shot::LocalizeParams::default()
         };
-        let o = match shot::localize_with_camera(
+        let debug = std::env::var_os("SHOT_PHOTOS_DEBUG").is_some();
+        let rank = if debug {
+            let near = shot::nearest_keyframes(
+                &m.map,
+                &camera.camera,
+                &photo.image,
+                None,
+                index,
+                &params,
+                m.map.keyframe_count(),
+            )?;
+            near.iter()
+                .position(|n| {
+                    m.map
+                        .keyframe(n.keyframe_id)
+                        .is_some_and(|kf| kf.timestamp == h.kf_time)
+                })
+                .map_or(-1, |r| r as i64)
+        } else {
+            -1
+        };
+        let res = shot::localize_with_camera(
             &m.map,
             &camera.camera,
             &photo.image,
             None,
             Some(index),
             &params,
-        )? {
+        )?;
+        if debug {
+            let mut line = format!(
+                "PHOTO {k} off {:.1} scale {:.2} dist {:.1} rank {rank}",
+                h.off_path_m, h.scale, h.dist_m
+            );
+            match &res {
+                Localization::Localized(p) => {
+                    let est = m.sim.transform_pose(&p.world_from_cam);
+                    let d = est.translation.vector - h.pose.translation.vector;
+                    let ec = h.pose.rotation.inverse() * d / h.dist_m * 100.0;
+                    line += &format!(
+                        " LOC perr {:.3} rerr {:.3} psig {:.3} rsig {:.3} ecam [{:.3} {:.3} {:.3}] inl {} agree {}",
+                        d.norm() / h.dist_m * 100.0,
+                        est.rotation.angle_to(&h.pose.rotation).to_degrees(),
+                        p.sigma.position * m.sim.scale / h.dist_m * 100.0,
+                        p.sigma.rotation_deg,
+                        ec.x,
+                        ec.y,
+                        ec.z,
+                        p.inliers,
+                        p.agreeing_candidates
+                    );
+                }
+                Localization::NotLocalized { reason } => line += &format!(" NOT {reason:?}"),
+            }
+            println!("{line}");
+        }
+        let o = match res {
             Localization::Localized(p) => {
                 let est = m.sim.transform_pose(&p.world_from_cam);
                 let (ps, rs) = (
@@ -633,13 +689,17 @@ fn photos_around_the_flight_under_other_light_and_cameras() -> anyhow::Result<()
         "EXIF-camera photos passed by the gate with an error over 10 % or 5 deg"
     );
     // The confidence is honest: the true errors lie within 2 reported sigma
-    // for most localised photos in every condition. An estimated focal
-    // length carries the map's own error too (MapSigma::focal_rel):
+    // for 90 % of the localised photos in every condition. An estimated
+    // focal length carries the map's own error too (MapSigma::focal_rel):
     // without it the other camera's photos were at 86 % and 89 % on the
-    // default poses, 79 % and 77 % with SHOT_PHOTOS_SEED=2.
+    // default poses, 79 % and 77 % with SHOT_PHOTOS_SEED=2. The map's
+    // error that does not shrink with the distance
+    // (MapSigma::map_depth_fraction) took seed 2 from 91, 91, 89, 87, 87 %
+    // to 99, 99, 99, 94, 93 % (held-out seed 3: 97, 94, 94, 86, 89 % to
+    // 100, 97, 97, 94, 93 %).
     for (condition, within2) in calibration {
         assert!(
-            within2 >= 85.0,
+            within2 >= 90.0,
             "{condition}: only {within2:.0} % of the true errors within 2 sigma"
         );
     }

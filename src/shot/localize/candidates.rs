@@ -173,9 +173,9 @@ pub fn nearest_keyframes(
 pub(super) type Candidate = (KeyFrameId, Vec<(usize, PointId)>);
 
 /// The candidate keyframes of a shot, most descriptor matches first (at
-/// most [`LocalizeParams::top_k`]): with a [`BowIndex`] the top k of a
-/// bag-of-words query, else every keyframe, each matched by descriptor
-/// against its map points. The reason when there is none, or when the best
+/// most [`LocalizeParams::top_k`]): with a [`BowIndex`] the first
+/// [`LocalizeParams::bow_candidates`] of a bag-of-words query, else every
+/// keyframe, each matched by descriptor against its map points. The reason when there is none, or when the best
 /// has too few matches.
 pub(super) fn rank_candidates(
     map: &Map,
@@ -190,7 +190,7 @@ pub(super) fn rank_candidates(
             let q = index.vocabulary.transform(&feats.descriptors);
             index
                 .database
-                .query(&q, params.top_k.max(1))
+                .query(&q, params.bow_candidates.max(params.top_k).max(1))
                 .into_iter()
                 .filter_map(|r| u32::try_from(r.id.0).ok().map(KeyFrameId))
                 .collect()

@@ -10,6 +10,57 @@ use crate::optimize::{
     Intrinsics, IntrinsicsCorrection, IntrinsicsUncertainty, PoseObservation, pose_covariance,
     refine_pose_and_intrinsics,
 };
+use crate::slam::Map;
+
+/// The map's own error for one localisation: [`MapSigma`] with its
+/// absolute part in the map's units.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct MapError {
+    pub(super) sigma: MapSigma,
+    /// The map's absolute position error, map units
+    /// ([`MapSigma::map_depth_fraction`] of its keyframes' median depth).
+    pub(super) absolute: f64,
+}
+
+impl MapError {
+    /// `sigma` on `map`: the median over the keyframes of each one's median
+    /// scene depth sets the absolute part (0 for a map without any).
+    pub(super) fn of(map: &Map, sigma: &MapSigma) -> MapError {
+        let depths: Vec<f64> = map
+            .keyframes()
+            .filter_map(|k| map.median_depth(k.id))
+            .filter(|d| d.is_finite() && *d > 0.0)
+            .collect();
+        let depth = crate::stats::quantile(&depths, 0.5).unwrap_or(0.0);
+        MapError {
+            sigma: *sigma,
+            absolute: sigma.map_depth_fraction * depth,
+        }
+    }
+
+    /// The focal length's extra error (log) for a photo whose inliers lie
+    /// at `median_depth` ([`MapSigma::focal_rel`]).
+    pub(super) fn focal_rel(&self, median_depth: f64) -> f64 {
+        self.sigma.focal_rel(self.absolute, median_depth)
+    }
+}
+
+/// Median depth of the inliers of `obs` in front of the camera at
+/// `cam_from_world` (NaN without any).
+pub(super) fn inlier_median_depth(
+    cam_from_world: &Isometry3<f64>,
+    obs: &[PoseObservation],
+    inliers: &[bool],
+) -> f64 {
+    let depths: Vec<f64> = obs
+        .iter()
+        .zip(inliers)
+        .filter(|(_, a)| **a)
+        .map(|(o, _)| (cam_from_world * o.p_world).z)
+        .filter(|z| *z > 0.0)
+        .collect();
+    crate::stats::quantile(&depths, 0.5).unwrap_or(f64::NAN)
+}
 
 /// One explanation of a candidate's matches: the pose with the intrinsics'
 /// corrections estimated with it, its inliers and its covariance.
@@ -23,7 +74,8 @@ pub(super) struct Hypothesis {
 /// Fits the pose from motion-only BA together with the intrinsics that
 /// `uncertain` leaves open (none: the pose as it is), classifies the
 /// inliers again and takes the covariance with those intrinsics
-/// marginalised.
+/// marginalised (an estimated focal length with the map's error,
+/// [`MapError::focal_rel`], too).
 pub(super) fn fit_hypothesis(
     cam_from_world: Isometry3<f64>,
     obs: &[PoseObservation],
@@ -31,6 +83,7 @@ pub(super) fn fit_hypothesis(
     intr: &Intrinsics,
     uncertain: &IntrinsicsUncertainty,
     params: &LocalizeParams,
+    map_error: &MapError,
 ) -> Hypothesis {
     let (cam_from_world, correction, inliers) = if *uncertain == IntrinsicsUncertainty::default() {
         (
@@ -62,7 +115,9 @@ pub(super) fn fit_hypothesis(
         uncertain,
         &correction,
     )
-    .map(|c| c.with_focal_error(params.map_sigma.focal_rel));
+    .map(|c| {
+        c.with_focal_error(map_error.focal_rel(inlier_median_depth(&cam_from_world, obs, &inliers)))
+    });
     Hypothesis {
         cam_from_world,
         correction,
@@ -104,17 +159,19 @@ pub(super) fn mixture_sigma(h0: &Hypothesis, h1: &Hypothesis, p0: f64) -> Option
 
 /// The sigma reported for the final pose: its covariance's (`pose`) and
 /// the map's own error in quadrature, the latter the larger of the floor
-/// `map_sigma` and the RMS `spread` of the agreeing candidates around the
-/// chosen pose (position as a fraction of `median_depth`, rotation in
-/// degrees); the position also as a fraction of `near`, the distance to
-/// the nearest scene content.
+/// of `map_error` and the RMS `spread` of the agreeing candidates around
+/// the chosen pose (position as a fraction of `median_depth`, rotation in
+/// degrees), and for the position the map's absolute error too; the
+/// position also as a fraction of `near`, the distance to the nearest
+/// scene content.
 pub(super) fn reported_sigma(
     pose: &PoseSigma,
     spread: Option<(f64, f64)>,
-    map_sigma: &MapSigma,
+    map_error: &MapError,
     median_depth: f64,
     near: f64,
 ) -> PoseSigma {
+    let map_sigma = &map_error.sigma;
     let (map_pos, map_rot) = match spread {
         Some((pos, rot)) => (
             pos.max(map_sigma.depth_fraction),
@@ -122,7 +179,10 @@ pub(super) fn reported_sigma(
         ),
         None => (map_sigma.depth_fraction, map_sigma.rotation_deg),
     };
-    let position = pose.position.hypot(map_pos * median_depth);
+    let position = pose
+        .position
+        .hypot(map_pos * median_depth)
+        .hypot(map_error.absolute);
     PoseSigma {
         position,
         position_depth_fraction: position / near.max(1e-12),

@@ -5,7 +5,7 @@
 
 use nalgebra::Isometry3;
 
-use super::covariance::Hypothesis;
+use super::covariance::{Hypothesis, MapError, inlier_median_depth};
 use super::params::LocalizeParams;
 use crate::camera::Camera;
 use crate::optimize::{
@@ -69,6 +69,7 @@ pub(super) fn fit_other_camera(
     intr: &Intrinsics,
     wide: &IntrinsicsUncertainty,
     params: &LocalizeParams,
+    map_error: &MapError,
 ) -> Hypothesis {
     let th = params.pose.chi2_threshold;
     let mut best: Option<(f64, Isometry3<f64>, IntrinsicsCorrection, Vec<bool>)> = None;
@@ -116,8 +117,9 @@ pub(super) fn fit_other_camera(
         };
     };
     // The covariance at the fit, with the intrinsics marginalised.
-    let cov = pose_covariance(&pose, obs, &inliers, intr, th, None, wide, &corr)
-        .map(|c| c.with_focal_error(params.map_sigma.focal_rel));
+    let cov = pose_covariance(&pose, obs, &inliers, intr, th, None, wide, &corr).map(|c| {
+        c.with_focal_error(map_error.focal_rel(inlier_median_depth(&pose, obs, &inliers)))
+    });
     Hypothesis {
         cam_from_world: pose,
         correction: corr,
@@ -186,7 +188,7 @@ mod tests {
 
     use super::*;
     use crate::shot::localize::UnknownFocal;
-    use crate::shot::localize::covariance::{fit_hypothesis, mixture_sigma};
+    use crate::shot::localize::covariance::{MapError, fit_hypothesis, mixture_sigma};
 
     /// Observations of random points (x, y in ±half the depth's span, z in
     /// `depths`) by a camera at the origin whose focal length is
@@ -222,6 +224,11 @@ mod tests {
     /// reported camera centre and the mixture's position sigma.
     fn weigh(intr: &Intrinsics, obs: &[PoseObservation]) -> (f64, Point3<f64>, f64, f64) {
         let params = LocalizeParams::default();
+        // No absolute part: a map of these points alone.
+        let map_error = MapError {
+            sigma: params.map_sigma,
+            absolute: 0.0,
+        };
         let start = Isometry3::translation(0.05, -0.03, 0.1);
         let r = optimize_pose(start, obs, intr, &params.pose).unwrap_or_else(|e| panic!("{e}"));
         let h0 = fit_hypothesis(
@@ -231,6 +238,7 @@ mod tests {
             intr,
             &IntrinsicsUncertainty::default(),
             &params,
+            &map_error,
         );
         let u = UnknownFocal::default();
         let wide = IntrinsicsUncertainty {
@@ -238,7 +246,7 @@ mod tests {
             k1: u.k1_sigma,
             k2: u.k2_sigma,
         };
-        let h1 = fit_other_camera(r.cam_from_world, obs, intr, &wide, &params);
+        let h1 = fit_other_camera(r.cam_from_world, obs, intr, &wide, &params, &map_error);
         let p0 = same_camera_probability(&h1, &wide, u.same_camera_prior);
         let (pos_sigma, _) = mixture_sigma(&h0, &h1, p0).unwrap_or((f64::INFINITY, 0.0));
         let chosen = if p0 >= 0.5 { &h0 } else { &h1 };

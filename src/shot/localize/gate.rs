@@ -4,6 +4,7 @@
 
 use std::collections::HashSet;
 
+use super::covariance::MapError;
 use super::outcome::NotLocalizedReason;
 use super::params::{GateParams, LocalizeParams};
 use super::refine::{CandidatePose, evaluate_candidate, observations};
@@ -124,6 +125,7 @@ pub(super) fn union_of_evidence(
     agreeing: &Agreement<'_>,
     intr: &Intrinsics,
     params: &LocalizeParams,
+    map_error: &MapError,
 ) -> Option<CandidatePose> {
     if agreeing.slots.is_empty() || !params.union_of_evidence || params.focal_unknown {
         return None;
@@ -153,6 +155,7 @@ pub(super) fn union_of_evidence(
                 slots,
                 intr,
                 params,
+                map_error,
             )
         })
         .filter(|c| gate_reason(c, &params.gate).is_none() && c.sigma.is_some())

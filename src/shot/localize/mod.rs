@@ -3,12 +3,13 @@
 //!
 //! 1. ORB on the shot, with the validity mask (the black fill never yields a
 //!    feature).
-//! 2. Candidate keyframes: with a [`BowIndex`], the top k of a bag-of-words
-//!    query of the shot against the keyframe database; without one, every
-//!    keyframe is ranked by descriptor matching (one brute-force pass per
-//!    keyframe, fine for maps of up to a few hundred keyframes). Each
-//!    candidate's map points are matched by descriptor (nearest neighbour
-//!    under a Hamming bound, ratio test, one-to-one).
+//! 2. Candidate keyframes: with a [`BowIndex`], the first
+//!    [`LocalizeParams::bow_candidates`] of a bag-of-words query of the shot
+//!    against the keyframe database; without one, every keyframe (one
+//!    brute-force pass per keyframe, fine for maps of up to a few hundred
+//!    keyframes). Each one's map points are matched by descriptor (nearest
+//!    neighbour under a Hamming bound, ratio test, one-to-one), and the top
+//!    k by matches are the candidates.
 //! 3. Per candidate: PnP RANSAC on its matches; then the local map (the
 //!    points of the candidate, its best covisible keyframes and the keyframes
 //!    that observe the points matched so far, most shared points first) is
@@ -53,7 +54,7 @@ pub use self::params::{
 };
 
 use self::candidates::{extract_shot_features, rank_candidates};
-use self::covariance::reported_sigma;
+use self::covariance::{MapError, reported_sigma};
 use self::gate::{agreement, gate_reason, union_of_evidence};
 use self::outcome::not;
 use self::projection::{ShotView, frustum_near_depth};
@@ -125,6 +126,7 @@ pub fn localize_with_camera(
         distance_factor: (map.camera.fx + map.camera.fy) / (cam.fx + cam.fy),
         correction: IntrinsicsCorrection::default(),
     };
+    let map_error = MapError::of(map, &params.map_sigma);
     let mut poses: Vec<CandidatePose> = Vec::new();
     let mut tried = 0;
     for (kf_id, matches) in &ranked {
@@ -132,8 +134,9 @@ pub fn localize_with_camera(
             continue;
         }
         tried += 1;
-        if let Some(c) = refine_candidate(map, *kf_id, matches, &feats, &grid, &view, &intr, params)
-        {
+        if let Some(c) = refine_candidate(
+            map, *kf_id, matches, &feats, &grid, &view, &intr, params, &map_error,
+        ) {
             poses.push(c);
         }
     }
@@ -149,7 +152,7 @@ pub fn localize_with_camera(
         Ok(a) => a,
         Err(reason) => return Ok(not(reason)),
     };
-    let merged = union_of_evidence(map, &feats, &poses[0], &agreeing, &intr, params);
+    let merged = union_of_evidence(map, &feats, &poses[0], &agreeing, &intr, params, &map_error);
     let best = merged.as_ref().unwrap_or(&poses[0]);
     let best_wfc = best.cam_from_world.inverse();
     let Some(pose_sigma) = best.sigma else {
@@ -162,7 +165,7 @@ pub fn localize_with_camera(
     let sigma = reported_sigma(
         &pose_sigma,
         agreeing.rms_spread(),
-        &params.map_sigma,
+        &map_error,
         best.median_depth,
         near,
     );

@@ -5,7 +5,7 @@
 
 use nalgebra::{Isometry3, Point2, Point3};
 
-use super::covariance::{Hypothesis, fit_hypothesis, mixture_sigma};
+use super::covariance::{Hypothesis, MapError, fit_hypothesis, mixture_sigma};
 use super::focal::{fit_other_camera, same_camera_probability};
 use super::outcome::PoseSigma;
 use super::params::LocalizeParams;
@@ -49,6 +49,7 @@ pub(super) fn refine_candidate(
     view: &ShotView<'_>,
     intr: &Intrinsics,
     params: &LocalizeParams,
+    map_error: &MapError,
 ) -> Option<CandidatePose> {
     map.keyframe(kf_id)?;
     let mut pw: Vec<Point3<f64>> = Vec::with_capacity(matches.len());
@@ -104,6 +105,7 @@ pub(super) fn refine_candidate(
         slots,
         intr,
         params,
+        map_error,
     )?;
     if !params.focal_unknown || params.rematch_rounds == 0 {
         return Some(cand);
@@ -115,7 +117,7 @@ pub(super) fn refine_candidate(
         matched,
     };
     Some(rematch_with_estimated_camera(
-        map, kf_id, fitted, feats, grid, view, intr, params,
+        map, kf_id, fitted, feats, grid, view, intr, params, map_error,
     ))
 }
 
@@ -152,6 +154,7 @@ fn rematch_with_estimated_camera(
     view: &ShotView<'_>,
     intr: &Intrinsics,
     params: &LocalizeParams,
+    map_error: &MapError,
 ) -> CandidatePose {
     let radius = params.projection_radius_px.last().copied().unwrap_or(2.5);
     for _ in 0..params.rematch_rounds {
@@ -199,6 +202,7 @@ fn rematch_with_estimated_camera(
             slots,
             intr,
             params,
+            map_error,
         ) else {
             break;
         };
@@ -276,6 +280,7 @@ pub(super) fn observations(
 /// A candidate's pose from motion-only BA on `obs` (`inliers` its
 /// classification): the camera's hypotheses fitted and weighed, the
 /// statistics the gate reads and the sigma.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn evaluate_candidate(
     kf_id: KeyFrameId,
     cam_from_world: Isometry3<f64>,
@@ -284,6 +289,7 @@ pub(super) fn evaluate_candidate(
     slots: Vec<Option<PointId>>,
     intr: &Intrinsics,
     params: &LocalizeParams,
+    map_error: &MapError,
 ) -> Option<CandidatePose> {
     // A camera known only by its EXIF: its focal length and distortion
     // are estimated with the pose, the inliers classified again.
@@ -294,6 +300,7 @@ pub(super) fn evaluate_candidate(
         intr,
         &params.camera_uncertainty,
         params,
+        map_error,
     );
     let (chosen, sigma) = if params.focal_unknown {
         let u = &params.unknown_focal;
@@ -302,7 +309,7 @@ pub(super) fn evaluate_candidate(
             k1: u.k1_sigma,
             k2: u.k2_sigma,
         };
-        let h1 = fit_other_camera(cam_from_world, obs, intr, &wide, params);
+        let h1 = fit_other_camera(cam_from_world, obs, intr, &wide, params, map_error);
         let p0 = same_camera_probability(&h1, &wide, u.same_camera_prior);
         let sigma = mixture_sigma(&h0, &h1, p0);
         let chosen = if p0 >= 0.5 { h0 } else { h1 };
