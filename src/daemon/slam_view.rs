@@ -206,6 +206,9 @@ fn prior_params(cfg: &Config) -> PriorParams {
         // The link gives no barometric altitude apart from the fused one
         // already in the position (see `GeoService::on_position`).
         baro_sigma_m: None,
+        // No global BA while flying: the map is refit as a whole as the
+        // fixes grow by a quarter.
+        realign_growth: Some(1.25),
         ..PriorParams::default()
     }
 }

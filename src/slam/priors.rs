@@ -295,6 +295,12 @@ impl TelemetryFeed {
     }
 }
 
+/// Root mean square of `v` (0 for none).
+fn rms(v: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x * x, n + 1));
+    if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
+}
+
 /// Tunables of the telemetry priors.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PriorParams {
@@ -315,6 +321,15 @@ pub struct PriorParams {
     /// (`None`: nearest sample only; telemetry slower than the video
     /// needs it).
     pub interpolate_gap_s: Option<f64>,
+    /// Once aided, refit the map→NED Sim(3) on all keyframes with a fix
+    /// whenever their number has grown by this factor since the last fit,
+    /// and apply it when it fits the fixes clearly better than the map as
+    /// it stands ([`Priors::try_realign`]): local BA holds only its window
+    /// to the priors, so a rotation or scale error of the first fit (made
+    /// on a short baseline) or the map's drift outside the window is
+    /// corrected as a whole (`None`: never; a run ending in a global BA
+    /// with priors does not need it).
+    pub realign_growth: Option<f64>,
 }
 
 impl Default for PriorParams {
@@ -333,6 +348,7 @@ impl Default for PriorParams {
             min_sigma_m: 0.1,
             baro_sigma_m: Some(0.5),
             interpolate_gap_s: None,
+            realign_growth: None,
         }
     }
 }
@@ -365,6 +381,10 @@ pub struct PriorStatus {
     pub keyframes_with_fix: usize,
     /// The fit that put the map in NED (this run), if it did.
     pub georeferenced: Option<Georeferenced>,
+    /// Refits applied since ([`Priors::try_realign`]).
+    pub realigned: usize,
+    /// Keyframes with a fix at the last fit (put in NED or refit).
+    pub fitted_with: usize,
 }
 
 impl Default for PriorStatus {
@@ -374,6 +394,8 @@ impl Default for PriorStatus {
             reason: "no keyframe yet".into(),
             keyframes_with_fix: 0,
             georeferenced: None,
+            realigned: 0,
+            fitted_with: 0,
         }
     }
 }
@@ -440,8 +462,7 @@ impl Priors {
                 self.set_status(PriorStatus {
                     mode: map.mode(),
                     reason: "the map was already in local NED (a continued map)".into(),
-                    keyframes_with_fix: 0,
-                    georeferenced: None,
+                    ..PriorStatus::default()
                 });
             }
             return None;
@@ -450,22 +471,9 @@ impl Priors {
             mode: MapMode::VisionOnly,
             reason: why,
             keyframes_with_fix: n,
-            georeferenced: None,
+            ..PriorStatus::default()
         };
-        let pairs: Vec<Pair> = map
-            .keyframes()
-            .filter_map(|k| {
-                let s = self.fix_at(k.timestamp)?;
-                Some(Pair {
-                    kf_id: k.id.0 as u64,
-                    p_map: Point3::from(k.center()),
-                    p_ned: Point3::from(s.gps_ned),
-                    time: k.timestamp,
-                    orientations: None,
-                    v_ned: None,
-                })
-            })
-            .collect();
+        let pairs = self.pairs(map);
         let n = pairs.len();
         if n < self.params.min_keyframes {
             let why = if self.log.is_empty() {
@@ -489,7 +497,7 @@ impl Priors {
             Err(e) => {
                 self.set_status(waiting(
                     n,
-                    format!("{n} keyframes with a fix, no NED fit yet: {e}"),
+                    format!("no NED fit yet: {e} ({n} keyframes with a fix)"),
                 ));
                 return None;
             }
@@ -498,7 +506,7 @@ impl Priors {
         if !(s.scale.is_finite() && s.scale > 0.0) {
             self.set_status(waiting(
                 n,
-                format!("{n} keyframes with a fix, a degenerate fit"),
+                format!("no NED fit yet: a degenerate fit ({n} keyframes with a fix)"),
             ));
             return None;
         }
@@ -518,8 +526,87 @@ impl Priors {
             ),
             keyframes_with_fix: n,
             georeferenced: Some(g),
+            realigned: 0,
+            fitted_with: n,
         });
         Some(g)
+    }
+
+    /// The keyframes with a fix as map/NED pairs.
+    fn pairs(&self, map: &Map) -> Vec<Pair> {
+        map.keyframes()
+            .filter_map(|k| {
+                let s = self.fix_at(k.timestamp)?;
+                Some(Pair {
+                    kf_id: k.id.0 as u64,
+                    p_map: Point3::from(k.center()),
+                    p_ned: Point3::from(s.gps_ned),
+                    time: k.timestamp,
+                    orientations: None,
+                    v_ned: None,
+                })
+            })
+            .collect()
+    }
+
+    /// While the map is aided, with [`PriorParams::realign_growth`]: once
+    /// the keyframes with a fix have grown by that factor since the last
+    /// fit, refit the map→NED Sim(3) on all of them and apply it to the
+    /// whole map when it fits the fixes clearly better than the map as it
+    /// stands (the RMS of the fit's inliers at least a fifth lower, and by
+    /// more than [`PriorParams::min_sigma_m`]). `None` when not refit or
+    /// not applied.
+    pub fn try_realign(&self, map: &mut Map) -> Option<Georeferenced> {
+        let growth = self.params.realign_growth?;
+        if map.mode() != MapMode::GpsAided {
+            return None;
+        }
+        let st = self.status();
+        let pairs = self.pairs(map);
+        let n = pairs.len();
+        if st.fitted_with > 0 && (n as f64) < st.fitted_with as f64 * growth.max(1.0) {
+            return None;
+        }
+        let fit = fit_pairs(&pairs, &self.params.align, None, self.params.align.seed).ok();
+        let mut st = st;
+        st.fitted_with = n;
+        let applied = fit.and_then(|fit| {
+            let s = fit.ned_from_map;
+            let inliers: std::collections::HashSet<u64> = fit.inlier_ids.iter().copied().collect();
+            let as_is = rms(pairs
+                .iter()
+                .filter(|p| inliers.contains(&p.kf_id))
+                .map(|p| (p.p_ned - p.p_map).norm()));
+            let better = s.scale.is_finite()
+                && s.scale > 0.0
+                && fit.quality.rms_m < 0.8 * as_is
+                && as_is - fit.quality.rms_m > self.params.min_sigma_m;
+            better.then(|| {
+                map.apply_sim3(&s);
+                (
+                    Georeferenced {
+                        ned_from_map: s,
+                        pairs: fit.quality.pairs,
+                        inliers: fit.quality.inliers,
+                        rms_m: fit.quality.rms_m,
+                    },
+                    as_is,
+                )
+            })
+        });
+        if let Some((g, before)) = applied {
+            st.realigned += 1;
+            st.georeferenced = Some(g);
+            st.keyframes_with_fix = n;
+            st.reason = format!(
+                "in local NED by {} keyframes with a fix, refit {} times (last: residual RMS {:.2} m -> {:.2} m over {} inliers); held by GNSS priors",
+                g.pairs, st.realigned, before, g.rms_m, g.inliers
+            );
+            self.set_status(st);
+            return Some(g);
+        }
+        self.set_status(st);
+        None
     }
 
     /// The priors of `setup`'s free keyframes (nothing unless the map is
@@ -770,6 +857,53 @@ mod tests {
         assert_eq!(st.mode, MapMode::GpsAided);
         assert_eq!(st.georeferenced, Some(g));
         assert!(st.reason.contains("put in local NED"), "{}", st.reason);
+    }
+
+    /// A map put in NED slightly wrong (as a first fit on a short
+    /// baseline can be): the refit on all fixes puts it right; a map that
+    /// fits already is left alone.
+    #[test]
+    fn an_aided_map_is_refit_as_a_whole_when_it_fits_clearly_better() {
+        let (mut map, log, _, truth) = flight(12);
+        let priors = Priors::with_feed(
+            TelemetryFeed::fixed(log),
+            PriorParams {
+                realign_growth: Some(1.0),
+                ..PriorParams::default()
+            },
+        );
+        assert!(priors.try_realign(&mut map).is_none(), "not aided yet");
+        priors.try_georeference(&mut map).unwrap();
+        assert!(priors.try_realign(&mut map).is_none(), "fits already");
+        let off = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.04, -0.03, 0.02),
+            Vector3::new(0.5, -0.3, 0.2),
+            1.03,
+        );
+        map.apply_sim3(&off);
+        let g = priors.try_realign(&mut map).unwrap();
+        assert_eq!(g.pairs, 10);
+        for (k, c) in map.keyframes().zip(&truth) {
+            assert!((k.center() - c).norm() < 1e-6);
+        }
+        let st = priors.status();
+        assert_eq!((st.realigned, st.mode), (1, MapMode::GpsAided));
+        assert!(st.reason.contains("refit 1 times"), "{}", st.reason);
+        // Not again before the fixes grow (by 1.25 here).
+        let slow = Priors::with_feed(
+            priors.log.clone(),
+            PriorParams {
+                realign_growth: Some(1.25),
+                ..PriorParams::default()
+            },
+        );
+        let (mut map2, ..) = flight(12);
+        slow.try_georeference(&mut map2).unwrap();
+        map2.apply_sim3(&off);
+        assert!(
+            slow.try_realign(&mut map2).is_none(),
+            "10 fixes, 10 at the fit"
+        );
     }
 
     #[test]
