@@ -548,6 +548,17 @@ fn started_mission_is_refined_by_the_daemon() {
 /// corrections take the whole error (`[refine] later_gain = 1`): under a
 /// drifting GPS what is left after a round is new drift, not the
 /// localisation noise the default 0.5 damps.
+///
+/// That drift is real time: a round (flight, 2 s dwell, measurement) takes
+/// 5-7 s, in which the walk moves ~0.35 m per axis, 0.8-1.0 % of the
+/// diagonal, so a round can end just above the 1 % threshold by drift
+/// alone, and more often when the machine is busy and rounds take longer.
+/// Measured on an idle machine (2 cores): [3.90, 1.45, 1.02, 1.07, 0.64],
+/// [3.76, 1.30, 0.98], [3.86, 1.42, 1.11, 1.20, 0.97] %; with other builds
+/// running, 4 of 5 runs ended at the default 4 corrections at 1.02-1.09 %.
+/// The test allows 6 corrections: what it checks is that the loop keeps
+/// correcting a drifting bias until under the threshold, not how many
+/// rounds the drift of one machine's timing costs.
 /// `SHOTPILOT_REFINE_GPS_TAU`, `_GPS_SEED`, `_LATER_GAIN` change those.
 #[test]
 fn gps_bias_is_corrected_by_the_daemon() {
@@ -567,6 +578,7 @@ fn gps_bias_is_corrected_by_the_daemon() {
         cfg.sim.gps_tau_s = tau;
         cfg.sim.gps_seed = Some(gps_seed);
         cfg.refine.later_gain = later_gain;
+        cfg.refine.max_rounds = 6;
     });
     let (addr, truth_dir) = (run.addr, run.truth_dir.clone());
     let (geo, photos) = run.georeferenced();

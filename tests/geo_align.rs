@@ -263,6 +263,58 @@ fn refuses_too_little_motion_and_collinear_motion() {
     );
 }
 
+/// Culling can leave a georeference's pairs too thin to refit (one
+/// straight lane): the last fit is kept while those pairs agree with it,
+/// and dropped when they contradict it.
+#[test]
+fn keeps_the_last_fit_when_culling_leaves_too_little_motion() {
+    let t = truth();
+    let inv = t.inverse();
+    let mut geo = Georeference::new(AlignParams {
+        refine_with_orientations: false,
+        ..AlignParams::default()
+    });
+    // One straight lane only: refused, nothing to hold yet.
+    let ned = flight(120);
+    let lane: Vec<u64> = (0..20).collect();
+    for &i in &lane {
+        let p = ned[i as usize];
+        geo.add_pair(i, inv.transform_point(&p), p, i as f64)
+            .unwrap();
+    }
+    assert!(matches!(geo.fit(), Err(GeoError::Collinear { .. })));
+    assert!(geo.held().is_none());
+    // The whole flight: fitted.
+    for (i, p) in ned.iter().enumerate().skip(20) {
+        geo.add_pair(i as u64, inv.transform_point(p), *p, i as f64)
+            .unwrap();
+    }
+    let fitted = geo.fit().unwrap();
+    assert!(geo.held().is_none());
+    assert!((fitted.ned_from_map.scale / t.scale - 1.0).abs() < 1e-6);
+    // Culled down to the first lane: the refit is refused, the last fit
+    // is kept and says why.
+    for i in 20..120 {
+        assert!(geo.remove(i));
+    }
+    let held = geo.fit().unwrap();
+    assert_eq!(held.ned_from_map.scale, fitted.ned_from_map.scale);
+    assert!(
+        matches!(geo.held(), Some(GeoError::Collinear { .. })),
+        "{:?}",
+        geo.held()
+    );
+    // The lane's NED side moved 5 m (the map was rebuilt under it, or a
+    // GPS glitch): the pairs contradict the last fit, which is not kept.
+    for &i in &lane {
+        let p = ned[i as usize] + Vector3::new(5.0, 0.0, 0.0);
+        geo.add_pair(i, inv.transform_point(&ned[i as usize]), p, i as f64)
+            .unwrap();
+    }
+    assert!(matches!(geo.fit(), Err(GeoError::Collinear { .. })));
+    assert!(geo.held().is_none());
+}
+
 #[test]
 fn refuses_when_the_pairs_do_not_agree() {
     let mut rng = SmallRng::seed_from_u64(2);

@@ -830,6 +830,10 @@ impl GeoService {
                 json!({
                     "state": "ok",
                     "source": if st.map_aided { "map" } else { "fit" },
+                    "held": georef.held().filter(|_| !st.map_aided).map(|e| format!(
+                        "the last fit is kept: a refit now is refused ({e}) and the {} pairs held agree with it",
+                        georef.pairs().len()
+                    )),
                     "scale": a.ned_from_map.scale,
                     "rms_m": q.rms_m,
                     "max_residual_m": q.max_residual_m,

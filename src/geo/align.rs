@@ -236,11 +236,20 @@ impl GeoAlignment {
 }
 
 /// Collects keyframe pairs and fits the map → NED similarity.
+///
+/// A refit refused for too little evidence (too few pairs, too little or
+/// too straight motion: the map culled the keyframes that made the
+/// baseline, not new evidence against the fit) keeps the last successful
+/// alignment while the pairs still held agree with it (within the inlier
+/// threshold, in the share a fit needs): the operator's georeference does
+/// not vanish mid-mission because a redundant keyframe was culled.
+/// [`Georeference::held`] says when that is the case and why.
 #[derive(Debug, Clone)]
 pub struct Georeference {
     params: AlignParams,
     pairs: Vec<Pair>,
     last: Option<GeoAlignment>,
+    held: Option<GeoError>,
     changed: bool,
     fits: u64,
 }
@@ -252,6 +261,7 @@ impl Georeference {
             params,
             pairs: Vec::new(),
             last: None,
+            held: None,
             changed: false,
             fits: 0,
         }
@@ -270,6 +280,13 @@ impl Georeference {
     /// The last successful fit.
     pub fn last(&self) -> Option<&GeoAlignment> {
         self.last.as_ref()
+    }
+
+    /// Why the last fit is held instead of refitted: the refit's refusal
+    /// (too little evidence left), while the pairs held still agree with
+    /// the last fit. `None` when the last fit is current.
+    pub fn held(&self) -> Option<&GeoError> {
+        self.held.as_ref()
     }
 
     /// Adds (or, for a known id, replaces) a keyframe's camera centre in the
@@ -394,11 +411,44 @@ impl Georeference {
             self.params.seed.wrapping_add(self.fits),
         );
         self.fits += 1;
-        if let Ok(a) = &result {
-            self.last = Some(a.clone());
-            self.changed = false;
+        match result {
+            Ok(a) => {
+                self.last = Some(a.clone());
+                self.held = None;
+                self.changed = false;
+                Ok(a)
+            }
+            Err(e) => match self.hold(&e) {
+                Some(a) => {
+                    self.held = Some(e);
+                    Ok(a)
+                }
+                None => {
+                    self.held = None;
+                    Err(e)
+                }
+            },
         }
-        result
+    }
+
+    /// The last fit, when `refusal` only says the evidence is too thin
+    /// now and the pairs held still agree with it.
+    fn hold(&self, refusal: &GeoError) -> Option<GeoAlignment> {
+        let thin = matches!(
+            refusal,
+            GeoError::NotEnoughPairs { .. }
+                | GeoError::TooLittleMotion { .. }
+                | GeoError::Collinear { .. }
+        );
+        let last = self.last.as_ref().filter(|_| thin)?;
+        let th = self.params.inlier_threshold_m;
+        let agree = self
+            .pairs
+            .iter()
+            .filter(|p| residual(&last.ned_from_map, p) < th)
+            .count();
+        let needed = (self.params.min_inlier_ratio * self.pairs.len() as f64).ceil() as usize;
+        (agree >= needed).then(|| last.clone())
     }
 }
 
