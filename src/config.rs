@@ -180,6 +180,16 @@ pub struct SlamConfig {
     /// Close loops: a place seen again corrects the drift of the map
     /// (on the mapping thread; see `slam::loop_closing`).
     pub loop_closing: bool,
+    /// Telemetry priors: the link's GNSS fixes (GLOBAL_POSITION_INT with
+    /// GPS_RAW_INT's fix and reported accuracy) put the map in local NED
+    /// once enough keyframes with a fix span a baseline, and hold it there
+    /// in bundle adjustment (`slam::priors`); the georeference then follows
+    /// from the map. Off by default: with priors a tracking loss starts no
+    /// new map (tracking relocalises instead), and a receiver that reports
+    /// a better accuracy than it has pulls the map; vision-only with the
+    /// after-the-fact fit is the behaviour every daemon test and figure so
+    /// far was measured with.
+    pub priors: bool,
 }
 
 impl Default for SlamConfig {
@@ -191,6 +201,7 @@ impl Default for SlamConfig {
             continue_map: true,
             artificial_delay_ms: 0,
             loop_closing: true,
+            priors: false,
         }
     }
 }

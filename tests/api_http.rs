@@ -92,6 +92,8 @@ impl SlamView for FakeSlam {
                 correction_ms: 150.0,
                 at_unix: 1.0e9,
             }],
+            map_mode: "gps_aided".into(),
+            map_mode_reason: "put in local NED by 8 keyframes with a fix".into(),
             ..Default::default()
         }
     }

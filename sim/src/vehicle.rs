@@ -771,6 +771,18 @@ impl Vehicle {
             b + self.dist.position_error()
         }
     }
+    /// The receiver's reported 1-sigma accuracy, (horizontal per axis,
+    /// vertical) m: the GPS bias's and the realism's GNSS error sigmas
+    /// combined (zero with both off).
+    pub fn gps_reported_accuracy(&self) -> (f64, f64) {
+        let b = &self.params.gps_bias;
+        let (h, v) = if self.params.disturbances.is_off() {
+            (0.0, 0.0)
+        } else {
+            self.dist.sensors.reported_accuracy()
+        };
+        (h.hypot(b.sigma_xy_m), v.hypot(b.sigma_z_m))
+    }
     /// False while the GNSS fix is lost (realism `gps_dropouts`).
     pub fn gps_fix(&self) -> bool {
         self.dist.sensors.fix()

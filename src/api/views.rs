@@ -64,6 +64,13 @@ pub struct SlamStatus {
     /// The latest merges, oldest first (at most
     /// [`SlamStatus::MAX_MERGES`]).
     pub merges: Vec<MergeInfo>,
+    /// The frame the map is in: `vision_only` (its own frame and scale;
+    /// the georeference is a Sim(3) fitted after the fact) or `gps_aided`
+    /// (local NED at home, held by telemetry priors).
+    pub map_mode: String,
+    /// Why the map is in that mode (what a vision-only map waits for, how
+    /// it was put in NED, or that priors are off).
+    pub map_mode_reason: String,
 }
 
 impl SlamStatus {

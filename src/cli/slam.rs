@@ -14,7 +14,7 @@ use shotpilot::eval::{self, Trajectory};
 use shotpilot::geo::align::{Pair, fit_pairs};
 use shotpilot::optimize::BaParams;
 use shotpilot::slam::MapMode;
-use shotpilot::slam::priors::{PriorParams, Priors, TelemetryLog};
+use shotpilot::slam::priors::{PriorParams, Priors, TelemetryFeed, TelemetryLog};
 use shotpilot::slam::{self, Slam, TrackState};
 use shotpilot::stats;
 use shotpilot::video::dataset::Dataset;
@@ -192,10 +192,10 @@ pub fn run(args: SlamArgs) -> Result<()> {
     if args.priors {
         match &telemetry {
             Some(log) => {
-                params.priors = Some(Priors {
-                    params: prior_params.clone(),
-                    log: Arc::new(log.clone()),
-                })
+                params.priors = Some(Priors::with_feed(
+                    TelemetryFeed::fixed(log.clone()),
+                    prior_params.clone(),
+                ))
             }
             None => tracing::warn!(
                 path = %tel_path.display(),

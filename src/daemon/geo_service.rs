@@ -16,6 +16,17 @@
 //! live pairs alone). A saved file whose home differs from the vehicle's
 //! HOME_POSITION is carried to the new home exactly.
 //!
+//! Telemetry priors (`[slam] priors`): each GLOBAL_POSITION_INT also
+//! becomes a sample of the SLAM's live [`TelemetryFeed`] (on the frames'
+//! clock, as the history's): the camera's position in local NED (the
+//! vehicle's plus the mount's lever arm turned by the latest attitude), a
+//! fix only when the latest GPS_RAW_INT (at most [`GPS_RAW_MAX_AGE`] old)
+//! reports a 3D fix and its accuracy, with that accuracy. While the SLAM's
+//! map is gps-aided (in local NED, held there by the priors) the
+//! georeference follows from the map: the identity to local NED at home,
+//! its residuals against the pairs reported, no separate fit (the status's
+//! `source`: `map`, else `fit`).
+//!
 //! Clocks: frames are timed by [`crate::geo::capture_time`] (the frame's
 //! `X-Timestamp` when used, else receive time minus the configured video
 //! latency), and the SLAM stamps its keyframes with that time. Telemetry is
@@ -27,7 +38,7 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use serde_json::{Value, json};
 use tokio_util::sync::CancellationToken;
 
@@ -38,9 +49,13 @@ use crate::geo::saved::{
 };
 use crate::geo::{
     ContinuityParams, Geo, GeoAlignment, GeoError, GeoTarget, Geodetic, GimbalAngles,
-    KeyframeStatus, LocalFrame, Params, TelemetryClock,
+    KeyframeStatus, LocalFrame, Params, TelemetryClock, VehicleState,
 };
-use crate::vehicle::{Attitude, GimbalAttitude, GlobalPosition, HomePosition, Stamped, Telemetry};
+use crate::slam::MapMode;
+use crate::slam::priors::{TelemetryFeed, TelemetrySample};
+use crate::vehicle::{
+    Attitude, GimbalAttitude, GlobalPosition, GpsRaw, HomePosition, Stamped, Telemetry,
+};
 use crate::video::live::{Frame, unix_now};
 
 /// How often the keyframes are compared with the map and the alignment
@@ -48,6 +63,9 @@ use crate::video::live::{Frame, unix_now};
 const SYNC_PERIOD: Duration = Duration::from_millis(500);
 /// Frames in the video-delay median.
 const DELAY_WINDOW: usize = 100;
+/// A GPS_RAW_INT older than this says nothing about the fix of a position
+/// sample (the message comes at 1 Hz by default).
+pub const GPS_RAW_MAX_AGE: Duration = Duration::from_secs(3);
 /// Frame pairs' ids: this bit set, the capture time in milliseconds below
 /// (keyframe ids are small; a frame's capture time names it across runs).
 pub const FRAME_PAIR_BIT: u64 = 1 << 63;
@@ -87,6 +105,8 @@ struct Counts {
     frame_pairs_added: u64,
     frame_pairs_refused: u64,
     fits: u64,
+    prior_samples: u64,
+    prior_samples_without_fix: u64,
 }
 
 /// What a pair's map side hangs from.
@@ -166,12 +186,21 @@ struct State {
     check: Option<Check>,
     /// Refit at the next sync even if no pair changed.
     force_fit: bool,
+    /// The latest GPS_RAW_INT and when it came.
+    gps_raw: Option<(Instant, GpsRaw)>,
+    /// The latest attitude (NED ← body), for the lever arm of prior samples.
+    last_attitude: Option<UnitQuaternion<f64>>,
+    /// The SLAM's map is in local NED (gps-aided): the georeference
+    /// follows from it.
+    map_aided: bool,
 }
 
 /// The georeference the daemon keeps, shared by its worker and the API.
 pub struct GeoService {
     state: Mutex<State>,
     params: Params,
+    /// The SLAM's telemetry priors' feed (None: priors off).
+    prior_feed: Option<TelemetryFeed>,
 }
 
 fn received_unix(received: Instant) -> f64 {
@@ -206,9 +235,86 @@ impl GeoService {
                 restore: None,
                 check: None,
                 force_fit: false,
+                gps_raw: None,
+                last_attitude: None,
+                map_aided: false,
             }),
             params,
+            prior_feed: None,
         }
+    }
+
+    /// Feed the SLAM's telemetry priors with every position sample (None:
+    /// priors off).
+    pub fn with_prior_feed(mut self, feed: Option<TelemetryFeed>) -> Self {
+        self.prior_feed = feed;
+        self
+    }
+
+    /// Whether the SLAM's map is in local NED (gps-aided): the georeference
+    /// then follows from the map instead of a fit (from the next sync).
+    pub fn set_map_aided(&self, aided: bool) {
+        let mut st = self.lock();
+        if st.map_aided != aided {
+            tracing::info!(
+                aided,
+                "geo: the map is {}",
+                if aided {
+                    "in local NED (gps-aided): the georeference follows from it"
+                } else {
+                    "vision-only: the georeference is fitted"
+                }
+            );
+            st.map_aided = aided;
+            st.force_fit = true;
+        }
+    }
+
+    /// GPS_RAW_INT: the fix and accuracy the next position samples carry.
+    pub fn on_gps_raw(&self, g: &Stamped<GpsRaw>) {
+        self.lock().gps_raw = Some((g.received, g.value));
+    }
+
+    /// The priors' sample of a position at `t` (local NED `p_vehicle`):
+    /// the camera's position, a fix and its accuracy from a recent
+    /// GPS_RAW_INT. None before any attitude (the lever arm needs it).
+    fn prior_sample(&self, st: &State, t: f64, p_vehicle: Vector3<f64>) -> Option<TelemetrySample> {
+        let q = st.last_attitude?;
+        let state = VehicleState {
+            time: t,
+            p_ned: p_vehicle,
+            v_ned: Vector3::zeros(),
+            ned_from_body: q,
+            gimbal: GimbalAngles {
+                pitch: 0.0,
+                yaw: 0.0,
+            },
+        };
+        let p_cam = crate::geo::ned_from_cam(&state, &self.params.mount)
+            .translation
+            .vector;
+        let raw = st
+            .gps_raw
+            .filter(|(at, _)| at.elapsed() <= GPS_RAW_MAX_AGE)
+            .map(|(_, r)| r);
+        // A fix with its reported accuracy; without a vertical accuracy
+        // the horizontal one doubled (a receiver's vertical is typically
+        // 1.5 to 2 times worse).
+        let acc = raw
+            .filter(GpsRaw::has_3d_fix)
+            .and_then(|r| Some((r.h_acc_m?, r.v_acc_m)))
+            .map(|(h, v)| (h, v.unwrap_or(2.0 * h)));
+        Some(TelemetrySample {
+            t,
+            fix: acc.is_some(),
+            gps_ned: p_cam,
+            h_acc: acc.map_or(0.0, |a| a.0),
+            v_acc: acc.map_or(0.0, |a| a.1),
+            // GLOBAL_POSITION_INT's altitude is the autopilot's fused one
+            // (barometer and GNSS), already the position's down axis: a
+            // second, barometric prior on it would count it twice.
+            baro_alt: None,
+        })
     }
 
     /// Takes the georeference saved by the previous run: its pairs are
@@ -405,7 +511,21 @@ impl GeoService {
         };
         match st.geo.push_position_geodetic(t, &g) {
             Ok(()) => st.counts.positions += 1,
-            Err(_) => st.counts.rejected_samples += 1,
+            Err(_) => {
+                st.counts.rejected_samples += 1;
+                return;
+            }
+        }
+        if let Some(feed) = &self.prior_feed {
+            let ned = st.geo.frame().map(|f| f.geodetic_to_ned(&g));
+            if let Some(sample) = ned.and_then(|p| self.prior_sample(&st, t, p))
+                && feed.push(sample)
+            {
+                st.counts.prior_samples += 1;
+                if !sample.fix {
+                    st.counts.prior_samples_without_fix += 1;
+                }
+            }
         }
     }
 
@@ -415,6 +535,11 @@ impl GeoService {
         let t = self.sample_time(&mut st, Some(a.value.time_boot_ms), a.received);
         let v = a.value;
         st.last_heading_rad = Some(f64::from(v.yaw_rad));
+        st.last_attitude = Some(UnitQuaternion::from_euler_angles(
+            f64::from(v.roll_rad),
+            f64::from(v.pitch_rad),
+            f64::from(v.yaw_rad),
+        ));
         match st.geo.history_mut().push_attitude_euler(
             t,
             f64::from(v.roll_rad),
@@ -591,7 +716,12 @@ impl GeoService {
         if changed && !st.restored.is_empty() {
             check_restored(st, &self.params);
         }
-        if changed || st.fit.is_none() && st.geo.georeference().pairs().len() >= 3 {
+        if st.map_aided {
+            if changed || st.fit.is_none() {
+                st.fit = Some(Ok(from_map(st.geo.georeference().pairs())));
+                st.fitted_at = Some(Instant::now());
+            }
+        } else if changed || st.fit.is_none() && st.geo.georeference().pairs().len() >= 3 {
             let r = st.geo.fit();
             st.counts.fits += 1;
             match &r {
@@ -616,6 +746,13 @@ impl GeoService {
         map_from_cam: &Isometry3<f64>,
     ) -> Result<(GeoTarget, GeoAlignment), GeoError> {
         let mut st = self.lock();
+        if st.map_aided {
+            let frame = *st.geo.frame().ok_or(GeoError::NoHome)?;
+            let alignment = from_map(st.geo.georeference().pairs());
+            let target =
+                crate::geo::convert_target(&alignment, map_from_cam, &frame, &self.params.mount)?;
+            return Ok((target, alignment));
+        }
         let target = st.geo.target(map_from_cam)?;
         let alignment = st.geo.fit()?;
         Ok((target, alignment))
@@ -692,7 +829,8 @@ impl GeoService {
                 let t = a.ned_from_map.translation;
                 json!({
                     "state": "ok",
-                    "held": georef.held().map(|e| format!(
+                    "source": if st.map_aided { "map" } else { "fit" },
+                    "held": georef.held().filter(|_| !st.map_aided).map(|e| format!(
                         "the last fit is kept: a refit now is refused ({e}) and the {} pairs held agree with it",
                         georef.pairs().len()
                     )),
@@ -731,6 +869,7 @@ impl GeoService {
             attitude: mut att,
             gimbal: mut gim,
             mut home,
+            mut gps_raw,
             ..
         } = telemetry;
         let mut tick = tokio::time::interval(SYNC_PERIOD);
@@ -753,6 +892,11 @@ impl GeoService {
                     let v = *gim.borrow_and_update();
                     if let Some(v) = v { self.on_gimbal(&v); }
                 }
+                r = gps_raw.changed() => {
+                    if r.is_err() { break; }
+                    let v = *gps_raw.borrow_and_update();
+                    if let Some(v) = v { self.on_gps_raw(&v); }
+                }
                 r = home.changed() => {
                     if r.is_err() { break; }
                     let v = *home.borrow_and_update();
@@ -761,10 +905,9 @@ impl GeoService {
                 _ = tick.tick() => {
                     let (me, slam) = (self.clone(), slam.clone());
                     let _ = tokio::task::spawn_blocking(move || {
-                        let continued = slam
-                            .status()
-                            .map_start
-                            .map(|m| m.mode == "continued");
+                        let status = slam.status();
+                        me.set_map_aided(status.map_mode == MapMode::GpsAided.name());
+                        let continued = status.map_start.map(|m| m.mode == "continued");
                         me.sync(&slam.keyframes(), slam.last_tracked(), continued);
                     })
                     .await;
@@ -772,6 +915,22 @@ impl GeoService {
             }
         }
     }
+}
+
+/// The georeference of a map in local NED (gps-aided): the identity, its
+/// residuals against the pairs (`iterations` 0: not fitted).
+fn from_map(pairs: &[crate::geo::Pair]) -> GeoAlignment {
+    let mut a = GeoAlignment::given(crate::lie::Sim3::identity());
+    let r: Vec<f64> = pairs.iter().map(|p| (p.p_ned - p.p_map).norm()).collect();
+    if !r.is_empty() {
+        a.quality.rms_m = (r.iter().map(|x| x * x).sum::<f64>() / r.len() as f64).sqrt();
+        a.quality.max_residual_m = r.iter().copied().fold(0.0, f64::max);
+        a.quality.spread_m2 = crate::geo::align::spread(pairs.iter().map(|p| p.p_ned));
+    }
+    a.quality.pairs = pairs.len();
+    a.quality.inliers = pairs.len();
+    a.inlier_ids = pairs.iter().map(|p| p.kf_id).collect();
+    a
 }
 
 fn home_geodetic(h: &HomePosition) -> Geodetic {
@@ -1160,6 +1319,88 @@ mod tests {
         kfs.truncate(12);
         geo.sync_keyframes(&kfs);
         assert_eq!(geo.status()["pairs"], 12);
+    }
+
+    /// Keyframes already in NED (a gps-aided map: the map is NED itself).
+    fn ned_keyframe(telemetry: &GeoService, id: u64, t: f64, offset: f64) -> KeyframeInfo {
+        let state = telemetry.lock().geo.history().lookup(t + offset).unwrap();
+        let ned = ned_from_cam(&state, &MountParams::default());
+        KeyframeInfo {
+            id,
+            timestamp: t + offset,
+            world_from_cam: PoseJson::from_isometry(&ned),
+            width: 640,
+            height: 480,
+        }
+    }
+
+    /// With priors, every position becomes a sample of the feed: the
+    /// camera's NED position (lever arm included), a fix with the
+    /// accuracy of a recent GPS_RAW_INT, none without one or with a
+    /// GPS_RAW_INT reporting no fix. A gps-aided map's georeference is the
+    /// identity, from the map (`source` `map`), its targets through it.
+    #[test]
+    fn priors_get_the_links_samples_and_an_aided_map_is_its_own_georeference() {
+        let feed = TelemetryFeed::live(1800.0);
+        let geo = GeoService::new(Params::default()).with_prior_feed(Some(feed.clone()));
+        // No GPS_RAW_INT yet: samples without a fix.
+        let offset = feed_flight(&geo, true);
+        assert!(feed.len() > 300, "{}", feed.len());
+        let s = feed.newest().unwrap();
+        assert!(!s.fix);
+        // The camera's position: the vehicle's plus the lever arm (facing
+        // north, so the arm's forward component goes north).
+        let arm = MountParams::default().lever_arm_body_m;
+        let expect = path(T_END) + Vector3::new(arm[0], arm[1], arm[2]);
+        assert!((s.gps_ned - expect).norm() < 1e-3, "{:?}", s.gps_ned);
+        assert!((s.t - (T_END + offset)).abs() < 1e-6);
+        // A 3D fix with its accuracy.
+        let raw = |fix_type: u8| Stamped {
+            value: GpsRaw {
+                time_usec: 0,
+                fix_type,
+                satellites: Some(12),
+                h_acc_m: Some(1.3),
+                v_acc_m: None,
+            },
+            received: Instant::now(),
+        };
+        let feed2 = TelemetryFeed::live(1800.0);
+        let geo2 = GeoService::new(Params::default()).with_prior_feed(Some(feed2.clone()));
+        geo2.on_gps_raw(&raw(3));
+        feed_flight(&geo2, true);
+        let s = feed2.newest().unwrap();
+        assert!(s.fix && s.h_acc == 1.3 && s.v_acc == 2.6, "{s:?}");
+        let feed3 = TelemetryFeed::live(1800.0);
+        let geo3 = GeoService::new(Params::default()).with_prior_feed(Some(feed3.clone()));
+        geo3.on_gps_raw(&raw(1));
+        feed_flight(&geo3, true);
+        assert!(!feed3.newest().unwrap().fix);
+
+        // The map in NED: the identity, no fit.
+        geo.set_map_aided(true);
+        let kfs: Vec<KeyframeInfo> = (0..16)
+            .map(|i| ned_keyframe(&geo, i, 1.0 + 2.0 * i as f64, offset))
+            .collect();
+        geo.sync_keyframes(&kfs);
+        let st = geo.status();
+        assert_eq!(st["state"], "ok", "{st}");
+        assert_eq!(st["source"], "map", "{st}");
+        assert_eq!(st["scale"], 1.0);
+        assert_eq!(st["keyframes_used"], 16);
+        assert!(st["rms_m"].as_f64().unwrap() < 1e-3, "{st}");
+        let kf = &kfs[12];
+        let (target, alignment) = geo
+            .target(&kf.world_from_cam.to_isometry().unwrap())
+            .unwrap();
+        assert_eq!(alignment.ned_from_map.scale, 1.0);
+        let p = path(kf.timestamp - offset);
+        assert!((target.p_ned_vehicle - p).norm() < 0.02, "{target:?}");
+        // Back to vision-only: fitted again.
+        geo.set_map_aided(false);
+        geo.sync_keyframes(&kfs);
+        let st = geo.status();
+        assert_eq!(st["source"], "fit", "{st}");
     }
 
     /// A restart: the saved pairs (through their JSON file) put the

@@ -8,6 +8,7 @@
 //!  frame slot --newest frame--> SLAM thread (FrameProcessor) -> SlamShared (status, keyframes)
 //!  sim autopilot <--MAVLink/UDP--> link actor (LinkHandle)
 //!  link telemetry + SLAM keyframes --> geo worker (GeoService: map -> NED -> WGS84)
+//!  geo worker --GNSS samples (TelemetryFeed, with [slam] priors)--> SLAM mapping (priors)
 //!  HTTP API reads Ingest, SlamShared, LinkHandle, GeoService; writes shots to data_dir
 //! ```
 //!
@@ -218,7 +219,12 @@ pub async fn run_on(
     let camera = crate::video::source::decimated_camera(&camera, cfg.video.downscale);
 
     // SLAM thread.
-    let geo = Arc::new(geo_service::GeoService::new(cfg.geo.clone()));
+    // Telemetry priors: the georeference worker pushes the link's GNSS
+    // samples into this feed, the SLAM's mapping reads them.
+    let prior_feed = (cfg.slam.enabled && cfg.slam.priors)
+        .then(|| crate::slam::priors::TelemetryFeed::live(cfg.geo.history.max_age_s));
+    let geo =
+        Arc::new(geo_service::GeoService::new(cfg.geo.clone()).with_prior_feed(prior_feed.clone()));
     let shared = Arc::new(SlamShared::new(cfg.slam.enabled));
     let map_file = data_dir.join(&cfg.slam.map_file);
     persist::remove_leftovers(&data_dir, &map_file);
@@ -250,7 +256,7 @@ pub async fn run_on(
             .name("slam".into())
             .spawn(move || {
                 // Built here: loading and indexing a saved map takes a while.
-                let processor = slam_view::make_processor(&cfg, camera, sh.clone(), p);
+                let processor = slam_view::make_processor(&cfg, camera, sh.clone(), p, prior_feed);
                 slam_loop(processor, &ing, &sh, &g, delay)
             })
             .map_err(|source| DaemonError::Thread {

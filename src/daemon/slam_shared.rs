@@ -94,6 +94,8 @@ impl SlamShared {
                 "disabled"
             }
             .into(),
+            map_mode: crate::slam::MapMode::VisionOnly.name().into(),
+            map_mode_reason: "no map yet".into(),
             ..Default::default()
         };
         Self {
@@ -144,6 +146,17 @@ impl SlamShared {
         if merges.len() > SlamStatus::MAX_MERGES {
             let extra = merges.len() - SlamStatus::MAX_MERGES;
             merges.drain(..extra);
+        }
+    }
+
+    /// Record the map's mode and why.
+    pub fn set_map_mode(&self, mode: crate::slam::MapMode, reason: &str) {
+        let mut g = self.lock();
+        if g.status.map_mode != mode.name() {
+            g.status.map_mode = mode.name().into();
+        }
+        if g.status.map_mode_reason != reason {
+            g.status.map_mode_reason = reason.into();
         }
     }
 

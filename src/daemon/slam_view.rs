@@ -12,7 +12,8 @@ use crate::api::{KeyframeInfo, LoopInfo, MapStart, MapView, MergeInfo, TrackedFr
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::shot::record::PoseJson;
-use crate::slam::{self, KeyFrameId, Map, Slam, TrackState};
+use crate::slam::priors::{PriorParams, Priors, TelemetryFeed};
+use crate::slam::{self, KeyFrameId, Map, MapMode, Slam, TrackState};
 use crate::video::live::{Frame, unix_now};
 
 /// Something that eats frames on the SLAM thread.
@@ -52,11 +53,20 @@ impl FrameProcessor for NoSlam {
 /// overwritten), the reason is logged and shown in the status, and the SLAM
 /// starts a fresh map. With `continue_map = false` an existing map file is
 /// moved aside the same way before a fresh map starts.
+///
+/// With `[slam] priors` and a live telemetry `feed` (the georeference
+/// worker pushes the link's GNSS samples into it), the SLAM carries
+/// telemetry priors ([`slam::priors`]): the map goes to local NED once
+/// enough keyframes with a fix span a baseline. A continued map keeps the
+/// mode its file carries; a gps-aided map continued with priors off falls
+/// back to vision-only (nothing holds it in NED any more: the georeference
+/// is fitted after the fact again).
 pub fn make_processor(
     cfg: &Config,
     camera: Camera,
     shared: Arc<SlamShared>,
     persist: Arc<super::persist::MapPersist>,
+    feed: Option<TelemetryFeed>,
 ) -> Box<dyn FrameProcessor> {
     let map_file = persist.path();
     if !cfg.slam.enabled {
@@ -67,6 +77,15 @@ pub fn make_processor(
     if !cfg.slam.loop_closing {
         params.loop_closing = None;
     }
+    let priors = match (cfg.slam.priors, feed) {
+        (true, Some(feed)) => Some(Priors::with_feed(feed, prior_params(cfg))),
+        (true, None) => {
+            tracing::warn!("[slam] priors = true but no telemetry feed: the map stays vision-only");
+            None
+        }
+        (false, _) => None,
+    };
+    params.priors = priors.clone();
     let vocabulary = match crate::bow::Vocabulary::builtin() {
         Ok(v) => Arc::new(v),
         Err(e) => {
@@ -127,8 +146,14 @@ pub fn make_processor(
     let slam = match continued {
         Some(slam) => {
             let map = slam.map();
-            let m = map.lock().unwrap_or_else(|e| e.into_inner());
+            let mut m = map.lock().unwrap_or_else(|e| e.into_inner());
             start.mode = "continued".into();
+            if priors.is_none() && m.mode() == MapMode::GpsAided {
+                tracing::info!(
+                    "the saved map is in local NED (gps-aided) but priors are off: it continues vision-only"
+                );
+                m.set_mode(MapMode::VisionOnly);
+            }
             start.keyframes = m.keyframe_count();
             start.points = m.point_count();
             tracing::info!(
@@ -167,7 +192,25 @@ pub fn make_processor(
         awaiting_reloc,
         loops_seen: 0,
         merges_seen: 0,
+        priors,
     })
+}
+
+/// The priors' tunables in the daemon: the link's position arrives at a
+/// few hertz, slower than the video, so a keyframe takes the two samples
+/// around it interpolated when they are at most `[geo.history]
+/// max_gap_s` apart (the same bound the georeference interpolates with).
+fn prior_params(cfg: &Config) -> PriorParams {
+    PriorParams {
+        interpolate_gap_s: Some(cfg.geo.history.max_gap_s),
+        // The link gives no barometric altitude apart from the fused one
+        // already in the position (see `GeoService::on_position`).
+        baro_sigma_m: None,
+        // No global BA while flying: the map is refit as a whole as the
+        // fixes grow by a quarter.
+        realign_growth: Some(1.25),
+        ..PriorParams::default()
+    }
 }
 
 /// Why a saved map cannot be continued (its Display is the status's
@@ -256,6 +299,8 @@ pub struct SlamProcessor {
     loops_seen: usize,
     /// Merges already passed to the status.
     merges_seen: usize,
+    /// The telemetry priors (None: off), for the map mode's reason.
+    priors: Option<Priors>,
 }
 
 fn state_name(s: TrackState) -> &'static str {
@@ -301,6 +346,21 @@ impl FrameProcessor for SlamProcessor {
                 }
             }
             self.next_kf = next;
+            let mode = m.mode();
+            let reason = match &self.priors {
+                Some(p) => {
+                    let st = p.status();
+                    if st.mode == mode {
+                        st.reason
+                    } else if mode == MapMode::GpsAided {
+                        "the map is in local NED (gps-aided)".to_string()
+                    } else {
+                        "waiting for keyframes with a GNSS fix".to_string()
+                    }
+                }
+                None => "telemetry priors are off ([slam] priors = false)".to_string(),
+            };
+            self.shared.set_map_mode(mode, &reason);
             (m.keyframe_count(), m.point_count())
         };
         if out.cam_from_world.is_some()
@@ -500,7 +560,7 @@ mod tests {
             file.to_owned(),
             shared.clone(),
         ));
-        let p = make_processor(cfg, camera, shared.clone(), persist);
+        let p = make_processor(cfg, camera, shared.clone(), persist, None);
         assert!(p.finish().is_none(), "nothing to save without keyframes");
         let mut files: Vec<PathBuf> = std::fs::read_dir(file.parent().unwrap())
             .unwrap()

@@ -445,8 +445,7 @@ pub struct Map {
     /// Loop corrections applied (tracking re-places its last frame when
     /// this changes).
     corrections: u64,
-    /// The frame the map is in (not in the map file: a loaded map is
-    /// vision-only).
+    /// The frame the map is in (in the map file since version 5).
     mode: MapMode,
     /// Product of the scales of the similarities applied to the whole map
     /// ([`Map::apply_sim3`]; tracking rescales its relative poses when this

@@ -11,7 +11,8 @@
 //!                   observations), culled keyframes, loop edges
 //!                   (version 3: pairs of live keyframe ids), maps
 //!                   (version 4: the active map id, then the map id of
-//!                   every live and culled keyframe)
+//!                   every live and culled keyframe), mode (version 5:
+//!                   u8, 0 vision-only, 1 gps-aided)
 //! ```
 //!
 //! Keyframe images are stored so that they load back pixel for pixel
@@ -37,6 +38,11 @@
 //! map (id 0). A keyframe listed twice, missing, or not in the file, and
 //! maps linked by a covisibility edge, a parent or a point are refused.
 //!
+//! Version 5 appends the map's mode ([`MapMode`]): a map put in local NED
+//! by telemetry priors loads back gps-aided, so a continued map keeps its
+//! frame (and the daemon's georeference keeps following from it). Files of
+//! versions 1 to 4 load vision-only; any other mode byte is refused.
+//!
 //! Loading checks the magic, the version, the length and the checksum, every
 //! index, and the map's invariants; any failure is a typed error.
 
@@ -53,12 +59,13 @@ use crate::camera::{Camera, Distortion};
 use crate::features::KeyPoint;
 
 use super::map::{
-    CulledKeyFrame, KeyFrame, KeyFrameId, Map, MapError, MapId, MapPoint, PointId, ScaleInfo,
+    CulledKeyFrame, KeyFrame, KeyFrameId, Map, MapError, MapId, MapMode, MapPoint, PointId,
+    ScaleInfo,
 };
 use crate::matching::{Bounds, FeatureGrid};
 
-/// The format version this build writes (it also reads versions 1 to 3).
-pub const FORMAT_VERSION: u32 = 4;
+/// The format version this build writes (it also reads versions 1 to 4).
+pub const FORMAT_VERSION: u32 = 5;
 /// The oldest version this build reads.
 pub const OLDEST_VERSION: u32 = 1;
 const MAGIC: &[u8; 8] = b"SHOTMAP\0";
@@ -208,6 +215,9 @@ pub enum Corruption {
         /// What is wrong ("listed twice", "not in the file", "missing").
         what: &'static str,
     },
+    /// The mode byte is neither vision-only (0) nor gps-aided (1).
+    #[error("map mode {0} is not 0 (vision-only) or 1 (gps-aided)")]
+    Mode(u8),
     /// Bytes after the last section.
     #[error("{0} trailing bytes")]
     TrailingBytes(usize),
@@ -522,6 +532,10 @@ pub fn encode_with(map: &Map, images: &mut KeyframeImages) -> Result<Vec<u8>, Ma
         w.u32(kf.0);
         w.u32(m.0);
     }
+    w.u8(match map.mode() {
+        MapMode::VisionOnly => 0,
+        MapMode::GpsAided => 1,
+    });
     let payload = w.0;
     let mut out = Vec::with_capacity(payload.len() + 28);
     out.extend_from_slice(MAGIC);
@@ -814,6 +828,14 @@ fn parse_payload(payload: &[u8], version: u32) -> RResult<(Map, KeyframeImages)>
         }
         atlas = Some((active, maps));
     }
+    let mut mode = MapMode::VisionOnly;
+    if version >= 5 {
+        mode = match r.u8()? {
+            0 => MapMode::VisionOnly,
+            1 => MapMode::GpsAided,
+            other => return Err(Corruption::Mode(other)),
+        };
+    }
     if r.pos != payload.len() {
         return Err(Corruption::TrailingBytes(payload.len() - r.pos));
     }
@@ -853,6 +875,7 @@ fn parse_payload(payload: &[u8], version: u32) -> RResult<(Map, KeyframeImages)>
             return Err(Corruption::LoopEdge { a, b });
         }
     }
+    map.set_mode(mode);
     map.check_invariants()?;
     Ok((map, images))
 }
@@ -972,7 +995,8 @@ mod tests {
     /// in map 0, `n` live and culled keyframes) without the atlas section
     /// that version 4 appended, with the header's version, length and
     /// checksum of that payload.
-    fn before_version_4(v4: &[u8], n: usize, version: u32) -> Vec<u8> {
+    fn before_version_4(v5: &[u8], n: usize, version: u32) -> Vec<u8> {
+        let v4 = before_version_5(v5, 4);
         let payload = &v4[28..];
         let (old, atlas) = payload.split_at(payload.len() - atlas_len(n));
         assert_eq!(&atlas[..4], &0u32.to_le_bytes(), "only maps all in map 0");
@@ -983,6 +1007,48 @@ mod tests {
         out.extend_from_slice(&fnv1a(old).to_le_bytes());
         out.extend_from_slice(old);
         out
+    }
+
+    /// The file a version 4 build wrote: this build's bytes of a
+    /// vision-only map without the mode byte version 5 appended.
+    fn before_version_5(v5: &[u8], version: u32) -> Vec<u8> {
+        let payload = &v5[28..];
+        let (old, mode) = payload.split_at(payload.len() - 1);
+        assert_eq!(mode, &[0u8], "only vision-only maps");
+        let mut out = Vec::with_capacity(v5.len());
+        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(&version.to_le_bytes());
+        out.extend_from_slice(&(old.len() as u64).to_le_bytes());
+        out.extend_from_slice(&fnv1a(old).to_le_bytes());
+        out.extend_from_slice(old);
+        out
+    }
+
+    #[test]
+    fn the_mode_loads_back_and_older_files_are_vision_only() {
+        let mut m = two_keyframes();
+        m.set_mode(MapMode::GpsAided);
+        let bytes = encode(&m).unwrap();
+        assert_eq!(bytes[8..12], 5u32.to_le_bytes());
+        let back = decode(&bytes, Path::new("v5")).unwrap();
+        assert_eq!(back.mode(), MapMode::GpsAided);
+        assert_eq!(encode(&back).unwrap(), bytes);
+        // A version 4 file (before the mode) loads vision-only.
+        let v4 = before_version_5(&encode(&two_keyframes()).unwrap(), 4);
+        let old = decode(&v4, Path::new("v4")).unwrap();
+        assert_eq!(old.mode(), MapMode::VisionOnly);
+        assert_eq!(old.keyframe_count(), 2);
+        // An unknown mode byte is refused.
+        let mut bad = bytes.clone();
+        let last = bad.len() - 1;
+        bad[last] = 7;
+        assert!(matches!(
+            decode(&with_checksum(bad), Path::new("bad mode")),
+            Err(MapFileError::Corrupt {
+                reason: Corruption::Mode(7),
+                ..
+            })
+        ));
     }
 
     /// The file a version 1 or 2 build wrote for a map without loop edges
@@ -1043,8 +1109,8 @@ mod tests {
     fn loop_edges_load_back_and_version_2_files_load_without_them() {
         let m = map_with_loop_edge();
         let bytes = encode(&m).unwrap();
-        assert_eq!(bytes[8..12], 4u32.to_le_bytes());
-        let back = decode(&bytes, Path::new("v4")).unwrap();
+        assert_eq!(bytes[8..12], FORMAT_VERSION.to_le_bytes());
+        let back = decode(&bytes, Path::new("v5")).unwrap();
         assert_eq!(back.loop_edges(), &[(KeyFrameId(3), KeyFrameId(0))]);
         assert_eq!(back.keyframe_count(), 2);
         // Saved again: the same bytes.
@@ -1158,7 +1224,8 @@ mod tests {
         let mut more = back.clone();
         assert_eq!(more.start_map(), MapId(2));
 
-        let n = bytes.len();
+        // The atlas ends before the mode byte.
+        let n = bytes.len() - 1;
         let corrupt = |b: &[u8]| match decode(b, Path::new("damaged")) {
             Err(MapFileError::Corrupt { reason, .. }) => reason,
             other => panic!("not refused as corrupt: {:?}", other.map(|m| m.maps())),
@@ -1187,9 +1254,10 @@ mod tests {
         // The last pair dropped (count and header mended): keyframe 3 has
         // no map.
         let mut cut = bytes[..n - 8].to_vec();
-        let at = cut.len() - 12;
+        cut.push(0);
+        let at = cut.len() - 13;
         cut[at..at + 4].copy_from_slice(&1u32.to_le_bytes());
-        cut[12..20].copy_from_slice(&((n - 8 - 28) as u64).to_le_bytes());
+        cut[12..20].copy_from_slice(&((n + 1 - 8 - 28) as u64).to_le_bytes());
         assert!(matches!(
             corrupt(&with_checksum(cut)),
             Corruption::KeyFrameMap {

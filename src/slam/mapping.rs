@@ -176,6 +176,14 @@ impl LocalMapper {
                     "map put in local NED by telemetry (gps-aided)"
                 );
                 self.georeferenced = Some((kf, g));
+            } else if let Some(g) = p.try_realign(&mut m) {
+                tracing::info!(
+                    kf = kf.0,
+                    scale = g.ned_from_map.scale,
+                    inliers = g.inliers,
+                    rms_m = g.rms_m,
+                    "map refit to the telemetry's fixes"
+                );
             }
         }
         if !more_waiting {

@@ -27,7 +27,7 @@
 //! | `frame` | the frame being tracked, the tracker's context, motion-only BA of a frame |
 //! | [`params`] | [`TrackingParams`], the tunables of all of the above |
 //! | [`mapping`] | the [`LocalMapper`]: triangulation, fusion, local BA, keyframe culling |
-//! | [`priors`] | telemetry priors: the map put in local NED, GNSS and altitude priors in BA |
+//! | [`priors`] | telemetry priors (a log read whole or a live feed): the map put in local NED, GNSS and altitude priors in BA |
 //! | [`loop_closing`] | the [`LoopCloser`]: loop detection, Sim(3) check, correction, essential graph |
 //! | [`bundle`] | the map ↔ [`crate::optimize`] glue of every bundle adjustment |
 //! | [`matcher`] | descriptor matching for each of the stages |

@@ -14,11 +14,20 @@
 //! keeps the metric scale vision alone cannot see. Samples flagged as
 //! dropouts (no fix) give no GNSS prior.
 //!
-//! The telemetry is a [`TelemetryLog`], read from a dataset's
-//! `telemetry.txt` (the simulator's `render` writes it; its header is
-//! `shotpilot_sim::dataset::TELEMETRY_HEADER`).
+//! The telemetry is a [`TelemetryFeed`]: a [`TelemetryLog`] read whole
+//! from a dataset's `telemetry.txt` (the simulator's `render` writes it;
+//! its header is `shotpilot_sim::dataset::TELEMETRY_HEADER`), or a live
+//! one that grows while the SLAM runs (the daemon pushes the link's
+//! samples into it, on the frames' clock). A keyframe takes the sample
+//! nearest its time, or (with [`PriorParams::interpolate_gap_s`], for
+//! telemetry slower than the video) the two around it interpolated.
+//!
+//! [`Priors::status`] says which mode the map is in and why: what the map
+//! still waits for while vision-only (keyframes with a fix, the baseline),
+//! the fit once aided.
 
 use std::path::Path;
+use std::sync::{Arc, Mutex, RwLock};
 
 use nalgebra::{Matrix3, Point3, Vector3};
 
@@ -145,6 +154,37 @@ impl TelemetryLog {
         &self.samples
     }
 
+    /// Adds one sample in time order (a sample at a time already held
+    /// replaces it); a non-finite or negative-accuracy one is refused
+    /// (false). Samples older than the newest by more than `max_age_s` are
+    /// dropped, so a live log stays bounded.
+    pub fn push(&mut self, s: TelemetrySample, max_age_s: f64) -> bool {
+        let ok = s.t.is_finite()
+            && s.gps_ned.iter().all(|v| v.is_finite())
+            && s.h_acc.is_finite()
+            && s.v_acc.is_finite()
+            && s.h_acc >= 0.0
+            && s.v_acc >= 0.0
+            && s.baro_alt.is_none_or(f64::is_finite);
+        if !ok {
+            return false;
+        }
+        let i = self.samples.partition_point(|x| x.t < s.t);
+        if self.samples.get(i).is_some_and(|x| x.t == s.t) {
+            self.samples[i] = s;
+        } else {
+            self.samples.insert(i, s);
+        }
+        if let Some(newest) = self.samples.last().map(|x| x.t) {
+            let keep_from = newest - max_age_s.max(0.0);
+            let old = self.samples.partition_point(|x| x.t < keep_from);
+            if old > 0 {
+                self.samples.drain(..old);
+            }
+        }
+        true
+    }
+
     /// The sample nearest `t` within `max_dt` seconds.
     pub fn at(&self, t: f64, max_dt: f64) -> Option<&TelemetrySample> {
         let i = self.samples.partition_point(|s| s.t < t);
@@ -156,6 +196,109 @@ impl TelemetryLog {
             .filter(|s| (s.t - t).abs() <= max_dt)
             .min_by(|a, b| (a.t - t).abs().total_cmp(&(b.t - t).abs()))
     }
+
+    /// The sample at `t`: the nearest within `max_dt`, else (with
+    /// `interpolate_gap` Some) the two samples around `t`, at most that
+    /// far apart, interpolated linearly (a fix only when both have one;
+    /// the larger accuracy of the two; an altitude only when both have
+    /// one). `None` when neither.
+    pub fn sample_at(
+        &self,
+        t: f64,
+        max_dt: f64,
+        interpolate_gap: Option<f64>,
+    ) -> Option<TelemetrySample> {
+        if let Some(s) = self.at(t, max_dt) {
+            return Some(*s);
+        }
+        let gap = interpolate_gap?;
+        let i = self.samples.partition_point(|s| s.t < t);
+        let a = self.samples.get(i.checked_sub(1)?)?;
+        let b = self.samples.get(i)?;
+        let dt = b.t - a.t;
+        if !(dt > 0.0 && dt <= gap) {
+            return None;
+        }
+        let f = (t - a.t) / dt;
+        Some(TelemetrySample {
+            t,
+            fix: a.fix && b.fix,
+            gps_ned: a.gps_ned + (b.gps_ned - a.gps_ned) * f,
+            h_acc: a.h_acc.max(b.h_acc),
+            v_acc: a.v_acc.max(b.v_acc),
+            baro_alt: match (a.baro_alt, b.baro_alt) {
+                (Some(x), Some(y)) => Some(x + (y - x) * f),
+                _ => None,
+            },
+        })
+    }
+}
+
+/// Where the priors' telemetry comes from: a log read whole (a dataset's
+/// `telemetry.txt`) or a live one that grows while the SLAM runs (the
+/// daemon pushes the link's samples with [`TelemetryFeed::push`]). Clones
+/// share the log.
+#[derive(Debug, Clone)]
+pub struct TelemetryFeed {
+    log: Arc<RwLock<TelemetryLog>>,
+    /// Samples older than the newest by more than this are dropped, s.
+    max_age_s: f64,
+}
+
+impl PartialEq for TelemetryFeed {
+    /// The same feed (clones of one).
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.log, &other.log)
+    }
+}
+
+impl TelemetryFeed {
+    /// A feed over a whole log (nothing is ever dropped).
+    pub fn fixed(log: TelemetryLog) -> Self {
+        TelemetryFeed {
+            log: Arc::new(RwLock::new(log)),
+            max_age_s: f64::INFINITY,
+        }
+    }
+
+    /// An empty live feed keeping `max_age_s` seconds of samples.
+    pub fn live(max_age_s: f64) -> Self {
+        TelemetryFeed {
+            log: Arc::new(RwLock::new(TelemetryLog::default())),
+            max_age_s,
+        }
+    }
+
+    /// Adds a sample (see [`TelemetryLog::push`]); false when refused.
+    pub fn push(&self, s: TelemetrySample) -> bool {
+        let mut g = self.log.write().unwrap_or_else(|e| e.into_inner());
+        g.push(s, self.max_age_s)
+    }
+
+    /// Samples held.
+    pub fn len(&self) -> usize {
+        self.read().samples().len()
+    }
+
+    /// No sample yet.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The newest sample.
+    pub fn newest(&self) -> Option<TelemetrySample> {
+        self.read().samples().last().copied()
+    }
+
+    fn read(&self) -> std::sync::RwLockReadGuard<'_, TelemetryLog> {
+        self.log.read().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// Root mean square of `v` (0 for none).
+fn rms(v: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x * x, n + 1));
+    if n == 0 { 0.0 } else { (sum / n as f64).sqrt() }
 }
 
 /// Tunables of the telemetry priors.
@@ -173,6 +316,20 @@ pub struct PriorParams {
     /// Standard deviation of the barometric altitude, m (`None`: no
     /// altitude prior).
     pub baro_sigma_m: Option<f64>,
+    /// Interpolate between the two samples around a keyframe's time when
+    /// none is within `max_dt_s` and they are at most this far apart, s
+    /// (`None`: nearest sample only; telemetry slower than the video
+    /// needs it).
+    pub interpolate_gap_s: Option<f64>,
+    /// Once aided, refit the map→NED Sim(3) on all keyframes with a fix
+    /// whenever their number has grown by this factor since the last fit,
+    /// and apply it when it fits the fixes clearly better than the map as
+    /// it stands ([`Priors::try_realign`]): local BA holds only its window
+    /// to the priors, so a rotation or scale error of the first fit (made
+    /// on a short baseline) or the map's drift outside the window is
+    /// corrected as a whole (`None`: never; a run ending in a global BA
+    /// with priors does not need it).
+    pub realign_growth: Option<f64>,
 }
 
 impl Default for PriorParams {
@@ -190,17 +347,57 @@ impl Default for PriorParams {
             },
             min_sigma_m: 0.1,
             baro_sigma_m: Some(0.5),
+            interpolate_gap_s: None,
+            realign_growth: None,
         }
     }
 }
 
-/// The telemetry priors of a SLAM run: the log and its tunables.
-#[derive(Debug, Clone, PartialEq)]
+/// The telemetry priors of a SLAM run: the feed and its tunables. Clones
+/// share the feed and the [`PriorStatus`].
+#[derive(Debug, Clone)]
 pub struct Priors {
     /// Tunables.
     pub params: PriorParams,
     /// The telemetry.
-    pub log: std::sync::Arc<TelemetryLog>,
+    pub log: TelemetryFeed,
+    status: Arc<Mutex<PriorStatus>>,
+}
+
+impl PartialEq for Priors {
+    fn eq(&self, other: &Self) -> bool {
+        self.params == other.params && self.log == other.log
+    }
+}
+
+/// Which mode the map is in and why, as the mapping thread last saw it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PriorStatus {
+    /// The map's mode.
+    pub mode: MapMode,
+    /// Why: what a vision-only map waits for, or how it was put in NED.
+    pub reason: String,
+    /// Keyframes with a fix at the last look.
+    pub keyframes_with_fix: usize,
+    /// The fit that put the map in NED (this run), if it did.
+    pub georeferenced: Option<Georeferenced>,
+    /// Refits applied since ([`Priors::try_realign`]).
+    pub realigned: usize,
+    /// Keyframes with a fix at the last fit (put in NED or refit).
+    pub fitted_with: usize,
+}
+
+impl Default for PriorStatus {
+    fn default() -> Self {
+        PriorStatus {
+            mode: MapMode::VisionOnly,
+            reason: "no keyframe yet".into(),
+            keyframes_with_fix: 0,
+            georeferenced: None,
+            realigned: 0,
+            fitted_with: 0,
+        }
+    }
 }
 
 /// What putting the map in NED did.
@@ -219,15 +416,40 @@ pub struct Georeferenced {
 impl Priors {
     /// Priors from `log` with default tunables.
     pub fn new(log: TelemetryLog) -> Self {
+        Self::with_feed(TelemetryFeed::fixed(log), PriorParams::default())
+    }
+
+    /// Priors over `feed` (a live one grows while the SLAM runs).
+    pub fn with_feed(feed: TelemetryFeed, params: PriorParams) -> Self {
         Priors {
-            params: PriorParams::default(),
-            log: std::sync::Arc::new(log),
+            params,
+            log: feed,
+            status: Arc::default(),
         }
     }
 
+    /// The map's mode and why, as last seen (shared by clones).
+    pub fn status(&self) -> PriorStatus {
+        self.status
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    fn set_status(&self, s: PriorStatus) {
+        *self.status.lock().unwrap_or_else(|e| e.into_inner()) = s;
+    }
+
+    /// The sample at a keyframe's time (nearest or interpolated).
+    fn sample_at(&self, t: f64) -> Option<TelemetrySample> {
+        self.log
+            .read()
+            .sample_at(t, self.params.max_dt_s, self.params.interpolate_gap_s)
+    }
+
     /// The keyframe's sample with a fix, if any.
-    fn fix_at(&self, t: f64) -> Option<&TelemetrySample> {
-        self.log.at(t, self.params.max_dt_s).filter(|s| s.fix)
+    fn fix_at(&self, t: f64) -> Option<TelemetrySample> {
+        self.sample_at(t).filter(|s| s.fix)
     }
 
     /// While the map is vision-only: when enough keyframes with a fix span
@@ -236,10 +458,83 @@ impl Priors {
     /// when the map is already aided).
     pub fn try_georeference(&self, map: &mut Map) -> Option<Georeferenced> {
         if map.mode() != MapMode::VisionOnly {
+            if self.status().mode != map.mode() {
+                self.set_status(PriorStatus {
+                    mode: map.mode(),
+                    reason: "the map was already in local NED (a continued map)".into(),
+                    ..PriorStatus::default()
+                });
+            }
             return None;
         }
-        let pairs: Vec<Pair> = map
-            .keyframes()
+        let waiting = |n: usize, why: String| PriorStatus {
+            mode: MapMode::VisionOnly,
+            reason: why,
+            keyframes_with_fix: n,
+            ..PriorStatus::default()
+        };
+        let pairs = self.pairs(map);
+        let n = pairs.len();
+        if n < self.params.min_keyframes {
+            let why = if self.log.is_empty() {
+                "no telemetry yet".to_string()
+            } else if self.log.newest().is_some_and(|s| !s.fix) {
+                format!(
+                    "no GNSS fix now; waiting for {} keyframes with a fix spanning a baseline ({n} so far)",
+                    self.params.min_keyframes
+                )
+            } else {
+                format!(
+                    "waiting for {} keyframes with a fix spanning a baseline ({n} so far)",
+                    self.params.min_keyframes
+                )
+            };
+            self.set_status(waiting(n, why));
+            return None;
+        }
+        let fit = match fit_pairs(&pairs, &self.params.align, None, self.params.align.seed) {
+            Ok(f) => f,
+            Err(e) => {
+                self.set_status(waiting(
+                    n,
+                    format!("no NED fit yet: {e} ({n} keyframes with a fix)"),
+                ));
+                return None;
+            }
+        };
+        let s = fit.ned_from_map;
+        if !(s.scale.is_finite() && s.scale > 0.0) {
+            self.set_status(waiting(
+                n,
+                format!("no NED fit yet: a degenerate fit ({n} keyframes with a fix)"),
+            ));
+            return None;
+        }
+        map.apply_sim3(&s);
+        map.set_mode(MapMode::GpsAided);
+        let g = Georeferenced {
+            ned_from_map: s,
+            pairs: fit.quality.pairs,
+            inliers: fit.quality.inliers,
+            rms_m: fit.quality.rms_m,
+        };
+        self.set_status(PriorStatus {
+            mode: MapMode::GpsAided,
+            reason: format!(
+                "put in local NED by {} keyframes with a fix ({} inliers, residual RMS {:.2} m); held by GNSS priors",
+                g.pairs, g.inliers, g.rms_m
+            ),
+            keyframes_with_fix: n,
+            georeferenced: Some(g),
+            realigned: 0,
+            fitted_with: n,
+        });
+        Some(g)
+    }
+
+    /// The keyframes with a fix as map/NED pairs.
+    fn pairs(&self, map: &Map) -> Vec<Pair> {
+        map.keyframes()
             .filter_map(|k| {
                 let s = self.fix_at(k.timestamp)?;
                 Some(Pair {
@@ -251,23 +546,67 @@ impl Priors {
                     v_ned: None,
                 })
             })
-            .collect();
-        if pairs.len() < self.params.min_keyframes {
+            .collect()
+    }
+
+    /// While the map is aided, with [`PriorParams::realign_growth`]: once
+    /// the keyframes with a fix have grown by that factor since the last
+    /// fit, refit the map→NED Sim(3) on all of them and apply it to the
+    /// whole map when it fits the fixes clearly better than the map as it
+    /// stands (the RMS of the fit's inliers at least a fifth lower, and by
+    /// more than [`PriorParams::min_sigma_m`]). `None` when not refit or
+    /// not applied.
+    pub fn try_realign(&self, map: &mut Map) -> Option<Georeferenced> {
+        let growth = self.params.realign_growth?;
+        if map.mode() != MapMode::GpsAided {
             return None;
         }
-        let fit = fit_pairs(&pairs, &self.params.align, None, self.params.align.seed).ok()?;
-        let s = fit.ned_from_map;
-        if !(s.scale.is_finite() && s.scale > 0.0) {
+        let st = self.status();
+        let pairs = self.pairs(map);
+        let n = pairs.len();
+        if st.fitted_with > 0 && (n as f64) < st.fitted_with as f64 * growth.max(1.0) {
             return None;
         }
-        map.apply_sim3(&s);
-        map.set_mode(MapMode::GpsAided);
-        Some(Georeferenced {
-            ned_from_map: s,
-            pairs: fit.quality.pairs,
-            inliers: fit.quality.inliers,
-            rms_m: fit.quality.rms_m,
-        })
+        let fit = fit_pairs(&pairs, &self.params.align, None, self.params.align.seed).ok();
+        let mut st = st;
+        st.fitted_with = n;
+        let applied = fit.and_then(|fit| {
+            let s = fit.ned_from_map;
+            let inliers: std::collections::HashSet<u64> = fit.inlier_ids.iter().copied().collect();
+            let as_is = rms(pairs
+                .iter()
+                .filter(|p| inliers.contains(&p.kf_id))
+                .map(|p| (p.p_ned - p.p_map).norm()));
+            let better = s.scale.is_finite()
+                && s.scale > 0.0
+                && fit.quality.rms_m < 0.8 * as_is
+                && as_is - fit.quality.rms_m > self.params.min_sigma_m;
+            better.then(|| {
+                map.apply_sim3(&s);
+                (
+                    Georeferenced {
+                        ned_from_map: s,
+                        pairs: fit.quality.pairs,
+                        inliers: fit.quality.inliers,
+                        rms_m: fit.quality.rms_m,
+                    },
+                    as_is,
+                )
+            })
+        });
+        if let Some((g, before)) = applied {
+            st.realigned += 1;
+            st.georeferenced = Some(g);
+            st.keyframes_with_fix = n;
+            st.reason = format!(
+                "in local NED by {} keyframes with a fix, refit {} times (last: residual RMS {:.2} m -> {:.2} m over {} inliers); held by GNSS priors",
+                g.pairs, st.realigned, before, g.rms_m, g.inliers
+            );
+            self.set_status(st);
+            return Some(g);
+        }
+        self.set_status(st);
+        None
     }
 
     /// The priors of `setup`'s free keyframes (nothing unless the map is
@@ -284,7 +623,7 @@ impl Priors {
                 continue;
             }
             let Some(k) = map.keyframe(*kf) else { continue };
-            let Some(s) = self.log.at(k.timestamp, self.params.max_dt_s) else {
+            let Some(s) = self.sample_at(k.timestamp) else {
                 continue;
             };
             if s.fix {
@@ -434,6 +773,137 @@ mod tests {
         assert_eq!(map.scale_applied(), g.ned_from_map.scale);
         // Once aided, not again.
         assert!(priors.try_georeference(&mut map).is_none());
+    }
+
+    fn sample(t: f64, fix: bool, n: f64) -> TelemetrySample {
+        TelemetrySample {
+            t,
+            fix,
+            gps_ned: Vector3::new(n, 0.0, -30.0),
+            h_acc: 0.5,
+            v_acc: 0.8,
+            baro_alt: None,
+        }
+    }
+
+    #[test]
+    fn a_live_feed_grows_in_order_stays_bounded_and_interpolates() {
+        let feed = TelemetryFeed::live(10.0);
+        assert!(feed.is_empty());
+        // Out of order, a repeat replaces, a bad one is refused.
+        assert!(feed.push(sample(1.0, true, 1.0)));
+        assert!(feed.push(sample(0.0, true, 0.0)));
+        assert!(feed.push(sample(1.0, true, 2.0)));
+        let mut bad = sample(2.0, true, 0.0);
+        bad.h_acc = f64::NAN;
+        assert!(!feed.push(bad));
+        assert_eq!(feed.len(), 2);
+        assert_eq!(feed.newest().unwrap().gps_ned.x, 2.0);
+        // Clones share the log.
+        let priors = Priors::with_feed(
+            feed.clone(),
+            PriorParams {
+                interpolate_gap_s: Some(1.5),
+                ..PriorParams::default()
+            },
+        );
+        assert!(feed.push(sample(2.0, false, 4.0)));
+        // Between two fixes: interpolated; next to the sample without a
+        // fix: no fix.
+        let s = priors.sample_at(0.25).unwrap();
+        assert!(s.fix && (s.gps_ned.x - 0.5).abs() < 1e-12 && s.t == 0.25);
+        assert!(priors.fix_at(0.25).is_some());
+        assert!(priors.sample_at(1.5).is_some_and(|s| !s.fix));
+        assert!(priors.fix_at(1.5).is_none());
+        // Nearest within max_dt wins over interpolation.
+        assert_eq!(priors.sample_at(1.02).unwrap().gps_ned.x, 2.0);
+        // Samples further apart than the gap (a dropout): nothing.
+        assert!(feed.push(sample(5.0, true, 9.0)));
+        assert!(priors.sample_at(3.0).is_none());
+        // Without interpolation only the nearest within max_dt.
+        let nearest = Priors::with_feed(feed.clone(), PriorParams::default());
+        assert!(nearest.sample_at(0.25).is_none());
+        // Older than max_age behind the newest: dropped.
+        assert!(feed.push(sample(10.5, true, 10.0)));
+        assert_eq!(feed.len(), 4, "the sample before 0.5 s dropped");
+        assert!(priors.sample_at(0.0).is_none());
+    }
+
+    #[test]
+    fn the_status_says_what_the_map_waits_for() {
+        let (_, log, ..) = flight(12);
+        let feed = TelemetryFeed::live(f64::INFINITY);
+        let priors = Priors::with_feed(feed.clone(), PriorParams::default());
+        let (mut map, ..) = flight(12);
+        assert!(priors.try_georeference(&mut map).is_none());
+        assert_eq!(priors.status().reason, "no telemetry yet");
+        // The telemetry arrives while the map grows: all of it now.
+        for s in log.samples() {
+            feed.push(*s);
+        }
+        let (mut short, ..) = flight(6);
+        assert!(priors.try_georeference(&mut short).is_none());
+        let st = priors.status();
+        assert_eq!(st.mode, MapMode::VisionOnly);
+        assert_eq!(st.keyframes_with_fix, 5);
+        assert!(
+            st.reason.contains("waiting for 8 keyframes"),
+            "{}",
+            st.reason
+        );
+        // A clone (the mapper's) shares the status.
+        let g = priors.clone().try_georeference(&mut map).unwrap();
+        let st = priors.status();
+        assert_eq!(st.mode, MapMode::GpsAided);
+        assert_eq!(st.georeferenced, Some(g));
+        assert!(st.reason.contains("put in local NED"), "{}", st.reason);
+    }
+
+    /// A map put in NED slightly wrong (as a first fit on a short
+    /// baseline can be): the refit on all fixes puts it right; a map that
+    /// fits already is left alone.
+    #[test]
+    fn an_aided_map_is_refit_as_a_whole_when_it_fits_clearly_better() {
+        let (mut map, log, _, truth) = flight(12);
+        let priors = Priors::with_feed(
+            TelemetryFeed::fixed(log),
+            PriorParams {
+                realign_growth: Some(1.0),
+                ..PriorParams::default()
+            },
+        );
+        assert!(priors.try_realign(&mut map).is_none(), "not aided yet");
+        priors.try_georeference(&mut map).unwrap();
+        assert!(priors.try_realign(&mut map).is_none(), "fits already");
+        let off = Sim3::new(
+            UnitQuaternion::from_euler_angles(0.04, -0.03, 0.02),
+            Vector3::new(0.5, -0.3, 0.2),
+            1.03,
+        );
+        map.apply_sim3(&off);
+        let g = priors.try_realign(&mut map).unwrap();
+        assert_eq!(g.pairs, 10);
+        for (k, c) in map.keyframes().zip(&truth) {
+            assert!((k.center() - c).norm() < 1e-6);
+        }
+        let st = priors.status();
+        assert_eq!((st.realigned, st.mode), (1, MapMode::GpsAided));
+        assert!(st.reason.contains("refit 1 times"), "{}", st.reason);
+        // Not again before the fixes grow (by 1.25 here).
+        let slow = Priors::with_feed(
+            priors.log.clone(),
+            PriorParams {
+                realign_growth: Some(1.25),
+                ..PriorParams::default()
+            },
+        );
+        let (mut map2, ..) = flight(12);
+        slow.try_georeference(&mut map2).unwrap();
+        map2.apply_sim3(&off);
+        assert!(
+            slow.try_realign(&mut map2).is_none(),
+            "10 fixes, 10 at the fit"
+        );
     }
 
     #[test]

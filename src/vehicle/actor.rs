@@ -18,9 +18,9 @@ use tracing::{Span, debug, info, info_span, warn};
 use super::transport::{self, Connection, LinkUrl};
 use super::{
     Attitude, Command, FlightMode, GimbalAttitude, GimbalControl, GimbalManagerStatus,
-    GlobalPosition, HoldAck, HomePosition, LinkError, LinkHandle, LocalPosition, MissionProgress,
-    Params, Stamped, Telemetry, VehicleState, ardupilot_mode_name, mode_params, px4_mode_name,
-    quat_to_euler_deg,
+    GlobalPosition, GpsRaw, HoldAck, HomePosition, LinkError, LinkHandle, LocalPosition,
+    MissionProgress, Params, Stamped, Telemetry, VehicleState, ardupilot_mode_name, mode_params,
+    px4_mode_name, quat_to_euler_deg,
 };
 use crate::mission::upload::{self, Downloader, MissionError, Peers, Uploader, same_mission};
 use crate::mission::{Download, Flavour, MissionItem, UploadReport};
@@ -93,6 +93,7 @@ fn spawn_inner(
     });
     let gp = watch::channel(None);
     let lp = watch::channel(None);
+    let gps_raw = watch::channel(None);
     let att = watch::channel(None);
     let home = watch::channel(None);
     let gimbal = watch::channel(None);
@@ -111,6 +112,7 @@ fn spawn_inner(
             vehicle: vehicle.1,
             global_position: gp.1,
             local_position: lp.1,
+            gps_raw: gps_raw.1,
             attitude: att.1,
             home: home.1,
             gimbal: gimbal.1,
@@ -146,6 +148,7 @@ fn spawn_inner(
         vehicle: vehicle.0,
         gp: gp.0,
         lp: lp.0,
+        gps_raw: gps_raw.0,
         att: att.0,
         home: home.0,
         gimbal: gimbal.0,
@@ -544,6 +547,7 @@ struct Actor {
     vehicle: watch::Sender<VehicleState>,
     gp: watch::Sender<Option<Stamped<GlobalPosition>>>,
     lp: watch::Sender<Option<Stamped<LocalPosition>>>,
+    gps_raw: watch::Sender<Option<Stamped<GpsRaw>>>,
     att: watch::Sender<Option<Stamped<Attitude>>>,
     home: watch::Sender<Option<Stamped<HomePosition>>>,
     gimbal: watch::Sender<Option<Stamped<GimbalAttitude>>>,
@@ -716,6 +720,22 @@ impl Actor {
                     heading_deg: (d.hdg != u16::MAX).then(|| f32::from(d.hdg) / 100.0),
                 };
                 self.gp.send_replace(Some(Stamped {
+                    value,
+                    received: now,
+                }));
+            }
+            MavMessage::GPS_RAW_INT(d) => {
+                // 0 and u32::MAX: not reported (an older receiver or
+                // message version).
+                let acc = |mm: u32| (mm != 0 && mm != u32::MAX).then(|| f64::from(mm) / 1e3);
+                let value = GpsRaw {
+                    time_usec: d.time_usec,
+                    fix_type: d.fix_type as u8,
+                    satellites: (d.satellites_visible != u8::MAX).then_some(d.satellites_visible),
+                    h_acc_m: acc(d.h_acc),
+                    v_acc_m: acc(d.v_acc),
+                };
+                self.gps_raw.send_replace(Some(Stamped {
                     value,
                     received: now,
                 }));

@@ -240,6 +240,31 @@ pub struct GlobalPosition {
     pub heading_deg: Option<f32>,
 }
 
+/// GPS_RAW_INT: the receiver's fix and its reported accuracy.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct GpsRaw {
+    /// Timestamp as sent (UNIX or since boot, the autopilot's choice), µs.
+    pub time_usec: u64,
+    /// MAVLink `GPS_FIX_TYPE` (0 or 1: no fix, 2: 2D, 3: 3D, 4 and up:
+    /// DGPS, RTK, ...).
+    pub fix_type: u8,
+    /// Satellites visible (None when unknown).
+    pub satellites: Option<u8>,
+    /// Reported 1-sigma horizontal position accuracy, m (None when the
+    /// receiver does not report it: 0 in the message).
+    pub h_acc_m: Option<f64>,
+    /// Reported 1-sigma vertical position accuracy, m (None when not
+    /// reported).
+    pub v_acc_m: Option<f64>,
+}
+
+impl GpsRaw {
+    /// A 3D fix or better.
+    pub fn has_3d_fix(&self) -> bool {
+        self.fix_type >= 3
+    }
+}
+
 /// LOCAL_POSITION_NED.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct LocalPosition {
@@ -407,6 +432,8 @@ pub struct Telemetry {
     pub global_position: watch::Receiver<Option<Stamped<GlobalPosition>>>,
     /// LOCAL_POSITION_NED.
     pub local_position: watch::Receiver<Option<Stamped<LocalPosition>>>,
+    /// GPS_RAW_INT.
+    pub gps_raw: watch::Receiver<Option<Stamped<GpsRaw>>>,
     /// ATTITUDE.
     pub attitude: watch::Receiver<Option<Stamped<Attitude>>>,
     /// HOME_POSITION.

@@ -1664,8 +1664,10 @@ impl Autopilot {
                 },
                 satellites_visible: if v.gps_fix() { 14 } else { 0 },
                 alt_ellipsoid: (g.alt_m * 1e3).round() as i32,
-                h_acc: 500,
-                v_acc: 800,
+                // The receiver's reported accuracy: the error model's
+                // sigmas, never better than a plain receiver's 0.5 / 0.8 m.
+                h_acc: (v.gps_reported_accuracy().0.max(0.5) * 1e3).round() as u32,
+                v_acc: (v.gps_reported_accuracy().1.max(0.8) * 1e3).round() as u32,
                 vel_acc: 200,
                 hdg_acc: 0,
                 yaw: 0,
