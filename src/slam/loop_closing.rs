@@ -2129,7 +2129,12 @@ mod graph_tests {
         assert_eq!(m.keyframe(first).unwrap().cam_from_world, first_before);
         // The correction spread along the chain: the keyframe before the
         // current one moved too.
-        let moved = (m.keyframe(KeyFrameId(2)).unwrap().cam_from_world.translation.vector
+        let moved = (m
+            .keyframe(KeyFrameId(2))
+            .unwrap()
+            .cam_from_world
+            .translation
+            .vector
             - middle_before.translation.vector)
             .norm();
         assert!(moved > 0.05, "moved {moved}");
