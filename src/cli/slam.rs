@@ -275,7 +275,7 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let t_step = if n > 1 { t_span / (n - 1) as f64 } else { 0.0 };
     let frame_of = move |k: usize| -> (usize, f64) {
         let (lap, j) = (k / n, k % n);
-        let i = if lap % 2 == 0 { j } else { n - 1 - j };
+        let i = if lap.is_multiple_of(2) { j } else { n - 1 - j };
         (i, lap as f64 * (t_span + t_step))
     };
     let n_single = n;
@@ -291,7 +291,7 @@ pub fn run(args: SlamArgs) -> Result<()> {
                 let mut f = reader_ds.frame(i).map(|mut fr| {
                     if k >= n_single {
                         let t = fr.timestamp - t_first_frame;
-                        let t = if (k / n_single) % 2 == 0 {
+                        let t = if (k / n_single).is_multiple_of(2) {
                             t
                         } else {
                             t_span - t
