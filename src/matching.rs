@@ -287,6 +287,12 @@ struct Entry {
 }
 
 impl FeatureGrid {
+    /// Heap bytes of its storage (capacities).
+    pub fn heap_bytes(&self) -> usize {
+        self.cell_start.capacity() * std::mem::size_of::<u32>()
+            + self.entries.capacity() * std::mem::size_of::<Entry>()
+    }
+
     /// Index `keypoints` (their undistorted positions) within `bounds`. Over
     /// bounds that are not finite or enclose no area the grid is empty.
     pub fn new(keypoints: &[KeyPoint], bounds: Bounds) -> Self {

@@ -120,6 +120,33 @@ impl KeyFrameDatabase {
         }
     }
 
+    /// Heap bytes of the index (capacities; a hash map entry counted as
+    /// the pair and one control byte): inverted lists, slots with their
+    /// BoW vectors, the free list and the id table.
+    pub fn heap_bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.inverted.capacity() * size_of::<Vec<Posting>>()
+            + self
+                .inverted
+                .iter()
+                .map(|l| l.capacity() * size_of::<Posting>())
+                .sum::<usize>()
+            + self.slots.capacity() * size_of::<Option<Entry>>()
+            + self
+                .slots
+                .iter()
+                .flatten()
+                .map(|e| e.bow.entries.capacity() * size_of::<(crate::bow::WordId, f32)>())
+                .sum::<usize>()
+            + self.free.capacity() * size_of::<u32>()
+            + self.by_id.capacity() * (size_of::<(KeyFrameId, u32)>() + 1)
+    }
+
+    /// Postings in the inverted lists (one per keyframe word).
+    pub fn postings(&self) -> usize {
+        self.inverted.iter().map(Vec::len).sum()
+    }
+
     /// Number of keyframes.
     pub fn len(&self) -> usize {
         self.by_id.len()

@@ -17,6 +17,8 @@ use shotpilot::slam::MapMode;
 use shotpilot::slam::priors::{PriorParams, Priors, TelemetryFeed, TelemetryLog};
 use shotpilot::slam::{self, Slam, TrackState};
 use shotpilot::stats;
+
+use super::slam_timing;
 use shotpilot::video::dataset::Dataset;
 
 /// Arguments of `shotpilot slam`.
@@ -86,6 +88,61 @@ pub struct SlamArgs {
     /// Start new maps after a loss but never merge them.
     #[arg(long)]
     pub no_merging: bool,
+    /// Every N frames, sample the process's resident memory and the map's
+    /// stores (`Map::footprint`) and report them (0: only at the end).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub memory_every: usize,
+    /// Fly the frames this many times, every other lap backwards (a patrol
+    /// over the same ground: the motion stays continuous, the map should
+    /// stop growing after the first lap); frame indices and timestamps go
+    /// on increasing. The ground truth matches the first lap only.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub laps: usize,
+    /// Frames counted as "after" a loop's correction or a global BA in the
+    /// frame-time report.
+    #[arg(long, default_value_t = 30, value_name = "N")]
+    pub after_frames: usize,
+}
+
+/// The process's resident set and its peak, MiB (Linux `/proc/self/status`;
+/// `None` elsewhere).
+fn rss_mib() -> Option<(f64, f64)> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let field = |name: &str| -> Option<f64> {
+        let kb: f64 = s
+            .lines()
+            .find(|l| l.starts_with(name))?
+            .split_whitespace()
+            .nth(1)?
+            .parse()
+            .ok()?;
+        Some(kb / 1024.0)
+    };
+    Some((field("VmRSS:")?, field("VmHWM:")?))
+}
+
+/// One memory sample of the run.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+struct MemorySample {
+    /// Frames given so far.
+    frames: usize,
+    /// Resident set, MiB.
+    rss_mib: Option<f64>,
+    /// The map's stores.
+    map: shotpilot::slam::Footprint,
+    /// Frame records the tracker holds.
+    records: usize,
+}
+
+fn memory_sample(system: &Slam, frames: usize) -> MemorySample {
+    let map = system.map();
+    let fp = shotpilot::slam::map::lock(&map).footprint();
+    MemorySample {
+        frames,
+        rss_mib: rss_mib().map(|r| r.0),
+        map: fp,
+        records: system.records_len(),
+    }
 }
 
 /// `START:COUNT` of `--blackout`.
@@ -153,6 +210,9 @@ pub fn run(args: SlamArgs) -> Result<()> {
     if n == 0 {
         bail!("{}: no frames to process", args.dataset.display());
     }
+    if args.laps == 0 {
+        bail!("--laps must be at least 1");
+    }
     if !(args.speed >= 0.0 && args.speed.is_finite()) {
         bail!("--speed must be a non-negative number, got {}", args.speed);
     }
@@ -206,14 +266,42 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let mut system = Slam::new(ds.camera, params).context("starting the SLAM")?;
 
     // Decode frames ahead on a reader thread (decoding is not tracking).
+    // With --laps the dataset's n frames are flown again and again, every
+    // other lap backwards: lap k's j-th frame is dataset frame j (k even)
+    // or n-1-j (k odd), at a time that goes on from the lap before.
+    let laps = args.laps;
+    let t_first_frame = ds.timestamp(0).unwrap_or(0.0);
+    let t_span = ds.timestamp(n - 1).unwrap_or(t_first_frame) - t_first_frame;
+    let t_step = if n > 1 { t_span / (n - 1) as f64 } else { 0.0 };
+    let frame_of = move |k: usize| -> (usize, f64) {
+        let (lap, j) = (k / n, k % n);
+        let i = if lap.is_multiple_of(2) { j } else { n - 1 - j };
+        (i, lap as f64 * (t_span + t_step))
+    };
+    let n_single = n;
+    let n = n * laps;
     let (tx, rx) = sync_channel(8);
     let reader_ds = ds.clone();
     let blackout = args.blackout.clone();
     let reader = std::thread::Builder::new()
         .name("frame-reader".into())
         .spawn(move || {
-            for i in 0..n {
-                let mut f = reader_ds.frame(i);
+            for k in 0..n {
+                let (i, offset) = frame_of(k);
+                let mut f = reader_ds.frame(i).map(|mut fr| {
+                    if k >= n_single {
+                        let t = fr.timestamp - t_first_frame;
+                        let t = if (k / n_single).is_multiple_of(2) {
+                            t
+                        } else {
+                            t_span - t
+                        };
+                        fr.timestamp = t_first_frame + offset + t;
+                        fr.index = k;
+                    }
+                    fr
+                });
+                let i = k;
                 if blackout.iter().any(|&(a, c)| i >= a && i < a + c)
                     && let Ok(fr) = &mut f
                 {
@@ -247,9 +335,14 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let mut track_only_cpu = Vec::with_capacity(n);
     let mut tracked = 0usize;
     let mut lost_frames = 0usize;
+    let mut spans: Vec<slam_timing::FrameSpan> = Vec::with_capacity(n);
+    let mut memory: Vec<MemorySample> = Vec::new();
     let start = Instant::now();
     let mut t_first: Option<f64> = None;
-    for _ in 0..n {
+    for i in 0..n {
+        if args.memory_every > 0 && i % args.memory_every == 0 {
+            memory.push(memory_sample(&system, i));
+        }
         let frame = rx.recv().context("frame reader stopped")??;
         if !args.sequential && args.speed > 0.0 {
             let t0 = *t_first.get_or_insert(frame.timestamp);
@@ -258,7 +351,14 @@ pub fn run(args: SlamArgs) -> Result<()> {
                 std::thread::sleep(wait);
             }
         }
+        let from = Instant::now();
         let out = system.process(frame.index as u64, frame.timestamp, Arc::new(frame.image));
+        spans.push(slam_timing::FrameSpan {
+            from,
+            to: Instant::now(),
+            track_ms: out.track_ms,
+            wait_ms: out.lock_wait_ms,
+        });
         extract_ms.push(out.extract_ms);
         track_ms.push(out.track_ms);
         if let (Some(e), Some(t)) = (out.extract_cpu_ms, out.track_cpu_ms) {
@@ -280,7 +380,33 @@ pub fn run(args: SlamArgs) -> Result<()> {
     bar.finish_and_clear();
     let _ = reader.join();
     let wall_s = start.elapsed().as_secs_f64();
+    memory.push(memory_sample(&system, n));
     let run = system.finish();
+    let mut windows: Vec<slam_timing::Window> = Vec::new();
+    for l in &run.loops {
+        let kf = l.summary.current.0;
+        for (kind, w) in [
+            ("loop", l.correction_window),
+            ("global_ba", l.global_ba_window),
+        ] {
+            if let Some((from, to)) = w {
+                windows.push(slam_timing::Window { kind, kf, from, to });
+            }
+        }
+    }
+    windows.extend(
+        run.loop_holds
+            .iter()
+            .filter(|h| h.kind == shotpilot::slam::HoldKind::Merge)
+            .map(|h| slam_timing::Window {
+                kind: "merge",
+                kf: h.kf.0,
+                from: h.from,
+                to: h.to,
+            }),
+    );
+    let timing = slam_timing::report(&spans, &run.loop_holds, &windows, args.after_frames);
+    let rss = rss_mib();
     let traj = run.trajectory();
     let kf_traj = run.keyframe_trajectory();
     let initialized = run.initialized_at.is_some();
@@ -585,6 +711,15 @@ pub fn run(args: SlamArgs) -> Result<()> {
         if let (Some(o), serde_json::Value::Object(n)) = (out.as_object_mut(), atlas) {
             o.extend(n);
         }
+        let perf = json!({
+            "frame_time": timing,
+            "rss_mib": rss.map(|r| r.0),
+            "rss_peak_mib": rss.map(|r| r.1),
+            "memory": memory,
+        });
+        if let (Some(o), serde_json::Value::Object(n)) = (out.as_object_mut(), perf) {
+            o.extend(n);
+        }
         println!("{out}");
     } else {
         if !initialized {
@@ -635,6 +770,10 @@ pub fn run(args: SlamArgs) -> Result<()> {
         println!(
             "per keyframe mapping median {med_map:.2} ms p95 {p95_map:.2} ms | local BA median {med_ba:.2} ms p95 {p95_ba:.2} ms"
         );
+        print_timing(&timing);
+        if let Some(last) = memory.last() {
+            print_memory(&memory, last, rss);
+        }
         match (&ate, &ate_kf) {
             (Some(a), Some(k)) => println!(
                 "ATE (Sim(3)) all frames rmse {:.4} m max {:.4} m ({} of the {posed} posed frames matched the ground truth within {} s) | keyframes rmse {:.4} m ({} of the {} keyframes matched)",
@@ -778,4 +917,68 @@ pub fn run(args: SlamArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The frame-time report's lines.
+fn print_timing(t: &slam_timing::TimingReport) {
+    println!(
+        "tracking thread per frame (wall): {} | waiting for the map lock: {}, {} frames waited",
+        t.track_ms, t.lock_wait_ms, t.frames_waited
+    );
+    if t.search_holds_ms.n > 0 {
+        println!(
+            "loop closer holding the map lock: searches {} | at a loop (search, correction, graph built) {} | writing the essential graph back {} | global BA {}",
+            t.search_holds_ms, t.loop_holds_ms, t.graph_holds_ms, t.global_ba_holds_ms
+        );
+    }
+    for w in &t.windows {
+        println!(
+            "  {} at keyframe {} ({:.1} ms): frames during it {} (waiting {}); the {} frames after {}",
+            w.kind, w.kf, w.ms, w.during, w.during_wait, t.after_frames, w.after
+        );
+    }
+}
+
+/// The memory lines: resident set, the map's stores at the end, and the
+/// samples taken with --memory-every.
+fn print_memory(samples: &[MemorySample], last: &MemorySample, rss: Option<(f64, f64)>) {
+    let mib = |b: usize| b as f64 / (1024.0 * 1024.0);
+    let f = &last.map;
+    if let Some((now, peak)) = rss {
+        println!("memory: resident {now:.1} MiB (peak {peak:.1} MiB)");
+    }
+    println!(
+        "map stores: {} keyframe ids ({} live, {} culled, {} with images), {} point ids ({} live, {} observations), {} in the place index, {} frame records; estimated {:.1} MiB: keyframes {:.1}, images {:.1}, points {:.1}, culled {:.2}, places {:.1}, other {:.2}",
+        f.keyframe_ids,
+        f.keyframes,
+        f.culled,
+        f.images,
+        f.point_ids,
+        f.points,
+        f.observations,
+        f.places,
+        last.records,
+        mib(f.total_bytes()),
+        mib(f.keyframe_bytes),
+        mib(f.image_bytes),
+        mib(f.point_bytes),
+        mib(f.culled_bytes),
+        mib(f.places_bytes),
+        mib(f.other_bytes),
+    );
+    if samples.len() > 1 {
+        println!("  frames  RSS MiB  map MiB  kf ids  live kfs  point ids  live points");
+        for s in samples {
+            println!(
+                "  {:6}  {:7}  {:7.1}  {:6}  {:8}  {:9}  {:11}",
+                s.frames,
+                s.rss_mib.map_or("-".into(), |r| format!("{r:.1}")),
+                mib(s.map.total_bytes()),
+                s.map.keyframe_ids,
+                s.map.keyframes,
+                s.map.point_ids,
+                s.map.points
+            );
+        }
+    }
 }

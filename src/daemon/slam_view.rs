@@ -41,6 +41,10 @@ impl FrameProcessor for NoSlam {
     }
 }
 
+/// Frame records, mapping reports and loop-closing records the daemon's
+/// SLAM keeps (at least; at most twice as many).
+const DAEMON_HISTORY: usize = 1000;
+
 /// The processor for this configuration: the SLAM, or [`NoSlam`] when
 /// `[slam] enabled = false` or the SLAM cannot start.
 ///
@@ -73,7 +77,12 @@ pub fn make_processor(
         return Box::new(NoSlam);
     }
     let (w, h) = (camera.width, camera.height);
-    let mut params = slam::Params::default();
+    // Hours of flight: the per-frame and per-keyframe records stay bounded
+    // (the daemon reads only the newest frame record).
+    let mut params = slam::Params {
+        history: Some(DAEMON_HISTORY),
+        ..Default::default()
+    };
     if !cfg.slam.loop_closing {
         params.loop_closing = None;
     }

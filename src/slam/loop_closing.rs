@@ -39,6 +39,15 @@
 //! the keyframe it was corrected with (or its reference keyframe). Loops
 //! are looked for inside the keyframe's own map only.
 //!
+//! The map lock: detection, verification, propagation, fusion and the
+//! building of the essential graph run under it (tracking waits for it
+//! meanwhile); the graph is then solved on its own copy of the poses
+//! without the lock (tracking goes on in the corrected neighbourhood), and
+//! written back under the lock again (keyframes added meanwhile keep their
+//! pose relative to the keyframe they follow). Each hold is recorded
+//! ([`LockHold`]), so a run can set the tracking thread's frame times
+//! against them.
+//!
 //! Map merging (ORB-SLAM3's "welding" merge, monocular): after a tracking
 //! loss tracking starts a new map ([`super::tracking`]); the map holds
 //! every map of the atlas ([`super::map::MapId`]). Before looking for a
@@ -92,6 +101,7 @@ use super::bundle::run_bundle_adjustment;
 use super::bundle::{apply_ba_result, build_ba_problem};
 use super::map::{KeyFrame, KeyFrameId, Map, MapId, Places, PointId, lock};
 use super::matcher::{self, MatcherParams};
+use super::params::bound_history;
 
 /// Tunable numbers of loop closing.
 #[derive(Debug, Clone, PartialEq)]
@@ -224,6 +234,51 @@ pub struct LoopEvent {
     pub keyframes_after: Trajectory,
     /// Reprojection RMSE after the global BA, px (`None`: none ran).
     pub global_ba_rmse_px: Option<f64>,
+    /// When the global BA started and ended (`None`: none ran).
+    pub global_ba_window: Option<(Instant, Instant)>,
+    /// When the correction started (the loop closer took the map lock for
+    /// the keyframe that found the loop) and ended (its essential graph
+    /// written back).
+    pub correction_window: Option<(Instant, Instant)>,
+}
+
+/// What the loop closer was doing while it held the map lock.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HoldKind {
+    /// Looking for a loop or a merge at a keyframe (detection and the
+    /// verification of its candidates), nothing closed.
+    Search,
+    /// The same, then a loop's correction up to its essential graph
+    /// (propagation, fusion, the graph built).
+    Loop,
+    /// The same, then a merge.
+    Merge,
+    /// Writing a loop's essential graph back (solved without the lock).
+    EssentialGraph,
+    /// The global BA after a loop: building its problem, or writing its
+    /// result back (it solves without the lock).
+    GlobalBa,
+}
+
+/// One span of the loop closer holding the map lock (tracking waits for
+/// the lock meanwhile).
+#[derive(Debug, Clone, Copy)]
+pub struct LockHold {
+    /// The keyframe being processed.
+    pub kf: KeyFrameId,
+    /// Lock taken.
+    pub from: Instant,
+    /// Lock released.
+    pub to: Instant,
+    /// What was done.
+    pub kind: HoldKind,
+}
+
+impl LockHold {
+    /// Its length, ms.
+    pub fn ms(&self) -> f64 {
+        (self.to - self.from).as_secs_f64() * 1e3
+    }
 }
 
 /// A loop closed, without the trajectories: what the daemon's status
@@ -386,6 +441,10 @@ pub struct LoopCloser {
     /// Consistent merge candidates refused, in order.
     pub merge_refusals: Vec<LoopRefusal>,
     merge_log: MergeLog,
+    /// Each span it held the map lock, in order.
+    pub holds: Vec<LockHold>,
+    /// Holds and refusals kept ([`LoopCloser::set_history`]).
+    keep: Option<usize>,
 }
 
 impl LoopCloser {
@@ -404,7 +463,22 @@ impl LoopCloser {
             merges: Vec::new(),
             merge_refusals: Vec::new(),
             merge_log: MergeLog::default(),
+            holds: Vec::new(),
+            keep: None,
         }
+    }
+
+    /// Keep at least the newest `keep` lock holds and refusals (of loops,
+    /// of merges) and at most twice as many (`None`: all).
+    pub fn set_history(&mut self, keep: Option<usize>) {
+        self.keep = keep;
+        self.bound();
+    }
+
+    fn bound(&mut self) {
+        bound_history(&mut self.holds, self.keep);
+        bound_history(&mut self.refusals, self.keep);
+        bound_history(&mut self.merge_refusals, self.keep);
     }
 
     /// The summaries of the loops closed, shared: it fills as loops close.
@@ -422,31 +496,47 @@ impl LoopCloser {
     /// loop closed, if any (merges go to [`LoopCloser::merges`]).
     pub fn process_keyframe(&mut self, map: &Mutex<Map>, kf: KeyFrameId) -> Option<LoopEvent> {
         let mut m = lock(map);
-        if self.params.merging && self.look_for_merge(&mut m, kf) {
-            return None;
-        }
-        let candidates = Self::detect(
-            &self.params,
-            self.last_loop,
-            &mut self.groups,
-            &m,
-            kf,
-            false,
-        );
-        if candidates.is_empty() {
-            return None;
-        }
-        let found = self.verify(&m, kf, &candidates)?;
-        let t0 = Instant::now();
-        let mut event = self.correct(&mut m, kf, found, t0);
+        let from = Instant::now();
+        let (kind, found) = self.search(&mut m, kf);
         drop(m);
+        self.holds.push(LockHold {
+            kf,
+            from,
+            to: Instant::now(),
+            kind,
+        });
+        // The essential graph is solved without the lock (tracking goes
+        // on with the corrected neighbourhood), then written back.
+        let mut event = found.map(|(mut e, mut graph)| {
+            let solved = graph.solve(&self.params.pose_graph);
+            let mut m = lock(map);
+            let applied = Instant::now();
+            if solved {
+                graph.apply(&mut m);
+                m.note_correction();
+            }
+            e.keyframes_after = keyframe_trajectory(&m);
+            drop(m);
+            let end = Instant::now();
+            self.holds.push(LockHold {
+                kf,
+                from: applied,
+                to: end,
+                kind: HoldKind::EssentialGraph,
+            });
+            e.summary.correction_ms = (end - graph.started).as_secs_f64() * 1e3;
+            e.correction_window = Some((from, end));
+            e
+        });
+        self.bound();
         if let (Some(e), Some(ba)) = (&mut event, &self.params.global_ba) {
             let t1 = Instant::now();
-            if let Some(rmse) = global_bundle_adjustment(map, kf, ba) {
+            if let Some(rmse) = global_bundle_adjustment(map, kf, ba, &mut self.holds) {
                 e.global_ba_rmse_px = Some(rmse);
                 e.keyframes_after = keyframe_trajectory(&lock(map));
             }
             e.summary.global_ba_ms = Some(t1.elapsed().as_secs_f64() * 1e3);
+            e.global_ba_window = Some((t1, Instant::now()));
         }
         if let Some(e) = &event {
             let l = &e.summary;
@@ -471,6 +561,33 @@ impl LoopCloser {
             self.groups.clear();
         }
         event
+    }
+
+    /// Under the map lock: a merge at `kf`, else a loop found, verified
+    /// and corrected up to its essential graph; what was done, and the
+    /// loop with its graph to solve.
+    fn search(
+        &mut self,
+        m: &mut Map,
+        kf: KeyFrameId,
+    ) -> (HoldKind, Option<(LoopEvent, EssentialGraph)>) {
+        if self.params.merging && self.look_for_merge(m, kf) {
+            return (HoldKind::Merge, None);
+        }
+        let candidates = Self::detect(&self.params, self.last_loop, &mut self.groups, m, kf, false);
+        if candidates.is_empty() {
+            return (HoldKind::Search, None);
+        }
+        let Some(found) = self.verify(m, kf, &candidates) else {
+            return (HoldKind::Search, None);
+        };
+        let event = self.correct(m, kf, found);
+        let kind = if event.is_some() {
+            HoldKind::Loop
+        } else {
+            HoldKind::Search
+        };
+        (kind, event)
     }
 
     /// Merge detection at `kf` (see the module doc): consistent BoW
@@ -678,7 +795,7 @@ impl LoopCloser {
             kf,
             &after_ba,
             &before_ba,
-            &corrected_by,
+            corrected_by,
             &loop_links,
             p,
         );
@@ -1227,14 +1344,18 @@ impl LoopCloser {
         Some((refit.s12, seeds, refit.n_inliers))
     }
 
-    /// The correction (see the module doc).
+    /// The correction under the map lock (see the module doc): the
+    /// neighbourhood corrected, the points fused, and the essential graph
+    /// built; the loop's event (its trajectory after and its time filled
+    /// in when the graph is applied) and the graph, to be solved without
+    /// the lock.
     fn correct(
         &mut self,
         map: &mut Map,
         kf: KeyFrameId,
         lm: LoopMatch,
-        t0: Instant,
-    ) -> Option<LoopEvent> {
+    ) -> Option<(LoopEvent, EssentialGraph)> {
+        let started = Instant::now();
         let p = &self.params;
         let before = keyframe_trajectory(map);
         map.update_connections(kf);
@@ -1288,7 +1409,7 @@ impl LoopCloser {
             Some(id) => map.keyframes_in(id).map(|k| k.id).collect(),
             None => map.keyframes().map(|k| k.id).collect(),
         };
-        let graph_edges = optimize_essential_graph(
+        let graph = EssentialGraph::build(
             map,
             graph_kfs,
             &HashSet::from([lm.loop_kf]),
@@ -1296,16 +1417,17 @@ impl LoopCloser {
             kf,
             &corrected,
             &uncorrected,
-            &corrected_by,
+            corrected_by,
             &loop_links,
             p,
+            started,
         );
+        // The neighbourhood moved already: tracking re-places its frame.
         map.note_correction();
-        let after = keyframe_trajectory(map);
         let corr = lm.s_cw.compose(&Sim3::from_isometry(&t_wc));
         let center_after = sim3_to_isometry(&lm.s_cw).inverse().translation.vector;
         let loop_t = map.keyframe(lm.loop_kf).map_or(0.0, |k| k.timestamp);
-        Some(LoopEvent {
+        let event = LoopEvent {
             summary: LoopSummary {
                 current: kf,
                 loop_kf: lm.loop_kf,
@@ -1317,14 +1439,17 @@ impl LoopCloser {
                 rotation_deg: corr.rotation.angle().to_degrees(),
                 translation: (center_after - center_before).norm(),
                 fused,
-                correction_ms: t0.elapsed().as_secs_f64() * 1e3,
+                correction_ms: 0.0,
                 global_ba_ms: None,
             },
-            graph_edges,
+            graph_edges: graph.edges,
             keyframes_before: before,
-            keyframes_after: after,
+            keyframes_after: Trajectory { poses: Vec::new() },
             global_ba_rmse_px: None,
-        })
+            global_ba_window: None,
+            correction_window: None,
+        };
+        Some((event, graph))
     }
 }
 
@@ -1405,9 +1530,20 @@ fn fuse_and_link(
 /// map's first keyframe fixed: the problem is built and written back under the map
 /// lock, solved without it (keyframes added meanwhile keep their poses).
 /// Returns the final reprojection RMSE, px.
-fn global_bundle_adjustment(map: &Mutex<Map>, kf: KeyFrameId, params: &BaParams) -> Option<f64> {
+fn global_bundle_adjustment(
+    map: &Mutex<Map>,
+    kf: KeyFrameId,
+    params: &BaParams,
+    holds: &mut Vec<LockHold>,
+) -> Option<f64> {
     let mut setup = {
         let m = lock(map);
+        let from = Instant::now();
+        let _hold = HoldGuard {
+            holds: &mut *holds,
+            kf,
+            from,
+        };
         let id = m.map_of(kf)?;
         let kfs: Vec<KeyFrameId> = m.keyframes_in(id).map(|k| k.id).collect();
         let fixed: Vec<KeyFrameId> = m.root_of(id).into_iter().collect();
@@ -1426,9 +1562,36 @@ fn global_bundle_adjustment(map: &Mutex<Map>, kf: KeyFrameId, params: &BaParams)
         "loop: global BA"
     );
     let mut m = lock(map);
+    let from = Instant::now();
     apply_ba_result(&mut m, &setup, &report.outliers);
     m.note_correction();
+    drop(m);
+    holds.push(LockHold {
+        kf,
+        from,
+        to: Instant::now(),
+        kind: HoldKind::GlobalBa,
+    });
     Some(report.final_rmse_px)
+}
+
+/// Records a global BA's lock hold when dropped (every return of the
+/// block that builds the problem).
+struct HoldGuard<'a> {
+    holds: &'a mut Vec<LockHold>,
+    kf: KeyFrameId,
+    from: Instant,
+}
+
+impl Drop for HoldGuard<'_> {
+    fn drop(&mut self) {
+        self.holds.push(LockHold {
+            kf: self.kf,
+            from: self.from,
+            to: Instant::now(),
+            kind: HoldKind::GlobalBa,
+        });
+    }
 }
 
 /// The similarity mapping `src` onto `dst` with the rotation of `guess`,
@@ -1521,130 +1684,247 @@ fn optimize_essential_graph(
     current: KeyFrameId,
     corrected: &HashMap<KeyFrameId, Sim3>,
     uncorrected: &HashMap<KeyFrameId, Sim3>,
-    corrected_by: &HashMap<PointId, KeyFrameId>,
+    corrected_by: HashMap<PointId, KeyFrameId>,
     loop_links: &[(KeyFrameId, KeyFrameId)],
     p: &LoopParams,
 ) -> usize {
-    let ids = graph_kfs;
-    let index: HashMap<KeyFrameId, usize> =
-        ids.iter().enumerate().map(|(i, id)| (*id, i)).collect();
-    let mut poses = Vec::with_capacity(ids.len());
-    let mut plain = Vec::with_capacity(ids.len());
-    for id in &ids {
-        let Some(k) = map.keyframe(*id) else { continue };
-        let s = corrected
-            .get(id)
-            .copied()
-            .unwrap_or_else(|| Sim3::from_isometry(&k.cam_from_world));
-        poses.push(s);
-        plain.push(uncorrected.get(id).copied().unwrap_or(s));
+    let mut eg = EssentialGraph::build(
+        map,
+        graph_kfs,
+        anchored,
+        loop_kf,
+        current,
+        corrected,
+        uncorrected,
+        corrected_by,
+        loop_links,
+        p,
+        Instant::now(),
+    );
+    if eg.solve(&p.pose_graph) {
+        eg.apply(map);
     }
-    let mut fixed: Vec<bool> = ids.iter().map(|id| anchored.contains(id)).collect();
-    if !fixed.iter().any(|f| *f)
-        && let Some(f) = fixed.first_mut()
-    {
-        *f = true;
-    }
-    let mut edges: Vec<Sim3Edge> = Vec::new();
-    let mut have: HashSet<(usize, usize)> = HashSet::new();
-    let mut push = |i: usize, j: usize, s_ji: Sim3, edges: &mut Vec<Sim3Edge>| {
-        let key = (i.min(j), i.max(j));
-        if i != j && have.insert(key) {
-            edges.push(Sim3Edge {
-                i,
-                j,
-                s_ji,
-                weight: 1.0,
-            });
+    eg.edges
+}
+
+/// The essential graph of a correction: built from the map (under its
+/// lock), solved on its own copy of the poses (a loop's without the lock:
+/// tracking goes on meanwhile), then written back (under the lock again).
+struct EssentialGraph {
+    /// The keyframes of the graph, in vertex order.
+    ids: Vec<KeyFrameId>,
+    /// Vertex of each keyframe.
+    index: HashMap<KeyFrameId, usize>,
+    /// The largest id in it (keyframes added later follow a vertex).
+    max_id: KeyFrameId,
+    /// The keyframe that closed the loop (or made the merge).
+    current: KeyFrameId,
+    graph: PoseGraph,
+    /// The poses before the solve (corrected where the loop corrected them).
+    initial: Vec<Sim3>,
+    /// Points corrected with a keyframe of the loop's neighbourhood: they
+    /// follow that keyframe.
+    corrected_by: HashMap<PointId, KeyFrameId>,
+    /// Its edges.
+    edges: usize,
+    /// When the correction it belongs to started.
+    started: Instant,
+}
+
+impl EssentialGraph {
+    /// The graph of the keyframes `graph_kfs` (the live ones): spanning
+    /// tree, loop edges, strong covisibility, the new links of the loop
+    /// (measured with the corrected poses), and `anchored` held fixed (the
+    /// first vertex when none is).
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        map: &Map,
+        graph_kfs: Vec<KeyFrameId>,
+        anchored: &HashSet<KeyFrameId>,
+        loop_kf: KeyFrameId,
+        current: KeyFrameId,
+        corrected: &HashMap<KeyFrameId, Sim3>,
+        uncorrected: &HashMap<KeyFrameId, Sim3>,
+        corrected_by: HashMap<PointId, KeyFrameId>,
+        loop_links: &[(KeyFrameId, KeyFrameId)],
+        p: &LoopParams,
+        started: Instant,
+    ) -> Self {
+        let ids: Vec<KeyFrameId> = graph_kfs
+            .into_iter()
+            .filter(|id| map.keyframe(*id).is_some())
+            .collect();
+        let index: HashMap<KeyFrameId, usize> =
+            ids.iter().enumerate().map(|(i, id)| (*id, i)).collect();
+        let mut poses = Vec::with_capacity(ids.len());
+        let mut plain = Vec::with_capacity(ids.len());
+        for id in &ids {
+            let Some(k) = map.keyframe(*id) else { continue };
+            let s = corrected
+                .get(id)
+                .copied()
+                .unwrap_or_else(|| Sim3::from_isometry(&k.cam_from_world));
+            poses.push(s);
+            plain.push(uncorrected.get(id).copied().unwrap_or(s));
         }
-    };
-    // New loop links, measured with the corrected poses.
-    for (a, b) in loop_links {
-        let (Some(&i), Some(&j)) = (index.get(a), index.get(b)) else {
-            continue;
-        };
-        let w = map.keyframe(*a).map_or(0, |k| k.weight(*b));
-        let is_loop = (*a == current && *b == loop_kf) || (*b == current && *a == loop_kf);
-        if !is_loop && w < p.essential_min_weight {
-            continue;
-        }
-        push(i, j, poses[j].compose(&poses[i].inverse()), &mut edges);
-    }
-    // The closing edge itself, measured with the corrected poses.
-    if let (Some(&i), Some(&j)) = (index.get(&current), index.get(&loop_kf)) {
-        push(i, j, poses[j].compose(&poses[i].inverse()), &mut edges);
-    }
-    for (i, id) in ids.iter().enumerate() {
-        let Some(k) = map.keyframe(*id) else { continue };
-        let s_wi = plain[i].inverse();
-        if let Some(parent) = k.parent
-            && let Some(&j) = index.get(&parent)
+        let mut fixed: Vec<bool> = ids.iter().map(|id| anchored.contains(id)).collect();
+        if !fixed.iter().any(|f| *f)
+            && let Some(f) = fixed.first_mut()
         {
-            push(i, j, plain[j].compose(&s_wi), &mut edges);
+            *f = true;
         }
-        for (a, b) in map.loop_edges() {
-            let other = if *a == *id {
-                *b
-            } else if *b == *id {
-                *a
-            } else {
+        let mut edges: Vec<Sim3Edge> = Vec::new();
+        let mut have: HashSet<(usize, usize)> = HashSet::new();
+        let mut push = |i: usize, j: usize, s_ji: Sim3, edges: &mut Vec<Sim3Edge>| {
+            let key = (i.min(j), i.max(j));
+            if i != j && have.insert(key) {
+                edges.push(Sim3Edge {
+                    i,
+                    j,
+                    s_ji,
+                    weight: 1.0,
+                });
+            }
+        };
+        // New loop links, measured with the corrected poses.
+        for (a, b) in loop_links {
+            let (Some(&i), Some(&j)) = (index.get(a), index.get(b)) else {
                 continue;
             };
-            if let Some(&j) = index.get(&other) {
+            let w = map.keyframe(*a).map_or(0, |k| k.weight(*b));
+            let is_loop = (*a == current && *b == loop_kf) || (*b == current && *a == loop_kf);
+            if !is_loop && w < p.essential_min_weight {
+                continue;
+            }
+            push(i, j, poses[j].compose(&poses[i].inverse()), &mut edges);
+        }
+        // The closing edge itself, measured with the corrected poses.
+        if let (Some(&i), Some(&j)) = (index.get(&current), index.get(&loop_kf)) {
+            push(i, j, poses[j].compose(&poses[i].inverse()), &mut edges);
+        }
+        for (i, id) in ids.iter().enumerate() {
+            let Some(k) = map.keyframe(*id) else { continue };
+            let s_wi = plain[i].inverse();
+            if let Some(parent) = k.parent
+                && let Some(&j) = index.get(&parent)
+            {
                 push(i, j, plain[j].compose(&s_wi), &mut edges);
             }
-        }
-        for (o, w) in &k.covisible {
-            if *w < p.essential_min_weight {
-                break;
+            for (a, b) in map.loop_edges() {
+                let other = if *a == *id {
+                    *b
+                } else if *b == *id {
+                    *a
+                } else {
+                    continue;
+                };
+                if let Some(&j) = index.get(&other) {
+                    push(i, j, plain[j].compose(&s_wi), &mut edges);
+                }
             }
-            if let Some(&j) = index.get(o) {
-                push(i, j, plain[j].compose(&s_wi), &mut edges);
+            for (o, w) in &k.covisible {
+                if *w < p.essential_min_weight {
+                    break;
+                }
+                if let Some(&j) = index.get(o) {
+                    push(i, j, plain[j].compose(&s_wi), &mut edges);
+                }
+            }
+        }
+        let n_edges = edges.len();
+        EssentialGraph {
+            max_id: ids.iter().copied().max().unwrap_or(current),
+            ids,
+            index,
+            current,
+            initial: poses.clone(),
+            graph: PoseGraph {
+                poses,
+                fixed,
+                edges,
+            },
+            corrected_by,
+            edges: n_edges,
+            started,
+        }
+    }
+
+    /// Optimise the poses (the map is not touched); false when the
+    /// optimisation failed (logged; nothing to apply).
+    fn solve(&mut self, params: &PoseGraphParams) -> bool {
+        match optimize_pose_graph(&mut self.graph, params) {
+            Ok(summary) => {
+                tracing::debug!(?summary, edges = self.edges, "essential graph optimised");
+                true
+            }
+            Err(e) => {
+                tracing::warn!("essential graph not optimised: {e}");
+                false
             }
         }
     }
-    let n_edges = edges.len();
-    let initial = poses.clone();
-    let mut graph = PoseGraph {
-        poses,
-        fixed,
-        edges,
-    };
-    match optimize_pose_graph(&mut graph, &p.pose_graph) {
-        Ok(summary) => tracing::debug!(?summary, edges = n_edges, "essential graph optimised"),
-        Err(e) => {
-            tracing::warn!("essential graph not optimised: {e}");
-            return n_edges;
+
+    /// The similarity that moves what vertex `i` carries (world_new ←
+    /// world_old).
+    fn point_move(&self, i: usize) -> Sim3 {
+        self.graph.poses[i].inverse().compose(&self.initial[i])
+    }
+
+    /// Write the optimised poses back: the graph's keyframes take theirs;
+    /// keyframes of the same map added since the graph was built keep
+    /// their pose relative to their parent's vertex (the current
+    /// keyframe's when their parent is not in the graph); every point
+    /// moves with the keyframe it was corrected by, else its reference
+    /// keyframe, else any observer in the graph.
+    fn apply(&self, map: &mut Map) {
+        let my_map = map.map_of(self.current);
+        let added: Vec<(KeyFrameId, usize)> = map
+            .keyframes()
+            .filter(|k| k.id > self.max_id && map.map_of(k.id) == my_map)
+            .filter_map(|k| {
+                let follow = k
+                    .parent
+                    .and_then(|p| self.index.get(&p))
+                    .or_else(|| self.index.get(&self.current))?;
+                Some((k.id, *follow))
+            })
+            .collect();
+        for (id, i) in added {
+            if let Some(k) = map.keyframe_mut(id) {
+                let s = Sim3::from_isometry(&k.cam_from_world)
+                    .compose(&self.initial[i].inverse())
+                    .compose(&self.graph.poses[i]);
+                k.cam_from_world = sim3_to_isometry(&s);
+            }
+        }
+        for (i, id) in self.ids.iter().enumerate() {
+            if let Some(k) = map.keyframe_mut(*id) {
+                k.cam_from_world = sim3_to_isometry(&self.graph.poses[i]);
+            }
+        }
+        let pids: Vec<PointId> = map.points().map(|mp| mp.id).collect();
+        for pid in pids {
+            let Some(mp) = map.point(pid) else { continue };
+            let r = self
+                .corrected_by
+                .get(&pid)
+                .copied()
+                .filter(|r| self.index.contains_key(r))
+                .or_else(|| Some(mp.ref_kf).filter(|r| self.index.contains_key(r)))
+                .or_else(|| {
+                    mp.observations
+                        .iter()
+                        .map(|o| o.0)
+                        .find(|r| self.index.contains_key(r))
+                });
+            let Some(r) = r else { continue };
+            let s_move = self.point_move(self.index[&r]);
+            if let Some(mp) = map.point_mut(pid) {
+                mp.position = s_move.transform_point(&mp.position);
+            }
+            map.update_point_normal_and_depth(pid);
         }
     }
-    for (i, id) in ids.iter().enumerate() {
-        if let Some(k) = map.keyframe_mut(*id) {
-            k.cam_from_world = sim3_to_isometry(&graph.poses[i]);
-        }
-    }
-    let pids: Vec<PointId> = map.points().map(|mp| mp.id).collect();
-    for pid in pids {
-        let Some(mp) = map.point(pid) else { continue };
-        let r = corrected_by
-            .get(&pid)
-            .copied()
-            .filter(|r| index.contains_key(r))
-            .or_else(|| Some(mp.ref_kf).filter(|r| index.contains_key(r)))
-            .or_else(|| {
-                mp.observations
-                    .iter()
-                    .map(|o| o.0)
-                    .find(|r| index.contains_key(r))
-            });
-        let Some(r) = r else { continue };
-        let i = index[&r];
-        let s_move = graph.poses[i].inverse().compose(&initial[i]);
-        if let Some(mp) = map.point_mut(pid) {
-            mp.position = s_move.transform_point(&mp.position);
-        }
-        map.update_point_normal_and_depth(pid);
-    }
-    n_edges
 }
 
 /// The keypoint of `k1` nearest to `descriptor` (Hamming distance, first
@@ -1730,5 +2010,134 @@ mod tests {
             ls.scale
         );
         assert!(robust_scale_fit(&src[..2], &dst[..2], &guess).is_none());
+    }
+}
+
+#[cfg(test)]
+mod graph_tests {
+    use super::*;
+    use crate::camera::{Camera, Distortion};
+    use crate::features::KeyPoint;
+    use crate::matching::FeatureGrid;
+    use nalgebra::Point3;
+
+    /// Keypoint slots of each keyframe.
+    const SLOTS: usize = 60;
+
+    fn keyframe(x: f64) -> KeyFrame {
+        KeyFrame {
+            id: KeyFrameId(0),
+            frame_index: 0,
+            timestamp: x,
+            cam_from_world: Isometry3::translation(-x, 0.0, 0.0),
+            keypoints: vec![KeyPoint::default(); SLOTS],
+            descriptors: vec![[0; 4]; SLOTS],
+            points: vec![None; SLOTS],
+            grid: FeatureGrid::default(),
+            covisible: Vec::new(),
+            parent: None,
+            children: Vec::new(),
+            image: None,
+        }
+    }
+
+    /// Four keyframes along x in a chain: each shares points with the one
+    /// before it (30, 25, 20: fewer further on, so each one's strongest
+    /// neighbour, its parent, is the one before).
+    fn chain() -> Map {
+        let cam = Camera::new(
+            640,
+            480,
+            [500.0, 500.0, 320.0, 240.0],
+            Distortion::default(),
+        )
+        .unwrap();
+        let mut m = Map::new(cam, crate::slam::ScaleInfo::new(1.2, 8));
+        let ids: Vec<KeyFrameId> = (0..4).map(|i| m.add_keyframe(keyframe(i as f64))).collect();
+        let mut next_slot = [0u32; 4];
+        for b in 1..4 {
+            for j in 0..(35 - 5 * b) {
+                let p = m.add_point(
+                    Point3::new(b as f64 + j as f64 * 0.02, 0.0, 5.0),
+                    [j as u64; 4],
+                    ids[b - 1],
+                );
+                for k in [b - 1, b] {
+                    assert!(m.add_observation(p, ids[k], next_slot[k]));
+                    next_slot[k] += 1;
+                }
+            }
+        }
+        for &k in &ids {
+            m.update_connections(k);
+        }
+        for k in 1..4 {
+            assert_eq!(m.keyframe(ids[k]).unwrap().parent, Some(ids[k - 1]));
+        }
+        m
+    }
+
+    /// The loop's graph is solved without the map lock, so tracking may
+    /// add a keyframe meanwhile: written back, the graph moves it with
+    /// the keyframe that closed the loop (its pose relative to it kept,
+    /// the translation scaled as the graph scaled that keyframe's
+    /// surroundings), and the loop keyframe stays where it was.
+    #[test]
+    fn a_keyframe_added_while_the_graph_is_solved_follows_the_current_keyframe() {
+        let mut m = chain();
+        let (first, current) = (KeyFrameId(0), KeyFrameId(3));
+        let plain = Sim3::from_isometry(&m.keyframe(current).unwrap().cam_from_world);
+        // The loop puts the current keyframe half a unit further along x
+        // (the drift it corrects), as the correction's first step does.
+        let fixed_pose = Isometry3::translation(-3.5, 0.0, 0.0);
+        m.keyframe_mut(current).unwrap().cam_from_world = fixed_pose;
+        let corrected = HashMap::from([(current, Sim3::from_isometry(&fixed_pose))]);
+        let uncorrected = HashMap::from([(current, plain)]);
+        let ids: Vec<KeyFrameId> = m.keyframes().map(|k| k.id).collect();
+        let p = LoopParams::default();
+        let mut graph = EssentialGraph::build(
+            &m,
+            ids,
+            &HashSet::from([first]),
+            first,
+            current,
+            &corrected,
+            &uncorrected,
+            HashMap::new(),
+            &[(current, first)],
+            &p,
+            Instant::now(),
+        );
+        assert!(graph.edges >= 4, "{} edges", graph.edges);
+        // Tracking adds a keyframe just past the current one meanwhile.
+        let added = m.add_keyframe(keyframe(3.7));
+        let before = m.keyframe(added).unwrap().cam_from_world
+            * m.keyframe(current).unwrap().cam_from_world.inverse();
+        let first_before = m.keyframe(first).unwrap().cam_from_world;
+        let middle_before = m.keyframe(KeyFrameId(2)).unwrap().cam_from_world;
+        assert!(graph.solve(&p.pose_graph));
+        graph.apply(&mut m);
+        let i = graph.index[&current];
+        let scale = graph.graph.poses[i].scale / graph.initial[i].scale;
+        let after = m.keyframe(added).unwrap().cam_from_world
+            * m.keyframe(current).unwrap().cam_from_world.inverse();
+        assert!(
+            (after.translation.vector * scale - before.translation.vector).norm() < 1e-9,
+            "{after:?} {before:?} scale {scale}"
+        );
+        assert!(after.rotation.angle_to(&before.rotation) < 1e-9);
+        assert_eq!(m.keyframe(first).unwrap().cam_from_world, first_before);
+        // The correction spread along the chain: the keyframe before the
+        // current one moved too.
+        let moved = (m
+            .keyframe(KeyFrameId(2))
+            .unwrap()
+            .cam_from_world
+            .translation
+            .vector
+            - middle_before.translation.vector)
+            .norm();
+        assert!(moved > 0.05, "moved {moved}");
+        m.check_invariants().unwrap();
     }
 }

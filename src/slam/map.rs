@@ -203,6 +203,21 @@ pub fn lock(map: &Mutex<Map>) -> MutexGuard<'_, Map> {
     map.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// [`lock`], adding the time spent waiting for the lock (held by another
+/// thread) to `waited_ms`; an uncontended lock costs no clock reading.
+pub fn lock_timed<'a>(map: &'a Mutex<Map>, waited_ms: &mut f64) -> MutexGuard<'a, Map> {
+    match map.try_lock() {
+        Ok(g) => g,
+        Err(std::sync::TryLockError::Poisoned(e)) => e.into_inner(),
+        Err(std::sync::TryLockError::WouldBlock) => {
+            let t = std::time::Instant::now();
+            let g = lock(map);
+            *waited_ms += t.elapsed().as_secs_f64() * 1e3;
+            g
+        }
+    }
+}
+
 /// Id of a keyframe, unique for the life of a map (never reused).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct KeyFrameId(pub u32);
@@ -419,6 +434,55 @@ impl std::fmt::Display for MapMode {
     }
 }
 
+/// What a [`Map`]'s stores hold, and estimates of their heap bytes
+/// ([`Map::footprint`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Footprint {
+    /// Keyframe ids given (live, culled and discarded: the arena's slots).
+    pub keyframe_ids: usize,
+    /// Live keyframes.
+    pub keyframes: usize,
+    /// Point ids given (the arena's slots).
+    pub point_ids: usize,
+    /// Live points.
+    pub points: usize,
+    /// Culled keyframes kept for placing frames ([`Map::culled`]).
+    pub culled: usize,
+    /// Observations of the live points.
+    pub observations: usize,
+    /// Keyframes in the place index (BoW database).
+    pub places: usize,
+    /// Postings of its inverted lists (one per word of an indexed
+    /// keyframe).
+    pub postings: usize,
+    /// Live keyframes holding their image.
+    pub images: usize,
+    /// The keyframe arena and the live keyframes' vectors (images apart).
+    pub keyframe_bytes: usize,
+    /// The live keyframes' images.
+    pub image_bytes: usize,
+    /// The point arena and the live points' observation lists.
+    pub point_bytes: usize,
+    /// The culled keyframes' table.
+    pub culled_bytes: usize,
+    /// The place index: inverted lists, BoW and feature vectors.
+    pub places_bytes: usize,
+    /// The rest: keyframes' maps, loop edges, merges, discarded ids.
+    pub other_bytes: usize,
+}
+
+impl Footprint {
+    /// The estimated bytes of every store together.
+    pub fn total_bytes(&self) -> usize {
+        self.keyframe_bytes
+            + self.image_bytes
+            + self.point_bytes
+            + self.culled_bytes
+            + self.places_bytes
+            + self.other_bytes
+    }
+}
+
 /// Keyframes, points and the graphs between them.
 #[derive(Debug, Clone)]
 pub struct Map {
@@ -426,8 +490,13 @@ pub struct Map {
     pub camera: Camera,
     /// Extractor scale levels.
     pub scale: ScaleInfo,
-    keyframes: Vec<Option<KeyFrame>>,
-    points: Vec<Option<MapPoint>>,
+    /// By id; boxed, so the slot of an id no longer live (a culled
+    /// keyframe, an erased point: ids are never reused) costs a pointer,
+    /// not a whole object: over a long flight mapping creates and culls
+    /// hundreds of points a second, and the dead slots stay.
+    keyframes: Vec<Option<Box<KeyFrame>>>,
+    /// By id; boxed (see `keyframes`).
+    points: Vec<Option<Box<MapPoint>>>,
     n_keyframes: usize,
     n_points: usize,
     /// Removed keyframes, for placing frames referring to them.
@@ -946,7 +1015,7 @@ impl Map {
             if slot.is_some() {
                 return Err(MapError::DuplicateKeyFrame { id: kf.id });
             }
-            *slot = Some(kf);
+            *slot = Some(Box::new(kf));
             map.n_keyframes += 1;
         }
         for p in points {
@@ -954,7 +1023,7 @@ impl Map {
             if slot.is_some() {
                 return Err(MapError::DuplicatePoint { id: p.id });
             }
-            *slot = Some(p);
+            *slot = Some(Box::new(p));
             map.n_points += 1;
         }
         for (id, c) in culled {
@@ -963,6 +1032,84 @@ impl Map {
         map.kf_maps = vec![MapId(0); max_kf];
         map.recompute_roots();
         Ok(map)
+    }
+
+    /// What the map's stores hold and an estimate of their heap bytes
+    /// (capacities times element sizes; allocator overhead not counted):
+    /// memory accounting over long runs.
+    pub fn footprint(&self) -> Footprint {
+        use std::mem::size_of;
+        let vec_bytes = |cap: usize, elem: usize| cap * elem;
+        let mut keyframe_bytes = vec_bytes(
+            self.keyframes.capacity(),
+            size_of::<Option<Box<KeyFrame>>>(),
+        );
+        let mut image_bytes = 0;
+        let mut images = 0;
+        for k in self.keyframes() {
+            keyframe_bytes += size_of::<KeyFrame>()
+                + vec_bytes(k.keypoints.capacity(), size_of::<KeyPoint>())
+                + vec_bytes(k.descriptors.capacity(), size_of::<Descriptor>())
+                + vec_bytes(k.points.capacity(), size_of::<Option<PointId>>())
+                + vec_bytes(k.covisible.capacity(), size_of::<(KeyFrameId, u32)>())
+                + vec_bytes(k.children.capacity(), size_of::<KeyFrameId>())
+                + k.grid.heap_bytes();
+            if let Some(img) = &k.image {
+                images += 1;
+                image_bytes += img.as_raw().capacity();
+            }
+        }
+        let mut point_bytes = vec_bytes(self.points.capacity(), size_of::<Option<Box<MapPoint>>>());
+        let mut observations = 0;
+        for p in self.points() {
+            observations += p.observations.len();
+            point_bytes += size_of::<MapPoint>()
+                + vec_bytes(p.observations.capacity(), size_of::<(KeyFrameId, u32)>());
+        }
+        // A hash map entry: the pair and one control byte, at the table's
+        // capacity.
+        let culled_bytes = self.culled.capacity() * (size_of::<(KeyFrameId, CulledKeyFrame)>() + 1);
+        let (places, postings, places_bytes) = self.places.as_ref().map_or((0, 0, 0), |p| {
+            let features: usize = p
+                .features
+                .values()
+                .map(|f| f.pairs.capacity() * size_of::<(bow::NodeId, u32)>())
+                .sum::<usize>()
+                + p.features.capacity() * (size_of::<(KeyFrameId, FeatureVector)>() + 1);
+            (
+                p.database.len(),
+                p.database.postings(),
+                p.database.heap_bytes() + features,
+            )
+        });
+        let other_bytes = vec_bytes(self.kf_maps.capacity(), size_of::<MapId>())
+            + vec_bytes(
+                self.loop_edges.capacity(),
+                size_of::<(KeyFrameId, KeyFrameId)>(),
+            )
+            + self
+                .merges
+                .iter()
+                .map(|m| m.keyframes.capacity() * size_of::<KeyFrameId>())
+                .sum::<usize>()
+            + vec_bytes(self.discarded.capacity(), size_of::<KeyFrameId>());
+        Footprint {
+            keyframe_ids: self.keyframes.len(),
+            keyframes: self.n_keyframes,
+            point_ids: self.points.len(),
+            points: self.n_points,
+            culled: self.culled.len(),
+            observations,
+            places,
+            postings,
+            images,
+            keyframe_bytes,
+            image_bytes,
+            point_bytes,
+            culled_bytes,
+            places_bytes,
+            other_bytes,
+        }
     }
 
     /// Number of live keyframes.
@@ -977,34 +1124,36 @@ impl Map {
 
     /// A live keyframe.
     pub fn keyframe(&self, id: KeyFrameId) -> Option<&KeyFrame> {
-        self.keyframes.get(id.0 as usize).and_then(Option::as_ref)
+        self.keyframes.get(id.0 as usize).and_then(Option::as_deref)
     }
 
     /// A live keyframe, mutable.
     pub fn keyframe_mut(&mut self, id: KeyFrameId) -> Option<&mut KeyFrame> {
         self.keyframes
             .get_mut(id.0 as usize)
-            .and_then(Option::as_mut)
+            .and_then(Option::as_deref_mut)
     }
 
     /// A live point.
     pub fn point(&self, id: PointId) -> Option<&MapPoint> {
-        self.points.get(id.0 as usize).and_then(Option::as_ref)
+        self.points.get(id.0 as usize).and_then(Option::as_deref)
     }
 
     /// A live point, mutable.
     pub fn point_mut(&mut self, id: PointId) -> Option<&mut MapPoint> {
-        self.points.get_mut(id.0 as usize).and_then(Option::as_mut)
+        self.points
+            .get_mut(id.0 as usize)
+            .and_then(Option::as_deref_mut)
     }
 
     /// All live keyframes, by id.
     pub fn keyframes(&self) -> impl Iterator<Item = &KeyFrame> {
-        self.keyframes.iter().flatten()
+        self.keyframes.iter().flatten().map(|k| &**k)
     }
 
     /// All live points, by id.
     pub fn points(&self) -> impl Iterator<Item = &MapPoint> {
-        self.points.iter().flatten()
+        self.points.iter().flatten().map(|p| &**p)
     }
 
     /// The id the next keyframe will get.
@@ -1024,7 +1173,7 @@ impl Map {
             .filter_map(|(i, p)| p.map(|p| (i as u32, p)))
             .collect();
         kf.points.iter_mut().for_each(|p| *p = None);
-        self.keyframes.push(Some(kf));
+        self.keyframes.push(Some(Box::new(kf)));
         self.kf_maps.push(self.active_map);
         self.roots.entry(self.active_map).or_insert(id);
         self.n_keyframes += 1;
@@ -1042,7 +1191,7 @@ impl Map {
         first_kf: KeyFrameId,
     ) -> PointId {
         let id = PointId(self.points.len() as u32);
-        self.points.push(Some(MapPoint {
+        self.points.push(Some(Box::new(MapPoint {
             id,
             position,
             observations: Vec::with_capacity(4),
@@ -1054,7 +1203,7 @@ impl Map {
             ref_kf: first_kf,
             visible: 1,
             found: 1,
-        }));
+        })));
         self.n_points += 1;
         id
     }
@@ -1650,6 +1799,48 @@ mod tests {
         // The first keyframe is never erased.
         assert!(!m.erase_keyframe(KeyFrameId(0)));
         assert_eq!(m.keyframe_count(), 3);
+    }
+
+    #[test]
+    fn culled_keyframes_and_erased_points_leave_only_their_ids() {
+        use std::mem::size_of;
+        let mut m = map_with(5, 40);
+        for k in 0..5u32 {
+            let bow = BowVector::from_weights((0..8).map(|w| (bow::WordId(w + k), 1.0)));
+            assert!(m.index_keyframe(KeyFrameId(k), bow, FeatureVector::new(), 64));
+        }
+        let before = m.footprint();
+        assert_eq!((before.keyframe_ids, before.keyframes), (5, 5));
+        assert_eq!((before.places, before.postings), (5, 40));
+        assert_eq!(before.observations, 5 * 40);
+        // A culled keyframe: its observations, its place-index entry and its
+        // postings go; its id stays (a pose kept relative to its parent).
+        assert!(m.erase_keyframe(KeyFrameId(3)));
+        let culled = m.footprint();
+        assert_eq!(
+            (culled.keyframe_ids, culled.keyframes, culled.culled),
+            (5, 4, 1)
+        );
+        assert_eq!((culled.places, culled.postings), (4, 32));
+        assert_eq!(culled.observations, 4 * 40);
+        let per_keyframe = size_of::<KeyFrame>()
+            + 40 * (size_of::<KeyPoint>() + size_of::<Descriptor>() + size_of::<Option<PointId>>());
+        assert!(before.keyframe_bytes - culled.keyframe_bytes >= per_keyframe);
+        // Erased points leave a pointer-sized slot each.
+        for j in 0..30 {
+            m.erase_point(PointId(j));
+        }
+        let erased = m.footprint();
+        assert_eq!((erased.point_ids, erased.points), (40, 10));
+        assert_eq!(erased.observations, 4 * 10);
+        assert!(culled.point_bytes - erased.point_bytes >= 30 * size_of::<MapPoint>());
+        // The arena's slots (a pointer each) and the ten live points.
+        assert!(
+            erased.point_bytes
+                <= m.points.capacity() * size_of::<Option<Box<MapPoint>>>()
+                    + 10 * (size_of::<MapPoint>() + 8 * size_of::<(KeyFrameId, u32)>())
+        );
+        m.check_invariants().unwrap();
     }
 
     #[test]

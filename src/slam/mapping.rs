@@ -22,6 +22,7 @@ use crate::optimize::{self, BaParams};
 use super::bundle::{apply_ba_result, build_ba_problem};
 use super::map::{KeyFrameId, Map, PointId, lock};
 use super::matcher::{self, MatcherParams};
+use super::params::bound_history;
 use super::priors::{Georeferenced, Priors};
 use crate::matching::Bounds;
 
@@ -103,8 +104,10 @@ pub struct LocalMapper {
     bow_level: u32,
     recent: Vec<(PointId, KeyFrameId)>,
     priors: Option<Priors>,
-    /// Reports of every processed keyframe.
+    /// Reports of the processed keyframes (every one unless
+    /// [`LocalMapper::set_history`] bounds them).
     pub reports: Vec<MappingReport>,
+    keep_reports: Option<usize>,
     /// When the map was put in NED by telemetry: the keyframe and the fit.
     pub georeferenced: Option<(KeyFrameId, Georeferenced)>,
 }
@@ -127,6 +130,7 @@ impl LocalMapper {
             recent: Vec::new(),
             priors: None,
             reports: Vec::new(),
+            keep_reports: None,
             georeferenced: None,
         }
     }
@@ -134,6 +138,13 @@ impl LocalMapper {
     /// Use telemetry priors (`None`: vision only).
     pub fn set_priors(&mut self, priors: Option<Priors>) {
         self.priors = priors;
+    }
+
+    /// Keep at least the newest `keep` reports and at most twice as many
+    /// (`None`: all).
+    pub fn set_history(&mut self, keep: Option<usize>) {
+        self.keep_reports = keep;
+        bound_history(&mut self.reports, keep);
     }
 
     /// Process one new keyframe. `more_waiting` skips the expensive steps
@@ -207,6 +218,7 @@ impl LocalMapper {
             "keyframe mapped"
         );
         self.reports.push(report);
+        bound_history(&mut self.reports, self.keep_reports);
         report
     }
 

@@ -8,8 +8,10 @@
 //! outside the map lock. Loop closing ([`loop_closing`]) runs after each
 //! mapped keyframe on the mapping thread (inline in sequential mode), so
 //! it never races local BA; its correction holds the map lock, as
-//! ORB-SLAM's holds the map-update mutex, and tracking re-places its last
-//! frame on the corrected reference keyframe. After a tracking loss a new
+//! ORB-SLAM's holds the map-update mutex, except while the essential graph
+//! is solved (on a copy of the poses), and tracking re-places its last
+//! frame on the corrected reference keyframe. [`Params::history`] bounds
+//! what is recorded per frame and per keyframe for a long flight. After a tracking loss a new
 //! map is started beside the old one (the [`Map`] is an atlas) and the
 //! loop closer merges them when it finds a common place; with telemetry
 //! priors no new map is started (tracking relocalises).
@@ -65,11 +67,11 @@ use crate::optimize::BaParams;
 
 pub use initializer::InitFailure;
 pub use loop_closing::{
-    LoopCloser, LoopEvent, LoopLog, LoopParams, LoopRefusal, LoopReject, LoopSummary, MergeEvent,
-    MergeLog, MergeSummary,
+    HoldKind, LockHold, LoopCloser, LoopEvent, LoopLog, LoopParams, LoopRefusal, LoopReject,
+    LoopSummary, MergeEvent, MergeLog, MergeSummary,
 };
 pub use map::{
-    KeyFrame, KeyFrameId, Map, MapId, MapMode, MapPoint, MergeRecord, PointId, ScaleInfo,
+    Footprint, KeyFrame, KeyFrameId, Map, MapId, MapMode, MapPoint, MergeRecord, PointId, ScaleInfo,
 };
 pub use mapping::{LocalMapper, MappingParams, MappingReport};
 pub use tracking::{
@@ -125,6 +127,12 @@ pub struct Params {
     pub loop_closing: Option<LoopParams>,
     /// Telemetry priors (`None`: vision only, the default).
     pub priors: Option<priors::Priors>,
+    /// Records kept per frame or per keyframe (the tracker's frame
+    /// records, the mapper's reports, the loop closer's lock holds and
+    /// refusals): at least the newest this many, at most twice as many
+    /// (`None`, the default: all, for a run's trajectory and report; the
+    /// daemon flies for hours and keeps a bounded history).
+    pub history: Option<usize>,
 }
 
 impl Default for Params {
@@ -141,6 +149,7 @@ impl Default for Params {
             }),
             loop_closing: Some(LoopParams::default()),
             priors: None,
+            history: None,
         }
     }
 }
@@ -187,7 +196,8 @@ pub struct Slam {
 pub struct SlamRun {
     /// The map after the final optimisation.
     pub map: Map,
-    /// Pose records of every tracked frame.
+    /// Pose records of every tracked frame (the newest only when
+    /// [`Params::history`] bounds them).
     pub records: Vec<FrameRecord>,
     /// Mapping reports, one per keyframe processed.
     pub mapping: Vec<MappingReport>,
@@ -207,6 +217,8 @@ pub struct SlamRun {
     pub merges: Vec<MergeEvent>,
     /// Consistent merge candidates refused, in order.
     pub merge_refusals: Vec<LoopRefusal>,
+    /// Each span the loop closer held the map lock, in order.
+    pub loop_holds: Vec<LockHold>,
     /// When telemetry put the map in local NED: the keyframe it happened
     /// at and the fit (the map's mode is [`Map::mode`]).
     pub georeferenced: Option<(KeyFrameId, priors::Georeferenced)>,
@@ -321,7 +333,8 @@ impl Slam {
         Self::start(tracker, map, params)
     }
 
-    fn start(tracker: Tracker, map: Map, params: Params) -> Result<Self, SlamError> {
+    fn start(mut tracker: Tracker, map: Map, params: Params) -> Result<Self, SlamError> {
+        tracker.set_history(params.history);
         let camera = map.camera;
         let map = Arc::new(Mutex::new(map));
         let bounds = crate::matching::Bounds::of(&camera);
@@ -332,10 +345,12 @@ impl Slam {
             params.tracking.bow.direct_index_level,
         );
         mapper.set_priors(params.priors.clone());
-        let closer = params
-            .loop_closing
-            .clone()
-            .map(|p| LoopCloser::new(p, bounds));
+        mapper.set_history(params.history);
+        let closer = params.loop_closing.clone().map(|p| {
+            let mut c = LoopCloser::new(p, bounds);
+            c.set_history(params.history);
+            c
+        });
         let loop_log = closer.as_ref().map(LoopCloser::log);
         let merge_log = closer.as_ref().map(LoopCloser::merge_log);
         let mappers = Mappers { mapper, closer };
@@ -397,6 +412,11 @@ impl Slam {
         self.tracker.state()
     }
 
+    /// Frame records the tracker holds.
+    pub fn records_len(&self) -> usize {
+        self.tracker.records().len()
+    }
+
     /// The newest frame's pose record (the frame last tracked).
     pub fn last_record(&self) -> Option<&FrameRecord> {
         self.tracker.records().last()
@@ -455,9 +475,9 @@ impl Slam {
             }
         };
         let (reports, closer, georeferenced) = mappers.unwrap_or_default();
-        let (loops, loop_refusals, merges, merge_refusals) = match closer {
-            Some(c) => (c.events, c.refusals, c.merges, c.merge_refusals),
-            None => (Vec::new(), Vec::new(), Vec::new(), Vec::new()),
+        let (loops, loop_refusals, merges, merge_refusals, loop_holds) = match closer {
+            Some(c) => (c.events, c.refusals, c.merges, c.merge_refusals, c.holds),
+            None => Default::default(),
         };
         let mut map = {
             let guard = self.map.lock().unwrap_or_else(|e| e.into_inner());
@@ -516,6 +536,7 @@ impl Slam {
             map_starts: self.tracker.map_starts().to_vec(),
             merges,
             merge_refusals,
+            loop_holds,
             georeferenced,
         }
     }

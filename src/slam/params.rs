@@ -72,6 +72,18 @@ pub struct TrackingParams {
     pub seed: u64,
 }
 
+/// Drops the oldest entries of a record kept per frame or per keyframe
+/// once it holds more than twice `keep` (so the cost per entry stays
+/// constant); `None` keeps every entry.
+pub(crate) fn bound_history<T>(v: &mut Vec<T>, keep: Option<usize>) {
+    if let Some(k) = keep {
+        let k = k.max(1);
+        if v.len() > 2 * k {
+            v.drain(..v.len() - k);
+        }
+    }
+}
+
 impl Default for TrackingParams {
     fn default() -> Self {
         TrackingParams {
@@ -106,5 +118,26 @@ impl Default for TrackingParams {
             new_map_after_lost_frames: Some(1),
             seed: 1,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::bound_history;
+
+    #[test]
+    fn a_bounded_history_keeps_the_newest_entries_within_twice_the_bound() {
+        let mut v = Vec::new();
+        for i in 0..1000 {
+            v.push(i);
+            bound_history(&mut v, Some(10));
+            assert!(v.len() <= 20, "{} entries", v.len());
+            assert!(v.len() >= 10.min(i + 1));
+            assert_eq!(v.last(), Some(&i));
+        }
+        assert!(v.windows(2).all(|w| w[1] == w[0] + 1));
+        let mut all: Vec<i32> = (0..100).collect();
+        bound_history(&mut all, None);
+        assert_eq!(all.len(), 100);
     }
 }

@@ -31,8 +31,9 @@ pub use super::frame::{KeypointState, TrackedKeypoint};
 use super::initializer::{InitFailure, InitialMap, Initializer};
 use super::keyframe_decision::{KeyFrameCandidate, need_new_keyframe};
 use super::local_map::LocalMapTracker;
-use super::map::{KeyFrameId, Map, MapId, ScaleInfo, lock};
+use super::map::{KeyFrameId, Map, MapId, ScaleInfo, lock, lock_timed};
 use super::matcher;
+use super::params::bound_history;
 use super::relocalizer::relocalize;
 
 pub use super::params::TrackingParams;
@@ -129,6 +130,9 @@ pub struct FrameOutcome {
     pub extract_ms: f64,
     /// Whole frame time (extraction included), ms.
     pub track_ms: f64,
+    /// Of `track_ms`, the wall time spent waiting for the map lock while
+    /// another thread (local mapping, loop closing) held it, ms.
+    pub lock_wait_ms: f64,
     /// ORB extraction, this thread's CPU ms (None without a thread clock).
     pub extract_cpu_ms: Option<f64>,
     /// Whole frame (extraction included), this thread's CPU ms.
@@ -165,6 +169,8 @@ pub struct Tracker {
     last_kf_frame: u64,
     last_reloc_frame: Option<u64>,
     records: Vec<FrameRecord>,
+    /// Records kept ([`super::Params::history`]).
+    keep_records: Option<usize>,
     initialized_at: Option<u64>,
     last_reason: Option<TrackFailure>,
     marks: Marks,
@@ -209,6 +215,7 @@ impl Tracker {
             last_kf_frame: 0,
             last_reloc_frame: None,
             records: Vec::new(),
+            keep_records: None,
             initialized_at: None,
             last_reason: None,
             marks: Marks::default(),
@@ -257,7 +264,15 @@ impl Tracker {
         self.last_reason.as_ref()
     }
 
-    /// Pose records of every tracked frame.
+    /// Keep at least the newest `keep` frame records and at most twice as
+    /// many (`None`: all).
+    pub fn set_history(&mut self, keep: Option<usize>) {
+        self.keep_records = keep;
+        bound_history(&mut self.records, keep);
+    }
+
+    /// Pose records of the tracked frames (every one unless
+    /// [`Tracker::set_history`] bounds them).
     pub fn records(&self) -> &[FrameRecord] {
         &self.records
     }
@@ -338,6 +353,7 @@ impl Tracker {
             reason: None,
             extract_ms,
             track_ms: 0.0,
+            lock_wait_ms: 0.0,
             extract_cpu_ms,
             track_cpu_ms: None,
             keypoints: Vec::new(),
@@ -355,7 +371,7 @@ impl Tracker {
                 Err(failure) => Err(TrackFailure::Init(failure)),
             }
         } else {
-            let mut m = lock(map);
+            let mut m = lock_timed(map, &mut out.lock_wait_ms);
             let r = self.track_frame(&mut m, &mut frame, mapping_idle).map(Some);
             out.keypoints = frame.keypoint_states();
             r
@@ -382,6 +398,7 @@ impl Tracker {
                 self.last_reason = Some(failure);
             }
         }
+        bound_history(&mut self.records, self.keep_records);
         out.state = self.state;
         out.track_ms = t0.wall_ms();
         out.track_cpu_ms = t0.cpu_ms();
@@ -435,7 +452,7 @@ impl Tracker {
             start.started_at = index;
         }
         let relocalised = {
-            let mut m = lock(map);
+            let mut m = lock_timed(map, &mut out.lock_wait_ms);
             self.track_frame(&mut m, &mut frame, mapping_idle)
         };
         if let Ok(tracked) = relocalised {
