@@ -536,14 +536,19 @@ pub fn encode_with(map: &Map, images: &mut KeyframeImages) -> Result<Vec<u8>, Ma
         MapMode::VisionOnly => 0,
         MapMode::GpsAided => 1,
     });
-    let payload = w.0;
+    Ok(framed(FORMAT_VERSION, &w.0))
+}
+
+/// A file's bytes: the header (magic, `version`, the payload's length and
+/// checksum) and the payload.
+fn framed(version: u32, payload: &[u8]) -> Vec<u8> {
     let mut out = Vec::with_capacity(payload.len() + 28);
     out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    out.extend_from_slice(&version.to_le_bytes());
     out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-    out.extend_from_slice(&fnv1a(&payload).to_le_bytes());
-    out.extend_from_slice(&payload);
-    Ok(out)
+    out.extend_from_slice(&fnv1a(payload).to_le_bytes());
+    out.extend_from_slice(payload);
+    out
 }
 
 /// The temporary file a save writes before renaming it into place
@@ -1000,13 +1005,7 @@ mod tests {
         let payload = &v4[28..];
         let (old, atlas) = payload.split_at(payload.len() - atlas_len(n));
         assert_eq!(&atlas[..4], &0u32.to_le_bytes(), "only maps all in map 0");
-        let mut out = Vec::with_capacity(v4.len());
-        out.extend_from_slice(MAGIC);
-        out.extend_from_slice(&version.to_le_bytes());
-        out.extend_from_slice(&(old.len() as u64).to_le_bytes());
-        out.extend_from_slice(&fnv1a(old).to_le_bytes());
-        out.extend_from_slice(old);
-        out
+        framed(version, old)
     }
 
     /// The file a version 4 build wrote: this build's bytes of a
@@ -1015,13 +1014,7 @@ mod tests {
         let payload = &v5[28..];
         let (old, mode) = payload.split_at(payload.len() - 1);
         assert_eq!(mode, &[0u8], "only vision-only maps");
-        let mut out = Vec::with_capacity(v5.len());
-        out.extend_from_slice(MAGIC);
-        out.extend_from_slice(&version.to_le_bytes());
-        out.extend_from_slice(&(old.len() as u64).to_le_bytes());
-        out.extend_from_slice(&fnv1a(old).to_le_bytes());
-        out.extend_from_slice(old);
-        out
+        framed(version, old)
     }
 
     #[test]
@@ -1060,13 +1053,7 @@ mod tests {
         let payload = &v3[28..];
         let (old, count) = payload.split_at(payload.len() - 4);
         assert_eq!(count, &0u32.to_le_bytes(), "only maps without loop edges");
-        let mut out = Vec::with_capacity(v3.len() - 4);
-        out.extend_from_slice(MAGIC);
-        out.extend_from_slice(&version.to_le_bytes());
-        out.extend_from_slice(&(old.len() as u64).to_le_bytes());
-        out.extend_from_slice(&fnv1a(old).to_le_bytes());
-        out.extend_from_slice(old);
-        out
+        framed(version, old)
     }
 
     /// Rewrite the header's checksum after editing the payload (a damaged

@@ -10,7 +10,7 @@ use crate::camera::Camera;
 use crate::features::{Descriptor, KeyPoint, hamming};
 use crate::matching::{Bounds, FeatureGrid, RotationHistogram};
 
-use super::map::{KeyFrameId, Map, PointId, ScaleInfo};
+use super::map::{KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
 
 /// Tunable numbers of the matcher.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -148,9 +148,27 @@ pub fn project_point(
     if !bounds.contains(u, v) {
         return None;
     }
+    within_scale_and_view(map, id, mp, Point2::new(u, v), center, 1.0, min_view_cos)
+}
+
+/// The frustum test's tail, once the point is in front and inside the
+/// bounds at `uv`: within its scale range (the distance from `center`
+/// times `distance_factor`, which puts another camera's distance in the
+/// map camera's terms; 1 for the map camera) and seen from within
+/// `min_view_cos` of its mean viewing direction.
+pub fn within_scale_and_view(
+    map: &Map,
+    id: PointId,
+    mp: &MapPoint,
+    uv: Point2<f64>,
+    center: &Vector3<f64>,
+    distance_factor: f64,
+    min_view_cos: f64,
+) -> Option<Projected> {
     let po = mp.position.coords - center;
     let dist = po.norm();
-    if dist < 0.8 * mp.min_distance || dist > 1.2 * mp.max_distance {
+    let d_map = dist * distance_factor;
+    if d_map < 0.8 * mp.min_distance || d_map > 1.2 * mp.max_distance {
         return None;
     }
     let view_cos = po.dot(&mp.normal) / dist;
@@ -159,8 +177,8 @@ pub fn project_point(
     }
     Some(Projected {
         id,
-        uv: Point2::new(u, v),
-        level: map.scale.predict_level(mp.max_distance, dist),
+        uv,
+        level: map.scale.predict_level(mp.max_distance, d_map),
         view_cos,
     })
 }

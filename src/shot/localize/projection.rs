@@ -12,7 +12,7 @@ use crate::camera::Camera;
 use crate::features;
 use crate::matching::{Bounds, FeatureGrid};
 use crate::optimize::{Intrinsics, IntrinsicsCorrection};
-use crate::slam::matcher::{Projected, SearchTarget, search_local_points};
+use crate::slam::matcher::{Projected, SearchTarget, search_local_points, within_scale_and_view};
 use crate::slam::{KeyFrameId, Map, PointId};
 
 /// The 10 % quantile of the depths of all map points in the shot's view
@@ -88,23 +88,15 @@ fn project_into_shot(
     if !view.bounds.contains(u, v) {
         return None;
     }
-    let po = mp.position.coords - center;
-    let dist = po.norm();
-    // The scale range, in the map camera's terms.
-    let d_map = dist * view.distance_factor;
-    if d_map < 0.8 * mp.min_distance || d_map > 1.2 * mp.max_distance {
-        return None;
-    }
-    let view_cos = po.dot(&mp.normal) / dist;
-    if view_cos < min_view_cos {
-        return None;
-    }
-    Some(Projected {
+    within_scale_and_view(
+        map,
         id,
-        uv: Point2::new(u, v),
-        level: map.scale.predict_level(mp.max_distance, d_map),
-        view_cos,
-    })
+        mp,
+        Point2::new(u, v),
+        center,
+        view.distance_factor,
+        min_view_cos,
+    )
 }
 
 /// The local map of a shot: the points of the keyframes that observe the
