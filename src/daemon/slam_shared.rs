@@ -203,25 +203,38 @@ impl SlamShared {
     }
 
     /// Attach the SLAM's map.
+    ///
+    /// Lock order: this state's lock is never held while the map source is
+    /// called (the source takes the map's lock, and the SLAM thread, which
+    /// holds the map's lock while it works, reports here). The pinned list
+    /// is read and the source set in one critical section, so a keyframe
+    /// pinned meanwhile is pinned either here or by [`Self::pin_keyframe`].
     pub fn set_source(&self, source: Arc<dyn MapSource>) {
-        let mut g = self.lock();
-        for &id in &g.pinned {
+        let pinned = {
+            let mut g = self.lock();
+            g.source = Some(source.clone());
+            g.pinned.clone()
+        };
+        for id in pinned {
             if !source.pin_keyframe(id) {
                 tracing::warn!(keyframe = id, "a shot's keyframe is not in the map");
             }
         }
-        g.source = Some(source);
     }
 
     /// Keeps keyframe `id` in the map (an operator's shot is drawn on it):
     /// in the running SLAM's map now and in any map set later (a restart
-    /// pins its stored shots' keyframes before the map is loaded).
+    /// pins its stored shots' keyframes before the map is loaded). The map
+    /// source is called outside this state's lock (see [`Self::set_source`]).
     pub fn pin_keyframe(&self, id: u64) {
-        let mut g = self.lock();
-        if !g.pinned.contains(&id) {
-            g.pinned.push(id);
-        }
-        if let Some(s) = &g.source {
+        let source = {
+            let mut g = self.lock();
+            if !g.pinned.contains(&id) {
+                g.pinned.push(id);
+            }
+            g.source.clone()
+        };
+        if let Some(s) = source {
             s.pin_keyframe(id);
         }
     }
@@ -453,5 +466,88 @@ mod tests {
         assert_eq!(s.merges_made, 26);
         assert_eq!(s.merges.len(), SlamStatus::MAX_MERGES);
         assert_eq!(s.merges.last().unwrap().current_kf, 424);
+    }
+
+    /// A map source whose calls take the map's lock, as the SLAM's does,
+    /// and say when a call has started.
+    struct LockedSource {
+        map_lock: Arc<Mutex<()>>,
+        entered: std::sync::mpsc::Sender<u64>,
+    }
+
+    impl MapSource for LockedSource {
+        fn keyframes(&self) -> Vec<KeyframeInfo> {
+            Vec::new()
+        }
+        fn keyframe_image(&self, _id: u64) -> Option<Arc<GrayImage>> {
+            None
+        }
+        fn map(&self, _max_points: usize) -> MapView {
+            MapView {
+                points: Vec::new(),
+                total_points: 0,
+                trajectory: Vec::new(),
+            }
+        }
+        fn pin_keyframe(&self, id: u64) -> bool {
+            let _ = self.entered.send(id);
+            let _map = self.map_lock.lock().unwrap();
+            true
+        }
+    }
+
+    /// The SLAM thread writes the status while it holds the map's lock; a
+    /// shot pins its keyframe in the map meanwhile. Neither may wait for
+    /// the other (the pin once held the status's lock while it waited for
+    /// the map's: the daemon froze, its API and SLAM with it).
+    #[test]
+    fn pinning_a_keyframe_while_the_slam_holds_the_map_never_deadlocks() {
+        use std::sync::mpsc::channel;
+        let shared = Arc::new(SlamShared::new(true));
+        let map_lock = Arc::new(Mutex::new(()));
+        let (entered_tx, entered) = channel();
+        let source = Arc::new(LockedSource {
+            map_lock: map_lock.clone(),
+            entered: entered_tx,
+        });
+        // The SLAM holds the map while the source is attached and a shot
+        // pins its keyframe: both wait in the source for the map.
+        let slam_holds_map = map_lock.lock().unwrap();
+        shared.pin_keyframe(3); // no source yet: only remembered
+        let attach = {
+            let (shared, source) = (shared.clone(), source.clone());
+            std::thread::spawn(move || shared.set_source(source))
+        };
+        assert_eq!(
+            entered.recv().unwrap(),
+            3,
+            "set_source pins what was pinned"
+        );
+        let pin = {
+            let shared = shared.clone();
+            std::thread::spawn(move || shared.pin_keyframe(7))
+        };
+        assert_eq!(entered.recv().unwrap(), 7);
+        // Still holding the map, the SLAM writes the status: it must not
+        // wait for the pins (a bound only to turn a deadlock into a
+        // failure; the writes take microseconds).
+        let (done_tx, done) = channel();
+        {
+            let shared = shared.clone();
+            std::thread::spawn(move || {
+                shared.set_map_mode(crate::slam::MapMode::VisionOnly, "test");
+                shared.set_relocalised(1);
+                let _ = done_tx.send(shared.status().map_mode);
+            });
+        }
+        let mode = done.recv_timeout(Duration::from_secs(20));
+        drop(slam_holds_map);
+        attach.join().unwrap();
+        pin.join().unwrap();
+        assert!(
+            mode.is_ok(),
+            "the status writes waited for the map's lock: deadlock"
+        );
+        assert_eq!(shared.lock().pinned, vec![3, 7]);
     }
 }

@@ -343,7 +343,11 @@ impl FrameProcessor for SlamProcessor {
             self.persist.note_frame(frame.seq, &jpeg);
         }
         let out = self.slam.process(frame.seq, t, frame.image.clone());
-        let (keyframes, points) = {
+        // The map's lock is released before the shared status is written:
+        // neither lock is ever taken inside the other. (Writing the map's
+        // mode inside the map's lock, while the API pinned a shot's
+        // keyframe inside the status's lock, deadlocked the daemon.)
+        let (keyframes, points, mode, reason) = {
             let map = self.slam.map();
             let m = map.lock().unwrap_or_else(|e| e.into_inner());
             // New keyframes: their frames' JPEGs are what the map file
@@ -369,9 +373,9 @@ impl FrameProcessor for SlamProcessor {
                 }
                 None => "telemetry priors are off ([slam] priors = false)".to_string(),
             };
-            self.shared.set_map_mode(mode, &reason);
-            (m.keyframe_count(), m.point_count())
+            (m.keyframe_count(), m.point_count(), mode, reason)
         };
+        self.shared.set_map_mode(mode, &reason);
         if out.cam_from_world.is_some()
             && let Some(r) = self.slam.last_record()
             && r.index == frame.seq
