@@ -9,7 +9,7 @@
 //! Before the criterion groups, one timed run of each prints the final
 //! reprojection RMSE and the time, so the note can quote both ratios.
 
-#[path = "../../tests/geometry_support/mod.rs"]
+#[path = "../../tests/suite/geometry_support/mod.rs"]
 mod geometry_support;
 
 use std::hint::black_box;

@@ -6,7 +6,7 @@
 //! and iteration cap; a one-off accuracy table over 20 scenes is printed
 //! first.
 
-#[path = "../../tests/geometry_support/mod.rs"]
+#[path = "../../tests/suite/geometry_support/mod.rs"]
 mod geometry_support;
 
 use std::hint::black_box;

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """OpenCV peer for shotpilot's geometry: PnP-RANSAC and two-view on the
-scenes the Rust test `tests/geometry_peer_opencv.rs` writes.
+scenes the Rust test `tests/suite/geometry_peer_opencv.rs` writes.
 
 Usage: geometry_opencv.py SCENES.json  ->  prints one JSON object.
 

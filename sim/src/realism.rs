@@ -6,7 +6,7 @@
 //! - `ideal`: every effect off. The simulator renders exactly what it
 //!   rendered before realism existed (global shutter at one instant, light
 //!   Gaussian noise of 2 grey levels, the world's fixed sun), bit for bit
-//!   (test `sim/tests/ideal_unchanged.rs`).
+//!   (test `sim/tests/suite/ideal_unchanged.rs`).
 //! - `field`: a calm day with a small gimbal camera of the SIYI A8 mini
 //!   class (1/1.7-inch rolling-shutter CMOS, 3-axis gimbal) on a PX4
 //!   quadrotor with a u-blox M9-class GNSS receiver and a SiK telemetry

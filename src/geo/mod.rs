@@ -19,7 +19,7 @@
 //!
 //! Frames: NED world x north, y east, z down; body x forward, y right,
 //! z down; camera x right, y down, z forward. They agree with the
-//! simulator's (`sim/src/vehicle.rs`), which `tests/geo_sim.rs` checks.
+//! simulator's (`sim/src/vehicle.rs`), which `tests/suite/geo_sim.rs` checks.
 //! Synchronous: no tokio, no I/O.
 
 pub mod align;

@@ -1,5 +1,5 @@
 // Drives shotpilot's operator page in headless Chromium (playwright-core,
-// Debian's chromium) against a running daemon; started by tests/browser.rs.
+// Debian's chromium) against a running daemon; started by tests/suite/browser.rs.
 //
 // Environment: SHOTPILOT_URL (the daemon, e.g. http://127.0.0.1:8080),
 // SHOTPILOT_TOKEN (bearer token, optional), SHOTPILOT_CHROMIUM (browser

@@ -2,7 +2,7 @@
 //! (each with its 4xx while the server keeps serving), and shots that
 //! survive a restart.
 
-mod http_support;
+use crate::http_support;
 
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
@@ -1096,7 +1096,7 @@ fn check_schema(doc: &Value, schema: &Value, v: &Value, at: &str) -> Result<(), 
 /// The (method, path) pairs `api::router` serves under `/api/v1`, read
 /// from its source (axum cannot list a router's routes).
 fn router_routes() -> std::collections::BTreeSet<(String, String)> {
-    let src = include_str!("../src/api/mod.rs");
+    let src = include_str!("../../src/api/mod.rs");
     let body = &src[src.find("pub fn router(").expect("api::router")..];
     let body = &body[..body.find(".nest(\"/api/v1\"").expect("the /api/v1 nest")];
     let mut out = std::collections::BTreeSet::new();

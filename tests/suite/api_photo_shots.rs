@@ -8,8 +8,8 @@
 //! Needs ../shared/data/tum_fr3_teddy_100 (skips with a message otherwise;
 //! `.ci/run` requires it).
 
-mod data_support;
-mod http_support;
+use crate::data_support;
+use crate::http_support;
 
 use std::io::Cursor;
 use std::net::SocketAddr;

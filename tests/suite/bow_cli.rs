@@ -2,7 +2,7 @@
 //! dataset, import a DBoW2 text vocabulary, describe a file, and fail with a
 //! clear message on a corrupt one.
 
-mod data_support;
+use crate::data_support;
 
 use std::process::Command;
 

@@ -14,7 +14,7 @@
 //!   `shotpilot-sim`, a world the built-in vocabulary never saw), with the
 //!   built-in vocabulary.
 
-mod data_support;
+use crate::data_support;
 
 use std::path::{Path, PathBuf};
 

@@ -25,7 +25,7 @@
 //! `SHOTPILOT_NODE` (default `node`), `SHOTPILOT_SCREENSHOT` (default
 //! `<target>/tmp/browser/operator_page.png`).
 
-mod daemon_support;
+use crate::daemon_support;
 
 use daemon_support::{TOKEN, get_json};
 

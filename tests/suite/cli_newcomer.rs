@@ -3,7 +3,7 @@
 //! cause once; logs written to a pipe carry no ANSI colour codes; the
 //! `slam` summary's posed-frame count agrees with its ATE line.
 
-mod data_support;
+use crate::data_support;
 
 use std::io::{BufRead, BufReader, Read};
 use std::process::{Command, Stdio};

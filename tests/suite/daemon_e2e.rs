@@ -6,7 +6,7 @@
 //! item by item, and a cancellation stops everything cleanly with the map
 //! saved.
 
-mod daemon_support;
+use crate::daemon_support;
 
 use daemon_support::{get_json, http, request};
 

@@ -18,7 +18,7 @@
 //! The two runs take turns (one daemon at a time).
 //! `SHOTPILOT_REFINE_SEED=N` flies another world (default 1).
 
-mod daemon_support;
+use crate::daemon_support;
 
 use daemon_support::{get_json, http, request};
 

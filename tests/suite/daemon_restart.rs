@@ -7,7 +7,7 @@
 //! Run 3 finds the map file damaged: the daemon serves anyway with a fresh
 //! map, and the damaged file is kept under a new name, byte for byte.
 
-mod daemon_support;
+use crate::daemon_support;
 
 use daemon_support::{get_json, http, request};
 

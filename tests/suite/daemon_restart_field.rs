@@ -27,7 +27,7 @@
 //! Both need the simulator's binary beside the daemon's (`cargo build
 //! --release --workspace`, as `.ci/run` does).
 
-mod daemon_support;
+use crate::daemon_support;
 
 use daemon_support::{TOKEN, get_json, http};
 

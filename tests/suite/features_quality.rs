@@ -9,7 +9,7 @@
 //! absent. The OpenCV comparison needs opencv-python-headless
 //! (`SHOTPILOT_PYTHON`, default `python3`).
 
-mod data_support;
+use crate::data_support;
 
 use std::path::PathBuf;
 use std::process::Command;

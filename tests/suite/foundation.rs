@@ -6,7 +6,7 @@
 //! Tests that need `../shared/data` skip (with a message) when it is absent,
 //! so a clone without it still runs; `.ci/run` runs them with the data.
 
-mod data_support;
+use crate::data_support;
 
 use std::path::PathBuf;
 

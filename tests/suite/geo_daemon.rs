@@ -19,9 +19,9 @@
 //!
 //! Slow (two flights of `SHOTPILOT_GEO_FLIGHT_S` seconds, default 100, in
 //! real time; `full` flies the whole explore script, about 6 minutes each):
-//! `cargo test --release --test geo_daemon -- --ignored --nocapture`.
+//! `cargo test --release --test suite geo_daemon:: -- --ignored --nocapture`.
 
-mod daemon_support;
+use crate::daemon_support;
 
 use daemon_support::{get_json, request};
 

@@ -2,7 +2,7 @@
 //! 10 keyframes, 2000 points, 8000 observations, 1 px noise, poses and
 //! points perturbed.
 
-mod geometry_support;
+use crate::geometry_support;
 
 use std::time::Instant;
 

@@ -1,9 +1,9 @@
 //! Side-by-side with OpenCV (opencv-python-headless) on the same scenes, in
 //! the same run: PnP-RANSAC and two-view. Run with
 //! `SHOTPILOT_PEER_PYTHON=/work/venv/bin/python cargo test --release
-//! --test geometry_peer_opencv -- --ignored --nocapture`.
+//! --test suite geometry_peer_opencv:: -- --ignored --nocapture`.
 
-mod geometry_support;
+use crate::geometry_support;
 
 use std::process::Command;
 use std::time::Instant;

@@ -1,7 +1,7 @@
 //! PnP on synthetic scenes whose answer is known: 200 points, 1 px
 //! Gaussian noise, 50 % outliers, 100 seeded trials.
 
-mod geometry_support;
+use crate::geometry_support;
 
 use std::time::Instant;
 

@@ -1,6 +1,6 @@
 //! Two-view initialisation on synthetic scenes whose answer is known.
 
-mod geometry_support;
+use crate::geometry_support;
 
 use geometry_support::{CX, CY, F, TwoViewScene as Scene, motion, two_view_scene as make_scene};
 use nalgebra::Matrix3;

@@ -9,7 +9,7 @@
 //! - the simulator denies a PITCHYAW from a ground station not in control,
 //!   so a missing configure fails these tests.
 
-mod link_support;
+use crate::link_support;
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;

@@ -4,7 +4,7 @@
 //! runtime's clock, so nothing waits in real time and every duration below
 //! is the protocol's own.
 
-mod link_support;
+use crate::link_support;
 
 use std::time::Duration;
 

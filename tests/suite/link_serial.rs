@@ -4,7 +4,7 @@
 //!
 //! Needs `socat` (Debian package).
 
-mod link_support;
+use crate::link_support;
 
 use std::path::Path;
 use std::process::{Child, Command, Stdio};

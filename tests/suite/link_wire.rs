@@ -5,8 +5,6 @@
 //! Needs `pymavlink` in the Python at `$SHOTPILOT_PYTHON` (default
 //! `/work/venv/bin/python`, else `python3`).
 
-mod link_support;
-
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;

@@ -9,7 +9,7 @@
 //! ground, as after a restart).
 //!
 //! ```sh
-//! PROBE_DATA=DIR cargo test --release --test map_reload_probe -- --ignored --nocapture
+//! PROBE_DATA=DIR cargo test --release --test suite map_reload_probe:: -- --ignored --nocapture
 //! ```
 
 use std::path::{Path, PathBuf};

@@ -1,7 +1,7 @@
 //! The `shotpilot mission` command line: plan to a QGroundControl file,
 //! upload and download against the fake autopilot, JSON output.
 
-mod link_support;
+use crate::link_support;
 
 use std::process::Command;
 

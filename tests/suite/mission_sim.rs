@@ -3,7 +3,7 @@
 //! radio (frame loss each way, byte corruption, a 57600 baud cap), over UDP
 //! and over a serial pty pair. Every upload is read back and compared.
 
-mod link_support;
+use crate::link_support;
 
 use std::time::{Duration, Instant};
 

@@ -5,7 +5,7 @@
 //! re-requests advance with the runtime's clock, so the durations below
 //! are the protocol's own and nothing waits in real time.
 
-mod link_support;
+use crate::link_support;
 
 use std::time::Duration;
 

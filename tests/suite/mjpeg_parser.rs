@@ -3,7 +3,7 @@
 //! random camera-like streams with faults and on marker soup, fed in random
 //! pieces, and scanning work linear in the bytes received.
 
-mod mjpeg_support;
+use crate::mjpeg_support;
 
 use mjpeg_support::reference::RefParser;
 use shotpilot::video::mjpeg::{ParseEvent, Part, PartParser};

@@ -21,9 +21,9 @@
 //! The figures (keyframe position error median / p90, m, priors on vs off
 //! with the after-the-fact Sim(3)) are printed. Slow (two flights of
 //! `SHOTPILOT_PRIORS_FLIGHT_S` seconds, default 120, in real time):
-//! `cargo test --release --test priors_daemon -- --ignored --nocapture`.
+//! `cargo test --release --test suite priors_daemon:: -- --ignored --nocapture`.
 
-mod daemon_support;
+use crate::daemon_support;
 
 use daemon_support::get_json;
 

@@ -2,7 +2,7 @@
 //! on TUM fr3/teddy (first 40 frames), then the desired shot from anchors
 //! and from a photo, as JSON. Skips with a message when ../shared/data is absent.
 
-mod data_support;
+use crate::data_support;
 
 use std::path::PathBuf;
 use std::process::Command;

@@ -8,7 +8,7 @@
 //!
 //! The map is SLAM's run over a rendered segment of the simulator's explore
 //! flight, aligned to the truth with a Sim(3) on the keyframes (as in
-//! `tests/shot_sim.rs`). Every photo goes through the path of
+//! `tests/suite/shot_sim.rs`). Every photo goes through the path of
 //! `shotpilot shot --photo`: JPEG bytes, [`shot::photo_camera`] (explicit
 //! intrinsics, else EXIF, else the map camera scaled), localisation with
 //! the BoW candidates. Errors are against the hidden pose after the Sim(3):
@@ -32,7 +32,7 @@
 //! the error, sigma and error in the camera's frame (x right, y down, z
 //! along the optical axis; % of the distance), or why it was refused.
 //!
-//! `cargo test --release --test shot_photos -- --nocapture` (about 2 min).
+//! `cargo test --release --test suite shot_photos:: -- --nocapture` (about 2 min).
 
 use std::io::Cursor;
 use std::sync::Arc;

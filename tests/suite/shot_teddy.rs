@@ -8,7 +8,7 @@
 //! Needs ../shared/data/tum_fr3_teddy_100 (skips with a message otherwise).
 //! Run with `--nocapture` to see the table of errors.
 
-mod data_support;
+use crate::data_support;
 
 use std::path::Path;
 use std::sync::{Arc, OnceLock};
@@ -24,7 +24,7 @@ use shotpilot::shot::{self, BowIndex, Localization, frame_corners};
 use shotpilot::slam::{self, Map, Slam, mapfile};
 use shotpilot::video::dataset::Dataset;
 
-/// The dataset (tests/data_support: required under `.ci/run`).
+/// The dataset (tests/suite/data_support: required under `.ci/run`).
 fn data_dir() -> Option<std::path::PathBuf> {
     data_support::shared_data("tum_fr3_teddy_100")
 }

@@ -1,6 +1,6 @@
 //! Map merging after a forced tracking loss, on simulator renders made in
 //! the test (`shotpilot-sim`, world seed 5, the `loop` path as in
-//! `tests/slam_loop.rs`: one lap of about 520 m, then 60 m over its start
+//! `tests/suite/slam_loop.rs`: one lap of about 520 m, then 60 m over its start
 //! again). Frames `BLACK_FROM .. BLACK_FROM + BLACK_COUNT` (about 20 m of
 //! flight) are replaced by black frames on the way to the SLAM (a frame
 //! filter here; the render is untouched):

@@ -4,7 +4,7 @@
 //! does not initialise and says why; the map keeps its invariants and a
 //! saved map loads back equal; damaged map files are refused.
 
-mod data_support;
+use crate::data_support;
 
 use std::path::PathBuf;
 use std::sync::Arc;

@@ -23,9 +23,9 @@
 //! grow that fast (a dead point id costs 8 bytes, not 144), so the rest of
 //! the creep is elsewhere in the daemon (not found yet).
 //!
-//! `cargo test --release --test soak -- --ignored --nocapture`
+//! `cargo test --release --test suite soak:: -- --ignored --nocapture`
 
-mod daemon_support;
+use crate::daemon_support;
 
 use daemon_support::get_json;
 
@@ -60,7 +60,7 @@ struct Row {
 }
 
 #[test]
-#[ignore = "a 30-minute soak run: cargo test --release --test soak -- --ignored --nocapture (SOAK_MINUTES sets its length)"]
+#[ignore = "a 30-minute soak run: cargo test --release --test suite soak:: -- --ignored --nocapture (SOAK_MINUTES sets its length)"]
 fn a_long_patrol_keeps_tracking_and_memory_bounded() {
     let minutes: f64 = std::env::var("SOAK_MINUTES")
         .ok()

@@ -4,7 +4,7 @@
 //! mode, and stays where it was stopped. The simulator runs without GPS
 //! bias (checked), so LOCAL_POSITION_NED is its true position.
 
-mod link_support;
+use crate::link_support;
 
 use std::time::Duration;
 

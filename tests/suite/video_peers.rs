@@ -21,7 +21,7 @@
 //! -plugins-{base,good,bad,ugly}, python3-gi and gir1.2-gst-rtsp-server-1.0
 //! (`.ci/run` installs them).
 
-mod daemon_support;
+use crate::daemon_support;
 
 use std::collections::HashSet;
 use std::io::{BufRead, BufReader};
@@ -448,7 +448,7 @@ struct Figures {
 static ONE_DAEMON: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 /// Uploads and starts the shot's mission, then waits for the daemon's
-/// refinement loop to stop (as `tests/daemon_refine.rs` drives it);
+/// refinement loop to stop (as `tests/suite/daemon_refine.rs` drives it);
 /// returns the recorded refinement and the seconds it took.
 fn refine(addr: std::net::SocketAddr, sid: &str) -> (Value, f64) {
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
@@ -605,7 +605,7 @@ fn end_to_end<P, Q>(
     assert!(shot_error_rel < 0.1, "{name}: {figures:?}");
     // A photograph of a keyframe is a view the camera can take again: the
     // loop ends under its threshold (1 % of the image diagonal), as in
-    // tests/daemon_refine.rs on MJPEG.
+    // tests/suite/daemon_refine.rs on MJPEG.
     assert_eq!(figures.refine_stop, "converged", "{name}: {refinement}");
     assert!(figures.refine_final_pct <= 1.0, "{name}: {refinement}");
     figures

@@ -204,7 +204,7 @@ impl MapSigma {
 }
 
 impl Default for MapSigma {
-    /// Calibrated on the simulator's explore map (`tests/shot_photos.rs`,
+    /// Calibrated on the simulator's explore map (`tests/suite/shot_photos.rs`,
     /// hidden poses of seeds 1 and 2; seed 3 held out). Photos of the map
     /// camera under the flight's light are off by 0.21 % of the distance
     /// and 0.14 degrees (medians) while their pose covariance alone says a

@@ -1,6 +1,6 @@
 //! The multipart/MJPEG part parser: the product's own, tolerant, fuzzed
 //! (`fuzz/fuzz_targets/mjpeg_parser.rs`) and tested against the
-//! rescanning reference parser (`tests/mjpeg_parser.rs`).
+//! rescanning reference parser (`tests/suite/mjpeg_parser.rs`).
 //!
 //! The boundary may be quoted, sent with or without its leading `--`,
 //! lines may end in CRLF or LF, parts may lack headers or

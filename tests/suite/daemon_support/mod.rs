@@ -1,15 +1,14 @@
 //! Shared by the tests that start the daemon with the in-process simulator
 //! (`daemon_e2e`, `daemon_refine`, `geo_daemon`, `browser`): sockets bound
 //! on port 0 for the daemon, and requests through the tests' one HTTP
-//! client (`tests/http_support`).
+//! client (`tests/suite/http_support`).
 #![allow(dead_code)] // each test binary uses its own subset
 
 use std::net::SocketAddr;
 use std::path::Path;
 use std::time::Duration;
 
-#[path = "../http_support/mod.rs"]
-pub mod http_support;
+pub(crate) use crate::http_support;
 
 use serde_json::Value;
 use tokio_util::sync::CancellationToken;
