@@ -33,7 +33,7 @@ use super::geo_service::GeoService;
 use super::refine_service::{record_abort, record_rounds};
 use super::slam_shared::SlamShared;
 use crate::api::{Achieved, ShotEvent, ShotEvents};
-use crate::geo::{Geodetic, LocalFrame};
+use crate::geo::{GeoAlignment, GeoError, Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
 use crate::refine::{
     ArrivalDetector, Context, LiveFrame, Observation, Reachable, Session, Step, outline_in_live,
@@ -598,6 +598,8 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
         }
     };
     let t_loop = Instant::now();
+    // The alignment of the last round, for a round whose refit is refused.
+    let mut last_alignment = None;
     loop {
         let target = *session.target();
         let t_fly = Instant::now();
@@ -630,7 +632,7 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
                 save_rounds(deps, &id, &before, Some(&Abort::Cancelled)).await;
                 return;
             }
-            s = look(deps, session, &shot, &home, arrived_at) => s,
+            s = look(deps, session, &shot, &home, arrived_at, &mut last_alignment) => s,
         };
         let (s, step) = step;
         let step = match step {
@@ -913,6 +915,34 @@ async fn collect_frames(
     Ok(frames)
 }
 
+/// The alignment a round works with: the georeference's fit now, or,
+/// when a refit is refused after an earlier round had one, that round's
+/// (`last`). Under a drifting GNSS bias the pairs of a long flight stop
+/// agreeing with one similarity (the share of inliers falls under
+/// `min_inlier_ratio`); the loop measures its error in the images and
+/// corrects it, so it goes on with the alignment it has rather than
+/// abort the shot. Refused before any round had one: the refusal.
+fn round_alignment(
+    fit: Result<GeoAlignment, GeoError>,
+    last: &mut Option<GeoAlignment>,
+) -> Result<GeoAlignment, GeoError> {
+    match fit {
+        Ok(a) => {
+            *last = Some(a.clone());
+            Ok(a)
+        }
+        Err(e) => match last {
+            Some(a) => {
+                tracing::warn!(
+                    "refinement: georeference refit refused ({e}); this round keeps the last round's alignment"
+                );
+                Ok(a.clone())
+            }
+            None => Err(e),
+        },
+    }
+}
+
 /// The arrival: a few frames received after it, a map snapshot and the
 /// georeference, then the session's round on a blocking thread.
 async fn look(
@@ -921,6 +951,7 @@ async fn look(
     shot: &Shot,
     home: &Home,
     arrived: Instant,
+    last: &mut Option<GeoAlignment>,
 ) -> Looked {
     let p = &deps.params;
     let frame_ltp = LocalFrame::new(Geodetic {
@@ -948,8 +979,9 @@ async fn look(
             }),
         );
     };
-    let alignment = match deps.geo.target(&map_from_desired) {
-        Ok((_, a)) => a,
+    let alignment = match round_alignment(deps.geo.target(&map_from_desired).map(|(_, a)| a), last)
+    {
+        Ok(a) => a,
         Err(e) => return (session, Err(Abort::Georeference(e))),
     };
     let mount = deps.geo.params().mount.clone();
@@ -1152,7 +1184,48 @@ async fn fly(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lie::Sim3;
     use crate::mission::plan::Params as PlanParams;
+
+    /// A refit refused mid-loop (a drifting GNSS bias leaves too few pairs
+    /// agreeing) keeps the last round's alignment; refused before any round
+    /// had one, the refusal stands; a later fit replaces the kept one.
+    #[test]
+    fn a_refused_refit_keeps_the_last_rounds_alignment() {
+        let refused = || {
+            Err(GeoError::TooFewInliers {
+                found: 23,
+                needed: 24,
+                pairs: 48,
+            })
+        };
+        let fit = |x: f64| {
+            GeoAlignment::given(Sim3::new(
+                nalgebra::UnitQuaternion::identity(),
+                Vector3::new(x, 0.0, 0.0),
+                1.0,
+            ))
+        };
+        let mut last = None;
+        assert!(matches!(
+            round_alignment(refused(), &mut last),
+            Err(GeoError::TooFewInliers { found: 23, .. })
+        ));
+        let a = round_alignment(Ok(fit(1.0)), &mut last).unwrap();
+        assert_eq!(a.ned_from_map.translation.x, 1.0);
+        let kept = round_alignment(refused(), &mut last).unwrap();
+        assert_eq!(kept.ned_from_map.translation.x, 1.0);
+        let b = round_alignment(Ok(fit(2.0)), &mut last).unwrap();
+        assert_eq!(b.ned_from_map.translation.x, 2.0);
+        assert_eq!(
+            round_alignment(refused(), &mut last)
+                .unwrap()
+                .ned_from_map
+                .translation
+                .x,
+            2.0
+        );
+    }
 
     fn target() -> Target {
         Target {
