@@ -51,9 +51,12 @@ function showStatus(s) {
   }
   const slamLevel = sl.state === 'tracking' ? 'ok' : (sl.state === 'initializing' ? 'warn' : 'bad');
   badge('b-slam', slamLevel, `SLAM ${sl.state || '?'} · ${sl.keyframes ?? 0} kf · ${sl.points ?? 0} pts`);
-  const nl = sl.loops_closed ?? 0;
-  badge('b-loops', nl ? 'ok' : 'none', `${nl} loop${nl === 1 ? '' : 's'} closed`);
-  $('b-loops').title = (sl.loops || []).map((l) => `keyframe #${l.current_kf} joined #${l.loop_kf} (${l.inliers} inliers, scale ${fmt(l.scale, 3)}, ${fmt(l.rotation_deg, 2)}°)`).join('\n');
+  const nl = sl.loops_closed ?? 0, nm = sl.merges_made ?? 0;
+  badge('b-loops', nl || nm ? 'ok' : 'none', `${nl} loop${nl === 1 ? '' : 's'} closed${nm ? ` · ${nm} map${nm === 1 ? '' : 's'} merged` : ''}`);
+  $('b-loops').title = [
+    ...(sl.loops || []).map((l) => `loop: keyframe #${l.current_kf} joined #${l.loop_kf} (${l.inliers} inliers, scale ${fmt(l.scale, 3)}, ${fmt(l.rotation_deg, 2)}°)`),
+    ...(sl.merges || []).map((m) => `merge: map ${m.from_map} joined map ${m.into_map} at keyframe #${m.current_kf} ~ #${m.merge_kf} (${m.keyframes_moved} keyframes moved)`),
+  ].join('\n');
   const g = ve.georeference || {};
   if (g.state === 'ok') badge('b-geo', 'ok', `georef ok · rms ${(g.rms_m * 100).toFixed(1)} cm`);
   else badge('b-geo', g.state === 'waiting' ? 'warn' : 'bad', `georef ${g.state || 'none'}`);
@@ -497,30 +500,43 @@ function drawLoops(cv, g, P, kfs) {
   cv.dataset.loops = JSON.stringify(drawn);
 }
 // The map's events, newest first: each loop closed (status slam.loops,
-// the latest few) with its figures; its keyframes are buttons that choose
-// the keyframe in the editor and centre the world map on it. Hooks for
-// tests and tools: #mapevents li[data-kind] with data-current, data-loop
-// (the two keyframes) and data-at (unix seconds).
+// the latest few) and each map merged after a tracking loss (slam.merges)
+// with its figures; their keyframes are buttons that choose the keyframe in
+// the editor and centre the world map on it. Hooks for tests and tools:
+// #mapevents li[data-kind="loop"] with data-current and data-loop (the two
+// keyframes), li[data-kind="merge"] with data-current and data-merge, each
+// with data-at (unix seconds).
 let mapEventsSeen = '';
 function renderMapEvents(sl) {
-  const loops = sl.loops || [];
-  const key = JSON.stringify(loops.map((l) => [l.current_kf, l.loop_kf, l.at_unix]));
+  const loops = sl.loops || [], merges = sl.merges || [];
+  const key = JSON.stringify([loops.map((l) => [l.current_kf, l.loop_kf, l.at_unix]), merges.map((m) => [m.current_kf, m.merge_kf, m.at_unix])]);
   if (key === mapEventsSeen) return;
   mapEventsSeen = key;
   const box = $('mapevents');
   box.textContent = '';
-  if (!loops.length) { box.append(el('li', { class: 'none' }, 'no loops closed yet')); return; }
+  if (!loops.length && !merges.length) { box.append(el('li', { class: 'none' }, 'no loops closed or maps merged yet')); return; }
   const kfButton = (id) => {
     const b = el('button', { class: 'kf', 'data-kf': id, 'aria-label': `keyframe ${id}: choose it and show it on the map` }, `#${id}`);
     b.addEventListener('click', () => showKeyframe(id));
     return b;
   };
-  for (const l of [...loops].reverse()) {
+  const time = (at) => new Date(at * 1000).toLocaleTimeString();
+  const items = [];
+  loops.forEach((l, i) => items.push({ at: l.at_unix, i, li: () => {
     const li = el('li', { 'data-kind': 'loop', 'data-current': l.current_kf, 'data-loop': l.loop_kf, 'data-at': l.at_unix });
-    li.append(`${new Date(l.at_unix * 1000).toLocaleTimeString()} loop closed: keyframe `, kfButton(l.current_kf), ' saw ', kfButton(l.loop_kf),
+    li.append(`${time(l.at_unix)} loop closed: keyframe `, kfButton(l.current_kf), ' saw ', kfButton(l.loop_kf),
       ` again (${l.inliers} inliers, scale ${fmt(l.scale, 3)}, rotation ${fmt(l.rotation_deg, 2)}°, ${l.fused} points fused)`);
-    box.append(li);
-  }
+    return li;
+  } }));
+  merges.forEach((m, i) => items.push({ at: m.at_unix, i, li: () => {
+    const li = el('li', { 'data-kind': 'merge', 'data-current': m.current_kf, 'data-merge': m.merge_kf, 'data-at': m.at_unix });
+    li.append(`${time(m.at_unix)} maps merged: map ${m.from_map} (started after a tracking loss) joined map ${m.into_map} where keyframe `, kfButton(m.current_kf), ' saw ', kfButton(m.merge_kf),
+      ` (${m.inliers} inliers, scale ${fmt(m.scale, 3)}, ${m.keyframes_moved} keyframes moved, ${m.fused} points fused)`);
+    return li;
+  } }));
+  // Newest first; within one kind the status's order breaks ties.
+  items.sort((a, b) => b.at - a.at || b.i - a.i);
+  for (const it of items) box.append(it.li());
 }
 // Choose keyframe `id` in the editor and centre the world map on it (a
 // keyframe the map culled since says so).

@@ -483,13 +483,45 @@ async function main() {
         badge: document.getElementById('b-loops').textContent,
         drawn: JSON.parse(document.getElementById('map').dataset.loops || '[]'),
         events: [...document.querySelectorAll('#mapevents li[data-kind="loop"]')].map((li) => [Number(li.dataset.current), Number(li.dataset.loop)]),
-        status: { loops_closed: s.slam.loops_closed, loops: s.slam.loops.map((l) => [l.current_kf, l.loop_kf]) },
+        merge_events: [...document.querySelectorAll('#mapevents li[data-kind="merge"]')].map((li) => [Number(li.dataset.current), Number(li.dataset.merge)]),
+        status: {
+          loops_closed: s.slam.loops_closed, loops: s.slam.loops.map((l) => [l.current_kf, l.loop_kf]),
+          merges_made: s.slam.merges_made, merges: s.slam.merges.map((m) => [m.current_kf, m.merge_kf]),
+        },
       };
     });
     out.loops = await loopsLook();
     for (let i = 0; i < 10 && !out.loops.badge.startsWith(`${out.loops.status.loops_closed} loop`); i++) {
       await page.waitForTimeout(500);
       out.loops = await loopsLook();
+    }
+    // A merge as the status reports one (this flight keeps tracking, so
+    // its status has none): the events list shows it beside the loops,
+    // newest first, with its two keyframes as buttons; the next status
+    // puts the list back.
+    out.merge_render = await page.evaluate(() => {
+      const sl = JSON.parse(JSON.stringify(state.status.slam));
+      const at = Date.now() / 1000 + 3600;
+      sl.merges = [{ current_kf: 41, merge_kf: 7, current_t: 20, merge_t: 3, from_map: 1, into_map: 0, inliers: 55, projection_matches: 120, scale: 1.02, keyframes_moved: 12, fused: 30, correction_ms: 8.5, at_unix: at }];
+      renderMapEvents(sl);
+      const first = document.querySelector('#mapevents li');
+      const r = {
+        kind: first.dataset.kind, current: first.dataset.current, merge: first.dataset.merge,
+        buttons: [...first.querySelectorAll('button.kf')].map((b) => b.dataset.kf),
+        text: first.textContent,
+        loops_listed: document.querySelectorAll('#mapevents li[data-kind="loop"]').length,
+      };
+      renderMapEvents(state.status.slam);
+      r.after = document.querySelectorAll('#mapevents li[data-kind="merge"]').length;
+      return r;
+    });
+    {
+      const m = out.merge_render;
+      check(m.kind === 'merge' && m.current === '41' && m.merge === '7', `the newest event is the merge: ${JSON.stringify(m)}`);
+      check(m.buttons.join(',') === '41,7', `the merge's keyframes are buttons: ${JSON.stringify(m)}`);
+      check(/map 1 .*joined map 0/.test(m.text) && /12 keyframes moved/.test(m.text), `the merge says what joined what: ${m.text}`);
+      check(m.loops_listed === out.loops.events.length, `the loops stay listed beside the merge: ${JSON.stringify(m)}`);
+      check(m.after === out.loops.merge_events.length, `the status's own list is back: ${JSON.stringify(m)}`);
     }
     // Layouts: a laptop and a tablet.
     await page.setViewportSize({ width: 1280, height: 800 });

@@ -4,18 +4,12 @@
 
 use crate::data_support;
 
-use std::process::Command;
+use crate::cli_support::shotpilot;
 
 use image::{GrayImage, Luma};
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
 use shotpilot::bow::Vocabulary;
-
-fn shotpilot() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_shotpilot"));
-    c.current_dir(env!("CARGO_MANIFEST_DIR"));
-    c
-}
 
 fn run_json(args: &[&str]) -> serde_json::Value {
     let out = shotpilot().args(args).output().unwrap();

@@ -500,9 +500,15 @@ fn operator_page_in_headless_chromium() {
     // each closed (those still in the map).
     let lp = &seen["loops"];
     let n = lp["status"]["loops_closed"].as_u64().unwrap();
+    let m = lp["status"]["merges_made"].as_u64().unwrap();
+    let merged = match m {
+        0 => String::new(),
+        1 => " · 1 map merged".to_string(),
+        m => format!(" · {m} maps merged"),
+    };
     assert_eq!(
         lp["badge"],
-        format!("{n} loop{} closed", if n == 1 { "" } else { "s" }),
+        format!("{n} loop{} closed{merged}", if n == 1 { "" } else { "s" }),
         "{lp}"
     );
     let pairs = lp["status"]["loops"].as_array().unwrap();
@@ -513,7 +519,12 @@ fn operator_page_in_headless_chromium() {
     let listed: Vec<&Value> = lp["events"].as_array().unwrap().iter().collect();
     let newest_first: Vec<&Value> = pairs.iter().rev().collect();
     assert_eq!(listed, newest_first, "{lp}");
-    eprintln!("loops: {lp}");
+    // And every merge the status lists (a flight with a tracking loss).
+    let merges = lp["status"]["merges"].as_array().unwrap();
+    let listed: Vec<&Value> = lp["merge_events"].as_array().unwrap().iter().collect();
+    let newest_first: Vec<&Value> = merges.iter().rev().collect();
+    assert_eq!(listed, newest_first, "{lp}");
+    eprintln!("loops and merges: {lp}");
     let shots = get_json(addr, "/api/v1/shots");
     // The first shot, then the whole shot's, then the second shot (which
     // may have taken a few keyframes to localise).

@@ -1,28 +1,14 @@
 //! The `shotpilot eval` command as a user runs it: exit codes, one JSON
 //! object with `--json`, a PNG with `--plot`, errors that name file and line.
 
-use std::process::Command;
-
-fn shotpilot() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_shotpilot"));
-    c.current_dir(env!("CARGO_MANIFEST_DIR"));
-    c
-}
+use crate::cli_support::{run_ok, shotpilot};
 
 const GT: &str = "tests/fixtures/teddy_groundtruth.txt";
 const EST: &str = "tests/fixtures/teddy_estimate.txt";
 
 #[test]
 fn json_is_one_object_with_the_documented_keys() {
-    let out = shotpilot()
-        .args(["eval", "--gt", GT, "--est", EST, "--json"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = run_ok(shotpilot().args(["eval", "--gt", GT, "--est", EST, "--json"]));
     let stdout = String::from_utf8(out.stdout).unwrap();
     assert_eq!(stdout.trim().lines().count(), 1, "{stdout}");
     let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
@@ -39,15 +25,10 @@ fn json_is_one_object_with_the_documented_keys() {
 fn plot_writes_a_png() {
     let dir = tempfile::tempdir().unwrap();
     let png = dir.path().join("p.png");
-    let out = shotpilot()
-        .args(["eval", "--gt", GT, "--est", EST, "--plot"])
-        .arg(&png)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    run_ok(
+        shotpilot()
+            .args(["eval", "--gt", GT, "--est", EST, "--plot"])
+            .arg(&png),
     );
     let img = image::open(&png).unwrap();
     assert_eq!((img.width(), img.height()), (1400, 600));

@@ -3,6 +3,7 @@
 //! cause once; logs written to a pipe carry no ANSI colour codes; the
 //! `slam` summary's posed-frame count agrees with its ATE line.
 
+use crate::cli_support::run_ok;
 use crate::data_support;
 
 use std::io::{BufRead, BufReader, Read};
@@ -105,16 +106,11 @@ fn slam_summary_counts_agree_with_the_ate_line() {
     let Some(dir) = data_support::shared_data("tum_fr3_teddy_100") else {
         return;
     };
-    let out = shotpilot()
-        .args(["--log", "warn", "slam", "--sequential", "--gt"])
-        .arg(dir.join("groundtruth.txt"))
-        .arg(&dir)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = run_ok(
+        shotpilot()
+            .args(["--log", "warn", "slam", "--sequential", "--gt"])
+            .arg(dir.join("groundtruth.txt"))
+            .arg(&dir),
     );
     let text = String::from_utf8_lossy(&out.stdout);
     let first = text.lines().next().unwrap();

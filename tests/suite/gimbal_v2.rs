@@ -9,13 +9,13 @@
 //! - the simulator denies a PITCHYAW from a ground station not in control,
 //!   so a missing configure fails these tests.
 
-use crate::link_support;
+use crate::link_support::{self, home_of, wait_for};
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use mavlink::dialects::common::{MavCmd, MavMessage, MavResult};
-use shotpilot::mission::plan::{self, Flavour, Home, Target};
+use shotpilot::mission::plan::{self, Flavour, Target};
 use shotpilot::mission::upload;
 use shotpilot::vehicle::{self, FlightMode, LinkError, LinkHandle, Params};
 use shotpilot_sim::app::{self, SimConfig};
@@ -136,18 +136,6 @@ fn is_release(fr: &Frame) -> bool {
                 && c.param1 == -3.0 && c.param2 == -3.0)
 }
 
-async fn wait_for<T>(
-    what: &str,
-    rx: &mut tokio::sync::watch::Receiver<T>,
-    seconds: u64,
-    f: impl FnMut(&T) -> bool,
-) -> anyhow::Result<()> {
-    tokio::time::timeout(Duration::from_secs(seconds), rx.wait_for(f))
-        .await
-        .map_err(|_| anyhow::anyhow!("timed out after {seconds} s waiting for {what}"))??;
-    Ok(())
-}
-
 async fn gimbal_pitch_reaches(link: &LinkHandle, pitch: f64, seconds: u64) -> anyhow::Result<f64> {
     let mut rx = link.telemetry.gimbal.clone();
     wait_for("the gimbal pitch", &mut rx, seconds, |g| {
@@ -193,16 +181,7 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
     // The simulator builds its world first: seconds, more on a loaded machine.
     let v = link.wait_for_vehicle(Duration::from_secs(60)).await?;
     anyhow::ensure!(v.flavour == Some(flavour), "sim says {:?}", v.flavour);
-    let mut home_rx = link.telemetry.home.clone();
-    wait_for("HOME_POSITION", &mut home_rx, 30, Option::is_some).await?;
-    let h = (*home_rx.borrow())
-        .map(|s| s.value)
-        .ok_or_else(|| anyhow::anyhow!("no home"))?;
-    let home = Home {
-        lat_deg: h.lat_deg,
-        lon_deg: h.lon_deg,
-        alt_amsl_m: h.alt_amsl_m,
-    };
+    let home = home_of(&link).await?;
     let target = Target {
         lat_deg: home.lat_deg + 12.0 / 111_195.0,
         lon_deg: home.lon_deg,

@@ -7,12 +7,14 @@
 //! `cargo test --release --test suite shot_photos:: -- --nocapture`.
 //! The `*_support` modules are what several subjects share.
 
+mod cli_support;
 mod daemon_support;
 mod data_support;
 mod geometry_support;
 mod http_support;
 mod link_support;
 mod mjpeg_support;
+mod sim_support;
 
 mod api_http;
 mod api_photo_shots;

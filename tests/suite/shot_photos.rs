@@ -37,7 +37,7 @@
 use std::io::Cursor;
 use std::sync::Arc;
 
-use nalgebra::{Isometry3, Point2, Point3, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, Unit, UnitQuaternion, Vector3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
@@ -50,6 +50,8 @@ use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::paths::{CameraPath, Params as PathParams};
 use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::world::{World, WorldParams};
+
+use crate::sim_support::{distance_to_scene, random_unit, visible_point_indices};
 
 const SEED: u64 = 1;
 /// The mapped segment of the explore flight: start, end, step (s).
@@ -154,63 +156,6 @@ fn build(world: Arc<World>) -> anyhow::Result<Mapped> {
     })
 }
 
-/// Mapped points the camera sees unoccluded inside its image.
-fn visible(m: &Mapped, camera: &Camera, world_from_cam: &Isometry3<f64>) -> usize {
-    let cfw = world_from_cam.inverse();
-    let eye = Point3::from(world_from_cam.translation.vector);
-    let (w, h) = (camera.width as f64, camera.height as f64);
-    m.points_world
-        .iter()
-        .filter(|p| {
-            let pc = cfw * **p;
-            let Some(px) = camera.project(&pc.coords) else {
-                return false;
-            };
-            if !(px.x >= 0.0 && px.y >= 0.0 && px.x <= w - 1.0 && px.y <= h - 1.0) {
-                return false;
-            }
-            let d = **p - eye;
-            let dist = d.norm();
-            match m.world.ray_cast(&eye, &(d / dist), dist * 1.1) {
-                Some(hit) => hit.t > dist * 0.97,
-                None => true,
-            }
-        })
-        .count()
-}
-
-/// Median distance to the scene over a 7x7 grid of rays, metres.
-fn distance_to_scene(m: &Mapped, world_from_cam: &Isometry3<f64>) -> f64 {
-    let eye = Point3::from(world_from_cam.translation.vector);
-    let (w, h) = (m.camera.width as f64, m.camera.height as f64);
-    let mut d = Vec::new();
-    for j in 0..7 {
-        for i in 0..7 {
-            let px = Point2::new((i as f64 + 0.5) * w / 7.0, (j as f64 + 0.5) * h / 7.0);
-            let ray = world_from_cam.rotation * m.camera.unproject(px).into_inner();
-            if let Some(hit) = m.world.ray_cast(&eye, &ray, 2000.0) {
-                d.push(hit.t);
-            }
-        }
-    }
-    d.sort_by(f64::total_cmp);
-    d.get(d.len() / 2).copied().unwrap_or(f64::NAN)
-}
-
-fn random_unit(rng: &mut StdRng) -> Unit<Vector3<f64>> {
-    loop {
-        let v = Vector3::new(
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-        );
-        let n: f64 = v.norm();
-        if n > 0.1 && n <= 1.0 {
-            return Unit::new_normalize(v);
-        }
-    }
-}
-
 /// One hidden pose.
 #[derive(Debug, Clone, Copy)]
 struct Hidden {
@@ -272,7 +217,7 @@ fn hidden_poses(m: &Mapped, n: usize, seed: u64) -> Vec<Hidden> {
             Translation3::from(new_eye.coords),
             align * base.rotation * roll * turn,
         );
-        if visible(m, &m.camera, &pose) < 60 {
+        if visible_point_indices(&m.world, &m.camera, &m.points_world, &pose).len() < 60 {
             continue;
         }
         let off_path_m = m
@@ -284,7 +229,7 @@ fn hidden_poses(m: &Mapped, n: usize, seed: u64) -> Vec<Hidden> {
             pose,
             off_path_m,
             scale,
-            dist_m: distance_to_scene(m, &pose),
+            dist_m: distance_to_scene(&m.world, &m.camera, &pose),
             kf_time: t,
         });
     }

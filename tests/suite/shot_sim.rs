@@ -24,7 +24,7 @@
 
 use std::sync::{Arc, OnceLock};
 
-use nalgebra::{Isometry3, Point2, Point3, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
@@ -37,6 +37,8 @@ use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::paths::{CameraPath, Params as PathParams, camera_from_yaw_pitch};
 use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::world::{World, WorldParams};
+
+use crate::sim_support::{distance_to_scene, random_unit, visible_point_indices};
 
 /// One configuration of the experiment.
 #[derive(Debug, Clone, Copy)]
@@ -186,73 +188,7 @@ fn visible_map_points(
     points_world: &[Point3<f64>],
     world_from_cam: &Isometry3<f64>,
 ) -> usize {
-    visible_point_indices(sc, camera, points_world, world_from_cam).len()
-}
-
-/// Indices of the mapped points (in the true world frame) that the camera
-/// at `world_from_cam` sees unoccluded inside its image.
-fn visible_point_indices(
-    sc: &Scene,
-    camera: &Camera,
-    points_world: &[Point3<f64>],
-    world_from_cam: &Isometry3<f64>,
-) -> Vec<usize> {
-    let cam_from_world = world_from_cam.inverse();
-    let eye = Point3::from(world_from_cam.translation.vector);
-    let (w, h) = (camera.width as f64, camera.height as f64);
-    points_world
-        .iter()
-        .enumerate()
-        .filter(|(_, p)| {
-            let pc = cam_from_world * **p;
-            let Some(px) = camera.project(&pc.coords) else {
-                return false;
-            };
-            if !(px.x >= 0.0 && px.y >= 0.0 && px.x <= w - 1.0 && px.y <= h - 1.0) {
-                return false;
-            }
-            let d = **p - eye;
-            let dist = d.norm();
-            match sc.world.ray_cast(&eye, &(d / dist), dist * 1.1) {
-                Some(hit) => hit.t > dist * 0.97,
-                None => true,
-            }
-        })
-        .map(|(i, _)| i)
-        .collect()
-}
-
-/// Median distance from the camera to the scene over a 7x7 grid of pixels
-/// (ray cast in the true world), metres.
-fn distance_to_scene(sc: &Scene, world_from_cam: &Isometry3<f64>) -> f64 {
-    let eye = Point3::from(world_from_cam.translation.vector);
-    let (w, h) = (sc.camera.width as f64, sc.camera.height as f64);
-    let mut d = Vec::new();
-    for j in 0..7 {
-        for i in 0..7 {
-            let px = Point2::new((i as f64 + 0.5) * w / 7.0, (j as f64 + 0.5) * h / 7.0);
-            let ray = world_from_cam.rotation * sc.camera.unproject(px).into_inner();
-            if let Some(hit) = sc.world.ray_cast(&eye, &ray, 2000.0) {
-                d.push(hit.t);
-            }
-        }
-    }
-    d.sort_by(f64::total_cmp);
-    d.get(d.len() / 2).copied().unwrap_or(f64::NAN)
-}
-
-fn random_unit(rng: &mut StdRng) -> Unit<Vector3<f64>> {
-    loop {
-        let v = Vector3::new(
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-        );
-        let n: f64 = v.norm();
-        if n > 0.1 && n <= 1.0 {
-            return Unit::new_normalize(v);
-        }
-    }
+    visible_point_indices(&sc.world, camera, points_world, world_from_cam).len()
 }
 
 /// One trial's outcome.
@@ -411,7 +347,7 @@ fn localise_near(
         if visible < min_visible {
             continue;
         }
-        let dist = distance_to_scene(&m.sc, &hidden);
+        let dist = distance_to_scene(&m.sc.world, &m.sc.camera, &hidden);
         let k = out.len();
         let img = renderer.render_noisy(&hidden, seed ^ (50_000 + k as u64));
         let row = format!("{k:5} {t:5.1}  {offset_m:8.2}  {turn_deg:8.2}  {visible:7}  {dist:6.1}");
@@ -569,7 +505,7 @@ fn photos_from_another_camera_localise() -> anyhow::Result<()> {
 /// median over those points, degrees, with their number. Ground truth and
 /// the map only: no localisation result enters it.
 fn viewpoint_change(m: &Mapped, camera: &Camera, world_from_cam: &Isometry3<f64>) -> (usize, f64) {
-    let visible = visible_point_indices(&m.sc, camera, &m.points_world, world_from_cam);
+    let visible = visible_point_indices(&m.sc.world, camera, &m.points_world, world_from_cam);
     let eye = world_from_cam.translation.vector;
     let mut angles: Vec<f64> = visible
         .iter()
@@ -598,7 +534,7 @@ fn localise_photo(
     row: &str,
 ) -> anyhow::Result<Trial> {
     let params = shot::LocalizeParams::default();
-    let dist = distance_to_scene(&m.sc, truth);
+    let dist = distance_to_scene(&m.sc.world, &m.sc.camera, truth);
     Ok(
         match shot::localize_with_camera(map, &map.camera, img, None, Some(index), &params)? {
             Localization::Localized(p) => {
@@ -909,7 +845,7 @@ fn held_out_orbit_frames_localise() -> anyhow::Result<()> {
             return Ok(None);
         }
         if visible < min_visible {
-            let dist = distance_to_scene(&m.sc, &truth);
+            let dist = distance_to_scene(&m.sc.world, &m.sc.camera, &truth);
             println!("{row}  {dist:6.1}  excluded: fewer than {min_visible} mapped points in view");
             return Ok(None);
         }

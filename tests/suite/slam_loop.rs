@@ -12,44 +12,14 @@
 //!   joins keyframes that are really at one place, and none is closed
 //!   before the flight comes back to its start.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use shotpilot::eval::{self, Trajectory};
 use shotpilot::slam::{self, Slam, SlamRun, mapfile};
 use shotpilot::video::dataset::Dataset;
-use shotpilot_sim::camera::SimCamera;
-use shotpilot_sim::dataset::render_path_dataset;
-use shotpilot_sim::paths::{CameraPath, Params as PathParams, PathSpec};
-use shotpilot_sim::render::{RenderParams, Renderer};
-use shotpilot_sim::world::{World, WorldKind, WorldParams};
+use shotpilot_sim::world::WorldKind;
 
-const SEED: u64 = 5;
-/// Frames over the whole flight (about 116 s): 6.5 frames per second, the
-/// camera moves about 0.8 m between frames.
-const FRAMES: usize = 750;
-
-fn render_loop(kind: WorldKind) -> PathBuf {
-    let dir = tempfile::Builder::new()
-        .prefix("slam_loop")
-        .tempdir()
-        .unwrap()
-        .keep();
-    let world = Arc::new(
-        World::generate_with(
-            SEED,
-            &WorldParams {
-                kind,
-                ..WorldParams::default()
-            },
-        )
-        .unwrap(),
-    );
-    let path = CameraPath::loop_path(&world, PathParams::default());
-    let renderer = Renderer::new(world, SimCamera::default(), RenderParams::default());
-    render_path_dataset(&renderer, &path, FRAMES, &dir, SEED, &PathSpec::Loop).unwrap();
-    dir
-}
+use crate::sim_support::{gt_position, render_lap};
 
 fn run(ds: &Dataset, loop_closing: bool) -> SlamRun {
     let mut params = slam::Params {
@@ -74,14 +44,6 @@ fn run(ds: &Dataset, loop_closing: bool) -> SlamRun {
 }
 
 /// The ground-truth camera position nearest in time to `t`.
-fn gt_position(gt: &Trajectory, t: f64) -> nalgebra::Vector3<f64> {
-    gt.poses
-        .iter()
-        .min_by(|a, b| (a.t - t).abs().total_cmp(&(b.t - t).abs()))
-        .unwrap()
-        .position()
-}
-
 /// The drift at the revisit: the error of the aligned estimate's
 /// displacement from the first frame to the frame of the second half
 /// nearest the start in the ground truth, metres; and the ATE.
@@ -108,8 +70,8 @@ fn revisit_drift_and_ate(gt: &Trajectory, run: &SlamRun) -> (f64, f64) {
 
 #[test]
 fn a_lap_closes_its_loop_and_the_drift_at_the_revisit_drops() {
-    let dir = render_loop(WorldKind::Town);
-    let ds = Dataset::open(&dir).unwrap();
+    let dir = render_lap(WorldKind::Town, "slam_loop");
+    let ds = Dataset::open(dir.path()).unwrap();
     let gt = ds.groundtruth.clone().unwrap();
     let off = run(&ds, false);
     let on = run(&ds, true);
@@ -145,7 +107,7 @@ fn a_lap_closes_its_loop_and_the_drift_at_the_revisit_drops() {
 
     // The map file keeps the loop: saved and loaded back equal, loop edges
     // included; damaged copies are refused with an error.
-    let file = dir.join("lap.map");
+    let file = dir.path().join("lap.map");
     mapfile::save(&on.map, &file).unwrap();
     let back = mapfile::load(&file).unwrap();
     assert!(!on.map.loop_edges().is_empty());
@@ -181,8 +143,8 @@ fn a_lap_closes_its_loop_and_the_drift_at_the_revisit_drops() {
 
 #[test]
 fn no_false_loop_on_the_aliasing_world() {
-    let dir = render_loop(WorldKind::Aliasing);
-    let ds = Dataset::open(&dir).unwrap();
+    let dir = render_lap(WorldKind::Aliasing, "slam_loop");
+    let ds = Dataset::open(dir.path()).unwrap();
     let gt = ds.groundtruth.clone().unwrap();
     let on = run(&ds, true);
     on.map.check_invariants().unwrap();

@@ -15,47 +15,19 @@
 //!   bag-of-words), with the same blackout: no merge joins places the
 //!   ground truth puts apart.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use shotpilot::eval::{self, Trajectory};
 use shotpilot::slam::{self, KeyFrameId, MapId, Slam, SlamRun, mapfile};
 use shotpilot::video::dataset::Dataset;
-use shotpilot_sim::camera::SimCamera;
-use shotpilot_sim::dataset::render_path_dataset;
-use shotpilot_sim::paths::{CameraPath, Params as PathParams, PathSpec};
-use shotpilot_sim::render::{RenderParams, Renderer};
-use shotpilot_sim::world::{World, WorldKind, WorldParams};
+use shotpilot_sim::world::WorldKind;
 
-const SEED: u64 = 5;
-/// Frames over the whole flight (about 116 s, 0.8 m between frames).
-const FRAMES: usize = 750;
+use crate::sim_support::{gt_position, render_lap};
+
 /// The first black frame (about 62 s into the flight, 320 m along it).
 const BLACK_FROM: usize = 400;
 /// Black frames (about 20 m of flight).
 const BLACK_COUNT: usize = 25;
-
-fn render_loop(kind: WorldKind) -> PathBuf {
-    let dir = tempfile::Builder::new()
-        .prefix("slam_merge")
-        .tempdir()
-        .unwrap()
-        .keep();
-    let world = Arc::new(
-        World::generate_with(
-            SEED,
-            &WorldParams {
-                kind,
-                ..WorldParams::default()
-            },
-        )
-        .unwrap(),
-    );
-    let path = CameraPath::loop_path(&world, PathParams::default());
-    let renderer = Renderer::new(world, SimCamera::default(), RenderParams::default());
-    render_path_dataset(&renderer, &path, FRAMES, &dir, SEED, &PathSpec::Loop).unwrap();
-    dir
-}
 
 fn blacked_out(i: usize) -> bool {
     (BLACK_FROM..BLACK_FROM + BLACK_COUNT).contains(&i)
@@ -84,14 +56,6 @@ fn run(ds: &Dataset, blackout: bool) -> SlamRun {
     run
 }
 
-fn gt_position(gt: &Trajectory, t: f64) -> nalgebra::Vector3<f64> {
-    gt.poses
-        .iter()
-        .min_by(|a, b| (a.t - t).abs().total_cmp(&(b.t - t).abs()))
-        .unwrap()
-        .position()
-}
-
 fn ate(gt: &Trajectory, t: &Trajectory) -> f64 {
     eval::evaluate(gt, t, &eval::Params::default())
         .unwrap()
@@ -101,8 +65,8 @@ fn ate(gt: &Trajectory, t: &Trajectory) -> f64 {
 
 #[test]
 fn a_map_started_after_a_loss_is_merged_back_with_its_keyframes() {
-    let dir = render_loop(WorldKind::Town);
-    let ds = Dataset::open(&dir).unwrap();
+    let dir = render_lap(WorldKind::Town, "slam_merge");
+    let ds = Dataset::open(dir.path()).unwrap();
     let gt = ds.groundtruth.clone().unwrap();
     let base = run(&ds, false);
     let bo = run(&ds, true);
@@ -180,7 +144,7 @@ fn a_map_started_after_a_loss_is_merged_back_with_its_keyframes() {
     let traj = bo.trajectory();
     assert_eq!(traj.len(), bo.records.len());
     let after_init = bo.records.iter().filter(|r| r.index >= init).count() as u64;
-    let frames_after = FRAMES as u64 - init;
+    let frames_after = crate::sim_support::LAP_FRAMES as u64 - init;
     assert!(
         after_init * 100 >= frames_after * 98,
         "{after_init} of the {frames_after} frames after the new map's initialisation posed"
@@ -210,7 +174,7 @@ fn a_map_started_after_a_loss_is_merged_back_with_its_keyframes() {
     );
 
     // The map file keeps the merged map (one map), loaded back equal.
-    let file = dir.join("merged.map");
+    let file = dir.path().join("merged.map");
     mapfile::save(&bo.map, &file).unwrap();
     let back = mapfile::load(&file).unwrap();
     back.check_invariants().unwrap();
@@ -228,8 +192,8 @@ fn a_map_started_after_a_loss_is_merged_back_with_its_keyframes() {
 
 #[test]
 fn no_false_merge_on_the_aliasing_world() {
-    let dir = render_loop(WorldKind::Aliasing);
-    let ds = Dataset::open(&dir).unwrap();
+    let dir = render_lap(WorldKind::Aliasing, "slam_merge");
+    let ds = Dataset::open(dir.path()).unwrap();
     let gt = ds.groundtruth.clone().unwrap();
     let bo = run(&ds, true);
     bo.map.check_invariants().unwrap();

@@ -4,6 +4,7 @@
 //! does not initialise and says why; the map keeps its invariants and a
 //! saved map loads back equal; damaged map files are refused.
 
+use crate::cli_support::run_ok;
 use crate::data_support;
 
 use std::path::PathBuf;
@@ -242,16 +243,11 @@ fn the_cli_reports_json_on_teddy() {
         return;
     };
     let tmp = tempfile::tempdir().unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_shotpilot"))
-        .args(["slam", "--sequential", "--json", "--out"])
-        .arg(tmp.path())
-        .arg(&dir)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = run_ok(
+        std::process::Command::new(env!("CARGO_BIN_EXE_shotpilot"))
+            .args(["slam", "--sequential", "--json", "--out"])
+            .arg(tmp.path())
+            .arg(&dir),
     );
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for key in [

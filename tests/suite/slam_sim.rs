@@ -18,7 +18,7 @@
 //! recovered poses are 4-5 cm and 0.1 degree off, 0.4 % of the height, as
 //! are the frames of the first pass; at 0.3, 1-3 cm).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 
 use nalgebra::{Isometry3, Point3};
@@ -27,28 +27,23 @@ use shotpilot::eval::{self, Trajectory};
 use shotpilot::geometry;
 use shotpilot::slam::{self, KeypointState, Slam, TrackState};
 use shotpilot::video::dataset::Dataset;
-use shotpilot_sim::camera::SimCamera;
-use shotpilot_sim::dataset::render_path_dataset;
 use shotpilot_sim::paths::{CameraPath, Params as PathParams, PathSpec};
-use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::world::World;
+use tempfile::TempDir;
 
-const SEED: u64 = 5;
+use crate::sim_support::{SEED, render, render_dir};
+
 const FPS: f64 = 15.0;
 /// Scale of the relocalisation scene: the camera 2-3 m above the ground.
 const SMALL: f64 = 0.2;
 
 /// Renders the first `seconds` of the explore flight at 15 fps into a
-/// temporary folder (kept for the test binary's life). With `scale` < 1 the
+/// temporary folder (removed when the test ends). With `scale` < 1 the
 /// camera positions shrink towards the start point (horizontal offsets and
 /// height above the ground alike), the orientations stay: the same flight
 /// over a scene seen `scale` times as far away.
-fn render_explore(seconds: f64, scale: f64) -> PathBuf {
-    let dir = tempfile::Builder::new()
-        .prefix("slam_sim")
-        .tempdir()
-        .unwrap()
-        .keep();
+fn render_explore(seconds: f64, scale: f64) -> TempDir {
+    let dir = render_dir("slam_sim");
     let world = Arc::new(World::generate(SEED));
     let explore = CameraPath::explore(&world, PathParams::default());
     let start = explore.world_from_cam(explore.start()).translation.vector;
@@ -66,9 +61,8 @@ fn render_explore(seconds: f64, scale: f64) -> PathBuf {
         })
         .collect();
     let path = CameraPath::from_samples(samples).unwrap();
-    let renderer = Renderer::new(world, SimCamera::default(), RenderParams::default());
     let frames = (seconds * FPS).round() as usize + 1;
-    render_path_dataset(&renderer, &path, frames, &dir, SEED, &PathSpec::Explore).unwrap();
+    render(world, &path, &PathSpec::Explore, frames, dir.path());
     dir
 }
 
@@ -84,7 +78,7 @@ fn path_length(gt: &Trajectory) -> f64 {
 #[test]
 fn explore_initialises_over_flat_ground_and_tracks_every_frame_after() {
     let dir = render_explore(12.0, 1.0);
-    let ds = Dataset::open(&dir).unwrap();
+    let ds = Dataset::open(dir.path()).unwrap();
     let n = (12.0 * FPS) as usize + 1;
     let mut s = Slam::new(
         ds.camera,
@@ -217,7 +211,7 @@ fn a_full_field_render_meets_the_field_gates() {
 #[test]
 fn after_black_frames_and_a_jump_back_tracking_recovers_with_the_right_pose() {
     let dir = render_explore(10.0, SMALL);
-    let ds = Dataset::open(&dir).unwrap();
+    let ds = Dataset::open(dir.path()).unwrap();
     let gt = ds.groundtruth.clone().unwrap();
     // The video: frames 0..=150 (10 s), 30 black frames, then frames 60..
     // again (the part of the flight 4 to 6.7 s in, mapped earlier).

@@ -4,11 +4,11 @@
 //! mode, and stays where it was stopped. The simulator runs without GPS
 //! bias (checked), so LOCAL_POSITION_NED is its true position.
 
-use crate::link_support;
+use crate::link_support::{self, home_of, wait_for};
 
 use std::time::Duration;
 
-use shotpilot::mission::plan::{self, Flavour, Home, Target};
+use shotpilot::mission::plan::{self, Flavour, Target};
 use shotpilot::mission::upload;
 use shotpilot::vehicle::{self, FlightMode, LinkHandle, Params};
 use shotpilot_sim::app::{self, SimConfig};
@@ -18,18 +18,6 @@ use tokio_util::sync::CancellationToken;
 
 /// One flight at a time (world generation and flight compete for CPU).
 static ONE_FLIGHT: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
-async fn wait_for<T>(
-    what: &str,
-    rx: &mut tokio::sync::watch::Receiver<T>,
-    seconds: u64,
-    f: impl FnMut(&T) -> bool,
-) -> anyhow::Result<()> {
-    tokio::time::timeout(Duration::from_secs(seconds), rx.wait_for(f))
-        .await
-        .map_err(|_| anyhow::anyhow!("timed out after {seconds} s waiting for {what}"))??;
-    Ok(())
-}
 
 /// The vehicle's local NED position and its autopilot time, ms.
 fn local(link: &LinkHandle) -> Option<([f64; 3], u32)> {
@@ -72,16 +60,7 @@ async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
         cancel.clone(),
     )?;
     link.wait_for_vehicle(Duration::from_secs(60)).await?;
-    let mut home_rx = link.telemetry.home.clone();
-    wait_for("HOME_POSITION", &mut home_rx, 30, Option::is_some).await?;
-    let h = (*home_rx.borrow())
-        .map(|s| s.value)
-        .ok_or_else(|| anyhow::anyhow!("no home"))?;
-    let home = Home {
-        lat_deg: h.lat_deg,
-        lon_deg: h.lon_deg,
-        alt_amsl_m: h.alt_amsl_m,
-    };
+    let home = home_of(&link).await?;
     let target = Target {
         lat_deg: home.lat_deg + 80.0 / 111_195.0,
         lon_deg: home.lon_deg,

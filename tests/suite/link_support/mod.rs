@@ -609,3 +609,33 @@ pub async fn start_radio(
     ));
     (addr, stats)
 }
+
+/// Waits up to `seconds` for `f` to hold on what `rx` watches; the error
+/// names `what` it waited for.
+pub async fn wait_for<T>(
+    what: &str,
+    rx: &mut tokio::sync::watch::Receiver<T>,
+    seconds: u64,
+    f: impl FnMut(&T) -> bool,
+) -> anyhow::Result<()> {
+    tokio::time::timeout(Duration::from_secs(seconds), rx.wait_for(f))
+        .await
+        .map_err(|_| anyhow::anyhow!("timed out after {seconds} s waiting for {what}"))??;
+    Ok(())
+}
+
+/// The vehicle's home as its HOME_POSITION gives it (waits up to 30 s).
+pub async fn home_of(
+    link: &shotpilot::vehicle::LinkHandle,
+) -> anyhow::Result<shotpilot::mission::plan::Home> {
+    let mut home_rx = link.telemetry.home.clone();
+    wait_for("HOME_POSITION", &mut home_rx, 30, Option::is_some).await?;
+    let h = (*home_rx.borrow())
+        .map(|s| s.value)
+        .ok_or_else(|| anyhow::anyhow!("no home"))?;
+    Ok(shotpilot::mission::plan::Home {
+        lat_deg: h.lat_deg,
+        lon_deg: h.lon_deg,
+        alt_amsl_m: h.alt_amsl_m,
+    })
+}
