@@ -917,26 +917,28 @@ async fn collect_frames(
 
 /// The alignment a round works with: the georeference's fit now, or,
 /// when a refit is refused after an earlier round had one, that round's
-/// (`last`). Under a drifting GNSS bias the pairs of a long flight stop
-/// agreeing with one similarity (the share of inliers falls under
-/// `min_inlier_ratio`); the loop measures its error in the images and
-/// corrects it, so it goes on with the alignment it has rather than
-/// abort the shot. Refused before any round had one: the refusal.
+/// (`last`), with a note for the round saying so. Under a drifting GNSS
+/// bias the pairs of a long flight stop agreeing with one similarity (the
+/// share of inliers falls under `min_inlier_ratio`); the loop measures its
+/// error in the images and corrects it, so it goes on with the alignment
+/// it has rather than abort the shot. Refused before any round had one:
+/// the refusal.
 fn round_alignment(
     fit: Result<GeoAlignment, GeoError>,
     last: &mut Option<GeoAlignment>,
-) -> Result<GeoAlignment, GeoError> {
+) -> Result<(GeoAlignment, Option<String>), GeoError> {
     match fit {
         Ok(a) => {
             *last = Some(a.clone());
-            Ok(a)
+            Ok((a, None))
         }
         Err(e) => match last {
             Some(a) => {
-                tracing::warn!(
-                    "refinement: georeference refit refused ({e}); this round keeps the last round's alignment"
+                let note = format!(
+                    "georeference refit refused ({e}): this round kept the last round's alignment"
                 );
-                Ok(a.clone())
+                tracing::warn!("refinement: {note}");
+                Ok((a.clone(), Some(note)))
             }
             None => Err(e),
         },
@@ -979,11 +981,11 @@ async fn look(
             }),
         );
     };
-    let alignment = match round_alignment(deps.geo.target(&map_from_desired).map(|(_, a)| a), last)
-    {
-        Ok(a) => a,
-        Err(e) => return (session, Err(Abort::Georeference(e))),
-    };
+    let (alignment, kept_note) =
+        match round_alignment(deps.geo.target(&map_from_desired).map(|(_, a)| a), last) {
+            Ok(a) => a,
+            Err(e) => return (session, Err(Abort::Georeference(e))),
+        };
     let mount = deps.geo.params().mount.clone();
     let fence = deps.plan.fence;
     let localize = p.localize.clone();
@@ -1015,6 +1017,9 @@ async fn look(
             .collect();
         let step = session.on_arrival(&live, t_s, Some(&camera), &ctx);
         session.observe(observed);
+        if let Some(n) = &kept_note {
+            session.annotate(n);
+        }
         // The round's first frame, with the desired outline, for the
         // before/after view; its error is the round's.
         if let (Some(r), Some((f, _))) = (session.rounds().last(), frames.first()) {
@@ -1211,20 +1216,22 @@ mod tests {
             round_alignment(refused(), &mut last),
             Err(GeoError::TooFewInliers { found: 23, .. })
         ));
-        let a = round_alignment(Ok(fit(1.0)), &mut last).unwrap();
+        let (a, note) = round_alignment(Ok(fit(1.0)), &mut last).unwrap();
         assert_eq!(a.ned_from_map.translation.x, 1.0);
-        let kept = round_alignment(refused(), &mut last).unwrap();
+        assert_eq!(note, None);
+        // The round that kept an alignment says so, with the refusal.
+        let (kept, note) = round_alignment(refused(), &mut last).unwrap();
         assert_eq!(kept.ned_from_map.translation.x, 1.0);
-        let b = round_alignment(Ok(fit(2.0)), &mut last).unwrap();
-        assert_eq!(b.ned_from_map.translation.x, 2.0);
-        assert_eq!(
-            round_alignment(refused(), &mut last)
-                .unwrap()
-                .ned_from_map
-                .translation
-                .x,
-            2.0
+        let note = note.unwrap();
+        assert!(
+            note.contains("refit refused") && note.contains("23") && note.contains("kept"),
+            "{note}"
         );
+        let (b, note) = round_alignment(Ok(fit(2.0)), &mut last).unwrap();
+        assert_eq!(b.ned_from_map.translation.x, 2.0);
+        assert_eq!(note, None);
+        let (kept, _) = round_alignment(refused(), &mut last).unwrap();
+        assert_eq!(kept.ned_from_map.translation.x, 2.0);
     }
 
     fn target() -> Target {

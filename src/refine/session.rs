@@ -562,6 +562,17 @@ impl Session {
         }
     }
 
+    /// Adds `note` to the last round's note (after what the round itself
+    /// noted): what the driver did differently in that round.
+    pub fn annotate(&mut self, note: &str) {
+        if let Some(r) = self.rounds.last_mut() {
+            r.note = Some(match r.note.take() {
+                Some(n) if !n.is_empty() => format!("{n}; {note}"),
+                _ => note.to_owned(),
+            });
+        }
+    }
+
     fn end(&mut self, rec: RoundRecord, stop: Stop) -> Step {
         self.rounds.push(rec);
         self.stop = Some(stop.clone());
@@ -775,6 +786,36 @@ mod tests {
             Step::Done(Stop::LiveNotLocalised(_))
         ));
         assert_eq!(s.rounds().len(), 1);
+    }
+
+    /// A note the driver adds goes after the round's own (joined), or is
+    /// the note when the round had none; without a round it changes nothing.
+    #[test]
+    fn the_driver_annotates_the_last_round() {
+        let f = fixture();
+        let (_, mut s) = run(&f, &f.desired, 4);
+        assert_eq!(s.rounds()[0].note, None);
+        s.annotate("kept the last alignment");
+        assert_eq!(
+            s.rounds()[0].note.as_deref(),
+            Some("kept the last alignment")
+        );
+        let (_, mut s) = run(&f, &f.turned, 4);
+        let own = s.rounds()[0].note.clone().unwrap();
+        s.annotate("kept the last alignment");
+        assert_eq!(
+            s.rounds()[0].note.as_deref(),
+            Some(format!("{own}; kept the last alignment").as_str())
+        );
+        let mut empty = Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            Params::default(),
+        );
+        empty.annotate("nothing to add it to");
+        assert!(empty.rounds().is_empty());
     }
 
     /// The camera (map = NED here) of a vehicle at `p_ned` with the
