@@ -389,7 +389,7 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
 #[test]
 #[ignore = "needs chromium and playwright-core"]
 fn operator_page_in_headless_chromium() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = crate::repo_root();
     let script = root.join("tests/browser/page_test.js");
     assert!(
         root.join("tests/browser/node_modules/playwright-core")

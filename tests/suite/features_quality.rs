@@ -64,8 +64,7 @@ fn homography_pairs_against_opencv() {
     let dir = tempfile::tempdir().expect("temp dir");
     eval::write_pairs(dir.path(), &pairs).expect("pairs written");
     let python = std::env::var("SHOTPILOT_PYTHON").unwrap_or_else(|_| "python3".into());
-    let script =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("benches/peers/orb_pairs_opencv.py");
+    let script = crate::repo_root().join("benches/peers/orb_pairs_opencv.py");
     let st = Command::new(&python)
         .arg(&script)
         .arg(dir.path())

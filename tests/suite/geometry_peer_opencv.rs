@@ -119,10 +119,7 @@ fn geometry_against_opencv() {
         json!({"reps": REPS, "pnp": pnp_json, "two_view": tv_json}).to_string(),
     )
     .expect("write");
-    let script = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/benches/peers/geometry_opencv.py"
-    );
+    let script = crate::repo_root().join("benches/peers/geometry_opencv.py");
     let out = Command::new(&python)
         .arg(script)
         .arg(&path)

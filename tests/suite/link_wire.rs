@@ -43,10 +43,7 @@ fn start_peer_as(
     serve_upload: bool,
     autopilot: &str,
 ) -> anyhow::Result<Peer> {
-    let script = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/peers/pymavlink_vehicle.py"
-    );
+    let script = crate::repo_root().join("tests/peers/pymavlink_vehicle.py");
     let mut cmd = Command::new(python());
     cmd.arg(script)
         .arg("--port")

@@ -7,6 +7,17 @@
 //! `cargo test --release --test suite shot_photos:: -- --nocapture`.
 //! The `*_support` modules are what several subjects share.
 
+/// The repository's root: where cargo says the package is when it runs the
+/// tests (`CARGO_MANIFEST_DIR` at run time), else where it was when the
+/// tests were built. A test program built in another clone sharing the
+/// target directory (cargo may reuse it when the sources are older than
+/// it) must find this clone's files, not the other's.
+pub fn repo_root() -> std::path::PathBuf {
+    std::env::var_os("CARGO_MANIFEST_DIR")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")))
+}
+
 mod cli_support;
 mod daemon_support;
 mod data_support;

@@ -34,10 +34,7 @@ async fn mavsdk_receives(flavour: Flavour) -> anyhow::Result<()> {
     };
     let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
     let port = link.bound_addr(Duration::from_secs(5)).await?.port();
-    let script = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/tests/peers/mavsdk_autopilot.py"
-    );
+    let script = crate::repo_root().join("tests/peers/mavsdk_autopilot.py");
     let mut child = Command::new(python())
         .arg(script)
         .arg("--gcs-port")

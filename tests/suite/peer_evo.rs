@@ -4,7 +4,7 @@
 //! offset by 5 ms, and a subsampled copy. Needs evo on PATH (`.ci/run`
 //! installs it from PyPI into a venv) and `../shared/data`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -44,8 +44,7 @@ fn evo_ape(gt: &Path, est: &Path, max_dt: f64) -> (f64, f64) {
 #[test]
 #[ignore = "needs evo (pip install evo) and ../shared/data"]
 fn eval_agrees_with_evo_on_three_pairs() {
-    let gt_path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/tum_fr3_teddy_100/groundtruth.txt");
+    let gt_path = crate::repo_root().join("../shared/data/tum_fr3_teddy_100/groundtruth.txt");
     let gt = Trajectory::read_tum(&gt_path).unwrap();
     let dir = tempfile::tempdir().unwrap();
 

@@ -48,7 +48,7 @@ impl Drop for Peer {
 }
 
 fn server_script() -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
+    crate::repo_root()
         .join("tests/peers/rtsp_server.py")
         .display()
         .to_string()

@@ -48,9 +48,7 @@ fn start_sim(peer: &str, extra: &[&str]) -> Sim {
 /// on its first line), starts the simulator sending there, and waits for
 /// the peer's verdict: (success, its stdout).
 fn run_peer(script: &str, sim_extra: &[&str], extra: &[&str], timeout: Duration) -> (bool, String) {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/peers")
-        .join(script);
+    let path = crate::package_root().join("tests/peers").join(script);
     let mut child = Command::new(python())
         .arg(path)
         .arg("--listen")

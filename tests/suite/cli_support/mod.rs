@@ -6,7 +6,7 @@ use std::process::{Command, Output};
 /// root (where the README's relative paths point).
 pub fn shotpilot() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_shotpilot"));
-    c.current_dir(env!("CARGO_MANIFEST_DIR"));
+    c.current_dir(crate::repo_root());
     c
 }
 

@@ -6,7 +6,7 @@
 //! instead of letting an accuracy check pass unseen.
 #![allow(dead_code)] // each test binary uses its own subset
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// The shared data directory, or the sequence `name` inside it (`""`: the
 /// directory itself). Looked up in `SHOTPILOT_DATA`, then `../shared/data`
@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 /// `None` (with a "skipped" line) when absent, unless
 /// `SHOTPILOT_REQUIRE_DATA` is set to anything but `0`: then it panics.
 pub fn shared_data(name: &str) -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = crate::repo_root();
     let mut dirs: Vec<PathBuf> = std::env::var_os("SHOTPILOT_DATA")
         .map(PathBuf::from)
         .into_iter()
