@@ -3,15 +3,11 @@
 //! cause once; logs written to a pipe carry no ANSI colour codes; the
 //! `slam` summary's posed-frame count agrees with its ATE line.
 
-use crate::cli_support::run_ok;
+use crate::cli_support::{run_ok, shotpilot};
 use crate::data_support;
 
 use std::io::{BufRead, BufReader, Read};
 use std::process::{Command, Stdio};
-
-fn shotpilot() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_shotpilot"))
-}
 
 #[test]
 fn mission_plan_usage_requires_home() {

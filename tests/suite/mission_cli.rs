@@ -1,15 +1,14 @@
 //! The `shotpilot mission` command line: plan to a QGroundControl file,
 //! upload and download against the fake autopilot, JSON output.
 
-use crate::link_support;
-
-use std::process::Command;
+use crate::{cli_support, link_support};
 
 use link_support::{FakeConfig, HOME, Habit, start_fake};
 use tokio_util::sync::CancellationToken;
 
-fn shotpilot() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_shotpilot"));
+/// The binary as the other CLI subjects run it, quiet but for warnings.
+fn shotpilot() -> std::process::Command {
+    let mut c = cli_support::shotpilot();
     c.arg("--log").arg("warn");
     c
 }

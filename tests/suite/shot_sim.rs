@@ -180,17 +180,6 @@ fn build_map(sc: &Scene, setup: &Setup) -> anyhow::Result<(Map, Sim3, MapStats)>
     Ok((map, sim, stats))
 }
 
-/// Number of mapped points (in the true world frame) that the camera at
-/// `world_from_cam` sees unoccluded inside its image.
-fn visible_map_points(
-    sc: &Scene,
-    camera: &Camera,
-    points_world: &[Point3<f64>],
-    world_from_cam: &Isometry3<f64>,
-) -> usize {
-    visible_point_indices(&sc.world, camera, points_world, world_from_cam).len()
-}
-
 /// One trial's outcome.
 struct Trial {
     localized: bool,
@@ -343,7 +332,7 @@ fn localise_near(
         attempts += 1;
         anyhow::ensure!(attempts < trials * 20, "too few poses see the map");
         let (t, hidden, offset_m, turn_deg) = hidden_pose_near(m, &mut rng);
-        let visible = visible_map_points(&m.sc, camera, &m.points_world, &hidden);
+        let visible = visible_point_indices(&m.sc.world, camera, &m.points_world, &hidden).len();
         if visible < min_visible {
             continue;
         }
@@ -444,7 +433,7 @@ fn simulator_shots_localise() -> anyhow::Result<()> {
         let eye = Point3::new(r * yaw.cos(), r * yaw.sin(), -rng.random_range(12.0..40.0));
         let look = yaw + rng.random_range(-0.6..0.6);
         let hidden = camera_from_yaw_pitch(eye, look, rng.random_range(30f64..60.0).to_radians());
-        if visible_map_points(&m.sc, &m.sc.camera, &m.points_world, &hidden) > 0 {
+        if !visible_point_indices(&m.sc.world, &m.sc.camera, &m.points_world, &hidden).is_empty() {
             continue;
         }
         let img = m.sc.renderer.render_noisy(&hidden, 90_000 + done as u64);
@@ -831,7 +820,7 @@ fn held_out_orbit_frames_localise() -> anyhow::Result<()> {
     // than `min_visible` mapped points (it does not see the mapped scene).
     let min_visible = 150;
     let query = |i: usize, t: f64, truth: Isometry3<f64>| -> anyhow::Result<Option<Trial>> {
-        let visible = visible_map_points(&m.sc, &camera, &m.points_world, &truth);
+        let visible = visible_point_indices(&m.sc.world, &camera, &m.points_world, &truth).len();
         let gap = azimuth_gap(&truth);
         let p = truth.translation.vector;
         let az = azimuth(&p);
