@@ -16,7 +16,10 @@
 //!   made from anchors (a zoom is no camera's view), the shot error's floor.
 //! * [`session`]: one shot's loop as a state machine (arrival → measure
 //!   the live frames → decide → localise them → filtered offset → corrected
-//!   target), whose rounds are the record the API shows.
+//!   target), whose rounds are the record the API shows. The offset is
+//!   measured through the round's georeference; a refit between rounds
+//!   carries the filtered estimate along by the change it makes at the
+//!   desired pose, so a refit is never corrected as if the camera had moved.
 //!
 //! Everything here is synchronous (no tokio) and knows nothing of the
 //! simulator: the closed-loop experiment in it (`shotpilot scenario`) is

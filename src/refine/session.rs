@@ -109,6 +109,11 @@ struct OffsetEstimate {
     value: [f64; 5],
     var: [f64; 5],
     t_s: f64,
+    /// The desired vehicle state (north, east, down, heading, gimbal
+    /// pitch) through that round's alignment: the offset is measured
+    /// through the alignment, so when a refit moves it, the estimate moves
+    /// with it by the change at the desired pose.
+    desired: [f64; 5],
 }
 
 /// What the driver of the loop saw at an arrival besides the live frame:
@@ -477,6 +482,13 @@ impl Session {
         // (the first error is mostly systematic); later ones weigh the new
         // measurement against the estimate, whose variance grew with the
         // drift since the last measurement.
+        let desired_state = [
+            desired.p_ned_vehicle.x,
+            desired.p_ned_vehicle.y,
+            desired.p_ned_vehicle.z,
+            desired.yaw_deg,
+            desired.gimbal_pitch_deg,
+        ];
         let mut gain = [ctrl.gain; 5];
         let (estimate, variance) = match (&self.offset, round) {
             (Some(o), r) if r > 0 => {
@@ -484,6 +496,17 @@ impl Session {
                 let dt = if dt.is_finite() { dt } else { 0.0 };
                 let mut est = o.value;
                 let mut var = o.var;
+                // A refit of the georeference between the rounds moves
+                // every converted state, the live ones measured now as
+                // well as the desired: the last estimate is carried into
+                // the new alignment by the change it makes at the desired
+                // pose (zero when the alignment stayed). Without it, the
+                // share of the old estimate the filter keeps would be an
+                // error of that share of the refit's change.
+                for i in 0..5 {
+                    let moved = desired_state[i] - o.desired[i];
+                    est[i] += if i == 3 { wrap180(moved) } else { moved };
+                }
                 for i in 0..5 {
                     let q = if i < 3 {
                         ctrl.position_drift_m2_per_s
@@ -541,6 +564,7 @@ impl Session {
             value: estimate,
             var: variance,
             t_s,
+            desired: desired_state,
         });
         Ok((
             c,
@@ -910,5 +934,73 @@ mod tests {
         // measurement (positions: 0.16 m² against 0.0005 m²; angles:
         // 0.016 deg² against 0.002 deg²).
         assert!(o.gain.iter().all(|&g| g > 0.85 && g <= 1.0), "{o:?}");
+    }
+    /// A refit of the georeference between two rounds (0.5 m and 2 deg of
+    /// heading here) moves the live states and the desired one alike: the
+    /// camera standing at the desired pose still needs no correction,
+    /// whatever share of the last estimate the filter keeps.
+    #[test]
+    fn a_refit_between_rounds_is_not_taken_for_an_offset() {
+        let f = fixture();
+        let mount = MountParams::default();
+        let refit = GeoAlignment::given(Sim3 {
+            rotation: UnitQuaternion::from_euler_angles(0.0, 0.0, 2f64.to_radians()),
+            translation: Vector3::new(0.5, -0.3, 0.1),
+            scale: 1.0,
+        });
+        let (fence, localize) = (Fence::default(), LocalizeParams::default());
+        let ctx_with = |alignment| Context {
+            map: &f.map,
+            alignment,
+            frame: &f.frame,
+            mount: &mount,
+            home: &f.home,
+            fence: &fence,
+            localize: &localize,
+        };
+        let flown = f.target;
+        let t_ned = f.frame.geodetic_to_ned(&Geodetic {
+            lat_deg: flown.lat_deg,
+            lon_deg: flown.lon_deg,
+            alt_m: f.home.alt_amsl_m + flown.alt_m,
+        });
+        let desired = camera_at(t_ned, &flown, &mount);
+        // Half of each new measurement: what is kept of the old estimate
+        // is what a refit would leak into the correction.
+        let mut params = Params::default();
+        params.controller.later_gain = 0.5;
+        let mut s = Session::new(f.desired.clone(), None, desired, flown, params);
+        let bias = Vector3::new(0.6, -0.4, 0.2);
+        let jitter = [0.003, -0.002, 0.0, 0.001, -0.004];
+        let frames: Vec<_> = jitter
+            .iter()
+            .map(|&n| {
+                (
+                    camera_at(t_ned + bias + Vector3::new(n, -n, n), &flown, &mount),
+                    Some(t_ned),
+                )
+            })
+            .collect();
+        let (c, _) = s
+            .correct_from(&frames, 10.0, 0, &ctx_with(&f.alignment))
+            .unwrap();
+        s.target = c.target;
+        // Next round: the camera stands at the desired pose (the vehicle
+        // reports itself at the target minus the bias), and the map's
+        // georeference has been refit.
+        let frames: Vec<_> = jitter
+            .iter()
+            .map(|&n| {
+                (
+                    camera_at(t_ned + Vector3::new(n, n, -n), &flown, &mount),
+                    Some(t_ned - bias),
+                )
+            })
+            .collect();
+        let (c, o) = s.correct_from(&frames, 18.0, 1, &ctx_with(&refit)).unwrap();
+        assert!(o.gain.iter().all(|&g| g <= 0.5), "{o:?}");
+        assert_eq!(o.gated, [true; 5], "{o:?}");
+        assert!(Vector3::from(c.step_ned_m).norm() < 1e-9, "{c:?}");
+        assert!(c.yaw_step_deg.abs() < 1e-9, "{c:?}");
     }
 }
