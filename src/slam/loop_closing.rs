@@ -48,6 +48,15 @@
 //! ([`LockHold`]), so a run can set the tracking thread's frame times
 //! against them.
 //!
+//! The thread: the closer runs on its own thread (`slam-loop`, at a lower
+//! priority than tracking and mapping), fed each keyframe local mapping
+//! finished; in sequential mode it runs after local mapping on the same
+//! thread, so runs repeat. Local mapping goes on beside the search; a
+//! local BA solved while a correction moved the map drops its result (the
+//! map's correction count changed), and local mapping is held between two
+//! keyframes while the essential graph and a global BA are solved and
+//! written back ([`super::pause`]).
+//!
 //! Map merging (ORB-SLAM3's "welding" merge, monocular): after a tracking
 //! loss tracking starts a new map ([`super::tracking`]); the map holds
 //! every map of the atlas ([`super::map::MapId`]). Before looking for a
@@ -81,7 +90,7 @@
 //! goes to a shared [`MergeLog`], which the daemon reports as loops.
 
 use std::collections::{HashMap, HashSet};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use nalgebra::{Isometry3, Point2, Translation3};
@@ -102,6 +111,7 @@ use super::bundle::{apply_ba_result, build_ba_problem};
 use super::map::{KeyFrame, KeyFrameId, Map, MapId, Places, PointId, lock};
 use super::matcher::{self, MatcherParams};
 use super::params::bound_history;
+use super::pause::MappingPause;
 
 /// Tunable numbers of loop closing.
 #[derive(Debug, Clone, PartialEq)]
@@ -153,9 +163,9 @@ pub struct LoopParams {
     pub seed: u64,
     /// Bundle adjustment over all keyframes and points after the essential
     /// graph (the map's first keyframe fixed); `None` (default): none. It
-    /// runs on the loop closer's thread (in two-thread mode the mapping
-    /// thread, which queues keyframes meanwhile), the solve without the map
-    /// lock. Off by default: on the simulator renders it did not help (README).
+    /// runs on the loop closer's thread beside local mapping, the solve
+    /// without the map lock, and is written back with local mapping held.
+    /// Off by default: on the simulator renders it did not help (README).
     pub global_ba: Option<BaParams>,
     /// Fit the loop's Sim(3) again on the matches the projection search
     /// found whose keypoint holds a point, and search once more. Off by
@@ -370,7 +380,7 @@ pub struct MergeSummary {
 pub type MergeLog = std::sync::Arc<Mutex<Vec<MergeSummary>>>;
 
 /// The loops a [`LoopCloser`] closed, shared with whoever reports them
-/// while it runs on the mapping thread (one summary per loop, in order).
+/// while it runs on its thread (one summary per loop, in order).
 pub type LoopLog = std::sync::Arc<Mutex<Vec<LoopSummary>>>;
 
 /// Why a consistent candidate was refused (for logs and counts).
@@ -419,7 +429,8 @@ struct LoopMatch {
     projection_matches: usize,
 }
 
-/// The loop closer (runs after local mapping, off the tracking thread).
+/// The loop closer (runs after local mapping, on its own thread or after
+/// it in sequential mode).
 pub struct LoopCloser {
     params: LoopParams,
     bounds: Bounds,
@@ -445,6 +456,9 @@ pub struct LoopCloser {
     pub holds: Vec<LockHold>,
     /// Holds and refusals kept ([`LoopCloser::set_history`]).
     keep: Option<usize>,
+    /// Local mapping's pause, when the closer runs on its own thread
+    /// ([`LoopCloser::set_pause`]).
+    pause: Option<Arc<MappingPause>>,
 }
 
 impl LoopCloser {
@@ -465,7 +479,14 @@ impl LoopCloser {
             merge_log: MergeLog::default(),
             holds: Vec::new(),
             keep: None,
+            pause: None,
         }
+    }
+
+    /// Run beside local mapping: hold it through `pause` while a
+    /// correction's essential graph and global BA are written back.
+    pub fn set_pause(&mut self, pause: Arc<MappingPause>) {
+        self.pause = Some(pause);
     }
 
     /// Keep at least the newest `keep` lock holds and refusals (of loops,
@@ -506,8 +527,11 @@ impl LoopCloser {
             kind,
         });
         // The essential graph is solved without the lock (tracking goes
-        // on with the corrected neighbourhood), then written back.
+        // on with the corrected neighbourhood), then written back; local
+        // mapping, on its own thread, is held meanwhile.
+        let pause = self.pause.clone();
         let mut event = found.map(|(mut e, mut graph)| {
+            let held = pause.as_deref().map(MappingPause::hold);
             let solved = graph.solve(&self.params.pose_graph);
             let mut m = lock(map);
             let applied = Instant::now();
@@ -517,6 +541,7 @@ impl LoopCloser {
             }
             e.keyframes_after = keyframe_trajectory(&m);
             drop(m);
+            drop(held);
             let end = Instant::now();
             self.holds.push(LockHold {
                 kf,
@@ -531,7 +556,8 @@ impl LoopCloser {
         self.bound();
         if let (Some(e), Some(ba)) = (&mut event, &self.params.global_ba) {
             let t1 = Instant::now();
-            if let Some(rmse) = global_bundle_adjustment(map, kf, ba, &mut self.holds) {
+            let pause = pause.as_deref();
+            if let Some(rmse) = global_bundle_adjustment(map, kf, ba, pause, &mut self.holds) {
                 e.global_ba_rmse_px = Some(rmse);
                 e.keyframes_after = keyframe_trajectory(&lock(map));
             }
@@ -1534,6 +1560,7 @@ fn global_bundle_adjustment(
     map: &Mutex<Map>,
     kf: KeyFrameId,
     params: &BaParams,
+    pause: Option<&MappingPause>,
     holds: &mut Vec<LockHold>,
 ) -> Option<f64> {
     let mut setup = {
@@ -1561,11 +1588,15 @@ fn global_bundle_adjustment(
         outliers = report.n_outliers,
         "loop: global BA"
     );
+    // Solved beside local mapping; written back with it held (its
+    // adjustments made meanwhile give way to the global solution).
+    let held = pause.map(MappingPause::hold);
     let mut m = lock(map);
     let from = Instant::now();
     apply_ba_result(&mut m, &setup, &report.outliers);
     m.note_correction();
     drop(m);
+    drop(held);
     holds.push(LockHold {
         kf,
         from,

@@ -110,6 +110,9 @@ pub struct LocalMapper {
     keep_reports: Option<usize>,
     /// When the map was put in NED by telemetry: the keyframe and the fit.
     pub georeferenced: Option<(KeyFrameId, Georeferenced)>,
+    /// Local BA results dropped because a loop correction or a merge moved
+    /// the map while they were solved.
+    pub dropped_local_ba: usize,
 }
 
 impl LocalMapper {
@@ -132,6 +135,7 @@ impl LocalMapper {
             reports: Vec::new(),
             keep_reports: None,
             georeferenced: None,
+            dropped_local_ba: 0,
         }
     }
 
@@ -435,8 +439,9 @@ impl LocalMapper {
     /// keyframe of the keyframe's map fixed), other observers fixed. The solve runs without
     /// the map lock. Returns the final reprojection RMSE.
     fn local_bundle_adjustment(&mut self, map: &Mutex<Map>, kf: KeyFrameId) -> Option<f64> {
-        let mut setup = {
+        let (corrections, mut setup) = {
             let m = lock(map);
+            let corrections = m.corrections();
             let k = m.keyframe(kf)?;
             let mut local: Vec<KeyFrameId> = vec![kf];
             local.extend(k.covisible.iter().map(|c| c.0));
@@ -447,7 +452,7 @@ impl LocalMapper {
             if let Some(p) = &self.priors {
                 setup.problem.priors = p.priors_for(&m, &setup);
             }
-            setup
+            (corrections, setup)
         };
         if !setup.problem.poses.iter().any(|p| !p.fixed) {
             return None;
@@ -456,6 +461,18 @@ impl LocalMapper {
             optimize::local_bundle_adjustment(&mut setup.problem, &self.params.local_ba).ok()?;
         tracing::trace!(kf = kf.0, before = report.initial_rmse_px, after = report.final_rmse_px, outliers = report.n_outliers, first = ?report.first_pass, second = ?report.second_pass, "local BA");
         let mut m = lock(map);
+        // The loop closer (on its own thread) corrected the map while this
+        // was solved: the result would put back poses from before the
+        // correction. The next keyframe's local BA starts from the
+        // corrected map.
+        if m.corrections() != corrections {
+            tracing::debug!(
+                kf = kf.0,
+                "local BA result dropped: the map was corrected while it was solved"
+            );
+            self.dropped_local_ba += 1;
+            return None;
+        }
         apply_ba_result(&mut m, &setup, &report.outliers);
         Some(report.final_rmse_px)
     }

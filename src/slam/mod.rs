@@ -1,16 +1,19 @@
-//! Monocular visual SLAM: initialise, track and map on two threads.
+//! Monocular visual SLAM: initialise, track, map and close loops on three
+//! threads.
 //!
 //! [`Slam`] owns the map (behind a mutex), the tracker (on the caller's
 //! thread) and the local mapper (on its own thread, fed keyframes over a
 //! bounded channel; or inline after each keyframe in sequential mode, so
 //! runs repeat exactly). Tracking never waits for mapping: it only inserts a
 //! keyframe when mapping is idle, and mapping solves its bundle adjustment
-//! outside the map lock. Loop closing ([`loop_closing`]) runs after each
-//! mapped keyframe on the mapping thread (inline in sequential mode), so
-//! it never races local BA; its correction holds the map lock, as
-//! ORB-SLAM's holds the map-update mutex, except while the essential graph
-//! is solved (on a copy of the poses), and tracking re-places its last
-//! frame on the corrected reference keyframe. [`Params::history`] bounds
+//! outside the map lock. Loop closing ([`loop_closing`]) runs on a third
+//! thread at a lower priority, fed each mapped keyframe (inline after
+//! mapping in sequential mode); a local BA that a correction overtook
+//! drops its result, and mapping is held while the essential graph is
+//! solved and written back ([`pause`]). The correction holds the map lock,
+//! as ORB-SLAM's holds the map-update mutex, except while the essential
+//! graph is solved (on a copy of the poses), and tracking re-places its
+//! last frame on the corrected reference keyframe. [`Params::history`] bounds
 //! what is recorded per frame and per keyframe for a long flight. After a tracking loss a new
 //! map is started beside the old one (the [`Map`] is an atlas) and the
 //! loop closer merges them when it finds a common place; with telemetry
@@ -31,6 +34,7 @@
 //! | [`mapping`] | the [`LocalMapper`]: triangulation, fusion, local BA, keyframe culling |
 //! | [`priors`] | telemetry priors (a log read whole or a live feed): the map put in local NED, GNSS and altitude priors in BA |
 //! | [`loop_closing`] | the [`LoopCloser`]: loop detection, Sim(3) check, correction, essential graph |
+//! | [`pause`] | holding local mapping while the loop closer writes a correction back; the closer's priority |
 //! | [`bundle`] | the map ↔ [`crate::optimize`] glue of every bundle adjustment |
 //! | [`matcher`] | descriptor matching for each of the stages |
 //! | [`map`] | keyframes and points in arenas, covisibility, spanning tree, place index |
@@ -48,6 +52,7 @@ pub mod mapfile;
 pub mod mapping;
 pub mod matcher;
 pub mod params;
+pub mod pause;
 pub mod planar;
 pub mod priors;
 mod relocalizer;
@@ -85,8 +90,8 @@ pub enum SlamError {
     /// The feature extractor refused its parameters.
     #[error(transparent)]
     Features(#[from] crate::features::FeatureError),
-    /// The mapping thread could not be started.
-    #[error("cannot start the mapping thread: {0}")]
+    /// The mapping or loop closing thread could not be started.
+    #[error("cannot start a SLAM thread: {0}")]
     Thread(std::io::Error),
     /// A map file could not be read or written.
     #[error(transparent)]
@@ -154,17 +159,49 @@ impl Default for Params {
     }
 }
 
-/// The mapping thread's workers: the local mapper, then the loop closer.
+/// The local mapper and where the keyframes it mapped go next.
 struct Mappers {
     mapper: LocalMapper,
-    closer: Option<LoopCloser>,
+    closer: Closing,
 }
 
+/// The loop closer, after local mapping.
+enum Closing {
+    /// Loop closing off.
+    Off,
+    /// Run after each mapped keyframe on the same thread (sequential mode).
+    Inline(Box<LoopCloser>),
+    /// On its own thread: each mapped keyframe is sent to it
+    /// ([`Mappers::hand_over`]).
+    Thread(SyncSender<KeyFrameId>),
+}
+
+/// Keyframes mapped but not yet looked at by the loop closer, at most: a
+/// closer that far behind holds mapping (and so new keyframes) back.
+const LOOP_QUEUE: usize = 64;
+
 impl Mappers {
+    /// Maps `kf`, and looks for a loop at it when the closer runs inline.
     fn process(&mut self, map: &Mutex<Map>, kf: KeyFrameId, more_waiting: bool) {
         self.mapper.process_keyframe(map, kf, more_waiting);
-        if let Some(c) = &mut self.closer {
+        if let Closing::Inline(c) = &mut self.closer {
             c.process_keyframe(map, kf);
+        }
+    }
+
+    /// Sends the mapped `kf` to the closer's thread. Called between two
+    /// keyframes (never while the mapper counts as mapping): a full queue
+    /// then waits for a closer that may itself be waiting to hold mapping.
+    fn hand_over(&self, kf: KeyFrameId) {
+        if let Closing::Thread(tx) = &self.closer {
+            // The closer is joined after the mapper: a send can only fail
+            // if its thread panicked.
+            if tx.send(kf).is_err() {
+                tracing::warn!(
+                    kf = kf.0,
+                    "loop closing thread gone; keyframe not checked for loops"
+                );
+            }
         }
     }
 }
@@ -174,6 +211,8 @@ enum Mapping {
     Thread {
         tx: Option<SyncSender<KeyFrameId>>,
         handle: Option<JoinHandle<Mappers>>,
+        /// The loop closer's thread (loop closing on).
+        closer: Option<JoinHandle<LoopCloser>>,
         busy: Arc<AtomicBool>,
         queued: Arc<AtomicUsize>,
     },
@@ -353,17 +392,41 @@ impl Slam {
         });
         let loop_log = closer.as_ref().map(LoopCloser::log);
         let merge_log = closer.as_ref().map(LoopCloser::merge_log);
-        let mappers = Mappers { mapper, closer };
         let mapping = if params.sequential {
-            Mapping::Inline(Box::new(mappers))
+            let closer = closer.map_or(Closing::Off, |c| Closing::Inline(Box::new(c)));
+            Mapping::Inline(Box::new(Mappers { mapper, closer }))
         } else {
+            let pause = Arc::new(pause::MappingPause::default());
+            let (closing, closer) = match closer {
+                Some(mut c) => {
+                    c.set_pause(pause.clone());
+                    let (tx, rx) = sync_channel::<KeyFrameId>(LOOP_QUEUE);
+                    let handle = spawn_closer(c, rx, map.clone())?;
+                    (Closing::Thread(tx), Some(handle))
+                }
+                None => (Closing::Off, None),
+            };
+            let mappers = Mappers {
+                mapper,
+                closer: closing,
+            };
             let (tx, rx) = sync_channel::<KeyFrameId>(params.keyframe_queue.max(1));
             let busy = Arc::new(AtomicBool::new(false));
             let queued = Arc::new(AtomicUsize::new(0));
-            let handle = spawn_mapper(mappers, rx, map.clone(), busy.clone(), queued.clone())?;
+            let handle = spawn_mapper(
+                mappers,
+                rx,
+                map.clone(),
+                MapperFlags {
+                    busy: busy.clone(),
+                    queued: queued.clone(),
+                    pause,
+                },
+            )?;
             Mapping::Thread {
                 tx: Some(tx),
                 handle: Some(handle),
+                closer,
                 busy,
                 queued,
             }
@@ -380,7 +443,7 @@ impl Slam {
     }
 
     /// The loops closed so far after the first `n` (all with `n` = 0), in
-    /// order; they come from the mapping thread as it closes them.
+    /// order; they come from the loop closing thread as it closes them.
     pub fn loops_since(&self, n: usize) -> Vec<LoopSummary> {
         self.loop_log.as_ref().map_or_else(Vec::new, |log| {
             let g = log.lock().unwrap_or_else(|e| e.into_inner());
@@ -389,7 +452,7 @@ impl Slam {
     }
 
     /// The merges made so far after the first `n` (all with `n` = 0), in
-    /// order; they come from the mapping thread as it makes them.
+    /// order; they come from the loop closing thread as it makes them.
     pub fn merges_since(&self, n: usize) -> Vec<MergeSummary> {
         self.merge_log.as_ref().map_or_else(Vec::new, |log| {
             let g = log.lock().unwrap_or_else(|e| e.into_inner());
@@ -461,17 +524,36 @@ impl Slam {
     /// return the map and the frame records.
     pub fn finish(mut self) -> SlamRun {
         let mappers = match &mut self.mapping {
-            Mapping::Inline(m) => Some((
-                std::mem::take(&mut m.mapper.reports),
-                m.closer.take(),
-                m.mapper.georeferenced,
-            )),
-            Mapping::Thread { tx, handle, .. } => {
-                drop(tx.take());
-                match handle.take().map(|h| h.join()) {
-                    Some(Ok(m)) => Some((m.mapper.reports, m.closer, m.mapper.georeferenced)),
+            Mapping::Inline(m) => {
+                let closer = match std::mem::replace(&mut m.closer, Closing::Off) {
+                    Closing::Inline(c) => Some(*c),
                     _ => None,
-                }
+                };
+                Some((
+                    std::mem::take(&mut m.mapper.reports),
+                    closer,
+                    m.mapper.georeferenced,
+                ))
+            }
+            Mapping::Thread {
+                tx, handle, closer, ..
+            } => {
+                // Mapping finishes its queue and drops its sender to the
+                // closer, which then finishes its own queue.
+                drop(tx.take());
+                let mapped = match handle.take().map(|h| h.join()) {
+                    Some(Ok(m)) => Some((m.mapper.reports, m.mapper.georeferenced)),
+                    _ => None,
+                };
+                let closer = match closer.take().map(|h| h.join()) {
+                    Some(Ok(c)) => Some(c),
+                    Some(Err(_)) => {
+                        tracing::error!("the loop closing thread panicked; its loops are lost");
+                        None
+                    }
+                    None => None,
+                };
+                mapped.map(|(reports, georeferenced)| (reports, closer, georeferenced))
             }
         };
         let (reports, closer, georeferenced) = mappers.unwrap_or_default();
@@ -553,24 +635,62 @@ fn tracking_params(params: &Params) -> TrackingParams {
     t
 }
 
+/// What the mapping thread shares: with tracking, whether it is mapping
+/// and how many keyframes wait; with the loop closer, the pause.
+struct MapperFlags {
+    busy: Arc<AtomicBool>,
+    queued: Arc<AtomicUsize>,
+    pause: Arc<pause::MappingPause>,
+}
+
 fn spawn_mapper(
     mut mappers: Mappers,
     rx: Receiver<KeyFrameId>,
     map: Arc<Mutex<Map>>,
-    busy: Arc<AtomicBool>,
-    queued: Arc<AtomicUsize>,
+    flags: MapperFlags,
 ) -> Result<JoinHandle<Mappers>, SlamError> {
+    let MapperFlags {
+        busy,
+        queued,
+        pause,
+    } = flags;
     std::thread::Builder::new()
         .name("slam-mapping".into())
         .spawn(move || {
             while let Ok(kf) = rx.recv() {
+                // Held while the loop closer writes a correction back.
+                pause.begin();
                 busy.store(true, Ordering::Release);
                 queued.fetch_sub(1, Ordering::AcqRel);
                 let more = queued.load(Ordering::Acquire) > 0;
                 mappers.process(&map, kf, more);
                 busy.store(false, Ordering::Release);
+                pause.end();
+                mappers.hand_over(kf);
             }
             mappers
+        })
+        .map_err(SlamError::Thread)
+}
+
+/// The loop closer's thread: each keyframe local mapping finished, in
+/// order, at a lower priority than tracking and mapping
+/// ([`pause::LOOP_THREAD_NICENESS`]).
+fn spawn_closer(
+    mut closer: LoopCloser,
+    rx: Receiver<KeyFrameId>,
+    map: Arc<Mutex<Map>>,
+) -> Result<JoinHandle<LoopCloser>, SlamError> {
+    std::thread::Builder::new()
+        .name("slam-loop".into())
+        .spawn(move || {
+            if !pause::lower_this_thread_priority(pause::LOOP_THREAD_NICENESS) {
+                tracing::debug!("loop closing runs at the process's priority");
+            }
+            while let Ok(kf) = rx.recv() {
+                closer.process_keyframe(&map, kf);
+            }
+            closer
         })
         .map_err(SlamError::Thread)
 }

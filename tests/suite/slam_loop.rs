@@ -5,7 +5,8 @@
 //! - on the town, the lap's end sees its start again: a loop is closed
 //!   between keyframes that the ground truth puts within a few metres of
 //!   each other, and the drift at the revisit and the ATE drop against the
-//!   same run without loop closing;
+//!   same run without loop closing; the loop closer on its own thread (as
+//!   the daemon runs it) closes it too;
 //! - on the aliasing world (a grid of identical buildings around a car park
 //!   of identical cars, built to fool bag-of-words), BoW proposes loops
 //!   between look-alike places, and none is accepted: every loop closed
@@ -22,8 +23,15 @@ use shotpilot_sim::world::WorldKind;
 use crate::sim_support::{gt_position, render_lap};
 
 fn run(ds: &Dataset, loop_closing: bool) -> SlamRun {
+    run_with(ds, loop_closing, true)
+}
+
+/// The SLAM over `ds`, sequential (one thread, repeatable) or as the
+/// daemon runs it (tracking here, mapping and loop closing on their own
+/// threads, frames fed as fast as tracking takes them).
+fn run_with(ds: &Dataset, loop_closing: bool, sequential: bool) -> SlamRun {
     let mut params = slam::Params {
-        sequential: true,
+        sequential,
         ..Default::default()
     };
     if !loop_closing {
@@ -35,11 +43,14 @@ fn run(ds: &Dataset, loop_closing: bool) -> SlamRun {
         s.process(i as u64, f.timestamp, Arc::new(f.image));
     }
     // What the daemon's status reports while the SLAM runs: the loops the
-    // run ends with.
+    // run ends with (with threads, those closed so far come first).
     let live = s.loops_since(0);
     let run = s.finish();
     let summaries: Vec<_> = run.loops.iter().map(|l| l.summary.clone()).collect();
-    assert_eq!(live, summaries);
+    assert_eq!(live, summaries[..live.len()]);
+    if sequential {
+        assert_eq!(live, summaries);
+    }
     run
 }
 
@@ -103,6 +114,26 @@ fn a_lap_closes_its_loop_and_the_drift_at_the_revisit_drops() {
     assert!(
         ate_on < ate_off,
         "ATE {ate_on} m with loop closing, {ate_off} m without"
+    );
+
+    // As the daemon runs it: the loop closer on its own thread, beside
+    // local mapping, closes the same loop (the keyframes differ from run to
+    // run, so only what the loop must achieve is checked).
+    let threaded = run_with(&ds, true, false);
+    threaded.map.check_invariants().unwrap();
+    let (drift_thr, ate_thr) = revisit_drift_and_ate(&gt, &threaded);
+    println!(
+        "loop closer on its own thread: {} loops, revisit drift {drift_thr:.3} m, ATE {ate_thr:.3} m",
+        threaded.loops.len()
+    );
+    assert!(!threaded.loops.is_empty(), "no loop closed on the thread");
+    for l in threaded.loops.iter().map(|l| &l.summary) {
+        let gap = (gt_position(&gt, l.current_t) - gt_position(&gt, l.loop_t)).norm();
+        assert!(gap < 5.0, "a false loop: the keyframes are {gap} m apart");
+    }
+    assert!(
+        drift_thr < 0.5 * drift_off,
+        "revisit drift {drift_thr} m with the threaded loop closer, {drift_off} m without loop closing"
     );
 
     // The map file keeps the loop: saved and loaded back equal, loop edges
