@@ -519,6 +519,7 @@ impl LoopCloser {
         let mut m = lock(map);
         let from = Instant::now();
         let (kind, found) = self.search(&mut m, kf);
+        let corrections = m.corrections();
         drop(m);
         self.holds.push(LockHold {
             kf,
@@ -532,7 +533,19 @@ impl LoopCloser {
         let pause = self.pause.clone();
         let mut event = found.map(|(mut e, mut graph)| {
             let held = pause.as_deref().map(MappingPause::hold);
-            let solved = graph.solve(&self.params.pose_graph);
+            // Before the hold was granted, local mapping may have moved
+            // the whole map (telemetry priors rescale or refit it): the
+            // graph, built on the poses before, would put them back. The
+            // neighbourhood's correction stays; the rest is left to local
+            // BA and the next loop.
+            let overtaken = lock(map).corrections() != corrections;
+            if overtaken {
+                tracing::warn!(
+                    kf = kf.0,
+                    "loop's essential graph not written back: the map was moved while it was built"
+                );
+            }
+            let solved = !overtaken && graph.solve(&self.params.pose_graph);
             let mut m = lock(map);
             let applied = Instant::now();
             if solved {
