@@ -178,7 +178,7 @@ pub struct SlamConfig {
     /// never stalls the video).
     pub artificial_delay_ms: u64,
     /// Close loops: a place seen again corrects the drift of the map
-    /// (on the mapping thread; see `slam::loop_closing`).
+    /// (on its own thread beside local mapping; see `slam::loop_closing`).
     pub loop_closing: bool,
     /// Telemetry priors: the link's GNSS fixes (GLOBAL_POSITION_INT with
     /// GPS_RAW_INT's fix and reported accuracy) put the map in local NED
