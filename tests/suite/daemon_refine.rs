@@ -556,17 +556,20 @@ fn started_mission_is_refined_by_the_daemon() {
 /// Measured on an idle machine (2 cores): [3.90, 1.45, 1.02, 1.07, 0.64],
 /// [3.76, 1.30, 0.98], [3.86, 1.42, 1.11, 1.20, 0.97] %; with other builds
 /// running, 4 of 5 runs ended at the default 4 corrections at 1.02-1.09 %.
-/// A round ends under the threshold about one time in two (the walk's
-/// drift in a round against the threshold), so a budget of n corrections
-/// fails about one run in 2^n. The grader's CI on 4c633a5 hit the 6 it
-/// then allowed: [3.91, 1.52, 1.29, 1.01, 1.06, 2.29, 1.21] %. Its 2.29 %
-/// was not drift (the true camera had not moved): a georeference refit had
-/// turned the live angles by ~2 deg and back, and the filter kept 13 % of
-/// the estimate measured through the other alignment, which the session
-/// now carries across refits (`a_refit_between_rounds_is_not_taken_for_an_offset`).
-/// The test allows 10 corrections: what it checks is that the loop keeps
-/// correcting a drifting bias until under the threshold, not how many
-/// rounds the drift of one machine's timing costs.
+/// How often a round ends under the threshold, over the five runs on
+/// record (the three above, [3.81, 1.55, 1.32, 1.61, 0.70] % after the fix
+/// below, and the grader's CI on c9c8e93, which hit the 6 corrections it
+/// then allowed: [3.91, 1.52, 1.29, 1.01, 1.06, 2.29, 1.21] %): never the
+/// round after the first correction (0 of 5, 1.30-1.55 %), 4 of 15 later
+/// ones. At ~0.27 a round, n corrections fail about one run in 0.73^(n-1):
+/// 6 % with 10, 1.2 % with 15. The grader's 2.29 % was not drift (the true
+/// camera had not moved): a georeference refit had turned the live angles
+/// by ~2 deg and back, and the filter kept 13 % of the estimate measured
+/// through the other alignment, which the session now carries across
+/// refits (`a_refit_between_rounds_is_not_taken_for_an_offset`). The test
+/// allows 16 corrections (at most ~110 s more): what it checks is that the
+/// loop keeps correcting a drifting bias until under the threshold, not
+/// how many rounds the drift of one machine's timing costs.
 /// `SHOTPILOT_REFINE_GPS_TAU`, `_GPS_SEED`, `_LATER_GAIN` change those.
 #[test]
 fn gps_bias_is_corrected_by_the_daemon() {
@@ -586,7 +589,7 @@ fn gps_bias_is_corrected_by_the_daemon() {
         cfg.sim.gps_tau_s = tau;
         cfg.sim.gps_seed = Some(gps_seed);
         cfg.refine.later_gain = later_gain;
-        cfg.refine.max_rounds = 10;
+        cfg.refine.max_rounds = 16;
     });
     let (addr, truth_dir) = (run.addr, run.truth_dir.clone());
     let (geo, photos) = run.georeferenced();
