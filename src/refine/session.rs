@@ -726,6 +726,17 @@ mod tests {
         }
     }
 
+    impl Fixture {
+        /// The flown target's position, local NED metres.
+        fn target_ned(&self) -> Vector3<f64> {
+            self.frame.geodetic_to_ned(&Geodetic {
+                lat_deg: self.target.lat_deg,
+                lon_deg: self.target.lon_deg,
+                alt_m: self.home.alt_amsl_m + self.target.alt_m,
+            })
+        }
+    }
+
     fn run(f: &Fixture, live: &GrayImage, max_rounds: usize) -> (Step, Session) {
         let params = Params {
             controller: ControllerParams {
@@ -874,11 +885,7 @@ mod tests {
             localize: &LocalizeParams::default(),
         };
         let flown = f.target;
-        let t_ned = f.frame.geodetic_to_ned(&Geodetic {
-            lat_deg: flown.lat_deg,
-            lon_deg: flown.lon_deg,
-            alt_m: f.home.alt_amsl_m + flown.alt_m,
-        });
+        let t_ned = f.target_ned();
         // The desired camera: the vehicle exactly at the flown target. The
         // vehicle stands 5 cm off its target (wind) by its own report and
         // its GNSS bias puts it 0.6 m north, 0.4 m west, 0.2 m lower.
@@ -959,11 +966,7 @@ mod tests {
             localize: &localize,
         };
         let flown = f.target;
-        let t_ned = f.frame.geodetic_to_ned(&Geodetic {
-            lat_deg: flown.lat_deg,
-            lon_deg: flown.lon_deg,
-            alt_m: f.home.alt_amsl_m + flown.alt_m,
-        });
+        let t_ned = f.target_ned();
         let desired = camera_at(t_ned, &flown, &mount);
         // Half of each new measurement: what is kept of the old estimate
         // is what a refit would leak into the correction.
