@@ -530,6 +530,7 @@ impl LoopCloser {
         // The essential graph is solved without the lock (tracking goes
         // on with the corrected neighbourhood), then written back; local
         // mapping, on its own thread, is held meanwhile.
+        // A clone: `self.bound()` below needs `self` whole.
         let pause = self.pause.clone();
         let mut event = found.map(|(mut e, mut graph)| {
             let held = pause.as_deref().map(MappingPause::hold);

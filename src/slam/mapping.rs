@@ -110,9 +110,6 @@ pub struct LocalMapper {
     keep_reports: Option<usize>,
     /// When the map was put in NED by telemetry: the keyframe and the fit.
     pub georeferenced: Option<(KeyFrameId, Georeferenced)>,
-    /// Local BA results dropped because a loop correction or a merge moved
-    /// the map while they were solved.
-    pub dropped_local_ba: usize,
 }
 
 impl LocalMapper {
@@ -135,7 +132,6 @@ impl LocalMapper {
             reports: Vec::new(),
             keep_reports: None,
             georeferenced: None,
-            dropped_local_ba: 0,
         }
     }
 
@@ -470,7 +466,6 @@ impl LocalMapper {
                 kf = kf.0,
                 "local BA result dropped: the map was corrected while it was solved"
             );
-            self.dropped_local_ba += 1;
             return None;
         }
         apply_ba_result(&mut m, &setup, &report.outliers);

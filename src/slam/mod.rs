@@ -417,11 +417,9 @@ impl Slam {
                 mappers,
                 rx,
                 map.clone(),
-                MapperFlags {
-                    busy: busy.clone(),
-                    queued: queued.clone(),
-                    pause,
-                },
+                busy.clone(),
+                queued.clone(),
+                pause,
             )?;
             Mapping::Thread {
                 tx: Some(tx),
@@ -635,25 +633,17 @@ fn tracking_params(params: &Params) -> TrackingParams {
     t
 }
 
-/// What the mapping thread shares: with tracking, whether it is mapping
-/// and how many keyframes wait; with the loop closer, the pause.
-struct MapperFlags {
-    busy: Arc<AtomicBool>,
-    queued: Arc<AtomicUsize>,
-    pause: Arc<pause::MappingPause>,
-}
-
+/// The mapping thread: tells tracking whether it is mapping (`busy`) and
+/// how many keyframes wait (`queued`); the loop closer holds it through
+/// `pause`.
 fn spawn_mapper(
     mut mappers: Mappers,
     rx: Receiver<KeyFrameId>,
     map: Arc<Mutex<Map>>,
-    flags: MapperFlags,
+    busy: Arc<AtomicBool>,
+    queued: Arc<AtomicUsize>,
+    pause: Arc<pause::MappingPause>,
 ) -> Result<JoinHandle<Mappers>, SlamError> {
-    let MapperFlags {
-        busy,
-        queued,
-        pause,
-    } = flags;
     std::thread::Builder::new()
         .name("slam-mapping".into())
         .spawn(move || {

@@ -63,8 +63,9 @@ impl MappingPause {
         PauseGuard { pause: self }
     }
 
-    /// Whether the mapper is held now.
-    pub fn is_held(&self) -> bool {
+    /// Whether a hold is in force or asked for (the tests' view).
+    #[cfg(test)]
+    fn is_held(&self) -> bool {
         self.state().holds > 0
     }
 }

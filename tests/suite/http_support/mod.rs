@@ -215,26 +215,33 @@ pub fn send_partial(
 /// A whole HTTP/1.1 response with a `content-length` body at the start of
 /// `bytes`, or None while it is incomplete.
 fn parse_reply(bytes: &[u8]) -> Option<Reply> {
-    let end = bytes.windows(4).position(|w| w == b"\r\n\r\n")?;
-    let text = std::str::from_utf8(&bytes[..end]).ok()?;
-    let mut lines = text.split("\r\n");
-    let status = lines.next()?.split(' ').nth(1)?.parse().ok()?;
+    let mut headers = [httparse::EMPTY_HEADER; 32];
+    let mut r = httparse::Response::new(&mut headers);
+    let httparse::Status::Complete(end) = r.parse(bytes).ok()? else {
+        return None;
+    };
     let mut head = String::new();
     let mut length = 0;
-    for line in lines {
-        let (k, v) = line.split_once(':')?;
-        let (k, v) = (k.trim().to_ascii_lowercase(), v.trim());
+    for h in r.headers.iter() {
+        let (k, v) = (
+            h.name.to_ascii_lowercase(),
+            String::from_utf8_lossy(h.value),
+        );
         assert!(
             !(k == "transfer-encoding" && v.contains("chunked")),
             "a chunked early response: not read here"
         );
         if k == "content-length" {
-            length = v.parse().ok()?;
+            length = v.trim().parse().ok()?;
         }
         head.push_str(&format!("{k}: {v}\n"));
     }
-    let body = bytes.get(end + 4..end + 4 + length)?.to_vec();
-    Some(Reply { status, head, body })
+    let body = bytes.get(end..end + length)?.to_vec();
+    Some(Reply {
+        status: r.code?,
+        head,
+        body,
+    })
 }
 
 /// An endless response (server-sent events, MJPEG) being read.
