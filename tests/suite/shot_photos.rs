@@ -26,7 +26,8 @@
 //! without EXIF as exact, `SHOT_PHOTOS_NO_UNION=1` localises on the best
 //! candidate's pairs alone, `SHOT_PHOTOS_REMATCH_ROUNDS=0` skips the
 //! projection rounds through the estimated camera of a photo whose focal
-//! length was weighed (each as before it was in, for a before/after).
+//! length was weighed or estimated from its EXIF (each as before it was
+//! in, for a before/after).
 //! `SHOT_PHOTOS_DEBUG=1` prints a line per photo: where the keyframe its
 //! pose was made from ranks in the bag-of-words query (-1: not at all), and
 //! the error, sigma and error in the camera's frame (x right, y down, z

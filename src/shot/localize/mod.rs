@@ -169,6 +169,21 @@ pub fn localize_with_camera(
         best.median_depth,
         near,
     );
+    tracing::debug!(
+        keyframe = best.kf.0,
+        inliers = best.inliers,
+        agreeing = agreeing.count,
+        pose_position = pose_sigma.position,
+        pose_rotation_deg = pose_sigma.rotation_deg,
+        spread = ?agreeing.rms_spread(),
+        map_absolute = map_error.absolute,
+        median_depth = best.median_depth,
+        near,
+        position = sigma.position,
+        position_pct = sigma.position_depth_fraction * 100.0,
+        rotation_deg = sigma.rotation_deg,
+        "shot sigma"
+    );
     if !(sigma.position_depth_fraction <= g.max_position_sigma_depth_fraction
         && sigma.rotation_deg <= g.max_rotation_sigma_deg)
     {

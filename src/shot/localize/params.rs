@@ -106,10 +106,11 @@ pub struct LocalizeParams {
     pub focal_unknown: bool,
     /// The priors of that weighing.
     pub unknown_focal: UnknownFocal,
-    /// For such a photo, projection rounds through the camera the weighing
-    /// chose after the first fit (the local map searched again with the
-    /// estimated focal length and distortion, both cameras weighed again
-    /// on the grown pairs); 0: none.
+    /// For such a photo, and for one whose intrinsics are estimated with
+    /// the pose (`camera_uncertainty`, an EXIF camera), projection rounds
+    /// through the estimated camera after the first fit (the local map
+    /// searched again with the estimated focal length and distortion, the
+    /// camera estimated again on the grown pairs); 0: none.
     pub rematch_rounds: usize,
     /// Seed of the RANSAC.
     pub seed: u64,

@@ -107,7 +107,9 @@ pub(super) fn refine_candidate(
         params,
         map_error,
     )?;
-    if !params.focal_unknown || params.rematch_rounds == 0 {
+    let estimated =
+        params.focal_unknown || params.camera_uncertainty != IntrinsicsUncertainty::default();
+    if !estimated || params.rematch_rounds == 0 {
         return Some(cand);
     }
     let fitted = Fitted {
@@ -134,15 +136,18 @@ struct Fitted {
 }
 
 /// For a photo whose focal length was weighed
-/// ([`LocalizeParams::focal_unknown`]): the local map searched again by
-/// projection through the camera the weighing chose (its focal length and
-/// distortion, and the pyramid level predicted with that focal length),
-/// seeded with that camera's inliers; then the assumed camera's pose
-/// re-optimised on the grown pairs and both cameras weighed again on them
-/// ([`evaluate_candidate`]). The first rounds matched through the assumed
-/// camera alone, which misses the points its wrong focal length projects
-/// off; more pairs also pin the focal length, so the weighing decides
-/// where it could not. [`LocalizeParams::rematch_rounds`] times at most,
+/// ([`LocalizeParams::focal_unknown`]) or estimated with the pose (a
+/// camera known by its EXIF, [`LocalizeParams::camera_uncertainty`]): the
+/// local map searched again by projection through the estimated camera
+/// (the one the weighing chose: its focal length and distortion, and the
+/// pyramid level predicted with that focal length), seeded with that
+/// camera's inliers; then the nominal camera's pose re-optimised on the
+/// grown pairs and the camera estimated (and weighed) again on them
+/// ([`evaluate_candidate`]). The first rounds matched through the nominal
+/// camera alone, which misses the points its wrong focal length or
+/// missing distortion projects off (an EXIF gives no distortion and a
+/// rounded focal length); more pairs also pin the focal length, so the
+/// weighing decides where it could not. [`LocalizeParams::rematch_rounds`] times at most,
 /// fewer when a round finds no new pair.
 #[allow(clippy::too_many_arguments)]
 fn rematch_with_estimated_camera(
