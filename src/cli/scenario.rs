@@ -35,6 +35,12 @@ pub struct ScenarioArgs {
     /// says and the camera exactly as mounted.
     #[arg(long)]
     pub no_disturbances: bool,
+    /// Telemetry priors in the explore flight's SLAM (the daemon's `[slam]
+    /// priors`): the map is put in local NED by the GNSS fixes and kept
+    /// there by position priors in bundle adjustment, and the georeference
+    /// is the map itself instead of a Sim(3) fitted after the flight.
+    #[arg(long)]
+    pub priors: bool,
     /// Realism of the simulator: `ideal` (the clean world), `field` (a
     /// calm day, a SIYI-class camera) or `harsh` (gusty evening), then any
     /// `-EFFECT` (off) or `+EFFECT[@PRESET]` (on), e.g. `field-blur`; see
@@ -71,6 +77,7 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     if args.no_disturbances {
         params.disturbances = scenario::Disturbances::none();
     }
+    params.priors = args.priors;
     let json = args.json;
     let mut progress = |t: &TrialReport| {
         if !json {
@@ -101,12 +108,13 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     }
     let e = &report.explore;
     println!(
-        "explore: {:.0} s simulated, {} frames ({} tracked), {} keyframes, {} points; georeference {} / {} inliers, rms {:.3} m ({:.1} s wall)",
+        "explore: {:.0} s simulated, {} frames ({} tracked), {} keyframes, {} points; map {}; georeference {} / {} inliers, rms {:.3} m ({:.1} s wall)",
         e.sim_s,
         e.frames,
         e.tracked,
         e.keyframes,
         e.points,
+        e.map_mode,
         e.geo_inliers,
         e.geo_pairs,
         e.geo_rms_m,

@@ -49,7 +49,7 @@ use crate::geo::saved::{
 };
 use crate::geo::{
     ContinuityParams, Geo, GeoAlignment, GeoError, GeoTarget, Geodetic, GimbalAngles,
-    KeyframeStatus, LocalFrame, Params, TelemetryClock, VehicleState,
+    KeyframeStatus, LocalFrame, Params, TelemetryClock,
 };
 use crate::slam::MapMode;
 use crate::slam::priors::{TelemetryFeed, TelemetrySample};
@@ -280,41 +280,17 @@ impl GeoService {
     /// GPS_RAW_INT. None before any attitude (the lever arm needs it).
     fn prior_sample(&self, st: &State, t: f64, p_vehicle: Vector3<f64>) -> Option<TelemetrySample> {
         let q = st.last_attitude?;
-        let state = VehicleState {
-            time: t,
-            p_ned: p_vehicle,
-            v_ned: Vector3::zeros(),
-            ned_from_body: q,
-            gimbal: GimbalAngles {
-                pitch: 0.0,
-                yaw: 0.0,
-            },
-        };
-        let p_cam = crate::geo::ned_from_cam(&state, &self.params.mount)
-            .translation
-            .vector;
         let raw = st
             .gps_raw
             .filter(|(at, _)| at.elapsed() <= GPS_RAW_MAX_AGE)
-            .map(|(_, r)| r);
-        // A fix with its reported accuracy; without a vertical accuracy
-        // the horizontal one doubled (a receiver's vertical is typically
-        // 1.5 to 2 times worse).
-        let acc = raw
-            .filter(GpsRaw::has_3d_fix)
-            .and_then(|r| Some((r.h_acc_m?, r.v_acc_m)))
-            .map(|(h, v)| (h, v.unwrap_or(2.0 * h)));
-        Some(TelemetrySample {
+            .map(|(_, r)| (r.fix_type, r.h_acc_m, r.v_acc_m));
+        Some(TelemetrySample::from_position_report(
             t,
-            fix: acc.is_some(),
-            gps_ned: p_cam,
-            h_acc: acc.map_or(0.0, |a| a.0),
-            v_acc: acc.map_or(0.0, |a| a.1),
-            // GLOBAL_POSITION_INT's altitude is the autopilot's fused one
-            // (barometer and GNSS), already the position's down axis: a
-            // second, barometric prior on it would count it twice.
-            baro_alt: None,
-        })
+            p_vehicle,
+            q,
+            &self.params.mount,
+            raw,
+        ))
     }
 
     /// Takes the georeference saved by the previous run: its pairs are
@@ -718,7 +694,9 @@ impl GeoService {
         }
         if st.map_aided {
             if changed || st.fit.is_none() {
-                st.fit = Some(Ok(from_map(st.geo.georeference().pairs())));
+                st.fit = Some(Ok(GeoAlignment::of_map_in_ned(
+                    st.geo.georeference().pairs(),
+                )));
                 st.fitted_at = Some(Instant::now());
             }
         } else if changed || st.fit.is_none() && st.geo.georeference().pairs().len() >= 3 {
@@ -748,7 +726,7 @@ impl GeoService {
         let mut st = self.lock();
         if st.map_aided {
             let frame = *st.geo.frame().ok_or(GeoError::NoHome)?;
-            let alignment = from_map(st.geo.georeference().pairs());
+            let alignment = GeoAlignment::of_map_in_ned(st.geo.georeference().pairs());
             let target =
                 crate::geo::convert_target(&alignment, map_from_cam, &frame, &self.params.mount)?;
             return Ok((target, alignment));
@@ -915,22 +893,6 @@ impl GeoService {
             }
         }
     }
-}
-
-/// The georeference of a map in local NED (gps-aided): the identity, its
-/// residuals against the pairs (`iterations` 0: not fitted).
-fn from_map(pairs: &[crate::geo::Pair]) -> GeoAlignment {
-    let mut a = GeoAlignment::given(crate::lie::Sim3::identity());
-    let r: Vec<f64> = pairs.iter().map(|p| (p.p_ned - p.p_map).norm()).collect();
-    if !r.is_empty() {
-        a.quality.rms_m = (r.iter().map(|x| x * x).sum::<f64>() / r.len() as f64).sqrt();
-        a.quality.max_residual_m = r.iter().copied().fold(0.0, f64::max);
-        a.quality.spread_m2 = crate::geo::align::spread(pairs.iter().map(|p| p.p_ned));
-    }
-    a.quality.pairs = pairs.len();
-    a.quality.inliers = pairs.len();
-    a.inlier_ids = pairs.iter().map(|p| p.kf_id).collect();
-    a
 }
 
 fn home_geodetic(h: &HomePosition) -> Geodetic {

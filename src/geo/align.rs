@@ -218,6 +218,23 @@ impl GeoAlignment {
         }
     }
 
+    /// The georeference of a map already in local NED (gps-aided by
+    /// telemetry priors): the identity, not fitted (`iterations` 0), with
+    /// its residuals against the keyframe `pairs`.
+    pub fn of_map_in_ned(pairs: &[Pair]) -> Self {
+        let mut a = Self::given(Sim3::identity());
+        let r: Vec<f64> = pairs.iter().map(|p| (p.p_ned - p.p_map).norm()).collect();
+        if !r.is_empty() {
+            a.quality.rms_m = (r.iter().map(|x| x * x).sum::<f64>() / r.len() as f64).sqrt();
+            a.quality.max_residual_m = r.iter().copied().fold(0.0, f64::max);
+            a.quality.spread_m2 = spread(pairs.iter().map(|p| p.p_ned));
+        }
+        a.quality.pairs = pairs.len();
+        a.quality.inliers = pairs.len();
+        a.inlier_ids = pairs.iter().map(|p| p.kf_id).collect();
+        a
+    }
+
     /// A camera pose in the map (`map ← cam`) as a camera pose in NED.
     pub fn ned_from_cam(&self, map_from_cam: &Isometry3<f64>) -> Isometry3<f64> {
         let s = &self.ned_from_map;

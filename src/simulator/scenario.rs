@@ -56,7 +56,8 @@ use crate::shot::request::NotLocalised;
 use crate::shot::{
     AnchorParams, Localization, LocalizeParams, desired_shot_from_anchors, frame_corners, localize,
 };
-use crate::slam::{self, Map, Slam};
+use crate::slam::priors::{PriorParams, Priors, TelemetryFeed, TelemetrySample};
+use crate::slam::{self, Map, MapMode, Slam};
 
 /// How the hidden poses are drawn.
 #[derive(Debug, Clone, PartialEq)]
@@ -182,6 +183,11 @@ pub struct ScenarioParams {
     pub steady: SteadyParams,
     /// The SLAM (run sequentially, so runs repeat).
     pub slam: slam::Params,
+    /// Telemetry priors in the explore flight's SLAM (as the daemon's
+    /// `[slam] priors`): the map goes to local NED once the fixes span a
+    /// baseline, and its georeference is then the identity instead of a
+    /// Sim(3) fitted after the flight.
+    pub priors: bool,
     /// Shot localisation (desired shots and live frames).
     pub localize: LocalizeParams,
     /// Anchor checks.
@@ -219,6 +225,7 @@ impl Default for ScenarioParams {
                 sequential: true,
                 ..slam::Params::default()
             },
+            priors: false,
             localize: LocalizeParams::default(),
             anchors: AnchorParams::default(),
             geo: geo::Params {
@@ -364,6 +371,10 @@ pub struct ExploreReport {
     pub geo_rms_m: f64,
     /// Scale of the fit (metres per map unit).
     pub geo_scale: f64,
+    /// The map's mode at the end of the flight (`vision_only`,
+    /// `gps_aided`): with a gps-aided map the georeference is the identity
+    /// and `geo_rms_m` the keyframes' distance to their fixes.
+    pub map_mode: &'static str,
     /// Wall seconds.
     pub wall_s: f64,
 }
@@ -524,6 +535,19 @@ struct Sim {
     history: PoseHistory,
     /// Telemetry frame loss: probability and its dice.
     telemetry_drop: Option<(f64, SmallRng)>,
+    /// The telemetry priors' feed, filled as the daemon's georeference
+    /// worker fills it (None: vision only).
+    priors: Option<PriorTap>,
+}
+
+/// What the priors' feed is filled from: each position report as the
+/// camera's position with the latest attitude and GPS_RAW_INT.
+struct PriorTap {
+    feed: TelemetryFeed,
+    mount: MountParams,
+    attitude: Option<nalgebra::UnitQuaternion<f64>>,
+    /// The latest GPS_RAW_INT: fix type, reported accuracies (m).
+    gps: Option<(u8, Option<f64>, Option<f64>)>,
 }
 
 impl Sim {
@@ -554,17 +578,41 @@ impl Sim {
                 MavMessage::MISSION_ITEM_REACHED(r) => self.reached = Some(r.seq),
                 MavMessage::GLOBAL_POSITION_INT(d) => {
                     if let Some(g) = geo.as_deref_mut() {
-                        let _ = g.push_position_geodetic(
-                            f64::from(d.time_boot_ms) / 1e3,
-                            &Geodetic {
-                                lat_deg: f64::from(d.lat) / 1e7,
-                                lon_deg: f64::from(d.lon) / 1e7,
-                                alt_m: f64::from(d.alt) / 1e3,
-                            },
-                        );
+                        let t = f64::from(d.time_boot_ms) / 1e3;
+                        let p = Geodetic {
+                            lat_deg: f64::from(d.lat) / 1e7,
+                            lon_deg: f64::from(d.lon) / 1e7,
+                            alt_m: f64::from(d.alt) / 1e3,
+                        };
+                        let _ = g.push_position_geodetic(t, &p);
+                        if let Some(tap) = &self.priors
+                            && let (Some(frame), Some(q)) = (g.frame(), tap.attitude)
+                        {
+                            tap.feed.push(TelemetrySample::from_position_report(
+                                t,
+                                frame.geodetic_to_ned(&p),
+                                q,
+                                &tap.mount,
+                                tap.gps,
+                            ));
+                        }
+                    }
+                }
+                MavMessage::GPS_RAW_INT(d) => {
+                    if let Some(tap) = &mut self.priors {
+                        let acc =
+                            |mm: u32| (mm != 0 && mm != u32::MAX).then(|| f64::from(mm) / 1e3);
+                        tap.gps = Some((d.fix_type as u8, acc(d.h_acc), acc(d.v_acc)));
                     }
                 }
                 MavMessage::ATTITUDE(d) => {
+                    if let Some(tap) = &mut self.priors {
+                        tap.attitude = Some(nalgebra::UnitQuaternion::from_euler_angles(
+                            f64::from(d.roll),
+                            f64::from(d.pitch),
+                            f64::from(d.yaw),
+                        ));
+                    }
                     if let Some(g) = geo.as_deref_mut() {
                         let _ = g.history_mut().push_attitude_euler(
                             f64::from(d.time_boot_ms) / 1e3,
@@ -750,7 +798,18 @@ struct Explored {
 fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioError> {
     let wall = Instant::now();
     let camera = camera_of(sim.renderer.camera())?;
-    let mut slam = Slam::new(camera, params.slam.clone())?;
+    let mut slam_params = params.slam.clone();
+    if params.priors {
+        let feed = TelemetryFeed::live(params.geo.history.max_age_s);
+        slam_params.priors = Some(Priors::with_feed(feed.clone(), PriorParams::default()));
+        sim.priors = Some(PriorTap {
+            feed,
+            mount: params.geo.mount.clone(),
+            attitude: None,
+            gps: None,
+        });
+    }
+    let mut slam = Slam::new(camera, slam_params)?;
     let home = sim.ap.params().vehicle.home;
     let mut g = geo::Geo::new(params.geo.clone());
     g.set_home(Geodetic {
@@ -811,7 +870,15 @@ fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioE
     if keyframes < 5 {
         return Err(ScenarioError::NoMap { keyframes });
     }
-    let alignment = g.fit()?;
+    // A map the priors put in local NED is georeferenced by itself (the
+    // daemon's `source: map`); else the Sim(3) fitted after the flight.
+    let map_mode = map.mode();
+    let alignment = if map_mode == MapMode::GpsAided {
+        GeoAlignment::of_map_in_ned(g.georeference().pairs())
+    } else {
+        g.fit()?
+    };
+    sim.priors = None;
     let frame = *g.frame().ok_or(crate::geo::GeoError::NoHome)?;
     let report = ExploreReport {
         sim_s: sim.t,
@@ -823,6 +890,7 @@ fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioE
         geo_inliers: alignment.quality.inliers,
         geo_rms_m: alignment.quality.rms_m,
         geo_scale: alignment.ned_from_map.scale,
+        map_mode: map_mode.name(),
         wall_s: wall.elapsed().as_secs_f64(),
     };
     Ok(Explored {
@@ -1288,6 +1356,7 @@ pub fn run(
             .as_ref()
             .filter(|t| t.drop > 0.0)
             .map(|t| (t.drop, SmallRng::seed_from_u64(params.seed ^ 0xD20F))),
+        priors: None,
     };
     let ex = explore(&mut sim, params)?;
     let mut rng = SmallRng::seed_from_u64(params.seed ^ 0x7e57_5407);

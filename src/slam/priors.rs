@@ -55,6 +55,50 @@ pub struct TelemetrySample {
     pub baro_alt: Option<f64>,
 }
 
+impl TelemetrySample {
+    /// The sample of a live position report at `t`: the camera's position
+    /// (the vehicle's `p_vehicle` in local NED plus the mount's lever arm
+    /// turned by the attitude `ned_from_body`), with a fix and its
+    /// accuracy when the receiver reports a 3D fix (`gps`: `(fix_type,
+    /// h_acc_m, v_acc_m)` of the latest GPS_RAW_INT; no horizontal
+    /// accuracy: no fix). Without a vertical accuracy the horizontal one
+    /// doubled (a receiver's vertical is typically 1.5 to 2 times worse).
+    /// No barometric altitude: GLOBAL_POSITION_INT's altitude is the
+    /// autopilot's fused one (barometer and GNSS), already the position's
+    /// down axis, and a second prior on it would count it twice.
+    pub fn from_position_report(
+        t: f64,
+        p_vehicle: Vector3<f64>,
+        ned_from_body: nalgebra::UnitQuaternion<f64>,
+        mount: &crate::geo::MountParams,
+        gps: Option<(u8, Option<f64>, Option<f64>)>,
+    ) -> TelemetrySample {
+        let state = crate::geo::VehicleState {
+            time: t,
+            p_ned: p_vehicle,
+            v_ned: Vector3::zeros(),
+            ned_from_body,
+            gimbal: crate::geo::GimbalAngles {
+                pitch: 0.0,
+                yaw: 0.0,
+            },
+        };
+        let p_cam = crate::geo::ned_from_cam(&state, mount).translation.vector;
+        let acc = gps
+            .filter(|(fix_type, _, _)| *fix_type >= 3)
+            .and_then(|(_, h, v)| Some((h?, v)))
+            .map(|(h, v)| (h, v.unwrap_or(2.0 * h)));
+        TelemetrySample {
+            t,
+            fix: acc.is_some(),
+            gps_ned: p_cam,
+            h_acc: acc.map_or(0.0, |a| a.0),
+            v_acc: acc.map_or(0.0, |a| a.1),
+            baro_alt: None,
+        }
+    }
+}
+
 /// Errors of reading a telemetry file.
 #[derive(Debug, thiserror::Error)]
 pub enum TelemetryError {
