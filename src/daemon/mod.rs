@@ -18,6 +18,7 @@
 //! simulator stops last.
 
 pub mod geo_service;
+pub mod memory;
 pub mod persist;
 pub mod reconcile;
 pub mod refine_loop;
@@ -302,6 +303,12 @@ pub async fn run_on(
             }
         })
     });
+    // Freed memory given back to the system over a long flight.
+    let trim_cancel = cancel.child_token();
+    let trim_task = tokio::spawn(memory::run_trimmer(
+        memory::TRIM_PERIOD,
+        trim_cancel.clone(),
+    ));
     // The refinement loop: started with a shot's mission, stopped by the
     // next upload or the shutdown.
     let actions: Arc<tokio::sync::Mutex<()>> = Default::default();
@@ -393,6 +400,8 @@ pub async fn run_on(
     if let Some(t) = checkpoint_task {
         let _ = t.await;
     }
+    trim_cancel.cancel();
+    let _ = trim_task.await;
     video_cancel.cancel();
     let _ = reader.await;
     ingest.close();
