@@ -606,8 +606,13 @@ fn gps_bias_is_corrected_by_the_daemon() {
         "gps bias {sigma} m / {tau} s, walk {gps_seed}, later gain {later_gain}: shot error per round {pct:.2?} %, {} corrections, {loop_s:.1} s",
         rounds.len() - 1
     );
-    // The first look misses: measured 2.84-3.93 % on worlds 1-6.
-    assert!(pct[0] > 2.0, "first look {:.2} %: {r}", pct[0]);
+    // The first look misses the loop's 1 % threshold, so the loop must
+    // correct: measured 2.84-4.04 % in most runs, but the drift between
+    // the georeference's keyframes and the first arrival is real time too
+    // (CI c1 on e9953d6: 1.96 %, georeferenced after 16.2 s, the true
+    // camera 1.4 m from the commanded pose), so the bound is the
+    // threshold, not a figure of one machine's timing.
+    assert!(pct[0] > 1.0, "first look {:.2} %: {r}", pct[0]);
     // At least one correction was uploaded and flown: its target moved
     // the commanded position, and the loop measured again there.
     assert!(rounds.len() >= 2, "{r}");
