@@ -283,7 +283,7 @@ impl GeoService {
         let raw = st
             .gps_raw
             .filter(|(at, _)| at.elapsed() <= GPS_RAW_MAX_AGE)
-            .map(|(_, r)| (r.fix_type, r.h_acc_m, r.v_acc_m));
+            .and_then(|(_, r)| r.fix_accuracy());
         Some(TelemetrySample::from_position_report(
             t,
             p_vehicle,

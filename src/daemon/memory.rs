@@ -143,10 +143,11 @@ mod tests {
                 .collect();
             let before = heap_use().expect("glibc");
             let t = trim().expect("glibc");
-            (kept.len(), before, t)
+            // The kept half stays alive through the trim.
+            drop(kept);
+            (before, t)
         });
-        let (kept, before, t) = handle.join().expect("thread");
-        assert_eq!(kept, 1024);
+        let (before, t) = handle.join().expect("thread");
         // 64 MiB were freed in holes of 64 KiB: the allocator held them.
         assert!(
             before.free >= 60 * 1024 * 1024,

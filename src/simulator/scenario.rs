@@ -546,8 +546,8 @@ struct PriorTap {
     feed: TelemetryFeed,
     mount: MountParams,
     attitude: Option<nalgebra::UnitQuaternion<f64>>,
-    /// The latest GPS_RAW_INT: fix type, reported accuracies (m).
-    gps: Option<(u8, Option<f64>, Option<f64>)>,
+    /// The latest GPS_RAW_INT.
+    gps: Option<crate::vehicle::GpsRaw>,
 }
 
 impl Sim {
@@ -593,16 +593,14 @@ impl Sim {
                                 frame.geodetic_to_ned(&p),
                                 q,
                                 &tap.mount,
-                                tap.gps,
+                                tap.gps.and_then(|r| r.fix_accuracy()),
                             ));
                         }
                     }
                 }
                 MavMessage::GPS_RAW_INT(d) => {
                     if let Some(tap) = &mut self.priors {
-                        let acc =
-                            |mm: u32| (mm != 0 && mm != u32::MAX).then(|| f64::from(mm) / 1e3);
-                        tap.gps = Some((d.fix_type as u8, acc(d.h_acc), acc(d.v_acc)));
+                        tap.gps = Some(crate::vehicle::GpsRaw::from_message(d));
                     }
                 }
                 MavMessage::ATTITUDE(d) => {

@@ -59,10 +59,11 @@ impl TelemetrySample {
     /// The sample of a live position report at `t`: the camera's position
     /// (the vehicle's `p_vehicle` in local NED plus the mount's lever arm
     /// turned by the attitude `ned_from_body`), with a fix and its
-    /// accuracy when the receiver reports a 3D fix (`gps`: `(fix_type,
-    /// h_acc_m, v_acc_m)` of the latest GPS_RAW_INT; no horizontal
-    /// accuracy: no fix). Without a vertical accuracy the horizontal one
-    /// doubled (a receiver's vertical is typically 1.5 to 2 times worse).
+    /// accuracy when the receiver reports a 3D fix (`fix`: the horizontal
+    /// and vertical accuracy of the latest GPS_RAW_INT,
+    /// `vehicle::GpsRaw::fix_accuracy`; None: no fix). Without a vertical
+    /// accuracy the horizontal one doubled (a receiver's vertical is
+    /// typically 1.5 to 2 times worse).
     /// No barometric altitude: GLOBAL_POSITION_INT's altitude is the
     /// autopilot's fused one (barometer and GNSS), already the position's
     /// down axis, and a second prior on it would count it twice.
@@ -71,7 +72,7 @@ impl TelemetrySample {
         p_vehicle: Vector3<f64>,
         ned_from_body: nalgebra::UnitQuaternion<f64>,
         mount: &crate::geo::MountParams,
-        gps: Option<(u8, Option<f64>, Option<f64>)>,
+        fix: Option<(f64, Option<f64>)>,
     ) -> TelemetrySample {
         let state = crate::geo::VehicleState {
             time: t,
@@ -84,10 +85,7 @@ impl TelemetrySample {
             },
         };
         let p_cam = crate::geo::ned_from_cam(&state, mount).translation.vector;
-        let acc = gps
-            .filter(|(fix_type, _, _)| *fix_type >= 3)
-            .and_then(|(_, h, v)| Some((h?, v)))
-            .map(|(h, v)| (h, v.unwrap_or(2.0 * h)));
+        let acc = fix.map(|(h, v)| (h, v.unwrap_or(2.0 * h)));
         TelemetrySample {
             t,
             fix: acc.is_some(),

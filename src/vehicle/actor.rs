@@ -725,16 +725,7 @@ impl Actor {
                 }));
             }
             MavMessage::GPS_RAW_INT(d) => {
-                // 0 and u32::MAX: not reported (an older receiver or
-                // message version).
-                let acc = |mm: u32| (mm != 0 && mm != u32::MAX).then(|| f64::from(mm) / 1e3);
-                let value = GpsRaw {
-                    time_usec: d.time_usec,
-                    fix_type: d.fix_type as u8,
-                    satellites: (d.satellites_visible != u8::MAX).then_some(d.satellites_visible),
-                    h_acc_m: acc(d.h_acc),
-                    v_acc_m: acc(d.v_acc),
-                };
+                let value = GpsRaw::from_message(d);
                 self.gps_raw.send_replace(Some(Stamped {
                     value,
                     received: now,

@@ -259,9 +259,31 @@ pub struct GpsRaw {
 }
 
 impl GpsRaw {
+    /// From the message (an accuracy of 0 or `u32::MAX` is not reported:
+    /// an older receiver or message version).
+    pub fn from_message(d: &mavlink::dialects::common::GPS_RAW_INT_DATA) -> Self {
+        let acc = |mm: u32| (mm != 0 && mm != u32::MAX).then(|| f64::from(mm) / 1e3);
+        GpsRaw {
+            time_usec: d.time_usec,
+            fix_type: d.fix_type as u8,
+            satellites: (d.satellites_visible != u8::MAX).then_some(d.satellites_visible),
+            h_acc_m: acc(d.h_acc),
+            v_acc_m: acc(d.v_acc),
+        }
+    }
+
     /// A 3D fix or better.
     pub fn has_3d_fix(&self) -> bool {
         self.fix_type >= 3
+    }
+
+    /// The reported accuracy of a 3D fix, metres: horizontal, and vertical
+    /// when reported; None without a 3D fix or a horizontal accuracy.
+    pub fn fix_accuracy(&self) -> Option<(f64, Option<f64>)> {
+        self.has_3d_fix()
+            .then_some(self.h_acc_m)
+            .flatten()
+            .map(|h| (h, self.v_acc_m))
     }
 }
 
