@@ -200,6 +200,9 @@ pub struct Session {
     params: Params,
     reachable: Option<Reachable>,
     offset: Option<OffsetEstimate>,
+    /// The round budget was spent and the best earlier round's target is
+    /// being flown again.
+    returned_to_best: bool,
 }
 
 impl Session {
@@ -222,6 +225,7 @@ impl Session {
             params,
             reachable: None,
             offset: None,
+            returned_to_best: false,
         }
     }
 
@@ -344,6 +348,21 @@ impl Session {
             r.floor_pct = pct;
             rec.floor_pct = Some(pct);
         }
+        // Within a few tenths of the floor (or of the measurement's own
+        // noise), a correction can gain no more than the measurement can
+        // tell: stop rather than chase the noise.
+        if let (Some(r), Some(e)) = (self.reachable.as_ref(), pct) {
+            let noise = spread.map_or(0.0, |s| 2.0 * 1.25 * s / (pcts.len() as f64).sqrt());
+            let margin = self.params.controller.at_floor_margin_pct.max(noise);
+            if e - r.floor_pct <= margin {
+                rec.decision = Decision::AtFloor;
+                rec.note = Some(format!(
+                    "{e:.2} % is within {margin:.2} % of the shot's floor {:.2} %: no correction can gain more than the measurement tells",
+                    r.floor_pct
+                ));
+                return self.end(rec, Stop::AtFloor);
+            }
+        }
         let floor = self
             .reachable
             .as_ref()
@@ -385,6 +404,23 @@ impl Session {
             }
         }
         if decision == Decision::MaxRounds {
+            // The budget is spent on a view worse than an earlier round's
+            // by more than the margin: fly back to that round's target and
+            // end there, so the loop never ends worse than it was.
+            if !self.returned_to_best
+                && let (Some(e), Some((round, target, best))) =
+                    (pct, self.best_round().map(|(r, b)| (r.round, r.target, b)))
+                && best < e - self.params.controller.at_floor_margin_pct
+            {
+                self.returned_to_best = true;
+                rec.decision = Decision::Correct;
+                rec.note = Some(format!(
+                    "back to round {round}'s target ({best:.2} % there, {e:.2} % now)"
+                ));
+                self.target = target;
+                self.rounds.push(rec);
+                return Step::Upload(self.target);
+            }
             return self.end(rec, Stop::MaxRounds);
         }
         if localised.is_empty() {
@@ -595,6 +631,14 @@ impl Session {
                 _ => note.to_owned(),
             });
         }
+    }
+
+    /// The round with the lowest measured shot error so far, and that error.
+    fn best_round(&self) -> Option<(&RoundRecord, f64)> {
+        self.rounds
+            .iter()
+            .filter_map(|r| r.shot_error_pct.map(|e| (r, e)))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
     }
 
     fn end(&mut self, rec: RoundRecord, stop: Stop) -> Step {
@@ -1005,5 +1049,159 @@ mod tests {
         assert_eq!(o.gated, [true; 5], "{o:?}");
         assert!(Vector3::from(c.step_ned_m).norm() < 1e-9, "{c:?}");
         assert!(c.yaw_step_deg.abs() < 1e-9, "{c:?}");
+    }
+
+    fn ctx_of<'a>(
+        f: &'a Fixture,
+        mount: &'a MountParams,
+        fence: &'a Fence,
+        localize: &'a LocalizeParams,
+    ) -> Context<'a> {
+        Context {
+            map: &f.map,
+            alignment: &f.alignment,
+            frame: &f.frame,
+            mount,
+            home: &f.home,
+            fence,
+            localize,
+        }
+    }
+
+    fn reachable_with_floor(floor_pct: f64) -> Reachable {
+        Reachable {
+            ideal_from_desired: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            floor_px: floor_pct * 8.0,
+            floor_pct,
+            points: 100,
+            inliers: 100,
+            points_map: Vec::new(),
+        }
+    }
+
+    /// Near its floor the loop stops `at_floor` instead of flying a round
+    /// that cannot gain more than the measurement tells; farther above it,
+    /// it goes on.
+    #[test]
+    fn within_the_margin_of_the_floor_the_loop_stops_at_floor() {
+        let f = fixture();
+        let (mount, fence, localize) = (
+            MountParams::default(),
+            Fence::default(),
+            LocalizeParams::default(),
+        );
+        let ctx = ctx_of(&f, &mount, &fence, &localize);
+        let (_, measured) = run(&f, &f.turned, 0);
+        let e = measured.rounds()[0].shot_error_pct.unwrap_or(0.0);
+        assert!(e > 2.0, "{e}");
+        let live = [LiveFrame {
+            image: &f.turned,
+            reported_ned_m: None,
+        }];
+        let near = Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            Params::default(),
+        );
+        let mut near = near.with_reachable(reachable_with_floor(e - 0.2));
+        assert_eq!(
+            near.on_arrival(&live, 0.0, None, &ctx),
+            Step::Done(Stop::AtFloor)
+        );
+        assert_eq!(near.rounds()[0].decision, Decision::AtFloor);
+        assert!(
+            near.rounds()[0]
+                .note
+                .as_deref()
+                .is_some_and(|n| n.contains("floor"))
+        );
+        // 1 % above the floor: a correction can still gain, so the loop
+        // goes on (and here, with an empty map, cannot localise the live
+        // frame and says so).
+        let far = Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            Params::default(),
+        );
+        let mut far = far.with_reachable(reachable_with_floor(e - 1.0));
+        assert!(matches!(
+            far.on_arrival(&live, 0.0, None, &ctx),
+            Step::Done(Stop::LiveNotLocalised(_))
+        ));
+    }
+
+    /// With the budget spent on a view worse than an earlier round's, the
+    /// loop flies back to that round's target once and ends there.
+    #[test]
+    fn a_spent_budget_flies_back_to_the_best_round() {
+        let f = fixture();
+        let (mount, fence, localize) = (
+            MountParams::default(),
+            Fence::default(),
+            LocalizeParams::default(),
+        );
+        let ctx = ctx_of(&f, &mount, &fence, &localize);
+        let (_, good) = run(&f, &f.desired, 4);
+        let mut best = good.rounds()[0].clone();
+        best.target.alt_m = 17.0;
+        let params = Params {
+            controller: ControllerParams {
+                max_rounds: 1,
+                ..ControllerParams::default()
+            },
+            ..Params::default()
+        };
+        let mut s = Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            params,
+        );
+        s.rounds.push(best.clone());
+        let turned = [LiveFrame {
+            image: &f.turned,
+            reported_ned_m: None,
+        }];
+        assert_eq!(
+            s.on_arrival(&turned, 5.0, None, &ctx),
+            Step::Upload(best.target)
+        );
+        assert_eq!(*s.target(), best.target);
+        assert!(
+            s.rounds()[1]
+                .note
+                .as_deref()
+                .is_some_and(|n| n.starts_with("back to round 0"))
+        );
+        // Still worse there (the view drifted): the loop ends, it does not
+        // go back and forth.
+        assert_eq!(
+            s.on_arrival(&turned, 10.0, None, &ctx),
+            Step::Done(Stop::MaxRounds)
+        );
+        assert_eq!(s.rounds().len(), 3);
+        // A session whose best round is the one now measured just ends.
+        let mut s = Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            Params {
+                controller: ControllerParams {
+                    max_rounds: 0,
+                    ..ControllerParams::default()
+                },
+                ..Params::default()
+            },
+        );
+        assert_eq!(
+            s.on_arrival(&turned, 0.0, None, &ctx),
+            Step::Done(Stop::MaxRounds)
+        );
     }
 }
