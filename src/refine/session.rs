@@ -200,9 +200,6 @@ pub struct Session {
     params: Params,
     reachable: Option<Reachable>,
     offset: Option<OffsetEstimate>,
-    /// The round budget was spent and the best earlier round's target is
-    /// being flown again.
-    returned_to_best: bool,
 }
 
 impl Session {
@@ -225,7 +222,6 @@ impl Session {
             params,
             reachable: None,
             offset: None,
-            returned_to_best: false,
         }
     }
 
@@ -404,23 +400,6 @@ impl Session {
             }
         }
         if decision == Decision::MaxRounds {
-            // The budget is spent on a view worse than an earlier round's
-            // by more than the margin: fly back to that round's target and
-            // end there, so the loop never ends worse than it was.
-            if !self.returned_to_best
-                && let (Some(e), Some((round, target, best))) =
-                    (pct, self.best_round().map(|(r, b)| (r.round, r.target, b)))
-                && best < e - self.params.controller.at_floor_margin_pct
-            {
-                self.returned_to_best = true;
-                rec.decision = Decision::Correct;
-                rec.note = Some(format!(
-                    "back to round {round}'s target ({best:.2} % there, {e:.2} % now)"
-                ));
-                self.target = target;
-                self.rounds.push(rec);
-                return Step::Upload(self.target);
-            }
             return self.end(rec, Stop::MaxRounds);
         }
         if localised.is_empty() {
@@ -631,14 +610,6 @@ impl Session {
                 _ => note.to_owned(),
             });
         }
-    }
-
-    /// The round with the lowest measured shot error so far, and that error.
-    fn best_round(&self) -> Option<(&RoundRecord, f64)> {
-        self.rounds
-            .iter()
-            .filter_map(|r| r.shot_error_pct.map(|e| (r, e)))
-            .min_by(|a, b| a.1.total_cmp(&b.1))
     }
 
     fn end(&mut self, rec: RoundRecord, stop: Stop) -> Step {
@@ -1132,76 +1103,5 @@ mod tests {
             far.on_arrival(&live, 0.0, None, &ctx),
             Step::Done(Stop::LiveNotLocalised(_))
         ));
-    }
-
-    /// With the budget spent on a view worse than an earlier round's, the
-    /// loop flies back to that round's target once and ends there.
-    #[test]
-    fn a_spent_budget_flies_back_to_the_best_round() {
-        let f = fixture();
-        let (mount, fence, localize) = (
-            MountParams::default(),
-            Fence::default(),
-            LocalizeParams::default(),
-        );
-        let ctx = ctx_of(&f, &mount, &fence, &localize);
-        let (_, good) = run(&f, &f.desired, 4);
-        let mut best = good.rounds()[0].clone();
-        best.target.alt_m = 17.0;
-        let params = Params {
-            controller: ControllerParams {
-                max_rounds: 1,
-                ..ControllerParams::default()
-            },
-            ..Params::default()
-        };
-        let mut s = Session::new(
-            f.desired.clone(),
-            None,
-            Isometry3::identity(),
-            f.target,
-            params,
-        );
-        s.rounds.push(best.clone());
-        let turned = [LiveFrame {
-            image: &f.turned,
-            reported_ned_m: None,
-        }];
-        assert_eq!(
-            s.on_arrival(&turned, 5.0, None, &ctx),
-            Step::Upload(best.target)
-        );
-        assert_eq!(*s.target(), best.target);
-        assert!(
-            s.rounds()[1]
-                .note
-                .as_deref()
-                .is_some_and(|n| n.starts_with("back to round 0"))
-        );
-        // Still worse there (the view drifted): the loop ends, it does not
-        // go back and forth.
-        assert_eq!(
-            s.on_arrival(&turned, 10.0, None, &ctx),
-            Step::Done(Stop::MaxRounds)
-        );
-        assert_eq!(s.rounds().len(), 3);
-        // A session whose best round is the one now measured just ends.
-        let mut s = Session::new(
-            f.desired.clone(),
-            None,
-            Isometry3::identity(),
-            f.target,
-            Params {
-                controller: ControllerParams {
-                    max_rounds: 0,
-                    ..ControllerParams::default()
-                },
-                ..Params::default()
-            },
-        );
-        assert_eq!(
-            s.on_arrival(&turned, 0.0, None, &ctx),
-            Step::Done(Stop::MaxRounds)
-        );
     }
 }
