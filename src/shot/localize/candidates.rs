@@ -14,6 +14,7 @@ use crate::bow::{self, BowVector, KeyFrameDatabase, Vocabulary};
 use crate::camera::Camera;
 use crate::features::{self, Descriptor, OrbExtractor, hamming};
 use crate::shot::ShotError;
+use crate::slam::matcher::rotation_outliers;
 use crate::slam::{KeyFrameId, Map, PointId};
 
 /// A bag-of-words index of a map's keyframes: the vocabulary and a database
@@ -223,4 +224,94 @@ pub(super) fn rank_candidates(
         });
     }
     Ok(ranked)
+}
+
+/// A candidate's matches for its PnP, matched again against the points of
+/// its neighbourhood: the candidate and its best
+/// [`LocalizeParams::candidate_covisible`] covisible keyframes. Each point
+/// is compared through every observation's descriptor (the keypoint of
+/// each keyframe that sees it, not only its representative one): a photo
+/// 10-40 degrees round from the flown views looks most like the keyframe
+/// nearest to it, whose descriptor of a point may be far from the
+/// representative one. Nearest point under [`LocalizeParams::max_hamming`]
+/// and the ratio test against the second-nearest other point, one-to-one
+/// on points, then ORB-SLAM's rotation-consistency filter on the angle
+/// between the photo's keypoint and the matched observation's.
+pub(super) fn neighbourhood_matches(
+    map: &Map,
+    kf_id: KeyFrameId,
+    feats: &features::Features,
+    params: &LocalizeParams,
+) -> Vec<(usize, PointId)> {
+    let Some(kf) = map.keyframe(kf_id) else {
+        return Vec::new();
+    };
+    // (point, descriptor, keypoint angle of that observation)
+    let mut cand: Vec<(PointId, Descriptor, f32)> = Vec::new();
+    let mut seen: HashSet<PointId> = HashSet::new();
+    let kfs = std::iter::once(kf_id).chain(kf.best_covisible(params.candidate_covisible));
+    for k in kfs.filter_map(|id| map.keyframe(id)) {
+        for p in k.points.iter().flatten() {
+            if !seen.insert(*p) {
+                continue;
+            }
+            let Some(mp) = map.point(*p) else { continue };
+            for (ok, idx) in &mp.observations {
+                if let Some(okf) = map.keyframe(*ok)
+                    && let (Some(d), Some(kp)) = (
+                        okf.descriptors.get(*idx as usize),
+                        okf.keypoints.get(*idx as usize),
+                    )
+                {
+                    cand.push((*p, *d, kp.angle));
+                }
+            }
+        }
+    }
+    // Per shot keypoint: the nearest point (through any of its
+    // descriptors); per point: the nearest shot keypoint.
+    let mut m: Vec<(u32, usize, PointId, f32)> = Vec::new();
+    let mut point_best: std::collections::HashMap<PointId, (u32, usize)> =
+        std::collections::HashMap::new();
+    for (i, d) in feats.descriptors.iter().enumerate() {
+        let (mut b1, mut bj) = (u32::MAX, usize::MAX);
+        for (j, (p, c, _)) in cand.iter().enumerate() {
+            let h = hamming(d, c);
+            if h < b1 {
+                b1 = h;
+                bj = j;
+            }
+            let e = point_best.entry(*p).or_insert((u32::MAX, usize::MAX));
+            if h < e.0 {
+                *e = (h, i);
+            }
+        }
+        if bj != usize::MAX && b1 <= params.max_hamming {
+            m.push((b1, i, cand[bj].0, cand[bj].2));
+        }
+    }
+    // Mutual nearest neighbours (a cross check instead of the ratio test:
+    // a point seen from far round has no distinctive nearest keypoint,
+    // and the map's near-duplicate points would fail the ratio test).
+    m.retain(|(_, i, p, _)| point_best.get(p).is_some_and(|b| b.1 == *i));
+    m.sort_unstable_by_key(|x| x.0);
+    let mut used = HashSet::new();
+    let m: Vec<(usize, PointId, f32)> = m
+        .into_iter()
+        .filter(|(_, _, p, _)| used.insert(*p))
+        .map(|(_, i, p, a)| (i, p, a))
+        .collect();
+    let rot: Vec<(usize, f32)> = m
+        .iter()
+        .enumerate()
+        .map(|(k, (i, _, a))| (k, feats.keypoints[*i].angle - a))
+        .collect();
+    let drop: HashSet<usize> = rotation_outliers(&rot, params.matcher.histo_bins)
+        .into_iter()
+        .collect();
+    m.into_iter()
+        .enumerate()
+        .filter(|(k, _)| !drop.contains(k))
+        .map(|(_, (i, p, _))| (i, p))
+        .collect()
 }

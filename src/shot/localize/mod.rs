@@ -59,7 +59,7 @@ pub use self::params::{
     EXIF_K1_SIGMA, EXIF_K2_SIGMA, GateParams, LocalizeParams, MapSigma, UnknownFocal,
 };
 
-use self::candidates::{extract_shot_features, rank_candidates};
+use self::candidates::{extract_shot_features, neighbourhood_matches, rank_candidates};
 use self::covariance::{MapError, reported_sigma};
 use self::gate::{agreement, gate_reason, union_of_evidence};
 use self::outcome::not;
@@ -140,6 +140,18 @@ pub fn localize_with_camera(
             continue;
         }
         tried += 1;
+        let wide = neighbourhood_matches(map, *kf_id, &feats, params);
+        tracing::debug!(
+            keyframe = kf_id.0,
+            own = matches.len(),
+            neighbourhood = wide.len(),
+            "shot candidate: descriptor matches"
+        );
+        let matches = if wide.len() > matches.len() {
+            &wide
+        } else {
+            matches
+        };
         if let Some(c) = refine_candidate(
             map, *kf_id, matches, &feats, &grid, &view, &intr, params, &map_error,
         ) {

@@ -74,6 +74,10 @@ pub struct LocalizeParams {
     pub ratio: f32,
     /// Fewest descriptor matches for a keyframe to be tried.
     pub min_candidate_matches: usize,
+    /// Covisible keyframes of a candidate whose points (through every
+    /// observation's descriptor) its PnP matches are drawn from, besides
+    /// its own (0: its own points alone).
+    pub candidate_covisible: usize,
     /// Covisible keyframes of a candidate whose points are projected in the
     /// first projection round.
     pub covisible: usize,
@@ -145,6 +149,7 @@ impl Default for LocalizeParams {
             max_hamming: 50,
             ratio: 0.8,
             min_candidate_matches: 15,
+            candidate_covisible: 5,
             covisible: 10,
             local_keyframes: 20,
             projection_radius_px: [5.0, 2.5],

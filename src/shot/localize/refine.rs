@@ -65,8 +65,19 @@ pub(super) fn refine_candidate(
         ));
         pairs.push((i, p));
     }
-    let pnp =
-        solve_pnp_ransac(&pw, &xn, intr.fx, &params.pnp, params.seed ^ kf_id.0 as u64).ok()?;
+    let pnp = match solve_pnp_ransac(&pw, &xn, intr.fx, &params.pnp, params.seed ^ kf_id.0 as u64) {
+        Ok(p) => p,
+        Err(e) => {
+            tracing::debug!(keyframe = kf_id.0, matches = pairs.len(), error = %e, "shot candidate: PnP failed");
+            return None;
+        }
+    };
+    tracing::debug!(
+        keyframe = kf_id.0,
+        matches = pairs.len(),
+        pnp_inliers = pnp.inliers.iter().filter(|x| **x).count(),
+        "shot candidate: PnP"
+    );
     let mut cam_from_world = pnp.cam_from_world;
     // Slots: keypoint -> point, seeded with the PnP inliers.
     let mut slots: Vec<Option<PointId>> = vec![None; feats.len()];
@@ -88,11 +99,20 @@ pub(super) fn refine_candidate(
             radius,
             params,
         );
+        let n_found = found.len();
         for (i, p) in found {
             slots[i] = Some(p);
         }
         let (r, obs, obs_slot, matched) =
             refit_on_slots(map, feats, &mut slots, cam_from_world, intr, params)?;
+        tracing::debug!(
+            keyframe = kf_id.0,
+            radius,
+            found = n_found,
+            pairs = obs.len(),
+            inliers = r.inliers.iter().filter(|x| **x).count(),
+            "shot candidate: projection round"
+        );
         cam_from_world = r.cam_from_world;
         report = Some((r, obs, obs_slot, matched));
     }
