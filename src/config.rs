@@ -292,6 +292,9 @@ pub struct RefineSection {
     pub threshold_pct: f64,
     /// Corrections uploaded at most after the first flight.
     pub max_rounds: usize,
+    /// An anchors shot stops `at_floor` within this much of its floor, %
+    /// of the diagonal (or within the measurement's noise, if larger).
+    pub at_floor_margin_pct: f64,
     /// Fraction of the measured pose error the first correction removes,
     /// in (0, 1].
     pub gain: f64,
@@ -344,6 +347,7 @@ impl Default for RefineSection {
         Self {
             threshold_pct: c.threshold_pct,
             max_rounds: c.max_rounds,
+            at_floor_margin_pct: c.at_floor_margin_pct,
             gain: c.gain,
             later_gain: c.later_gain,
             position_drift_m2_per_s: c.position_drift_m2_per_s,
@@ -373,6 +377,7 @@ impl RefineSection {
         let c = &mut p.refine.controller;
         c.threshold_pct = self.threshold_pct;
         c.max_rounds = self.max_rounds;
+        c.at_floor_margin_pct = self.at_floor_margin_pct;
         c.gain = self.gain;
         c.later_gain = self.later_gain;
         c.position_drift_m2_per_s = self.position_drift_m2_per_s;
@@ -403,6 +408,11 @@ impl RefineSection {
         }
         if self.max_rounds > 100 {
             return Err(("max_rounds", "must be at most 100".into()));
+        }
+        if !(self.at_floor_margin_pct.is_finite()
+            && (0.0..=10.0).contains(&self.at_floor_margin_pct))
+        {
+            return Err(("at_floor_margin_pct", "must be in [0, 10] %".into()));
         }
         if !(positive(self.gain) && self.gain <= 1.0) {
             return Err(("gain", "must be in (0, 1]".into()));

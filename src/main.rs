@@ -61,10 +61,13 @@ enum Command {
     ///
     /// Either four anchors on a keyframe of the map (where the frame's
     /// corners (0,0), (w-1,0), (w-1,h-1), (0,h-1) should go; the keyframe is
-    /// warped by the perspective transform they define) or a photo taken
-    /// with the map's camera. The shot is localised in the map (ORB,
-    /// candidate keyframes, PnP RANSAC, motion-only refinement, reliability
-    /// gate) and the pose printed as world_from_cam in map coordinates.
+    /// warped by the perspective transform they define) or a photo. An
+    /// anchors shot's camera comes from the keyframe's own geometry (its
+    /// observations moved through that transform, PnP; refused only when
+    /// the drawn frame holds too few mapped points); a photo is localised
+    /// in the map (ORB, candidate keyframes, PnP RANSAC, motion-only
+    /// refinement, reliability gate). The pose is printed as world_from_cam
+    /// in map coordinates.
     /// Maps are made with `shotpilot slam DATASET --sequential --save-map FILE`.
     Shot(cli::shot::ShotArgs),
 

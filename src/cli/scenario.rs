@@ -30,6 +30,18 @@ pub struct ScenarioArgs {
     /// (0: never).
     #[arg(long, default_value_t = 4)]
     pub anchor_every: usize,
+    /// Draw the anchor trials as an operator drags the four corners: a
+    /// zoom of 1.0-1.6x, a pan of up to 20 % of the frame and a rotation of
+    /// up to 15 deg (instead of a small pan and tilt of the keyframe's
+    /// camera); the truth is the camera that takes the drawn picture best
+    /// in the true world.
+    #[arg(long)]
+    pub drags: bool,
+    /// Localise the anchor trials' shots as photos are (their warped
+    /// picture matched against the map), as before an anchors shot's camera
+    /// came from its keyframe's geometry: for comparison.
+    #[arg(long)]
+    pub anchors_by_matching: bool,
     /// Fly without the disturbances (GPS bias drift, gimbal pitch and camera
     /// heading calibration errors): the vehicle is exactly where telemetry
     /// says and the camera exactly as mounted.
@@ -70,6 +82,10 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     params.refine.controller.threshold_pct = args.threshold_pct;
     params.refine.controller.max_rounds = args.max_rounds;
     params.anchor_every = args.anchor_every;
+    params.anchors_by_matching = args.anchors_by_matching;
+    if args.drags {
+        params.hidden.drags = Some(scenario::DragParams::default());
+    }
     params.realism = args
         .realism
         .parse()

@@ -133,6 +133,9 @@ pub fn run(args: ShotArgs) -> Result<()> {
     };
 
     let mut intrinsics_source = None;
+    // An anchors shot's keyframe and transform: its camera comes from the
+    // keyframe's geometry, as in the daemon.
+    let mut anchored_on = None;
     let (image, mask, shot_cam, source) = match (&args.photo, args.keyframe, &args.anchors) {
         (Some(photo), None, None) => {
             let bytes = std::fs::read(photo)
@@ -173,6 +176,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
             let img = kf.image.as_ref().ok_or(shot::ShotError::NoImage { id })?;
             let d = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)
                 .context("the anchors were refused")?;
+            anchored_on = Some((KeyFrameId(id), d.shot_to_source));
             (d.image, Some(d.mask), cam, "anchors")
         }
         _ => bail!("give either --keyframe ID with --anchors, or --photo FILE"),
@@ -201,14 +205,17 @@ pub fn run(args: ShotArgs) -> Result<()> {
         None
     };
     let index = vocabulary.as_ref().map(|v| shot::BowIndex::build(&map, v));
-    let result = shot::localize_with_camera(
-        &map,
-        &shot_cam,
-        &image,
-        mask.as_ref(),
-        index.as_ref(),
-        &params.localize,
-    )?;
+    let result = match anchored_on {
+        Some((id, h)) => shot::localize_anchors(&map, id, &h, &params.localize),
+        None => shot::localize_with_camera(
+            &map,
+            &shot_cam,
+            &image,
+            mask.as_ref(),
+            index.as_ref(),
+            &params.localize,
+        )?,
+    };
     let t_loc = t1.elapsed().as_secs_f64() * 1e3;
     // Not localised: the keyframes the shot resembles most, by BoW score,
     // with where they are ("fly towards here").

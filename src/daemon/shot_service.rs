@@ -1,10 +1,12 @@
 //! The daemon's shot service: anchor validation and the desired shot
 //! ([`crate::shot::request::anchor_shot`]: the keyframe warped once, at its own
-//! size, with [`crate::shot`]'s pixel convention), then localisation of that
-//! shot against a copy of the SLAM's map with [`crate::shot::localize`] (ORB
-//! on the shot with its black fill masked, candidate keyframes, PnP RANSAC,
-//! refinement, the reliability gate). A shot that fails the gate is stored
-//! as not localised with the gate's reason.
+//! size, with [`crate::shot`]'s pixel convention) whose camera comes from
+//! the keyframe's own geometry ([`crate::shot::localize_anchors`]: the
+//! keyframe's observations moved through the anchors' homography, PnP, no
+//! gate but what the operator can change); a photo is localised against a
+//! copy of the SLAM's map with [`crate::shot::localize`] (ORB on the photo,
+//! candidate keyframes, PnP RANSAC, refinement, the reliability gate). A
+//! shot refused is stored as not localised with the reason.
 
 use std::sync::{Arc, OnceLock};
 
@@ -15,7 +17,8 @@ use crate::bow::Vocabulary;
 use crate::camera::Camera;
 use crate::optimize::IntrinsicsUncertainty;
 use crate::shot::localize::{
-    BowIndex, Localization, LocalizeParams, assumed_camera, localize_with_camera, nearest_keyframes,
+    BowIndex, Localization, LocalizeParams, ShotPose, assumed_camera, localize_anchors,
+    localize_with_camera, nearest_keyframes,
 };
 use crate::shot::record::{
     Localisation, LocalisationSigma, NearKeyframeJson, PhotoIntrinsics, PoseJson,
@@ -56,6 +59,45 @@ pub struct LocalizingShots {
     pub params: LocalizeParams,
 }
 
+/// A localisation as the shot record keeps it, logged.
+fn outcome(
+    result: Result<Localization, crate::shot::ShotError>,
+) -> Result<Localisation, NotLocalised> {
+    match result {
+        Ok(Localization::Localized(p)) => {
+            tracing::info!(
+                keyframe = p.keyframe_id.0,
+                inliers = p.inliers,
+                rmse_px = p.reprojection_rmse_px,
+                position_sigma = p.sigma.position,
+                rotation_sigma_deg = p.sigma.rotation_deg,
+                "shot localised"
+            );
+            Ok(record_of(&p))
+        }
+        Ok(Localization::NotLocalized { reason }) => {
+            tracing::info!(%reason, "shot not localised");
+            Err(NotLocalised::Rejected(reason))
+        }
+        Err(e) => Err(NotLocalised::Failed(e)),
+    }
+}
+
+/// The shot record's localisation of a pose.
+fn record_of(p: &ShotPose) -> Localisation {
+    Localisation {
+        world_from_cam: PoseJson::from_isometry(&p.world_from_cam),
+        inliers: p.inliers,
+        rms_error_px: p.reprojection_rmse_px,
+        keyframe_id: Some(p.keyframe_id.0 as u64),
+        sigma: Some(LocalisationSigma {
+            position: p.sigma.position,
+            position_fraction_of_distance: p.sigma.position_depth_fraction,
+            rotation_deg: p.sigma.rotation_deg,
+        }),
+    }
+}
+
 impl LocalizingShots {
     fn localise(
         &self,
@@ -71,34 +113,7 @@ impl LocalizingShots {
             focal_unknown,
             ..self.params.clone()
         };
-        let result = match localize_with_camera(map, camera, shot, mask, None, &params) {
-            Ok(Localization::Localized(p)) => {
-                tracing::info!(
-                    keyframe = p.keyframe_id.0,
-                    inliers = p.inliers,
-                    rmse_px = p.reprojection_rmse_px,
-                    position_sigma = p.sigma.position,
-                    rotation_sigma_deg = p.sigma.rotation_deg,
-                    "shot localised"
-                );
-                Ok(Localisation {
-                    world_from_cam: PoseJson::from_isometry(&p.world_from_cam),
-                    inliers: p.inliers,
-                    rms_error_px: p.reprojection_rmse_px,
-                    keyframe_id: Some(p.keyframe_id.0 as u64),
-                    sigma: Some(LocalisationSigma {
-                        position: p.sigma.position,
-                        position_fraction_of_distance: p.sigma.position_depth_fraction,
-                        rotation_deg: p.sigma.rotation_deg,
-                    }),
-                })
-            }
-            Ok(Localization::NotLocalized { reason }) => {
-                tracing::info!(%reason, "shot not localised");
-                Err(NotLocalised::Rejected(reason))
-            }
-            Err(e) => Err(NotLocalised::Failed(e)),
-        };
+        let result = outcome(localize_with_camera(map, camera, shot, mask, None, &params));
         // Not localised: the keyframes it looks most like ("fly towards
         // here"), by BoW score.
         let nearest = match (&result, vocabulary()) {
@@ -134,26 +149,29 @@ impl ShotComputer for LocalizingShots {
             return Ok(out);
         };
         // The keyframe from the same snapshot the shot is localised in.
-        let image = u32::try_from(keyframe_id)
-            .ok()
-            .and_then(|id| map.keyframe(KeyFrameId(id)))
+        let id = u32::try_from(keyframe_id)
+            .map(KeyFrameId)
+            .map_err(|_| ShotRequestError::UnknownKeyframe { id: keyframe_id })?;
+        let image = map
+            .keyframe(id)
             .and_then(|k| k.image.clone())
             .ok_or(ShotRequestError::UnknownKeyframe { id: keyframe_id })?;
         let shot = anchor_shot(&image, anchors, size, &self.warp.params)?;
         // The operator may ask again on this keyframe: culling keeps it.
         self.slam.pin_keyframe(keyframe_id);
-        let (localisation, nearest_keyframes) = self.localise(
+        // The camera from the keyframe's own observations moved through
+        // the anchors' homography: the keyframe's pose and points are
+        // known, nothing is matched.
+        let localisation = outcome(Ok(localize_anchors(
             &map,
-            &map.camera,
-            &shot.shot.image,
-            Some(&shot.shot.mask),
-            IntrinsicsUncertainty::default(),
-            false,
-        );
+            id,
+            &shot.shot.shot_to_source,
+            &self.params,
+        )));
         Ok(ShotComputation {
             desired: Some(shot.into_picture()),
             localisation,
-            nearest_keyframes,
+            nearest_keyframes: Vec::new(),
         })
     }
 

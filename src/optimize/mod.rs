@@ -38,7 +38,7 @@ pub use essential_graph::{PoseGraph, PoseGraphParams, Sim3Edge, optimize_pose_gr
 pub use lm::{LmParams, LmSummary, Termination};
 pub use pose::{
     IntrinsicsCorrection, IntrinsicsUncertainty, PoseCovariance, PoseObservation, PoseParams,
-    PoseReport, optimize_pose, pose_covariance, refine_pose_and_intrinsics,
+    PoseReport, observation_chi2, optimize_pose, pose_covariance, refine_pose_and_intrinsics,
     refine_pose_and_intrinsics_from,
 };
 pub use sim3::{Sim3Match, Sim3Params, Sim3Report, optimize_sim3};

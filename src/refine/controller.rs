@@ -51,6 +51,12 @@ pub struct ControllerParams {
     pub max_step_m: f64,
     /// Largest yaw or pitch change of one correction, degrees.
     pub max_step_deg: f64,
+    /// A shot whose floor is known stops `at_floor` when its error is
+    /// within this many percent of the diagonal of the floor (or within
+    /// twice the measured error's own noise, if larger): what a correction
+    /// could still gain is then within what the measurement can tell, and
+    /// a loop that flies on chases noise.
+    pub at_floor_margin_pct: f64,
 }
 
 impl Default for ControllerParams {
@@ -65,6 +71,7 @@ impl Default for ControllerParams {
             gate_sigmas: 2.0,
             max_step_m: 10.0,
             max_step_deg: 20.0,
+            at_floor_margin_pct: 0.3,
         }
     }
 }

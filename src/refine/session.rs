@@ -344,6 +344,21 @@ impl Session {
             r.floor_pct = pct;
             rec.floor_pct = Some(pct);
         }
+        // Within a few tenths of the floor (or of the measurement's own
+        // noise), a correction can gain no more than the measurement can
+        // tell: stop rather than chase the noise.
+        if let (Some(r), Some(e)) = (self.reachable.as_ref(), pct) {
+            let noise = spread.map_or(0.0, |s| 2.0 * 1.25 * s / (pcts.len() as f64).sqrt());
+            let margin = self.params.controller.at_floor_margin_pct.max(noise);
+            if e - r.floor_pct <= margin {
+                rec.decision = Decision::AtFloor;
+                rec.note = Some(format!(
+                    "{e:.2} % is within {margin:.2} % of the shot's floor {:.2} %: no correction can gain more than the measurement tells",
+                    r.floor_pct
+                ));
+                return self.end(rec, Stop::AtFloor);
+            }
+        }
         let floor = self
             .reachable
             .as_ref()
@@ -1005,5 +1020,88 @@ mod tests {
         assert_eq!(o.gated, [true; 5], "{o:?}");
         assert!(Vector3::from(c.step_ned_m).norm() < 1e-9, "{c:?}");
         assert!(c.yaw_step_deg.abs() < 1e-9, "{c:?}");
+    }
+
+    fn ctx_of<'a>(
+        f: &'a Fixture,
+        mount: &'a MountParams,
+        fence: &'a Fence,
+        localize: &'a LocalizeParams,
+    ) -> Context<'a> {
+        Context {
+            map: &f.map,
+            alignment: &f.alignment,
+            frame: &f.frame,
+            mount,
+            home: &f.home,
+            fence,
+            localize,
+        }
+    }
+
+    fn reachable_with_floor(floor_pct: f64) -> Reachable {
+        Reachable {
+            ideal_from_desired: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            floor_px: floor_pct * 8.0,
+            floor_pct,
+            points: 100,
+            inliers: 100,
+            points_map: Vec::new(),
+        }
+    }
+
+    /// Near its floor the loop stops `at_floor` instead of flying a round
+    /// that cannot gain more than the measurement tells; farther above it,
+    /// it goes on.
+    #[test]
+    fn within_the_margin_of_the_floor_the_loop_stops_at_floor() {
+        let f = fixture();
+        let (mount, fence, localize) = (
+            MountParams::default(),
+            Fence::default(),
+            LocalizeParams::default(),
+        );
+        let ctx = ctx_of(&f, &mount, &fence, &localize);
+        let (_, measured) = run(&f, &f.turned, 0);
+        let e = measured.rounds()[0].shot_error_pct.unwrap_or(0.0);
+        assert!(e > 2.0, "{e}");
+        let live = [LiveFrame {
+            image: &f.turned,
+            reported_ned_m: None,
+        }];
+        let near = Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            Params::default(),
+        );
+        let mut near = near.with_reachable(reachable_with_floor(e - 0.2));
+        assert_eq!(
+            near.on_arrival(&live, 0.0, None, &ctx),
+            Step::Done(Stop::AtFloor)
+        );
+        assert_eq!(near.rounds()[0].decision, Decision::AtFloor);
+        assert!(
+            near.rounds()[0]
+                .note
+                .as_deref()
+                .is_some_and(|n| n.contains("floor"))
+        );
+        // 1 % above the floor: a correction can still gain, so the loop
+        // goes on (and here, with an empty map, cannot localise the live
+        // frame and says so).
+        let far = Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            Params::default(),
+        );
+        let mut far = far.with_reachable(reachable_with_floor(e - 1.0));
+        assert!(matches!(
+            far.on_arrival(&live, 0.0, None, &ctx),
+            Step::Done(Stop::LiveNotLocalised(_))
+        ));
     }
 }

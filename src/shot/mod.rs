@@ -22,9 +22,9 @@ pub use anchors::{
     AnchorParams, DesiredShot, desired_shot_from_anchors, homography_from_anchors, warp_perspective,
 };
 pub use localize::{
-    BowIndex, GateParams, Localization, LocalizeParams, MapSigma, NearKeyframe, NotLocalizedReason,
-    PoseSigma, ShotPose, UnknownFocal, assumed_camera, localize, localize_with_camera,
-    nearest_keyframes,
+    AnchorPoseParams, BowIndex, GateParams, Localization, LocalizeParams, MapSigma, NearKeyframe,
+    NotLocalizedReason, PoseSigma, ShotPose, UnknownFocal, assumed_camera, localize,
+    localize_anchors, localize_with_camera, nearest_keyframes,
 };
 pub use photo::{
     IntrinsicsSource, Photo, PhotoCamera, PhotoExif, decode_photo, exif_camera, photo_camera,

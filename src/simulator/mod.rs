@@ -6,6 +6,8 @@
 //!   ([`camera_from_sim`]), `[sim]` of `config.toml` as the simulator's
 //!   configuration ([`sim_config`]: its GPS bias, H.264 RTP output,
 //!   realism and world) and the checks of those keys ([`check`]);
+//! * [`drag`]: an operator's random drag of the four anchors and its truth
+//!   in the simulated world (the scenario's and the tests' anchors trials);
 //! * [`scenario`]: the closed-loop experiment (`shotpilot scenario`):
 //!   explore flight → SLAM map and georeference → desired shots from hidden
 //!   poses → localise, plan, upload, fly, refine, run synchronously in
@@ -15,6 +17,7 @@
 //! never import `shotpilot_sim`; `.ci/import-circles` fails when one does
 //! outside its tests.
 
+pub mod drag;
 pub mod scenario;
 
 use std::path::Path;

@@ -55,9 +55,13 @@ use crate::refine::{
 use crate::shot::request::NotLocalised;
 use crate::shot::{
     AnchorParams, Localization, LocalizeParams, desired_shot_from_anchors, frame_corners, localize,
+    localize_anchors,
 };
 use crate::slam::priors::{PriorParams, Priors, TelemetryFeed, TelemetrySample};
 use crate::slam::{self, Map, MapMode, Slam};
+
+pub use super::drag::DragParams;
+use super::drag::{drag_truth, random_drag};
 
 /// How the hidden poses are drawn.
 #[derive(Debug, Clone, PartialEq)]
@@ -78,6 +82,10 @@ pub struct HiddenParams {
     pub anchor_yaw_deg: f64,
     /// Anchor trials: pitch change of the keyframe's camera, up to, degrees.
     pub anchor_pitch_deg: f64,
+    /// Anchor trials drawn as an operator drags the four corners (a zoom,
+    /// a pan and a rotation of the frame: [`DragParams`]) instead of a pan
+    /// and tilt of the keyframe's camera.
+    pub drags: Option<DragParams>,
 }
 
 impl Default for HiddenParams {
@@ -91,6 +99,7 @@ impl Default for HiddenParams {
             min_alt_m: 6.0,
             anchor_yaw_deg: 6.0,
             anchor_pitch_deg: 4.0,
+            drags: None,
         }
     }
 }
@@ -175,6 +184,10 @@ pub struct ScenarioParams {
     /// Every `anchor_every`-th trial (1-based) makes its desired shot from
     /// anchors on a keyframe (0: never).
     pub anchor_every: usize,
+    /// Localise an anchors shot as a photo is (its warped picture matched
+    /// against the map), as before the keyframe's geometry placed it: for
+    /// comparison only.
+    pub anchors_by_matching: bool,
     /// Hidden poses.
     pub hidden: HiddenParams,
     /// Errors the daemon does not know about.
@@ -218,6 +231,7 @@ impl Default for ScenarioParams {
             slam_fps: 5.0,
             sensor_noise: true,
             anchor_every: 4,
+            anchors_by_matching: false,
             hidden: HiddenParams::default(),
             disturbances: Disturbances::default(),
             steady: SteadyParams::default(),
@@ -947,6 +961,9 @@ fn make_hidden(
     }
     let id = ids[rng.random_range(0..ids.len())];
     let ((p, yaw, pitch), kf_cam) = ex.kf_truth[&id];
+    if anchors && let Some(drag) = hp.drags {
+        return make_drag(ex, sim, &drag, params, id, rng);
+    }
     if anchors {
         let kf = ex.map.keyframe(crate::slam::KeyFrameId(id))?;
         let img = kf.image.clone()?;
@@ -1016,13 +1033,64 @@ fn make_hidden(
     })
 }
 
+/// The desired shot's camera: an anchors shot's from its keyframe's
+/// geometry (as the daemon does), a photo's by localisation.
+/// An anchors shot dragged on keyframe `id` ([`DragParams`]), and its
+/// truth: the camera that takes the drawn picture best in the true world
+/// (PnP on a grid of the picture's pixels, each at the true scene point
+/// the keyframe's true camera sees there through the anchors' transform),
+/// with the vehicle state a 2-axis gimbal reaches it from.
+fn make_drag(
+    ex: &Explored,
+    sim: &Sim,
+    drag: &DragParams,
+    params: &ScenarioParams,
+    id: u32,
+    rng: &mut SmallRng,
+) -> Option<Hidden> {
+    let ((p, _, _), kf_cam) = ex.kf_truth[&id];
+    let kf = ex.map.keyframe(crate::slam::KeyFrameId(id))?;
+    let img = kf.image.clone()?;
+    let cam = ex.map.camera;
+    let d = random_drag(rng, &cam, drag);
+    let shot = desired_shot_from_anchors(&img, &d.anchors, &params.anchors).ok()?;
+    let truth = drag_truth(
+        sim.renderer.world(),
+        &cam,
+        &kf_cam,
+        &shot.shot_to_source,
+        &params.localize.pnp,
+        &params.localize.pose,
+    )?
+    .world_from_cam;
+    let (yaw, pitch) = crate::refine::axis_yaw_pitch(&truth);
+    Some(Hidden {
+        p_ned: p + (truth.translation.vector - kf_cam.translation.vector),
+        yaw,
+        pitch,
+        camera: truth,
+        image: shot.image,
+        mask: Some(shot.mask),
+        kind: "drag",
+        anchors_on: Some((id, shot.shot_to_source)),
+    })
+}
+
 fn localise(
     map: &Map,
     img: &GrayImage,
     mask: Option<&GrayImage>,
+    anchors_on: Option<(u32, nalgebra::Matrix3<f64>)>,
+    by_matching: bool,
     p: &LocalizeParams,
 ) -> Result<Isometry3<f64>, NotLocalised> {
-    match localize(map, img, mask, None, p) {
+    let found = match anchors_on {
+        Some((id, h)) if !by_matching => {
+            Ok(localize_anchors(map, crate::slam::KeyFrameId(id), &h, p))
+        }
+        _ => localize(map, img, mask, None, p),
+    };
+    match found {
         Ok(Localization::Localized(s)) => Ok(s.world_from_cam),
         Ok(Localization::NotLocalized { reason }) => Err(NotLocalised::Rejected(reason)),
         Err(e) => Err(NotLocalised::Failed(e)),
@@ -1089,6 +1157,8 @@ fn run_trial(
         &ex.map,
         &hidden.image,
         hidden.mask.as_ref(),
+        hidden.anchors_on,
+        params.anchors_by_matching,
         &params.localize,
     ) {
         Ok(p) => p,

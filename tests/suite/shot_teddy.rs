@@ -1143,3 +1143,239 @@ fn orientation_floor_diagnosis() -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// The map of frames `range` of `ds` (through the map file, as
+/// [`build_map_with`]).
+fn build_map_range(ds: &Dataset, range: std::ops::Range<usize>) -> anyhow::Result<Map> {
+    let params = slam::Params {
+        sequential: true,
+        ..slam::Params::default()
+    };
+    let mut system = Slam::new(ds.camera, params)?;
+    for i in range.start..range.end.min(ds.len()) {
+        let f = ds.frame(i)?;
+        system.process(f.index as u64, f.timestamp, Arc::new(f.image));
+    }
+    let run = system.finish();
+    let tmp = tempfile::tempdir()?;
+    let path = tmp.path().join("teddy.map");
+    mapfile::save(&run.map, &path)?;
+    Ok(mapfile::load(&path)?)
+}
+
+/// One held-out photo's outcome in [`held_out_photos_by_angle_band`].
+struct BandRow {
+    /// Angle (degrees) between its true orientation and the nearest
+    /// keyframe's true orientation.
+    angle: f64,
+    /// Position error (% of the distance), rotation error (degrees),
+    /// position error over the reported position sigma, rotation error
+    /// over the rotation sigma, and both over the sigma with the
+    /// reference's floor (the keyframes' own RMS error against the ground
+    /// truth) added in quadrature; None when refused.
+    accepted: Option<[f64; 6]>,
+    /// The refusal's reason.
+    refusal: Option<String>,
+}
+
+/// The angle bands of the issue's figures (degrees from the nearest keyframe).
+const ANGLE_BANDS: [(f64, f64); 4] = [(0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, 45.0)];
+
+/// A photo localised further than 10 % of the distance or 5 degrees off
+/// the truth: a wrong pass.
+fn wrong_pass(pos_pct: f64, rot_deg: f64) -> bool {
+    pos_pct > 10.0 || rot_deg > 5.0
+}
+
+/// Prints the per-band table of `rows`; returns the wrong passes.
+fn print_bands(label: &str, rows: &[BandRow]) -> usize {
+    println!(
+        "[{label}] band      n  accepted  pos_err_% med/p90  rot_err_deg med/p90  pos<=2sig  rot<=2sig  (with the keyframes' floor: pos, rot)  wrong"
+    );
+    let mut wrong_total = 0;
+    for (lo, hi) in ANGLE_BANDS {
+        let in_band: Vec<&BandRow> = rows
+            .iter()
+            .filter(|r| r.angle >= lo && r.angle < hi)
+            .collect();
+        if in_band.is_empty() {
+            continue;
+        }
+        let acc: Vec<[f64; 6]> = in_band.iter().filter_map(|r| r.accepted).collect();
+        let q = |v: Vec<f64>, p: f64| shotpilot::stats::quantile(&v, p).unwrap_or(f64::NAN);
+        let pos: Vec<f64> = acc.iter().map(|a| a[0]).collect();
+        let rot: Vec<f64> = acc.iter().map(|a| a[1]).collect();
+        let within = |k: usize| acc.iter().filter(|a| a[k] <= 2.0).count();
+        let wrong = acc.iter().filter(|a| wrong_pass(a[0], a[1])).count();
+        wrong_total += wrong;
+        println!(
+            "[{label}] {lo:2.0}-{hi:2.0} {:6}  {:3} ({:3.0} %)  {:6.2} / {:6.2}     {:6.2} / {:6.2}      {:3}/{:<3}   {:3}/{:<3}   {:3}/{:<3} {:3}/{:<3}                        {wrong}",
+            in_band.len(),
+            acc.len(),
+            100.0 * acc.len() as f64 / in_band.len() as f64,
+            q(pos.clone(), 0.5),
+            q(pos, 0.9),
+            q(rot.clone(), 0.5),
+            q(rot, 0.9),
+            within(2),
+            acc.len(),
+            within(3),
+            acc.len(),
+            within(4),
+            acc.len(),
+            within(5),
+            acc.len(),
+        );
+        let mut reasons: Vec<String> = in_band.iter().filter_map(|r| r.refusal.clone()).collect();
+        reasons.sort();
+        for r in reasons {
+            println!("[{label}]        refused: {r}");
+        }
+    }
+    wrong_total
+}
+
+/// Real photos beyond the map's views, per band of angle from the nearest
+/// keyframe (issue 34, parts 2 and 3): splits of teddy_100 whose photos
+/// are every held-out frame with ground truth (`SHOT_TEDDY_SPLITS`, e.g.
+/// `0-70,60-100`, picks the maps: frames a-b; the photos are the others).
+/// Per band: accepted share, position (% of the distance) and rotation
+/// error median / p90 against the ground truth through the Sim(3) of the
+/// keyframes ([`align_keyframes`]), the share of errors within 2 sigma,
+/// wrong passes (over 10 % or 5 deg) and each refusal's reason. The
+/// keyframes themselves sit about 0.7 cm / 0.7 deg off the ground truth
+/// ([`orientation_floor_diagnosis`]), so the within-2-sigma share is also
+/// given with that floor added to the sigma in quadrature. Asserted: no
+/// wrong pass. Measured at ae29ea4 (splits 0-70, 0-60, 30-100): 0-10 deg
+/// 37/38 accepted, 10-20 deg 14/46, 20-30 deg 1/11; refusals: 26 PnP
+/// failed on all candidates, 22 inlier ratio 0.38-0.49; true position
+/// errors within 2 sigma 2/52 (0.35-0.5 % sigma against 1.5-3 % errors),
+/// 37/52 with the keyframes' floor; 0 wrong.
+///
+/// `cargo test --release --test suite shot_teddy::held_out_photos_by_angle_band -- --ignored --nocapture`
+/// (`RUST_LOG=shotpilot::shot=debug` adds the candidates' matches, PnP
+/// inliers, projection rounds and the sigma's parts.)
+#[test]
+#[ignore = "slow (3 maps, ~3 min): the real-photo measurement per angle band"]
+fn held_out_photos_by_angle_band() -> anyhow::Result<()> {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_test_writer()
+        .try_init();
+    let Some(dir) = data_dir() else {
+        return Ok(());
+    };
+    let ds = Dataset::open(&dir)?;
+    let Some(gt) = ds.groundtruth.clone() else {
+        anyhow::bail!("teddy has ground truth");
+    };
+    let splits = std::env::var("SHOT_TEDDY_SPLITS").unwrap_or_else(|_| "0-70,0-60,30-100".into());
+    let vocabulary = Vocabulary::builtin()?;
+    let params = shot::LocalizeParams::default();
+    let mut all = Vec::new();
+    let mut wrong = 0;
+    for split in splits.split(',') {
+        let (a, b) = split
+            .split_once('-')
+            .ok_or_else(|| anyhow::anyhow!("split {split}: a-b"))?;
+        let range: std::ops::Range<usize> = a.trim().parse()?..b.trim().parse()?;
+        let map = build_map_range(&ds, range.clone())?;
+        let (sim, kf_pairs) = align_keyframes(&map, &gt)?;
+        let index = BowIndex::build(&map, &vocabulary);
+        // The reference's floor: the keyframes' own RMS error against the
+        // ground truth after the alignment (metres, degrees).
+        let n_kf = kf_pairs.len().max(1) as f64;
+        let floor_m = (kf_pairs
+            .iter()
+            .map(|(e, t)| {
+                (sim.transform_pose(e).translation.vector - t.translation.vector).norm_squared()
+            })
+            .sum::<f64>()
+            / n_kf)
+            .sqrt();
+        let floor_deg = (kf_pairs
+            .iter()
+            .map(|(e, t)| {
+                sim.transform_pose(e)
+                    .rotation
+                    .angle_to(&t.rotation)
+                    .to_degrees()
+                    .powi(2)
+            })
+            .sum::<f64>()
+            / n_kf)
+            .sqrt();
+        println!(
+            "split map {split}: {} keyframes ({} with ground truth), {} points, Sim(3) scale {:.4}; keyframes against the ground truth: RMS {:.2} cm, {floor_deg:.2} deg",
+            map.keyframe_count(),
+            kf_pairs.len(),
+            map.point_count(),
+            sim.scale,
+            floor_m * 100.0,
+        );
+        println!("  frame  angle_deg  outcome");
+        let mut rows = Vec::new();
+        for i in (0..ds.len()).filter(|i| !range.contains(i)) {
+            let f = ds.frame(i)?;
+            let Some(g) = gt_at(&gt, f.timestamp, 0.05) else {
+                continue;
+            };
+            let angle = kf_pairs
+                .iter()
+                .map(|(_, t)| t.rotation.angle_to(&g.rotation).to_degrees())
+                .fold(f64::INFINITY, f64::min);
+            let row = match shot::localize(&map, &f.image, None, Some(&index), &params)? {
+                Localization::Localized(p) => {
+                    let est = sim.transform_pose(&p.world_from_cam);
+                    let rot_err = est.rotation.angle_to(&g.rotation).to_degrees();
+                    let dist = p.median_depth * sim.scale;
+                    let pos_m = (est.translation.vector - g.translation.vector).norm();
+                    let pos_pct = pos_m / dist * 100.0;
+                    let sig_m = p.sigma.position * sim.scale;
+                    let pos_sig = pos_m / sig_m.max(1e-12);
+                    let rot_sig = rot_err / p.sigma.rotation_deg.max(1e-12);
+                    let pos_sig_floor = pos_m / sig_m.hypot(floor_m).max(1e-12);
+                    let rot_sig_floor = rot_err / p.sigma.rotation_deg.hypot(floor_deg).max(1e-12);
+                    println!(
+                        "  {i:5}  {angle:9.1}  yes: {:.2} cm {pos_pct:.2} % ({pos_sig:.2} sigma, sigma {:.2} %), {rot_err:.2} deg ({rot_sig:.2} sigma), {} inliers, kf {}{}",
+                        pos_m * 100.0,
+                        p.sigma.position_depth_fraction * 100.0,
+                        p.inliers,
+                        p.keyframe_id.0,
+                        if wrong_pass(pos_pct, rot_err) {
+                            "  WRONG"
+                        } else {
+                            ""
+                        }
+                    );
+                    BandRow {
+                        angle,
+                        accepted: Some([
+                            pos_pct,
+                            rot_err,
+                            pos_sig,
+                            rot_sig,
+                            pos_sig_floor,
+                            rot_sig_floor,
+                        ]),
+                        refusal: None,
+                    }
+                }
+                Localization::NotLocalized { reason } => {
+                    println!("  {i:5}  {angle:9.1}  no: {reason}");
+                    BandRow {
+                        angle,
+                        accepted: None,
+                        refusal: Some(format!("{i}: {reason}")),
+                    }
+                }
+            };
+            rows.push(row);
+        }
+        wrong += print_bands(&format!("map {split}"), &rows);
+        all.extend(rows);
+    }
+    print_bands("all splits", &all);
+    assert_eq!(wrong, 0, "wrong passes");
+    Ok(())
+}

@@ -69,8 +69,10 @@ impl Agreement<'_> {
 }
 
 /// The gated candidates after the best (`poses[0]`, which passed the
-/// gate) when all agree with it within the gate's bounds; the first that
-/// disagrees otherwise.
+/// gate) that agree with it within the gate's bounds, when none of
+/// comparable support disagrees; the first such otherwise. A disagreeing
+/// candidate with fewer than [`GateParams::drop_disagreeing_below`] of
+/// the best's inliers is left out (logged), not a veto.
 pub(super) fn agreement<'a>(
     poses: &'a [CandidatePose],
     g: &GateParams,
@@ -94,6 +96,17 @@ pub(super) fn agreement<'a>(
             / best.median_depth.max(1e-12);
         let ang = owfc.rotation.angle_to(&best_wfc.rotation).to_degrees();
         let agrees = dist <= g.max_disagreement_depth_fraction && ang <= g.max_disagreement_deg;
+        if !agrees && (other.inliers as f64) < g.drop_disagreeing_below * best.inliers as f64 {
+            tracing::debug!(
+                keyframe = other.kf.0,
+                inliers = other.inliers,
+                best_inliers = best.inliers,
+                position_depth_fraction = dist,
+                angle_deg = ang,
+                "a disagreeing candidate with far fewer inliers than the best left out"
+            );
+            continue;
+        }
         if !agrees {
             return Err(NotLocalizedReason::CandidatesDisagree {
                 other: other.kf,
@@ -159,4 +172,82 @@ pub(super) fn union_of_evidence(
             )
         })
         .filter(|c| gate_reason(c, &params.gate).is_none() && c.sigma.is_some())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::optimize::IntrinsicsCorrection;
+    use crate::slam::KeyFrameId;
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+    /// A candidate through keyframe `kf` with `inliers` of 1.1x as many
+    /// pairs, its camera `dx` (median depth 10) and `deg` about y from the
+    /// origin.
+    fn cand(kf: u32, inliers: usize, dx: f64, deg: f64) -> CandidatePose {
+        let world_from_cam = Isometry3::from_parts(
+            Translation3::new(dx, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(0.0, deg.to_radians(), 0.0),
+        );
+        CandidatePose {
+            kf: KeyFrameId(kf),
+            cam_from_world: world_from_cam.inverse(),
+            inliers,
+            matches: inliers * 11 / 10,
+            rmse: 1.0,
+            in_front: 1.0,
+            median_depth: 10.0,
+            near_depth: 8.0,
+            sigma: None,
+            slots: Vec::new(),
+            correction: IntrinsicsCorrection::default(),
+            obs_inliers: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn a_weak_outlying_candidate_is_left_out_a_strong_one_refuses() {
+        let g = GateParams::default();
+        // The best, one that agrees (0.1 units, 0.5 deg), one 4 deg off
+        // with a quarter of the best's inliers: left out.
+        let poses = [
+            cand(1, 200, 0.0, 0.0),
+            cand(2, 150, 0.1, 0.5),
+            cand(3, 50, 0.7, 4.0),
+        ];
+        let a = agreement(&poses, &g).unwrap_or_else(|r| panic!("{r}"));
+        assert_eq!(a.count, 1);
+        let (pos, rot) = a.rms_spread().unwrap_or_default();
+        assert!(
+            (pos - 0.01).abs() < 1e-9 && (rot - 0.5).abs() < 1e-6,
+            "{pos} {rot}"
+        );
+        // With comparable support the place is ambiguous: refused, naming
+        // the other keyframe.
+        let poses = [
+            cand(1, 200, 0.0, 0.0),
+            cand(2, 150, 0.1, 0.5),
+            cand(3, 120, 0.7, 4.0),
+        ];
+        match agreement(&poses, &g) {
+            Err(NotLocalizedReason::CandidatesDisagree {
+                other, angle_deg, ..
+            }) => {
+                assert_eq!(other, KeyFrameId(3));
+                assert!((angle_deg - 4.0).abs() < 1e-6);
+            }
+            Err(r) => panic!("{r}"),
+            Ok(a) => panic!("agreed with {} candidates", a.count),
+        }
+        // Dropping off: every disagreement refuses, as before.
+        let strict = GateParams {
+            drop_disagreeing_below: 0.0,
+            ..g
+        };
+        let poses = [cand(1, 200, 0.0, 0.0), cand(3, 50, 0.7, 4.0)];
+        assert!(agreement(&poses, &strict).is_err());
+        // A candidate that fails the gate itself is not counted at all.
+        let poses = [cand(1, 200, 0.0, 0.0), cand(4, 20, 5.0, 30.0)];
+        assert_eq!(agreement(&poses, &strict).map(|a| a.count).ok(), Some(0));
+    }
 }

@@ -18,6 +18,10 @@
 //!    dropped) refines the pose on all pairs; twice, the second time with the
 //!    local map regrown from the refined matches and a tighter window.
 //!
+//! An anchors shot does not go through these steps: its camera comes from
+//! the keyframe's own 2D-3D observations moved through the anchors'
+//! homography ([`localize_anchors`], `anchored.rs`).
+//!
 //! The shot may come from another camera ([`localize_with_camera`]): its
 //! own intrinsics and distortion are used for the features, the PnP, the
 //! projection (with the predicted pyramid level corrected for the focal
@@ -35,6 +39,7 @@
 //!    union of evidence), kept when it passes the gate too. Failing it gives
 //!    [`Localization::NotLocalized`] with the reason; no pose is returned then.
 
+mod anchored;
 mod candidates;
 mod covariance;
 mod focal;
@@ -46,6 +51,7 @@ mod refine;
 
 use image::GrayImage;
 
+pub use self::anchored::{AnchorPoseParams, localize_anchors};
 pub use self::candidates::{BowIndex, NearKeyframe, nearest_keyframes};
 pub use self::focal::assumed_camera;
 pub use self::outcome::{Localization, NotLocalizedReason, PoseSigma, ShotPose};

@@ -114,6 +114,23 @@ pub enum NotLocalizedReason {
     },
     /// The pose's covariance could not be computed (singular).
     NoCovariance,
+    /// An anchors shot drawn on a keyframe the map no longer has.
+    UnknownKeyframe {
+        /// The keyframe.
+        keyframe: KeyFrameId,
+    },
+    /// An anchors shot whose drawn frame holds too few of the keyframe's
+    /// mapped points to place the camera.
+    AnchorsFewPoints {
+        /// The keyframe drawn on.
+        keyframe: KeyFrameId,
+        /// Its mapped points inside the drawn frame.
+        found: usize,
+        /// Needed.
+        needed: usize,
+        /// Its mapped points in all.
+        mapped: usize,
+    },
     /// Two candidates pass the gate with different poses.
     CandidatesDisagree {
         /// The other keyframe.
@@ -160,6 +177,22 @@ impl std::fmt::Display for NotLocalizedReason {
                 max_position_depth_fraction * 100.0
             ),
             NoCovariance => write!(f, "the pose's covariance is singular"),
+            UnknownKeyframe { keyframe } => write!(
+                f,
+                "keyframe {} is no longer in the map: draw the shot on another keyframe",
+                keyframe.0
+            ),
+            AnchorsFewPoints {
+                keyframe,
+                found,
+                needed,
+                mapped,
+            } => write!(
+                f,
+                "the drawn frame holds {found} of keyframe {}'s {mapped} mapped points ({needed} needed): \
+                 draw it over more of the mapped scene, or on a keyframe with more mapped points",
+                keyframe.0
+            ),
             CandidatesDisagree {
                 other,
                 position_depth_fraction,

@@ -1,6 +1,7 @@
 //! Every tunable number of the localisation: the gate, the matching, the
 //! map's own error and the priors of an unknown camera.
 
+use super::anchored::AnchorPoseParams;
 use crate::features;
 use crate::geometry::PnpParams;
 use crate::optimize::{IntrinsicsUncertainty, PoseParams};
@@ -22,6 +23,13 @@ pub struct GateParams {
     pub max_disagreement_depth_fraction: f64,
     /// Largest angle between the orientations of two gated candidates, degrees.
     pub max_disagreement_deg: f64,
+    /// A gated candidate that disagrees with the best but has fewer than
+    /// this fraction of its inliers is dropped instead of refusing the
+    /// shot: one outlying keyframe (an early keyframe a few degrees off
+    /// its neighbours) does not veto a place the others agree on, while
+    /// two places of comparable support stay ambiguous. 0: every
+    /// disagreement refuses.
+    pub drop_disagreeing_below: f64,
     /// Largest position sigma ([`PoseSigma::position_depth_fraction`]), as
     /// a fraction of the distance to the nearest scene content.
     pub max_position_sigma_depth_fraction: f64,
@@ -38,6 +46,7 @@ impl Default for GateParams {
             min_in_front_fraction: 0.99,
             max_disagreement_depth_fraction: 0.05,
             max_disagreement_deg: 2.0,
+            drop_disagreeing_below: 0.5,
             max_position_sigma_depth_fraction: 0.02,
             max_rotation_sigma_deg: 1.0,
         }
@@ -114,6 +123,8 @@ pub struct LocalizeParams {
     pub rematch_rounds: usize,
     /// Seed of the RANSAC.
     pub seed: u64,
+    /// An anchors shot's pose from its keyframe's geometry.
+    pub anchors: AnchorPoseParams,
 }
 
 impl Default for LocalizeParams {
@@ -152,6 +163,7 @@ impl Default for LocalizeParams {
             unknown_focal: UnknownFocal::default(),
             rematch_rounds: 1,
             seed: 1,
+            anchors: AnchorPoseParams::default(),
         }
     }
 }
