@@ -23,8 +23,8 @@
 
 use nalgebra::{Matrix3, Point2, Point3};
 
-use super::Localization;
 use super::covariance::{MapError, reported_sigma};
+use super::outcome::Localization;
 use super::outcome::{NotLocalizedReason, ShotPose, not};
 use super::params::LocalizeParams;
 use super::projection::{ShotView, frustum_near_depth};
@@ -36,20 +36,6 @@ use crate::optimize::{
     Intrinsics, IntrinsicsCorrection, PoseObservation, observation_chi2, optimize_pose,
 };
 use crate::slam::{KeyFrameId, Map};
-
-/// Tunables of an anchors shot's pose.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct AnchorPoseParams {
-    /// Fewest of the keyframe's map points that must lie inside the drawn
-    /// frame.
-    pub min_points: usize,
-}
-
-impl Default for AnchorPoseParams {
-    fn default() -> Self {
-        AnchorPoseParams { min_points: 12 }
-    }
-}
 
 /// The camera that takes the desired shot drawn on keyframe `keyframe` of
 /// `map` with `shot_to_keyframe` (`H`: desired-shot pixel → keyframe

@@ -51,12 +51,13 @@ mod refine;
 
 use image::GrayImage;
 
-pub use self::anchored::{AnchorPoseParams, localize_anchors};
+pub use self::anchored::localize_anchors;
 pub use self::candidates::{BowIndex, NearKeyframe, nearest_keyframes};
 pub use self::focal::assumed_camera;
 pub use self::outcome::{Localization, NotLocalizedReason, PoseSigma, ShotPose};
 pub use self::params::{
-    EXIF_K1_SIGMA, EXIF_K2_SIGMA, GateParams, LocalizeParams, MapSigma, UnknownFocal,
+    AnchorPoseParams, EXIF_K1_SIGMA, EXIF_K2_SIGMA, GateParams, LocalizeParams, MapSigma,
+    UnknownFocal,
 };
 
 use self::candidates::{extract_shot_features, neighbourhood_matches, rank_candidates};

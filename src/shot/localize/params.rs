@@ -1,7 +1,6 @@
 //! Every tunable number of the localisation: the gate, the matching, the
 //! map's own error and the priors of an unknown camera.
 
-use super::anchored::AnchorPoseParams;
 use crate::features;
 use crate::geometry::PnpParams;
 use crate::optimize::{IntrinsicsUncertainty, PoseParams};
@@ -282,3 +281,17 @@ impl Default for UnknownFocal {
 pub const EXIF_K1_SIGMA: f64 = 0.05;
 /// The same for the r⁴ coefficient `k2`.
 pub const EXIF_K2_SIGMA: f64 = 0.02;
+
+/// Tunables of an anchors shot's pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AnchorPoseParams {
+    /// Fewest of the keyframe's map points that must lie inside the drawn
+    /// frame.
+    pub min_points: usize,
+}
+
+impl Default for AnchorPoseParams {
+    fn default() -> Self {
+        AnchorPoseParams { min_points: 12 }
+    }
+}
