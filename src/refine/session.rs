@@ -346,19 +346,22 @@ impl Session {
         }
         // Within a few tenths of the floor (or of the measurement's own
         // noise), a correction can gain no more than the measurement can
-        // tell: stop rather than chase the noise.
-        if let (Some(r), Some(e)) = (self.reachable.as_ref(), pct) {
-            let noise = spread.map_or(0.0, |s| 2.0 * 1.25 * s / (pcts.len() as f64).sqrt());
-            let margin = self.params.controller.at_floor_margin_pct.max(noise);
-            if e - r.floor_pct <= margin {
-                rec.decision = Decision::AtFloor;
-                rec.note = Some(format!(
-                    "{e:.2} % is within {margin:.2} % of the shot's floor {:.2} %: no correction can gain more than the measurement tells",
-                    r.floor_pct
-                ));
-                return self.end(rec, Stop::AtFloor);
+        // tell: the loop stops there, once the live frames are localised so
+        // that the record says how far the camera stands from the shot's
+        // pose.
+        let near_floor = match (self.reachable.as_ref(), pct) {
+            (Some(r), Some(e)) => {
+                let noise = spread.map_or(0.0, |s| 2.0 * 1.25 * s / (pcts.len() as f64).sqrt());
+                let margin = self.params.controller.at_floor_margin_pct.max(noise);
+                (e - r.floor_pct <= margin).then(|| {
+                    format!(
+                        "{e:.2} % is within {margin:.2} % of the shot's floor {:.2} %: no correction can gain more than the measurement tells",
+                        r.floor_pct
+                    )
+                })
             }
-        }
+            _ => None,
+        };
         let floor = self
             .reachable
             .as_ref()
@@ -368,7 +371,7 @@ impl Session {
         // reported when it was taken.
         let mut localised: Vec<(Isometry3<f64>, Option<Vector3<f64>>)> = Vec::new();
         let mut why_not: Option<String> = None;
-        if floor.is_some() || decision == Decision::Correct {
+        if floor.is_some() || near_floor.is_some() || decision == Decision::Correct {
             for f in frames {
                 match localize(ctx.map, f.image, None, None, ctx.localize) {
                     Ok(Localization::Localized(p)) => {
@@ -398,6 +401,11 @@ impl Session {
                 rec.decision = Decision::AtFloor;
                 return self.end(rec, Stop::AtFloor);
             }
+        }
+        if let Some(note) = near_floor {
+            rec.decision = Decision::AtFloor;
+            rec.note = Some(note);
+            return self.end(rec, Stop::AtFloor);
         }
         if decision == Decision::MaxRounds {
             return self.end(rec, Stop::MaxRounds);

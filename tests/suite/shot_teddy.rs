@@ -1247,10 +1247,10 @@ fn print_bands(label: &str, rows: &[BandRow]) -> usize {
 /// ([`orientation_floor_diagnosis`]), so the within-2-sigma share is also
 /// given with that floor added to the sigma in quadrature. Asserted: no
 /// wrong pass. Measured at ae29ea4 (splits 0-70, 0-60, 30-100): 0-10 deg
-/// 37/38 accepted, 10-20 deg 14/46, 20-30 deg 1/11; refusals: 26 PnP
+/// 37/38 accepted, 10-20 deg 14/46, 20-30 deg 1/11; refusals: 20 PnP
 /// failed on all candidates, 22 inlier ratio 0.38-0.49; true position
-/// errors within 2 sigma 2/52 (0.35-0.5 % sigma against 1.5-3 % errors),
-/// 37/52 with the keyframes' floor; 0 wrong.
+/// errors within 2 sigma 2/52 (0.35-0.5 % sigma against 1.5-3 % errors);
+/// 0 wrong.
 ///
 /// `cargo test --release --test suite shot_teddy::held_out_photos_by_angle_band -- --ignored --nocapture`
 /// (`RUST_LOG=shotpilot::shot=debug` adds the candidates' matches, PnP
