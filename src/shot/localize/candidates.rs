@@ -246,8 +246,10 @@ pub(super) fn neighbourhood_matches(
     let Some(kf) = map.keyframe(kf_id) else {
         return Vec::new();
     };
-    // (point, descriptor, keypoint angle of that observation)
-    let mut cand: Vec<(PointId, Descriptor, f32)> = Vec::new();
+    // The neighbourhood's points (dense indices) and, per observation,
+    // (point index, descriptor, keypoint angle of that observation).
+    let mut points: Vec<PointId> = Vec::new();
+    let mut cand: Vec<(usize, Descriptor, f32)> = Vec::new();
     let mut seen: HashSet<PointId> = HashSet::new();
     let kfs = std::iter::once(kf_id).chain(kf.best_covisible(params.candidate_covisible));
     for k in kfs.filter_map(|id| map.keyframe(id)) {
@@ -256,6 +258,8 @@ pub(super) fn neighbourhood_matches(
                 continue;
             }
             let Some(mp) = map.point(*p) else { continue };
+            let pi = points.len();
+            points.push(*p);
             for (ok, idx) in &mp.observations {
                 if let Some(okf) = map.keyframe(*ok)
                     && let (Some(d), Some(kp)) = (
@@ -263,43 +267,44 @@ pub(super) fn neighbourhood_matches(
                         okf.keypoints.get(*idx as usize),
                     )
                 {
-                    cand.push((*p, *d, kp.angle));
+                    cand.push((pi, *d, kp.angle));
                 }
             }
         }
     }
     // Per shot keypoint: the nearest point (through any of its
     // descriptors); per point: the nearest shot keypoint.
-    let mut m: Vec<(u32, usize, PointId, f32)> = Vec::new();
-    let mut point_best: std::collections::HashMap<PointId, (u32, usize)> =
-        std::collections::HashMap::new();
+    let mut m: Vec<(u32, usize, usize, f32)> = Vec::new();
+    let mut point_best: Vec<(u32, usize)> = vec![(u32::MAX, usize::MAX); points.len()];
     for (i, d) in feats.descriptors.iter().enumerate() {
         let (mut b1, mut bj) = (u32::MAX, usize::MAX);
-        for (j, (p, c, _)) in cand.iter().enumerate() {
+        for (j, (pi, c, _)) in cand.iter().enumerate() {
             let h = hamming(d, c);
             if h < b1 {
                 b1 = h;
                 bj = j;
             }
-            let e = point_best.entry(*p).or_insert((u32::MAX, usize::MAX));
+            let e = &mut point_best[*pi];
             if h < e.0 {
                 *e = (h, i);
             }
         }
-        if bj != usize::MAX && b1 <= params.max_hamming {
-            m.push((b1, i, cand[bj].0, cand[bj].2));
+        if let Some((pi, _, a)) = cand.get(bj)
+            && b1 <= params.max_hamming
+        {
+            m.push((b1, i, *pi, *a));
         }
     }
     // Mutual nearest neighbours (a cross check instead of the ratio test:
     // a point seen from far round has no distinctive nearest keypoint,
     // and the map's near-duplicate points would fail the ratio test).
-    m.retain(|(_, i, p, _)| point_best.get(p).is_some_and(|b| b.1 == *i));
+    m.retain(|(_, i, pi, _)| point_best[*pi].1 == *i);
     m.sort_unstable_by_key(|x| x.0);
     let mut used = HashSet::new();
     let m: Vec<(usize, PointId, f32)> = m
         .into_iter()
-        .filter(|(_, _, p, _)| used.insert(*p))
-        .map(|(_, i, p, a)| (i, p, a))
+        .filter(|(_, _, pi, _)| used.insert(*pi))
+        .map(|(_, i, pi, a)| (i, points[pi], a))
         .collect();
     let rot: Vec<(usize, f32)> = m
         .iter()

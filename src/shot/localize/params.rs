@@ -74,8 +74,11 @@ pub struct LocalizeParams {
     /// Fewest descriptor matches for a keyframe to be tried.
     pub min_candidate_matches: usize,
     /// Covisible keyframes of a candidate whose points (through every
-    /// observation's descriptor) its PnP matches are drawn from, besides
-    /// its own (0: its own points alone).
+    /// observation's descriptor) its PnP matches are drawn from again when
+    /// its own matches give no pose the gate takes (0: the candidate's own
+    /// points alone, still through every observation's descriptor); never
+    /// for a photo whose camera is only assumed
+    /// ([`LocalizeParams::focal_unknown`]).
     pub candidate_covisible: usize,
     /// Covisible keyframes of a candidate whose points are projected in the
     /// first projection round.
