@@ -42,6 +42,11 @@ pub struct ScenarioArgs {
     /// came from its keyframe's geometry: for comparison.
     #[arg(long)]
     pub anchors_by_matching: bool,
+    /// Save the explored map to its file format and load it back before
+    /// the trials, as a daemon restart does: the shots are localised on
+    /// the reloaded map.
+    #[arg(long)]
+    pub restart: bool,
     /// Fly without the disturbances (GPS bias drift, gimbal pitch and camera
     /// heading calibration errors): the vehicle is exactly where telemetry
     /// says and the camera exactly as mounted.
@@ -94,6 +99,7 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
         params.disturbances = scenario::Disturbances::none();
     }
     params.priors = args.priors;
+    params.restart = args.restart;
     let json = args.json;
     let mut progress = |t: &TrialReport| {
         if !json {

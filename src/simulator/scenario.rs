@@ -201,6 +201,10 @@ pub struct ScenarioParams {
     /// baseline, and its georeference is then the identity instead of a
     /// Sim(3) fitted after the flight.
     pub priors: bool,
+    /// Save the explored map and load it back before the trials, as a
+    /// daemon restart does: the desired shots are localised (and the live
+    /// frames too) on the map read from its file.
+    pub restart: bool,
     /// Shot localisation (desired shots and live frames).
     pub localize: LocalizeParams,
     /// Anchor checks.
@@ -240,6 +244,7 @@ impl Default for ScenarioParams {
                 ..slam::Params::default()
             },
             priors: false,
+            restart: false,
             localize: LocalizeParams::default(),
             anchors: AnchorParams::default(),
             geo: geo::Params {
@@ -348,6 +353,9 @@ pub enum ScenarioError {
     #[error("SLAM: {0}")]
     Slam(#[from] crate::slam::SlamError),
     /// The explore flight did not give a map.
+    /// The explored map could not be saved and read back (`restart`).
+    #[error("map file: {0}")]
+    MapFile(#[from] crate::slam::mapfile::MapFileError),
     #[error("the explore flight gave no usable map: {keyframes} keyframes")]
     NoMap {
         /// Keyframes in the map.
@@ -469,6 +477,8 @@ pub struct ScenarioReport {
     pub seed: u64,
     /// The realism (`ideal`, `field`, ...).
     pub realism: String,
+    /// The trials ran on the explored map saved and loaded back.
+    pub restart: bool,
     /// Trials run.
     pub trials: usize,
     /// Trials whose desired shot was localised and flown.
@@ -1426,7 +1436,16 @@ pub fn run(
             .map(|t| (t.drop, SmallRng::seed_from_u64(params.seed ^ 0xD20F))),
         priors: None,
     };
-    let ex = explore(&mut sim, params)?;
+    let mut ex = explore(&mut sim, params)?;
+    if params.restart {
+        let bytes = crate::slam::mapfile::encode(&ex.map)?;
+        ex.map = crate::slam::mapfile::decode(&bytes, std::path::Path::new("scenario restart"))?;
+        tracing::info!(
+            bytes = bytes.len(),
+            keyframes = ex.map.keyframes().count(),
+            "scenario: the explored map saved and loaded back (restart)"
+        );
+    }
     let mut rng = SmallRng::seed_from_u64(params.seed ^ 0x7e57_5407);
     let mut trials = Vec::with_capacity(params.trials);
     for i in 0..params.trials {
@@ -1463,6 +1482,7 @@ pub fn run(
     Ok(ScenarioReport {
         seed: params.seed,
         realism: params.realism.name.clone(),
+        restart: params.restart,
         trials: trials.len(),
         flown: n,
         converged: trials.iter().filter(|t| t.stop == "converged").count(),

@@ -67,6 +67,7 @@ mod mjpeg_parser;
 mod peer_evo;
 mod priors_daemon;
 mod scenario;
+mod shot_aliasing;
 mod shot_cli;
 mod shot_photos;
 mod shot_sim;
