@@ -348,14 +348,16 @@ impl Session {
         // noise), a correction can gain no more than the measurement can
         // tell: the loop stops there, once the live frames are localised so
         // that the record says how far the camera stands from the shot's
-        // pose. Well under the floor, the floor is an over-estimate (a
-        // homography fitted on the keyframe's map points, not on the
-        // picture) and tells nothing: the loop goes on.
+        // pose. Under the floor it stops too: the floor is what a camera
+        // at the shot's pose measures, so the view is already better than
+        // the pose gives (50 field drags flying on from under the floor
+        // toward the pose: 14 of 24 ended worse, 5 better, 39 rounds
+        // against 27).
         let near_floor = match (self.reachable.as_ref(), pct) {
             (Some(r), Some(e)) => {
                 let noise = spread.map_or(0.0, |s| 2.0 * 1.25 * s / (pcts.len() as f64).sqrt());
                 let margin = self.params.controller.at_floor_margin_pct.max(noise);
-                ((e - r.floor_pct).abs() <= margin).then(|| {
+                (e - r.floor_pct <= margin).then(|| {
                     format!(
                         "{e:.2} % is within {margin:.2} % of the shot's floor {:.2} %: no correction can gain more than the measurement tells",
                         r.floor_pct
@@ -1060,10 +1062,9 @@ mod tests {
         }
     }
 
-    /// Near its floor (above or under) the loop stops `at_floor` instead
-    /// of flying a round that cannot gain more than the measurement tells;
-    /// farther above it, or far under a floor that over-estimates, it goes
-    /// on.
+    /// Near its floor or under it the loop stops `at_floor` instead of
+    /// flying a round that cannot gain more than the measurement tells;
+    /// farther above it, it goes on.
     #[test]
     fn within_the_margin_of_the_floor_the_loop_stops_at_floor() {
         let f = fixture();
@@ -1114,7 +1115,8 @@ mod tests {
             far.on_arrival(&live, 0.0, None, &ctx),
             Step::Done(Stop::LiveNotLocalised(_))
         ));
-        // Just under the floor: within the margin, it stops.
+        // Under the floor, however far: the view is already better than a
+        // camera at the shot's pose gives; it stops.
         let mut under = Session::new(
             f.desired.clone(),
             None,
@@ -1122,24 +1124,10 @@ mod tests {
             f.target,
             Params::default(),
         )
-        .with_reachable(reachable_with_floor(e + 0.2));
+        .with_reachable(reachable_with_floor(e + 1.0));
         assert_eq!(
             under.on_arrival(&live, 0.0, None, &ctx),
             Step::Done(Stop::AtFloor)
         );
-        // 1 % under a floor that over-estimates: it says nothing, the loop
-        // goes on.
-        let mut over = Session::new(
-            f.desired.clone(),
-            None,
-            Isometry3::identity(),
-            f.target,
-            Params::default(),
-        )
-        .with_reachable(reachable_with_floor(e + 1.0));
-        assert!(matches!(
-            over.on_arrival(&live, 0.0, None, &ctx),
-            Step::Done(Stop::LiveNotLocalised(_))
-        ));
     }
 }
