@@ -295,6 +295,11 @@ pub struct RefineSection {
     /// An anchors shot stops `at_floor` within this much of its floor, %
     /// of the diagonal (or within the measurement's noise, if larger).
     pub at_floor_margin_pct: f64,
+    /// Near its floor (within this many % of the diagonal), a correction
+    /// that gains less than `at_floor_margin_pct` over the best round ends
+    /// the loop `at_floor`, after flying back to the best round's view if
+    /// it measured clearly worse.
+    pub stall_band_pct: f64,
     /// Fraction of the measured pose error the first correction removes,
     /// in (0, 1].
     pub gain: f64,
@@ -348,6 +353,7 @@ impl Default for RefineSection {
             threshold_pct: c.threshold_pct,
             max_rounds: c.max_rounds,
             at_floor_margin_pct: c.at_floor_margin_pct,
+            stall_band_pct: c.stall_band_pct,
             gain: c.gain,
             later_gain: c.later_gain,
             position_drift_m2_per_s: c.position_drift_m2_per_s,
@@ -378,6 +384,7 @@ impl RefineSection {
         c.threshold_pct = self.threshold_pct;
         c.max_rounds = self.max_rounds;
         c.at_floor_margin_pct = self.at_floor_margin_pct;
+        c.stall_band_pct = self.stall_band_pct;
         c.gain = self.gain;
         c.later_gain = self.later_gain;
         c.position_drift_m2_per_s = self.position_drift_m2_per_s;
@@ -413,6 +420,9 @@ impl RefineSection {
             && (0.0..=10.0).contains(&self.at_floor_margin_pct))
         {
             return Err(("at_floor_margin_pct", "must be in [0, 10] %".into()));
+        }
+        if !(self.stall_band_pct.is_finite() && (0.0..=10.0).contains(&self.stall_band_pct)) {
+            return Err(("stall_band_pct", "must be in [0, 10] %".into()));
         }
         if !(positive(self.gain) && self.gain <= 1.0) {
             return Err(("gain", "must be in (0, 1]".into()));

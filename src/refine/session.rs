@@ -179,6 +179,15 @@ impl Stop {
     }
 }
 
+/// The loop stalled near its floor ([`Session::stalled_near_floor`]).
+enum Stalled {
+    /// This view is the best measured: stop here (the note says why).
+    Here(String),
+    /// An earlier round (its number and live camera pose) measured
+    /// better: fly back to that view.
+    BackTo(usize, Isometry3<f64>, String),
+}
+
 /// What to do after an arrival.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Step {
@@ -200,6 +209,12 @@ pub struct Session {
     params: Params,
     reachable: Option<Reachable>,
     offset: Option<OffsetEstimate>,
+    /// Flying back to the best round's view (its round number): the next
+    /// arrival ends the loop.
+    returning_to: Option<usize>,
+    /// The best round measured so far with a localised live camera: its
+    /// number, shot error and the live camera's pose (map frame).
+    best_view: Option<(usize, f64, Isometry3<f64>)>,
 }
 
 impl Session {
@@ -222,6 +237,8 @@ impl Session {
             params,
             reachable: None,
             offset: None,
+            returning_to: None,
+            best_view: None,
         }
     }
 
@@ -411,6 +428,56 @@ impl Session {
             rec.note = Some(note);
             return self.end(rec, Stop::AtFloor);
         }
+        if let Some(best) = self.returning_to {
+            rec.decision = Decision::AtFloor;
+            rec.note = Some(format!(
+                "back at round {best}'s view, the best measured near the floor"
+            ));
+            return self.end(rec, Stop::AtFloor);
+        }
+        if let Some(stall) = self.stalled_near_floor(pct) {
+            match stall {
+                Stalled::Here(note) => {
+                    rec.decision = Decision::AtFloor;
+                    rec.note = Some(note);
+                    return self.end(rec, Stop::AtFloor);
+                }
+                Stalled::BackTo(best, goal, note) => {
+                    // The best round's view, not its target: the GNSS
+                    // bias has drifted since, so the same target puts the
+                    // camera elsewhere; the correction toward that view
+                    // goes through the offset measured now.
+                    match self.correct_toward(&goal, &localised, t_s, round, ctx) {
+                        Ok((c, offset)) if !offset.gated.iter().all(|&g| g) => {
+                            rec.decision = Decision::ReturnToBest;
+                            rec.note = Some(note);
+                            rec.offset = Some(offset);
+                            self.target = c.target;
+                            rec.correction = Some(c);
+                            self.rounds.push(rec);
+                            self.returning_to = Some(best);
+                            return Step::Upload(self.target);
+                        }
+                        other => {
+                            let why = match other {
+                                Ok(_) => {
+                                    "the way back is within the measurement's noise".to_string()
+                                }
+                                Err(e) => format!("no way back: {e}"),
+                            };
+                            rec.decision = Decision::AtFloor;
+                            rec.note = Some(format!("{note}; {why}: stopped here"));
+                            return self.end(rec, Stop::AtFloor);
+                        }
+                    }
+                }
+            }
+        }
+        if let (Some(e), Some(c)) = (pct, &central)
+            && self.best_view.as_ref().is_none_or(|b| e < b.1)
+        {
+            self.best_view = Some((round, e, *c));
+        }
         if decision == Decision::MaxRounds {
             return self.end(rec, Stop::MaxRounds);
         }
@@ -456,9 +523,23 @@ impl Session {
         round: usize,
         ctx: &Context<'_>,
     ) -> Result<(Correction, OffsetRecord), super::RefineError> {
+        let goal = self.map_from_desired;
+        self.correct_toward(&goal, localised, t_s, round, ctx)
+    }
+
+    /// [`Self::correct_from`] toward the camera pose `goal` (map frame)
+    /// instead of the shot's.
+    fn correct_toward(
+        &mut self,
+        goal: &Isometry3<f64>,
+        localised: &[(Isometry3<f64>, Option<Vector3<f64>>)],
+        t_s: f64,
+        round: usize,
+        ctx: &Context<'_>,
+    ) -> Result<(Correction, OffsetRecord), super::RefineError> {
         let ctrl = &self.params.controller;
         let m = &self.params.measure;
-        let desired = convert_target(ctx.alignment, &self.map_from_desired, ctx.frame, ctx.mount)
+        let desired = convert_target(ctx.alignment, goal, ctx.frame, ctx.mount)
             .map_err(super::RefineError::Geo)?;
         let current = self.target;
         let current_ned = ctx.frame.geodetic_to_ned(&Geodetic {
@@ -621,6 +702,43 @@ impl Session {
                 Some(n) if !n.is_empty() => format!("{n}; {note}"),
                 _ => note.to_owned(),
             });
+        }
+    }
+
+    /// Whether the loop has stalled near its floor after a correction:
+    /// the error `pct` within [`ControllerParams::stall_band_pct`] of the
+    /// floor and not [`ControllerParams::at_floor_margin_pct`] under the
+    /// best earlier round's. Stop here when this view is within that
+    /// margin of the best measured, else fly back to the best round's
+    /// view.
+    fn stalled_near_floor(&self, pct: Option<f64>) -> Option<Stalled> {
+        let ctrl = &self.params.controller;
+        let e = pct?;
+        let floor = self.reachable.as_ref()?.floor_pct;
+        if e - floor > ctrl.stall_band_pct {
+            return None;
+        }
+        let (round, best_pct) = self
+            .rounds
+            .iter()
+            .filter_map(|r| r.shot_error_pct.map(|b| (r.round, b)))
+            .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        let margin = ctrl.at_floor_margin_pct;
+        if e < best_pct - margin {
+            return None;
+        }
+        let over = e - floor;
+        match &self.best_view {
+            Some((r, b, pose)) if e > b + margin => Some(Stalled::BackTo(
+                *r,
+                *pose,
+                format!(
+                    "{e:.2} %, {over:.2} % over the floor {floor:.2} %, is worse than round {r}'s {b:.2} %: back to that round's view"
+                ),
+            )),
+            _ => Some(Stalled::Here(format!(
+                "{e:.2} %, {over:.2} % over the floor {floor:.2} %, gained less than {margin:.2} % on round {round}'s {best_pct:.2} %: the loop is at what the measurement can tell"
+            ))),
         }
     }
 
@@ -1129,5 +1247,92 @@ mod tests {
             under.on_arrival(&live, 0.0, None, &ctx),
             Step::Done(Stop::AtFloor)
         );
+    }
+    /// Near its floor, a correction that gains less than the margin over
+    /// the best round ends the loop: here when this view is within the
+    /// margin of the best measured, else after flying back to the best
+    /// round's view (here, with an empty map, the live frame cannot be
+    /// localised, so it says there is no way back and stops). One that
+    /// gains, or one far above the floor, goes on.
+    #[test]
+    fn a_loop_stalled_near_its_floor_ends_on_its_best_round() {
+        let f = fixture();
+        let (mount, fence, localize) = (
+            MountParams::default(),
+            Fence::default(),
+            LocalizeParams::default(),
+        );
+        let ctx = ctx_of(&f, &mount, &fence, &localize);
+        let (_, measured) = run(&f, &f.turned, 0);
+        let e = measured.rounds()[0].shot_error_pct.unwrap_or(0.0);
+        assert!(e > 2.0, "{e}");
+        let live = [LiveFrame {
+            image: &f.turned,
+            reported_ned_m: None,
+        }];
+        // A session whose round 0 measured `earlier` (its live camera
+        // localised), now arriving with the error `e`.
+        let after = |earlier: f64, floor: f64| {
+            let mut s = Session::new(
+                f.desired.clone(),
+                None,
+                Isometry3::identity(),
+                f.target,
+                Params::default(),
+            )
+            .with_reachable(reachable_with_floor(floor));
+            let mut r0 = measured.rounds()[0].clone();
+            r0.round = 0;
+            r0.shot_error_pct = Some(earlier);
+            r0.decision = Decision::Correct;
+            s.rounds.push(r0);
+            s.best_view = Some((0, earlier, Isometry3::identity()));
+            s
+        };
+        let note = |s: &Session| {
+            s.rounds()
+                .last()
+                .and_then(|r| r.note.clone())
+                .unwrap_or_default()
+        };
+        // 0.8 % over the floor, 0.1 % better than round 0: stop here.
+        let mut here = after(e + 0.1, e - 0.8);
+        assert_eq!(
+            here.on_arrival(&live, 1.0, None, &ctx),
+            Step::Done(Stop::AtFloor)
+        );
+        assert!(note(&here).contains("gained less"), "{}", note(&here));
+        // 0.2 % worse than round 0, within the margin: stop here too.
+        let mut level = after(e - 0.2, e - 0.8);
+        assert_eq!(
+            level.on_arrival(&live, 1.0, None, &ctx),
+            Step::Done(Stop::AtFloor)
+        );
+        assert!(note(&level).contains("gained less"), "{}", note(&level));
+        // 0.5 % worse: back to round 0's view, which needs the live
+        // camera; unlocalised, the loop stops here and says why.
+        let mut back = after(e - 0.5, e - 0.8);
+        assert_eq!(
+            back.on_arrival(&live, 1.0, None, &ctx),
+            Step::Done(Stop::AtFloor)
+        );
+        let n = note(&back);
+        assert!(
+            n.contains("back to that round's view") && n.contains("no way back"),
+            "{n}"
+        );
+        // A correction that gained 0.5 % goes on (and here, with an empty
+        // map, cannot localise the live frame and says so).
+        let mut gaining = after(e + 0.5, e - 0.8);
+        assert!(matches!(
+            gaining.on_arrival(&live, 1.0, None, &ctx),
+            Step::Done(Stop::LiveNotLocalised(_))
+        ));
+        // 1.5 % over the floor: not near it; the loop goes on.
+        let mut far = after(e - 0.2, e - 1.5);
+        assert!(matches!(
+            far.on_arrival(&live, 1.0, None, &ctx),
+            Step::Done(Stop::LiveNotLocalised(_))
+        ));
     }
 }

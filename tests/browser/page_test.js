@@ -344,16 +344,18 @@ async function main() {
           const far = [...pr.kfs].sort((a, b) => Math.hypot(b.p[0] - veh[0], b.p[1] - veh[1]) - Math.hypot(a.p[0] - veh[0], a.p[1] - veh[1]));
           k = far[Math.min(choose, far.length - 1)];
         }
-        const [u, v] = pr.P(k.p[0], k.p[1]);
-        const inside = u >= 0 && v >= 0 && u <= cv.width && v <= cv.height;
         // Keyframes can lie close together (hovering, turning): centre the
         // view on this one and zoom until its nearest neighbour is 15 px
         // away, so the click cannot choose another (the view stays put
-        // until the pick is done).
+        // until the pick is done). A far keyframe may lie outside the view
+        // an earlier pick left; after centring it must be drawn inside.
         const near = Math.min(...pr.kfs.filter((x) => x.id !== k.id).map((x) => Math.hypot(x.p[0] - k.p[0], x.p[1] - k.p[1])), 1e9);
         view.fit = false; view.pan = [k.p[0], k.p[1]];
         view.zoom = Math.min(Math.max(view.zoom, 15 / Math.max(near, 1e-4)), 2000);
         drawMap();
+        const now = state.mapProject, drawn = now && now.kfs.find((x) => x.id === k.id);
+        const [u, v] = drawn ? now.P(drawn.p[0], drawn.p[1]) : [-1, -1];
+        const inside = u >= 0 && v >= 0 && u <= cv.width && v <= cv.height;
         return { id: k.id, inside, near_m: near };
       }, choose);
       check(pick && pick.inside, `a keyframe is drawn on the map: ${JSON.stringify(pick)}`);

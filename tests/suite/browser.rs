@@ -269,6 +269,24 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
         best < first,
         "no correction improved on the first flight's {first} %: {rf}"
     );
+    // The loop ends where the measurement says it can do no better
+    // (under the threshold, or near the shot's floor without gaining),
+    // and on a view no worse than its first flight's: near the floor it
+    // stops on its best round, flying back to it if the last measured
+    // worse.
+    let stop = rf["stop"].as_str().unwrap_or("");
+    assert!(
+        stop == "converged" || stop == "at_floor",
+        "the loop ended {stop}, not converged or at_floor: {rf}"
+    );
+    let last = rounds
+        .last()
+        .and_then(pct)
+        .unwrap_or_else(|| panic!("the last round without a shot error: {rf}"));
+    assert!(
+        last <= first,
+        "the loop ended at {last} %, worse than its first flight's {first} %: {rf}"
+    );
     // The localisation's sigma on the timeline: % of the distance and
     // degrees at `localised`, metres (through the georeference's scale)
     // at `georeferenced`.
