@@ -295,10 +295,10 @@ pub struct RefineSection {
     /// An anchors shot stops `at_floor` within this much of its floor, %
     /// of the diagonal (or within the measurement's noise, if larger).
     pub at_floor_margin_pct: f64,
-    /// Near its floor (within this many % of the diagonal), a correction
-    /// that gains less than `at_floor_margin_pct` over the best round ends
-    /// the loop `at_floor`, after flying back to the best round's view if
-    /// it measured clearly worse.
+    /// Near its floor (within this many % of the diagonal) after a
+    /// correction, the loop ends `at_floor`, after flying back to the best
+    /// round's view if it measured worse than that by more than
+    /// `at_floor_margin_pct`.
     pub stall_band_pct: f64,
     /// Fraction of the measured pose error the first correction removes,
     /// in (0, 1].

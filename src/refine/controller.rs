@@ -57,16 +57,17 @@ pub struct ControllerParams {
     /// could still gain is then within what the measurement can tell, and
     /// a loop that flies on chases noise.
     pub at_floor_margin_pct: f64,
-    /// Near its floor (the error within this many percent of it), a
-    /// correction that gains less than [`Self::at_floor_margin_pct`] over
-    /// the best round so far ends the loop `at_floor`: the loop has done
-    /// what the measurement can tell, and flying on chases noise (browser
-    /// whole-shot runs measured 0.3-0.7 % above the floor estimate, the
-    /// floor's own error, round after round). When that round measured
-    /// worse than the best one by more than the margin, the vehicle first
-    /// flies back to the best round's view (a correction toward the live
-    /// camera pose measured then, through the offset measured now: the
-    /// same target would not do, the GNSS bias drifts between rounds).
+    /// Near its floor (the error within this many percent of it) after a
+    /// correction, the loop ends `at_floor`: the floor estimate sits a few
+    /// tenths under what the vehicle reaches (browser whole-shot runs
+    /// measured 0.3-0.7 % above it round after round) and the GNSS drift
+    /// between two looks moves the view by as much, so a further round
+    /// chases noise. It stops on the view it measures when the correction
+    /// gained or came within [`Self::at_floor_margin_pct`] of the best
+    /// round; when it measured worse than that, the vehicle first flies
+    /// back to the best round's view (a correction toward the live camera
+    /// pose measured then, through the offset measured now: the same
+    /// target would not do, the GNSS bias drifts between rounds).
     pub stall_band_pct: f64,
 }
 

@@ -705,12 +705,11 @@ impl Session {
         }
     }
 
-    /// Whether the loop has stalled near its floor after a correction:
-    /// the error `pct` within [`ControllerParams::stall_band_pct`] of the
-    /// floor and not [`ControllerParams::at_floor_margin_pct`] under the
-    /// best earlier round's. Stop here when this view is within that
-    /// margin of the best measured, else fly back to the best round's
-    /// view.
+    /// Whether the loop ends near its floor after a correction: the error
+    /// `pct` within [`ControllerParams::stall_band_pct`] of the floor.
+    /// Stop here when the correction gained, or when this view is within
+    /// [`ControllerParams::at_floor_margin_pct`] of the best measured;
+    /// else fly back to the best round's view.
     fn stalled_near_floor(&self, pct: Option<f64>) -> Option<Stalled> {
         let ctrl = &self.params.controller;
         let e = pct?;
@@ -724,10 +723,18 @@ impl Session {
             .filter_map(|r| r.shot_error_pct.map(|b| (r.round, b)))
             .min_by(|a, b| a.1.total_cmp(&b.1))?;
         let margin = ctrl.at_floor_margin_pct;
-        if e < best_pct - margin {
-            return None;
-        }
         let over = e - floor;
+        if e < best_pct - margin {
+            // A correction that gained and landed near the floor: the
+            // floor estimate sits a few tenths under what the vehicle
+            // reaches, and the GNSS drift between two looks moves the view
+            // by as much, so a further round gambles the gain (a browser
+            // run flew on from 3.13 % and ended at 4.17 %).
+            return Some(Stalled::Here(format!(
+                "{e:.2} %, {over:.2} % over the floor {floor:.2} %, gained {:.2} % on round {round}'s {best_pct:.2} %: near the floor a further round would chase the drift between looks",
+                best_pct - e
+            )));
+        }
         match &self.best_view {
             Some((r, b, pose)) if e > b + margin => Some(Stalled::BackTo(
                 *r,
@@ -1252,8 +1259,8 @@ mod tests {
     /// the best round ends the loop: here when this view is within the
     /// margin of the best measured, else after flying back to the best
     /// round's view (here, with an empty map, the live frame cannot be
-    /// localised, so it says there is no way back and stops). One that
-    /// gains, or one far above the floor, goes on.
+    /// localised, so it says there is no way back and stops); one that
+    /// gained stops too. One far above the floor goes on.
     #[test]
     fn a_loop_stalled_near_its_floor_ends_on_its_best_round() {
         let f = fixture();
@@ -1321,13 +1328,14 @@ mod tests {
             n.contains("back to that round's view") && n.contains("no way back"),
             "{n}"
         );
-        // A correction that gained 0.5 % goes on (and here, with an empty
-        // map, cannot localise the live frame and says so).
+        // A correction that gained 0.5 % and landed near the floor: stop
+        // here, a further round would gamble the gain.
         let mut gaining = after(e + 0.5, e - 0.8);
-        assert!(matches!(
+        assert_eq!(
             gaining.on_arrival(&live, 1.0, None, &ctx),
-            Step::Done(Stop::LiveNotLocalised(_))
-        ));
+            Step::Done(Stop::AtFloor)
+        );
+        assert!(note(&gaining).contains("gained 0.50"), "{}", note(&gaining));
         // 1.5 % over the floor: not near it; the loop goes on.
         let mut far = after(e - 0.2, e - 1.5);
         assert!(matches!(
