@@ -67,7 +67,9 @@ pub struct ControllerParams {
     /// round; when it measured worse than that, the vehicle first flies
     /// back to the best round's view (a correction toward the live camera
     /// pose measured then, through the offset measured now: the same
-    /// target would not do, the GNSS bias drifts between rounds).
+    /// target would not do, the GNSS bias drifts between rounds). Only for
+    /// a shot whose floor is not more than the margin under the
+    /// threshold: one that can converge flies on toward it.
     pub stall_band_pct: f64,
 }
 

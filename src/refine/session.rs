@@ -706,7 +706,9 @@ impl Session {
     }
 
     /// Whether the loop ends near its floor after a correction: the error
-    /// `pct` within [`ControllerParams::stall_band_pct`] of the floor.
+    /// `pct` within [`ControllerParams::stall_band_pct`] of the floor, for
+    /// a shot whose floor is not more than the margin under the threshold
+    /// (one that can converge flies on).
     /// Stop here when the correction gained, or when this view is within
     /// [`ControllerParams::at_floor_margin_pct`] of the best measured;
     /// else fly back to the best round's view.
@@ -714,7 +716,10 @@ impl Session {
         let ctrl = &self.params.controller;
         let e = pct?;
         let floor = self.reachable.as_ref()?.floor_pct;
-        if e - floor > ctrl.stall_band_pct {
+        // Only for a shot that cannot converge: one whose floor lies more
+        // than the margin under the threshold flies on toward it.
+        if e - floor > ctrl.stall_band_pct || floor + ctrl.at_floor_margin_pct < ctrl.threshold_pct
+        {
             return None;
         }
         let (round, best_pct) = self
