@@ -4,7 +4,10 @@
 //! the live frame and returns the corrected target to upload, or stops.
 //! Its rounds are the record the API shows.
 
+use std::collections::BTreeMap;
+
 use image::GrayImage;
+
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
@@ -212,9 +215,9 @@ pub struct Session {
     /// Flying back to the best round's view (its round number): the next
     /// arrival ends the loop.
     returning_to: Option<usize>,
-    /// The best round measured so far with a localised live camera: its
-    /// number, shot error and the live camera's pose (map frame).
-    best_view: Option<(usize, f64, Isometry3<f64>)>,
+    /// Each round's live camera pose (map frame), where its frames were
+    /// localised: the view a return to that round flies back to.
+    views: BTreeMap<usize, Isometry3<f64>>,
 }
 
 impl Session {
@@ -238,7 +241,7 @@ impl Session {
             reachable: None,
             offset: None,
             returning_to: None,
-            best_view: None,
+            views: BTreeMap::new(),
         }
     }
 
@@ -473,10 +476,8 @@ impl Session {
                 }
             }
         }
-        if let (Some(e), Some(c)) = (pct, &central)
-            && self.best_view.as_ref().is_none_or(|b| e < b.1)
-        {
-            self.best_view = Some((round, e, *c));
+        if let Some(c) = central {
+            self.views.insert(round, c);
         }
         if decision == Decision::MaxRounds {
             return self.end(rec, Stop::MaxRounds);
@@ -740,12 +741,12 @@ impl Session {
                 best_pct - e
             )));
         }
-        match &self.best_view {
-            Some((r, b, pose)) if e > b + margin => Some(Stalled::BackTo(
-                *r,
+        match self.views.get(&round) {
+            Some(pose) if e > best_pct + margin => Some(Stalled::BackTo(
+                round,
                 *pose,
                 format!(
-                    "{e:.2} %, {over:.2} % over the floor {floor:.2} %, is worse than round {r}'s {b:.2} %: back to that round's view"
+                    "{e:.2} %, {over:.2} % over the floor {floor:.2} %, is worse than round {round}'s {best_pct:.2} %: back to that round's view"
                 ),
             )),
             _ => Some(Stalled::Here(format!(
@@ -1192,6 +1193,19 @@ mod tests {
         }
     }
 
+    /// The turned view's first round (its shot error over 2 %, asserted)
+    /// and that view as one live frame.
+    fn turned_view(f: &Fixture) -> (Session, f64, [LiveFrame<'_>; 1]) {
+        let (_, measured) = run(f, &f.turned, 0);
+        let e = measured.rounds()[0].shot_error_pct.unwrap_or(0.0);
+        assert!(e > 2.0, "{e}");
+        let live = [LiveFrame {
+            image: &f.turned,
+            reported_ned_m: None,
+        }];
+        (measured, e, live)
+    }
+
     /// Near its floor or under it the loop stops `at_floor` instead of
     /// flying a round that cannot gain more than the measurement tells;
     /// farther above it, it goes on.
@@ -1204,13 +1218,7 @@ mod tests {
             LocalizeParams::default(),
         );
         let ctx = ctx_of(&f, &mount, &fence, &localize);
-        let (_, measured) = run(&f, &f.turned, 0);
-        let e = measured.rounds()[0].shot_error_pct.unwrap_or(0.0);
-        assert!(e > 2.0, "{e}");
-        let live = [LiveFrame {
-            image: &f.turned,
-            reported_ned_m: None,
-        }];
+        let (_, e, live) = turned_view(&f);
         let near = Session::new(
             f.desired.clone(),
             None,
@@ -1275,13 +1283,7 @@ mod tests {
             LocalizeParams::default(),
         );
         let ctx = ctx_of(&f, &mount, &fence, &localize);
-        let (_, measured) = run(&f, &f.turned, 0);
-        let e = measured.rounds()[0].shot_error_pct.unwrap_or(0.0);
-        assert!(e > 2.0, "{e}");
-        let live = [LiveFrame {
-            image: &f.turned,
-            reported_ned_m: None,
-        }];
+        let (measured, e, live) = turned_view(&f);
         // A session whose round 0 measured `earlier` (its live camera
         // localised), now arriving with the error `e`.
         let after = |earlier: f64, floor: f64| {
@@ -1298,7 +1300,7 @@ mod tests {
             r0.shot_error_pct = Some(earlier);
             r0.decision = Decision::Correct;
             s.rounds.push(r0);
-            s.best_view = Some((0, earlier, Isometry3::identity()));
+            s.views.insert(0, Isometry3::identity());
             s
         };
         let note = |s: &Session| {

@@ -1311,18 +1311,23 @@ fn held_out_photos_by_angle_band() -> anyhow::Result<()> {
             .sum::<f64>()
             / n_kf)
             .sqrt();
-        let floor_deg = (kf_pairs
-            .iter()
-            .map(|(e, t)| {
-                sim.transform_pose(e)
-                    .rotation
-                    .angle_to(&t.rotation)
-                    .to_degrees()
-                    .powi(2)
-            })
-            .sum::<f64>()
-            / n_kf)
-            .sqrt();
+        // RMS angle (degrees) of the keyframes against the ground truth
+        // turned by `offset` in the camera's frame.
+        let rms_deg = |offset: &UnitQuaternion<f64>| {
+            (kf_pairs
+                .iter()
+                .map(|(e, t)| {
+                    sim.transform_pose(e)
+                        .rotation
+                        .angle_to(&(t.rotation * offset))
+                        .to_degrees()
+                        .powi(2)
+                })
+                .sum::<f64>()
+                / n_kf)
+                .sqrt()
+        };
+        let floor_deg = rms_deg(&UnitQuaternion::identity());
         // The ground truth's hand-eye rotation (mocap marker to camera) is
         // a rotation in the camera's frame that the Sim(3) in the world's
         // frame cannot remove: fitted on the keyframes (the map, never the
@@ -1332,18 +1337,7 @@ fn held_out_photos_by_angle_band() -> anyhow::Result<()> {
             .map(|(e, t)| t.rotation.inverse() * sim.transform_pose(e).rotation)
             .collect();
         let hand_eye = rotation_mean(&offsets);
-        let floor_he_deg = (kf_pairs
-            .iter()
-            .map(|(e, t)| {
-                sim.transform_pose(e)
-                    .rotation
-                    .angle_to(&(t.rotation * hand_eye))
-                    .to_degrees()
-                    .powi(2)
-            })
-            .sum::<f64>()
-            / n_kf)
-            .sqrt();
+        let floor_he_deg = rms_deg(&hand_eye);
         println!(
             "split map {split}: hand-eye rotation fitted on the keyframes {:.2} deg; keyframes against the ground truth through it: RMS {floor_he_deg:.2} deg",
             hand_eye.angle().to_degrees()
