@@ -283,9 +283,16 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
         .last()
         .and_then(pct)
         .unwrap_or_else(|| panic!("the last round without a shot error: {rf}"));
+    // No worse within the at_floor margin (0.3 %), the difference the loop
+    // treats as equal: a first flight near the floor is itself the best
+    // round, and a correction that lands within the margin of it stops
+    // there (seen: 3.35 then 3.51 %); what must not happen is a loop that
+    // flies on and ends clearly worse (seen before the near-floor stop:
+    // 3.66 then 4.17 %).
+    let margin = shotpilot::refine::ControllerParams::default().at_floor_margin_pct;
     assert!(
-        last <= first,
-        "the loop ended at {last} %, worse than its first flight's {first} %: {rf}"
+        last <= first + margin,
+        "the loop ended at {last} %, worse than its first flight's {first} % by more than {margin} %: {rf}"
     );
     // The localisation's sigma on the timeline: % of the distance and
     // degrees at `localised`, metres (through the georeference's scale)
