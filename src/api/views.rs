@@ -330,6 +330,8 @@ pub struct VehicleStatus {
     /// The geofence every target must lie in (circle around home,
     /// altitude band).
     pub fence: Option<crate::mission::plan::Fence>,
+    /// The forward endpoints other ground stations share the link through.
+    pub forward: Vec<crate::vehicle::router::ForwardStatus>,
 }
 
 /// The gimbal part of the vehicle status.

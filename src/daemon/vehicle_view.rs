@@ -271,7 +271,8 @@ impl LinkVehicle {
 
 /// Reconciles the stored shots with the vehicle's mission each time the
 /// vehicle is heard after not being heard (the first heartbeat after
-/// start, and after every link loss), until `cancel`.
+/// start, and after every link loss) and each time another ground station
+/// on a forward endpoint stored or cleared a mission, until `cancel`.
 pub async fn run_reconciler(
     vehicle: Arc<LinkVehicle>,
     store: Arc<ShotStore>,
@@ -279,15 +280,24 @@ pub async fn run_reconciler(
     cancel: CancellationToken,
 ) {
     let mut rx = vehicle.link.telemetry.vehicle.clone();
+    let mut changes = vehicle.link.telemetry.mission_changes.clone();
+    changes.borrow_and_update();
     let mut was_heard = false;
+    let mut foreign_change = false;
     loop {
         let heard = {
             let v = rx.borrow_and_update();
             v.connected && !v.link_lost && v.system_id.is_some()
         };
-        if heard && !was_heard {
+        if heard && (!was_heard || foreign_change) {
             let since = tokio::time::Instant::now();
-            tracing::info!("vehicle heard: reconciling the shots' missions with it");
+            if foreign_change {
+                tracing::info!(
+                    "another ground station changed the vehicle's mission: reconciling the shots' missions with it"
+                );
+            } else {
+                tracing::info!("vehicle heard: reconciling the shots' missions with it");
+            }
             let _guard = actions.lock().await;
             tokio::select! {
                 _ = cancel.cancelled() => break,
@@ -295,9 +305,17 @@ pub async fn run_reconciler(
             }
         }
         was_heard = heard;
+        foreign_change = false;
         tokio::select! {
             _ = cancel.cancelled() => break,
             r = rx.changed() => if r.is_err() { break },
+            r = changes.changed() => match r {
+                Ok(()) => {
+                    changes.borrow_and_update();
+                    foreign_change = true;
+                }
+                Err(_) => break,
+            },
         }
     }
 }
@@ -338,6 +356,7 @@ impl VehicleView for LinkVehicle {
                 }),
             }),
             fence: Some(self.plan.fence),
+            forward: self.link.forward_status(),
             georeference: self.geo.status(),
             gimbal: VehicleGimbal {
                 manager: manager.map(|m| GimbalManagerView {

@@ -15,6 +15,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{Span, debug, info, info_span, warn};
 
+use super::router::{self, Router};
 use super::transport::{self, Connection, LinkUrl};
 use super::{
     Attitude, Command, FlightMode, GimbalAttitude, GimbalControl, GimbalManagerStatus,
@@ -84,6 +85,11 @@ fn spawn_inner(
     if let Some(s) = &params.signing {
         s.key()?;
     }
+    let forward = router::parse_forward(&params.forward, &params.url)?;
+    let router = Arc::new(Router::new(
+        (params.system_id, params.component_id),
+        &forward,
+    ));
     let bound = watch::channel(bound_now);
     let (cmd_tx, cmd_rx) = mpsc::channel(CMD_QUEUE);
     let (io_tx, io_rx) = mpsc::channel(IO_QUEUE);
@@ -108,6 +114,7 @@ fn spawn_inner(
         own: (params.system_id, params.component_id),
         command_timeout: Duration::from_millis(params.command_timeout_ms.max(1)),
         bound: bound.1,
+        router: router.clone(),
         telemetry: Telemetry {
             vehicle: vehicle.1,
             global_position: gp.1,
@@ -120,6 +127,7 @@ fn spawn_inner(
             video_streams: video_streams.1,
             gimbal_manager: gimbal_manager.1,
             gimbal_control: gimbal_control.1,
+            mission_changes: router.mission_changes(),
         },
     };
     let version = if params.mavlink1 {
@@ -140,6 +148,7 @@ fn spawn_inner(
         ),
         tx: io_tx,
         cancel: io_cancel.clone(),
+        router: router.clone(),
     };
     let now = clock_now();
     let actor = Actor {
@@ -165,12 +174,18 @@ fn spawn_inner(
         connect_failure_logged: false,
         out: Vec::new(),
         params,
+        router: router.clone(),
+        deferred: Vec::new(),
     };
+    let endpoints = router::spawn_endpoints(&router, forward, &io_cancel);
     let task = tokio::spawn(async move {
         let io_task = tokio::spawn(io.run());
         actor.run(cmd_rx, io_rx, cancel).await;
         io_cancel.cancel();
         let _ = io_task.await;
+        for e in endpoints {
+            let _ = e.await;
+        }
     });
     Ok((handle, task))
 }
@@ -195,6 +210,8 @@ struct IoTask {
     backoff_max: Duration,
     tx: mpsc::Sender<IoEvent>,
     cancel: CancellationToken,
+    /// Forwards the vehicle's frames to the other ground stations.
+    router: Arc<Router>,
 }
 
 impl IoTask {
@@ -234,6 +251,7 @@ impl IoTask {
                 Ok(conn) => {
                     backoff = self.backoff_min;
                     let conn = Arc::new(conn);
+                    self.router.set_vehicle(Some(conn.clone()));
                     if self
                         .tx
                         .send(IoEvent::Connected(conn.clone()))
@@ -245,10 +263,17 @@ impl IoTask {
                     loop {
                         let r = tokio::select! {
                             _ = self.cancel.cancelled() => return,
-                            r = conn.try_recv() => r,
+                            r = conn.recv_raw() => r,
                         };
                         match r {
-                            Ok((h, m)) => {
+                            Ok(raw) => {
+                                // Forwarded first (the other stations wait on
+                                // nothing of ours), then handled here.
+                                let Some((h, m)) = self.router.on_vehicle_frame(&raw, clock_now())
+                                else {
+                                    debug!(id = raw.message_id(), "undecodable frame");
+                                    continue;
+                                };
                                 if self.tx.send(IoEvent::Frame(h, Box::new(m))).await.is_err() {
                                     return;
                                 }
@@ -258,6 +283,7 @@ impl IoTask {
                                 debug!(error = %e, "undecodable frame")
                             }
                             Err(MessageReadError::Io(e)) => {
+                                self.router.set_vehicle(None);
                                 let _ = self.tx.send(IoEvent::Lost(e.to_string())).await;
                                 break;
                             }
@@ -564,6 +590,10 @@ struct Actor {
     rate_rounds: u32,
     connect_failure_logged: bool,
     out: Vec<MavMessage>,
+    /// The forward endpoints' router and its mission gate.
+    router: Arc<Router>,
+    /// Mission transfers waiting for another station's to end.
+    deferred: Vec<Command>,
 }
 
 /// Message ids for SET_MESSAGE_INTERVAL.
@@ -605,6 +635,18 @@ impl Actor {
                     None => break,
                 },
             }
+            self.sync_gate().await;
+        }
+        for cmd in self.deferred.drain(..) {
+            match cmd {
+                Command::UploadMission { reply, .. } => {
+                    let _ = reply.send(Err(LinkError::ActorGone));
+                }
+                Command::DownloadMission { reply } => {
+                    let _ = reply.send(Err(LinkError::ActorGone));
+                }
+                _ => {}
+            }
         }
         if let Some(mut t) = self.transfer.take() {
             t.cancel(clock_now(), &mut self.out);
@@ -626,7 +668,42 @@ impl Actor {
         for c in [&self.command, &self.stop].into_iter().flatten() {
             wake = wake.min(c.deadline);
         }
+        if let Some(d) = self.router.foreign_deadline() {
+            wake = wake.min(d);
+        }
         wake
+    }
+
+    /// Keeps the mission gate in step with our transfer: when ours has
+    /// ended, the frames another station sent meanwhile go to the vehicle;
+    /// when another station's has ended, the transfers that waited start.
+    async fn sync_gate(&mut self) {
+        let now = clock_now();
+        self.router.expire(now);
+        if self.transfer.is_none() && self.router.own_busy() {
+            self.router.end_own(now).await;
+        }
+        if !self.deferred.is_empty() && self.transfer.is_none() && !self.router.foreign_busy(now) {
+            let waiting = std::mem::take(&mut self.deferred);
+            info!(
+                transfers = waiting.len(),
+                "the other station's mission transfer ended; ours starts"
+            );
+            for cmd in waiting {
+                Box::pin(self.on_command(cmd)).await;
+            }
+        }
+    }
+
+    /// Starts our transfer in the gate; false (and the command kept for
+    /// later) while another station's runs.
+    fn gate_or_defer(&mut self, now: Instant, cmd: Command) -> Option<Command> {
+        if self.router.begin_own(now) {
+            return Some(cmd);
+        }
+        info!("another station's mission transfer is running; ours waits for it to end");
+        self.deferred.push(cmd);
+        None
     }
 
     fn header(&self) -> MavHeader {
@@ -1143,6 +1220,11 @@ impl Actor {
                     }));
                     return;
                 }
+                let Some(Command::UploadMission { items, reply }) =
+                    self.gate_or_defer(now, Command::UploadMission { items, reply })
+                else {
+                    return;
+                };
                 let Some((peers, vehicle)) = self.peers() else {
                     let _ = reply.send(Err(LinkError::NoVehicle));
                     return;
@@ -1184,6 +1266,11 @@ impl Actor {
                     }));
                     return;
                 }
+                let Some(Command::DownloadMission { reply }) =
+                    self.gate_or_defer(now, Command::DownloadMission { reply })
+                else {
+                    return;
+                };
                 let Some((peers, _)) = self.peers() else {
                     let _ = reply.send(Err(LinkError::NoVehicle));
                     return;

@@ -39,6 +39,7 @@
 //! [`LinkHandle`] is dropped.
 
 mod actor;
+pub mod router;
 pub mod transport;
 
 use std::time::{Duration, Instant};
@@ -168,8 +169,15 @@ pub struct Params {
     pub url: String,
     /// Our MAVLink system id (255: the GCS convention).
     pub system_id: u8,
-    /// Our component id (190: MAV_COMP_ID_MISSIONPLANNER).
+    /// Our component id (191 by default: not 190, MAV_COMP_ID_MISSIONPLANNER,
+    /// which QGroundControl and Mission Planner use, so that a ground station
+    /// sharing the link through [`Params::forward`] and shotpilot are told
+    /// apart by the vehicle's mission and command protocols).
     pub component_id: u8,
+    /// Forward endpoints for other ground stations (see [`router`]), in
+    /// MAVProxy's and mavlink-router's URL syntax: `udpout:HOST:PORT`,
+    /// `udpin:ADDR:PORT`, `tcpin:ADDR:PORT`, `tcpout:HOST:PORT`.
+    pub forward: Vec<String>,
     /// Talk only to this vehicle system id; 0 takes the first autopilot heard.
     pub vehicle_system_id: u8,
     /// Send MAVLink 1 frames (old radios); MAVLink 1 and 2 are always received.
@@ -197,7 +205,8 @@ impl Default for Params {
         Self {
             url: "udpin:0.0.0.0:14550".into(),
             system_id: 255,
-            component_id: 190,
+            component_id: 191,
+            forward: Vec::new(),
             vehicle_system_id: 0,
             mavlink1: false,
             heartbeat_period_ms: 1000,
@@ -471,6 +480,9 @@ pub struct Telemetry {
     pub gimbal_manager: watch::Receiver<Option<Stamped<GimbalManagerStatus>>>,
     /// Gimbal control as the link handled it.
     pub gimbal_control: watch::Receiver<GimbalControl>,
+    /// Missions other ground stations stored on or cleared from the vehicle
+    /// through the forward endpoints (a count; see [`router`]).
+    pub mission_changes: watch::Receiver<u64>,
 }
 
 /// A video stream a camera component announced (VIDEO_STREAM_INFORMATION).
@@ -581,6 +593,7 @@ pub struct LinkHandle {
     command_timeout: Duration,
     /// The `udpin:` socket's address once bound.
     bound: watch::Receiver<Option<std::net::SocketAddr>>,
+    router: std::sync::Arc<router::Router>,
 }
 
 /// MAVLink message id of GIMBAL_MANAGER_STATUS.
@@ -969,6 +982,23 @@ impl LinkHandle {
                 seconds: timeout.as_secs_f64(),
             }),
         }
+    }
+
+    /// The forward endpoints' state (`[link] forward`).
+    pub fn forward_status(&self) -> Vec<router::ForwardStatus> {
+        self.router.status()
+    }
+
+    /// Frames of MAVLink message `id` received from the vehicle (counted
+    /// only while forward endpoints are configured).
+    pub fn frames_from_vehicle(&self, id: u32) -> u64 {
+        self.router.frames_from_vehicle(id)
+    }
+
+    /// The address forward endpoint `i` (in `[link] forward`'s order) is
+    /// bound to, once bound (`udpin:` and `tcpin:`, port 0 included).
+    pub fn forward_bound(&self, i: usize) -> Option<std::net::SocketAddr> {
+        self.router.bound(i)
     }
 
     /// Waits until a vehicle heartbeat has been heard and the link is up.

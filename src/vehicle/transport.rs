@@ -6,6 +6,7 @@
 //! | `udpin:0.0.0.0:14550` | listen for UDP (where PX4 SITL sends to a GCS); replies go to the last sender |
 //! | `udpout:HOST:PORT` | send UDP to a fixed peer, receive its answers |
 //! | `tcpout:HOST:PORT` | TCP client (ArduPilot SITL's `tcp:5760`) |
+//! | `tcpin:ADDR:PORT` | TCP server: the vehicle link takes the first client; a forward endpoint ([`super::router`]) serves every client |
 //!
 //! The connection is the mavlink crate's async one, set to receive MAVLink 1
 //! and 2 frames alike and, with a key, to sign what it sends and check
@@ -57,6 +58,11 @@ pub enum LinkUrl {
     /// `tcpout:HOST:PORT`
     TcpOut {
         /// Peer address.
+        addr: String,
+    },
+    /// `tcpin:ADDR:PORT`
+    TcpIn {
+        /// Local address to listen on.
         addr: String,
     },
 }
@@ -114,7 +120,13 @@ impl FromStr for LinkUrl {
             "tcpout" => Ok(Self::TcpOut {
                 addr: host_port(url, rest)?,
             }),
-            _ => Err(bad(url, "scheme must be serial, udpin, udpout or tcpout")),
+            "tcpin" => Ok(Self::TcpIn {
+                addr: host_port(url, rest)?,
+            }),
+            _ => Err(bad(
+                url,
+                "scheme must be serial, udpin, udpout, tcpout or tcpin",
+            )),
         }
     }
 }
@@ -126,6 +138,7 @@ impl fmt::Display for LinkUrl {
             Self::UdpIn { addr } => write!(f, "udpin:{addr}"),
             Self::UdpOut { addr } => write!(f, "udpout:{addr}"),
             Self::TcpOut { addr } => write!(f, "tcpout:{addr}"),
+            Self::TcpIn { addr } => write!(f, "tcpin:{addr}"),
         }
     }
 }
@@ -219,6 +232,9 @@ pub async fn connect(
         LinkUrl::TcpOut { addr } => {
             ConnectionAddress::Tcp(TcpConfig::new(addr.clone(), TcpMode::TcpOut))
         }
+        LinkUrl::TcpIn { addr } => {
+            ConnectionAddress::Tcp(TcpConfig::new(addr.clone(), TcpMode::TcpIn))
+        }
     };
     let signing = match signing {
         Some(s) => Some(
@@ -269,6 +285,7 @@ mod tests {
             "serial:/dev/ttyUSB0:57600",
             "udpin:0.0.0.0:14550",
             "tcpout:localhost:5760",
+            "tcpin:0.0.0.0:5760",
         ] {
             assert_eq!(
                 s.parse::<LinkUrl>().map(|u| u.to_string()).ok().as_deref(),

@@ -58,6 +58,7 @@ def main():
     items = []
     last_req = 0.0
     done_at = None
+    gcs = (255, 190)
     while time.time() < deadline:
         now = time.time()
         if now >= next_hb:  # mavutil udpin sends only once a peer has spoken
@@ -67,7 +68,7 @@ def main():
             )
             next_hb = now + 0.5
         if count is not None and nxt < count and now - last_req > 0.3:
-            m.mav.mission_request_int_send(255, 190, nxt, mav.MAV_MISSION_TYPE_MISSION)
+            m.mav.mission_request_int_send(gcs[0], gcs[1], nxt, mav.MAV_MISSION_TYPE_MISSION)
             last_req = now
         if done_at is not None and now - done_at > 0.5:
             break
@@ -88,8 +89,9 @@ def main():
                     "system_status": msg.system_status, "mavlink_version": msg.mavlink_version,
                 }
         elif t == "MISSION_COUNT" and args.serve_upload and count is None:
+            gcs = (msg.get_srcSystem(), msg.get_srcComponent())  # answer the uploader
             count = msg.count
-            m.mav.mission_request_int_send(255, 190, 0, mav.MAV_MISSION_TYPE_MISSION)
+            m.mav.mission_request_int_send(gcs[0], gcs[1], 0, mav.MAV_MISSION_TYPE_MISSION)
             last_req = time.time()
         elif t == "MISSION_ITEM_INT" and count is not None and msg.seq == nxt:
             items.append({
@@ -103,11 +105,11 @@ def main():
             })
             nxt += 1
             if nxt == count:
-                m.mav.mission_ack_send(255, 190, mav.MAV_MISSION_ACCEPTED, mav.MAV_MISSION_TYPE_MISSION)
+                m.mav.mission_ack_send(gcs[0], gcs[1], mav.MAV_MISSION_ACCEPTED, mav.MAV_MISSION_TYPE_MISSION)
                 out["items"] = items
                 done_at = time.time()
             else:
-                m.mav.mission_request_int_send(255, 190, nxt, mav.MAV_MISSION_TYPE_MISSION)
+                m.mav.mission_request_int_send(gcs[0], gcs[1], nxt, mav.MAV_MISSION_TYPE_MISSION)
                 last_req = time.time()
     out["badsig"] = m.mav.signing.badsig_count if args.key else 0
     print(json.dumps(out), flush=True)

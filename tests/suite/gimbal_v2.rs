@@ -126,7 +126,7 @@ fn is_take(fr: &Frame) -> bool {
     fr.up
         && matches!(&fr.msg, MavMessage::COMMAND_LONG(c)
             if c.command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE
-                && c.param1 == 255.0 && c.param2 == 190.0)
+                && c.param1 == 255.0 && c.param2 == 191.0)
 }
 
 fn is_release(fr: &Frame) -> bool {
@@ -315,7 +315,7 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
     let takes = frames[..start].iter().filter(|f| is_take(f)).count();
     anyhow::ensure!(
         takes == 1,
-        "{flavour:?}: {takes} CONFIGURE (255/190) before MISSION_START, expected 1"
+        "{flavour:?}: {takes} CONFIGURE (255/191) before MISSION_START, expected 1"
     );
     if flavour == Flavour::ArduPilot {
         let release = find(&frames, start, is_release).ok_or_else(|| {
@@ -324,7 +324,7 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
         anyhow::ensure!(release > start);
     }
     println!(
-        "{flavour:?} mission: GIMBAL_MANAGER_STATUS at frame {status_read}, CONFIGURE (255/190) at {take}, \
+        "{flavour:?} mission: GIMBAL_MANAGER_STATUS at frame {status_read}, CONFIGURE (255/191) at {take}, \
          DO_SET_MODE at {mode}, MISSION_START at {start}; {configures} configure commands in all; \
          gimbal reached {pitch:.2} deg, {final_pitch:.2} deg after the mission (planned {:.1})",
         target.gimbal_pitch_deg

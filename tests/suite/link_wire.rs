@@ -127,7 +127,7 @@ async fn pymavlink_decodes_heartbeat_and_items() -> anyhow::Result<()> {
 
     let hb = &out["first_heartbeat"];
     assert_eq!(hb["sysid"], 255);
-    assert_eq!(hb["compid"], 190);
+    assert_eq!(hb["compid"], 191);
     assert_eq!(hb["type"], 6, "MAV_TYPE_GCS");
     assert_eq!(hb["autopilot"], 8, "MAV_AUTOPILOT_INVALID");
     assert_eq!(hb["system_status"], 4, "MAV_STATE_ACTIVE");

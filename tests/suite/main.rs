@@ -56,6 +56,7 @@ mod geometry_two_view;
 mod gimbal_v2;
 mod ingest_robustness;
 mod link_actor;
+mod link_forward;
 mod link_serial;
 mod link_wire;
 mod map_reload_probe;

@@ -15,7 +15,7 @@ use shotpilot_sim::autopilot::Flavour as SimFlavour;
 use shotpilot_sim::link::{Endpoint, RadioDirParams, RadioParams};
 use tokio_util::sync::CancellationToken;
 
-fn bad_radio(seed: u64) -> RadioParams {
+pub(crate) fn bad_radio(seed: u64) -> RadioParams {
     let dir = RadioDirParams {
         drop: 0.3,
         corrupt: 1e-4,
@@ -29,7 +29,7 @@ fn bad_radio(seed: u64) -> RadioParams {
     }
 }
 
-fn sim_config(
+pub(crate) fn sim_config(
     endpoint: Endpoint,
     flavour: Flavour,
     radio: RadioParams,
