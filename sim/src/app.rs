@@ -31,8 +31,11 @@ use crate::camera::SimCamera;
 use crate::dataset::{TruthWriter, renderer_for, world_params_for};
 use crate::disturbance::LatencyProcess;
 use crate::imaging::Imager;
-use crate::link::{Endpoint, LinkError, LinkParams, LinkStats, RadioParams, spawn_link_on};
+use crate::link::{
+    Endpoint, LinkError, LinkParams, LinkStats, Outgoing, RadioParams, spawn_link_on,
+};
 use crate::live::{LIVE_EXPOSURE_LAG_S, PoseHistory};
+use crate::mavcam::{CAMERA_COMPONENT, MavCamera};
 use crate::realism::Realism;
 use crate::render::{RenderParams, Renderer};
 use crate::rtp::{RtpOutParams, RtpSender};
@@ -126,6 +129,9 @@ pub struct SimConfig {
     /// `autopilot.video_stream_uri` set, the camera announces it
     /// (`udp://HOST:PORT`) in VIDEO_STREAM_INFORMATION.
     pub rtp_out: Option<RtpOutParams>,
+    /// A MAVLink camera component (100) beside the autopilot
+    /// ([`crate::mavcam`]); off, the autopilot triggers the camera itself.
+    pub mavlink_camera: bool,
 }
 
 impl Default for SimConfig {
@@ -150,6 +156,7 @@ impl Default for SimConfig {
             realism: Realism::ideal(),
             world: WorldKind::Town,
             rtp_out: None,
+            mavlink_camera: true,
         }
     }
 }
@@ -537,13 +544,18 @@ async fn run_inner(
     let mut next_frame_t = 0.0;
     let mut summary = RunSummary::default();
     let mut k: u64 = 0;
-    let send = |link: &crate::link::LinkHandle, msgs: Vec<MavMessage>| {
-        for m in msgs {
-            if link.to_link.try_send(m).is_err() {
+    let mut camera = config
+        .mavlink_camera
+        .then(|| MavCamera::new(config.autopilot.system_id, config.camera));
+    let camera_on = camera.is_some();
+    let send_as = |link: &crate::link::LinkHandle, component: Option<u8>, msgs: Vec<MavMessage>| {
+        for msg in msgs {
+            if link.to_link.try_send(Outgoing { component, msg }).is_err() {
                 tracing::debug!("link outbox full: message dropped");
             }
         }
     };
+    let send = |link: &crate::link::LinkHandle, msgs: Vec<MavMessage>| send_as(link, None, msgs);
     loop {
         tokio::select! {
             _ = cancel.cancelled() => break,
@@ -552,8 +564,19 @@ async fn run_inner(
         k += 1;
         let t = k as f64 * dt;
         while let Ok((h, m)) = link.from_link.try_recv() {
-            let replies = ap.handle(&h, &m);
-            send(&link, replies);
+            match &mut camera {
+                Some(c) if c.is_for_me(&m) => {
+                    let replies = c.handle(&mut ap, &h, &m);
+                    send_as(&link, Some(CAMERA_COMPONENT), replies);
+                }
+                _ => {
+                    let replies = ap.handle(&h, &m);
+                    send(&link, replies);
+                }
+            }
+        }
+        if let Some(hb) = camera.as_mut().and_then(|c| c.step(t)) {
+            send_as(&link, Some(CAMERA_COMPONENT), vec![hb]);
         }
         if let Some(s) = &mut script {
             s.step(&mut ap, t);
@@ -587,7 +610,8 @@ async fn run_inner(
                 summary.captures += 1;
             }
             let msg = ap.capture_done(&req, url.as_deref());
-            send(&link, vec![msg]);
+            // The camera reports its pictures; without one, the autopilot.
+            send_as(&link, camera_on.then_some(CAMERA_COMPONENT), vec![msg]);
         }
         while frame_done_rx.try_recv().is_ok() {
             renders_in_flight = renders_in_flight.saturating_sub(1);

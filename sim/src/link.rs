@@ -572,8 +572,9 @@ pub struct LinkStats {
 /// The app's handle on a running link.
 #[derive(Debug)]
 pub struct LinkHandle {
-    /// Messages to send (the link fills in the header).
-    pub to_link: mpsc::Sender<MavMessage>,
+    /// Messages to send (the link fills in the header: the autopilot's
+    /// component unless [`Outgoing::component`] says another).
+    pub to_link: mpsc::Sender<Outgoing>,
     /// Messages received (after the radio and the parser).
     pub from_link: mpsc::Receiver<(MavHeader, MavMessage)>,
     /// Latest counters.
@@ -581,6 +582,25 @@ pub struct LinkHandle {
     /// The bound address of a listening endpoint (`udpin:`, `tcpin:`; port
     /// 0 picks a free one), None for the others.
     pub local_addr: Option<SocketAddr>,
+}
+
+/// A message for the link to send.
+#[derive(Debug, Clone)]
+pub struct Outgoing {
+    /// The sending component of the vehicle's system (None: the
+    /// autopilot's, `LinkParams::component_id`).
+    pub component: Option<u8>,
+    /// The message.
+    pub msg: MavMessage,
+}
+
+impl From<MavMessage> for Outgoing {
+    fn from(msg: MavMessage) -> Self {
+        Self {
+            component: None,
+            msg,
+        }
+    }
 }
 
 /// Raw transport: chunks in, chunks out.
@@ -798,7 +818,7 @@ pub async fn spawn_link_on(
 ) -> Result<LinkHandle, LinkError> {
     let mut transport = open_transport(&params.endpoint, socket, cancel.clone()).await?;
     let local_addr = transport.local;
-    let (to_link, mut app_rx) = mpsc::channel::<MavMessage>(1024);
+    let (to_link, mut app_rx) = mpsc::channel::<Outgoing>(1024);
     let (app_tx, from_link) = mpsc::channel::<(MavHeader, MavMessage)>(1024);
     let (stats_tx, stats) = tokio::sync::watch::channel(LinkStats::default());
     let radio = params.radio;
@@ -810,7 +830,8 @@ pub async fn spawn_link_on(
         let mut parser = FrameParser::new();
         let mut up = RadioDir::new(radio.up, radio.seed ^ 0x5550);
         let mut down = RadioDir::new(radio.down, radio.seed ^ 0xD0D0);
-        let mut seq: u8 = 0;
+        // MAVLink sequence numbers count per sending component.
+        let mut seqs = [0u8; 256];
         let mut st = LinkStats::default();
         let mut last_stats = 0.0;
         loop {
@@ -834,9 +855,11 @@ pub async fn spawn_link_on(
                     }
                 }
                 msg = app_rx.recv() => {
-                    let Some(msg) = msg else { break };
-                    let header = MavHeader { system_id: u32::from(params.system_id), component_id: params.component_id, sequence: seq };
-                    seq = seq.wrapping_add(1);
+                    let Some(Outgoing { component, msg }) = msg else { break };
+                    let component_id = component.unwrap_or(params.component_id);
+                    let seq = &mut seqs[usize::from(component_id)];
+                    let header = MavHeader { system_id: u32::from(params.system_id), component_id, sequence: *seq };
+                    *seq = seq.wrapping_add(1);
                     st.sent += 1;
                     down.push(now(), encode_v2(header, &msg));
                 }
@@ -1091,7 +1114,7 @@ mod tests {
         assert_eq!(h.sequence, 4);
         assert!(matches!(m, MavMessage::HEARTBEAT(_)));
         // Replies go to the peer it heard.
-        link.to_link.send(hb()).await.expect("send");
+        link.to_link.send(hb().into()).await.expect("send");
         let mut buf = [0u8; 512];
         let (n, from) = tokio::time::timeout(Duration::from_secs(10), peer.recv_from(&mut buf))
             .await
@@ -1123,7 +1146,7 @@ mod tests {
         )
         .await
         .expect("link");
-        link.to_link.send(hb()).await.expect("send");
+        link.to_link.send(hb().into()).await.expect("send");
         let mut buf = [0u8; 512];
         let (n, from) = tokio::time::timeout(Duration::from_secs(2), peer.recv_from(&mut buf))
             .await
@@ -1185,7 +1208,7 @@ mod tests {
         // 48 heartbeats of 21 bytes = 1008 bytes: 1.05 s at 960 bytes/s.
         let t0 = tokio::time::Instant::now();
         for _ in 0..48 {
-            link.to_link.send(hb()).await.expect("send");
+            link.to_link.send(hb().into()).await.expect("send");
         }
         let mut p = FrameParser::new();
         let mut n = 0;

@@ -172,6 +172,11 @@ struct Cli {
     /// Render frames without sensor noise.
     #[arg(long, global = true)]
     no_noise: bool,
+    /// No MAVLink camera component (100): the autopilot triggers the camera
+    /// itself and reports CAMERA_IMAGE_CAPTURED as component 1, as a PX4
+    /// with a trigger-wired camera does.
+    #[arg(long)]
+    no_mavlink_camera: bool,
 
     /// Realism: a preset (ideal, field, harsh) then any -EFFECT (off) or
     /// +EFFECT[@PRESET] (on), e.g. field-blur or ideal+wind@harsh. Effects:
@@ -285,6 +290,7 @@ fn config_from(cli: &Cli) -> Result<SimConfig> {
         truth_dir: cli.truth_dir.clone(),
         autopilot,
         sensor_noise: !cli.no_noise,
+        mavlink_camera: !cli.no_mavlink_camera,
         world: cli.world.parse().context("--world")?,
         rtp_out: rtp_from(cli)?,
         ..defaults

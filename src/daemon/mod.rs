@@ -340,6 +340,12 @@ pub async fn run_on(
         actions.clone(),
         link_cancel.clone(),
     ));
+    // Every picture the camera reports, stored with the shot it flies.
+    let photo_task = tokio::spawn(vehicle_view::run_photo_recorder(
+        link_vehicle.clone(),
+        store.clone(),
+        link_cancel.clone(),
+    ));
     let vehicle: Arc<dyn VehicleView> = link_vehicle;
 
     // The API.
@@ -419,6 +425,7 @@ pub async fn run_on(
     }
     link_cancel.cancel();
     let _ = reconcile_task.await;
+    let _ = photo_task.await;
     let _ = geo_task.await;
     let _ = link_task.await;
     sim_cancel.cancel();

@@ -320,6 +320,87 @@ pub async fn run_reconciler(
     }
 }
 
+/// Photos kept in a shot's record (`details.photos`), newest last.
+const PHOTOS_KEPT: usize = 50;
+
+/// Adds a picture the vehicle's camera reported to a shot's mission record
+/// (`details.photos`, at most [`PHOTOS_KEPT`], newest last): its index,
+/// the position and attitude the camera gave, where it stored it.
+pub fn record_photo(shot: &mut Shot, photo: &crate::vehicle::ImageCaptured) {
+    let Some(m) = shot.mission.as_mut() else {
+        return;
+    };
+    let mut photos = m
+        .details
+        .get("photos")
+        .and_then(|p| p.as_array().cloned())
+        .unwrap_or_default();
+    let entry = serde_json::to_value(photo).unwrap_or_default();
+    if photos
+        .iter()
+        .any(|p| p["component_id"] == entry["component_id"] && p["index"] == entry["index"])
+    {
+        return;
+    }
+    photos.push(entry);
+    if photos.len() > PHOTOS_KEPT {
+        photos.remove(0);
+    }
+    super::refine_service::set_detail(m, "photos", serde_json::Value::Array(photos));
+}
+
+/// Stores every picture the vehicle's camera reports (CAMERA_IMAGE_CAPTURED)
+/// with the shot whose mission the vehicle flies (the last one uploaded),
+/// until `cancel`.
+pub async fn run_photo_recorder(
+    vehicle: Arc<LinkVehicle>,
+    store: Arc<ShotStore>,
+    cancel: CancellationToken,
+) {
+    let mut rx = vehicle.link.telemetry.captures.clone();
+    let mut seen: Vec<(u8, i32)> = rx
+        .borrow_and_update()
+        .iter()
+        .map(|c| (c.component_id, c.index))
+        .collect();
+    loop {
+        tokio::select! {
+            _ = cancel.cancelled() => break,
+            r = rx.changed() => if r.is_err() { break },
+        }
+        let fresh: Vec<crate::vehicle::ImageCaptured> = rx
+            .borrow_and_update()
+            .iter()
+            .filter(|c| !seen.contains(&(c.component_id, c.index)))
+            .cloned()
+            .collect();
+        let owner = vehicle
+            .last_uploaded
+            .lock()
+            .ok()
+            .and_then(|l| l.as_ref().map(|(s, _)| s.id.clone()));
+        for photo in fresh {
+            seen.push((photo.component_id, photo.index));
+            if seen.len() > 4 * crate::vehicle::CAPTURES_KEPT {
+                seen.remove(0);
+            }
+            match &owner {
+                Some(id) => {
+                    tracing::info!(shot = %id, index = photo.index, ok = photo.ok, url = %photo.file_url, "photo stored with the shot");
+                    if let Err(e) = store.update(id, |s| record_photo(s, &photo)) {
+                        tracing::warn!(shot = %id, "storing the photo: {e}");
+                    }
+                }
+                None => tracing::info!(
+                    index = photo.index,
+                    url = %photo.file_url,
+                    "a photo was taken with no shot's mission uploaded: not stored"
+                ),
+            }
+        }
+    }
+}
+
 impl VehicleView for LinkVehicle {
     fn status(&self) -> VehicleStatus {
         let v = self.link.telemetry.vehicle.borrow().clone();
@@ -543,6 +624,55 @@ mod tests {
     use super::*;
     use crate::mission::plan::Target;
     use crate::shot::record::{ShotSource, ShotStatus};
+
+    #[test]
+    fn photos_are_stored_with_the_shot_once_each_and_bounded() {
+        let photo = |index: i32| crate::vehicle::ImageCaptured {
+            component_id: 100,
+            index,
+            time_utc_us: 1_700_000_000_000_000,
+            lat_deg: 47.397_742,
+            lon_deg: 8.545_594,
+            alt_amsl_m: 508.0,
+            relative_alt_m: 20.0,
+            q: [1.0, 0.0, 0.0, 0.0],
+            ok: true,
+            file_url: format!("file:///captures/{index}.jpg"),
+        };
+        let mut s = shot("shot-1");
+        record_photo(&mut s, &photo(0));
+        assert!(
+            s.mission.is_none(),
+            "a shot without a mission keeps no photo"
+        );
+        s.mission = Some(crate::shot::record::MissionRecord {
+            state: crate::shot::record::MissionState::Started,
+            items: 5,
+            uploaded_unix: 0.0,
+            started_unix: None,
+            target_lat_lon_alt: None,
+            details: serde_json::json!({"planned_items": []}),
+        });
+        record_photo(&mut s, &photo(0));
+        record_photo(&mut s, &photo(0));
+        record_photo(&mut s, &photo(1));
+        let details = &s.mission.as_ref().unwrap().details;
+        let photos = details["photos"].as_array().unwrap();
+        assert_eq!(photos.len(), 2, "one entry per picture");
+        assert_eq!(photos[1]["index"], 1);
+        assert_eq!(photos[1]["lat_deg"], 47.397_742);
+        assert_eq!(photos[1]["file_url"], "file:///captures/1.jpg");
+        assert!(details.get("planned_items").is_some(), "other details kept");
+        for i in 2..80 {
+            record_photo(&mut s, &photo(i));
+        }
+        let photos = s.mission.as_ref().unwrap().details["photos"]
+            .as_array()
+            .unwrap()
+            .clone();
+        assert_eq!(photos.len(), PHOTOS_KEPT);
+        assert_eq!(photos.last().unwrap()["index"], 79);
+    }
 
     fn shot(id: &str) -> Shot {
         Shot {

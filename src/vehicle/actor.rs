@@ -105,6 +105,8 @@ fn spawn_inner(
     let gimbal = watch::channel(None);
     let progress = watch::channel(None);
     let video_streams = watch::channel(Vec::new());
+    let cameras = watch::channel(Vec::new());
+    let captures = watch::channel(Vec::new());
     let gimbal_manager = watch::channel(None);
     let gimbal_control = watch::channel(GimbalControl::default());
     let gimbal_tx = Arc::new(gimbal_control.0);
@@ -125,6 +127,8 @@ fn spawn_inner(
             gimbal: gimbal.1,
             progress: progress.1,
             video_streams: video_streams.1,
+            cameras: cameras.1,
+            captures: captures.1,
             gimbal_manager: gimbal_manager.1,
             gimbal_control: gimbal_control.1,
             mission_changes: router.mission_changes(),
@@ -163,6 +167,9 @@ fn spawn_inner(
         gimbal: gimbal.0,
         progress: progress.0,
         video_streams: video_streams.0,
+        cameras: cameras.0,
+        captures: captures.0,
+        camera_asked: Vec::new(),
         gimbal_manager: gimbal_manager.0,
         gimbal_control: gimbal_tx,
         transfer: None,
@@ -579,6 +586,10 @@ struct Actor {
     gimbal: watch::Sender<Option<Stamped<GimbalAttitude>>>,
     progress: watch::Sender<Option<Stamped<MissionProgress>>>,
     video_streams: watch::Sender<Vec<super::VideoStreamInfo>>,
+    cameras: watch::Sender<Vec<super::CameraInfo>>,
+    captures: watch::Sender<Vec<super::ImageCaptured>>,
+    /// Camera components asked for CAMERA_INFORMATION, and when.
+    camera_asked: Vec<(u8, Instant)>,
     gimbal_manager: watch::Sender<Option<Stamped<GimbalManagerStatus>>>,
     gimbal_control: Arc<watch::Sender<GimbalControl>>,
     transfer: Option<Transfer>,
@@ -935,6 +946,40 @@ impl Actor {
             MavMessage::COMMAND_ACK(a) => {
                 self.on_command_ack(a.command, a.result, a.target_system, now)
             }
+            MavMessage::CAMERA_INFORMATION(d) => {
+                let info = camera_info(h.component_id, d);
+                info!(
+                    component = info.component_id,
+                    vendor = %info.vendor,
+                    model = %info.model,
+                    captures_images = info.captures_images,
+                    "camera described"
+                );
+                self.cameras.send_modify(|v| {
+                    v.retain(|c| c.component_id != info.component_id);
+                    v.push(info);
+                    v.sort_by_key(|c| c.component_id);
+                });
+            }
+            MavMessage::CAMERA_IMAGE_CAPTURED(d) => {
+                let c = image_captured(h.component_id, d);
+                debug!(
+                    component = c.component_id,
+                    index = c.index,
+                    "CAMERA_IMAGE_CAPTURED"
+                );
+                self.captures.send_modify(|v| {
+                    if !v
+                        .iter()
+                        .any(|x| (x.component_id, x.index) == (c.component_id, c.index))
+                    {
+                        v.push(c);
+                        if v.len() > super::CAPTURES_KEPT {
+                            v.remove(0);
+                        }
+                    }
+                });
+            }
             MavMessage::VIDEO_STREAM_INFORMATION(d) => {
                 let info = video_stream_info(h.component_id, d);
                 self.video_streams.send_modify(|v| {
@@ -954,7 +999,46 @@ impl Actor {
         self.flush().await;
     }
 
+    /// A camera component of the vehicle's system is heard: ask it for its
+    /// CAMERA_INFORMATION until it answers (every 5 s).
+    async fn on_camera_heartbeat(&mut self, h: &MavHeader, now: Instant) {
+        let Some(sys) = self.vehicle.borrow().system_id else {
+            return;
+        };
+        if h.system_id != u32::from(sys) {
+            return;
+        }
+        let comp = h.component_id;
+        if self.cameras.borrow().iter().any(|c| c.component_id == comp) {
+            return;
+        }
+        if self
+            .camera_asked
+            .iter()
+            .any(|(c, t)| *c == comp && now.saturating_duration_since(*t) < CAMERA_ASK_EVERY)
+        {
+            return;
+        }
+        self.camera_asked.retain(|(c, _)| *c != comp);
+        self.camera_asked.push((comp, now));
+        info!(
+            component = comp,
+            "camera heard: asking for CAMERA_INFORMATION"
+        );
+        self.out.push(MavMessage::COMMAND_LONG(command_long(
+            MavCmd::MAV_CMD_REQUEST_MESSAGE,
+            [CAMERA_INFORMATION_ID as f32, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            sys,
+            comp,
+        )));
+        self.flush().await;
+    }
+
     async fn on_heartbeat(&mut self, h: &MavHeader, hb: &HEARTBEAT_DATA, now: Instant) {
+        if hb.mavtype == MavType::MAV_TYPE_CAMERA {
+            self.on_camera_heartbeat(h, now).await;
+            return;
+        }
         let is_vehicle = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
             && !matches!(
                 hb.mavtype,
@@ -1526,6 +1610,52 @@ fn command_long(
         target_system,
         target_component,
         confirmation: 0,
+    }
+}
+
+/// MAVLink message id of CAMERA_INFORMATION.
+const CAMERA_INFORMATION_ID: u32 = 259;
+/// How often a silent camera is asked again for CAMERA_INFORMATION.
+const CAMERA_ASK_EVERY: Duration = Duration::from_secs(5);
+
+fn c_string(bytes: &[u8]) -> String {
+    let end = bytes.iter().position(|b| *b == 0).unwrap_or(bytes.len());
+    String::from_utf8_lossy(&bytes[..end]).into_owned()
+}
+
+fn camera_info(
+    component_id: u8,
+    d: &mavlink::dialects::common::CAMERA_INFORMATION_DATA,
+) -> super::CameraInfo {
+    use mavlink::dialects::common::CameraCapFlags;
+    super::CameraInfo {
+        component_id,
+        vendor: c_string(&d.vendor_name),
+        model: c_string(&d.model_name),
+        focal_length_mm: d.focal_length,
+        sensor_size_mm: [d.sensor_size_h, d.sensor_size_v],
+        resolution: [d.resolution_h, d.resolution_v],
+        captures_images: d
+            .flags
+            .contains(CameraCapFlags::CAMERA_CAP_FLAGS_CAPTURE_IMAGE),
+    }
+}
+
+fn image_captured(
+    component_id: u8,
+    d: &mavlink::dialects::common::CAMERA_IMAGE_CAPTURED_DATA,
+) -> super::ImageCaptured {
+    super::ImageCaptured {
+        component_id,
+        index: d.image_index,
+        time_utc_us: d.time_utc,
+        lat_deg: f64::from(d.lat) / 1e7,
+        lon_deg: f64::from(d.lon) / 1e7,
+        alt_amsl_m: f64::from(d.alt) / 1e3,
+        relative_alt_m: f64::from(d.relative_alt) / 1e3,
+        q: d.q,
+        ok: d.capture_result == mavlink::dialects::common::MavBool::MAV_BOOL_TRUE,
+        file_url: d.file_url.to_str().unwrap_or("").to_string(),
     }
 }
 

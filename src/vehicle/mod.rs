@@ -390,6 +390,64 @@ pub struct VehicleState {
     pub last_heartbeat: Option<Instant>,
 }
 
+/// A MAVLink camera component as its CAMERA_INFORMATION describes it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CameraInfo {
+    /// Its component id (100 for the first camera).
+    pub component_id: u8,
+    /// Vendor name.
+    pub vendor: String,
+    /// Model name.
+    pub model: String,
+    /// Focal length, mm.
+    pub focal_length_mm: f32,
+    /// Sensor size (horizontal, vertical), mm.
+    pub sensor_size_mm: [f32; 2],
+    /// Image resolution (horizontal, vertical), pixels.
+    pub resolution: [u16; 2],
+    /// It takes still images (CAMERA_CAP_FLAGS_CAPTURE_IMAGE).
+    pub captures_images: bool,
+}
+
+/// A picture the vehicle's camera took (CAMERA_IMAGE_CAPTURED).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ImageCaptured {
+    /// The component that reported it (100: a MAVLink camera; 1: the
+    /// autopilot's camera trigger).
+    pub component_id: u8,
+    /// Image index since the camera's boot.
+    pub index: i32,
+    /// Capture time, UTC microseconds (0: unknown).
+    pub time_utc_us: u64,
+    /// Where it was taken: latitude, longitude (deg), altitude AMSL (m).
+    pub lat_deg: f64,
+    /// Longitude, degrees.
+    pub lon_deg: f64,
+    /// Altitude AMSL, m.
+    pub alt_amsl_m: f64,
+    /// Altitude above home, m.
+    pub relative_alt_m: f64,
+    /// The camera's attitude quaternion (w, x, y, z), NED frame.
+    pub q: [f32; 4],
+    /// The picture was stored.
+    pub ok: bool,
+    /// Where the camera stored it, as it says.
+    pub file_url: String,
+}
+
+/// How a picture was asked for ([`LinkHandle::capture_image`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PhotoReport {
+    /// `camera_protocol` (MAV_CMD_IMAGE_START_CAPTURE to the camera
+    /// component) or `digicam_control` (MAV_CMD_DO_DIGICAM_CONTROL to the
+    /// autopilot, where no MAVLink camera answered).
+    pub method: &'static str,
+    /// The component asked.
+    pub component_id: u8,
+    /// Its CAMERA_IMAGE_CAPTURED, when one came within the wait.
+    pub captured: Option<ImageCaptured>,
+}
+
 /// GIMBAL_MANAGER_STATUS: who controls the gimbal.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct GimbalManagerStatus {
@@ -480,6 +538,12 @@ pub struct Telemetry {
     pub gimbal_manager: watch::Receiver<Option<Stamped<GimbalManagerStatus>>>,
     /// Gimbal control as the link handled it.
     pub gimbal_control: watch::Receiver<GimbalControl>,
+    /// MAVLink cameras of the vehicle (from CAMERA_INFORMATION, asked for
+    /// when a camera's heartbeat is first heard).
+    pub cameras: watch::Receiver<Vec<CameraInfo>>,
+    /// The last pictures the vehicle's cameras reported (newest last, at
+    /// most [`CAPTURES_KEPT`]).
+    pub captures: watch::Receiver<Vec<ImageCaptured>>,
     /// Missions other ground stations stored on or cleared from the vehicle
     /// through the forward endpoints (a count; see [`router`]).
     pub mission_changes: watch::Receiver<u64>,
@@ -595,6 +659,9 @@ pub struct LinkHandle {
     bound: watch::Receiver<Option<std::net::SocketAddr>>,
     router: std::sync::Arc<router::Router>,
 }
+
+/// CAMERA_IMAGE_CAPTURED messages kept in [`Telemetry::captures`].
+pub const CAPTURES_KEPT: usize = 32;
 
 /// MAVLink message id of GIMBAL_MANAGER_STATUS.
 const GIMBAL_MANAGER_STATUS_ID: u32 = 281;
@@ -782,6 +849,80 @@ impl LinkHandle {
             reply,
         })
         .await
+    }
+
+    /// Takes one picture: with MAV_CMD_IMAGE_START_CAPTURE (one image) to
+    /// the first MAVLink camera that said it captures images, else with
+    /// MAV_CMD_DO_DIGICAM_CONTROL (shoot) to the autopilot; then waits up
+    /// to `wait` for the CAMERA_IMAGE_CAPTURED that reports it (a camera
+    /// trigger wired to the autopilot may never send one: `captured` is
+    /// then None). A refused or unacknowledged command is an error.
+    pub async fn capture_image(&self, wait: Duration) -> Result<PhotoReport, LinkError> {
+        use mavlink::dialects::common::MavCmd;
+        let camera = self
+            .telemetry
+            .cameras
+            .borrow()
+            .iter()
+            .find(|c| c.captures_images)
+            .map(|c| c.component_id);
+        let mut captures = self.telemetry.captures.clone();
+        let seen: Vec<(u8, i32)> = captures
+            .borrow()
+            .iter()
+            .map(|c| (c.component_id, c.index))
+            .collect();
+        let (method, component_id) = match camera {
+            Some(c) => {
+                // param1 camera id 0 (all), param2 interval 0, param3 one
+                // image, param4 sequence 0
+                self.command_long(
+                    MavCmd::MAV_CMD_IMAGE_START_CAPTURE,
+                    [0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+                    Some(c),
+                )
+                .await?;
+                ("camera_protocol", c)
+            }
+            None => {
+                // param5 1: shoot
+                self.command_long(
+                    MavCmd::MAV_CMD_DO_DIGICAM_CONTROL,
+                    [0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+                    None,
+                )
+                .await?;
+                let autopilot = self.telemetry.vehicle.borrow().component_id;
+                ("digicam_control", autopilot)
+            }
+        };
+        info!(method, component = component_id, "picture asked for");
+        let fresh = |v: &Vec<ImageCaptured>| {
+            v.iter()
+                .rev()
+                .find(|c| {
+                    c.component_id == component_id && !seen.contains(&(c.component_id, c.index))
+                })
+                .cloned()
+        };
+        let captured =
+            match tokio::time::timeout(wait, captures.wait_for(|v| fresh(v).is_some())).await {
+                Ok(Ok(v)) => fresh(&v),
+                _ => None,
+            };
+        match &captured {
+            Some(c) => info!(index = c.index, ok = c.ok, url = %c.file_url, "picture reported"),
+            None => warn!(
+                method,
+                wait_s = wait.as_secs_f64(),
+                "no CAMERA_IMAGE_CAPTURED for the picture"
+            ),
+        }
+        Ok(PhotoReport {
+            method,
+            component_id,
+            captured,
+        })
     }
 
     /// The vehicle's GIMBAL_MANAGER_STATUS: the last one when younger than

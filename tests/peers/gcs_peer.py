@@ -7,7 +7,8 @@ It prints one line per step on stdout, each a JSON object with "step":
   {"step": "ready", "port": PORT}        socket bound (--port 0: the kernel's pick)
   {"step": "vehicle", ...}               the vehicle's heartbeat arrived through shotpilot
   {"step": "window_start"} / {"step": "window_end", "counts": {...}}
-                                         messages from the vehicle counted over --window s
+                                         messages from the vehicle's system (all its
+                                         components) counted over --window s
   {"step": "armed", "result": N}         COMMAND_ACK of MAV_CMD_COMPONENT_ARM_DISARM
   {"step": "uploaded", "result": NAME, "seconds": S, "tries": N}
 and then reads commands on stdin: "upload" (another upload, items moved a
@@ -78,7 +79,8 @@ class Gcs:
         end = time.time() + timeout
         while time.time() < end:
             msg = self.recv(end - time.time())
-            if msg is not None and msg.get_type() == "HEARTBEAT" and msg.type != mav.MAV_TYPE_GCS:
+            # the autopilot (not a camera or gimbal component of the vehicle)
+            if msg is not None and msg.get_type() == "HEARTBEAT" and msg.autopilot != mav.MAV_AUTOPILOT_INVALID:
                 self.vehicle = (msg.get_srcSystem(), msg.get_srcComponent())
                 return msg
         return None
@@ -90,7 +92,7 @@ class Gcs:
             msg = self.recv(end - time.time())
             if msg is None:
                 continue
-            if (msg.get_srcSystem(), msg.get_srcComponent()) == self.vehicle:
+            if msg.get_srcSystem() == self.vehicle[0]:  # every component of the vehicle
                 t = msg.get_type()
                 counts[t] = counts.get(t, 0) + 1
         return counts

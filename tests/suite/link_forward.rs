@@ -494,3 +494,189 @@ async fn forwarding_keeps_every_frame_in_order_at_full_telemetry_rate() -> anyho
     cancel.cancel();
     Ok(())
 }
+
+/// The photo by MAVLink's camera protocol: the simulator's camera
+/// component (100) is discovered from its heartbeat and CAMERA_INFORMATION,
+/// takes the picture on MAV_CMD_IMAGE_START_CAPTURE and reports it with
+/// CAMERA_IMAGE_CAPTURED (where, when, stored where); without a camera
+/// component the link falls back to DO_DIGICAM_CONTROL to the autopilot,
+/// whose trigger reports the picture as component 1.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_photo_by_the_camera_protocol_and_its_fallback() -> anyhow::Result<()> {
+    for camera in [true, false] {
+        let dir = tempfile::tempdir()?;
+        let cancel = CancellationToken::new();
+        let (socket, addr) = link_support::bound_udp();
+        let mut cfg = sim_config(
+            Endpoint::UdpIn(addr.to_string()),
+            Flavour::Px4,
+            RadioParams::default(),
+            dir.path(),
+        );
+        cfg.mavlink_camera = camera;
+        let sockets = app::Sockets {
+            mavlink: Some(socket),
+            ..Default::default()
+        };
+        tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
+        let p = Params {
+            url: format!("udpout:{addr}"),
+            ..Params::default()
+        };
+        let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
+        link.wait_for_vehicle(Duration::from_secs(20)).await?;
+        if camera {
+            let mut cams = link.telemetry.cameras.clone();
+            let found = tokio::time::timeout(
+                Duration::from_secs(10),
+                cams.wait_for(|c| c.iter().any(|c| c.component_id == 100)),
+            )
+            .await
+            .map_err(|_| anyhow::anyhow!("no CAMERA_INFORMATION from component 100 in 10 s"))??
+            .clone();
+            println!("cameras: {found:?}");
+            assert!(found[0].captures_images);
+            assert_eq!(found[0].vendor, "shotpilot-sim");
+        } else {
+            // Two camera heartbeat periods: none is heard.
+            tokio::time::sleep(Duration::from_secs(2)).await;
+            assert!(link.telemetry.cameras.borrow().is_empty());
+        }
+        let here = link
+            .telemetry
+            .global_position
+            .borrow()
+            .map(|g| g.value)
+            .ok_or_else(|| anyhow::anyhow!("no position"))?;
+        let report = link.capture_image(Duration::from_secs(10)).await?;
+        println!("camera component {camera}: {report:?}");
+        let (method, component) = if camera {
+            ("camera_protocol", 100)
+        } else {
+            ("digicam_control", 1)
+        };
+        assert_eq!(report.method, method);
+        assert_eq!(report.component_id, component);
+        let c = report
+            .captured
+            .ok_or_else(|| anyhow::anyhow!("no CAMERA_IMAGE_CAPTURED"))?;
+        assert_eq!(c.component_id, component);
+        assert!(c.ok, "the picture was stored: {c:?}");
+        let path = c
+            .file_url
+            .strip_prefix("file://")
+            .ok_or_else(|| anyhow::anyhow!("url {}", c.file_url))?;
+        assert!(std::path::Path::new(path).is_file(), "{path} exists");
+        // Where the camera says it was: where the vehicle said it was
+        // (the vehicle stands on the ground, untouched).
+        let north_m = (c.lat_deg - here.lat_deg) * 111_320.0;
+        let east_m = (c.lon_deg - here.lon_deg) * 111_320.0 * here.lat_deg.to_radians().cos();
+        assert!(
+            north_m.hypot(east_m) < 0.5 && (c.alt_amsl_m - here.alt_amsl_m).abs() < 0.5,
+            "picture at {c:?}, vehicle at {here:?}"
+        );
+        let qn = c.q.iter().map(|x| x * x).sum::<f32>().sqrt();
+        assert!((qn - 1.0).abs() < 1e-3, "a unit quaternion: {:?}", c.q);
+        cancel.cancel();
+    }
+    Ok(())
+}
+
+/// The daemon with a forward endpoint: its stored shot, whose mission the
+/// vehicle no longer holds (`cleared` at start), becomes `replaced` within
+/// 2 s of another station's upload through the endpoint.
+#[test]
+#[ignore = "needs pymavlink"]
+fn the_daemon_marks_its_shot_replaced_when_another_station_uploads() -> anyhow::Result<()> {
+    use crate::daemon_support;
+    use shotpilot::shot::record::{MissionRecord, MissionState, Shot, ShotSource, ShotStatus};
+    use shotpilot::shot::store::ShotStore;
+    let base = tempfile::tempdir()?;
+    let (mut cfg, sockets) = daemon_support::sim_config();
+    let h = shotpilot_sim::vehicle::VehicleParams::default().home;
+    let home = Home {
+        lat_deg: h.lat_deg,
+        lon_deg: h.lon_deg,
+        alt_amsl_m: h.alt_m,
+    };
+    let items = our_mission(&home, 0)?;
+    {
+        let store = ShotStore::open(&base.path().join(&cfg.server.data_dir).join("shots"))?;
+        store.put(
+            Shot {
+                id: "shot-1".into(),
+                created_unix: 0.0,
+                source: ShotSource::Anchors {
+                    keyframe_id: 1,
+                    anchors: [[40.0, 30.0], [600.0, 30.0], [600.0, 450.0], [40.0, 450.0]],
+                },
+                status: ShotStatus::Localised,
+                localisation: None,
+                reason: None,
+                nearest_keyframes: Vec::new(),
+                has_image: false,
+                mission: Some(MissionRecord {
+                    state: MissionState::Uploaded,
+                    items: items.len(),
+                    uploaded_unix: 1.0,
+                    started_unix: None,
+                    target_lat_lon_alt: None,
+                    details: serde_json::json!({ "planned_items": items }),
+                }),
+            },
+            None,
+        )?;
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let mut station = rt.block_on(Station::start(&["--window", "0"]))?;
+    cfg.sim.script = "none".into();
+    cfg.link.forward = vec![format!("udpout:127.0.0.1:{}", station.port)];
+    cfg.validate(std::path::Path::new("test"))?;
+    let running = daemon_support::start(cfg, sockets, base.path());
+    let state = || {
+        daemon_support::get_json(running.addr, "/api/v1/shots/shot-1")["mission"]["state"]
+            .as_str()
+            .unwrap_or("")
+            .to_owned()
+    };
+    // At start the vehicle holds no mission: the shot's is `cleared`.
+    let t = Instant::now();
+    while state() != "cleared" {
+        anyhow::ensure!(
+            t.elapsed() < Duration::from_secs(30),
+            "the shot is {} 30 s after start",
+            state()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    rt.block_on(station.expect("vehicle", 30))?;
+    rt.block_on(station.expect("armed", 30))?;
+    let up = rt.block_on(station.expect("uploaded", 60))?;
+    anyhow::ensure!(up["result"] == "MAV_MISSION_ACCEPTED", "{up}");
+    let t = Instant::now();
+    while state() != "replaced" {
+        anyhow::ensure!(
+            t.elapsed() < Duration::from_secs(2),
+            "the shot is still {} 2 s after the station's upload",
+            state()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    println!(
+        "the shot was marked replaced {:.2} s after the station's upload ended",
+        t.elapsed().as_secs_f64()
+    );
+    let shot = daemon_support::get_json(running.addr, "/api/v1/shots/shot-1");
+    println!("{}", shot["mission"]["details"]["vehicle"]);
+    let status = daemon_support::get_json(running.addr, "/api/v1/status");
+    assert_eq!(
+        status["vehicle"]["forward"][0]["clients"], 1,
+        "{}",
+        status["vehicle"]
+    );
+    running.stop(Duration::from_secs(20));
+    Ok(())
+}

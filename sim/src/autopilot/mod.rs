@@ -990,6 +990,22 @@ impl Autopilot {
         )
     }
 
+    /// IMAGE_START_CAPTURE as a camera component takes it: `total`
+    /// pictures (0: until stopped) `interval` s apart, the first now.
+    pub fn start_image_capture(&mut self, interval: f64, total: u32) {
+        self.start_capture(interval, total);
+    }
+
+    /// IMAGE_STOP_CAPTURE.
+    pub fn stop_image_capture(&mut self) {
+        self.interval_capture = None;
+    }
+
+    /// The camera's VIDEO_STREAM_INFORMATION, when it announces a stream.
+    pub fn video_stream_information(&self) -> Option<MavMessage> {
+        self.build(269)
+    }
+
     fn start_capture(&mut self, interval: f64, total: u32) {
         self.capture_now();
         if total == 1 {
