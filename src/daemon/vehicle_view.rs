@@ -32,6 +32,11 @@ pub struct LinkVehicle {
     refine: Option<super::refine_loop::RefineHandle>,
     /// The shot last uploaded and the target its mission flies.
     last_uploaded: std::sync::Mutex<Option<(Shot, crate::mission::plan::Target)>>,
+    /// The shot whose mission the vehicle holds, as far as we know: the
+    /// one uploaded last, or the one the last reconciliation found on the
+    /// vehicle (None: another station's mission, or none). Photos the
+    /// camera reports are stored with it.
+    mission_owner: std::sync::Mutex<Option<String>>,
     /// The shot whose mission was started last.
     last_started: std::sync::Mutex<Option<String>>,
 }
@@ -87,6 +92,7 @@ impl LinkVehicle {
             geo,
             refine: None,
             last_uploaded: std::sync::Mutex::new(None),
+            mission_owner: std::sync::Mutex::new(None),
             last_started: std::sync::Mutex::new(None),
         }
     }
@@ -199,6 +205,7 @@ impl LinkVehicle {
         since: tokio::time::Instant,
     ) -> Vec<Shot> {
         let vehicle = self.read_vehicle_mission(since).await;
+        let vehicle_read = vehicle.is_ok();
         let shots = store.list();
         let home = self.geo.home().map(|h| Home {
             lat_deg: h.lat_deg,
@@ -242,6 +249,9 @@ impl LinkVehicle {
             if let Err(e) = store.update(&s.id, apply) {
                 tracing::warn!(shot = %s.id, "reconcile: saving the shot: {e}");
             }
+        }
+        if vehicle_read && let Ok(mut o) = self.mission_owner.lock() {
+            *o = owner.clone();
         }
         if let Some(id) = owner
             && let Some(shot) = store.get(&id)
@@ -350,8 +360,8 @@ pub fn record_photo(shot: &mut Shot, photo: &crate::vehicle::ImageCaptured) {
 }
 
 /// Stores every picture the vehicle's camera reports (CAMERA_IMAGE_CAPTURED)
-/// with the shot whose mission the vehicle flies (the last one uploaded),
-/// until `cancel`.
+/// with the shot whose mission the vehicle holds (the one uploaded last, or
+/// the one the last reconciliation found there), until `cancel`.
 pub async fn run_photo_recorder(
     vehicle: Arc<LinkVehicle>,
     store: Arc<ShotStore>,
@@ -374,11 +384,7 @@ pub async fn run_photo_recorder(
             .filter(|c| !seen.contains(&(c.component_id, c.index)))
             .cloned()
             .collect();
-        let owner = vehicle
-            .last_uploaded
-            .lock()
-            .ok()
-            .and_then(|l| l.as_ref().map(|(s, _)| s.id.clone()));
+        let owner = vehicle.mission_owner.lock().ok().and_then(|o| o.clone());
         for photo in fresh {
             seen.push((photo.component_id, photo.index));
             if seen.len() > 4 * crate::vehicle::CAPTURES_KEPT {
@@ -496,6 +502,9 @@ impl VehicleView for LinkVehicle {
                     })?;
             if let Ok(mut last) = self.last_uploaded.lock() {
                 *last = Some((shot.clone(), flown));
+            }
+            if let Ok(mut o) = self.mission_owner.lock() {
+                *o = Some(shot.id.clone());
             }
             tracing::info!(
                 shot = %shot.id,

@@ -252,10 +252,23 @@ pub struct Home {
     pub alt_amsl_m: f64,
 }
 
+/// A float as JSON writes NaN (`null`, as serde_json and QGroundControl
+/// do) read back as NaN.
+fn nan_from_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f32, D::Error> {
+    Ok(Option::<f32>::deserialize(d)?.unwrap_or(f32::NAN))
+}
+
+/// [`nan_from_null`] for the four params.
+fn params_nan_from_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<[f32; 4], D::Error> {
+    let p = <[Option<f32>; 4]>::deserialize(d)?;
+    Ok(p.map(|x| x.unwrap_or(f32::NAN)))
+}
+
 /// One mission item, laid out as MAVLink's `MISSION_ITEM_INT`.
 ///
 /// For global frames `x`/`y` are latitude/longitude in degrees * 1e7; for
-/// other frames they carry param5/param6 as integers. `z` is param7.
+/// other frames they carry param5/param6 as integers. `z` is param7. In
+/// JSON a NaN param (PX4's "unchanged") is `null` and reads back as NaN.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct MissionItem {
     /// Index in the mission.
@@ -269,12 +282,14 @@ pub struct MissionItem {
     /// Continue to the next item when this one completes.
     pub autocontinue: bool,
     /// param1..param4.
+    #[serde(deserialize_with = "params_nan_from_null")]
     pub params: [f32; 4],
     /// param5 / latitude * 1e7.
     pub x: i32,
     /// param6 / longitude * 1e7.
     pub y: i32,
     /// param7 / altitude, metres.
+    #[serde(deserialize_with = "nan_from_null")]
     pub z: f32,
 }
 
@@ -306,6 +321,33 @@ impl MissionItem {
             && self.x == other.x
             && self.y == other.y
             && p(self.z, other.z)
+    }
+}
+
+#[cfg(test)]
+mod json_tests {
+    use super::*;
+
+    /// A PX4 mission's NaN params survive the shot record: the reconciler
+    /// reads `planned_items` back to know which shot owns the vehicle's
+    /// mission, and NaN is written as `null`.
+    #[test]
+    fn nan_params_survive_json() {
+        let item = MissionItem {
+            seq: 3,
+            frame: 2,
+            command: 1000,
+            current: false,
+            autocontinue: true,
+            params: [-30.0, 0.0, f32::NAN, f32::NAN],
+            x: 44,
+            y: 0,
+            z: f32::NAN,
+        };
+        let text = serde_json::to_string(&[item]).unwrap();
+        assert!(text.contains("null"), "{text}");
+        let back: Vec<MissionItem> = serde_json::from_str(&text).unwrap();
+        assert!(back[0].same_content(&item));
     }
 }
 

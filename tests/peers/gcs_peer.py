@@ -14,11 +14,15 @@ It prints one line per step on stdout, each a JSON object with "step":
 and then reads commands on stdin: "upload" (another upload, items moved a
 little each time: another "uploaded" line), "download"
   {"step": "downloaded", "items": [[command, lat_e7, lon_e7, alt], ...]}
-and "quit". With --no-arm it neither arms nor uploads before reading stdin.
+"capture COMPONENT" (MAV_CMD_IMAGE_START_CAPTURE, one image, to that
+component of the vehicle: {"step": "captured", "result": N}) and "quit".
+With --no-arm it neither arms nor uploads before reading stdin;
+"upload-json" uploads the items of --items-json FILE (shotpilot's
+MissionItem JSON) instead of its own.
 The mission transfers resend on timeouts as QGroundControl does (1.5 s,
 several tries), so they work over a lossy link.
 
-Usage: gcs_peer.py --port 0 [--window 10] [--items 3] [--no-arm]
+Usage: gcs_peer.py --port 0 [--window 10] [--items 3] [--no-arm] [--items-json FILE]
 """
 import argparse
 import json
@@ -116,7 +120,15 @@ class Gcs:
         sent = None
 
         def send_item(seq):
-            cmd, lat, lon, alt = items[seq]
+            it = items[seq]
+            if isinstance(it, dict):  # a whole item (--items-json)
+                p = [float("nan") if v is None else v for v in it["params"]]
+                self.m.mav.mission_item_int_send(
+                    sys_, comp, seq, it["frame"], it["command"], 1 if it["current"] else 0,
+                    1 if it["autocontinue"] else 0, p[0], p[1], p[2], p[3], it["x"], it["y"],
+                    float("nan") if it["z"] is None else it["z"], MISSION)
+                return
+            cmd, lat, lon, alt = it
             self.m.mav.mission_item_int_send(
                 sys_, comp, seq, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, cmd,
                 1 if seq == 0 else 0, 1, 0, 1.0, 0, float("nan"), lat, lon, alt, MISSION)
@@ -186,6 +198,7 @@ def main():
     ap.add_argument("--window", type=float, default=10.0)
     ap.add_argument("--items", type=int, default=3)
     ap.add_argument("--no-arm", action="store_true")
+    ap.add_argument("--items-json", default="", help="upload these items (shotpilot's MissionItem JSON) first")
     args = ap.parse_args()
     g = Gcs(args.port)
     g.started = False
@@ -205,8 +218,15 @@ def main():
     lat0, lon0 = 473977420, 85455940
     round_ = 0
 
-    def upload():
+    def upload(given=False):
         g.started = False
+        if given:
+            with open(args.items_json) as f:
+                whole = json.load(f)
+            name, seconds, tries = g.upload(whole)
+            listed = [[it["command"], it["x"], it["y"], it["z"]] for it in whole]
+            say(step="uploaded", result=name, seconds=round(seconds, 3), tries=tries, items=listed)
+            return
         items = [
             [mav.MAV_CMD_NAV_WAYPOINT, lat0 + 100 * (k + 1), lon0 + 150 * k + 7 * round_, 15.0 + k]
             for k in range(args.items)
@@ -222,6 +242,15 @@ def main():
         elif line.strip() == "upload":
             round_ += 1
             upload()
+        elif line.strip() == "upload-json":
+            upload(given=True)
+        elif line.strip().startswith("capture "):
+            # MAV_CMD_IMAGE_START_CAPTURE to a component of the vehicle: one image
+            comp = int(line.split()[1])
+            g.vehicle, autopilot = (g.vehicle[0], comp), g.vehicle
+            result = g.command(mav.MAV_CMD_IMAGE_START_CAPTURE, [0, 0, 1, 0, 0, 0, 0])
+            g.vehicle = autopilot
+            say(step="captured", result=result)
         elif line.strip() == "quit":
             break
     return 0

@@ -584,10 +584,12 @@ async fn the_photo_by_the_camera_protocol_and_its_fallback() -> anyhow::Result<(
 
 /// The daemon with a forward endpoint: its stored shot, whose mission the
 /// vehicle no longer holds (`cleared` at start), becomes `replaced` within
-/// 2 s of another station's upload through the endpoint.
+/// 2 s of another station's upload through the endpoint; when the station
+/// puts the shot's own mission back, the shot owns it again, and the
+/// picture the vehicle's camera then reports is stored with it.
 #[test]
 #[ignore = "needs pymavlink"]
-fn the_daemon_marks_its_shot_replaced_when_another_station_uploads() -> anyhow::Result<()> {
+fn the_daemon_marks_its_shot_replaced_then_stores_its_photo() -> anyhow::Result<()> {
     use crate::daemon_support;
     use shotpilot::shot::record::{MissionRecord, MissionState, Shot, ShotSource, ShotStatus};
     use shotpilot::shot::store::ShotStore;
@@ -631,7 +633,15 @@ fn the_daemon_marks_its_shot_replaced_when_another_station_uploads() -> anyhow::
         .worker_threads(1)
         .enable_all()
         .build()?;
-    let mut station = rt.block_on(Station::start(&["--window", "0"]))?;
+    let items_file = base.path().join("shot-1-items.json");
+    std::fs::write(&items_file, serde_json::to_vec(&items)?)?;
+    let items_arg = items_file.display().to_string();
+    let mut station = rt.block_on(Station::start(&[
+        "--window",
+        "0",
+        "--items-json",
+        &items_arg,
+    ]))?;
     cfg.sim.script = "none".into();
     cfg.link.forward = vec![format!("udpout:127.0.0.1:{}", station.port)];
     cfg.validate(std::path::Path::new("test"))?;
@@ -671,6 +681,49 @@ fn the_daemon_marks_its_shot_replaced_when_another_station_uploads() -> anyhow::
     );
     let shot = daemon_support::get_json(running.addr, "/api/v1/shots/shot-1");
     println!("{}", shot["mission"]["details"]["vehicle"]);
+
+    // The station puts the shot's own mission back: the shot owns the
+    // vehicle's mission again, and a picture the camera reports is stored
+    // with it.
+    station.tell("upload-json")?;
+    let up = rt.block_on(station.expect("uploaded", 60))?;
+    anyhow::ensure!(up["result"] == "MAV_MISSION_ACCEPTED", "{up}");
+    let t = Instant::now();
+    while state() == "replaced" {
+        anyhow::ensure!(
+            t.elapsed() < Duration::from_secs(2),
+            "the shot is still replaced 2 s after its own mission came back: {}\nplanned {}",
+            daemon_support::get_json(running.addr, "/api/v1/vehicle/mission"),
+            serde_json::to_string(&items).unwrap_or_default()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    println!("with its mission back the shot is {}", state());
+    station.tell("capture 100")?;
+    let cap = rt.block_on(station.expect("captured", 30))?;
+    anyhow::ensure!(cap["result"] == 0, "the camera refused: {cap}");
+    let t = Instant::now();
+    let photos = loop {
+        let shot = daemon_support::get_json(running.addr, "/api/v1/shots/shot-1");
+        let p = shot["mission"]["details"]["photos"].clone();
+        if p.as_array().is_some_and(|a| !a.is_empty()) {
+            break p;
+        }
+        anyhow::ensure!(
+            t.elapsed() < Duration::from_secs(5),
+            "no photo stored with the shot 5 s after the capture: {}",
+            shot["mission"]
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    println!("photos stored with the shot: {photos}");
+    assert_eq!(photos[0]["component_id"], 100);
+    assert_eq!(photos[0]["ok"], true);
+    let lat = photos[0]["lat_deg"].as_f64().unwrap_or(f64::NAN);
+    assert!(
+        (lat - h.lat_deg).abs() < 1e-5,
+        "taken at home, on the ground: {lat}"
+    );
     let status = daemon_support::get_json(running.addr, "/api/v1/status");
     assert_eq!(
         status["vehicle"]["forward"][0]["clients"], 1,
