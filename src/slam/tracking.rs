@@ -342,7 +342,9 @@ impl Tracker {
     /// lost video packet left intact): no feature is extracted whose patch
     /// reaches a masked pixel, and a frame masked beyond
     /// [`TrackingParams::max_masked_share`] neither becomes a keyframe nor
-    /// starts a map. A mask of another size than the image masks it all.
+    /// starts a map; a frame masked whole is passed over (the state stays,
+    /// it does not count as lost). A mask of another size than the image
+    /// masks it all.
     pub fn track_masked(
         &mut self,
         map: &Mutex<Map>,
@@ -402,6 +404,17 @@ impl Tracker {
             keypoints: Vec::new(),
         };
         let max_masked = self.ctx.params.max_masked_share;
+        if self.masked_share >= 1.0 {
+            // Nothing of the frame can be trusted: it is passed over, not
+            // lost (a lost frame would start a new map).
+            out.reason = Some(TrackFailure::TooDamaged {
+                masked_pct: 100,
+                max_pct: (max_masked * 100.0).round() as u32,
+            });
+            out.track_ms = t0.wall_ms();
+            out.track_cpu_ms = t0.cpu_ms();
+            return out;
+        }
         let result = if initializing && self.masked_share > max_masked {
             out.keypoints = frame.keypoint_states();
             Err(TrackFailure::TooDamaged {

@@ -505,3 +505,180 @@ fn x264_through_a_lossy_link_reaches_slam_with_its_damage_masked() {
         "{k:?}"
     );
 }
+
+/// SLAM on the simulator's explore flight (640x480, 15 fps, 30 s), encoded
+/// by OpenH264 with one-packet slices (IDR every 2 s), sent as RTP with
+/// packets dropped at random, decoded with the damage masked (or skipping
+/// to the next IDR picture, as before): frames given to SLAM, tracked
+/// share, ATE against the lossless run's.
+struct SlamRun {
+    given: usize,
+    usable: usize,
+    tracked: usize,
+    masked_share: f64,
+    ate_m: f64,
+}
+
+fn slam_through_loss(
+    aus: &[Vec<u8>],
+    gt: &[(f64, nalgebra::Isometry3<f64>)],
+    cam: &shotpilot::camera::Camera,
+    loss: f64,
+    params: shotpilot::video::h264::DecodeParams,
+) -> SlamRun {
+    use shotpilot::video::h264::{AccessUnit, DecodeLoop, Decoded};
+    use shotpilot::video::rtp::{H264Depacketizer, packetize_h264, parse_rtp};
+    let mut rng = rand::rngs::StdRng::seed_from_u64(77);
+    let mut dl = DecodeLoop::new(params).unwrap();
+    let mut depack = H264Depacketizer::new(vec![]);
+    let mut slam = shotpilot::slam::Slam::new(
+        *cam,
+        shotpilot::slam::Params {
+            sequential: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let (mut given, mut usable, mut rows, mut masked) = (0, 0, 0, 0);
+    let (mut skipped, mut broken) = (0, 0);
+    let mut seq = 0u16;
+    for (i, a) in aus.iter().enumerate() {
+        for p in packetize_h264(a, 1400, 96, 5, &mut seq, 6000 * i as u32) {
+            if rng.random::<f64>() < loss {
+                continue;
+            }
+            for done in depack.push(&parse_rtp(&p).unwrap()) {
+                let idx = (done.timestamp / 6000) as usize;
+                let t = gt[idx].0;
+                let unit = AccessUnit {
+                    data: done.data,
+                    capture_time: Some(t),
+                    received: Instant::now(),
+                    received_unix: t,
+                    lost: done.lost,
+                    gaps: done.gaps,
+                };
+                let out = dl.step(&unit, false);
+                match &out {
+                    Decoded::Skipped => skipped += 1,
+                    Decoded::Broken(e) => {
+                        broken += 1;
+                        if broken == 1 {
+                            eprintln!("picture {idx}: {e}");
+                        }
+                    }
+                    _ => {}
+                }
+                if let Decoded::Frame(f) = out {
+                    given += 1;
+                    let share = f.masked_share();
+                    usable += usize::from(share < 1.0);
+                    rows += f.image.height() as usize;
+                    masked += f.damage.as_ref().map_or(0, |d| d.count());
+                    let mask = f.reliable_mask();
+                    slam.process_masked(idx as u64, f.timestamp(), f.image.clone(), mask.as_ref());
+                }
+            }
+        }
+    }
+    eprintln!(
+        "loss {loss}: {skipped} skipped, {broken} broken, {} lost",
+        depack.stats().lost
+    );
+    let r = slam.finish();
+    let gt_traj = shotpilot::eval::Trajectory {
+        poses: gt
+            .iter()
+            .map(|(t, p)| shotpilot::eval::StampedPose {
+                t: *t,
+                world_from_cam: *p,
+            })
+            .collect(),
+    };
+    let ate = shotpilot::eval::evaluate(
+        &gt_traj,
+        &r.trajectory(),
+        &shotpilot::eval::Params::default(),
+    )
+    .map_or(f64::NAN, |e| e.ate.rmse);
+    SlamRun {
+        given,
+        usable,
+        tracked: r.records.len(),
+        masked_share: masked as f64 / rows.max(1) as f64,
+        ate_m: ate,
+    }
+}
+
+#[test]
+#[ignore = "slow: renders, encodes and runs SLAM on 450 frames five times (about a minute)"]
+fn slam_keeps_tracking_through_a_lossy_link() {
+    use shotpilot::video::h264::{DecodeParams, GrayEncoder};
+    use shotpilot_sim::paths::{CameraPath, Params as PathParams};
+    use shotpilot_sim::render::{RenderParams, Renderer};
+    let world = Arc::new(shotpilot_sim::world::World::generate(5));
+    let path = CameraPath::explore(&world, PathParams::default());
+    let sim = shotpilot_sim::camera::SimCamera::default();
+    let renderer = Renderer::new(world, sim, RenderParams::default());
+    let n = 450;
+    let gt: Vec<(f64, nalgebra::Isometry3<f64>)> = (0..n)
+        .map(|i| {
+            let t = i as f64 / 15.0;
+            (1.7e9 + t, path.world_from_cam(path.start() + t))
+        })
+        .collect();
+    let mut enc =
+        GrayEncoder::with_slices(sim.width, sim.height, 15.0, 1_500_000, 30, Some(1200)).unwrap();
+    let aus: Vec<Vec<u8>> = gt
+        .iter()
+        .enumerate()
+        .map(|(i, (_, p))| enc.encode(&renderer.render_noisy(p, i as u64)).unwrap())
+        .collect();
+    let cam = shotpilot::simulator::camera_from_sim(&sim).unwrap();
+    let skip = DecodeParams {
+        conceal: false,
+        ..Default::default()
+    };
+    let lossless = slam_through_loss(&aus, &gt, &cam, 0.0, DecodeParams::default());
+    eprintln!(
+        "FIGURES SLAM {}x{} | loss | decoding | given to SLAM | usable | masked rows | tracked | ATE m (lossless {:.3})",
+        sim.width, sim.height, lossless.ate_m
+    );
+    let mut results = Vec::new();
+    for (loss, name, params) in [
+        (0.0, "masked", DecodeParams::default()),
+        (0.01, "masked", DecodeParams::default()),
+        (0.01, "skip to IDR", skip.clone()),
+        (0.05, "masked", DecodeParams::default()),
+        (0.05, "skip to IDR", skip.clone()),
+    ] {
+        let r = if loss == 0.0 {
+            SlamRun { ..lossless }
+        } else {
+            slam_through_loss(&aus, &gt, &cam, loss, params)
+        };
+        eprintln!(
+            "FIGURES SLAM | {:.0} % | {name} | {} / {n} | {} | {:.1} % | {} ({:.1} %) | {:.3} ({:.2}x)",
+            loss * 100.0,
+            r.given,
+            r.usable,
+            r.masked_share * 100.0,
+            r.tracked,
+            100.0 * r.tracked as f64 / n as f64,
+            r.ate_m,
+            r.ate_m / lossless.ate_m
+        );
+        results.push(r);
+    }
+    assert!(
+        lossless.tracked as f64 >= 0.8 * n as f64,
+        "{}",
+        lossless.tracked
+    );
+    // 1 % loss, masked: every frame reaches SLAM.
+    assert!(
+        results[1].given as f64 >= 0.95 * n as f64,
+        "{}",
+        results[1].given
+    );
+}
