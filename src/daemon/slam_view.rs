@@ -342,7 +342,11 @@ impl FrameProcessor for SlamProcessor {
             // keyframes are stored from the image itself (PNG, lossless).
             self.persist.note_frame(frame.seq, &jpeg);
         }
-        let out = self.slam.process(frame.seq, t, frame.image.clone());
+        // Rows a lost video packet damaged are masked: no feature from them.
+        let mask = frame.reliable_mask();
+        let out = self
+            .slam
+            .process_masked(frame.seq, t, frame.image.clone(), mask.as_ref());
         // The map's lock is released before the shared status is written:
         // neither lock is ever taken inside the other. (Writing the map's
         // mode inside the map's lock, while the API pinned a shot's

@@ -450,6 +450,12 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         &mut level.corners,
     );
 
+    // Masked corners go before anything counts them: a cell whose corners
+    // all lie in the mask gets the second threshold like an empty one, so
+    // what is kept depends on the unmasked pixels only.
+    let scale = (sh.w0 as f32 / w as f32).max(sh.h0 as f32 / h as f32);
+    mask_filter(level, 0, scale, sh);
+
     // Cells where the first threshold found nothing get the second.
     let (aw, ah) = (area.x1 - area.x0, area.y1 - area.y0);
     let n_cols = (aw / p.cell_size).max(1);
@@ -469,8 +475,6 @@ fn process_level_impl(level: &mut Level, l: usize, quota: usize, sh: &Shared) {
         cw,
         ch,
     };
-    let scale = (sh.w0 as f32 / w as f32).max(sh.h0 as f32 / h as f32);
-    mask_filter(level, 0, scale, sh);
     let n_strong = level.corners.len();
 
     let region = (

@@ -485,6 +485,18 @@ impl Slam {
 
     /// Track one frame (and map its keyframe inline in sequential mode).
     pub fn process(&mut self, index: u64, timestamp: f64, image: Arc<GrayImage>) -> FrameOutcome {
+        self.process_masked(index, timestamp, image, None)
+    }
+
+    /// [`Slam::process`] on the pixels where `mask` is not 0 (see
+    /// [`Tracker::track_masked`](tracking::Tracker::track_masked)).
+    pub fn process_masked(
+        &mut self,
+        index: u64,
+        timestamp: f64,
+        image: Arc<GrayImage>,
+        mask: Option<&GrayImage>,
+    ) -> FrameOutcome {
         self.frames += 1;
         let idle = match &self.mapping {
             Mapping::Inline(_) => true,
@@ -492,7 +504,9 @@ impl Slam {
                 !busy.load(Ordering::Acquire) && queued.load(Ordering::Acquire) == 0
             }
         };
-        let outcome = self.tracker.track(&self.map, index, timestamp, image, idle);
+        let outcome = self
+            .tracker
+            .track_masked(&self.map, index, timestamp, image, mask, idle);
         if let Some(kf) = outcome.new_keyframe {
             match &mut self.mapping {
                 Mapping::Inline(mappers) => {

@@ -68,6 +68,12 @@ pub struct TrackingParams {
     /// next frames while relocalisation into the old maps is still tried
     /// on each of them (`None`: relocalise only, forever).
     pub new_map_after_lost_frames: Option<u64>,
+    /// A frame with more than this share of its pixels masked (rows a lost
+    /// video packet damaged) is tracked on its intact part but never
+    /// becomes a keyframe and never starts a map: a keyframe lives on in
+    /// the map, and one seen through a quarter of its picture would carry
+    /// few, clustered points.
+    pub max_masked_share: f64,
     /// Seed of the randomised steps.
     pub seed: u64,
 }
@@ -116,6 +122,7 @@ impl Default for TrackingParams {
                 ..BaParams::default()
             },
             new_map_after_lost_frames: Some(1),
+            max_masked_share: 0.25,
             seed: 1,
         }
     }

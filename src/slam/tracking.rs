@@ -65,6 +65,16 @@ pub enum TrackFailure {
         /// Inliers needed.
         needed: usize,
     },
+    /// Too much of the frame is masked (damaged video) to start a map on.
+    #[error(
+        "{masked_pct} % of the frame is masked (damaged video); a map starts on at most {max_pct} %"
+    )]
+    TooDamaged {
+        /// Masked share of the frame, percent.
+        masked_pct: u32,
+        /// The most a frame may have masked to start a map or be a keyframe.
+        max_pct: u32,
+    },
 }
 
 /// The state of tracking.
@@ -187,6 +197,8 @@ pub struct Tracker {
     new_map_pending: bool,
     /// The new maps started, in order.
     map_starts: Vec<MapStart>,
+    /// Share of the current frame's pixels masked (0: none).
+    masked_share: f64,
 }
 
 impl Tracker {
@@ -225,6 +237,7 @@ impl Tracker {
             lost_since: None,
             new_map_pending: false,
             map_starts: Vec::new(),
+            masked_share: 0.0,
         })
     }
 
@@ -322,13 +335,45 @@ impl Tracker {
         image: Arc<GrayImage>,
         mapping_idle: bool,
     ) -> FrameOutcome {
+        self.track_masked(map, index, timestamp, image, None, mapping_idle)
+    }
+
+    /// [`Tracker::track`] on the pixels where `mask` is not 0 (the rows a
+    /// lost video packet left intact): no feature is extracted whose patch
+    /// reaches a masked pixel, and a frame masked beyond
+    /// [`TrackingParams::max_masked_share`] neither becomes a keyframe nor
+    /// starts a map; a frame masked whole is passed over (the state stays,
+    /// it does not count as lost). A mask of another size than the image
+    /// masks it all.
+    pub fn track_masked(
+        &mut self,
+        map: &Mutex<Map>,
+        index: u64,
+        timestamp: f64,
+        image: Arc<GrayImage>,
+        mask: Option<&GrayImage>,
+        mapping_idle: bool,
+    ) -> FrameOutcome {
         let t0 = Stopwatch::start();
         let initializing = self.state == TrackState::NotInitialized || self.new_map_pending;
-        let feats = if initializing {
-            self.init_extractor.extract(&image, Some(&self.ctx.camera))
+        self.masked_share = mask.map_or(0.0, |m| {
+            if m.dimensions() != image.dimensions() {
+                return 1.0;
+            }
+            let raw = m.as_raw();
+            raw.iter().filter(|v| **v == 0).count() as f64 / raw.len().max(1) as f64
+        });
+        let extractor = if initializing {
+            &mut self.init_extractor
         } else {
-            self.extractor.extract(&image, Some(&self.ctx.camera))
+            &mut self.extractor
         };
+        let mut feats = crate::features::Features::default();
+        if let Err(e) = extractor.extract_into(&image, mask, Some(&self.ctx.camera), &mut feats) {
+            // Only a mask of the wrong size fails: no pixel is trusted.
+            tracing::warn!("frame {index}: {e}");
+            feats = crate::features::Features::default();
+        }
         let extract_ms = t0.wall_ms();
         let extract_cpu_ms = t0.cpu_ms();
         let grid = FeatureGrid::new(&feats.keypoints, self.ctx.bounds);
@@ -358,7 +403,25 @@ impl Tracker {
             track_cpu_ms: None,
             keypoints: Vec::new(),
         };
-        let result = if self.new_map_pending {
+        let max_masked = self.ctx.params.max_masked_share;
+        if self.masked_share >= 1.0 {
+            // Nothing of the frame can be trusted: it is passed over, not
+            // lost (a lost frame would start a new map).
+            out.reason = Some(TrackFailure::TooDamaged {
+                masked_pct: 100,
+                max_pct: (max_masked * 100.0).round() as u32,
+            });
+            out.track_ms = t0.wall_ms();
+            out.track_cpu_ms = t0.cpu_ms();
+            return out;
+        }
+        let result = if initializing && self.masked_share > max_masked {
+            out.keypoints = frame.keypoint_states();
+            Err(TrackFailure::TooDamaged {
+                masked_pct: (self.masked_share * 100.0).round() as u32,
+                max_pct: (max_masked * 100.0).round() as u32,
+            })
+        } else if self.new_map_pending {
             self.track_or_start_new_map(map, frame, mapping_idle, &mut out)
         } else if initializing {
             out.keypoints = frame.keypoint_states();
@@ -625,7 +688,7 @@ impl Tracker {
             recently_relocalized,
             reference: self.reference_kf,
         };
-        if need_new_keyframe(p, map, &candidate) {
+        if self.masked_share <= p.max_masked_share && need_new_keyframe(p, map, &candidate) {
             let id = self.insert_keyframe(map, frame, cam_from_world);
             self.reference_kf = Some(id);
             self.last_kf_frame = frame.index;

@@ -8,11 +8,14 @@
 //! (no RGB conversion) and publishes it to the ingest's newest-frame slot,
 //! which SLAM takes from.
 //!
-//! After a lost packet, a broken slice, or a queue overflow (the decoder
-//! fell behind), the decoder skips access units until the next IDR picture
-//! or SEI recovery point: the pictures in between would be predicted from
-//! a damaged reference and reach SLAM smeared. OpenH264's error concealment
-//! stays off for the same reason.
+//! After a lost packet the decoder goes on with OpenH264's error
+//! concealment, and [`crate::video::damage`] works out which rows of each
+//! picture the loss reached (the lost slices' rows, and through the
+//! reference chain the rows predicted from them): the frame reaches SLAM
+//! with those rows marked ([`Frame::damage`]), and SLAM takes no feature
+//! from them. With [`DecodeParams::conceal`] off (and after a queue
+//! overflow: the decoder fell behind), the decoder instead skips access
+//! units until the next IDR picture or SEI recovery point.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex};
@@ -20,6 +23,7 @@ use std::time::{Duration, Instant};
 
 use image::GrayImage;
 
+use crate::video::damage::{DamageParams, DamageTracker, Losses, RowDamage};
 use crate::video::live::{Counters, Frame, Ingest};
 
 /// Errors of the H.264 path.
@@ -65,6 +69,8 @@ pub const NAL_SLICE: u8 = 1;
 pub const NAL_IDR: u8 = 5;
 /// NAL unit type: supplemental enhancement information.
 pub const NAL_SEI: u8 = 6;
+/// NAL unit type: access unit delimiter.
+pub const NAL_AUD: u8 = 9;
 /// NAL unit type: sequence parameter set.
 pub const NAL_SPS: u8 = 7;
 /// NAL unit type: picture parameter set.
@@ -209,6 +215,10 @@ pub struct AccessUnit {
     /// Packets lost since the previous access unit or inside this one: the
     /// picture (or one it is predicted from) is damaged.
     pub lost: u32,
+    /// Where among the NAL units packets went missing (see
+    /// [`crate::video::rtp::DepacketizedAu::gaps`]); empty with `lost > 0`
+    /// when the reader cannot tell (the whole picture counts as damaged).
+    pub gaps: Vec<u32>,
 }
 
 #[derive(Debug, Default)]
@@ -295,6 +305,7 @@ impl AuQueue {
 /// OpenH264 wrapped to give grey images.
 pub struct LumaDecoder {
     dec: openh264::decoder::Decoder,
+    conceal: bool,
 }
 
 impl std::fmt::Debug for LumaDecoder {
@@ -310,13 +321,168 @@ impl LumaDecoder {
         let dec = openh264::decoder::Decoder::new().map_err(|e| H264Error::DecoderInit {
             reason: e.to_string(),
         })?;
-        Ok(Self { dec })
+        Ok(Self {
+            dec,
+            conceal: false,
+        })
+    }
+
+    /// A decoder with OpenH264's error concealment on (lost macroblocks
+    /// copied from the previous picture, slice by slice): a damaged access
+    /// unit still gives a picture. Which rows of it to trust is
+    /// [`crate::video::damage`]'s answer, not the decoder's.
+    pub fn concealing() -> Result<Self, H264Error> {
+        let mut d = Self::new()?;
+        let mut idc: openh264_sys2::ERROR_CON_IDC = openh264_sys2::ERROR_CON_SLICE_COPY_CROSS_IDR;
+        // SAFETY: the decoder is initialised; SetOption reads one int
+        // through the pointer, which lives across the call.
+        let rc = unsafe {
+            d.dec.raw_api().set_option(
+                openh264_sys2::DECODER_OPTION_ERROR_CON_IDC,
+                std::ptr::addr_of_mut!(idc).cast(),
+            )
+        };
+        if rc != 0 {
+            return Err(H264Error::DecoderInit {
+                reason: format!("OpenH264 refused error concealment (code {rc})"),
+            });
+        }
+        d.conceal = true;
+        Ok(d)
+    }
+
+    /// Decode through OpenH264's raw call: a concealed picture comes with a
+    /// non-zero state (`dsDataErrorConcealed`, `dsRefLost`, ...), which
+    /// is not an error here when a picture came out.
+    fn decode_concealing(&mut self, annexb: &[u8]) -> Result<Option<GrayImage>, H264Error> {
+        Ok(self.decode_tagged(annexb, 0)?.pop().map(|p| p.0))
+    }
+
+    /// Decode one Annex B access unit tagged `tag`; the pictures that come
+    /// out (usually one) carry the tag of the access unit each was coded
+    /// in. Concealing decoders only; a plain one gives back `tag` with its
+    /// picture.
+    ///
+    /// This is OpenH264's `DecodeFrameNoDelay` made by hand (the unit, then
+    /// an empty call that ends it), keeping a picture the first call gave:
+    /// the second call clears the output of the first, which loses the
+    /// concealed picture an access unit delimiter ends (see
+    /// [`DecodeLoop::step`]).
+    pub fn decode_tagged(
+        &mut self,
+        annexb: &[u8],
+        tag: u64,
+    ) -> Result<Vec<(GrayImage, u64)>, H264Error> {
+        if !self.conceal {
+            return Ok(self
+                .decode(annexb)?
+                .map(|img| (img, tag))
+                .into_iter()
+                .collect());
+        }
+        let len = i32::try_from(annexb.len()).map_err(|_| H264Error::Broken {
+            reason: format!("access unit of {} bytes", annexb.len()),
+        })?;
+        let mut out = Vec::new();
+        let mut state = 0;
+        for last in [false, true] {
+            let mut dst = [std::ptr::null_mut::<u8>(); 3];
+            let mut info = openh264_sys2::SBufferInfo {
+                uiInBsTimeStamp: tag,
+                ..Default::default()
+            };
+            let (src, n) = if last {
+                (std::ptr::null(), 0)
+            } else {
+                (annexb.as_ptr(), len)
+            };
+            // SAFETY: `src` is valid for `n` bytes during the call (or
+            // null with 0: the end of the unit); `dst` and `info` are the
+            // out-parameters OpenH264 fills.
+            state |= unsafe {
+                self.dec
+                    .raw_api()
+                    .decode_frame2(src, n, dst.as_mut_ptr(), &raw mut info)
+            };
+            if last && info.iBufferStatus == 0 && out.is_empty() {
+                // A picture held back (reordering): flush it as the safe
+                // wrapper does after each unit.
+                let mut remaining: i32 = 0;
+                // SAFETY: GetOption writes one int through the pointer.
+                let rc = unsafe {
+                    self.dec.raw_api().get_option(
+                        openh264_sys2::DECODER_OPTION_NUM_OF_FRAMES_REMAINING_IN_BUFFER,
+                        std::ptr::addr_of_mut!(remaining).cast(),
+                    )
+                };
+                if rc == 0 && remaining > 0 {
+                    info = openh264_sys2::SBufferInfo::default();
+                    dst = [std::ptr::null_mut::<u8>(); 3];
+                    // SAFETY: out-parameters as above.
+                    state |= unsafe {
+                        self.dec
+                            .raw_api()
+                            .flush_frame(dst.as_mut_ptr(), &raw mut info)
+                    };
+                }
+            }
+            if info.iBufferStatus == 1 && !dst[0].is_null() {
+                // Copied at once: the next call reuses the buffers.
+                out.push((Self::copy_luma(&dst, &info)?, info.uiOutYuvTimeStamp));
+            }
+        }
+        if out.is_empty() && state != 0 {
+            return Err(H264Error::Broken {
+                reason: format!("OpenH264 decoding state {state:#x}, no picture"),
+            });
+        }
+        Ok(out)
+    }
+
+    /// The luma plane of a picture OpenH264 returned, as a grey image.
+    fn copy_luma(
+        dst: &[*mut u8; 3],
+        info: &openh264_sys2::SBufferInfo,
+    ) -> Result<GrayImage, H264Error> {
+        // SAFETY: OpenH264 filled the system buffer's description for the
+        // picture it returned.
+        let sb = unsafe { info.UsrData.sSystemBuffer };
+        let bad = || H264Error::BadPicture {
+            width: sb.iWidth.max(0) as usize,
+            height: sb.iHeight.max(0) as usize,
+            stride: sb.iStride[0].max(0) as usize,
+            len: 0,
+        };
+        let (w, h, stride) = (
+            usize::try_from(sb.iWidth).map_err(|_| bad())?,
+            usize::try_from(sb.iHeight).map_err(|_| bad())?,
+            usize::try_from(sb.iStride[0]).map_err(|_| bad())?,
+        );
+        if w == 0 || h == 0 || stride < w || dst[0].is_null() {
+            return Err(bad());
+        }
+        // SAFETY: the luma plane of the returned picture holds `h` rows of
+        // `stride` bytes, valid until the next call into the decoder.
+        let y = unsafe { std::slice::from_raw_parts(dst[0], stride * (h - 1) + w) };
+        let mut luma = Vec::with_capacity(w * h);
+        for row in 0..h {
+            luma.extend_from_slice(&y[row * stride..row * stride + w]);
+        }
+        let (wu, hu) = (
+            u32::try_from(w).map_err(|_| bad())?,
+            u32::try_from(h).map_err(|_| bad())?,
+        );
+        GrayImage::from_raw(wu, hu, luma).ok_or_else(bad)
     }
 
     /// Decode one Annex B access unit; `Ok(None)` when it held no picture
     /// (parameter sets only).
     pub fn decode(&mut self, annexb: &[u8]) -> Result<Option<GrayImage>, H264Error> {
         use openh264::formats::YUVSource;
+        if self.conceal {
+            return self.decode_concealing(annexb);
+        }
+
         let yuv = self.dec.decode(annexb).map_err(|e| H264Error::Broken {
             reason: e.to_string(),
         })?;
@@ -358,6 +524,11 @@ pub struct DecodeParams {
     /// Decimate the decoded luma by this integer factor (1: full
     /// resolution) before SLAM sees it.
     pub downscale: u32,
+    /// After a lost packet, decode on with error concealment and mark the
+    /// damaged rows (true), or skip to the next sync point (false).
+    pub conceal: bool,
+    /// How damage is followed through the pictures.
+    pub damage: DamageParams,
 }
 
 impl Default for DecodeParams {
@@ -365,6 +536,8 @@ impl Default for DecodeParams {
         Self {
             queue: 8,
             downscale: 1,
+            conceal: true,
+            damage: DamageParams::default(),
         }
     }
 }
@@ -375,16 +548,36 @@ impl Default for DecodeParams {
 #[derive(Debug)]
 pub struct DecodeLoop {
     decoder: LumaDecoder,
+    damage: DamageTracker,
     params: DecodeParams,
     waiting_for_sync: bool,
     size: Option<(u32, u32)>,
     seq: u64,
+    /// The decoder's tag of the next access unit.
+    tag: u64,
+    /// Access units given to the decoder whose picture has not come out
+    /// yet: tag, damage, and the unit's times.
+    pending: VecDeque<Pending>,
 }
+
+/// An access unit whose picture the decoder has not handed out yet.
+#[derive(Debug)]
+struct Pending {
+    tag: u64,
+    damage: Option<crate::video::damage::PictureDamage>,
+    lost: u32,
+    capture_time: Option<f64>,
+    received: Instant,
+    received_unix: f64,
+}
+
+/// Pictures the decoder may hold back before the oldest counts as lost.
+const MAX_PENDING: usize = 16;
 
 /// What one access unit became.
 #[derive(Debug, Clone)]
 pub enum Decoded {
-    /// A picture for SLAM.
+    /// A picture for SLAM (with its damaged rows, if any).
     Frame(Arc<Frame>),
     /// Skipped: damaged, or predicted from a damaged picture.
     Skipped,
@@ -404,12 +597,20 @@ pub enum Decoded {
 impl DecodeLoop {
     /// A fresh loop waiting for its first sync point.
     pub fn new(params: DecodeParams) -> Result<Self, H264Error> {
+        let decoder = if params.conceal {
+            LumaDecoder::concealing()?
+        } else {
+            LumaDecoder::new()?
+        };
         Ok(Self {
-            decoder: LumaDecoder::new()?,
+            decoder,
+            damage: DamageTracker::new(params.damage.clone()),
             params,
             waiting_for_sync: true,
             size: None,
             seq: 0,
+            tag: 0,
+            pending: VecDeque::new(),
         })
     }
 
@@ -418,12 +619,16 @@ impl DecodeLoop {
     pub fn reset(&mut self) {
         self.waiting_for_sync = true;
         self.size = None;
+        self.damage.reset();
+        self.pending.clear();
     }
 
     /// Process one access unit; `gap` tells that units were dropped before it.
     pub fn step(&mut self, au: &AccessUnit, gap: bool) -> Decoded {
         let kind = AuKind::of(&au.data);
-        if au.lost > 0 || gap {
+        // A queue overflow skips to a sync point either way: the decoder is
+        // behind, and the pictures dropped were references.
+        if gap || (au.lost > 0 && !self.params.conceal) {
             self.waiting_for_sync = true;
         }
         if self.waiting_for_sync {
@@ -439,9 +644,67 @@ impl DecodeLoop {
                 };
             }
             self.waiting_for_sync = false;
+            self.damage.reset();
         }
-        match self.decoder.decode(&au.data) {
-            Ok(Some(img)) => {
+        let damage = if self.params.conceal {
+            let nals = annexb_units(&au.data);
+            self.damage.picture(
+                &nals,
+                Losses {
+                    lost: au.lost,
+                    gaps: &au.gaps,
+                },
+            )
+        } else {
+            None
+        };
+        let tag = self.tag;
+        self.tag += 1;
+        if kind.slice {
+            self.pending.push_back(Pending {
+                tag,
+                damage,
+                lost: au.lost,
+                capture_time: au.capture_time,
+                received: au.received,
+                received_unix: au.received_unix,
+            });
+            if self.pending.len() > MAX_PENDING {
+                self.pending.pop_front();
+                self.damage.picture_lost();
+            }
+        }
+        // A picture missing slices is held by OpenH264 until the next
+        // access unit starts, which then overwrites its output: an access
+        // unit delimiter after a damaged unit ends the picture now, and its
+        // concealed picture comes out with its own unit.
+        let data: std::borrow::Cow<'_, [u8]> = if self.params.conceal && au.lost > 0 {
+            let mut d = au.data.clone();
+            push_annexb(&mut d, &[NAL_AUD, 0xf0]);
+            d.into()
+        } else {
+            au.data.as_slice().into()
+        };
+        let mut pictures = match self.decoder.decode_tagged(&data, tag) {
+            Ok(p) => p,
+            Err(e) => {
+                if self.params.conceal {
+                    self.pending.retain(|p| p.tag != tag);
+                    self.damage.picture_lost();
+                } else {
+                    self.waiting_for_sync = true;
+                }
+                return Decoded::Broken(e);
+            }
+        };
+        let last = pictures.pop();
+        // Rarely two pictures come out of one unit: the earlier one was
+        // shown late, not lost; SLAM takes the newest.
+        for (_, t) in pictures {
+            self.pending.retain(|p| p.tag > t);
+        }
+        match last {
+            Some((img, out_tag)) => {
                 let now = (img.width(), img.height());
                 match self.size {
                     None => self.size = Some(now),
@@ -455,21 +718,52 @@ impl DecodeLoop {
                 } else {
                     img
                 };
+                // The access unit this picture was coded in; the units
+                // before it whose pictures never came out are lost, and so
+                // is what was predicted from them.
+                let mut skipped_before = false;
+                while self.pending.front().is_some_and(|p| p.tag < out_tag) {
+                    self.pending.pop_front();
+                    skipped_before = true;
+                }
+                let unit = match self.pending.front() {
+                    Some(p) if p.tag == out_tag => self.pending.pop_front(),
+                    _ => None,
+                };
+                if skipped_before && self.params.conceal {
+                    self.damage.picture_lost();
+                }
+                let h = img.height();
+                let rows = match &unit {
+                    _ if !self.params.conceal => RowDamage::clean(h as usize),
+                    Some(p) if !skipped_before => match &p.damage {
+                        Some(d) => d.rows_of(h, self.params.downscale),
+                        // A picture the tracker could not place (parameter
+                        // sets it could not read) is trusted only without
+                        // a loss.
+                        None if p.lost > 0 => RowDamage::full(h as usize),
+                        None => RowDamage::clean(h as usize),
+                    },
+                    _ => RowDamage::full(h as usize),
+                };
+                let (capture_time, received, received_unix) = match &unit {
+                    Some(p) => (p.capture_time, p.received, p.received_unix),
+                    None => (au.capture_time, au.received, au.received_unix),
+                };
                 let frame = Frame::from_image(
                     self.seq,
-                    au.capture_time,
-                    au.received,
-                    au.received_unix,
+                    capture_time,
+                    received,
+                    received_unix,
                     Arc::new(img),
-                );
+                )
+                .with_damage(rows);
                 self.seq += 1;
                 Decoded::Frame(Arc::new(frame))
             }
-            Ok(None) => Decoded::NoPicture,
-            Err(e) => {
-                self.waiting_for_sync = true;
-                Decoded::Broken(e)
-            }
+            // No picture yet: a concealing decoder may hand it out with the
+            // next access unit (it stays pending).
+            None => Decoded::NoPicture,
         }
     }
 }
@@ -513,6 +807,15 @@ pub fn spawn_decoder(
                 match dl.step(&au, gap) {
                     Decoded::Frame(f) => {
                         let (w, h) = (f.image.width(), f.image.height());
+                        let masked = f.damage.as_ref().map_or(0, |d| d.count()) as u64;
+                        Counters::add(&c.rows, u64::from(h));
+                        if masked > 0 {
+                            Counters::inc(&c.damaged);
+                            Counters::add(&c.masked_rows, masked);
+                            if masked >= u64::from(h) {
+                                Counters::inc(&c.fully_damaged);
+                            }
+                        }
                         ingest.update_source(|s| {
                             s.width = Some(w);
                             s.height = Some(h);
@@ -526,9 +829,7 @@ pub fn spawn_decoder(
                         Counters::inc(&c.skipped);
                         broken_logged += 1;
                         if broken_logged.is_power_of_two() {
-                            tracing::warn!(
-                                "video: {e}; skipping to the next IDR picture ({broken_logged} so far)"
-                            );
+                            tracing::warn!("video: {e} ({broken_logged} so far)");
                         }
                     }
                     Decoded::Refused { first, now } => {
@@ -577,6 +878,20 @@ impl GrayEncoder {
         bitrate_bps: u32,
         idr_period: u32,
     ) -> Result<Self, H264Error> {
+        Self::with_slices(width, height, fps, bitrate_bps, idr_period, None)
+    }
+
+    /// [`GrayEncoder::new`] with slices of at most `max_slice_bytes` bytes
+    /// (`None`: one slice per picture), as senders for lossy links cut
+    /// them to fit one packet each.
+    pub fn with_slices(
+        width: u32,
+        height: u32,
+        fps: f32,
+        bitrate_bps: u32,
+        idr_period: u32,
+        max_slice_bytes: Option<u32>,
+    ) -> Result<Self, H264Error> {
         use openh264::encoder::{
             BitRate, EncoderConfig, FrameRate, IntraFramePeriod, RateControlMode, SpsPpsStrategy,
         };
@@ -588,6 +903,10 @@ impl GrayEncoder {
             .scene_change_detect(false)
             .sps_pps_strategy(SpsPpsStrategy::ConstantId)
             .intra_frame_period(IntraFramePeriod::from_num_frames(idr_period));
+        let cfg = match max_slice_bytes {
+            Some(n) => cfg.max_slice_len(n),
+            None => cfg,
+        };
         let enc =
             openh264::encoder::Encoder::with_api_config(openh264::OpenH264API::from_source(), cfg)
                 .map_err(|e| H264Error::DecoderInit {

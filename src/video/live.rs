@@ -16,6 +16,8 @@ use image::GrayImage;
 use serde::Serialize;
 use tokio::sync::watch;
 
+use crate::video::damage::RowDamage;
+
 /// The slot was closed: no value will come any more.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("the frame slot is closed")]
@@ -140,6 +142,10 @@ pub struct Frame {
     pub received_unix: f64,
     /// The grey image.
     pub image: Arc<GrayImage>,
+    /// Rows a lost packet may have reached (concealed by the decoder, or
+    /// predicted from concealed rows): SLAM takes no feature from them.
+    /// `None`: every row is as the camera encoded it.
+    pub damage: Option<Arc<RowDamage>>,
     /// The JPEG the API re-serves: as received for MJPEG, encoded from the
     /// grey image on first use for H.264.
     jpeg: OnceLock<Arc<Vec<u8>>>,
@@ -163,9 +169,36 @@ impl Frame {
             received,
             received_unix,
             image,
+            damage: None,
             jpeg: OnceLock::new(),
             jpeg_received: false,
         }
+    }
+
+    /// The frame with its damaged rows (`rows` as many as the image's;
+    /// kept only when some row is damaged).
+    pub fn with_damage(mut self, rows: RowDamage) -> Self {
+        self.damage = rows.any().then(|| Arc::new(rows));
+        self
+    }
+
+    /// Share of the rows that are damaged (0 for an intact frame).
+    pub fn masked_share(&self) -> f64 {
+        match &self.damage {
+            Some(d) if !d.rows().is_empty() => d.count() as f64 / d.rows().len() as f64,
+            _ => 0.0,
+        }
+    }
+
+    /// A pixel mask for feature extraction: 255 where the image can be
+    /// trusted, 0 on damaged rows; `None` for an intact frame.
+    pub fn reliable_mask(&self) -> Option<GrayImage> {
+        let d = self.damage.as_ref()?;
+        let (w, h) = self.image.dimensions();
+        Some(GrayImage::from_fn(w, h, |_, y| {
+            let bad = d.rows().get(y as usize).copied().unwrap_or(true);
+            image::Luma([if bad { 0 } else { 255 }])
+        }))
     }
 
     /// The JPEG bytes exactly as the source sent them (MJPEG, snapshot);
@@ -231,10 +264,20 @@ pub struct Counters {
     pub errors: AtomicU64,
     /// Bytes read from the network.
     pub bytes: AtomicU64,
-    /// H.264 access units not decoded because an earlier packet was lost
-    /// or a slice was broken: skipped until the next IDR or recovery point,
-    /// so no smeared frame reaches SLAM.
+    /// H.264 access units not decoded: before the stream's first IDR
+    /// picture or recovery point, after a queue overflow, or (with
+    /// `[video] conceal = false`) after a lost packet, until the next sync
+    /// point; and access units the decoder could not decode at all.
     pub skipped: AtomicU64,
+    /// H.264 frames decoded with damaged rows (a lost packet's slices, or
+    /// rows predicted from them): given to SLAM with those rows masked.
+    pub damaged: AtomicU64,
+    /// Of those, frames whose every row is damaged.
+    pub fully_damaged: AtomicU64,
+    /// Damaged rows summed over the decoded H.264 frames.
+    pub masked_rows: AtomicU64,
+    /// Rows summed over the decoded H.264 frames.
+    pub rows: AtomicU64,
     /// RTP packets lost (sequence-number gaps).
     pub lost_packets: AtomicU64,
     /// H.264 access units dropped because the decoder fell behind the
@@ -272,6 +315,13 @@ pub struct CountersSnapshot {
     pub bytes: u64,
     /// See [`Counters::skipped`].
     pub skipped: u64,
+    /// See [`Counters::damaged`].
+    pub damaged: u64,
+    /// See [`Counters::fully_damaged`].
+    pub fully_damaged: u64,
+    /// Share of the decoded H.264 rows that were damaged (masked for SLAM),
+    /// 0 to 1.
+    pub masked_share: f64,
     /// See [`Counters::lost_packets`].
     pub lost_packets: u64,
     /// See [`Counters::late`].
@@ -300,6 +350,12 @@ impl Counters {
             errors: l(&self.errors),
             bytes: l(&self.bytes),
             skipped: l(&self.skipped),
+            damaged: l(&self.damaged),
+            fully_damaged: l(&self.fully_damaged),
+            masked_share: match l(&self.rows) {
+                0 => 0.0,
+                rows => l(&self.masked_rows) as f64 / rows as f64,
+            },
             lost_packets: l(&self.lost_packets),
             late: l(&self.late),
             refused: l(&self.refused),
@@ -564,6 +620,7 @@ impl Ingest {
                     capture_time: part.capture_time,
                     received: part.received,
                     received_unix: part.received_unix,
+                    damage: None,
                     image: Arc::new({
                         let grey = img.to_luma8();
                         match self.jpeg_downscale.load(Ordering::Relaxed) {

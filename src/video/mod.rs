@@ -4,8 +4,10 @@
 //! pipeline of [`live`]. [`source`] picks the source by `[video] url`:
 //! [`rtsp`] (H.264 over RTSP, on `retina`), [`udp`] (raw RTP H.264,
 //! depacketised by [`rtp`]), both decoded by [`h264`] (OpenH264), sharing
-//! [`stream`]'s parameters, sink and errors.
+//! [`stream`]'s parameters, sink and errors; [`damage`] follows what a lost
+//! packet damaged in each picture.
 
+pub mod damage;
 pub mod dataset;
 pub mod h264;
 pub mod live;

@@ -218,6 +218,9 @@ async fn session(
                     received,
                     received_unix: arrival,
                     lost,
+                    // retina says how many packets a frame lost, not where:
+                    // the whole picture counts as damaged.
+                    gaps: Vec::new(),
                 });
             }
             CodecItem::Rtcp(pkt) => {

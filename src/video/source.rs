@@ -59,6 +59,14 @@ pub struct VideoConfig {
     /// H.264: access units queued ahead of the decoder before the oldest
     /// are dropped and decoding resumes at the next key frame.
     pub decode_queue: usize,
+    /// H.264: after a lost packet, decode on with error concealment and
+    /// hand SLAM each frame with its damaged rows masked (true), or skip
+    /// every picture up to the next key frame (false).
+    pub conceal: bool,
+    /// H.264: the bound on vertical motion between a picture and its
+    /// references, pixels: damage spreads this far per predicted picture
+    /// (see `video::damage`).
+    pub damage_mv_px: u32,
     /// Decimate the picture by this integer factor before SLAM (1: full
     /// resolution; any source); the camera intrinsics are scaled to match.
     pub downscale: u32,
@@ -88,6 +96,8 @@ impl Default for VideoConfig {
             camera_component: 100,
             auto_timeout_s: 30.0,
             decode_queue: 8,
+            conceal: true,
+            damage_mv_px: crate::video::damage::DamageParams::default().mv_px,
             downscale: 1,
             snapshot_hz: 5.0,
             connect_timeout_ms: p.connect_timeout_ms,
@@ -125,6 +135,11 @@ impl VideoConfig {
             decode: crate::video::h264::DecodeParams {
                 queue: self.decode_queue,
                 downscale: self.downscale,
+                conceal: self.conceal,
+                damage: crate::video::damage::DamageParams {
+                    mv_px: self.damage_mv_px,
+                    ..Default::default()
+                },
             },
         }
     }

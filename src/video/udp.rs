@@ -280,6 +280,7 @@ async fn receive(
                 received,
                 received_unix,
                 lost: au.lost,
+                gaps: au.gaps,
             });
         }
         let lost = depack.stats().lost;

@@ -81,6 +81,7 @@ mod soak;
 mod stop_sim;
 mod video_720p;
 mod video_h264;
+mod video_loss;
 mod video_mjpeg;
 mod video_peers;
 mod video_sim_rtp;

@@ -71,6 +71,7 @@ fn run(
             received: Instant::now(),
             received_unix: t,
             lost: 0,
+            gaps: Vec::new(),
         };
         let c0 = thread_cpu_ms();
         let Decoded::Frame(f) = dl.step(&au, false) else {

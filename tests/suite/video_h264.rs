@@ -51,6 +51,7 @@ fn au(data: Vec<u8>, t: f64, lost: u32) -> AccessUnit {
         received: Instant::now(),
         received_unix: t,
         lost,
+        gaps: Vec::new(),
     }
 }
 
@@ -121,61 +122,241 @@ fn rtp_roundtrip_gives_the_access_units_back() {
     assert_eq!(depack.stats().late, 0);
 }
 
-/// Send the stream through RTP with `loss` of the packets dropped (seeded)
-/// and check that every frame that reaches "SLAM" is bit-identical to the
-/// clean decode of the same picture. Returns (decoded, skipped).
-fn lossy_run(loss: f64, seed: u64) -> (usize, usize, u64) {
-    let s = stream(320, 240, 90, 15);
+/// What a lossy run gave.
+#[derive(Debug, Default)]
+struct LossyRun {
+    /// Pictures sent.
+    sent: usize,
+    /// Packets sent and lost.
+    packets: usize,
+    lost: u64,
+    /// Frames decoded (handed to SLAM).
+    decoded: usize,
+    /// Of those, frames with damaged rows, and with every row damaged.
+    damaged: usize,
+    fully_damaged: usize,
+    /// Damaged rows over all decoded rows.
+    masked_share: f64,
+    skipped: usize,
+    /// Frames whose unmasked rows were checked against the clean decode.
+    compared: usize,
+}
+
+/// Encode `n` renders (IDR every `idr_period`; slices of at most
+/// `slice_bytes`), send them as RTP packets of at most 1400 bytes, drop the
+/// packets `drop` says (packet number -> dropped), and decode what comes
+/// through with `params`. Every frame that comes out must equal the clean
+/// decode of its picture, pixel for pixel, on every row it does not mark
+/// damaged (with concealment off: on every row).
+fn lossy_run_with(
+    s: &Stream,
+    params: DecodeParams,
+    mut drop: impl FnMut(usize) -> bool,
+    mut each: impl FnMut(usize, &shotpilot::video::live::Frame, &GrayImage),
+) -> LossyRun {
     let clean = clean_decode(&s.aus);
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let mut seq = 0u16;
     let mut depack = H264Depacketizer::new(vec![]);
-    let mut dl = DecodeLoop::new(DecodeParams::default()).unwrap();
-    let (mut decoded, mut skipped) = (0, 0);
+    let mut dl = DecodeLoop::new(params).unwrap();
+    let mut run = LossyRun {
+        sent: s.aus.len(),
+        ..Default::default()
+    };
+    let (mut rows, mut masked_rows) = (0usize, 0usize);
     for (i, a) in s.aus.iter().enumerate() {
         let ts = 6000 * i as u32;
         for p in packetize_h264(a, 1400, 96, 7, &mut seq, ts) {
-            if rng.random::<f64>() < loss {
+            run.packets += 1;
+            if drop(run.packets - 1) {
                 continue;
             }
             for done in depack.push(&parse_rtp(&p).unwrap()) {
                 let idx = (done.timestamp / 6000) as usize;
-                match dl.step(&au(done.data, idx as f64, done.lost), false) {
+                let mut unit = au(done.data, idx as f64, done.lost);
+                unit.gaps = done.gaps;
+                let out = dl.step(&unit, false);
+                match out {
                     Decoded::Frame(f) => {
-                        decoded += 1;
-                        assert_eq!(
-                            f.image.as_raw(),
-                            clean[idx].as_raw(),
-                            "picture {idx} reached SLAM damaged (loss {loss})"
-                        );
+                        run.decoded += 1;
+                        let h = f.image.height() as usize;
+                        let bad = f.damage.as_ref().map_or(0, |d| d.count());
+                        rows += h;
+                        masked_rows += bad;
+                        if bad > 0 {
+                            run.damaged += 1;
+                        }
+                        if bad == h {
+                            run.fully_damaged += 1;
+                            continue;
+                        }
+                        run.compared += 1;
+                        let w = f.image.width() as usize;
+                        for y in 0..h {
+                            if f.damage.as_ref().is_some_and(|d| d.rows()[y]) {
+                                continue;
+                            }
+                            let got = &f.image.as_raw()[y * w..(y + 1) * w];
+                            let want = &clean[idx].as_raw()[y * w..(y + 1) * w];
+                            assert_eq!(
+                                got, want,
+                                "picture {idx}: row {y} is not marked damaged but differs from the clean decode"
+                            );
+                        }
+                        each(idx, &f, &clean[idx]);
                     }
-                    Decoded::Skipped | Decoded::Broken(_) => skipped += 1,
+                    Decoded::Skipped | Decoded::Broken(_) => run.skipped += 1,
                     Decoded::NoPicture => {}
                     Decoded::Refused { .. } => panic!("no size change here"),
                 }
             }
         }
     }
-    (decoded, skipped, depack.stats().lost)
+    run.lost = depack.stats().lost;
+    run.masked_share = masked_rows as f64 / rows.max(1) as f64;
+    run
+}
+
+fn sliced_stream(n: usize, idr_period: u32, slice_bytes: Option<u32>) -> Stream {
+    let frames = renders(320, 240, n);
+    let mut enc =
+        GrayEncoder::with_slices(320, 240, 15.0, 400_000, idr_period, slice_bytes).unwrap();
+    let aus = frames.iter().map(|f| enc.encode(f).unwrap()).collect();
+    Stream { aus, frames }
+}
+
+fn random_loss(loss: f64, seed: u64) -> impl FnMut(usize) -> bool {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    move |_| rng.random::<f64>() < loss
 }
 
 #[test]
-fn one_percent_loss_skips_to_the_next_idr_and_never_smears() {
-    let (decoded, skipped, lost) = lossy_run(0.01, 11);
-    eprintln!("1% loss: {lost} packets lost, {decoded} pictures decoded, {skipped} skipped");
-    assert!(lost > 0, "the run must lose packets");
-    assert!(skipped > 0);
+fn without_concealment_a_loss_skips_to_the_next_idr_and_never_smears() {
+    let s = stream(320, 240, 90, 15);
+    let params = DecodeParams {
+        conceal: false,
+        ..Default::default()
+    };
+    let r = lossy_run_with(&s, params, random_loss(0.01, 11), |_, f, _| {
+        assert!(f.damage.is_none(), "skipping mode marks nothing")
+    });
+    eprintln!("1% loss, skipping: {r:?}");
+    assert!(r.lost > 0, "the run must lose packets");
+    assert!(r.skipped > 0);
     // One IDR per second: most of the stream survives 1 % loss.
-    assert!(decoded >= 45, "{decoded}");
+    assert!(r.decoded >= 45, "{r:?}");
+}
+
+/// Concealment on, a stream cut into slices of one packet each: every
+/// frame reaches SLAM, and its unmasked rows are the clean decode's.
+fn concealed_run(loss: f64, seed: u64, slice_bytes: Option<u32>) -> LossyRun {
+    let s = sliced_stream(90, 15, slice_bytes);
+    let r = lossy_run_with(
+        &s,
+        DecodeParams::default(),
+        random_loss(loss, seed),
+        |_, _, _| {},
+    );
+    eprintln!(
+        "{:.0} % loss, slices {slice_bytes:?}: {} packets, {} lost; {} of {} pictures decoded, \
+         {} damaged ({} fully), {:.1} % of rows masked, {} skipped",
+        loss * 100.0,
+        r.packets,
+        r.lost,
+        r.decoded,
+        r.sent,
+        r.damaged,
+        r.fully_damaged,
+        r.masked_share * 100.0,
+        r.skipped
+    );
+    r
 }
 
 #[test]
-fn five_percent_loss_skips_to_the_next_idr_and_never_smears() {
-    let (decoded, skipped, lost) = lossy_run(0.05, 12);
-    eprintln!("5% loss: {lost} packets lost, {decoded} pictures decoded, {skipped} skipped");
-    assert!(lost > 5);
-    assert!(skipped > decoded / 4, "5 % loss must cost whole GOP tails");
-    assert!(decoded > 0, "IDR pictures that arrive whole still decode");
+fn one_percent_loss_conceals_and_masks_only_the_damaged_rows() {
+    let r = concealed_run(0.01, 11, Some(1200));
+    assert!(
+        r.lost > 0 && r.damaged > 0,
+        "the run must damage pictures: {r:?}"
+    );
+    assert_eq!(r.decoded, r.sent, "every picture reaches SLAM: {r:?}");
+    assert!(r.compared > r.fully_damaged, "{r:?}");
+}
+
+#[test]
+fn five_percent_loss_conceals_and_masks_only_the_damaged_rows() {
+    let r = concealed_run(0.05, 12, Some(1200));
+    assert!(r.lost > 5, "{r:?}");
+    assert!(
+        r.decoded + 2 >= r.sent,
+        "every picture but a lost IDR's reaches SLAM: {r:?}"
+    );
+    assert!(r.compared > 0, "{r:?}");
+}
+
+#[test]
+fn single_slice_pictures_lose_the_whole_picture_to_a_loss() {
+    let r = concealed_run(0.02, 13, None);
+    assert!(r.lost > 0, "{r:?}");
+    assert!(
+        r.fully_damaged > 0,
+        "one slice per picture: a loss masks it all: {r:?}"
+    );
+}
+
+#[test]
+fn a_lost_slice_masks_its_rows_and_the_features_there_are_the_clean_ones() {
+    use shotpilot::features::{OrbExtractor, Params as OrbParams};
+    let s = sliced_stream(30, 30, Some(600));
+    // The packets of picture 5 (a P picture cut into several slices).
+    let mut seq = 0u16;
+    let mut first_of = Vec::new();
+    let mut count = 0;
+    for (i, a) in s.aus.iter().enumerate() {
+        first_of.push(count);
+        count += packetize_h264(a, 1400, 96, 7, &mut seq, 6000 * i as u32).len();
+    }
+    let (p5, p6) = (first_of[5], first_of[6]);
+    assert!(p6 - p5 >= 3, "picture 5 has {} packets", p6 - p5);
+    let victim = p5 + (p6 - p5) / 2;
+    let mut ext = OrbExtractor::new(OrbParams::default()).unwrap();
+    let mut masks = Vec::new();
+    let mut features_checked = 0;
+    let r = lossy_run_with(
+        &s,
+        DecodeParams::default(),
+        |k| k == victim,
+        |idx, f, clean| {
+            masks.push((idx, f.masked_share()));
+            let Some(mask) = f.reliable_mask() else {
+                return;
+            };
+            // What SLAM extracts from the damaged frame is what it would
+            // extract, under the same mask, from the clean picture.
+            let got = ext.extract_masked(&f.image, &mask, None).unwrap();
+            let want = ext.extract_masked(clean, &mask, None).unwrap();
+            assert_eq!(got.keypoints.len(), want.keypoints.len(), "picture {idx}");
+            for (a, b) in got.keypoints.iter().zip(&want.keypoints) {
+                assert_eq!((a.x, a.y), (b.x, b.y), "picture {idx}");
+                let row = a.y.round() as usize;
+                assert!(!f.damage.as_ref().unwrap().rows()[row.min(f.image.height() as usize - 1)]);
+            }
+            assert_eq!(got.descriptors, want.descriptors, "picture {idx}");
+            features_checked += got.keypoints.len();
+        },
+    );
+    eprintln!("one packet of picture 5 lost: {r:?}; masked share per picture {masks:?}");
+    assert_eq!(r.lost, 1);
+    assert_eq!(r.decoded, 30);
+    let share = |i: usize| masks.iter().find(|m| m.0 == i).map_or(-1.0, |m| m.1);
+    assert_eq!(share(4), 0.0, "before the loss");
+    assert!(
+        share(5) > 0.0 && share(5) < 1.0,
+        "part of picture 5: {}",
+        share(5)
+    );
+    assert!(share(6) >= share(5), "picture 6 predicts from it");
+    assert!(features_checked > 100, "{features_checked}");
 }
 
 #[test]

@@ -131,6 +131,10 @@ pub struct DepacketizedAu {
     pub timestamp: u32,
     /// Packets lost since the previous access unit or within this one.
     pub lost: u32,
+    /// Where among the access unit's NAL units packets went missing: `k`
+    /// before unit `k`, the unit count at the end (a slice hit by the loss
+    /// is left out whole). See [`crate::video::damage`].
+    pub gaps: Vec<u32>,
 }
 
 /// Counters of the depacketiser.
@@ -155,6 +159,10 @@ pub struct H264Depacketizer {
     cur: Vec<u8>,
     cur_ts: Option<u32>,
     cur_lost: u32,
+    /// NAL units in `cur`.
+    cur_nals: u32,
+    /// Loss positions among them.
+    cur_gaps: Vec<u32>,
     fu: Option<Vec<u8>>,
     last_seq: Option<u16>,
     ssrc: Option<u32>,
@@ -184,48 +192,65 @@ impl H264Depacketizer {
         self.stats
     }
 
+    /// Count `n` lost packets at the current position of the unit.
+    fn lose(&mut self, n: u32) {
+        self.cur_lost += n;
+        if self.cur_gaps.last() != Some(&self.cur_nals) {
+            self.cur_gaps.push(self.cur_nals);
+        }
+    }
+
     fn finish(&mut self) -> Option<DepacketizedAu> {
         let ts = self.cur_ts.take()?;
         if self.fu.take().is_some() {
             // An unfinished fragment: its end was lost.
-            self.cur_lost += 1;
+            self.lose(1);
         }
         let data = std::mem::take(&mut self.cur);
         let lost = std::mem::take(&mut self.cur_lost);
+        let mut gaps = std::mem::take(&mut self.cur_gaps);
+        self.cur_nals = 0;
         if data.is_empty() && lost == 0 {
             return None;
         }
-        let data = self.with_param_sets(data);
+        let (data, inserted) = self.with_param_sets(data);
+        for g in &mut gaps {
+            *g += inserted;
+        }
         Some(DepacketizedAu {
             data,
             timestamp: ts,
             lost,
+            gaps,
         })
     }
 
-    fn with_param_sets(&self, data: Vec<u8>) -> Vec<u8> {
+    /// The unit with the SDP's parameter sets put first when it is an IDR
+    /// picture sent without them, and how many units were put.
+    fn with_param_sets(&self, data: Vec<u8>) -> (Vec<u8>, u32) {
         if self.param_sets.is_empty() {
-            return data;
+            return (data, 0);
         }
         let kind = crate::video::h264::AuKind::of(&data);
         if !kind.idr || (kind.sps && kind.pps) {
-            return data;
+            return (data, 0);
         }
         let mut out = Vec::with_capacity(data.len() + 64);
         for ps in &self.param_sets {
             push_annexb(&mut out, ps);
         }
         out.extend_from_slice(&data);
-        out
+        (out, self.param_sets.len() as u32)
     }
 
     fn add_nal(&mut self, nal: &[u8]) {
         if self.cur.len() + nal.len() + 4 > self.max_au_bytes {
-            self.cur_lost += 1;
+            self.lose(1);
             self.stats.malformed += 1;
             return;
         }
         push_annexb(&mut self.cur, nal);
+        self.cur_nals += 1;
     }
 
     /// Take one packet; returns the access units it completed (at most two:
@@ -236,7 +261,7 @@ impl H264Depacketizer {
             // A new source (sender restarted): its numbering starts afresh.
             if self.ssrc.is_some() {
                 out.extend(self.finish());
-                self.cur_lost += 1;
+                self.lose(1);
             }
             self.ssrc = Some(pkt.ssrc);
             self.last_seq = None;
@@ -253,17 +278,17 @@ impl H264Depacketizer {
                 // The loss belongs to this unit if its timestamp continues,
                 // else to both the unfinished one and the next.
                 if self.cur_ts.is_some() && self.cur_ts != Some(pkt.timestamp) {
-                    self.cur_lost += lost;
+                    self.lose(lost);
                     out.extend(self.finish());
                 }
-                self.cur_lost += lost;
+                self.lose(lost);
                 self.fu = None;
             }
         }
         if self.last_seq.is_none() && !starts_access_unit(pkt.payload) {
             // Joined mid-unit (or its first packets were lost): what came
             // before cannot be known, so the unit counts as damaged.
-            self.cur_lost += 1;
+            self.lose(1);
         }
         self.last_seq = Some(pkt.sequence);
         self.stats.packets += 1;
@@ -274,7 +299,7 @@ impl H264Depacketizer {
         if let Err(e) = self.payload(pkt.payload) {
             tracing::debug!("RTP seq {}: {e}", pkt.sequence);
             self.stats.malformed += 1;
-            self.cur_lost += 1;
+            self.lose(1);
             self.fu = None;
         }
         if pkt.marker {
@@ -299,7 +324,7 @@ impl H264Depacketizer {
                 if self.fu.is_some() {
                     // A fragment was cut short.
                     self.fu = None;
-                    self.cur_lost += 1;
+                    self.lose(1);
                 }
                 self.add_nal(p);
                 Ok(())
@@ -338,7 +363,7 @@ impl H264Depacketizer {
                 }
                 if start {
                     if self.fu.is_some() {
-                        self.cur_lost += 1;
+                        self.lose(1);
                     }
                     let mut nal = Vec::with_capacity(p.len() * 4);
                     nal.push((hdr & 0xe0) | (fh & 0x1f));
@@ -354,7 +379,7 @@ impl H264Depacketizer {
                     nal.extend_from_slice(&p[2..]);
                 } else {
                     // A fragment without its start: the start was lost.
-                    self.cur_lost += 1;
+                    self.lose(1);
                     return Ok(());
                 }
                 if end && let Some(nal) = self.fu.take() {
