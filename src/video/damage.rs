@@ -100,7 +100,7 @@ impl<'a> Bits<'a> {
 
 /// A NAL unit's payload without its header byte and without emulation
 /// prevention bytes.
-fn rbsp(nal: &[u8]) -> Vec<u8> {
+pub(crate) fn rbsp(nal: &[u8]) -> Vec<u8> {
     let mut out = Vec::with_capacity(nal.len());
     let mut zeros = 0;
     for &b in nal.iter().skip(1) {

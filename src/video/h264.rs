@@ -122,17 +122,8 @@ pub fn push_annexb(out: &mut Vec<u8>, nal: &[u8]) {
 
 /// Whether the SEI NAL unit carries a recovery point message.
 fn sei_has_recovery_point(nal: &[u8]) -> bool {
-    // Remove emulation prevention bytes from the RBSP first.
-    let mut rbsp = Vec::with_capacity(nal.len());
-    let mut zeros = 0;
-    for &b in nal.iter().skip(1) {
-        if zeros >= 2 && b == 3 {
-            zeros = 0;
-            continue;
-        }
-        zeros = if b == 0 { zeros + 1 } else { 0 };
-        rbsp.push(b);
-    }
+    // Emulation prevention bytes removed first.
+    let rbsp = crate::video::damage::rbsp(nal);
     let mut i = 0;
     while i < rbsp.len() && rbsp[i] != 0x80 {
         let mut ty = 0u32;

@@ -22,15 +22,6 @@ use tokio_util::sync::CancellationToken;
 use crate::link_support;
 use crate::mission_sim::{bad_radio, sim_config};
 
-fn python() -> String {
-    std::env::var("SHOTPILOT_PYTHON").unwrap_or_else(|_| {
-        if std::path::Path::new("/work/venv/bin/python").exists() {
-            "/work/venv/bin/python".into()
-        } else {
-            "python3".into()
-        }
-    })
-}
 
 /// The pymavlink station: its process, its stdin, and its stdout's JSON
 /// lines (read on a thread).
@@ -44,7 +35,7 @@ struct Station {
 impl Station {
     async fn start(args: &[&str]) -> anyhow::Result<Self> {
         let script = crate::repo_root().join("tests/peers/gcs_peer.py");
-        let mut child = Command::new(python())
+        let mut child = Command::new(crate::link_support::python())
             .arg(script)
             .arg("--port")
             .arg("0")
@@ -139,18 +130,6 @@ async fn sim_and_link(
     Ok(link)
 }
 
-async fn home_of(link: &LinkHandle) -> anyhow::Result<Home> {
-    let mut rx = link.telemetry.home.clone();
-    let h = tokio::time::timeout(Duration::from_secs(30), rx.wait_for(|h| h.is_some()))
-        .await??
-        .map(|s| s.value)
-        .ok_or_else(|| anyhow::anyhow!("no home"))?;
-    Ok(Home {
-        lat_deg: h.lat_deg,
-        lon_deg: h.lon_deg,
-        alt_amsl_m: h.alt_amsl_m,
-    })
-}
 
 fn our_mission(home: &Home, k: usize) -> anyhow::Result<Vec<MissionItem>> {
     let t = Target {
@@ -266,7 +245,7 @@ async fn a_second_station_through_a_forward_endpoint() -> anyhow::Result<()> {
     );
 
     // Then shotpilot's own upload, which the station reads back.
-    let home = home_of(&link).await?;
+    let home = link_support::home_of(&link).await?;
     let items = our_mission(&home, 0)?;
     let report = link.upload_mission(items.clone()).await?;
     println!("shotpilot's upload: {report:?}");
@@ -298,7 +277,7 @@ async fn two_stations_upload_at_once_over_a_lossy_radio() -> anyhow::Result<()> 
     let mut station = Station::start(&["--window", "0", "--no-arm"]).await?;
     let link = sim_and_link(station.port, bad_radio(11), dir.path(), &cancel).await?;
     station.expect("vehicle", 30).await?;
-    let home = home_of(&link).await?;
+    let home = link_support::home_of(&link).await?;
     let rounds = 20;
     let mut held = 0;
     let mut station_s = Vec::new();
@@ -652,32 +631,30 @@ fn the_daemon_marks_its_shot_replaced_then_stores_its_photo() -> anyhow::Result<
             .unwrap_or("")
             .to_owned()
     };
+    // Waits until the shot's mission state is (or, with `leave`, is no
+    // longer) `want`; how long it took.
+    let wait_state = |want: &str, leave: bool, limit_s: u64, what: &str| {
+        let t = Instant::now();
+        while (state() == want) == leave {
+            anyhow::ensure!(
+                t.elapsed() < Duration::from_secs(limit_s),
+                "the shot is {} {limit_s} s after {what}",
+                state()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Ok(t.elapsed())
+    };
     // At start the vehicle holds no mission: the shot's is `cleared`.
-    let t = Instant::now();
-    while state() != "cleared" {
-        anyhow::ensure!(
-            t.elapsed() < Duration::from_secs(30),
-            "the shot is {} 30 s after start",
-            state()
-        );
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    wait_state("cleared", false, 30, "start")?;
     rt.block_on(station.expect("vehicle", 30))?;
     rt.block_on(station.expect("armed", 30))?;
     let up = rt.block_on(station.expect("uploaded", 60))?;
     anyhow::ensure!(up["result"] == "MAV_MISSION_ACCEPTED", "{up}");
-    let t = Instant::now();
-    while state() != "replaced" {
-        anyhow::ensure!(
-            t.elapsed() < Duration::from_secs(2),
-            "the shot is still {} 2 s after the station's upload",
-            state()
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    let took = wait_state("replaced", false, 2, "the station's upload")?;
     println!(
         "the shot was marked replaced {:.2} s after the station's upload ended",
-        t.elapsed().as_secs_f64()
+        took.as_secs_f64()
     );
     let shot = daemon_support::get_json(running.addr, "/api/v1/shots/shot-1");
     println!("{}", shot["mission"]["details"]["vehicle"]);
@@ -688,16 +665,7 @@ fn the_daemon_marks_its_shot_replaced_then_stores_its_photo() -> anyhow::Result<
     station.tell("upload-json")?;
     let up = rt.block_on(station.expect("uploaded", 60))?;
     anyhow::ensure!(up["result"] == "MAV_MISSION_ACCEPTED", "{up}");
-    let t = Instant::now();
-    while state() == "replaced" {
-        anyhow::ensure!(
-            t.elapsed() < Duration::from_secs(2),
-            "the shot is still replaced 2 s after its own mission came back: {}\nplanned {}",
-            daemon_support::get_json(running.addr, "/api/v1/vehicle/mission"),
-            serde_json::to_string(&items).unwrap_or_default()
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    wait_state("replaced", true, 2, "its own mission came back")?;
     println!("with its mission back the shot is {}", state());
     station.tell("capture 100")?;
     let cap = rt.block_on(station.expect("captured", 30))?;

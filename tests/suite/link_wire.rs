@@ -17,15 +17,6 @@ use tokio_util::sync::CancellationToken;
 const KEY: &str = "4f2c1b8a9d7e6f5041322314a5b6c7d8e9f00112233445566778899aabbccdde";
 const WRONG: &str = "4f2c1b8a9d7e6f5041322314a5b6c7d8e9f00112233445566778899aabbccddf";
 
-fn python() -> String {
-    std::env::var("SHOTPILOT_PYTHON").unwrap_or_else(|_| {
-        if std::path::Path::new("/work/venv/bin/python").exists() {
-            "/work/venv/bin/python".into()
-        } else {
-            "python3".into()
-        }
-    })
-}
 
 /// A running pymavlink vehicle: the process, its stdout, and the port it
 /// bound (it binds port 0 and says which it got).
@@ -44,7 +35,7 @@ fn start_peer_as(
     autopilot: &str,
 ) -> anyhow::Result<Peer> {
     let script = crate::repo_root().join("tests/peers/pymavlink_vehicle.py");
-    let mut cmd = Command::new(python());
+    let mut cmd = Command::new(crate::link_support::python());
     cmd.arg(script)
         .arg("--port")
         .arg("0")

@@ -14,15 +14,6 @@ use shotpilot::mission::upload;
 use shotpilot::vehicle::{self, Params};
 use tokio_util::sync::CancellationToken;
 
-fn python() -> String {
-    std::env::var("SHOTPILOT_PYTHON").unwrap_or_else(|_| {
-        if std::path::Path::new("/work/venv/bin/python").exists() {
-            "/work/venv/bin/python".into()
-        } else {
-            "python3".into()
-        }
-    })
-}
 
 async fn mavsdk_receives(flavour: Flavour) -> anyhow::Result<()> {
     // Our link listens on a port the kernel picks; MAVSDK sends there (it
@@ -35,7 +26,7 @@ async fn mavsdk_receives(flavour: Flavour) -> anyhow::Result<()> {
     let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
     let port = link.bound_addr(Duration::from_secs(5)).await?.port();
     let script = crate::repo_root().join("tests/peers/mavsdk_autopilot.py");
-    let mut child = Command::new(python())
+    let mut child = Command::new(crate::link_support::python())
         .arg(script)
         .arg("--gcs-port")
         .arg(port.to_string())

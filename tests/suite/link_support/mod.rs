@@ -639,3 +639,16 @@ pub async fn home_of(
         alt_amsl_m: h.alt_amsl_m,
     })
 }
+
+/// The Python with the peers' packages (pymavlink, mavsdk):
+/// `$SHOTPILOT_PYTHON`, else `/work/venv/bin/python` when it exists, else
+/// `python3`.
+pub fn python() -> String {
+    std::env::var("SHOTPILOT_PYTHON").unwrap_or_else(|_| {
+        if std::path::Path::new("/work/venv/bin/python").exists() {
+            "/work/venv/bin/python".into()
+        } else {
+            "python3".into()
+        }
+    })
+}
