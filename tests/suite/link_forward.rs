@@ -244,6 +244,9 @@ async fn a_second_station_through_a_forward_endpoint() -> anyhow::Result<()> {
         "shotpilot reads back the station's mission"
     );
 
+    station.tell("mission_id")?;
+    let id_theirs = station.expect("mission_id", 10).await?["id"].as_u64();
+
     // Then shotpilot's own upload, which the station reads back.
     let home = link_support::home_of(&link).await?;
     let items = our_mission(&home, 0)?;
@@ -253,6 +256,15 @@ async fn a_second_station_through_a_forward_endpoint() -> anyhow::Result<()> {
         *link.telemetry.mission_changes.borrow(),
         seen_before + 1,
         "shotpilot's own upload is not another station's change"
+    );
+    // The station is told as autopilots tell it: MISSION_CURRENT names
+    // another plan.
+    station.tell("mission_id")?;
+    let id_ours = station.expect("mission_id", 10).await?["id"].as_u64();
+    println!("MISSION_CURRENT.mission_id: {id_theirs:?} after the station's upload, {id_ours:?} after ours");
+    assert!(
+        id_theirs.is_some_and(|t| t != 0) && id_ours.is_some_and(|o| o != 0) && id_theirs != id_ours,
+        "the plan id did not change: {id_theirs:?} -> {id_ours:?}"
     );
     station.tell("download")?;
     let down = station.expect("downloaded", 60).await?;

@@ -391,10 +391,40 @@ impl MissionProtocol {
             total: self.items.len() as u16,
             mission_state: state,
             mission_mode: 0,
-            mission_id: 0,
+            mission_id: self.plan_id(),
             fence_id: 0,
             rally_points_id: 0,
         })
+    }
+
+    /// The stored plan's id as MISSION_CURRENT reports it (PX4 sends a
+    /// CRC32 of the plan; here a 32-bit FNV-1a hash of the items): ground
+    /// stations sharing the link see that the mission changed, and
+    /// read it again. 0 for no mission, as MAVLink says for "none".
+    pub fn plan_id(&self) -> u32 {
+        let first = usize::from(self.first_item());
+        if self.items.len() <= first {
+            return 0;
+        }
+        let mut h: u32 = 0x811c_9dc5;
+        let mut eat = |bytes: &[u8]| {
+            for b in bytes {
+                h ^= u32::from(*b);
+                h = h.wrapping_mul(0x0100_0193);
+            }
+        };
+        for it in &self.items[first..] {
+            eat(&(it.frame as u32).to_le_bytes());
+            eat(&(it.command as u32).to_le_bytes());
+            eat(&[it.autocontinue]);
+            for p in it.params {
+                eat(&p.to_bits().to_le_bytes());
+            }
+            eat(&it.x.to_bits().to_le_bytes());
+            eat(&it.y.to_bits().to_le_bytes());
+            eat(&it.z.to_bits().to_le_bytes());
+        }
+        h.max(1)
     }
 
     fn addressed_to_us(&self, target_system: u8) -> bool {
