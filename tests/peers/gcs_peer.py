@@ -14,8 +14,7 @@ It prints one line per step on stdout, each a JSON object with "step":
 and then reads commands on stdin: "upload" (another upload, items moved a
 little each time: another "uploaded" line), "download"
   {"step": "downloaded", "items": [[command, lat_e7, lon_e7, alt], ...]}
-"mission_id" ({"step": "mission_id", "id": N}: the plan id of the vehicle's
-MISSION_CURRENT, heard over 2.5 s), "capture COMPONENT" (MAV_CMD_IMAGE_START_CAPTURE, one image, to that
+"capture COMPONENT" (MAV_CMD_IMAGE_START_CAPTURE, one image, to that
 component of the vehicle: {"step": "captured", "result": N}) and "quit".
 With --no-arm it neither arms nor uploads before reading stdin;
 "upload-json" uploads the items of --items-json FILE (shotpilot's
@@ -252,15 +251,6 @@ def main():
             result = g.command(mav.MAV_CMD_IMAGE_START_CAPTURE, [0, 0, 1, 0, 0, 0, 0])
             g.vehicle = autopilot
             say(step="captured", result=result)
-        elif line.strip() == "mission_id":
-            # the plan id the vehicle's MISSION_CURRENT reports (2.5 s of listening)
-            seen = None
-            end = time.time() + 2.5
-            while time.time() < end:
-                msg = g.recv(end - time.time())
-                if msg is not None and msg.get_type() == "MISSION_CURRENT":
-                    seen = getattr(msg, "mission_id", None)
-            say(step="mission_id", id=seen)
         elif line.strip() == "quit":
             break
     return 0

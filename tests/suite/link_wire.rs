@@ -17,7 +17,6 @@ use tokio_util::sync::CancellationToken;
 const KEY: &str = "4f2c1b8a9d7e6f5041322314a5b6c7d8e9f00112233445566778899aabbccdde";
 const WRONG: &str = "4f2c1b8a9d7e6f5041322314a5b6c7d8e9f00112233445566778899aabbccddf";
 
-
 /// A running pymavlink vehicle: the process, its stdout, and the port it
 /// bound (it binds port 0 and says which it got).
 type Peer = (Child, BufReader<std::process::ChildStdout>, u16);

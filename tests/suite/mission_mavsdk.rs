@@ -14,7 +14,6 @@ use shotpilot::mission::upload;
 use shotpilot::vehicle::{self, Params};
 use tokio_util::sync::CancellationToken;
 
-
 async fn mavsdk_receives(flavour: Flavour) -> anyhow::Result<()> {
     // Our link listens on a port the kernel picks; MAVSDK sends there (it
     // cannot report a port it bound itself).

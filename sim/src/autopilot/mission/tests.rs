@@ -652,7 +652,9 @@ fn link_placeholders_for_unknown_commands_and_frames_are_refused() {
 #[test]
 fn mission_current_names_the_stored_plan() {
     for mut p in [px4(), ardu()] {
-        let id = |p: &MissionProtocol| match p.mission_current(MissionState::MISSION_STATE_NOT_STARTED) {
+        let id = |p: &MissionProtocol| match p
+            .mission_current(MissionState::MISSION_STATE_NOT_STARTED)
+        {
             MavMessage::MISSION_CURRENT(c) => c.mission_id,
             _ => unreachable!(),
         };
@@ -660,12 +662,21 @@ fn mission_current_names_the_stored_plan() {
         let a: Vec<_> = (0..3).map(wp).collect();
         let mut b = a.clone();
         b[2].z += 1.0;
-        assert_eq!(upload(&mut p, 0.0, &a), MavMissionResult::MAV_MISSION_ACCEPTED);
+        assert_eq!(
+            upload(&mut p, 0.0, &a),
+            MavMissionResult::MAV_MISSION_ACCEPTED
+        );
         let id_a = id(&p);
         assert_ne!(id_a, 0);
-        assert_eq!(upload(&mut p, 10.0, &b), MavMissionResult::MAV_MISSION_ACCEPTED);
+        assert_eq!(
+            upload(&mut p, 10.0, &b),
+            MavMissionResult::MAV_MISSION_ACCEPTED
+        );
         assert_ne!(id(&p), id_a, "another plan, another id");
-        assert_eq!(upload(&mut p, 20.0, &a), MavMissionResult::MAV_MISSION_ACCEPTED);
+        assert_eq!(
+            upload(&mut p, 20.0, &a),
+            MavMissionResult::MAV_MISSION_ACCEPTED
+        );
         assert_eq!(id(&p), id_a, "the same plan, the same id");
     }
 }
