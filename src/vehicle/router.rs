@@ -110,16 +110,16 @@ impl RouteTable {
         if (system, component) == own {
             return Vec::new();
         }
-        let of_system: HashSet<LinkId> = self
-            .seen
-            .iter()
-            .filter(|((s, _), _)| *s == system)
-            .flat_map(|(_, l)| l.iter().copied())
-            .collect();
-        let exact = self.seen.get(&(system, component));
-        let wanted: HashSet<LinkId> = match exact {
+        // Where the component was heard; else (broadcast to the system's
+        // components, or a component not heard yet) where the system was.
+        let wanted: HashSet<LinkId> = match self.seen.get(&(system, component)) {
             Some(l) if component != 0 => l.clone(),
-            _ => of_system,
+            _ => self
+                .seen
+                .iter()
+                .filter(|((s, _), _)| *s == system)
+                .flat_map(|(_, l)| l.iter().copied())
+                .collect(),
         };
         others.filter(|l| wanted.contains(l)).collect()
     }

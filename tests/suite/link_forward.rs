@@ -103,16 +103,19 @@ impl Drop for Station {
     }
 }
 
-/// The simulator (PX4-like, behind `radio`) and shotpilot's link to it with
-/// one forward endpoint to the station at `station_port`.
+/// The simulator (PX4-like, behind `radio`, with or without its MAVLink
+/// camera) and shotpilot's link to it, forwarding to the station at
+/// `station_port` when one is given.
 async fn sim_and_link(
-    station_port: u16,
+    station_port: Option<u16>,
     radio: RadioParams,
+    mavlink_camera: bool,
     dir: &std::path::Path,
     cancel: &CancellationToken,
 ) -> anyhow::Result<LinkHandle> {
     let (socket, addr) = link_support::bound_udp();
-    let cfg = sim_config(Endpoint::UdpIn(addr.to_string()), Flavour::Px4, radio, dir);
+    let mut cfg = sim_config(Endpoint::UdpIn(addr.to_string()), Flavour::Px4, radio, dir);
+    cfg.mavlink_camera = mavlink_camera;
     let sockets = app::Sockets {
         mavlink: Some(socket),
         ..Default::default()
@@ -120,7 +123,10 @@ async fn sim_and_link(
     tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
     let p = Params {
         url: format!("udpout:{addr}"),
-        forward: vec![format!("udpout:127.0.0.1:{station_port}")],
+        forward: station_port
+            .map(|p| format!("udpout:127.0.0.1:{p}"))
+            .into_iter()
+            .collect(),
         link_lost_after_ms: 8000,
         ..Params::default()
     };
@@ -180,7 +186,14 @@ async fn a_second_station_through_a_forward_endpoint() -> anyhow::Result<()> {
     let dir = tempfile::tempdir()?;
     let cancel = CancellationToken::new();
     let mut station = Station::start(&["--window", "10"]).await?;
-    let link = sim_and_link(station.port, RadioParams::default(), dir.path(), &cancel).await?;
+    let link = sim_and_link(
+        Some(station.port),
+        RadioParams::default(),
+        true,
+        dir.path(),
+        &cancel,
+    )
+    .await?;
     let v = station.expect("vehicle", 30).await?;
     assert_eq!(
         v["system"], 1,
@@ -273,7 +286,7 @@ async fn two_stations_upload_at_once_over_a_lossy_radio() -> anyhow::Result<()> 
     let dir = tempfile::tempdir()?;
     let cancel = CancellationToken::new();
     let mut station = Station::start(&["--window", "0", "--no-arm"]).await?;
-    let link = sim_and_link(station.port, bad_radio(11), dir.path(), &cancel).await?;
+    let link = sim_and_link(Some(station.port), bad_radio(11), true, dir.path(), &cancel).await?;
     station.expect("vehicle", 30).await?;
     let home = link_support::home_of(&link).await?;
     let rounds = 20;
@@ -483,25 +496,7 @@ async fn the_photo_by_the_camera_protocol_and_its_fallback() -> anyhow::Result<(
     for camera in [true, false] {
         let dir = tempfile::tempdir()?;
         let cancel = CancellationToken::new();
-        let (socket, addr) = link_support::bound_udp();
-        let mut cfg = sim_config(
-            Endpoint::UdpIn(addr.to_string()),
-            Flavour::Px4,
-            RadioParams::default(),
-            dir.path(),
-        );
-        cfg.mavlink_camera = camera;
-        let sockets = app::Sockets {
-            mavlink: Some(socket),
-            ..Default::default()
-        };
-        tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
-        let p = Params {
-            url: format!("udpout:{addr}"),
-            ..Params::default()
-        };
-        let (link, _task) = vehicle::spawn(p, upload::Params::default(), cancel.clone())?;
-        link.wait_for_vehicle(Duration::from_secs(20)).await?;
+        let link = sim_and_link(None, RadioParams::default(), camera, dir.path(), &cancel).await?;
         if camera {
             let mut cams = link.telemetry.cameras.clone();
             let found = tokio::time::timeout(
