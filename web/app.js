@@ -676,6 +676,9 @@ async function refreshKeyframes() {
     const r = await api('GET', '/keyframes');
     state.keyframes = r.keyframes;
     renderGallery();
+    // The map's clickable keyframes come from this list: redraw, so a
+    // click lands on where the keyframes are now, not where they were.
+    drawMap();
   } catch (_) {
   } finally { kfBusy = false; }
 }

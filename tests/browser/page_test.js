@@ -331,7 +331,13 @@ async function main() {
     await stage(page, 'map_world');
     // Clicking a keyframe on the map chooses it in the anchor editor.
     const mapPick = async (choose) => {
+      // On the world map (a refit the georeference refused shows the SLAM
+      // view until the next fit is accepted).
+      await page.waitForFunction(() => document.getElementById('map').dataset.mode === 'world', null, { timeout: 60000 });
       const pick = await page.evaluate((choose) => {
+        // Project the keyframes as they are now (a keyframe list or
+        // georeference fetched since the last draw moves them).
+        drawMap();
         const pr = state.mapProject, cv = document.getElementById('map');
         if (!pr || !pr.kfs.length) return null;
         const cur = document.getElementById('editor').dataset.keyframe;
@@ -356,7 +362,7 @@ async function main() {
         const now = state.mapProject, drawn = now && now.kfs.find((x) => x.id === k.id);
         const [u, v] = drawn ? now.P(drawn.p[0], drawn.p[1]) : [-1, -1];
         const inside = u >= 0 && v >= 0 && u <= cv.width && v <= cv.height;
-        return { id: k.id, inside, near_m: near };
+        return { id: k.id, inside, near_m: near, mode: cv.dataset.mode, found: !!drawn };
       }, choose);
       check(pick && pick.inside, `a keyframe is drawn on the map: ${JSON.stringify(pick)}`);
       await page.$eval('#map', (m) => m.scrollIntoView());
