@@ -37,6 +37,15 @@ pub struct DamageParams {
     pub mv_px: u32,
     /// Rows the deblocking filter changes beside a damaged macroblock edge.
     pub deblock_px: u32,
+    /// Follow the content's measured motion ([`DamageTracker::set_motion`])
+    /// instead of the motion bound when a measurement is at hand.
+    pub follow_motion: bool,
+    /// With a measured motion, damage in a reference reaches this much
+    /// beyond the measured range (plus the measurement's resolution and
+    /// the interpolation filter's reach), pixels: motion vectors that stray
+    /// from the content's motion, and the change of motion from one
+    /// picture to the next.
+    pub motion_margin_px: u32,
 }
 
 impl Default for DamageParams {
@@ -44,9 +53,13 @@ impl Default for DamageParams {
         Self {
             mv_px: 16,
             deblock_px: 3,
+            follow_motion: true,
+            motion_margin_px: 3,
         }
     }
 }
+
+use crate::video::motion::VerticalMotion;
 
 /// The 6-tap luma interpolation filter reads this many rows beyond the
 /// motion vector's integer position.
@@ -344,6 +357,27 @@ impl RowDamage {
         }
     }
 
+    /// Every row a damaged row reaches when moved down by `lo` to `hi`
+    /// rows (negative: up).
+    pub fn moved(&self, lo: i64, hi: i64) -> RowDamage {
+        let n = self.rows.len() as i64;
+        let mut out = RowDamage::clean(self.rows.len());
+        let mut i = 0;
+        while i < n {
+            if self.rows[i as usize] {
+                let start = i;
+                while i < n && self.rows[i as usize] {
+                    i += 1;
+                }
+                let (a, b) = ((start + lo).clamp(0, n), (i + hi).clamp(0, n));
+                out.mark(a as usize, b as usize);
+            } else {
+                i += 1;
+            }
+        }
+        out
+    }
+
     /// Every row within `r` rows of a damaged one.
     pub fn dilated(&self, r: usize) -> RowDamage {
         let n = self.rows.len();
@@ -407,6 +441,9 @@ pub struct DamageTracker {
     /// An SEI recovery point's target `frame_num` and whether a loss
     /// happened since it.
     recovery: Option<(u32, bool)>,
+    /// The content's vertical motion expected for the next picture, coded
+    /// rows ([`DamageTracker::set_motion`]).
+    motion: Option<VerticalMotion>,
 }
 
 /// Whether packets were lost in an access unit, and where among its NAL
@@ -431,6 +468,33 @@ impl DamageTracker {
             refs: std::collections::VecDeque::new(),
             prev_ref_frame_num: None,
             recovery: None,
+            motion: None,
+        }
+    }
+
+    /// The content's vertical motion expected between the next picture and
+    /// its references, in coded rows (measured on the pictures before it:
+    /// [`crate::video::motion`]); `None`: unknown, the motion bound holds.
+    pub fn set_motion(&mut self, motion: Option<VerticalMotion>) {
+        self.motion = motion;
+    }
+
+    /// The measured motion, when it is to be followed.
+    fn followed(&self) -> Option<VerticalMotion> {
+        self.motion.filter(|_| self.params.follow_motion)
+    }
+
+    /// Where a reference's damage can reach in the next picture: moved with
+    /// the measured motion (the filters' reach is added to the picture's
+    /// mask, not carried on), or spread by the motion bound and the
+    /// interpolation filter's reach.
+    fn reach(&self, d: &RowDamage) -> RowDamage {
+        match self.followed() {
+            Some(m) => {
+                let pad = i64::from(self.params.motion_margin_px + m.step.saturating_sub(1));
+                d.moved(i64::from(m.lo) - pad, i64::from(m.hi) + pad)
+            }
+            None => d.dilated((self.params.mv_px + INTERP_PX) as usize),
         }
     }
 
@@ -439,6 +503,7 @@ impl DamageTracker {
         self.refs.clear();
         self.prev_ref_frame_num = None;
         self.recovery = None;
+        self.motion = None;
     }
 
     /// The last picture could not be decoded at all: every reference in the
@@ -558,24 +623,42 @@ impl DamageTracker {
                 (None, _) => true,
                 (_, None) => true,
             };
+            // The references' damage as it reaches this picture; kept so,
+            // an older reference's moves add up picture by picture.
+            let moved: Vec<RowDamage> = self
+                .refs
+                .iter()
+                .map(|r| {
+                    if r.rows().len() == coded_h {
+                        self.reach(r)
+                    } else {
+                        RowDamage::full(coded_h)
+                    }
+                })
+                .collect();
+            self.refs = moved.into();
             if missing_ref {
                 self.refs.push_front(RowDamage::full(coded_h));
             }
             let inter = slices.iter().any(|s| !s.1.is_intra());
             if inter {
-                let mut from_refs = RowDamage::clean(coded_h);
                 for r in &self.refs {
-                    if r.rows().len() == coded_h {
-                        from_refs.or(r);
-                    } else {
-                        from_refs = RowDamage::full(coded_h);
-                    }
+                    coded.or(r);
                 }
-                let reach = (self.params.mv_px + INTERP_PX) as usize;
-                coded.or(&from_refs.dilated(reach));
             }
         }
-        coded = coded.dilated(self.params.deblock_px as usize);
+        // The filters' reach beside the damage: carried down the chain with
+        // the bound, only on this picture's mask with a measured motion.
+        // A row the 6-tap filter or the deblocking filter reaches takes a
+        // fraction of its neighbour's error (the outer taps weigh 1/32), so
+        // that fraction does not travel on as the damage's core does.
+        let core = coded.clone();
+        let followed = !idr && self.followed().is_some();
+        coded = if followed {
+            coded.dilated((INTERP_PX + self.params.deblock_px) as usize)
+        } else {
+            coded.dilated(self.params.deblock_px as usize)
+        };
         // An SEI recovery point: pictures from its count on are correct if
         // no packet is lost on the way.
         if let Some(f) = frame_num {
@@ -603,7 +686,12 @@ impl DamageTracker {
             }
         }
         if is_ref {
-            self.refs.push_front(coded.clone());
+            let kept = if followed && coded.any() {
+                core
+            } else {
+                coded.clone()
+            };
+            self.refs.push_front(kept);
             self.refs.truncate(sps.max_num_ref_frames.max(1) as usize);
             self.prev_ref_frame_num = frame_num;
         }
@@ -742,6 +830,7 @@ mod tests {
         let params = DamageParams {
             mv_px: 16,
             deblock_px: 3,
+            ..Default::default()
         };
         let mut t = DamageTracker::new(params);
         // IDR of 40x30 macroblocks in 4 slices starting at rows 0, 8, 16, 24.
@@ -778,6 +867,51 @@ mod tests {
     }
 
     #[test]
+    fn damage_moves_with_the_measured_motion() {
+        let mut t = DamageTracker::new(DamageParams {
+            motion_margin_px: 4,
+            ..Default::default()
+        });
+        let idr = vec![
+            sps(40, 30),
+            pps(),
+            slice(true, 0, 7, 0),
+            slice(true, 320, 7, 0),
+        ];
+        assert!(!run(&mut t, &idr, 0, &[]).coded.any());
+        // Rows 0-255 lost (the first slice is followed by the loss), plus
+        // the deblocking reach: 0-258.
+        let p1 = vec![slice(false, 0, 5, 1), slice(false, 640, 5, 1)];
+        assert_eq!(run(&mut t, &p1, 1, &[1]).coded.count(), 259);
+        // The content moves down 8-12 rows, measured to 4 rows: the damage
+        // goes with it, 4 + 3 rows beyond (margin, resolution) at each end:
+        // rows 1-277; the filters' reach (3 + 3 rows) is added to the
+        // picture's mask, 0-283, not carried on.
+        let down = VerticalMotion {
+            lo: 8,
+            hi: 12,
+            step: 4,
+            blocks: 30,
+        };
+        t.set_motion(Some(down));
+        let d = run(&mut t, &[slice(false, 0, 5, 2)], 0, &[]);
+        assert_eq!(d.coded.count(), 284);
+        // Moving up 36-40 rows, the top rows leave the picture: rows 1-277
+        // go to 0-248, the mask to 0-254.
+        t.set_motion(Some(VerticalMotion {
+            lo: -40,
+            hi: -36,
+            ..down
+        }));
+        let d = run(&mut t, &[slice(false, 0, 5, 3)], 0, &[]);
+        assert_eq!(d.coded.count(), 255);
+        // Unknown motion: the bound (16 + 3 rows, then 3 of deblocking).
+        t.set_motion(None);
+        let d = run(&mut t, &[slice(false, 0, 5, 4)], 0, &[]);
+        assert_eq!(d.coded.count(), 249 + 19 + 3);
+    }
+
+    #[test]
     fn a_missing_reference_picture_damages_everything_until_the_idr() {
         let mut t = DamageTracker::new(DamageParams::default());
         let idr = vec![sps(20, 15), pps(), slice(true, 0, 7, 0)];
@@ -799,6 +933,7 @@ mod tests {
         let mut t = DamageTracker::new(DamageParams {
             mv_px: 0,
             deblock_px: 0,
+            ..Default::default()
         });
         let idr = vec![
             sps(10, 10),

@@ -25,6 +25,7 @@ use image::GrayImage;
 
 use crate::video::damage::{DamageParams, DamageTracker, Losses, RowDamage};
 use crate::video::live::{Counters, Frame, Ingest};
+use crate::video::motion::{MotionParams, Reduced, VerticalMotion, vertical_motion};
 
 /// Errors of the H.264 path.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -520,6 +521,8 @@ pub struct DecodeParams {
     pub conceal: bool,
     /// How damage is followed through the pictures.
     pub damage: DamageParams,
+    /// How the content's motion is measured for following the damage.
+    pub motion: MotionParams,
 }
 
 impl Default for DecodeParams {
@@ -529,6 +532,7 @@ impl Default for DecodeParams {
             downscale: 1,
             conceal: true,
             damage: DamageParams::default(),
+            motion: MotionParams::default(),
         }
     }
 }
@@ -549,6 +553,12 @@ pub struct DecodeLoop {
     /// Access units given to the decoder whose picture has not come out
     /// yet: tag, damage, and the unit's times.
     pending: VecDeque<Pending>,
+    /// The last picture handed out, reduced for motion measurement, and
+    /// its tag.
+    last: Option<(u64, Reduced)>,
+    /// The content's last measured vertical motion (coded rows), and how
+    /// many pictures ago it was measured.
+    last_motion: Option<(VerticalMotion, u32)>,
 }
 
 /// An access unit whose picture the decoder has not handed out yet.
@@ -561,6 +571,10 @@ struct Pending {
     received: Instant,
     received_unix: f64,
 }
+
+/// Pictures a motion measurement stands for when the next ones cannot be
+/// measured (see `DecodeLoop::follow_motion`).
+const MOTION_HOLD: u32 = 8;
 
 /// Pictures the decoder may hold back before the oldest counts as lost.
 const MAX_PENDING: usize = 16;
@@ -602,6 +616,8 @@ impl DecodeLoop {
             seq: 0,
             tag: 0,
             pending: VecDeque::new(),
+            last: None,
+            last_motion: None,
         })
     }
 
@@ -612,6 +628,45 @@ impl DecodeLoop {
         self.size = None;
         self.damage.reset();
         self.pending.clear();
+        self.last = None;
+        self.last_motion = None;
+    }
+
+    /// Measures the content's motion from the last picture handed out to
+    /// `img` (tag `tag`, damaged `rows`) and tells the damage tracker what
+    /// to expect of the next picture: the range of the last two motions (a
+    /// motion that changes). A picture that could not be measured (damage
+    /// over most of it, no texture) keeps the last measurement for up to
+    /// [`MOTION_HOLD`] pictures, widened by a pixel each way per picture;
+    /// after that, nothing is expected and the tracker falls back to its
+    /// motion bound.
+    fn follow_motion(&mut self, tag: u64, img: &Arc<GrayImage>, rows: &RowDamage) {
+        if !(self.params.conceal && self.params.damage.follow_motion) {
+            return;
+        }
+        let cur = Reduced::new(img, Some(rows.rows()), &self.params.motion);
+        let now = match &self.last {
+            Some((t, prev)) if *t + 1 == tag => vertical_motion(prev, &cur, &self.params.motion)
+                .map(|m| m.scaled(self.params.downscale)),
+            _ => None,
+        };
+        let (expect, kept) = match (now, self.last_motion) {
+            (Some(a), Some((b, age))) if age < MOTION_HOLD => (Some(a.union(b)), Some((a, 0))),
+            (Some(a), _) => (None, Some((a, 0))),
+            (None, Some((b, age))) if age < MOTION_HOLD => {
+                let w = age as i32 + 1;
+                let wide = VerticalMotion {
+                    lo: b.lo - w,
+                    hi: b.hi + w,
+                    ..b
+                };
+                (Some(wide), Some((b, age + 1)))
+            }
+            (None, _) => (None, None),
+        };
+        self.damage.set_motion(expect);
+        self.last_motion = kept;
+        self.last = Some((tag, cur));
     }
 
     /// Process one access unit; `gap` tells that units were dropped before it.
@@ -741,14 +796,13 @@ impl DecodeLoop {
                     Some(p) => (p.capture_time, p.received, p.received_unix),
                     None => (au.capture_time, au.received, au.received_unix),
                 };
-                let frame = Frame::from_image(
-                    self.seq,
-                    capture_time,
-                    received,
-                    received_unix,
-                    Arc::new(img),
-                )
-                .with_damage(rows);
+                if skipped_before {
+                    self.last = None;
+                }
+                let img = Arc::new(img);
+                self.follow_motion(out_tag, &img, &rows);
+                let frame = Frame::from_image(self.seq, capture_time, received, received_unix, img)
+                    .with_damage(rows);
                 self.seq += 1;
                 Decoded::Frame(Arc::new(frame))
             }

@@ -5,13 +5,15 @@
 //! [`rtsp`] (H.264 over RTSP, on `retina`), [`udp`] (raw RTP H.264,
 //! depacketised by [`rtp`]), both decoded by [`h264`] (OpenH264), sharing
 //! [`stream`]'s parameters, sink and errors; [`damage`] follows what a lost
-//! packet damaged in each picture.
+//! packet damaged in each picture, through the content's vertical motion
+//! that [`motion`] measures on the decoded pictures.
 
 pub mod damage;
 pub mod dataset;
 pub mod h264;
 pub mod live;
 pub mod mjpeg;
+pub mod motion;
 pub mod rtp;
 pub mod rtsp;
 pub mod source;

@@ -67,6 +67,13 @@ pub struct VideoConfig {
     /// references, pixels: damage spreads this far per predicted picture
     /// (see `video::damage`).
     pub damage_mv_px: u32,
+    /// H.264: follow damage with the content's vertical motion measured on
+    /// the decoded pictures (true), or spread it by `damage_mv_px` per
+    /// predicted picture always (false).
+    pub damage_follow_motion: bool,
+    /// H.264, following motion: how far damage reaches beyond the measured
+    /// motion range per predicted picture, pixels.
+    pub damage_motion_margin_px: u32,
     /// Decimate the picture by this integer factor before SLAM (1: full
     /// resolution; any source); the camera intrinsics are scaled to match.
     pub downscale: u32,
@@ -98,6 +105,8 @@ impl Default for VideoConfig {
             decode_queue: 8,
             conceal: true,
             damage_mv_px: crate::video::damage::DamageParams::default().mv_px,
+            damage_follow_motion: crate::video::damage::DamageParams::default().follow_motion,
+            damage_motion_margin_px: crate::video::damage::DamageParams::default().motion_margin_px,
             downscale: 1,
             snapshot_hz: 5.0,
             connect_timeout_ms: p.connect_timeout_ms,
@@ -138,8 +147,11 @@ impl VideoConfig {
                 conceal: self.conceal,
                 damage: crate::video::damage::DamageParams {
                     mv_px: self.damage_mv_px,
+                    follow_motion: self.damage_follow_motion,
+                    motion_margin_px: self.damage_motion_margin_px,
                     ..Default::default()
                 },
+                ..Default::default()
             },
         }
     }
