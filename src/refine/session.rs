@@ -13,6 +13,7 @@ use serde::Serialize;
 
 use super::measure::{LiveFrame, median, robust_mean};
 use super::{ControllerParams, Correction, Decision, Params, Reachable, decide, shot_error};
+use crate::angle::wrap180;
 use crate::camera::Camera;
 use crate::geo::{
     GeoAlignment, GeoTarget, Geodetic, GimbalAngles, LocalFrame, MountParams, VehicleState,
@@ -812,11 +813,6 @@ fn central_pose(poses: &[(Isometry3<f64>, Option<Vector3<f64>>)]) -> Option<Isom
                 .total_cmp(&(b.translation.vector - m).norm())
         })
         .copied()
-}
-
-fn wrap180(d: f64) -> f64 {
-    let x = (d + 180.0).rem_euclid(360.0) - 180.0;
-    if x <= -180.0 { x + 360.0 } else { x }
 }
 
 #[cfg(test)]
