@@ -11,7 +11,7 @@ use image::GrayImage;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
-use super::measure::{LiveFrame, median, robust_mean};
+use super::measure::{LiveFrame, robust_mean};
 use super::{ControllerParams, Correction, Decision, Params, Reachable, decide, shot_error};
 use crate::angle::wrap180;
 use crate::camera::Camera;
@@ -22,6 +22,7 @@ use crate::geo::{
 use crate::mission::plan::{Fence, Home, Target};
 use crate::shot::{Localization, LocalizeParams, localize};
 use crate::slam::Map;
+use crate::stats::finite_median;
 
 /// What the loop needs from the rest of the daemon at an arrival.
 #[derive(Debug, Clone, Copy)]
@@ -312,8 +313,8 @@ impl Session {
             }
         }
         let pcts: Vec<f64> = errors.iter().map(|e| e.corner_error_pct).collect();
-        let pct = median(&pcts);
-        let spread = median(
+        let pct = finite_median(&pcts);
+        let spread = finite_median(
             &pcts
                 .iter()
                 .map(|x| (x - pct.unwrap_or(0.0)).abs())
@@ -327,8 +328,10 @@ impl Session {
             round,
             target: self.target,
             shot_error_pct: pct,
-            shot_error_px: median(&errors.iter().map(|e| e.corner_error_px).collect::<Vec<_>>()),
-            inliers: median(&errors.iter().map(|e| e.inliers as f64).collect::<Vec<_>>())
+            shot_error_px: finite_median(
+                &errors.iter().map(|e| e.corner_error_px).collect::<Vec<_>>(),
+            ),
+            inliers: finite_median(&errors.iter().map(|e| e.inliers as f64).collect::<Vec<_>>())
                 .map(|x| x.round() as usize),
             frames: frames.len(),
             frames_with_error: errors.len(),
@@ -796,7 +799,7 @@ fn reproducible_pose(
 /// The pose whose position is nearest the median position of `poses`.
 fn central_pose(poses: &[(Isometry3<f64>, Option<Vector3<f64>>)]) -> Option<Isometry3<f64>> {
     let axis = |i: usize| {
-        median(
+        finite_median(
             &poses
                 .iter()
                 .map(|(p, _)| p.translation.vector[i])
