@@ -1100,14 +1100,6 @@ fn localise(
     }
 }
 
-fn waypoint_seq(items: &[MissionItem]) -> Option<u16> {
-    items
-        .iter()
-        .filter(|i| i.command == 16) // MAV_CMD_NAV_WAYPOINT
-        .map(|i| i.seq)
-        .next_back()
-}
-
 fn run_trial(
     trial: usize,
     ex: &Explored,
@@ -1223,7 +1215,7 @@ fn run_trial(
                 return finish(rep, sim, "plan_refused".into());
             }
         };
-        let Some(wp) = waypoint_seq(&items) else {
+        let Some(wp) = plan::waypoint_seq(&items) else {
             return finish(rep, sim, "no_waypoint".into());
         };
         if let Err(e) = sim.upload(&items) {
