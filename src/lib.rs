@@ -30,6 +30,7 @@
 //! | [`camera`] | pinhole + radial-tangential distortion |
 //! | [`video`] | frame sources: datasets (TUM, EuRoC), live MJPEG/snapshot over HTTP, latest-frame slots |
 //! | [`eval`] | TUM trajectories, association, Umeyama alignment, ATE/RPE, plots |
+//! | [`angle`] | angles wrapped to one turn: `wrap180` (degrees), `wrap_pi` (radians) |
 //! | [`stats`] | median and nearest-rank quantiles of samples |
 //! | [`lie`] | SO(3)/SE(3)/Sim(3): skew, SE(3) exponential, quaternion renormalisation, [`lie::Sim3`] (below geometry and optimize) |
 //! | [`features`] | image pyramid, FAST, orientation, rBRIEF (ORB) |
@@ -54,6 +55,7 @@
 //! `.ci/import-circles`); `ARCHITECTURE.md` at the repository root has the
 //! floors, the layout and the conventions.
 
+pub mod angle;
 pub mod api;
 pub mod bow;
 pub mod camera;

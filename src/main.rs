@@ -99,11 +99,14 @@ fn init_logging(filter: &str) {
     let env = tracing_subscriber::EnvFilter::try_from_default_env()
         .or_else(|_| tracing_subscriber::EnvFilter::try_new(filter))
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    // Colour only for a terminal: a log redirected to a file or a pipe
-    // carries no escape codes.
+    // Colour only for a terminal and without NO_COLOR (https://no-color.org,
+    // unset or empty): a log redirected to a file or a pipe carries no
+    // escape codes. `shotpilot-sim` decides it alike for its stdout.
+    let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
+        && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
     tracing_subscriber::fmt()
         .with_env_filter(env)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_ansi(colour)
         .with_writer(std::io::stderr)
         .init();
 }

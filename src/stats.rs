@@ -3,7 +3,7 @@
 //!
 //! Every function ignores NaN values (they have no rank) and keeps the
 //! infinities (an infinite error is a failure that must show in a
-//! percentile). Each works on a copy and runs in linear time
+//! percentile), except the `finite_` ones, which drop the infinities too. Each works on a copy and runs in linear time
 //! (`select_nth_unstable_by`); the input is never reordered. An input with
 //! no value left gives `None`.
 
@@ -55,6 +55,24 @@ pub fn median_max(values: &[f64]) -> Option<(f64, f64)> {
     Some((median(values)?, quantile(values, 1.0)?))
 }
 
+/// [`median`] of the finite values only: the infinities are dropped too (a
+/// frame or a trial without a figure has no rank), for the refinement
+/// loop's averages over frames. `None` when no value is finite.
+pub fn finite_median(values: &[f64]) -> Option<f64> {
+    median(&finite(values))
+}
+
+/// [`quantile`] of the finite values only (the infinities dropped too, as
+/// in [`finite_median`]). `None` when no value is finite or `q` is outside
+/// `[0, 1]`.
+pub fn finite_quantile(values: &[f64], q: f64) -> Option<f64> {
+    quantile(&finite(values), q)
+}
+
+fn finite(values: &[f64]) -> Vec<f64> {
+    values.iter().copied().filter(|x| x.is_finite()).collect()
+}
+
 fn without_nan(values: &[f64]) -> Vec<f64> {
     values.iter().copied().filter(|x| !x.is_nan()).collect()
 }
@@ -88,6 +106,25 @@ mod tests {
         );
         // Repeated values.
         assert_eq!(median(&[2.0, 2.0, 2.0, 5.0]), Some(2.0));
+    }
+
+    #[test]
+    fn finite_ones_drop_the_infinities() {
+        let v = [f64::INFINITY, 3.0, f64::NAN, 1.0, f64::NEG_INFINITY, 2.0];
+        assert_eq!(finite_median(&v), Some(2.0));
+        // Two failures among four: the median is infinite, the finite one
+        // the middle of what was measured.
+        let w = [f64::INFINITY, 1.0, f64::INFINITY, 2.0, f64::NAN];
+        assert_eq!(median(&w), Some(f64::INFINITY));
+        assert_eq!(finite_median(&w), Some(1.5));
+        assert_eq!(finite_median(&[4.0, 1.0, 2.0, 3.0]), Some(2.5));
+        assert_eq!(finite_median(&[f64::INFINITY, f64::NAN]), None);
+        assert_eq!(finite_median(&[]), None);
+        assert_eq!(finite_quantile(&v, 1.0), Some(3.0));
+        assert_eq!(quantile(&v, 1.0), Some(f64::INFINITY));
+        assert_eq!(finite_quantile(&v, 0.0), Some(1.0));
+        assert_eq!(finite_quantile(&[f64::INFINITY], 0.5), None);
+        assert_eq!(finite_quantile(&v, 1.5), None);
     }
 
     #[test]

@@ -298,12 +298,26 @@ fn config_from(cli: &Cli) -> Result<SimConfig> {
     .with_realism(cli.realism.parse().context("--realism")?))
 }
 
+/// Whether log lines carry colour: only when the stream they go to is a
+/// terminal and `NO_COLOR` is unset or empty (<https://no-color.org>), so a
+/// log redirected to a file or a pipe carries no escape codes (as the
+/// daemon's `shotpilot` decides it).
+fn colour_logs(to_terminal: bool) -> bool {
+    to_terminal && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty())
+}
+
 fn main() -> Result<()> {
+    // The log goes to stdout (beside the `shotpilot-sim bound:` line), so
+    // stdout decides the colour.
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
+        .with_ansi(colour_logs(std::io::IsTerminal::is_terminal(
+            &std::io::stdout(),
+        )))
+        .with_writer(std::io::stdout)
         .init();
     let cli = Cli::parse();
     let realism: Realism = cli.realism.parse().context("--realism")?;

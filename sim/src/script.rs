@@ -24,7 +24,7 @@
 use nalgebra::Vector3;
 
 use crate::autopilot::{Autopilot, Mode};
-use crate::vehicle::Setpoint;
+use crate::vehicle::{Setpoint, wrap_pi};
 
 /// Which script to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -140,15 +140,6 @@ pub struct Script {
     yaw_from: f64,
     pitch_from: f64,
     state: State,
-}
-
-fn wrap_pi(a: f64) -> f64 {
-    let t = std::f64::consts::TAU;
-    let mut x = (a + std::f64::consts::PI) % t;
-    if x < 0.0 {
-        x += t;
-    }
-    x - std::f64::consts::PI
 }
 
 impl Script {

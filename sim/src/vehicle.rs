@@ -507,7 +507,10 @@ pub struct Vehicle {
     dist: DisturbanceState,
 }
 
-fn wrap_pi(a: f64) -> f64 {
+/// Wraps an angle in radians to `[-π, π]`: an odd multiple of π gives `-π`
+/// (the daemon's `angle::wrap_pi` gives `+π`; the crates share no code).
+/// The simulator's one copy, for its vehicle, autopilot and script.
+pub fn wrap_pi(a: f64) -> f64 {
     let mut x = (a + std::f64::consts::PI) % std::f64::consts::TAU;
     if x < 0.0 {
         x += std::f64::consts::TAU;
@@ -912,6 +915,22 @@ impl Vehicle {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn wrap_pi_at_the_edges() {
+        use std::f64::consts::{PI, TAU};
+        assert_eq!(wrap_pi(PI), -PI);
+        assert_eq!(wrap_pi(-PI), -PI);
+        assert_eq!(wrap_pi(0.0), 0.0);
+        assert!(wrap_pi(f64::NAN).is_nan());
+        for i in -500..500 {
+            let a = f64::from(i) * 0.37;
+            let w = wrap_pi(a);
+            assert!((-PI..=PI).contains(&w), "{a} -> {w}");
+            let turns = (a - w) / TAU;
+            assert!((turns - turns.round()).abs() < 1e-12, "{a} -> {w}");
+        }
+    }
 
     fn run(v: &mut Vehicle, seconds: f64, dt: f64, mut each: impl FnMut(&Vehicle)) {
         let n = (seconds / dt).round() as usize;

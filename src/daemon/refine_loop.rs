@@ -34,7 +34,7 @@ use super::refine_service::{record_abort, record_rounds};
 use super::slam_shared::SlamShared;
 use crate::api::{Achieved, ShotEvent, ShotEvents};
 use crate::geo::{GeoAlignment, GeoError, Geodetic, LocalFrame};
-use crate::mission::plan::{self, Flavour, Home, MissionItem, Target};
+use crate::mission::plan::{self, Flavour, Home, Target, waypoint_seq};
 use crate::refine::{
     ArrivalDetector, Context, LiveFrame, Observation, Reachable, Session, Step, outline_in_live,
     reachable_from_anchors, shot_error,
@@ -392,15 +392,6 @@ async fn mark_interrupted(deps: &Deps, id: &str) {
         Ok(Err(e)) => tracing::warn!("refinement: saving the shot: {e}"),
         Err(e) => tracing::warn!("refinement: saving the shot: {e}"),
     }
-}
-
-/// The last NAV_WAYPOINT of a mission (the shot's).
-fn waypoint_seq(items: &[MissionItem]) -> Option<u16> {
-    items
-        .iter()
-        .filter(|i| i.command == 16)
-        .map(|i| i.seq)
-        .next_back()
 }
 
 /// The desired picture (and the mask of its valid pixels) at the camera's

@@ -25,7 +25,8 @@
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 use super::GeoError;
-use super::telemetry::{VehicleState, heading_of, wrap_pi};
+use super::telemetry::{VehicleState, heading_of};
+use crate::angle::wrap_pi;
 
 /// How the lever arm turns with the vehicle.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

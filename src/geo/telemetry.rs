@@ -121,15 +121,10 @@ pub fn heading_of(ned_from_body: &UnitQuaternion<f64>) -> f64 {
     }
 }
 
-/// Wraps an angle to (-π, π].
-pub fn wrap_pi(a: f64) -> f64 {
-    let w = (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
-    if w <= -std::f64::consts::PI {
-        w + std::f64::consts::TAU
-    } else {
-        w
-    }
-}
+/// [`crate::angle::wrap_pi`], named here too for the callers that reach it
+/// through the telemetry (the daemon's georeference worker); new code
+/// imports it from [`crate::angle`].
+pub use crate::angle::wrap_pi;
 
 /// One time-ordered, bounded stream.
 #[derive(Debug, Clone)]
@@ -363,25 +358,6 @@ impl TelemetryHistory {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn wrap_is_in_range() {
-        for a in [
-            -10.0,
-            -std::f64::consts::PI,
-            0.0,
-            3.0,
-            std::f64::consts::PI,
-            7.0,
-        ] {
-            let w = wrap_pi(a);
-            assert!(w > -std::f64::consts::PI - 1e-15 && w <= std::f64::consts::PI);
-            assert!(
-                ((a - w) / std::f64::consts::TAU).fract().abs() < 1e-12
-                    || (1.0 - ((a - w) / std::f64::consts::TAU).fract().abs()) < 1e-12
-            );
-        }
-    }
 
     #[test]
     fn frame_timestamps_are_used_only_when_configured() {

@@ -324,6 +324,18 @@ impl MissionItem {
     }
 }
 
+/// The `seq` of the last `NAV_WAYPOINT` ([`cmd::NAV_WAYPOINT`]) of a
+/// mission: the shot's waypoint in a mission from [`plan`] (ArduPilot's
+/// home placeholder at `seq` 0 is a `NAV_WAYPOINT` too, so the first would
+/// be the wrong one). `None` when the mission has no waypoint.
+pub fn waypoint_seq(items: &[MissionItem]) -> Option<u16> {
+    items
+        .iter()
+        .rev()
+        .find(|i| i.command == cmd::NAV_WAYPOINT)
+        .map(|i| i.seq)
+}
+
 #[cfg(test)]
 mod json_tests {
     use super::*;
@@ -743,6 +755,28 @@ mod tests {
             gimbal_pitch_deg: -30.0,
             photo,
         }
+    }
+
+    #[test]
+    fn the_shot_waypoint_is_the_last_nav_waypoint() {
+        let p = Params::default();
+        let t = target(40.0, 30.0, 25.0, true);
+        for (flavour, want) in [(Flavour::Px4, 2), (Flavour::ArduPilot, 1)] {
+            let items = plan(&t, &HOME, flavour, &p).expect("inside fence");
+            let seq = waypoint_seq(&items).expect("a waypoint");
+            assert_eq!(seq, want, "{flavour:?}");
+            let item = items[usize::from(seq)];
+            assert_eq!(item.command, cmd::NAV_WAYPOINT);
+            // The shot's position, not ArduPilot's home placeholder.
+            assert_eq!(item.x, (t.lat_deg * 1e7).round() as i32, "{flavour:?}");
+        }
+        assert_eq!(waypoint_seq(&[]), None);
+        let items = plan(&t, &HOME, Flavour::Px4, &p).expect("inside fence");
+        let no_waypoint: Vec<MissionItem> = items
+            .into_iter()
+            .filter(|i| i.command != cmd::NAV_WAYPOINT)
+            .collect();
+        assert_eq!(waypoint_seq(&no_waypoint), None);
     }
 
     #[test]

@@ -39,17 +39,23 @@ pub trait LeastSquares {
 
 /// Solves a small dense damped system `(H + λ·D)·δ = -g` with `D` the
 /// clamped diagonal of `H` (see the module comment), for problems whose
-/// normal equations fit in a fixed-size matrix. Returns `δ` and the
-/// predicted decrease `½·δᵀ·(λ·D·δ - g)`, or `None` when the damped matrix
-/// is not positive definite or the step is not finite.
-pub fn solve_damped_dense<const N: usize>(
-    h: &nalgebra::SMatrix<f64, N, N>,
-    g: &nalgebra::SVector<f64, N>,
+/// normal equations fit in one dense matrix: fixed-size (`SMatrix`, the
+/// pose and Sim(3) problems) or sized at run time (`DMatrix`, the pose with
+/// its free intrinsics). Returns `δ` and the predicted decrease
+/// `½·δᵀ·(λ·D·δ - g)`, or `None` when the damped matrix is not positive
+/// definite or the step is not finite.
+pub fn solve_damped_dense<D: nalgebra::Dim>(
+    h: &nalgebra::OMatrix<f64, D, D>,
+    g: &nalgebra::OVector<f64, D>,
     lambda: f64,
-) -> Option<(nalgebra::SVector<f64, N>, f64)> {
-    let mut a = *h;
-    let mut d = nalgebra::SVector::<f64, N>::zeros();
-    for i in 0..N {
+) -> Option<(nalgebra::OVector<f64, D>, f64)>
+where
+    nalgebra::DefaultAllocator:
+        nalgebra::allocator::Allocator<D, D> + nalgebra::allocator::Allocator<D>,
+{
+    let mut a = h.clone();
+    let mut d = g.clone();
+    for i in 0..d.len() {
         d[i] = h[(i, i)].clamp(1e-6, 1e32);
         a[(i, i)] += lambda * d[i];
     }
@@ -254,5 +260,28 @@ mod tests {
         );
         assert!(s.final_cost < 1e-12);
         assert!(s.accepted > 3);
+    }
+
+    #[test]
+    fn the_damped_solve_is_the_same_at_fixed_and_run_time_size() {
+        let j = nalgebra::Matrix3::new(2.0, -1.0, 0.5, 0.3, 4.0, -0.2, 1e-9, 0.7, 3.0);
+        let h = j.transpose() * j;
+        let g = nalgebra::Vector3::new(0.4, -1.3, 2.2);
+        let (fixed, pred_fixed) = solve_damped_dense(&h, &g, 0.1).unwrap();
+        let hd = nalgebra::DMatrix::from_column_slice(3, 3, h.as_slice());
+        let gd = nalgebra::DVector::from_column_slice(g.as_slice());
+        let (dynamic, pred_dynamic) = solve_damped_dense(&hd, &gd, 0.1).unwrap();
+        assert_eq!(fixed.as_slice(), dynamic.as_slice());
+        assert_eq!(pred_fixed, pred_dynamic);
+        assert!(pred_fixed > 0.0);
+        // (H + λD)δ = -g with D = diag(H).
+        let mut a = h;
+        for i in 0..3 {
+            a[(i, i)] *= 1.1;
+        }
+        assert!((a * fixed + g).norm() < 1e-12);
+        // Not positive definite: no step.
+        let bad = -nalgebra::DMatrix::<f64>::identity(3, 3);
+        assert!(solve_damped_dense(&bad, &gd, 0.1).is_none());
     }
 }

@@ -522,8 +522,177 @@ pub fn refine_pose_and_intrinsics(
     )
 }
 
+/// LM settings of [`refine_pose_and_intrinsics`]: at most 100 steps tried,
+/// a stop when an accepted step lowers the cost by less than a billionth
+/// of it, or when the damping passes `1e8` (no step lowers the cost).
+pub const POSE_INTRINSICS_LM: LmParams = LmParams {
+    max_iterations: 100,
+    initial_lambda: 1e-4,
+    gradient_tolerance: 1e-10,
+    step_tolerance: 1e-10,
+    cost_tolerance: 1e-9,
+    max_lambda: 1e8,
+};
+
+/// The pose with the intrinsics `uncertain` leaves open, as a problem of
+/// the LM core: `6 + k` unknowns (the pose's left perturbation, then the
+/// focal scale's log, `k1`, `k2` when free), the cost
+/// `½·(Σ chi2 + Σ (value/σ)²)` over the inliers and the priors; infinite
+/// when an inlier falls behind the camera, so the core refuses that step.
+struct PoseIntrinsicsProblem<'a> {
+    obs: &'a [PoseObservation],
+    inliers: &'a [bool],
+    intr: &'a Intrinsics,
+    free: (bool, bool, bool),
+    /// The free intrinsics' prior sigmas, in the order of the columns.
+    sigmas: Vec<f64>,
+    cam_from_world: Isometry3<f64>,
+    correction: IntrinsicsCorrection,
+    old: (Isometry3<f64>, IntrinsicsCorrection),
+    h: nalgebra::DMatrix<f64>,
+    g: nalgebra::DVector<f64>,
+    step: nalgebra::DVector<f64>,
+    /// One observation's Jacobian (2 x dim), reused.
+    j: nalgebra::DMatrix<f64>,
+}
+
+impl<'a> PoseIntrinsicsProblem<'a> {
+    fn new(
+        cam_from_world: Isometry3<f64>,
+        correction: IntrinsicsCorrection,
+        obs: &'a [PoseObservation],
+        inliers: &'a [bool],
+        intr: &'a Intrinsics,
+        uncertain: &IntrinsicsUncertainty,
+    ) -> Self {
+        let sigmas = prior_sigmas(uncertain);
+        let dim = 6 + sigmas.len();
+        Self {
+            obs,
+            inliers,
+            intr,
+            free: free_intrinsics(uncertain),
+            sigmas,
+            cam_from_world,
+            correction,
+            old: (cam_from_world, correction),
+            h: nalgebra::DMatrix::zeros(dim, dim),
+            g: nalgebra::DVector::zeros(dim),
+            step: nalgebra::DVector::zeros(dim),
+            j: nalgebra::DMatrix::zeros(2, dim),
+        }
+    }
+
+    fn active(&self) -> impl Iterator<Item = &'a PoseObservation> + use<'a> {
+        let (obs, inliers) = (self.obs, self.inliers);
+        obs.iter().zip(inliers).filter(|(_, a)| **a).map(|(o, _)| o)
+    }
+
+    /// `Σ chi2 + Σ (value/σ)²` (twice the cost); infinite when an inlier is
+    /// behind the camera.
+    fn sum_of_squares(&mut self) -> f64 {
+        let mut c = 0.0;
+        for o in self.active() {
+            let pc = self.cam_from_world.transform_point(&o.p_world).coords;
+            match corrected_projection(&pc, self.intr, &self.correction, self.free, &mut self.j) {
+                Some(uv) => c += (uv - o.uv).norm_squared() * o.inv_sigma2,
+                None => return f64::INFINITY,
+            }
+        }
+        for (v, s) in correction_values(self.free, &self.correction)
+            .iter()
+            .zip(&self.sigmas)
+        {
+            c += (v / s).powi(2);
+        }
+        c
+    }
+}
+
+impl LeastSquares for PoseIntrinsicsProblem<'_> {
+    fn linearize(&mut self) -> (f64, f64) {
+        let dim = self.h.nrows();
+        let mut h = nalgebra::DMatrix::<f64>::zeros(dim, dim);
+        let mut g = nalgebra::DVector::<f64>::zeros(dim);
+        let mut c = 0.0;
+        let mut behind = false;
+        for o in self.active() {
+            let pc = self.cam_from_world.transform_point(&o.p_world).coords;
+            let Some(uv) =
+                corrected_projection(&pc, self.intr, &self.correction, self.free, &mut self.j)
+            else {
+                behind = true;
+                continue;
+            };
+            let r = nalgebra::DVector::from_column_slice(&[uv.x - o.uv.x, uv.y - o.uv.y]);
+            c += r.norm_squared() * o.inv_sigma2;
+            h += self.j.transpose() * &self.j * o.inv_sigma2;
+            g += self.j.transpose() * r * o.inv_sigma2;
+        }
+        for (k, (v, s)) in correction_values(self.free, &self.correction)
+            .iter()
+            .zip(&self.sigmas)
+            .enumerate()
+        {
+            let w = 1.0 / (s * s);
+            h[(6 + k, 6 + k)] += w;
+            g[6 + k] += w * v;
+            c += (v / s).powi(2);
+        }
+        let gmax = g.amax();
+        self.h = h;
+        self.g = g;
+        (if behind { f64::INFINITY } else { 0.5 * c }, gmax)
+    }
+
+    fn solve_damped(&mut self, lambda: f64) -> Option<(f64, f64)> {
+        let (step, pred) = solve_damped_dense(&self.h, &self.g, lambda)?;
+        let norm = step.norm();
+        self.step = step;
+        Some((pred, norm))
+    }
+
+    fn apply_step(&mut self) {
+        self.old = (self.cam_from_world, self.correction);
+        let delta = Vector6::from_column_slice(&self.step.as_slice()[..6]);
+        self.cam_from_world = se3_exp(&delta) * self.cam_from_world;
+        let mut col = 6;
+        if self.free.0 {
+            self.correction.focal_scale = (self.correction.focal_scale.ln() + self.step[col]).exp();
+            col += 1;
+        }
+        if self.free.1 {
+            self.correction.k1 += self.step[col];
+            col += 1;
+        }
+        if self.free.2 {
+            self.correction.k2 += self.step[col];
+        }
+    }
+
+    fn revert_step(&mut self) {
+        (self.cam_from_world, self.correction) = self.old;
+    }
+
+    fn cost(&mut self) -> f64 {
+        0.5 * self.sum_of_squares()
+    }
+
+    fn state_norm(&self) -> f64 {
+        let pose = self.cam_from_world.translation.vector.norm_squared()
+            + self.cam_from_world.rotation.scaled_axis().norm_squared();
+        let intrinsics: f64 = correction_values(self.free, &self.correction)
+            .iter()
+            .map(|v| v * v)
+            .sum();
+        (pose + intrinsics).sqrt()
+    }
+}
+
 /// [`refine_pose_and_intrinsics`] from the corrections `start` (the priors
 /// stay centred on none): one start of a search over the focal length.
+/// The LM core ([`levenberg_marquardt`]) with [`POSE_INTRINSICS_LM`]; the
+/// input unchanged when an inlier is behind the camera at the start.
 pub fn refine_pose_and_intrinsics_from(
     cam_from_world: Isometry3<f64>,
     start: IntrinsicsCorrection,
@@ -533,104 +702,16 @@ pub fn refine_pose_and_intrinsics_from(
     uncertain: &IntrinsicsUncertainty,
 ) -> (Isometry3<f64>, IntrinsicsCorrection) {
     let free = free_intrinsics(uncertain);
-    let mut pose = cam_from_world;
-    let mut corr = start;
     if !(free.0 || free.1 || free.2) {
-        return (pose, corr);
-    }
-    let sigmas = prior_sigmas(uncertain);
-    let dim = 6 + sigmas.len();
-    let mut j = nalgebra::DMatrix::<f64>::zeros(2, dim);
-    let cost = |pose: &Isometry3<f64>, corr: &IntrinsicsCorrection| -> f64 {
-        let mut jj = nalgebra::DMatrix::<f64>::zeros(2, dim);
-        let mut c = 0.0;
-        for (o, _) in obs.iter().zip(inliers).filter(|(_, a)| **a) {
-            let pc = pose.transform_point(&o.p_world).coords;
-            match corrected_projection(&pc, intr, corr, free, &mut jj) {
-                Some(uv) => c += (uv - o.uv).norm_squared() * o.inv_sigma2,
-                // Behind the camera: a step there is refused.
-                None => return f64::INFINITY,
-            }
-        }
-        for (v, s) in correction_values(free, corr).iter().zip(&sigmas) {
-            c += (v / s).powi(2);
-        }
-        c
-    };
-    let mut current = cost(&pose, &corr);
-    if !current.is_finite() {
         return (cam_from_world, start);
     }
-    let mut lambda = 1e-4;
-    let mut iterations = 0;
-    while iterations < 50 {
-        iterations += 1;
-        let mut h = nalgebra::DMatrix::<f64>::zeros(dim, dim);
-        let mut g = nalgebra::DVector::<f64>::zeros(dim);
-        for (o, _) in obs.iter().zip(inliers).filter(|(_, a)| **a) {
-            let pc = pose.transform_point(&o.p_world).coords;
-            let Some(uv) = corrected_projection(&pc, intr, &corr, free, &mut j) else {
-                continue;
-            };
-            let r = nalgebra::DVector::from_column_slice(&[uv.x - o.uv.x, uv.y - o.uv.y]);
-            h += j.transpose() * &j * o.inv_sigma2;
-            g += j.transpose() * r * o.inv_sigma2;
-        }
-        for (k, (v, s)) in correction_values(free, &corr)
-            .iter()
-            .zip(&sigmas)
-            .enumerate()
-        {
-            let w = 1.0 / (s * s);
-            h[(6 + k, 6 + k)] += w;
-            g[6 + k] += w * v;
-        }
-        // Damped steps until one lowers the cost (or the damping gives up).
-        let mut accepted = None;
-        while lambda < 1e8 {
-            let mut hd = h.clone();
-            for k in 0..dim {
-                hd[(k, k)] += lambda * h[(k, k)].max(1e-12);
-            }
-            let Some(step) = hd.lu().solve(&(-&g)) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let delta = Vector6::from_column_slice(&step.as_slice()[..6]);
-            let new_pose = se3_exp(&delta) * pose;
-            let mut new_corr = corr;
-            let mut col = 6;
-            if free.0 {
-                new_corr.focal_scale = (corr.focal_scale.ln() + step[col]).exp();
-                col += 1;
-            }
-            if free.1 {
-                new_corr.k1 = corr.k1 + step[col];
-                col += 1;
-            }
-            if free.2 {
-                new_corr.k2 = corr.k2 + step[col];
-            }
-            let c = cost(&new_pose, &new_corr);
-            if c.is_finite() && c <= current {
-                accepted = Some((new_pose, new_corr, c));
-                lambda = (lambda * 0.1).max(1e-9);
-                break;
-            }
-            lambda *= 10.0;
-        }
-        let Some((new_pose, new_corr, c)) = accepted else {
-            break;
-        };
-        let done = current - c < 1e-9 * current.max(1e-12);
-        pose = new_pose;
-        corr = new_corr;
-        current = c;
-        if done {
-            break;
-        }
+    let mut problem =
+        PoseIntrinsicsProblem::new(cam_from_world, start, obs, inliers, intr, uncertain);
+    if !problem.cost().is_finite() {
+        return (cam_from_world, start);
     }
-    (pose, corr)
+    levenberg_marquardt(&mut problem, &POSE_INTRINSICS_LM);
+    (problem.cam_from_world, problem.correction)
 }
 
 /// The pose covariance at the optimum of [`optimize_pose`] (or of

@@ -13,6 +13,7 @@
 use nalgebra::{Isometry3, Vector3};
 
 use super::RefineError;
+use crate::angle::wrap180;
 use crate::geo::{GeoAlignment, GeoTarget, Geodetic, LocalFrame, MountParams, convert_target};
 use crate::mission::plan::{self, Fence, Home, Target};
 
@@ -150,11 +151,6 @@ pub struct Correction {
     pub yaw_error_deg: f64,
     /// The desired minus the live gimbal pitch, degrees, before the gain.
     pub pitch_error_deg: f64,
-}
-
-fn wrap180(d: f64) -> f64 {
-    let x = (d + 180.0).rem_euclid(360.0) - 180.0;
-    if x <= -180.0 { x + 360.0 } else { x }
 }
 
 /// The corrected target from the desired and the live camera poses, both

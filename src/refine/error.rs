@@ -107,7 +107,7 @@ pub fn pose_difference(a: &Isometry3<f64>, b: &Isometry3<f64>) -> PoseDifference
     let (yb, pb) = axis_yaw_pitch(b);
     let za = a.rotation * Vector3::z();
     let zb = b.rotation * Vector3::z();
-    let dyaw = crate::geo::telemetry::wrap_pi(yb - ya);
+    let dyaw = crate::angle::wrap_pi(yb - ya);
     PoseDifference {
         position_m: (b.translation.vector - a.translation.vector).norm(),
         rotation_deg: a.rotation.angle_to(&b.rotation).to_degrees(),

@@ -1,12 +1,15 @@
 //! Measuring the live framing over several frames instead of one: after
 //! the arrival, the loop takes a few frames a little apart, measures the
-//! shot error and localises each, and combines them robustly (median, then
+//! shot error and localises each, and combines them robustly (median of the
+//! finite values, [`crate::stats::finite_median`], then
 //! the mean of the values within a few robust deviations of it). The spread
 //! of the frames is the measurement's own noise, which the controller uses
 //! to weigh (and gate) its correction.
 
 use image::GrayImage;
 use nalgebra::Vector3;
+
+use crate::stats::finite_median;
 
 /// Every tunable number of the measurement on arrival.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -65,30 +68,15 @@ pub struct Robust {
     pub of: usize,
 }
 
-/// The median of the finite values (None when there is none).
-pub fn median(values: &[f64]) -> Option<f64> {
-    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    })
-}
-
 /// The robust average of the finite `values`: their median, the values
 /// within `outlier_sigmas` robust deviations of it (the deviation at least
 /// `min_sigma`), their mean and its standard deviation. None when no value
 /// is finite.
 pub fn robust_mean(values: &[f64], outlier_sigmas: f64, min_sigma: f64) -> Option<Robust> {
     let finite: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    let med = median(&finite)?;
+    let med = finite_median(&finite)?;
     let dev: Vec<f64> = finite.iter().map(|x| (x - med).abs()).collect();
-    let mad = median(&dev).unwrap_or(0.0) * 1.4826;
+    let mad = finite_median(&dev).unwrap_or(0.0) * 1.4826;
     let scale = mad.max(min_sigma.max(0.0));
     let kept: Vec<f64> = finite
         .iter()
@@ -118,10 +106,8 @@ mod tests {
 
     #[test]
     fn the_median_and_the_robust_mean_ignore_an_outlier() {
-        assert_eq!(median(&[]), None);
-        assert_eq!(median(&[f64::NAN]), None);
-        assert_eq!(median(&[3.0, 1.0, 2.0]), Some(2.0));
-        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), Some(2.5));
+        assert_eq!(robust_mean(&[], 3.0, 0.1), None);
+        assert_eq!(robust_mean(&[f64::NAN, f64::INFINITY], 3.0, 0.1), None);
         // Four frames agree within a centimetre, one is 2 m off (a wrong
         // localisation): it is dropped, the mean is the four's.
         let r = robust_mean(&[1.00, 1.01, 0.99, 1.005, 3.0], 3.0, 0.001).unwrap();

@@ -11,8 +11,9 @@ use image::GrayImage;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
-use super::measure::{LiveFrame, median, robust_mean};
+use super::measure::{LiveFrame, robust_mean};
 use super::{ControllerParams, Correction, Decision, Params, Reachable, decide, shot_error};
+use crate::angle::wrap180;
 use crate::camera::Camera;
 use crate::geo::{
     GeoAlignment, GeoTarget, Geodetic, GimbalAngles, LocalFrame, MountParams, VehicleState,
@@ -21,6 +22,7 @@ use crate::geo::{
 use crate::mission::plan::{Fence, Home, Target};
 use crate::shot::{Localization, LocalizeParams, localize};
 use crate::slam::Map;
+use crate::stats::finite_median;
 
 /// What the loop needs from the rest of the daemon at an arrival.
 #[derive(Debug, Clone, Copy)]
@@ -311,8 +313,8 @@ impl Session {
             }
         }
         let pcts: Vec<f64> = errors.iter().map(|e| e.corner_error_pct).collect();
-        let pct = median(&pcts);
-        let spread = median(
+        let pct = finite_median(&pcts);
+        let spread = finite_median(
             &pcts
                 .iter()
                 .map(|x| (x - pct.unwrap_or(0.0)).abs())
@@ -326,8 +328,10 @@ impl Session {
             round,
             target: self.target,
             shot_error_pct: pct,
-            shot_error_px: median(&errors.iter().map(|e| e.corner_error_px).collect::<Vec<_>>()),
-            inliers: median(&errors.iter().map(|e| e.inliers as f64).collect::<Vec<_>>())
+            shot_error_px: finite_median(
+                &errors.iter().map(|e| e.corner_error_px).collect::<Vec<_>>(),
+            ),
+            inliers: finite_median(&errors.iter().map(|e| e.inliers as f64).collect::<Vec<_>>())
                 .map(|x| x.round() as usize),
             frames: frames.len(),
             frames_with_error: errors.len(),
@@ -795,7 +799,7 @@ fn reproducible_pose(
 /// The pose whose position is nearest the median position of `poses`.
 fn central_pose(poses: &[(Isometry3<f64>, Option<Vector3<f64>>)]) -> Option<Isometry3<f64>> {
     let axis = |i: usize| {
-        median(
+        finite_median(
             &poses
                 .iter()
                 .map(|(p, _)| p.translation.vector[i])
@@ -812,11 +816,6 @@ fn central_pose(poses: &[(Isometry3<f64>, Option<Vector3<f64>>)]) -> Option<Isom
                 .total_cmp(&(b.translation.vector - m).norm())
         })
         .copied()
-}
-
-fn wrap180(d: f64) -> f64 {
-    let x = (d + 180.0).rem_euclid(360.0) - 180.0;
-    if x <= -180.0 { x + 360.0 } else { x }
 }
 
 #[cfg(test)]

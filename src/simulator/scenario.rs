@@ -59,6 +59,7 @@ use crate::shot::{
 };
 use crate::slam::priors::{PriorParams, Priors, TelemetryFeed, TelemetrySample};
 use crate::slam::{self, Map, MapMode, Slam};
+use crate::stats::finite_quantile;
 
 pub use super::drag::DragParams;
 use super::drag::{drag_truth, random_drag};
@@ -518,14 +519,6 @@ pub struct ScenarioReport {
     pub trial_reports: Vec<TrialReport>,
     /// Wall seconds of everything.
     pub wall_s: f64,
-}
-
-/// The nearest-rank quantile `q` (0..1) of the finite values ([`crate::stats::quantile`]
-/// after dropping the infinities: a trial without a figure has no rank here),
-/// None when none is left.
-pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
-    let finite: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    crate::stats::quantile(&finite, q)
 }
 
 fn camera_of(c: &SimCamera) -> Result<Camera, crate::camera::CameraError> {
@@ -1107,14 +1100,6 @@ fn localise(
     }
 }
 
-fn waypoint_seq(items: &[MissionItem]) -> Option<u16> {
-    items
-        .iter()
-        .filter(|i| i.command == 16) // MAV_CMD_NAV_WAYPOINT
-        .map(|i| i.seq)
-        .next_back()
-}
-
 fn run_trial(
     trial: usize,
     ex: &Explored,
@@ -1230,7 +1215,7 @@ fn run_trial(
                 return finish(rep, sim, "plan_refused".into());
             }
         };
-        let Some(wp) = waypoint_seq(&items) else {
+        let Some(wp) = plan::waypoint_seq(&items) else {
             return finish(rep, sim, "no_waypoint".into());
         };
         if let Err(e) = sim.upload(&items) {
@@ -1283,7 +1268,7 @@ fn run_trial(
             return finish(rep, sim, "no_round".into());
         };
         let judge = |f: &dyn Fn(&crate::refine::PoseDifference) -> f64| {
-            crate::refine::measure::median(&judged.iter().map(f).collect::<Vec<_>>())
+            crate::stats::finite_median(&judged.iter().map(f).collect::<Vec<_>>())
                 .unwrap_or(f64::NAN)
         };
         let (position_m, yaw_deg, pitch_deg, rotation_deg) = (
@@ -1488,14 +1473,14 @@ pub fn run(
         converged: trials.iter().filter(|t| t.stop == "converged").count(),
         within_noise: trials.iter().filter(|t| t.stop == "within_noise").count(),
         threshold_pct: params.refine.controller.threshold_pct,
-        median_final_shot_error_pct: quantile(&fin, 0.5),
-        p90_final_shot_error_pct: quantile(&fin, 0.9),
-        median_first_shot_error_pct: quantile(&first, 0.5),
-        p90_first_shot_error_pct: quantile(&first, 0.9),
-        median_position_error_m: quantile(&pos, 0.5),
-        median_first_position_error_m: quantile(&pos0, 0.5),
-        median_yaw_error_deg: quantile(&yaw, 0.5),
-        median_pitch_error_deg: quantile(&pitch, 0.5),
+        median_final_shot_error_pct: finite_quantile(&fin, 0.5),
+        p90_final_shot_error_pct: finite_quantile(&fin, 0.9),
+        median_first_shot_error_pct: finite_quantile(&first, 0.5),
+        p90_first_shot_error_pct: finite_quantile(&first, 0.9),
+        median_position_error_m: finite_quantile(&pos, 0.5),
+        median_first_position_error_m: finite_quantile(&pos0, 0.5),
+        median_yaw_error_deg: finite_quantile(&yaw, 0.5),
+        median_pitch_error_deg: finite_quantile(&pitch, 0.5),
         fraction_final_within_2pct: (n > 0)
             .then(|| fin.iter().filter(|&&e| e <= 2.0).count() as f64 / n as f64),
         mean_rounds: (n > 0).then(|| flown.iter().map(|t| t.rounds as f64).sum::<f64>() / n as f64),

@@ -58,9 +58,14 @@ impl LocalMapTracker {
                 if !marks.mark_point(*pid) {
                     continue;
                 }
-                if let Some(pr) =
-                    matcher::project_point(map, *pid, &cam_from_world, &center, &ctx.bounds, 0.5)
-                {
+                if let Some(pr) = matcher::project_point(
+                    map,
+                    *pid,
+                    &cam_from_world,
+                    &center,
+                    &ctx.bounds,
+                    matcher::MIN_VIEW_COS,
+                ) {
                     projected.push(pr);
                 }
             }
@@ -76,7 +81,12 @@ impl LocalMapTracker {
                 mp.visible += 1;
             }
         }
-        let th = if just_relocalized { 5.0 } else { 1.0 };
+        let p = &ctx.params;
+        let th = if just_relocalized {
+            p.local_map_radius_after_reloc
+        } else {
+            p.local_map_radius
+        };
         let found = matcher::search_local_points(
             &frame.search_target(),
             projected,

@@ -12,15 +12,33 @@ use crate::matching::{Bounds, FeatureGrid, RotationHistogram};
 
 use super::map::{KeyFrameId, Map, MapPoint, PointId, ScaleInfo};
 
-/// Tunable numbers of the matcher.
+/// Tunable numbers of the matcher. Defaults are ORB-SLAM's (`ORBmatcher`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MatcherParams {
-    /// Largest Hamming distance for a match by projection.
+    /// Largest Hamming distance (of 256 bits) for a match by projection:
+    /// the last frame's points and the local map's (ORB-SLAM's `TH_HIGH`,
+    /// 100).
     pub th_high: u32,
-    /// Largest Hamming distance for initialisation and triangulation.
+    /// Largest Hamming distance for initialisation, triangulation, fusion
+    /// and BoW matching (ORB-SLAM's `TH_LOW`, 50).
     pub th_low: u32,
-    /// Bins of the rotation-consistency histogram.
+    /// Bins of the rotation-consistency histogram, 12 degrees each
+    /// (ORB-SLAM's `HISTO_LENGTH`, 30).
     pub histo_bins: usize,
+    /// Nearest-neighbour ratio of initialisation matching: the best
+    /// distance must be below this share of the second best (ORB-SLAM's
+    /// `ORBmatcher(0.9, true)` in `Tracking::MonocularInitialization`).
+    pub init_ratio: f32,
+    /// Nearest-neighbour ratio of triangulation matching. ORB-SLAM2's
+    /// `SearchForTriangulation` keeps the closest under `TH_LOW` on the
+    /// epipolar line with no ratio test; here the search runs over every
+    /// unmatched keypoint (not per vocabulary node), and the initialisation
+    /// ratio keeps its ambiguous matches out.
+    pub triangulation_ratio: f32,
+    /// Ratio test of the local-map search by projection, applied only when
+    /// the two best candidates are on the same pyramid level (ORB-SLAM's
+    /// `ORBmatcher(0.8)` in `Tracking::SearchLocalPoints`).
+    pub local_map_ratio: f32,
 }
 
 impl Default for MatcherParams {
@@ -29,9 +47,56 @@ impl Default for MatcherParams {
             th_high: 100,
             th_low: 50,
             histo_bins: 30,
+            init_ratio: 0.9,
+            triangulation_ratio: 0.9,
+            local_map_ratio: 0.8,
         }
     }
 }
+
+/// Search radius factor (times the caller's radius and the level's scale)
+/// for a point seen nearly head-on, `view_cos` above
+/// [`FRONTAL_VIEW_COS`] (ORB-SLAM's `RadiusByViewingCos`: 2.5).
+pub const FRONTAL_RADIUS_FACTOR: f64 = 2.5;
+
+/// Search radius factor for a point seen obliquely (ORB-SLAM's
+/// `RadiusByViewingCos`: 4.0).
+pub const OBLIQUE_RADIUS_FACTOR: f64 = 4.0;
+
+/// Cosine between the viewing ray and the point's mean viewing direction
+/// above which the view counts as head-on (about 3.6 degrees; ORB-SLAM's
+/// `RadiusByViewingCos`: 0.998).
+pub const FRONTAL_VIEW_COS: f64 = 0.998;
+
+/// Smallest cosine between a viewing ray and a point's mean viewing
+/// direction for the point to be searched (60 degrees; ORB-SLAM's
+/// `isInFrustum` and `Fuse`: 0.5).
+pub const MIN_VIEW_COS: f64 = 0.5;
+
+/// A point is searched from distances down to this share of its nearest
+/// observed distance (ORB-SLAM's `MapPoint::GetMinDistanceInvariance`:
+/// 0.8).
+pub const MIN_DISTANCE_MARGIN: f64 = 0.8;
+
+/// ... and up to this multiple of its farthest (ORB-SLAM's
+/// `MapPoint::GetMaxDistanceInvariance`: 1.2).
+pub const MAX_DISTANCE_MARGIN: f64 = 1.2;
+
+/// Chi-square of 1 degree of freedom at 95 %: the largest squared distance
+/// of a keypoint from its epipolar line, in units of its level's σ²
+/// (ORB-SLAM's `CheckDistEpipolarLine`: 3.84).
+pub const CHI2_1DOF_95: f64 = 3.84;
+
+/// Chi-square of 2 degrees of freedom at 95 %: the largest squared
+/// reprojection error of a fused point, in units of the level's σ²
+/// (ORB-SLAM's `Fuse`: 5.99).
+pub const CHI2_2DOF_95: f64 = 5.99;
+
+/// A triangulation match is refused when the keypoint lies within
+/// `√(this · scale factor)` pixels of the epipole (a point there is close
+/// to the baseline: no parallax; ORB-SLAM's `SearchForTriangulation`:
+/// 100 times the level's scale factor, in squared pixels).
+pub const MIN_EPIPOLE_DISTANCE2_PER_SCALE: f64 = 100.0;
 
 /// ORB-SLAM's rotation-consistency filter: the orientation differences of
 /// the matches go in a histogram; matches outside the three largest bins
@@ -93,7 +158,7 @@ pub fn search_for_initialization(
                 best2 = d;
             }
         }
-        if best <= params.th_low && (best as f32) < 0.9 * best2 as f32 {
+        if best <= params.th_low && (best as f32) < params.init_ratio * best2 as f32 {
             if let Some(old) = m21_dist[best_i].0 {
                 m12[old] = None;
             }
@@ -168,7 +233,9 @@ pub fn within_scale_and_view(
     let po = mp.position.coords - center;
     let dist = po.norm();
     let d_map = dist * distance_factor;
-    if d_map < 0.8 * mp.min_distance || d_map > 1.2 * mp.max_distance {
+    if d_map < MIN_DISTANCE_MARGIN * mp.min_distance
+        || d_map > MAX_DISTANCE_MARGIN * mp.max_distance
+    {
         return None;
     }
     let view_cos = po.dot(&mp.normal) / dist;
@@ -214,7 +281,12 @@ pub fn search_local_points(
         let Some(mp) = map.point(pr.id) else {
             continue;
         };
-        let r = if pr.view_cos > 0.998 { 2.5 } else { 4.0 } * th * scale.scale_factors[pr.level];
+        let factor = if pr.view_cos > FRONTAL_VIEW_COS {
+            FRONTAL_RADIUS_FACTOR
+        } else {
+            OBLIQUE_RADIUS_FACTOR
+        };
+        let r = factor * th * scale.scale_factors[pr.level];
         let lvl = pr.level as i32;
         target.grid.features_in_area(
             target.keypoints,
@@ -251,7 +323,7 @@ pub fn search_local_points(
             }
         }
         if best <= params.th_high {
-            if best_lvl == best_lvl2 && best as f32 > 0.8 * best2 as f32 {
+            if best_lvl == best_lvl2 && best as f32 > params.local_map_ratio * best2 as f32 {
                 continue;
             }
             taken[best_i] = true;
@@ -418,11 +490,13 @@ pub fn search_for_triangulation(
             let num = l.x * u2 + l.y * v2 + l.z;
             let dist2 = num * num / den;
             let sigma2 = 1.0 / map.scale.inv_level_sigma2[kp2.octave as usize];
-            if dist2 >= 3.84 * sigma2 {
+            if dist2 >= CHI2_1DOF_95 * sigma2 {
                 continue;
             }
             let (dx, dy) = (ex - u2, ey - v2);
-            if dx * dx + dy * dy < 100.0 * map.scale.scale_factors[kp2.octave as usize] {
+            if dx * dx + dy * dy
+                < MIN_EPIPOLE_DISTANCE2_PER_SCALE * map.scale.scale_factors[kp2.octave as usize]
+            {
                 continue;
             }
             if d < best {
@@ -433,7 +507,7 @@ pub fn search_for_triangulation(
                 best2 = d;
             }
         }
-        if best_i != usize::MAX && (best as f32) < 0.9 * best2 as f32 {
+        if best_i != usize::MAX && (best as f32) < params.triangulation_ratio * best2 as f32 {
             matched2[best_i] = true;
             rot.push((out.len(), kp1.angle - k2.keypoints[best_i].angle));
             out.push((i1, best_i));
@@ -481,7 +555,8 @@ pub fn fuse(
         if mp.index_in(kf).is_some() {
             continue;
         }
-        let Some(pr) = project_point(map, pid, &cam_from_world, &center, bounds, 0.5) else {
+        let Some(pr) = project_point(map, pid, &cam_from_world, &center, bounds, MIN_VIEW_COS)
+        else {
             continue;
         };
         let r = th * map.scale.scale_factors[pr.level];
@@ -495,7 +570,7 @@ pub fn fuse(
                 continue;
             }
             let (ex, ey) = (pr.uv.x - kp.ux as f64, pr.uv.y - kp.uy as f64);
-            if (ex * ex + ey * ey) * map.scale.inv_level_sigma2[lvl] > 5.99 {
+            if (ex * ex + ey * ey) * map.scale.inv_level_sigma2[lvl] > CHI2_2DOF_95 {
                 continue;
             }
             let d = hamming(&mp.descriptor, &k.descriptors[i]);

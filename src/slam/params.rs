@@ -30,13 +30,36 @@ pub struct TrackingParams {
     pub planar_max_cost: f64,
     /// Map points the initial map must keep after its bundle adjustment.
     pub init_min_points: usize,
-    /// Search radius factor of the motion-model search, pixels at level 0.
+    /// Search radius factor of the motion-model search, pixels at level 0
+    /// (ORB-SLAM's `TrackWithMotionModel`, monocular: 15).
     pub motion_search_radius: f64,
-    /// Matches needed from the motion model before optimising.
+    /// Search radius factor of the local-map search by projection, times
+    /// the viewing-angle factor (`matcher::FRONTAL_RADIUS_FACTOR` or
+    /// `OBLIQUE_RADIUS_FACTOR`) and the level's scale (ORB-SLAM's
+    /// `SearchLocalPoints`, monocular: 1).
+    pub local_map_radius: f64,
+    /// The same in the frames right after a relocalisation, whose pose is
+    /// rougher (ORB-SLAM's `SearchLocalPoints`: 5).
+    pub local_map_radius_after_reloc: f64,
+    /// Matches needed from the motion model before optimising (ORB-SLAM's
+    /// `TrackWithMotionModel`: 20).
     pub min_motion_matches: usize,
-    /// Inliers needed to call a frame tracked after the local map.
+    /// Inliers the motion-only BA must keep for the motion model or the
+    /// reference keyframe to give the frame a pose, before the local map
+    /// (ORB-SLAM's `TrackWithMotionModel` and `TrackReferenceKeyFrame`:
+    /// 10).
+    pub min_pose_inliers: usize,
+    /// Matches needed with the reference keyframe before optimising
+    /// (ORB-SLAM's `TrackReferenceKeyFrame`: 15).
+    pub min_reference_matches: usize,
+    /// Nearest-neighbour ratio of the matching with the reference keyframe
+    /// (ORB-SLAM's `ORBmatcher(0.7, true)` in `TrackReferenceKeyFrame`).
+    pub reference_ratio: f32,
+    /// Inliers needed to call a frame tracked after the local map
+    /// (ORB-SLAM's `TrackLocalMap`: 30).
     pub min_tracked_inliers: usize,
-    /// Inliers needed in the frames right after a relocalisation.
+    /// Inliers needed in the frames right after a relocalisation
+    /// (ORB-SLAM's `TrackLocalMap`: 50).
     pub min_inliers_after_reloc: usize,
     /// Frames between keyframes at most (ORB-SLAM: the frame rate).
     pub max_frames_between_keyframes: u64,
@@ -53,8 +76,12 @@ pub struct TrackingParams {
     pub bow: crate::bow::Params,
     /// Relocalisation tries at most this many candidate keyframes.
     pub reloc_max_candidates: usize,
-    /// Matches a relocalisation candidate needs from BoW matching.
+    /// Matches a relocalisation candidate needs from BoW matching
+    /// (ORB-SLAM's `Relocalization`: 15).
     pub reloc_min_bow_matches: usize,
+    /// Nearest-neighbour ratio of relocalisation's BoW matching (ORB-SLAM's
+    /// `ORBmatcher(0.75, true)` in `Relocalization`).
+    pub reloc_ratio: f32,
     /// Two-view initialisation.
     pub two_view: TwoViewParams,
     /// Motion-only bundle adjustment.
@@ -102,7 +129,12 @@ impl Default for TrackingParams {
             planar_max_cost: 2.0,
             init_min_points: 80,
             motion_search_radius: 15.0,
+            local_map_radius: 1.0,
+            local_map_radius_after_reloc: 5.0,
             min_motion_matches: 20,
+            min_pose_inliers: 10,
+            min_reference_matches: 15,
+            reference_ratio: 0.7,
             min_tracked_inliers: 30,
             min_inliers_after_reloc: 50,
             max_frames_between_keyframes: 30,
@@ -113,6 +145,7 @@ impl Default for TrackingParams {
             bow: crate::bow::Params::default(),
             reloc_max_candidates: 30,
             reloc_min_bow_matches: 15,
+            reloc_ratio: 0.75,
             two_view: TwoViewParams::default(),
             pose: PoseParams::default(),
             pnp: PnpParams::default(),

@@ -54,7 +54,7 @@ pub(super) fn relocalize(
             &frame.keypoints,
             &fv,
             &p.matcher,
-            0.75,
+            p.reloc_ratio,
         );
         if matches.len() < p.reloc_min_bow_matches {
             continue;
@@ -148,9 +148,14 @@ fn search_candidate_points(
             if !marks.mark_point(*pid) {
                 continue;
             }
-            if let Some(pr) =
-                matcher::project_point(map, *pid, cam_from_world, &center, &ctx.bounds, 0.5)
-            {
+            if let Some(pr) = matcher::project_point(
+                map,
+                *pid,
+                cam_from_world,
+                &center,
+                &ctx.bounds,
+                matcher::MIN_VIEW_COS,
+            ) {
                 projected.push(pr);
             }
         }

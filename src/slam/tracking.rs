@@ -38,6 +38,21 @@ use super::relocalizer::relocalize;
 
 pub use super::params::TrackingParams;
 
+/// Searches of the motion model: at [`TrackingParams::motion_search_radius`],
+/// then once more, wider, when too few matches came back (ORB-SLAM's
+/// `TrackWithMotionModel`: two).
+const MOTION_SEARCH_TRIES: usize = 2;
+
+/// The motion model's radius grows by this factor for its second search
+/// (ORB-SLAM's `TrackWithMotionModel`: `2*th`).
+const MOTION_SEARCH_WIDENING: f64 = 2.0;
+
+/// Frames, counted from the relocalised one, whose local-map search runs
+/// with [`TrackingParams::local_map_radius_after_reloc`] (ORB-SLAM's
+/// `SearchLocalPoints`: `th = 5` while
+/// `mCurrentFrame.mnId < mnLastRelocFrameId + 2`).
+const JUST_RELOCALIZED_FRAMES: u64 = 2;
+
 /// Why a frame was not tracked, or the map not initialised.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TrackFailure {
@@ -646,7 +661,9 @@ impl Tracker {
                 TrackFailure::RelocalizationFailed
             });
         };
-        let just_relocalized = self.last_reloc_frame.is_some_and(|r| frame.index < r + 2);
+        let just_relocalized = self
+            .last_reloc_frame
+            .is_some_and(|r| frame.index < r + JUST_RELOCALIZED_FRAMES);
         let local = self.local_map.track(
             &self.ctx,
             &mut self.marks,
@@ -756,7 +773,7 @@ impl Tracker {
         let p = &self.ctx.params;
         let mut th = p.motion_search_radius;
         let mut found = Vec::new();
-        for _ in 0..2 {
+        for _ in 0..MOTION_SEARCH_TRIES {
             frame.clear_matches();
             found = matcher::search_last_frame(
                 &frame.search_target(),
@@ -771,14 +788,14 @@ impl Tracker {
             if found.len() >= p.min_motion_matches {
                 break;
             }
-            th *= 2.0;
+            th *= MOTION_SEARCH_WIDENING;
         }
         if found.len() < p.min_motion_matches {
             return None;
         }
         frame.set_matches(found);
         let fit = self.ctx.optimize_frame_pose(map, frame, predicted)?;
-        (fit.inliers >= 10).then_some(fit.cam_from_world)
+        (fit.inliers >= self.ctx.params.min_pose_inliers).then_some(fit.cam_from_world)
     }
 
     /// Match the reference keyframe's points by descriptor (ratio test and
@@ -807,7 +824,7 @@ impl Tracker {
                     &frame.keypoints,
                     &fv,
                     &p.matcher,
-                    0.7,
+                    p.reference_ratio,
                 )
             }
             None => matcher::search_keyframe_by_descriptor(
@@ -816,15 +833,15 @@ impl Tracker {
                 &frame.keypoints,
                 &frame.descriptors,
                 &p.matcher,
-                0.7,
+                p.reference_ratio,
             ),
         };
-        if matches.len() < 15 {
+        if matches.len() < p.min_reference_matches {
             return None;
         }
         frame.clear_matches();
         frame.set_matches(matches);
         let fit = self.ctx.optimize_frame_pose(map, frame, start)?;
-        (fit.inliers >= 10).then_some(fit.cam_from_world)
+        (fit.inliers >= self.ctx.params.min_pose_inliers).then_some(fit.cam_from_world)
     }
 }

@@ -81,7 +81,7 @@ use mavlink::dialects::common::{
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 
 use crate::geodesy::Geodetic;
-use crate::vehicle::{Setpoint, Vehicle, VehicleParams};
+use crate::vehicle::{Setpoint, Vehicle, VehicleParams, wrap_pi};
 pub use mission::{Flavour, MissionEvent, MissionItem, MissionParams, MissionProtocol, Peer};
 
 /// Flight modes (PX4 names; the ArduPilot flavour maps them to copter modes).
@@ -427,15 +427,6 @@ fn statustext(severity: MavSeverity, text: &str) -> MavMessage {
         id: 0,
         chunk_seq: 0,
     })
-}
-
-fn wrap_pi(a: f64) -> f64 {
-    let t = std::f64::consts::TAU;
-    let mut x = (a + std::f64::consts::PI) % t;
-    if x < 0.0 {
-        x += t;
-    }
-    x - std::f64::consts::PI
 }
 
 fn quat_wxyz(q: &UnitQuaternion<f64>) -> [f32; 4] {

@@ -12,6 +12,7 @@ pub fn package_root() -> std::path::PathBuf {
 }
 
 mod camera_effects;
+mod cli_log;
 mod ideal_unchanged;
 mod inprocess_mission;
 mod live_realism;

@@ -159,7 +159,9 @@ pub(super) fn verify_one(
         if taken2.contains(p2) {
             continue;
         }
-        let Some(pr) = matcher::project_point(map, *p2, &iso_1w, &center1, bounds, 0.5) else {
+        let Some(pr) =
+            matcher::project_point(map, *p2, &iso_1w, &center1, bounds, matcher::MIN_VIEW_COS)
+        else {
             continue;
         };
         let Some(mp2) = map.point(*p2) else { continue };
@@ -319,7 +321,9 @@ fn search_by_projection(
             in_view += 1;
             continue;
         }
-        let Some(pr) = matcher::project_point(map, *pid, &iso_cw, &center, bounds, 0.5) else {
+        let Some(pr) =
+            matcher::project_point(map, *pid, &iso_cw, &center, bounds, matcher::MIN_VIEW_COS)
+        else {
             continue;
         };
         let Some(mp) = map.point(*pid) else { continue };
