@@ -21,8 +21,7 @@ pub mod geo_service;
 pub mod memory;
 pub mod persist;
 pub mod reconcile;
-pub mod refine_loop;
-pub mod refine_service;
+pub mod refinement_task;
 pub mod shot_service;
 pub mod slam_shared;
 pub mod slam_view;
@@ -313,8 +312,8 @@ pub async fn run_on(
     // next upload or the shutdown.
     let actions: Arc<tokio::sync::Mutex<()>> = Default::default();
     let events: Arc<api::ShotEvents> = Default::default();
-    let (refine, refine_task) = refine_loop::spawn(
-        refine_loop::Deps {
+    let (refine, refine_task) = refinement_task::spawn(
+        refinement_task::Deps {
             store: store.clone(),
             geo: geo.clone(),
             slam: shared.clone(),

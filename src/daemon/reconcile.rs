@@ -171,7 +171,7 @@ pub fn reconcile(
                 "last_reached": p.last_reached,
             })),
         });
-        super::refine_service::set_detail(m, "vehicle", record);
+        m.set_detail("vehicle", record);
         m.state = new_state;
         changed.push(shot);
     }

@@ -29,7 +29,7 @@ pub struct LinkVehicle {
     link: LinkHandle,
     plan: crate::mission::plan::Params,
     geo: Arc<GeoService>,
-    refine: Option<super::refine_loop::RefineHandle>,
+    refine: Option<super::refinement_task::RefineHandle>,
     /// The shot last uploaded and the target its mission flies.
     last_uploaded: std::sync::Mutex<Option<(Shot, crate::mission::plan::Target)>>,
     /// The shot whose mission the vehicle holds, as far as we know: the
@@ -99,7 +99,7 @@ impl LinkVehicle {
 
     /// Starting a mission also starts the refinement loop of the shot last
     /// uploaded; uploading another shot stops the running loop.
-    pub fn with_refine(mut self, refine: super::refine_loop::RefineHandle) -> Self {
+    pub fn with_refine(mut self, refine: super::refinement_task::RefineHandle) -> Self {
         self.refine = Some(refine);
         self
     }
@@ -242,7 +242,7 @@ impl LinkVehicle {
                 if let Some(cm) = cur.mission.as_mut() {
                     cm.state = state;
                     if let Some(v) = vehicle_detail {
-                        super::refine_service::set_detail(cm, "vehicle", v);
+                        cm.set_detail("vehicle", v);
                     }
                 }
             };
@@ -356,7 +356,7 @@ pub fn record_photo(shot: &mut Shot, photo: &crate::vehicle::ImageCaptured) {
     if photos.len() > PHOTOS_KEPT {
         photos.remove(0);
     }
-    super::refine_service::set_detail(m, "photos", serde_json::Value::Array(photos));
+    m.set_detail("photos", serde_json::Value::Array(photos));
 }
 
 /// Stores every picture the vehicle's camera reports (CAMERA_IMAGE_CAPTURED)

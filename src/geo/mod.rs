@@ -12,8 +12,16 @@
 //! * [`align`]: the robust map → NED Sim(3) from keyframe pairs (Umeyama in
 //!   seeded RANSAC, refit, optional orientation refinement), with its
 //!   quality and refusals;
-//! * [`pipeline`]: [`Geo`], the parts wired as the daemon uses them
-//!   (keyframes wait for the telemetry of their capture time);
+//! * [`pipeline`]: [`Geo`], the parts wired together (keyframes wait for
+//!   the telemetry of their capture time);
+//! * [`clock`]: the autopilot's boot clock on the local clock
+//!   ([`BootClock`]);
+//! * [`saved`]: the georeference as saved beside the map;
+//! * [`continuity`]: the saved georeference restored onto a continued map,
+//!   carried to another home, checked against live pairs;
+//! * [`live`]: [`LiveGeoreference`], the georeference of a run fed sample
+//!   by sample (telemetry, keyframes, tracked frames, the saved pairs), its
+//!   refits and its status (the daemon's worker holds one);
 //! * [`target`]: a target `map ← cam` as latitude/longitude/altitude/yaw/
 //!   gimbal pitch, with the roll a 2-axis gimbal cannot reproduce.
 //!
@@ -23,6 +31,9 @@
 //! Synchronous: no tokio, no I/O.
 
 pub mod align;
+pub mod clock;
+pub mod continuity;
+pub mod live;
 pub mod mount;
 pub mod pipeline;
 pub mod saved;
@@ -31,6 +42,8 @@ pub mod telemetry;
 pub mod wgs84;
 
 pub use align::{AlignParams, AlignQuality, GeoAlignment, Georeference, Pair};
+pub use clock::BootClock;
+pub use live::LiveGeoreference;
 pub use mount::{GimbalSolution, LeverArmFrame, MountParams, ned_from_cam, solve_gimbal};
 pub use pipeline::{Geo, KeyframeStatus};
 pub use target::{GeoTarget, convert_target, target_from_ned};
@@ -57,8 +70,8 @@ pub struct Params {
     pub continuity: ContinuityParams,
 }
 
-/// How the georeference carries on across a restart (see
-/// `crate::daemon::geo_service`).
+/// How the georeference carries on across a restart (see [`live`] and
+/// [`continuity`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ContinuityParams {

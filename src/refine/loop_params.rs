@@ -8,7 +8,7 @@ use crate::shot::LocalizeParams;
 use crate::shot::anchors::AnchorParams;
 
 /// Every tunable number of the daemon's refinement loop
-/// (`crate::daemon::refine_loop`; the session's own are in
+/// (`crate::daemon::refinement_task`; the session's own are in
 /// [`crate::refine::Params`]).
 #[derive(Debug, Clone)]
 pub struct LoopParams {

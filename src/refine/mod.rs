@@ -1,12 +1,15 @@
-//! Closing the loop: fly to the shot, look, and correct until the live view
-//! matches the desired shot.
+//! The shot refinement, closing the loop: fly to the shot, look, and
+//! correct until the live view matches the desired shot. (Not the pose
+//! refinement inside a localisation, `shot::localize::pose_refinement`;
+//! the daemon's task that drives this loop is `daemon::refinement_task`.)
 //!
 //! * [`error`]: the shot error between a live frame and the desired shot
 //!   (ORB matches, RANSAC homography, mean displacement of the four image
 //!   corners, pixels and % of the diagonal) and the pose difference when
 //!   both poses are known.
 //! * [`arrival`]: when to look (waypoint reached, vehicle still, gimbal at
-//!   its commanded pitch, for a dwell time).
+//!   its commanded pitch, for a dwell time); how far a reported position is
+//!   from the target.
 //! * [`measure`]: the live framing over several frames (robust average,
 //!   outliers rejected, the spread as the measurement's noise).
 //! * [`controller`]: the correction that moves the camera from the
@@ -20,6 +23,13 @@
 //!   measured through the round's georeference; a refit between rounds
 //!   carries the filtered estimate along by the change it makes at the
 //!   desired pose, so a refit is never corrected as if the camera had moved.
+//! * [`desired`]: the desired picture a session compares live frames with
+//!   (an anchors shot warped again from its keyframe, or the stored one).
+//! * [`round`]: what a round is given besides its frames: the alignment
+//!   it works with, the vehicle's reports as its observation.
+//! * [`record`]: the rounds on the shot's mission record, and how the
+//!   record ends when the loop is ended from outside.
+//! * [`loop_params`]: the daemon's loop's tunables.
 //!
 //! Everything here is synchronous (no tokio) and knows nothing of the
 //! simulator: the closed-loop experiment in it (`shotpilot scenario`) is
@@ -27,13 +37,16 @@
 
 pub mod arrival;
 pub mod controller;
+pub mod desired;
 pub mod error;
 pub mod loop_params;
 pub mod measure;
 pub mod reachable;
+pub mod record;
+pub mod round;
 pub mod session;
 
-pub use arrival::{ArrivalDetector, ArrivalParams};
+pub use arrival::{ArrivalDetector, ArrivalParams, Distance, PositionReport};
 pub use controller::{ControllerParams, Correction, Decision, correct, correct_targets, decide};
 pub use error::{
     PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,

@@ -192,6 +192,24 @@ pub struct MissionRecord {
     pub details: serde_json::Value,
 }
 
+impl MissionRecord {
+    /// Sets `details[key]` (details that are not an object become
+    /// `{"previous": ..}`, null becomes `{}`; other keys are kept).
+    pub fn set_detail(&mut self, key: &str, value: serde_json::Value) {
+        if !self.details.is_object() {
+            let previous = std::mem::take(&mut self.details);
+            self.details = if previous.is_null() {
+                serde_json::json!({})
+            } else {
+                serde_json::json!({ "previous": previous })
+            };
+        }
+        if let Some(obj) = self.details.as_object_mut() {
+            obj.insert(key.into(), value);
+        }
+    }
+}
+
 /// One desired shot and what became of it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Shot {
@@ -315,5 +333,26 @@ mod tests {
         assert_eq!(MissionState::OnVehicle.as_str(), "on_vehicle");
         assert_eq!(ShotStatus::NotLocalised.as_str(), "not_localised");
         assert!(serde_json::from_value::<MissionState>("flying".into()).is_err());
+    }
+
+    #[test]
+    fn a_detail_is_set_beside_the_others() {
+        let mut m = MissionRecord {
+            state: MissionState::Started,
+            items: 3,
+            uploaded_unix: 1.0,
+            started_unix: None,
+            target_lat_lon_alt: None,
+            details: serde_json::Value::Null,
+        };
+        m.set_detail("a", 1.into());
+        m.set_detail("b", 2.into());
+        assert_eq!(m.details, serde_json::json!({"a": 1, "b": 2}));
+        m.details = "uploaded".into();
+        m.set_detail("a", 3.into());
+        assert_eq!(
+            m.details,
+            serde_json::json!({"previous": "uploaded", "a": 3})
+        );
     }
 }

@@ -34,8 +34,8 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
-use shotpilot::daemon::refine_service::record_abort;
 use shotpilot::mission::plan::Target;
+use shotpilot::refine::record::record_abort;
 use shotpilot::refine::{Correction, Decision, RoundRecord};
 use shotpilot::shot::record::{
     Localisation, MissionRecord, MissionState, PoseJson, Shot, ShotSource, ShotStatus,

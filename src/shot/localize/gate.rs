@@ -7,7 +7,7 @@ use std::collections::HashSet;
 use super::covariance::MapError;
 use super::outcome::NotLocalizedReason;
 use super::params::{GateParams, LocalizeParams};
-use super::refine::{CandidatePose, evaluate_candidate, observations};
+use super::pose_refinement::{CandidatePose, evaluate_candidate, observations};
 use crate::features;
 use crate::optimize::{Intrinsics, optimize_pose};
 use crate::slam::{Map, PointId};

@@ -46,8 +46,8 @@ mod focal;
 mod gate;
 mod outcome;
 mod params;
+mod pose_refinement;
 mod projection;
-mod refine;
 
 use image::GrayImage;
 
@@ -64,8 +64,8 @@ use self::candidates::{extract_shot_features, neighbourhood_matches, rank_candid
 use self::covariance::{MapError, reported_sigma};
 use self::gate::{agreement, gate_reason, union_of_evidence};
 use self::outcome::not;
+use self::pose_refinement::{CandidatePose, refine_candidate};
 use self::projection::{ShotView, frustum_near_depth};
-use self::refine::{CandidatePose, refine_candidate};
 use crate::camera::Camera;
 use crate::matching::{Bounds, FeatureGrid};
 use crate::optimize::{Intrinsics, IntrinsicsCorrection};

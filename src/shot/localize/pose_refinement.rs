@@ -1,7 +1,8 @@
-//! One candidate keyframe's pose: PnP RANSAC on its descriptor matches,
-//! projection rounds with motion-only BA, the camera's hypotheses fitted
-//! and weighed, and for an assumed camera the local map searched again
-//! through the camera the weighing chose.
+//! The pose refinement of a localisation (not the shot refinement of
+//! [`crate::refine`]): one candidate keyframe's pose by PnP RANSAC on its
+//! descriptor matches, projection rounds with motion-only BA, the camera's
+//! hypotheses fitted and weighed, and for an assumed camera the local map
+//! searched again through the camera the weighing chose.
 
 use nalgebra::{Isometry3, Point2, Point3};
 

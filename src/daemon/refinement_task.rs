@@ -1,4 +1,5 @@
-//! The daemon's refinement loop: once a shot's mission is started
+//! The shot refinement's task (the loop itself is [`crate::refine`]):
+//! once a shot's mission is started
 //! (`POST /api/v1/shots/{id}/start`), watch the vehicle's telemetry with
 //! [`ArrivalDetector`] (waypoint reached, ground speed, gimbal pitch, dwell);
 //! on arrival run [`Session::on_arrival`] (on a blocking thread) with a few
@@ -25,25 +26,26 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use image::GrayImage;
-use nalgebra::{Isometry3, Point2, Vector3};
+use nalgebra::{Isometry3, Vector3};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
 use super::geo_service::GeoService;
-use super::refine_service::{record_abort, record_rounds};
 use super::slam_shared::SlamShared;
 use crate::api::{Achieved, ShotEvent, ShotEvents};
-use crate::geo::{GeoAlignment, GeoError, Geodetic, LocalFrame};
+use crate::geo::{GeoAlignment, Geodetic, LocalFrame};
 use crate::mission::plan::{self, Flavour, Home, Target, waypoint_seq};
+use crate::refine::arrival::waypoint_passed;
+use crate::refine::desired::{Picture, PictureError, Pictures, desired_picture};
+use crate::refine::record::{interrupted, record_abort, record_rounds, record_stopped};
+use crate::refine::round::{FrameTiming, Reports, observation, round_alignment};
 use crate::refine::{
-    ArrivalDetector, Context, LiveFrame, Observation, Reachable, Session, Step, outline_in_live,
-    reachable_from_anchors, shot_error,
+    ArrivalDetector, Context, Distance, LiveFrame, Observation, PositionReport, Session, Step,
+    outline_in_live, shot_error,
 };
-use crate::shot::anchors::desired_shot_from_anchors;
-use crate::shot::record::{Shot, ShotSource};
+use crate::shot::record::Shot;
 use crate::shot::store::ShotStore;
-use crate::slam::{KeyFrameId, Map};
-use crate::vehicle::LinkHandle;
+use crate::vehicle::{GlobalPosition, LinkHandle, Stamped};
 use crate::video::live::{Frame, Ingest};
 
 pub use crate::refine::loop_params::LoopParams as Params;
@@ -116,7 +118,7 @@ pub struct Deps {
     /// Tunables.
     pub params: Params,
     /// Desired pictures (and masks) by shot id, made at upload.
-    pub pictures: std::sync::Mutex<Vec<(String, Picture)>>,
+    pub pictures: Pictures,
     /// The loop's clock origin (measurement times are seconds since it).
     pub epoch: Instant,
     /// Where the shot's progress is published.
@@ -131,11 +133,6 @@ pub const OVERLAY_PERIOD: Duration = Duration::from_secs(1);
 /// How often a `flying` event is published at most.
 const FLYING_PERIOD: Duration = Duration::from_secs(1);
 
-/// A desired picture, the mask of its valid pixels and, for a shot made
-/// from anchors, the best framing a camera can reach (the shot error's
-/// floor; None when it could not be computed).
-pub type Picture = (GrayImage, Option<GrayImage>, Option<Reachable>);
-
 /// Why the loop stopped a shot's refinement early; its Display is the
 /// `reason` recorded on the shot's mission (`details.refinement`).
 #[derive(Debug, thiserror::Error)]
@@ -149,42 +146,9 @@ pub enum Abort {
         /// The shot's id.
         shot: String,
     },
-    /// A photo shot (or an anchors shot whose keyframe left the map) has
-    /// no stored picture.
-    #[error("shot {shot} has no stored image")]
-    NoStoredImage {
-        /// The shot's id.
-        shot: String,
-    },
-    /// The stored picture does not decode.
-    #[error("shot image: {0}")]
-    StoredImage(#[from] image::ImageError),
-    /// The stored picture is not of the camera's size.
-    #[error(
-        "the shot's picture is {width}x{height}, the camera's images are {camera_width}x{camera_height}"
-    )]
-    PictureSize {
-        /// Its width, pixels.
-        width: u32,
-        /// Its height, pixels.
-        height: u32,
-        /// The camera's width, pixels.
-        camera_width: u32,
-        /// The camera's height, pixels.
-        camera_height: u32,
-    },
-    /// An anchors shot's keyframe left the map and its stored picture
-    /// cannot stand in.
-    #[error("keyframe {keyframe} has no image in the map, and {stored}")]
-    KeyframeGone {
-        /// The keyframe the anchors were drawn on.
-        keyframe: u64,
-        /// Why the stored picture cannot be used.
-        stored: Box<Abort>,
-    },
-    /// The anchors no longer make a desired picture.
-    #[error("desired shot: {0}")]
-    DesiredShot(#[from] crate::shot::ShotError),
+    /// The shot has no desired picture.
+    #[error(transparent)]
+    Picture(#[from] PictureError),
     /// A blocking task of the loop panicked or was cancelled.
     #[error("the round failed: {0}")]
     Task(#[from] tokio::task::JoinError),
@@ -225,26 +189,14 @@ pub enum Abort {
     Cancelled,
 }
 
-/// Desired pictures kept at most.
-const KEEP_PICTURES: usize = 8;
-
 /// Makes (or finds) the shot's desired picture and keeps it.
 fn picture_of(deps: &Deps, shot: &Shot) -> Result<Picture, Abort> {
-    if let Ok(p) = deps.pictures.lock()
-        && let Some((_, pic)) = p.iter().find(|(id, _)| *id == shot.id)
-    {
-        return Ok(pic.clone());
+    if let Some(pic) = deps.pictures.get(&shot.id) {
+        return Ok(pic);
     }
     let map = deps.slam.map_snapshot().ok_or(Abort::NoMap)?;
-    let pic = desired_picture(&deps.store, &map, shot, &deps.params)?;
-    if let Ok(mut p) = deps.pictures.lock() {
-        p.retain(|(id, _)| *id != shot.id);
-        p.push((shot.id.clone(), pic.clone()));
-        let n = p.len();
-        if n > KEEP_PICTURES {
-            p.drain(..n - KEEP_PICTURES);
-        }
-    }
+    let pic = desired_picture(&map, shot, &deps.params, || deps.store.image(&shot.id))?;
+    deps.pictures.keep(&shot.id, pic.clone());
     Ok(pic)
 }
 
@@ -327,21 +279,8 @@ async fn mark_stopped(deps: &Deps, id: &str, reason: &str) {
     let (store, id, reason) = (deps.store.clone(), id.to_owned(), reason.to_owned());
     let write = move || {
         store.update(&id, |s| {
-            if let Some(r) = s
-                .mission
-                .as_mut()
-                .and_then(|m| m.details.get_mut("refinement"))
-                .and_then(serde_json::Value::as_object_mut)
-            {
-                let cancelled = r.get("stop").and_then(serde_json::Value::as_str)
-                    == Some("aborted")
-                    && r.get("reason").and_then(serde_json::Value::as_str) == Some("cancelled");
-                if cancelled || r.get("stop").is_none_or(serde_json::Value::is_null) {
-                    r.insert("stop".into(), "stopped".into());
-                    r.insert("reason".into(), reason.clone().into());
-                } else {
-                    r.insert("daemon_note".into(), reason.clone().into());
-                }
+            if let Some(m) = s.mission.as_mut() {
+                record_stopped(m, &reason);
             }
         })
     };
@@ -355,35 +294,19 @@ async fn mark_stopped(deps: &Deps, id: &str, reason: &str) {
 /// The daemon stops while `id`'s loop runs: the loop recorded itself as
 /// cancelled; the record says interrupted, and that it can be restarted.
 async fn mark_interrupted(deps: &Deps, id: &str) {
-    let Some(mut shot) = deps.store.get(id) else {
-        return;
-    };
-    let Some(r) = shot
-        .mission
-        .as_mut()
-        .and_then(|m| m.details.get_mut("refinement"))
-        .and_then(serde_json::Value::as_object_mut)
+    let Some(refinement) = deps
+        .store
+        .get(id)
+        .and_then(|shot| interrupted(shot.mission.as_ref()?))
     else {
         return;
     };
-    let cancelled = r.get("stop").and_then(serde_json::Value::as_str) == Some("aborted")
-        && r.get("reason").and_then(serde_json::Value::as_str) == Some("cancelled");
-    if !cancelled {
-        return;
-    }
-    r.insert("stop".into(), "interrupted".into());
-    r.insert(
-        "reason".into(),
-        "the daemon stopped while the loop ran; start the shot's mission to refine again".into(),
-    );
-    r.insert("restartable".into(), true.into());
     tracing::info!(shot = %id, "refinement: interrupted by the daemon's stop");
-    let refinement = r.clone();
     let (store, id) = (deps.store.clone(), id.to_owned());
     let write = move || {
         store.update(&id, |s| {
             if let Some(m) = s.mission.as_mut() {
-                super::refine_service::set_detail(m, "refinement", refinement.into());
+                m.set_detail("refinement", refinement);
             }
         })
     };
@@ -392,92 +315,6 @@ async fn mark_interrupted(deps: &Deps, id: &str) {
         Ok(Err(e)) => tracing::warn!("refinement: saving the shot: {e}"),
         Err(e) => tracing::warn!("refinement: saving the shot: {e}"),
     }
-}
-
-/// The desired picture (and the mask of its valid pixels) at the camera's
-/// size: an anchors shot is warped again from its keyframe, with its
-/// reachable framing from the keyframe's map points; a photo is the
-/// stored image.
-fn desired_picture(
-    store: &ShotStore,
-    map: &Map,
-    shot: &Shot,
-    params: &Params,
-) -> Result<Picture, Abort> {
-    let anchors = &params.anchors;
-    match &shot.source {
-        ShotSource::Anchors {
-            keyframe_id,
-            anchors: a,
-        } => {
-            let Some(image) = u32::try_from(*keyframe_id)
-                .ok()
-                .and_then(|id| map.keyframe(KeyFrameId(id)))
-                .and_then(|k| k.image.clone())
-            else {
-                // The keyframe left the map (culled, or not in the map
-                // continued after a restart): the desired picture stored
-                // with the shot when it was made stands in for it.
-                let stored = stored_picture(store, map, shot).map_err(|e| Abort::KeyframeGone {
-                    keyframe: *keyframe_id,
-                    stored: Box::new(e),
-                })?;
-                tracing::warn!(
-                    shot = %shot.id,
-                    keyframe = keyframe_id,
-                    "refinement: the shot's keyframe is not in the map; using its stored desired picture"
-                );
-                return Ok(stored);
-            };
-            let pts = a.map(|p| Point2::new(p[0], p[1]));
-            let s = desired_shot_from_anchors(&image, &pts, anchors)?;
-            let reachable = shot
-                .localisation
-                .as_ref()
-                .and_then(|l| l.world_from_cam.to_isometry())
-                .and_then(|map_from_desired| {
-                    let id = KeyFrameId(u32::try_from(*keyframe_id).ok()?);
-                    reachable_from_anchors(
-                        map,
-                        id,
-                        &s.shot_to_source,
-                        &map_from_desired,
-                        &params.refine.error,
-                    )
-                    .map_err(|e| tracing::warn!("refinement: reachable framing: {e}"))
-                    .ok()
-                });
-            if let Some(r) = &reachable {
-                tracing::info!(
-                    shot = %shot.id,
-                    floor_pct = r.floor_pct,
-                    points = r.points,
-                    inliers = r.inliers,
-                    "refinement: the shot's reachable framing"
-                );
-            }
-            Ok((s.image, Some(s.mask), reachable))
-        }
-        ShotSource::Photo { .. } => stored_picture(store, map, shot),
-    }
-}
-
-/// The desired picture stored with the shot (a photo, or the picture an
-/// anchors shot made), at the camera's size.
-fn stored_picture(store: &ShotStore, map: &Map, shot: &Shot) -> Result<Picture, Abort> {
-    let jpeg = store.image(&shot.id).ok_or_else(|| Abort::NoStoredImage {
-        shot: shot.id.clone(),
-    })?;
-    let img = image::load_from_memory(&jpeg)?.to_luma8();
-    if img.dimensions() != (map.camera.width, map.camera.height) {
-        return Err(Abort::PictureSize {
-            width: img.width(),
-            height: img.height(),
-            camera_width: map.camera.width,
-            camera_height: map.camera.height,
-        });
-    }
-    Ok((img, None, None))
 }
 
 /// Writes the session (and an abort reason, if any) into the stored shot.
@@ -519,7 +356,7 @@ async fn save_rounds(deps: &Deps, shot_id: &str, session: &Session, abort: Optio
         store.update(&id, |s| {
             if let Some(m) = s.mission.as_mut() {
                 if let Some(r) = refinement {
-                    super::refine_service::set_detail(m, "refinement", r);
+                    m.set_detail("refinement", r);
                 }
                 m.target_lat_lon_alt = target;
             }
@@ -731,58 +568,27 @@ async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Sessio
     })
 }
 
-/// North and east (metres, WGS84 local frame at the target) of a
-/// reported position from a target.
-fn north_east_of(t: &Target, lat_deg: f64, lon_deg: f64) -> (f64, f64) {
-    let at = |lat_deg, lon_deg| Geodetic {
-        lat_deg,
-        lon_deg,
-        alt_m: 0.0,
-    };
-    let ned = LocalFrame::new(at(t.lat_deg, t.lon_deg)).geodetic_to_ned(&at(lat_deg, lon_deg));
-    (ned.x, ned.y)
+/// A position report as the refinement reads it.
+fn position_report(g: &Stamped<GlobalPosition>) -> PositionReport {
+    PositionReport {
+        lat_deg: g.value.lat_deg,
+        lon_deg: g.value.lon_deg,
+        rel_alt_m: g.value.rel_alt_m,
+        vel_ned_m_s: g.value.vel_ned_m_s,
+        age_s: g.received.elapsed().as_secs_f64(),
+    }
 }
 
-/// How far a reported position is from a target, metres.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Distance {
-    /// Horizontal.
-    horizontal: f64,
-    /// The target's altitude less the vehicle's (positive: climb).
-    vertical: f64,
-}
-
-impl Distance {
-    /// Of a reported position (relative altitude above home) from `t`.
-    fn to(t: &Target, lat_deg: f64, lon_deg: f64, rel_alt_m: f64) -> Self {
-        let (n, e) = north_east_of(t, lat_deg, lon_deg);
-        Self {
-            horizontal: n.hypot(e),
-            vertical: t.alt_m - rel_alt_m,
-        }
-    }
-
-    /// The straight-line distance.
-    fn straight(&self) -> f64 {
-        self.horizontal.hypot(self.vertical)
-    }
-
-    /// Within `radius` horizontally and vertically.
-    fn within(&self, radius: f64) -> bool {
-        self.horizontal <= radius && self.vertical.abs() <= radius
-    }
-
-    /// The `flying` event of `round`, whose flight began `start_m` away.
-    /// The distance shown is the straight line: a correction that is
-    /// mostly vertical (a GNSS altitude bias) is not "0.0 m" away.
-    fn event(&self, round: usize, start_m: f64) -> ShotEvent {
-        ShotEvent::Flying {
-            round,
-            distance_m: self.straight(),
-            horizontal_m: self.horizontal,
-            vertical_m: self.vertical,
-            start_m,
-        }
+/// The `flying` event of `round` at distance `d`, whose flight began
+/// `start_m` away. The distance shown is the straight line: a correction
+/// that is mostly vertical (a GNSS altitude bias) is not "0.0 m" away.
+fn flying_event(d: &Distance, round: usize, start_m: f64) -> ShotEvent {
+    ShotEvent::Flying {
+        round,
+        distance_m: d.straight(),
+        horizontal_m: d.horizontal,
+        vertical_m: d.vertical,
+        start_m,
     }
 }
 
@@ -819,12 +625,12 @@ async fn wait_arrival(
             });
         }
         let fresh = |r: Instant| r.elapsed() <= p.max_telemetry_age;
-        let progress = (*tel.progress.borrow()).map(|s| s.value);
-        let passed = progress
-            .is_some_and(|pr| pr.last_reached.is_some_and(|r| r >= wp) || pr.state == Some(5));
-        let gp = (*tel.global_position.borrow()).filter(|g| fresh(g.received));
-        let dist =
-            gp.map(|g| Distance::to(target, g.value.lat_deg, g.value.lon_deg, g.value.rel_alt_m));
+        let passed = (*tel.progress.borrow())
+            .is_some_and(|pr| waypoint_passed(pr.value.last_reached, pr.value.state, wp));
+        let gp = (*tel.global_position.borrow())
+            .filter(|g| fresh(g.received))
+            .map(|g| position_report(&g));
+        let dist = gp.map(|g| g.distance_to(target));
         let near = dist.is_some_and(|d| d.within(radius));
         if let Some(d) = dist
             && d.straight().is_finite()
@@ -832,22 +638,13 @@ async fn wait_arrival(
         {
             last_flying = Some(Instant::now());
             let start_m = *start_m.get_or_insert(d.straight());
-            deps.events.publish(shot, d.event(round, start_m));
+            deps.events.publish(shot, flying_event(&d, round, start_m));
         }
-        if passed && near {
-            det.on_reached(wp);
-        }
-        let speed = gp.map_or(f64::NAN, |g| {
-            let v = g.value.vel_ned_m_s;
-            f64::from(v[0])
-                .hypot(f64::from(v[1]))
-                .hypot(f64::from(v[2]))
-        });
+        let speed = gp.map_or(f64::NAN, |g| g.speed_m_s());
         let pitch = (*tel.gimbal.borrow())
             .filter(|g| fresh(g.received))
             .map_or(f64::NAN, |g| f64::from(g.value.pitch_deg));
-        let speed = if near { speed } else { f64::NAN };
-        if det.update(t0.elapsed().as_secs_f64(), speed, pitch) {
+        if det.poll(t0.elapsed().as_secs_f64(), passed, near, speed, pitch) {
             return Ok(Instant::now());
         }
     }
@@ -860,14 +657,9 @@ type Looked = (Session, Result<Step, Abort>);
 /// metres around home.
 fn reported_ned(deps: &Deps, frame: &LocalFrame, home: &Home) -> Option<Vector3<f64>> {
     let max_age = deps.params.max_telemetry_age;
-    let g = (*deps.link.telemetry.global_position.borrow())
-        .filter(|g| g.received.elapsed() <= max_age)?;
-    let p = frame.geodetic_to_ned(&Geodetic {
-        lat_deg: g.value.lat_deg,
-        lon_deg: g.value.lon_deg,
-        alt_m: home.alt_amsl_m + g.value.rel_alt_m,
-    });
-    p.iter().all(|x| x.is_finite()).then_some(p)
+    (*deps.link.telemetry.global_position.borrow())
+        .filter(|g| g.received.elapsed() <= max_age)
+        .and_then(|g| position_report(&g).ned(frame, home.alt_amsl_m))
 }
 
 /// The live frames of one measurement: `measure.frames` frames received
@@ -904,36 +696,6 @@ async fn collect_frames(
         return Err(Abort::NoFrame);
     }
     Ok(frames)
-}
-
-/// The alignment a round works with: the georeference's fit now, or,
-/// when a refit is refused after an earlier round had one, that round's
-/// (`last`), with a note for the round saying so. Under a drifting GNSS
-/// bias the pairs of a long flight stop agreeing with one similarity (the
-/// share of inliers falls under `min_inlier_ratio`); the loop measures its
-/// error in the images and corrects it, so it goes on with the alignment
-/// it has rather than abort the shot. Refused before any round had one:
-/// the refusal.
-fn round_alignment(
-    fit: Result<GeoAlignment, GeoError>,
-    last: &mut Option<GeoAlignment>,
-) -> Result<(GeoAlignment, Option<String>), GeoError> {
-    match fit {
-        Ok(a) => {
-            *last = Some(a.clone());
-            Ok((a, None))
-        }
-        Err(e) => match last {
-            Some(a) => {
-                let note = format!(
-                    "georeference refit refused ({e}): this round kept the last round's alignment"
-                );
-                tracing::warn!("refinement: {note}");
-                Ok((a.clone(), Some(note)))
-            }
-            None => Err(e),
-        },
-    }
 }
 
 /// The arrival: a few frames received after it, a map snapshot and the
@@ -1113,36 +875,20 @@ async fn overlay_loop(deps: Arc<Deps>, shot: Shot, cancel: CancellationToken) {
 /// the round flying `target` that arrived at `arrived`.
 fn observe(deps: &Deps, target: &Target, frame: &Frame, arrived: Instant) -> Observation {
     let tel = &deps.link.telemetry;
-    let arrived_unix = frame.received_unix
-        - frame
+    let timing = FrameTiming {
+        capture_unix: frame.capture_time,
+        received_unix: frame.received_unix,
+        received_after_arrival_s: frame
             .received
             .checked_duration_since(arrived)
-            .map_or(0.0, |d| d.as_secs_f64());
-    let mut o = Observation {
-        frame_capture_unix: frame.capture_time,
-        capture_after_arrival_s: frame.capture_time.map(|c| c - arrived_unix),
-        frame_latency_s: frame.capture_time.map(|c| frame.received_unix - c),
-        ..Observation::default()
+            .map_or(0.0, |d| d.as_secs_f64()),
     };
-    if let Some(g) = *tel.global_position.borrow() {
-        let v = g.value;
-        let (n, e) = north_east_of(target, v.lat_deg, v.lon_deg);
-        o.vehicle_offset_ned_m = Some([n, e, target.alt_m - v.rel_alt_m]);
-        o.speed_m_s = Some(
-            f64::from(v.vel_ned_m_s[0])
-                .hypot(f64::from(v.vel_ned_m_s[1]))
-                .hypot(f64::from(v.vel_ned_m_s[2])),
-        );
-        o.position_age_s = Some(g.received.elapsed().as_secs_f64());
-    }
-    if let Some(a) = *tel.attitude.borrow() {
-        let yaw = f64::from(a.value.yaw_rad).to_degrees();
-        o.yaw_error_deg = Some((yaw - target.yaw_deg + 180.0).rem_euclid(360.0) - 180.0);
-    }
-    if let Some(g) = *tel.gimbal.borrow() {
-        o.gimbal_pitch_error_deg = Some(f64::from(g.value.pitch_deg) - target.gimbal_pitch_deg);
-    }
-    o
+    let reports = Reports {
+        position: (*tel.global_position.borrow()).map(|g| position_report(&g)),
+        yaw_deg: (*tel.attitude.borrow()).map(|a| f64::from(a.value.yaw_rad).to_degrees()),
+        gimbal_pitch_deg: (*tel.gimbal.borrow()).map(|g| f64::from(g.value.pitch_deg)),
+    };
+    observation(target, &timing, &reports)
 }
 
 /// Plans, uploads (with read-back) and starts the corrected target; the
@@ -1180,50 +926,7 @@ async fn fly(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::lie::Sim3;
     use crate::mission::plan::Params as PlanParams;
-
-    /// A refit refused mid-loop (a drifting GNSS bias leaves too few pairs
-    /// agreeing) keeps the last round's alignment; refused before any round
-    /// had one, the refusal stands; a later fit replaces the kept one.
-    #[test]
-    fn a_refused_refit_keeps_the_last_rounds_alignment() {
-        let refused = || {
-            Err(GeoError::TooFewInliers {
-                found: 23,
-                needed: 24,
-                pairs: 48,
-            })
-        };
-        let fit = |x: f64| {
-            GeoAlignment::given(Sim3::new(
-                nalgebra::UnitQuaternion::identity(),
-                Vector3::new(x, 0.0, 0.0),
-                1.0,
-            ))
-        };
-        let mut last = None;
-        assert!(matches!(
-            round_alignment(refused(), &mut last),
-            Err(GeoError::TooFewInliers { found: 23, .. })
-        ));
-        let (a, note) = round_alignment(Ok(fit(1.0)), &mut last).unwrap();
-        assert_eq!(a.ned_from_map.translation.x, 1.0);
-        assert_eq!(note, None);
-        // The round that kept an alignment says so, with the refusal.
-        let (kept, note) = round_alignment(refused(), &mut last).unwrap();
-        assert_eq!(kept.ned_from_map.translation.x, 1.0);
-        let note = note.unwrap();
-        assert!(
-            note.contains("refit refused") && note.contains("23") && note.contains("kept"),
-            "{note}"
-        );
-        let (b, note) = round_alignment(Ok(fit(2.0)), &mut last).unwrap();
-        assert_eq!(b.ned_from_map.translation.x, 2.0);
-        assert_eq!(note, None);
-        let (kept, _) = round_alignment(refused(), &mut last).unwrap();
-        assert_eq!(kept.ned_from_map.translation.x, 2.0);
-    }
 
     fn target() -> Target {
         Target {
@@ -1254,24 +957,6 @@ mod tests {
         assert_eq!(waypoint_seq(&[]), None);
     }
 
-    #[test]
-    fn distance_to_the_target_in_metres() {
-        let t = target();
-        let d = Distance::to(&t, t.lat_deg, t.lon_deg, t.alt_m);
-        assert!(d.horizontal < 1e-9 && d.vertical.abs() < 1e-9);
-        // 1e-5 deg of latitude is 1.11 m; 2 m lower (the target is 2 m up).
-        let d = Distance::to(&t, t.lat_deg + 1e-5, t.lon_deg, t.alt_m - 2.0);
-        assert!((d.horizontal - 1.111).abs() < 0.01, "{d:?}");
-        assert!((d.vertical - 2.0).abs() < 1e-9);
-        assert!((d.straight() - 1.111f64.hypot(2.0)).abs() < 0.01, "{d:?}");
-        // 1e-5 deg of longitude at 47.4 deg is 0.754 m.
-        let d = Distance::to(&t, t.lat_deg, t.lon_deg + 1e-5, t.alt_m);
-        assert!((d.horizontal - 0.754).abs() < 0.01, "{d:?}");
-        let d = Distance::to(&t, f64::NAN, t.lon_deg, t.alt_m);
-        assert!(d.horizontal.is_nan(), "NaN never counts as near");
-        assert!(!d.within(1.0));
-    }
-
     /// A correction of 0.6 m straight up (a GNSS altitude bias), seen as
     /// the correction's flight begins with the vehicle where the last
     /// round measured: the timeline said "flying, 0.0 m to the target"
@@ -1285,7 +970,7 @@ mod tests {
         };
         let d = Distance::to(&next, here.lat_deg, here.lon_deg, here.alt_m);
         assert!(d.within(1.0), "inside the acceptance radius");
-        match d.event(1, d.straight()) {
+        match flying_event(&d, 1, d.straight()) {
             ShotEvent::Flying {
                 round,
                 distance_m,
@@ -1303,7 +988,7 @@ mod tests {
         }
         // Half way up: 0.3 m to go of a 0.6 m flight.
         let d = Distance::to(&next, here.lat_deg, here.lon_deg, here.alt_m + 0.3);
-        let json = serde_json::to_value(d.event(1, 0.6)).unwrap();
+        let json = serde_json::to_value(flying_event(&d, 1, 0.6)).unwrap();
         assert!(
             (json["distance_m"].as_f64().unwrap() - 0.3).abs() < 1e-9,
             "{json}"

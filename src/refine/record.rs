@@ -1,14 +1,16 @@
-//! The daemon's side of the refinement loop ([`crate::refine`]): a shot's
-//! rounds go into its mission record, `details.refinement`, so that
+//! The shot refinement's record on the shot ([`crate::refine`]'s rounds
+//! in the shot's mission record, `details.refinement`), so that
 //! `GET /api/v1/shots/{id}` and the operator's page show each round (shot
-//! error, decision, correction, why it stopped).
+//! error, decision, correction, why it stopped), and how the record ends
+//! when the loop is ended from outside the session: aborted (no arrival,
+//! an upload failed, another shot), stopped by the operator, or
+//! interrupted by the daemon's stop.
 //!
 //! The loop itself is [`crate::refine::Session`], driven on arrival
 //! ([`crate::refine::ArrivalDetector`] fed with MISSION_ITEM_REACHED, the
 //! ground speed and the gimbal pitch from telemetry) with the newest frame,
-//! a map snapshot and the georeference; each corrected target is planned
-//! and uploaded like the first. `shotpilot scenario` drives the same
-//! session and arrival rule against the simulator in simulated time.
+//! a map snapshot and the georeference; the daemon's task
+//! (`daemon::refinement_task`) and `shotpilot scenario` drive it.
 
 use serde_json::{Value, json};
 
@@ -47,23 +49,7 @@ pub fn refinement_json(session: &Session) -> Value {
 /// (other details are kept; details that are not an object become
 /// `{"previous": ..}`).
 pub fn record_rounds(mission: &mut MissionRecord, session: &Session) {
-    set_detail(mission, "refinement", refinement_json(session));
-}
-
-/// Sets `details[key]` of the mission record (details that are not an
-/// object become `{"previous": ..}`, null becomes `{}`).
-pub fn set_detail(mission: &mut MissionRecord, key: &str, value: Value) {
-    if !mission.details.is_object() {
-        let previous = std::mem::take(&mut mission.details);
-        mission.details = if previous.is_null() {
-            json!({})
-        } else {
-            json!({ "previous": previous })
-        };
-    }
-    if let Some(obj) = mission.details.as_object_mut() {
-        obj.insert(key.into(), value);
-    }
+    mission.set_detail("refinement", refinement_json(session));
 }
 
 /// Marks the recorded refinement as ended by the daemon rather than by
@@ -84,6 +70,52 @@ pub fn record_abort(mission: &mut MissionRecord, reason: &str) {
     } else {
         r.insert("daemon_note".into(), Value::from(reason));
     }
+}
+
+/// Whether the recorded refinement ended because its task was cancelled
+/// (`stop` aborted, `reason` cancelled).
+fn was_cancelled(r: &serde_json::Map<String, Value>) -> bool {
+    r.get("stop").and_then(Value::as_str) == Some("aborted")
+        && r.get("reason").and_then(Value::as_str) == Some("cancelled")
+}
+
+/// The operator stopped the loop: a refinement recorded as cancelled (or
+/// not stopped yet) becomes `stopped` with the operator's `reason`; one
+/// that had stopped on its own stays, with the reason as `daemon_note`.
+pub fn record_stopped(mission: &mut MissionRecord, reason: &str) {
+    let Some(r) = mission
+        .details
+        .get_mut("refinement")
+        .and_then(Value::as_object_mut)
+    else {
+        return;
+    };
+    if was_cancelled(r) || r.get("stop").is_none_or(Value::is_null) {
+        r.insert("stop".into(), "stopped".into());
+        r.insert("reason".into(), reason.into());
+    } else {
+        r.insert("daemon_note".into(), reason.into());
+    }
+}
+
+/// The daemon stopped while the loop ran: the refinement record to write
+/// when the loop recorded itself as cancelled (`stop` interrupted, the
+/// reason, `restartable`); None when it had ended otherwise (or there is
+/// none).
+pub fn interrupted(mission: &MissionRecord) -> Option<Value> {
+    let mut r = mission
+        .details
+        .get("refinement")
+        .and_then(Value::as_object)
+        .filter(|r| was_cancelled(r))?
+        .clone();
+    r.insert("stop".into(), "interrupted".into());
+    r.insert(
+        "reason".into(),
+        "the daemon stopped while the loop ran; start the shot's mission to refine again".into(),
+    );
+    r.insert("restartable".into(), true.into());
+    Some(r.into())
 }
 
 #[cfg(test)]
@@ -203,5 +235,27 @@ mod tests {
                 .is_some_and(|r| r.contains("not reached"))
         );
         assert_eq!(m.details["refinement"]["rounds"], json!([]));
+        // The operator's stop: an open or cancelled refinement says
+        // stopped; one ended on its own keeps its end and notes it.
+        let mut stopped = m.clone();
+        record_rounds(&mut stopped, &open);
+        record_stopped(&mut stopped, "operator stop");
+        assert_eq!(stopped.details["refinement"]["stop"], "stopped");
+        assert_eq!(stopped.details["refinement"]["reason"], "operator stop");
+        let mut cancelled = m.clone();
+        record_rounds(&mut cancelled, &open);
+        record_abort(&mut cancelled, "cancelled");
+        assert_eq!(interrupted(&m), None, "aborted for another reason");
+        let r = interrupted(&cancelled).unwrap();
+        assert_eq!(r["stop"], "interrupted");
+        assert_eq!(r["restartable"], true);
+        record_stopped(&mut cancelled, "operator stop");
+        assert_eq!(cancelled.details["refinement"]["stop"], "stopped");
+        let mut done = m.clone();
+        record_rounds(&mut done, &s);
+        record_stopped(&mut done, "operator stop");
+        assert_eq!(done.details["refinement"]["stop"], "max_rounds");
+        assert_eq!(done.details["refinement"]["daemon_note"], "operator stop");
+        assert_eq!(interrupted(&done), None);
     }
 }
