@@ -6,6 +6,11 @@
 //! `time / 30`. With `ffmpeg` on the PATH, FFmpeg's H.264 decoder on the
 //! same bitstream (one thread, `-benchmark` user time, to a null sink) is
 //! printed beside it as the peer, with the ratio.
+//!
+//! `decode_loop_gop30` runs the decode thread's whole step (`DecodeLoop`:
+//! decoding, damage tracking, and the vertical motion measurement that
+//! follows damage) with and without the motion measurement, so the ratio
+//! says what following the motion costs per frame.
 
 use std::hint::black_box;
 use std::sync::Arc;
@@ -13,7 +18,9 @@ use std::time::Instant;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use image::GrayImage;
-use shotpilot::video::h264::{GrayEncoder, LumaDecoder};
+use shotpilot::video::h264::{
+    AccessUnit, DecodeLoop, DecodeParams, Decoded, GrayEncoder, LumaDecoder,
+};
 use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::paths::{CameraPath, Params as PathParams};
 use shotpilot_sim::render::{RenderParams, Renderer};
@@ -130,5 +137,46 @@ fn bench_decode(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, bench_decode);
+fn step_all(aus: &[Vec<u8>], follow_motion: bool) -> usize {
+    let mut params = DecodeParams::default();
+    params.damage.follow_motion = follow_motion;
+    let mut dl = DecodeLoop::new(params).expect("decoder");
+    let now = Instant::now();
+    let mut n = 0;
+    for a in aus {
+        let unit = AccessUnit {
+            data: a.clone(),
+            capture_time: None,
+            received: now,
+            received_unix: 0.0,
+            lost: 0,
+            gaps: vec![],
+        };
+        if let Decoded::Frame(f) = dl.step(&unit, false) {
+            n += black_box(f).image.width() as usize;
+        }
+    }
+    n
+}
+
+fn bench_decode_loop(c: &mut Criterion) {
+    let mut group = c.benchmark_group("decode_loop_gop30");
+    group.sample_size(20);
+    for (name, w, h, bps) in [
+        ("1280x720@1.5Mbps", 1280, 720, 1_500_000),
+        ("640x480@1Mbps", 640, 480, 1_000_000),
+    ] {
+        let aus = stream(w, h, bps);
+        group.throughput(Throughput::Elements(GOP as u64));
+        group.bench_function(format!("{name} motion followed"), |b| {
+            b.iter(|| step_all(&aus, true))
+        });
+        group.bench_function(format!("{name} motion bound"), |b| {
+            b.iter(|| step_all(&aus, false))
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_decode, bench_decode_loop);
 criterion_main!(benches);

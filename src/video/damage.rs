@@ -479,6 +479,12 @@ impl DamageTracker {
         self.motion = motion;
     }
 
+    /// Whether a reference picture in the window carries damage (the next
+    /// predicted picture may inherit it).
+    pub fn has_damage(&self) -> bool {
+        self.refs.iter().any(RowDamage::any)
+    }
+
     /// The measured motion, when it is to be followed.
     fn followed(&self) -> Option<VerticalMotion> {
         self.motion.filter(|_| self.params.follow_motion)
@@ -909,6 +915,9 @@ mod tests {
         t.set_motion(None);
         let d = run(&mut t, &[slice(false, 0, 5, 4)], 0, &[]);
         assert_eq!(d.coded.count(), 249 + 19 + 3);
+        assert!(t.has_damage());
+        run(&mut t, &idr, 0, &[]);
+        assert!(!t.has_damage(), "an IDR picture ends it");
     }
 
     #[test]

@@ -633,18 +633,26 @@ impl DecodeLoop {
     }
 
     /// Measures the content's motion from the last picture handed out to
-    /// `img` (tag `tag`, damaged `rows`) and tells the damage tracker what
-    /// to expect of the next picture: the range of the last two motions (a
-    /// motion that changes). A picture that could not be measured (damage
-    /// over most of it, no texture) keeps the last measurement for up to
-    /// [`MOTION_HOLD`] pictures, widened by a pixel each way per picture;
-    /// after that, nothing is expected and the tracker falls back to its
-    /// motion bound.
+    /// `img` (tag `tag`, damaged `rows`) while there is damage to follow,
+    /// and tells the damage tracker what to expect of the next picture: the
+    /// range of the last two motions (a motion that changes), or the one
+    /// measured widened by a pixel each way. A picture that could not be
+    /// measured (damage over most of it, no texture) keeps the last
+    /// measurement for up to [`MOTION_HOLD`] pictures, widened by a pixel
+    /// each way per picture; after that, nothing is expected and the
+    /// tracker falls back to its motion bound. Without damage only the
+    /// reduced picture is kept (the matching is most of the cost).
     fn follow_motion(&mut self, tag: u64, img: &Arc<GrayImage>, rows: &RowDamage) {
         if !(self.params.conceal && self.params.damage.follow_motion) {
             return;
         }
         let cur = Reduced::new(img, Some(rows.rows()), &self.params.motion);
+        if !self.damage.has_damage() {
+            self.damage.set_motion(None);
+            self.last_motion = None;
+            self.last = Some((tag, cur));
+            return;
+        }
         let now = match &self.last {
             Some((t, prev)) if *t + 1 == tag => vertical_motion(prev, &cur, &self.params.motion)
                 .map(|m| m.scaled(self.params.downscale)),
@@ -652,7 +660,14 @@ impl DecodeLoop {
         };
         let (expect, kept) = match (now, self.last_motion) {
             (Some(a), Some((b, age))) if age < MOTION_HOLD => (Some(a.union(b)), Some((a, 0))),
-            (Some(a), _) => (None, Some((a, 0))),
+            (Some(a), _) => {
+                let wide = VerticalMotion {
+                    lo: a.lo - 1,
+                    hi: a.hi + 1,
+                    ..a
+                };
+                (Some(wide), Some((a, 0)))
+            }
             (None, Some((b, age))) if age < MOTION_HOLD => {
                 let w = age as i32 + 1;
                 let wide = VerticalMotion {
