@@ -738,9 +738,10 @@ fn slam_keeps_tracking_through_a_lossy_link() {
         conceal: false,
         ..Default::default()
     };
-    let bound = DecodeParams {
+    let bound = DecodeParams::default();
+    let followed = DecodeParams {
         damage: shotpilot::video::damage::DamageParams {
-            follow_motion: false,
+            follow_motion: true,
             ..Default::default()
         },
         ..Default::default()
@@ -749,6 +750,7 @@ fn slam_keeps_tracking_through_a_lossy_link() {
     let margin = |px: u32| DecodeParams {
         damage: shotpilot::video::damage::DamageParams {
             motion_margin_px: px,
+            follow_motion: true,
             ..Default::default()
         },
         ..Default::default()
@@ -760,17 +762,17 @@ fn slam_keeps_tracking_through_a_lossy_link() {
     );
     let mut results = Vec::new();
     for (loss, name, params) in [
-        (0.0, "masked, motion followed", DecodeParams::default()),
-        (0.01, "masked, motion followed", DecodeParams::default()),
+        (0.0, "masked, motion followed", followed.clone()),
+        (0.01, "masked, motion followed", followed.clone()),
         (0.01, "masked, motion bound", bound.clone()),
         (0.01, "masked, motion followed, margin 0", margin(0)),
         (0.01, "masked, motion followed, margin 1", margin(1)),
         (0.01, "skip to IDR", skip.clone()),
-        (0.02, "masked, motion followed", DecodeParams::default()),
-        (0.05, "masked, motion followed", DecodeParams::default()),
+        (0.02, "masked, motion followed", followed.clone()),
+        (0.05, "masked, motion followed", followed.clone()),
         (0.05, "masked, motion bound", bound.clone()),
         (0.05, "skip to IDR", skip.clone()),
-        (0.10, "masked, motion followed", DecodeParams::default()),
+        (0.10, "masked, motion followed", followed.clone()),
     ] {
         let r = if loss == 0.0 {
             SlamRun { ..lossless }
