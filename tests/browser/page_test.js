@@ -481,6 +481,9 @@ async function main() {
       await page.waitForTimeout(500);
     }
     out.vehicle_samples = samples;
+    // When the sampling ended: the hold is judged on the simulator's truth
+    // up to here (the marker is missing while the map shows the SLAM view).
+    out.hold_end_unix = Date.now() / 1000;
     await stage(page, 'holding');
     // Loops closed: the badge's count and the pairs the map drew, against
     // the status (compared on the Rust side); a loop closing between the

@@ -661,17 +661,24 @@ fn operator_page_in_headless_chromium() {
         let [n, e] = at(last_t);
         (s["n"].as_f64().unwrap() - n).hypot(s["e"].as_f64().unwrap() - e)
     };
-    // Held: where the truth is at the end against where it was when the
-    // stop was acknowledged, and its drift over the last 4 s.
+    // Held: where the truth is when the page stopped sampling (at least
+    // 8 s after the stop, once the marker kept still for 4 s, or after
+    // about 40 s) against where it was when the stop was acknowledged, and
+    // its drift over the last 4 s. Judged at the last marker sample
+    // instead, a run whose marker went missing early (the map in the SLAM
+    // view) measured the braking: 3.7 m in the 4 s up to 5.2 s after the
+    // stop.
     let stop_t = seen["stop"]["at_unix"].as_f64().unwrap();
+    let end_t = seen["hold_end_unix"].as_f64().unwrap_or(last_t).max(last_t);
     let dist = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]);
-    let from_stop = dist(at(last_t), at(stop_t));
-    let drift = dist(at(last_t), at(last_t - 4.0));
+    let from_stop = dist(at(end_t), at(stop_t));
+    let drift = dist(at(end_t), at(end_t - 4.0));
     eprintln!(
         "map marker vs truth: last {d_last:.2} m, worst of {} samples over {:.1} s after the stop {worst:.2} m; \
-         truth: {from_stop:.2} m from where it was at the stop's ACK, drift over the last 4 s {drift:.3} m",
+         truth {:.1} s after the stop: {from_stop:.2} m from where it was at the stop's ACK, drift over the last 4 s {drift:.3} m",
         samples.len(),
-        last_t - stop_t
+        last_t - stop_t,
+        end_t - stop_t
     );
     assert!(
         d_last < 1.0,
