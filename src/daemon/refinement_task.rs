@@ -926,7 +926,6 @@ async fn fly(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mission::plan::Params as PlanParams;
 
     fn target() -> Target {
         Target {
@@ -937,24 +936,6 @@ mod tests {
             gimbal_pitch_deg: -40.0,
             photo: true,
         }
-    }
-
-    #[test]
-    fn the_shot_waypoint_is_found_in_both_flavours() {
-        let home = Home {
-            lat_deg: 47.3970,
-            lon_deg: 8.5449,
-            alt_amsl_m: 488.0,
-        };
-        for f in [Flavour::Px4, Flavour::ArduPilot] {
-            let items = plan::plan(&target(), &home, f, &PlanParams::default()).unwrap();
-            let wp = waypoint_seq(&items).unwrap();
-            let item = &items[usize::from(wp)];
-            assert_eq!(item.command, 16);
-            // The shot's waypoint, not ArduPilot's home item.
-            assert_eq!(item.x, (target().lat_deg * 1e7).round() as i32, "{f:?}");
-        }
-        assert_eq!(waypoint_seq(&[]), None);
     }
 
     /// A correction of 0.6 m straight up (a GNSS altitude bias), seen as

@@ -52,16 +52,20 @@ pub fn record_rounds(mission: &mut MissionRecord, session: &Session) {
     mission.set_detail("refinement", refinement_json(session));
 }
 
+/// The recorded refinement's object, if the mission has one.
+fn refinement_mut(mission: &mut MissionRecord) -> Option<&mut serde_json::Map<String, Value>> {
+    mission
+        .details
+        .get_mut("refinement")
+        .and_then(Value::as_object_mut)
+}
+
 /// Marks the recorded refinement as ended by the daemon rather than by
 /// the session (no arrival, an upload failed, shutdown, another shot):
 /// `stop` becomes `aborted` (when the session had not stopped) and
 /// `reason` says why. Call after [`record_rounds`].
 pub fn record_abort(mission: &mut MissionRecord, reason: &str) {
-    let Some(r) = mission
-        .details
-        .get_mut("refinement")
-        .and_then(Value::as_object_mut)
-    else {
+    let Some(r) = refinement_mut(mission) else {
         return;
     };
     if r.get("stop").is_none_or(Value::is_null) {
@@ -83,11 +87,7 @@ fn was_cancelled(r: &serde_json::Map<String, Value>) -> bool {
 /// not stopped yet) becomes `stopped` with the operator's `reason`; one
 /// that had stopped on its own stays, with the reason as `daemon_note`.
 pub fn record_stopped(mission: &mut MissionRecord, reason: &str) {
-    let Some(r) = mission
-        .details
-        .get_mut("refinement")
-        .and_then(Value::as_object_mut)
-    else {
+    let Some(r) = refinement_mut(mission) else {
         return;
     };
     if was_cancelled(r) || r.get("stop").is_none_or(Value::is_null) {
