@@ -383,21 +383,8 @@ impl RowDamage {
 
     /// Every row within `r` rows of a damaged one.
     pub fn dilated(&self, r: usize) -> RowDamage {
-        let n = self.rows.len();
-        let mut out = RowDamage::clean(n);
-        let mut i = 0;
-        while i < n {
-            if self.rows[i] {
-                let start = i;
-                while i < n && self.rows[i] {
-                    i += 1;
-                }
-                out.mark(start.saturating_sub(r), i + r);
-            } else {
-                i += 1;
-            }
-        }
-        out
+        let r = r as i64;
+        self.moved(-r, r)
     }
 }
 
