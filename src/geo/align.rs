@@ -184,6 +184,10 @@ pub struct AlignQuality {
     /// Eigenvalues of the covariance of the inliers' NED positions, largest
     /// first, m².
     pub spread_m2: [f64; 3],
+    /// Older pairs left out of the fit because the pairs as a whole did not
+    /// agree and the newest ones did (see [`Georeference::fit`]); 0 for a
+    /// fit of every pair.
+    pub set_aside: usize,
 }
 
 /// A fitted map → NED similarity and its quality.
@@ -213,6 +217,7 @@ impl GeoAlignment {
                 inliers: 0,
                 iterations: 0,
                 spread_m2: [0.0; 3],
+                set_aside: 0,
             },
             inlier_ids: Vec::new(),
         }
@@ -414,19 +419,23 @@ impl Georeference {
     }
 
     /// Fits (or, when nothing changed since the last success, returns) the
-    /// map → NED similarity.
+    /// map → NED similarity. When the pairs disagree as a whole (too few
+    /// inliers), the newest pairs that agree among themselves are fitted
+    /// and the older ones set aside ([`AlignQuality::set_aside`]).
     pub fn fit(&mut self) -> Result<GeoAlignment, GeoError> {
         if !self.changed
             && let Some(last) = &self.last
         {
             return Ok(last.clone());
         }
-        let result = fit_pairs(
-            &self.pairs,
-            &self.params,
-            self.last.as_ref().map(|a| &a.ned_from_map),
-            self.params.seed.wrapping_add(self.fits),
-        );
+        let previous = self.last.as_ref().map(|a| a.ned_from_map);
+        let seed = self.params.seed.wrapping_add(self.fits);
+        let result = match fit_pairs(&self.pairs, &self.params, previous.as_ref(), seed) {
+            Err(e @ GeoError::TooFewInliers { .. }) => {
+                self.fit_newest(previous.as_ref(), seed).ok_or(e)
+            }
+            r => r,
+        };
         self.fits += 1;
         match result {
             Ok(a) => {
@@ -446,6 +455,31 @@ impl Georeference {
                 }
             },
         }
+    }
+
+    /// When the pairs do not agree as a whole, a fit of the newest pairs
+    /// that agree among themselves: the newest two thirds, then two thirds
+    /// of those, ... while they are enough and spread enough (None when
+    /// none agree). A GNSS bias drifts (metres in height over minutes), so
+    /// a long flight's pairs disagree with each other while each stretch
+    /// agrees; the vehicle flies by its GNSS as it reads now, so the newest
+    /// pairs are the ones its targets must agree with.
+    fn fit_newest(&self, previous: Option<&Sim3>, seed: u64) -> Option<GeoAlignment> {
+        let mut newest_first = self.pairs.clone();
+        newest_first.sort_by(|a, b| b.time.total_cmp(&a.time));
+        let needed = self.params.min_pairs.max(3);
+        let mut n = newest_first.len() * 2 / 3;
+        while n >= needed {
+            match fit_pairs(&newest_first[..n], &self.params, previous, seed) {
+                Ok(mut a) => {
+                    a.quality.set_aside = self.pairs.len() - n;
+                    return Some(a);
+                }
+                Err(GeoError::TooFewInliers { .. }) => n = n * 2 / 3,
+                Err(_) => return None,
+            }
+        }
+        None
     }
 
     /// The last fit, when `refusal` only says the evidence is too thin
@@ -659,6 +693,7 @@ pub fn fit_pairs(
             inliers: inliers.len(),
             iterations,
             spread_m2,
+            set_aside: 0,
         },
         inlier_ids: inliers.iter().map(|p| p.kf_id).collect(),
     })

@@ -797,6 +797,11 @@ impl LiveGeoreference {
                     "rotation_rms_deg": q.rotation_rms_deg,
                     "time_offset_s": q.time_offset_s,
                     "keyframes_used": q.inliers,
+                    "older_pairs_set_aside": q.set_aside,
+                    "recent": (q.set_aside > 0).then(|| format!(
+                        "fitted on the newest {} pairs: the {} older ones disagree with them (a GNSS bias that drifted, or a map that bent)",
+                        q.pairs, q.set_aside
+                    )),
                     "spread_m": q.spread_m2.map(f64::sqrt),
                     "ned_from_map": {
                         "scale": a.ned_from_map.scale,

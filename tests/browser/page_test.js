@@ -390,9 +390,16 @@ async function main() {
     const num = (v) => (v == null ? null : Number(v));
     const timeline = (id) => page.$$eval(`#timeline .tl[data-shot="${id}"] li`, (ls) => ls.map((l) => ({ kind: l.dataset.kind, round: l.dataset.round, error: l.dataset.error, sigma_pct: l.dataset.sigmaPct, sigma_deg: l.dataset.sigmaDeg, sigma_m: l.dataset.sigmaM, distance: l.dataset.distance, start: l.dataset.start, text: l.textContent })))
       .then((ls) => ls.map((l) => ({ ...l, round: num(l.round), error: num(l.error), sigma_pct: num(l.sigma_pct), sigma_deg: num(l.sigma_deg), sigma_m: num(l.sigma_m), distance: num(l.distance), start: num(l.start) })));
+    // Uploads the shot's mission and waits for the daemon's answer: Start
+    // offered, or the refusal shown (which fails the test with its text).
+    const uploadMission = async (shot) => {
+      await page.click('#upload');
+      await page.waitForFunction(() => document.getElementById('result').dataset.state === 'error' || !document.getElementById('start').disabled, null, { timeout: 60000 });
+      const text = await page.textContent('#result');
+      check(!(await page.isDisabled('#start')), `the mission of shot ${shot.id} is uploaded, page says: ${text}`);
+    };
     const waitKind = (id, kind, timeout) => page.waitForFunction(([id, kind]) => !!document.querySelector(`#timeline .tl[data-shot="${id}"] li[data-kind="${kind}"]`), [id, kind], { timeout });
-    await page.click('#upload');
-    await page.waitForFunction(() => !document.getElementById('start').disabled, null, { timeout: 60000 });
+    await uploadMission(shotA);
     await waitKind(shotA.id, 'uploaded', 10000);
     await page.click('#start');
     await waitKind(shotA.id, 'started', 30000);
@@ -451,8 +458,7 @@ async function main() {
       shotB = await submitShot(true);
     }
     check(shotB.state === 'localised', `a second shot is localised: ${shotB.text}`);
-    await page.click('#upload');
-    await page.waitForFunction(() => !document.getElementById('start').disabled, null, { timeout: 60000 });
+    await uploadMission(shotB);
     await page.click('#start');
     await page.waitForFunction((id) => [...document.querySelectorAll(`#timeline .tl[data-shot="${id}"] li[data-kind="flying"]`)].some((l) => /flying, ([3-9]|\d\d+)\./.test(l.textContent)), shotB.id, { timeout: 120000 });
     await stage(page, 'flying_second_shot');

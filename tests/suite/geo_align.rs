@@ -336,6 +336,60 @@ fn refuses_when_the_pairs_do_not_agree() {
 }
 
 #[test]
+fn a_drifting_gnss_bias_is_fitted_on_the_newest_pairs() {
+    // A 400 s flight whose GNSS height bias drifts 5 m (a Gauss-Markov
+    // bias of 2 m over 300 s moves about that much): the pairs do not
+    // agree as a whole, each stretch of the flight does. The vehicle flies
+    // by its GNSS as it reads now, so the fit must agree with the newest.
+    let mut rng = SmallRng::seed_from_u64(23);
+    let t = truth();
+    let inv = t.inverse();
+    let ned = flight(200);
+    let mut geo = Georeference::new(AlignParams {
+        refine_with_orientations: false,
+        ..AlignParams::default()
+    });
+    let mut pairs = Vec::new();
+    for (i, p) in ned.iter().enumerate() {
+        let time = i as f64 * 2.0;
+        let bias = Vector3::new(0.0, 0.0, -5.0 * time / 400.0);
+        let read =
+            p + bias + Vector3::new(gauss(&mut rng), gauss(&mut rng), gauss(&mut rng)) * 0.05;
+        let p_map = inv.transform_point(p);
+        geo.add_pair(i as u64, p_map, read, time).unwrap();
+        pairs.push((p_map, read));
+    }
+    // Every pair at once: refused, they disagree.
+    let all = shotpilot::geo::align::fit_pairs(geo.pairs(), geo.params(), None, 1);
+    assert!(
+        matches!(all, Err(GeoError::TooFewInliers { .. })),
+        "{all:?}"
+    );
+    let fit = geo.fit().expect("the newest pairs agree");
+    let q = fit.quality;
+    // The newest 20 keyframes are where the GNSS now says they are.
+    let worst = pairs[180..]
+        .iter()
+        .map(|(m, read)| (fit.ned_from_map.transform_point(m) - read).norm())
+        .fold(0.0, f64::max);
+    println!(
+        "fitted on the newest {} pairs ({} set aside), {} inliers, rms {:.3} m; newest 20 within {worst:.3} m of the GNSS",
+        q.pairs, q.set_aside, q.inliers, q.rms_m
+    );
+    assert!(q.set_aside > 0 && q.pairs + q.set_aside == 200, "{q:?}");
+    // Inliers of the fit, within its 0.5 m threshold of the GNSS now.
+    assert!(
+        (180..200).all(|id| fit.inlier_ids.contains(&id)),
+        "{:?}",
+        fit.inlier_ids
+    );
+    assert!(
+        worst < 0.5,
+        "the newest keyframes are {worst} m off the GNSS"
+    );
+}
+
+#[test]
 fn estimates_a_time_offset_from_keyframe_velocities() {
     let t = truth();
     let inv = t.inverse();
