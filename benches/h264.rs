@@ -18,9 +18,8 @@ use std::time::Instant;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use image::GrayImage;
-use shotpilot::video::h264::{
-    AccessUnit, DecodeLoop, DecodeParams, Decoded, GrayEncoder, LumaDecoder,
-};
+use shotpilot::video::decode_loop::{DecodeLoop, DecodeParams, Decoded};
+use shotpilot::video::h264::{AccessUnit, GrayEncoder, LumaDecoder};
 use shotpilot_sim::camera::SimCamera;
 use shotpilot_sim::paths::{CameraPath, Params as PathParams};
 use shotpilot_sim::render::{RenderParams, Renderer};

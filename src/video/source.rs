@@ -16,7 +16,8 @@ use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 
-use crate::video::h264::{self, AuQueue, H264Error};
+use crate::video::decode_loop;
+use crate::video::h264::{AuQueue, H264Error};
 use crate::video::live::Ingest;
 pub use crate::video::stream::{
     H264Params, H264Sink, RtspTransport, SourceError, backoff, codec_name,
@@ -141,7 +142,7 @@ impl VideoConfig {
             read_timeout_ms: self.read_timeout_ms,
             reconnect_min_ms: self.reconnect_min_ms,
             reconnect_max_ms: self.reconnect_max_ms,
-            decode: crate::video::h264::DecodeParams {
+            decode: crate::video::decode_loop::DecodeParams {
                 queue: self.decode_queue,
                 downscale: self.downscale,
                 conceal: self.conceal,
@@ -344,7 +345,7 @@ async fn run_h264_on(
 ) -> Result<(), SourceError> {
     let queue = Arc::new(AuQueue::new(params.decode.queue));
     let resets = Arc::new(AtomicU64::new(0));
-    let decoder = h264::spawn_decoder(
+    let decoder = decode_loop::spawn_decoder(
         ingest.clone(),
         queue.clone(),
         params.decode.clone(),

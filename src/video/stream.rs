@@ -9,7 +9,8 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicU64;
 use std::time::Duration;
 
-use crate::video::h264::{self, AuQueue, DecodeParams, H264Error};
+use crate::video::decode_loop::DecodeParams;
+use crate::video::h264::{self, AuQueue, H264Error};
 use crate::video::live::Ingest;
 use crate::video::rtp::sdp::SdpError;
 

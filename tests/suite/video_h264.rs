@@ -10,9 +10,8 @@ use std::time::Instant;
 
 use image::GrayImage;
 use rand::{Rng, SeedableRng};
-use shotpilot::video::h264::{
-    AccessUnit, AuKind, AuQueue, DecodeLoop, DecodeParams, Decoded, GrayEncoder, annexb_units,
-};
+use shotpilot::video::decode_loop::{DecodeLoop, DecodeParams, Decoded};
+use shotpilot::video::h264::{AccessUnit, AuKind, AuQueue, GrayEncoder, annexb_units};
 use shotpilot::video::rtp::{
     H264Depacketizer, RtpClock, looks_like_h265, packetize_h264, parse_rtp, parse_sender_report,
 };

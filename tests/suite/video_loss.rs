@@ -563,7 +563,8 @@ const VISIBLE: u8 = 8;
 
 /// Every picture of `aus` decoded without loss, by index.
 fn lossless_pictures(aus: &[Vec<u8>]) -> Vec<Option<image::GrayImage>> {
-    use shotpilot::video::h264::{AccessUnit, DecodeLoop, DecodeParams, Decoded};
+    use shotpilot::video::decode_loop::{DecodeLoop, DecodeParams, Decoded};
+    use shotpilot::video::h264::AccessUnit;
     let mut dl = DecodeLoop::new(DecodeParams::default()).unwrap();
     aus.iter()
         .map(|a| {
@@ -589,9 +590,10 @@ fn slam_through_loss(
     gt: &[(f64, nalgebra::Isometry3<f64>)],
     cam: &shotpilot::camera::Camera,
     loss: f64,
-    params: shotpilot::video::h264::DecodeParams,
+    params: shotpilot::video::decode_loop::DecodeParams,
 ) -> SlamRun {
-    use shotpilot::video::h264::{AccessUnit, DecodeLoop, Decoded};
+    use shotpilot::video::decode_loop::{DecodeLoop, Decoded};
+    use shotpilot::video::h264::AccessUnit;
     use shotpilot::video::rtp::{H264Depacketizer, packetize_h264, parse_rtp};
     let mut rng = rand::rngs::StdRng::seed_from_u64(77);
     let mut dl = DecodeLoop::new(params).unwrap();
@@ -711,7 +713,8 @@ fn slam_through_loss(
 #[test]
 #[ignore = "slow: renders, encodes and runs SLAM on 450 frames nine times (about two minutes)"]
 fn slam_keeps_tracking_through_a_lossy_link() {
-    use shotpilot::video::h264::{DecodeParams, GrayEncoder};
+    use shotpilot::video::decode_loop::DecodeParams;
+    use shotpilot::video::h264::GrayEncoder;
     use shotpilot_sim::paths::{CameraPath, Params as PathParams};
     use shotpilot_sim::render::{RenderParams, Renderer};
     let world = Arc::new(shotpilot_sim::world::World::generate(5));

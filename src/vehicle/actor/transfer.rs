@@ -1,0 +1,198 @@
+//! A mission transfer in flight (upload or download, and the read-back that
+//! confirms an upload whose final ACK was lost) and its outcome delivered to
+//! whoever waits for it.
+
+use std::time::Instant;
+
+use mavlink::MavHeader;
+use mavlink::dialects::common::MavMessage;
+use tokio::sync::oneshot;
+use tracing::{Span, info, warn};
+
+use crate::mission::upload::{Downloader, MissionError, Uploader, same_mission};
+use crate::mission::{Download, MissionItem, UploadReport};
+use crate::vehicle::LinkError;
+
+/// Why a download runs.
+pub(super) enum DownPurpose {
+    /// The operator asked for the mission.
+    Reply(oneshot::Sender<Result<Download, LinkError>>),
+    /// An upload's final ACK was lost: the read-back decides.
+    Verify {
+        items: Vec<MissionItem>,
+        skip_home: bool,
+        report: UploadReport,
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+    },
+}
+
+pub(super) enum Transfer {
+    Up {
+        machine: Uploader,
+        items: Vec<MissionItem>,
+        skip_home: bool,
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+        span: Span,
+    },
+    Down {
+        machine: Downloader,
+        purpose: DownPurpose,
+        span: Span,
+    },
+}
+
+/// What finishing a transfer leads to.
+pub(super) enum Next {
+    Nothing,
+    /// Read the mission back to confirm an upload whose final ACK was lost.
+    Verify {
+        items: Vec<MissionItem>,
+        skip_home: bool,
+        report: UploadReport,
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+        span: Span,
+    },
+}
+
+fn log_upload(span: &Span, outcome: &Result<UploadReport, MissionError>) {
+    span.in_scope(|| match outcome {
+        Ok(r) => info!(
+            items = r.items,
+            retries = r.retries,
+            repeats = r.repeats,
+            seconds = r.seconds,
+            verified_by_download = r.verified_by_download,
+            "mission uploaded"
+        ),
+        Err(e) => warn!(error = %e, "mission upload failed"),
+    });
+}
+
+impl Transfer {
+    pub(super) fn on_message(
+        &mut self,
+        h: &MavHeader,
+        m: &MavMessage,
+        now: Instant,
+        out: &mut Vec<MavMessage>,
+    ) {
+        match self {
+            Self::Up { machine, span, .. } => span.in_scope(|| machine.on_message(h, m, now, out)),
+            Self::Down { machine, span, .. } => {
+                span.in_scope(|| machine.on_message(h, m, now, out))
+            }
+        }
+    }
+
+    pub(super) fn on_timeout(&mut self, now: Instant, out: &mut Vec<MavMessage>) {
+        match self {
+            Self::Up { machine, .. } => machine.on_timeout(now, out),
+            Self::Down { machine, .. } => machine.on_timeout(now, out),
+        }
+    }
+
+    pub(super) fn cancel(&mut self, now: Instant, out: &mut Vec<MavMessage>) {
+        match self {
+            Self::Up { machine, .. } => machine.cancel(now, out),
+            Self::Down { machine, .. } => machine.cancel(now, out),
+        }
+    }
+
+    pub(super) fn deadline(&self) -> Option<Instant> {
+        match self {
+            Self::Up { machine, .. } => machine.deadline(),
+            Self::Down { machine, .. } => machine.deadline(),
+        }
+    }
+
+    pub(super) fn is_done(&self) -> bool {
+        match self {
+            Self::Up { machine, .. } => machine.is_done(),
+            Self::Down { machine, .. } => machine.is_done(),
+        }
+    }
+
+    /// Sends the outcome of a finished transfer to whoever waits for it, or
+    /// asks for a read-back when an upload's final ACK is missing and
+    /// `may_verify`.
+    pub(super) fn deliver(self, now: Instant, may_verify: bool) -> Next {
+        match self {
+            Self::Up {
+                mut machine,
+                items,
+                skip_home,
+                reply,
+                span,
+            } => match machine.take_outcome() {
+                Some(Err(MissionError::NoFinalAck { .. })) if may_verify => {
+                    span.in_scope(|| warn!("final MISSION_ACK missing; reading the mission back"));
+                    Next::Verify {
+                        items,
+                        skip_home,
+                        report: machine.report_at(now),
+                        reply,
+                        span,
+                    }
+                }
+                Some(outcome) => {
+                    log_upload(&span, &outcome);
+                    let _ = reply.send(outcome.map_err(LinkError::from));
+                    Next::Nothing
+                }
+                None => Next::Nothing,
+            },
+            Self::Down {
+                mut machine,
+                purpose,
+                span,
+            } => {
+                let Some(outcome) = machine.take_outcome() else {
+                    return Next::Nothing;
+                };
+                match purpose {
+                    DownPurpose::Reply(reply) => {
+                        span.in_scope(|| match &outcome {
+                            Ok(d) => info!(
+                                items = d.items.len(),
+                                retries = d.retries,
+                                seconds = d.seconds,
+                                "mission downloaded"
+                            ),
+                            Err(e) => warn!(error = %e, "mission download failed"),
+                        });
+                        let _ = reply.send(outcome.map_err(LinkError::from));
+                    }
+                    DownPurpose::Verify {
+                        items,
+                        skip_home,
+                        report,
+                        reply,
+                    } => {
+                        let result = match outcome {
+                            Ok(d) if same_mission(&items, &d.items, skip_home) => {
+                                Ok(UploadReport {
+                                    seconds: report.seconds + d.seconds,
+                                    retries: report.retries + d.retries,
+                                    verified_by_download: true,
+                                    ..report
+                                })
+                            }
+                            Ok(d) => Err(MissionError::ReadBackDiffers {
+                                uploaded: report.items,
+                                downloaded: d.items.len(),
+                            }),
+                            Err(MissionError::Cancelled) => Err(MissionError::Cancelled),
+                            Err(_) => Err(MissionError::NoFinalAck {
+                                count: report.items,
+                                retries: report.retries,
+                            }),
+                        };
+                        log_upload(&span, &result);
+                        let _ = reply.send(result.map_err(LinkError::from));
+                    }
+                }
+                Next::Nothing
+            }
+        }
+    }
+}
