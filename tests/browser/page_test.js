@@ -333,7 +333,11 @@ async function main() {
     const mapPick = async (choose) => {
       // On the world map (a refit the georeference refused shows the SLAM
       // view until the next fit is accepted).
-      await page.waitForFunction(() => document.getElementById('map').dataset.mode === 'world', null, { timeout: 60000 });
+      try {
+        await page.waitForFunction(() => document.getElementById('map').dataset.mode === 'world', null, { timeout: 60000 });
+      } catch (e) {
+        check(false, `the map is not georeferenced for 60 s: ${await page.textContent('#mapmode')}`);
+      }
       const pick = await page.evaluate((choose) => {
         // Project the keyframes as they are now (a keyframe list or
         // georeference fetched since the last draw moves them).
@@ -477,16 +481,20 @@ async function main() {
     // within 0.1 m (bounded), each with its time, compared with the
     // simulator's truth on the Rust side.
     const samples = [];
+    // Why the marker was missing, when it was (the map's mode line).
+    const missing = [];
     for (let i = 0; i < 80; i++) {
       const v = await page.$eval('#map', (m) => m.dataset.vehicleNed || '');
       const [n, e] = v.split(',').map(Number);
       if (Number.isFinite(n) && Number.isFinite(e)) samples.push({ t: Date.now() / 1000, n, e });
+      else if (missing.length < 5) missing.push({ t: Date.now() / 1000, map: await page.textContent('#mapmode') });
       const recent = samples.filter((x) => x.t >= samples[samples.length - 1].t - 4);
       const spread = recent.length ? Math.max(...recent.map((x) => Math.hypot(x.n - recent[0].n, x.e - recent[0].e))) : Infinity;
       if (samples.length && samples[samples.length - 1].t - out.stop.at_unix > 8 && spread < 0.1) break;
       await page.waitForTimeout(500);
     }
     out.vehicle_samples = samples;
+    out.vehicle_missing = missing;
     // When the sampling ended: the hold is judged on the simulator's truth
     // up to here (the marker is missing while the map shows the SLAM view).
     out.hold_end_unix = Date.now() / 1000;
