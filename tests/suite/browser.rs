@@ -458,7 +458,9 @@ fn operator_page_in_headless_chromium() {
     cfg.validate(Path::new("test")).unwrap();
     let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
 
-    let daemon = daemon_support::start(cfg, sockets, dir.path());
+    let log = shot_png.with_file_name("daemon.log");
+    eprintln!("the daemon's log: {}", log.display());
+    let daemon = daemon_support::start_logged(cfg, sockets, dir.path(), &log);
     let addr = daemon.addr;
     let t0 = Instant::now();
 

@@ -65,7 +65,44 @@ pub fn start(
     sockets: shotpilot::daemon::Sockets,
     base: &Path,
 ) -> Running {
-    let rt = tokio::runtime::Builder::new_multi_thread()
+    start_on(cfg, sockets, base, None)
+}
+
+/// [`start`], with the daemon's log (`info`, the georeference's `debug`;
+/// the threads of its runtime)
+/// written to `log`: what a failed end-to-end run looks back on.
+pub fn start_logged(
+    cfg: shotpilot::config::Config,
+    sockets: shotpilot::daemon::Sockets,
+    base: &Path,
+    log: &Path,
+) -> Running {
+    let file = std::fs::File::create(log).unwrap_or_else(|e| panic!("{}: {e}", log.display()));
+    let dispatch = tracing::Dispatch::new(
+        tracing_subscriber::fmt()
+            .with_ansi(false)
+            .with_writer(std::sync::Mutex::new(file))
+            .with_env_filter(tracing_subscriber::EnvFilter::new(
+                "info,shotpilot::geo=debug",
+            ))
+            .finish(),
+    );
+    start_on(cfg, sockets, base, Some(dispatch))
+}
+
+fn start_on(
+    cfg: shotpilot::config::Config,
+    sockets: shotpilot::daemon::Sockets,
+    base: &Path,
+    log: Option<tracing::Dispatch>,
+) -> Running {
+    let mut builder = tokio::runtime::Builder::new_multi_thread();
+    if let Some(d) = log {
+        // Each of the runtime's threads (workers and blocking) logs to it
+        // for its whole life.
+        builder.on_thread_start(move || std::mem::forget(tracing::dispatcher::set_default(&d)));
+    }
+    let rt = builder
         .worker_threads(2)
         .enable_all()
         .build()

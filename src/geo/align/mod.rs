@@ -35,6 +35,8 @@ use crate::geometry::{Sim3, umeyama};
 use crate::lie::skew;
 use crate::optimize::lm::{LeastSquares, LmParams, levenberg_marquardt};
 
+mod newest;
+
 /// Tunables of the alignment.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -455,31 +457,6 @@ impl Georeference {
                 }
             },
         }
-    }
-
-    /// When the pairs do not agree as a whole, a fit of the newest pairs
-    /// that agree among themselves: the newest two thirds, then two thirds
-    /// of those, ... while they are enough and spread enough (None when
-    /// none agree). A GNSS bias drifts (metres in height over minutes), so
-    /// a long flight's pairs disagree with each other while each stretch
-    /// agrees; the vehicle flies by its GNSS as it reads now, so the newest
-    /// pairs are the ones its targets must agree with.
-    fn fit_newest(&self, previous: Option<&Sim3>, seed: u64) -> Option<GeoAlignment> {
-        let mut newest_first = self.pairs.clone();
-        newest_first.sort_by(|a, b| b.time.total_cmp(&a.time));
-        let needed = self.params.min_pairs.max(3);
-        let mut n = newest_first.len() * 2 / 3;
-        while n >= needed {
-            match fit_pairs(&newest_first[..n], &self.params, previous, seed) {
-                Ok(mut a) => {
-                    a.quality.set_aside = self.pairs.len() - n;
-                    return Some(a);
-                }
-                Err(GeoError::TooFewInliers { .. }) => n = n * 2 / 3,
-                Err(_) => return None,
-            }
-        }
-        None
     }
 
     /// The last fit, when `refusal` only says the evidence is too thin
