@@ -14,9 +14,9 @@ use super::state::{Actor, clock_now};
 use super::transfer::{DownPurpose, Next, Transfer};
 use crate::mission::Flavour;
 use crate::mission::upload::{Downloader, Uploader};
-use crate::vehicle::{
-    Command, FlightMode, HoldAck, LinkError, ardupilot_mode_name, mode_params, px4_mode_name,
-};
+use crate::vehicle::command::{Command, HoldAck};
+use crate::vehicle::error::LinkError;
+use crate::vehicle::modes::{FlightMode, ardupilot_mode_name, mode_params, px4_mode_name};
 
 impl Actor {
     /// Starts our transfer in the gate; false (and the command kept for
@@ -292,7 +292,7 @@ impl Actor {
                 .gimbal_manager
                 .borrow()
                 .map_or(peers.target_component, |s| s.value.manager_component);
-            let p = crate::vehicle::release_params(g.device_id);
+            let p = crate::vehicle::handle::release_params(g.device_id);
             self.out.push(MavMessage::COMMAND_LONG(command_long(
                 MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
                 p,

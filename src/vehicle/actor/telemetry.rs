@@ -16,9 +16,10 @@ use super::camera::{
 use super::pending::command_long;
 use super::state::{Actor, clock_now};
 use crate::mission::Flavour;
-use crate::vehicle::{
+use crate::vehicle::modes::{ardupilot_mode_name, px4_mode_name};
+use crate::vehicle::telemetry::{
     Attitude, GimbalAttitude, GimbalManagerStatus, GlobalPosition, GpsRaw, HomePosition,
-    LocalPosition, Stamped, ardupilot_mode_name, px4_mode_name, quat_to_euler_deg,
+    LocalPosition, Stamped, quat_to_euler_deg,
 };
 
 /// How often missing telemetry streams are asked for again.
@@ -229,7 +230,7 @@ impl Actor {
                         .any(|x| (x.component_id, x.index) == (c.component_id, c.index))
                     {
                         v.push(c);
-                        if v.len() > crate::vehicle::CAPTURES_KEPT {
+                        if v.len() > crate::vehicle::telemetry::CAPTURES_KEPT {
                             v.remove(0);
                         }
                     }
