@@ -21,7 +21,7 @@ use crate::vehicle::modes::{FlightMode, ardupilot_mode_name, mode_params, px4_mo
 impl Actor {
     /// Starts our transfer in the gate; false (and the command kept for
     /// later) while another station's runs.
-    pub(super) fn gate_or_defer(&mut self, now: Instant, cmd: Command) -> Option<Command> {
+    fn gate_or_defer(&mut self, now: Instant, cmd: Command) -> Option<Command> {
         if self.router.begin_own(now) {
             return Some(cmd);
         }
@@ -309,13 +309,7 @@ impl Actor {
         }
     }
 
-    pub(super) fn start_command(
-        &mut self,
-        command: MavCmd,
-        p: [f32; 3],
-        reply: Reply,
-        now: Instant,
-    ) {
+    fn start_command(&mut self, command: MavCmd, p: [f32; 3], reply: Reply, now: Instant) {
         self.start_command7(
             command,
             [p[0], p[1], p[2], 0.0, 0.0, 0.0, 0.0],
@@ -325,7 +319,7 @@ impl Actor {
         );
     }
 
-    pub(super) fn start_command7(
+    fn start_command7(
         &mut self,
         command: MavCmd,
         p: [f32; 7],
@@ -368,11 +362,7 @@ impl Actor {
     /// The operator's stop: DO_SET_MODE to the hold mode, sent now whatever
     /// else waits for an ACK. A DO_SET_MODE in flight gives way (its waiter
     /// gets [`LinkError::Superseded`]): the two ACKs could not be told apart.
-    pub(super) fn start_stop(
-        &mut self,
-        reply: oneshot::Sender<Result<HoldAck, LinkError>>,
-        now: Instant,
-    ) {
+    fn start_stop(&mut self, reply: oneshot::Sender<Result<HoldAck, LinkError>>, now: Instant) {
         info!("operator: stop (hold)");
         if self.stop.is_some() {
             let _ = reply.send(Err(LinkError::Busy { what: "stop" }));

@@ -64,7 +64,7 @@ pub(super) struct Actor {
 }
 
 impl Actor {
-    pub(super) fn header(&self) -> MavHeader {
+    fn header(&self) -> MavHeader {
         MavHeader {
             system_id: u32::from(self.params.system_id),
             component_id: self.params.component_id,
