@@ -692,11 +692,14 @@ impl Router {
 
 /// Parses `[link] forward`, refusing an endpoint that is the vehicle's own
 /// URL or a serial device (share a radio through one program only).
-pub fn parse_forward(urls: &[String], vehicle: &str) -> Result<Vec<LinkUrl>, super::LinkError> {
+pub fn parse_forward(
+    urls: &[String],
+    vehicle: &str,
+) -> Result<Vec<LinkUrl>, super::error::LinkError> {
     urls.iter()
         .map(|u| {
             let url: LinkUrl = u.parse()?;
-            let bad = |reason: &str| super::LinkError::BadUrl {
+            let bad = |reason: &str| super::error::LinkError::BadUrl {
                 url: u.clone(),
                 reason: reason.into(),
             };

@@ -30,7 +30,7 @@ use mavlink::{
 };
 use serde::{Deserialize, Serialize};
 
-use super::LinkError;
+use super::error::LinkError;
 
 /// The async connection the link actor owns.
 pub type Connection = AsyncConnection<MavMessage>;

@@ -1,8 +1,10 @@
 use super::*;
 use mavlink::dialects::common::{
     COMMAND_LONG_DATA, GIMBAL_MANAGER_STATUS_DATA, MISSION_COUNT_DATA, MISSION_ITEM_INT_DATA,
-    MavFrame, MavMissionResult, MavMissionType,
+    MavAutopilot, MavBool, MavCmd, MavFrame, MavMissionResult, MavMissionType, MavModeFlag,
+    MavResult, MavSeverity,
 };
+use nalgebra::UnitQuaternion;
 
 const DT: f64 = 0.02;
 

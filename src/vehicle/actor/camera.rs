@@ -16,9 +16,9 @@ fn c_string(bytes: &[u8]) -> String {
 pub(super) fn camera_info(
     component_id: u8,
     d: &mavlink::dialects::common::CAMERA_INFORMATION_DATA,
-) -> crate::vehicle::CameraInfo {
+) -> crate::vehicle::telemetry::CameraInfo {
     use mavlink::dialects::common::CameraCapFlags;
-    crate::vehicle::CameraInfo {
+    crate::vehicle::telemetry::CameraInfo {
         component_id,
         vendor: c_string(&d.vendor_name),
         model: c_string(&d.model_name),
@@ -34,8 +34,8 @@ pub(super) fn camera_info(
 pub(super) fn image_captured(
     component_id: u8,
     d: &mavlink::dialects::common::CAMERA_IMAGE_CAPTURED_DATA,
-) -> crate::vehicle::ImageCaptured {
-    crate::vehicle::ImageCaptured {
+) -> crate::vehicle::telemetry::ImageCaptured {
+    crate::vehicle::telemetry::ImageCaptured {
         component_id,
         index: d.image_index,
         time_utc_us: d.time_utc,
@@ -52,13 +52,13 @@ pub(super) fn image_captured(
 pub(super) fn video_stream_info(
     component_id: u8,
     d: &mavlink::dialects::common::VIDEO_STREAM_INFORMATION_DATA,
-) -> crate::vehicle::VideoStreamInfo {
+) -> crate::vehicle::telemetry::VideoStreamInfo {
     use mavlink::dialects::common::{VideoStreamEncoding as E, VideoStreamType as T};
     let text = |b: &[u8]| {
         let end = b.iter().position(|&c| c == 0).unwrap_or(b.len());
         String::from_utf8_lossy(&b[..end]).trim().to_owned()
     };
-    crate::vehicle::VideoStreamInfo {
+    crate::vehicle::telemetry::VideoStreamInfo {
         component_id,
         stream_id: d.stream_id,
         count: d.count,

@@ -14,14 +14,14 @@ use super::state::{Actor, clock_now};
 use super::transfer::{DownPurpose, Next, Transfer};
 use crate::mission::Flavour;
 use crate::mission::upload::{Downloader, Uploader};
-use crate::vehicle::{
-    Command, FlightMode, HoldAck, LinkError, ardupilot_mode_name, mode_params, px4_mode_name,
-};
+use crate::vehicle::command::{Command, HoldAck};
+use crate::vehicle::error::LinkError;
+use crate::vehicle::modes::{FlightMode, ardupilot_mode_name, mode_params, px4_mode_name};
 
 impl Actor {
     /// Starts our transfer in the gate; false (and the command kept for
     /// later) while another station's runs.
-    pub(super) fn gate_or_defer(&mut self, now: Instant, cmd: Command) -> Option<Command> {
+    fn gate_or_defer(&mut self, now: Instant, cmd: Command) -> Option<Command> {
         if self.router.begin_own(now) {
             return Some(cmd);
         }
@@ -292,7 +292,7 @@ impl Actor {
                 .gimbal_manager
                 .borrow()
                 .map_or(peers.target_component, |s| s.value.manager_component);
-            let p = crate::vehicle::release_params(g.device_id);
+            let p = crate::vehicle::handle::release_params(g.device_id);
             self.out.push(MavMessage::COMMAND_LONG(command_long(
                 MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
                 p,
@@ -309,13 +309,7 @@ impl Actor {
         }
     }
 
-    pub(super) fn start_command(
-        &mut self,
-        command: MavCmd,
-        p: [f32; 3],
-        reply: Reply,
-        now: Instant,
-    ) {
+    fn start_command(&mut self, command: MavCmd, p: [f32; 3], reply: Reply, now: Instant) {
         self.start_command7(
             command,
             [p[0], p[1], p[2], 0.0, 0.0, 0.0, 0.0],
@@ -325,7 +319,7 @@ impl Actor {
         );
     }
 
-    pub(super) fn start_command7(
+    fn start_command7(
         &mut self,
         command: MavCmd,
         p: [f32; 7],
@@ -368,11 +362,7 @@ impl Actor {
     /// The operator's stop: DO_SET_MODE to the hold mode, sent now whatever
     /// else waits for an ACK. A DO_SET_MODE in flight gives way (its waiter
     /// gets [`LinkError::Superseded`]): the two ACKs could not be told apart.
-    pub(super) fn start_stop(
-        &mut self,
-        reply: oneshot::Sender<Result<HoldAck, LinkError>>,
-        now: Instant,
-    ) {
+    fn start_stop(&mut self, reply: oneshot::Sender<Result<HoldAck, LinkError>>, now: Instant) {
         info!("operator: stop (hold)");
         if self.stop.is_some() {
             let _ = reply.send(Err(LinkError::Busy { what: "stop" }));

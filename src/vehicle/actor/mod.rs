@@ -37,9 +37,13 @@ use self::io::{IoEvent, IoTask};
 use self::pending::retry_late;
 use self::state::{Actor, clock_now};
 use self::transfer::Transfer;
+use super::command::Command;
+use super::error::LinkError;
+use super::handle::LinkHandle;
+use super::params::Params;
 use super::router::{self, Router};
+use super::telemetry::{GimbalControl, Telemetry, VehicleState};
 use super::transport::LinkUrl;
-use super::{Command, GimbalControl, LinkError, LinkHandle, Params, Telemetry, VehicleState};
 use crate::mission::upload::{self};
 
 const CMD_QUEUE: usize = 32;

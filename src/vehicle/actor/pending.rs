@@ -6,7 +6,9 @@ use std::time::{Duration, Instant};
 use mavlink::dialects::common::{COMMAND_LONG_DATA, MavCmd, MavMessage, MavResult};
 use tokio::sync::oneshot;
 
-use crate::vehicle::{HoldAck, LinkError, Params};
+use crate::vehicle::command::HoldAck;
+use crate::vehicle::error::LinkError;
+use crate::vehicle::params::Params;
 
 pub(super) struct PendingCommand {
     pub(super) data: COMMAND_LONG_DATA,

@@ -13,12 +13,14 @@ use tracing::{debug, warn};
 use super::pending::PendingCommand;
 use super::transfer::Transfer;
 use crate::mission::upload::{self, Peers};
+use crate::vehicle::command::Command;
+use crate::vehicle::params::Params;
 use crate::vehicle::router::Router;
-use crate::vehicle::transport::Connection;
-use crate::vehicle::{
-    Attitude, Command, GimbalAttitude, GimbalControl, GimbalManagerStatus, GlobalPosition, GpsRaw,
-    HomePosition, LocalPosition, MissionProgress, Params, Stamped, VehicleState,
+use crate::vehicle::telemetry::{
+    Attitude, GimbalAttitude, GimbalControl, GimbalManagerStatus, GlobalPosition, GpsRaw,
+    HomePosition, LocalPosition, MissionProgress, Stamped, VehicleState,
 };
+use crate::vehicle::transport::Connection;
 
 /// The actor's clock: tokio's, so that tests drive the protocol timers in
 /// paused time (it is the system's monotonic clock otherwise). The
@@ -39,9 +41,9 @@ pub(super) struct Actor {
     pub(super) home: watch::Sender<Option<Stamped<HomePosition>>>,
     pub(super) gimbal: watch::Sender<Option<Stamped<GimbalAttitude>>>,
     pub(super) progress: watch::Sender<Option<Stamped<MissionProgress>>>,
-    pub(super) video_streams: watch::Sender<Vec<crate::vehicle::VideoStreamInfo>>,
-    pub(super) cameras: watch::Sender<Vec<crate::vehicle::CameraInfo>>,
-    pub(super) captures: watch::Sender<Vec<crate::vehicle::ImageCaptured>>,
+    pub(super) video_streams: watch::Sender<Vec<crate::vehicle::telemetry::VideoStreamInfo>>,
+    pub(super) cameras: watch::Sender<Vec<crate::vehicle::telemetry::CameraInfo>>,
+    pub(super) captures: watch::Sender<Vec<crate::vehicle::telemetry::ImageCaptured>>,
     /// Camera components asked for CAMERA_INFORMATION, and when.
     pub(super) camera_asked: Vec<(u8, Instant)>,
     pub(super) gimbal_manager: watch::Sender<Option<Stamped<GimbalManagerStatus>>>,
@@ -62,7 +64,7 @@ pub(super) struct Actor {
 }
 
 impl Actor {
-    pub(super) fn header(&self) -> MavHeader {
+    fn header(&self) -> MavHeader {
         MavHeader {
             system_id: u32::from(self.params.system_id),
             component_id: self.params.component_id,

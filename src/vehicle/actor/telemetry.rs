@@ -16,9 +16,10 @@ use super::camera::{
 use super::pending::command_long;
 use super::state::{Actor, clock_now};
 use crate::mission::Flavour;
-use crate::vehicle::{
+use crate::vehicle::modes::{ardupilot_mode_name, px4_mode_name};
+use crate::vehicle::telemetry::{
     Attitude, GimbalAttitude, GimbalManagerStatus, GlobalPosition, GpsRaw, HomePosition,
-    LocalPosition, Stamped, ardupilot_mode_name, px4_mode_name, quat_to_euler_deg,
+    LocalPosition, Stamped, quat_to_euler_deg,
 };
 
 /// How often missing telemetry streams are asked for again.
@@ -229,7 +230,7 @@ impl Actor {
                         .any(|x| (x.component_id, x.index) == (c.component_id, c.index))
                     {
                         v.push(c);
-                        if v.len() > crate::vehicle::CAPTURES_KEPT {
+                        if v.len() > crate::vehicle::telemetry::CAPTURES_KEPT {
                             v.remove(0);
                         }
                     }
@@ -256,7 +257,7 @@ impl Actor {
 
     /// A camera component of the vehicle's system is heard: ask it for its
     /// CAMERA_INFORMATION until it answers (every 5 s).
-    pub(super) async fn on_camera_heartbeat(&mut self, h: &MavHeader, now: Instant) {
+    async fn on_camera_heartbeat(&mut self, h: &MavHeader, now: Instant) {
         let Some(sys) = self.vehicle.borrow().system_id else {
             return;
         };
@@ -289,7 +290,7 @@ impl Actor {
         self.flush().await;
     }
 
-    pub(super) async fn on_heartbeat(&mut self, h: &MavHeader, hb: &HEARTBEAT_DATA, now: Instant) {
+    async fn on_heartbeat(&mut self, h: &MavHeader, hb: &HEARTBEAT_DATA, now: Instant) {
         if hb.mavtype == MavType::MAV_TYPE_CAMERA {
             self.on_camera_heartbeat(h, now).await;
             return;
@@ -364,7 +365,7 @@ impl Actor {
     }
 
     /// When each requested stream last arrived.
-    pub(super) fn last_received(&self, id: u32) -> Option<Instant> {
+    fn last_received(&self, id: u32) -> Option<Instant> {
         match id {
             msg_id::GLOBAL_POSITION_INT => self.gp.borrow().map(|s| s.received),
             msg_id::LOCAL_POSITION_NED => self.lp.borrow().map(|s| s.received),
@@ -378,7 +379,7 @@ impl Actor {
 
     /// Sends SET_MESSAGE_INTERVAL for every configured stream, or with
     /// `only_stale` for those not received within three periods (at least 3 s).
-    pub(super) fn request_rates(&mut self, sys: u8, comp: u8, now: Instant, only_stale: bool) {
+    fn request_rates(&mut self, sys: u8, comp: u8, now: Instant, only_stale: bool) {
         self.rates_requested = Some(now);
         let r = self.params.rates;
         for (id, hz) in [

@@ -11,7 +11,7 @@ use tracing::{Span, info, warn};
 
 use crate::mission::upload::{Downloader, MissionError, Uploader, same_mission};
 use crate::mission::{Download, MissionItem, UploadReport};
-use crate::vehicle::LinkError;
+use crate::vehicle::error::LinkError;
 
 /// Why a download runs.
 pub(super) enum DownPurpose {

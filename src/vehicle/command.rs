@@ -1,0 +1,91 @@
+//! The requests the handle sends to the link actor, each with its reply
+//! channel, and the stop's acknowledgement.
+
+use serde::Serialize;
+use tokio::sync::oneshot;
+
+use crate::mission::{Download, MissionItem, UploadReport};
+
+use super::error::LinkError;
+use super::modes::FlightMode;
+
+/// The vehicle's acknowledgement of a stop ([`LinkHandle::hold`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct HoldAck {
+    /// The command sent.
+    pub command: &'static str,
+    /// The mode asked for, as the autopilot names it (`AUTO.LOITER`, `LOITER`).
+    pub mode: String,
+    /// The COMMAND_ACK's result, as the vehicle sent it.
+    pub result: String,
+}
+
+/// A request to the link actor; each carries its reply channel.
+#[derive(Debug)]
+pub enum Command {
+    /// Upload a mission (items numbered from 0).
+    UploadMission {
+        /// The items.
+        items: Vec<MissionItem>,
+        /// The outcome.
+        reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+    },
+    /// Download the vehicle's mission.
+    DownloadMission {
+        /// The outcome.
+        reply: oneshot::Sender<Result<Download, LinkError>>,
+    },
+    /// Cancel the running transfer; replies whether one was running.
+    CancelTransfer {
+        /// The outcome.
+        reply: oneshot::Sender<Result<bool, LinkError>>,
+    },
+    /// Arm (true) or disarm (false). Operator action only.
+    Arm {
+        /// Arm or disarm.
+        arm: bool,
+        /// The outcome.
+        reply: oneshot::Sender<Result<(), LinkError>>,
+    },
+    /// Change flight mode. Operator action only.
+    SetMode {
+        /// The mode.
+        mode: FlightMode,
+        /// The outcome.
+        reply: oneshot::Sender<Result<(), LinkError>>,
+    },
+    /// The operator's stop: DO_SET_MODE to the hold mode, sent at once even
+    /// while another command waits for its ACK (a DO_SET_MODE in flight is
+    /// superseded). Replies with the vehicle's COMMAND_ACK.
+    Hold {
+        /// The outcome.
+        reply: oneshot::Sender<Result<HoldAck, LinkError>>,
+    },
+    /// MAV_CMD_MISSION_START. Operator action only.
+    StartMission {
+        /// The outcome.
+        reply: oneshot::Sender<Result<(), LinkError>>,
+    },
+    /// A COMMAND_LONG with retries until COMMAND_ACK (gimbal commands).
+    Long {
+        /// The command.
+        command: mavlink::dialects::common::MavCmd,
+        /// param1..param7.
+        params: [f32; 7],
+        /// The component addressed (None: the autopilot).
+        target_component: Option<u8>,
+        /// The outcome.
+        reply: oneshot::Sender<Result<(), LinkError>>,
+    },
+    /// MAV_CMD_REQUEST_MESSAGE to one component of the vehicle's system
+    /// (sent once; the answer arrives on the telemetry channels). Replies
+    /// once sent.
+    RequestMessage {
+        /// The message id wanted.
+        message_id: u32,
+        /// The component asked (100: the camera).
+        target_component: u8,
+        /// The outcome.
+        reply: oneshot::Sender<Result<(), LinkError>>,
+    },
+}
