@@ -232,8 +232,7 @@ impl GeoAlignment {
         let mut a = Self::given(Sim3::identity());
         let r: Vec<f64> = pairs.iter().map(|p| (p.p_ned - p.p_map).norm()).collect();
         if !r.is_empty() {
-            a.quality.rms_m = (r.iter().map(|x| x * x).sum::<f64>() / r.len() as f64).sqrt();
-            a.quality.max_residual_m = r.iter().copied().fold(0.0, f64::max);
+            (a.quality.rms_m, a.quality.max_residual_m) = rms_max(&r);
             a.quality.spread_m2 = spread(pairs.iter().map(|p| p.p_ned));
         }
         a.quality.pairs = pairs.len();
@@ -475,7 +474,7 @@ impl Georeference {
             .iter()
             .filter(|p| residual(&last.ned_from_map, p) < th)
             .count();
-        let needed = (self.params.min_inlier_ratio * self.pairs.len() as f64).ceil() as usize;
+        let needed = inliers_needed(&self.params, self.pairs.len());
         (agree >= needed).then(|| last.clone())
     }
 }
@@ -500,6 +499,20 @@ pub fn check_motion(spread_m2: [f64; 3], params: &AlignParams) -> Result<(), Geo
         });
     }
     Ok(())
+}
+
+/// RMS and largest of residuals, metres ((0, 0) for none).
+fn rms_max(r: &[f64]) -> (f64, f64) {
+    if r.is_empty() {
+        return (0.0, 0.0);
+    }
+    let rms = (r.iter().map(|x| x * x).sum::<f64>() / r.len() as f64).sqrt();
+    (rms, r.iter().copied().fold(0.0, f64::max))
+}
+
+/// Inliers a fit of `n` pairs needs: `min_inlier_ratio` of them.
+fn inliers_needed(params: &AlignParams, n: usize) -> usize {
+    (params.min_inlier_ratio * n as f64).ceil() as usize
 }
 
 fn residual(s: &Sim3, p: &Pair) -> f64 {
@@ -594,7 +607,7 @@ pub fn fit_pairs(
             }
         }
     }
-    let min_inliers = ((params.min_inlier_ratio * n as f64).ceil() as usize).max(3);
+    let min_inliers = inliers_needed(params, n).max(3);
     let Some((mut model, _, _)) = best else {
         return Err(GeoError::TooFewInliers {
             found: 0,
@@ -652,18 +665,13 @@ pub fn fit_pairs(
         }
         rotation_rms_deg = Some(problem.rotation_rms().to_degrees());
     }
-    let mut sum2 = 0.0;
-    let mut max_r: f64 = 0.0;
-    for p in &inliers {
-        let r = residual(&model, p);
-        sum2 += r * r;
-        max_r = max_r.max(r);
-    }
+    let r: Vec<f64> = inliers.iter().map(|p| residual(&model, p)).collect();
+    let (rms_m, max_residual_m) = rms_max(&r);
     Ok(GeoAlignment {
         ned_from_map: model,
         quality: AlignQuality {
-            rms_m: (sum2 / inliers.len() as f64).sqrt(),
-            max_residual_m: max_r,
+            rms_m,
+            max_residual_m,
             rotation_rms_deg,
             time_offset_s,
             pairs: n,

@@ -5,7 +5,8 @@
 use nalgebra::Vector3;
 
 use super::{
-    AlignParams, AlignQuality, GeoAlignment, Georeference, Pair, fit_pairs, residual, spread,
+    AlignParams, AlignQuality, GeoAlignment, Georeference, Pair, fit_pairs, inliers_needed,
+    residual, rms_max, spread,
 };
 use crate::geo::GeoError;
 use crate::geometry::Sim3;
@@ -77,17 +78,20 @@ fn shifted(fit: &Sim3, pairs: &[Pair], params: &AlignParams) -> Option<GeoAlignm
         ..*fit
     };
     let th = params.inlier_threshold_m;
-    let inliers: Vec<&Pair> = pairs.iter().filter(|p| residual(&model, p) < th).collect();
-    let needed = ((params.min_inlier_ratio * pairs.len() as f64).ceil() as usize).max(3);
-    if inliers.len() < needed {
+    let (inliers, r): (Vec<&Pair>, Vec<f64>) = pairs
+        .iter()
+        .map(|p| (p, residual(&model, p)))
+        .filter(|(_, r)| *r < th)
+        .unzip();
+    if inliers.len() < inliers_needed(params, pairs.len()).max(3) {
         return None;
     }
-    let r: Vec<f64> = inliers.iter().map(|p| residual(&model, p)).collect();
+    let (rms_m, max_residual_m) = rms_max(&r);
     Some(GeoAlignment {
         ned_from_map: model,
         quality: AlignQuality {
-            rms_m: (r.iter().map(|x| x * x).sum::<f64>() / r.len() as f64).sqrt(),
-            max_residual_m: r.iter().copied().fold(0.0, f64::max),
+            rms_m,
+            max_residual_m,
             rotation_rms_deg: None,
             time_offset_s: None,
             pairs: pairs.len(),
