@@ -280,6 +280,7 @@ pub fn run(args: ShotArgs) -> Result<()> {
                 "reprojection_rmse_px": p.reprojection_rmse_px,
                 "median_depth": p.median_depth,
                 "agreeing_candidates": p.agreeing_candidates,
+                "beyond_views_deg": p.beyond_views_deg,
                 "position_sigma": p.sigma.position,
                 "position_sigma_m": metres_per_unit.map(|k| k * p.sigma.position),
                 "position_sigma_fraction_of_distance": p.sigma.position_depth_fraction,
@@ -319,12 +320,13 @@ pub fn run(args: ShotArgs) -> Result<()> {
                     p.keyframe_id.0, t.x, t.y, t.z, q.i, q.j, q.k, q.w
                 );
                 println!(
-                    "{} inliers of {} pairs, reprojection RMSE {:.3} px, median depth {:.3}, {} agreeing candidates",
+                    "{} inliers of {} pairs, reprojection RMSE {:.3} px, median depth {:.3}, {} agreeing candidates, {:.1} deg beyond the flown views",
                     p.inliers,
                     p.matches,
                     p.reprojection_rmse_px,
                     p.median_depth,
-                    p.agreeing_candidates
+                    p.agreeing_candidates,
+                    p.beyond_views_deg
                 );
                 let metres = metres_per_unit
                     .map(|k| format!(" = {:.3} m", k * p.sigma.position))

@@ -111,8 +111,11 @@ fn the_disagreement_rule_adds_no_wrong_shot_on_the_aliasing_world() -> anyhow::R
         sim.scale
     );
 
-    let with_rule = shot::LocalizeParams::default();
-    let mut without_rule = shot::LocalizeParams::default();
+    let with_rule = shot::LocalizeParams {
+        gate: crate::sim_support::gate_from_env()?,
+        ..shot::LocalizeParams::default()
+    };
+    let mut without_rule = with_rule.clone();
     without_rule.gate.drop_disagreeing_below = 0.0;
     let mut wrong = Vec::new();
     let (mut added_by_rule, mut wrong_at_mapped, mut wrong_with_rule) = (Vec::new(), Vec::new(), 0);

@@ -108,6 +108,10 @@ fn shot_cli_anchors_photo_and_refusal() -> anyhow::Result<()> {
         pos_err < 0.02 && rot_err < 0.5,
         "pos {pos_err}, rot {rot_err}"
     );
+    // The keyframe's own view is within the flown views: every inlier is
+    // seen from (nearly) where the keyframe saw it.
+    let beyond = num(&v["beyond_views_deg"]);
+    assert!(beyond < 0.5, "beyond the flown views: {beyond} deg");
 
     // Mirrored anchors are refused with their own message.
     let (ok, _, err) = shotpilot(&[

@@ -28,10 +28,17 @@
 //! projection rounds through the estimated camera of a photo whose focal
 //! length was weighed or estimated from its EXIF (each as before it was
 //! in, for a before/after).
+//! `SHOT_MAP_NOISE_REF=PX` sets the reprojection noise the map's error is
+//! scaled against (`inf`: not scaled) and `SHOT_GATE=POS,ROT,RATIO` the
+//! gate's sigma and inlier-ratio bounds (both also read by
+//! `shot_teddy::held_out_photos_by_angle_band`, `SHOT_GATE` by
+//! `shot_aliasing`). The map's reprojection noise is printed (0.306 px:
+//! the reference of `MapSigma::reference_noise_px`).
 //! `SHOT_PHOTOS_DEBUG=1` prints a line per photo: where the keyframe its
 //! pose was made from ranks in the bag-of-words query (-1: not at all), and
 //! the error, sigma and error in the camera's frame (x right, y down, z
-//! along the optical axis; % of the distance), or why it was refused.
+//! along the optical axis; % of the distance) and how far beyond the flown
+//! views the map says it is (degrees), or why it was refused.
 //!
 //! `cargo test --release --test suite shot_photos:: -- --nocapture` (about 2 min).
 
@@ -138,6 +145,10 @@ fn build(world: Arc<World>) -> anyhow::Result<Mapped> {
         map.point_count(),
         rot[rot.len() / 2],
         sim.scale
+    );
+    println!(
+        "map: reprojection noise {:.3} px",
+        map.reprojection_noise_px().unwrap_or(f64::NAN)
     );
     let points_world = map
         .points()
@@ -296,6 +307,8 @@ fn run_condition(
                 Ok(n) => n.trim().parse()?,
                 Err(_) => shot::LocalizeParams::default().rematch_rounds,
             },
+            map_sigma: crate::sim_support::map_sigma_from_env()?,
+            gate: crate::sim_support::gate_from_env()?,
             ..shot::LocalizeParams::default()
         };
         let debug = std::env::var_os("SHOT_PHOTOS_DEBUG").is_some();
@@ -338,7 +351,7 @@ fn run_condition(
                     let d = est.translation.vector - h.pose.translation.vector;
                     let ec = h.pose.rotation.inverse() * d / h.dist_m * 100.0;
                     line += &format!(
-                        " LOC perr {:.3} rerr {:.3} psig {:.3} rsig {:.3} ecam [{:.3} {:.3} {:.3}] inl {} agree {}",
+                        " LOC perr {:.3} rerr {:.3} psig {:.3} rsig {:.3} ecam [{:.3} {:.3} {:.3}] inl {} agree {} beyond {:.1}",
                         d.norm() / h.dist_m * 100.0,
                         est.rotation.angle_to(&h.pose.rotation).to_degrees(),
                         p.sigma.position * m.sim.scale / h.dist_m * 100.0,
@@ -347,7 +360,8 @@ fn run_condition(
                         ec.y,
                         ec.z,
                         p.inliers,
-                        p.agreeing_candidates
+                        p.agreeing_candidates,
+                        p.beyond_views_deg
                     );
                 }
                 Localization::NotLocalized { reason } => line += &format!(" NOT {reason:?}"),

@@ -23,7 +23,7 @@
 
 use nalgebra::{Matrix3, Point2, Point3};
 
-use super::covariance::{MapError, reported_sigma};
+use super::covariance::{MapError, beyond_views_deg, reported_sigma};
 use super::outcome::Localization;
 use super::outcome::{NotLocalizedReason, ShotPose, not};
 use super::params::LocalizeParams;
@@ -77,6 +77,7 @@ pub fn localize_anchors(
     let mut obs: Vec<PoseObservation> = Vec::new();
     let mut pw: Vec<Point3<f64>> = Vec::new();
     let mut xn: Vec<Point2<f64>> = Vec::new();
+    let mut ids: Vec<Option<crate::slam::PointId>> = Vec::new();
     let mut mapped = 0usize;
     for (k, pid) in kf.keypoints.iter().zip(&kf.points) {
         let Some(p) = pid.and_then(|id| map.point(id)) else {
@@ -105,6 +106,7 @@ pub fn localize_anchors(
                 .unwrap_or(1.0),
         });
         pw.push(p.position);
+        ids.push(Some(p.id));
         xn.push(Point2::new(
             (u.x - intr.cx) / intr.fx,
             (u.y - intr.cy) / intr.fy,
@@ -156,6 +158,7 @@ pub fn localize_anchors(
                 .is_some_and(|c| c <= params.pose.chi2_threshold)
         })
         .collect();
+    let map_error = MapError::of(map, &params.map_sigma);
     let Some(fit) = evaluate_candidate(
         keyframe,
         report.cam_from_world,
@@ -164,7 +167,7 @@ pub fn localize_anchors(
         Vec::new(),
         &intr,
         params,
-        &MapError::of(map, &params.map_sigma),
+        &map_error,
     ) else {
         return few(0);
     };
@@ -179,7 +182,12 @@ pub fn localize_anchors(
     };
     let near = frustum_near_depth(map, &view, &fit.cam_from_world)
         .map_or(fit.near_depth, |d| d.min(fit.near_depth));
-    let map_error = MapError::of(map, &params.map_sigma);
+    let inlier_ids: Vec<_> = ids
+        .iter()
+        .zip(&inliers)
+        .map(|(id, i)| id.filter(|_| *i))
+        .collect();
+    let beyond = beyond_views_deg(map, &fit.cam_from_world, &inlier_ids);
     let sigma = reported_sigma(&pose_sigma, None, &map_error, fit.median_depth, near);
     tracing::debug!(
         keyframe = keyframe.0,
@@ -188,6 +196,7 @@ pub fn localize_anchors(
         rmse_px = fit.rmse,
         position_pct = sigma.position_depth_fraction * 100.0,
         rotation_deg = sigma.rotation_deg,
+        beyond_views_deg = beyond,
         "anchors shot from the keyframe's geometry"
     );
     Localization::Localized(ShotPose {
@@ -200,6 +209,7 @@ pub fn localize_anchors(
         in_front_fraction: fit.in_front,
         median_depth: fit.median_depth,
         agreeing_candidates: 0,
+        beyond_views_deg: beyond,
         sigma,
     })
 }

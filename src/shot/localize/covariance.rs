@@ -20,11 +20,16 @@ pub(super) struct MapError {
     /// The map's absolute position error, map units
     /// ([`MapSigma::map_depth_fraction`] of its keyframes' median depth).
     pub(super) absolute: f64,
+    /// The factor `sigma` was scaled by: the map's reprojection noise over
+    /// [`MapSigma::reference_noise_px`], at least 1.
+    pub(super) noise_factor: f64,
 }
 
 impl MapError {
-    /// `sigma` on `map`: the median over the keyframes of each one's median
-    /// scene depth sets the absolute part (0 for a map without any).
+    /// `sigma` on `map`: scaled by the map's reprojection noise over the
+    /// reference's ([`MapSigma::reference_noise_px`], never below 1); the
+    /// median over the keyframes of each one's median scene depth sets the
+    /// absolute part (0 for a map without any).
     pub(super) fn of(map: &Map, sigma: &MapSigma) -> MapError {
         let depths: Vec<f64> = map
             .keyframes()
@@ -32,9 +37,23 @@ impl MapError {
             .filter(|d| d.is_finite() && *d > 0.0)
             .collect();
         let depth = crate::stats::quantile(&depths, 0.5).unwrap_or(0.0);
+        let noise = map.reprojection_noise_px();
+        let factor = noise
+            .map(|n| n / sigma.reference_noise_px)
+            .filter(|f| f.is_finite())
+            .unwrap_or(1.0)
+            .max(1.0);
+        tracing::debug!(noise_px = ?noise, factor, "the map's reprojection noise");
+        let scaled = MapSigma {
+            depth_fraction: sigma.depth_fraction * factor,
+            rotation_deg: sigma.rotation_deg * factor,
+            map_depth_fraction: sigma.map_depth_fraction * factor,
+            ..*sigma
+        };
         MapError {
-            sigma: *sigma,
-            absolute: sigma.map_depth_fraction * depth,
+            sigma: scaled,
+            absolute: scaled.map_depth_fraction * depth,
+            noise_factor: factor,
         }
     }
 
@@ -60,6 +79,35 @@ pub(super) fn inlier_median_depth(
         .filter(|z| *z > 0.0)
         .collect();
     crate::stats::quantile(&depths, 0.5).unwrap_or(f64::NAN)
+}
+
+/// How far beyond the flown views the pose at `cam_from_world` sees its
+/// inlier points (`slots`): per point, the smallest angle at the point
+/// between the ray to this camera and the rays to the keyframes that
+/// observe it; the median over the points, degrees (0 without any).
+pub(super) fn beyond_views_deg(
+    map: &Map,
+    cam_from_world: &Isometry3<f64>,
+    slots: &[Option<crate::slam::PointId>],
+) -> f64 {
+    let center = cam_from_world.inverse().translation.vector;
+    let angles: Vec<f64> = slots
+        .iter()
+        .flatten()
+        .filter_map(|id| {
+            let mp = map.point(*id)?;
+            let to_cam = (center - mp.position.coords).try_normalize(1e-12)?;
+            mp.observations
+                .iter()
+                .filter_map(|(kf, _)| {
+                    let to_kf =
+                        (map.keyframe(*kf)?.center() - mp.position.coords).try_normalize(1e-12)?;
+                    Some(to_cam.dot(&to_kf).clamp(-1.0, 1.0).acos())
+                })
+                .min_by(f64::total_cmp)
+        })
+        .collect();
+    crate::stats::quantile(&angles, 0.5).map_or(0.0, f64::to_degrees)
 }
 
 /// One explanation of a candidate's matches: the pose with the intrinsics'
@@ -187,5 +235,77 @@ pub(super) fn reported_sigma(
         position,
         position_depth_fraction: position / near.max(1e-12),
         rotation_deg: pose.rotation_deg.hypot(map_rot),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Camera, Distortion};
+    use crate::features::KeyPoint;
+    use crate::matching::FeatureGrid;
+    use crate::slam::{KeyFrame, KeyFrameId, PointId, ScaleInfo};
+    use nalgebra::{Point3, Translation3};
+
+    /// Keyframes along x from 0 to 0.3 at z = 0 looking down +z, all
+    /// seeing 50 points along x at z = 2.
+    fn line_map() -> (Map, Vec<Option<PointId>>) {
+        let cam = Camera::new(
+            640,
+            480,
+            [500.0, 500.0, 320.0, 240.0],
+            Distortion::default(),
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        let mut m = Map::new(cam, ScaleInfo::new(1.2, 8));
+        let ids: Vec<KeyFrameId> = (0..4)
+            .map(|i| {
+                m.add_keyframe(KeyFrame {
+                    id: KeyFrameId(0),
+                    frame_index: i,
+                    timestamp: i as f64,
+                    cam_from_world: Isometry3::from_parts(
+                        Translation3::new(-0.1 * i as f64, 0.0, 0.0),
+                        Default::default(),
+                    ),
+                    keypoints: vec![KeyPoint::default(); 50],
+                    descriptors: vec![[0; 4]; 50],
+                    points: vec![None; 50],
+                    grid: FeatureGrid::default(),
+                    covisible: Vec::new(),
+                    parent: None,
+                    children: Vec::new(),
+                    image: None,
+                })
+            })
+            .collect();
+        let mut slots = Vec::new();
+        for j in 0..50 {
+            let p = m.add_point(Point3::new(j as f64 * 0.01, 0.0, 2.0), [0; 4], ids[0]);
+            for &k in &ids {
+                assert!(m.add_observation(p, k, j as u32));
+            }
+            slots.push(Some(p));
+        }
+        (m, slots)
+    }
+
+    #[test]
+    fn beyond_views_is_the_angle_to_the_nearest_keyframe_ray() {
+        let (map, slots) = line_map();
+        // At a keyframe: 0.
+        let at_kf = Isometry3::translation(-0.2, 0.0, 0.0);
+        assert!(beyond_views_deg(&map, &at_kf, &slots) < 1e-6);
+        // Between keyframes: 0 too (rays on both sides, the nearest is
+        // under 1.5 deg away).
+        let between = Isometry3::translation(-0.15, 0.0, 0.0);
+        assert!(beyond_views_deg(&map, &between, &slots) < 1.5);
+        // 1 m beyond the first keyframe: for the median point (x about
+        // 0.245) atan((0.245 + 1)/2) - atan(0.245/2) = 24.9 deg.
+        let beyond = Isometry3::translation(1.0, 0.0, 0.0);
+        let got = beyond_views_deg(&map, &beyond, &slots);
+        assert!((got - 24.9).abs() < 0.5, "{got}");
+        // No points: 0.
+        assert_eq!(beyond_views_deg(&map, &beyond, &[]), 0.0);
     }
 }

@@ -228,6 +228,7 @@ mod tests {
         let map_error = MapError {
             sigma: params.map_sigma,
             absolute: 0.0,
+            noise_factor: 1.0,
         };
         let start = Isometry3::translation(0.05, -0.03, 0.1);
         let r = optimize_pose(start, obs, intr, &params.pose).unwrap_or_else(|e| panic!("{e}"));

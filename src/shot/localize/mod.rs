@@ -61,7 +61,7 @@ pub use self::params::{
 };
 
 use self::candidates::{extract_shot_features, neighbourhood_matches, rank_candidates};
-use self::covariance::{MapError, reported_sigma};
+use self::covariance::{MapError, beyond_views_deg, reported_sigma};
 use self::gate::{agreement, gate_reason, union_of_evidence};
 use self::outcome::not;
 use self::pose_refinement::{CandidatePose, refine_candidate};
@@ -190,7 +190,15 @@ pub fn localize_with_camera(
     if let Some(reason) = gate_reason(&poses[0], g) {
         return Ok(not(reason));
     }
-    let agreeing = match agreement(&poses, g) {
+    // Two candidates, each refined on its own local map, differ by the
+    // map's error: on a noisier map than the reference the bounds of
+    // their agreement widen with it, as the map's sigma does.
+    let agreement_gate = GateParams {
+        max_disagreement_depth_fraction: g.max_disagreement_depth_fraction * map_error.noise_factor,
+        max_disagreement_deg: g.max_disagreement_deg * map_error.noise_factor,
+        ..*g
+    };
+    let agreeing = match agreement(&poses, &agreement_gate) {
         Ok(a) => a,
         Err(reason) => return Ok(not(reason)),
     };
@@ -204,6 +212,7 @@ pub fn localize_with_camera(
     // nearer mapped content (unmatched from this view) is in the picture.
     let near = frustum_near_depth(map, &view, &best.cam_from_world)
         .map_or(best.near_depth, |d| d.min(best.near_depth));
+    let beyond = beyond_views_deg(map, &best.cam_from_world, &best.slots);
     let sigma = reported_sigma(
         &pose_sigma,
         agreeing.rms_spread(),
@@ -224,6 +233,7 @@ pub fn localize_with_camera(
         position = sigma.position,
         position_pct = sigma.position_depth_fraction * 100.0,
         rotation_deg = sigma.rotation_deg,
+        beyond_views_deg = beyond,
         "shot sigma"
     );
     if !(sigma.position_depth_fraction <= g.max_position_sigma_depth_fraction
@@ -234,6 +244,7 @@ pub fn localize_with_camera(
             max_position_depth_fraction: g.max_position_sigma_depth_fraction,
             rotation_deg: sigma.rotation_deg,
             max_rotation_deg: g.max_rotation_sigma_deg,
+            beyond_views_deg: beyond,
         }));
     }
     Ok(Localization::Localized(ShotPose {
@@ -246,6 +257,7 @@ pub fn localize_with_camera(
         in_front_fraction: best.in_front,
         median_depth: best.median_depth,
         agreeing_candidates: agreeing.count,
+        beyond_views_deg: beyond,
         sigma,
     }))
 }

@@ -25,6 +25,10 @@ pub struct ShotPose {
     pub median_depth: f64,
     /// Other candidates that passed the gate and agree with this pose.
     pub agreeing_candidates: usize,
+    /// How far beyond the flown views the shot sees its inliers: the
+    /// median over them of the smallest angle at the point between the
+    /// shot's ray and a keyframe's, degrees.
+    pub beyond_views_deg: f64,
     /// The pose's uncertainty: the final optimisation's covariance (with
     /// the camera's uncertain intrinsics marginalised) and the map's own
     /// error ([`MapSigma`]) in quadrature.
@@ -111,6 +115,9 @@ pub enum NotLocalizedReason {
         rotation_deg: f64,
         /// Its bound.
         max_rotation_deg: f64,
+        /// How far beyond the flown views the shot sees the mapped scene
+        /// ([`ShotPose::beyond_views_deg`]), degrees.
+        beyond_views_deg: f64,
     },
     /// The pose's covariance could not be computed (singular).
     NoCovariance,
@@ -169,10 +176,12 @@ impl std::fmt::Display for NotLocalizedReason {
                 max_position_depth_fraction,
                 rotation_deg,
                 max_rotation_deg,
+                beyond_views_deg,
             } => write!(
                 f,
                 "too uncertain: position sigma {:.2} % of the distance (max {:.2} %), rotation sigma {rotation_deg:.2} deg (max {max_rotation_deg:.2}); \
-                 a photo from nearer the flown path, or the camera's intrinsics, would help",
+                 the photo sees the mapped scene {beyond_views_deg:.0} deg beyond the flown views: a photo from nearer the flown path, \
+                 a flight round to where it was taken (to map the scene from there), or the camera's intrinsics would help",
                 position_depth_fraction * 100.0,
                 max_position_depth_fraction * 100.0
             ),

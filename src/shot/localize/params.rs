@@ -197,6 +197,17 @@ pub struct MapSigma {
     /// median depth (the median over the keyframes of each one's median
     /// scene depth).
     pub map_depth_fraction: f64,
+    /// The reprojection noise (level-0 pixels,
+    /// [`crate::slam::Map::reprojection_noise_px`]) of the maps the three
+    /// constants above were calibrated on (0.306 px, the explore map of
+    /// `tests/suite/shot_photos.rs`). A map whose own noise is larger has
+    /// proportionally larger errors (a bundle adjustment's error scales
+    /// with its measurements' noise), so the three, and the bounds of two
+    /// candidates' agreement, are scaled by the ratio (never below 1;
+    /// teddy_100's maps 0.52-0.56 px, KITTI 07's 0.32-0.34, the simulator's
+    /// `field` explore map 0.34); infinite: not scaled. Real maps' errors
+    /// are larger still than this explains (the README's known gaps).
+    pub reference_noise_px: f64,
 }
 
 impl MapSigma {
@@ -239,6 +250,7 @@ impl Default for MapSigma {
             depth_fraction: 0.0025,
             rotation_deg: 0.16,
             map_depth_fraction: 0.001,
+            reference_noise_px: 0.31,
         }
     }
 }

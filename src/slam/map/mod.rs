@@ -23,7 +23,7 @@
 //! | `invariants.rs` | [`Map::check_invariants`] |
 //! | `footprint.rs` | [`Footprint`]: what the stores hold, their bytes |
 //! | `indexing.rs` | keyframes indexed for place recognition |
-//! | `observations.rs` | points and observations both ways, a point's descriptor, normal and scale range |
+//! | `observations.rs` | points and observations both ways, a point's descriptor, normal and scale range, the map's reprojection noise |
 //! | `graph.rs` | keyframes inserted, pinned, culled; covisibility and the spanning tree |
 //! | `atlas.rs` | the maps of the atlas: started, merged, discarded; the whole map moved |
 //! | `store.rs` | [`Map`]'s stores and reading them, [`MergeRecord`], [`MapMode`], [`Map::from_parts`] |

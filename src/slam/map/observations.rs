@@ -267,12 +267,113 @@ impl Map {
             .collect();
         crate::stats::quantile(&depths, 0.5)
     }
+
+    /// The map's measurement noise as its own observations show it: the
+    /// per-axis standard deviation, in level-0 pixels of a level-0
+    /// keypoint, of the reprojection residuals of every observation of
+    /// every point (undistorted keypoint against the pinhole projection,
+    /// divided by the keypoint's pyramid scale). Robust: from the median of
+    /// the squared residuals (a 2-D Gaussian's is `2 ln 2 σ²`), so the
+    /// few outlier observations a map keeps do not set it. None with fewer
+    /// than 20 observations in front of their cameras.
+    pub fn reprojection_noise_px(&self) -> Option<f64> {
+        let mut r2 = Vec::new();
+        for mp in self.points() {
+            for &(kf_id, idx) in &mp.observations {
+                let Some(kf) = self.keyframe(kf_id) else {
+                    continue;
+                };
+                let Some(kp) = kf.keypoints.get(idx as usize) else {
+                    continue;
+                };
+                let Some(uv) = self
+                    .camera
+                    .project_ideal(&(kf.cam_from_world * mp.position).coords)
+                else {
+                    continue;
+                };
+                let inv_s2 = self
+                    .scale
+                    .inv_level_sigma2
+                    .get(kp.octave as usize)
+                    .copied()
+                    .unwrap_or(1.0);
+                let d2 = (uv.x - kp.ux as f64).powi(2) + (uv.y - kp.uy as f64).powi(2);
+                r2.push(d2 * inv_s2);
+            }
+        }
+        if r2.len() < 20 {
+            return None;
+        }
+        let median = crate::stats::quantile(&r2, 0.5)?;
+        Some((median / (2.0 * std::f64::consts::LN_2)).sqrt())
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::slam::map::testing::map_with;
+    use rand::{Rng, SeedableRng, rngs::SmallRng};
+
+    /// Keypoints put at their points' projections plus Gaussian noise of
+    /// `sigma` px per axis (scaled by the level), `outliers` of every 100
+    /// moved 15 px instead.
+    fn noisy_map(sigma: f64, outliers: usize, octave: u8) -> Map {
+        let mut m = map_with(8, 50);
+        let mut rng = SmallRng::seed_from_u64(7);
+        let scale = m.scale.inv_level_sigma2[octave as usize].recip().sqrt();
+        let mut gauss = move || {
+            // Box-Muller.
+            let (u, v): (f64, f64) = (rng.random_range(1e-12..1.0), rng.random());
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let ids: Vec<KeyFrameId> = m.keyframes().map(|k| k.id).collect();
+        let mut n = 0usize;
+        for id in ids {
+            let pose = m.keyframe(id).unwrap().cam_from_world;
+            let pts = m.keyframe(id).unwrap().points.clone();
+            let projected: Vec<_> = pts
+                .iter()
+                .map(|p| {
+                    let mp = m.point(p.unwrap()).unwrap();
+                    m.camera
+                        .project_ideal(&(pose * mp.position).coords)
+                        .unwrap()
+                })
+                .collect();
+            let kf = m.keyframe_mut(id).unwrap();
+            for (kp, uv) in kf.keypoints.iter_mut().zip(projected) {
+                n += 1;
+                let (dx, dy) = if n % 100 < outliers {
+                    (15.0, 0.0)
+                } else {
+                    (gauss() * sigma * scale, gauss() * sigma * scale)
+                };
+                kp.ux = (uv.x + dx) as f32;
+                kp.uy = (uv.y + dy) as f32;
+                kp.octave = octave;
+            }
+        }
+        m
+    }
+
+    #[test]
+    fn reprojection_noise_is_the_residuals_per_axis_sigma_robust_to_outliers() {
+        // 400 observations: the estimate's own spread is a few percent.
+        for (sigma, octave) in [(0.3, 0), (1.0, 0), (0.5, 3)] {
+            let got = noisy_map(sigma, 0, octave).reprojection_noise_px().unwrap();
+            assert!(
+                (got / sigma - 1.0).abs() < 0.12,
+                "sigma {sigma} at level {octave}: {got}"
+            );
+        }
+        // 5 % of the observations 15 px off move it by little.
+        let got = noisy_map(0.5, 5, 0).reprojection_noise_px().unwrap();
+        assert!((got / 0.5 - 1.0).abs() < 0.2, "with outliers: {got}");
+        // Too few observations: none.
+        assert_eq!(map_with(1, 10).reprojection_noise_px(), None);
+    }
 
     #[test]
     fn observations_stay_two_way_through_edits() {

@@ -142,3 +142,34 @@ pub fn random_unit(rng: &mut StdRng) -> Unit<Vector3<f64>> {
         }
     }
 }
+
+/// The map-error constants of a photo's sigma, with
+/// `SHOT_MAP_NOISE_REF=PX` setting the reference reprojection noise they
+/// are scaled by (`inf`: not scaled), for a before/after of the scaling.
+pub fn map_sigma_from_env() -> anyhow::Result<shotpilot::shot::MapSigma> {
+    let mut s = shotpilot::shot::MapSigma::default();
+    if let Ok(v) = std::env::var("SHOT_MAP_NOISE_REF") {
+        s.reference_noise_px = v.trim().parse()?;
+    }
+    Ok(s)
+}
+
+/// The localisation's gate, with `SHOT_GATE=POS,ROT,RATIO` setting its
+/// largest position sigma (fraction of the distance), largest rotation
+/// sigma (degrees) and smallest inlier ratio, for a before/after.
+pub fn gate_from_env() -> anyhow::Result<shotpilot::shot::GateParams> {
+    let mut g = shotpilot::shot::GateParams::default();
+    if let Ok(v) = std::env::var("SHOT_GATE") {
+        let parts: Vec<f64> = v
+            .split(',')
+            .map(|p| p.trim().parse::<f64>())
+            .collect::<Result<_, _>>()?;
+        let [pos, rot, ratio] = parts[..] else {
+            anyhow::bail!("SHOT_GATE=POS,ROT,RATIO");
+        };
+        g.max_position_sigma_depth_fraction = pos;
+        g.max_rotation_sigma_deg = rot;
+        g.min_inlier_ratio = ratio;
+    }
+    Ok(g)
+}
