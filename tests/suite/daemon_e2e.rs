@@ -299,8 +299,16 @@ fn daemon_with_simulator_end_to_end() {
     let planned = m["details"]["planned_items"].as_array().unwrap().clone();
     assert_eq!(m["items"].as_u64().unwrap() as usize, planned.len());
     assert!(planned.len() >= 3);
+    // The mission flies to the target shown, as the georeference stands
+    // when it is planned: the daemon refits it as keyframes come (a local
+    // CI run saw 13 keyframes for the target and 14 for the mission, the
+    // latitude 0.4 mm apart), so equal within 1e-6 deg (0.11 m).
     let lla = m["target_lat_lon_alt"].as_array().unwrap();
-    assert_eq!(lla[0], t["lat_deg"]);
+    let (lat_mission, lat_target) = (lla[0].as_f64().unwrap(), t["lat_deg"].as_f64().unwrap());
+    assert!(
+        (lat_mission - lat_target).abs() < 1e-6,
+        "mission latitude {lat_mission} vs target {lat_target}"
+    );
     let on_vehicle = get_json(addr, "/api/v1/vehicle/mission");
     let items = on_vehicle["items"].as_array().unwrap();
     assert_eq!(items.len(), planned.len(), "{on_vehicle}");
