@@ -241,58 +241,19 @@ pub(super) fn reported_sigma(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::{Camera, Distortion};
-    use crate::features::KeyPoint;
-    use crate::matching::FeatureGrid;
-    use crate::slam::{KeyFrame, KeyFrameId, PointId, ScaleInfo};
-    use nalgebra::{Point3, Translation3};
-
-    /// Keyframes along x from 0 to 0.3 at z = 0 looking down +z, all
-    /// seeing 50 points along x at z = 2.
-    fn line_map() -> (Map, Vec<Option<PointId>>) {
-        let cam = Camera::new(
-            640,
-            480,
-            [500.0, 500.0, 320.0, 240.0],
-            Distortion::default(),
-        )
-        .unwrap_or_else(|e| panic!("{e}"));
-        let mut m = Map::new(cam, ScaleInfo::new(1.2, 8));
-        let ids: Vec<KeyFrameId> = (0..4)
-            .map(|i| {
-                m.add_keyframe(KeyFrame {
-                    id: KeyFrameId(0),
-                    frame_index: i,
-                    timestamp: i as f64,
-                    cam_from_world: Isometry3::from_parts(
-                        Translation3::new(-0.1 * i as f64, 0.0, 0.0),
-                        Default::default(),
-                    ),
-                    keypoints: vec![KeyPoint::default(); 50],
-                    descriptors: vec![[0; 4]; 50],
-                    points: vec![None; 50],
-                    grid: FeatureGrid::default(),
-                    covisible: Vec::new(),
-                    parent: None,
-                    children: Vec::new(),
-                    image: None,
-                })
-            })
-            .collect();
-        let mut slots = Vec::new();
-        for j in 0..50 {
-            let p = m.add_point(Point3::new(j as f64 * 0.01, 0.0, 2.0), [0; 4], ids[0]);
-            for &k in &ids {
-                assert!(m.add_observation(p, k, j as u32));
-            }
-            slots.push(Some(p));
-        }
-        (m, slots)
-    }
+    use crate::slam::map::testing::map_with;
 
     #[test]
     fn beyond_views_is_the_angle_to_the_nearest_keyframe_ray() {
-        let (map, slots) = line_map();
+        // Keyframes along x from 0 to 0.3 at z = 0 looking down +z, all
+        // seeing 50 points along x at z = 2.
+        let map = map_with(4, 50);
+        let slots: Vec<Option<crate::slam::PointId>> = map
+            .keyframes()
+            .next()
+            .map(|k| k.points.clone())
+            .unwrap_or_default();
+        assert_eq!(slots.iter().flatten().count(), 50);
         // At a keyframe: 0.
         let at_kf = Isometry3::translation(-0.2, 0.0, 0.0);
         assert!(beyond_views_deg(&map, &at_kf, &slots) < 1e-6);

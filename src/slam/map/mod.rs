@@ -46,7 +46,7 @@ mod point;
 mod scale;
 mod store;
 #[cfg(test)]
-mod testing;
+pub(crate) mod testing;
 
 use std::sync::{Mutex, MutexGuard};
 

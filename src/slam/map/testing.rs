@@ -26,7 +26,7 @@ pub(super) fn kf(n: usize, x: f64) -> KeyFrame {
     }
 }
 
-pub(super) fn map_with(n_kf: usize, n_pts: usize) -> Map {
+pub(crate) fn map_with(n_kf: usize, n_pts: usize) -> Map {
     let cam = Camera::new(
         640,
         480,
