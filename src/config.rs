@@ -256,6 +256,14 @@ pub struct SimSection {
     /// The simulated world: town, grass, carpark, trees, water, traffic
     /// or aliasing.
     pub world: String,
+    /// Lockstep (for tests and experiments): the simulator holds its clock
+    /// after each video frame until the daemon's SLAM is done with it,
+    /// tracking and the mapping and loop closing it triggered (run inline),
+    /// so the run no longer depends on the machine's speed; on a tokio
+    /// runtime with paused time the whole run is on simulated time. Off: real
+    /// time, and frames the SLAM is too busy for are skipped. Needs the
+    /// simulator's MJPEG video (no `rtp_out`).
+    pub lockstep: bool,
 }
 
 impl Default for SimSection {
@@ -278,6 +286,7 @@ impl Default for SimSection {
             rtp_bitrate_kbps: 1500,
             realism: "ideal".into(),
             world: "town".into(),
+            lockstep: false,
         }
     }
 }
@@ -665,6 +674,13 @@ impl Config {
             if !(self.sim.video_fps > 0.0 && self.sim.video_fps <= 120.0) {
                 return Err(invalid("sim", "video_fps", "must be in (0, 120]".into()));
             }
+            if self.sim.lockstep && self.sim.rtp_out.is_some() {
+                return Err(invalid(
+                    "sim",
+                    "lockstep",
+                    "lockstep hands the SLAM the simulator's MJPEG frames: unset rtp_out".into(),
+                ));
+            }
             // Realism, world, RTP output and GPS bias need the simulator:
             // `crate::simulator::check`.
         }
@@ -896,5 +912,16 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("[camera]") && e.contains("focal"), "{e}");
+    }
+
+    #[test]
+    fn lockstep_needs_the_mjpeg_video() {
+        let text = "[sim]\nlockstep = true\nrtp_out = \"127.0.0.1:5600\"\n";
+        let e = Config::from_toml(text, Path::new("x.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lockstep") && e.contains("rtp_out"), "{e}");
+        let cfg = Config::from_toml("[sim]\nlockstep = true\n", Path::new("x.toml")).unwrap();
+        assert!(cfg.sim.lockstep);
     }
 }

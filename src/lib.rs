@@ -59,6 +59,7 @@ pub mod angle;
 pub mod api;
 pub mod bow;
 pub mod camera;
+pub mod clock;
 pub mod config;
 pub mod daemon;
 pub mod eval;

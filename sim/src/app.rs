@@ -19,7 +19,7 @@
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use image::GrayImage;
 use mavlink::dialects::common::MavMessage;
@@ -35,6 +35,7 @@ use crate::link::{
     Endpoint, LinkError, LinkParams, LinkStats, Outgoing, RadioParams, spawn_link_on,
 };
 use crate::live::{LIVE_EXPOSURE_LAG_S, PoseHistory};
+use crate::lockstep::{Lockstep, LockstepStats, Wait};
 use crate::mavcam::{CAMERA_COMPONENT, MavCamera};
 use crate::realism::Realism;
 use crate::render::{RenderParams, Renderer};
@@ -132,6 +133,11 @@ pub struct SimConfig {
     /// A MAVLink camera component (100) beside the autopilot
     /// ([`crate::mavcam`]); off, the autopilot triggers the camera itself.
     pub mavlink_camera: bool,
+    /// Lockstep with the consumer of the video ([`crate::lockstep`]): each
+    /// frame is rendered at its step and the clock is held until the
+    /// consumer is done with it (None: real time, frames skipped when
+    /// rendering cannot keep up).
+    pub lockstep: Option<Arc<Lockstep>>,
 }
 
 impl Default for SimConfig {
@@ -157,6 +163,7 @@ impl Default for SimConfig {
             world: WorldKind::Town,
             rtp_out: None,
             mavlink_camera: true,
+            lockstep: None,
         }
     }
 }
@@ -273,12 +280,24 @@ pub struct RunSummary {
     pub link: LinkStats,
     /// The H.264 RTP output's counters at the end (None: off).
     pub rtp: Option<crate::rtp::RtpStatsSnapshot>,
+    /// Lockstep's counters at the end (None: real time).
+    pub lockstep: Option<LockstepStats>,
 }
 
+/// Unix seconds on the runtime's clock: the system's, moved by how far a
+/// paused runtime's clock (lockstep on simulated time) is from the system's
+/// monotonic clock, so the frames' capture times run on the same clock as
+/// a daemon on that runtime.
 fn unix_now() -> f64 {
-    SystemTime::now()
+    let wall = SystemTime::now()
         .duration_since(UNIX_EPOCH)
-        .map_or(0.0, |d| d.as_secs_f64())
+        .map_or(0.0, |d| d.as_secs_f64());
+    let (runtime, system) = (tokio::time::Instant::now().into_std(), Instant::now());
+    let ahead = match runtime.checked_duration_since(system) {
+        Some(d) => d.as_secs_f64(),
+        None => -system.saturating_duration_since(runtime).as_secs_f64(),
+    };
+    wall + ahead
 }
 
 fn write_capture(
@@ -518,7 +537,8 @@ async fn run_inner(
     if ap_params.video_stream_uri.is_none() {
         ap_params.video_stream_uri = config.rtp_out.map(|r| r.uri());
     }
-    let unix_at_boot = unix_now();
+    // The first step runs at once, with the clock at `dt`.
+    let unix_at_boot = unix_now() - 1.0 / config.step_hz;
     let mut ap = Autopilot::new(ap_params, unix_at_boot);
     let mut script = config.script.map(|kind| {
         let w = world.clone();
@@ -534,7 +554,17 @@ async fn run_inner(
     let frame_dt = 1.0 / config.video_fps;
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(dt));
     let clock_start = tokio::time::Instant::now();
-    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
+    // In lockstep a held clock does not catch up afterwards: the
+    // simulation stays behind the wall clock by what it was held.
+    let lockstep = config.lockstep.clone();
+    ticker.set_missed_tick_behavior(if lockstep.is_some() {
+        tokio::time::MissedTickBehavior::Delay
+    } else {
+        tokio::time::MissedTickBehavior::Burst
+    });
+    // Lockstep: frames rendered and waiting for their publication time
+    // (capture time plus the video latency), in that order.
+    let mut pending: std::collections::VecDeque<PendingFrame> = Default::default();
     let (cap_tx, mut cap_rx) = mpsc::channel::<(CaptureRequest, Option<String>)>(64);
     let (frame_done_tx, mut frame_done_rx) = mpsc::channel::<()>(16);
     let mut renders_in_flight = 0usize;
@@ -556,7 +586,7 @@ async fn run_inner(
         }
     };
     let send = |link: &crate::link::LinkHandle, msgs: Vec<MavMessage>| send_as(link, None, msgs);
-    loop {
+    'run: loop {
         tokio::select! {
             _ = cancel.cancelled() => break,
             _ = ticker.tick() => {}
@@ -594,7 +624,7 @@ async fn run_inner(
             let noise = config
                 .sensor_noise
                 .then_some(config.seed ^ 0xCA9 ^ req.index as u64);
-            tokio::task::spawn_blocking(move || {
+            let written = tokio::task::spawn_blocking(move || {
                 let url = match write_capture(&renderer, &req, &dir, q, noise) {
                     Ok(p) => Some(format!("file://{}", p.display())),
                     Err(e) => {
@@ -604,6 +634,10 @@ async fn run_inner(
                 };
                 let _ = tx.blocking_send((req, url));
             });
+            // In lockstep the picture is reported at the step it was taken.
+            if lockstep.is_some() {
+                let _ = written.await;
+            }
         }
         while let Ok((req, url)) = cap_rx.try_recv() {
             if url.is_some() {
@@ -644,10 +678,9 @@ async fn run_inner(
             {
                 tracing::warn!("truth: {e}");
             }
-            if renders_in_flight >= config.max_renders_in_flight.max(1) {
+            if lockstep.is_none() && renders_in_flight >= config.max_renders_in_flight.max(1) {
                 summary.frames_skipped += 1;
             } else {
-                renders_in_flight += 1;
                 summary.frames += 1;
                 let seq = summary.frames - 1;
                 if let Some(w) = &mut truth
@@ -665,9 +698,9 @@ async fn run_inner(
                     .sensor_noise
                     .then_some(config.seed ^ seq.wrapping_mul(0x9E37_79B9));
                 // Published this long after the capture (None: at once).
-                let publish_at = latency.as_ref().map(|l| {
-                    clock_start + Duration::from_secs_f64((t_frame + l.at(t_frame)).max(0.0))
-                });
+                let latency_s = latency.as_ref().map(|l| l.at(t_frame));
+                let publish_at = latency_s
+                    .map(|l| clock_start + Duration::from_secs_f64((t_frame + l).max(0.0)));
                 let rtp = rtp.clone();
                 // The frame and the picture it shows (for the H.264 stream).
                 let render = move || -> Option<(VideoFrame, GrayImage)> {
@@ -704,7 +737,8 @@ async fn run_inner(
                     };
                     result.map_err(|e| tracing::warn!("video frame: {e}")).ok()
                 };
-                let publish = move |(frame, img): (VideoFrame, GrayImage)| {
+                // Whether the frame was published (not overtaken by a newer one).
+                let publish = move |(frame, img): (VideoFrame, GrayImage)| -> bool {
                     tx.send_if_modified(|slot| {
                         use std::sync::atomic::Ordering;
                         if seq == 0 || newest.fetch_max(seq, Ordering::AcqRel) < seq {
@@ -716,27 +750,71 @@ async fn run_inner(
                         } else {
                             false
                         }
-                    });
+                    })
                 };
-                match publish_at {
-                    None => {
-                        tokio::task::spawn_blocking(move || {
-                            if let Some(frame) = render() {
-                                publish(frame);
-                            }
-                            let _ = done.blocking_send(());
-                        });
+                if lockstep.is_some() {
+                    // Rendered at its step; published when its latency has
+                    // passed in simulated time (below).
+                    if let Some(frame) = tokio::task::spawn_blocking(render).await.ok().flatten() {
+                        let due = t_frame + latency_s.unwrap_or(0.0);
+                        let at = pending.partition_point(|p| p.due <= due);
+                        pending.insert(
+                            at,
+                            PendingFrame {
+                                due,
+                                capture_time,
+                                publish: Box::new(move || publish(frame)),
+                            },
+                        );
                     }
-                    Some(at) => {
-                        tokio::spawn(async move {
-                            let frame = tokio::task::spawn_blocking(render).await.ok().flatten();
-                            let _ = done.send(()).await;
-                            if let Some(frame) = frame {
-                                tokio::time::sleep_until(at).await;
-                                publish(frame);
-                            }
-                        });
+                } else {
+                    renders_in_flight += 1;
+                    match publish_at {
+                        None => {
+                            tokio::task::spawn_blocking(move || {
+                                if let Some(frame) = render() {
+                                    publish(frame);
+                                }
+                                let _ = done.blocking_send(());
+                            });
+                        }
+                        Some(at) => {
+                            tokio::spawn(async move {
+                                let frame =
+                                    tokio::task::spawn_blocking(render).await.ok().flatten();
+                                let _ = done.send(()).await;
+                                if let Some(frame) = frame {
+                                    tokio::time::sleep_until(at).await;
+                                    publish(frame);
+                                }
+                            });
+                        }
                     }
+                }
+            }
+        }
+        // Lockstep: the frames due are published, each held until the
+        // consumer is done with it.
+        if let Some(ls) = &lockstep {
+            while pending.front().is_some_and(|p| p.due <= t + 1e-9) {
+                let Some(p) = pending.pop_front() else { break };
+                if !(p.publish)() {
+                    continue;
+                }
+                let (l, ct) = (ls.clone(), p.capture_time);
+                let waited = tokio::select! {
+                    _ = cancel.cancelled() => {
+                        ls.close();
+                        break 'run;
+                    }
+                    w = tokio::task::spawn_blocking(move || l.wait_for(ct)) => w,
+                };
+                if waited.is_ok_and(|w| w == Wait::TimedOut) {
+                    tracing::warn!(
+                        capture_time = ct,
+                        "lockstep: the consumer did not take the frame in {:?}; going on",
+                        ls.limit()
+                    );
                 }
             }
         }
@@ -744,5 +822,16 @@ async fn run_inner(
     }
     summary.link = *link.stats.borrow();
     summary.rtp = rtp.map(|r| r.stats());
+    summary.lockstep = lockstep.map(|l| l.stats());
     Ok(summary)
+}
+
+/// A lockstep frame rendered and waiting for its publication.
+struct PendingFrame {
+    /// Simulated time it is published at (capture time plus latency).
+    due: f64,
+    /// Its capture time (unix seconds): what the consumer acknowledges.
+    capture_time: f64,
+    /// Publishes it; false when a newer frame was published first.
+    publish: Box<dyn FnOnce() -> bool + Send>,
 }

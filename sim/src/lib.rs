@@ -12,6 +12,7 @@ pub mod autopilot;
 pub mod geodesy;
 pub mod link;
 pub mod live;
+pub mod lockstep;
 pub mod mavcam;
 pub mod script;
 pub mod vehicle;

@@ -182,7 +182,7 @@ impl FeaturesView {
         Self {
             seq: f.frame.seq,
             timestamp: f.frame.timestamp(),
-            age_s: f.frame.received.elapsed().as_secs_f64(),
+            age_s: crate::clock::since(f.frame.received).as_secs_f64(),
             state: f.state.clone(),
             width,
             height,

@@ -232,7 +232,7 @@ fn status_json(st: &AppState) -> Value {
             "bitrate_kbps": st.ingest.byte_rate.bits_per_second() / 1e3,
             "width": latest.as_ref().map(|f| f.image.width()),
             "height": latest.as_ref().map(|f| f.image.height()),
-            "last_frame_age_s": latest.as_ref().map(|f| f.received.elapsed().as_secs_f64()),
+            "last_frame_age_s": latest.as_ref().map(|f| crate::clock::since(f.received).as_secs_f64()),
         },
         "slam": slam,
         "vehicle": st.vehicle.as_ref().map_or(json!({"configured": false}), |v| json!(v.status())),

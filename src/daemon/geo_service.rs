@@ -61,7 +61,7 @@ pub struct GeoService {
 }
 
 fn received_unix(received: Instant) -> f64 {
-    unix_now() - received.elapsed().as_secs_f64()
+    unix_now() - crate::clock::since(received).as_secs_f64()
 }
 
 impl GeoService {
@@ -102,7 +102,7 @@ impl GeoService {
         let q = st.live.last_attitude()?;
         let raw = st
             .gps_raw
-            .filter(|(at, _)| at.elapsed() <= GPS_RAW_MAX_AGE)
+            .filter(|(at, _)| crate::clock::since(*at) <= GPS_RAW_MAX_AGE)
             .and_then(|(_, r)| r.fix_accuracy());
         Some(TelemetrySample::from_position_report(
             t,

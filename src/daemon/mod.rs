@@ -173,8 +173,13 @@ pub async fn run_on(
 
     // The simulator, first, so the video and the link find it.
     let sim_cancel = CancellationToken::new();
+    // Lockstep: the simulator holds its clock until the SLAM thread is done
+    // with each frame.
+    let lockstep = (cfg.sim.enabled && cfg.sim.lockstep)
+        .then(|| Arc::new(crate::simulator::Lockstep::default()));
     let sim_task = if cfg.sim.enabled {
-        let sc = crate::simulator::sim_config(&cfg, &data_dir)?;
+        let mut sc = crate::simulator::sim_config(&cfg, &data_dir)?;
+        sc.lockstep = lockstep.clone();
         let c = sim_cancel.clone();
         tracing::info!(video = %cfg.sim.video_listen, mavlink = %cfg.sim.mavlink, "starting the simulator in-process");
         let (video, mavlink) = (sockets.sim_video, sockets.sim_mavlink);
@@ -252,12 +257,16 @@ pub async fn run_on(
         let delay = Duration::from_millis(cfg.slam.artificial_delay_ms);
         let cfg = cfg.clone();
         let p = persist.clone();
+        let lockstep = lockstep.clone();
+        let rt = tokio::runtime::Handle::current();
         std::thread::Builder::new()
             .name("slam".into())
             .spawn(move || {
+                // The runtime's clock (simulated on a paused runtime).
+                let _rt = rt.enter();
                 // Built here: loading and indexing a saved map takes a while.
                 let processor = slam_view::make_processor(&cfg, camera, sh.clone(), p, prior_feed);
-                slam_loop(processor, &ing, &sh, &g, delay)
+                slam_loop(processor, &ing, &sh, &g, delay, lockstep.as_deref())
             })
             .map_err(|source| DaemonError::Thread {
                 what: "slam",
@@ -323,7 +332,7 @@ pub async fn run_on(
             actions: actions.clone(),
             params: cfg.refine.params(),
             pictures: Default::default(),
-            epoch: std::time::Instant::now(),
+            epoch: crate::clock::now(),
             events: events.clone(),
         },
         cancel.child_token(),
@@ -433,6 +442,7 @@ pub async fn run_on(
             Ok(Ok(s)) => tracing::info!(
                 frames = s.frames,
                 skipped = s.frames_skipped,
+                lockstep = ?s.lockstep,
                 "simulator stopped"
             ),
             Ok(Err(e)) => tracing::warn!("simulator: {e}"),
@@ -450,14 +460,16 @@ pub async fn run_on(
     })
 }
 
-/// The SLAM thread: take the newest frame, process it, publish the status;
-/// at the end let the processor finish (mapping, map file).
+/// The SLAM thread: take the newest frame, process it, publish the status
+/// (and, in lockstep, let the simulator go on); at the end let the
+/// processor finish (mapping, map file).
 fn slam_loop(
     mut processor: Box<dyn FrameProcessor>,
     ingest: &Ingest,
     shared: &SlamShared,
     geo: &geo_service::GeoService,
     delay: Duration,
+    lockstep: Option<&crate::simulator::Lockstep>,
 ) -> Option<PathBuf> {
     loop {
         let frame: Arc<Frame> = match ingest.take_frame(Duration::from_millis(200)) {
@@ -472,6 +484,12 @@ fn slam_loop(
             std::thread::sleep(delay);
         }
         shared.record(&frame, outcome, t.elapsed().as_secs_f64() * 1e3);
+        if let (Some(l), Some(at)) = (lockstep, frame.capture_time) {
+            l.frame_done(at);
+        }
+    }
+    if let Some(l) = lockstep {
+        l.close();
     }
     processor.finish()
 }

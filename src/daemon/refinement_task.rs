@@ -425,12 +425,12 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
             return;
         }
     };
-    let t_loop = Instant::now();
+    let t_loop = crate::clock::now();
     // The alignment of the last round, for a round whose refit is refused.
     let mut last_alignment = None;
     loop {
         let target = *session.target();
-        let t_fly = Instant::now();
+        let t_fly = crate::clock::now();
         let arrived = tokio::select! {
             _ = cancel.cancelled() => {
                 tracing::info!(shot = %id, "refinement: cancelled");
@@ -447,7 +447,7 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
                 return;
             }
         };
-        let flight_s = t_fly.elapsed().as_secs_f64();
+        let flight_s = crate::clock::since(t_fly).as_secs_f64();
         deps.events.publish(
             &id,
             ShotEvent::Arrived {
@@ -505,7 +505,7 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
                     shot = %id,
                     stop = stop.name(),
                     rounds = session.rounds().len(),
-                    seconds = t_loop.elapsed().as_secs_f64(),
+                    seconds = crate::clock::since(t_loop).as_secs_f64(),
                     "refinement: done"
                 );
                 let reason = match &stop {
@@ -575,7 +575,7 @@ fn position_report(g: &Stamped<GlobalPosition>) -> PositionReport {
         lon_deg: g.value.lon_deg,
         rel_alt_m: g.value.rel_alt_m,
         vel_ned_m_s: g.value.vel_ned_m_s,
-        age_s: g.received.elapsed().as_secs_f64(),
+        age_s: crate::clock::since(g.received).as_secs_f64(),
     }
 }
 
@@ -610,7 +610,7 @@ async fn wait_arrival(
     let p = &deps.params;
     let tel = &deps.link.telemetry;
     let mut det = ArrivalDetector::new(p.refine.arrival, wp, target.gimbal_pitch_deg);
-    let t0 = Instant::now();
+    let t0 = crate::clock::now();
     let radius = f64::from(deps.plan.acceptance_radius_m).max(0.1);
     let mut tick = tokio::time::interval(p.poll);
     let mut last_flying: Option<Instant> = None;
@@ -618,13 +618,13 @@ async fn wait_arrival(
     let mut start_m: Option<f64> = None;
     loop {
         tick.tick().await;
-        if t0.elapsed() > p.max_flight {
+        if crate::clock::since(t0) > p.max_flight {
             return Err(Abort::NoArrival {
                 waypoint: wp,
                 waited_s: p.max_flight.as_secs_f64(),
             });
         }
-        let fresh = |r: Instant| r.elapsed() <= p.max_telemetry_age;
+        let fresh = |r: Instant| crate::clock::since(r) <= p.max_telemetry_age;
         let passed = (*tel.progress.borrow())
             .is_some_and(|pr| waypoint_passed(pr.value.last_reached, pr.value.state, wp));
         let gp = (*tel.global_position.borrow())
@@ -634,9 +634,9 @@ async fn wait_arrival(
         let near = dist.is_some_and(|d| d.within(radius));
         if let Some(d) = dist
             && d.straight().is_finite()
-            && last_flying.is_none_or(|t| t.elapsed() >= FLYING_PERIOD)
+            && last_flying.is_none_or(|t| crate::clock::since(t) >= FLYING_PERIOD)
         {
-            last_flying = Some(Instant::now());
+            last_flying = Some(crate::clock::now());
             let start_m = *start_m.get_or_insert(d.straight());
             deps.events.publish(shot, flying_event(&d, round, start_m));
         }
@@ -644,8 +644,14 @@ async fn wait_arrival(
         let pitch = (*tel.gimbal.borrow())
             .filter(|g| fresh(g.received))
             .map_or(f64::NAN, |g| f64::from(g.value.pitch_deg));
-        if det.poll(t0.elapsed().as_secs_f64(), passed, near, speed, pitch) {
-            return Ok(Instant::now());
+        if det.poll(
+            crate::clock::since(t0).as_secs_f64(),
+            passed,
+            near,
+            speed,
+            pitch,
+        ) {
+            return Ok(crate::clock::now());
         }
     }
 }
@@ -658,7 +664,7 @@ type Looked = (Session, Result<Step, Abort>);
 fn reported_ned(deps: &Deps, frame: &LocalFrame, home: &Home) -> Option<Vector3<f64>> {
     let max_age = deps.params.max_telemetry_age;
     (*deps.link.telemetry.global_position.borrow())
-        .filter(|g| g.received.elapsed() <= max_age)
+        .filter(|g| crate::clock::since(g.received) <= max_age)
         .and_then(|g| position_report(&g).ned(frame, home.alt_amsl_m))
 }
 
@@ -676,7 +682,7 @@ async fn collect_frames(
     let m = p.refine.measure;
     let want = m.frames.max(1);
     let spacing = Duration::try_from_secs_f64(m.spacing_s.max(0.0)).unwrap_or_default();
-    let t0 = Instant::now();
+    let t0 = crate::clock::now();
     let mut frames: Vec<(Arc<Frame>, Option<Vector3<f64>>)> = Vec::with_capacity(want);
     let mut after = arrived;
     while frames.len() < want {
@@ -688,7 +694,7 @@ async fn collect_frames(
             }
             // Each frame has its own wait, so a slow video still gives
             // what it can.
-            _ if t0.elapsed() > p.frame_wait + spacing * (frames.len() as u32) => break,
+            _ if crate::clock::since(t0) > p.frame_wait + spacing * (frames.len() as u32) => break,
             _ => tokio::time::sleep(Duration::from_millis(20)).await,
         }
     }

@@ -86,6 +86,9 @@ pub fn make_processor(
     if !cfg.slam.loop_closing {
         params.loop_closing = None;
     }
+    // In lockstep the simulator waits for the frame's whole work: mapping
+    // and loop closing run inline after tracking.
+    params.sequential = cfg.sim.enabled && cfg.sim.lockstep;
     let priors = match (cfg.slam.priors, feed) {
         (true, Some(feed)) => Some(Priors::with_feed(feed, prior_params(cfg))),
         (true, None) => {

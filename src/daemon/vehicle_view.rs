@@ -422,7 +422,9 @@ impl VehicleView for LinkVehicle {
             flavour: v.flavour.map(|f| format!("{f:?}")),
             mode: v.mode,
             armed: v.armed,
-            last_heartbeat_age_s: v.last_heartbeat.map(|t| t.elapsed().as_secs_f64()),
+            last_heartbeat_age_s: v
+                .last_heartbeat
+                .map(|t| crate::clock::since(t).as_secs_f64()),
             position: gp.map(|p| VehiclePosition {
                 lat_deg: p.value.lat_deg,
                 lon_deg: p.value.lon_deg,
@@ -450,7 +452,7 @@ impl VehicleView for LinkVehicle {
                     gimbal_device_id: m.value.gimbal_device_id,
                     primary: [m.value.primary.0, m.value.primary.1],
                     secondary: [m.value.secondary.0, m.value.secondary.1],
-                    age_s: m.received.elapsed().as_secs_f64(),
+                    age_s: crate::clock::since(m.received).as_secs_f64(),
                 }),
                 control,
             },
@@ -623,7 +625,7 @@ impl VehicleView for LinkVehicle {
             total: p.value.total,
             state: p.value.state,
             last_reached: p.value.last_reached,
-            age_s: p.received.elapsed().as_secs_f64(),
+            age_s: crate::clock::since(p.received).as_secs_f64(),
         })
     }
 }

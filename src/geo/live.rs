@@ -552,7 +552,7 @@ impl LiveGeoreference {
                 self.fit = Some(Ok(GeoAlignment::of_map_in_ned(
                     self.geo.georeference().pairs(),
                 )));
-                self.fitted_at = Some(Instant::now());
+                self.fitted_at = Some(crate::clock::now());
             }
         } else if changed || self.fit.is_none() && self.geo.georeference().pairs().len() >= 3 {
             let r = self.geo.fit();
@@ -568,7 +568,7 @@ impl LiveGeoreference {
                 Err(e) => tracing::debug!("geo: not fitted: {e}"),
             }
             self.fit = Some(r);
-            self.fitted_at = Some(Instant::now());
+            self.fitted_at = Some(crate::clock::now());
         }
     }
 
@@ -747,7 +747,7 @@ impl LiveGeoreference {
                 "video_delay_ms_mean_all": (self.video_delay_sum_ms.1 > 0)
                     .then(|| self.video_delay_sum_ms.0 / self.video_delay_sum_ms.1 as f64),
             },
-            "fit_age_s": self.fitted_at.map(|t| t.elapsed().as_secs_f64()),
+            "fit_age_s": self.fitted_at.map(|t| crate::clock::since(t).as_secs_f64()),
             "evidence": {
                 "restored_pairs": self.restored.len(),
                 "frame_pairs": self.frame_pairs.len(),

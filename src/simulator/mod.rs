@@ -25,6 +25,9 @@ use std::path::Path;
 use shotpilot_sim::app::SimConfig;
 use shotpilot_sim::autopilot::{AutopilotParams, Flavour};
 use shotpilot_sim::camera::SimCamera;
+/// The simulator's lockstep handshake ([`shotpilot_sim::lockstep`]): the
+/// daemon's SLAM acknowledges each frame on it.
+pub use shotpilot_sim::lockstep::Lockstep;
 use shotpilot_sim::rtp::RtpOutParams;
 use shotpilot_sim::script::ScriptKind;
 use shotpilot_sim::vehicle::{GpsBiasParams, VehicleParams};

@@ -10,7 +10,7 @@
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, OnceLock};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use image::GrayImage;
 use serde::Serialize;
@@ -235,12 +235,9 @@ impl Frame {
     }
 }
 
-/// The current time as unix seconds.
-pub fn unix_now() -> f64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0.0, |d| d.as_secs_f64())
-}
+/// The current time as unix seconds, on the runtime's clock
+/// ([`crate::clock::unix_now`]).
+pub use crate::clock::unix_now;
 
 /// Counters of the ingest, shared by the reader, the decoder and readers of
 /// the status.
@@ -652,9 +649,12 @@ impl Ingest {
     /// raw slot is closed.
     pub fn spawn_decoder(self: &Arc<Self>) -> std::io::Result<std::thread::JoinHandle<()>> {
         let me = Arc::clone(self);
+        // The runtime's clock on this thread too (simulated when paused).
+        let rt = tokio::runtime::Handle::try_current().ok();
         std::thread::Builder::new()
             .name("jpeg-decode".into())
             .spawn(move || {
+                let _rt = rt.as_ref().map(|h| h.enter());
                 let mut seq = 0u64;
                 loop {
                     match me.raw.take_fresh(Duration::from_millis(500)) {

@@ -222,7 +222,7 @@ async fn receive(
                 continue;
             }
         };
-        let received = Instant::now();
+        let received = crate::clock::now();
         let received_unix = unix_now();
         let pkt = match parse_rtp(&buf[..n]) {
             Ok(p) => p,

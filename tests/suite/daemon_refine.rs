@@ -150,24 +150,30 @@ fn post_jpeg(addr: SocketAddr, path: &str, jpeg: &[u8]) -> (u16, Vec<u8>) {
 }
 
 /// Uploads and starts the shot's mission, then waits for the daemon's
-/// loop to stop; returns the recorded refinement and the seconds it took.
-fn refine(addr: SocketAddr, sid: &str) -> (Value, f64) {
+/// loop to stop; returns the recorded refinement and the simulated seconds
+/// it took.
+fn refine(run: &Running, sid: &str) -> (Value, f64) {
+    let addr = run.addr;
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/mission"), None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/start"), None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
-    let t_start = Instant::now();
+    let (t_start, wall) = (run.daemon.now(), Instant::now());
     let mut refinement = Value::Null;
-    while t_start.elapsed() < Duration::from_secs(200) {
-        let shot = get_json(addr, &format!("/api/v1/shots/{sid}"));
+    while run.daemon.now() - t_start < Duration::from_secs(200) {
+        let path = format!("/api/v1/shots/{sid}");
+        let shot = run.daemon.held(move || get_json(addr, &path));
         refinement = shot["mission"]["details"]["refinement"].clone();
         if !refinement["stop"].is_null() {
             break;
         }
-        std::thread::sleep(Duration::from_millis(500));
+        run.daemon.sleep(Duration::from_millis(500));
     }
-    let loop_s = t_start.elapsed().as_secs_f64();
-    eprintln!("shot {sid}: refinement after {loop_s:.1} s");
+    let loop_s = (run.daemon.now() - t_start).as_secs_f64();
+    eprintln!(
+        "shot {sid}: refinement after {loop_s:.1} s simulated ({:.1} s wall)",
+        wall.elapsed().as_secs_f64()
+    );
     for r in refinement["rounds"].as_array().into_iter().flatten() {
         eprintln!(
             "  round {} shot error {} % ({} px, {} inliers), floor {} %, pose still changes the framing by {} % -> {}, step {}",
@@ -233,13 +239,15 @@ fn check_rounds(refinement: &Value) {
 /// simulators and SLAM.
 static ONE_DAEMON: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
-/// A daemon with the simulator in-process on free ports, its truth
-/// written; `tweak` edits the configuration first.
+/// A daemon with the simulator in-process on free ports, on simulated time
+/// (lockstep), its truth written; `tweak` edits the configuration first.
 struct Running {
-    daemon: daemon_support::Running,
+    daemon: daemon_support::OnSimTime,
     addr: SocketAddr,
     truth_dir: std::path::PathBuf,
+    /// Wall and simulated time at the start.
     t0: Instant,
+    sim0: tokio::time::Instant,
     _dir: tempfile::TempDir,
 }
 
@@ -258,9 +266,10 @@ fn start(tweak: impl FnOnce(&mut Config)) -> Running {
     let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
     cfg.validate(Path::new("test")).unwrap();
 
-    let daemon = daemon_support::start(cfg, sockets, dir.path());
+    let daemon = daemon_support::start_on_sim_time(cfg, sockets, dir.path());
     Running {
         addr: daemon.addr,
+        sim0: daemon.now(),
         daemon,
         truth_dir,
         t0: Instant::now(),
@@ -276,13 +285,16 @@ impl Running {
         let addr = self.addr;
         let mut geo = Value::Null;
         let mut photos = Vec::new();
-        while self.t0.elapsed() < Duration::from_secs(90) {
-            let status = get_json(addr, "/api/v1/status");
-            if status["slam"]["state"] == "tracking" {
-                let (st, jpeg) = http(addr, "GET", "/api/v1/snapshot.jpg", None);
-                if st == 200 {
-                    photos.push(jpeg);
-                }
+        while self.daemon.now() - self.sim0 < Duration::from_secs(90) {
+            // Status and snapshot at one simulated instant.
+            let (status, snapshot) = self.daemon.held(move || {
+                let status = get_json(addr, "/api/v1/status");
+                let snapshot = (status["slam"]["state"] == "tracking")
+                    .then(|| http(addr, "GET", "/api/v1/snapshot.jpg", None));
+                (status, snapshot)
+            });
+            if let Some((200, jpeg)) = snapshot {
+                photos.push(jpeg);
             }
             geo = status["vehicle"]["georeference"].clone();
             if status["slam"]["state"] == "tracking"
@@ -291,10 +303,11 @@ impl Running {
             {
                 break;
             }
-            std::thread::sleep(Duration::from_millis(500));
+            self.daemon.sleep(Duration::from_millis(500));
         }
         eprintln!(
-            "georeferenced after {:.1} s: {geo}",
+            "georeferenced after {:.1} s simulated ({:.1} s wall): {geo}",
+            (self.daemon.now() - self.sim0).as_secs_f64(),
             self.t0.elapsed().as_secs_f64()
         );
         assert_eq!(geo["state"], "ok", "{geo}");
@@ -304,8 +317,12 @@ impl Running {
 
     /// Stops the daemon, which must stop cleanly.
     fn stop(self) {
+        let simulated = (self.daemon.now() - self.sim0).as_secs_f64();
         self.daemon.stop(Duration::from_secs(30));
-        eprintln!("total {:.1} s", self.t0.elapsed().as_secs_f64());
+        eprintln!(
+            "total {simulated:.1} s simulated, {:.1} s wall",
+            self.t0.elapsed().as_secs_f64()
+        );
     }
 }
 
@@ -367,7 +384,7 @@ fn started_mission_is_refined_by_the_daemon() {
     let sid = sid.expect("a shot by anchors is localised");
 
     // Upload and start: the daemon's loop takes over.
-    let (anchors, _) = refine(addr, &sid);
+    let (anchors, _) = refine(&run, &sid);
     let zoom_truth = analyse(&anchors, &truth_dir, &home, None);
     // The zoom is no camera's view: its floor (what a camera exactly at
     // the shot's pose measures) is above the threshold, and the loop stops
@@ -460,7 +477,7 @@ fn started_mission_is_refined_by_the_daemon() {
         }
     }
     let (pan_sid, pan_want) = pan.expect("a pan/tilt anchors shot is localised");
-    let (pan_r, _) = refine(addr, &pan_sid);
+    let (pan_r, _) = refine(&run, &pan_sid);
     let pan_truth = analyse(&pan_r, &truth_dir, &home, Some(&pan_want));
     // A view the camera can take ends under the threshold, as the
     // scenario's anchors trials do, with its floor near zero.
@@ -490,7 +507,7 @@ fn started_mission_is_refined_by_the_daemon() {
     // A photograph the camera took during the exploration: a view that can
     // be reproduced exactly.
     let photo_sid = photo_shot(addr, &photos);
-    let (photo, _) = refine(addr, &photo_sid);
+    let (photo, _) = refine(&run, &photo_sid);
     analyse(&photo, &truth_dir, &home, None);
     let rounds = photo["rounds"].as_array().unwrap();
     let last = rounds.last().unwrap()["shot_error_pct"].as_f64().unwrap();
@@ -519,14 +536,14 @@ fn started_mission_is_refined_by_the_daemon() {
         None,
     );
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
-    let t2 = Instant::now();
-    while t2.elapsed() < Duration::from_secs(10) {
+    let t2 = run.daemon.now();
+    while run.daemon.now() - t2 < Duration::from_secs(10) {
         r = get_json(addr, &format!("/api/v1/shots/{sid}"))["mission"]["details"]["refinement"]
             .clone();
         if !r["stop"].is_null() {
             break;
         }
-        std::thread::sleep(Duration::from_millis(200));
+        run.daemon.sleep(Duration::from_millis(200));
     }
     eprintln!("interrupted: stop {} ({})", r["stop"], r["reason"]);
     assert_eq!(r["stop"], "aborted", "{r}");
@@ -601,8 +618,8 @@ fn gps_bias_is_corrected_by_the_daemon() {
     let (addr, truth_dir) = (run.addr, run.truth_dir.clone());
     let (geo, photos) = run.georeferenced();
     let home = home_of(&geo);
-    let sid = photo_shot(addr, &photos);
-    let (r, loop_s) = refine(addr, &sid);
+    let sid = run.daemon.held(move || photo_shot(addr, &photos));
+    let (r, loop_s) = refine(&run, &sid);
     let check = analyse(&r, &truth_dir, &home, None);
     let rounds = r["rounds"].as_array().unwrap();
     let pct: Vec<f64> = rounds

@@ -7,7 +7,7 @@
 use std::future::poll_fn;
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use hyper::body::{Body as _, Incoming};
 use hyper::header::{ACCEPT, CONNECTION, CONTENT_LENGTH, CONTENT_TYPE, HOST, USER_AGENT};
@@ -290,7 +290,7 @@ async fn read_stream(
                     ingest.push_raw(RawPart {
                         jpeg: Arc::new(p.body),
                         capture_time: p.timestamp,
-                        received: Instant::now(),
+                        received: crate::clock::now(),
                         received_unix: unix_now(),
                     });
                     *delivered += 1;
@@ -423,7 +423,7 @@ pub async fn run_snapshots(
                 ingest.push_raw(RawPart {
                     jpeg: Arc::new(jpeg),
                     capture_time: ts,
-                    received: Instant::now(),
+                    received: crate::clock::now(),
                     received_unix: unix_now(),
                 });
             }

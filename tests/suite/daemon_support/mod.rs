@@ -145,6 +145,135 @@ impl Running {
     }
 }
 
+/// A daemon on simulated time: a current-thread tokio runtime with paused
+/// time, driven by its own thread, and the in-process simulator in
+/// lockstep with the SLAM (`[sim] lockstep`). The simulator's steps, the
+/// daemon's timers and the test's waits ([`OnSimTime::sleep`]) are all on
+/// the runtime's clock, which moves only when nothing is working: no
+/// frame is skipped and no timer fires early because the machine is busy,
+/// and the run goes as fast as its work allows.
+pub struct OnSimTime {
+    /// The runtime's handle (to block on, or spawn on).
+    pub handle: tokio::runtime::Handle,
+    /// Cancels the daemon (a clean stop).
+    pub cancel: CancellationToken,
+    /// The daemon's task.
+    task: DaemonTask,
+    /// Ends the driver thread once the daemon stopped.
+    done: CancellationToken,
+    /// The thread driving the runtime.
+    driver: std::thread::JoinHandle<()>,
+    /// Where its API listens.
+    pub addr: SocketAddr,
+}
+
+/// Starts the daemon with `cfg` (validated by the caller; lockstep is
+/// switched on here) on `sockets`, its data under `base`, on simulated
+/// time; returns once the API listens.
+pub fn start_on_sim_time(
+    mut cfg: shotpilot::config::Config,
+    sockets: shotpilot::daemon::Sockets,
+    base: &Path,
+) -> OnSimTime {
+    cfg.sim.lockstep = true;
+    let cancel = CancellationToken::new();
+    let done = CancellationToken::new();
+    let (handed, handle_rx) = std::sync::mpsc::channel();
+    let (c, d, b) = (cancel.clone(), done.clone(), base.to_owned());
+    let driver = std::thread::Builder::new()
+        .name("sim-time".into())
+        .spawn(move || {
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .start_paused(true)
+                .build()
+                .expect("a paused runtime");
+            let (tx, rx) = tokio::sync::oneshot::channel();
+            let task =
+                rt.spawn(
+                    async move { shotpilot::daemon::run_on(cfg, &b, c, Some(tx), sockets).await },
+                );
+            handed
+                .send((rt.handle().clone(), task, rx))
+                .expect("the test waits for the runtime");
+            rt.block_on(d.cancelled());
+        })
+        .expect("the driver thread");
+    let (handle, task, started) = handle_rx.recv().expect("the runtime starts");
+    let addr = handle
+        .block_on(started)
+        .expect("the daemon starts")
+        .api_addr;
+    OnSimTime {
+        handle,
+        cancel,
+        task,
+        done,
+        driver,
+        addr,
+    }
+}
+
+impl OnSimTime {
+    /// Waits `d` of simulated time (the daemon and the simulator run).
+    pub fn sleep(&self, d: Duration) {
+        self.handle
+            .block_on(async move { tokio::time::sleep(d).await });
+    }
+
+    /// The simulated clock.
+    pub fn now(&self) -> tokio::time::Instant {
+        self.handle.block_on(async { tokio::time::Instant::now() })
+    }
+
+    /// Polls `check` every `period` of simulated time until it gives a
+    /// value or `limit` of simulated time passed (then `None`). Each check
+    /// runs with the clock held, so what it reads is one instant.
+    pub fn poll<T: Send + 'static>(
+        &self,
+        limit: Duration,
+        period: Duration,
+        check: impl Fn() -> Option<T> + Send + Sync + 'static,
+    ) -> Option<T> {
+        let check = std::sync::Arc::new(check);
+        let t0 = self.now();
+        loop {
+            let c = check.clone();
+            if let Some(v) = self.held(move || c()) {
+                return Some(v);
+            }
+            if self.now() - t0 >= limit {
+                return None;
+            }
+            self.sleep(period);
+        }
+    }
+
+    /// Runs `f` with the simulated clock held (a blocking task keeps a
+    /// paused runtime from advancing): for reads that must see one instant.
+    /// `f` must not wait for anything that needs time to pass.
+    pub fn held<T: Send + 'static>(&self, f: impl FnOnce() -> T + Send + 'static) -> T {
+        self.handle
+            .block_on(async move { tokio::task::spawn_blocking(f).await })
+            .expect("the held closure does not panic")
+    }
+
+    /// Cancels the daemon, which must stop cleanly within `limit` of
+    /// simulated time; its summary.
+    pub fn stop(self, limit: Duration) -> shotpilot::daemon::Summary {
+        self.cancel.cancel();
+        let task = self.task;
+        let out = self
+            .handle
+            .block_on(async { tokio::time::timeout(limit, task).await });
+        self.done.cancel();
+        self.driver.join().expect("the driver thread ends");
+        out.expect("the daemon stops")
+            .expect("the daemon task does not panic")
+            .expect("the daemon stops cleanly")
+    }
+}
+
 /// One request with [`TOKEN`] as bearer token (a daemon without a token
 /// ignores it); returns the status and the body.
 pub fn request(
