@@ -339,6 +339,44 @@ async fn lost_final_ack_ardupilot_is_confirmed_by_read_back() -> anyhow::Result<
     Ok(())
 }
 
+/// The read-back that settles a lost final ACK crosses the same bad radio:
+/// when it is lost whole (every MISSION_REQUEST_LIST of it), the mission is
+/// read back again instead of the upload being reported unconfirmed.
+#[tokio::test(start_paused = true)]
+async fn a_lost_read_back_is_read_again() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let p = upload::Params::default();
+    let cfg = FakeConfig {
+        lose_final_ack: true,
+        // The first read-back's request and all its resends.
+        ignore_request_lists: p.max_retries + 1,
+        ..FakeConfig::clean(Habit::ArduPilot)
+    };
+    let (addr, fake) = start_fake(cfg, &cancel);
+    // The link must outlive the lost read-back's timeouts.
+    let lp = Params {
+        link_lost_after_ms: 600_000,
+        ..link_params(format!("udpout:{addr}"))
+    };
+    let (link, _task) = vehicle::spawn(lp, p, cancel.clone())?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let items = plan::plan(
+        &target(0),
+        &home(),
+        Flavour::ArduPilot,
+        &plan::Params::default(),
+    )?;
+    let report = link.upload_mission(items).await?;
+    assert!(report.verified_by_download, "{report:?}");
+    assert_eq!(fake.lock().expect("lock").uploads, 1);
+    // Uploaded, confirmed by the second read-back: the first one's
+    // (max_retries + 1) timeouts passed before it.
+    let lost = f64::from(p.max_retries + 1) * p.retry_timeout_ms as f64 / 1e3;
+    assert!(report.seconds >= lost, "{report:?}");
+    cancel.cancel();
+    Ok(())
+}
+
 #[tokio::test(start_paused = true)]
 async fn vehicle_rejection_is_typed() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();

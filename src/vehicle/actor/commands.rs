@@ -45,6 +45,7 @@ impl Actor {
             report,
             reply,
             span,
+            attempt,
         } = t.deliver(now, peers.is_some())
             && let Some(peers) = peers
         {
@@ -62,6 +63,8 @@ impl Actor {
                     skip_home,
                     report,
                     reply,
+                    attempt,
+                    since: now,
                 },
                 span,
             });

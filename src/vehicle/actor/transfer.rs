@@ -13,6 +13,12 @@ use crate::mission::upload::{Downloader, MissionError, Uploader, same_mission};
 use crate::mission::{Download, MissionItem, UploadReport};
 use crate::vehicle::error::LinkError;
 
+/// Read-backs of an upload whose final ACK was lost, at most: the read-back
+/// crosses the same bad radio that lost the ACK, and a read-back that fails
+/// (its own retries spent) says nothing about the vehicle's mission, so it
+/// is tried again before the upload is reported as unconfirmed.
+pub(super) const READ_BACK_ATTEMPTS: u32 = 3;
+
 /// Why a download runs.
 pub(super) enum DownPurpose {
     /// The operator asked for the mission.
@@ -23,6 +29,10 @@ pub(super) enum DownPurpose {
         skip_home: bool,
         report: UploadReport,
         reply: oneshot::Sender<Result<UploadReport, LinkError>>,
+        /// This read-back's number, from 1.
+        attempt: u32,
+        /// When this read-back started.
+        since: Instant,
     },
 }
 
@@ -51,6 +61,8 @@ pub(super) enum Next {
         report: UploadReport,
         reply: oneshot::Sender<Result<UploadReport, LinkError>>,
         span: Span,
+        /// The read-back's number, from 1.
+        attempt: u32,
     },
 }
 
@@ -132,6 +144,7 @@ impl Transfer {
                         report: machine.report_at(now),
                         reply,
                         span,
+                        attempt: 1,
                     }
                 }
                 Some(outcome) => {
@@ -167,8 +180,33 @@ impl Transfer {
                         skip_home,
                         report,
                         reply,
+                        attempt,
+                        since,
                     } => {
                         let result = match outcome {
+                            Err(e)
+                                if !matches!(e, MissionError::Cancelled)
+                                    && attempt < READ_BACK_ATTEMPTS =>
+                            {
+                                span.in_scope(|| {
+                                    warn!(
+                                        error = %e,
+                                        attempt,
+                                        "the read-back failed; reading the mission back again"
+                                    )
+                                });
+                                // The failed read-back's time counts.
+                                let seconds = report.seconds
+                                    + now.saturating_duration_since(since).as_secs_f64();
+                                return Next::Verify {
+                                    items,
+                                    skip_home,
+                                    report: UploadReport { seconds, ..report },
+                                    reply,
+                                    span,
+                                    attempt: attempt + 1,
+                                };
+                            }
                             Ok(d) if same_mission(&items, &d.items, skip_home) => {
                                 Ok(UploadReport {
                                     seconds: report.seconds + d.seconds,

@@ -55,6 +55,9 @@ pub struct FakeConfig {
     pub heartbeats: bool,
     /// Drop the first final ACCEPTED of each upload.
     pub lose_final_ack: bool,
+    /// MISSION_REQUEST_LISTs left unanswered first (a read-back the radio
+    /// loses whole).
+    pub ignore_request_lists: u32,
     /// Answers to particular commands instead of ACCEPTED (None: no
     /// COMMAND_ACK at all).
     pub command_results: &'static [(MavCmd, Option<MavResult>)],
@@ -76,6 +79,7 @@ impl FakeConfig {
             final_result: None,
             heartbeats: true,
             lose_final_ack: false,
+            ignore_request_lists: 0,
             command_results: &[],
         }
     }
@@ -168,6 +172,7 @@ async fn run_fake_at(
     };
     let mut mission: Vec<MISSION_ITEM_INT_DATA> = Vec::new();
     let mut rx = Rx::Idle;
+    let mut request_lists_ignored = 0u32;
     let mut gcs: Option<(u8, u8)> = None;
     let mut hb = tokio::time::interval(Duration::from_millis(1000));
     let mut telem = tokio::time::interval(Duration::from_millis(100));
@@ -392,6 +397,12 @@ async fn run_fake_at(
                         if cfg.habit == Habit::ArduPilot && matches!(rx, Rx::Receiving { .. }) =>
                     {
                         out.push(ack(gs, gc, MavMissionResult::MAV_MISSION_DENIED));
+                    }
+                    MavMessage::MISSION_REQUEST_LIST(l)
+                        if l.target_system == cfg.system_id
+                            && request_lists_ignored < cfg.ignore_request_lists =>
+                    {
+                        request_lists_ignored += 1;
                     }
                     MavMessage::MISSION_REQUEST_LIST(l) if l.target_system == cfg.system_id => {
                         out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
