@@ -20,23 +20,24 @@ use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use serde_json::{Value, json};
 use shotpilot::slam::KeyFrameId;
 
-fn start(base: &Path) -> daemon_support::Running {
+/// The daemon on simulated time (the simulator in lockstep).
+fn start(base: &Path) -> daemon_support::OnSimTime {
     let (cfg, sockets) = daemon_support::sim_config();
     assert!(cfg.slam.continue_map, "continuing is the default");
     cfg.validate(Path::new("test")).unwrap();
-    daemon_support::start(cfg, sockets, base)
+    daemon_support::start_on_sim_time(cfg, sockets, base)
 }
 
-/// Poll the status until `done` holds (or the time runs out); returns the
-/// last status.
-fn wait_status(addr: SocketAddr, secs: u64, done: impl Fn(&Value) -> bool) -> Value {
-    let t0 = Instant::now();
+/// Poll the status every 300 ms of simulated time until `done` holds (or
+/// `secs` of simulated time ran out); returns the last status.
+fn wait_status(d: &daemon_support::OnSimTime, secs: u64, done: impl Fn(&Value) -> bool) -> Value {
+    let t0 = d.now();
     loop {
-        let status = get_json(addr, "/api/v1/status");
-        if done(&status) || t0.elapsed() > Duration::from_secs(secs) {
+        let status = get_json(d.addr, "/api/v1/status");
+        if done(&status) || d.now() - t0 > Duration::from_secs(secs) {
             return status;
         }
-        std::thread::sleep(Duration::from_millis(300));
+        d.sleep(Duration::from_millis(300));
     }
 }
 
@@ -150,7 +151,7 @@ fn the_daemon_continues_on_its_saved_map() {
     // Run 1: a fresh map, tracked for a while, and a shot localised in it.
     let t0 = Instant::now();
     let d = start(&base);
-    let status = wait_status(d.addr, 90, |s| {
+    let status = wait_status(&d, 90, |s| {
         let s = &s["slam"];
         s["state"] == "tracking"
             && s["keyframes"].as_u64().unwrap_or(0) >= 8
@@ -200,7 +201,7 @@ fn the_daemon_continues_on_its_saved_map() {
     let t1 = Instant::now();
     let d = start(&base);
     // Until it has relocalised and made three keyframes of its own.
-    let status = wait_status(d.addr, 90, |s| {
+    let status = wait_status(&d, 90, |s| {
         let s = &s["slam"];
         !s["map_start"]["relocalised_at_frame"].is_null()
             && s["state"] == "tracking"
@@ -333,7 +334,7 @@ fn the_daemon_continues_on_its_saved_map() {
     bytes[mid] ^= 0xff;
     std::fs::write(&map_file, &bytes).unwrap();
     let d = start(&base);
-    let status = wait_status(d.addr, 30, |s| !s["slam"]["map_start"].is_null());
+    let status = wait_status(&d, 30, |s| !s["slam"]["map_start"].is_null());
     let start3 = &status["slam"]["map_start"];
     eprintln!("run 3: {start3}");
     assert_eq!(start3["mode"], "fresh_after_error", "{status}");
@@ -348,7 +349,7 @@ fn the_daemon_continues_on_its_saved_map() {
         "the damaged file is kept"
     );
     assert!(!map_file.exists(), "the damaged file was moved, not copied");
-    let status = wait_status(d.addr, 60, |s| s["slam"]["state"] == "tracking");
+    let status = wait_status(&d, 60, |s| s["slam"]["state"] == "tracking");
     assert_eq!(status["slam"]["state"], "tracking", "a fresh map: {status}");
     let shots = get_json(d.addr, "/api/v1/shots")["count"].as_u64().unwrap() as usize;
     assert_eq!(

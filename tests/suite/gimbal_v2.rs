@@ -147,8 +147,10 @@ async fn gimbal_pitch_reaches(link: &LinkHandle, pitch: f64, seconds: u64) -> an
 }
 
 /// One flight at a time: each test runs a simulator whose world generation
-/// takes seconds of CPU, and a flight timed by a simulator starved by the
-/// other one's start measures the machine, not the protocol.
+/// takes seconds of CPU. The flights run on simulated time (a paused
+/// runtime: the simulator's steps, the link's timers and the test's
+/// timeouts on one clock), so a busy machine makes them slower, never
+/// different; one at a time keeps them from slowing each other.
 static ONE_FLIGHT: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 async fn fly(flavour: Flavour) -> anyhow::Result<()> {
@@ -366,12 +368,12 @@ async fn fly(flavour: Flavour) -> anyhow::Result<()> {
     Ok(())
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn px4_gimbal_configure_before_mission_and_command() -> anyhow::Result<()> {
     fly(Flavour::Px4).await
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn ardupilot_gimbal_configure_before_mission_and_command() -> anyhow::Result<()> {
     fly(Flavour::ArduPilot).await
 }

@@ -1,11 +1,16 @@
 //! Mission upload against the simulator (the `shotpilot-sim` crate, run
 //! in-process): its PX4-like and ArduPilot-like autopilot behind its own bad
 //! radio (frame loss each way, byte corruption, a 57600 baud cap), over UDP
-//! and over a serial pty pair. Every upload is read back and compared.
+//! and over a serial pty pair. Every upload is read back and compared. The
+//! UDP runs are on simulated time (tokio's paused clock drives the
+//! simulator's steps, its radio and the link's timeouts alike); the pty
+//! run, through socat, is in real time.
 
 use crate::link_support;
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use tokio::time::Instant;
 
 use shotpilot::mission::plan::{self, Flavour, Home, Target};
 use shotpilot::mission::upload::{self, same_mission};
@@ -163,17 +168,17 @@ async fn lossy_udp(flavour: Flavour, n: usize, seed: u64) -> anyhow::Result<()> 
     Ok(())
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn sim_lossy_uploads_px4() -> anyhow::Result<()> {
     lossy_udp(Flavour::Px4, 5, 3).await
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn sim_lossy_uploads_ardupilot() -> anyhow::Result<()> {
     lossy_udp(Flavour::ArduPilot, 5, 4).await
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 #[ignore = "slow: 2 x 50 uploads through the simulator's bad radio; run with --ignored for the figures"]
 async fn sim_lossy_uploads_50_each() -> anyhow::Result<()> {
     // both flavours at once, each with its own simulator and link
