@@ -37,18 +37,20 @@ fn daemon_with_simulator_end_to_end() {
     let sim0 = daemon.now();
 
     // SLAM reaches tracking and makes keyframes.
-    let mut status = Value::Null;
-    while daemon.now() - sim0 < Duration::from_secs(90) {
-        status = get_json(addr, "/api/v1/status");
-        let s = &status["slam"];
-        if s["state"] == "tracking"
-            && s["keyframes"].as_u64().unwrap_or(0) >= 5
-            && s["tracked"].as_u64().unwrap_or(0) >= 20
-        {
-            break;
-        }
-        daemon.sleep(Duration::from_millis(500));
-    }
+    let status = daemon
+        .poll(
+            Duration::from_secs(90),
+            Duration::from_millis(500),
+            move || {
+                let status = get_json(addr, "/api/v1/status");
+                let s = &status["slam"];
+                (s["state"] == "tracking"
+                    && s["keyframes"].as_u64().unwrap_or(0) >= 5
+                    && s["tracked"].as_u64().unwrap_or(0) >= 20)
+                    .then_some(status)
+            },
+        )
+        .unwrap_or_else(|| get_json(addr, "/api/v1/status"));
     let secs = t0.elapsed().as_secs_f64();
     eprintln!(
         "after {:.1} s simulated ({secs:.1} s wall): {status}",

@@ -159,16 +159,19 @@ fn refine(run: &Running, sid: &str) -> (Value, f64) {
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/start"), None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let (t_start, wall) = (run.daemon.now(), Instant::now());
-    let mut refinement = Value::Null;
-    while run.daemon.now() - t_start < Duration::from_secs(200) {
-        let path = format!("/api/v1/shots/{sid}");
-        let shot = run.daemon.held(move || get_json(addr, &path));
-        refinement = shot["mission"]["details"]["refinement"].clone();
-        if !refinement["stop"].is_null() {
-            break;
-        }
-        run.daemon.sleep(Duration::from_millis(500));
-    }
+    let path = format!("/api/v1/shots/{sid}");
+    let p = path.clone();
+    let refinement = run
+        .daemon
+        .poll(
+            Duration::from_secs(200),
+            Duration::from_millis(500),
+            move || {
+                let r = get_json(addr, &p)["mission"]["details"]["refinement"].clone();
+                (!r["stop"].is_null()).then_some(r)
+            },
+        )
+        .unwrap_or_else(|| get_json(addr, &path)["mission"]["details"]["refinement"].clone());
     let loop_s = (run.daemon.now() - t_start).as_secs_f64();
     eprintln!(
         "shot {sid}: refinement after {loop_s:.1} s simulated ({:.1} s wall)",
@@ -283,28 +286,31 @@ impl Running {
     /// georeference status and the snapshots.
     fn georeferenced(&self) -> (Value, Vec<Vec<u8>>) {
         let addr = self.addr;
-        let mut geo = Value::Null;
-        let mut photos = Vec::new();
-        while self.daemon.now() - self.sim0 < Duration::from_secs(90) {
-            // Status and snapshot at one simulated instant.
-            let (status, snapshot) = self.daemon.held(move || {
-                let status = get_json(addr, "/api/v1/status");
-                let snapshot = (status["slam"]["state"] == "tracking")
-                    .then(|| http(addr, "GET", "/api/v1/snapshot.jpg", None));
-                (status, snapshot)
-            });
-            if let Some((200, jpeg)) = snapshot {
-                photos.push(jpeg);
-            }
-            geo = status["vehicle"]["georeference"].clone();
-            if status["slam"]["state"] == "tracking"
-                && status["slam"]["keyframes"].as_u64().unwrap_or(0) >= 5
-                && geo["state"] == "ok"
-            {
-                break;
-            }
-            self.daemon.sleep(Duration::from_millis(500));
-        }
+        // Status and snapshot at the same simulated instants in every run.
+        let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let s = seen.clone();
+        let geo = self
+            .daemon
+            .poll(
+                Duration::from_secs(90),
+                Duration::from_millis(500),
+                move || {
+                    let status = get_json(addr, "/api/v1/status");
+                    if status["slam"]["state"] == "tracking" {
+                        let (st, jpeg) = http(addr, "GET", "/api/v1/snapshot.jpg", None);
+                        if st == 200 {
+                            s.lock().unwrap_or_else(|e| e.into_inner()).push(jpeg);
+                        }
+                    }
+                    let geo = status["vehicle"]["georeference"].clone();
+                    (status["slam"]["state"] == "tracking"
+                        && status["slam"]["keyframes"].as_u64().unwrap_or(0) >= 5
+                        && geo["state"] == "ok")
+                        .then_some(geo)
+                },
+            )
+            .unwrap_or_else(|| get_json(addr, "/api/v1/status")["vehicle"]["georeference"].clone());
+        let mut photos = std::mem::take(&mut *seen.lock().unwrap_or_else(|e| e.into_inner()));
         eprintln!(
             "georeferenced after {:.1} s simulated ({:.1} s wall): {geo}",
             (self.daemon.now() - self.sim0).as_secs_f64(),
@@ -536,14 +542,16 @@ fn started_mission_is_refined_by_the_daemon() {
         None,
     );
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
-    let t2 = run.daemon.now();
-    while run.daemon.now() - t2 < Duration::from_secs(10) {
-        r = get_json(addr, &format!("/api/v1/shots/{sid}"))["mission"]["details"]["refinement"]
-            .clone();
-        if !r["stop"].is_null() {
-            break;
-        }
-        run.daemon.sleep(Duration::from_millis(200));
+    let path = format!("/api/v1/shots/{sid}");
+    if let Some(stopped) = run.daemon.poll(
+        Duration::from_secs(10),
+        Duration::from_millis(200),
+        move || {
+            let r = get_json(addr, &path)["mission"]["details"]["refinement"].clone();
+            (!r["stop"].is_null()).then_some(r)
+        },
+    ) {
+        r = stopped;
     }
     eprintln!("interrupted: stop {} ({})", r["stop"], r["reason"]);
     assert_eq!(r["stop"], "aborted", "{r}");

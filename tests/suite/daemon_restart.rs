@@ -30,15 +30,21 @@ fn start(base: &Path) -> daemon_support::OnSimTime {
 
 /// Poll the status every 300 ms of simulated time until `done` holds (or
 /// `secs` of simulated time ran out); returns the last status.
-fn wait_status(d: &daemon_support::OnSimTime, secs: u64, done: impl Fn(&Value) -> bool) -> Value {
-    let t0 = d.now();
-    loop {
-        let status = get_json(d.addr, "/api/v1/status");
-        if done(&status) || d.now() - t0 > Duration::from_secs(secs) {
-            return status;
-        }
-        d.sleep(Duration::from_millis(300));
-    }
+fn wait_status(
+    d: &daemon_support::OnSimTime,
+    secs: u64,
+    done: impl Fn(SocketAddr, &Value) -> bool + Send + Sync + 'static,
+) -> Value {
+    let addr = d.addr;
+    d.poll(
+        Duration::from_secs(secs),
+        Duration::from_millis(300),
+        move || {
+            let status = get_json(addr, "/api/v1/status");
+            done(addr, &status).then_some(status)
+        },
+    )
+    .unwrap_or_else(|| get_json(addr, "/api/v1/status"))
 }
 
 fn pose(v: &Value) -> Isometry3<f64> {
@@ -151,7 +157,7 @@ fn the_daemon_continues_on_its_saved_map() {
     // Run 1: a fresh map, tracked for a while, and a shot localised in it.
     let t0 = Instant::now();
     let d = start(&base);
-    let status = wait_status(&d, 90, |s| {
+    let status = wait_status(&d, 90, |_, s| {
         let s = &s["slam"];
         s["state"] == "tracking"
             && s["keyframes"].as_u64().unwrap_or(0) >= 8
@@ -201,11 +207,11 @@ fn the_daemon_continues_on_its_saved_map() {
     let t1 = Instant::now();
     let d = start(&base);
     // Until it has relocalised and made three keyframes of its own.
-    let status = wait_status(&d, 90, |s| {
+    let status = wait_status(&d, 90, move |addr, s| {
         let s = &s["slam"];
         !s["map_start"]["relocalised_at_frame"].is_null()
             && s["state"] == "tracking"
-            && keyframes(d.addr).keys().filter(|&&id| id > old_max).count() >= 3
+            && keyframes(addr).keys().filter(|&&id| id > old_max).count() >= 3
     });
     eprintln!(
         "run 2 after {:.1} s: {}",
@@ -334,7 +340,7 @@ fn the_daemon_continues_on_its_saved_map() {
     bytes[mid] ^= 0xff;
     std::fs::write(&map_file, &bytes).unwrap();
     let d = start(&base);
-    let status = wait_status(&d, 30, |s| !s["slam"]["map_start"].is_null());
+    let status = wait_status(&d, 30, |_, s| !s["slam"]["map_start"].is_null());
     let start3 = &status["slam"]["map_start"];
     eprintln!("run 3: {start3}");
     assert_eq!(start3["mode"], "fresh_after_error", "{status}");
@@ -349,7 +355,7 @@ fn the_daemon_continues_on_its_saved_map() {
         "the damaged file is kept"
     );
     assert!(!map_file.exists(), "the damaged file was moved, not copied");
-    let status = wait_status(&d, 60, |s| s["slam"]["state"] == "tracking");
+    let status = wait_status(&d, 60, |_, s| s["slam"]["state"] == "tracking");
     assert_eq!(status["slam"]["state"], "tracking", "a fresh map: {status}");
     let shots = get_json(d.addr, "/api/v1/shots")["count"].as_u64().unwrap() as usize;
     assert_eq!(

@@ -227,8 +227,10 @@ impl OnSimTime {
     }
 
     /// Polls `check` every `period` of simulated time until it gives a
-    /// value or `limit` of simulated time passed (then `None`). Each check
-    /// runs with the clock held, so what it reads is one instant.
+    /// value or `limit` of simulated time passed (then `None`). The loop
+    /// is one task on the runtime and each check runs with the clock held,
+    /// so the checks fall on the same simulated instants in every run (t0,
+    /// t0 + period, ...) whatever the machine's speed.
     pub fn poll<T: Send + 'static>(
         &self,
         limit: Duration,
@@ -236,17 +238,25 @@ impl OnSimTime {
         check: impl Fn() -> Option<T> + Send + Sync + 'static,
     ) -> Option<T> {
         let check = std::sync::Arc::new(check);
-        let t0 = self.now();
-        loop {
-            let c = check.clone();
-            if let Some(v) = self.held(move || c()) {
-                return Some(v);
+        let task = self.handle.spawn(async move {
+            let t0 = tokio::time::Instant::now();
+            loop {
+                let c = check.clone();
+                let found = tokio::task::spawn_blocking(move || c())
+                    .await
+                    .expect("the check does not panic");
+                if found.is_some() {
+                    return found;
+                }
+                if t0.elapsed() >= limit {
+                    return None;
+                }
+                tokio::time::sleep(period).await;
             }
-            if self.now() - t0 >= limit {
-                return None;
-            }
-            self.sleep(period);
-        }
+        });
+        self.handle
+            .block_on(task)
+            .expect("the polling task does not panic")
     }
 
     /// Runs `f` with the simulated clock held (a blocking task keeps a
