@@ -36,6 +36,12 @@ pub fn unix_now() -> f64 {
     wall + ahead
 }
 
+/// The unix time of `t`, an instant of [`now`] (a message's receive
+/// stamp, say).
+pub fn unix_at(t: Instant) -> f64 {
+    unix_now() - since(t).as_secs_f64()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -49,6 +55,7 @@ mod tests {
         assert!((unix_now() - sys).abs() < 0.05);
         let t = now();
         assert!(since(t) < Duration::from_secs(1));
+        assert!((unix_at(t) - sys).abs() < 0.05);
     }
 
     #[tokio::test(start_paused = true)]
@@ -58,5 +65,7 @@ mod tests {
         // An hour passed on the runtime's clock, not on the system's.
         assert!((since(t0).as_secs_f64() - 3600.0).abs() < 1e-3);
         assert!((unix_now() - u0 - 3600.0).abs() < 0.05);
+        // An instant an hour back is an hour back in unix time too.
+        assert!((unix_at(t0) - u0).abs() < 0.05);
     }
 }

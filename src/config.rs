@@ -266,6 +266,14 @@ pub struct SimSection {
     pub lockstep: bool,
 }
 
+impl SimSection {
+    /// Whether the simulator runs in lockstep: asked for, and the
+    /// simulator started.
+    pub fn lockstep_on(&self) -> bool {
+        self.enabled && self.lockstep
+    }
+}
+
 impl Default for SimSection {
     fn default() -> Self {
         Self {

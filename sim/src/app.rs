@@ -19,7 +19,7 @@
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 use image::GrayImage;
 use mavlink::dialects::common::MavMessage;
@@ -28,6 +28,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::autopilot::{Autopilot, AutopilotParams, CaptureRequest, Flavour};
 use crate::camera::SimCamera;
+use crate::clock::unix_now;
 use crate::dataset::{TruthWriter, renderer_for, world_params_for};
 use crate::disturbance::LatencyProcess;
 use crate::imaging::Imager;
@@ -282,22 +283,6 @@ pub struct RunSummary {
     pub rtp: Option<crate::rtp::RtpStatsSnapshot>,
     /// Lockstep's counters at the end (None: real time).
     pub lockstep: Option<LockstepStats>,
-}
-
-/// Unix seconds on the runtime's clock: the system's, moved by how far a
-/// paused runtime's clock (lockstep on simulated time) is from the system's
-/// monotonic clock, so the frames' capture times run on the same clock as
-/// a daemon on that runtime.
-fn unix_now() -> f64 {
-    let wall = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0.0, |d| d.as_secs_f64());
-    let (runtime, system) = (tokio::time::Instant::now().into_std(), Instant::now());
-    let ahead = match runtime.checked_duration_since(system) {
-        Some(d) => d.as_secs_f64(),
-        None => -system.saturating_duration_since(runtime).as_secs_f64(),
-    };
-    wall + ahead
 }
 
 fn write_capture(

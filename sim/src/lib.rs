@@ -19,6 +19,7 @@ pub mod vehicle;
 
 // World, camera, renderer, paths, datasets and video (simworld).
 pub mod camera;
+pub mod clock;
 pub mod dataset;
 pub mod disturbance;
 pub mod imaging;

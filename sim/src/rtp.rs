@@ -28,10 +28,11 @@ use std::net::{SocketAddr, UdpSocket};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use image::GrayImage;
 
+use crate::clock::unix_now;
 use crate::video::VideoError;
 
 /// The RTP clock rate of video, Hz (RFC 6184).
@@ -504,12 +505,6 @@ impl RtpStats {
 struct Job {
     image: Arc<GrayImage>,
     capture_unix_s: f64,
-}
-
-fn unix_now() -> f64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0.0, |d| d.as_secs_f64())
 }
 
 /// The stream's clock: RTP time = `rtp_base` + 90 kHz x (unix time -

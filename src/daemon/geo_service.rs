@@ -60,10 +60,6 @@ pub struct GeoService {
     prior_feed: Option<TelemetryFeed>,
 }
 
-fn received_unix(received: Instant) -> f64 {
-    unix_now() - crate::clock::since(received).as_secs_f64()
-}
-
 impl GeoService {
     /// An empty georeference.
     pub fn new(params: Params) -> Self {
@@ -155,7 +151,7 @@ impl GeoService {
         let mut st = self.lock();
         let Some((t, ned)) =
             st.live
-                .on_position(p.value.time_boot_ms, received_unix(p.received), &g)
+                .on_position(p.value.time_boot_ms, crate::clock::unix_at(p.received), &g)
         else {
             return;
         };
@@ -172,7 +168,7 @@ impl GeoService {
         let v = a.value;
         self.lock().live.on_attitude(
             v.time_boot_ms,
-            received_unix(a.received),
+            crate::clock::unix_at(a.received),
             (
                 f64::from(v.roll_rad),
                 f64::from(v.pitch_rad),
@@ -187,7 +183,7 @@ impl GeoService {
         let v = g.value;
         self.lock().live.on_gimbal(
             v.time_boot_ms,
-            received_unix(g.received),
+            crate::clock::unix_at(g.received),
             (f64::from(v.pitch_deg), f64::from(v.yaw_deg), v.yaw_absolute),
         );
     }

@@ -175,7 +175,9 @@ pub async fn run_on(
     let sim_cancel = CancellationToken::new();
     // Lockstep: the simulator holds its clock until the SLAM thread is done
     // with each frame.
-    let lockstep = (cfg.sim.enabled && cfg.sim.lockstep)
+    let lockstep = cfg
+        .sim
+        .lockstep_on()
         .then(|| Arc::new(crate::simulator::Lockstep::default()));
     let sim_task = if cfg.sim.enabled {
         let mut sc = crate::simulator::sim_config(&cfg, &data_dir)?;

@@ -88,7 +88,7 @@ pub fn make_processor(
     }
     // In lockstep the simulator waits for the frame's whole work: mapping
     // and loop closing run inline after tracking.
-    params.sequential = cfg.sim.enabled && cfg.sim.lockstep;
+    params.sequential = cfg.sim.lockstep_on();
     let priors = match (cfg.slam.priors, feed) {
         (true, Some(feed)) => Some(Priors::with_feed(feed, prior_params(cfg))),
         (true, None) => {

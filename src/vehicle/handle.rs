@@ -315,7 +315,7 @@ impl LinkHandle {
     /// command timeout each).
     pub async fn gimbal_manager_status(&self) -> Result<GimbalManagerStatus, LinkError> {
         let mut rx = self.telemetry.gimbal_manager.clone();
-        let now = tokio::time::Instant::now().into_std();
+        let now = crate::clock::now();
         if let Some(s) = *rx.borrow_and_update()
             && now.saturating_duration_since(s.received) < GIMBAL_STATUS_FRESH
         {

@@ -836,7 +836,7 @@ async fn serve(
         };
         match r {
             Ok(raw) => {
-                let now = tokio::time::Instant::now().into_std();
+                let now = crate::clock::now();
                 router.on_endpoint_frame(id, endpoint, raw, now).await;
             }
             Err(mavlink::error::MessageReadError::Parse(e)) => {

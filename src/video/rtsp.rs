@@ -202,7 +202,8 @@ async fn session(
                     *failures = 0;
                 }
                 let received = f.end_ctx().received();
-                let arrival = unix_now() - crate::clock::since(received).as_secs_f64();
+                // retina stamps packets with the system's clock.
+                let arrival = unix_now() - received.elapsed().as_secs_f64();
                 let lost = u32::from(f.loss());
                 if lost > 0 {
                     crate::video::live::Counters::add(

@@ -149,6 +149,21 @@ fn post_jpeg(addr: SocketAddr, path: &str, jpeg: &[u8]) -> (u16, Vec<u8>) {
     request(addr, "POST", path, "image/jpeg", jpeg)
 }
 
+/// The shot's recorded refinement, polled every `period` of simulated time
+/// until the loop has stopped or `limit` passed (then as it stands).
+fn refinement_until_stopped(run: &Running, sid: &str, limit: Duration, period: Duration) -> Value {
+    let addr = run.addr;
+    let path = format!("/api/v1/shots/{sid}");
+    let refinement = move || get_json(addr, &path)["mission"]["details"]["refinement"].clone();
+    let r = refinement.clone();
+    run.daemon
+        .poll(limit, period, move || {
+            let r = r();
+            (!r["stop"].is_null()).then_some(r)
+        })
+        .unwrap_or_else(refinement)
+}
+
 /// Uploads and starts the shot's mission, then waits for the daemon's
 /// loop to stop; returns the recorded refinement and the simulated seconds
 /// it took.
@@ -159,19 +174,12 @@ fn refine(run: &Running, sid: &str) -> (Value, f64) {
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/start"), None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let (t_start, wall) = (run.daemon.now(), Instant::now());
-    let path = format!("/api/v1/shots/{sid}");
-    let p = path.clone();
-    let refinement = run
-        .daemon
-        .poll(
-            Duration::from_secs(200),
-            Duration::from_millis(500),
-            move || {
-                let r = get_json(addr, &p)["mission"]["details"]["refinement"].clone();
-                (!r["stop"].is_null()).then_some(r)
-            },
-        )
-        .unwrap_or_else(|| get_json(addr, &path)["mission"]["details"]["refinement"].clone());
+    let refinement = refinement_until_stopped(
+        run,
+        sid,
+        Duration::from_secs(200),
+        Duration::from_millis(500),
+    );
     let loop_s = (run.daemon.now() - t_start).as_secs_f64();
     eprintln!(
         "shot {sid}: refinement after {loop_s:.1} s simulated ({:.1} s wall)",
@@ -532,7 +540,7 @@ fn started_mission_is_refined_by_the_daemon() {
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/start"), None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
-    let mut r =
+    let r =
         get_json(addr, &format!("/api/v1/shots/{sid}"))["mission"]["details"]["refinement"].clone();
     assert!(r["stop"].is_null(), "the loop is running: {r}");
     let (st, b) = http(
@@ -542,17 +550,12 @@ fn started_mission_is_refined_by_the_daemon() {
         None,
     );
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
-    let path = format!("/api/v1/shots/{sid}");
-    if let Some(stopped) = run.daemon.poll(
+    let r = refinement_until_stopped(
+        &run,
+        &sid,
         Duration::from_secs(10),
         Duration::from_millis(200),
-        move || {
-            let r = get_json(addr, &path)["mission"]["details"]["refinement"].clone();
-            (!r["stop"].is_null()).then_some(r)
-        },
-    ) {
-        r = stopped;
-    }
+    );
     eprintln!("interrupted: stop {} ({})", r["stop"], r["reason"]);
     assert_eq!(r["stop"], "aborted", "{r}");
     assert_eq!(r["reason"], "cancelled", "{r}");

@@ -10,8 +10,9 @@ use tokio::sync::oneshot;
 use tracing::{info, info_span, warn};
 
 use super::pending::{PendingCommand, Reply, cmd_number, command_long};
-use super::state::{Actor, clock_now};
+use super::state::Actor;
 use super::transfer::{DownPurpose, Next, Transfer};
+use crate::clock;
 use crate::mission::Flavour;
 use crate::mission::upload::{Downloader, Uploader};
 use crate::vehicle::command::{Command, HoldAck};
@@ -37,7 +38,7 @@ impl Actor {
         let Some(t) = self.transfer.take() else {
             return;
         };
-        let now = clock_now();
+        let now = clock::now();
         let peers = self.peers().map(|(p, _)| p);
         if let Next::Verify {
             items,
@@ -112,7 +113,7 @@ impl Actor {
     }
 
     pub(super) async fn on_command(&mut self, cmd: Command) {
-        let now = clock_now();
+        let now = clock::now();
         match cmd {
             Command::UploadMission { items, reply } => {
                 if self.transfer.is_some() {

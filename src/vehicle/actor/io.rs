@@ -12,7 +12,7 @@ use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info};
 
-use super::state::clock_now;
+use crate::clock;
 use crate::vehicle::router::Router;
 use crate::vehicle::transport::{self, Connection, LinkUrl};
 
@@ -95,7 +95,7 @@ impl IoTask {
                             Ok(raw) => {
                                 // Forwarded first (the other stations wait on
                                 // nothing of ours), then handled here.
-                                let Some((h, m)) = self.router.on_vehicle_frame(&raw, clock_now())
+                                let Some((h, m)) = self.router.on_vehicle_frame(&raw, clock::now())
                                 else {
                                     debug!(id = raw.message_id(), "undecodable frame");
                                     continue;

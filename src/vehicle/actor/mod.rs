@@ -7,8 +7,8 @@
 //! `telemetry` what the vehicle sends (telemetry, heartbeats, message rates);
 //! `commands` the operator's commands (mission transfers started and
 //! delivered, COMMAND_LONG and its ACK, the stop, gimbal control); `state`
-//! the actor's state, its clock and what every part uses (header, flush,
-//! peers); `transfer` a mission transfer in flight and its outcome;
+//! the actor's state and what every part uses (header, flush, peers; the
+//! clock is [`crate::clock`], tokio's, so tests run the timers paused); `transfer` a mission transfer in flight and its outcome;
 //! `pending` a command waiting for its ACK; `io` the connection task;
 //! `camera` the camera protocol's messages read into the handle's types.
 
@@ -35,7 +35,7 @@ use tracing::{debug, info, warn};
 
 use self::io::{IoEvent, IoTask};
 use self::pending::retry_late;
-use self::state::{Actor, clock_now};
+use self::state::Actor;
 use self::transfer::Transfer;
 use super::command::Command;
 use super::error::LinkError;
@@ -44,6 +44,7 @@ use super::params::Params;
 use super::router::{self, Router};
 use super::telemetry::{GimbalControl, Telemetry, VehicleState};
 use super::transport::LinkUrl;
+use crate::clock;
 use crate::mission::upload::{self};
 
 const CMD_QUEUE: usize = 32;
@@ -163,7 +164,7 @@ fn spawn_inner(
         cancel: io_cancel.clone(),
         router: router.clone(),
     };
-    let now = clock_now();
+    let now = clock::now();
     let actor = Actor {
         transfer_params: transfer,
         conn: None,
@@ -245,9 +246,9 @@ impl Actor {
             }
         }
         if let Some(mut t) = self.transfer.take() {
-            t.cancel(clock_now(), &mut self.out);
+            t.cancel(clock::now(), &mut self.out);
             self.flush().await;
-            t.deliver(clock_now(), false);
+            t.deliver(clock::now(), false);
         }
         info!("link actor stopped");
     }
@@ -274,7 +275,7 @@ impl Actor {
     /// ended, the frames another station sent meanwhile go to the vehicle;
     /// when another station's has ended, the transfers that waited start.
     async fn sync_gate(&mut self) {
-        let now = clock_now();
+        let now = clock::now();
         self.router.expire(now);
         if self.transfer.is_none() && self.router.own_busy() {
             self.router.end_own(now).await;
@@ -301,7 +302,7 @@ impl Actor {
                     v.connections += 1;
                 });
                 info!(url = %self.params.url, "link connected");
-                self.next_heartbeat = clock_now();
+                self.next_heartbeat = clock::now();
             }
             IoEvent::Lost(reason) => {
                 self.conn = None;
@@ -322,7 +323,7 @@ impl Actor {
     }
 
     async fn on_wake(&mut self) {
-        let now = clock_now();
+        let now = clock::now();
         if now >= self.next_heartbeat {
             self.out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
                 custom_mode: 0,

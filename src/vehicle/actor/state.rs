@@ -22,13 +22,6 @@ use crate::vehicle::telemetry::{
 };
 use crate::vehicle::transport::Connection;
 
-/// The actor's clock: tokio's, so that tests drive the protocol timers in
-/// paused time (it is the system's monotonic clock otherwise). The
-/// protocol machines and the telemetry stamps take it as a std `Instant`.
-pub(super) fn clock_now() -> Instant {
-    tokio::time::Instant::now().into_std()
-}
-
 pub(super) struct Actor {
     pub(super) params: Params,
     pub(super) transfer_params: upload::Params,

@@ -14,7 +14,8 @@ use super::camera::{
     CAMERA_ASK_EVERY, CAMERA_INFORMATION_ID, camera_info, image_captured, video_stream_info,
 };
 use super::pending::command_long;
-use super::state::{Actor, clock_now};
+use super::state::Actor;
+use crate::clock;
 use crate::mission::Flavour;
 use crate::vehicle::modes::{ardupilot_mode_name, px4_mode_name};
 use crate::vehicle::telemetry::{
@@ -39,7 +40,7 @@ mod msg_id {
 
 impl Actor {
     pub(super) async fn on_frame(&mut self, h: MavHeader, m: MavMessage) {
-        let now = clock_now();
+        let now = clock::now();
         if let MavMessage::HEARTBEAT(hb) = &m {
             self.on_heartbeat(&h, hb, now).await;
             return;
