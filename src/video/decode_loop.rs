@@ -13,7 +13,8 @@ use image::GrayImage;
 
 use crate::video::damage::{DamageParams, DamageTracker, Losses, RowDamage};
 use crate::video::h264::{
-    AccessUnit, AuKind, AuQueue, H264Error, LumaDecoder, NAL_AUD, annexb_units, push_annexb,
+    AccessUnit, AuKind, AuQueue, H264Error, LumaDecoder, NAL_AUD, NAL_PPS, NAL_SPS, annexb_units,
+    nal_type, push_annexb,
 };
 use crate::video::live::{Counters, Frame, Ingest};
 use crate::video::motion::{MotionParams, Reduced, VerticalMotion, vertical_motion};
@@ -56,6 +57,16 @@ pub struct DecodeLoop {
     damage: DamageTracker,
     params: DecodeParams,
     waiting_for_sync: bool,
+    /// Without concealment: the decoder may hold a damaged picture or a
+    /// failed state (OpenH264 then refuses every later IDR picture, "no
+    /// parameter sets"), so decoding resumes at the next sync point with a
+    /// fresh decoder.
+    stale_decoder: bool,
+    /// The stream's latest parameter sets (SPS and PPS NAL units, by type
+    /// and id), given to a fresh decoder at a sync point that lacks them
+    /// (a stream whose parameter sets came once, from the SDP or the
+    /// first IDR picture).
+    param_sets: Vec<(u8, u32, Vec<u8>)>,
     size: Option<(u32, u32)>,
     seq: u64,
     /// The decoder's tag of the next access unit.
@@ -122,6 +133,8 @@ impl DecodeLoop {
             damage: DamageTracker::new(params.damage.clone()),
             params,
             waiting_for_sync: true,
+            stale_decoder: false,
+            param_sets: Vec::new(),
             size: None,
             seq: 0,
             tag: 0,
@@ -135,6 +148,8 @@ impl DecodeLoop {
     /// the next resolution as the stream's.
     pub fn reset(&mut self) {
         self.waiting_for_sync = true;
+        self.stale_decoder = !self.params.conceal;
+        self.param_sets.clear();
         self.size = None;
         self.damage.reset();
         self.pending.clear();
@@ -194,6 +209,36 @@ impl DecodeLoop {
         self.last = Some((tag, cur));
     }
 
+    /// Keep the parameter sets of an intact unit (the newest of each type
+    /// and id).
+    fn learn_param_sets(&mut self, annexb: &[u8]) {
+        for nal in annexb_units(annexb) {
+            let t = nal_type(nal);
+            let id = match t {
+                NAL_SPS => crate::video::damage::parse_sps(nal).map(|s| s.id),
+                NAL_PPS => crate::video::damage::parse_pps(nal).map(|p| p.0),
+                _ => continue,
+            };
+            let Some(id) = id else { continue };
+            self.param_sets
+                .retain(|(pt, pid, _)| !(*pt == t && *pid == id));
+            self.param_sets.push((t, id, nal.to_vec()));
+        }
+    }
+
+    /// The unit with the known parameter sets it lacks put first (for a
+    /// fresh decoder).
+    fn with_param_sets(&self, annexb: &[u8], kind: AuKind) -> Vec<u8> {
+        let mut out = Vec::with_capacity(annexb.len() + 64);
+        for (t, _, nal) in &self.param_sets {
+            if (*t == NAL_SPS && !kind.sps) || (*t == NAL_PPS && !kind.pps) {
+                push_annexb(&mut out, nal);
+            }
+        }
+        out.extend_from_slice(annexb);
+        out
+    }
+
     /// Process one access unit; `gap` tells that units were dropped before it.
     pub fn step(&mut self, au: &AccessUnit, gap: bool) -> Decoded {
         let kind = AuKind::of(&au.data);
@@ -201,9 +246,31 @@ impl DecodeLoop {
         // behind, and the pictures dropped were references.
         if gap || (au.lost > 0 && !self.params.conceal) {
             self.waiting_for_sync = true;
+            self.stale_decoder = !self.params.conceal;
         }
+        if !self.params.conceal {
+            if au.lost > 0 {
+                // Without concealment a damaged unit is never decoded, not
+                // even an IDR picture: the decoder would hold it unfinished
+                // or fail on it.
+                return if kind.slice {
+                    Decoded::Skipped
+                } else {
+                    Decoded::NoPicture
+                };
+            }
+            self.learn_param_sets(&au.data);
+        }
+        let mut fresh: Option<Vec<u8>> = None;
         if self.waiting_for_sync {
-            if !kind.is_sync_point() {
+            if kind.is_sync_point() && self.stale_decoder {
+                match LumaDecoder::new() {
+                    Ok(d) => self.decoder = d,
+                    Err(e) => return Decoded::Broken(e),
+                }
+                self.stale_decoder = false;
+                fresh = Some(self.with_param_sets(&au.data, kind));
+            } else if !kind.is_sync_point() {
                 return if kind.slice {
                     Decoded::Skipped
                 } else {
@@ -249,7 +316,9 @@ impl DecodeLoop {
         // access unit starts, which then overwrites its output: an access
         // unit delimiter after a damaged unit ends the picture now, and its
         // concealed picture comes out with its own unit.
-        let data: std::borrow::Cow<'_, [u8]> = if self.params.conceal && au.lost > 0 {
+        let data: std::borrow::Cow<'_, [u8]> = if let Some(d) = fresh {
+            d.into()
+        } else if self.params.conceal && au.lost > 0 {
             let mut d = au.data.clone();
             push_annexb(&mut d, &[NAL_AUD, 0xf0]);
             d.into()
@@ -264,6 +333,7 @@ impl DecodeLoop {
                     self.damage.picture_lost();
                 } else {
                     self.waiting_for_sync = true;
+                    self.stale_decoder = true;
                 }
                 return Decoded::Broken(e);
             }

@@ -245,6 +245,80 @@ fn without_concealment_a_loss_skips_to_the_next_idr_and_never_smears() {
     assert!(r.decoded >= 45, "{r:?}");
 }
 
+/// Concealment off on a stream cut into slices (what the simulator's
+/// encoder and most cameras send): after a loss the loop skips to the next
+/// IDR picture and decodes from there on, also when the lost packet was
+/// an IDR picture's own. OpenH264 with concealment off drops its
+/// parameter sets when a damaged picture fails, so the loop must give
+/// them again with the next IDR.
+#[test]
+fn without_concealment_a_sliced_stream_resumes_at_each_idr() {
+    let s = sliced_stream(90, 15, Some(1200));
+    // Where each picture's packets start.
+    let mut first_packet = Vec::new();
+    let mut seq = 0u16;
+    let mut n = 0;
+    for a in &s.aus {
+        first_packet.push(n);
+        n += packetize_h264(a, 1400, 96, 7, &mut seq, 0).len();
+    }
+    // The last packet of IDR picture 15, a packet of picture 47 (in the
+    // fourth group of pictures) and the first of IDR picture 75.
+    let drops = [first_packet[16] - 1, first_packet[47], first_packet[75]];
+    let params = DecodeParams {
+        conceal: false,
+        ..Default::default()
+    };
+    let r = lossy_run_with(
+        &s,
+        params,
+        |k| drops.contains(&k),
+        |_, f, _| assert!(f.damage.is_none(), "skipping mode marks nothing"),
+    );
+    eprintln!("sliced, skipping, packets {drops:?} lost: {r:?}");
+    assert_eq!(r.lost, 3, "{r:?}");
+    // Pictures 0-14, 30-46 and 60-74 decode; 15-29 (from the damaged
+    // IDR), 47-59 and 75-89 are skipped.
+    assert_eq!(r.decoded, 15 + 17 + 15, "{r:?}");
+}
+
+/// A stream whose parameter sets come once, with its first picture (as
+/// from a camera that sends them only in the SDP): after a loss the fresh
+/// decoder at the next IDR picture is given the ones seen before.
+#[test]
+fn without_concealment_parameter_sets_sent_once_are_given_again() {
+    let mut s = sliced_stream(60, 15, Some(1200));
+    for a in s.aus.iter_mut().skip(1) {
+        let mut kept = Vec::new();
+        for nal in annexb_units(a) {
+            if !matches!(nal[0] & 0x1f, 7 | 8) {
+                shotpilot::video::h264::push_annexb(&mut kept, nal);
+            }
+        }
+        *a = kept;
+    }
+    assert!(s.aus[15..].iter().all(|a| {
+        let k = AuKind::of(a);
+        !k.sps && !k.pps
+    }));
+    let mut first_packet = Vec::new();
+    let (mut seq, mut n) = (0u16, 0);
+    for a in &s.aus {
+        first_packet.push(n);
+        n += packetize_h264(a, 1400, 96, 7, &mut seq, 0).len();
+    }
+    let drop = first_packet[20];
+    let params = DecodeParams {
+        conceal: false,
+        ..Default::default()
+    };
+    let r = lossy_run_with(&s, params, |k| k == drop, |_, _, _| {});
+    eprintln!("parameter sets once, packet {drop} lost: {r:?}");
+    assert_eq!(r.lost, 1, "{r:?}");
+    // 0-19 and 30-59 decode; 20-29 are skipped.
+    assert_eq!(r.decoded, 20 + 30, "{r:?}");
+}
+
 /// Concealment on, a stream cut into slices of one packet each: every
 /// frame reaches SLAM, and its unmasked rows are the clean decode's.
 fn concealed_run(loss: f64, seed: u64, slice_bytes: Option<u32>) -> LossyRun {
