@@ -9,9 +9,12 @@
 //! map draws the vehicle within 1 m of the simulator's truth, a keyframe
 //! clicked on the map opens in the editor, and Stop during the scripted
 //! flight is acknowledged and the vehicle holds (the truth). The whole
-//! shot's first flight lands off its target (the simulated GNSS altitude
-//! drifts, seeded), so its timeline shows a correction flown and a smaller
-//! error after it, and the localisation's sigma. The keyframe gallery is
+//! shot's first flight lands off its target by what the simulated GNSS
+//! altitude drifted since the georeference (seeded); its timeline shows
+//! the rounds, the localisation's sigma and, when the first look was not
+//! already within the at_floor margin of its floor, a correction flown and
+//! a smaller error after it. The daemon runs on simulated time (the
+//! simulator in lockstep with the SLAM), the page in Chromium's real time. The keyframe gallery is
 //! bounded (3 newest and those shots use, here); the loops-closed badge,
 //! the map's loops and its list of map events follow the status. The
 //! tracked-features toggle (by keyboard) draws a tracked frame's keypoints
@@ -245,40 +248,54 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
     );
     let shown: Vec<&Value> = tl.iter().filter(|l| l["kind"] == "round").collect();
     assert_eq!(shown.len(), rounds.len(), "{kinds:?} vs {rf}");
-    // The first flight lands off (the vertical GPS bias drifted since the
-    // georeference was fitted): a correction is uploaded and flown, and
-    // the shot error it measures there is smaller.
-    assert!(rounds.len() >= 2, "no correction was flown: {rf}");
-    assert_eq!(rounds[0]["decision"], "correct", "{rf}");
-    assert!(rounds[0]["correction"].is_object(), "{rf}");
     let pct = |r: &Value| r["shot_error_pct"].as_f64();
     eprintln!(
         "refinement of {a}: shot error per round {:?} %, stop {}",
         rounds.iter().map(pct).collect::<Vec<_>>(),
         rf["stop"]
     );
-    // The GPS bias keeps drifting while the corrections are flown, so one
-    // round may measure worse than the one before; the corrections must
-    // still reach a framing better than the first flight's.
     let first = pct(&rounds[0]).unwrap_or_else(|| panic!("round 0 without a shot error: {rf}"));
-    let best = rounds[1..]
-        .iter()
-        .map(|r| pct(r).unwrap_or_else(|| panic!("a round without a shot error: {rf}")))
-        .fold(f64::INFINITY, f64::min);
-    assert!(
-        best < first,
-        "no correction improved on the first flight's {first} %: {rf}"
-    );
+    let margin = shotpilot::refine::ControllerParams::default().at_floor_margin_pct;
     // The loop ends where the measurement says it can do no better
-    // (under the threshold, or near the shot's floor without gaining),
-    // and on a view no worse than its first flight's: near the floor it
-    // stops on its best round, flying back to it if the last measured
-    // worse.
+    // (under the threshold, or near the shot's floor without gaining).
     let stop = rf["stop"].as_str().unwrap_or("");
     assert!(
         stop == "converged" || stop == "at_floor",
         "the loop ended {stop}, not converged or at_floor: {rf}"
     );
+    // The vertical GPS bias drifts between the georeference's fit and the
+    // first arrival, by how much depends on when (in simulated time) the
+    // page started the shot: measured 3.12-3.50 % first looks against
+    // floors of 2.63-3.07 %. A first flight that already lands within the
+    // at_floor margin of its floor (or under the threshold) must stop
+    // there, flying nothing: a correction then would chase the drift.
+    if rounds.len() == 1 {
+        let floor = rounds[0]["floor_pct"].as_f64().unwrap_or(f64::NAN);
+        assert!(
+            (stop == "converged" && first <= 1.0)
+                || (stop == "at_floor" && first <= floor + margin + 1e-9),
+            "the loop stopped after its first flight ({first} %, floor {floor} %) as {stop}: {rf}"
+        );
+    } else {
+        // The first flight landed off: a correction is uploaded and flown,
+        // and the shot error it measures there is smaller. The GPS bias
+        // keeps drifting while the corrections are flown, so one round may
+        // measure worse than the one before; the corrections must still
+        // reach a framing better than the first flight's.
+        assert_eq!(rounds[0]["decision"], "correct", "{rf}");
+        assert!(rounds[0]["correction"].is_object(), "{rf}");
+        let best = rounds[1..]
+            .iter()
+            .map(|r| pct(r).unwrap_or_else(|| panic!("a round without a shot error: {rf}")))
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            best < first,
+            "no correction improved on the first flight's {first} %: {rf}"
+        );
+    }
+    // The loop ends on a view no worse than its first flight's: near the
+    // floor it stops on its best round, flying back to it if the last
+    // measured worse.
     let last = rounds
         .last()
         .and_then(pct)
@@ -289,7 +306,6 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
     // there (seen: 3.35 then 3.51 %); what must not happen is a loop that
     // flies on and ends clearly worse (seen before the near-floor stop:
     // 3.66 then 4.17 %).
-    let margin = shotpilot::refine::ControllerParams::default().at_floor_margin_pct;
     assert!(
         last <= first + margin,
         "the loop ended at {last} %, worse than its first flight's {first} % by more than {margin} %: {rf}"
@@ -450,7 +466,7 @@ fn operator_page_in_headless_chromium() {
     // vehicle truly flies higher or lower than it reports, so the whole
     // shot's first flight lands off its target by what the bias moved
     // since the georeference was fitted, and the refinement loop corrects
-    // it. Vertical only: the map's vehicle marker (horizontal) is checked
+    // it when that is more than the shot's floor allows. Vertical only: the map's vehicle marker (horizontal) is checked
     // against the truth within 1 m. Walk GPS_SEED ... (see GPS_*).
     cfg.sim.gps_sigma_z_m = GPS_SIGMA_Z_M;
     cfg.sim.gps_tau_s = GPS_TAU_S;
@@ -460,22 +476,34 @@ fn operator_page_in_headless_chromium() {
 
     let log = shot_png.with_file_name("daemon.log");
     eprintln!("the daemon's log: {}", log.display());
-    let daemon = daemon_support::start_logged(cfg, sockets, dir.path(), &log);
+    // On simulated time (the simulator in lockstep with the SLAM): no
+    // frame is dropped and no timer fires early because the machine is
+    // busy. The page itself runs in Chromium's real time: its waits are
+    // for states the daemon reaches, with generous limits.
+    let daemon = daemon_support::start_on_sim_time_logged(cfg, sockets, dir.path(), &log);
     let addr = daemon.addr;
-    let t0 = Instant::now();
+    let (t0, sim0) = (Instant::now(), daemon.now());
 
     // SLAM tracks and has keyframes before the page is opened.
-    let mut status = Value::Null;
-    while t0.elapsed() < Duration::from_secs(90) {
-        status = get_json(addr, "/api/v1/status");
-        let s = &status["slam"];
-        if s["state"] == "tracking" && s["keyframes"].as_u64().unwrap_or(0) >= 5 {
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(500));
-    }
-    assert_eq!(status["slam"]["state"], "tracking", "{status}");
-    eprintln!("SLAM ready after {:.1} s", t0.elapsed().as_secs_f64());
+    let ready = daemon.poll(
+        Duration::from_secs(90),
+        Duration::from_millis(500),
+        move || {
+            let status = get_json(addr, "/api/v1/status");
+            let s = &status["slam"];
+            (s["state"] == "tracking" && s["keyframes"].as_u64().unwrap_or(0) >= 5).then_some(())
+        },
+    );
+    assert!(
+        ready.is_some(),
+        "not tracking with 5 keyframes after 90 s simulated: {}",
+        get_json(addr, "/api/v1/status")
+    );
+    eprintln!(
+        "SLAM ready after {:.1} s simulated ({:.1} s wall)",
+        (daemon.now() - sim0).as_secs_f64(),
+        t0.elapsed().as_secs_f64()
+    );
 
     let t_page = Instant::now();
     let out = Command::new(&node)

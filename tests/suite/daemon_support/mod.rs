@@ -77,8 +77,13 @@ pub fn start_logged(
     base: &Path,
     log: &Path,
 ) -> Running {
+    start_on(cfg, sockets, base, Some(log_to(log)))
+}
+
+/// The daemon's log (`info`, the georeference's `debug`) written to `log`.
+fn log_to(log: &Path) -> tracing::Dispatch {
     let file = std::fs::File::create(log).unwrap_or_else(|e| panic!("{}: {e}", log.display()));
-    let dispatch = tracing::Dispatch::new(
+    tracing::Dispatch::new(
         tracing_subscriber::fmt()
             .with_ansi(false)
             .with_writer(std::sync::Mutex::new(file))
@@ -86,8 +91,7 @@ pub fn start_logged(
                 "info,shotpilot::geo=debug",
             ))
             .finish(),
-    );
-    start_on(cfg, sockets, base, Some(dispatch))
+    )
 }
 
 fn start_on(
@@ -171,9 +175,29 @@ pub struct OnSimTime {
 /// switched on here) on `sockets`, its data under `base`, on simulated
 /// time; returns once the API listens.
 pub fn start_on_sim_time(
+    cfg: shotpilot::config::Config,
+    sockets: shotpilot::daemon::Sockets,
+    base: &Path,
+) -> OnSimTime {
+    sim_time_on(cfg, sockets, base, None)
+}
+
+/// [`start_on_sim_time`], with the daemon's log written to `log` (as
+/// [`start_logged`]).
+pub fn start_on_sim_time_logged(
+    cfg: shotpilot::config::Config,
+    sockets: shotpilot::daemon::Sockets,
+    base: &Path,
+    log: &Path,
+) -> OnSimTime {
+    sim_time_on(cfg, sockets, base, Some(log_to(log)))
+}
+
+fn sim_time_on(
     mut cfg: shotpilot::config::Config,
     sockets: shotpilot::daemon::Sockets,
     base: &Path,
+    log: Option<tracing::Dispatch>,
 ) -> OnSimTime {
     cfg.sim.lockstep = true;
     let cancel = CancellationToken::new();
@@ -183,7 +207,17 @@ pub fn start_on_sim_time(
     let driver = std::thread::Builder::new()
         .name("sim-time".into())
         .spawn(move || {
-            let rt = tokio::runtime::Builder::new_current_thread()
+            let mut builder = tokio::runtime::Builder::new_current_thread();
+            // The driver thread and the runtime's blocking threads log to
+            // it for their whole lives.
+            let _logging = log.map(|d| {
+                let guard = tracing::dispatcher::set_default(&d);
+                builder.on_thread_start(move || {
+                    std::mem::forget(tracing::dispatcher::set_default(&d))
+                });
+                guard
+            });
+            let rt = builder
                 .enable_all()
                 .start_paused(true)
                 .build()
