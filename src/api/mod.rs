@@ -702,6 +702,7 @@ async fn create_shot_from_photo(
             },
         })?;
         let grey = photo.image;
+        let gps = photo.exif.as_ref().and_then(|e| e.gps);
         let (w, h) = grey.dimensions();
         let intrinsics = intrinsics.or_else(|| {
             let c = crate::shot::photo::exif_camera(photo.exif.as_ref()?, w, h)?;
@@ -717,7 +718,7 @@ async fn create_shot_from_photo(
             })
         });
         computer
-            .shot_from_photo(&grey, intrinsics.as_ref())
+            .shot_from_photo(&grey, intrinsics.as_ref(), gps.as_ref())
             .map(|c| (c, w, h, intrinsics))
     })
     .await??;

@@ -33,6 +33,10 @@ use crate::geo::live::{LiveGeoreference, MapKeyframe, TrackedPose};
 use crate::geo::saved::SavedGeoreference;
 use crate::geo::{GeoAlignment, GeoError, GeoTarget, Geodetic, Params};
 use crate::slam::MapMode;
+
+/// A photo's GPS tag without its horizontal error: a phone's fix
+/// outdoors, metres (1 sigma).
+pub const PHOTO_TAG_SIGMA_M: f64 = 10.0;
 use crate::slam::priors::{TelemetryFeed, TelemetrySample};
 use crate::vehicle::{
     Attitude, GimbalAttitude, GlobalPosition, GpsRaw, HomePosition, Stamped, Telemetry,
@@ -238,6 +242,42 @@ impl GeoService {
         map_from_cam: &Isometry3<f64>,
     ) -> Result<(GeoTarget, GeoAlignment), GeoError> {
         self.lock().live.target(map_from_cam)
+    }
+
+    /// A photo's GPS tag as a horizontal position prior in the map's frame
+    /// (a tag's altitude is not trusted: phones write ellipsoid, geoid or
+    /// barometric heights), its sigma the tag's horizontal error (10 m
+    /// when it gives none) and the georeference's residual in quadrature.
+    pub fn photo_prior(
+        &self,
+        tag: &crate::shot::photo::GpsTag,
+    ) -> Result<crate::shot::PositionPrior, GeoError> {
+        let mut live = self.lock();
+        let home = live.live.home().ok_or(GeoError::NoHome)?;
+        let g = Geodetic {
+            lat_deg: tag.lat_deg,
+            lon_deg: tag.lon_deg,
+            alt_m: home.alt_m,
+        };
+        let (centre, alignment) = live.live.map_point_of(&g)?;
+        let s = alignment.ned_from_map.scale;
+        if !(s.is_finite() && s > 0.0) {
+            return Err(GeoError::NonFinite {
+                what: "georeference scale",
+            });
+        }
+        let sigma_m = tag
+            .h_error_m
+            .unwrap_or(PHOTO_TAG_SIGMA_M)
+            .hypot(alignment.quality.rms_m);
+        // NED's down in the map: p_ned = s R p_map + t.
+        let down = alignment.ned_from_map.rotation.inverse() * nalgebra::Vector3::z();
+        Ok(crate::shot::PositionPrior {
+            centre,
+            sigma: sigma_m / s,
+            down: Some(nalgebra::Unit::new_normalize(down)),
+            metres_per_unit: Some(s),
+        })
     }
 
     /// Home, once known.

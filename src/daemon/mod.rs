@@ -371,6 +371,7 @@ pub async fn run_on(
             },
             slam: shared.clone(),
             params: cfg.shot.localize_params(),
+            geo: Some(geo.clone()),
         }),
         store: store.clone(),
         params: Arc::new(ApiParams {

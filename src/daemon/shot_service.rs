@@ -57,6 +57,9 @@ pub struct LocalizingShots {
     pub slam: Arc<SlamShared>,
     /// Localisation tunables (the reliability gate among them).
     pub params: LocalizeParams,
+    /// The georeference, through which a photo's GPS tag becomes a
+    /// position prior (None: tags are not used).
+    pub geo: Option<Arc<super::geo_service::GeoService>>,
 }
 
 /// A localisation as the shot record keeps it, logged.
@@ -105,21 +108,15 @@ impl LocalizingShots {
         camera: &Camera,
         shot: &GrayImage,
         mask: Option<&GrayImage>,
-        uncertainty: IntrinsicsUncertainty,
-        focal_unknown: bool,
+        params: &LocalizeParams,
     ) -> (Result<Localisation, NotLocalised>, Vec<NearKeyframeJson>) {
-        let params = LocalizeParams {
-            camera_uncertainty: uncertainty,
-            focal_unknown,
-            ..self.params.clone()
-        };
-        let result = outcome(localize_with_camera(map, camera, shot, mask, None, &params));
+        let result = outcome(localize_with_camera(map, camera, shot, mask, None, params));
         // Not localised: the keyframes it looks most like ("fly towards
         // here"), by BoW score.
         let nearest = match (&result, vocabulary()) {
             (Err(NotLocalised::Rejected(_)), Some(v)) => {
                 let index = BowIndex::build(map, v);
-                nearest_keyframes(map, camera, shot, mask, &index, &params, NEAREST_KEYFRAMES)
+                nearest_keyframes(map, camera, shot, mask, &index, params, NEAREST_KEYFRAMES)
                     .unwrap_or_default()
                     .into_iter()
                     .map(|n| NearKeyframeJson {
@@ -179,6 +176,7 @@ impl ShotComputer for LocalizingShots {
         &self,
         photo: &GrayImage,
         intrinsics: Option<&PhotoIntrinsics>,
+        gps: Option<&crate::shot::photo::GpsTag>,
     ) -> Result<ShotComputation, ShotRequestError> {
         let given = self.warp.check_photo(photo, intrinsics)?;
         let Some(map) = self.slam.map_snapshot() else {
@@ -210,8 +208,33 @@ impl ShotComputer for LocalizingShots {
                 k2: i.k2_sigma,
             })
             .unwrap_or_default();
-        let (localisation, nearest_keyframes) =
-            self.localise(&map, &camera, photo, None, uncertainty, focal_unknown);
+        // The photo's GPS tag through the georeference: a place the map
+        // finds far from it is a look-alike (or the tag is wrong).
+        let prior = match (gps, &self.geo) {
+            (Some(tag), Some(geo)) => match geo.photo_prior(tag) {
+                Ok(p) => {
+                    tracing::info!(
+                        lat = tag.lat_deg,
+                        lon = tag.lon_deg,
+                        h_error_m = tag.h_error_m,
+                        "photo shot: its GPS tag is checked against the place found"
+                    );
+                    Some(p)
+                }
+                Err(e) => {
+                    tracing::info!("photo shot: its GPS tag is not used: {e}");
+                    None
+                }
+            },
+            _ => None,
+        };
+        let params = LocalizeParams {
+            camera_uncertainty: uncertainty,
+            focal_unknown,
+            position_prior: prior,
+            ..self.params.clone()
+        };
+        let (localisation, nearest_keyframes) = self.localise(&map, &camera, photo, None, &params);
         Ok(ShotComputation {
             desired: Some(photo.clone()),
             localisation,

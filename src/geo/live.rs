@@ -721,6 +721,27 @@ impl LiveGeoreference {
         Ok((target, alignment))
     }
 
+    /// A geodetic position (a photo's GPS tag) in the map's frame: the
+    /// point, taken at home's altitude when `alt_m` is not trusted, and
+    /// the alignment it went through (its scale turns metres into map
+    /// units; its rotation gives the map's down).
+    pub fn map_point_of(
+        &mut self,
+        g: &super::Geodetic,
+    ) -> Result<(nalgebra::Point3<f64>, GeoAlignment), GeoError> {
+        let frame = *self.geo.frame().ok_or(GeoError::NoHome)?;
+        let alignment = if self.map_aided {
+            GeoAlignment::of_map_in_ned(self.geo.georeference().pairs())
+        } else {
+            self.geo.fit()?
+        };
+        let ned = nalgebra::Point3::from(frame.geodetic_to_ned(g));
+        Ok((
+            alignment.ned_from_map.inverse().transform_point(&ned),
+            alignment,
+        ))
+    }
+
     /// The state as the API reports it: `ok` with the fit's scale,
     /// residual and keyframes used, `refused` with the reason (too little
     /// motion, too few pairs, ...), or `waiting` before any fit; the

@@ -23,7 +23,7 @@ pub use anchors::{
 };
 pub use localize::{
     AnchorPoseParams, BowIndex, GateParams, Localization, LocalizeParams, MapSigma, NearKeyframe,
-    NotLocalizedReason, PoseSigma, ShotPose, UnknownFocal, assumed_camera, localize,
+    NotLocalizedReason, PoseSigma, PositionPrior, ShotPose, UnknownFocal, assumed_camera, localize,
     localize_anchors, localize_with_camera, nearest_keyframes,
 };
 pub use photo::{

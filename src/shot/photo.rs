@@ -44,6 +44,23 @@ pub struct PhotoExif {
     pub pixel_size: Option<(u32, u32)>,
     /// Orientation (1..=8), 1 when absent.
     pub orientation: u8,
+    /// Where the photo was taken, by its GPS tag (when it has a valid one).
+    pub gps: Option<GpsTag>,
+}
+
+/// A photo's GPS tag: GPSLatitude/GPSLongitude (with their N/S and E/W
+/// references), GPSAltitude (with its above/below sea level reference)
+/// and GPSHPositioningError, the receiver's horizontal error.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GpsTag {
+    /// Latitude, degrees (south negative).
+    pub lat_deg: f64,
+    /// Longitude, degrees (west negative).
+    pub lon_deg: f64,
+    /// Altitude above sea level, metres, when tagged.
+    pub alt_m: Option<f64>,
+    /// Horizontal positioning error, metres, when tagged.
+    pub h_error_m: Option<f64>,
 }
 
 /// A decoded photo.
@@ -191,13 +208,127 @@ pub fn read_exif(bytes: &[u8]) -> Result<Option<PhotoExif>, ExifError> {
         (Some(w), Some(h)) if w > 0 && h > 0 => Some((w, h)),
         _ => None,
     };
+    // Degrees, minutes, seconds, and the hemisphere's letter.
+    let dms = |t: exif::Tag| -> Option<f64> {
+        match &field(t)?.value {
+            exif::Value::Rational(v) if v.len() >= 3 => {
+                Some(v[0].to_f64() + v[1].to_f64() / 60.0 + v[2].to_f64() / 3600.0)
+            }
+            _ => None,
+        }
+    };
+    let letter = |t: exif::Tag| -> Option<u8> {
+        match &field(t)?.value {
+            exif::Value::Ascii(v) => v.first()?.first().copied(),
+            _ => None,
+        }
+    };
+    let gps = match (dms(exif::Tag::GPSLatitude), dms(exif::Tag::GPSLongitude)) {
+        (Some(lat), Some(lon)) => {
+            let lat = if letter(exif::Tag::GPSLatitudeRef) == Some(b'S') {
+                -lat
+            } else {
+                lat
+            };
+            let lon = if letter(exif::Tag::GPSLongitudeRef) == Some(b'W') {
+                -lon
+            } else {
+                lon
+            };
+            let alt = rational(exif::Tag::GPSAltitude)
+                .filter(|a| a.is_finite())
+                .map(|a| {
+                    if uint(exif::Tag::GPSAltitudeRef) == Some(1) {
+                        -a
+                    } else {
+                        a
+                    }
+                });
+            // A tag at 0, 0 is a receiver without a fix more often than
+            // a photo in the Gulf of Guinea.
+            (lat.abs() <= 90.0 && lon.abs() <= 180.0 && (lat, lon) != (0.0, 0.0)).then_some(
+                GpsTag {
+                    lat_deg: lat,
+                    lon_deg: lon,
+                    alt_m: alt,
+                    h_error_m: positive(rational(exif::Tag::GPSHPositioningError)),
+                },
+            )
+        }
+        _ => None,
+    };
     Ok(Some(PhotoExif {
         focal_length_mm: positive(rational(exif::Tag::FocalLength)),
         focal_length_35mm: positive(rational(exif::Tag::FocalLengthIn35mmFilm)),
         focal_plane_px_per_mm,
         pixel_size,
         orientation,
+        gps,
     }))
+}
+
+/// A TIFF block (for a JPEG's APP1 `Exif` segment) holding a GPS tag
+/// alone: what the tests and tools write into a photo.
+///
+/// Errors: [`ExifError::Write`] when the writer refuses the fields.
+pub fn exif_tiff_gps(gps: &GpsTag) -> Result<Vec<u8>, ExifError> {
+    use exif::{Field, In, Rational, Tag, Value};
+    // Degrees, minutes, and seconds to a thousandth (3 cm).
+    let dms = |v: f64| {
+        let v = v.abs();
+        let d = v.floor();
+        let m = ((v - d) * 60.0).floor();
+        let sec = (v - d - m / 60.0) * 3600.0;
+        Value::Rational(vec![
+            Rational::from((d as u32, 1)),
+            Rational::from((m as u32, 1)),
+            Rational::from(((sec * 1000.0).round() as u32, 1000)),
+        ])
+    };
+    let ascii = |c: &str| Value::Ascii(vec![c.as_bytes().to_vec()]);
+    let field = |tag, value| Field {
+        tag,
+        ifd_num: In::PRIMARY,
+        value,
+    };
+    let mut fields = vec![
+        field(
+            Tag::GPSLatitudeRef,
+            ascii(if gps.lat_deg < 0.0 { "S" } else { "N" }),
+        ),
+        field(Tag::GPSLatitude, dms(gps.lat_deg)),
+        field(
+            Tag::GPSLongitudeRef,
+            ascii(if gps.lon_deg < 0.0 { "W" } else { "E" }),
+        ),
+        field(Tag::GPSLongitude, dms(gps.lon_deg)),
+    ];
+    if let Some(a) = gps.alt_m {
+        fields.push(field(
+            Tag::GPSAltitudeRef,
+            Value::Byte(vec![u8::from(a < 0.0)]),
+        ));
+        fields.push(field(
+            Tag::GPSAltitude,
+            Value::Rational(vec![Rational::from((
+                (a.abs() * 100.0).round() as u32,
+                100,
+            ))]),
+        ));
+    }
+    if let Some(e) = gps.h_error_m {
+        fields.push(field(
+            Tag::GPSHPositioningError,
+            Value::Rational(vec![Rational::from(((e * 100.0).round() as u32, 100))]),
+        ));
+    }
+    let mut w = exif::experimental::Writer::new();
+    for f in &fields {
+        w.push_field(f);
+    }
+    let mut out = Cursor::new(Vec::new());
+    w.write(&mut out, false).map_err(ExifError::Write)?;
+    Ok(out.into_inner())
 }
 
 /// Whether the EXIF orientation turns the stored image by 90 degrees.
@@ -463,6 +594,56 @@ mod tests {
         let c = photo_camera(&map_camera(), &p, None).unwrap();
         assert_eq!(c.source, IntrinsicsSource::ExifFocalPlane);
         assert!((c.camera.fx - 100.0).abs() < 1e-9 && (c.camera.fy - 200.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_gps_tag_is_read_back_with_its_hemispheres() {
+        let img = marked();
+        for tag in [
+            GpsTag {
+                lat_deg: 47.397_742_1,
+                lon_deg: 8.545_594_3,
+                alt_m: Some(488.25),
+                h_error_m: Some(4.5),
+            },
+            GpsTag {
+                lat_deg: -33.856_784,
+                lon_deg: -151.215_297,
+                alt_m: Some(-12.5),
+                h_error_m: None,
+            },
+            GpsTag {
+                lat_deg: 0.000_5,
+                lon_deg: 179.999,
+                alt_m: None,
+                h_error_m: None,
+            },
+        ] {
+            let bytes = jpeg(&img, Some(exif_tiff_gps(&tag).unwrap()));
+            let got = read_exif(&bytes).unwrap().unwrap().gps.unwrap();
+            // Seconds to a thousandth: 3 cm, 3e-7 degrees.
+            assert!(
+                (got.lat_deg - tag.lat_deg).abs() < 3e-7,
+                "{got:?} vs {tag:?}"
+            );
+            assert!(
+                (got.lon_deg - tag.lon_deg).abs() < 3e-7,
+                "{got:?} vs {tag:?}"
+            );
+            assert_eq!(got.alt_m, tag.alt_m);
+            assert_eq!(got.h_error_m, tag.h_error_m);
+            // And through the upload's decoding.
+            assert_eq!(decode_photo(&bytes).unwrap().exif.unwrap().gps, Some(got));
+        }
+        // A receiver without a fix writes 0, 0: no tag.
+        let zero = GpsTag {
+            lat_deg: 0.0,
+            lon_deg: 0.0,
+            alt_m: None,
+            h_error_m: None,
+        };
+        let bytes = jpeg(&img, Some(exif_tiff_gps(&zero).unwrap()));
+        assert_eq!(read_exif(&bytes).unwrap().unwrap().gps, None);
     }
 
     #[test]

@@ -174,11 +174,14 @@ pub trait ShotComputer: Send + Sync {
     ) -> Result<ShotComputation, ShotRequestError>;
     /// A shot given as a photograph, with its camera's intrinsics when it
     /// is not the map camera's (None: the map camera, scaled to the photo's
-    /// size when that has the same aspect ratio).
+    /// size when that has the same aspect ratio), and its GPS tag when it
+    /// has one (a place found far from it is refused, once the map is
+    /// georeferenced).
     fn shot_from_photo(
         &self,
         photo: &GrayImage,
         intrinsics: Option<&PhotoIntrinsics>,
+        gps: Option<&crate::shot::photo::GpsTag>,
     ) -> Result<ShotComputation, ShotRequestError>;
 }
 
@@ -365,6 +368,7 @@ impl<K: KeyframeImages> ShotComputer for WarpOnly<K> {
         &self,
         photo: &GrayImage,
         intrinsics: Option<&PhotoIntrinsics>,
+        _gps: Option<&crate::shot::photo::GpsTag>,
     ) -> Result<ShotComputation, ShotRequestError> {
         self.check_photo(photo, intrinsics)?;
         Ok(ShotComputation {

@@ -168,8 +168,9 @@ impl ShotComputer for LocalisingOnKf1 {
         &self,
         p: &GrayImage,
         i: Option<&PhotoIntrinsics>,
+        g: Option<&shotpilot::shot::photo::GpsTag>,
     ) -> Result<ShotComputation, ShotRequestError> {
-        self.0.shot_from_photo(p, i)
+        self.0.shot_from_photo(p, i, g)
     }
 }
 

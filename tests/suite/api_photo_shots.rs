@@ -70,6 +70,7 @@ fn start(dir: &std::path::Path, map: Map) -> anyhow::Result<Server> {
             },
             slam: shared,
             params: Default::default(),
+            geo: None,
         }),
         store: Arc::new(ShotStore::open(dir)?),
         params: Arc::new(ApiParams {

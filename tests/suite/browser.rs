@@ -11,9 +11,9 @@
 //! flight is acknowledged and the vehicle holds (the truth). The whole
 //! shot's first flight lands off its target by what the simulated GNSS
 //! altitude drifted since the georeference (seeded); its timeline shows
-//! the rounds, the localisation's sigma and, when the first look was not
-//! already within the at_floor margin of its floor, a correction flown and
-//! a smaller error after it. The daemon runs on simulated time (the
+//! the rounds, the localisation's sigma and, unless the loop judged the
+//! first look already at the shot's floor, a correction flown and a
+//! smaller error after it. The daemon runs on simulated time (the
 //! simulator in lockstep with the SLAM), the page in Chromium's real time. The keyframe gallery is
 //! bounded (3 newest and those shots use, here); the loops-closed badge,
 //! the map's loops and its list of map events follow the status. The
@@ -265,16 +265,32 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
     );
     // The vertical GPS bias drifts between the georeference's fit and the
     // first arrival, by how much depends on when (in simulated time) the
-    // page started the shot: measured 3.12-3.50 % first looks against
-    // floors of 2.63-3.07 %. A first flight that already lands within the
-    // at_floor margin of its floor (or under the threshold) must stop
-    // there, flying nothing: a correction then would chase the drift.
+    // page started the shot. A first flight the loop judges already at
+    // the shot's floor stops there, flying nothing (a correction then
+    // would chase the drift): its error within the at_floor margin of the
+    // floor (or twice the measurement's noise), or the live camera within
+    // the threshold's framing of the shot's pose and its error within the
+    // threshold of the floor (the session's rules, unit-tested in
+    // `refine::session`). Measured on simulated time: 10 of 14 runs
+    // stopped so (first looks 2.89-3.68 % against floors 2.58-3.23 %, the
+    // live camera 0.46-0.92 % of framing from the shot's pose), 4 flew one
+    // correction and gained 0.09-0.39 %.
     if rounds.len() == 1 {
-        let floor = rounds[0]["floor_pct"].as_f64().unwrap_or(f64::NAN);
+        let r0 = &rounds[0];
+        let floor = r0["floor_pct"].as_f64().unwrap_or(f64::NAN);
+        let threshold = shotpilot::refine::ControllerParams::default().threshold_pct;
+        let noise = 2.0 * 1.25 * r0["shot_error_spread_pct"].as_f64().unwrap_or(0.0)
+            / r0["frames_with_error"]
+                .as_f64()
+                .unwrap_or(1.0)
+                .max(1.0)
+                .sqrt();
+        let framing = r0["pose_framing_pct"].as_f64();
+        let at_floor = first <= floor + margin.max(noise) + 1e-9
+            || (framing.is_some_and(|f| f < threshold) && first <= floor + threshold);
         assert!(
-            (stop == "converged" && first <= 1.0)
-                || (stop == "at_floor" && first <= floor + margin + 1e-9),
-            "the loop stopped after its first flight ({first} %, floor {floor} %) as {stop}: {rf}"
+            (stop == "converged" && first <= threshold) || (stop == "at_floor" && at_floor),
+            "the loop stopped after its first flight ({first} %, floor {floor} %, framing {framing:?} %) as {stop}: {rf}"
         );
     } else {
         // The first flight landed off: a correction is uploaded and flown,

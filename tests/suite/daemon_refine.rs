@@ -350,15 +350,38 @@ fn home_of(geo: &Value) -> Geodetic {
 
 /// Posts the snapshots as photo shots until one is localised; its id.
 fn photo_shot(addr: SocketAddr, photos: &[Vec<u8>]) -> String {
+    photo_shot_and_jpeg(addr, photos).0
+}
+
+/// [`photo_shot`], with the photograph localised.
+fn photo_shot_and_jpeg(addr: SocketAddr, photos: &[Vec<u8>]) -> (String, Vec<u8>) {
     for jpeg in photos {
         let (st, b) = post_jpeg(addr, "/api/v1/shots/photo", jpeg);
         assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
         let shot: Value = serde_json::from_slice(&b).unwrap();
         if shot["status"] == "localised" {
-            return shot["id"].as_str().unwrap().to_owned();
+            return (shot["id"].as_str().unwrap().to_owned(), jpeg.clone());
         }
     }
     panic!("no photograph is localised");
+}
+
+/// The JPEG again with a GPS tag in its EXIF, as a phone writes one.
+fn with_gps_tag(jpeg: &[u8], tag: &shotpilot::shot::photo::GpsTag) -> Vec<u8> {
+    use image::ImageEncoder;
+    let img = image::load_from_memory(jpeg).unwrap().to_luma8();
+    let mut out = Vec::new();
+    let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95);
+    enc.set_exif_metadata(shotpilot::shot::photo::exif_tiff_gps(tag).unwrap())
+        .unwrap();
+    enc.write_image(
+        img.as_raw(),
+        img.width(),
+        img.height(),
+        image::ExtendedColorType::L8,
+    )
+    .unwrap();
+    out
 }
 
 #[test]
@@ -520,7 +543,40 @@ fn started_mission_is_refined_by_the_daemon() {
 
     // A photograph the camera took during the exploration: a view that can
     // be reproduced exactly.
-    let photo_sid = photo_shot(addr, &photos);
+    let (photo_sid, photo_jpeg) = photo_shot_and_jpeg(addr, &photos);
+    // The same photograph with a GPS tag (5 m horizontal error, as a
+    // phone writes it): tagged where the georeference puts the place the
+    // map found, it is localised; tagged 60 m north, the place found is
+    // refused as a look-alike of another (or a wrong tag), 12 sigma off.
+    let target = get_json(addr, &format!("/api/v1/shots/{photo_sid}/target"));
+    let (lat, lon) = (
+        target["target"]["lat_deg"].as_f64().unwrap(),
+        target["target"]["lon_deg"].as_f64().unwrap(),
+    );
+    let tagged = move |dlat_m: f64| -> Value {
+        let tag = shotpilot::shot::photo::GpsTag {
+            lat_deg: lat + dlat_m / 111_320.0,
+            lon_deg: lon,
+            alt_m: Some(600.0),
+            h_error_m: Some(5.0),
+        };
+        let jpeg = with_gps_tag(&photo_jpeg, &tag);
+        let (st, b) = post_jpeg(addr, "/api/v1/shots/photo", &jpeg);
+        assert_eq!(st, 201, "{}", String::from_utf8_lossy(&b));
+        serde_json::from_slice(&b).unwrap()
+    };
+    let t = tagged.clone();
+    let here = run.daemon.held(move || t(0.0));
+    assert_eq!(here["status"], "localised", "{here}");
+    let away = run.daemon.held(move || tagged(60.0));
+    eprintln!("photo tagged 60 m away: {}", away["reason"]);
+    assert_eq!(away["status"], "not_localised", "{away}");
+    assert!(
+        away["reason"]
+            .as_str()
+            .is_some_and(|r| r.contains(" m from where the photo's position tag puts it")),
+        "{away}"
+    );
     let (photo, _) = refine(&run, &photo_sid);
     analyse(&photo, &truth_dir, &home, None);
     let rounds = photo["rounds"].as_array().unwrap();

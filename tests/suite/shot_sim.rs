@@ -459,6 +459,69 @@ fn simulator_shots_localise() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A photo's position prior (its GPS tag through the georeference): a
+/// place found within the prior's sigma is kept, pose unchanged; the same
+/// photo with a tag 40 m away (sigma 5 m) is refused as far from its
+/// prior, at the distance the map measures. Five hidden poses near the
+/// flight that localise without a prior.
+#[test]
+fn a_position_prior_keeps_a_near_place_and_refuses_a_far_one() -> anyhow::Result<()> {
+    let m = mapped()?;
+    let vocabulary = Vocabulary::builtin()?;
+    let index = BowIndex::build(&m.map, &vocabulary);
+    let to_map = m.sim.inverse();
+    let mut rng = StdRng::seed_from_u64(0x9e05);
+    let (mut done, mut attempts) = (0, 0);
+    while done < 5 {
+        attempts += 1;
+        anyhow::ensure!(attempts < 100, "too few hidden poses localise");
+        let (_, hidden, _, _) = hidden_pose_near(m, &mut rng);
+        let img =
+            m.sc.renderer
+                .render_noisy(&hidden, 70_000 + attempts as u64);
+        let free = shot::LocalizeParams::default();
+        let Localization::Localized(p) = shot::localize(&m.map, &img, None, Some(&index), &free)?
+        else {
+            continue;
+        };
+        let with_prior = |offset: Vector3<f64>, sigma_m: f64| shot::LocalizeParams {
+            position_prior: Some(shot::PositionPrior {
+                centre: to_map.transform_point(&Point3::from(hidden.translation.vector + offset)),
+                sigma: sigma_m / m.sim.scale,
+                down: None,
+                metres_per_unit: None,
+            }),
+            ..shot::LocalizeParams::default()
+        };
+        // A tag 1.5 m off with a 2 m sigma: the same pose.
+        let near = with_prior(Vector3::new(1.0, -1.0, 0.5), 2.0);
+        match shot::localize(&m.map, &img, None, Some(&index), &near)? {
+            Localization::Localized(q) => assert_eq!(q.world_from_cam, p.world_from_cam),
+            Localization::NotLocalized { reason } => {
+                panic!("hidden pose {done}: refused with a near prior: {reason}")
+            }
+        }
+        // A tag 40 m away along the ground with a 5 m sigma.
+        let far = with_prior(Vector3::new(32.0, 24.0, 0.0), 5.0);
+        match shot::localize(&m.map, &img, None, Some(&index), &far)? {
+            Localization::NotLocalized {
+                reason:
+                    shot::NotLocalizedReason::FarFromPrior {
+                        distance, sigmas, ..
+                    },
+            } => {
+                let metres = distance * m.sim.scale;
+                println!("hidden pose {done}: far tag refused at {metres:.2} m, {sigmas:.2} sigma");
+                assert!((metres - 40.0).abs() < 1.0, "{metres} m");
+                assert!((7.5..8.5).contains(&sigmas), "{sigmas}");
+            }
+            other => panic!("hidden pose {done}: a tag 40 m away gave {other:?}"),
+        }
+        done += 1;
+    }
+    Ok(())
+}
+
 /// Photos from another camera (the operator's own, intrinsics given):
 /// 800x600, a narrower field of view (fx = 640 px, 64 degrees across), a
 /// stronger barrel distortion and an off-centre principal point, rendered

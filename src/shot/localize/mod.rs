@@ -57,7 +57,7 @@ pub use self::focal::assumed_camera;
 pub use self::outcome::{Localization, NotLocalizedReason, PoseSigma, ShotPose};
 pub use self::params::{
     AnchorPoseParams, EXIF_K1_SIGMA, EXIF_K2_SIGMA, GateParams, LocalizeParams, MapSigma,
-    UnknownFocal,
+    PositionPrior, UnknownFocal,
 };
 
 use self::candidates::{extract_shot_features, neighbourhood_matches, rank_candidates};
@@ -236,6 +236,32 @@ pub fn localize_with_camera(
         beyond_views_deg = beyond,
         "shot sigma"
     );
+    if let Some(prior) = &params.position_prior {
+        // The pose's sigma is the RMS of the centre's 3-D error: per axis
+        // it is that over sqrt(3).
+        let per_axis = prior.sigma.hypot(sigma.position / 3f64.sqrt());
+        let off = best_wfc.translation.vector - prior.centre.coords;
+        let distance = match prior.down {
+            Some(d) => (off - d.into_inner() * d.dot(&off)).norm(),
+            None => off.norm(),
+        };
+        let sigmas = distance / per_axis.max(1e-12);
+        tracing::debug!(
+            distance,
+            sigmas,
+            prior_sigma = prior.sigma,
+            "shot against its position prior"
+        );
+        if sigmas.is_nan() || sigmas > g.max_prior_sigmas {
+            return Ok(not(NotLocalizedReason::FarFromPrior {
+                distance,
+                sigmas,
+                max_sigmas: g.max_prior_sigmas,
+                prior_sigma: prior.sigma,
+                metres_per_unit: prior.metres_per_unit,
+            }));
+        }
+    }
     if !(sigma.position_depth_fraction <= g.max_position_sigma_depth_fraction
         && sigma.rotation_deg <= g.max_rotation_sigma_deg)
     {

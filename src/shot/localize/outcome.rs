@@ -138,6 +138,22 @@ pub enum NotLocalizedReason {
         /// Its mapped points in all.
         mapped: usize,
     },
+    /// The place found is farther from the photo's position prior (its
+    /// GPS tag through the georeference) than the two can both be right
+    /// about: a look-alike of another place, or a wrong tag.
+    FarFromPrior {
+        /// Distance between the camera found and the prior, map units.
+        distance: f64,
+        /// That distance over the combined sigma (the prior's and the
+        /// pose's, per axis, in quadrature).
+        sigmas: f64,
+        /// The bound, in sigmas.
+        max_sigmas: f64,
+        /// The prior's sigma, map units.
+        prior_sigma: f64,
+        /// Metres per map unit, when known.
+        metres_per_unit: Option<f64>,
+    },
     /// Two candidates pass the gate with different poses.
     CandidatesDisagree {
         /// The other keyframe.
@@ -202,6 +218,24 @@ impl std::fmt::Display for NotLocalizedReason {
                  draw it over more of the mapped scene, or on a keyframe with more mapped points",
                 keyframe.0
             ),
+            FarFromPrior {
+                distance,
+                sigmas,
+                max_sigmas,
+                prior_sigma,
+                metres_per_unit,
+            } => {
+                let (d, s, unit) = match metres_per_unit {
+                    Some(m) => (distance * m, prior_sigma * m, " m"),
+                    None => (*distance, *prior_sigma, " map units"),
+                };
+                write!(
+                    f,
+                    "the place found is {d:.1}{unit} from where the photo's position tag puts it \
+                     ({sigmas:.1} sigma, at most {max_sigmas:.1}; the tag's sigma {s:.1}{unit}): a look-alike \
+                     of another place, or a wrong tag; a photo with a correct tag, or from nearer the flown path, would help"
+                )
+            }
             CandidatesDisagree {
                 other,
                 position_depth_fraction,

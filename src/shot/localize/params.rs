@@ -34,6 +34,13 @@ pub struct GateParams {
     pub max_position_sigma_depth_fraction: f64,
     /// Largest rotation sigma ([`PoseSigma::rotation_deg`]), degrees.
     pub max_rotation_sigma_deg: f64,
+    /// The largest distance, in sigmas (the prior's and the pose's per
+    /// axis, in quadrature), between the camera found and the photo's
+    /// position prior ([`LocalizeParams::position_prior`]). 4: a right
+    /// place with a right tag is refused about once in 900 (the distance
+    /// of a 3-D Gaussian error; once in 3000 for a horizontal prior), a
+    /// look-alike 40 m away with a 5 m tag at 8 sigma.
+    pub max_prior_sigmas: f64,
 }
 
 impl Default for GateParams {
@@ -48,6 +55,7 @@ impl Default for GateParams {
             drop_disagreeing_below: 0.5,
             max_position_sigma_depth_fraction: 0.02,
             max_rotation_sigma_deg: 1.0,
+            max_prior_sigmas: 4.0,
         }
     }
 }
@@ -131,6 +139,27 @@ pub struct LocalizeParams {
     pub seed: u64,
     /// An anchors shot's pose from its keyframe's geometry.
     pub anchors: AnchorPoseParams,
+    /// Where the photo was taken by an outside measurement, if known (its
+    /// GPS tag through the georeference): a place found farther from it
+    /// than [`GateParams::max_prior_sigmas`] is refused.
+    pub position_prior: Option<PositionPrior>,
+}
+
+/// A photo's camera centre as an outside measurement gives it (the
+/// photo's GPS tag through the georeference), in the map's frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionPrior {
+    /// The camera centre, map coordinates.
+    pub centre: nalgebra::Point3<f64>,
+    /// Its standard deviation per axis, map units.
+    pub sigma: f64,
+    /// When set, only the distance across this direction counts (the
+    /// map's down: a horizontal prior, for a GPS tag whose altitude is
+    /// not trusted); the bound is then on a 2-D error.
+    pub down: Option<nalgebra::Unit<nalgebra::Vector3<f64>>>,
+    /// Metres per map unit, when the map is georeferenced (for the
+    /// refusal's words).
+    pub metres_per_unit: Option<f64>,
 }
 
 impl Default for LocalizeParams {
@@ -171,6 +200,7 @@ impl Default for LocalizeParams {
             rematch_rounds: 1,
             seed: 1,
             anchors: AnchorPoseParams::default(),
+            position_prior: None,
         }
     }
 }
