@@ -322,13 +322,7 @@ pub fn exif_tiff_gps(gps: &GpsTag) -> Result<Vec<u8>, ExifError> {
             Value::Rational(vec![Rational::from(((e * 100.0).round() as u32, 100))]),
         ));
     }
-    let mut w = exif::experimental::Writer::new();
-    for f in &fields {
-        w.push_field(f);
-    }
-    let mut out = Cursor::new(Vec::new());
-    w.write(&mut out, false).map_err(ExifError::Write)?;
-    Ok(out.into_inner())
+    write_tiff(&fields)
 }
 
 /// Whether the EXIF orientation turns the stored image by 90 degrees.
@@ -473,8 +467,13 @@ pub fn exif_tiff(
             value: Value::Short(vec![o]),
         });
     }
+    write_tiff(&fields)
+}
+
+/// The fields as a TIFF block (little-endian), for a JPEG's APP1 segment.
+fn write_tiff(fields: &[exif::Field]) -> Result<Vec<u8>, ExifError> {
     let mut w = exif::experimental::Writer::new();
-    for f in &fields {
+    for f in fields {
         w.push_field(f);
     }
     let mut out = Cursor::new(Vec::new());
@@ -482,25 +481,38 @@ pub fn exif_tiff(
     Ok(out.into_inner())
 }
 
+/// A grey picture as a JPEG (quality 95) with `tiff` (from [`exif_tiff`]
+/// or [`exif_tiff_gps`]) as its EXIF: a photo as a camera writes one, for
+/// the tests and tools.
+///
+/// Errors: the encoder's, as [`ShotError::BadPhoto`].
+pub fn grey_jpeg_with_exif(img: &GrayImage, tiff: Option<Vec<u8>>) -> Result<Vec<u8>, ShotError> {
+    use image::ImageEncoder;
+    let bad = |e: &dyn std::fmt::Display| ShotError::BadPhoto {
+        reason: e.to_string(),
+    };
+    let mut out = Vec::new();
+    let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95);
+    if let Some(t) = tiff {
+        enc.set_exif_metadata(t).map_err(|e| bad(&e))?;
+    }
+    enc.write_image(
+        img.as_raw(),
+        img.width(),
+        img.height(),
+        image::ExtendedColorType::L8,
+    )
+    .map_err(|e| bad(&e))?;
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use image::{ImageEncoder, Luma};
+    use image::Luma;
 
     fn jpeg(img: &GrayImage, tiff: Option<Vec<u8>>) -> Vec<u8> {
-        let mut out = Vec::new();
-        let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95);
-        if let Some(t) = tiff {
-            enc.set_exif_metadata(t).unwrap();
-        }
-        enc.write_image(
-            img.as_raw(),
-            img.width(),
-            img.height(),
-            image::ExtendedColorType::L8,
-        )
-        .unwrap();
-        out
+        grey_jpeg_with_exif(img, tiff).unwrap()
     }
 
     /// A 64x48 picture, black except a white top-left 8x8 block.

@@ -368,20 +368,9 @@ fn photo_shot_and_jpeg(addr: SocketAddr, photos: &[Vec<u8>]) -> (String, Vec<u8>
 
 /// The JPEG again with a GPS tag in its EXIF, as a phone writes one.
 fn with_gps_tag(jpeg: &[u8], tag: &shotpilot::shot::photo::GpsTag) -> Vec<u8> {
-    use image::ImageEncoder;
+    use shotpilot::shot::photo::{exif_tiff_gps, grey_jpeg_with_exif};
     let img = image::load_from_memory(jpeg).unwrap().to_luma8();
-    let mut out = Vec::new();
-    let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95);
-    enc.set_exif_metadata(shotpilot::shot::photo::exif_tiff_gps(tag).unwrap())
-        .unwrap();
-    enc.write_image(
-        img.as_raw(),
-        img.width(),
-        img.height(),
-        image::ExtendedColorType::L8,
-    )
-    .unwrap();
-    out
+    grey_jpeg_with_exif(&img, Some(exif_tiff_gps(tag).unwrap())).unwrap()
 }
 
 #[test]
