@@ -33,15 +33,15 @@ use crate::geo::live::{LiveGeoreference, MapKeyframe, TrackedPose};
 use crate::geo::saved::SavedGeoreference;
 use crate::geo::{GeoAlignment, GeoError, GeoTarget, Geodetic, Params};
 use crate::slam::MapMode;
-
-/// A photo's GPS tag without its horizontal error: a phone's fix
-/// outdoors, metres (1 sigma).
-pub const PHOTO_TAG_SIGMA_M: f64 = 10.0;
 use crate::slam::priors::{TelemetryFeed, TelemetrySample};
 use crate::vehicle::{
     Attitude, GimbalAttitude, GlobalPosition, GpsRaw, HomePosition, Stamped, Telemetry,
 };
 use crate::video::live::{Frame, unix_now};
+
+/// A photo's GPS tag without its horizontal error: a phone's fix
+/// outdoors, metres (1 sigma).
+pub const PHOTO_TAG_SIGMA_M: f64 = 10.0;
 
 /// How often the keyframes are compared with the map and the alignment
 /// refitted.

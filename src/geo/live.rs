@@ -721,10 +721,10 @@ impl LiveGeoreference {
         Ok((target, alignment))
     }
 
-    /// A geodetic position (a photo's GPS tag) in the map's frame: the
-    /// point, taken at home's altitude when `alt_m` is not trusted, and
-    /// the alignment it went through (its scale turns metres into map
-    /// units; its rotation gives the map's down).
+    /// A geodetic position (a photo's GPS tag, at the altitude the caller
+    /// trusts) in the map's frame: the point, and the alignment it went
+    /// through (its scale turns metres into map units; its rotation gives
+    /// the map's down).
     pub fn map_point_of(
         &mut self,
         g: &super::Geodetic,
