@@ -13,8 +13,11 @@
 //! is georeferenced from the saved pairs (time and residual printed), shows
 //! the shot's real mission state within 5 s of the link coming back, marks
 //! the refinement loop interrupted, and localises the same anchors shot on
-//! the same keyframe with the vehicle hovering over mapped ground (inliers
-//! and RMSE within 10 % of before). The old shot and a new one are uploaded
+//! the same keyframe as soon as it tracks and again with the vehicle
+//! hovering over mapped ground: the same desired camera as before the stop
+//! (within 1 % of the map's extent and 1 deg), no fewer inliers (90 %) and
+//! no worse an RMSE (1.1x after the restart, 1.25x once the map has grown
+//! around the shot). The old shot and a new one are uploaded
 //! and flown (shot error printed). Then SIGKILL: shots, missions and the
 //! map's stored keyframes are all there after the next start, which
 //! uploads and flies both shots again.
@@ -546,17 +549,36 @@ fn a_field_restart_sigint_then_sigkill_in_real_time() {
     poll(a2, "/api/v1/status", 60, |s| {
         s["slam"]["state"] == "tracking"
     });
-    let (_, in_reloaded, rms_reloaded) =
-        anchors_shot(a2, old_kf, json!(ZOOM)).expect("the same shot localises after the restart");
+    let (_, in_reloaded, rms_reloaded, pose_reloaded) =
+        anchors_shot_or_why(a2, old_kf, json!(ZOOM))
+            .unwrap_or_else(|why| panic!("the same shot localises after the restart: {why}"));
+    let moved = (pose_reloaded.translation.vector - pose_before.translation.vector).norm();
+    let turned = pose_reloaded
+        .rotation
+        .angle_to(&pose_before.rotation)
+        .to_degrees();
     eprintln!(
-        "same anchors shot on keyframe {old_kf}: before the stop {in_before} inliers RMSE {rms_before:.3} px | after the restart {in_reloaded} inliers RMSE {rms_reloaded:.3} px"
+        "same anchors shot on keyframe {old_kf}: before the stop {in_before} inliers RMSE {rms_before:.3} px | \
+         after the restart {in_reloaded} inliers RMSE {rms_reloaded:.3} px, the desired camera {:.2} % of the map's extent and {turned:.2} deg from before",
+        100.0 * moved / extent
     );
-    let rel = |a: f64, b: f64| (a - b).abs() / b;
+    // No worse than just before the stop (the map saved at the stop has
+    // had its last keyframes and adjustment since: a CI run measured 200
+    // inliers at 2.46 px before and 236 at 2.30 px after), and the same
+    // camera.
     assert!(
-        rel(in_reloaded as f64, in_before as f64) <= 0.10,
-        "inliers within 10 %"
+        in_reloaded as f64 >= 0.9 * in_before as f64,
+        "inliers {in_reloaded} after the restart, {in_before} before"
     );
-    assert!(rel(rms_reloaded, rms_before) <= 0.10, "RMSE within 10 %");
+    assert!(
+        rms_reloaded <= 1.1 * rms_before,
+        "RMSE {rms_reloaded:.3} px after the restart, {rms_before:.3} before"
+    );
+    assert!(
+        moved <= 0.01 * extent && turned <= 1.0,
+        "the same shot moved {moved:.3} ({:.2} % of the map's extent) and turned {turned:.2} deg after the restart",
+        100.0 * moved / extent
+    );
 
     // Hovering at the shot over mapped ground: the same shot again. The
     // map has grown around it since and bundle adjustment has moved its
