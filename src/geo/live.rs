@@ -710,15 +710,20 @@ impl LiveGeoreference {
         &mut self,
         map_from_cam: &Isometry3<f64>,
     ) -> Result<(GeoTarget, GeoAlignment), GeoError> {
-        if self.map_aided {
-            let frame = *self.geo.frame().ok_or(GeoError::NoHome)?;
-            let alignment = GeoAlignment::of_map_in_ned(self.geo.georeference().pairs());
-            let target = convert_target(&alignment, map_from_cam, &frame, &self.params.mount)?;
-            return Ok((target, alignment));
-        }
-        let target = self.geo.target(map_from_cam)?;
-        let alignment = self.geo.fit()?;
+        let frame = *self.geo.frame().ok_or(GeoError::NoHome)?;
+        let alignment = self.alignment()?;
+        let target = convert_target(&alignment, map_from_cam, &frame, &self.params.mount)?;
         Ok((target, alignment))
+    }
+
+    /// The map -> NED alignment in use: the identity of a gps-aided map's
+    /// pairs, else the (re)fitted one.
+    fn alignment(&mut self) -> Result<GeoAlignment, GeoError> {
+        if self.map_aided {
+            Ok(GeoAlignment::of_map_in_ned(self.geo.georeference().pairs()))
+        } else {
+            self.geo.fit()
+        }
     }
 
     /// A geodetic position (a photo's GPS tag, at the altitude the caller
@@ -730,11 +735,7 @@ impl LiveGeoreference {
         g: &super::Geodetic,
     ) -> Result<(nalgebra::Point3<f64>, GeoAlignment), GeoError> {
         let frame = *self.geo.frame().ok_or(GeoError::NoHome)?;
-        let alignment = if self.map_aided {
-            GeoAlignment::of_map_in_ned(self.geo.georeference().pairs())
-        } else {
-            self.geo.fit()?
-        };
+        let alignment = self.alignment()?;
         let ned = nalgebra::Point3::from(frame.geodetic_to_ned(g));
         Ok((
             alignment.ned_from_map.inverse().transform_point(&ned),
