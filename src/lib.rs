@@ -2,58 +2,64 @@
 //!
 //! It watches a drone's live video, builds a map with monocular visual SLAM,
 //! finds the camera pose that takes the photograph an operator describes, and
-//! sends the drone there as a MAVLink mission.
+//! sends the drone there as a MAVLink mission, then refines the pose from the
+//! live view until the framing matches.
 //!
 //! ```text
-//!  image-transmission receiver          Pixhawk (3DR radio serial) / SITL (UDP)
-//!    HTTP MJPEG / snapshot                       MAVLink 2
+//!  camera / image-transmission receiver     Pixhawk (radio serial) / SITL (UDP, TCP)
+//!   RTSP H.264, RTP/UDP H.264, MJPEG, JPEG           MAVLink 2
 //!           |                                        ^   |
-//!    video/ ingest (async)                 vehicle/ link actor (async)
-//!           | latest-frame slot                      |   | telemetry (watch)
+//!    video/ sources (async) -> H.264 decode   vehicle/ link actor (async)
+//!           | newest-frame slot                      |   | telemetry (watch)
 //!           v                                        |   v
-//!    slam/ tracking thread --keyframes--> slam/ mapping thread
+//!    slam/ tracking (the SLAM thread) --keyframes--> slam/ mapping thread
 //!      ORB -> match -> PnP       (bounded ch)   triangulate, local BA, cull
-//!           \                                     /
-//!            +-------> Map (keyframes, points, BoW database) <----+
-//!                               | read-only snapshots
-//!   operator --HTTP--> api/ --> shot/ : anchors -> homography -> desired shot
-//!                                       -> BoW query -> PnP -> target pose
-//!                                             |
+//!                                                    | mapped keyframes
+//!                                          slam/ loop closing thread: loops,
+//!                                            merges, Sim(3), essential graph
+//!            +-------> Map (atlas: keyframes, points, BoW database) <----+
+//!                               | snapshots
+//!   operator --HTTP--> api/ --> shot/ : anchors -> keyframe geometry -> PnP;
+//!                                       photo -> candidate keyframes -> PnP
+//!                                             |   -> target pose, sigma
 //!                               geo/ : map frame -> NED -> lat/lon/alt
 //!                                             |
 //!                               mission/ : target -> items -> upload -> ACK
+//!                                             |
+//!                               refine/ : shot error -> correction -> again
 //! ```
 //!
 //! | module | what it holds |
 //! |---|---|
 //! | [`config`] | the typed tree of `config.toml` |
 //! | [`camera`] | pinhole + radial-tangential distortion |
-//! | [`video`] | frame sources: datasets (TUM, EuRoC), live MJPEG/snapshot over HTTP, latest-frame slots |
+//! | [`video`] | frame sources: datasets (TUM, EuRoC); live MJPEG and snapshots over HTTP, RTSP and RTP/UDP (or SDP) H.264 decoded by OpenH264 with lost packets' rows masked; newest-frame slots |
 //! | [`eval`] | TUM trajectories, association, Umeyama alignment, ATE/RPE, plots |
 //! | [`angle`] | angles wrapped to one turn: `wrap180` (degrees), `wrap_pi` (radians) |
 //! | [`stats`] | median and nearest-rank quantiles of samples |
+//! | [`clock`] | the daemon's clock: the tokio runtime's, so tests on paused time move every age and timeout |
 //! | [`lie`] | SO(3)/SE(3)/Sim(3): skew, SE(3) exponential, quaternion renormalisation, [`lie::Sim3`] (below geometry and optimize) |
 //! | [`features`] | image pyramid, FAST, orientation, rBRIEF (ORB) |
 //! | [`matching`] | Hamming matching: brute force, keypoint grid for search by projection |
 //! | [`features_eval`] | measuring the extractor: timing, homography-warp repeatability, matching, spread |
-//! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama |
-//! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA, Sim(3) |
-//! | [`slam`] | map, tracking, local mapping, map file |
+//! | [`geometry`] | two-view, triangulation, PnP, homography, Umeyama, Sim(3) RANSAC |
+//! | [`optimize`] | Levenberg-Marquardt: pose-only, local BA (with position priors), Sim(3), the essential graph |
+//! | [`slam`] | the map (an atlas of maps), tracking, local mapping and loop closing on three threads (map merging, telemetry priors), the map file |
 //! | [`shot`] | desired shot from four anchors (warp) and its localisation in the map; the operator's request, the shot model (records, statuses) and the shot store |
 //! | [`bow`] | bag of binary words: vocabulary, BoW vectors, keyframe database |
 //! | [`geo`] | map ↔ NED ↔ WGS84: telemetry history, camera mounting, robust Sim(3), targets |
-//! | [`vehicle`] | MAVLink link actor, transports, telemetry |
-//! | [`api`] | the HTTP API (`/api/v1`): one error type, typed replies, the views it reads (SLAM, vehicle); the operator page |
-//! | [`daemon`] | `shotpilot run`: wires sim, video, SLAM, link and API; shutdown |
-//! | [`mission`] | mission planning (pure) and upload protocol |
+//! | [`vehicle`] | MAVLink link actor, transports, telemetry, forwarding to other ground stations, gimbal control, the camera protocol |
+//! | [`api`] | the HTTP API (`/api/v1`): one error type, typed replies, the views it reads (SLAM, vehicle), the event stream; the operator page |
+//! | [`daemon`] | `shotpilot run`: wires sim, video, SLAM, link and API; the georeference, shot and refinement services; shutdown |
+//! | [`mission`] | mission planning (pure) and the upload/download protocol |
 //! | [`refine`] | closing the loop: shot error (homography), correction controller, the daemon loop's tunables |
 //! | [`simulator`] | the bundled simulator's adapters (camera, `[sim]`) and the closed-loop scenario in it; the only importer of `shotpilot_sim` outside tests |
 //!
 //! The synchronous core never imports tokio or axum; I/O lives in
-//! `vehicle`, `video` (live sources) and `mission::upload`. Every module
-//! imports only modules on lower floors (no import circles,
-//! `.ci/import-circles`); `ARCHITECTURE.md` at the repository root has the
-//! floors, the layout and the conventions.
+//! `daemon`, `vehicle`, `video` (live sources), `api` and
+//! `mission::upload`'s drivers. Every module imports only modules on lower
+//! floors (no import circles, `.ci/import-circles`); `ARCHITECTURE.md` at
+//! the repository root has the floors, the layout and the conventions.
 
 pub mod angle;
 pub mod api;
