@@ -309,6 +309,7 @@ fn run_condition(
             },
             map_sigma: crate::sim_support::map_sigma_from_env()?,
             gate: crate::sim_support::gate_from_env()?,
+            pnp: crate::sim_support::pnp_from_env()?,
             ..shot::LocalizeParams::default()
         };
         let debug = std::env::var_os("SHOT_PHOTOS_DEBUG").is_some();

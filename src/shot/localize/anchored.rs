@@ -23,7 +23,7 @@
 
 use nalgebra::{Matrix3, Point2, Point3};
 
-use super::covariance::{MapError, beyond_views_deg, reported_sigma};
+use super::covariance::{MapError, beyond_views, reported_sigma};
 use super::outcome::Localization;
 use super::outcome::{NotLocalizedReason, ShotPose, not};
 use super::params::LocalizeParams;
@@ -187,8 +187,16 @@ pub fn localize_anchors(
         .zip(&inliers)
         .map(|(id, i)| id.filter(|_| *i))
         .collect();
-    let beyond = beyond_views_deg(map, &fit.cam_from_world, &inlier_ids);
-    let sigma = reported_sigma(&pose_sigma, None, &map_error, fit.median_depth, near);
+    let views = beyond_views(map, &fit.cam_from_world, &inlier_ids);
+    let beyond = views.deg;
+    let sigma = reported_sigma(
+        &pose_sigma,
+        None,
+        &map_error,
+        fit.median_depth,
+        near,
+        views.factor,
+    );
     tracing::debug!(
         keyframe = keyframe.0,
         points = obs.len(),

@@ -176,8 +176,10 @@ pub(super) type Candidate = (KeyFrameId, Vec<(usize, PointId)>);
 /// The candidate keyframes of a shot, most descriptor matches first (at
 /// most [`LocalizeParams::top_k`]): with a [`BowIndex`] the first
 /// [`LocalizeParams::bow_candidates`] of a bag-of-words query, else every
-/// keyframe, each matched by descriptor against its map points. The reason when there is none, or when the best
-/// has too few matches.
+/// keyframe, each matched by descriptor against its map points; with a
+/// position prior, the keyframes near it are matched too and the best
+/// [`LocalizeParams::top_k`] of them beyond the first are kept as well.
+/// The reason when there is none, or when the best has too few matches.
 pub(super) fn rank_candidates(
     map: &Map,
     feats: &features::Features,
@@ -198,6 +200,17 @@ pub(super) fn rank_candidates(
         }
         None => map.keyframes().map(|k| k.id).collect(),
     };
+    // With a position prior, the keyframes that could see what a camera
+    // there sees are candidates too (after the retrieved ones), and the
+    // best of them by matches are tried beyond the first `top_k`: a
+    // look-alike place that outranks the right one by its descriptors
+    // does not keep the right one from being tried.
+    let near_prior = near_prior_keyframes(map, params);
+    let mut candidates = candidates;
+    if bow_index.is_some() {
+        let retrieved: HashSet<KeyFrameId> = candidates.iter().copied().collect();
+        candidates.extend(near_prior.iter().filter(|k| !retrieved.contains(k)));
+    }
     for kf in candidates.iter().filter_map(|id| map.keyframe(*id)) {
         pts.clear();
         for p in kf.points.iter().flatten() {
@@ -215,7 +228,17 @@ pub(super) fn rank_candidates(
         return Err(NotLocalizedReason::NoCandidate);
     }
     ranked.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(&b.0)));
-    ranked.truncate(params.top_k.max(1));
+    let top_k = params.top_k.max(1);
+    let near: HashSet<KeyFrameId> = near_prior.into_iter().collect();
+    let extra: Vec<Candidate> = ranked
+        .iter()
+        .skip(top_k)
+        .filter(|(kf, m)| near.contains(kf) && m.len() >= params.min_candidate_matches)
+        .take(top_k)
+        .cloned()
+        .collect();
+    ranked.truncate(top_k);
+    ranked.extend(extra);
     let best_count = ranked[0].1.len();
     if best_count < params.min_candidate_matches {
         return Err(NotLocalizedReason::TooFewMatches {
@@ -224,6 +247,30 @@ pub(super) fn rank_candidates(
         });
     }
     Ok(ranked)
+}
+
+/// The keyframes that could see what a camera at the photo's position
+/// prior ([`LocalizeParams::position_prior`]) sees, nearest first, at most
+/// [`LocalizeParams::bow_candidates`]: those whose centre lies within the
+/// prior's reach ([`crate::shot::GateParams::max_prior_sigmas`] of its
+/// sigma) plus twice the keyframe's median scene depth. None without a
+/// prior.
+fn near_prior_keyframes(map: &Map, params: &LocalizeParams) -> Vec<KeyFrameId> {
+    let Some(prior) = &params.position_prior else {
+        return Vec::new();
+    };
+    let reach = prior.sigma * params.gate.max_prior_sigmas;
+    let mut near: Vec<(f64, KeyFrameId)> = map
+        .keyframes()
+        .filter_map(|k| {
+            let (d, _) = prior.distance(&Point3::from(k.center()), 0.0);
+            let depth = map.median_depth(k.id).unwrap_or(0.0);
+            (d <= reach + 2.0 * depth).then_some((d, k.id))
+        })
+        .collect();
+    near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    near.truncate(params.bow_candidates.max(params.top_k).max(1));
+    near.into_iter().map(|(_, k)| k).collect()
 }
 
 /// A candidate's matches for its PnP, matched again against the points of

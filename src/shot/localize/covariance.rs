@@ -81,33 +81,89 @@ pub(super) fn inlier_median_depth(
     crate::stats::quantile(&depths, 0.5).unwrap_or(f64::NAN)
 }
 
+/// How far beyond the flown views a pose sees its points, and what that
+/// does to the map's error seen from there ([`beyond_views`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct BeyondViews {
+    /// Per point, the smallest angle at the point between the ray to this
+    /// camera and the rays to the keyframes that observe it; the median
+    /// over the points, degrees (0 without any).
+    pub(super) deg: f64,
+    /// The factor the map's error grows by, seen from this camera rather
+    /// than from the edge of the flown views ([`view_error_factor`]): the
+    /// median over the points, at least 1 (1 without any).
+    pub(super) factor: f64,
+}
+
+/// The smallest span, radians, taken for a point's observations in
+/// [`view_error_factor`] (a point seen along nearly one ray has no
+/// meaningful depth; its factor is bounded by this).
+const MIN_SPAN_RAD: f64 = 1.0_f64.to_radians();
+
+/// How much larger a triangulated point's position error looks from a
+/// camera `beyond` radians round from the nearest of its observing rays,
+/// which span `span` radians, than from the edge of that span. Across the
+/// rays its error is `s`, along them (its depth) `s / tan(span / 2)`; seen
+/// at an angle `phi` from the span's middle the error across the new ray is
+/// `s·sqrt(cos²phi + sin²phi / tan²(span/2))`, with `phi = span/2 + beyond`
+/// (at most 90 degrees). Normalised by its value at the edge (`beyond` =
+/// 0), where the map's constants were calibrated; never below 1. A point
+/// seen over a wide span barely changes; one seen over a narrow span from
+/// far round shows its depth error.
+pub(super) fn view_error_factor(span: f64, beyond: f64) -> f64 {
+    let half = (span.max(MIN_SPAN_RAD) / 2.0).min(std::f64::consts::FRAC_PI_2 - 1e-6);
+    let phi = (half + beyond.max(0.0)).min(std::f64::consts::FRAC_PI_2);
+    let seen = |a: f64| a.cos().powi(2) + a.sin().powi(2) / half.tan().powi(2);
+    (seen(phi) / seen(half)).sqrt().max(1.0)
+}
+
 /// How far beyond the flown views the pose at `cam_from_world` sees its
-/// inlier points (`slots`): per point, the smallest angle at the point
-/// between the ray to this camera and the rays to the keyframes that
-/// observe it; the median over the points, degrees (0 without any).
-pub(super) fn beyond_views_deg(
+/// inlier points (`slots`), and the factor the map's error grows by there:
+/// per point, the smallest angle at the point between the ray to this
+/// camera and the rays to the keyframes that observe it, and the span of
+/// those rays (the largest angle between two of them) through
+/// [`view_error_factor`]; medians over the points.
+pub(super) fn beyond_views(
     map: &Map,
     cam_from_world: &Isometry3<f64>,
     slots: &[Option<crate::slam::PointId>],
-) -> f64 {
+) -> BeyondViews {
     let center = cam_from_world.inverse().translation.vector;
-    let angles: Vec<f64> = slots
-        .iter()
-        .flatten()
-        .filter_map(|id| {
-            let mp = map.point(*id)?;
-            let to_cam = (center - mp.position.coords).try_normalize(1e-12)?;
-            mp.observations
-                .iter()
-                .filter_map(|(kf, _)| {
-                    let to_kf =
-                        (map.keyframe(*kf)?.center() - mp.position.coords).try_normalize(1e-12)?;
-                    Some(to_cam.dot(&to_kf).clamp(-1.0, 1.0).acos())
-                })
-                .min_by(f64::total_cmp)
-        })
-        .collect();
-    crate::stats::quantile(&angles, 0.5).map_or(0.0, f64::to_degrees)
+    let mut angles = Vec::new();
+    let mut factors = Vec::new();
+    let mut rays: Vec<nalgebra::Vector3<f64>> = Vec::new();
+    for id in slots.iter().flatten() {
+        let Some(mp) = map.point(*id) else { continue };
+        let Some(to_cam) = (center - mp.position.coords).try_normalize(1e-12) else {
+            continue;
+        };
+        rays.clear();
+        rays.extend(mp.observations.iter().filter_map(|(kf, _)| {
+            (map.keyframe(*kf)?.center() - mp.position.coords).try_normalize(1e-12)
+        }));
+        let angle = |a: &nalgebra::Vector3<f64>, b: &nalgebra::Vector3<f64>| {
+            a.dot(b).clamp(-1.0, 1.0).acos()
+        };
+        let Some(beyond) = rays
+            .iter()
+            .map(|r| angle(&to_cam, r))
+            .min_by(f64::total_cmp)
+        else {
+            continue;
+        };
+        let mut span: f64 = 0.0;
+        for (i, a) in rays.iter().enumerate() {
+            for b in &rays[i + 1..] {
+                span = span.max(angle(a, b));
+            }
+        }
+        angles.push(beyond);
+        factors.push(view_error_factor(span, beyond));
+    }
+    BeyondViews {
+        deg: crate::stats::quantile(&angles, 0.5).map_or(0.0, f64::to_degrees),
+        factor: crate::stats::quantile(&factors, 0.5).map_or(1.0, |f| f.max(1.0)),
+    }
 }
 
 /// One explanation of a candidate's matches: the pose with the intrinsics'
@@ -209,28 +265,32 @@ pub(super) fn mixture_sigma(h0: &Hypothesis, h1: &Hypothesis, p0: f64) -> Option
 /// the map's own error in quadrature, the latter the larger of the floor
 /// of `map_error` and the RMS `spread` of the agreeing candidates around
 /// the chosen pose (position as a fraction of `median_depth`, rotation in
-/// degrees), and for the position the map's absolute error too; the
-/// position also as a fraction of `near`, the distance to the nearest
-/// scene content.
+/// degrees), and for the position the map's absolute error too; the floor
+/// and the absolute error times `view_factor` (how much larger the map's
+/// error looks from this camera than from the flown views,
+/// [`BeyondViews::factor`]); the position also as a fraction of `near`,
+/// the distance to the nearest scene content.
 pub(super) fn reported_sigma(
     pose: &PoseSigma,
     spread: Option<(f64, f64)>,
     map_error: &MapError,
     median_depth: f64,
     near: f64,
+    view_factor: f64,
 ) -> PoseSigma {
     let map_sigma = &map_error.sigma;
+    let f = view_factor.max(1.0);
+    // The agreeing candidates' spread already shows the map's error from
+    // this camera (each candidate's local map seen from here): not scaled.
+    let (floor_pos, floor_rot) = (f * map_sigma.depth_fraction, f * map_sigma.rotation_deg);
     let (map_pos, map_rot) = match spread {
-        Some((pos, rot)) => (
-            pos.max(map_sigma.depth_fraction),
-            rot.max(map_sigma.rotation_deg),
-        ),
-        None => (map_sigma.depth_fraction, map_sigma.rotation_deg),
+        Some((pos, rot)) => (pos.max(floor_pos), rot.max(floor_rot)),
+        None => (floor_pos, floor_rot),
     };
     let position = pose
         .position
         .hypot(map_pos * median_depth)
-        .hypot(map_error.absolute);
+        .hypot(f * map_error.absolute);
     PoseSigma {
         position,
         position_depth_fraction: position / near.max(1e-12),
@@ -256,17 +316,50 @@ mod tests {
         assert_eq!(slots.iter().flatten().count(), 50);
         // At a keyframe: 0.
         let at_kf = Isometry3::translation(-0.2, 0.0, 0.0);
-        assert!(beyond_views_deg(&map, &at_kf, &slots) < 1e-6);
+        let at = beyond_views(&map, &at_kf, &slots);
+        assert!(at.deg < 1e-6 && (at.factor - 1.0).abs() < 1e-9, "{at:?}");
         // Between keyframes: 0 too (rays on both sides, the nearest is
         // under 1.5 deg away).
         let between = Isometry3::translation(-0.15, 0.0, 0.0);
-        assert!(beyond_views_deg(&map, &between, &slots) < 1.5);
+        assert!(beyond_views(&map, &between, &slots).deg < 1.5);
         // 1 m beyond the first keyframe: for the median point (x about
         // 0.245) atan((0.245 + 1)/2) - atan(0.245/2) = 24.9 deg.
         let beyond = Isometry3::translation(1.0, 0.0, 0.0);
-        let got = beyond_views_deg(&map, &beyond, &slots);
-        assert!((got - 24.9).abs() < 0.5, "{got}");
-        // No points: 0.
-        assert_eq!(beyond_views_deg(&map, &beyond, &[]), 0.0);
+        let got = beyond_views(&map, &beyond, &slots);
+        assert!((got.deg - 24.9).abs() < 0.5, "{got:?}");
+        // The median point's rays span atan(0.245/2) - atan((0.245 -
+        // 0.3)/2) = 8.55 deg: its depth error is 13.4x its error across,
+        // and seen 24.9 deg further round the error grows by 4.7.
+        let expected = view_error_factor(8.56_f64.to_radians(), 24.9_f64.to_radians());
+        assert!((expected - 4.67).abs() < 0.01, "{expected}");
+        assert!((got.factor / expected - 1.0).abs() < 0.15, "{got:?}");
+        // No points: 0, and no growth.
+        let none = beyond_views(&map, &beyond, &[]);
+        assert_eq!((none.deg, none.factor), (0.0, 1.0));
+    }
+
+    #[test]
+    fn the_view_error_factor_grows_with_the_angle_beyond_over_the_span() {
+        let d = f64::to_radians;
+        // At the edge of the views: 1.
+        assert!((view_error_factor(d(19.0), 0.0) - 1.0).abs() < 1e-12);
+        // A point seen over 19 deg, from 10 and 20 deg further round:
+        // sqrt((cos²phi + sin²phi / tan²(9.5°)) / (2 cos²(9.5°))).
+        let expect = |beyond: f64| {
+            let (h, phi) = (d(9.5), d(9.5 + beyond));
+            ((phi.cos().powi(2) + phi.sin().powi(2) / h.tan().powi(2)) / (2.0 * h.cos().powi(2)))
+                .sqrt()
+        };
+        for beyond in [10.0, 20.0] {
+            let got = view_error_factor(d(19.0), d(beyond));
+            assert!((got - expect(beyond)).abs() < 1e-12, "{got}");
+        }
+        assert!((expect(10.0) - 1.58).abs() < 0.01 && (expect(20.0) - 2.20).abs() < 0.01);
+        // A wide span barely grows; a narrow one grows fast; a degenerate
+        // span is bounded, and the factor never falls below 1.
+        assert!(view_error_factor(d(90.0), d(20.0)) < 1.01);
+        assert!(view_error_factor(d(5.0), d(20.0)) > 5.0);
+        assert!(view_error_factor(0.0, d(90.0)).is_finite());
+        assert!(view_error_factor(d(40.0), -1.0) >= 1.0);
     }
 }

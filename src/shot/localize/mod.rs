@@ -61,7 +61,7 @@ pub use self::params::{
 };
 
 use self::candidates::{extract_shot_features, neighbourhood_matches, rank_candidates};
-use self::covariance::{MapError, beyond_views_deg, reported_sigma};
+use self::covariance::{MapError, beyond_views, reported_sigma};
 use self::gate::{agreement, gate_reason, union_of_evidence};
 use self::outcome::not;
 use self::pose_refinement::{CandidatePose, refine_candidate};
@@ -187,6 +187,30 @@ pub fn localize_with_camera(
     }
     poses.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rmse.total_cmp(&b.rmse)));
     let g = &params.gate;
+    // With a position prior (the photo's GPS tag), the candidates' poses
+    // far from it are a look-alike place: left out when a pose near it
+    // remains, so the place the tag confirms is the one chosen (and the
+    // others neither win nor veto it as disagreeing). When none is near,
+    // all stay, and the best is refused as far from the prior below.
+    if let Some(prior) = &params.position_prior {
+        let near_prior = |c: &CandidatePose| {
+            let centre = nalgebra::Point3::from(c.cam_from_world.inverse().translation.vector);
+            let pose_sigma = c.sigma.map_or(0.0, |s| s.position);
+            prior.distance(&centre, pose_sigma).1 <= g.max_prior_sigmas
+        };
+        if poses
+            .iter()
+            .any(|c| gate_reason(c, g).is_none() && near_prior(c))
+        {
+            let before = poses.len();
+            poses.retain(|c| near_prior(c));
+            tracing::debug!(
+                kept = poses.len(),
+                left_out = before - poses.len(),
+                "shot candidates far from the photo's position prior left out"
+            );
+        }
+    }
     if let Some(reason) = gate_reason(&poses[0], g) {
         return Ok(not(reason));
     }
@@ -212,13 +236,15 @@ pub fn localize_with_camera(
     // nearer mapped content (unmatched from this view) is in the picture.
     let near = frustum_near_depth(map, &view, &best.cam_from_world)
         .map_or(best.near_depth, |d| d.min(best.near_depth));
-    let beyond = beyond_views_deg(map, &best.cam_from_world, &best.slots);
+    let views = beyond_views(map, &best.cam_from_world, &best.slots);
+    let beyond = views.deg;
     let sigma = reported_sigma(
         &pose_sigma,
         agreeing.rms_spread(),
         &map_error,
         best.median_depth,
         near,
+        views.factor,
     );
     tracing::debug!(
         keyframe = best.kf.0,
@@ -234,18 +260,14 @@ pub fn localize_with_camera(
         position_pct = sigma.position_depth_fraction * 100.0,
         rotation_deg = sigma.rotation_deg,
         beyond_views_deg = beyond,
+        view_factor = views.factor,
         "shot sigma"
     );
     if let Some(prior) = &params.position_prior {
-        // The pose's sigma is the RMS of the centre's 3-D error: per axis
-        // it is that over sqrt(3).
-        let per_axis = prior.sigma.hypot(sigma.position / 3f64.sqrt());
-        let off = best_wfc.translation.vector - prior.centre.coords;
-        let distance = match prior.down {
-            Some(d) => (off - d.into_inner() * d.dot(&off)).norm(),
-            None => off.norm(),
-        };
-        let sigmas = distance / per_axis.max(1e-12);
+        let (distance, sigmas) = prior.distance(
+            &nalgebra::Point3::from(best_wfc.translation.vector),
+            sigma.position,
+        );
         tracing::debug!(
             distance,
             sigmas,

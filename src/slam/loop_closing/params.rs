@@ -56,11 +56,11 @@ pub struct LoopParams {
     /// graph (the map's first keyframe fixed); `None` (default): none. It
     /// runs on the loop closer's thread beside local mapping, the solve
     /// without the map lock, and is written back with local mapping held.
-    /// Off by default: on the simulator renders it did not help (README).
+    /// Off by default: on the simulator renders it did not help (docs/FIGURES.md).
     pub global_ba: Option<BaParams>,
     /// Fit the loop's Sim(3) again on the matches the projection search
     /// found whose keypoint holds a point, and search once more. Off by
-    /// default: on the simulator renders it did not help (README).
+    /// default: on the simulator renders it did not help (docs/FIGURES.md).
     pub refit_on_projection: bool,
     /// Merge the active map into an inactive one (left after a tracking
     /// loss) when a place common to both is found.

@@ -154,6 +154,17 @@ pub fn map_sigma_from_env() -> anyhow::Result<shotpilot::shot::MapSigma> {
     Ok(s)
 }
 
+/// The localisation's PnP RANSAC settings, with `SHOT_PNP_MIN_INLIERS=N`
+/// setting the fewest inliers of a candidate's first pose, for a
+/// before/after.
+pub fn pnp_from_env() -> anyhow::Result<shotpilot::geometry::PnpParams> {
+    let mut p = shotpilot::shot::LocalizeParams::default().pnp;
+    if let Ok(v) = std::env::var("SHOT_PNP_MIN_INLIERS") {
+        p.min_inliers = v.trim().parse()?;
+    }
+    Ok(p)
+}
+
 /// The localisation's gate, with `SHOT_GATE=POS,ROT,RATIO` setting its
 /// largest position sigma (fraction of the distance), largest rotation
 /// sigma (degrees) and smallest inlier ratio, for a before/after.
