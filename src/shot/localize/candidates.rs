@@ -176,16 +176,17 @@ pub(super) type Candidate = (KeyFrameId, Vec<(usize, PointId)>);
 /// The candidate keyframes of a shot, most descriptor matches first (at
 /// most [`LocalizeParams::top_k`]): with a [`BowIndex`] the first
 /// [`LocalizeParams::bow_candidates`] of a bag-of-words query, else every
-/// keyframe, each matched by descriptor against its map points; with a
-/// position prior, the keyframes near it are matched too and the best
-/// [`LocalizeParams::top_k`] of them beyond the first are kept as well.
-/// The reason when there is none, or when the best has too few matches.
+/// keyframe, each matched by descriptor against its map points; and
+/// apart, with a position prior, the best [`LocalizeParams::top_k`] of
+/// the keyframes near it ([`near_prior_keyframes`]) not among the first
+/// (empty without a prior). The reason when there is none, or when the
+/// best has too few matches.
 pub(super) fn rank_candidates(
     map: &Map,
     feats: &features::Features,
     bow_index: Option<&BowIndex<'_>>,
     params: &LocalizeParams,
-) -> Result<Vec<Candidate>, NotLocalizedReason> {
+) -> Result<(Vec<Candidate>, Vec<Candidate>), NotLocalizedReason> {
     let mut ranked: Vec<Candidate> = Vec::new();
     let mut pts: Vec<(PointId, Descriptor)> = Vec::new();
     let candidates: Vec<KeyFrameId> = match bow_index {
@@ -238,7 +239,6 @@ pub(super) fn rank_candidates(
         .cloned()
         .collect();
     ranked.truncate(top_k);
-    ranked.extend(extra);
     let best_count = ranked[0].1.len();
     if best_count < params.min_candidate_matches {
         return Err(NotLocalizedReason::TooFewMatches {
@@ -246,7 +246,7 @@ pub(super) fn rank_candidates(
             needed: params.min_candidate_matches,
         });
     }
-    Ok(ranked)
+    Ok((ranked, extra))
 }
 
 /// The keyframes that could see what a camera at the photo's position

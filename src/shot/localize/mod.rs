@@ -70,7 +70,7 @@ use crate::camera::Camera;
 use crate::matching::{Bounds, FeatureGrid};
 use crate::optimize::{Intrinsics, IntrinsicsCorrection};
 use crate::shot::ShotError;
-use crate::slam::Map;
+use crate::slam::{KeyFrameId, Map, PointId};
 
 /// Localises a desired shot taken with the map's camera (see the module
 /// documentation). `mask` (same size as the shot, 0 = no data) keeps
@@ -112,7 +112,7 @@ pub fn localize_with_camera(
             needed,
         }));
     }
-    let ranked = match rank_candidates(map, &feats, bow_index, params) {
+    let (ranked, near_prior) = match rank_candidates(map, &feats, bow_index, params) {
         Ok(r) => r,
         Err(reason) => return Ok(not(reason)),
     };
@@ -136,74 +136,109 @@ pub fn localize_with_camera(
     let map_error = MapError::of(map, &params.map_sigma);
     let mut poses: Vec<CandidatePose> = Vec::new();
     let mut tried = 0;
+    let g = &params.gate;
+    // With a position prior (the photo's GPS tag): a candidate's pose near
+    // it (always true without one).
+    let near_prior_pose = |c: &CandidatePose| {
+        params.position_prior.is_none_or(|prior| {
+            let centre = nalgebra::Point3::from(c.cam_from_world.inverse().translation.vector);
+            let pose_sigma = c.sigma.map_or(0.0, |s| s.position);
+            prior.distance(&centre, pose_sigma).1 <= g.max_prior_sigmas
+        })
+    };
+    let mut try_candidate =
+        |kf_id: KeyFrameId, matches: &[(usize, PointId)], poses: &mut Vec<CandidatePose>| {
+            if matches.len() < params.min_candidate_matches {
+                return;
+            }
+            tried += 1;
+            // The candidate's own matches first; where they give no pose the
+            // gate takes, its neighbourhood's (every observation's descriptor
+            // of the points of its covisible keyframes): a photo far round
+            // from the flown views that the direct matching misses. Not for a
+            // photo whose camera is only assumed: its focal length and
+            // distortion are fitted too, and the wider, noisier matches let
+            // a wrong camera fit them (teddy's last held-out frame, resized:
+            // 2.5 deg off where the map camera's photo is 1.9 deg off).
+            let own = refine_candidate(
+                map, kf_id, matches, &feats, &grid, &view, &intr, params, &map_error,
+            );
+            if params.focal_unknown
+                || own
+                    .as_ref()
+                    .is_some_and(|c| gate_reason(c, &params.gate).is_none())
+            {
+                poses.extend(own);
+                return;
+            }
+            let wide = neighbourhood_matches(map, kf_id, &feats, params);
+            let again = (wide.len() > matches.len())
+                .then(|| {
+                    refine_candidate(
+                        map, kf_id, &wide, &feats, &grid, &view, &intr, params, &map_error,
+                    )
+                })
+                .flatten();
+            tracing::debug!(
+                keyframe = kf_id.0,
+                own = matches.len(),
+                own_pose = own.as_ref().map(|c| c.inliers),
+                neighbourhood = wide.len(),
+                neighbourhood_pose = again.as_ref().map(|c| c.inliers),
+                "shot candidate: its own matches gave no pose the gate takes; its neighbourhood's"
+            );
+            match (own, again) {
+                (_, Some(c)) if gate_reason(&c, &params.gate).is_none() => poses.push(c),
+                (Some(c), _) | (None, Some(c)) => poses.push(c),
+                (None, None) => {}
+            }
+        };
     for (kf_id, matches) in &ranked {
-        if matches.len() < params.min_candidate_matches {
-            continue;
-        }
-        tried += 1;
-        // The candidate's own matches first; where they give no pose the
-        // gate takes, its neighbourhood's (every observation's descriptor
-        // of the points of its covisible keyframes): a photo far round
-        // from the flown views that the direct matching misses. Not for a
-        // photo whose camera is only assumed: its focal length and
-        // distortion are fitted too, and the wider, noisier matches let
-        // a wrong camera fit them (teddy's last held-out frame, resized:
-        // 2.5 deg off where the map camera's photo is 1.9 deg off).
-        let own = refine_candidate(
-            map, *kf_id, matches, &feats, &grid, &view, &intr, params, &map_error,
-        );
-        if params.focal_unknown
-            || own
-                .as_ref()
-                .is_some_and(|c| gate_reason(c, &params.gate).is_none())
-        {
-            poses.extend(own);
-            continue;
-        }
-        let wide = neighbourhood_matches(map, *kf_id, &feats, params);
-        let again = (wide.len() > matches.len())
-            .then(|| {
-                refine_candidate(
-                    map, *kf_id, &wide, &feats, &grid, &view, &intr, params, &map_error,
-                )
-            })
-            .flatten();
+        try_candidate(*kf_id, matches, &mut poses);
+    }
+    // The keyframes near the prior, when the first candidates gave no
+    // pose near it that the gate takes: a look-alike place that outranks
+    // the right one by its descriptors does not keep the right one from
+    // being tried (and when the first candidates agree with the prior,
+    // nothing changes).
+    if !near_prior.is_empty()
+        && !poses
+            .iter()
+            .any(|c| gate_reason(c, g).is_none() && near_prior_pose(c))
+    {
         tracing::debug!(
-            keyframe = kf_id.0,
-            own = matches.len(),
-            own_pose = own.as_ref().map(|c| c.inliers),
-            neighbourhood = wide.len(),
-            neighbourhood_pose = again.as_ref().map(|c| c.inliers),
-            "shot candidate: its own matches gave no pose the gate takes; its neighbourhood's"
+            candidates = near_prior.len(),
+            "no candidate near the photo's position prior: the keyframes near it tried"
         );
-        match (own, again) {
-            (_, Some(c)) if gate_reason(&c, &params.gate).is_none() => poses.push(c),
-            (Some(c), _) | (None, Some(c)) => poses.push(c),
-            (None, None) => {}
+        let first = poses.len();
+        for (kf_id, matches) in &near_prior {
+            try_candidate(*kf_id, matches, &mut poses);
+        }
+        // None of them near it either: the photo is refused as far from
+        // its prior on the first candidates' evidence alone.
+        if !poses[first..]
+            .iter()
+            .any(|c| gate_reason(c, g).is_none() && near_prior_pose(c))
+        {
+            poses.truncate(first);
         }
     }
     if poses.is_empty() {
         return Ok(not(NotLocalizedReason::PnpFailed { candidates: tried }));
     }
     poses.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rmse.total_cmp(&b.rmse)));
-    let g = &params.gate;
     // With a position prior (the photo's GPS tag), the candidates' poses
     // far from it are a look-alike place: left out when a pose near it
     // remains, so the place the tag confirms is the one chosen (and the
     // others neither win nor veto it as disagreeing). When none is near,
     // all stay, and the best is refused as far from the prior below.
-    if let Some(prior) = &params.position_prior {
-        let near_prior = |c: &CandidatePose| {
-            let centre = nalgebra::Point3::from(c.cam_from_world.inverse().translation.vector);
-            let pose_sigma = c.sigma.map_or(0.0, |s| s.position);
-            prior.distance(&centre, pose_sigma).1 <= g.max_prior_sigmas
-        };
+    if params.position_prior.is_some() {
         if poses
             .iter()
-            .any(|c| gate_reason(c, g).is_none() && near_prior(c))
+            .any(|c| gate_reason(c, g).is_none() && near_prior_pose(c))
         {
             let before = poses.len();
-            poses.retain(|c| near_prior(c));
+            poses.retain(|c| near_prior_pose(c));
             tracing::debug!(
                 kept = poses.len(),
                 left_out = before - poses.len(),
