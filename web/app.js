@@ -62,7 +62,7 @@ function showStatus(s) {
   else badge('b-geo', g.state === 'waiting' ? 'warn' : 'bad', `georef ${g.state || 'none'}`);
   $('b-geo').title = geoText(g);
   // The line beside the badges: only what needs the operator's attention.
-  const msgs = (mapStartText(sl.map_start) + errorsText(s.errors) + (g.state && g.state !== 'ok' ? geoText(g) : ''))
+  const msgs = (linkText(v.link) + mapStartText(sl.map_start) + errorsText(s.errors) + (g.state && g.state !== 'ok' ? geoText(g) : ''))
     .split(' | ').map((x) => x.trim()).filter(Boolean);
   $('status').textContent = msgs.join(' · ');
   $('status').dataset.errors = String((s.errors || []).length);
@@ -70,6 +70,7 @@ function showStatus(s) {
   $('videostats').textContent =
     (src.kind ? `${src.kind} ${src.url || ''} ${src.codec || ''}${src.transport ? '/' + src.transport : ''} · ` : '') +
     `${(v.decoded_fps || 0).toFixed(1)} fps · ${(v.bitrate_kbps || 0).toFixed(0)} kbit/s · ` +
+    (v.link && v.link.frames ? `usable ${(v.link.usable_share * 100).toFixed(0)} % · ` : '') +
     `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · late ${c.late || 0} · skipped ${c.skipped || 0} · damaged ${c.damaged || 0} (masked ${((c.masked_share || 0) * 100).toFixed(1)} %) · lost pkts ${c.lost_packets || 0} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
     (v.width ? ` · ${v.width}x${v.height}` : '') +
     (src.last_error ? ` · ${src.last_error}` : '');
@@ -77,6 +78,11 @@ function showStatus(s) {
   renderMapEvents(sl);
   drawMap();
   drawOverlay();
+}
+// The video link's loss when it leaves SLAM too few usable frames.
+function linkText(l) {
+  if (!l || !l.unreliable) return '';
+  return ` | video link: ${(l.usable_share * 100).toFixed(0)} % of frames usable (${(l.masked_share * 100).toFixed(0)} % of rows masked) over the last ${l.window_s.toFixed(0)} s: shots are unreliable; shorter key-frame intervals or intra refresh on the camera, or a stronger link, would help`;
 }
 function errorsText(errors) {
   if (!errors || !errors.length) return '';

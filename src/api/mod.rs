@@ -229,6 +229,7 @@ fn status_json(st: &AppState) -> Value {
             "decoded_fps": st.ingest.decoded_rate.rate(),
             "consumed_fps": st.ingest.consumed_rate.rate(),
             "counters": c,
+            "link": st.ingest.link.report(),
             "source": st.ingest.source_info(),
             "bitrate_kbps": st.ingest.byte_rate.bits_per_second() / 1e3,
             "width": latest.as_ref().map(|f| f.image.width()),

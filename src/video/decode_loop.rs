@@ -462,11 +462,15 @@ pub fn spawn_decoder(
                         });
                         ingest.publish(f);
                     }
-                    Decoded::Skipped => Counters::inc(&c.skipped),
+                    Decoded::Skipped => {
+                        Counters::inc(&c.skipped);
+                        ingest.link.lost();
+                    }
                     Decoded::NoPicture => {}
                     Decoded::Broken(e) => {
                         Counters::inc(&c.bad);
                         Counters::inc(&c.skipped);
+                        ingest.link.lost();
                         broken_logged += 1;
                         if broken_logged.is_power_of_two() {
                             tracing::warn!("video: {e} ({broken_logged} so far)");

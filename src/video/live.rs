@@ -499,6 +499,122 @@ impl RateMeter {
     }
 }
 
+/// What the link's loss leaves SLAM over a sliding window: the frames
+/// given to it, with the share of each one's rows masked, against the
+/// frames lost to it (not decoded: waiting for a sync point after a lost
+/// packet, or undecodable). Frames dropped because a newer one arrived
+/// first are not the link's doing and are not counted.
+#[derive(Debug)]
+pub struct LinkWindow {
+    window: Duration,
+    /// (when, masked share of a frame given; None for a frame lost).
+    events: Mutex<VecDeque<(Instant, Option<f64>)>>,
+}
+
+/// [`LinkWindow`]'s sliding window.
+pub const LINK_WINDOW: Duration = Duration::from_secs(10);
+
+/// A frame with more than this share of its rows masked cannot become a
+/// keyframe (SLAM's `max_masked_share` default): it is not counted usable.
+pub const LINK_MAX_MASKED_SHARE: f64 = 0.25;
+
+/// Below this share of usable frames the link makes shots unreliable: the
+/// video-loss goal is 70 % of the frames reaching SLAM at 5 % packet loss,
+/// with tracking holding.
+pub const LINK_MIN_USABLE_SHARE: f64 = 0.7;
+
+/// Fewest frames in the window for a verdict (a stream just started, or
+/// stalled, says nothing about its loss).
+pub const LINK_MIN_FRAMES: u64 = 10;
+
+/// The link's effect on SLAM over the last [`LINK_WINDOW`]
+/// ([`LinkWindow::report`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct LinkQuality {
+    /// The window, seconds.
+    pub window_s: f64,
+    /// Frames in it: given to SLAM or lost to it.
+    pub frames: u64,
+    /// Share of them given to SLAM with at most [`LINK_MAX_MASKED_SHARE`]
+    /// of their rows masked (1 with no frames).
+    pub usable_share: f64,
+    /// Mean share of masked rows over the frames given to SLAM (0 to 1).
+    pub masked_share: f64,
+    /// True when the window holds [`LINK_MIN_FRAMES`] or more and fewer
+    /// than [`LINK_MIN_USABLE_SHARE`] of them are usable: the map cannot
+    /// grow or hold on such a link, and shots localised or refined over it
+    /// are unreliable.
+    pub unreliable: bool,
+}
+
+impl LinkWindow {
+    /// A window of `window`.
+    pub fn new(window: Duration) -> Self {
+        Self {
+            window,
+            events: Mutex::new(VecDeque::new()),
+        }
+    }
+
+    /// A frame given to SLAM with `masked_share` of its rows masked.
+    pub fn given(&self, masked_share: f64) {
+        self.record(Instant::now(), Some(masked_share));
+    }
+
+    /// A frame lost to SLAM.
+    pub fn lost(&self) {
+        self.record(Instant::now(), None);
+    }
+
+    /// The window's figures now.
+    pub fn report(&self) -> LinkQuality {
+        self.report_at(Instant::now())
+    }
+
+    fn record(&self, at: Instant, event: Option<f64>) {
+        let mut e = self.events.lock().unwrap_or_else(|e| e.into_inner());
+        e.push_back((at, event));
+        Self::expire(&mut e, at, self.window);
+    }
+
+    fn expire(e: &mut VecDeque<(Instant, Option<f64>)>, now: Instant, window: Duration) {
+        while e
+            .front()
+            .is_some_and(|(t, _)| now.saturating_duration_since(*t) > window)
+        {
+            e.pop_front();
+        }
+    }
+
+    fn report_at(&self, now: Instant) -> LinkQuality {
+        let mut e = self.events.lock().unwrap_or_else(|e| e.into_inner());
+        Self::expire(&mut e, now, self.window);
+        let frames = e.len() as u64;
+        let given: Vec<f64> = e.iter().filter_map(|(_, m)| *m).collect();
+        let usable = given
+            .iter()
+            .filter(|m| **m <= LINK_MAX_MASKED_SHARE)
+            .count() as f64;
+        let usable_share = if frames == 0 {
+            1.0
+        } else {
+            usable / frames as f64
+        };
+        let masked_share = if given.is_empty() {
+            0.0
+        } else {
+            given.iter().sum::<f64>() / given.len() as f64
+        };
+        LinkQuality {
+            window_s: self.window.as_secs_f64(),
+            frames,
+            usable_share,
+            masked_share,
+            unreliable: frames >= LINK_MIN_FRAMES && usable_share < LINK_MIN_USABLE_SHARE,
+        }
+    }
+}
+
 /// The shared state of one ingest pipeline: reader -> raw slot -> decoder
 /// -> frame slot (+ a watch for async observers such as the API).
 #[derive(Debug)]
@@ -517,6 +633,8 @@ pub struct Ingest {
     pub consumed_rate: RateMeter,
     /// Received video bytes per second.
     pub byte_rate: ByteRate,
+    /// What the link's loss leaves SLAM, over the last [`LINK_WINDOW`].
+    pub link: LinkWindow,
     /// What the source is (set by the reader).
     pub source: Mutex<SourceInfo>,
     /// Decimation of JPEG frames before SLAM (`[video] downscale`; 1: none).
@@ -542,6 +660,7 @@ impl Ingest {
             decoded_rate: RateMeter::new(w),
             consumed_rate: RateMeter::new(w),
             byte_rate: ByteRate::new(w),
+            link: LinkWindow::new(LINK_WINDOW),
             source: Mutex::new(SourceInfo::default()),
             jpeg_downscale: std::sync::atomic::AtomicU32::new(1),
             observers: watch::channel(None).0,
@@ -596,6 +715,7 @@ impl Ingest {
     pub fn publish(&self, frame: Arc<Frame>) {
         Counters::inc(&self.counters.decoded);
         self.decoded_rate.tick();
+        self.link.given(frame.masked_share());
         if self.frames.put(frame.clone()) {
             Counters::inc(&self.counters.dropped_unconsumed);
         }
@@ -640,6 +760,7 @@ impl Ingest {
             Err(e) => {
                 tracing::debug!("undecodable JPEG ({} bytes): {e}", part.jpeg.len());
                 Counters::inc(&self.counters.bad);
+                self.link.lost();
                 false
             }
         }
@@ -701,6 +822,49 @@ pub fn downscale(img: &GrayImage, f: u32) -> GrayImage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_link_window_counts_usable_frames_and_says_when_too_few() {
+        let w = LinkWindow::new(Duration::from_secs(10));
+        let t0 = Instant::now();
+        // Nothing yet: no verdict.
+        let q = w.report_at(t0);
+        assert_eq!((q.frames, q.usable_share, q.unreliable), (0, 1.0, false));
+        // 8 intact, 2 with a tenth masked, 2 half masked, 3 lost: 10 of
+        // 15 usable (the half-masked ones cannot become keyframes).
+        let at = |k: u64| t0 + Duration::from_millis(100 * k);
+        let mut k = 0;
+        for masked in [0.0; 8].into_iter().chain([0.1, 0.1, 0.5, 0.5]) {
+            w.record(at(k), Some(masked));
+            k += 1;
+        }
+        for _ in 0..3 {
+            w.record(at(k), None);
+            k += 1;
+        }
+        let q = w.report_at(at(k));
+        assert_eq!(q.frames, 15);
+        assert!((q.usable_share - 10.0 / 15.0).abs() < 1e-12, "{q:?}");
+        assert!((q.masked_share - 1.2 / 12.0).abs() < 1e-12, "{q:?}");
+        assert!(q.unreliable, "10 of 15 is under 70 %");
+        // Ten seconds on, the window holds only what came since: 10
+        // intact frames, a reliable link again.
+        let later = at(k) + Duration::from_secs(11);
+        for j in 0..10 {
+            w.record(later + Duration::from_millis(j), Some(0.0));
+        }
+        let q = w.report_at(later + Duration::from_millis(10));
+        assert_eq!((q.frames, q.usable_share, q.unreliable), (10, 1.0, false));
+        // Under the fewest frames for a verdict: all lost says nothing.
+        let w = LinkWindow::new(Duration::from_secs(10));
+        for j in 0..(LINK_MIN_FRAMES - 1) {
+            w.record(t0 + Duration::from_millis(j), None);
+        }
+        let q = w.report_at(t0 + Duration::from_millis(20));
+        assert_eq!((q.usable_share, q.unreliable), (0.0, false));
+        w.record(t0 + Duration::from_millis(21), None);
+        assert!(w.report_at(t0 + Duration::from_millis(22)).unreliable);
+    }
 
     #[test]
     fn latest_keeps_newest_and_counts_replaced() {

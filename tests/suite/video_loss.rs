@@ -23,7 +23,7 @@ use std::time::{Duration, Instant};
 
 use rand::{Rng, SeedableRng};
 use shotpilot::config::VideoConfig;
-use shotpilot::video::live::{CountersSnapshot, Ingest};
+use shotpilot::video::live::{CountersSnapshot, Ingest, LinkQuality};
 use shotpilot::video::udp::RtpSockets;
 use tokio_util::sync::CancellationToken;
 
@@ -176,6 +176,9 @@ struct Case {
 #[derive(Debug)]
 struct Outcome {
     counters: CountersSnapshot,
+    /// What the link left SLAM over the stream's last 10 s (the status's
+    /// `video.link`), read as the sender finished.
+    link: LinkQuality,
     forwarded: u64,
     dropped: u64,
     /// Per frame given to SLAM: its capture time (from the sender's RTCP
@@ -332,6 +335,7 @@ fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Out
     for (mut child, proxy, running) in groups {
         let status = child.wait().unwrap();
         assert!(status.success(), "ffmpeg failed: {status}");
+        let links: Vec<LinkQuality> = running.iter().map(|r| r.ingest.link.report()).collect();
         // The decoders drain what is queued (a bound, not a figure).
         let t = Instant::now();
         let snap = |r: &Vec<Running>| -> Vec<_> {
@@ -347,7 +351,7 @@ fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Out
             last = now;
         }
         let counts = proxy.finish();
-        for (r, (forwarded, dropped)) in running.into_iter().zip(counts) {
+        for ((r, (forwarded, dropped)), link) in running.into_iter().zip(counts).zip(links) {
             r.cancel.cancel();
             rt.block_on(r.task).unwrap().unwrap();
             let counters = r.ingest.counters.snapshot();
@@ -357,6 +361,7 @@ fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Out
             let frames = std::mem::take(&mut *r.seen.lock().unwrap());
             out[r.case] = Some(Outcome {
                 counters,
+                link,
                 forwarded,
                 dropped,
                 frames,
@@ -393,7 +398,7 @@ fn against_clean(lossy: &Outcome, clean: &Outcome) -> (usize, usize, usize, usiz
 
 fn figures(cases: &[Case], outcomes: &[Outcome]) {
     eprintln!(
-        "FIGURES loss | slices | gop | damage model | packets sent/dropped | pictures received | decoded (given to SLAM) | damaged | fully damaged | masked rows | skipped | rows really differing | differing unmasked"
+        "FIGURES loss | slices | gop | damage model | packets sent/dropped | pictures received | decoded (given to SLAM) | damaged | fully damaged | masked rows | skipped | rows really differing | differing unmasked | usable, last 10 s (status) | unreliable"
     );
     for (c, o) in cases.iter().zip(outcomes) {
         let k = &o.counters;
@@ -404,7 +409,7 @@ fn figures(cases: &[Case], outcomes: &[Outcome]) {
             .map(|(_, o)| o);
         let (rows, _, differ, unmarked) = clean.map_or((0, 0, 0, 0), |cl| against_clean(o, cl));
         eprintln!(
-            "FIGURES {} | {} | {} | {} | {}/{} | {} | {} ({:.1} %) | {} | {} | {:.1} % | {} | {:.1} % | {}",
+            "FIGURES {} | {} | {} | {} | {}/{} | {} | {} ({:.1} %) | {} | {} | {:.1} % | {} | {:.1} % | {} | {:.1} % of {} | {}",
             c.loss.name(),
             c.slice_bytes
                 .map_or("one per picture".to_string(), |n| format!("<= {n} B")),
@@ -425,6 +430,9 @@ fn figures(cases: &[Case], outcomes: &[Outcome]) {
             k.skipped,
             100.0 * differ as f64 / rows.max(1) as f64,
             unmarked,
+            o.link.usable_share * 100.0,
+            o.link.frames,
+            o.link.unreliable,
         );
     }
 }
@@ -496,9 +504,30 @@ fn x264_through_a_lossy_link_reaches_slam_with_its_damage_masked() {
             // the next key frame after them.
             assert_eq!(k.decoded + k.late + k.skipped, k.received, "{name}: {k:?}");
             assert!(k.late + k.skipped <= k.received / 10, "{name}: {k:?}");
+            // A clean link: every frame of the last 10 s usable.
+            assert!(
+                o.link.frames >= 100 && o.link.usable_share > 0.95 && !o.link.unreliable,
+                "{name}: {:?}",
+                o.link
+            );
             continue;
         }
         assert!(o.dropped > 0 && k.damaged > 0, "{name}: {k:?}");
+        // The status's verdict on the link: at 5 % loss and more, sliced or
+        // not, under 70 % of the frames keep three quarters of their rows
+        // (measured: 2.6-9.7 % usable), and the operator is told. (At 1-2 %
+        // too, today: 11-27 % usable with 1200-byte slices, 13-14 % with
+        // one slice per picture; the status says so, this does not assert
+        // it, as better masking should change it.)
+        if matches!(c.loss, Loss::Random(r) if r >= 0.05) {
+            assert!(o.link.unreliable, "{name}: {:?}", o.link);
+        }
+        // It never counts more usable than reached SLAM.
+        assert!(
+            o.link.usable_share <= k.decoded as f64 / k.received.max(1) as f64 + 0.1,
+            "{name}: {:?} against {k:?}",
+            o.link
+        );
         // Nothing SLAM may use differs from the lossless copy.
         let clean = cases
             .iter()
