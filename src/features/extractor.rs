@@ -309,9 +309,32 @@ fn features_per_level(n: usize, levels: usize, scale: f32, exponent: f32) -> Vec
 }
 
 /// True when no mask pixel under the patch of a corner at level-0 position
-/// `(x, y)` with radius `r` (level-0 pixels) is 0: the centre and 8 points on
-/// the patch circle are probed.
+/// `(x, y)` with radius `r` (level-0 pixels) is 0: every pixel of the
+/// patch's vertical and horizontal diameters (a band of masked rows or
+/// columns anywhere under the patch is seen; the damage of a lost video
+/// packet is whole rows) and 8 points on its circle.
 fn patch_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) -> bool {
+    let at = |px: f32, py: f32| {
+        let (px, py) = (px.round(), py.round());
+        px >= 0.0
+            && py >= 0.0
+            && px < w0 as f32
+            && py < h0 as f32
+            && mask
+                .get(py as usize * w0 + px as usize)
+                .is_some_and(|&m| m != 0)
+    };
+    let steps = r.ceil() as i32;
+    let diameters = (-steps..=steps).all(|k| {
+        let d = (k as f32).clamp(-r, r);
+        at(x, y + d) && at(x + d, y)
+    });
+    diameters && circle_unmasked(mask, w0, h0, x, y, r)
+}
+
+/// The centre and 8 points on the circle of radius `r` about `(x, y)`
+/// unmasked (and inside the image).
+fn circle_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) -> bool {
     const D: f32 = std::f32::consts::FRAC_1_SQRT_2;
     const DIRS: [(f32, f32); 9] = [
         (0.0, 0.0),
@@ -333,6 +356,17 @@ fn patch_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) -> 
         mask.get(py as usize * w0 + px as usize)
             .is_some_and(|&m| m != 0)
     })
+}
+
+/// How far, in level-0 pixels, a pixel of the level at `scale` reaches back
+/// through the pyramid's bilinear resizes (each by `factor`): one source
+/// pixel of each level below it, `1 + factor + ... + factor^(l-1)` for
+/// `scale = factor^l` (0 at level 0).
+fn resample_reach(scale: f32, factor: f32) -> f32 {
+    if scale <= 1.0 || factor <= 1.0 {
+        return 0.0;
+    }
+    (scale - 1.0) / (factor - 1.0)
 }
 
 /// The detection cells of a level.
@@ -381,15 +415,17 @@ fn detect_fallback(level: &mut Level, g: &CellGrid, threshold: u8) {
     }
 }
 
-/// Drop the corners from index `from` on whose patch (radius in level-0
-/// pixels: half the patch plus 3, times the level `scale`) reaches a masked
-/// pixel.
+/// Drop the corners from index `from` on whose patch reaches a masked
+/// pixel: radius in level-0 pixels, half the patch plus 3 (the blur before
+/// the descriptor) times the level's `scale`, plus what the pyramid's
+/// bilinear resizes reach ([`resample_reach`]).
 #[inline(always)]
 fn mask_filter(level: &mut Level, from: usize, scale: f32, sh: &Shared) {
     let Some(mask) = sh.mask else {
         return;
     };
-    let r = (sh.params.patch_size / 2 + 3) as f32 * scale;
+    let r = (sh.params.patch_size / 2 + 3) as f32 * scale
+        + resample_reach(scale, sh.params.scale_factor);
     let (w0, h0, w, h) = (sh.w0, sh.h0, level.w, level.h);
     let mut i = 0;
     level.corners.retain(|c| {
@@ -594,5 +630,25 @@ mod tests {
         assert!(patch_unmasked(&mask, w, h, 30.0, 40.0, 18.0));
         assert!(!patch_unmasked(&mask, w, h, 50.0, 40.0, 18.0));
         assert!(!patch_unmasked(&mask, w, h, 5.0, 40.0, 18.0));
+        // A band of damaged rows under the patch but between the circle's
+        // probes (rows 48-52 for a patch at row 40 of radius 18: the
+        // diagonal probes sit at rows 27 and 53) is seen.
+        let mut rows = vec![255u8; w * h];
+        for y in 48..=52 {
+            for x in 0..w {
+                rows[y * w + x] = 0;
+            }
+        }
+        assert!(circle_unmasked(&rows, w, h, 30.0, 40.0, 18.0));
+        assert!(!patch_unmasked(&rows, w, h, 30.0, 40.0, 18.0));
+        assert!(patch_unmasked(&rows, w, h, 30.0, 25.0, 18.0));
+    }
+
+    #[test]
+    fn the_resample_reach_sums_the_levels_below() {
+        assert_eq!(resample_reach(1.0, 1.2), 0.0);
+        // Level 5 of a 1.2 pyramid: 1 + 1.2 + 1.44 + 1.728 + 2.0736.
+        let got = resample_reach(1.2f32.powi(5), 1.2);
+        assert!((got - 7.4416).abs() < 1e-3, "{got}");
     }
 }
