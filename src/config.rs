@@ -206,7 +206,9 @@ impl Default for SlamConfig {
     }
 }
 
-/// `[sim]`: the bundled simulator, started inside the daemon.
+/// `[sim]`: the bundled simulator, started inside the daemon. A build
+/// without the `sim` feature parses it too (files stay valid) and refuses
+/// `enabled = true` at start.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SimSection {

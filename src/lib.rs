@@ -53,13 +53,22 @@
 //! | [`daemon`] | `shotpilot run`: wires sim, video, SLAM, link and API; the georeference, shot and refinement services; shutdown |
 //! | [`mission`] | mission planning (pure) and the upload/download protocol |
 //! | [`refine`] | closing the loop: shot error (homography), correction controller, the daemon loop's tunables |
-//! | [`simulator`] | the bundled simulator's adapters (camera, `[sim]`) and the closed-loop scenario in it; the only importer of `shotpilot_sim` outside tests |
+//! | `simulator` | (feature `sim`, on by default) the bundled simulator's adapters (camera, `[sim]`) and the closed-loop scenario harness in it; the only importer of `shotpilot_sim` outside tests |
 //!
 //! The synchronous core never imports tokio or axum; I/O lives in
 //! `daemon`, `vehicle`, `video` (live sources), `api` and
 //! `mission::upload`'s drivers. Every module imports only modules on lower
 //! floors (no import circles, `.ci/import-circles`); `ARCHITECTURE.md` at
 //! the repository root has the floors, the layout and the conventions.
+//!
+//! The `sim` cargo feature (on by default) brings in the bundled simulator:
+//! the `simulator` module, the daemon's in-process simulator (`[sim]
+//! enabled`) and the `scenario` subcommand. A field build
+//! (`cargo build --release --no-default-features`) has none of them: the
+//! daemon runs against a real camera and autopilot only, and refuses to
+//! start with `[sim] enabled = true`
+//! ([`daemon::DaemonError::NoSimulator`]). `[sim]` is parsed either way,
+//! so configuration files stay valid.
 
 pub mod angle;
 pub mod api;
@@ -79,6 +88,9 @@ pub mod mission;
 pub mod optimize;
 pub mod refine;
 pub mod shot;
+// Feature `sim`; the unit tests, which render with the simulator (a
+// dev-dependency), have it in either build.
+#[cfg(any(feature = "sim", test))]
 pub mod simulator;
 pub mod slam;
 pub mod stats;

@@ -21,7 +21,8 @@ mod cli;
 #[command(name = "shotpilot", version, about, long_about)]
 struct Cli {
     /// Configuration file (TOML). Default: ./config.toml when it exists,
-    /// else the built-in defaults (which run against the bundled simulator).
+    /// else the built-in defaults (which run against the bundled simulator;
+    /// a build without it needs `[sim] enabled = false` or `run --no-sim`).
     #[arg(long, global = true, value_name = "PATH")]
     config: Option<PathBuf>,
 
@@ -92,6 +93,8 @@ enum Command {
     /// The closed loop in the simulator: explore, then per trial a desired
     /// shot from a hidden pose is localised, uploaded, flown and refined
     /// until the live view matches it; reports first and final shot errors.
+    /// (Only in a build with the `sim` feature, the default.)
+    #[cfg(feature = "sim")]
     Scenario(cli::scenario::ScenarioArgs),
 }
 
@@ -130,9 +133,11 @@ fn error_chain(e: &anyhow::Error) -> String {
 }
 
 /// A configuration file, with the `[sim]` keys only the simulator can
-/// check.
+/// check (a build without the simulator parses `[sim]` and leaves them:
+/// `run` refuses `[sim] enabled = true` there).
 fn load_checked(path: &Path) -> Result<Config> {
     let cfg = Config::load(path)?;
+    #[cfg(feature = "sim")]
     shotpilot::simulator::check(&cfg, path)?;
     Ok(cfg)
 }
@@ -174,6 +179,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Mission(cmd) => cli::mission::run(cmd, &config),
         Command::Run(args) => cli::run::run(args, config, cli.config.as_deref()),
         Command::Features(args) => cli::features::run(args),
+        #[cfg(feature = "sim")]
         Command::Scenario(args) => cli::scenario::run(args),
     }
 }

@@ -1,10 +1,12 @@
 //! The subcommands: each file holds one command's arguments and its body
-//! (`slam_timing` is `slam`'s frame-time report).
+//! (`slam_timing` is `slam`'s frame-time report). `scenario` needs the
+//! simulator: only with the `sim` feature.
 
 pub mod eval;
 pub mod features;
 pub mod mission;
 pub mod run;
+#[cfg(feature = "sim")]
 pub mod scenario;
 pub mod shot;
 pub mod slam;

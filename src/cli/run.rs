@@ -31,6 +31,9 @@ pub fn run(args: RunArgs, mut config: Config, path: Option<&Path>) -> Result<()>
     }
     let named = path.unwrap_or(Path::new("config.toml"));
     config.validate(named)?;
+    // Without the simulator (no `sim` feature) the daemon refuses
+    // `[sim] enabled = true` itself: `DaemonError::NoSimulator`.
+    #[cfg(feature = "sim")]
     shotpilot::simulator::check(&config, named)?;
     let base_dir = path
         .and_then(Path::parent)

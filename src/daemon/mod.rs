@@ -1,6 +1,8 @@
 //! The daemon: wires the video ingest, the SLAM thread, the MAVLink link
 //! actor, the shot service and the HTTP API under one shutdown token, and
-//! (by default) runs the bundled simulator in-process.
+//! (by default) runs the bundled simulator in-process. A build without
+//! the `sim` feature has no simulator and refuses `[sim] enabled = true`
+//! ([`DaemonError::NoSimulator`]).
 //!
 //! ```text
 //!  sim (in-process) --MJPEG/HTTP--> video reader task -> raw slot -> decode thread
@@ -64,8 +66,15 @@ pub enum DaemonError {
     #[error("camera: {0}")]
     Camera(#[from] crate::camera::CameraError),
     /// The simulator could not start.
+    #[cfg(feature = "sim")]
     #[error("simulator: {0}")]
     Sim(#[from] crate::simulator::SimKeyError),
+    /// `[sim] enabled = true` in a build without the simulator (the `sim`
+    /// feature off: a field build).
+    #[error(
+        "this build has no simulator: rebuild with the default features, or set [sim] enabled = false (`shotpilot run --no-sim`)"
+    )]
+    NoSimulator,
     /// The MAVLink link could not start.
     #[error("link: {0}")]
     Link(String),
@@ -87,6 +96,28 @@ pub enum DaemonError {
     /// The video source is unusable.
     #[error(transparent)]
     VideoSource(#[from] crate::video::source::SourceError),
+}
+
+/// The simulator's lockstep handshake: the SLAM thread acknowledges each
+/// frame on it.
+#[cfg(feature = "sim")]
+type Lockstep = crate::simulator::Lockstep;
+
+/// Without the simulator there is no lockstep: a type with no value, so
+/// the SLAM loop's `Option<&Lockstep>` is always None.
+#[cfg(not(feature = "sim"))]
+#[derive(Debug)]
+enum Lockstep {}
+
+#[cfg(not(feature = "sim"))]
+impl Lockstep {
+    fn frame_done(&self, _capture_time_unix_s: f64) {
+        match *self {}
+    }
+
+    fn close(&self) {
+        match *self {}
+    }
 }
 
 /// What the daemon reports when it stops.
@@ -153,6 +184,12 @@ pub async fn run_on(
     started: Option<oneshot::Sender<Started>>,
     sockets: Sockets,
 ) -> Result<Summary, DaemonError> {
+    // Before anything is opened or bound: without the simulator, a
+    // configuration that asks for it is refused.
+    #[cfg(not(feature = "sim"))]
+    if cfg.sim.enabled {
+        return Err(DaemonError::NoSimulator);
+    }
     let t0 = Instant::now();
     let data_dir = base_dir.join(&cfg.server.data_dir);
     let store = Arc::new(ShotStore::open(&data_dir.join("shots"))?);
@@ -172,13 +209,16 @@ pub async fn run_on(
     let camera = cfg.camera.camera(base_dir)?;
 
     // The simulator, first, so the video and the link find it.
+    #[cfg(feature = "sim")]
     let sim_cancel = CancellationToken::new();
     // Lockstep: the simulator holds its clock until the SLAM thread is done
     // with each frame.
-    let lockstep = cfg
-        .sim
-        .lockstep_on()
-        .then(|| Arc::new(crate::simulator::Lockstep::default()));
+    #[cfg(feature = "sim")]
+    let lockstep = cfg.sim.lockstep_on().then(|| Arc::new(Lockstep::default()));
+    // Without the simulator there is no lockstep (refused above).
+    #[cfg(not(feature = "sim"))]
+    let lockstep: Option<Arc<Lockstep>> = None;
+    #[cfg(feature = "sim")]
     let sim_task = if cfg.sim.enabled {
         let mut sc = crate::simulator::sim_config(&cfg, &data_dir)?;
         sc.lockstep = lockstep.clone();
@@ -439,7 +479,9 @@ pub async fn run_on(
     let _ = photo_task.await;
     let _ = geo_task.await;
     let _ = link_task.await;
+    #[cfg(feature = "sim")]
     sim_cancel.cancel();
+    #[cfg(feature = "sim")]
     if let Some(t) = sim_task {
         match t.await {
             Ok(Ok(s)) => tracing::info!(
@@ -472,7 +514,7 @@ fn slam_loop(
     shared: &SlamShared,
     geo: &geo_service::GeoService,
     delay: Duration,
-    lockstep: Option<&crate::simulator::Lockstep>,
+    lockstep: Option<&Lockstep>,
 ) -> Option<PathBuf> {
     loop {
         let frame: Arc<Frame> = match ingest.take_frame(Duration::from_millis(200)) {

@@ -16,6 +16,10 @@
 //! The core modules (camera, config, slam, shot, refine, mission, geo...)
 //! never import `shotpilot_sim`; `.ci/import-circles` fails when one does
 //! outside its tests.
+//!
+//! The whole module, the scenario harness with it, is behind the `sim`
+//! cargo feature (on by default): a field build
+//! (`--no-default-features`) has neither the simulator nor the harness.
 
 pub mod drag;
 pub mod scenario;
