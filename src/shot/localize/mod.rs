@@ -232,19 +232,18 @@ pub fn localize_with_camera(
     // remains, so the place the tag confirms is the one chosen (and the
     // others neither win nor veto it as disagreeing). When none is near,
     // all stay, and the best is refused as far from the prior below.
-    if params.position_prior.is_some() {
-        if poses
+    if params.position_prior.is_some()
+        && poses
             .iter()
             .any(|c| gate_reason(c, g).is_none() && near_prior_pose(c))
-        {
-            let before = poses.len();
-            poses.retain(|c| near_prior_pose(c));
-            tracing::debug!(
-                kept = poses.len(),
-                left_out = before - poses.len(),
-                "shot candidates far from the photo's position prior left out"
-            );
-        }
+    {
+        let before = poses.len();
+        poses.retain(|c| near_prior_pose(c));
+        tracing::debug!(
+            kept = poses.len(),
+            left_out = before - poses.len(),
+            "shot candidates far from the photo's position prior left out"
+        );
     }
     if let Some(reason) = gate_reason(&poses[0], g) {
         return Ok(not(reason));
