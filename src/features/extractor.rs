@@ -314,16 +314,7 @@ fn features_per_level(n: usize, levels: usize, scale: f32, exponent: f32) -> Vec
 /// columns anywhere under the patch is seen; the damage of a lost video
 /// packet is whole rows) and 8 points on its circle.
 fn patch_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) -> bool {
-    let at = |px: f32, py: f32| {
-        let (px, py) = (px.round(), py.round());
-        px >= 0.0
-            && py >= 0.0
-            && px < w0 as f32
-            && py < h0 as f32
-            && mask
-                .get(py as usize * w0 + px as usize)
-                .is_some_and(|&m| m != 0)
-    };
+    let at = |px: f32, py: f32| unmasked_at(mask, w0, h0, px, py);
     let steps = r.ceil() as i32;
     let diameters = (-steps..=steps).all(|k| {
         let d = (k as f32).clamp(-r, r);
@@ -347,15 +338,20 @@ fn circle_unmasked(mask: &[u8], w0: usize, h0: usize, x: f32, y: f32, r: f32) ->
         (0.0, -1.0),
         (D, -D),
     ];
-    DIRS.iter().all(|&(dx, dy)| {
-        let px = (x + dx * r).round();
-        let py = (y + dy * r).round();
-        if px < 0.0 || py < 0.0 || px >= w0 as f32 || py >= h0 as f32 {
-            return false;
-        }
-        mask.get(py as usize * w0 + px as usize)
+    DIRS.iter()
+        .all(|&(dx, dy)| unmasked_at(mask, w0, h0, x + dx * r, y + dy * r))
+}
+
+/// The mask's pixel nearest `(px, py)` is inside the image and not 0.
+fn unmasked_at(mask: &[u8], w0: usize, h0: usize, px: f32, py: f32) -> bool {
+    let (px, py) = (px.round(), py.round());
+    px >= 0.0
+        && py >= 0.0
+        && px < w0 as f32
+        && py < h0 as f32
+        && mask
+            .get(py as usize * w0 + px as usize)
             .is_some_and(|&m| m != 0)
-    })
 }
 
 /// How far, in level-0 pixels, a pixel of the level at `scale` reaches back

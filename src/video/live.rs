@@ -590,20 +590,21 @@ impl LinkWindow {
         let mut e = self.events.lock().unwrap_or_else(|e| e.into_inner());
         Self::expire(&mut e, now, self.window);
         let frames = e.len() as u64;
-        let given: Vec<f64> = e.iter().filter_map(|(_, m)| *m).collect();
-        let usable = given
-            .iter()
-            .filter(|m| **m <= LINK_MAX_MASKED_SHARE)
-            .count() as f64;
+        let (mut given, mut usable, mut masked) = (0u64, 0u64, 0.0);
+        for m in e.iter().filter_map(|(_, m)| *m) {
+            given += 1;
+            usable += u64::from(m <= LINK_MAX_MASKED_SHARE);
+            masked += m;
+        }
         let usable_share = if frames == 0 {
             1.0
         } else {
-            usable / frames as f64
+            usable as f64 / frames as f64
         };
-        let masked_share = if given.is_empty() {
+        let masked_share = if given == 0 {
             0.0
         } else {
-            given.iter().sum::<f64>() / given.len() as f64
+            masked / given as f64
         };
         LinkQuality {
             window_s: self.window.as_secs_f64(),

@@ -31,7 +31,7 @@
 
 use std::sync::Arc;
 
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 
 use anyhow::Context;
 use nalgebra::Point3;
@@ -166,21 +166,13 @@ fn the_disagreement_rule_adds_no_wrong_shot_on_the_aliasing_world() -> anyhow::R
         n += 1;
         // (localised, wrong) with the rule and with the veto.
         let mut outcomes: Vec<(bool, bool)> = Vec::new();
-        let mut normal = || -> f64 {
-            // Box-Muller.
-            let (u1, u2): (f64, f64) = (tag_rng.random::<f64>().max(1e-300), tag_rng.random());
-            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-        };
-        let noise = nalgebra::Vector3::new(normal(), normal(), normal()) * TAG_SIGMA_M;
         let tagged = shot::LocalizeParams {
-            position_prior: Some(shot::PositionPrior {
-                centre: sim.inverse().transform_point(&Point3::from(
-                    truth.world_from_cam.translation.vector + noise,
-                )),
-                sigma: TAG_SIGMA_M / sim.scale,
-                down: None,
-                metres_per_unit: Some(sim.scale),
-            }),
+            position_prior: Some(crate::sim_support::simulated_tag(
+                &truth.world_from_cam.translation.vector,
+                &sim,
+                TAG_SIGMA_M,
+                &mut tag_rng,
+            )),
             ..with_rule.clone()
         };
         for (label, params) in [

@@ -1459,23 +1459,12 @@ fn held_out_photos_by_angle_band() -> anyhow::Result<()> {
                 .fold(f64::INFINITY, f64::min);
             let params = shot::LocalizeParams {
                 position_prior: prior_sigma_m.map(|sigma_m| {
-                    let normal = |rng: &mut StdRng| -> f64 {
-                        // Box-Muller.
-                        let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
-                        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-                    };
-                    let noise = Vector3::new(
-                        normal(&mut prior_rng),
-                        normal(&mut prior_rng),
-                        normal(&mut prior_rng),
-                    ) * sigma_m;
-                    let to_map = sim.inverse();
-                    shot::PositionPrior {
-                        centre: to_map.transform_point(&Point3::from(g.translation.vector + noise)),
-                        sigma: sigma_m / sim.scale,
-                        down: None,
-                        metres_per_unit: Some(sim.scale),
-                    }
+                    crate::sim_support::simulated_tag(
+                        &g.translation.vector,
+                        &sim,
+                        sigma_m,
+                        &mut prior_rng,
+                    )
                 }),
                 ..params.clone()
             };

@@ -264,8 +264,10 @@ fn near_prior_keyframes(map: &Map, params: &LocalizeParams) -> Vec<KeyFrameId> {
         .keyframes()
         .filter_map(|k| {
             let (d, _) = prior.distance(&Point3::from(k.center()), 0.0);
-            let depth = map.median_depth(k.id).unwrap_or(0.0);
-            (d <= reach + 2.0 * depth).then_some((d, k.id))
+            // The scene depth (a pass over the keyframe's points) only
+            // where the reach alone does not decide.
+            let near = d <= reach || d <= reach + 2.0 * map.median_depth(k.id).unwrap_or(0.0);
+            near.then_some((d, k.id))
         })
         .collect();
     near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));

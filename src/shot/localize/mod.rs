@@ -146,6 +146,12 @@ pub fn localize_with_camera(
             prior.distance(&centre, pose_sigma).1 <= g.max_prior_sigmas
         })
     };
+    // ... and passing the gate.
+    let gated_near_prior = |poses: &[CandidatePose]| {
+        poses
+            .iter()
+            .any(|c| gate_reason(c, g).is_none() && near_prior_pose(c))
+    };
     let mut try_candidate =
         |kf_id: KeyFrameId, matches: &[(usize, PointId)], poses: &mut Vec<CandidatePose>| {
             if matches.len() < params.min_candidate_matches {
@@ -201,11 +207,7 @@ pub fn localize_with_camera(
     // the right one by its descriptors does not keep the right one from
     // being tried (and when the first candidates agree with the prior,
     // nothing changes).
-    if !near_prior.is_empty()
-        && !poses
-            .iter()
-            .any(|c| gate_reason(c, g).is_none() && near_prior_pose(c))
-    {
+    if !near_prior.is_empty() && !gated_near_prior(&poses) {
         tracing::debug!(
             candidates = near_prior.len(),
             "no candidate near the photo's position prior: the keyframes near it tried"
@@ -216,10 +218,7 @@ pub fn localize_with_camera(
         }
         // None of them near it either: the photo is refused as far from
         // its prior on the first candidates' evidence alone.
-        if !poses[first..]
-            .iter()
-            .any(|c| gate_reason(c, g).is_none() && near_prior_pose(c))
-        {
+        if !gated_near_prior(&poses[first..]) {
             poses.truncate(first);
         }
     }
@@ -232,11 +231,7 @@ pub fn localize_with_camera(
     // remains, so the place the tag confirms is the one chosen (and the
     // others neither win nor veto it as disagreeing). When none is near,
     // all stay, and the best is refused as far from the prior below.
-    if params.position_prior.is_some()
-        && poses
-            .iter()
-            .any(|c| gate_reason(c, g).is_none() && near_prior_pose(c))
-    {
+    if params.position_prior.is_some() && gated_near_prior(&poses) {
         let before = poses.len();
         poses.retain(|c| near_prior_pose(c));
         tracing::debug!(

@@ -154,6 +154,31 @@ pub fn map_sigma_from_env() -> anyhow::Result<shotpilot::shot::MapSigma> {
     Ok(s)
 }
 
+/// A photo's position prior as its GPS tag would give it: the true camera
+/// centre `truth` (the ground truth's frame, metres) moved by a Gaussian
+/// error of `sigma_m` per axis drawn from `rng` (Box-Muller, x then y then
+/// z), into the map's frame through `map_to_truth`.
+pub fn simulated_tag(
+    truth: &Vector3<f64>,
+    map_to_truth: &shotpilot::geometry::Sim3,
+    sigma_m: f64,
+    rng: &mut StdRng,
+) -> shotpilot::shot::PositionPrior {
+    let mut normal = || -> f64 {
+        let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    };
+    let noise = Vector3::new(normal(), normal(), normal()) * sigma_m;
+    shotpilot::shot::PositionPrior {
+        centre: map_to_truth
+            .inverse()
+            .transform_point(&Point3::from(truth + noise)),
+        sigma: sigma_m / map_to_truth.scale,
+        down: None,
+        metres_per_unit: Some(map_to_truth.scale),
+    }
+}
+
 /// The localisation's PnP RANSAC settings, with `SHOT_PNP_MIN_INLIERS=N`
 /// setting the fewest inliers of a candidate's first pose, for a
 /// before/after.
