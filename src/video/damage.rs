@@ -18,7 +18,11 @@
 //! window (the SPS's `max_num_ref_frames` newest reference pictures) are
 //! widened by [`DamageParams::mv_px`] (the vertical motion bound) plus the
 //! 6-tap interpolation filter's reach (3 rows), and the picture's own
-//! damage by the deblocking filter's reach (3 rows). An IDR picture, or a
+//! damage by the deblocking filter's reach (3 rows). A motion vector may
+//! point beyond the picture, where the reference's edge row repeats: damage
+//! that touches the top or bottom row stays at that edge however the
+//! content moves (with the measured motion it would otherwise leave the
+//! rows it uncovers there unmasked). An IDR picture, or a
 //! picture whose slices are all intra, starts clean; a reference picture
 //! that went missing altogether (a jump in `frame_num`) damages every row
 //! of the pictures that follow, up to the next IDR picture or until an SEI
@@ -361,7 +365,11 @@ impl RowDamage {
     }
 
     /// Every row a damaged row reaches when moved down by `lo` to `hi`
-    /// rows (negative: up).
+    /// rows (negative: up). A damaged run that touches the picture's top or
+    /// bottom row keeps reaching that edge: a motion vector may point beyond
+    /// the picture, where the reference's edge row is repeated, so the rows
+    /// that content moving away from an edge uncovers are predicted from a
+    /// damaged row.
     pub fn moved(&self, lo: i64, hi: i64) -> RowDamage {
         let n = self.rows.len() as i64;
         let mut out = RowDamage::clean(self.rows.len());
@@ -372,7 +380,12 @@ impl RowDamage {
                 while i < n && self.rows[i as usize] {
                     i += 1;
                 }
-                let (a, b) = ((start + lo).clamp(0, n), (i + hi).clamp(0, n));
+                let a = if start == 0 {
+                    0
+                } else {
+                    (start + lo).clamp(0, n)
+                };
+                let b = if i == n { n } else { (i + hi).clamp(0, n) };
                 out.mark(a as usize, b as usize);
             } else {
                 i += 1;
@@ -881,9 +894,11 @@ mod tests {
         let p1 = vec![slice(false, 0, 5, 1), slice(false, 640, 5, 1)];
         assert_eq!(run(&mut t, &p1, 1, &[1]).coded.count(), 259);
         // The content moves down 8-12 rows, measured to 4 rows: the damage
-        // goes with it, 4 + 3 rows beyond (margin, resolution) at each end:
-        // rows 1-277; the filters' reach (3 + 3 rows) is added to the
-        // picture's mask, 0-283, not carried on.
+        // goes with it, 4 + 3 rows beyond (margin, resolution) at each end,
+        // and stays at the top edge (the rows the content uncovers there
+        // are predicted from the reference's damaged top row): rows 0-277;
+        // the filters' reach (3 + 3 rows) is added to the picture's mask,
+        // 0-283, not carried on.
         let down = VerticalMotion {
             lo: 8,
             hi: 12,
@@ -893,7 +908,7 @@ mod tests {
         t.set_motion(Some(down));
         let d = run(&mut t, &[slice(false, 0, 5, 2)], 0, &[]);
         assert_eq!(d.coded.count(), 284);
-        // Moving up 36-40 rows, the top rows leave the picture: rows 1-277
+        // Moving up 36-40 rows, the top rows leave the picture: rows 0-277
         // go to 0-248, the mask to 0-254.
         t.set_motion(Some(VerticalMotion {
             lo: -40,
@@ -909,6 +924,64 @@ mod tests {
         assert!(t.has_damage());
         run(&mut t, &idr, 0, &[]);
         assert!(!t.has_damage(), "an IDR picture ends it");
+    }
+
+    #[test]
+    fn damage_at_an_edge_stays_at_it_when_the_content_moves_away() {
+        let params = DamageParams {
+            motion_margin_px: 0,
+            follow_motion: true,
+            ..Default::default()
+        };
+        let idr = vec![
+            sps(40, 30),
+            pps(),
+            slice(true, 0, 7, 0),
+            slice(true, 320, 7, 0),
+            slice(true, 640, 7, 0),
+            slice(true, 960, 7, 0),
+        ];
+        let motion = |lo, hi| VerticalMotion {
+            lo,
+            hi,
+            step: 1,
+            blocks: 30,
+        };
+        // The last slice lost: the one before it, followed by the loss, is
+        // damaged too (rows 256-479, 253-479 with the deblocking). Then the
+        // content moves up 8-12 rows: the rows it uncovers at the bottom
+        // are predicted from the reference's bottom row, repeated beyond
+        // the edge. The reference's damage (the deblocking's reach kept, as
+        // no motion was measured for it) runs 241-479 in the next picture,
+        // the mask 235-479 with the filters' reach (without the edge:
+        // 235-477).
+        let mut t = DamageTracker::new(params.clone());
+        run(&mut t, &idr, 0, &[]);
+        let p1 = vec![
+            slice(false, 0, 5, 1),
+            slice(false, 320, 5, 1),
+            slice(false, 640, 5, 1),
+        ];
+        assert_eq!(run(&mut t, &p1, 1, &[3]).coded.count(), 480 - 253);
+        t.set_motion(Some(motion(-12, -8)));
+        let d = run(&mut t, &[slice(false, 0, 5, 2)], 0, &[]);
+        assert_eq!(d.coded.count(), 480 - 235);
+        assert!(d.coded.rows()[479] && !d.coded.rows()[234]);
+        // The first slice lost (rows 0-127, 0-130 with the deblocking), then
+        // the content moves down 20-24 rows: the damage stays at the top
+        // (0-154), the mask 0-160 (without the edge: 14-160).
+        let mut t = DamageTracker::new(params);
+        run(&mut t, &idr, 0, &[]);
+        let p1 = vec![
+            slice(false, 320, 5, 1),
+            slice(false, 640, 5, 1),
+            slice(false, 960, 5, 1),
+        ];
+        assert_eq!(run(&mut t, &p1, 1, &[0]).coded.count(), 128 + 3);
+        t.set_motion(Some(motion(20, 24)));
+        let d = run(&mut t, &[slice(false, 0, 5, 2)], 0, &[]);
+        assert_eq!(d.coded.count(), 161);
+        assert!(d.coded.rows()[0] && d.coded.rows()[160] && !d.coded.rows()[161]);
     }
 
     #[test]
