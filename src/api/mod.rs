@@ -224,6 +224,7 @@ fn status_json(st: &AppState) -> Value {
     let latest = st.ingest.latest();
     json!({
         "uptime_s": unix_now() - st.started_unix,
+        "now_unix": unix_now(),
         "video": {
             "received_fps": st.ingest.received_rate.rate(),
             "decoded_fps": st.ingest.decoded_rate.rate(),

@@ -472,8 +472,14 @@ async function main() {
     const stopText = await page.textContent('#stopresult');
     check(await page.$eval('#stopresult', (e) => e.dataset.state === 'ok' && e.dataset.ack === 'MAV_RESULT_ACCEPTED'), `the stop is acknowledged: ${stopText}`);
     check(stopText.includes(`${shotB.id} stopped`), `the stop names the shot flown: ${stopText}`);
-    out.stop = { text: stopText, at_unix: Date.now() / 1000 };
     await waitKind(shotB.id, 'stopped', 10000);
+    // Times on the daemon's clock (the simulator's truth is on it; on
+    // simulated time it runs ahead of or behind this page's clock): the
+    // stop as the shot recorded the vehicle's ACK, each marker sample and
+    // the end of the sampling as the status says the daemon's time is.
+    const daemonNow = () => page.evaluate(async () => (await (await fetch('/api/v1/status')).json()).now_unix);
+    const stopped = await page.evaluate(async (id) => (await (await fetch(`/api/v1/shots/${id}`)).json()).mission.details.stop, shotB.id);
+    out.stop = { text: stopText, at_unix: stopped.at_unix };
     out.timeline_b = await timeline(shotB.id);
     out.shot_b = shotB;
     await stage(page, 'stopped');
@@ -486,8 +492,9 @@ async function main() {
     for (let i = 0; i < 80; i++) {
       const v = await page.$eval('#map', (m) => m.dataset.vehicleNed || '');
       const [n, e] = v.split(',').map(Number);
-      if (Number.isFinite(n) && Number.isFinite(e)) samples.push({ t: Date.now() / 1000, n, e });
-      else if (missing.length < 5) missing.push({ t: Date.now() / 1000, map: await page.textContent('#mapmode') });
+      const t = await daemonNow();
+      if (Number.isFinite(n) && Number.isFinite(e)) samples.push({ t, n, e });
+      else if (missing.length < 5) missing.push({ t, map: await page.textContent('#mapmode') });
       const recent = samples.filter((x) => x.t >= samples[samples.length - 1].t - 4);
       const spread = recent.length ? Math.max(...recent.map((x) => Math.hypot(x.n - recent[0].n, x.e - recent[0].e))) : Infinity;
       if (samples.length && samples[samples.length - 1].t - out.stop.at_unix > 8 && spread < 0.1) break;
@@ -497,7 +504,7 @@ async function main() {
     out.vehicle_missing = missing;
     // When the sampling ended: the hold is judged on the simulator's truth
     // up to here (the marker is missing while the map shows the SLAM view).
-    out.hold_end_unix = Date.now() / 1000;
+    out.hold_end_unix = await daemonNow();
     await stage(page, 'holding');
     // Loops closed: the badge's count and the pairs the map drew, against
     // the status (compared on the Rust side); a loop closing between the

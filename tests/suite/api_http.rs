@@ -1293,6 +1293,13 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
             "a patch of {len} bytes against the whole {whole}: {patch}"
         );
         assert!(patch["uptime_s"].is_f64(), "{patch}");
+        // The daemon's clock moves with it: this server's is the system's.
+        let sys = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_secs_f64();
+        let clock = patch["now_unix"].as_f64().unwrap_or(f64::NAN);
+        assert!((clock - sys).abs() < 30.0, "now_unix {clock} against {sys}");
         assert!(patch.get("shots").is_none(), "{patch}");
         let before = page["uptime_s"].as_f64().unwrap();
         shotpilot::api::apply_status_patch(&mut page, patch);

@@ -717,7 +717,9 @@ fn operator_page_in_headless_chromium() {
     // its drift over the last 4 s. Judged at the last marker sample
     // instead, a run whose marker went missing early (the map in the SLAM
     // view) measured the braking: 3.7 m in the 4 s up to 5.2 s after the
-    // stop.
+    // stop. Every time here is on the daemon's clock, as the truth is: the
+    // page's own clock is not (on simulated time the daemon ran 0.55 m of
+    // flight before the stop into a hold judged on the page's clock).
     let stop_t = seen["stop"]["at_unix"].as_f64().unwrap();
     let end_t = seen["hold_end_unix"].as_f64().unwrap_or(last_t).max(last_t);
     let dist = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]);
