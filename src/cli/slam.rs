@@ -730,9 +730,10 @@ pub fn run(args: SlamArgs) -> Result<()> {
             return Ok(());
         }
         // The counts of the first line and of the ATE line are the same
-        // numbers: frames with a pose in the trajectory (tracked as they
-        // came, plus the first frame of the initialisation, posed after the
-        // fact, minus frames whose reference keyframe is gone) and the
+        // numbers: frames with a pose in the trajectory of the first map
+        // (tracked as they came, plus the first frame of the initialisation,
+        // posed after the fact, minus frames tracked in the maps started
+        // after a loss, and frames whose reference keyframe is gone) and the
         // keyframes of the map.
         let posed = traj.len();
         let at_init = run
@@ -740,15 +741,32 @@ pub fn run(args: SlamArgs) -> Result<()> {
             .iter()
             .filter(|r| run.initialized_at.is_some_and(|i| r.index < i))
             .count();
-        let unposed = run.records.len().saturating_sub(posed);
+        let first_map = run.records.iter().find_map(|r| run.map.map_of(r.reference));
+        let in_later_maps = run
+            .records
+            .iter()
+            .filter(|r| {
+                matches!((run.map.map_of(r.reference), first_map), (Some(m), Some(f)) if m != f)
+            })
+            .count();
+        let unposed = run
+            .records
+            .len()
+            .saturating_sub(posed)
+            .saturating_sub(in_later_maps);
         let mut why = vec![format!("{tracked} tracked")];
         if at_init > 0 {
             why.push(format!("+ {at_init} posed at initialisation"));
         }
+        if in_later_maps > 0 {
+            why.push(format!(
+                "- {in_later_maps} in maps started after a loss (not in the ATE below)"
+            ));
+        }
         if unposed > 0 {
             why.push(format!("- {unposed} whose reference keyframe is gone"));
         }
-        let other = posed as i64 - (tracked + at_init) as i64 + unposed as i64;
+        let other = posed as i64 - (tracked + at_init) as i64 + (unposed + in_later_maps) as i64;
         if other != 0 {
             why.push(format!("{other:+} other"));
         }
