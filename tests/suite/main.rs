@@ -36,6 +36,7 @@ mod bow_retrieval;
 mod bow_robustness;
 mod browser;
 mod cli_eval;
+mod cli_features;
 mod cli_newcomer;
 mod daemon_e2e;
 mod daemon_refine;
