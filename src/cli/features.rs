@@ -24,6 +24,19 @@ pub struct FeaturesArgs {
     /// Passes over the dataset; the figures are over all timed frames.
     #[arg(long, default_value_t = 1, value_name = "N")]
     pub repeat: usize,
+    /// FAST threshold tried first in every cell (the extractor's
+    /// `ini_th_fast`; default: the SLAM's).
+    #[arg(long, value_name = "T")]
+    pub ini_th_fast: Option<u8>,
+    /// FAST threshold in cells where the first finds nothing, at the least
+    /// (`min_th_fast`; default: the SLAM's).
+    #[arg(long, value_name = "T")]
+    pub min_th_fast: Option<u8>,
+    /// That fallback threshold as this many times the image's noise
+    /// deviation, when larger (`noise_threshold_factor`; 0: off; default:
+    /// the SLAM's).
+    #[arg(long, value_name = "K")]
+    pub noise_factor: Option<f32>,
     /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -54,10 +67,14 @@ pub fn run(args: FeaturesArgs) -> Result<()> {
         .collect::<Result<Vec<_>, _>>()?
         .into_iter()
         .unzip();
+    let d = Params::default();
     let params = Params {
         n_features: args.n_features,
         threads: args.threads,
-        ..Params::default()
+        ini_th_fast: args.ini_th_fast.unwrap_or(d.ini_th_fast),
+        min_th_fast: args.min_th_fast.unwrap_or(d.min_th_fast),
+        noise_threshold_factor: args.noise_factor.unwrap_or(d.noise_threshold_factor),
+        ..d
     };
     let mut ex = OrbExtractor::new(params)?;
     if args.pairs {
