@@ -24,19 +24,9 @@ pub struct FeaturesArgs {
     /// Passes over the dataset; the figures are over all timed frames.
     #[arg(long, default_value_t = 1, value_name = "N")]
     pub repeat: usize,
-    /// FAST threshold tried first in every cell (the extractor's
-    /// `ini_th_fast`; default: the SLAM's).
-    #[arg(long, value_name = "T")]
-    pub ini_th_fast: Option<u8>,
-    /// FAST threshold in cells where the first finds nothing, at the least
-    /// (`min_th_fast`; default: the SLAM's).
-    #[arg(long, value_name = "T")]
-    pub min_th_fast: Option<u8>,
-    /// That fallback threshold as this many times the image's noise
-    /// deviation, when larger (`noise_threshold_factor`; 0: off; default:
-    /// the SLAM's).
-    #[arg(long, value_name = "K")]
-    pub noise_factor: Option<f32>,
+    /// Other FAST thresholds than the SLAM's.
+    #[command(flatten)]
+    pub fast: FastThresholds,
     /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -55,6 +45,40 @@ pub struct FeaturesArgs {
     pub per_pair: bool,
 }
 
+/// The extractor's FAST thresholds, for trying others than the SLAM's
+/// defaults on footage (`features`, `slam`).
+#[derive(Args, Debug, Clone, Copy, Default)]
+pub struct FastThresholds {
+    /// FAST threshold tried first in every cell (the extractor's
+    /// `ini_th_fast`; default: the SLAM's).
+    #[arg(long, value_name = "T")]
+    pub ini_th_fast: Option<u8>,
+    /// FAST threshold in cells where the first finds nothing, at the least
+    /// (`min_th_fast`; default: the SLAM's).
+    #[arg(long, value_name = "T")]
+    pub min_th_fast: Option<u8>,
+    /// That fallback threshold as this many times the image's noise
+    /// deviation, when larger (`noise_threshold_factor`; 0: off; default:
+    /// the SLAM's).
+    #[arg(long, value_name = "K")]
+    pub noise_factor: Option<f32>,
+}
+
+impl FastThresholds {
+    /// `params` with the thresholds given here.
+    pub fn apply(&self, params: &mut shotpilot::features::Params) {
+        if let Some(t) = self.ini_th_fast {
+            params.ini_th_fast = t;
+        }
+        if let Some(t) = self.min_th_fast {
+            params.min_th_fast = t;
+        }
+        if let Some(k) = self.noise_factor {
+            params.noise_threshold_factor = k;
+        }
+    }
+}
+
 /// Times the extraction on every frame and prints the summary.
 pub fn run(args: FeaturesArgs) -> Result<()> {
     use shotpilot::features::{OrbExtractor, Params};
@@ -67,15 +91,12 @@ pub fn run(args: FeaturesArgs) -> Result<()> {
         .collect::<Result<Vec<_>, _>>()?
         .into_iter()
         .unzip();
-    let d = Params::default();
-    let params = Params {
+    let mut params = Params {
         n_features: args.n_features,
         threads: args.threads,
-        ini_th_fast: args.ini_th_fast.unwrap_or(d.ini_th_fast),
-        min_th_fast: args.min_th_fast.unwrap_or(d.min_th_fast),
-        noise_threshold_factor: args.noise_factor.unwrap_or(d.noise_threshold_factor),
-        ..d
+        ..Params::default()
     };
+    args.fast.apply(&mut params);
     let mut ex = OrbExtractor::new(params)?;
     if args.pairs {
         return pairs::run(&args, &ds, &times, &frames, &mut ex);

@@ -49,6 +49,9 @@ pub struct SlamArgs {
     /// ORB features per frame.
     #[arg(long, default_value_t = 1000, value_name = "N")]
     pub features: usize,
+    /// Other FAST thresholds than the defaults.
+    #[command(flatten)]
+    pub fast: super::features::FastThresholds,
     /// Use only the first N frames.
     #[arg(long, value_name = "N")]
     pub max_frames: Option<usize>,
@@ -225,6 +228,7 @@ pub fn run(args: SlamArgs) -> Result<()> {
         ..Default::default()
     };
     params.tracking.features.n_features = args.features;
+    args.fast.apply(&mut params.tracking.features);
     params.tracking.init_features = args.features * 2;
     params.tracking.seed = args.seed;
     if args.no_new_maps {
@@ -736,10 +740,17 @@ pub fn run(args: SlamArgs) -> Result<()> {
         // after a loss, and frames whose reference keyframe is gone) and the
         // keyframes of the map.
         let posed = traj.len();
+        // Posed at an initialisation: before the first map's, or between
+        // the start of a later map and its initialisation.
         let at_init = run
             .records
             .iter()
-            .filter(|r| run.initialized_at.is_some_and(|i| r.index < i))
+            .filter(|r| {
+                run.initialized_at.is_some_and(|i| r.index < i)
+                    || run.map_starts.iter().any(|m| {
+                        m.started_at <= r.index && m.initialized_at.is_some_and(|i| r.index < i)
+                    })
+            })
             .count();
         let first_map = run.records.iter().find_map(|r| run.map.map_of(r.reference));
         let in_later_maps = run
