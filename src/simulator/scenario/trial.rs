@@ -1,0 +1,249 @@
+//! One trial: the desired shot localised and converted to a vehicle target,
+//! then planned, uploaded and flown, measured on arrival and corrected
+//! until the loop stops; the trial's report with the judge's figures.
+
+use std::time::Instant;
+
+use image::GrayImage;
+use nalgebra::{Isometry3, Vector3};
+use rand::rngs::SmallRng;
+
+use shotpilot_sim::autopilot::Mode;
+
+use crate::geo::convert_target;
+use crate::mission::plan::{self, Flavour};
+use crate::refine::{Context, LiveFrame, Session, Step, Stop, pose_difference};
+use crate::shot::request::NotLocalised;
+use crate::shot::{Localization, LocalizeParams, localize, localize_anchors};
+use crate::slam::Map;
+
+use super::explore::Explored;
+use super::hidden::make_hidden;
+use super::params::ScenarioParams;
+use super::report::{RoundReport, TrialReport};
+use super::sim::Sim;
+
+fn localise(
+    map: &Map,
+    img: &GrayImage,
+    mask: Option<&GrayImage>,
+    anchors_on: Option<(u32, nalgebra::Matrix3<f64>)>,
+    by_matching: bool,
+    p: &LocalizeParams,
+) -> Result<Isometry3<f64>, NotLocalised> {
+    let found = match anchors_on {
+        Some((id, h)) if !by_matching => {
+            Ok(localize_anchors(map, crate::slam::KeyFrameId(id), &h, p))
+        }
+        _ => localize(map, img, mask, None, p),
+    };
+    match found {
+        Ok(Localization::Localized(s)) => Ok(s.world_from_cam),
+        Ok(Localization::NotLocalized { reason }) => Err(NotLocalised::Rejected(reason)),
+        Err(e) => Err(NotLocalised::Failed(e)),
+    }
+}
+
+pub(super) fn run_trial(
+    trial: usize,
+    ex: &Explored,
+    sim: &mut Sim,
+    params: &ScenarioParams,
+    rng: &mut SmallRng,
+) -> TrialReport {
+    let wall = Instant::now();
+    let t0 = sim.t;
+    let anchors = params.anchor_every > 0 && (trial + 1).is_multiple_of(params.anchor_every);
+    let mut rep = TrialReport {
+        trial,
+        kind: if anchors { "anchors" } else { "render" },
+        hidden_p_ned: [0.0; 3],
+        hidden_yaw_deg: 0.0,
+        hidden_pitch_deg: 0.0,
+        flown: false,
+        reason: None,
+        desired_localisation_error_m: None,
+        first_shot_error_pct: None,
+        final_shot_error_pct: None,
+        first_position_error_m: None,
+        position_error_m: None,
+        yaw_error_deg: None,
+        pitch_error_deg: None,
+        rounds: 0,
+        stop: String::new(),
+        sim_s: 0.0,
+        wall_s: 0.0,
+        inside_fence: true,
+        round_reports: Vec::new(),
+    };
+    let finish = |mut rep: TrialReport, sim: &Sim, stop: String| {
+        rep.stop = stop;
+        rep.sim_s = sim.t - t0;
+        rep.wall_s = wall.elapsed().as_secs_f64();
+        rep.inside_fence = sim.fence_ok;
+        rep
+    };
+    let Some(hidden) = make_hidden(ex, sim, params, anchors, rng) else {
+        rep.reason = Some("no hidden pose could be made".into());
+        return finish(rep, sim, "no_shot".into());
+    };
+    rep.kind = hidden.kind;
+    rep.hidden_p_ned = hidden.p_ned.into();
+    rep.hidden_yaw_deg = hidden.yaw.to_degrees();
+    rep.hidden_pitch_deg = hidden.pitch.to_degrees();
+    let mount = &params.geo.mount;
+    let desired_map = match localise(
+        &ex.map,
+        &hidden.image,
+        hidden.mask.as_ref(),
+        hidden.anchors_on,
+        params.anchors_by_matching,
+        &params.localize,
+    ) {
+        Ok(p) => p,
+        Err(e) => {
+            rep.reason = Some(e.to_string());
+            return finish(rep, sim, "not_localised".into());
+        }
+    };
+    rep.desired_localisation_error_m = Some(
+        (ex.alignment.ned_from_cam(&desired_map).translation.vector
+            - hidden.camera.translation.vector)
+            .norm(),
+    );
+    let target = match convert_target(&ex.alignment, &desired_map, &ex.frame, mount) {
+        Ok(t) => t.to_mission_target(false),
+        Err(e) => {
+            rep.reason = Some(format!("no target: {e}"));
+            return finish(rep, sim, "no_target".into());
+        }
+    };
+    let flavour = Flavour::Px4;
+    let cam_model = ex.map.camera;
+    let mut session = Session::new(
+        hidden.image.clone(),
+        hidden.mask.clone(),
+        desired_map,
+        target,
+        params.refine.clone(),
+    );
+    // An anchors shot knows its floor, as in the daemon.
+    if let Some((id, h)) = hidden.anchors_on
+        && let Ok(r) = crate::refine::reachable_from_anchors(
+            &ex.map,
+            crate::slam::KeyFrameId(id),
+            &h,
+            &desired_map,
+            &params.refine.error,
+        )
+    {
+        session = session.with_reachable(r);
+    }
+    let home = sim.home;
+    let ctx = Context {
+        map: &ex.map,
+        alignment: &ex.alignment,
+        frame: &ex.frame,
+        mount,
+        home: &home,
+        fence: &params.plan.fence,
+        localize: &params.localize,
+    };
+    sim.fence_ok = true;
+    loop {
+        let target = *session.target();
+        let items = match plan::plan(&target, &sim.home, flavour, &params.plan) {
+            Ok(i) => i,
+            Err(e) => {
+                rep.reason = Some(format!("plan refused: {e}"));
+                return finish(rep, sim, "plan_refused".into());
+            }
+        };
+        let Some(wp) = plan::waypoint_seq(&items) else {
+            return finish(rep, sim, "no_waypoint".into());
+        };
+        if let Err(e) = sim.upload(&items) {
+            rep.reason = Some(e.to_string());
+            return finish(rep, sim, "upload_failed".into());
+        }
+        if sim.ap.mode() != Mode::Mission {
+            sim.ap.set_mode(Mode::Mission);
+        }
+        let _ = sim.ap.arm();
+        let flight_s = match sim.fly_until_steady(
+            wp,
+            target.gimbal_pitch_deg,
+            &params.refine.arrival,
+            &params.steady,
+        ) {
+            Ok(s) => s,
+            Err(e) => {
+                rep.reason = Some(e.to_string());
+                return finish(rep, sim, "not_arrived".into());
+            }
+        };
+        rep.flown = true;
+        // The measurement: a few frames a little apart, each with the
+        // position the vehicle reports then (and the judge's pose error).
+        let m = params.refine.measure;
+        let mut images = Vec::new();
+        let mut reported = Vec::new();
+        let mut judged = Vec::new();
+        let mut true_offset = Vector3::zeros();
+        for i in 0..m.frames.max(1) {
+            if i > 0 {
+                sim.advance(m.spacing_s);
+            }
+            judged.push(pose_difference(&hidden.camera, &sim.true_camera()));
+            true_offset += sim.ap.vehicle().position_error() / m.frames.max(1) as f64;
+            images.push(sim.render());
+            reported.push(sim.ap.vehicle().p_ned());
+        }
+        let frames: Vec<LiveFrame<'_>> = images
+            .iter()
+            .zip(&reported)
+            .map(|(image, r)| LiveFrame {
+                image,
+                reported_ned_m: Some(*r),
+            })
+            .collect();
+        let step = session.on_arrival(&frames, sim.t, Some(&cam_model), &ctx);
+        let Some(record) = session.rounds().last().cloned() else {
+            return finish(rep, sim, "no_round".into());
+        };
+        let judge = |f: &dyn Fn(&crate::refine::PoseDifference) -> f64| {
+            crate::stats::finite_median(&judged.iter().map(f).collect::<Vec<_>>())
+                .unwrap_or(f64::NAN)
+        };
+        let (position_m, yaw_deg, pitch_deg, rotation_deg) = (
+            judge(&|d| d.position_m),
+            judge(&|d| d.yaw_deg),
+            judge(&|d| d.pitch_deg),
+            judge(&|d| d.rotation_deg),
+        );
+        if record.round == 0 {
+            rep.first_shot_error_pct = record.shot_error_pct;
+            rep.first_position_error_m = Some(position_m);
+        }
+        rep.final_shot_error_pct = record.shot_error_pct;
+        rep.position_error_m = Some(position_m);
+        rep.yaw_error_deg = Some(yaw_deg);
+        rep.pitch_error_deg = Some(pitch_deg);
+        rep.rounds = record.round;
+        rep.round_reports.push(RoundReport {
+            record,
+            position_error_m: position_m,
+            yaw_error_deg: yaw_deg,
+            pitch_error_deg: pitch_deg,
+            rotation_error_deg: rotation_deg,
+            true_offset_ned_m: true_offset.into(),
+            flight_s,
+        });
+        if let Step::Done(stop) = step {
+            if let Stop::LiveNotLocalised(r) | Stop::CorrectionRefused(r) = &stop {
+                rep.reason = Some(r.clone());
+            }
+            return finish(rep, sim, stop.name().into());
+        }
+    }
+}
