@@ -44,10 +44,10 @@ pub enum ScenarioError {
     /// The SLAM could not start.
     #[error("SLAM: {0}")]
     Slam(#[from] crate::slam::SlamError),
-    /// The explore flight did not give a map.
     /// The explored map could not be saved and read back (`restart`).
     #[error("map file: {0}")]
     MapFile(#[from] crate::slam::mapfile::MapFileError),
+    /// The explore flight did not give a map.
     #[error("the explore flight gave no usable map: {keyframes} keyframes")]
     NoMap {
         /// Keyframes in the map.

@@ -134,8 +134,6 @@ pub(super) fn make_hidden(
     })
 }
 
-/// The desired shot's camera: an anchors shot's from its keyframe's
-/// geometry (as the daemon does), a photo's by localisation.
 /// An anchors shot dragged on keyframe `id` ([`DragParams`]), and its
 /// truth: the camera that takes the drawn picture best in the true world
 /// (PnP on a grid of the picture's pixels, each at the true scene point

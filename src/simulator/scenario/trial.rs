@@ -23,6 +23,8 @@ use super::params::ScenarioParams;
 use super::report::{RoundReport, TrialReport};
 use super::sim::Sim;
 
+/// The desired shot's camera: an anchors shot's from its keyframe's
+/// geometry (as the daemon does), a photo's by localisation.
 fn localise(
     map: &Map,
     img: &GrayImage,
