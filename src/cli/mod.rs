@@ -1,5 +1,6 @@
 //! The subcommands: each file holds one command's arguments and its body
-//! (`slam_timing` is `slam`'s frame-time report). `scenario` needs the
+//! (`slam_timing` and `slam_memory` are `slam`'s frame-time and memory
+//! reports). `scenario` needs the
 //! simulator: only with the `sim` feature.
 
 pub mod eval;
@@ -10,5 +11,6 @@ pub mod run;
 pub mod scenario;
 pub mod shot;
 pub mod slam;
+mod slam_memory;
 pub mod slam_timing;
 pub mod vocab;
