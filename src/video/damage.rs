@@ -814,6 +814,19 @@ mod tests {
         t.picture(&refs, Losses { lost, gaps }).unwrap()
     }
 
+    /// An IDR picture of 40x30 macroblocks in 4 slices starting at
+    /// macroblock rows 0, 8, 16 and 24, with its parameter sets.
+    fn idr_in_four_slices() -> Vec<Vec<u8>> {
+        vec![
+            sps(40, 30),
+            pps(),
+            slice(true, 0, 7, 0),
+            slice(true, 320, 7, 0),
+            slice(true, 640, 7, 0),
+            slice(true, 960, 7, 0),
+        ]
+    }
+
     /// Macroblock rows (of 16 pixel rows) with any damaged pixel row.
     fn mb_rows(d: &PictureDamage) -> Vec<usize> {
         (0..d.coded.rows().len() / 16)
@@ -842,15 +855,7 @@ mod tests {
             ..Default::default()
         };
         let mut t = DamageTracker::new(params);
-        // IDR of 40x30 macroblocks in 4 slices starting at rows 0, 8, 16, 24.
-        let idr: Vec<Vec<u8>> = vec![
-            sps(40, 30),
-            pps(),
-            slice(true, 0, 7, 0),
-            slice(true, 320, 7, 0),
-            slice(true, 640, 7, 0),
-            slice(true, 960, 7, 0),
-        ];
+        let idr = idr_in_four_slices();
         assert!(!run(&mut t, &idr, 0, &[]).coded.any());
         // P picture: the slice starting at row 8 was lost (gap before NAL 1).
         let p1 = vec![
@@ -933,14 +938,7 @@ mod tests {
             follow_motion: true,
             ..Default::default()
         };
-        let idr = vec![
-            sps(40, 30),
-            pps(),
-            slice(true, 0, 7, 0),
-            slice(true, 320, 7, 0),
-            slice(true, 640, 7, 0),
-            slice(true, 960, 7, 0),
-        ];
+        let idr = idr_in_four_slices();
         let motion = |lo, hi| VerticalMotion {
             lo,
             hi,
