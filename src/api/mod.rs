@@ -23,10 +23,11 @@ pub use features::{FeaturesView, StateCounts, TrackedFeatures, pack, select, unp
 pub use shot_intake::{ParsedShot, PhotoQuery, ShotRequest, parse_shot_request};
 use shot_intake::{create_shot, create_shot_from_photo};
 pub use views::{
-    AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, LoopInfo, MapSaved, MapStart,
-    MapView, MergeInfo, MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome,
-    StopView, TargetView, TrackedFrame, VehicleError, VehicleGimbal, VehicleMissionView,
-    VehiclePosition, VehicleStatus, VehicleView, WriteFailure,
+    AlignmentView, BoxFuture, GimbalManagerView, KeyframeInfo, KeyframeList, LoopInfo, MapSaved,
+    MapStart, MapView, MergeInfo, MissionProgressView, ProgressView, ShotList, ShotTarget,
+    SlamStatus, SlamView, StatusView, StopOutcome, StopView, TargetView, TrackedFrame,
+    VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition, VehicleStatus,
+    VehicleStatusView, VehicleView, VideoStatusView, WriteFailure,
 };
 
 use std::sync::Arc;
@@ -207,7 +208,7 @@ async fn openapi() -> Response {
     ([(header::CONTENT_TYPE, "application/json")], OPENAPI).into_response()
 }
 
-fn status_json(st: &AppState) -> Value {
+fn status_view(st: &AppState) -> StatusView {
     let c = st.ingest.counters.snapshot();
     let slam = st.slam.status();
     // Writes that failed and are not repaired yet: the page shows them.
@@ -222,30 +223,45 @@ fn status_json(st: &AppState) -> Value {
         }))
         .collect();
     let latest = st.ingest.latest();
-    json!({
-        "uptime_s": unix_now() - st.started_unix,
-        "now_unix": unix_now(),
-        "video": {
-            "received_fps": st.ingest.received_rate.rate(),
-            "decoded_fps": st.ingest.decoded_rate.rate(),
-            "consumed_fps": st.ingest.consumed_rate.rate(),
-            "counters": c,
-            "link": st.ingest.link.report(),
-            "source": st.ingest.source_info(),
-            "bitrate_kbps": st.ingest.byte_rate.bits_per_second() / 1e3,
-            "width": latest.as_ref().map(|f| f.image.width()),
-            "height": latest.as_ref().map(|f| f.image.height()),
-            "last_frame_age_s": latest.as_ref().map(|f| crate::clock::since(f.received).as_secs_f64()),
+    StatusView {
+        uptime_s: unix_now() - st.started_unix,
+        now_unix: unix_now(),
+        video: VideoStatusView {
+            received_fps: st.ingest.received_rate.rate(),
+            decoded_fps: st.ingest.decoded_rate.rate(),
+            consumed_fps: st.ingest.consumed_rate.rate(),
+            counters: c,
+            link: st.ingest.link.report(),
+            source: st.ingest.source_info(),
+            bitrate_kbps: st.ingest.byte_rate.bits_per_second() / 1e3,
+            width: latest.as_ref().map(|f| f.image.width()),
+            height: latest.as_ref().map(|f| f.image.height()),
+            last_frame_age_s: latest
+                .as_ref()
+                .map(|f| crate::clock::since(f.received).as_secs_f64()),
         },
-        "slam": slam,
-        "vehicle": st.vehicle.as_ref().map_or(json!({"configured": false}), |v| json!(v.status())),
-        "shots": st.store.list().len(),
-        "errors": errors,
+        slam,
+        vehicle: st
+            .vehicle
+            .as_ref()
+            .map_or(VehicleStatusView::Absent { configured: false }, |v| {
+                VehicleStatusView::Configured(Box::new(v.status()))
+            }),
+        shots: st.store.list().len(),
+        errors,
+    }
+}
+
+/// The status as a JSON document, for the `/events` stream's patches.
+fn status_json(st: &AppState) -> Value {
+    serde_json::to_value(status_view(st)).unwrap_or_else(|e| {
+        tracing::error!(error = %e, "the status could not be written as JSON");
+        Value::Null
     })
 }
 
-async fn status(State(st): State<AppState>) -> Json<Value> {
-    Json(status_json(&st))
+async fn status(State(st): State<AppState>) -> Json<StatusView> {
+    Json(status_view(&st))
 }
 
 /// The `/events` stream's state: the history still to send, the live
@@ -380,9 +396,12 @@ fn encode_jpeg(img: &GrayImage, quality: u8) -> Result<Vec<u8>, ApiError> {
     Ok(out)
 }
 
-async fn keyframes(State(st): State<AppState>) -> Json<Value> {
-    let kfs = st.slam.keyframes();
-    Json(json!({"count": kfs.len(), "keyframes": kfs}))
+async fn keyframes(State(st): State<AppState>) -> Json<KeyframeList> {
+    let keyframes = st.slam.keyframes();
+    Json(KeyframeList {
+        count: keyframes.len(),
+        keyframes,
+    })
 }
 
 fn parse_u64(id: &str, what: &str) -> Result<u64, ApiError> {
@@ -456,9 +475,12 @@ async fn map(State(st): State<AppState>, Query(q): Query<MapQuery>) -> Json<MapV
     Json(st.slam.map(n))
 }
 
-async fn list_shots(State(st): State<AppState>) -> Json<Value> {
+async fn list_shots(State(st): State<AppState>) -> Json<ShotList> {
     let shots = st.store.list();
-    Json(json!({"count": shots.len(), "shots": shots}))
+    Json(ShotList {
+        count: shots.len(),
+        shots,
+    })
 }
 
 fn find_shot(st: &AppState, id: &str) -> Result<Shot, ApiError> {
@@ -613,12 +635,14 @@ async fn start_mission(
 async fn progress(
     State(st): State<AppState>,
     Path(id): Path<String>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<ProgressView>, ApiError> {
     let shot = find_shot(&st, &id)?;
     let v = vehicle(&st)?;
-    Ok(Json(
-        json!({"shot": shot.id, "mission": shot.mission, "progress": v.progress()}),
-    ))
+    Ok(Json(ProgressView {
+        shot: shot.id,
+        mission: shot.mission,
+        progress: v.progress(),
+    }))
 }
 
 /// The reason a stop records on the shot.

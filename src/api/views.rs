@@ -456,6 +456,95 @@ pub struct VehicleMissionView {
     pub seconds: f64,
 }
 
+/// The reply of `GET /status` (and the `/events` stream's `status`
+/// document, which `status_patch` events patch).
+#[derive(Debug, Clone, Serialize)]
+pub struct StatusView {
+    /// Seconds since the daemon started.
+    pub uptime_s: f64,
+    /// The daemon's clock, unix seconds (simulated when it runs in
+    /// lockstep with the bundled simulator).
+    pub now_unix: f64,
+    /// The video.
+    pub video: VideoStatusView,
+    /// The SLAM.
+    pub slam: SlamStatus,
+    /// The vehicle, or `{"configured": false}` without a link.
+    pub vehicle: VehicleStatusView,
+    /// Shots in the store.
+    pub shots: usize,
+    /// Writes that failed and are not repaired yet.
+    pub errors: Vec<WriteFailure>,
+}
+
+/// The video part of [`StatusView`].
+#[derive(Debug, Clone, Serialize)]
+pub struct VideoStatusView {
+    /// Frames received a second.
+    pub received_fps: f64,
+    /// Frames decoded a second.
+    pub decoded_fps: f64,
+    /// Frames the SLAM took a second.
+    pub consumed_fps: f64,
+    /// The ingest's counters.
+    pub counters: crate::video::live::CountersSnapshot,
+    /// What the link left the SLAM over its window.
+    pub link: crate::video::live::LinkQuality,
+    /// What the source is.
+    pub source: crate::video::live::SourceInfo,
+    /// The stream's bit rate, kbit/s.
+    pub bitrate_kbps: f64,
+    /// The newest frame's width (None: no frame yet).
+    pub width: Option<u32>,
+    /// The newest frame's height.
+    pub height: Option<u32>,
+    /// The newest frame's age, seconds.
+    pub last_frame_age_s: Option<f64>,
+}
+
+/// The vehicle part of [`StatusView`]: its status, or that no link is
+/// configured.
+#[derive(Debug, Clone, Serialize)]
+#[serde(untagged)]
+pub enum VehicleStatusView {
+    /// A link is configured.
+    Configured(Box<VehicleStatus>),
+    /// No link: `{"configured": false}`.
+    Absent {
+        /// Always false.
+        configured: bool,
+    },
+}
+
+/// The reply of `GET /keyframes`.
+#[derive(Debug, Clone, Serialize)]
+pub struct KeyframeList {
+    /// How many.
+    pub count: usize,
+    /// The keyframes.
+    pub keyframes: Vec<KeyframeInfo>,
+}
+
+/// The reply of `GET /shots`.
+#[derive(Debug, Clone, Serialize)]
+pub struct ShotList {
+    /// How many.
+    pub count: usize,
+    /// The shots.
+    pub shots: Vec<Shot>,
+}
+
+/// The reply of `GET /shots/{id}/progress`.
+#[derive(Debug, Clone, Serialize)]
+pub struct ProgressView {
+    /// The shot.
+    pub shot: String,
+    /// Its mission record.
+    pub mission: Option<MissionRecord>,
+    /// The vehicle's progress through the mission it holds.
+    pub progress: Option<MissionProgressView>,
+}
+
 /// The reply of `POST /vehicle/stop`: what the vehicle acknowledged and
 /// what was stopped.
 #[derive(Debug, Clone, PartialEq, Serialize)]
