@@ -223,9 +223,10 @@ fn status_view(st: &AppState) -> StatusView {
         }))
         .collect();
     let latest = st.ingest.latest();
+    let now = unix_now();
     StatusView {
-        uptime_s: unix_now() - st.started_unix,
-        now_unix: unix_now(),
+        uptime_s: now - st.started_unix,
+        now_unix: now,
         video: VideoStatusView {
             received_fps: st.ingest.received_rate.rate(),
             decoded_fps: st.ingest.decoded_rate.rate(),
