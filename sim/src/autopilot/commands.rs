@@ -65,9 +65,11 @@ impl Autopilot {
                     Mode::from_px4(p[1] as u32, p[2] as u32)
                 };
                 match mode {
-                    // Offboard needs a setpoint stream we do not take from
-                    // MAVLink.
-                    Some(Mode::Offboard) if !ardu && self.external.is_none() => {
+                    // PX4's OFFBOARD needs a setpoint stream first (the
+                    // scripted operator's, or the ground station's).
+                    Some(Mode::Offboard)
+                        if !ardu && self.external.is_none() && !self.offboard_stream_ready() =>
+                    {
                         MavResult::MAV_RESULT_DENIED
                     }
                     Some(m) => {

@@ -72,7 +72,7 @@ impl Autopilot {
                 !self.exec.done
                     && self.mission.items().len() > usize::from(self.mission.first_item())
             }
-            Mode::Offboard => self.external.is_some(),
+            Mode::Offboard => self.external.is_some() || self.offboard.setpoint.is_some(),
             _ => false,
         }
     }
@@ -101,7 +101,7 @@ impl Autopilot {
                     self.hold_here()
                 }
             }
-            Mode::Offboard => match self.external {
+            Mode::Offboard => match self.guided_flown(out) {
                 Some(sp) => sp,
                 None => self.hold_here(),
             },

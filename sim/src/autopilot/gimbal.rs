@@ -18,7 +18,7 @@ pub(super) fn gimbal_device_ok(v: f32) -> bool {
 }
 
 /// A STATUSTEXT (cut to the 50 bytes the message holds).
-fn statustext(severity: MavSeverity, text: &str) -> MavMessage {
+pub(super) fn statustext(severity: MavSeverity, text: &str) -> MavMessage {
     let mut t = String::new();
     for ch in text.chars() {
         if t.len() + ch.len_utf8() > 50 {

@@ -27,6 +27,11 @@
 //! GET_HOME_POSITION, REQUEST_AUTOPILOT_CAPABILITIES; anything else is
 //! MAV_RESULT_UNSUPPORTED.
 //!
+//! Guided control (`offboard`): SET_POSITION_TARGET_LOCAL_NED and
+//! SET_POSITION_TARGET_GLOBAL_INT flown in OFFBOARD (PX4: only after a
+//! setpoint stream of a second, left for a hold when the stream stops for
+//! `offboard_loss_s`) or GUIDED (ArduPilot: the last target held).
+//!
 //! Gimbal protocol v2: the autopilot is the gimbal manager of one
 //! non-MAVLink gimbal (device id 1). DO_GIMBAL_MANAGER_CONFIGURE sets the
 //! primary controller (param1/param2: a sysid/compid, 0 nobody, -1
@@ -60,8 +65,8 @@
 //! MISSION_ITEM_REACHED when an item is reached.
 //!
 //! The files: `mode` the flight modes; `commands` the commands answered;
-//! `gimbal` the gimbal manager; `camera` image captures; `flight` mission
-//! execution and the setpoints flown; `telemetry` the streams and the messages
+//! `gimbal` the gimbal manager; `camera` image captures; `offboard` guided control;
+//! `flight` mission execution and the setpoints flown; `telemetry` the streams and the messages
 //! built; `mission` the mission protocol. This file holds the parameters, the
 //! autopilot's state, the received messages dispatched and the clock stepped.
 
@@ -77,6 +82,7 @@ mod flight;
 mod gimbal;
 pub mod mission;
 mod mode;
+mod offboard;
 mod telemetry;
 
 use mavlink::MavHeader;
@@ -86,6 +92,7 @@ use nalgebra::Vector3;
 use self::camera::IntervalCapture;
 use self::commands::{Command, cmd_ack};
 use self::flight::{Exec, RtlStage};
+use self::offboard::OffboardStream;
 use self::telemetry::{STREAMS, Stream};
 use crate::vehicle::{Setpoint, Vehicle, VehicleParams};
 pub use camera::CaptureRequest;
@@ -135,6 +142,12 @@ pub struct AutopilotParams {
     /// the defaults listed in the module documentation (e.g. PX4's rates
     /// on a telemetry radio, [`crate::realism::PX4_NORMAL_STREAMS`]).
     pub stream_intervals: Vec<(u32, f64)>,
+    /// PX4: a gap in the ground station's setpoint stream longer than
+    /// this ends OFFBOARD (COM_OF_LOSS_T), seconds.
+    pub offboard_loss_s: f64,
+    /// PX4: how long the setpoint stream must have run before OFFBOARD is
+    /// accepted, seconds.
+    pub offboard_proof_s: f64,
 }
 
 impl AutopilotParams {
@@ -167,6 +180,8 @@ impl Default for AutopilotParams {
             battery: (16.8, 13.6, 5000.0, 15.0),
             video_stream_uri: None,
             stream_intervals: Vec::new(),
+            offboard_loss_s: 1.0,
+            offboard_proof_s: 1.0,
         }
     }
 }
@@ -186,6 +201,8 @@ pub struct Autopilot {
     hold_point: Option<(Vector3<f64>, f64)>,
     rtl: RtlStage,
     external: Option<Setpoint>,
+    /// The ground station's guided setpoints (SET_POSITION_TARGET_*).
+    offboard: OffboardStream,
     cruise_speed: Option<f64>,
     landed_since: Option<f64>,
     armed_at: f64,
@@ -236,6 +253,7 @@ impl Autopilot {
             hold_point: None,
             rtl: RtlStage::Climb,
             external: None,
+            offboard: OffboardStream::default(),
             cruise_speed: None,
             landed_since: Some(0.0),
             armed_at: 0.0,
@@ -345,6 +363,9 @@ impl Autopilot {
     pub fn set_mode(&mut self, mode: Mode) {
         if mode != self.mode {
             self.hold_point = None;
+            if self.mode == Mode::Offboard {
+                self.clear_guided_target();
+            }
             if mode == Mode::Rtl {
                 self.rtl = RtlStage::Climb;
             }
@@ -414,6 +435,10 @@ impl Autopilot {
             self.gcs.get_or_insert(from);
             let result = self.command(&c, from, &mut out);
             out.push(cmd_ack(from, c.command, result));
+            return out;
+        }
+        if self.guided_setpoint(msg) {
+            self.gcs.get_or_insert(from);
             return out;
         }
         if let MavMessage::REQUEST_DATA_STREAM(r) = msg
