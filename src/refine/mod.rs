@@ -44,6 +44,7 @@ pub mod measure;
 pub mod reachable;
 pub mod record;
 pub mod round;
+pub mod servo;
 pub mod session;
 
 pub use arrival::{ArrivalDetector, ArrivalParams, Distance, PositionReport};
@@ -54,6 +55,7 @@ pub use error::{
 };
 pub use measure::{LiveFrame, MeasureParams};
 pub use reachable::{Reachable, reachable_from_anchors};
+pub use servo::{Servo, ServoFrame, ServoParams, ServoSample, ServoStep, ServoStop};
 pub use session::{Context, Observation, OffsetRecord, RoundRecord, Session, Step, Stop};
 
 /// Every tunable number of the refinement.

@@ -261,6 +261,35 @@ impl Session {
         self.reachable.as_ref()
     }
 
+    /// The desired picture the live view is compared with.
+    pub fn desired_picture(&self) -> &GrayImage {
+        &self.desired
+    }
+
+    /// The desired picture's mask of valid pixels, when it has one.
+    pub fn desired_mask(&self) -> Option<&GrayImage> {
+        self.mask.as_ref()
+    }
+
+    /// This loop's parameters.
+    pub fn params(&self) -> &Params {
+        &self.params
+    }
+
+    /// A servo toward this loop's shot from the setpoint being held
+    /// (its desired picture, mask, pose and floor; this loop's parameters).
+    pub fn servo(&self, holding: Target, params: super::ServoParams) -> super::Servo {
+        super::Servo::new(
+            self.desired.clone(),
+            self.mask.clone(),
+            self.map_from_desired,
+            self.reachable.as_ref().map(|r| r.floor_pct),
+            holding,
+            self.params.clone(),
+            params,
+        )
+    }
+
     /// The target being flown.
     pub fn target(&self) -> &Target {
         &self.target

@@ -33,6 +33,7 @@ mod explore;
 mod hidden;
 mod params;
 mod report;
+mod servo;
 mod sim;
 mod trial;
 
@@ -63,6 +64,7 @@ pub use super::drag::DragParams;
 pub use error::{FlightError, ScenarioError};
 pub use params::{Disturbances, HiddenParams, ScenarioParams, SteadyParams};
 pub use report::{ExploreReport, RoundReport, ScenarioReport, TrialReport};
+pub use servo::{ServoDriverParams, ServoReport};
 
 /// Runs the scenario: the explore flight, then `params.trials` trials.
 /// `progress` is called after each trial.
@@ -245,6 +247,15 @@ pub fn run(
             .then(|| fin.iter().filter(|&&e| e <= 2.0).count() as f64 / n as f64),
         mean_rounds: (n > 0).then(|| flown.iter().map(|t| t.rounds as f64).sum::<f64>() / n as f64),
         fence_violations: trials.iter().filter(|t| !t.inside_fence).count(),
+        servo: params.servo.is_some(),
+        servo_settled: trials.iter().filter(|t| t.stop == "servo_settled").count(),
+        median_arrival_to_photo_s: finite_quantile(
+            &flown
+                .iter()
+                .filter_map(|t| t.arrival_to_photo_s)
+                .collect::<Vec<_>>(),
+            0.5,
+        ),
         explore: ex.report.clone(),
         trial_reports: trials,
         wall_s: wall.elapsed().as_secs_f64(),

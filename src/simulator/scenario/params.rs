@@ -165,6 +165,9 @@ pub struct ScenarioParams {
     pub plan: plan::Params,
     /// Shot error and correction loop.
     pub refine: Params,
+    /// Servoing at the shot after the first arrival (None: rounds of
+    /// mission legs only).
+    pub servo: Option<super::servo::ServoDriverParams>,
     /// The simulator's realism (`ideal`: none): its camera effects on every
     /// live frame (the desired photo stays a clean render), its vehicle
     /// effects on the vehicle (its GNSS error then replaces
@@ -225,6 +228,7 @@ impl Default for ScenarioParams {
                 ..plan::Params::default()
             },
             refine: Params::default(),
+            servo: None,
             realism: Realism::ideal(),
         }
     }

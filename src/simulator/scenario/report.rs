@@ -101,6 +101,11 @@ pub struct TrialReport {
     pub inside_fence: bool,
     /// Every measurement.
     pub round_reports: Vec<RoundReport>,
+    /// Simulated seconds from the first arrival at the shot to the photo
+    /// (servoing) or to the loop's last measurement (rounds).
+    pub arrival_to_photo_s: Option<f64>,
+    /// Servoing at the shot, when it ran.
+    pub servo: Option<super::servo::ServoReport>,
 }
 
 /// The whole scenario.
@@ -145,6 +150,12 @@ pub struct ScenarioReport {
     pub mean_rounds: Option<f64>,
     /// Trials in which the vehicle left the geofence.
     pub fence_violations: usize,
+    /// Servoing at the shot was on (`servo_*` stops).
+    pub servo: bool,
+    /// Trials whose servoing settled under its threshold.
+    pub servo_settled: usize,
+    /// Median simulated seconds from the first arrival to the photo.
+    pub median_arrival_to_photo_s: Option<f64>,
     /// The explore flight.
     pub explore: ExploreReport,
     /// Every trial.

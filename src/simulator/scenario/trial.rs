@@ -21,6 +21,7 @@ use super::explore::Explored;
 use super::hidden::make_hidden;
 use super::params::ScenarioParams;
 use super::report::{RoundReport, TrialReport};
+use super::servo::servo_at_shot;
 use super::sim::Sim;
 
 /// The desired shot's camera: an anchors shot's from its keyframe's
@@ -77,6 +78,8 @@ pub(super) fn run_trial(
         wall_s: 0.0,
         inside_fence: true,
         round_reports: Vec::new(),
+        arrival_to_photo_s: None,
+        servo: None,
     };
     let finish = |mut rep: TrialReport, sim: &Sim, stop: String| {
         rep.stop = stop;
@@ -152,6 +155,7 @@ pub(super) fn run_trial(
         localize: &params.localize,
     };
     sim.fence_ok = true;
+    let mut first_arrival: Option<f64> = None;
     loop {
         let target = *session.target();
         let items = match plan::plan(&target, &sim.home, flavour, &params.plan) {
@@ -185,6 +189,7 @@ pub(super) fn run_trial(
             }
         };
         rep.flown = true;
+        let arrived_at = *first_arrival.get_or_insert(sim.t);
         // The measurement: a few frames a little apart, each with the
         // position the vehicle reports then (and the judge's pose error).
         let m = params.refine.measure;
@@ -241,6 +246,42 @@ pub(super) fn run_trial(
             true_offset_ned_m: true_offset.into(),
             flight_s,
         });
+        rep.arrival_to_photo_s = Some(sim.t - arrived_at);
+        // Servoing takes over from a short correction, or from a loop that
+        // stopped above the servo's threshold for want of a better look.
+        if let Some(sp) = &params.servo {
+            let above = rep
+                .final_shot_error_pct
+                .is_none_or(|e| e > sp.servo.threshold_pct);
+            let servo_now = match &step {
+                Step::Upload(next) => !crate::refine::servo::is_long_correction(
+                    &target,
+                    next,
+                    &sim.home,
+                    sp.servo.long_correction_m,
+                ),
+                Step::Done(
+                    Stop::Converged | Stop::WithinNoise | Stop::MaxRounds | Stop::AtFloor,
+                ) => above,
+                Step::Done(_) => false,
+            };
+            if servo_now {
+                let (report, judged) =
+                    servo_at_shot(sim, &session, target, &ctx, &cam_model, &hidden.camera, sp);
+                let stop = format!("servo_{}", report.stop);
+                if let Some(d) = judged {
+                    rep.final_shot_error_pct = report.photo_shot_error_pct;
+                    rep.position_error_m = Some(d.position_m);
+                    rep.yaw_error_deg = Some(d.yaw_deg);
+                    rep.pitch_error_deg = Some(d.pitch_deg);
+                } else {
+                    rep.reason = report.reason.clone();
+                }
+                rep.arrival_to_photo_s = Some(sim.t - arrived_at);
+                rep.servo = Some(report);
+                return finish(rep, sim, stop);
+            }
+        }
         if let Step::Done(stop) = step {
             if let Stop::LiveNotLocalised(r) | Stop::CorrectionRefused(r) = &stop {
                 rep.reason = Some(r.clone());
