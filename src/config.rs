@@ -360,6 +360,16 @@ pub struct RefineSection {
     pub max_telemetry_age_s: f64,
     /// Telemetry polling period, ms.
     pub poll_ms: u64,
+    /// Servo at the shot after the first arrival (a mission leg first for
+    /// a longer correction): per processed frame, guided setpoints (PX4
+    /// OFFBOARD, ArduPilot GUIDED) and the photo when the error is under
+    /// `servo_threshold_pct`.
+    pub servo: bool,
+    /// The servo's photo threshold, % of the image diagonal.
+    pub servo_threshold_pct: f64,
+    /// Servoing time after which a frame among the best measured takes the
+    /// photo (after 1.5 times this, the photo is taken where it is), s.
+    pub servo_max_s: f64,
 }
 
 impl Default for RefineSection {
@@ -390,6 +400,9 @@ impl Default for RefineSection {
             frame_wait_s: p.frame_wait.as_secs_f64(),
             max_telemetry_age_s: p.max_telemetry_age.as_secs_f64(),
             poll_ms: u64::try_from(p.poll.as_millis()).unwrap_or(u64::MAX),
+            servo: p.servo.is_some(),
+            servo_threshold_pct: crate::refine::ServoParams::default().threshold_pct,
+            servo_max_s: crate::refine::ServoParams::default().max_s,
         }
     }
 }
@@ -424,6 +437,12 @@ impl RefineSection {
         p.frame_wait = secs(self.frame_wait_s);
         p.max_telemetry_age = secs(self.max_telemetry_age_s);
         p.poll = std::time::Duration::from_millis(self.poll_ms);
+        p.servo = self.servo.then(|| crate::refine::ServoParams {
+            threshold_pct: self.servo_threshold_pct,
+            max_s: self.servo_max_s,
+            position_drift_m2_per_s: self.position_drift_m2_per_s,
+            ..crate::refine::ServoParams::default()
+        });
         p
     }
 
@@ -493,6 +512,12 @@ impl RefineSection {
         }
         if !(10..=10_000).contains(&self.poll_ms) {
             return Err(("poll_ms", "must be in [10, 10000] ms".into()));
+        }
+        if !(positive(self.servo_threshold_pct) && self.servo_threshold_pct < 100.0) {
+            return Err(("servo_threshold_pct", "must be in (0, 100) %".into()));
+        }
+        if !(positive(self.servo_max_s) && self.servo_max_s <= 600.0) {
+            return Err(("servo_max_s", "must be in (0, 600] s".into()));
         }
         Ok(())
     }

@@ -187,6 +187,9 @@ pub enum Abort {
     /// The daemon stopped the loop (shutdown, another shot).
     #[error("cancelled")]
     Cancelled,
+    /// The vehicle refused guided control (the servo's setpoints or mode).
+    #[error("guided control: {0}")]
+    Guided(crate::vehicle::LinkError),
 }
 
 /// Makes (or finds) the shot's desired picture and keeps it.
@@ -499,6 +502,18 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
             );
         }
         save_rounds(deps, &id, &session, None).await;
+        if let Some(sp) = deps.params.servo
+            && crate::refine::servo::takes_over(
+                &step,
+                session.rounds().last().and_then(|r| r.shot_error_pct),
+                &target,
+                &home,
+                &sp,
+            )
+        {
+            servo_and_finish(deps, &mut session, &shot, target, &home, sp, &cancel).await;
+            return;
+        }
         let next = match step {
             Step::Done(stop) => {
                 tracing::info!(
@@ -542,6 +557,48 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
     }
 }
 
+/// Servoing at the shot after a round ([`super::refinement_servo`]): the
+/// outcome noted on the last round, the shot's record saved and its
+/// `done` event published (`servo_<stop>`).
+async fn servo_and_finish(
+    deps: &Arc<Deps>,
+    session: &mut Session,
+    shot: &Shot,
+    holding: Target,
+    home: &Home,
+    params: crate::refine::ServoParams,
+    cancel: &CancellationToken,
+) {
+    let id = &shot.id;
+    let outcome =
+        super::refinement_servo::servo_at_shot(deps, session, shot, holding, home, params, cancel)
+            .await;
+    match outcome {
+        Ok(o) => {
+            session.annotate(&o.note());
+            save_rounds(deps, id, session, None).await;
+            super::refinement_servo::save_servo(deps, id, &o).await;
+            let reason = match &o.stop {
+                crate::refine::ServoStop::LiveLost(r) | crate::refine::ServoStop::Refused(r) => {
+                    Some(r.clone())
+                }
+                _ => None,
+            };
+            deps.events.publish(
+                id,
+                ShotEvent::Done {
+                    stop: format!("servo_{}", o.stop.name()),
+                    reason,
+                },
+            );
+        }
+        Err(why) => {
+            tracing::warn!(shot = %id, "refinement: servo: {why}");
+            save_rounds(deps, id, session, Some(&why)).await;
+        }
+    }
+}
+
 /// The session of a started shot: its pose, desired picture and the
 /// target its mission flies.
 async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Session, Abort> {
@@ -569,7 +626,7 @@ async fn prepare(deps: &Arc<Deps>, shot: &Shot, target: Target) -> Result<Sessio
 }
 
 /// A position report as the refinement reads it.
-fn position_report(g: &Stamped<GlobalPosition>) -> PositionReport {
+pub(super) fn position_report(g: &Stamped<GlobalPosition>) -> PositionReport {
     PositionReport {
         lat_deg: g.value.lat_deg,
         lon_deg: g.value.lon_deg,
@@ -661,7 +718,7 @@ type Looked = (Session, Result<Step, Abort>);
 
 /// The vehicle's reported position now (fresh telemetry only), local NED
 /// metres around home.
-fn reported_ned(deps: &Deps, frame: &LocalFrame, home: &Home) -> Option<Vector3<f64>> {
+pub(super) fn reported_ned(deps: &Deps, frame: &LocalFrame, home: &Home) -> Option<Vector3<f64>> {
     let max_age = deps.params.max_telemetry_age;
     (*deps.link.telemetry.global_position.borrow())
         .filter(|g| crate::clock::since(g.received) <= max_age)

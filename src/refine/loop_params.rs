@@ -26,6 +26,9 @@ pub struct LoopParams {
     pub max_telemetry_age: Duration,
     /// Longest wait for a video frame received after the arrival.
     pub frame_wait: Duration,
+    /// Servoing at the shot after the first arrival (None: rounds of
+    /// mission legs only).
+    pub servo: Option<crate::refine::ServoParams>,
 }
 
 impl Default for LoopParams {
@@ -38,6 +41,7 @@ impl Default for LoopParams {
             max_flight: Duration::from_secs(120),
             max_telemetry_age: Duration::from_secs(2),
             frame_wait: Duration::from_secs(3),
+            servo: None,
         }
     }
 }

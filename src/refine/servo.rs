@@ -500,6 +500,28 @@ impl Servo {
     }
 }
 
+/// Whether servoing takes over after an arrival's round: from a short
+/// correction (a longer one is flown as a mission leg first), or from a
+/// loop that stopped above the servo's threshold for want of a better look
+/// (converged under the loop's coarser threshold, within the noise of one
+/// look, out of rounds, at a floor). Not after a refusal or a lost view.
+pub fn takes_over(
+    step: &super::Step,
+    last_error_pct: Option<f64>,
+    flown: &Target,
+    home: &crate::mission::plan::Home,
+    p: &ServoParams,
+) -> bool {
+    use super::{Step, Stop};
+    match step {
+        Step::Upload(next) => !is_long_correction(flown, next, home, p.long_correction_m),
+        Step::Done(Stop::Converged | Stop::WithinNoise | Stop::MaxRounds | Stop::AtFloor) => {
+            last_error_pct.is_none_or(|e| e.is_nan() || e > p.threshold_pct)
+        }
+        Step::Done(_) => false,
+    }
+}
+
 /// True when the move from `from` to `to` is longer than `long_m`
 /// horizontally or vertically: a mission leg flies it, not the servo.
 pub fn is_long_correction(

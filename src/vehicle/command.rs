@@ -20,6 +20,22 @@ pub struct HoldAck {
     pub result: String,
 }
 
+/// A position setpoint for guided control (PX4 OFFBOARD, ArduPilot
+/// GUIDED), sent as SET_POSITION_TARGET_GLOBAL_INT with an AMSL altitude:
+/// a ground station does not know PX4's LOCAL_NED origin (the EKF's), and
+/// 1e-7 degrees are about a centimetre.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct GuidedSetpoint {
+    /// Latitude, degrees.
+    pub lat_deg: f64,
+    /// Longitude, degrees.
+    pub lon_deg: f64,
+    /// Altitude above mean sea level, metres.
+    pub alt_amsl_m: f64,
+    /// Heading, degrees clockwise from north.
+    pub yaw_deg: f64,
+}
+
 /// A request to the link actor; each carries its reply channel.
 #[derive(Debug)]
 pub enum Command {
@@ -74,6 +90,16 @@ pub enum Command {
         params: [f32; 7],
         /// The component addressed (None: the autopilot).
         target_component: Option<u8>,
+        /// The outcome.
+        reply: oneshot::Sender<Result<(), LinkError>>,
+    },
+    /// Start (Some), move or stop (None) the guided setpoint stream: the
+    /// setpoint is sent at once and then every
+    /// [`crate::vehicle::GUIDED_PERIOD`] until replaced or stopped (the
+    /// operator's stop ends it too). Replies once the first is queued.
+    Guide {
+        /// The setpoint, or None to stop the stream.
+        setpoint: Option<GuidedSetpoint>,
         /// The outcome.
         reply: oneshot::Sender<Result<(), LinkError>>,
     },

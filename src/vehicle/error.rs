@@ -23,6 +23,11 @@ pub enum LinkError {
     /// No vehicle heartbeat has been heard (or the link is lost).
     #[error("no vehicle on the link")]
     NoVehicle,
+    /// A guided setpoint with a non-finite or out-of-range coordinate.
+    #[error(
+        "invalid guided setpoint: latitude, longitude, altitude and heading must be finite and in range"
+    )]
+    InvalidSetpoint,
     /// Another operation of the same kind is running.
     #[error("busy: a {what} is already running")]
     Busy {

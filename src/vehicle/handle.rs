@@ -11,7 +11,7 @@ use tracing::{info, warn};
 
 use crate::mission::{Download, Flavour, MissionItem, UploadReport};
 
-use super::command::{Command, HoldAck};
+use super::command::{Command, GuidedSetpoint, HoldAck};
 use super::error::LinkError;
 use super::modes::FlightMode;
 use super::router;
@@ -157,6 +157,14 @@ impl LinkHandle {
             warn!(error = %e, "gimbal release after the stop failed");
         }
         Ok(ack)
+    }
+
+    /// Starts (Some), moves or stops (None) the guided setpoint stream
+    /// (SET_POSITION_TARGET_GLOBAL_INT every [`crate::vehicle::GUIDED_PERIOD`]),
+    /// which [`FlightMode::Guided`] flies; the operator's stop
+    /// ([`LinkHandle::hold`]) ends it too.
+    pub async fn guide(&self, setpoint: Option<GuidedSetpoint>) -> Result<(), LinkError> {
+        self.call(|reply| Command::Guide { setpoint, reply }).await
     }
 
     /// Starts the uploaded mission (operator action). When the mission

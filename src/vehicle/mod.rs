@@ -48,8 +48,9 @@ pub mod router;
 mod telemetry;
 pub mod transport;
 
+pub use actor::GUIDED_PERIOD;
 pub use actor::{spawn, spawn_with_socket};
-pub use command::{Command, HoldAck};
+pub use command::{Command, GuidedSetpoint, HoldAck};
 pub use error::LinkError;
 pub use handle::{LinkHandle, PhotoReport, release_params};
 pub use modes::{FlightMode, ardupilot_mode_name, mode_params, px4_mode_name};

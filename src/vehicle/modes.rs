@@ -15,6 +15,11 @@ pub enum FlightMode {
     Hold,
     /// Return to launch.
     Rtl,
+    /// Follow the ground station's setpoints (PX4 OFFBOARD, ArduPilot
+    /// GUIDED). PX4 accepts it only while a setpoint stream runs
+    /// ([`crate::vehicle::LinkHandle::guide`]) and leaves it when the
+    /// stream stops.
+    Guided,
 }
 
 /// PX4's custom_mode: main mode in bits 16..24, sub mode in bits 24..32.
@@ -72,6 +77,8 @@ pub fn mode_params(flavour: Flavour, mode: FlightMode) -> (f32, f32, f32) {
         (Flavour::ArduPilot, FlightMode::Mission) => (CUSTOM, 3.0, 0.0),
         (Flavour::ArduPilot, FlightMode::Hold) => (CUSTOM, 5.0, 0.0),
         (Flavour::ArduPilot, FlightMode::Rtl) => (CUSTOM, 6.0, 0.0),
+        (Flavour::Px4, FlightMode::Guided) => (CUSTOM, 6.0, 0.0),
+        (Flavour::ArduPilot, FlightMode::Guided) => (CUSTOM, 4.0, 0.0),
     }
 }
 
@@ -94,5 +101,12 @@ mod tests {
         );
         let (_, m, _) = mode_params(Flavour::ArduPilot, FlightMode::Rtl);
         assert_eq!(ardupilot_mode_name(m as u32), "RTL");
+        let (_, main, sub) = mode_params(Flavour::Px4, FlightMode::Guided);
+        assert_eq!(
+            px4_mode_name(((main as u32) << 16) | ((sub as u32) << 24)),
+            "OFFBOARD"
+        );
+        let (_, m, _) = mode_params(Flavour::ArduPilot, FlightMode::Guided);
+        assert_eq!(ardupilot_mode_name(m as u32), "GUIDED");
     }
 }

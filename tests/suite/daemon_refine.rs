@@ -226,7 +226,10 @@ fn check_rounds(refinement: &Value) {
             "max_rounds",
             "at_floor",
             "live_not_localised",
-            "correction_refused"
+            "correction_refused",
+            "servo_settled",
+            "servo_best_available",
+            "servo_timeout"
         ]
         .contains(&stop),
         "{refinement}"
@@ -715,5 +718,65 @@ fn gps_bias_is_corrected_by_the_daemon() {
     // which the corrections compensate.
     let (dp, _) = check.vs_commanded.expect("truth of the last frame");
     assert!(dp > 0.5, "true camera {dp} m from the commanded");
+    run.stop();
+}
+
+/// With `[refine] servo`, after the first look the daemon servoes at the
+/// shot through the autopilot's guided control (the in-process PX4-like
+/// simulator takes OFFBOARD only after a setpoint stream) against a 1.5 m
+/// GNSS bias, and takes the photo once the live error is under the servo's
+/// threshold on a steady vehicle.
+#[test]
+fn the_daemon_servoes_at_the_shot_and_takes_the_photo() {
+    let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
+    let run = start(|cfg| {
+        cfg.sim.gps_sigma_xy_m = 1.5;
+        cfg.sim.gps_sigma_z_m = 0.5;
+        cfg.sim.gps_tau_s = 200.0;
+        cfg.sim.gps_seed = Some(27);
+        cfg.refine.servo = true;
+    });
+    let addr = run.addr;
+    let (_, photos) = run.georeferenced();
+    let sid = run.daemon.held(move || photo_shot(addr, &photos));
+    let (r, loop_s) = refine(&run, &sid);
+    let servo = &r["servo"];
+    eprintln!("servo after {loop_s:.1} s: {servo}");
+    let stop = r["stop"].as_str().unwrap_or("");
+    assert!(
+        stop == "servo_settled" || stop == "servo_best_available",
+        "{r}"
+    );
+    // It measured frame after frame and moved the setpoint: the GNSS bias
+    // puts the first look off the shot.
+    let first = r["rounds"][0]["shot_error_pct"].as_f64().unwrap();
+    assert!(first > 1.0, "first look {first:.2} %: {r}");
+    assert!(servo["frames"].as_u64().unwrap_or(0) >= 5, "{servo}");
+    assert!(servo["moves"].as_u64().unwrap_or(0) >= 1, "{servo}");
+    // The photo came from the simulator's MAVLink camera.
+    assert_eq!(servo["photo"]["taken"], true, "{servo}");
+    assert!(servo["photo"]["image_index"].is_i64(), "{servo}");
+    let last = servo["last_error_pct"].as_f64().unwrap();
+    if stop == "servo_settled" {
+        assert!(last <= 0.3, "{servo}");
+    } else {
+        // The best quarter of what it measured, well under the first look.
+        assert!(last < first / 2.0, "{servo}");
+    }
+    // Back in a hold once the photo is taken: the stream stopped and the
+    // vehicle left guided control.
+    let mode = run.daemon.poll(
+        Duration::from_secs(5),
+        Duration::from_millis(200),
+        move || {
+            let m = get_json(addr, "/api/v1/status")["vehicle"]["mode"].clone();
+            (m == "AUTO.LOITER").then_some(m)
+        },
+    );
+    assert!(
+        mode.is_some(),
+        "{}",
+        get_json(addr, "/api/v1/status")["vehicle"]
+    );
     run.stop();
 }

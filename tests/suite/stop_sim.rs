@@ -161,3 +161,132 @@ async fn stop_holds_px4() -> anyhow::Result<()> {
 async fn stop_holds_ardupilot() -> anyhow::Result<()> {
     stop_holds(Flavour::ArduPilot).await
 }
+
+/// Guided control against the simulator: the setpoint stream
+/// ([`LinkHandle::guide`]) flies the vehicle there once the mode is
+/// switched (PX4 refuses OFFBOARD until the stream has run a second, so
+/// the switch is retried), and the operator's stop ends it: the vehicle
+/// holds, and PX4 refuses OFFBOARD again because the stream stopped.
+async fn guided_flies_the_stream_and_the_stop_ends_it(flavour: Flavour) -> anyhow::Result<()> {
+    let _one = ONE_FLIGHT.lock().await;
+    let dir = tempfile::tempdir()?;
+    let cancel = CancellationToken::new();
+    let (socket, addr) = link_support::bound_udp();
+    let mut cfg = SimConfig::default().with_flavour(match flavour {
+        Flavour::Px4 => SimFlavour::Px4,
+        Flavour::ArduPilot => SimFlavour::ArduPilot,
+    });
+    cfg.mavlink = Endpoint::UdpIn(addr.to_string());
+    cfg.video_listen = None;
+    cfg.capture_dir = dir.path().join("captures");
+    cfg.sensor_noise = false;
+    let sockets = app::Sockets {
+        mavlink: Some(socket),
+        ..Default::default()
+    };
+    let _sim = tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
+    let (link, _task) = vehicle::spawn(
+        Params {
+            url: format!("udpout:{addr}"),
+            ..Params::default()
+        },
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(60)).await?;
+    let home = home_of(&link).await?;
+    // Up to a waypoint 15 m north at 10 m, by mission.
+    let deg_per_m = 1.0 / 111_195.0;
+    let target = Target {
+        lat_deg: home.lat_deg + 15.0 * deg_per_m,
+        lon_deg: home.lon_deg,
+        alt_m: 10.0,
+        yaw_deg: 0.0,
+        gimbal_pitch_deg: -30.0,
+        photo: false,
+    };
+    let items = plan::plan(&target, &home, flavour, &plan::Params::default())?;
+    link.upload_mission(items).await?;
+    link.arm(true).await?;
+    link.set_mode(FlightMode::Mission).await?;
+    link.start_mission().await?;
+    let mut lp = link.telemetry.local_position.clone();
+    wait_for("the vehicle at the waypoint", &mut lp, 120, |p| {
+        p.is_some_and(|p| {
+            let [n, e, d] = p.value.pos_ned_m;
+            (n - 15.0).hypot(e) < 1.0 && (d + 10.0).abs() < 1.0
+        })
+    })
+    .await?;
+    // The stream to 8 m east of it, 2 m higher, facing east.
+    let east = 8.0 / (111_195.0 * home.lat_deg.to_radians().cos());
+    let sp = vehicle::GuidedSetpoint {
+        lat_deg: home.lat_deg + 15.0 * deg_per_m,
+        lon_deg: home.lon_deg + east,
+        alt_amsl_m: home.alt_amsl_m + 12.0,
+        yaw_deg: 90.0,
+    };
+    link.guide(Some(sp)).await?;
+    // Retried at each position report until accepted (30 s at most).
+    let tries = std::time::Instant::now();
+    while let Err(e) = link.set_mode(FlightMode::Guided).await {
+        eprintln!("{flavour:?}: guided refused for now: {e}");
+        anyhow::ensure!(
+            tries.elapsed() < Duration::from_secs(30),
+            "{flavour:?}: guided control never accepted"
+        );
+        lp.changed().await?;
+    }
+    wait_for("the vehicle at the setpoint", &mut lp, 60, |p| {
+        p.is_some_and(|p| {
+            let [n, e, d] = p.value.pos_ned_m;
+            (n - 15.0).hypot(e - 8.0) < 0.3 && (d + 12.0).abs() < 0.3
+        })
+    })
+    .await?;
+    let ack = link.hold().await?;
+    anyhow::ensure!(ack.result == "MAV_RESULT_ACCEPTED", "{ack:?}");
+    let want = match flavour {
+        Flavour::Px4 => "AUTO.LOITER",
+        Flavour::ArduPilot => "LOITER",
+    };
+    let mut state = link.telemetry.vehicle.clone();
+    wait_for("the hold mode in the heartbeat", &mut state, 5, |v| {
+        v.mode == want
+    })
+    .await?;
+    if flavour == Flavour::Px4 {
+        // The stop ended the stream: two seconds on the autopilot's
+        // clock later, OFFBOARD is refused.
+        let (_, t0) = local(&link).ok_or_else(|| anyhow::anyhow!("no position"))?;
+        tokio::time::timeout(Duration::from_secs(60), async {
+            loop {
+                lp.changed().await?;
+                if local(&link).is_some_and(|(_, t)| t >= t0.saturating_add(2_000)) {
+                    return anyhow::Ok(());
+                }
+            }
+        })
+        .await
+        .map_err(|_| anyhow::anyhow!("no 2 s of positions within 60 s"))??;
+        let again = link.set_mode(FlightMode::Guided).await;
+        anyhow::ensure!(again.is_err(), "OFFBOARD accepted after the stop");
+    }
+    let (p, _) = local(&link).ok_or_else(|| anyhow::anyhow!("no position"))?;
+    anyhow::ensure!(
+        horizontal(p, [15.0, 8.0, 0.0]) < 0.5,
+        "{flavour:?}: {p:?} after the stop"
+    );
+    cancel.cancel();
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn guided_flies_the_stream_and_the_stop_ends_it_px4() -> anyhow::Result<()> {
+    guided_flies_the_stream_and_the_stop_ends_it(Flavour::Px4).await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn guided_flies_the_stream_and_the_stop_ends_it_ardupilot() -> anyhow::Result<()> {
+    guided_flies_the_stream_and_the_stop_ends_it(Flavour::ArduPilot).await
+}

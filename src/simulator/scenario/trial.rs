@@ -250,21 +250,13 @@ pub(super) fn run_trial(
         // Servoing takes over from a short correction, or from a loop that
         // stopped above the servo's threshold for want of a better look.
         if let Some(sp) = &params.servo {
-            let above = rep
-                .final_shot_error_pct
-                .is_none_or(|e| e > sp.servo.threshold_pct);
-            let servo_now = match &step {
-                Step::Upload(next) => !crate::refine::servo::is_long_correction(
-                    &target,
-                    next,
-                    &sim.home,
-                    sp.servo.long_correction_m,
-                ),
-                Step::Done(
-                    Stop::Converged | Stop::WithinNoise | Stop::MaxRounds | Stop::AtFloor,
-                ) => above,
-                Step::Done(_) => false,
-            };
+            let servo_now = crate::refine::servo::takes_over(
+                &step,
+                rep.final_shot_error_pct,
+                &target,
+                &sim.home,
+                &sp.servo,
+            );
             if servo_now {
                 let (report, judged) =
                     servo_at_shot(sim, &session, target, &ctx, &cam_model, &hidden.camera, sp);

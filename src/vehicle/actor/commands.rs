@@ -253,6 +253,10 @@ impl Actor {
                 info!(command = cmd_number(command), ?params, "command");
                 self.start_command7(command, params, target_component, Reply::Done(reply), now);
             }
+            Command::Guide { setpoint, reply } => {
+                self.on_guide(setpoint, reply, now);
+                self.flush().await;
+            }
             Command::RequestMessage {
                 message_id,
                 target_component,
@@ -368,6 +372,9 @@ impl Actor {
     /// gets [`LinkError::Superseded`]): the two ACKs could not be told apart.
     fn start_stop(&mut self, reply: oneshot::Sender<Result<HoldAck, LinkError>>, now: Instant) {
         info!("operator: stop (hold)");
+        if self.guided.take().is_some() {
+            info!("guided setpoint stream stopped by the stop");
+        }
         if self.stop.is_some() {
             let _ = reply.send(Err(LinkError::Busy { what: "stop" }));
             return;

@@ -14,11 +14,14 @@
 
 mod camera;
 mod commands;
+mod guided;
 mod io;
 mod pending;
 mod state;
 mod telemetry;
 mod transfer;
+
+pub use guided::GUIDED_PERIOD;
 
 use std::net::UdpSocket;
 use std::sync::Arc;
@@ -193,6 +196,7 @@ fn spawn_inner(
         params,
         router: router.clone(),
         deferred: Vec::new(),
+        guided: None,
     };
     let endpoints = router::spawn_endpoints(&router, forward, &io_cancel);
     let task = tokio::spawn(async move {
@@ -267,6 +271,9 @@ impl Actor {
         }
         if let Some(d) = self.router.foreign_deadline() {
             wake = wake.min(d);
+        }
+        if let Some(g) = &self.guided {
+            wake = wake.min(g.next);
         }
         wake
     }
@@ -361,6 +368,7 @@ impl Actor {
         }
         retry_late(&mut self.stop, &self.params, now, &mut self.out);
         retry_late(&mut self.command, &self.params, now, &mut self.out);
+        self.stream_guided(now);
         self.flush().await;
     }
 }

@@ -54,6 +54,8 @@ pub(super) struct Actor {
     pub(super) router: Arc<Router>,
     /// Mission transfers waiting for another station's to end.
     pub(super) deferred: Vec<Command>,
+    /// The guided setpoint stream, while one runs.
+    pub(super) guided: Option<super::guided::GuidedStream>,
 }
 
 impl Actor {
