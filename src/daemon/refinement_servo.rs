@@ -52,6 +52,13 @@ pub(super) struct ServoOutcome {
     pub(super) last_error_pct: Option<f64>,
     /// The photo, when one was due.
     pub(super) photo: Option<PhotoOutcome>,
+    /// Median time from a frame's arrival to its setpoint queued on the
+    /// link (the daemon's clock: simulated in the lockstep tests, real in
+    /// the field), ms.
+    pub(super) latency_ms_median: Option<f64>,
+    /// Median wall time of one frame's measurement (shot error and
+    /// localisation on a blocking thread), ms.
+    pub(super) compute_ms_median: Option<f64>,
 }
 
 impl ServoOutcome {
@@ -70,11 +77,14 @@ impl ServoOutcome {
             }
             None => "no photo".to_string(),
         };
+        let ms = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |x| format!("{x:.0} ms"));
         format!(
-            "servo: {} after {:.1} s, {} frames, {} setpoints moved, last shot error {}; {photo}",
+            "servo: {} after {:.1} s, {} frames ({} each to measure, {} from frame to setpoint), {} setpoints moved, last shot error {}; {photo}",
             self.stop.name(),
             self.seconds,
             self.frames,
+            ms(self.compute_ms_median),
+            ms(self.latency_ms_median),
             self.moves,
             self.last_error_pct
                 .map_or_else(|| "-".to_string(), |e| format!("{e:.2} %")),
@@ -208,7 +218,10 @@ async fn run(
         seconds: 0.0,
         last_error_pct: None,
         photo: None,
+        latency_ms_median: None,
+        compute_ms_median: None,
     };
+    let (mut latency_ms, mut compute_ms) = (Vec::new(), Vec::new());
     let mut after = t0;
     let mut pitch_sent = holding.gimbal_pitch_deg;
     let stop = loop {
@@ -235,6 +248,7 @@ async fn run(
         );
         let (home_c, alignment_c, frame_c) = (*home, alignment.clone(), frame_ltp);
         let mut moving = servo;
+        let wall = std::time::Instant::now();
         let (back, step) = tokio::task::spawn_blocking(move || {
             let Some(map) = slam.map_snapshot() else {
                 return (moving, Err(Abort::NoMap));
@@ -264,6 +278,7 @@ async fn run(
         })
         .await?;
         servo = back;
+        compute_ms.push(wall.elapsed().as_secs_f64() * 1e3);
         out.frames += 1;
         out.last_error_pct = servo.samples().last().and_then(|s| s.shot_error_pct);
         match step? {
@@ -274,6 +289,7 @@ async fn run(
                     .guide(Some(setpoint(&t, home)))
                     .await
                     .map_err(Abort::Guided)?;
+                latency_ms.push(crate::clock::since(after).as_secs_f64() * 1e3);
                 if gimbal && (t.gimbal_pitch_deg - pitch_sent).abs() > 0.05 {
                     pitch_sent = t.gimbal_pitch_deg;
                     if let Err(e) = deps.link.point_gimbal(t.gimbal_pitch_deg as f32, 0.0).await {
@@ -285,6 +301,8 @@ async fn run(
         }
     };
     out.seconds = crate::clock::since(t0).as_secs_f64();
+    out.latency_ms_median = crate::stats::finite_median(&latency_ms);
+    out.compute_ms_median = crate::stats::finite_median(&compute_ms);
     if matches!(
         stop,
         ServoStop::Settled | ServoStop::BestAvailable | ServoStop::Timeout

@@ -753,6 +753,11 @@ fn the_daemon_servoes_at_the_shot_and_takes_the_photo() {
     assert!(first > 1.0, "first look {first:.2} %: {r}");
     assert!(servo["frames"].as_u64().unwrap_or(0) >= 5, "{servo}");
     assert!(servo["moves"].as_u64().unwrap_or(0) >= 1, "{servo}");
+    // What a frame's measurement cost is recorded (item 4 of issue 36).
+    assert!(
+        servo["compute_ms_median"].as_f64().is_some_and(|x| x > 0.0),
+        "{servo}"
+    );
     // The photo came from the simulator's MAVLink camera.
     assert_eq!(servo["photo"]["taken"], true, "{servo}");
     assert!(servo["photo"]["image_index"].is_i64(), "{servo}");
@@ -777,6 +782,76 @@ fn the_daemon_servoes_at_the_shot_and_takes_the_photo() {
         mode.is_some(),
         "{}",
         get_json(addr, "/api/v1/status")["vehicle"]
+    );
+    run.stop();
+}
+
+/// The operator's Stop while the daemon servoes: the vehicle holds, the
+/// guided stream ends with it, and the refinement is recorded `stopped`
+/// without a photo.
+#[test]
+fn the_operators_stop_ends_the_servo() {
+    let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
+    let run = start(|cfg| {
+        cfg.sim.gps_sigma_xy_m = 1.5;
+        cfg.sim.gps_sigma_z_m = 0.5;
+        cfg.sim.gps_tau_s = 200.0;
+        cfg.sim.gps_seed = Some(27);
+        cfg.refine.servo = true;
+        // A threshold it never meets: it servoes until stopped.
+        cfg.refine.servo_threshold_pct = 0.001;
+        cfg.refine.servo_max_s = 300.0;
+    });
+    let addr = run.addr;
+    let (_, photos) = run.georeferenced();
+    let sid = run.daemon.held(move || photo_shot(addr, &photos));
+    for step in ["mission", "start"] {
+        let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/{step}"), None);
+        assert_eq!(st, 200, "{step}: {}", String::from_utf8_lossy(&b));
+    }
+    let offboard = run.daemon.poll(
+        Duration::from_secs(120),
+        Duration::from_millis(250),
+        move || {
+            let m = get_json(addr, "/api/v1/status")["vehicle"]["mode"].clone();
+            (m == "OFFBOARD").then_some(m)
+        },
+    );
+    assert!(
+        offboard.is_some(),
+        "never in OFFBOARD: {}",
+        get_json(addr, "/api/v1/status")["vehicle"]
+    );
+    let (st, b) = http(addr, "POST", "/api/v1/vehicle/stop", None);
+    assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
+    let v: Value = serde_json::from_slice(&b).unwrap();
+    assert_eq!(v["refinement_cancelled"], sid.as_str(), "{v}");
+    let r = refinement_until_stopped(
+        &run,
+        &sid,
+        Duration::from_secs(10),
+        Duration::from_millis(250),
+    );
+    assert_eq!(r["stop"], "stopped", "{r}");
+    assert!(r["servo"].is_null(), "a servo outcome after the stop: {r}");
+    // Held, and still held seconds later: nothing streams it back.
+    let held = run.daemon.poll(
+        Duration::from_secs(5),
+        Duration::from_millis(200),
+        move || {
+            let m = get_json(addr, "/api/v1/status")["vehicle"]["mode"].clone();
+            (m == "AUTO.LOITER").then_some(m)
+        },
+    );
+    assert!(
+        held.is_some(),
+        "{}",
+        get_json(addr, "/api/v1/status")["vehicle"]
+    );
+    run.daemon.sleep(Duration::from_secs(3));
+    assert_eq!(
+        get_json(addr, "/api/v1/status")["vehicle"]["mode"],
+        "AUTO.LOITER"
     );
     run.stop();
 }
