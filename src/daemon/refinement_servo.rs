@@ -132,15 +132,6 @@ pub(super) async fn save_servo(deps: &Deps, shot_id: &str, o: &ServoOutcome) {
     }
 }
 
-fn setpoint(t: &Target, home: &Home) -> GuidedSetpoint {
-    GuidedSetpoint {
-        lat_deg: t.lat_deg,
-        lon_deg: t.lon_deg,
-        alt_amsl_m: home.alt_amsl_m + t.alt_m,
-        yaw_deg: t.yaw_deg,
-    }
-}
-
 /// Servoes from `holding` (the target the vehicle holds at) until the
 /// servo stops, `cancel` fires, or the link refuses guided control.
 pub(super) async fn servo_at_shot(
@@ -160,12 +151,14 @@ pub(super) async fn servo_at_shot(
     if let Err(e) = deps.link.guide(None).await {
         tracing::warn!(shot = %shot.id, "servo: stopping the setpoint stream: {e}");
     }
+    // Back to a hold where it is (not after a cancellation: the stop
+    // already holds, another shot's mission flies on).
+    if !matches!(r, Err(Abort::Cancelled))
+        && let Err(e) = deps.link.set_mode(FlightMode::Hold).await
+    {
+        tracing::warn!(shot = %shot.id, "servo: back to hold: {e}");
+    }
     if let Ok(o) = &r {
-        // Back to a hold where it is (not after a cancellation: the stop
-        // already holds, another shot's mission flies on).
-        if let Err(e) = deps.link.set_mode(FlightMode::Hold).await {
-            tracing::warn!(shot = %shot.id, "servo: back to hold: {e}");
-        }
         tracing::info!(shot = %shot.id, "{}", o.note());
     }
     r
@@ -200,7 +193,7 @@ async fn run(
         }
     };
     deps.link
-        .guide(Some(setpoint(&holding, home)))
+        .guide(Some(GuidedSetpoint::at_target(&holding, home)))
         .await
         .map_err(Abort::Guided)?;
     tokio::time::sleep(GUIDED_LEAD).await;
@@ -286,7 +279,7 @@ async fn run(
             ServoStep::Move(t) => {
                 out.moves += 1;
                 deps.link
-                    .guide(Some(setpoint(&t, home)))
+                    .guide(Some(GuidedSetpoint::at_target(&t, home)))
                     .await
                     .map_err(Abort::Guided)?;
                 latency_ms.push(crate::clock::since(after).as_secs_f64() * 1e3);

@@ -36,6 +36,18 @@ pub struct GuidedSetpoint {
     pub yaw_deg: f64,
 }
 
+impl GuidedSetpoint {
+    /// The setpoint of a planned target (its altitude is above `home`).
+    pub fn at_target(t: &crate::mission::plan::Target, home: &crate::mission::plan::Home) -> Self {
+        Self {
+            lat_deg: t.lat_deg,
+            lon_deg: t.lon_deg,
+            alt_amsl_m: home.alt_amsl_m + t.alt_m,
+            yaw_deg: t.yaw_deg,
+        }
+    }
+}
+
 /// A request to the link actor; each carries its reply channel.
 #[derive(Debug)]
 pub enum Command {

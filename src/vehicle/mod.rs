@@ -48,7 +48,7 @@ pub mod router;
 mod telemetry;
 pub mod transport;
 
-pub use actor::GUIDED_PERIOD;
+pub use actor::{GUIDED_PERIOD, guided_setpoint_message};
 pub use actor::{spawn, spawn_with_socket};
 pub use command::{Command, GuidedSetpoint, HoldAck};
 pub use error::LinkError;

@@ -721,6 +721,16 @@ fn gps_bias_is_corrected_by_the_daemon() {
     run.stop();
 }
 
+/// `[refine] servo` on, against a 1.5 m GNSS bias walking with a 200 s
+/// correlation time (the walk of `gps_bias_is_corrected_by_the_daemon`).
+fn servo_under_gps_bias(cfg: &mut Config) {
+    cfg.sim.gps_sigma_xy_m = 1.5;
+    cfg.sim.gps_sigma_z_m = 0.5;
+    cfg.sim.gps_tau_s = 200.0;
+    cfg.sim.gps_seed = Some(27);
+    cfg.refine.servo = true;
+}
+
 /// With `[refine] servo`, after the first look the daemon servoes at the
 /// shot through the autopilot's guided control (the in-process PX4-like
 /// simulator takes OFFBOARD only after a setpoint stream) against a 1.5 m
@@ -729,13 +739,7 @@ fn gps_bias_is_corrected_by_the_daemon() {
 #[test]
 fn the_daemon_servoes_at_the_shot_and_takes_the_photo() {
     let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
-    let run = start(|cfg| {
-        cfg.sim.gps_sigma_xy_m = 1.5;
-        cfg.sim.gps_sigma_z_m = 0.5;
-        cfg.sim.gps_tau_s = 200.0;
-        cfg.sim.gps_seed = Some(27);
-        cfg.refine.servo = true;
-    });
+    let run = start(servo_under_gps_bias);
     let addr = run.addr;
     let (_, photos) = run.georeferenced();
     let sid = run.daemon.held(move || photo_shot(addr, &photos));
@@ -793,11 +797,7 @@ fn the_daemon_servoes_at_the_shot_and_takes_the_photo() {
 fn the_operators_stop_ends_the_servo() {
     let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
     let run = start(|cfg| {
-        cfg.sim.gps_sigma_xy_m = 1.5;
-        cfg.sim.gps_sigma_z_m = 0.5;
-        cfg.sim.gps_tau_s = 200.0;
-        cfg.sim.gps_seed = Some(27);
-        cfg.refine.servo = true;
+        servo_under_gps_bias(cfg);
         // A threshold it never meets: it servoes until stopped.
         cfg.refine.servo_threshold_pct = 0.001;
         cfg.refine.servo_max_s = 300.0;

@@ -29,8 +29,16 @@ fn horizontal(a: [f64; 3], b: [f64; 3]) -> f64 {
     (a[0] - b[0]).hypot(a[1] - b[1])
 }
 
-async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
-    let _one = ONE_FLIGHT.lock().await;
+/// The simulator in-process (no video, no sensor noise, no GPS bias) and
+/// a link to it, the vehicle heard; cancel the token to end both.
+struct Flight {
+    link: LinkHandle,
+    home: plan::Home,
+    cancel: CancellationToken,
+    _dir: tempfile::TempDir,
+}
+
+async fn sim_and_link(flavour: Flavour) -> anyhow::Result<Flight> {
     let dir = tempfile::tempdir()?;
     let cancel = CancellationToken::new();
     let (socket, addr) = link_support::bound_udp();
@@ -50,7 +58,7 @@ async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
         mavlink: Some(socket),
         ..Default::default()
     };
-    let _sim = tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
+    tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
     let (link, _task) = vehicle::spawn(
         Params {
             url: format!("udpout:{addr}"),
@@ -61,6 +69,22 @@ async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
     )?;
     link.wait_for_vehicle(Duration::from_secs(60)).await?;
     let home = home_of(&link).await?;
+    Ok(Flight {
+        link,
+        home,
+        cancel,
+        _dir: dir,
+    })
+}
+
+async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
+    let _one = ONE_FLIGHT.lock().await;
+    let Flight {
+        link,
+        home,
+        cancel,
+        _dir,
+    } = sim_and_link(flavour).await?;
     let target = Target {
         lat_deg: home.lat_deg + 80.0 / 111_195.0,
         lon_deg: home.lon_deg,
@@ -169,32 +193,12 @@ async fn stop_holds_ardupilot() -> anyhow::Result<()> {
 /// holds, and PX4 refuses OFFBOARD again because the stream stopped.
 async fn guided_flies_the_stream_and_the_stop_ends_it(flavour: Flavour) -> anyhow::Result<()> {
     let _one = ONE_FLIGHT.lock().await;
-    let dir = tempfile::tempdir()?;
-    let cancel = CancellationToken::new();
-    let (socket, addr) = link_support::bound_udp();
-    let mut cfg = SimConfig::default().with_flavour(match flavour {
-        Flavour::Px4 => SimFlavour::Px4,
-        Flavour::ArduPilot => SimFlavour::ArduPilot,
-    });
-    cfg.mavlink = Endpoint::UdpIn(addr.to_string());
-    cfg.video_listen = None;
-    cfg.capture_dir = dir.path().join("captures");
-    cfg.sensor_noise = false;
-    let sockets = app::Sockets {
-        mavlink: Some(socket),
-        ..Default::default()
-    };
-    let _sim = tokio::spawn(app::run_on(cfg, cancel.child_token(), sockets));
-    let (link, _task) = vehicle::spawn(
-        Params {
-            url: format!("udpout:{addr}"),
-            ..Params::default()
-        },
-        upload::Params::default(),
-        cancel.clone(),
-    )?;
-    link.wait_for_vehicle(Duration::from_secs(60)).await?;
-    let home = home_of(&link).await?;
+    let Flight {
+        link,
+        home,
+        cancel,
+        _dir,
+    } = sim_and_link(flavour).await?;
     // Up to a waypoint 15 m north at 10 m, by mission.
     let deg_per_m = 1.0 / 111_195.0;
     let target = Target {

@@ -12,10 +12,7 @@
 //! degrees are about a centimetre.
 
 use mavlink::MavHeader;
-use mavlink::dialects::common::{
-    COMMAND_LONG_DATA, MavCmd, MavFrame, MavMessage, MavResult, PositionTargetTypemask,
-    SET_POSITION_TARGET_GLOBAL_INT_DATA,
-};
+use mavlink::dialects::common::{COMMAND_LONG_DATA, MavCmd, MavMessage, MavResult};
 use nalgebra::Isometry3;
 use serde::Serialize;
 
@@ -110,32 +107,12 @@ fn command(sim: &mut Sim, command: MavCmd, p: [f32; 7]) -> MavResult {
         .unwrap_or(MavResult::MAV_RESULT_FAILED)
 }
 
-/// The setpoint message for `t` (position and heading; velocities,
-/// accelerations and yaw rate ignored).
-fn setpoint_message(sim: &Sim, t: &Target, home: &Home) -> MavMessage {
-    let mask = PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VX_IGNORE
-        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VY_IGNORE
-        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VZ_IGNORE
-        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AX_IGNORE
-        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AY_IGNORE
-        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AZ_IGNORE
-        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE;
-    MavMessage::SET_POSITION_TARGET_GLOBAL_INT(SET_POSITION_TARGET_GLOBAL_INT_DATA {
-        time_boot_ms: (sim.t * 1e3) as u32,
-        lat_int: (t.lat_deg * 1e7).round() as i32,
-        lon_int: (t.lon_deg * 1e7).round() as i32,
-        alt: (home.alt_amsl_m + t.alt_m) as f32,
-        yaw: crate::angle::wrap180(t.yaw_deg).to_radians() as f32,
-        type_mask: mask,
-        target_system: sim.ap.params().system_id,
-        target_component: sim.ap.params().component_id,
-        coordinate_frame: MavFrame::MAV_FRAME_GLOBAL,
-        ..Default::default()
-    })
-}
-
 fn send_setpoint(sim: &mut Sim, t: &Target, home: &Home) {
-    let m = setpoint_message(sim, t, home);
+    // The daemon's own message (what LinkHandle::guide streams).
+    let m = crate::vehicle::guided_setpoint_message(
+        &crate::vehicle::GuidedSetpoint::at_target(t, home),
+        (sim.ap.params().system_id, sim.ap.params().component_id),
+    );
     let _ = sim.ap.handle(&GCS, &m);
 }
 

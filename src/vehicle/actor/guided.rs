@@ -27,8 +27,9 @@ pub(super) struct GuidedStream {
 }
 
 /// The message for `sp` to the vehicle `(system, component)`; position and
-/// heading, the rest ignored.
-fn setpoint_message(sp: &GuidedSetpoint, target: (u8, u8)) -> MavMessage {
+/// heading, the rest ignored (what [`crate::vehicle::LinkHandle::guide`]
+/// streams).
+pub fn guided_setpoint_message(sp: &GuidedSetpoint, target: (u8, u8)) -> MavMessage {
     let mask = PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VX_IGNORE
         | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VY_IGNORE
         | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VZ_IGNORE
@@ -103,7 +104,7 @@ impl Actor {
         let Some((peers, _)) = self.peers() else {
             return;
         };
-        self.out.push(setpoint_message(
+        self.out.push(guided_setpoint_message(
             &g.setpoint,
             (peers.target_system, peers.target_component),
         ));

@@ -21,7 +21,7 @@ mod state;
 mod telemetry;
 mod transfer;
 
-pub use guided::GUIDED_PERIOD;
+pub use guided::{GUIDED_PERIOD, guided_setpoint_message};
 
 use std::net::UdpSocket;
 use std::sync::Arc;
