@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 
-use super::refinement_task::{Abort, Deps, reported_ned};
+use super::refinement_deps::{Abort, Deps, position_report, reported_ned};
 use crate::geo::{Geodetic, LocalFrame};
 use crate::mission::plan::{Home, Target};
 use crate::refine::{Context, ServoFrame, ServoParams, ServoStep, ServoStop, Session};
@@ -231,7 +231,7 @@ async fn run(
             .map(|g| f64::from(g.value.pitch_deg));
         let speed = (*tel.global_position.borrow())
             .filter(|g| fresh(g.received))
-            .map(|g| super::refinement_task::position_report(&g).speed_m_s());
+            .map(|g| position_report(&g).speed_m_s());
         let t_s = f.received.duration_since(deps.epoch).as_secs_f64();
         let slam = deps.slam.clone();
         let (mount, fence, localize) = (

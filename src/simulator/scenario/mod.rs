@@ -62,9 +62,9 @@ use trial::run_trial;
 
 pub use super::drag::DragParams;
 pub use error::{FlightError, ScenarioError};
-pub use params::{Disturbances, HiddenParams, ScenarioParams, SteadyParams};
+pub use params::{Disturbances, HiddenParams, ScenarioParams, ServoDriverParams, SteadyParams};
 pub use report::{ExploreReport, RoundReport, ScenarioReport, TrialReport};
-pub use servo::{ServoDriverParams, ServoReport};
+pub use servo::ServoReport;
 
 /// Runs the scenario: the explore flight, then `params.trials` trials.
 /// `progress` is called after each trial.

@@ -167,7 +167,7 @@ pub struct ScenarioParams {
     pub refine: Params,
     /// Servoing at the shot after the first arrival (None: rounds of
     /// mission legs only).
-    pub servo: Option<super::servo::ServoDriverParams>,
+    pub servo: Option<ServoDriverParams>,
     /// The simulator's realism (`ideal`: none): its camera effects on every
     /// live frame (the desired photo stays a clean render), its vehicle
     /// effects on the vehicle (its GNSS error then replaces
@@ -260,6 +260,28 @@ impl ScenarioParams {
                 ..ScriptParams::default()
             },
             ..Self::default()
+        }
+    }
+}
+
+/// The servo's driver in the scenario.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ServoDriverParams {
+    /// The servo itself.
+    pub servo: crate::refine::ServoParams,
+    /// Time between two processed frames, s (the daemon's processing rate).
+    pub frame_s: f64,
+    /// Time from a frame's capture to its setpoint reaching the autopilot
+    /// (measurement and link), s.
+    pub latency_s: f64,
+}
+
+impl Default for ServoDriverParams {
+    fn default() -> Self {
+        Self {
+            servo: crate::refine::ServoParams::default(),
+            frame_s: 0.2,
+            latency_s: 0.15,
         }
     }
 }

@@ -2,7 +2,7 @@
 //! is switched to guided control over MAVLink as a ground station would
 //! (gimbal control taken with DO_GIMBAL_MANAGER_CONFIGURE, a setpoint
 //! stream of SET_POSITION_TARGET_GLOBAL_INT before DO_SET_MODE to PX4's
-//! OFFBOARD, the stream kept up on every frame), the [`refine::Servo`]
+//! OFFBOARD, the stream kept up on every frame), the [`crate::refine::Servo`]
 //! fed one frame per `frame_s` with the measurement's latency, and the
 //! photo taken when it settles.
 //!
@@ -19,10 +19,11 @@ use serde::Serialize;
 use crate::camera::Camera;
 use crate::mission::plan::{Home, Target};
 use crate::refine::{
-    self, Context, PoseDifference, ServoFrame, ServoSample, ServoStep, ServoStop, Session,
+    Context, PoseDifference, ServoFrame, ServoSample, ServoStep, ServoStop, Session,
     pose_difference, shot_error,
 };
 
+use super::params::ServoDriverParams;
 use super::sim::Sim;
 
 const GCS: MavHeader = MavHeader {
@@ -30,28 +31,6 @@ const GCS: MavHeader = MavHeader {
     component_id: 190,
     sequence: 0,
 };
-
-/// The servo's driver in the scenario.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ServoDriverParams {
-    /// The servo itself.
-    pub servo: refine::ServoParams,
-    /// Time between two processed frames, s (the daemon's processing rate).
-    pub frame_s: f64,
-    /// Time from a frame's capture to its setpoint reaching the autopilot
-    /// (measurement and link), s.
-    pub latency_s: f64,
-}
-
-impl Default for ServoDriverParams {
-    fn default() -> Self {
-        Self {
-            servo: refine::ServoParams::default(),
-            frame_s: 0.2,
-            latency_s: 0.15,
-        }
-    }
-}
 
 /// What servoing did in one trial.
 #[derive(Debug, Clone, Serialize)]

@@ -11,20 +11,13 @@ use mavlink::dialects::common::{
 use tokio::sync::oneshot;
 use tracing::info;
 
-use super::state::Actor;
+use super::state::{Actor, GuidedStream};
 use crate::vehicle::command::GuidedSetpoint;
 use crate::vehicle::error::LinkError;
 
 /// How often a guided setpoint is sent again: 10 Hz, five times PX4's
 /// 2 Hz minimum.
 pub const GUIDED_PERIOD: Duration = Duration::from_millis(100);
-
-/// The stream's state in the actor.
-#[derive(Debug, Clone, Copy)]
-pub(super) struct GuidedStream {
-    pub(super) setpoint: GuidedSetpoint,
-    pub(super) next: Instant,
-}
 
 /// The message for `sp` to the vehicle `(system, component)`; position and
 /// heading, the rest ignored (what [`crate::vehicle::LinkHandle::guide`]

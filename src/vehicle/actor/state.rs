@@ -22,6 +22,15 @@ use crate::vehicle::telemetry::{
 };
 use crate::vehicle::transport::Connection;
 
+/// The guided setpoint stream's state in the actor (`guided.rs` sends it).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct GuidedStream {
+    /// The setpoint sent.
+    pub(super) setpoint: crate::vehicle::command::GuidedSetpoint,
+    /// When it is sent next.
+    pub(super) next: Instant,
+}
+
 pub(super) struct Actor {
     pub(super) params: Params,
     pub(super) transfer_params: upload::Params,
@@ -55,7 +64,7 @@ pub(super) struct Actor {
     /// Mission transfers waiting for another station's to end.
     pub(super) deferred: Vec<Command>,
     /// The guided setpoint stream, while one runs.
-    pub(super) guided: Option<super::guided::GuidedStream>,
+    pub(super) guided: Option<GuidedStream>,
 }
 
 impl Actor {
