@@ -15,10 +15,12 @@ use std::time::Duration;
 use tokio_util::sync::CancellationToken;
 
 use super::refinement_deps::{Abort, Deps, position_report, reported_ned};
-use crate::geo::{Geodetic, LocalFrame};
-use crate::mission::plan::{Home, Target};
+use crate::geo::{GeoAlignment, Geodetic, LocalFrame, MountParams};
+use crate::mission::plan::{Fence, Home, Target};
 use crate::refine::{Context, ServoFrame, ServoParams, ServoStep, ServoStop, Session};
+use crate::shot::LocalizeParams;
 use crate::shot::record::Shot;
+use crate::slam::Map;
 use crate::vehicle::{FlightMode, GUIDED_PERIOD, GuidedSetpoint};
 
 /// How long the setpoint stream runs before the switch to guided control:
@@ -132,6 +134,32 @@ pub(super) async fn save_servo(deps: &Deps, shot_id: &str, o: &ServoOutcome) {
     }
 }
 
+/// What every frame's measurement reads: the map snapshot, the
+/// georeference and the limits, fixed for one servo.
+struct World {
+    map: Map,
+    alignment: GeoAlignment,
+    frame: LocalFrame,
+    mount: MountParams,
+    home: Home,
+    fence: Fence,
+    localize: LocalizeParams,
+}
+
+impl World {
+    fn ctx(&self) -> Context<'_> {
+        Context {
+            map: &self.map,
+            alignment: &self.alignment,
+            frame: &self.frame,
+            mount: &self.mount,
+            home: &self.home,
+            fence: &self.fence,
+            localize: &self.localize,
+        }
+    }
+}
+
 /// Servoes from `holding` (the target the vehicle holds at) until the
 /// servo stops, `cancel` fires, or the link refuses guided control.
 pub(super) async fn servo_at_shot(
@@ -202,6 +230,21 @@ async fn run(
         .await
         .map_err(Abort::Guided)?;
     tracing::info!(shot = %shot.id, "servo: guided control engaged");
+    // One map snapshot for the whole servo, as one per look in the
+    // rounds: the map hardly changes over a hover, and a snapshot copies it.
+    let slam = deps.slam.clone();
+    let map = tokio::task::spawn_blocking(move || slam.map_snapshot())
+        .await?
+        .ok_or(Abort::NoMap)?;
+    let world = Arc::new(World {
+        map,
+        alignment,
+        frame: frame_ltp,
+        mount: deps.geo.params().mount.clone(),
+        home: *home,
+        fence: deps.plan.fence,
+        localize: deps.params.localize.clone(),
+    });
     let t0 = crate::clock::now();
     let mut servo = session.servo(holding, params);
     let mut out = ServoOutcome {
@@ -233,28 +276,11 @@ async fn run(
             .filter(|g| fresh(g.received))
             .map(|g| position_report(&g).speed_m_s());
         let t_s = f.received.duration_since(deps.epoch).as_secs_f64();
-        let slam = deps.slam.clone();
-        let (mount, fence, localize) = (
-            deps.geo.params().mount.clone(),
-            deps.plan.fence,
-            deps.params.localize.clone(),
-        );
-        let (home_c, alignment_c, frame_c) = (*home, alignment.clone(), frame_ltp);
+        let world = world.clone();
         let mut moving = servo;
         let wall = std::time::Instant::now();
-        let (back, step) = tokio::task::spawn_blocking(move || {
-            let Some(map) = slam.map_snapshot() else {
-                return (moving, Err(Abort::NoMap));
-            };
-            let ctx = Context {
-                map: &map,
-                alignment: &alignment_c,
-                frame: &frame_c,
-                mount: &mount,
-                home: &home_c,
-                fence: &fence,
-                localize: &localize,
-            };
+        let step = tokio::task::spawn_blocking(move || {
+            let ctx = world.ctx();
             let step = moving.on_frame(
                 &ServoFrame {
                     image: &f.image,
@@ -264,17 +290,18 @@ async fn run(
                     reported_pitch_deg: pitch,
                     reported_speed_m_s: speed,
                 },
-                Some(&map.camera),
+                Some(&world.map.camera),
                 &ctx,
             );
-            (moving, Ok(step))
+            (moving, step)
         })
         .await?;
+        let (back, step) = step;
         servo = back;
         compute_ms.push(wall.elapsed().as_secs_f64() * 1e3);
         out.frames += 1;
         out.last_error_pct = servo.samples().last().and_then(|s| s.shot_error_pct);
-        match step? {
+        match step {
             ServoStep::Hold => {}
             ServoStep::Move(t) => {
                 out.moves += 1;

@@ -451,14 +451,13 @@ impl Servo {
         }
         self.measured = true;
         // The setpoint that puts the camera at the shot given the offset.
-        let step = [
+        let mut step = [
             desired.p_ned_vehicle.x - self.est[0] - held_ned.x,
             desired.p_ned_vehicle.y - self.est[1] - held_ned.y,
             desired.p_ned_vehicle.z - self.est[2] - held_ned.z,
             wrap180(desired.yaw_deg - self.est[3] - self.setpoint.yaw_deg),
             desired.gimbal_pitch_deg - self.est[4] - self.setpoint.gimbal_pitch_deg,
         ];
-        let mut step = step;
         let mut any = false;
         for (i, v) in step.iter_mut().enumerate() {
             if v.abs() < s.deadband_sigmas * self.var[i].sqrt() {

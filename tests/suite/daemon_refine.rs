@@ -332,6 +332,24 @@ impl Running {
         (geo, photos)
     }
 
+    /// Waits (simulated time, polled every 200 ms) for the vehicle's
+    /// reported mode to be `mode`; fails with the vehicle's status after
+    /// `limit`.
+    fn wait_for_mode(&self, mode: &'static str, limit: Duration) {
+        let addr = self.addr;
+        let seen = self
+            .daemon
+            .poll(limit, Duration::from_millis(200), move || {
+                let m = get_json(addr, "/api/v1/status")["vehicle"]["mode"].clone();
+                (m == mode).then_some(m)
+            });
+        assert!(
+            seen.is_some(),
+            "never in {mode}: {}",
+            get_json(addr, "/api/v1/status")["vehicle"]
+        );
+    }
+
     /// Stops the daemon, which must stop cleanly.
     fn stop(self) {
         let simulated = (self.daemon.now() - self.sim0).as_secs_f64();
@@ -774,19 +792,7 @@ fn the_daemon_servoes_at_the_shot_and_takes_the_photo() {
     }
     // Back in a hold once the photo is taken: the stream stopped and the
     // vehicle left guided control.
-    let mode = run.daemon.poll(
-        Duration::from_secs(5),
-        Duration::from_millis(200),
-        move || {
-            let m = get_json(addr, "/api/v1/status")["vehicle"]["mode"].clone();
-            (m == "AUTO.LOITER").then_some(m)
-        },
-    );
-    assert!(
-        mode.is_some(),
-        "{}",
-        get_json(addr, "/api/v1/status")["vehicle"]
-    );
+    run.wait_for_mode("AUTO.LOITER", Duration::from_secs(5));
     run.stop();
 }
 
@@ -809,19 +815,7 @@ fn the_operators_stop_ends_the_servo() {
         let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/{step}"), None);
         assert_eq!(st, 200, "{step}: {}", String::from_utf8_lossy(&b));
     }
-    let offboard = run.daemon.poll(
-        Duration::from_secs(120),
-        Duration::from_millis(250),
-        move || {
-            let m = get_json(addr, "/api/v1/status")["vehicle"]["mode"].clone();
-            (m == "OFFBOARD").then_some(m)
-        },
-    );
-    assert!(
-        offboard.is_some(),
-        "never in OFFBOARD: {}",
-        get_json(addr, "/api/v1/status")["vehicle"]
-    );
+    run.wait_for_mode("OFFBOARD", Duration::from_secs(120));
     let (st, b) = http(addr, "POST", "/api/v1/vehicle/stop", None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let v: Value = serde_json::from_slice(&b).unwrap();
@@ -835,19 +829,7 @@ fn the_operators_stop_ends_the_servo() {
     assert_eq!(r["stop"], "stopped", "{r}");
     assert!(r["servo"].is_null(), "a servo outcome after the stop: {r}");
     // Held, and still held seconds later: nothing streams it back.
-    let held = run.daemon.poll(
-        Duration::from_secs(5),
-        Duration::from_millis(200),
-        move || {
-            let m = get_json(addr, "/api/v1/status")["vehicle"]["mode"].clone();
-            (m == "AUTO.LOITER").then_some(m)
-        },
-    );
-    assert!(
-        held.is_some(),
-        "{}",
-        get_json(addr, "/api/v1/status")["vehicle"]
-    );
+    run.wait_for_mode("AUTO.LOITER", Duration::from_secs(5));
     run.daemon.sleep(Duration::from_secs(3));
     assert_eq!(
         get_json(addr, "/api/v1/status")["vehicle"]["mode"],

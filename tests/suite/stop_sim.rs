@@ -77,6 +77,21 @@ async fn sim_and_link(flavour: Flavour) -> anyhow::Result<Flight> {
     })
 }
 
+/// Plans, uploads and starts the mission to `target` (arming first).
+async fn fly_to(
+    link: &LinkHandle,
+    target: &Target,
+    home: &plan::Home,
+    flavour: Flavour,
+) -> anyhow::Result<()> {
+    let items = plan::plan(target, home, flavour, &plan::Params::default())?;
+    link.upload_mission(items).await?;
+    link.arm(true).await?;
+    link.set_mode(FlightMode::Mission).await?;
+    link.start_mission().await?;
+    Ok(())
+}
+
 async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
     let _one = ONE_FLIGHT.lock().await;
     let Flight {
@@ -93,11 +108,7 @@ async fn stop_holds(flavour: Flavour) -> anyhow::Result<()> {
         gimbal_pitch_deg: -30.0,
         photo: false,
     };
-    let items = plan::plan(&target, &home, flavour, &plan::Params::default())?;
-    link.upload_mission(items).await?;
-    link.arm(true).await?;
-    link.set_mode(FlightMode::Mission).await?;
-    link.start_mission().await?;
+    fly_to(&link, &target, &home, flavour).await?;
     // Half way, at speed.
     let mut lp = link.telemetry.local_position.clone();
     wait_for("the vehicle 30 m out, at speed", &mut lp, 120, |p| {
@@ -209,11 +220,7 @@ async fn guided_flies_the_stream_and_the_stop_ends_it(flavour: Flavour) -> anyho
         gimbal_pitch_deg: -30.0,
         photo: false,
     };
-    let items = plan::plan(&target, &home, flavour, &plan::Params::default())?;
-    link.upload_mission(items).await?;
-    link.arm(true).await?;
-    link.set_mode(FlightMode::Mission).await?;
-    link.start_mission().await?;
+    fly_to(&link, &target, &home, flavour).await?;
     let mut lp = link.telemetry.local_position.clone();
     wait_for("the vehicle at the waypoint", &mut lp, 120, |p| {
         p.is_some_and(|p| {

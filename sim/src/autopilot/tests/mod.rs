@@ -70,6 +70,19 @@ impl Sim {
             other => panic!("no ack: {other:?}"),
         }
     }
+    /// Arms and takes off with NAV_TAKEOFF (`alt`: AMSL on PX4, above
+    /// home on ArduPilot), then flies `seconds`.
+    fn take_off(&mut self, alt: f32, seconds: f64) {
+        self.command(
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        );
+        self.command(
+            MavCmd::MAV_CMD_NAV_TAKEOFF,
+            [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, alt],
+        );
+        self.run(seconds);
+    }
     fn upload(&mut self, items: Vec<MISSION_ITEM_INT_DATA>) {
         let out = self.send(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
             count: items.len() as u16,
@@ -563,15 +576,7 @@ fn ardupilot_mission_starts_after_home_and_condition_yaw_turns() {
 #[test]
 fn takeoff_item_is_reached_at_once_when_already_higher() {
     let mut s = Sim::new(Flavour::Px4);
-    s.command(
-        MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
-        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-    );
-    s.command(
-        MavCmd::MAV_CMD_NAV_TAKEOFF,
-        [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 488.0 + 20.0],
-    );
-    s.run(12.0);
+    s.take_off(488.0 + 20.0, 12.0);
     assert!((s.ap.vehicle().p_ned().z + 20.0).abs() < 0.3);
     s.upload(vec![item(
         0,
@@ -951,172 +956,4 @@ fn ardupilot_refuses_the_configure_mission_item() {
     );
 }
 
-fn local_target(n: f32, e: f32, d: f32, yaw: f32) -> MavMessage {
-    MavMessage::SET_POSITION_TARGET_LOCAL_NED(
-        mavlink::dialects::common::SET_POSITION_TARGET_LOCAL_NED_DATA {
-            x: n,
-            y: e,
-            z: d,
-            yaw,
-            type_mask: mavlink::dialects::common::PositionTargetTypemask::from_bits_truncate(
-                0b0000_1001_1111_1000,
-            ),
-            target_system: 1,
-            target_component: 1,
-            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
-            ..Default::default()
-        },
-    )
-}
-
-fn statustexts(out: &[(f64, MavMessage)]) -> Vec<String> {
-    out.iter()
-        .filter_map(|(_, m)| match m {
-            MavMessage::STATUSTEXT(t) => Some(t.text.to_str().unwrap_or("").to_string()),
-            _ => None,
-        })
-        .collect()
-}
-
-/// Streams `msg` at 10 Hz for `seconds`; returns what the autopilot sent.
-fn stream(s: &mut Sim, msg: &MavMessage, seconds: f64) -> Vec<(f64, MavMessage)> {
-    let mut out = Vec::new();
-    for _ in 0..(seconds * 10.0).round() as usize {
-        s.send(msg.clone());
-        out.extend(s.run(0.1));
-    }
-    out
-}
-
-const PX4_OFFBOARD: [f32; 7] = [1.0, 6.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-
-#[test]
-fn px4_offboard_needs_a_setpoint_stream_and_holds_when_it_stops() {
-    let mut s = Sim::new(Flavour::Px4);
-    s.command(
-        MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
-        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-    );
-    s.command(
-        MavCmd::MAV_CMD_NAV_TAKEOFF,
-        [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 488.0 + 5.0],
-    );
-    s.run(8.0);
-    assert_eq!(s.ap.mode(), Mode::Hold);
-    let target = local_target(3.0, 2.0, -6.0, 0.5);
-    // No stream, then a stream of half a second: refused, as PX4 does.
-    assert_eq!(
-        s.command(MavCmd::MAV_CMD_DO_SET_MODE, PX4_OFFBOARD),
-        MavResult::MAV_RESULT_DENIED
-    );
-    stream(&mut s, &target, 0.5);
-    assert_eq!(
-        s.command(MavCmd::MAV_CMD_DO_SET_MODE, PX4_OFFBOARD),
-        MavResult::MAV_RESULT_DENIED
-    );
-    // Setpoints before the switch are not flown.
-    let p = s.ap.vehicle().p_ned();
-    assert!(
-        p.x.abs() < 0.3 && p.y.abs() < 0.3,
-        "moved before OFFBOARD: {p}"
-    );
-    stream(&mut s, &target, 0.7);
-    assert_eq!(
-        s.command(MavCmd::MAV_CMD_DO_SET_MODE, PX4_OFFBOARD),
-        MavResult::MAV_RESULT_ACCEPTED
-    );
-    assert_eq!(s.ap.mode(), Mode::Offboard);
-    let out = stream(&mut s, &target, 8.0);
-    assert!(statustexts(&out).is_empty());
-    let p = s.ap.vehicle().p_ned();
-    assert!(
-        (p - Vector3::new(3.0, 2.0, -6.0)).norm() < 0.15,
-        "not at the setpoint: {p}"
-    );
-    assert!((s.ap.vehicle().yaw() - 0.5).abs() < 0.03);
-    // The stream stops: after the loss time the vehicle holds where it is.
-    let out = s.run(0.8);
-    assert_eq!(s.ap.mode(), Mode::Offboard, "left before the loss time");
-    assert!(statustexts(&out).is_empty());
-    let out = s.run(0.5);
-    assert_eq!(s.ap.mode(), Mode::Hold);
-    assert!(
-        statustexts(&out)
-            .iter()
-            .any(|t| t.contains("Offboard control lost")),
-        "{:?}",
-        statustexts(&out)
-    );
-    s.run(5.0);
-    let q = s.ap.vehicle().p_ned();
-    assert!((q - p).norm() < 0.2, "did not hold: {p} -> {q}");
-    // Back to OFFBOARD needs a new stream.
-    assert_eq!(
-        s.command(MavCmd::MAV_CMD_DO_SET_MODE, PX4_OFFBOARD),
-        MavResult::MAV_RESULT_DENIED
-    );
-}
-
-#[test]
-fn ardupilot_guided_takes_a_global_target_only_in_guided_and_keeps_it() {
-    let mut s = Sim::new(Flavour::ArduPilot);
-    assert_eq!(
-        s.command(
-            MavCmd::MAV_CMD_DO_SET_MODE,
-            [1.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-        ),
-        MavResult::MAV_RESULT_ACCEPTED
-    );
-    s.command(
-        MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
-        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-    );
-    s.command(
-        MavCmd::MAV_CMD_NAV_TAKEOFF,
-        [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 5.0],
-    );
-    s.run(8.0);
-    // LOITER: a guided target is ignored.
-    assert_eq!(
-        s.command(
-            MavCmd::MAV_CMD_DO_SET_MODE,
-            [1.0, 5.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-        ),
-        MavResult::MAV_RESULT_ACCEPTED
-    );
-    let (lat, lon) = latlon(-4.0, 3.0);
-    let target = MavMessage::SET_POSITION_TARGET_GLOBAL_INT(
-        mavlink::dialects::common::SET_POSITION_TARGET_GLOBAL_INT_DATA {
-            lat_int: lat,
-            lon_int: lon,
-            alt: 7.0,
-            type_mask: mavlink::dialects::common::PositionTargetTypemask::from_bits_truncate(
-                0b0000_1101_1111_1000,
-            ),
-            target_system: 1,
-            target_component: 1,
-            coordinate_frame: MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-            ..Default::default()
-        },
-    );
-    let p0 = s.ap.vehicle().p_ned();
-    s.send(target.clone());
-    s.run(5.0);
-    assert!((s.ap.vehicle().p_ned() - p0).norm() < 0.2, "flew in LOITER");
-    // GUIDED: one target is flown and kept, no stream needed.
-    assert_eq!(
-        s.command(
-            MavCmd::MAV_CMD_DO_SET_MODE,
-            [1.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-        ),
-        MavResult::MAV_RESULT_ACCEPTED
-    );
-    s.send(target);
-    s.run(12.0);
-    assert_eq!(s.ap.mode(), Mode::Offboard);
-    let p = s.ap.vehicle().p_ned();
-    assert!(
-        (p - Vector3::new(-4.0, 3.0, -7.0)).norm() < 0.15,
-        "not at the target: {p}"
-    );
-}
+mod offboard;
