@@ -29,7 +29,9 @@
 //!   so the vehicle sways around its setpoint (decimetres in a breeze); the
 //!   roll and pitch follow the commanded thrust, leaning into the wind;
 //! - GNSS error: the realism's slow bias and fast noise (each a first-order
-//!   Gauss-Markov process) add to the true position like the bias above;
+//!   Gauss-Markov process) add to the true position like the bias above,
+//!   the bias through the estimator's fusion with the IMU (a second-order
+//!   low-pass, `gps.fusion_tau_s`), so the vehicle wanders smoothly;
 //!   during a fix loss ([`Vehicle::gps_fix`] false) the estimate drifts as a
 //!   random walk, and snaps back (an estimator reset) when the fix returns;
 //! - barometer drift: the height the vehicle holds drifts as a random walk
@@ -296,6 +298,43 @@ impl DisturbanceState {
     }
 }
 
+/// The autopilot estimator's fusion of the receiver's fix with its IMU,
+/// as seen by a slow receiver error: a second-order low-pass of natural
+/// frequency `1 / tau` and damping `1 / sqrt 2` (the steady state of a
+/// Kalman filter on a double integrator: PX4 EKF2's defaults, GPS position
+/// noise 0.5 m at 5 Hz against accelerometer noise 0.35 m/s^2, give a
+/// natural frequency near (q / r)^(1/4) = 1.25 rad/s, tau 0.8 s).
+#[derive(Debug, Clone, Copy, Default)]
+struct Fusion {
+    /// The error the vehicle flies with, m.
+    y: Vector3<f64>,
+    /// Its rate, m/s.
+    v: Vector3<f64>,
+}
+
+impl Fusion {
+    /// Follow `x` (held over the step) for `dt` seconds: semi-implicit
+    /// Euler in sub-steps of at most `tau / 20`; `tau <= 0` passes `x` on.
+    fn step(&mut self, x: Vector3<f64>, tau: f64, dt: f64) {
+        if !(tau > 0.0 && tau.is_finite()) {
+            self.y = x;
+            self.v = Vector3::zeros();
+            return;
+        }
+        if !(dt.is_finite() && dt > 0.0) {
+            return;
+        }
+        let w = 1.0 / tau;
+        let n = (dt / (0.05 * tau)).ceil().clamp(1.0, 10_000.0) as usize;
+        let h = dt / n as f64;
+        for _ in 0..n {
+            let a = (x - self.y) * (w * w) - self.v * (std::f64::consts::SQRT_2 * w);
+            self.v += a * h;
+            self.y += self.v * h;
+        }
+    }
+}
+
 /// The GNSS and barometer error processes of [`VehicleDisturbances`]
 /// (`gps`, `gps_dropouts`, `baro`): what the vehicle flies on and what a
 /// rendered dataset's `telemetry.txt` reports. Seeded by the disturbances'
@@ -305,6 +344,8 @@ impl DisturbanceState {
 pub struct SensorErrors {
     d: VehicleDisturbances,
     gps_bias: Option<GpsBias>,
+    /// The bias as the estimator's fusion passes it on (`gps.fusion_tau_s`).
+    fused_bias: Fusion,
     gps_noise: Option<GpsBias>,
     /// Fix lost until this time (s on the vehicle's clock).
     lost_until: Option<f64>,
@@ -337,6 +378,7 @@ impl SensorErrors {
             gps_bias: d
                 .gps
                 .map(|g| gm(g.bias_sigma_xy_m, g.bias_sigma_z_m, g.bias_tau_s, 0xB1A5)),
+            fused_bias: Fusion::default(),
             gps_noise: d
                 .gps
                 .map(|g| gm(g.noise_sigma_m, g.noise_sigma_m, g.noise_tau_s, 0x4015E)),
@@ -353,6 +395,8 @@ impl SensorErrors {
         let d = self.d;
         if let Some(b) = &mut self.gps_bias {
             b.step(dt);
+            let tau = d.gps.map_or(0.0, |g| g.fusion_tau_s);
+            self.fused_bias.step(b.bias(), tau, dt);
         }
         if let Some(n) = &mut self.gps_noise {
             n.step(dt);
@@ -387,8 +431,8 @@ impl SensorErrors {
     /// drift while the fix is lost (no barometer).
     pub fn gnss_error(&self) -> Vector3<f64> {
         let mut e = self.drift;
-        if let Some(b) = &self.gps_bias {
-            e += b.bias();
+        if self.gps_bias.is_some() {
+            e += self.fused_bias.y;
         }
         if let Some(n) = &self.gps_noise {
             e += n.bias();

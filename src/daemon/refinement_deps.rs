@@ -105,6 +105,16 @@ pub enum Abort {
     /// The vehicle refused guided control (the servo's setpoints or mode).
     #[error("guided control: {0}")]
     Guided(crate::vehicle::LinkError),
+    /// The link to the vehicle was lost while servoing: the setpoint
+    /// stream stopped, and the autopilot's own failsafe (PX4: offboard
+    /// loss; ArduPilot: the GCS failsafe) decides what it flies.
+    #[error(
+        "the link to the vehicle was lost (no heartbeat for {after_s:.1} s): servoing stopped, the autopilot's failsafe flies it"
+    )]
+    LinkLost {
+        /// The age of the last heartbeat when the loss was declared, s.
+        after_s: f64,
+    },
 }
 
 /// A position report as the refinement reads it.

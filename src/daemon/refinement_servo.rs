@@ -7,7 +7,9 @@
 //! stops; the photo is taken, the stream stopped and the vehicle put back
 //! in hold. The operator's stop ends the stream in the link actor at once
 //! and cancels this task; any other cancellation stops the stream (PX4
-//! then falls back to a hold by itself).
+//! then falls back to a hold by itself). A lost link (the link actor's
+//! heartbeat timeout) ends servoing the moment it is declared: the stream
+//! stops and the autopilot's own failsafe takes over.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -173,6 +175,7 @@ pub(super) async fn servo_at_shot(
 ) -> Result<ServoOutcome, Abort> {
     let r = tokio::select! {
         _ = cancel.cancelled() => Err(Abort::Cancelled),
+        after_s = link_lost(deps) => Err(Abort::LinkLost { after_s }),
         r = run(deps, session, shot, holding, home, params) => r,
     };
     // The stream ends however servoing ended.
@@ -180,8 +183,9 @@ pub(super) async fn servo_at_shot(
         tracing::warn!(shot = %shot.id, "servo: stopping the setpoint stream: {e}");
     }
     // Back to a hold where it is (not after a cancellation: the stop
-    // already holds, another shot's mission flies on).
-    if !matches!(r, Err(Abort::Cancelled))
+    // already holds, another shot's mission flies on; not over a lost
+    // link: nothing would hear it).
+    if !matches!(r, Err(Abort::Cancelled | Abort::LinkLost { .. }))
         && let Err(e) = deps.link.set_mode(FlightMode::Hold).await
     {
         tracing::warn!(shot = %shot.id, "servo: back to hold: {e}");
@@ -344,6 +348,19 @@ async fn run(
     }
     out.stop = stop;
     Ok(out)
+}
+
+/// Resolves when the link actor declares the link lost (no heartbeat for
+/// its `link_lost_after_ms`) or is gone, with the age of the last
+/// heartbeat in seconds: the servo ends at that moment, whatever frame it
+/// is measuring.
+async fn link_lost(deps: &Deps) -> f64 {
+    let mut rx = deps.link.telemetry.vehicle.clone();
+    let last = match rx.wait_for(|v| v.link_lost).await {
+        Ok(v) => v.last_heartbeat,
+        Err(_) => None,
+    };
+    last.map_or(f64::NAN, |t| crate::clock::since(t).as_secs_f64())
 }
 
 /// The first video frame received after `after` (waiting up to the loop's

@@ -14,7 +14,7 @@ use nalgebra::{Isometry3, Matrix3, Point2, Vector3};
 
 use super::RefineError;
 use crate::camera::Camera;
-use crate::features::{self, OrbExtractor};
+use crate::features::{self, Features, OrbExtractor};
 use crate::geometry::homography4::apply_homography;
 use crate::geometry::{HomographyParams, find_homography};
 use crate::matching::{self, match_brute_force};
@@ -162,32 +162,83 @@ pub fn shot_error(
     camera: Option<&Camera>,
     params: &ShotErrorParams,
 ) -> Result<ShotErrorReport, RefineError> {
+    let d = DesiredFeatures::extract(desired, desired_mask, camera, params)?;
+    shot_error_against(live, &d, camera, params)
+}
+
+/// The desired shot's side of [`shot_error`], extracted once: a servo
+/// measures every live frame against the same picture, and extracting it
+/// again each time was a third of a frame's cost.
+#[derive(Debug, Clone)]
+pub struct DesiredFeatures {
+    features: Features,
+    width: u32,
+    height: u32,
+}
+
+impl DesiredFeatures {
+    /// The features of `desired` (none where `mask` is 0), undistorted with
+    /// `camera`, as [`shot_error`] extracts them.
+    pub fn extract(
+        desired: &GrayImage,
+        mask: Option<&GrayImage>,
+        camera: Option<&Camera>,
+        params: &ShotErrorParams,
+    ) -> Result<Self, RefineError> {
+        if let Some(m) = mask
+            && m.dimensions() != desired.dimensions()
+        {
+            return Err(RefineError::ImageSize {
+                live: m.dimensions(),
+                desired: desired.dimensions(),
+            });
+        }
+        let mut orb = extractor(params)?;
+        let features = match mask {
+            Some(m) => {
+                orb.extract_masked(desired, m, camera)
+                    .map_err(|e| RefineError::Features {
+                        message: e.to_string(),
+                    })?
+            }
+            None => orb.extract(desired, camera),
+        };
+        Ok(Self {
+            features,
+            width: desired.width(),
+            height: desired.height(),
+        })
+    }
+
+    /// The picture's size, pixels.
+    pub fn dimensions(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+}
+
+/// The ORB extractor of `params`.
+fn extractor(params: &ShotErrorParams) -> Result<OrbExtractor, RefineError> {
+    OrbExtractor::new(params.features).map_err(|e| RefineError::Features {
+        message: e.to_string(),
+    })
+}
+
+/// [`shot_error`] against a desired shot whose features are already
+/// extracted (with the same `camera` and `params`).
+pub fn shot_error_against(
+    live: &GrayImage,
+    desired: &DesiredFeatures,
+    camera: Option<&Camera>,
+    params: &ShotErrorParams,
+) -> Result<ShotErrorReport, RefineError> {
     if live.dimensions() != desired.dimensions() || live.width() == 0 || live.height() == 0 {
         return Err(RefineError::ImageSize {
             live: live.dimensions(),
             desired: desired.dimensions(),
         });
     }
-    if let Some(m) = desired_mask
-        && m.dimensions() != desired.dimensions()
-    {
-        return Err(RefineError::ImageSize {
-            live: m.dimensions(),
-            desired: desired.dimensions(),
-        });
-    }
-    let mut orb = OrbExtractor::new(params.features).map_err(|e| RefineError::Features {
-        message: e.to_string(),
-    })?;
-    let fd = match desired_mask {
-        Some(m) => orb
-            .extract_masked(desired, m, camera)
-            .map_err(|e| RefineError::Features {
-                message: e.to_string(),
-            })?,
-        None => orb.extract(desired, camera),
-    };
-    let fl = orb.extract(live, camera);
+    let fd = &desired.features;
+    let fl = extractor(params)?.extract(live, camera);
     let matches =
         match_brute_force(&fd.descriptors, &fl.descriptors, &params.matching).map_err(|e| {
             RefineError::Matching {
@@ -216,8 +267,8 @@ pub fn shot_error(
     })?;
     corner_error(
         &fit.h21,
-        desired.width(),
-        desired.height(),
+        desired.width,
+        desired.height,
         camera,
         fit.n_inliers,
         matches.len(),

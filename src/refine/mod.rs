@@ -50,8 +50,8 @@ pub mod session;
 pub use arrival::{ArrivalDetector, ArrivalParams, Distance, PositionReport};
 pub use controller::{ControllerParams, Correction, Decision, correct, correct_targets, decide};
 pub use error::{
-    PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
-    outline_in_live, pose_difference, shot_error,
+    DesiredFeatures, PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch,
+    corner_error, outline_in_live, pose_difference, shot_error, shot_error_against,
 };
 pub use measure::{LiveFrame, MeasureParams};
 pub use reachable::{Reachable, reachable_from_anchors};

@@ -21,7 +21,7 @@ use image::GrayImage;
 use nalgebra::{Isometry3, Vector3};
 use serde::Serialize;
 
-use super::{ControllerParams, Params, correct_targets, shot_error};
+use super::{ControllerParams, DesiredFeatures, Params, correct_targets, shot_error_against};
 use crate::angle::wrap180;
 use crate::camera::Camera;
 use crate::geo::{GeoTarget, Geodetic, convert_target};
@@ -186,6 +186,10 @@ pub struct ServoSample {
 pub struct Servo {
     desired: GrayImage,
     mask: Option<GrayImage>,
+    /// The desired picture's features, extracted at the first frame (with
+    /// its camera) and kept: `None` before it, `Some(None)` when the
+    /// extraction failed (every frame then has no shot error).
+    desired_features: Option<Option<DesiredFeatures>>,
     map_from_desired: Isometry3<f64>,
     floor_pct: Option<f64>,
     params: Params,
@@ -217,6 +221,7 @@ impl Servo {
         Self {
             desired,
             mask,
+            desired_features: None,
             map_from_desired,
             floor_pct,
             params,
@@ -276,15 +281,14 @@ impl Servo {
         if let Some(s) = &self.stop {
             return ServoStep::Done(s.clone());
         }
-        let pct = shot_error(
-            f.image,
-            &self.desired,
-            self.mask.as_ref(),
-            camera,
-            &self.params.error,
-        )
-        .ok()
-        .map(|e| e.corner_error_pct);
+        let error = &self.params.error;
+        let (desired, mask) = (&self.desired, self.mask.as_ref());
+        let pct = self
+            .desired_features
+            .get_or_insert_with(|| DesiredFeatures::extract(desired, mask, camera, error).ok())
+            .as_ref()
+            .and_then(|d| shot_error_against(f.image, d, camera, error).ok())
+            .map(|e| e.corner_error_pct);
         let pose = match localize(ctx.map, f.image, None, None, ctx.localize) {
             Ok(Localization::Localized(p)) => Ok(p.world_from_cam),
             Ok(Localization::NotLocalized { reason }) => Err(reason.to_string()),
@@ -723,6 +727,53 @@ mod tests {
         // Heading and gimbal needed nothing.
         assert!((held.yaw_deg - w.target.yaw_deg).abs() < 0.05);
         assert!((held.gimbal_pitch_deg - w.target.gimbal_pitch_deg).abs() < 0.05);
+    }
+
+    /// The geofence ends the servo on the frame whose setpoint would
+    /// cross it (one control period), before any setpoint beyond it is
+    /// sent: the camera sits 0.5 m too low under a fence 5 cm above the
+    /// shot, so the first climb toward it is refused.
+    #[test]
+    fn the_fence_ends_the_servo_at_the_first_setpoint_beyond_it() {
+        let mut w = world();
+        w.fence = Fence {
+            max_alt_m: w.target.alt_m + 0.05,
+            ..Fence::default()
+        };
+        let ctx = w.ctx();
+        let mut servo = w.servo(ServoParams::default());
+        let image = GrayImage::new(8, 8);
+        let held = w.target;
+        let truth = w.ned(&held) + Vector3::new(0.0, 0.0, 0.5);
+        let mut ended = None;
+        for k in 0..10 {
+            let t = 0.2 * f64::from(k);
+            let f = ServoFrame {
+                image: &image,
+                t_s: t,
+                reported_ned_m: Some(w.ned(&held)),
+                reported_yaw_deg: Some(held.yaw_deg),
+                reported_pitch_deg: Some(held.gimbal_pitch_deg),
+                reported_speed_m_s: Some(0.0),
+            };
+            let pose = w.camera_at(truth, &held);
+            match servo.on_measurement(&f, Some(1.5), Ok(pose), &ctx) {
+                ServoStep::Move(next) => {
+                    assert!(next.alt_m <= w.fence.max_alt_m, "{next:?} beyond the fence");
+                }
+                ServoStep::Hold => {}
+                ServoStep::Done(s) => {
+                    ended = Some((k, s));
+                    break;
+                }
+            }
+        }
+        let (k, stop) = ended.expect("the servo flew on against the fence");
+        assert_eq!(k, 0, "ended only at frame {k}");
+        assert!(
+            matches!(&stop, ServoStop::Refused(r) if r.contains("fence") || r.contains("altitude")),
+            "{stop:?}"
+        );
     }
 
     fn frame(image: &GrayImage, t: f64, speed: f64) -> ServoFrame<'_> {

@@ -16,7 +16,8 @@
 //! where telemetry says, the first look at a photograph misses, and the
 //! daemon must upload corrections until the shot is under the threshold.
 //! The two runs take turns (one daemon at a time).
-//! `SHOTPILOT_REFINE_SEED=N` flies another world (default 1).
+//! `SHOTPILOT_REFINE_SEED=N` flies another world (default 1);
+//! `SHOTPILOT_REFINE_LOG=FILE` writes the daemon's log there.
 
 use crate::daemon_support;
 
@@ -280,7 +281,12 @@ fn start(tweak: impl FnOnce(&mut Config)) -> Running {
     let truth_dir = dir.path().join(&cfg.server.data_dir).join("truth");
     cfg.validate(Path::new("test")).unwrap();
 
-    let daemon = daemon_support::start_on_sim_time(cfg, sockets, dir.path());
+    let daemon = match std::env::var_os("SHOTPILOT_REFINE_LOG") {
+        Some(log) => {
+            daemon_support::start_on_sim_time_logged(cfg, sockets, dir.path(), log.as_ref())
+        }
+        None => daemon_support::start_on_sim_time(cfg, sockets, dir.path()),
+    };
     Running {
         addr: daemon.addr,
         sim0: daemon.now(),
@@ -348,6 +354,14 @@ impl Running {
             "never in {mode}: {}",
             get_json(addr, "/api/v1/status")["vehicle"]
         );
+    }
+
+    /// Waits for the shot's mission to fly (AUTO.MISSION) and then for the
+    /// servo's guided control (OFFBOARD): the explore script before the
+    /// mission flies in OFFBOARD too.
+    fn wait_for_servo(&self) {
+        self.wait_for_mode("AUTO.MISSION", Duration::from_secs(30));
+        self.wait_for_mode("OFFBOARD", Duration::from_secs(120));
     }
 
     /// Stops the daemon, which must stop cleanly.
@@ -815,7 +829,7 @@ fn the_operators_stop_ends_the_servo() {
         let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/{step}"), None);
         assert_eq!(st, 200, "{step}: {}", String::from_utf8_lossy(&b));
     }
-    run.wait_for_mode("OFFBOARD", Duration::from_secs(120));
+    run.wait_for_servo();
     let (st, b) = http(addr, "POST", "/api/v1/vehicle/stop", None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let v: Value = serde_json::from_slice(&b).unwrap();
@@ -830,6 +844,172 @@ fn the_operators_stop_ends_the_servo() {
     assert!(r["servo"].is_null(), "a servo outcome after the stop: {r}");
     // Held, and still held seconds later: nothing streams it back.
     run.wait_for_mode("AUTO.LOITER", Duration::from_secs(5));
+    run.daemon.sleep(Duration::from_secs(3));
+    assert_eq!(
+        get_json(addr, "/api/v1/status")["vehicle"]["mode"],
+        "AUTO.LOITER"
+    );
+    run.stop();
+}
+
+/// A UDP relay between the simulator's MAVLink endpoint and the daemon's
+/// link socket that can be cut both ways, as a radio out of range is.
+struct Relay {
+    /// Where the simulator sends (its `udpout:` endpoint).
+    sim_side: SocketAddr,
+    cut: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl Relay {
+    /// Relays the simulator's datagrams to `daemon` and the daemon's
+    /// replies back to the simulator's last sending address.
+    fn new(daemon: SocketAddr) -> Self {
+        use std::net::UdpSocket;
+        use std::sync::atomic::{AtomicBool, Ordering};
+        use std::sync::{Arc, Mutex};
+        let sim_facing = UdpSocket::bind("127.0.0.1:0").expect("bind the relay");
+        let daemon_facing = UdpSocket::bind("127.0.0.1:0").expect("bind the relay");
+        daemon_facing.connect(daemon).expect("connect the relay");
+        for s in [&sim_facing, &daemon_facing] {
+            s.set_read_timeout(Some(Duration::from_millis(50)))
+                .expect("a read timeout");
+        }
+        let sim_side = sim_facing.local_addr().expect("relay address");
+        let cut = Arc::new(AtomicBool::new(false));
+        let stop = Arc::new(AtomicBool::new(false));
+        let sim_addr = Arc::new(Mutex::new(None::<SocketAddr>));
+        let (a, b) = (
+            sim_facing.try_clone().expect("clone"),
+            daemon_facing.try_clone().expect("clone"),
+        );
+        let (c, s, peer) = (cut.clone(), stop.clone(), sim_addr.clone());
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 2048];
+            while !s.load(Ordering::Relaxed) {
+                if let Ok((n, from)) = a.recv_from(&mut buf) {
+                    *peer.lock().unwrap_or_else(|e| e.into_inner()) = Some(from);
+                    if !c.load(Ordering::Relaxed) {
+                        let _ = b.send(&buf[..n]);
+                    }
+                }
+            }
+        });
+        let (c, s) = (cut.clone(), stop.clone());
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 2048];
+            while !s.load(Ordering::Relaxed) {
+                if let Ok(n) = daemon_facing.recv(&mut buf) {
+                    let to = *sim_addr.lock().unwrap_or_else(|e| e.into_inner());
+                    if let (Some(to), false) = (to, c.load(Ordering::Relaxed)) {
+                        let _ = sim_facing.send_to(&buf[..n], to);
+                    }
+                }
+            }
+        });
+        Self {
+            sim_side,
+            cut,
+            stop,
+        }
+    }
+
+    fn set_cut(&self, cut: bool) {
+        self.cut.store(cut, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+impl Drop for Relay {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+/// The radio goes out of range while the daemon servoes: the servo ends
+/// when the link is declared lost (within one control period of it, the
+/// setpoint stream's 100 ms), recorded `aborted` with the reason; the
+/// simulated PX4 leaves OFFBOARD by itself once the stream stops, and when
+/// the radio comes back nothing streams it into guided control again.
+#[test]
+fn a_lost_link_ends_the_servo() {
+    let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
+    let mut relay = None;
+    let run = start(|cfg| {
+        servo_under_gps_bias(cfg);
+        cfg.refine.servo_threshold_pct = 0.001;
+        cfg.refine.servo_max_s = 300.0;
+        let daemon: SocketAddr = cfg
+            .link
+            .url
+            .trim_start_matches("udpin:")
+            .parse()
+            .expect("the link's address");
+        let r = Relay::new(daemon);
+        cfg.sim.mavlink = format!("udpout:{}", r.sim_side);
+        relay = Some(r);
+    });
+    let relay = relay.expect("the relay");
+    let addr = run.addr;
+    let (_, photos) = run.georeferenced();
+    let sid = run.daemon.held(move || photo_shot(addr, &photos));
+    for step in ["mission", "start"] {
+        let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/{step}"), None);
+        assert_eq!(st, 200, "{step}: {}", String::from_utf8_lossy(&b));
+    }
+    run.wait_for_servo();
+    relay.set_cut(true);
+    let cut_at = run.daemon.now();
+    // Every 50 ms of simulated time (the checks fall on t0 + k period):
+    // when the daemon reports the link lost, and when the refinement
+    // records its end, in seconds after the cut.
+    const POLL_S: f64 = 0.05;
+    let path = format!("/api/v1/shots/{sid}");
+    let seen = std::sync::Arc::new(std::sync::Mutex::new((0u32, None::<f64>, None::<f64>)));
+    let s = seen.clone();
+    let ended = run
+        .daemon
+        .poll(
+            Duration::from_secs(15),
+            Duration::from_secs_f64(POLL_S),
+            move || {
+                let mut seen = s.lock().unwrap_or_else(|e| e.into_inner());
+                let t = f64::from(seen.0) * POLL_S;
+                seen.0 += 1;
+                let v = get_json(addr, "/api/v1/status")["vehicle"].clone();
+                if v["connected"] == false && seen.1.is_none() {
+                    seen.1 = Some(t);
+                }
+                let r = get_json(addr, &path)["mission"]["details"]["refinement"].clone();
+                if !r["stop"].is_null() {
+                    seen.2 = Some(t);
+                    return Some(r);
+                }
+                None
+            },
+        )
+        .expect("the servo never ended after the link was cut");
+    let (_, lost, end) = *seen.lock().unwrap_or_else(|e| e.into_inner());
+    eprintln!(
+        "after the cut ({:.2} s simulated): declared lost at {lost:?} s, ended at {end:?} s: {ended}",
+        (cut_at - run.sim0).as_secs_f64()
+    );
+    assert_eq!(ended["stop"], "aborted", "{ended}");
+    let reason = ended["reason"].as_str().unwrap_or("");
+    assert!(reason.contains("link to the vehicle was lost"), "{ended}");
+    let (lost, end) = (
+        lost.expect("the link never reported lost"),
+        end.unwrap_or(f64::NAN),
+    );
+    // Ended on the poll that saw the loss or the next one: within one
+    // control period (100 ms) and one poll (50 ms) of it.
+    assert!(
+        end - lost <= 0.15 + 1e-6,
+        "lost at {lost:.2} s, ended at {end:.2} s"
+    );
+    // The radio back: the vehicle held by itself (PX4's offboard loss),
+    // and nothing streams it into OFFBOARD again.
+    relay.set_cut(false);
+    run.wait_for_mode("AUTO.LOITER", Duration::from_secs(10));
     run.daemon.sleep(Duration::from_secs(3));
     assert_eq!(
         get_json(addr, "/api/v1/status")["vehicle"]["mode"],

@@ -156,6 +156,57 @@ async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A guided setpoint stream running when the link is lost: the actor keeps
+/// its period (it used to leave the stream's due time in the past and wake
+/// at once, again and again, starving its commands: the stream's own stop
+/// never came through and, on paused time, the clock stood still, so this
+/// test hung); the stop is served and commands are refused for want of a
+/// vehicle, all within the protocol's own times.
+#[tokio::test(start_paused = true)]
+async fn a_guided_stream_over_a_lost_link_keeps_the_actor_responsive() -> anyhow::Result<()> {
+    let cancel = CancellationToken::new();
+    let fake_cancel = CancellationToken::new();
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0")?;
+    let addr = socket.local_addr()?;
+    let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
+    tokio::spawn(link_support::run_fake_on(
+        socket,
+        FakeConfig::clean(Habit::ArduPilot),
+        state,
+        fake_cancel.child_token(),
+    ));
+    let (link, _task) = vehicle::spawn(
+        params(format!("udpout:{addr}")),
+        upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    link.guide(Some(vehicle::GuidedSetpoint {
+        lat_deg: HOME.0,
+        lon_deg: HOME.1,
+        alt_amsl_m: HOME.2 + 10.0,
+        yaw_deg: 0.0,
+    }))
+    .await?;
+    fake_cancel.cancel();
+    let mut rx = link.telemetry.vehicle.clone();
+    tokio::time::timeout(Duration::from_secs(4), rx.wait_for(|v| v.link_lost)).await??;
+    // Time passes for the actor as for everyone (a spinning actor holds
+    // a paused clock still).
+    tokio::time::timeout(
+        Duration::from_secs(2),
+        tokio::time::sleep(Duration::from_secs(1)),
+    )
+    .await?;
+    tokio::time::timeout(Duration::from_millis(100), link.guide(None)).await??;
+    assert_eq!(
+        tokio::time::timeout(Duration::from_millis(100), link.arm(true)).await?,
+        Err(LinkError::NoVehicle)
+    );
+    cancel.cancel();
+    Ok(())
+}
+
 #[tokio::test(start_paused = true)]
 async fn accepts_mavlink1_vehicle() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();

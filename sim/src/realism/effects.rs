@@ -223,6 +223,13 @@ pub struct GpsError {
     pub noise_sigma_m: f64,
     /// Its correlation time, s.
     pub noise_tau_s: f64,
+    /// Time constant (1 / natural frequency) of the autopilot's estimator
+    /// fusing the receiver's fix with its IMU, s: the slow bias reaches the
+    /// position the vehicle flies through this second-order low-pass
+    /// (damping 1/sqrt 2), so the vehicle wanders smoothly instead of
+    /// jumping with every step of the bias's random walk (0: no fusion,
+    /// the receiver's bias as it is).
+    pub fusion_tau_s: f64,
 }
 
 /// Losses of the GNSS fix: they start as a Poisson process, last an

@@ -34,7 +34,7 @@
 //! | `compression` | the stream's compression, JPEG per frame as the MJPEG stream sends it (see [`crate::imaging::FrameCodec`]) | JPEG quality |
 //! | `wind` | wind with gusts pushing the vehicle off its setpoint | mean speed and direction, gust intensity and length scale, drag |
 //! | `gimbal` | gimbal stabilisation error and jitter | low-frequency error and jitter, rms degrees |
-//! | `gps` | GNSS error: a slow bias (Gauss-Markov) and fast noise | sigmas, correlation times |
+//! | `gps` | GNSS error: a slow bias (Gauss-Markov, through the estimator's fusion) and fast noise | sigmas, correlation times, fusion time constant |
 //! | `gps_dropouts` | occasional losses of the GNSS fix | mean interval and duration, drift while lost |
 //! | `baro` | barometric altitude drift | drift rate |
 //! | `telemetry` | telemetry at a real autopilot's stream rates over a lossy radio | PX4 stream rates; drop probability, latency, baud |
@@ -93,7 +93,10 @@
 //!   stabilisation error of 0.05 degrees rms.
 //! - GNSS: u-blox NEO-M9N data sheet, 1.5 m CEP horizontal (sigma per
 //!   axis = CEP / 1.1774 = 1.3 m), as a Gauss-Markov bias with a 120 s
-//!   correlation time; 5 cm of fast noise (the estimator's output);
+//!   correlation time, reaching the position the vehicle flies through
+//!   the estimator's fusion with its IMU (a second-order low-pass of time
+//!   constant 0.8 s: PX4 EKF2's default GPS and accelerometer noises);
+//!   5 cm of fast noise (the estimator's output);
 //!   a fix lost for 3 s every 10 minutes on average.
 //! - Barometer: drift of the pressure altitude with the weather, 1 hPa in
 //!   about 3 hours (8 m), about 0.05 m per minute.

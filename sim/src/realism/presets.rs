@@ -102,6 +102,7 @@ impl Realism {
                     bias_tau_s: 120.0,
                     noise_sigma_m: 0.05,
                     noise_tau_s: 1.0,
+                    fusion_tau_s: 0.8,
                 }),
                 gps_dropouts: Some(GpsDropouts {
                     mean_interval_s: 600.0,
@@ -168,6 +169,7 @@ impl Realism {
             bias_tau_s: 120.0,
             noise_sigma_m: 0.15,
             noise_tau_s: 1.0,
+            fusion_tau_s: 0.8,
         });
         v.gps_dropouts = Some(GpsDropouts {
             mean_interval_s: 120.0,

@@ -190,6 +190,9 @@ impl Realism {
             if !(g.bias_tau_s > 0.0 && g.noise_tau_s > 0.0) {
                 return bad("gps tau", g.bias_tau_s.min(g.noise_tau_s), "> 0 s");
             }
+            if !(0.0..=60.0).contains(&g.fusion_tau_s) {
+                return bad("gps.fusion_tau_s", g.fusion_tau_s, "[0, 60] s");
+            }
         }
         if let Some(d) = &v.gps_dropouts
             && !(d.mean_interval_s > 0.0 && d.mean_duration_s > 0.0 && d.drift_m_per_sqrt_s >= 0.0)

@@ -94,13 +94,15 @@ impl Actor {
         if now < g.next {
             return;
         }
-        let Some((peers, _)) = self.peers() else {
-            return;
-        };
-        self.out.push(guided_setpoint_message(
-            &g.setpoint,
-            (peers.target_system, peers.target_component),
-        ));
+        // With no vehicle to send to (the link lost), the period still
+        // passes: a due time left in the past would wake the actor at once,
+        // again and again, and starve its commands (the stop among them).
+        if let Some((peers, _)) = self.peers() {
+            self.out.push(guided_setpoint_message(
+                &g.setpoint,
+                (peers.target_system, peers.target_component),
+            ));
+        }
         let mut next = g.next + GUIDED_PERIOD;
         if next <= now {
             next = now + GUIDED_PERIOD;
