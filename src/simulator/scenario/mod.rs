@@ -232,7 +232,17 @@ pub fn run(
         restart: params.restart,
         trials: trials.len(),
         flown: n,
-        converged: trials.iter().filter(|t| t.stop == "converged").count(),
+        converged: trials
+            .iter()
+            .filter(|t| {
+                // The rounds stop `converged`; a servo's photo converged
+                // when its error is under the loop's threshold too.
+                t.stop == "converged"
+                    || (t.stop.starts_with("servo_")
+                        && t.final_shot_error_pct
+                            .is_some_and(|e| e <= params.refine.controller.threshold_pct))
+            })
+            .count(),
         within_noise: trials.iter().filter(|t| t.stop == "within_noise").count(),
         threshold_pct: params.refine.controller.threshold_pct,
         median_final_shot_error_pct: finite_quantile(&fin, 0.5),

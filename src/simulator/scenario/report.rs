@@ -121,7 +121,8 @@ pub struct ScenarioReport {
     pub trials: usize,
     /// Trials whose desired shot was localised and flown.
     pub flown: usize,
-    /// Trials that converged under the threshold.
+    /// Trials that converged under the threshold: the rounds stopped
+    /// `converged`, or the servo's photo is under it.
     pub converged: usize,
     /// Trials that stopped above the threshold because the correction was
     /// within the measurement's noise (`within_noise`).
