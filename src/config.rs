@@ -365,7 +365,8 @@ pub struct RefineSection {
     /// OFFBOARD, ArduPilot GUIDED) and the photo when the error is under
     /// `servo_threshold_pct`.
     pub servo: bool,
-    /// The servo's photo threshold, % of the image diagonal.
+    /// The servo's photo threshold, % of the image diagonal (after half of
+    /// `servo_max_s` it rises linearly to twice this at `servo_max_s`).
     pub servo_threshold_pct: f64,
     /// Servoing time after which a frame among the best measured takes the
     /// photo (after 1.5 times this, the photo is taken where it is), s.

@@ -75,7 +75,7 @@ pub struct ScenarioArgs {
     #[arg(long)]
     pub servo: bool,
     /// The servo's photo threshold, % of the image diagonal.
-    #[arg(long, default_value_t = 0.3, requires = "servo")]
+    #[arg(long, default_value_t = shotpilot::refine::ServoParams::default().threshold_pct, requires = "servo")]
     pub servo_threshold_pct: f64,
     /// How long the servo's shot error must stay under its threshold
     /// before the photo, seconds (0: the first frame under it).

@@ -36,7 +36,9 @@ use super::session::Context;
 pub struct ServoParams {
     /// The photo is taken once the shot error has stayed under this, % of
     /// the image diagonal (or within the controller's `at_floor_margin_pct`
-    /// of a known floor above it) for `settle_s`.
+    /// of a known floor above it) for `settle_s`; after half of `max_s`
+    /// the bar rises linearly with the time servoed, to twice this at
+    /// `max_s`.
     pub threshold_pct: f64,
     /// How long the error must stay under the threshold, seconds (0: the
     /// first frame under it takes the photo; a hold on GNSS wanders with
@@ -82,7 +84,7 @@ pub struct ServoParams {
 impl Default for ServoParams {
     fn default() -> Self {
         Self {
-            threshold_pct: 0.3,
+            threshold_pct: 0.2,
             settle_s: 0.0,
             max_s: 20.0,
             late_quantile: 0.25,
@@ -254,13 +256,29 @@ impl Servo {
         self.stop.as_ref()
     }
 
-    /// The error under which the photo is taken: the threshold, or just
-    /// above a known floor higher than it.
+    /// The error under which the photo is taken at the start: the
+    /// threshold, or just above a known floor higher than it.
     pub fn goal_pct(&self) -> f64 {
         let t = self.servo.threshold_pct;
         match self.floor_pct {
             Some(f) => t.max(f + self.params.controller.at_floor_margin_pct),
             None => t,
+        }
+    }
+
+    /// The goal `elapsed_s` into servoing: [`Self::goal_pct`] for the
+    /// first half of `max_s` (where most views settle), then raised
+    /// linearly to twice it at `max_s`, so a view that wanders about just
+    /// above the threshold (a floor nobody knew, the map's own error) takes
+    /// a photo near it instead of waiting for `max_s` and taking whatever
+    /// the best quarter holds then.
+    pub fn goal_pct_at(&self, elapsed_s: f64) -> f64 {
+        let g = self.goal_pct();
+        let half = 0.5 * self.servo.max_s;
+        if half > 0.0 && elapsed_s > half {
+            g * (1.0 + ((elapsed_s - half) / half).min(1.0))
+        } else {
+            g
         }
     }
 
@@ -324,7 +342,7 @@ impl Servo {
             .reported_speed_m_s
             .is_none_or(|v| v.is_nan() || v <= self.servo.steady_speed_m_s);
         let pct_steady = pct.filter(|_| steady);
-        if pct_steady.is_some_and(|p| p <= self.goal_pct()) {
+        if pct_steady.is_some_and(|p| p <= self.goal_pct_at(t - t0)) {
             let since = *self.under_since.get_or_insert(t);
             if t - since >= self.servo.settle_s - 1e-9 {
                 self.samples.push(sample);
@@ -817,6 +835,41 @@ mod tests {
         // Over: every later frame says so.
         let step = servo.on_measurement(&frame(&image, 2.2, 0.0), Some(0.2), Ok(at_shot), &ctx);
         assert_eq!(step, ServoStep::Done(ServoStop::Settled));
+    }
+
+    /// A view that holds just above the threshold: the bar holds for half
+    /// of `max_s`, then rises with the time servoed (twice the threshold
+    /// at `max_s`), so 0.35 % against 0.3 % takes the photo once
+    /// 0.3 (1 + (t - 10) / 10) reaches it, at 11.8 s (frames every 0.2 s),
+    /// not at 20 s.
+    #[test]
+    fn the_bar_rises_with_the_time_servoed() {
+        let w = world();
+        let ctx = w.ctx();
+        let image = GrayImage::new(8, 8);
+        let at_shot = w.camera_at(w.ned(&w.target), &w.target);
+        let p = ServoParams::default();
+        let mut servo = w.servo(ServoParams {
+            threshold_pct: 0.3,
+            ..p
+        });
+        assert!((servo.goal_pct_at(0.0) - 0.3).abs() < 1e-12);
+        assert!((servo.goal_pct_at(0.5 * p.max_s) - 0.3).abs() < 1e-12);
+        assert!((servo.goal_pct_at(0.75 * p.max_s) - 0.45).abs() < 1e-12);
+        assert!((servo.goal_pct_at(p.max_s) - 0.6).abs() < 1e-12);
+        assert!((servo.goal_pct_at(10.0 * p.max_s) - 0.6).abs() < 1e-12);
+        let mut settled_at = None;
+        for k in 0..200 {
+            let t = 0.2 * f64::from(k);
+            let step = servo.on_measurement(&frame(&image, t, 0.0), Some(0.35), Ok(at_shot), &ctx);
+            if let ServoStep::Done(s) = step {
+                assert_eq!(s, ServoStop::Settled);
+                settled_at = Some(t);
+                break;
+            }
+        }
+        let t = settled_at.expect("never settled");
+        assert!((t - 11.8).abs() < 1e-9, "settled at {t} s");
     }
 
     /// Above the threshold all along: after `max_s` a frame among the

@@ -799,7 +799,8 @@ fn the_daemon_servoes_at_the_shot_and_takes_the_photo() {
     assert!(servo["photo"]["image_index"].is_i64(), "{servo}");
     let last = servo["last_error_pct"].as_f64().unwrap();
     if stop == "servo_settled" {
-        assert!(last <= 0.3, "{servo}");
+        // Under the bar: 0.2 %, rising to 0.4 % from 10 s to 20 s.
+        assert!(last <= 0.4, "{servo}");
     } else {
         // The best quarter of what it measured, well under the first look.
         assert!(last < first / 2.0, "{servo}");
