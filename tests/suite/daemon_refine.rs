@@ -356,12 +356,21 @@ impl Running {
         );
     }
 
-    /// Waits for the shot's mission to fly (AUTO.MISSION) and then for the
-    /// servo's guided control (OFFBOARD): the explore script before the
-    /// mission flies in OFFBOARD too.
-    fn wait_for_servo(&self) {
+    /// A photo shot from the live view, its mission uploaded and started;
+    /// returns its id once the daemon servoes at it: the mission flying
+    /// (AUTO.MISSION), then the servo's guided control (OFFBOARD; the
+    /// explore script before the mission flies in OFFBOARD too).
+    fn servoing(&self) -> String {
+        let addr = self.addr;
+        let (_, photos) = self.georeferenced();
+        let sid = self.daemon.held(move || photo_shot(addr, &photos));
+        for step in ["mission", "start"] {
+            let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/{step}"), None);
+            assert_eq!(st, 200, "{step}: {}", String::from_utf8_lossy(&b));
+        }
         self.wait_for_mode("AUTO.MISSION", Duration::from_secs(30));
         self.wait_for_mode("OFFBOARD", Duration::from_secs(120));
+        sid
     }
 
     /// Stops the daemon, which must stop cleanly.
@@ -763,6 +772,14 @@ fn servo_under_gps_bias(cfg: &mut Config) {
     cfg.refine.servo = true;
 }
 
+/// [`servo_under_gps_bias`] with a threshold it never meets: it servoes
+/// until something stops it.
+fn servo_until_stopped(cfg: &mut Config) {
+    servo_under_gps_bias(cfg);
+    cfg.refine.servo_threshold_pct = 0.001;
+    cfg.refine.servo_max_s = 300.0;
+}
+
 /// With `[refine] servo`, after the first look the daemon servoes at the
 /// shot through the autopilot's guided control (the in-process PX4-like
 /// simulator takes OFFBOARD only after a setpoint stream) against a 1.5 m
@@ -817,20 +834,9 @@ fn the_daemon_servoes_at_the_shot_and_takes_the_photo() {
 #[test]
 fn the_operators_stop_ends_the_servo() {
     let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
-    let run = start(|cfg| {
-        servo_under_gps_bias(cfg);
-        // A threshold it never meets: it servoes until stopped.
-        cfg.refine.servo_threshold_pct = 0.001;
-        cfg.refine.servo_max_s = 300.0;
-    });
+    let run = start(servo_until_stopped);
     let addr = run.addr;
-    let (_, photos) = run.georeferenced();
-    let sid = run.daemon.held(move || photo_shot(addr, &photos));
-    for step in ["mission", "start"] {
-        let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/{step}"), None);
-        assert_eq!(st, 200, "{step}: {}", String::from_utf8_lossy(&b));
-    }
-    run.wait_for_servo();
+    let sid = run.servoing();
     let (st, b) = http(addr, "POST", "/api/v1/vehicle/stop", None);
     assert_eq!(st, 200, "{}", String::from_utf8_lossy(&b));
     let v: Value = serde_json::from_slice(&b).unwrap();
@@ -936,9 +942,7 @@ fn a_lost_link_ends_the_servo() {
     let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
     let mut relay = None;
     let run = start(|cfg| {
-        servo_under_gps_bias(cfg);
-        cfg.refine.servo_threshold_pct = 0.001;
-        cfg.refine.servo_max_s = 300.0;
+        servo_until_stopped(cfg);
         let daemon: SocketAddr = cfg
             .link
             .url
@@ -951,13 +955,7 @@ fn a_lost_link_ends_the_servo() {
     });
     let relay = relay.expect("the relay");
     let addr = run.addr;
-    let (_, photos) = run.georeferenced();
-    let sid = run.daemon.held(move || photo_shot(addr, &photos));
-    for step in ["mission", "start"] {
-        let (st, b) = http(addr, "POST", &format!("/api/v1/shots/{sid}/{step}"), None);
-        assert_eq!(st, 200, "{step}: {}", String::from_utf8_lossy(&b));
-    }
-    run.wait_for_servo();
+    let sid = run.servoing();
     relay.set_cut(true);
     let cut_at = run.daemon.now();
     // Every 50 ms of simulated time (the checks fall on t0 + k period):

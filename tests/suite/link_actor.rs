@@ -166,15 +166,7 @@ async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
 async fn a_guided_stream_over_a_lost_link_keeps_the_actor_responsive() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let fake_cancel = CancellationToken::new();
-    let socket = std::net::UdpSocket::bind("127.0.0.1:0")?;
-    let addr = socket.local_addr()?;
-    let state = std::sync::Arc::new(std::sync::Mutex::new(link_support::FakeState::default()));
-    tokio::spawn(link_support::run_fake_on(
-        socket,
-        FakeConfig::clean(Habit::ArduPilot),
-        state,
-        fake_cancel.child_token(),
-    ));
+    let (addr, _) = start_fake(FakeConfig::clean(Habit::ArduPilot), &fake_cancel);
     let (link, _task) = vehicle::spawn(
         params(format!("udpout:{addr}")),
         upload::Params::default(),
