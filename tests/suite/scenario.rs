@@ -163,15 +163,30 @@ fn without_wall_time(v: &Value) -> Value {
 /// The `field` world (issue 19): rolling shutter, blur, auto-exposure,
 /// JPEG and the rest on every live frame; wind, gimbal error, the GNSS
 /// receiver's bias and noise on the vehicle; PX4's telemetry rates over a
-/// lossy radio. The median still ends under 1 %, but not every trial under
-/// 3 %: the receiver's bias (1.3 m, 120 s) drifts about 0.35 m per axis in
-/// a round's 4-5 s between the measurement and the next look, which on the
-/// quick survey's 6 m trial is 3-5 % of the diagonal (measured: seed 3,
-/// 14.8 % first, 4.8 % after 4 corrections, the camera 0.7 m off).
+/// lossy radio.
+///
+/// Servoing at the shot (`--servo`) meets the loop's figures here, every
+/// camera within a metre (measured, seed 3: 0.05-0.28 m, finals 0.12, 0.46,
+/// 0.77 and 1.27 %). The rounds of mission legs alone end with the median
+/// under 1 % and every trial better than its first look, but not every
+/// camera within a metre: the receiver's bias (1.3 m, 120 s) drifts about
+/// 0.35 m per axis in a round's 4-5 s between the measurement and the next
+/// look, 3-5 % of the diagonal on the quick survey's 6 m trial (measured,
+/// seed 3: 11.2 % first, 7.3 % after 4 corrections, the camera 1.04 m off;
+/// with the simulator's GNSS before the estimator's fusion, 14.8 -> 4.8 %
+/// and 0.7 m). That lag is what the servo removes.
 #[test]
 fn a_short_field_scenario_converges_under_one_percent() {
-    let r = quick_scenario("field", "3");
-    check_loop(&r, None);
+    let servo = quick_scenario_with("field", "3", &["--servo"]);
+    check_loop(&servo, None);
+    let rounds = quick_scenario("field", "3");
+    assert!(f(&rounds, "median_final_shot_error_pct") <= 1.0, "{rounds}");
+    for t in rounds["trial_reports"].as_array().expect("trial_reports") {
+        assert!(
+            f(t, "final_shot_error_pct") < f(t, "first_shot_error_pct"),
+            "{t}"
+        );
+    }
 }
 
 /// Telemetry priors in the explore flight (`--priors`, the daemon's
