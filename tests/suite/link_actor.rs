@@ -159,9 +159,10 @@ async fn link_lost_after_silence_and_regained() -> anyhow::Result<()> {
 /// A guided setpoint stream running when the link is lost: the actor keeps
 /// its period (it used to leave the stream's due time in the past and wake
 /// at once, again and again, starving its commands: the stream's own stop
-/// never came through and, on paused time, the clock stood still, so this
-/// test hung); the stop is served and commands are refused for want of a
-/// vehicle, all within the protocol's own times.
+/// never came through and, on paused time, the clock stood still; the
+/// daemon's lost-link servo test hung on it); the stop is served and
+/// commands are refused for want of a vehicle, all within the protocol's
+/// own times.
 #[tokio::test(start_paused = true)]
 async fn a_guided_stream_over_a_lost_link_keeps_the_actor_responsive() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
