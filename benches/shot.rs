@@ -3,14 +3,15 @@
 //! the servo's per-frame shot error on two teddy frames (needs
 //! `../shared/data` or `SHOTPILOT_DATA`, else a synthetic texture), with the
 //! desired picture's features extracted each frame (as before) against
-//! kept once per servo: the ratio of the two is the saving.
+//! kept once per servo with the extractor's buffers (`ShotErrorMeter`): the
+//! ratio of the two is the saving.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use image::{GrayImage, Luma};
 use nalgebra::Point2;
 use std::hint::black_box;
 
-use shotpilot::refine::{DesiredFeatures, ShotErrorParams, shot_error, shot_error_against};
+use shotpilot::refine::{ShotErrorMeter, ShotErrorParams, shot_error};
 use shotpilot::shot::{AnchorParams, desired_shot_from_anchors, homography_from_anchors};
 
 /// Two teddy frames half a second apart (the desired picture and a live
@@ -65,12 +66,12 @@ fn bench_servo_error(c: &mut Criterion) {
     group.bench_function("desired_extracted_each_frame", |b| {
         b.iter(|| shot_error(black_box(&live), &desired, None, None, &params).ok())
     });
-    let kept = match DesiredFeatures::extract(&desired, None, None, &params) {
+    let mut kept = match ShotErrorMeter::new(&desired, None, None, &params) {
         Ok(k) => k,
         Err(e) => panic!("the desired picture's features: {e}"),
     };
     group.bench_function("desired_kept", |b| {
-        b.iter(|| shot_error_against(black_box(&live), &kept, None, &params).ok())
+        b.iter(|| kept.measure(black_box(&live), None).ok())
     });
     group.finish();
 }

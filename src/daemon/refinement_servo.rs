@@ -17,12 +17,10 @@ use std::time::Duration;
 use tokio_util::sync::CancellationToken;
 
 use super::refinement_deps::{Abort, Deps, position_report, reported_ned};
-use crate::geo::{GeoAlignment, Geodetic, LocalFrame, MountParams};
-use crate::mission::plan::{Fence, Home, Target};
-use crate::refine::{Context, ServoFrame, ServoParams, ServoStep, ServoStop, Session};
-use crate::shot::LocalizeParams;
+use crate::geo::{Geodetic, LocalFrame};
+use crate::mission::plan::{Home, Target};
+use crate::refine::{ServoFrame, ServoParams, ServoStep, ServoStop, Session, World};
 use crate::shot::record::Shot;
-use crate::slam::Map;
 use crate::vehicle::{FlightMode, GUIDED_PERIOD, GuidedSetpoint};
 
 /// How long the setpoint stream runs before the switch to guided control:
@@ -136,32 +134,6 @@ pub(super) async fn save_servo(deps: &Deps, shot_id: &str, o: &ServoOutcome) {
     }
 }
 
-/// What every frame's measurement reads: the map snapshot, the
-/// georeference and the limits, fixed for one servo.
-struct World {
-    map: Map,
-    alignment: GeoAlignment,
-    frame: LocalFrame,
-    mount: MountParams,
-    home: Home,
-    fence: Fence,
-    localize: LocalizeParams,
-}
-
-impl World {
-    fn ctx(&self) -> Context<'_> {
-        Context {
-            map: &self.map,
-            alignment: &self.alignment,
-            frame: &self.frame,
-            mount: &self.mount,
-            home: &self.home,
-            fence: &self.fence,
-            localize: &self.localize,
-        }
-    }
-}
-
 /// Servoes from `holding` (the target the vehicle holds at) until the
 /// servo stops, `cancel` fires, or the link refuses guided control.
 pub(super) async fn servo_at_shot(
@@ -175,7 +147,7 @@ pub(super) async fn servo_at_shot(
 ) -> Result<ServoOutcome, Abort> {
     let r = tokio::select! {
         _ = cancel.cancelled() => Err(Abort::Cancelled),
-        after_s = link_lost(deps) => Err(Abort::LinkLost { after_s }),
+        why = link_lost(deps) => Err(why),
         r = run(deps, session, shot, holding, home, params) => r,
     };
     // The stream ends however servoing ended.
@@ -351,16 +323,19 @@ async fn run(
 }
 
 /// Resolves when the link actor declares the link lost (no heartbeat for
-/// its `link_lost_after_ms`) or is gone, with the age of the last
-/// heartbeat in seconds: the servo ends at that moment, whatever frame it
-/// is measuring.
-async fn link_lost(deps: &Deps) -> f64 {
+/// its `link_lost_after_ms`; [`Abort::LinkLost`] with the last heartbeat's
+/// age) or is gone ([`Abort::Guided`] with `ActorGone`): the servo ends at
+/// that moment, whatever frame it is measuring.
+async fn link_lost(deps: &Deps) -> Abort {
     let mut rx = deps.link.telemetry.vehicle.clone();
-    let last = match rx.wait_for(|v| v.link_lost).await {
-        Ok(v) => v.last_heartbeat,
-        Err(_) => None,
-    };
-    last.map_or(f64::NAN, |t| crate::clock::since(t).as_secs_f64())
+    match rx.wait_for(|v| v.link_lost).await {
+        Ok(v) => Abort::LinkLost {
+            after_s: v
+                .last_heartbeat
+                .map_or(0.0, |t| crate::clock::since(t).as_secs_f64()),
+        },
+        Err(_) => Abort::Guided(crate::vehicle::LinkError::ActorGone),
+    }
 }
 
 /// The first video frame received after `after` (waiting up to the loop's

@@ -162,29 +162,38 @@ pub fn shot_error(
     camera: Option<&Camera>,
     params: &ShotErrorParams,
 ) -> Result<ShotErrorReport, RefineError> {
-    let d = DesiredFeatures::extract(desired, desired_mask, camera, params)?;
-    shot_error_against(live, &d, camera, params)
+    ShotErrorMeter::new(desired, desired_mask, camera, params)?.measure(live, camera)
 }
 
-/// The desired shot's side of [`shot_error`], extracted once: a servo
-/// measures every live frame against the same picture, and extracting it
-/// again each time was a third of a frame's cost.
+/// [`shot_error`] against one desired shot, frame after frame: the desired
+/// picture's features are extracted once, and the extractor and the live
+/// frame's feature buffers are kept (a servo measures every frame against
+/// the same picture; extracting it again cost 3.6 of the 13.4 ms of a
+/// frame's shot error in `benches/shot.rs`).
 #[derive(Debug, Clone)]
-pub struct DesiredFeatures {
-    features: Features,
+pub struct ShotErrorMeter {
+    params: ShotErrorParams,
+    orb: OrbExtractor,
+    desired: Features,
+    live: Features,
     width: u32,
     height: u32,
 }
 
-impl DesiredFeatures {
-    /// The features of `desired` (none where `mask` is 0), undistorted with
-    /// `camera`, as [`shot_error`] extracts them.
-    pub fn extract(
+impl ShotErrorMeter {
+    /// The meter of `desired` (no features where `mask` is 0), its
+    /// keypoints undistorted with `camera`.
+    pub fn new(
         desired: &GrayImage,
         mask: Option<&GrayImage>,
         camera: Option<&Camera>,
         params: &ShotErrorParams,
     ) -> Result<Self, RefineError> {
+        let features = |e: crate::features::FeatureError| RefineError::Features {
+            message: e.to_string(),
+        };
+        let mut orb = OrbExtractor::new(params.features).map_err(features)?;
+        let mut d = Features::default();
         if let Some(m) = mask
             && m.dimensions() != desired.dimensions()
         {
@@ -193,87 +202,73 @@ impl DesiredFeatures {
                 desired: desired.dimensions(),
             });
         }
-        let mut orb = extractor(params)?;
-        let features = match mask {
-            Some(m) => {
-                orb.extract_masked(desired, m, camera)
-                    .map_err(|e| RefineError::Features {
-                        message: e.to_string(),
-                    })?
-            }
-            None => orb.extract(desired, camera),
-        };
+        orb.extract_into(desired, mask, camera, &mut d)
+            .map_err(features)?;
         Ok(Self {
-            features,
+            params: params.clone(),
+            orb,
+            desired: d,
+            live: Features::default(),
             width: desired.width(),
             height: desired.height(),
         })
     }
 
-    /// The picture's size, pixels.
-    pub fn dimensions(&self) -> (u32, u32) {
-        (self.width, self.height)
-    }
-}
-
-/// The ORB extractor of `params`.
-fn extractor(params: &ShotErrorParams) -> Result<OrbExtractor, RefineError> {
-    OrbExtractor::new(params.features).map_err(|e| RefineError::Features {
-        message: e.to_string(),
-    })
-}
-
-/// [`shot_error`] against a desired shot whose features are already
-/// extracted (with the same `camera` and `params`).
-pub fn shot_error_against(
-    live: &GrayImage,
-    desired: &DesiredFeatures,
-    camera: Option<&Camera>,
-    params: &ShotErrorParams,
-) -> Result<ShotErrorReport, RefineError> {
-    if live.dimensions() != desired.dimensions() || live.width() == 0 || live.height() == 0 {
-        return Err(RefineError::ImageSize {
-            live: live.dimensions(),
-            desired: desired.dimensions(),
-        });
-    }
-    let fd = &desired.features;
-    let fl = extractor(params)?.extract(live, camera);
-    let matches =
-        match_brute_force(&fd.descriptors, &fl.descriptors, &params.matching).map_err(|e| {
-            RefineError::Matching {
+    /// The shot error of `live` (the desired picture's size), undistorted
+    /// with the `camera` the meter was made with.
+    pub fn measure(
+        &mut self,
+        live: &GrayImage,
+        camera: Option<&Camera>,
+    ) -> Result<ShotErrorReport, RefineError> {
+        let desired = (self.width, self.height);
+        if live.dimensions() != desired || live.width() == 0 || live.height() == 0 {
+            return Err(RefineError::ImageSize {
+                live: live.dimensions(),
+                desired,
+            });
+        }
+        self.orb
+            .extract_into(live, None, camera, &mut self.live)
+            .map_err(|e| RefineError::Features {
                 message: e.to_string(),
+            })?;
+        let params = &self.params;
+        let (fd, fl) = (&self.desired, &self.live);
+        let matches = match_brute_force(&fd.descriptors, &fl.descriptors, &params.matching)
+            .map_err(|e| RefineError::Matching {
+                message: e.to_string(),
+            })?;
+        let pd: Vec<Point2<f64>> = matches
+            .iter()
+            .map(|m| {
+                let k = fd.keypoints[m.query];
+                Point2::new(f64::from(k.ux), f64::from(k.uy))
+            })
+            .collect();
+        let pl: Vec<Point2<f64>> = matches
+            .iter()
+            .map(|m| {
+                let k = fl.keypoints[m.train];
+                Point2::new(f64::from(k.ux), f64::from(k.uy))
+            })
+            .collect();
+        let fit = find_homography(&pd, &pl, &params.homography, params.seed).map_err(|e| {
+            RefineError::NoHomography {
+                matches: matches.len(),
+                reason: e.to_string(),
             }
         })?;
-    let pd: Vec<Point2<f64>> = matches
-        .iter()
-        .map(|m| {
-            let k = fd.keypoints[m.query];
-            Point2::new(f64::from(k.ux), f64::from(k.uy))
-        })
-        .collect();
-    let pl: Vec<Point2<f64>> = matches
-        .iter()
-        .map(|m| {
-            let k = fl.keypoints[m.train];
-            Point2::new(f64::from(k.ux), f64::from(k.uy))
-        })
-        .collect();
-    let fit = find_homography(&pd, &pl, &params.homography, params.seed).map_err(|e| {
-        RefineError::NoHomography {
-            matches: matches.len(),
-            reason: e.to_string(),
-        }
-    })?;
-    corner_error(
-        &fit.h21,
-        desired.width,
-        desired.height,
-        camera,
-        fit.n_inliers,
-        matches.len(),
-        (fd.len(), fl.len()),
-    )
+        corner_error(
+            &fit.h21,
+            self.width,
+            self.height,
+            camera,
+            fit.n_inliers,
+            matches.len(),
+            (fd.len(), fl.len()),
+        )
+    }
 }
 
 /// The corner error of a known homography `live ← desired` (the measure of

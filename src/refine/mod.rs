@@ -50,13 +50,13 @@ pub mod session;
 pub use arrival::{ArrivalDetector, ArrivalParams, Distance, PositionReport};
 pub use controller::{ControllerParams, Correction, Decision, correct, correct_targets, decide};
 pub use error::{
-    DesiredFeatures, PoseDifference, ShotErrorParams, ShotErrorReport, axis_yaw_pitch,
-    corner_error, outline_in_live, pose_difference, shot_error, shot_error_against,
+    PoseDifference, ShotErrorMeter, ShotErrorParams, ShotErrorReport, axis_yaw_pitch, corner_error,
+    outline_in_live, pose_difference, shot_error,
 };
 pub use measure::{LiveFrame, MeasureParams};
 pub use reachable::{Reachable, reachable_from_anchors};
 pub use servo::{Servo, ServoFrame, ServoParams, ServoSample, ServoStep, ServoStop};
-pub use session::{Context, Observation, OffsetRecord, RoundRecord, Session, Step, Stop};
+pub use session::{Context, Observation, OffsetRecord, RoundRecord, Session, Step, Stop, World};
 
 /// Every tunable number of the refinement.
 #[derive(Debug, Clone, Default, PartialEq)]

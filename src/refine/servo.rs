@@ -21,7 +21,7 @@ use image::GrayImage;
 use nalgebra::{Isometry3, Vector3};
 use serde::Serialize;
 
-use super::{ControllerParams, DesiredFeatures, Params, correct_targets, shot_error_against};
+use super::{ControllerParams, Params, ShotErrorMeter, correct_targets};
 use crate::angle::wrap180;
 use crate::camera::Camera;
 use crate::geo::{GeoTarget, Geodetic, convert_target};
@@ -188,10 +188,10 @@ pub struct ServoSample {
 pub struct Servo {
     desired: GrayImage,
     mask: Option<GrayImage>,
-    /// The desired picture's features, extracted at the first frame (with
-    /// its camera) and kept: `None` before it, `Some(None)` when the
+    /// The shot error's meter, made at the first frame (with its camera)
+    /// and kept: `None` before it, `Some(None)` when the desired picture's
     /// extraction failed (every frame then has no shot error).
-    desired_features: Option<Option<DesiredFeatures>>,
+    meter: Option<Option<ShotErrorMeter>>,
     map_from_desired: Isometry3<f64>,
     floor_pct: Option<f64>,
     params: Params,
@@ -223,7 +223,7 @@ impl Servo {
         Self {
             desired,
             mask,
-            desired_features: None,
+            meter: None,
             map_from_desired,
             floor_pct,
             params,
@@ -299,13 +299,12 @@ impl Servo {
         if let Some(s) = &self.stop {
             return ServoStep::Done(s.clone());
         }
-        let error = &self.params.error;
-        let (desired, mask) = (&self.desired, self.mask.as_ref());
+        let (desired, mask, error) = (&self.desired, self.mask.as_ref(), &self.params.error);
         let pct = self
-            .desired_features
-            .get_or_insert_with(|| DesiredFeatures::extract(desired, mask, camera, error).ok())
-            .as_ref()
-            .and_then(|d| shot_error_against(f.image, d, camera, error).ok())
+            .meter
+            .get_or_insert_with(|| ShotErrorMeter::new(desired, mask, camera, error).ok())
+            .as_mut()
+            .and_then(|m| m.measure(f.image, camera).ok())
             .map(|e| e.corner_error_pct);
         let pose = match localize(ctx.map, f.image, None, None, ctx.localize) {
             Ok(Localization::Localized(p)) => Ok(p.world_from_cam),
@@ -580,24 +579,33 @@ mod tests {
     use crate::slam::{Map, ScaleInfo};
     use nalgebra::UnitQuaternion;
 
-    struct World {
-        map: Map,
-        alignment: GeoAlignment,
-        frame: LocalFrame,
-        home: Home,
-        mount: MountParams,
-        fence: Fence,
-        localize: LocalizeParams,
+    /// A world (an empty map with the identity georeference) and the
+    /// shot's target in it.
+    struct Fixture {
+        world: crate::refine::World,
         target: Target,
     }
 
-    fn world() -> World {
+    impl std::ops::Deref for Fixture {
+        type Target = crate::refine::World;
+        fn deref(&self) -> &Self::Target {
+            &self.world
+        }
+    }
+
+    impl std::ops::DerefMut for Fixture {
+        fn deref_mut(&mut self) -> &mut Self::Target {
+            &mut self.world
+        }
+    }
+
+    fn world() -> Fixture {
         let home = Home {
             lat_deg: 47.0,
             lon_deg: 8.0,
             alt_amsl_m: 400.0,
         };
-        World {
+        let world = crate::refine::World {
             map: Map::new(
                 Camera::new(
                     640,
@@ -618,6 +626,9 @@ mod tests {
             mount: MountParams::default(),
             fence: Fence::default(),
             localize: LocalizeParams::default(),
+        };
+        Fixture {
+            world,
             target: Target {
                 lat_deg: 47.0001,
                 lon_deg: 8.0001,
@@ -629,18 +640,7 @@ mod tests {
         }
     }
 
-    impl World {
-        fn ctx(&self) -> Context<'_> {
-            Context {
-                map: &self.map,
-                alignment: &self.alignment,
-                frame: &self.frame,
-                mount: &self.mount,
-                home: &self.home,
-                fence: &self.fence,
-                localize: &self.localize,
-            }
-        }
+    impl Fixture {
         fn ned(&self, t: &Target) -> Vector3<f64> {
             self.frame.geodetic_to_ned(&Geodetic {
                 lat_deg: t.lat_deg,
@@ -789,7 +789,7 @@ mod tests {
         let (k, stop) = ended.expect("the servo flew on against the fence");
         assert_eq!(k, 0, "ended only at frame {k}");
         assert!(
-            matches!(&stop, ServoStop::Refused(r) if r.contains("fence") || r.contains("altitude")),
+            matches!(&stop, ServoStop::Refused(r) if r.contains("above the geofence ceiling")),
             "{stop:?}"
         );
     }

@@ -43,6 +43,42 @@ pub struct Context<'a> {
     pub localize: &'a LocalizeParams,
 }
 
+/// A [`Context`]'s contents owned, for a driver that keeps them across
+/// frames (a map snapshot copies the map, so one is taken per servo, not
+/// per frame); [`World::ctx`] lends them.
+#[derive(Debug, Clone)]
+pub struct World {
+    /// The SLAM map (a snapshot).
+    pub map: Map,
+    /// The map → NED alignment.
+    pub alignment: GeoAlignment,
+    /// The local tangent plane at home.
+    pub frame: LocalFrame,
+    /// The camera's mounting.
+    pub mount: MountParams,
+    /// Home.
+    pub home: Home,
+    /// The geofence every target must lie in.
+    pub fence: Fence,
+    /// Localisation of the live frame.
+    pub localize: LocalizeParams,
+}
+
+impl World {
+    /// The context borrowing this world.
+    pub fn ctx(&self) -> Context<'_> {
+        Context {
+            map: &self.map,
+            alignment: &self.alignment,
+            frame: &self.frame,
+            mount: &self.mount,
+            home: &self.home,
+            fence: &self.fence,
+            localize: &self.localize,
+        }
+    }
+}
+
 /// One arrival: what was measured and what was done.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RoundRecord {

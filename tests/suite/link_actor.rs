@@ -8,7 +8,7 @@ use crate::link_support;
 
 use std::time::Duration;
 
-use link_support::{FakeConfig, HOME, Habit, start_fake};
+use link_support::{FakeConfig, HOME, Habit, linked, start_fake};
 use mavlink::MavlinkVersion;
 use mavlink::dialects::common::MavCmd;
 use shotpilot::mission::{Flavour, upload};
@@ -168,12 +168,7 @@ async fn a_guided_stream_over_a_lost_link_keeps_the_actor_responsive() -> anyhow
     let cancel = CancellationToken::new();
     let fake_cancel = CancellationToken::new();
     let (addr, _) = start_fake(FakeConfig::clean(Habit::ArduPilot), &fake_cancel);
-    let (link, _task) = vehicle::spawn(
-        params(format!("udpout:{addr}")),
-        upload::Params::default(),
-        cancel.clone(),
-    )?;
-    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let (link, _task) = linked(params(format!("udpout:{addr}")), &cancel).await?;
     link.guide(Some(vehicle::GuidedSetpoint {
         lat_deg: HOME.0,
         lon_deg: HOME.1,
@@ -262,12 +257,7 @@ async fn mission_upload_over_mavlink1_both_ways() -> anyhow::Result<()> {
 async fn operator_commands_are_acknowledged() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let (addr, fake) = start_fake(FakeConfig::clean(Habit::Px4), &cancel);
-    let (link, _task) = vehicle::spawn(
-        params(format!("udpout:{addr}")),
-        upload::Params::default(),
-        cancel.clone(),
-    )?;
-    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let (link, _task) = linked(params(format!("udpout:{addr}")), &cancel).await?;
     link.arm(true).await?;
     link.set_mode(FlightMode::Mission).await?;
     link.start_mission().await?;
@@ -452,12 +442,7 @@ async fn stop_is_a_hold_acknowledged_by_the_vehicle() -> anyhow::Result<()> {
     ] {
         let cancel = CancellationToken::new();
         let (addr, fake) = start_fake(FakeConfig::clean(habit), &cancel);
-        let (link, _task) = vehicle::spawn(
-            params(format!("udpout:{addr}")),
-            upload::Params::default(),
-            cancel.clone(),
-        )?;
-        link.wait_for_vehicle(Duration::from_secs(5)).await?;
+        let (link, _task) = linked(params(format!("udpout:{addr}")), &cancel).await?;
         let ack = link.hold().await?;
         assert_eq!(ack.command, "MAV_CMD_DO_SET_MODE");
         assert_eq!(ack.mode, mode, "{habit:?}");
@@ -491,12 +476,7 @@ async fn stop_goes_out_while_another_command_waits() -> anyhow::Result<()> {
         ..FakeConfig::clean(Habit::Px4)
     };
     let (addr, fake) = start_fake(cfg, &cancel);
-    let (link, _task) = vehicle::spawn(
-        params(format!("udpout:{addr}")),
-        upload::Params::default(),
-        cancel.clone(),
-    )?;
-    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let (link, _task) = linked(params(format!("udpout:{addr}")), &cancel).await?;
     let gimbal = {
         let link = link.clone();
         tokio::spawn(async move {
@@ -579,12 +559,7 @@ async fn stop_refused_or_unacknowledged_is_an_error() -> anyhow::Result<()> {
             ..FakeConfig::clean(Habit::Px4)
         };
         let (addr, fake) = start_fake(cfg, &cancel);
-        let (link, _task) = vehicle::spawn(
-            params(format!("udpout:{addr}")),
-            upload::Params::default(),
-            cancel.clone(),
-        )?;
-        link.wait_for_vehicle(Duration::from_secs(5)).await?;
+        let (link, _task) = linked(params(format!("udpout:{addr}")), &cancel).await?;
         let err = link.hold().await.expect_err("no hold without an ACCEPTED");
         let sends = fake
             .lock()

@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use tokio::time::Instant;
 
-use link_support::{FakeConfig, HOME, Habit, Radio, start_fake, start_radio};
+use link_support::{FakeConfig, HOME, Habit, Radio, linked, start_fake, start_radio};
 use mavlink::Message;
 use mavlink::dialects::common::{MavMessage, MavMissionResult};
 use shotpilot::mission::plan::{self, Flavour, Home, Target};
@@ -55,12 +55,7 @@ fn flavour(h: Habit) -> Flavour {
 async fn upload_and_verify(habit: Habit) -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let (addr, fake) = start_fake(FakeConfig::clean(habit), &cancel);
-    let (link, _task) = vehicle::spawn(
-        link_params(format!("udpout:{addr}")),
-        upload::Params::default(),
-        cancel.clone(),
-    )?;
-    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let (link, _task) = linked(link_params(format!("udpout:{addr}")), &cancel).await?;
     let items = plan::plan(
         &target(0),
         &home(),
@@ -226,12 +221,7 @@ async fn lossy_uploads_50_each() -> anyhow::Result<()> {
 async fn progress_from_mission_current_and_item_reached() -> anyhow::Result<()> {
     let cancel = CancellationToken::new();
     let (addr, fake) = start_fake(FakeConfig::clean(Habit::Px4), &cancel);
-    let (link, _task) = vehicle::spawn(
-        link_params(format!("udpout:{addr}")),
-        upload::Params::default(),
-        cancel.clone(),
-    )?;
-    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let (link, _task) = linked(link_params(format!("udpout:{addr}")), &cancel).await?;
     let items = plan::plan(&target(0), &home(), Flavour::Px4, &plan::Params::default())?;
     let n = items.len() as u16;
     link.upload_mission(items).await?;
@@ -293,12 +283,7 @@ async fn lost_final_ack(habit: Habit) -> anyhow::Result<upload::UploadReport> {
         ..FakeConfig::clean(habit)
     };
     let (addr, fake) = start_fake(cfg, &cancel);
-    let (link, _task) = vehicle::spawn(
-        link_params(format!("udpout:{addr}")),
-        upload::Params::default(),
-        cancel.clone(),
-    )?;
-    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let (link, _task) = linked(link_params(format!("udpout:{addr}")), &cancel).await?;
     let items = plan::plan(
         &target(0),
         &home(),
@@ -385,12 +370,7 @@ async fn vehicle_rejection_is_typed() -> anyhow::Result<()> {
         ..FakeConfig::clean(Habit::Px4)
     };
     let (addr, _fake) = start_fake(cfg, &cancel);
-    let (link, _task) = vehicle::spawn(
-        link_params(format!("udpout:{addr}")),
-        upload::Params::default(),
-        cancel.clone(),
-    )?;
-    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    let (link, _task) = linked(link_params(format!("udpout:{addr}")), &cancel).await?;
     let items = plan::plan(&target(0), &home(), Flavour::Px4, &plan::Params::default())?;
     let n = items.len() as u16;
     assert_eq!(

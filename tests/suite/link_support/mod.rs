@@ -493,6 +493,21 @@ pub fn start_fake(cfg: FakeConfig, cancel: &CancellationToken) -> (String, Arc<M
     (addr, state)
 }
 
+/// A link to `params.url` (with the default transfer parameters), once
+/// it has heard the vehicle (within 5 s); cancelled by `cancel`.
+pub async fn linked(
+    params: shotpilot::vehicle::Params,
+    cancel: &CancellationToken,
+) -> anyhow::Result<(shotpilot::vehicle::LinkHandle, tokio::task::JoinHandle<()>)> {
+    let (link, task) = shotpilot::vehicle::spawn(
+        params,
+        shotpilot::mission::upload::Params::default(),
+        cancel.clone(),
+    )?;
+    link.wait_for_vehicle(Duration::from_secs(5)).await?;
+    Ok((link, task))
+}
+
 /// A bad radio between two UDP peers: drops datagrams, flips bits, and
 /// serialises bytes at a baud rate (8N1: 10 bits a byte), each direction
 /// with its own seeded generator.
