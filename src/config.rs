@@ -681,6 +681,13 @@ impl Config {
         if !(self.server.events_hz > 0.0 && self.server.events_hz <= 50.0) {
             return Err(invalid("server", "events_hz", "must be in (0, 50]".into()));
         }
+        if self.geo.align.drift.is_some_and(|d| !d.is_valid()) {
+            return Err(invalid(
+                "geo.align.drift",
+                "sigma_xy_m/sigma_z_m/tau_s/noise_xy_m/noise_z_m/window_s",
+                "every one must be a positive number".into(),
+            ));
+        }
         if !(self.slam.checkpoint_s >= 0.0 && self.slam.checkpoint_s <= 86_400.0) {
             return Err(invalid(
                 "slam",
@@ -834,6 +841,30 @@ mod tests {
         assert_eq!(cfg.sim, SimSection::default());
         assert_eq!(cfg.geo, crate::geo::Params::default());
         assert_eq!(cfg.refine, RefineSection::default());
+    }
+
+    #[test]
+    fn a_drift_model_is_configured_by_its_section() {
+        let cfg = Config::from_toml(
+            "[geo.align]\ninlier_threshold_m = 2.5\n[geo.align.drift]\ntau_s = 60.0\n",
+            Path::new("x.toml"),
+        )
+        .unwrap();
+        assert_eq!(
+            cfg.geo.align.drift,
+            Some(crate::geo::GnssDrift {
+                tau_s: 60.0,
+                ..crate::geo::GnssDrift::default()
+            })
+        );
+        assert_eq!(Config::default().geo.align.drift, None);
+        let bad = Config::from_toml("[geo.align.drift]\ntau = 60.0\n", Path::new("x.toml"));
+        assert!(bad.is_err(), "an unknown key is refused");
+        let zero = Config::from_toml("[geo.align.drift]\ntau_s = 0.0\n", Path::new("x.toml"));
+        assert!(
+            zero.is_err_and(|e| e.to_string().contains("geo.align.drift")),
+            "a zero correlation time is refused"
+        );
     }
 
     #[test]

@@ -58,6 +58,13 @@ pub struct ScenarioArgs {
     /// is the map itself instead of a Sim(3) fitted after the flight.
     #[arg(long)]
     pub priors: bool,
+    /// Fly every trial with the georeference fitted after the explore
+    /// flight, the GNSS bias averaged over it (as before the georeference
+    /// followed the drift): for comparison. By default the georeference is
+    /// kept, given live frames paired in a short hover before each
+    /// departure, and refitted with a GNSS bias state per window.
+    #[arg(long)]
+    pub fixed_georeference: bool,
     /// Realism of the simulator: `ideal` (the clean world), `field` (a
     /// calm day, a SIYI-class camera) or `harsh` (gusty evening), then any
     /// `-EFFECT` (off) or `+EFFECT[@PRESET]` (on), e.g. `field-blur`; see
@@ -135,6 +142,7 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     }
     params.priors = args.priors;
     params.restart = args.restart;
+    params.follow_drift = !args.fixed_georeference;
     let json = args.json;
     let mut progress = |t: &TrialReport| {
         if !json {

@@ -820,6 +820,7 @@ impl LiveGeoreference {
                     "time_offset_s": q.time_offset_s,
                     "keyframes_used": q.inliers,
                     "older_pairs_set_aside": q.set_aside,
+                    "gnss_bias_m": q.gnss_bias_m,
                     "recent": (q.set_aside > 0).then(|| format!(
                         "fitted on the newest {} pairs: the {} older ones disagree with them (a GNSS bias that drifted, or a map that bent)",
                         q.pairs, q.set_aside

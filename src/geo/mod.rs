@@ -41,9 +41,9 @@ pub mod target;
 pub mod telemetry;
 pub mod wgs84;
 
-pub use align::{AlignParams, AlignQuality, GeoAlignment, Georeference, Pair};
+pub use align::{AlignParams, AlignQuality, GeoAlignment, Georeference, GnssDrift, Pair};
 pub use clock::BootClock;
-pub use live::LiveGeoreference;
+pub use live::{FRAME_PAIR_BIT, LiveGeoreference};
 pub use mount::{GimbalSolution, LeverArmFrame, MountParams, ned_from_cam, solve_gimbal};
 pub use pipeline::{Geo, KeyframeStatus};
 pub use target::{GeoTarget, convert_target, target_from_ned};

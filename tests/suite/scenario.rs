@@ -114,8 +114,10 @@ fn quick_scenario_with(realism: &str, seed: &str, extra: &[&str]) -> Value {
 /// under the 1 % threshold, no trial left worse than its first flight, the
 /// judge agreeing with the image measure (a matched framing is a camera
 /// within a metre and a degree of the hidden pose), and the first flights
-/// missing by more: refinement did the work. With `max_final_pct`, every
-/// trial ends under it.
+/// missing by more: refinement did the work. (With the georeference
+/// following the GNSS drift the first look is often under the threshold
+/// already, so the first flights miss by more, not by twice as much as
+/// before.) With `max_final_pct`, every trial ends under it.
 fn check_loop(r: &Value, max_final_pct: Option<f64>) {
     let trials = r["trial_reports"].as_array().expect("trial_reports");
     assert!(f(r, "median_final_shot_error_pct") <= 1.0);
@@ -131,7 +133,7 @@ fn check_loop(r: &Value, max_final_pct: Option<f64>) {
         assert!(f(t, "position_error_m") < 1.0, "{t}");
         assert!(f(t, "yaw_error_deg").abs() < 1.0 && f(t, "pitch_error_deg").abs() < 1.0);
     }
-    assert!(f(r, "median_first_shot_error_pct") > 2.0 * f(r, "median_final_shot_error_pct"));
+    assert!(f(r, "median_first_shot_error_pct") > f(r, "median_final_shot_error_pct"));
     assert!(f(r, "median_first_position_error_m") > f(r, "median_position_error_m"));
     assert!(f(r, "p90_first_shot_error_pct") >= f(r, "median_first_shot_error_pct"));
 }
@@ -170,24 +172,45 @@ fn without_wall_time(v: &Value) -> Value {
 /// lossy radio.
 ///
 /// Servoing at the shot (`--servo`) meets the loop's figures here, every
-/// camera within a metre (measured, seed 3: 0.05-0.28 m, finals 0.12, 0.46,
-/// 0.77 and 1.27 %). The rounds of mission legs alone end with the median
-/// under 1 % and every trial better than its first look, but not every
-/// camera within a metre: the receiver's bias (1.3 m, 120 s) drifts about
-/// 0.35 m per axis in a round's 4-5 s between the measurement and the next
-/// look, 3-5 % of the diagonal on the quick survey's 6 m trial (measured,
-/// seed 3: 11.2 % first, 7.3 % after 4 corrections, the camera 1.04 m off;
-/// with the simulator's GNSS before the estimator's fusion, 14.8 -> 4.8 %
-/// and 0.7 m). That lag is what the servo removes.
+/// camera within a metre (measured, seed 3: 0.05-0.29 m, finals 0.15,
+/// 0.56, 0.49 and 0.26 %). The rounds of mission legs alone end with the
+/// median under 1 % and every trial better than its first look (or the
+/// first look already under the threshold), but not every camera within a
+/// metre: the receiver's bias (1.3 m, 120 s) drifts about 0.35 m per axis
+/// in a round's 4-5 s between the measurement and the next look, 3-5 % of
+/// the diagonal on the quick survey's 6 m trial (measured, seed 3: 11.7 %
+/// first, 4.5 % after 4 corrections, the camera 0.69 m off). That lag is
+/// what the servo removes.
+///
+/// The first look follows the drift: the georeference kept after the
+/// survey, given live frames before each departure and fitted with a GNSS
+/// bias state per window, puts the first look's camera nearer than the
+/// survey's fit with the bias averaged over it (`--fixed-georeference`;
+/// measured, seed 3: median 1.46 -> 0.59 m, first look 5.66 -> 1.91 %;
+/// the servo's finals with the survey's fit 0.12, 0.46, 1.27, 0.77 %).
 #[test]
 fn a_short_field_scenario_converges_under_one_percent() {
     let servo = quick_scenario_with("field", "3", &["--servo"]);
     check_loop(&servo, None);
+    for t in servo["trial_reports"].as_array().expect("trial_reports") {
+        assert!(f(t, "departure_pairs") >= 1.0, "no live frame paired: {t}");
+    }
+    let fixed = quick_scenario_with("field", "3", &["--servo", "--fixed-georeference"]);
+    check_loop(&fixed, None);
+    let first = |r: &Value| f(r, "median_first_position_error_m");
+    assert!(
+        first(&servo) < 0.6 * first(&fixed),
+        "first look's camera {:.2} m following the drift vs {:.2} m on the survey's fit",
+        first(&servo),
+        first(&fixed)
+    );
     let rounds = quick_scenario("field", "3");
     assert!(f(&rounds, "median_final_shot_error_pct") <= 1.0, "{rounds}");
     for t in rounds["trial_reports"].as_array().expect("trial_reports") {
+        // Better than the first look, or the first look was the shot.
         assert!(
-            f(t, "final_shot_error_pct") < f(t, "first_shot_error_pct"),
+            f(t, "final_shot_error_pct") < f(t, "first_shot_error_pct")
+                || (t["stop"] == "converged" && t["rounds"] == 0),
             "{t}"
         );
     }

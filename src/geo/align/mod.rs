@@ -35,7 +35,10 @@ use crate::geometry::{Sim3, umeyama};
 use crate::lie::skew;
 use crate::optimize::lm::{LeastSquares, LmParams, levenberg_marquardt};
 
+mod drift;
 mod newest;
+
+pub use drift::{DriftFit, GnssDrift, fit_with_drift};
 
 /// Tunables of the alignment.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -90,6 +93,11 @@ pub struct AlignParams {
     /// Estimate the offset only when the pairs' velocities vary by at least
     /// this much (standard deviation about their mean), m/s.
     pub min_velocity_spread_m_s: f64,
+    /// The receiver's drifting bias, estimated in the fit (one state per
+    /// window, [`fit_with_drift`]) so the fit maps into the NED the
+    /// receiver reads at the newest pair (`None`: a plain Sim(3), the bias
+    /// averaged over the pairs).
+    pub drift: Option<GnssDrift>,
 }
 
 impl Default for AlignParams {
@@ -117,6 +125,7 @@ impl Default for AlignParams {
             max_time_offset_s: 0.5,
             time_offset_search_factor: 4.0,
             min_velocity_spread_m_s: 1.0,
+            drift: None,
         }
     }
 }
@@ -190,6 +199,10 @@ pub struct AlignQuality {
     /// agree and the newest ones did (see [`Georeference::fit`]); 0 for a
     /// fit of every pair.
     pub set_aside: usize,
+    /// With [`AlignParams::drift`]: the GNSS bias estimated at the newest
+    /// pair, NED, m (already in the fit's translation); the residuals are
+    /// then those after each pair's own window's bias.
+    pub gnss_bias_m: Option<[f64; 3]>,
 }
 
 /// A fitted map → NED similarity and its quality.
@@ -220,6 +233,7 @@ impl GeoAlignment {
                 iterations: 0,
                 spread_m2: [0.0; 3],
                 set_aside: 0,
+                gnss_bias_m: None,
             },
             inlier_ids: Vec::new(),
         }
@@ -665,7 +679,17 @@ pub fn fit_pairs(
         }
         rotation_rms_deg = Some(problem.rotation_rms().to_degrees());
     }
-    let r: Vec<f64> = inliers.iter().map(|p| residual(&model, p)).collect();
+    let mut gnss_bias_m = None;
+    let mut r: Vec<f64> = inliers.iter().map(|p| residual(&model, p)).collect();
+    if let Some(drift) = &params.drift
+        && let Some(fit) = fit_with_drift(&inliers, model, drift, rotation_rms_deg.is_some())
+        && fit.ned_from_map.scale.is_finite()
+        && fit.ned_from_map.scale > 0.0
+    {
+        model = fit.ned_from_map;
+        gnss_bias_m = Some(fit.newest_bias.into());
+        r = fit.residuals;
+    }
     let (rms_m, max_residual_m) = rms_max(&r);
     Ok(GeoAlignment {
         ned_from_map: model,
@@ -679,6 +703,7 @@ pub fn fit_pairs(
             iterations,
             spread_m2,
             set_aside: 0,
+            gnss_bias_m,
         },
         inlier_ids: inliers.iter().map(|p| p.kf_id).collect(),
     })

@@ -99,6 +99,7 @@ fn shifted(fit: &Sim3, pairs: &[Pair], params: &AlignParams) -> Option<GeoAlignm
             iterations: 0,
             spread_m2: spread(inliers.iter().map(|p| p.p_ned)),
             set_aside: 0,
+            gnss_bias_m: None,
         },
         inlier_ids: inliers.iter().map(|p| p.kf_id).collect(),
     })

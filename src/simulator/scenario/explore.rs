@@ -56,7 +56,11 @@ pub(super) fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored
     }
     let mut slam = Slam::new(camera, slam_params)?;
     let home = sim.ap.params().vehicle.home;
-    let mut g = geo::Geo::new(params.geo.clone());
+    let mut geo_params = params.geo.clone();
+    if !params.follow_drift {
+        geo_params.align.drift = None;
+    }
+    let mut g = geo::Geo::new(geo_params);
     g.set_home(Geodetic {
         lat_deg: home.lat_deg,
         lon_deg: home.lon_deg,
@@ -125,6 +129,11 @@ pub(super) fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored
     };
     sim.priors = None;
     let frame = *g.frame().ok_or(crate::geo::GeoError::NoHome)?;
+    if params.follow_drift {
+        // A map in local NED too: its pairs fitted with the bias state give
+        // the identity moved to where the receiver reads now.
+        sim.geo = Some(g);
+    }
     let report = ExploreReport {
         sim_s: sim.t,
         frames,

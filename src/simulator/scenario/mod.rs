@@ -182,6 +182,7 @@ pub fn run(
             .filter(|t| t.drop > 0.0)
             .map(|t| (t.drop, SmallRng::seed_from_u64(params.seed ^ 0xD20F))),
         priors: None,
+        geo: None,
     };
     let mut ex = explore(&mut sim, params)?;
     if params.restart {

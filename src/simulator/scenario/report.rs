@@ -74,6 +74,12 @@ pub struct TrialReport {
     pub flown: bool,
     /// Why not, when it was not.
     pub reason: Option<String>,
+    /// Live frames localised and paired with telemetry before the
+    /// departure ([`super::ScenarioParams::follow_drift`]).
+    pub departure_pairs: usize,
+    /// The GNSS bias the georeference estimated at its newest pair, NED m
+    /// (with a drift model).
+    pub gnss_bias_m: Option<[f64; 3]>,
     /// Localisation error of the desired shot (through the georeference)
     /// against the hidden camera, m.
     pub desired_localisation_error_m: Option<f64>,

@@ -56,6 +56,9 @@ pub(super) struct Sim {
     /// The telemetry priors' feed, filled as the daemon's georeference
     /// worker fills it (None: vision only).
     pub(super) priors: Option<PriorTap>,
+    /// The georeference kept after the explore flight, fed every step's
+    /// telemetry as the daemon's is (None: the explore's fit stands).
+    pub(super) geo: Option<geo::Geo>,
 }
 
 /// What the priors' feed is filled from: each position report as the
@@ -262,11 +265,18 @@ impl Sim {
         }
     }
 
+    /// One step with its telemetry to the kept georeference, if any.
+    fn step_fed(&mut self) {
+        let mut geo = self.geo.take();
+        self.step(geo.as_mut());
+        self.geo = geo;
+    }
+
     /// Lets `seconds` of simulated time pass (hovering where it is).
     pub(super) fn advance(&mut self, seconds: f64) {
         let end = self.t + seconds;
         while self.t + 0.5 * self.dt < end {
-            self.step(None);
+            self.step_fed();
         }
     }
 
@@ -282,7 +292,7 @@ impl Sim {
         let t0 = self.t;
         let mut det = ArrivalDetector::new(*arrival, wp_seq, gimbal_pitch_deg);
         while self.t - t0 < p.max_flight_s {
-            self.step(None);
+            self.step_fed();
             if let Some(seq) = self.reached.take() {
                 det.on_reached(seq);
             }

@@ -10,7 +10,7 @@ use rand::rngs::SmallRng;
 
 use shotpilot_sim::autopilot::Mode;
 
-use crate::geo::convert_target;
+use crate::geo::{FRAME_PAIR_BIT, GeoAlignment, convert_target};
 use crate::mission::plan::{self, Flavour};
 use crate::refine::{Context, LiveFrame, Session, Step, Stop, pose_difference};
 use crate::shot::request::NotLocalised;
@@ -47,6 +47,60 @@ fn localise(
     }
 }
 
+/// Live frames localised and paired with telemetry in the hover before a
+/// departure.
+const DEPARTURE_FRAMES: usize = 3;
+/// Their spacing, s (the daemon's frame pairs are half a second apart).
+const DEPARTURE_SPACING_S: f64 = 0.5;
+
+/// The georeference a trial's shot is flown with: with
+/// [`ScenarioParams::follow_drift`], the kept one, given the live frames
+/// localised in a short hover where the vehicle is (as the daemon's
+/// tracking pairs its frames) and refitted; else, or when the refit is
+/// refused, the explore's fit. Also the frame pairs added.
+fn current_alignment(
+    ex: &Explored,
+    sim: &mut Sim,
+    params: &ScenarioParams,
+) -> (GeoAlignment, usize) {
+    if sim.geo.is_none() {
+        return (ex.alignment.clone(), 0);
+    }
+    let mut paired = 0;
+    for i in 0..DEPARTURE_FRAMES {
+        if i > 0 {
+            sim.advance(DEPARTURE_SPACING_S);
+        }
+        let image = sim.render();
+        let t = sim.t;
+        let Ok(Localization::Localized(s)) =
+            localize(&ex.map, &image, None, None, &params.localize)
+        else {
+            continue;
+        };
+        let id = FRAME_PAIR_BIT | (t * 1e3).round() as u64;
+        if let Some(g) = sim.geo.as_mut() {
+            match g.add_keyframe(id, &s.world_from_cam, t) {
+                Ok(_) => paired += 1,
+                Err(e) => tracing::debug!("scenario: departure frame not paired: {e}"),
+            }
+        }
+    }
+    // Telemetry past the last frame's time, so a pending pair is made.
+    sim.advance(0.2);
+    let Some(g) = sim.geo.as_mut() else {
+        return (ex.alignment.clone(), paired);
+    };
+    g.retry_pending();
+    match g.fit() {
+        Ok(a) => (a, paired),
+        Err(e) => {
+            tracing::debug!("scenario: georeference refit refused ({e}); the explore's fit flies");
+            (ex.alignment.clone(), paired)
+        }
+    }
+}
+
 pub(super) fn run_trial(
     trial: usize,
     ex: &Explored,
@@ -80,6 +134,8 @@ pub(super) fn run_trial(
         round_reports: Vec::new(),
         arrival_to_photo_s: None,
         servo: None,
+        departure_pairs: 0,
+        gnss_bias_m: None,
     };
     let finish = |mut rep: TrialReport, sim: &Sim, stop: String| {
         rep.stop = stop;
@@ -97,6 +153,9 @@ pub(super) fn run_trial(
     rep.hidden_yaw_deg = hidden.yaw.to_degrees();
     rep.hidden_pitch_deg = hidden.pitch.to_degrees();
     let mount = &params.geo.mount;
+    let (alignment, departure_pairs) = current_alignment(ex, sim, params);
+    rep.departure_pairs = departure_pairs;
+    rep.gnss_bias_m = alignment.quality.gnss_bias_m;
     let desired_map = match localise(
         &ex.map,
         &hidden.image,
@@ -112,11 +171,11 @@ pub(super) fn run_trial(
         }
     };
     rep.desired_localisation_error_m = Some(
-        (ex.alignment.ned_from_cam(&desired_map).translation.vector
+        (alignment.ned_from_cam(&desired_map).translation.vector
             - hidden.camera.translation.vector)
             .norm(),
     );
-    let target = match convert_target(&ex.alignment, &desired_map, &ex.frame, mount) {
+    let target = match convert_target(&alignment, &desired_map, &ex.frame, mount) {
         Ok(t) => t.to_mission_target(false),
         Err(e) => {
             rep.reason = Some(format!("no target: {e}"));
@@ -147,7 +206,7 @@ pub(super) fn run_trial(
     let home = sim.home;
     let ctx = Context {
         map: &ex.map,
-        alignment: &ex.alignment,
+        alignment: &alignment,
         frame: &ex.frame,
         mount,
         home: &home,
