@@ -9,7 +9,6 @@ use std::sync::Arc;
 
 use image::GrayImage;
 use serde::{Deserialize, Serialize};
-use serde_json::Value;
 
 use crate::shot::record::{MissionRecord, PoseJson, Shot};
 use crate::shot::request::KeyframeImages;
@@ -322,8 +321,8 @@ pub struct VehicleStatus {
     /// The last global position, when one came.
     pub position: Option<VehiclePosition>,
     /// The georeference's state and evidence (the daemon's geo service
-    /// report; its fields are documented in the OpenAPI document).
-    pub georeference: Value,
+    /// report; None before the vehicle's view is made).
+    pub georeference: Option<crate::geo::GeoreferenceStatus>,
     /// Gimbal protocol v2: the manager's last status and what the link did
     /// about control.
     pub gimbal: VehicleGimbal,

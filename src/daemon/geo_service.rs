@@ -25,7 +25,6 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Vector3};
-use serde_json::Value;
 use tokio_util::sync::CancellationToken;
 
 use crate::api::{KeyframeInfo, SlamView, TrackedFrame};
@@ -290,7 +289,7 @@ impl GeoService {
     }
 
     /// The state as the API reports it (see [`LiveGeoreference::status`]).
-    pub fn status(&self) -> Value {
+    pub fn status(&self) -> crate::geo::GeoreferenceStatus {
         self.lock().live.status()
     }
 
@@ -477,7 +476,7 @@ mod tests {
         let expect = path(T_END) + Vector3::new(arm[0], arm[1], arm[2]);
         assert!((s.gps_ned - expect).norm() < 1e-3, "{:?}", s.gps_ned);
         assert!((s.t - (T_END + offset)).abs() < 1e-6);
-        let st = geo.status();
+        let st = serde_json::to_value(geo.status()).unwrap();
         assert_eq!(st["counts"]["prior_samples"], feed.len(), "{st}");
         assert_eq!(st["counts"]["prior_samples_without_fix"], feed.len());
         assert_eq!(geo.home().map(|h| h.alt_amsl_m), Some(HOME.alt_m));
@@ -510,7 +509,7 @@ mod tests {
             .map(|i| ned_keyframe(&geo, i, 1.0 + 2.0 * i as f64, offset))
             .collect();
         geo.sync_keyframes(&kfs);
-        let st = geo.status();
+        let st = serde_json::to_value(geo.status()).unwrap();
         assert_eq!(st["state"], "ok", "{st}");
         assert_eq!(st["source"], "map", "{st}");
         assert_eq!(st["keyframes_used"], 16);

@@ -446,7 +446,7 @@ impl VehicleView for LinkVehicle {
             }),
             fence: Some(self.plan.fence),
             forward: self.link.forward_status(),
-            georeference: self.geo.status(),
+            georeference: Some(self.geo.status()),
             gimbal: VehicleGimbal {
                 manager: manager.map(|m| GimbalManagerView {
                     gimbal_device_id: m.value.gimbal_device_id,

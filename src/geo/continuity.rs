@@ -9,7 +9,6 @@
 use std::collections::HashMap;
 
 use nalgebra::Isometry3;
-use serde_json::{Value, json};
 
 use super::Params;
 use super::align::{Pair, fit_pairs};
@@ -199,19 +198,42 @@ impl Restore {
     }
 
     /// The status's `saved` object, with the check's state.
-    pub fn status(&self, check: Option<&Check>) -> Value {
-        json!({
-            "pairs_in_file": self.loaded,
-            "restored": self.restored,
-            "waiting": self.waiting.len(),
-            "unmatched": self.unmatched,
-            "saved_unix": self.saved_unix,
-            "fit_when_saved": self.file_fit,
-            "home_moved_m": self.home_moved_m,
-            "dropped": self.dropped,
-            "check": check,
-        })
+    pub fn status(&self, check: Option<&Check>) -> SavedStatus {
+        SavedStatus {
+            pairs_in_file: self.loaded,
+            restored: self.restored,
+            waiting: self.waiting.len(),
+            unmatched: self.unmatched,
+            saved_unix: self.saved_unix,
+            fit_when_saved: self.file_fit,
+            home_moved_m: self.home_moved_m,
+            dropped: self.dropped.clone(),
+            check: check.cloned(),
+        }
     }
+}
+
+/// The saved georeference of a continued map.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SavedStatus {
+    /// Pairs in the file.
+    pub pairs_in_file: usize,
+    /// Restored onto the map's keyframes.
+    pub restored: usize,
+    /// Still waiting for their keyframes.
+    pub waiting: usize,
+    /// Whose keyframe the map does not have.
+    pub unmatched: usize,
+    /// When the file was written, Unix s.
+    pub saved_unix: f64,
+    /// The fit when the file was written.
+    pub fit_when_saved: Option<SavedFit>,
+    /// How far the home moved since, m (None: the same home).
+    pub home_moved_m: Option<f64>,
+    /// Why the saved pairs were dropped, if they were.
+    pub dropped: Option<String>,
+    /// The saved pairs checked against live ones.
+    pub check: Option<Check>,
 }
 
 /// The saved pairs checked against live ones.
@@ -398,7 +420,10 @@ mod tests {
         assert_eq!(r.take_waiting(Some(false), true), None);
         assert_eq!((r.unmatched, r.waiting.len()), (1, 0));
         assert!(r.dropped.is_some());
-        assert_eq!(r.status(None)["unmatched"], 1);
+        assert_eq!(
+            serde_json::to_value(r.status(None)).unwrap()["unmatched"],
+            1
+        );
 
         let other = SavedGeoreference {
             format: SAVED_FORMAT + 1,

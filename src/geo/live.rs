@@ -29,13 +29,16 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use std::time::Instant;
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
-use serde_json::{Value, json};
 
 use super::align::GeoAlignment;
 use super::clock::BootClock;
 use super::continuity::{Anchor, Check, KeyframePoses, Restore, check_saved, place};
 use super::pipeline::{Geo, KeyframeStatus};
 use super::saved::{PairKind, SAVED_FORMAT, SavedFit, SavedGeoreference};
+use super::status::{
+    ClockStatus, Counts, Evidence, FitState, FitView, GeoreferenceStatus, HistoryCounts, HomeView,
+    SimView,
+};
 use super::target::{GeoTarget, convert_target};
 use super::telemetry::{GimbalAngles, wrap_pi};
 use super::wgs84::{Geodetic, LocalFrame};
@@ -70,37 +73,6 @@ pub struct TrackedPose {
     pub reference_kf: u64,
     /// `cam ← ref_cam`.
     pub cam_from_ref: Isometry3<f64>,
-}
-
-/// What came in and what became of it (the status's `counts`).
-#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
-pub struct Counts {
-    /// Position samples taken.
-    pub positions: u64,
-    /// Attitude samples taken.
-    pub attitudes: u64,
-    /// Gimbal samples taken.
-    pub gimbals: u64,
-    /// Samples the history refused.
-    pub rejected_samples: u64,
-    /// Keyframes seen.
-    pub keyframes_seen: u64,
-    /// Keyframes the georeference refused.
-    pub keyframes_refused: u64,
-    /// Keyframes whose map pose moved.
-    pub keyframes_moved: u64,
-    /// Keyframes culled from the map.
-    pub keyframes_removed: u64,
-    /// Tracked frames paired.
-    pub frame_pairs_added: u64,
-    /// Tracked frames refused.
-    pub frame_pairs_refused: u64,
-    /// Fits made.
-    pub fits: u64,
-    /// Samples given to the SLAM's telemetry priors.
-    pub prior_samples: u64,
-    /// Of those, samples without a fix.
-    pub prior_samples_without_fix: u64,
 }
 
 /// The georeference of one run, fed sample by sample (see the module
@@ -747,91 +719,104 @@ impl LiveGeoreference {
     /// residual and keyframes used, `refused` with the reason (too little
     /// motion, too few pairs, ...), or `waiting` before any fit; the
     /// evidence, the clocks and the saved georeference beside it.
-    pub fn status(&self) -> Value {
+    pub fn status(&self) -> GeoreferenceStatus {
         let georef = self.geo.georeference();
         let delays: Vec<f64> = self.video_delay_ms.iter().copied().collect();
         let (positions, attitudes, gimbals) = self.geo.history().len();
-        let mut v = json!({
-            "home": self.home.map(|h| json!({
-                "lat_deg": h.lat_deg, "lon_deg": h.lon_deg, "alt_amsl_m": h.alt_m,
-            })),
-            "pairs": georef.pairs().len(),
-            "keyframes_pending": self.geo.pending(),
-            "keyframes_dropped": self.geo.dropped(),
-            "history": {"positions": positions, "attitudes": attitudes, "gimbals": gimbals},
-            "counts": self.counts,
-            "clock": {
-                "telemetry": self.params.history.telemetry_clock,
-                "boot_offset_unix_s": self.clock.offset_s(),
-                "use_frame_timestamps": self.params.history.use_frame_timestamps,
-                "video_latency_s": self.params.history.video_latency_s,
-                "video_delay_ms_median": crate::stats::median(&delays),
-                "video_delay_ms_mean_all": (self.video_delay_sum_ms.1 > 0)
+        GeoreferenceStatus {
+            home: self.home.map(|h| HomeView {
+                lat_deg: h.lat_deg,
+                lon_deg: h.lon_deg,
+                alt_amsl_m: h.alt_m,
+            }),
+            pairs: georef.pairs().len(),
+            keyframes_pending: self.geo.pending(),
+            keyframes_dropped: self.geo.dropped(),
+            history: HistoryCounts {
+                positions,
+                attitudes,
+                gimbals,
+            },
+            counts: self.counts,
+            clock: ClockStatus {
+                telemetry: self.params.history.telemetry_clock,
+                boot_offset_unix_s: self.clock.offset_s(),
+                use_frame_timestamps: self.params.history.use_frame_timestamps,
+                video_latency_s: self.params.history.video_latency_s,
+                video_delay_ms_median: crate::stats::median(&delays),
+                video_delay_ms_mean_all: (self.video_delay_sum_ms.1 > 0)
                     .then(|| self.video_delay_sum_ms.0 / self.video_delay_sum_ms.1 as f64),
             },
-            "fit_age_s": self.fitted_at.map(|t| crate::clock::since(t).as_secs_f64()),
-            "evidence": {
-                "restored_pairs": self.restored.len(),
-                "frame_pairs": self.frame_pairs.len(),
-                "live_keyframe_pairs": georef.pairs().iter().filter(|p| {
-                    p.kf_id & FRAME_PAIR_BIT == 0 && !self.restored.contains(&p.kf_id)
-                }).count(),
+            fit_age_s: self.fitted_at.map(|t| crate::clock::since(t).as_secs_f64()),
+            evidence: Evidence {
+                restored_pairs: self.restored.len(),
+                frame_pairs: self.frame_pairs.len(),
+                live_keyframe_pairs: georef
+                    .pairs()
+                    .iter()
+                    .filter(|p| p.kf_id & FRAME_PAIR_BIT == 0 && !self.restored.contains(&p.kf_id))
+                    .count(),
             },
-            "saved": self.restore.as_ref().map(|r| r.status(self.check.as_ref())),
-        });
-        if let (Value::Object(m), Value::Object(f)) = (&mut v, self.fit_status()) {
-            m.extend(f);
+            saved: self.restore.as_ref().map(|r| r.status(self.check.as_ref())),
+            fit: self.fit_status(),
         }
-        v
     }
 
     /// The fit's part of [`Self::status`].
-    fn fit_status(&self) -> Value {
+    fn fit_status(&self) -> FitState {
         let georef = self.geo.georeference();
         match &self.fit {
-            None => json!({"state": "waiting", "reason": if self.home.is_none() {
-                "no home position yet".to_string()
-            } else {
-                format!("{} keyframe pairs so far", georef.pairs().len())
-            }}),
+            None => FitState::Waiting {
+                reason: if self.home.is_none() {
+                    "no home position yet".to_string()
+                } else {
+                    format!("{} keyframe pairs so far", georef.pairs().len())
+                },
+            },
             Some(Err(e)) => {
                 let dropped = self.restore.as_ref().and_then(|r| r.dropped.as_deref());
                 let reason = match dropped {
                     Some(d) => format!("{e} (the saved georeference was dropped: {d})"),
                     None => e.to_string(),
                 };
-                json!({"state": "refused", "reason": reason, "error": format!("{e:?}")})
+                FitState::Refused {
+                    reason,
+                    error: format!("{e:?}"),
+                }
             }
             Some(Ok(a)) => {
                 let q = &a.quality;
                 let r = a.ned_from_map.rotation.coords;
                 let t = a.ned_from_map.translation;
-                json!({
-                    "state": "ok",
-                    "source": if self.map_aided { "map" } else { "fit" },
-                    "held": georef.held().filter(|_| !self.map_aided).map(|e| format!(
-                        "the last fit is kept: a refit now is refused ({e}) and the {} pairs held agree with it",
-                        georef.pairs().len()
-                    )),
-                    "scale": a.ned_from_map.scale,
-                    "rms_m": q.rms_m,
-                    "max_residual_m": q.max_residual_m,
-                    "rotation_rms_deg": q.rotation_rms_deg,
-                    "time_offset_s": q.time_offset_s,
-                    "keyframes_used": q.inliers,
-                    "older_pairs_set_aside": q.set_aside,
-                    "gnss_bias_m": q.gnss_bias_m,
-                    "recent": (q.set_aside > 0).then(|| format!(
-                        "fitted on the newest {} pairs: the {} older ones disagree with them (a GNSS bias that drifted, or a map that bent)",
-                        q.pairs, q.set_aside
-                    )),
-                    "spread_m": q.spread_m2.map(f64::sqrt),
-                    "ned_from_map": {
-                        "scale": a.ned_from_map.scale,
-                        "rotation_xyzw": [r.x, r.y, r.z, r.w],
-                        "translation": [t.x, t.y, t.z],
+                FitState::Ok(Box::new(FitView {
+                    source: if self.map_aided { "map" } else { "fit" },
+                    held: georef.held().filter(|_| !self.map_aided).map(|e| {
+                        format!(
+                            "the last fit is kept: a refit now is refused ({e}) and the {} pairs held agree with it",
+                            georef.pairs().len()
+                        )
+                    }),
+                    scale: a.ned_from_map.scale,
+                    rms_m: q.rms_m,
+                    max_residual_m: q.max_residual_m,
+                    rotation_rms_deg: q.rotation_rms_deg,
+                    time_offset_s: q.time_offset_s,
+                    keyframes_used: q.inliers,
+                    older_pairs_set_aside: q.set_aside,
+                    gnss_bias_m: q.gnss_bias_m,
+                    recent: (q.set_aside > 0).then(|| {
+                        format!(
+                            "fitted on the newest {} pairs: the {} older ones disagree with them (a GNSS bias that drifted, or a map that bent)",
+                            q.pairs, q.set_aside
+                        )
+                    }),
+                    spread_m: q.spread_m2.map(f64::sqrt),
+                    ned_from_map: SimView {
+                        scale: a.ned_from_map.scale,
+                        rotation_xyzw: [r.x, r.y, r.z, r.w],
+                        translation: [t.x, t.y, t.z],
                     },
-                })
+                }))
             }
         }
     }
@@ -938,13 +923,13 @@ mod tests {
         // The first leg only: a line.
         let mut kfs = keyframes(&geo, 0..8, offset);
         geo.sync(&kfs, None, None);
-        let s = geo.status();
+        let s = serde_json::to_value(geo.status()).unwrap();
         assert_eq!(s["state"], "refused", "{s}");
         assert!(s["reason"].as_str().unwrap().contains("line"), "{s}");
         // Round the corner.
         kfs.extend(keyframes(&geo, 8..16, offset));
         geo.sync(&kfs, None, None);
-        let s = geo.status();
+        let s = serde_json::to_value(geo.status()).unwrap();
         assert_eq!(s["state"], "ok", "{s}");
         assert_eq!(s["source"], "fit", "{s}");
         let scale = s["scale"].as_f64().unwrap();
@@ -965,7 +950,7 @@ mod tests {
         // Culled keyframes are forgotten.
         kfs.truncate(12);
         geo.sync(&kfs, None, None);
-        assert_eq!(geo.status()["pairs"], 12);
+        assert_eq!(serde_json::to_value(geo.status()).unwrap()["pairs"], 12);
     }
 
     /// A gps-aided map's georeference is the identity, from the map
@@ -980,7 +965,7 @@ mod tests {
             .map(|i| keyframe(&geo, i, 1.0 + 2.0 * i as f64, offset, None))
             .collect();
         geo.sync(&kfs, None, None);
-        let st = geo.status();
+        let st = serde_json::to_value(geo.status()).unwrap();
         assert_eq!(st["state"], "ok", "{st}");
         assert_eq!(st["source"], "map", "{st}");
         assert_eq!(st["scale"], 1.0);
@@ -993,7 +978,7 @@ mod tests {
         assert!((target.p_ned_vehicle - p).norm() < 0.02, "{target:?}");
         geo.set_map_aided(false);
         geo.sync(&kfs, None, None);
-        assert_eq!(geo.status()["source"], "fit");
+        assert_eq!(serde_json::to_value(geo.status()).unwrap()["source"], "fit");
     }
 
     /// A restart: the saved pairs (through their JSON file) put the
@@ -1006,7 +991,10 @@ mod tests {
         let offset = feed_flight(&mut before, true);
         let kfs = keyframes(&before, 0..16, offset);
         before.sync(&kfs, None, None);
-        assert_eq!(before.status()["state"], "ok");
+        assert_eq!(
+            serde_json::to_value(before.status()).unwrap()["state"],
+            "ok"
+        );
         let pose = kfs[12].world_from_cam.unwrap();
         let (t_before, _) = before.target(&pose).unwrap();
         let saved = before.saved(2e9).unwrap();
@@ -1020,12 +1008,12 @@ mod tests {
         feed_flight(&mut after, false);
         after.sync(&kfs, None, None);
         assert_eq!(
-            after.status()["state"],
+            serde_json::to_value(after.status()).unwrap()["state"],
             "waiting",
             "not before the map is known"
         );
         after.sync(&kfs, None, Some(true));
-        let s = after.status();
+        let s = serde_json::to_value(after.status()).unwrap();
         assert_eq!(s["state"], "ok", "{s}");
         assert_eq!(s["evidence"]["restored_pairs"], 16, "{s}");
         assert!(s["rms_m"].as_f64().unwrap() < 0.02, "{s}");
@@ -1038,7 +1026,7 @@ mod tests {
         fresh.restore(file);
         feed_flight(&mut fresh, false);
         fresh.sync(&kfs, None, Some(false));
-        let s = fresh.status();
+        let s = serde_json::to_value(fresh.status()).unwrap();
         assert_ne!(s["state"], "ok", "{s}");
         assert_eq!(s["evidence"]["restored_pairs"], 0, "{s}");
     }
@@ -1074,7 +1062,7 @@ mod tests {
                 )
             }));
             after.sync(&kfs, None, Some(true));
-            let s = after.status();
+            let s = serde_json::to_value(after.status()).unwrap();
             assert_eq!(s["state"], "ok", "{s}");
             let check = &s["saved"]["check"];
             if agrees {
@@ -1109,7 +1097,7 @@ mod tests {
         };
         geo.sync(&kfs, Some(frame(0.1)), None);
         geo.sync(&kfs, Some(frame(0.5)), None);
-        let s = geo.status();
+        let s = serde_json::to_value(geo.status()).unwrap();
         assert_eq!(s["evidence"]["frame_pairs"], 1, "one per spacing: {s}");
         assert_eq!(s["counts"]["frame_pairs_added"], 1, "{s}");
         let id = FRAME_PAIR_BIT | ((kf.timestamp + 0.1) * 1e3).round() as u64;

@@ -10,8 +10,9 @@
 //! * [`wgs84`]: WGS84 ↔ local NED through the tangent plane at home (ECEF,
 //!   exact);
 //! * [`align`]: the robust map → NED Sim(3) from keyframe pairs (Umeyama in
-//!   seeded RANSAC, refit, optional orientation refinement), with its
-//!   quality and refusals;
+//!   seeded RANSAC, refit, optional orientation refinement, optionally a
+//!   GNSS bias state per window so the fit follows the receiver's drift),
+//!   with its quality and refusals;
 //! * [`pipeline`]: [`Geo`], the parts wired together (keyframes wait for
 //!   the telemetry of their capture time);
 //! * [`clock`]: the autopilot's boot clock on the local clock
@@ -22,6 +23,8 @@
 //! * [`live`]: [`LiveGeoreference`], the georeference of a run fed sample
 //!   by sample (telemetry, keyframes, tracked frames, the saved pairs), its
 //!   refits and its status (the daemon's worker holds one);
+//! * [`status`]: [`GeoreferenceStatus`], that status typed as the API
+//!   reports it;
 //! * [`target`]: a target `map ← cam` as latitude/longitude/altitude/yaw/
 //!   gimbal pitch, with the roll a 2-axis gimbal cannot reproduce.
 //!
@@ -37,6 +40,7 @@ pub mod live;
 pub mod mount;
 pub mod pipeline;
 pub mod saved;
+pub mod status;
 pub mod target;
 pub mod telemetry;
 pub mod wgs84;
@@ -46,6 +50,7 @@ pub use clock::BootClock;
 pub use live::{FRAME_PAIR_BIT, LiveGeoreference};
 pub use mount::{GimbalSolution, LeverArmFrame, MountParams, ned_from_cam, solve_gimbal};
 pub use pipeline::{Geo, KeyframeStatus};
+pub use status::GeoreferenceStatus;
 pub use target::{GeoTarget, convert_target, target_from_ned};
 pub use telemetry::{
     GimbalAngles, HistoryParams, TelemetryClock, TelemetryHistory, VehicleState, capture_time,

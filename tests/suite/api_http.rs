@@ -1395,3 +1395,139 @@ fn stop_holds_and_marks_the_flown_shot_stopped() {
         "no_vehicle",
     );
 }
+
+/// Keys of `v` that the schema's `properties` do not name, at every level
+/// the schema describes (`$ref` and `oneOf` followed).
+fn undocumented(doc: &Value, schema: &Value, v: &Value, at: &str, out: &mut Vec<String>) {
+    if let Some(r) = schema["$ref"].as_str() {
+        let name = r.trim_start_matches("#/components/schemas/");
+        return undocumented(doc, &doc["components"]["schemas"][name], v, at, out);
+    }
+    if let Some(alts) = schema["oneOf"].as_array() {
+        for s in alts {
+            if check_schema(doc, s, v, at).is_ok() {
+                undocumented(doc, s, v, at, out);
+            }
+        }
+        return;
+    }
+    if let (Some(o), Some(props)) = (v.as_object(), schema["properties"].as_object()) {
+        for (k, x) in o {
+            match props.get(k) {
+                Some(sub) => undocumented(doc, sub, x, &format!("{at}.{k}"), out),
+                None => out.push(format!("{at}.{k}")),
+            }
+        }
+    }
+}
+
+/// `/status`'s `vehicle.georeference` is typed
+/// (`shotpilot::geo::GeoreferenceStatus`) and the OpenAPI document's
+/// `GeoreferenceStatus` schema says every field of it, in each of its
+/// states (waiting, refused, a fit with a saved georeference beside it):
+/// the required fields there with their types, and no field the document
+/// does not name.
+#[test]
+fn the_georeference_status_is_documented_field_by_field() {
+    use shotpilot::geo::continuity::{Check, SavedStatus};
+    use shotpilot::geo::saved::SavedFit;
+    use shotpilot::geo::status::{
+        ClockStatus, Evidence, FitState, FitView, GeoreferenceStatus, HistoryCounts, HomeView,
+        SimView,
+    };
+    let doc: Value = serde_json::from_str(shotpilot::api::OPENAPI).expect("the document parses");
+    let base = GeoreferenceStatus {
+        home: Some(HomeView {
+            lat_deg: 47.4,
+            lon_deg: 8.5,
+            alt_amsl_m: 488.0,
+        }),
+        pairs: 12,
+        keyframes_pending: 1,
+        keyframes_dropped: 0,
+        history: HistoryCounts {
+            positions: 500,
+            attitudes: 500,
+            gimbals: 100,
+        },
+        counts: Default::default(),
+        clock: ClockStatus {
+            telemetry: shotpilot::geo::TelemetryClock::Boot,
+            boot_offset_unix_s: Some(1.7e9),
+            use_frame_timestamps: true,
+            video_latency_s: 0.1,
+            video_delay_ms_median: Some(80.0),
+            video_delay_ms_mean_all: None,
+        },
+        fit_age_s: None,
+        evidence: Evidence {
+            restored_pairs: 0,
+            frame_pairs: 3,
+            live_keyframe_pairs: 9,
+        },
+        saved: None,
+        fit: FitState::Waiting {
+            reason: "12 keyframe pairs so far".into(),
+        },
+    };
+    let refused = GeoreferenceStatus {
+        fit: FitState::Refused {
+            reason: "too little motion".into(),
+            error: "TooLittleMotion".into(),
+        },
+        ..base.clone()
+    };
+    let fitted = GeoreferenceStatus {
+        fit_age_s: Some(0.5),
+        saved: Some(SavedStatus {
+            pairs_in_file: 40,
+            restored: 38,
+            waiting: 0,
+            unmatched: 2,
+            saved_unix: 1.7e9,
+            fit_when_saved: Some(SavedFit {
+                scale: 11.0,
+                rms_m: 0.4,
+                inliers: 38,
+                pairs: 40,
+            }),
+            home_moved_m: None,
+            dropped: None,
+            check: Some(Check::Waiting {
+                live_pairs: 2,
+                needed: 6,
+            }),
+        }),
+        fit: FitState::Ok(Box::new(FitView {
+            source: "fit",
+            held: None,
+            scale: 11.0,
+            rms_m: 0.3,
+            max_residual_m: 0.9,
+            rotation_rms_deg: Some(0.4),
+            time_offset_s: None,
+            keyframes_used: 11,
+            older_pairs_set_aside: 0,
+            gnss_bias_m: Some([0.3, -0.2, 0.1]),
+            recent: None,
+            spread_m: [8.0, 5.0, 0.5],
+            ned_from_map: SimView {
+                scale: 11.0,
+                rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+                translation: [1.0, 2.0, 3.0],
+            },
+        })),
+        ..base.clone()
+    };
+    let schema = json!({"$ref": "#/components/schemas/GeoreferenceStatus"});
+    for st in [base, refused, fitted] {
+        let v = serde_json::to_value(&st).expect("serialises");
+        check_schema(&doc, &schema, &v, "$").unwrap_or_else(|e| panic!("{e}\n{v:#}"));
+        let mut extra = Vec::new();
+        undocumented(&doc, &schema, &v, "$", &mut extra);
+        assert!(
+            extra.is_empty(),
+            "fields the document does not name: {extra:?}\n{v:#}"
+        );
+    }
+}
