@@ -71,7 +71,7 @@ fn bench_servo_error(c: &mut Criterion) {
         Err(e) => panic!("the desired picture's features: {e}"),
     };
     group.bench_function("desired_kept", |b| {
-        b.iter(|| kept.measure(black_box(&live), None).ok())
+        b.iter(|| kept.measure(black_box(&live)).ok())
     });
     group.finish();
 }

@@ -142,7 +142,9 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     }
     params.priors = args.priors;
     params.restart = args.restart;
-    params.follow_drift = !args.fixed_georeference;
+    if args.fixed_georeference {
+        params.geo.align.drift = None;
+    }
     let json = args.json;
     let mut progress = |t: &TrialReport| {
         if !json {

@@ -50,6 +50,12 @@ const DELAY_WINDOW: usize = 100;
 /// (keyframe ids are small; a frame's capture time names it across runs).
 pub const FRAME_PAIR_BIT: u64 = 1 << 63;
 
+/// The pair id of a frame captured at `t` seconds: [`FRAME_PAIR_BIT`] with
+/// the capture time in milliseconds below it.
+pub fn frame_pair_id(t: f64) -> u64 {
+    FRAME_PAIR_BIT | ((t * 1e3).round().max(0.0) as u64 & !FRAME_PAIR_BIT)
+}
+
 /// A keyframe of the SLAM's map as the georeference reads it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MapKeyframe {
@@ -603,7 +609,7 @@ impl LiveGeoreference {
         let Some((kf_time, world_from_kf)) = poses.get(&f.reference_kf) else {
             return false;
         };
-        let id = FRAME_PAIR_BIT | ((f.timestamp * 1e3).round().max(0.0) as u64 & !FRAME_PAIR_BIT);
+        let id = frame_pair_id(f.timestamp);
         if self.geo.knows_keyframe(id) {
             return false;
         }
@@ -1100,7 +1106,7 @@ mod tests {
         let s = serde_json::to_value(geo.status()).unwrap();
         assert_eq!(s["evidence"]["frame_pairs"], 1, "one per spacing: {s}");
         assert_eq!(s["counts"]["frame_pairs_added"], 1, "{s}");
-        let id = FRAME_PAIR_BIT | ((kf.timestamp + 0.1) * 1e3).round() as u64;
+        let id = frame_pair_id(kf.timestamp + 0.1);
         assert!(geo.geo().knows_keyframe(id));
         // The keyframe moves: the frame pair moves with it.
         let moved = Isometry3::translation(0.5, 0.0, 0.0) * kf.world_from_cam.unwrap();

@@ -47,7 +47,7 @@ pub mod wgs84;
 
 pub use align::{AlignParams, AlignQuality, GeoAlignment, Georeference, GnssDrift, Pair};
 pub use clock::BootClock;
-pub use live::{FRAME_PAIR_BIT, LiveGeoreference};
+pub use live::{LiveGeoreference, frame_pair_id};
 pub use mount::{GimbalSolution, LeverArmFrame, MountParams, ned_from_cam, solve_gimbal};
 pub use pipeline::{Geo, KeyframeStatus};
 pub use status::GeoreferenceStatus;

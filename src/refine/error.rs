@@ -162,7 +162,7 @@ pub fn shot_error(
     camera: Option<&Camera>,
     params: &ShotErrorParams,
 ) -> Result<ShotErrorReport, RefineError> {
-    ShotErrorMeter::new(desired, desired_mask, camera, params)?.measure(live, camera)
+    ShotErrorMeter::new(desired, desired_mask, camera, params)?.measure(live)
 }
 
 /// [`shot_error`] against one desired shot, frame after frame: the desired
@@ -173,6 +173,8 @@ pub fn shot_error(
 #[derive(Debug, Clone)]
 pub struct ShotErrorMeter {
     params: ShotErrorParams,
+    /// Undistorts the keypoints of both pictures.
+    camera: Option<Camera>,
     orb: OrbExtractor,
     desired: Features,
     live: Features,
@@ -206,6 +208,7 @@ impl ShotErrorMeter {
             .map_err(features)?;
         Ok(Self {
             params: params.clone(),
+            camera: camera.copied(),
             orb,
             desired: d,
             live: Features::default(),
@@ -215,12 +218,9 @@ impl ShotErrorMeter {
     }
 
     /// The shot error of `live` (the desired picture's size), undistorted
-    /// with the `camera` the meter was made with.
-    pub fn measure(
-        &mut self,
-        live: &GrayImage,
-        camera: Option<&Camera>,
-    ) -> Result<ShotErrorReport, RefineError> {
+    /// with the camera the meter was made with.
+    pub fn measure(&mut self, live: &GrayImage) -> Result<ShotErrorReport, RefineError> {
+        let camera = self.camera.as_ref();
         let desired = (self.width, self.height);
         if live.dimensions() != desired || live.width() == 0 || live.height() == 0 {
             return Err(RefineError::ImageSize {

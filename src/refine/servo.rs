@@ -304,7 +304,7 @@ impl Servo {
             .meter
             .get_or_insert_with(|| ShotErrorMeter::new(desired, mask, camera, error).ok())
             .as_mut()
-            .and_then(|m| m.measure(f.image, camera).ok())
+            .and_then(|m| m.measure(f.image).ok())
             .map(|e| e.corner_error_pct);
         let pose = match localize(ctx.map, f.image, None, None, ctx.localize) {
             Ok(Localization::Localized(p)) => Ok(p.world_from_cam),

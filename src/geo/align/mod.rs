@@ -683,8 +683,6 @@ pub fn fit_pairs(
     let mut r: Vec<f64> = inliers.iter().map(|p| residual(&model, p)).collect();
     if let Some(drift) = &params.drift
         && let Some(fit) = fit_with_drift(&inliers, model, drift, rotation_rms_deg.is_some())
-        && fit.ned_from_map.scale.is_finite()
-        && fit.ned_from_map.scale > 0.0
     {
         model = fit.ned_from_map;
         gnss_bias_m = Some(fit.newest_bias.into());

@@ -56,11 +56,7 @@ pub(super) fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored
     }
     let mut slam = Slam::new(camera, slam_params)?;
     let home = sim.ap.params().vehicle.home;
-    let mut geo_params = params.geo.clone();
-    if !params.follow_drift {
-        geo_params.align.drift = None;
-    }
-    let mut g = geo::Geo::new(geo_params);
+    let mut g = geo::Geo::new(params.geo.clone());
     g.set_home(Geodetic {
         lat_deg: home.lat_deg,
         lon_deg: home.lon_deg,
@@ -129,9 +125,10 @@ pub(super) fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored
     };
     sim.priors = None;
     let frame = *g.frame().ok_or(crate::geo::GeoError::NoHome)?;
-    if params.follow_drift {
-        // A map in local NED too: its pairs fitted with the bias state give
-        // the identity moved to where the receiver reads now.
+    if params.geo.align.drift.is_some() {
+        // The georeference follows the drift through the trials (a map in
+        // local NED too: its pairs fitted with the bias states give the
+        // identity moved to where the receiver reads now).
         sim.geo = Some(g);
     }
     let report = ExploreReport {

@@ -151,14 +151,6 @@ pub struct ScenarioParams {
     /// baseline, and its georeference is then the identity instead of a
     /// Sim(3) fitted after the flight.
     pub priors: bool,
-    /// Keep the georeference after the explore flight as the daemon does:
-    /// fed the telemetry, paired with the live frames localised in a short
-    /// hover before each departure (the daemon's tracking pairs frames the
-    /// same way) and refitted for each shot with the GNSS bias estimated
-    /// per window ([`geo::AlignParams::drift`]), so a target is where the
-    /// receiver reads it now (false: the explore's fit flies every trial,
-    /// the bias averaged over the explore flight).
-    pub follow_drift: bool,
     /// Save the explored map and load it back before the trials, as a
     /// daemon restart does: the desired shots are localised (and the live
     /// frames too) on the map read from its file.
@@ -206,7 +198,6 @@ impl Default for ScenarioParams {
             },
             priors: false,
             restart: false,
-            follow_drift: true,
             localize: LocalizeParams::default(),
             anchors: AnchorParams::default(),
             geo: geo::Params {
@@ -227,6 +218,13 @@ impl Default for ScenarioParams {
                 align: geo::AlignParams {
                     inlier_threshold_m: 2.5,
                     position_sigma_m: 1.0,
+                    // The bias estimated per window: the georeference is
+                    // kept after the survey, fed the telemetry and live
+                    // frames paired in a short hover before each departure
+                    // (the daemon's tracking pairs frames the same way),
+                    // and refitted for each shot, so a target is where the
+                    // receiver reads it now (None: the survey's fit flies
+                    // every trial, the bias averaged over the survey).
                     drift: Some(geo::GnssDrift::default()),
                     ..geo::AlignParams::default()
                 },

@@ -75,13 +75,15 @@ pub struct TrialReport {
     /// Why not, when it was not.
     pub reason: Option<String>,
     /// Live frames localised and paired with telemetry before the
-    /// departure ([`super::ScenarioParams::follow_drift`]).
+    /// departure (with a drift model, [`crate::geo::AlignParams::drift`]).
     pub departure_pairs: usize,
     /// The GNSS bias the georeference estimated at its newest pair, NED m
     /// (with a drift model).
     pub gnss_bias_m: Option<[f64; 3]>,
     /// Localisation error of the desired shot (through the georeference)
-    /// against the hidden camera, m.
+    /// against the hidden camera, m. A georeference that follows the drift
+    /// maps into the NED the receiver reads now, so this includes the
+    /// GNSS bias of the moment (the vehicle flies in that NED too).
     pub desired_localisation_error_m: Option<f64>,
     /// Shot error of the first flight, % of the diagonal.
     pub first_shot_error_pct: Option<f64>,

@@ -10,7 +10,7 @@ use rand::rngs::SmallRng;
 
 use shotpilot_sim::autopilot::Mode;
 
-use crate::geo::{FRAME_PAIR_BIT, GeoAlignment, convert_target};
+use crate::geo::{GeoAlignment, convert_target, frame_pair_id};
 use crate::mission::plan::{self, Flavour};
 use crate::refine::{Context, LiveFrame, Session, Step, Stop, pose_difference};
 use crate::shot::request::NotLocalised;
@@ -53,8 +53,8 @@ const DEPARTURE_FRAMES: usize = 3;
 /// Their spacing, s (the daemon's frame pairs are half a second apart).
 const DEPARTURE_SPACING_S: f64 = 0.5;
 
-/// The georeference a trial's shot is flown with: with
-/// [`ScenarioParams::follow_drift`], the kept one, given the live frames
+/// The georeference a trial's shot is flown with: with a drift model
+/// ([`crate::geo::AlignParams::drift`]), the kept one, given the live frames
 /// localised in a short hover where the vehicle is (as the daemon's
 /// tracking pairs its frames) and refitted; else, or when the refit is
 /// refused, the explore's fit. Also the frame pairs added.
@@ -73,14 +73,12 @@ fn current_alignment(
         }
         let image = sim.render();
         let t = sim.t;
-        let Ok(Localization::Localized(s)) =
-            localize(&ex.map, &image, None, None, &params.localize)
+        let Ok(map_from_cam) = localise(&ex.map, &image, None, None, false, &params.localize)
         else {
             continue;
         };
-        let id = FRAME_PAIR_BIT | (t * 1e3).round() as u64;
         if let Some(g) = sim.geo.as_mut() {
-            match g.add_keyframe(id, &s.world_from_cam, t) {
+            match g.add_keyframe(frame_pair_id(t), &map_from_cam, t) {
                 Ok(_) => paired += 1,
                 Err(e) => tracing::debug!("scenario: departure frame not paired: {e}"),
             }
