@@ -773,6 +773,24 @@ impl Config {
                 "need pitch_min_deg < pitch_max_deg and a finite lever arm".into(),
             ));
         }
+        if !([m.pitch_offset_deg, m.yaw_offset_deg]
+            .iter()
+            .all(|v| v.is_finite() && v.abs() <= 45.0))
+        {
+            return Err(invalid(
+                "geo.mount",
+                "pitch_offset_deg/yaw_offset_deg",
+                "must be finite degrees within +-45 (a calibration offset, not a mounting)".into(),
+            ));
+        }
+        let s = self.geo.align.mount_offset_sigma_deg;
+        if !(s.is_finite() && s > 0.0 && s <= 45.0) {
+            return Err(invalid(
+                "geo.align",
+                "mount_offset_sigma_deg",
+                "must be in (0, 45] degrees".into(),
+            ));
+        }
         let c = &self.geo.continuity;
         if !(c.frame_pair_spacing_s.is_finite() && (0.0..=3600.0).contains(&c.frame_pair_spacing_s))
         {
@@ -841,6 +859,30 @@ mod tests {
         assert_eq!(cfg.sim, SimSection::default());
         assert_eq!(cfg.geo, crate::geo::Params::default());
         assert_eq!(cfg.refine, RefineSection::default());
+    }
+
+    #[test]
+    fn the_mount_calibration_is_configured_and_checked() {
+        let cfg = Config::from_toml(
+            "[geo.mount]\npitch_offset_deg = -1.5\nyaw_offset_deg = 0.5\n[geo.align]\nestimate_mount = false\n",
+            Path::new("x.toml"),
+        )
+        .unwrap();
+        assert_eq!(cfg.geo.mount.pitch_offset_deg, -1.5);
+        assert_eq!(cfg.geo.mount.yaw_offset_deg, 0.5);
+        assert!(!cfg.geo.align.estimate_mount);
+        assert!(Config::default().geo.align.estimate_mount);
+        for bad in [
+            "[geo.mount]\npitch_offset_deg = 90.0\n",
+            "[geo.mount]\nyaw_offset_deg = nan\n",
+            "[geo.align]\nmount_offset_sigma_deg = 0.0\n",
+        ] {
+            let e = Config::from_toml(bad, Path::new("x.toml"));
+            assert!(
+                e.as_ref().is_err_and(|e| e.to_string().contains("offset")),
+                "{bad}: {e:?}"
+            );
+        }
     }
 
     #[test]

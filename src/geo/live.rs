@@ -529,6 +529,7 @@ impl LiveGeoreference {
             if changed || self.fit.is_none() {
                 self.fit = Some(Ok(GeoAlignment::of_map_in_ned(
                     self.geo.georeference().pairs(),
+                    self.geo.georeference().params(),
                 )));
                 self.fitted_at = Some(crate::clock::now());
             }
@@ -698,7 +699,10 @@ impl LiveGeoreference {
     /// pairs, else the (re)fitted one.
     fn alignment(&mut self) -> Result<GeoAlignment, GeoError> {
         if self.map_aided {
-            Ok(GeoAlignment::of_map_in_ned(self.geo.georeference().pairs()))
+            Ok(GeoAlignment::of_map_in_ned(
+                self.geo.georeference().pairs(),
+                self.geo.georeference().params(),
+            ))
         } else {
             self.geo.fit()
         }
@@ -810,6 +814,7 @@ impl LiveGeoreference {
                     keyframes_used: q.inliers,
                     older_pairs_set_aside: q.set_aside,
                     gnss_bias_m: q.gnss_bias_m,
+                    mount_offset: a.mount_offset,
                     recent: (q.set_aside > 0).then(|| {
                         format!(
                             "fitted on the newest {} pairs: the {} older ones disagree with them (a GNSS bias that drifted, or a map that bent)",

@@ -48,7 +48,9 @@ pub mod wgs84;
 pub use align::{AlignParams, AlignQuality, GeoAlignment, Georeference, GnssDrift, Pair};
 pub use clock::BootClock;
 pub use live::{LiveGeoreference, frame_pair_id};
-pub use mount::{GimbalSolution, LeverArmFrame, MountParams, ned_from_cam, solve_gimbal};
+pub use mount::{
+    GimbalSolution, LeverArmFrame, MountOffset, MountParams, ned_from_cam, solve_gimbal,
+};
 pub use pipeline::{Geo, KeyframeStatus};
 pub use status::GeoreferenceStatus;
 pub use target::{GeoTarget, convert_target, target_from_ned};

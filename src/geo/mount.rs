@@ -56,6 +56,38 @@ pub struct MountParams {
     /// heading from the image's right axis (the optical axis alone does not
     /// fix one), degrees.
     pub nadir_tolerance_deg: f64,
+    /// Pitch calibration: the camera looks this much higher than the gimbal
+    /// reports, degrees. The georeference learns the rest in flight
+    /// ([`crate::geo::AlignParams::estimate_mount`]) and adds it to this.
+    pub pitch_offset_deg: f64,
+    /// Heading calibration: the camera looks this much to the right of the
+    /// reported heading plus gimbal yaw, degrees (about the vertical for a
+    /// stabilised gimbal, the body's z axis for a body-fixed one).
+    pub yaw_offset_deg: f64,
+}
+
+/// A correction to the mount's calibration learned in flight: the camera's
+/// attitude in the georeferenced map against the attitude telemetry and the
+/// gimbal report ([`crate::geo::GeoAlignment::mount_offset`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct MountOffset {
+    /// Added to [`MountParams::pitch_offset_deg`], degrees.
+    pub pitch_deg: f64,
+    /// Added to [`MountParams::yaw_offset_deg`], degrees.
+    pub yaw_deg: f64,
+    /// Oriented pairs it was learned from.
+    pub pairs: usize,
+}
+
+impl MountParams {
+    /// This mounting with a learned correction added.
+    pub fn corrected(&self, offset: &MountOffset) -> Self {
+        Self {
+            pitch_offset_deg: self.pitch_offset_deg + offset.pitch_deg,
+            yaw_offset_deg: self.yaw_offset_deg + offset.yaw_deg,
+            ..self.clone()
+        }
+    }
 }
 
 impl Default for MountParams {
@@ -67,6 +99,8 @@ impl Default for MountParams {
             pitch_min_deg: -90.0,
             pitch_max_deg: 30.0,
             nadir_tolerance_deg: 0.01,
+            pitch_offset_deg: 0.0,
+            yaw_offset_deg: 0.0,
         }
     }
 }
@@ -90,10 +124,12 @@ fn yaw_pitch(yaw: f64, pitch: f64) -> UnitQuaternion<f64> {
 pub fn ned_from_cam(state: &VehicleState, mount: &MountParams) -> Isometry3<f64> {
     let heading = state.heading();
     let g = state.gimbal;
+    let yaw = g.yaw + mount.yaw_offset_deg.to_radians();
+    let pitch = g.pitch + mount.pitch_offset_deg.to_radians();
     let rotation = if mount.stabilised {
-        yaw_pitch(heading + g.yaw, g.pitch) * body_from_cam_zero()
+        yaw_pitch(heading + yaw, pitch) * body_from_cam_zero()
     } else {
-        state.ned_from_body * yaw_pitch(g.yaw, g.pitch) * body_from_cam_zero()
+        state.ned_from_body * yaw_pitch(yaw, pitch) * body_from_cam_zero()
     };
     let arm = Vector3::from(mount.lever_arm_body_m);
     let arm_ned = match mount.lever_arm_frame {
@@ -124,8 +160,9 @@ pub struct GimbalSolution {
 }
 
 /// The vehicle yaw and gimbal pitch (gimbal yaw held at zero) that put the
-/// camera's optical axis along the target's, for a vehicle hovering level;
-/// refuses a pitch outside the gimbal's range.
+/// camera's optical axis along the target's, for a vehicle hovering level,
+/// the mount's calibration offsets taken off what is commanded; refuses a
+/// commanded pitch outside the gimbal's range.
 pub fn solve_gimbal(
     ned_from_cam_target: &Isometry3<f64>,
     mount: &MountParams,
@@ -148,7 +185,9 @@ pub fn solve_gimbal(
         let right = r * Vector3::x();
         (-right.x).atan2(right.y)
     };
-    let pitch_deg = pitch.to_degrees();
+    // What is commanded: the camera's angles less the mount's offsets.
+    let pitch_deg = pitch.to_degrees() - mount.pitch_offset_deg;
+    let heading = yaw - mount.yaw_offset_deg.to_radians();
     let eps = 1e-9;
     if pitch_deg < mount.pitch_min_deg - eps || pitch_deg > mount.pitch_max_deg + eps {
         return Err(GeoError::PitchOutOfRange {
@@ -163,11 +202,11 @@ pub fn solve_gimbal(
     let x = diff * Vector3::x();
     let residual_roll = x.y.atan2(x.x);
     // Hovering level at `yaw`: both lever-arm models agree.
-    let arm =
-        UnitQuaternion::from_euler_angles(0.0, 0.0, yaw) * Vector3::from(mount.lever_arm_body_m);
+    let arm = UnitQuaternion::from_euler_angles(0.0, 0.0, heading)
+        * Vector3::from(mount.lever_arm_body_m);
     Ok(GimbalSolution {
-        yaw: wrap_pi(yaw),
-        pitch,
+        yaw: wrap_pi(heading),
+        pitch: pitch_deg.to_radians(),
         residual_roll,
         axis_error,
         p_ned_vehicle: c - arm,
@@ -214,7 +253,19 @@ mod tests {
 
     #[test]
     fn solve_inverts_the_forward_model() {
-        let m = MountParams::default();
+        for m in [
+            MountParams::default(),
+            MountParams::default().corrected(&MountOffset {
+                pitch_deg: 1.5,
+                yaw_deg: -0.8,
+                pairs: 1,
+            }),
+        ] {
+            inverts(&m);
+        }
+    }
+
+    fn inverts(m: &MountParams) {
         for (yaw, pitch) in [
             (0.3, -0.4),
             (-2.9, 0.2),
@@ -222,12 +273,34 @@ mod tests {
             (1.0, -std::f64::consts::FRAC_PI_2),
         ] {
             let s = state(yaw, pitch, 0.0);
-            let p = ned_from_cam(&s, &m);
-            let sol = solve_gimbal(&p, &m).unwrap();
+            let p = ned_from_cam(&s, m);
+            let sol = solve_gimbal(&p, m).unwrap();
             assert!((sol.pitch - pitch).abs() < 1e-9, "{sol:?}");
             assert!(wrap_pi(sol.yaw - yaw).abs() < 1e-9, "{sol:?}");
             assert!(sol.residual_roll.abs() < 1e-9);
             assert!((sol.p_ned_vehicle - s.p_ned).norm() < 1e-12);
         }
+    }
+
+    #[test]
+    fn offsets_turn_the_camera_the_way_their_docs_say() {
+        let plain = MountParams::default();
+        let off = plain.corrected(&MountOffset {
+            pitch_deg: 2.0,
+            yaw_deg: 3.0,
+            pairs: 1,
+        });
+        let s = state(0.4, -0.5, 0.0);
+        let a = ned_from_cam(&s, &plain).rotation * Vector3::z();
+        let b = ned_from_cam(&s, &off).rotation * Vector3::z();
+        let pitch = |v: Vector3<f64>| (-v.z).atan2(v.xy().norm()).to_degrees();
+        let heading = |v: Vector3<f64>| v.y.atan2(v.x).to_degrees();
+        // Higher by the pitch offset, to the right by the yaw offset.
+        assert!((pitch(b) - pitch(a) - 2.0).abs() < 1e-9);
+        assert!((heading(b) - heading(a) - 3.0).abs() < 1e-9);
+        // What is commanded for a camera pose leaves the offsets out.
+        let sol = solve_gimbal(&ned_from_cam(&s, &off), &off).unwrap();
+        assert!((sol.pitch - -0.5).abs() < 1e-12);
+        assert!((sol.yaw - 0.4).abs() < 1e-12);
     }
 }

@@ -134,6 +134,9 @@ pub struct FitView {
     pub older_pairs_set_aside: usize,
     /// With `[geo.align.drift]`: the GNSS bias at the newest pair, NED m.
     pub gnss_bias_m: Option<[f64; 3]>,
+    /// The mount's pitch and heading offsets learned from the keyframes'
+    /// attitudes (`[geo.align] estimate_mount`), added to `[geo.mount]`'s.
+    pub mount_offset: Option<crate::geo::MountOffset>,
     /// Said when older pairs were set aside.
     pub recent: Option<String>,
     /// Standard deviations of the inliers' positions along their main

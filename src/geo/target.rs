@@ -74,12 +74,17 @@ pub fn target_from_ned(
 }
 
 /// A target camera pose in the SLAM map (`map ← cam`) as a vehicle target:
-/// map → NED by the alignment, then [`target_from_ned`].
+/// map → NED by the alignment, then [`target_from_ned`] with the mount's
+/// offsets the alignment learned ([`GeoAlignment::mount`]).
 pub fn convert_target(
     alignment: &GeoAlignment,
     map_from_cam: &Isometry3<f64>,
     frame: &LocalFrame,
     mount: &MountParams,
 ) -> Result<GeoTarget, GeoError> {
-    target_from_ned(&alignment.ned_from_cam(map_from_cam), frame, mount)
+    target_from_ned(
+        &alignment.ned_from_cam(map_from_cam),
+        frame,
+        &alignment.mount(mount),
+    )
 }

@@ -849,7 +849,7 @@ fn reproducible_pose(
             yaw: 0.0,
         },
     };
-    let ned = ned_from_cam(&state, ctx.mount);
+    let ned = ned_from_cam(&state, &ctx.alignment.mount(ctx.mount));
     let map_from_ned = ctx.alignment.ned_from_map.inverse();
     Some(Isometry3::from_parts(
         Translation3::from(

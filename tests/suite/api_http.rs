@@ -1509,6 +1509,11 @@ fn the_georeference_status_is_documented_field_by_field() {
             keyframes_used: 11,
             older_pairs_set_aside: 0,
             gnss_bias_m: Some([0.3, -0.2, 0.1]),
+            mount_offset: Some(shotpilot::geo::MountOffset {
+                pitch_deg: -0.9,
+                yaw_deg: 0.6,
+                pairs: 11,
+            }),
             recent: None,
             spread_m: [8.0, 5.0, 0.5],
             ned_from_map: SimView {

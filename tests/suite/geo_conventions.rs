@@ -27,7 +27,8 @@ fn radii(lat_deg: f64) -> (f64, f64) {
     )
 }
 
-fn state(p: Vector3<f64>, heading_deg: f64, pitch_deg: f64) -> VehicleState {
+/// A level vehicle at `p` with heading and gimbal pitch in degrees.
+pub(crate) fn state(p: Vector3<f64>, heading_deg: f64, pitch_deg: f64) -> VehicleState {
     VehicleState {
         time: 0.0,
         p_ned: p,

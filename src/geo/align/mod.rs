@@ -31,9 +31,10 @@ use nalgebra::{Isometry3, Matrix3, Point3, SMatrix, SVector, UnitQuaternion, Vec
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
 use super::GeoError;
+use super::mount::{MountOffset, MountParams};
 use crate::geometry::{Sim3, umeyama};
 use crate::lie::skew;
-use crate::optimize::lm::{LeastSquares, LmParams, levenberg_marquardt};
+use crate::optimize::lm::{LeastSquares, LmParams, levenberg_marquardt, solve_damped_dense};
 
 mod drift;
 mod newest;
@@ -79,6 +80,15 @@ pub struct AlignParams {
     /// Standard deviation of a camera orientation, degrees (weights the
     /// refinement).
     pub orientation_sigma_deg: f64,
+    /// Learn the mount's heading and pitch offsets in the refinement with
+    /// orientations: the camera's attitude in the georeferenced map against
+    /// the attitude and gimbal angles the vehicle reports
+    /// ([`GeoAlignment::mount_offset`], used by every target converted with
+    /// the alignment).
+    pub estimate_mount: bool,
+    /// Prior standard deviation of each learned offset, degrees (keeps them
+    /// small on thin evidence).
+    pub mount_offset_sigma_deg: f64,
     /// LM settings of the refinement (not configurable from files).
     #[serde(skip)]
     pub lm: LmParams,
@@ -117,6 +127,8 @@ impl Default for AlignParams {
             refine_with_orientations: true,
             position_sigma_m: 0.1,
             orientation_sigma_deg: 1.0,
+            estimate_mount: true,
+            mount_offset_sigma_deg: 3.0,
             lm: LmParams {
                 max_iterations: 20,
                 ..LmParams::default()
@@ -214,6 +226,10 @@ pub struct GeoAlignment {
     pub quality: AlignQuality,
     /// Ids of the inlier keyframes.
     pub inlier_ids: Vec<u64>,
+    /// The mount's calibration as the fit learned it
+    /// ([`AlignParams::estimate_mount`]), to add to the configured mount
+    /// ([`GeoAlignment::mount`]).
+    pub mount_offset: Option<MountOffset>,
 }
 
 impl GeoAlignment {
@@ -236,13 +252,24 @@ impl GeoAlignment {
                 gnss_bias_m: None,
             },
             inlier_ids: Vec::new(),
+            mount_offset: None,
+        }
+    }
+
+    /// The configured mount with the offsets this fit learned: what turns
+    /// a camera pose through this alignment into vehicle commands and back.
+    pub fn mount(&self, configured: &MountParams) -> MountParams {
+        match &self.mount_offset {
+            Some(o) => configured.corrected(o),
+            None => configured.clone(),
         }
     }
 
     /// The georeference of a map already in local NED (gps-aided by
     /// telemetry priors): the identity, not fitted (`iterations` 0), with
-    /// its residuals against the keyframe `pairs`.
-    pub fn of_map_in_ned(pairs: &[Pair]) -> Self {
+    /// its residuals against the keyframe `pairs`, and the mount's offsets
+    /// learned from their orientations when `params` asks.
+    pub fn of_map_in_ned(pairs: &[Pair], params: &AlignParams) -> Self {
         let mut a = Self::given(Sim3::identity());
         let r: Vec<f64> = pairs.iter().map(|p| (p.p_ned - p.p_map).norm()).collect();
         if !r.is_empty() {
@@ -252,6 +279,15 @@ impl GeoAlignment {
         a.quality.pairs = pairs.len();
         a.quality.inliers = pairs.len();
         a.inlier_ids = pairs.iter().map(|p| p.kf_id).collect();
+        let oriented = pairs.iter().filter(|p| p.orientations.is_some()).count();
+        if params.estimate_mount && oriented >= 3 {
+            let refs: Vec<&Pair> = pairs.iter().collect();
+            let mut problem = Refinement::new(&refs, Sim3::identity(), params);
+            problem.free_sim = false;
+            levenberg_marquardt(&mut problem, &params.lm);
+            a.quality.rotation_rms_deg = Some(problem.rotation_rms().to_degrees());
+            a.mount_offset = problem.mount_offset();
+        }
         a
     }
 
@@ -668,6 +704,7 @@ pub fn fit_pairs(
     check_motion(spread_m2, params)?;
 
     let mut rotation_rms_deg = None;
+    let mut mount_offset = None;
     let oriented = inliers.iter().filter(|p| p.orientations.is_some()).count();
     if params.refine_with_orientations && oriented >= 3 {
         // Every inlier's position, and the orientations of those that have
@@ -678,6 +715,7 @@ pub fn fit_pairs(
             model = problem.sim;
         }
         rotation_rms_deg = Some(problem.rotation_rms().to_degrees());
+        mount_offset = problem.mount_offset();
     }
     let mut gnss_bias_m = None;
     let mut r: Vec<f64> = inliers.iter().map(|p| residual(&model, p)).collect();
@@ -704,6 +742,7 @@ pub fn fit_pairs(
             gnss_bias_m,
         },
         inlier_ids: inliers.iter().map(|p| p.kf_id).collect(),
+        mount_offset,
     })
 }
 
@@ -825,43 +864,71 @@ fn estimate_time_offset(
     Some(e)
 }
 
-type Mat7 = SMatrix<f64, 7, 7>;
-type Vec7 = SVector<f64, 7>;
+type Mat9 = SMatrix<f64, 9, 9>;
+type Vec9 = SVector<f64, 9>;
 
 /// Joint position + rotation refinement of `ned ← map`, update
-/// `S ← (e^σ·Exp(ω), υ) ∘ S` with `δ = [υ; ω; σ]`.
+/// `S ← (e^σ·Exp(ω), υ) ∘ S` with `δ = [υ; ω; σ; ψ; θ]`, and of the mount's
+/// heading and pitch offsets `ψ`, `θ`: the telemetry's camera attitude is
+/// taken as `Rz(ψ)·(ned ← cam)·Rx(θ)` (a heading turn about the vertical, a
+/// pitch turn about the camera's x axis: [`MountParams::yaw_offset_deg`] and
+/// [`MountParams::pitch_offset_deg`] for a stabilised gimbal). The offsets
+/// carry a zero-mean prior; with `free_sim` false only they move (a map
+/// already in NED).
 struct Refinement<'a> {
     pairs: &'a [&'a Pair],
     sim: Sim3,
     old: Sim3,
+    /// `[ψ, θ]`, radians.
+    mount: [f64; 2],
+    old_mount: [f64; 2],
+    /// Whether the offsets are estimated.
+    free_mount: bool,
+    /// Whether the similarity is estimated.
+    free_sim: bool,
     w_pos: f64,
     w_rot: f64,
-    h: Mat7,
-    g: Vec7,
-    step: Vec7,
+    w_mount: f64,
+    h: Mat9,
+    g: Vec9,
+    step: Vec9,
 }
 
 impl<'a> Refinement<'a> {
     fn new(pairs: &'a [&'a Pair], sim: Sim3, params: &AlignParams) -> Self {
         let sp = params.position_sigma_m.max(1e-9);
         let sr = params.orientation_sigma_deg.to_radians().max(1e-9);
+        let sm = params.mount_offset_sigma_deg.to_radians().max(1e-9);
         Self {
             pairs,
             sim,
             old: sim,
+            mount: [0.0; 2],
+            old_mount: [0.0; 2],
+            free_mount: params.estimate_mount,
+            free_sim: true,
             w_pos: 1.0 / (sp * sp),
             w_rot: 1.0 / (sr * sr),
-            h: Mat7::zeros(),
-            g: Vec7::zeros(),
-            step: Vec7::zeros(),
+            w_mount: 1.0 / (sm * sm),
+            h: Mat9::zeros(),
+            g: Vec9::zeros(),
+            step: Vec9::zeros(),
         }
     }
 
-    /// Rotation residual `Log(R · (map ← cam) · (ned ← cam)⁻¹)`.
+    /// `Rz(ψ)·(ned ← cam)·Rx(θ)`: the telemetry's camera attitude with the
+    /// offsets.
+    fn corrected(&self, ned_cam: &UnitQuaternion<f64>) -> UnitQuaternion<f64> {
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), self.mount[0])
+            * ned_cam
+            * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), self.mount[1])
+    }
+
+    /// Rotation residual `Log(R · (map ← cam) · (Rz(ψ)·(ned ← cam)·Rx(θ))⁻¹)`.
     fn rot_residual(&self, p: &Pair) -> Vector3<f64> {
         match p.orientations {
             Some((map_cam, ned_cam)) => {
-                (self.sim.rotation * map_cam * ned_cam.inverse()).scaled_axis()
+                (self.sim.rotation * map_cam * self.corrected(&ned_cam).inverse()).scaled_axis()
             }
             None => Vector3::zeros(),
         }
@@ -878,35 +945,87 @@ impl<'a> Refinement<'a> {
             });
         (s / n.max(1) as f64).sqrt()
     }
+
+    /// The offsets learned, when they were estimated.
+    fn mount_offset(&self) -> Option<MountOffset> {
+        self.free_mount.then(|| MountOffset {
+            pitch_deg: self.mount[1].to_degrees(),
+            yaw_deg: self.mount[0].to_degrees(),
+            pairs: self
+                .pairs
+                .iter()
+                .filter(|p| p.orientations.is_some())
+                .count(),
+        })
+    }
+
+    fn prior_cost(&self) -> f64 {
+        if self.free_mount {
+            0.5 * self.w_mount * (self.mount[0].powi(2) + self.mount[1].powi(2))
+        } else {
+            0.0
+        }
+    }
 }
 
 impl LeastSquares for Refinement<'_> {
     fn linearize(&mut self) -> (f64, f64) {
-        let mut h = Mat7::zeros();
-        let mut g = Vec7::zeros();
-        let mut cost = 0.0;
+        let mut h = Mat9::zeros();
+        let mut g = Vec9::zeros();
+        let mut cost = self.prior_cost();
         for p in self.pairs {
             let q = self.sim.transform_point(&p.p_map).coords;
             let e = q - p.p_ned.coords;
             // ∂q/∂δ = [I | -[q]ₓ | q] (the update acts after S).
-            let qr = q;
-            let mut j = SMatrix::<f64, 3, 7>::zeros();
+            let mut j = SMatrix::<f64, 3, 9>::zeros();
             j.fixed_view_mut::<3, 3>(0, 0)
                 .copy_from(&Matrix3::identity());
-            j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-skew(&qr)));
-            j.fixed_view_mut::<3, 1>(0, 6).copy_from(&qr);
+            j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-skew(&q)));
+            j.fixed_view_mut::<3, 1>(0, 6).copy_from(&q);
             h += j.transpose() * j * self.w_pos;
             g += j.transpose() * e * self.w_pos;
             cost += 0.5 * self.w_pos * e.norm_squared();
-            // Rotation residual: d Log(Exp(ω)·E)/dω ≈ I near the optimum.
-            if p.orientations.is_some() {
-                let r = self.rot_residual(p);
-                for a in 0..3 {
-                    h[(3 + a, 3 + a)] += self.w_rot;
-                    g[3 + a] += self.w_rot * r[a];
+            // Rotation residual r = Log(E): d/dω ≈ I near the optimum;
+            // E·Rz(-dψ) = Exp(-E·ẑ dψ)·E gives d/dψ ≈ -E·ẑ, and the turn
+            // Rx(-dθ) after A = R·(map ← cam)·Rx(-θ) gives d/dθ ≈ -A·x̂.
+            if let Some((map_cam, ned_cam)) = p.orientations {
+                let rot = self.sim.rotation * map_cam;
+                let err = rot * self.corrected(&ned_cam).inverse();
+                let r = err.scaled_axis();
+                let mut jr = SMatrix::<f64, 3, 9>::zeros();
+                jr.fixed_view_mut::<3, 3>(0, 3)
+                    .copy_from(&Matrix3::identity());
+                if self.free_mount {
+                    let a =
+                        rot * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -self.mount[1]);
+                    jr.fixed_view_mut::<3, 1>(0, 7)
+                        .copy_from(&-(err * Vector3::z()));
+                    jr.fixed_view_mut::<3, 1>(0, 8)
+                        .copy_from(&-(a * Vector3::x()));
                 }
+                h += jr.transpose() * jr * self.w_rot;
+                g += jr.transpose() * r * self.w_rot;
                 cost += 0.5 * self.w_rot * r.norm_squared();
             }
+        }
+        if self.free_mount {
+            h[(7, 7)] += self.w_mount;
+            h[(8, 8)] += self.w_mount;
+            g[7] += self.w_mount * self.mount[0];
+            g[8] += self.w_mount * self.mount[1];
+        }
+        // A fixed block: its rows and columns out, a unit diagonal, no pull.
+        let fixed: &[usize] = match (self.free_sim, self.free_mount) {
+            (true, true) => &[],
+            (true, false) => &[7, 8],
+            (false, true) => &[0, 1, 2, 3, 4, 5, 6],
+            (false, false) => &[0, 1, 2, 3, 4, 5, 6, 7, 8],
+        };
+        for &i in fixed {
+            h.row_mut(i).fill(0.0);
+            h.column_mut(i).fill(0.0);
+            h[(i, i)] = 1.0;
+            g[i] = 0.0;
         }
         self.h = h;
         self.g = g;
@@ -914,23 +1033,14 @@ impl LeastSquares for Refinement<'_> {
     }
 
     fn solve_damped(&mut self, lambda: f64) -> Option<(f64, f64)> {
-        let mut a = self.h;
-        let mut d = Vec7::zeros();
-        for i in 0..7 {
-            d[i] = self.h[(i, i)].clamp(1e-6, 1e32);
-            a[(i, i)] += lambda * d[i];
-        }
-        let step = a.cholesky()?.solve(&(-self.g));
-        if !step.iter().all(|v| v.is_finite()) {
-            return None;
-        }
+        let (step, pred) = solve_damped_dense(&self.h, &self.g, lambda)?;
         self.step = step;
-        let pred = 0.5 * step.dot(&(d.component_mul(&step) * lambda - self.g));
         Some((pred, step.norm()))
     }
 
     fn apply_step(&mut self) {
         self.old = self.sim;
+        self.old_mount = self.mount;
         let d = self.step;
         let dr = UnitQuaternion::from_scaled_axis(Vector3::new(d[3], d[4], d[5]));
         let ds = d[6].exp();
@@ -941,14 +1051,17 @@ impl LeastSquares for Refinement<'_> {
             dr * t * ds + Vector3::new(d[0], d[1], d[2]),
             self.sim.scale * ds,
         );
+        self.mount[0] += d[7];
+        self.mount[1] += d[8];
     }
 
     fn revert_step(&mut self) {
         self.sim = self.old;
+        self.mount = self.old_mount;
     }
 
     fn cost(&mut self) -> f64 {
-        let mut cost = 0.0;
+        let mut cost = self.prior_cost();
         for p in self.pairs {
             let e = self.sim.transform_point(&p.p_map) - p.p_ned;
             cost += 0.5 * self.w_pos * e.norm_squared();
@@ -960,7 +1073,9 @@ impl LeastSquares for Refinement<'_> {
     fn state_norm(&self) -> f64 {
         (self.sim.translation.norm_squared()
             + self.sim.rotation.scaled_axis().norm_squared()
-            + self.sim.scale.ln().powi(2))
+            + self.sim.scale.ln().powi(2)
+            + self.mount[0].powi(2)
+            + self.mount[1].powi(2))
         .sqrt()
     }
 }

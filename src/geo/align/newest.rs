@@ -48,7 +48,13 @@ impl Georeference {
                     }
                 }
             };
-            if let Some(mut a) = fitted.or_else(|| shifted(previous?, newest, &self.params)) {
+            // A shift of the last fit keeps the mount offsets it learned.
+            let fitted = fitted.or_else(|| {
+                let mut a = shifted(previous?, newest, &self.params)?;
+                a.mount_offset = self.last.as_ref().and_then(|l| l.mount_offset);
+                Some(a)
+            });
+            if let Some(mut a) = fitted {
                 a.quality.set_aside = self.pairs.len() - n;
                 return Some(a);
             }
@@ -102,6 +108,7 @@ fn shifted(fit: &Sim3, pairs: &[Pair], params: &AlignParams) -> Option<GeoAlignm
             gnss_bias_m: None,
         },
         inlier_ids: inliers.iter().map(|p| p.kf_id).collect(),
+        mount_offset: None,
     })
 }
 

@@ -119,7 +119,7 @@ pub(super) fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored
     // daemon's `source: map`); else the Sim(3) fitted after the flight.
     let map_mode = map.mode();
     let alignment = if map_mode == MapMode::GpsAided {
-        GeoAlignment::of_map_in_ned(g.georeference().pairs())
+        GeoAlignment::of_map_in_ned(g.georeference().pairs(), g.georeference().params())
     } else {
         g.fit()?
     };
@@ -140,6 +140,7 @@ pub(super) fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored
         geo_pairs: alignment.quality.pairs,
         geo_inliers: alignment.quality.inliers,
         geo_rms_m: alignment.quality.rms_m,
+        mount_offset: alignment.mount_offset,
         geo_scale: alignment.ned_from_map.scale,
         map_mode: map_mode.name(),
         wall_s: wall.elapsed().as_secs_f64(),

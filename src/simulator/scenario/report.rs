@@ -30,6 +30,10 @@ pub struct ExploreReport {
     /// `gps_aided`): with a gps-aided map the georeference is the identity
     /// and `geo_rms_m` the keyframes' distance to their fixes.
     pub map_mode: &'static str,
+    /// The mount's offsets the fit learned (the scenario's camera is
+    /// mounted [`super::Disturbances::gimbal_pitch_offset_deg`] and
+    /// [`super::Disturbances::camera_yaw_offset_deg`] off).
+    pub mount_offset: Option<crate::geo::MountOffset>,
     /// Wall seconds.
     pub wall_s: f64,
 }
@@ -77,9 +81,14 @@ pub struct TrialReport {
     /// Live frames localised and paired with telemetry before the
     /// departure (with a drift model, [`crate::geo::AlignParams::drift`]).
     pub departure_pairs: usize,
+    /// Of those, the ones the refitted georeference took as inliers.
+    pub departure_inliers: usize,
     /// The GNSS bias the georeference estimated at its newest pair, NED m
     /// (with a drift model).
     pub gnss_bias_m: Option<[f64; 3]>,
+    /// The mount's offsets learned by the georeference the shot was flown
+    /// with.
+    pub mount_offset: Option<crate::geo::MountOffset>,
     /// Localisation error of the desired shot (through the georeference)
     /// against the hidden camera, m. A georeference that follows the drift
     /// maps into the NED the receiver reads now, so this includes the

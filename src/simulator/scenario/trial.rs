@@ -57,16 +57,17 @@ const DEPARTURE_SPACING_S: f64 = 0.5;
 /// ([`crate::geo::AlignParams::drift`]), the kept one, given the live frames
 /// localised in a short hover where the vehicle is (as the daemon's
 /// tracking pairs its frames) and refitted; else, or when the refit is
-/// refused, the explore's fit. Also the frame pairs added.
+/// refused, the explore's fit. Also the frame pairs added, and how many of
+/// them the fit took as inliers.
 fn current_alignment(
     ex: &Explored,
     sim: &mut Sim,
     params: &ScenarioParams,
-) -> (GeoAlignment, usize) {
+) -> (GeoAlignment, usize, usize) {
     if sim.geo.is_none() {
-        return (ex.alignment.clone(), 0);
+        return (ex.alignment.clone(), 0, 0);
     }
-    let mut paired = 0;
+    let mut ids = Vec::new();
     for i in 0..DEPARTURE_FRAMES {
         if i > 0 {
             sim.advance(DEPARTURE_SPACING_S);
@@ -78,23 +79,28 @@ fn current_alignment(
             continue;
         };
         if let Some(g) = sim.geo.as_mut() {
-            match g.add_keyframe(frame_pair_id(t), &map_from_cam, t) {
-                Ok(_) => paired += 1,
+            let id = frame_pair_id(t);
+            match g.add_keyframe(id, &map_from_cam, t) {
+                Ok(_) => ids.push(id),
                 Err(e) => tracing::debug!("scenario: departure frame not paired: {e}"),
             }
         }
     }
     // Telemetry past the last frame's time, so a pending pair is made.
     sim.advance(0.2);
+    let paired = ids.len();
     let Some(g) = sim.geo.as_mut() else {
-        return (ex.alignment.clone(), paired);
+        return (ex.alignment.clone(), paired, 0);
     };
     g.retry_pending();
     match g.fit() {
-        Ok(a) => (a, paired),
+        Ok(a) => {
+            let inliers = ids.iter().filter(|id| a.inlier_ids.contains(id)).count();
+            (a, paired, inliers)
+        }
         Err(e) => {
             tracing::debug!("scenario: georeference refit refused ({e}); the explore's fit flies");
-            (ex.alignment.clone(), paired)
+            (ex.alignment.clone(), paired, 0)
         }
     }
 }
@@ -133,7 +139,9 @@ pub(super) fn run_trial(
         arrival_to_photo_s: None,
         servo: None,
         departure_pairs: 0,
+        departure_inliers: 0,
         gnss_bias_m: None,
+        mount_offset: None,
     };
     let finish = |mut rep: TrialReport, sim: &Sim, stop: String| {
         rep.stop = stop;
@@ -151,9 +159,11 @@ pub(super) fn run_trial(
     rep.hidden_yaw_deg = hidden.yaw.to_degrees();
     rep.hidden_pitch_deg = hidden.pitch.to_degrees();
     let mount = &params.geo.mount;
-    let (alignment, departure_pairs) = current_alignment(ex, sim, params);
+    let (alignment, departure_pairs, departure_inliers) = current_alignment(ex, sim, params);
     rep.departure_pairs = departure_pairs;
+    rep.departure_inliers = departure_inliers;
     rep.gnss_bias_m = alignment.quality.gnss_bias_m;
+    rep.mount_offset = alignment.mount_offset;
     let desired_map = match localise(
         &ex.map,
         &hidden.image,
