@@ -75,6 +75,10 @@ pub struct MountOffset {
     pub pitch_deg: f64,
     /// Added to [`MountParams::yaw_offset_deg`], degrees.
     pub yaw_deg: f64,
+    /// Standard deviation of `pitch_deg`, degrees.
+    pub pitch_sigma_deg: f64,
+    /// Standard deviation of `yaw_deg`, degrees.
+    pub yaw_sigma_deg: f64,
     /// Oriented pairs it was learned from.
     pub pairs: usize,
 }
@@ -258,7 +262,7 @@ mod tests {
             MountParams::default().corrected(&MountOffset {
                 pitch_deg: 1.5,
                 yaw_deg: -0.8,
-                pairs: 1,
+                ..Default::default()
             }),
         ] {
             inverts(&m);
@@ -288,7 +292,7 @@ mod tests {
         let off = plain.corrected(&MountOffset {
             pitch_deg: 2.0,
             yaw_deg: 3.0,
-            pairs: 1,
+            ..Default::default()
         });
         let s = state(0.4, -0.5, 0.0);
         let a = ned_from_cam(&s, &plain).rotation * Vector3::z();

@@ -1512,6 +1512,8 @@ fn the_georeference_status_is_documented_field_by_field() {
             mount_offset: Some(shotpilot::geo::MountOffset {
                 pitch_deg: -0.9,
                 yaw_deg: 0.6,
+                pitch_sigma_deg: 0.05,
+                yaw_sigma_deg: 0.08,
                 pairs: 11,
             }),
             recent: None,

@@ -458,7 +458,7 @@ fn the_mount_offsets_are_learned_and_the_target_corrected() {
     let true_offset = MountOffset {
         pitch_deg: -1.0,
         yaw_deg: 0.7,
-        pairs: 0,
+        ..Default::default()
     };
     let real = reported.corrected(&true_offset);
     let ned = flight(150);

@@ -49,6 +49,7 @@ mod geo_align;
 mod geo_conventions;
 mod geo_daemon;
 mod geo_interpolation;
+mod geo_real;
 mod geo_sim;
 mod geometry_ba;
 mod geometry_peer_opencv;

@@ -101,6 +101,81 @@ pub struct DriftFit {
     pub residuals: Vec<f64>,
     /// Bias windows.
     pub windows: usize,
+    /// Each window's mean time, s, in order.
+    pub window_times: Vec<f64>,
+    /// Each window's bias, NED, m.
+    pub biases: Vec<Vector3<f64>>,
+}
+
+impl DriftFit {
+    /// The bias the model predicts at `t` from the nearest window (decayed
+    /// towards zero by the process, `φ·b`) and its standard deviation per
+    /// axis, `σ·√(1 - φ²)`, from the walk since that window.
+    pub fn predict(&self, t: f64, drift: &GnssDrift) -> (Vector3<f64>, Vector3<f64>) {
+        let Some((k, dt)) = self
+            .window_times
+            .iter()
+            .map(|w| (t - w).abs())
+            .enumerate()
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+        else {
+            return (
+                Vector3::zeros(),
+                Vector3::new(drift.sigma_xy_m, drift.sigma_xy_m, drift.sigma_z_m),
+            );
+        };
+        let phi = (-dt / drift.tau_s).exp();
+        let walk = (1.0 - phi * phi).max(0.0).sqrt();
+        (
+            self.biases[k] * phi,
+            Vector3::new(drift.sigma_xy_m, drift.sigma_xy_m, drift.sigma_z_m) * walk,
+        )
+    }
+}
+
+/// [`fit_with_drift`] on `inliers`, then the pairs a single Sim(3) called
+/// outliers (`others`) readmitted where the drift explains them: a pair
+/// whose distance from the model plus the bias predicted at its time
+/// ([`DriftFit::predict`]) is within `threshold_m` plus three standard
+/// deviations of the walk since the nearest window. A bias that wandered
+/// further than the threshold from the flight's mean since the survey
+/// otherwise makes the newest pairs outliers, and the fit never follows
+/// it; a keyframe far off where the pairs are dense is still out. Refits
+/// until no pair is readmitted (at most three rounds). Returns the fit and
+/// the pairs it used.
+pub fn fit_with_drift_readmitting<'a>(
+    inliers: Vec<&'a Pair>,
+    mut others: Vec<&'a Pair>,
+    model: Sim3,
+    drift: &GnssDrift,
+    keep_rotation: bool,
+    threshold_m: f64,
+) -> Option<(DriftFit, Vec<&'a Pair>)> {
+    let mut used = inliers;
+    let mut fit = fit_with_drift(&used, model, drift, keep_rotation)?;
+    for _ in 0..3 {
+        let mut base = fit.ned_from_map;
+        base.translation -= fit.newest_bias;
+        let (back, out): (Vec<&Pair>, Vec<&Pair>) = others.iter().partition(|p| {
+            let (bias, sd) = fit.predict(p.time, drift);
+            let e = p.p_ned.coords - base.transform_point(&p.p_map).coords - bias;
+            e.norm() <= threshold_m + 3.0 * sd.norm()
+        });
+        if back.is_empty() {
+            break;
+        }
+        let mut trial = used.clone();
+        trial.extend(back);
+        match fit_with_drift(&trial, model, drift, keep_rotation) {
+            Some(f) => {
+                fit = f;
+                used = trial;
+                others = out;
+            }
+            None => break,
+        }
+    }
+    Some((fit, used))
 }
 
 /// Fits the map → NED similarity with one GNSS bias state per window (see
@@ -205,6 +280,8 @@ pub fn fit_with_drift(
         newest_bias,
         residuals,
         windows: w,
+        window_times: times,
+        biases: bias,
     })
 }
 
@@ -457,5 +534,55 @@ mod tests {
             ..GnssDrift::default()
         };
         assert!(fit_with_drift(&refs, truth, &bad, false).is_none());
+    }
+
+    #[test]
+    fn pairs_the_drift_explains_are_readmitted_and_a_gross_error_is_not() {
+        let (mut pairs, truth, b_newest) = flight(3, 300.0);
+        // A keyframe 10 m off in the middle of the survey, where the pairs
+        // are dense.
+        pairs[300].p_ned += Vector3::new(6.0, -8.0, 0.0);
+        // Two minutes later, three frames where the bias has wandered 2.6 m
+        // from the survey's newest (beyond the 0.5 m threshold).
+        let moved = b_newest + Vector3::new(2.0, -1.5, 0.5);
+        let late: Vec<Pair> = (0..3)
+            .map(|i| {
+                let true_ned = Point3::new(5.0 + i as f64, -3.0, -20.0);
+                Pair {
+                    kf_id: 10_000 + i,
+                    p_map: truth.inverse().transform_point(&true_ned),
+                    p_ned: true_ned + moved,
+                    time: 420.0 + 0.4 * i as f64,
+                    orientations: None,
+                    v_ned: None,
+                }
+            })
+            .collect();
+        let inliers: Vec<&Pair> = pairs.iter().filter(|p| p.kf_id != 300).collect();
+        let mut others: Vec<&Pair> = late.iter().collect();
+        others.push(&pairs[300]);
+        let drift = GnssDrift::default();
+        let (fit, used) =
+            fit_with_drift_readmitting(inliers.clone(), others, truth, &drift, false, 0.5).unwrap();
+        let without = fit_with_drift(&inliers, truth, &drift, false).unwrap();
+        let ids: Vec<u64> = used.iter().map(|p| p.kf_id).collect();
+        assert!(
+            ids.contains(&10_000) && ids.contains(&10_002),
+            "the late frames are back"
+        );
+        assert!(!ids.contains(&300), "the gross error stays out");
+        // Where the receiver reads a late frame's map point now.
+        let m = late[1].p_map;
+        let miss = |f: &DriftFit| {
+            (f.ned_from_map.transform_point(&m).coords - truth.transform_point(&m).coords - moved)
+                .norm()
+        };
+        println!(
+            "a late frame read off where the receiver reads it by {:.2} m readmitting, {:.2} m without",
+            miss(&fit),
+            miss(&without)
+        );
+        assert!(miss(&fit) < 0.5, "{:.2}", miss(&fit));
+        assert!(miss(&without) > 1.5, "{:.2}", miss(&without));
     }
 }

@@ -39,7 +39,7 @@ use crate::optimize::lm::{LeastSquares, LmParams, levenberg_marquardt, solve_dam
 mod drift;
 mod newest;
 
-pub use drift::{DriftFit, GnssDrift, fit_with_drift};
+pub use drift::{DriftFit, GnssDrift, fit_with_drift, fit_with_drift_readmitting};
 
 /// Tunables of the alignment.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -719,12 +719,27 @@ pub fn fit_pairs(
     }
     let mut gnss_bias_m = None;
     let mut r: Vec<f64> = inliers.iter().map(|p| residual(&model, p)).collect();
-    if let Some(drift) = &params.drift
-        && let Some(fit) = fit_with_drift(&inliers, model, drift, rotation_rms_deg.is_some())
-    {
-        model = fit.ned_from_map;
-        gnss_bias_m = Some(fit.newest_bias.into());
-        r = fit.residuals;
+    let mut inliers = inliers;
+    if let Some(drift) = &params.drift {
+        let others: Vec<&Pair> = pairs
+            .iter()
+            .zip(&mask)
+            .filter(|(_, m)| !**m)
+            .map(|(p, _)| p)
+            .collect();
+        if let Some((fit, used)) = fit_with_drift_readmitting(
+            inliers.clone(),
+            others,
+            model,
+            drift,
+            rotation_rms_deg.is_some(),
+            th,
+        ) {
+            model = fit.ned_from_map;
+            gnss_bias_m = Some(fit.newest_bias.into());
+            r = fit.residuals;
+            inliers = used;
+        }
     }
     let (rms_m, max_residual_m) = rms_max(&r);
     Ok(GeoAlignment {
@@ -946,16 +961,36 @@ impl<'a> Refinement<'a> {
         (s / n.max(1) as f64).sqrt()
     }
 
-    /// The offsets learned, when they were estimated.
-    fn mount_offset(&self) -> Option<MountOffset> {
-        self.free_mount.then(|| MountOffset {
+    /// The offsets learned, when they were estimated, with their standard
+    /// deviations: the marginal of `H⁻¹` at the estimate (the Sim(3)'s
+    /// uncertainty included), scaled up by the residuals' reduced χ² when
+    /// the pairs scatter more than the configured sigmas say.
+    fn mount_offset(&mut self) -> Option<MountOffset> {
+        if !self.free_mount {
+            return None;
+        }
+        let (cost, _) = self.linearize();
+        let oriented = self
+            .pairs
+            .iter()
+            .filter(|p| p.orientations.is_some())
+            .count();
+        let dof = (3 * self.pairs.len() + 3 * oriented)
+            .saturating_sub(9)
+            .max(1);
+        let chi2 = (2.0 * cost / dof as f64).max(1.0);
+        let sigma = |k: usize| {
+            self.h
+                .cholesky()
+                .map(|c| (c.inverse()[(k, k)] * chi2).sqrt().to_degrees())
+                .unwrap_or(f64::INFINITY)
+        };
+        Some(MountOffset {
             pitch_deg: self.mount[1].to_degrees(),
             yaw_deg: self.mount[0].to_degrees(),
-            pairs: self
-                .pairs
-                .iter()
-                .filter(|p| p.orientations.is_some())
-                .count(),
+            pitch_sigma_deg: sigma(8),
+            yaw_sigma_deg: sigma(7),
+            pairs: oriented,
         })
     }
 

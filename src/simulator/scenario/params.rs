@@ -82,8 +82,9 @@ pub struct Disturbances {
     pub gps_sigma_z_m: f64,
     /// Its correlation time, s.
     pub gps_tau_s: f64,
-    /// Gimbal pitch calibration error: the camera looks this much higher
-    /// than the gimbal reports, degrees.
+    /// Gimbal pitch calibration error: the camera looks this much lower
+    /// than the gimbal reports, degrees (the georeference learns it as a
+    /// negative [`crate::geo::MountParams::pitch_offset_deg`]).
     pub gimbal_pitch_offset_deg: f64,
     /// Camera heading error (mounting/compass), degrees.
     pub camera_yaw_offset_deg: f64,

@@ -179,7 +179,8 @@ impl Sim {
             &Vector3::z_axis(),
             d.camera_yaw_offset_deg.to_radians(),
         ) * nominal.rotation
-            // the camera's x axis points right: a negative turn about it looks up
+            // the camera's x axis points right: a negative turn about it
+            // tips the optical axis towards +y, down
             * UnitQuaternion::from_axis_angle(
                 &Vector3::x_axis(),
                 -d.gimbal_pitch_offset_deg.to_radians(),
