@@ -133,8 +133,11 @@ fn check_loop(r: &Value, max_final_pct: Option<f64>) {
         assert!(f(t, "position_error_m") < 1.0, "{t}");
         assert!(f(t, "yaw_error_deg").abs() < 1.0 && f(t, "pitch_error_deg").abs() < 1.0);
     }
-    assert!(f(r, "median_first_shot_error_pct") > f(r, "median_final_shot_error_pct"));
-    assert!(f(r, "median_first_position_error_m") > f(r, "median_position_error_m"));
+    // A first look already under the threshold ends the trial at round 0
+    // (final = first): with the mount learned, half the trials of a seed
+    // can, so the medians may tie but never turn round.
+    assert!(f(r, "median_first_shot_error_pct") >= f(r, "median_final_shot_error_pct"));
+    assert!(f(r, "median_first_position_error_m") >= f(r, "median_position_error_m"));
     assert!(f(r, "p90_first_shot_error_pct") >= f(r, "median_first_shot_error_pct"));
 }
 
