@@ -371,6 +371,10 @@ pub struct RefineSection {
     /// Servoing time after which a frame among the best measured takes the
     /// photo (after 1.5 times this, the photo is taken where it is), s.
     pub servo_max_s: f64,
+    /// Re-targeting on the approach (`[refine.approach]`): the target
+    /// converted again with the georeference refitted in flight, flown
+    /// when it moved beyond a fit's noise.
+    pub approach: crate::refine::ApproachParams,
 }
 
 impl Default for RefineSection {
@@ -404,6 +408,7 @@ impl Default for RefineSection {
             servo: p.servo.is_some(),
             servo_threshold_pct: crate::refine::ServoParams::default().threshold_pct,
             servo_max_s: crate::refine::ServoParams::default().max_s,
+            approach: p.refine.approach,
         }
     }
 }
@@ -430,6 +435,7 @@ impl RefineSection {
         a.speed_m_s = self.arrival_speed_m_s;
         a.gimbal_deg = self.arrival_gimbal_deg;
         a.dwell_s = self.arrival_dwell_s;
+        p.refine.approach = self.approach;
         let e = &mut p.refine.error;
         e.features.n_features = self.error_features;
         e.homography.min_inliers = self.error_min_inliers;
@@ -520,6 +526,7 @@ impl RefineSection {
         if !(positive(self.servo_max_s) && self.servo_max_s <= 600.0) {
             return Err(("servo_max_s", "must be in (0, 600] s".into()));
         }
+        self.approach.check().map_err(|e| ("approach", e))?;
         Ok(())
     }
 }
@@ -931,6 +938,18 @@ mod tests {
         assert_eq!(p.refine.error.features.n_features, 2000);
         assert_eq!(p.max_flight, std::time::Duration::from_secs(30));
         assert_eq!(p.poll, std::time::Duration::from_millis(50));
+        let cfg = Config::from_toml(
+            "[refine.approach]\nenabled = false\nmin_shift_m = 0.3\nmax_per_leg = 2\n",
+            Path::new("x.toml"),
+        )
+        .unwrap();
+        let a = cfg.refine.params().refine.approach;
+        assert!(!a.enabled);
+        assert_eq!((a.min_shift_m, a.max_per_leg), (0.3, 2));
+        assert_eq!(
+            a.period_s,
+            crate::refine::ApproachParams::default().period_s
+        );
     }
 
     #[test]
@@ -943,6 +962,9 @@ mod tests {
             ("[refine]\nframe_wait_s = 0.0\n", "[refine] frame_wait_s"),
             ("[refine]\npoll_ms = 0\n", "[refine] poll_ms"),
             ("[refine]\nrounds = 3\n", "rounds"),
+            ("[refine.approach]\nperiod_s = 0.0\n", "period_s"),
+            ("[refine.approach]\nmin_turn_deg = -1.0\n", "min_turn_deg"),
+            ("[refine.approach]\nperiod = 1.0\n", "period"),
         ] {
             let e = Config::from_toml(text, Path::new("x.toml"))
                 .unwrap_err()

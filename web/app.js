@@ -128,7 +128,8 @@ function connectEvents() {
 
 // ---- shot events: timeline, live overlay, before/after ----------------------
 // `shot` events (see openapi.json, ShotEvent): localised / not_localised,
-// georeferenced, uploaded, started, flying (distance, at most 1 Hz), arrived,
+// georeferenced, uploaded, started, flying (distance, at most 1 Hz), retargeted
+// (the target moved by a refit in flight), arrived,
 // round (shot error), overlay (the desired outline in the live frame),
 // done, stopped. Hooks for tests and tools: each timeline is
 // `.tl[data-shot]` with `li[data-kind]` entries (one `flying` line per
@@ -137,7 +138,7 @@ function connectEvents() {
 // loading, ready, unavailable) and data-shot.
 const timelines = new Map();
 let overlay = null;
-const MILESTONES = new Set(['localised', 'not_localised', 'georeferenced', 'uploaded', 'started', 'arrived', 'round', 'done', 'stopped']);
+const MILESTONES = new Set(['localised', 'not_localised', 'georeferenced', 'uploaded', 'started', 'retargeted', 'arrived', 'round', 'done', 'stopped']);
 function eventText(e) {
   switch (e.kind) {
     case 'localised': return `localised: ${e.inliers} inliers, ${fmt(e.rms_error_px, 2)} px${e.position_sigma_pct == null ? '' : `, sigma ${fmt(e.position_sigma_pct, 2)} % of the distance, ${fmt(e.rotation_sigma_deg, 2)}°`}`;
@@ -150,6 +151,7 @@ function eventText(e) {
       const v = e.vertical_m, up = typeof v === 'number' && v < 0 ? 'down' : 'up';
       return `round ${e.round}: flying, ${fmtM(e.distance_m)} m to the target (${fmtM(e.horizontal_m)} m horizontally, ${fmtM(Math.abs(v))} m ${up}; ${fmtM(e.start_m)} m when the flight began)`;
     }
+    case 'retargeted': return `round ${e.round}: target moved ${fmtM(e.shift_m)} m by the georeference refitted in flight (heading ${fmt(e.yaw_deg, 2)}°, pitch ${fmt(e.pitch_deg, 2)}°), flying it instead (${e.count} this approach)`;
     case 'arrived': return `round ${e.round}: arrived`;
     case 'round': return `round ${e.round}: shot error ${e.shot_error_pct == null ? '–' : fmt(e.shot_error_pct, 2) + ' %'}${e.floor_pct == null ? '' : `, floor ${fmt(e.floor_pct, 2)} %`} → ${e.decision}${e.note ? ` (${e.note})` : ''}`;
     case 'done': return `done: ${e.stop}${e.reason ? ` (${e.reason})` : ''}`;

@@ -93,6 +93,21 @@ pub enum ShotEvent {
         /// (its first report), metres: a correction's length.
         start_m: f64,
     },
+    /// On the approach, the georeference refitted in flight moved the
+    /// round's target beyond a fit's noise: the moved target is flown
+    /// instead (`[refine.approach]`).
+    Retargeted {
+        /// The refinement round.
+        round: usize,
+        /// How far the target moved, metres (3-D).
+        shift_m: f64,
+        /// Its heading's turn, degrees.
+        yaw_deg: f64,
+        /// Its gimbal pitch's turn, degrees.
+        pitch_deg: f64,
+        /// Re-targets flown on this round's approach so far.
+        count: usize,
+    },
     /// The vehicle reached the round's target and holds still.
     Arrived {
         /// The refinement round.

@@ -88,6 +88,16 @@ pub struct ScenarioArgs {
     /// before the photo, seconds (0: the first frame under it).
     #[arg(long, default_value_t = 0.0, requires = "servo")]
     pub servo_settle_s: f64,
+    /// Fly each leg to the target converted when it started, never
+    /// re-targeting on the approach (for comparison). By default the target
+    /// is converted again each second with the georeference refitted from
+    /// frames paired in flight, and the moved target flown when it moved
+    /// beyond a fit's noise (the daemon's `[refine.approach]`).
+    #[arg(long)]
+    pub no_retarget: bool,
+    /// Re-targets per leg at most (`[refine.approach] max_per_leg`).
+    #[arg(long, default_value_t = shotpilot::refine::ApproachParams::default().max_per_leg)]
+    pub retarget_max: usize,
     /// Print exactly one JSON object on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -145,6 +155,8 @@ pub fn run(args: ScenarioArgs) -> Result<()> {
     if args.fixed_georeference {
         params.geo.align.drift = None;
     }
+    params.refine.approach.enabled = !args.no_retarget;
+    params.refine.approach.max_per_leg = args.retarget_max;
     let json = args.json;
     let mut progress = |t: &TrialReport| {
         if !json {

@@ -16,9 +16,16 @@
 //! floor, the round budget or a refusal, and is cancelled by the daemon's
 //! shutdown or when another shot is uploaded or started.
 //!
+//! While the vehicle flies to the shot (the first leg), the target is converted again with the
+//! georeference refitted in flight about once a second and, when it moved
+//! beyond a fit's noise, the moved target is uploaded and flown instead
+//! ([`crate::refine::approach`], `[refine.approach]`): the GNSS bias keeps
+//! wandering during the flight, and the pairs tracking makes on the way
+//! follow it.
+//!
 //! It publishes the shot's progress as [`ShotEvent`]s (flying with the
-//! distance to the target at most once a second, arrived, each round,
-//! done), the desired shot's outline in the live frame about once a second
+//! distance to the target at most once a second, re-targeted, arrived,
+//! each round, done), the desired shot's outline in the live frame about once a second
 //! while it runs ([`OVERLAY_PERIOD`]), and keeps each round's live frame
 //! for the before/after view ([`Achieved`]).
 
@@ -39,8 +46,8 @@ use crate::refine::desired::{Picture, desired_picture};
 use crate::refine::record::{interrupted, record_abort, record_rounds, record_stopped};
 use crate::refine::round::{FrameTiming, Reports, observation, round_alignment};
 use crate::refine::{
-    ArrivalDetector, Context, Distance, LiveFrame, Observation, Session, Step, outline_in_live,
-    shot_error,
+    Approach, ArrivalDetector, Context, Distance, LiveFrame, Observation, Session, Shift, Step,
+    Verdict, outline_in_live, shot_error,
 };
 use crate::shot::record::Shot;
 use crate::video::live::Frame;
@@ -345,24 +352,85 @@ async fn refine_shot(deps: &Arc<Deps>, shot: Shot, first: Target, cancel: Cancel
     // The alignment of the last round, for a round whose refit is refused.
     let mut last_alignment = None;
     loop {
-        let target = *session.target();
         let t_fly = crate::clock::now();
-        let arrived = tokio::select! {
-            _ = cancel.cancelled() => {
-                tracing::info!(shot = %id, "refinement: cancelled");
-                save_rounds(deps, &id, &session, Some(&Abort::Cancelled)).await;
-                return;
+        let mut approach = Approach::new(
+            deps.params.refine.approach,
+            seconds_since(deps, t_fly),
+            session.rounds().is_empty(),
+        );
+        let arrived_at = loop {
+            let leg = tokio::select! {
+                _ = cancel.cancelled() => {
+                    tracing::info!(shot = %id, "refinement: cancelled");
+                    save_rounds(deps, &id, &session, Some(&Abort::Cancelled)).await;
+                    return;
+                }
+                a = wait_arrival(
+                    deps,
+                    wp,
+                    (&session, &home, last_alignment.as_ref()),
+                    &mut approach,
+                    (&id, session.rounds().len()),
+                ) => a,
+            };
+            match leg {
+                Ok(Leg::Arrived(t)) => break t,
+                Ok(Leg::Retarget(r)) => {
+                    let r = *r;
+                    let started = tokio::select! {
+                        _ = cancel.cancelled() => {
+                            save_rounds(deps, &id, &session, Some(&Abort::Cancelled)).await;
+                            return;
+                        }
+                        r = fly(deps, &r.target, &home, flavour, &cancel) => r,
+                    };
+                    match started {
+                        Ok(w) => wp = w,
+                        Err(Abort::Plan(e)) => {
+                            // The moved target is refused (fence, altitude):
+                            // the one uploaded is still flown.
+                            tracing::warn!(shot = %id, "refinement: re-target refused: {e}");
+                            continue;
+                        }
+                        Err(why) => {
+                            tracing::warn!(shot = %id, "refinement: re-target: {why}");
+                            save_rounds(deps, &id, &session, Some(&why)).await;
+                            return;
+                        }
+                    }
+                    let sh = r.shift;
+                    tracing::info!(
+                        shot = %id,
+                        round = session.rounds().len(),
+                        shift_m = sh.position_m,
+                        north_m = sh.ned_m[0],
+                        east_m = sh.ned_m[1],
+                        down_m = sh.ned_m[2],
+                        yaw_deg = sh.yaw_deg,
+                        pitch_deg = sh.pitch_deg,
+                        "refinement: re-targeted on the approach (georeference refitted in flight)"
+                    );
+                    session.retarget(r.target, sh);
+                    last_alignment = Some(r.alignment);
+                    deps.events.publish(
+                        &id,
+                        ShotEvent::Retargeted {
+                            round: session.rounds().len(),
+                            shift_m: sh.position_m,
+                            yaw_deg: sh.yaw_deg,
+                            pitch_deg: sh.pitch_deg,
+                            count: approach.flown(),
+                        },
+                    );
+                }
+                Err(why) => {
+                    tracing::warn!(shot = %id, "refinement: {why}");
+                    save_rounds(deps, &id, &session, Some(&why)).await;
+                    return;
+                }
             }
-            a = wait_arrival(deps, wp, &target, (&id, session.rounds().len())) => a,
         };
-        let arrived_at = match arrived {
-            Ok(t) => t,
-            Err(why) => {
-                tracing::warn!(shot = %id, "refinement: {why}");
-                save_rounds(deps, &id, &session, Some(&why)).await;
-                return;
-            }
-        };
+        let target = *session.target();
         let flight_s = crate::clock::since(t_fly).as_secs_f64();
         deps.events.publish(
             &id,
@@ -563,9 +631,11 @@ fn flying_event(d: &Distance, round: usize, start_m: f64) -> ShotEvent {
 async fn wait_arrival(
     deps: &Deps,
     wp: u16,
-    target: &Target,
+    (session, home, flown_with): (&Session, &Home, Option<&GeoAlignment>),
+    approach: &mut Approach,
     (shot, round): (&str, usize),
-) -> Result<Instant, Abort> {
+) -> Result<Leg, Abort> {
+    let target = session.target();
     let p = &deps.params;
     let tel = &deps.link.telemetry;
     let mut det = ArrivalDetector::new(p.refine.arrival, wp, target.gimbal_pitch_deg);
@@ -610,9 +680,79 @@ async fn wait_arrival(
             speed,
             pitch,
         ) {
-            return Ok(crate::clock::now());
+            return Ok(Leg::Arrived(crate::clock::now()));
+        }
+        let now_s = seconds_since(deps, crate::clock::now());
+        if approach.due(now_s)
+            && let Some(r) = refitted_target(deps, session, home, flown_with)
+            && let Verdict::Fly(shift) = approach.judge(now_s, r.shift)
+        {
+            return Ok(Leg::Retarget(Box::new(Retarget { shift, ..r })));
         }
     }
+}
+
+/// How a wait for the arrival ended.
+enum Leg {
+    /// Arrived, at this time.
+    Arrived(Instant),
+    /// The georeference refitted in flight moved the target: fly this one.
+    Retarget(Box<Retarget>),
+}
+
+/// A target moved by the georeference refitted in flight.
+struct Retarget {
+    /// The moved target.
+    target: Target,
+    /// Its move from the one flown.
+    shift: Shift,
+    /// The fit it was converted with.
+    alignment: GeoAlignment,
+}
+
+/// Seconds from the daemon's epoch to `t`.
+fn seconds_since(deps: &Deps, t: Instant) -> f64 {
+    t.checked_duration_since(deps.epoch)
+        .map_or(0.0, |d| d.as_secs_f64())
+}
+
+/// The georeference refitted with the pairs it has now, and the move it
+/// makes to the flown target: the desired pose converted with it against
+/// the same pose converted with `flown_with`, the fit of the last
+/// re-target; before the first, against the flown target itself. None when the refit is
+/// refused (logged at debug: the flown target stands).
+fn refitted_target(
+    deps: &Deps,
+    session: &Session,
+    home: &Home,
+    flown_with: Option<&GeoAlignment>,
+) -> Option<Retarget> {
+    let goal = session.map_from_desired();
+    let (fresh, alignment) = deps
+        .geo
+        .target(goal)
+        .map_err(|e| tracing::debug!("refinement: refit in flight refused: {e}"))
+        .ok()?;
+    let frame = LocalFrame::new(Geodetic {
+        lat_deg: home.lat_deg,
+        lon_deg: home.lon_deg,
+        alt_m: home.alt_amsl_m,
+    });
+    let flown = session.target();
+    let before = match flown_with {
+        Some(a) => crate::geo::convert_target(a, goal, &frame, &deps.geo.params().mount)
+            .map_err(|e| tracing::debug!("refinement: flown target not converted again: {e}"))
+            .ok()?
+            .to_mission_target(flown.photo),
+        None => *flown,
+    };
+    let fresh = fresh.to_mission_target(flown.photo);
+    let shift = Shift::between(&before, &fresh, &frame, home);
+    Some(Retarget {
+        target: shift.apply(flown, &frame, home),
+        shift,
+        alignment,
+    })
 }
 
 /// The session after the round, and the step or why there was none.

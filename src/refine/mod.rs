@@ -30,11 +30,14 @@
 //! * [`record`]: the rounds on the shot's mission record, and how the
 //!   record ends when the loop is ended from outside.
 //! * [`loop_params`]: the daemon's loop's tunables.
+//! * [`approach`]: re-targeting on the approach, when the georeference
+//!   refitted in flight moves the target by more than a fit's noise.
 //!
 //! Everything here is synchronous (no tokio) and knows nothing of the
 //! simulator: the closed-loop experiment in it (`shotpilot scenario`) is
 //! `crate::simulator::scenario`, an upper floor that drives these parts.
 
+pub mod approach;
 pub mod arrival;
 pub mod controller;
 pub mod desired;
@@ -47,6 +50,7 @@ pub mod round;
 pub mod servo;
 pub mod session;
 
+pub use approach::{Approach, ApproachParams, Shift, Verdict};
 pub use arrival::{ArrivalDetector, ArrivalParams, Distance, PositionReport};
 pub use controller::{ControllerParams, Correction, Decision, correct, correct_targets, decide};
 pub use error::{
@@ -69,6 +73,8 @@ pub struct Params {
     pub arrival: ArrivalParams,
     /// The measurement over several frames on arrival.
     pub measure: MeasureParams,
+    /// Re-targeting on the approach.
+    pub approach: ApproachParams,
 }
 
 /// Errors of the refinement.

@@ -18,7 +18,9 @@ use crate::refine::Session;
 use crate::shot::record::MissionRecord;
 
 /// The session's rounds and end as JSON: `{"rounds": [...], "stop": ...,
-/// "reason": ...}` (`stop` is null while the loop goes on).
+/// "reason": ..., "target": ..., "retargets": [...], "reachable": ...}`
+/// (`stop` is null while the loop goes on; `retargets`: the moves flown on
+/// the approaches, [`crate::refine::Shift`]).
 pub fn refinement_json(session: &Session) -> Value {
     let (stop, reason) = match session.stop() {
         Some(s) => (
@@ -36,6 +38,7 @@ pub fn refinement_json(session: &Session) -> Value {
         "stop": stop,
         "reason": reason,
         "target": serde_json::to_value(session.target()).unwrap_or(Value::Null),
+        "retargets": serde_json::to_value(session.retargets()).unwrap_or(Value::Null),
         "reachable": session.reachable().map_or(Value::Null, |r| json!({
             "floor_pct": r.floor_pct,
             "floor_px": r.floor_px,

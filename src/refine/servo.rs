@@ -555,13 +555,7 @@ pub fn is_long_correction(
         lon_deg: home.lon_deg,
         alt_m: home.alt_amsl_m,
     });
-    let ned = |t: &Target| {
-        frame.geodetic_to_ned(&Geodetic {
-            lat_deg: t.lat_deg,
-            lon_deg: t.lon_deg,
-            alt_m: home.alt_amsl_m + t.alt_m,
-        })
-    };
+    let ned = |t: &Target| super::approach::target_ned(t, &frame, home);
     let d = ned(to) - ned(from);
     !(d.xy().norm() <= long_m && d.z.abs() <= long_m)
 }

@@ -762,6 +762,115 @@ fn gps_bias_is_corrected_by_the_daemon() {
     run.stop();
 }
 
+/// Re-targeting on the approach (`[refine.approach]`, on by default): with
+/// the georeference following the receiver's drift (`[geo.align.drift]`)
+/// and the 1.5 m bias of `gps_bias_is_corrected_by_the_daemon` (walk 27,
+/// 200 s), the frames tracking pairs on the way move the target by more
+/// than a fit's noise while the vehicle flies; the daemon uploads the
+/// moved target, the first round measures at it (its recorded target is
+/// the uploaded one moved by the recorded shifts, to the centimetre), and
+/// the loop still ends under the threshold. Each re-target is a mission
+/// upload, so their number is bounded by the leg's budget; correction
+/// legs are not re-targeted.
+#[test]
+fn the_target_follows_the_drift_on_the_approach() {
+    let _one = ONE_DAEMON.lock().unwrap_or_else(|e| e.into_inner());
+    let run = start(|cfg| {
+        cfg.sim.gps_sigma_xy_m = 1.5;
+        cfg.sim.gps_sigma_z_m = 0.5;
+        cfg.sim.gps_tau_s = 200.0;
+        cfg.sim.gps_seed = Some(27);
+        cfg.geo.align.inlier_threshold_m = 2.5;
+        cfg.geo.align.drift = Some(shotpilot::geo::GnssDrift {
+            sigma_xy_m: 1.5,
+            sigma_z_m: 0.5,
+            tau_s: 200.0,
+            ..shotpilot::geo::GnssDrift::default()
+        });
+        cfg.refine.later_gain = 1.0;
+        cfg.refine.max_rounds = 16;
+    });
+    let addr = run.addr;
+    let (geo, photos) = run.georeferenced();
+    let home = home_of(&geo);
+    let sid = run.daemon.held(move || photo_shot(addr, &photos));
+    let (r, loop_s) = refine(&run, &sid);
+    analyse(&r, &run.truth_dir, &home, None);
+    let shifts = r["retargets"].as_array().expect("retargets recorded");
+    let rounds = r["rounds"].as_array().unwrap();
+    eprintln!(
+        "re-targets {shifts:?}; shot error per round {:?} %, {loop_s:.1} s",
+        rounds
+            .iter()
+            .map(|x| x["shot_error_pct"].as_f64().unwrap_or(f64::NAN))
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        !shifts.is_empty(),
+        "no re-target under a drifting bias: {r}"
+    );
+    let p = shotpilot::refine::ApproachParams::default();
+    // Only the flight to the shot is re-targeted, within its budget.
+    assert!(shifts.len() <= p.max_per_leg, "{r}");
+    let moved = |x: &Value| {
+        x["position_m"].as_f64().unwrap() >= p.min_shift_m
+            || x["yaw_deg"].as_f64().unwrap().abs() >= p.min_turn_deg
+            || x["pitch_deg"].as_f64().unwrap().abs() >= p.min_turn_deg
+    };
+    assert!(
+        shifts.iter().all(moved),
+        "a re-target within the noise: {r}"
+    );
+    // The first round measured at the uploaded target moved by the
+    // re-targets flown before it.
+    // (`details.target` is the target as uploaded; the record's
+    // `target_lat_lon_alt` follows the loop's newest target.)
+    let shot = get_json(addr, &format!("/api/v1/shots/{sid}"));
+    let up = &shot["mission"]["details"]["target"];
+    let frame = LocalFrame::new(home);
+    let ned = |lat: f64, lon: f64, alt: f64| {
+        frame.geodetic_to_ned(&Geodetic {
+            lat_deg: lat,
+            lon_deg: lon,
+            alt_m: home.alt_m + alt,
+        })
+    };
+    let uploaded = ned(
+        up["lat_deg"].as_f64().unwrap(),
+        up["lon_deg"].as_f64().unwrap(),
+        up["alt_above_home_m"].as_f64().unwrap(),
+    );
+    let t0 = &rounds[0]["target"];
+    let flown = ned(
+        t0["lat_deg"].as_f64().unwrap(),
+        t0["lon_deg"].as_f64().unwrap(),
+        t0["alt_m"].as_f64().unwrap(),
+    );
+    let sum = shifts.iter().fold(Vector3::zeros(), |acc, x| {
+        let d = &x["ned_m"];
+        acc + Vector3::new(
+            d[0].as_f64().unwrap(),
+            d[1].as_f64().unwrap(),
+            d[2].as_f64().unwrap(),
+        )
+    });
+    let best = (flown - uploaded - sum).norm();
+    eprintln!(
+        "first round flown {:.2} m from the uploaded target, the re-targets sum to {:.2} m",
+        (flown - uploaded).norm(),
+        sum.norm()
+    );
+    assert!(
+        best < 0.01,
+        "the first round's target is not the moved one: {r}"
+    );
+    assert!(
+        ["converged", "at_floor"].contains(&r["stop"].as_str().unwrap_or("")),
+        "{r}"
+    );
+    run.stop();
+}
+
 /// `[refine] servo` on, against a 1.5 m GNSS bias walking with a 200 s
 /// correlation time (the walk of `gps_bias_is_corrected_by_the_daemon`).
 fn servo_under_gps_bias(cfg: &mut Config) {

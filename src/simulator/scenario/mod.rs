@@ -23,14 +23,18 @@
 //! [`ScenarioParams`]), `error.rs` ([`ScenarioError`], [`FlightError`]),
 //! `report.rs` (what a run returns, [`ScenarioReport`]), `sim.rs` (the
 //! simulated world stepped with its autopilot: telemetry, rendering, the
-//! in-process upload, flying until steady), `explore.rs` (the explore
+//! in-process upload), `approach.rs` (a leg flown until the view is steady,
+//! re-targeted on the approach), `localise.rs` (a live frame localised
+//! and paired with telemetry), `explore.rs` (the explore
 //! flight: the SLAM map and its georeference), `hidden.rs` (the hidden
 //! poses and their desired shots), `trial.rs` (one trial: localise, plan,
 //! upload, fly, refine); [`run`], here, sets the simulator up and runs them.
 
+mod approach;
 mod error;
 mod explore;
 mod hidden;
+mod localise;
 mod params;
 mod report;
 mod servo;

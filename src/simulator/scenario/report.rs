@@ -122,6 +122,9 @@ pub struct TrialReport {
     /// (servoing) or to the loop's last measurement (rounds).
     pub arrival_to_photo_s: Option<f64>,
     /// Servoing at the shot, when it ran.
+    /// Targets flown instead on the approaches, converted again with the
+    /// georeference refitted in flight ([`crate::refine::approach`]).
+    pub retargets: usize,
     pub servo: Option<super::servo::ServoReport>,
 }
 

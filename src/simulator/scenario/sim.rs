@@ -2,7 +2,7 @@
 //! telemetry as the daemon sees it (to the georeference and the SLAM's
 //! priors feed, with frame losses), the live camera (GPS bias and mounting
 //! errors included), the mission upload through the daemon's state machine
-//! in-process, and flying until the arrival rule calls the view steady.
+//! in-process.
 
 use std::time::Instant;
 
@@ -20,11 +20,10 @@ use shotpilot_sim::render::Renderer;
 use crate::geo::{self, Geodetic, GimbalAngles, MountParams};
 use crate::mission::plan::{self, Home, MissionItem};
 use crate::mission::upload::{self, Peers, Uploader};
-use crate::refine::{ArrivalDetector, ArrivalParams};
 use crate::slam::priors::{TelemetryFeed, TelemetrySample};
 
 use super::error::FlightError;
-use super::params::{Disturbances, SteadyParams};
+use super::params::Disturbances;
 
 const GCS: MavHeader = MavHeader {
     system_id: 255,
@@ -267,7 +266,7 @@ impl Sim {
     }
 
     /// One step with its telemetry to the kept georeference, if any.
-    fn step_fed(&mut self) {
+    pub(super) fn step_fed(&mut self) {
         let mut geo = self.geo.take();
         self.step(geo.as_mut());
         self.geo = geo;
@@ -279,33 +278,5 @@ impl Sim {
         while self.t + 0.5 * self.dt < end {
             self.step_fed();
         }
-    }
-
-    /// Flies until the waypoint `wp_seq` is reached and the view is steady
-    /// by the daemon's arrival rule, fed with what telemetry reports.
-    pub(super) fn fly_until_steady(
-        &mut self,
-        wp_seq: u16,
-        gimbal_pitch_deg: f64,
-        arrival: &ArrivalParams,
-        p: &SteadyParams,
-    ) -> Result<f64, FlightError> {
-        let t0 = self.t;
-        let mut det = ArrivalDetector::new(*arrival, wp_seq, gimbal_pitch_deg);
-        while self.t - t0 < p.max_flight_s {
-            self.step_fed();
-            if let Some(seq) = self.reached.take() {
-                det.on_reached(seq);
-            }
-            let v = self.ap.vehicle();
-            let pitch = v.gimbal_angles().0.to_degrees();
-            if det.update(self.t, v.v_ned().norm(), pitch) {
-                return Ok(self.t - t0);
-            }
-        }
-        Err(FlightError::NoArrival {
-            waypoint: wp_seq,
-            waited_s: p.max_flight_s,
-        })
     }
 }

@@ -4,54 +4,27 @@
 
 use std::time::Instant;
 
-use image::GrayImage;
-use nalgebra::{Isometry3, Vector3};
+use nalgebra::Vector3;
 use rand::rngs::SmallRng;
 
 use shotpilot_sim::autopilot::Mode;
 
-use crate::geo::{GeoAlignment, convert_target, frame_pair_id};
+use crate::geo::{GeoAlignment, convert_target};
 use crate::mission::plan::{self, Flavour};
 use crate::refine::{Context, LiveFrame, Session, Step, Stop, pose_difference};
-use crate::shot::request::NotLocalised;
-use crate::shot::{Localization, LocalizeParams, localize, localize_anchors};
-use crate::slam::Map;
 
+use super::approach::fly_leg;
 use super::explore::Explored;
 use super::hidden::make_hidden;
+use super::localise::{PAIR_SPACING_S, localise, pair_live_frame};
 use super::params::ScenarioParams;
 use super::report::{RoundReport, TrialReport};
 use super::servo::servo_at_shot;
 use super::sim::Sim;
 
-/// The desired shot's camera: an anchors shot's from its keyframe's
-/// geometry (as the daemon does), a photo's by localisation.
-fn localise(
-    map: &Map,
-    img: &GrayImage,
-    mask: Option<&GrayImage>,
-    anchors_on: Option<(u32, nalgebra::Matrix3<f64>)>,
-    by_matching: bool,
-    p: &LocalizeParams,
-) -> Result<Isometry3<f64>, NotLocalised> {
-    let found = match anchors_on {
-        Some((id, h)) if !by_matching => {
-            Ok(localize_anchors(map, crate::slam::KeyFrameId(id), &h, p))
-        }
-        _ => localize(map, img, mask, None, p),
-    };
-    match found {
-        Ok(Localization::Localized(s)) => Ok(s.world_from_cam),
-        Ok(Localization::NotLocalized { reason }) => Err(NotLocalised::Rejected(reason)),
-        Err(e) => Err(NotLocalised::Failed(e)),
-    }
-}
-
 /// Live frames localised and paired with telemetry in the hover before a
 /// departure.
 const DEPARTURE_FRAMES: usize = 3;
-/// Their spacing, s (the daemon's frame pairs are half a second apart).
-const DEPARTURE_SPACING_S: f64 = 0.5;
 
 /// The georeference a trial's shot is flown with: with a drift model
 /// ([`crate::geo::AlignParams::drift`]), the kept one, given the live frames
@@ -70,21 +43,9 @@ fn current_alignment(
     let mut ids = Vec::new();
     for i in 0..DEPARTURE_FRAMES {
         if i > 0 {
-            sim.advance(DEPARTURE_SPACING_S);
+            sim.advance(PAIR_SPACING_S);
         }
-        let image = sim.render();
-        let t = sim.t;
-        let Ok(map_from_cam) = localise(&ex.map, &image, None, None, false, &params.localize)
-        else {
-            continue;
-        };
-        if let Some(g) = sim.geo.as_mut() {
-            let id = frame_pair_id(t);
-            match g.add_keyframe(id, &map_from_cam, t) {
-                Ok(_) => ids.push(id),
-                Err(e) => tracing::debug!("scenario: departure frame not paired: {e}"),
-            }
-        }
+        ids.extend(pair_live_frame(ex, sim, params));
     }
     // Telemetry past the last frame's time, so a pending pair is made.
     sim.advance(0.2);
@@ -142,6 +103,7 @@ pub(super) fn run_trial(
         departure_inliers: 0,
         gnss_bias_m: None,
         mount_offset: None,
+        retargets: 0,
     };
     let finish = |mut rep: TrialReport, sim: &Sim, stop: String| {
         rep.stop = stop;
@@ -159,7 +121,7 @@ pub(super) fn run_trial(
     rep.hidden_yaw_deg = hidden.yaw.to_degrees();
     rep.hidden_pitch_deg = hidden.pitch.to_degrees();
     let mount = &params.geo.mount;
-    let (alignment, departure_pairs, departure_inliers) = current_alignment(ex, sim, params);
+    let (mut alignment, departure_pairs, departure_inliers) = current_alignment(ex, sim, params);
     rep.departure_pairs = departure_pairs;
     rep.departure_inliers = departure_inliers;
     rep.gnss_bias_m = alignment.quality.gnss_bias_m;
@@ -212,15 +174,6 @@ pub(super) fn run_trial(
         session = session.with_reachable(r);
     }
     let home = sim.home;
-    let ctx = Context {
-        map: &ex.map,
-        alignment: &alignment,
-        frame: &ex.frame,
-        mount,
-        home: &home,
-        fence: &params.plan.fence,
-        localize: &params.localize,
-    };
     sim.fence_ok = true;
     let mut first_arrival: Option<f64> = None;
     loop {
@@ -243,12 +196,7 @@ pub(super) fn run_trial(
             sim.ap.set_mode(Mode::Mission);
         }
         let _ = sim.ap.arm();
-        let flight_s = match sim.fly_until_steady(
-            wp,
-            target.gimbal_pitch_deg,
-            &params.refine.arrival,
-            &params.steady,
-        ) {
+        let flight_s = match fly_leg(sim, &mut session, ex, params, wp, &mut alignment) {
             Ok(s) => s,
             Err(e) => {
                 rep.reason = Some(e.to_string());
@@ -256,6 +204,17 @@ pub(super) fn run_trial(
             }
         };
         rep.flown = true;
+        rep.retargets = session.retargets().len();
+        let target = *session.target();
+        let ctx = Context {
+            map: &ex.map,
+            alignment: &alignment,
+            frame: &ex.frame,
+            mount,
+            home: &home,
+            fence: &params.plan.fence,
+            localize: &params.localize,
+        };
         let arrived_at = *first_arrival.get_or_insert(sim.t);
         // The measurement: a few frames a little apart, each with the
         // position the vehicle reports then (and the judge's pose error).
