@@ -253,9 +253,6 @@ pub struct Session {
     /// Flying back to the best round's view (its round number): the next
     /// arrival ends the loop.
     returning_to: Option<usize>,
-    /// How the loop ends once back at that view: `at_floor` (a shot that
-    /// cannot converge) or `max_rounds` (out of rounds).
-    return_stop: Stop,
     /// Each round's live camera pose (map frame), where its frames were
     /// localised: the view a return to that round flies back to.
     views: BTreeMap<usize, Isometry3<f64>>,
@@ -284,7 +281,6 @@ impl Session {
             reachable: None,
             offset: None,
             returning_to: None,
-            return_stop: Stop::AtFloor,
             views: BTreeMap::new(),
             retargets: Vec::new(),
         }
@@ -490,9 +486,7 @@ impl Session {
         // reported when it was taken.
         let mut localised: Vec<(Isometry3<f64>, Option<Vector3<f64>>)> = Vec::new();
         let mut why_not: Option<String> = None;
-        // (Out of rounds, only for the way back to a better round's view.)
-        let back = decision == Decision::MaxRounds && self.better_round(pct).is_some();
-        if floor.is_some() || near_floor.is_some() || decision == Decision::Correct || back {
+        if floor.is_some() || near_floor.is_some() || decision == Decision::Correct {
             for f in frames {
                 match localize(ctx.map, f.image, None, None, ctx.localize) {
                     Ok(Localization::Localized(p)) => {
@@ -529,18 +523,11 @@ impl Session {
             return self.end(rec, Stop::AtFloor);
         }
         if let Some(best) = self.returning_to {
-            let stop = self.return_stop.clone();
-            rec.decision = if stop == Stop::MaxRounds {
-                Decision::MaxRounds
-            } else {
-                Decision::AtFloor
-            };
-            rec.note = Some(if stop == Stop::MaxRounds {
-                format!("back at round {best}'s view, the best measured, out of rounds")
-            } else {
-                format!("back at round {best}'s view, the best measured near the floor")
-            });
-            return self.end(rec, stop);
+            rec.decision = Decision::AtFloor;
+            rec.note = Some(format!(
+                "back at round {best}'s view, the best measured near the floor"
+            ));
+            return self.end(rec, Stop::AtFloor);
         }
         if let Some(stall) = self.stalled_near_floor(pct) {
             match stall {
@@ -556,7 +543,14 @@ impl Session {
                     // goes through the offset measured now.
                     match self.correct_toward(&goal, &localised, t_s, round, ctx) {
                         Ok((c, offset)) if !offset.gated.iter().all(|&g| g) => {
-                            return self.return_to(rec, (c, offset), note, best, Stop::AtFloor);
+                            rec.decision = Decision::ReturnToBest;
+                            rec.note = Some(note);
+                            rec.offset = Some(offset);
+                            self.target = c.target;
+                            rec.correction = Some(c);
+                            self.rounds.push(rec);
+                            self.returning_to = Some(best);
+                            return Step::Upload(self.target);
                         }
                         other => {
                             let why = match other {
@@ -577,16 +571,6 @@ impl Session {
             self.views.insert(round, c);
         }
         if decision == Decision::MaxRounds {
-            // Out of rounds worse than an earlier round by more than the
-            // margin (corrections that chased the GNSS drift between
-            // looks): back to that round's view, through the offset
-            // measured now, and stop there.
-            if let Some((best, goal, note)) = self.better_round(pct)
-                && let Ok((c, offset)) = self.correct_toward(&goal, &localised, t_s, round, ctx)
-                && !offset.gated.iter().all(|&g| g)
-            {
-                return self.return_to(rec, (c, offset), note, best, Stop::MaxRounds);
-            }
             return self.end(rec, Stop::MaxRounds);
         }
         if localised.is_empty() {
@@ -860,51 +844,6 @@ impl Session {
                 "{e:.2} %, {over:.2} % over the floor {floor:.2} %, gained less than {margin:.2} % on round {round}'s {best_pct:.2} %: the loop is at what the measurement can tell"
             ))),
         }
-    }
-
-    /// Flies back to round `best`'s view with the correction toward it;
-    /// the next arrival ends the loop with `stop`.
-    fn return_to(
-        &mut self,
-        mut rec: RoundRecord,
-        (c, offset): (Correction, OffsetRecord),
-        note: String,
-        best: usize,
-        stop: Stop,
-    ) -> Step {
-        rec.decision = Decision::ReturnToBest;
-        rec.note = Some(note);
-        rec.offset = Some(offset);
-        self.target = c.target;
-        rec.correction = Some(c);
-        self.rounds.push(rec);
-        self.returning_to = Some(best);
-        self.return_stop = stop;
-        Step::Upload(self.target)
-    }
-
-    /// Out of rounds at `pct`: the earlier round that measured better by
-    /// more than `at_floor_margin_pct`, its live view and why (None: the
-    /// last round is about the best, or that round's view is unknown).
-    fn better_round(&self, pct: Option<f64>) -> Option<(usize, Isometry3<f64>, String)> {
-        let e = pct?;
-        let margin = self.params.controller.at_floor_margin_pct;
-        let (round, best_pct) = self
-            .rounds
-            .iter()
-            .filter_map(|r| r.shot_error_pct.map(|b| (r.round, b)))
-            .min_by(|a, b| a.1.total_cmp(&b.1))?;
-        if e <= best_pct + margin {
-            return None;
-        }
-        let pose = self.views.get(&round)?;
-        Some((
-            round,
-            *pose,
-            format!(
-                "out of rounds at {e:.2} %, worse than round {round}'s {best_pct:.2} %: back to that round's view"
-            ),
-        ))
     }
 
     fn end(&mut self, rec: RoundRecord, stop: Stop) -> Step {

@@ -139,8 +139,8 @@ fn check_loop(r: &Value, max_final_pct: Option<f64>) {
         // re-targeted on the approach a first look can land at 1.1 %,
         // where rounds of mission legs chase the GNSS drift between looks
         // (quick ideal seed 3, trial 2: rounds at 1.09, 2.09, 1.47, 1.09,
-        // 2.53 % with the camera 0.16-0.43 m off; out of rounds, back to
-        // the best round's view, 1.79 %); the servo removes that lag.
+        // 2.53 % with the camera 0.16-0.43 m off); the servo removes that
+        // lag.
         assert!(
             f(t, "final_shot_error_pct") < f(t, "first_shot_error_pct")
                 || f(t, "final_shot_error_pct") < 1.0
