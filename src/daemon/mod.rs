@@ -23,6 +23,7 @@ pub mod geo_service;
 pub mod memory;
 pub mod persist;
 pub mod reconcile;
+mod refinement_arrival;
 mod refinement_deps;
 mod refinement_servo;
 pub mod refinement_task;

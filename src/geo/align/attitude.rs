@@ -10,6 +10,7 @@ use crate::geo::mount::MountOffset;
 use crate::geometry::Sim3;
 use crate::lie::skew;
 use crate::optimize::lm::{LeastSquares, solve_damped_dense};
+use crate::optimize::sim3::sim3_left_update;
 
 type Mat9 = SMatrix<f64, 9, 9>;
 type Vec9 = SVector<f64, 9>;
@@ -208,15 +209,8 @@ impl LeastSquares for Refinement<'_> {
         self.old = self.sim;
         self.old_mount = self.mount;
         let d = self.step;
-        let dr = UnitQuaternion::from_scaled_axis(Vector3::new(d[3], d[4], d[5]));
-        let ds = d[6].exp();
-        let t = self.sim.translation;
-        // (e^σ·Exp(ω), υ) ∘ (s, R, t) = (e^σ s, Exp(ω) R, e^σ Exp(ω) t + υ)
-        self.sim = Sim3::new(
-            dr * self.sim.rotation,
-            dr * t * ds + Vector3::new(d[0], d[1], d[2]),
-            self.sim.scale * ds,
-        );
+        // The Sim(3)'s left update, then the two offsets.
+        self.sim = sim3_left_update(&self.sim, &d.fixed_rows::<7>(0).into_owned());
         self.mount[0] += d[7];
         self.mount[1] += d[8];
     }
