@@ -14,8 +14,9 @@
 //!   with the realism's GNSS error (bias, noise, the drift while the fix is
 //!   lost, `fix` 0 then), the receiver's reported accuracy, the barometric
 //!   altitude with the realism's drift, the body attitude and the gimbal
-//!   angles (from the true camera pose: a rendered path has no body tilt
-//!   and no attitude error). The errors come from the same processes and
+//!   angles (from the true camera pose: a rendered path has no body tilt;
+//!   with the realism's `ahrs` the reported roll, pitch, heading and
+//!   gimbal pitch carry its error). The errors come from the same processes and
 //!   seed as the live vehicle's ([`crate::vehicle::SensorErrors`]); with a
 //!   realism without `gps` and `baro` (e.g. `ideal`) they are exact and the
 //!   reported accuracy is 0.
@@ -598,14 +599,19 @@ fn telemetry_line(t: f64, world_from_cam: &Isometry3<f64>, sensors: &SensorError
     let pitch = (-f.z).clamp(-1.0, 1.0).asin();
     let h = f.xy() * pitch.cos() - u.xy() * pitch.sin();
     let yaw = h.y.atan2(h.x);
+    // The attitude as reported: the body's roll and pitch errors (a level
+    // body), the heading's, and the gimbal's pitch error (`ahrs`).
+    let e = sensors.attitude_error_deg();
+    let yaw_deg = (yaw.to_degrees() + e.z + 180.0).rem_euclid(360.0) - 180.0;
     format!(
-        "{t:.6} {} {:.4} {:.4} {:.4} {h_acc:.3} {v_acc:.3} {baro_alt:.4} 0.000 0.000 {:.3} {:.3} 0.000",
+        "{t:.6} {} {:.4} {:.4} {:.4} {h_acc:.3} {v_acc:.3} {baro_alt:.4} {:.3} {:.3} {yaw_deg:.3} {:.3} 0.000",
         u8::from(sensors.fix()),
         gps.x,
         gps.y,
         gps.z,
-        yaw.to_degrees(),
-        pitch.to_degrees(),
+        e.x,
+        e.y,
+        pitch.to_degrees() + e.y,
     )
 }
 

@@ -181,7 +181,7 @@ struct Cli {
     /// Realism: a preset (ideal, field, harsh) then any -EFFECT (off) or
     /// +EFFECT[@PRESET] (on), e.g. field-blur or ideal+wind@harsh. Effects:
     /// blur, rolling_shutter, auto_exposure, sun, clouds, vignetting, noise,
-    /// compression, h264 (H.264 in place of JPEG), wind, gimbal, gps, gps_dropouts, baro, telemetry,
+    /// compression, h264 (H.264 in place of JPEG), wind, gimbal, gps, gps_dropouts, baro, ahrs, telemetry,
     /// video_latency (see the shotpilot_sim::realism documentation).
     #[arg(long, default_value = "ideal", value_name = "PRESET", global = true)]
     realism: String,

@@ -46,7 +46,7 @@ use rand::{Rng, SeedableRng, rngs::SmallRng};
 
 use crate::disturbance::{GimbalJitter, WindField};
 use crate::geodesy::{Geodetic, LocalFrame};
-use crate::realism::{BaroDrift, GimbalError, GpsDropouts, GpsError, Realism, Wind};
+use crate::realism::{AhrsError, BaroDrift, GimbalError, GpsDropouts, GpsError, Realism, Wind};
 
 /// Gravity, m/s^2.
 pub const GRAVITY: f64 = 9.806_65;
@@ -239,6 +239,8 @@ pub struct VehicleDisturbances {
     pub gps_dropouts: Option<GpsDropouts>,
     /// Barometric height drift.
     pub baro: Option<BaroDrift>,
+    /// The reported attitude's error.
+    pub ahrs: Option<AhrsError>,
     /// Seed of every process above.
     pub seed: u64,
 }
@@ -253,6 +255,7 @@ impl VehicleDisturbances {
             gps: v.gps,
             gps_dropouts: v.gps_dropouts,
             baro: v.baro,
+            ahrs: v.ahrs,
             seed,
         }
     }
@@ -264,6 +267,7 @@ impl VehicleDisturbances {
             && self.gps.is_none()
             && self.gps_dropouts.is_none()
             && self.baro.is_none()
+            && self.ahrs.is_none()
     }
 }
 
@@ -355,6 +359,10 @@ pub struct SensorErrors {
     drift: Vector3<f64>,
     /// Barometric height error, m (down positive: true z = estimate z + it).
     baro: f64,
+    /// The reported attitude's slow error (roll, pitch, yaw), degrees.
+    ahrs_slow: Option<GpsBias>,
+    /// The reported attitude's fast noise (roll, pitch, yaw), degrees.
+    ahrs_noise: Option<GpsBias>,
     rng: SmallRng,
 }
 
@@ -386,6 +394,14 @@ impl SensorErrors {
             next_loss,
             drift: Vector3::zeros(),
             baro: 0.0,
+            // Own seeds: switching `ahrs` on leaves every other process's
+            // draws as they were.
+            ahrs_slow: d
+                .ahrs
+                .map(|a| gm(a.tilt_sigma_deg, a.yaw_sigma_deg, a.tau_s, 0xA445)),
+            ahrs_noise: d
+                .ahrs
+                .map(|a| gm(a.noise_deg, a.noise_deg, AHRS_NOISE_TAU_S, 0xA4A5)),
             rng,
         }
     }
@@ -400,6 +416,12 @@ impl SensorErrors {
         }
         if let Some(n) = &mut self.gps_noise {
             n.step(dt);
+        }
+        for a in [&mut self.ahrs_slow, &mut self.ahrs_noise]
+            .into_iter()
+            .flatten()
+        {
+            a.step(dt);
         }
         if let Some(g) = d.gps_dropouts {
             match self.lost_until {
@@ -446,6 +468,16 @@ impl SensorErrors {
         self.baro
     }
 
+    /// The reported attitude minus the true one, (roll, pitch, yaw)
+    /// degrees: the slow error plus the noise of `ahrs` (zero without it).
+    pub fn attitude_error_deg(&self) -> Vector3<f64> {
+        [&self.ahrs_slow, &self.ahrs_noise]
+            .into_iter()
+            .flatten()
+            .map(|a| a.bias())
+            .sum()
+    }
+
     /// False while the GNSS fix is lost.
     pub fn fix(&self) -> bool {
         self.lost_until.is_none()
@@ -463,6 +495,11 @@ impl SensorErrors {
         })
     }
 }
+
+/// Correlation time of the reported attitude's fast noise, s (the
+/// estimator's output is filtered; also long enough against a render's
+/// frame interval for the process's Euler step).
+const AHRS_NOISE_TAU_S: f64 = 0.5;
 
 /// An exponential draw of mean `mean`.
 fn exponential(rng: &mut SmallRng, mean: f64) -> f64 {

@@ -82,6 +82,14 @@ pub struct SlamArgs {
     /// it there. Without the file the run is vision-only.
     #[arg(long)]
     pub priors: bool,
+    /// Telemetry-aided tracking from the dataset's telemetry.txt: a frame
+    /// vision cannot pose is predicted from the last one it did by the
+    /// reported attitude (and the GNSS once the map is in local NED), and
+    /// the local map searched around that; the summary says how many
+    /// frames each way posed and the ATE of each. Needs the attitude
+    /// columns; without them the run is vision-only.
+    #[arg(long)]
+    pub aid: bool,
     /// Replace COUNT frames from frame START on by black frames (a forced
     /// tracking loss); may be given more than once.
     #[arg(long, value_name = "START:COUNT", value_parser = parse_blackout)]
@@ -227,6 +235,18 @@ pub fn run(args: SlamArgs) -> Result<()> {
             ),
         }
     }
+    if args.aid {
+        match &telemetry {
+            Some(log) if log.samples().iter().any(|s| s.ned_from_cam.is_some()) => {
+                params.telemetry_aid =
+                    Some(slam::TelemetryAid::new(TelemetryFeed::fixed(log.clone())))
+            }
+            _ => tracing::warn!(
+                path = %tel_path.display(),
+                "--aid: no telemetry.txt with the attitude columns, tracking is vision-only"
+            ),
+        }
+    }
     let mut system = Slam::new(ds.camera, params).context("starting the SLAM")?;
 
     // Decode frames ahead on a reader thread (decoding is not tracking).
@@ -298,6 +318,8 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let mut track_cpu = Vec::with_capacity(n);
     let mut track_only_cpu = Vec::with_capacity(n);
     let mut tracked = 0usize;
+    let mut tracked_frames = std::collections::HashSet::new();
+    let mut by_source: std::collections::BTreeMap<&'static str, usize> = Default::default();
     let mut lost_frames = 0usize;
     let mut spans: Vec<slam_timing::FrameSpan> = Vec::with_capacity(n);
     let mut memory: Vec<MemorySample> = Vec::new();
@@ -329,6 +351,12 @@ pub fn run(args: SlamArgs) -> Result<()> {
             extract_cpu.push(e);
             track_cpu.push(t);
             track_only_cpu.push(t - e);
+        }
+        if let Some(s) = out.source {
+            *by_source.entry(s.name()).or_default() += 1;
+        }
+        if out.state == TrackState::Tracking {
+            tracked_frames.insert(frame.index as u64);
         }
         match out.state {
             TrackState::Tracking => tracked += 1,
@@ -460,6 +488,11 @@ pub fn run(args: SlamArgs) -> Result<()> {
         ),
         _ => (None, None),
     };
+    // The ATE of each pose source's frames, under the alignment of all.
+    let ate_by_source = ate
+        .as_ref()
+        .map(|a| ate_by_source(a, &run.records, args.max_dt))
+        .unwrap_or_default();
     // Each loop: the keyframes' ATE just before and just after its
     // correction, and the ground-truth distance between its two keyframes
     // (a loop between places far apart is a false loop).
@@ -638,6 +671,8 @@ pub fn run(args: SlamArgs) -> Result<()> {
             "ate_matched": ate.as_ref().map(|e| e.matched),
             "ate_scale": ate.as_ref().map(|e| e.alignment.scale),
             "ate_keyframes_rmse_m": ate_kf.as_ref().map(|e| e.ate.rmse),
+            "posed_by": by_source,
+            "ate_by_source_rmse_m": ate_by_source.iter().map(|(k, v)| (*k, v.0)).collect::<std::collections::BTreeMap<_, _>>(),
             "gt_path_length_m": gt.as_ref().map(|g| g.path_length()),
             "sequential": args.sequential,
             "loop_closing": !args.no_loop_closing,
@@ -700,31 +735,35 @@ pub fn run(args: SlamArgs) -> Result<()> {
         // after a loss, and frames whose reference keyframe is gone) and the
         // keyframes of the map.
         let posed = traj.len();
-        // Posed at an initialisation: before the first map's, or between
-        // the start of a later map and its initialisation.
+        // Posed at an initialisation: the first frame of an initialisation
+        // pair, not tracked when it came.
         let at_init = run
             .records
             .iter()
-            .filter(|r| {
-                run.initialized_at.is_some_and(|i| r.index < i)
-                    || run.map_starts.iter().any(|m| {
-                        m.started_at <= r.index && m.initialized_at.is_some_and(|i| r.index < i)
-                    })
-            })
+            .filter(|r| !tracked_frames.contains(&r.index))
             .count();
-        let first_map = run.records.iter().find_map(|r| run.map.map_of(r.reference));
+        // Tracked when they came but without a pose now: the two frames of
+        // a map the telemetry put into the old one were posed by the
+        // telemetry first, then by the map (one record each).
+        let tracked_unrecorded = {
+            let recorded: std::collections::HashSet<u64> =
+                run.records.iter().map(|r| r.index).collect();
+            tracked_frames
+                .iter()
+                .filter(|i| !recorded.contains(i))
+                .count()
+        };
+        let first_map = run.first_map();
+        let live = |r: &&slam::FrameRecord| run.map.keyframe_pose(r.reference).is_some();
         let in_later_maps = run
             .records
             .iter()
+            .filter(live)
             .filter(|r| {
                 matches!((run.map.map_of(r.reference), first_map), (Some(m), Some(f)) if m != f)
             })
             .count();
-        let unposed = run
-            .records
-            .len()
-            .saturating_sub(posed)
-            .saturating_sub(in_later_maps);
+        let unposed = run.records.iter().filter(|r| !live(r)).count();
         let mut why = vec![format!("{tracked} tracked")];
         if at_init > 0 {
             why.push(format!("+ {at_init} posed at initialisation"));
@@ -737,7 +776,13 @@ pub fn run(args: SlamArgs) -> Result<()> {
         if unposed > 0 {
             why.push(format!("- {unposed} whose reference keyframe is gone"));
         }
-        let other = posed as i64 - (tracked + at_init) as i64 + (unposed + in_later_maps) as i64;
+        if tracked_unrecorded > 0 {
+            why.push(format!(
+                "- {tracked_unrecorded} not recorded (tracked frames whose record gave way)"
+            ));
+        }
+        let other = posed as i64 - (tracked + at_init) as i64
+            + (unposed + in_later_maps + tracked_unrecorded) as i64;
         if other != 0 {
             why.push(format!("{other:+} other"));
         }
@@ -776,6 +821,16 @@ pub fn run(args: SlamArgs) -> Result<()> {
             ),
             _ if gt.is_some() => println!("ATE: too few poses matched the ground truth"),
             _ => {}
+        }
+        if by_source.keys().any(|k| *k != "vision") {
+            let line: Vec<String> = by_source
+                .iter()
+                .map(|(k, n)| match ate_by_source.get(k) {
+                    Some((rmse, m)) => format!("{k} {n} (ATE rmse {rmse:.4} m over {m})"),
+                    None => format!("{k} {n}"),
+                })
+                .collect();
+            println!("posed by {}", line.join(", "));
         }
         match &run.georeferenced {
             Some((kf, g)) => println!(
@@ -926,4 +981,37 @@ fn print_timing(t: &slam_timing::TimingReport) {
             w.kind, w.kf, w.ms, w.during, w.during_wait, t.after_frames, w.after
         );
     }
+}
+
+/// The RMS of `eval`'s position errors per pose source: each error goes
+/// to the record nearest its time within `max_dt` (source name → (rmse,
+/// count)).
+fn ate_by_source(
+    eval: &eval::Evaluation,
+    records: &[slam::FrameRecord],
+    max_dt: f64,
+) -> std::collections::BTreeMap<&'static str, (f64, usize)> {
+    let mut by_time: Vec<(f64, &'static str)> = records
+        .iter()
+        .map(|r| (r.timestamp, r.source.name()))
+        .collect();
+    by_time.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut sums: std::collections::BTreeMap<&'static str, (f64, usize)> = Default::default();
+    for &(t, e) in &eval.errors {
+        let i = by_time.partition_point(|r| r.0 < t);
+        let nearest = [i.checked_sub(1), Some(i)]
+            .into_iter()
+            .flatten()
+            .filter_map(|k| by_time.get(k))
+            .filter(|r| (r.0 - t).abs() <= max_dt)
+            .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()));
+        if let Some(&(_, name)) = nearest {
+            let s = sums.entry(name).or_default();
+            s.0 += e * e;
+            s.1 += 1;
+        }
+    }
+    sums.into_iter()
+        .map(|(k, (sq, n))| (k, ((sq / n as f64).sqrt(), n)))
+        .collect()
 }

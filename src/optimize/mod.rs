@@ -38,8 +38,8 @@ pub use essential_graph::{PoseGraph, PoseGraphParams, Sim3Edge, optimize_pose_gr
 pub use lm::{LmParams, LmSummary, Termination};
 pub use pose::{
     IntrinsicsCorrection, IntrinsicsUncertainty, PoseCovariance, PoseObservation, PoseParams,
-    PoseReport, observation_chi2, optimize_pose, pose_covariance, refine_pose_and_intrinsics,
-    refine_pose_and_intrinsics_from,
+    PosePrior, PoseReport, observation_chi2, optimize_pose, optimize_pose_with_prior,
+    pose_covariance, refine_pose_and_intrinsics, refine_pose_and_intrinsics_from,
 };
 pub use sim3::{Sim3Match, Sim3Params, Sim3Report, optimize_sim3};
 

@@ -63,6 +63,9 @@ pub(super) struct Frame {
     /// since the matches were last cleared (a keypoint matched again
     /// leaves it).
     pub rejected: Vec<bool>,
+    /// A prior on the frame's pose in its optimisations (the telemetry's
+    /// prediction when tracking is aided; `None`: vision alone).
+    pub prior: Option<optimize::PosePrior>,
 }
 
 impl Frame {
@@ -245,9 +248,14 @@ impl Context {
         if obs.len() < 3 {
             return None;
         }
-        let report =
-            optimize::optimize_pose(cam_from_world, &obs, &self.intrinsics, &self.params.pose)
-                .ok()?;
+        let report = optimize::optimize_pose_with_prior(
+            cam_from_world,
+            &obs,
+            &self.intrinsics,
+            &self.params.pose,
+            frame.prior.as_ref(),
+        )
+        .ok()?;
         for (k, &i) in idx.iter().enumerate() {
             if !report.inliers[k] {
                 frame.points[i] = None;

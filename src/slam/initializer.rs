@@ -83,6 +83,28 @@ pub enum InitFailure {
     /// The second keyframe was gone right after it was made.
     #[error("initial keyframe vanished")]
     KeyFrameVanished,
+    /// The reconstruction's motion disagrees with the telemetry's (its
+    /// reported attitudes and GNSS displacement between the two frames).
+    #[error(
+        "two-view initialisation refused ({matches} matches): the motion is {sigmas:.1} sigmas from the telemetry's"
+    )]
+    RefutedByTelemetry {
+        /// Matches between the two frames.
+        matches: usize,
+        /// The distance, in the telemetry's sigmas.
+        sigmas: f64,
+    },
+    /// A new map the telemetry must put into the old one waits for a GNSS
+    /// baseline that fixes its scale.
+    #[error(
+        "waiting for a GNSS baseline of {needed_m:.2} m to put the new map into the old one (have {baseline_m:.2} m)"
+    )]
+    ShortGnssBaseline {
+        /// The GNSS displacement between the two frames, m.
+        baseline_m: f64,
+        /// The displacement needed, m.
+        needed_m: f64,
+    },
 }
 
 /// One frame of the initial map.
@@ -136,9 +158,27 @@ impl InitFrame {
 pub(super) struct Initializer {
     init: Option<InitFrame>,
     attempt: u64,
+    /// The telemetry, to tell a planar pair's reconstructions apart.
+    aid: Option<super::aided::TelemetryAid>,
+    /// The map must be put into an old one by the telemetry: wait for a
+    /// GNSS baseline that fixes its scale.
+    need_gnss_baseline: bool,
 }
 
 impl Initializer {
+    /// Use the telemetry's relative motion between the two frames to tell
+    /// a planar pair's reconstructions apart (`None`: the third views only).
+    pub fn set_aid(&mut self, aid: Option<super::aided::TelemetryAid>) {
+        self.aid = aid;
+    }
+
+    /// Whether the next map must wait for a GNSS baseline between its two
+    /// frames (a new map the telemetry puts into the old one,
+    /// [`super::aided::place_new_map`]).
+    pub fn set_need_gnss_baseline(&mut self, need: bool) {
+        self.need_gnss_baseline = need;
+    }
+
     /// Drop the current attempt.
     pub fn reset(&mut self) {
         self.init = None;
@@ -199,6 +239,26 @@ impl Initializer {
         }
         let kp1 = init.frame.pixels();
         let kp2 = frame.pixels();
+        let motion = self
+            .aid
+            .as_ref()
+            .and_then(|a| a.relative_motion(init.frame.timestamp, frame.timestamp));
+        if self.need_gnss_baseline
+            && let Some(aid) = &self.aid
+        {
+            let needed_m = aid.place_baseline_m(frame.timestamp - init.frame.timestamp);
+            let baseline_m = aid
+                .gnss_displacement(init.frame.timestamp, frame.timestamp)
+                .unwrap_or(0.0);
+            if baseline_m < needed_m {
+                // Keep the attempt: a later frame gives the baseline.
+                self.init = Some(init);
+                return Err(InitFailure::ShortGnssBaseline {
+                    baseline_m,
+                    needed_m,
+                });
+            }
+        }
         self.attempt += 1;
         let tv = geometry::initialize_two_view(
             &ctx.camera.k(),
@@ -219,6 +279,7 @@ impl Initializer {
                 init.frame.index,
                 &init.third_views,
                 self.attempt,
+                motion.as_ref(),
             )
             .map_err(|planar| InitFailure::Planar {
                 matches: matches.len(),
@@ -249,6 +310,18 @@ impl Initializer {
                 return Err(failure);
             }
         };
+        if let Some(m) = &motion {
+            let sigmas = planar::telemetry_distance(&tv.cam2_from_cam1, m);
+            if sigmas > planar::TELEMETRY_REFUTE_SIGMAS {
+                // A wrong reconstruction (too little parallax, matches on
+                // something that moves): a later frame may do.
+                self.init = Some(init);
+                return Err(InitFailure::RefutedByTelemetry {
+                    matches: matches.len(),
+                    sigmas,
+                });
+            }
+        }
         match create_initial_map(ctx, map, &init.frame, &frame, &matches, &tv) {
             Ok(r) => Ok(Some(r)),
             Err(failure) => {

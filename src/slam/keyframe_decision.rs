@@ -37,11 +37,13 @@ pub(super) fn need_new_keyframe(
     if candidate.recently_relocalized && n_kfs as u64 > max_frames {
         return false;
     }
-    let min_obs = if n_kfs <= 2 { 2 } else { 3 };
-    let ref_matches = candidate
-        .reference
-        .and_then(|r| map.keyframe(r))
-        .map_or(0, |k| k.tracked_points(map, min_obs));
+    let reference = candidate.reference.and_then(|r| map.keyframe(r));
+    // A young map's points are seen by two keyframes: so are those of a
+    // new map just put into an old one by the telemetry, whose reference
+    // keyframe has one covisible neighbour however many the map has.
+    let young = n_kfs <= 2 || reference.is_some_and(|k| k.covisible.len() < 2);
+    let min_obs = if young { 2 } else { 3 };
+    let ref_matches = reference.map_or(0, |k| k.tracked_points(map, min_obs));
     let since = candidate
         .frame_index
         .saturating_sub(candidate.last_keyframe_frame);

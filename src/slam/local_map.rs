@@ -30,8 +30,11 @@ pub(super) struct LocalMapTracker {
 
 impl LocalMapTracker {
     /// Track the local map from `cam_from_world` (the pose the motion
-    /// model, the reference keyframe or relocalisation gave).
-    /// `just_relocalized` widens the search radius.
+    /// model, the reference keyframe, relocalisation or the telemetry
+    /// gave), searching within `radius` pixels (at level 0). A frame that
+    /// shares no point with the map yet (posed by the telemetry) takes the
+    /// local keyframes around `seed`.
+    #[allow(clippy::too_many_arguments)]
     pub fn track(
         &mut self,
         ctx: &Context,
@@ -39,12 +42,13 @@ impl LocalMapTracker {
         map: &mut Map,
         frame: &mut Frame,
         cam_from_world: Isometry3<f64>,
-        just_relocalized: bool,
+        radius: f64,
+        seed: Option<KeyFrameId>,
     ) -> LocalMapResult {
         let LocalKeyframes {
             reference,
             keyframes: local_kfs,
-        } = local_keyframes(ctx, marks, map, frame);
+        } = local_keyframes(ctx, marks, map, frame, seed);
         let center = cam_from_world.inverse().translation.vector;
         marks.next_pass();
         for pid in frame.points.iter().flatten() {
@@ -81,18 +85,12 @@ impl LocalMapTracker {
                 mp.visible += 1;
             }
         }
-        let p = &ctx.params;
-        let th = if just_relocalized {
-            p.local_map_radius_after_reloc
-        } else {
-            p.local_map_radius
-        };
         let found = matcher::search_local_points(
             &frame.search_target(),
             projected,
             map,
             &ctx.scale,
-            th,
+            radius,
             &ctx.params.matcher,
         );
         frame.add_matches(found);
@@ -117,9 +115,15 @@ struct LocalKeyframes {
     keyframes: Vec<KeyFrameId>,
 }
 
-/// The keyframes sharing points with the frame, their best covisible
-/// neighbours, parents and children; with the one sharing most.
-fn local_keyframes(ctx: &Context, marks: &mut Marks, map: &Map, frame: &Frame) -> LocalKeyframes {
+/// The keyframes sharing points with the frame (else `seed`), their best
+/// covisible neighbours, parents and children; with the one sharing most.
+fn local_keyframes(
+    ctx: &Context,
+    marks: &mut Marks,
+    map: &Map,
+    frame: &Frame,
+    seed: Option<KeyFrameId>,
+) -> LocalKeyframes {
     marks.next_pass();
     let mut list: Vec<(KeyFrameId, u32)> = Vec::new();
     for pid in frame.points.iter().flatten() {
@@ -134,6 +138,12 @@ fn local_keyframes(ctx: &Context, marks: &mut Marks, map: &Map, frame: &Frame) -
     }
     for e in &mut list {
         e.1 = marks.count[e.0.0 as usize];
+    }
+    if list.is_empty()
+        && let Some(kf) = seed.filter(|k| map.keyframe(*k).is_some())
+    {
+        marks.mark_keyframe(kf);
+        list.push((kf, 0));
     }
     list.sort_unstable_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
     let best = list.first().map(|e| e.0);

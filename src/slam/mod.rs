@@ -17,13 +17,16 @@
 //! what is recorded per frame and per keyframe for a long flight. After a tracking loss a new
 //! map is started beside the old one (the [`Map`] is an atlas) and the
 //! loop closer merges them when it finds a common place; with telemetry
-//! priors no new map is started (tracking relocalises).
+//! priors no new map is started (tracking relocalises) unless tracking is
+//! aided by the telemetry, which puts the new map into the old one as soon
+//! as it initialises ([`aided`]).
 //!
 //! # Layout
 //!
 //! | module | what it holds |
 //! |---|---|
 //! | [`tracking`] | the [`Tracker`]: per frame, extraction, motion model, reference keyframe, states |
+//! | [`aided`] | telemetry-aided tracking: a frame vision cannot pose predicted from the last one it did by the reported attitude and GNSS |
 //! | [`initializer`] | two-view initialisation and the initial map |
 //! | [`planar`] | deciding between the twin reconstructions of a planar scene |
 //! | `relocalizer` | BoW candidates, PnP RANSAC, search by projection for a lost frame |
@@ -40,6 +43,7 @@
 //! | [`map`] | keyframes and points in arenas, covisibility, spanning tree, place index |
 //! | [`mapfile`] | the versioned binary map file |
 
+pub mod aided;
 pub mod bundle;
 pub mod cpu_time;
 mod frame;
@@ -70,6 +74,7 @@ use crate::camera::Camera;
 use crate::eval::{StampedPose, Trajectory};
 use crate::optimize::BaParams;
 
+pub use aided::{AidParams, PoseSource, TelemetryAid};
 pub use initializer::InitFailure;
 pub use loop_closing::{
     HoldKind, LockHold, LoopCloser, LoopEvent, LoopLog, LoopParams, LoopRefusal, LoopReject,
@@ -132,6 +137,8 @@ pub struct Params {
     pub loop_closing: Option<LoopParams>,
     /// Telemetry priors (`None`: vision only, the default).
     pub priors: Option<priors::Priors>,
+    /// Telemetry-aided tracking (`None`: vision only, the default).
+    pub telemetry_aid: Option<aided::TelemetryAid>,
     /// Records kept per frame or per keyframe (the tracker's frame
     /// records, the mapper's reports, the loop closer's lock holds and
     /// refusals): at least the newest this many, at most twice as many
@@ -154,6 +161,7 @@ impl Default for Params {
             }),
             loop_closing: Some(LoopParams::default()),
             priors: None,
+            telemetry_aid: None,
             history: None,
         }
     }
@@ -270,14 +278,19 @@ impl SlamRun {
     /// Frames in a map never merged into it are left out
     /// ([`SlamRun::trajectory_in`] gives them).
     pub fn trajectory(&self) -> Trajectory {
-        let first = self
-            .records
-            .iter()
-            .find_map(|r| self.map.map_of(r.reference));
-        match first {
+        match self.first_map() {
             Some(id) => self.trajectory_in(id),
             None => Trajectory { poses: Vec::new() },
         }
+    }
+
+    /// The map of the first record whose keyframe is still there (a map
+    /// the telemetry's aid dropped for a newer one is not).
+    pub fn first_map(&self) -> Option<MapId> {
+        self.records
+            .iter()
+            .filter(|r| self.map.keyframe_pose(r.reference).is_some())
+            .find_map(|r| self.map.map_of(r.reference))
     }
 
     /// The tracked frames whose reference keyframe is in map `id`.
@@ -302,10 +315,7 @@ impl SlamRun {
     /// The live keyframes' poses (world_from_cam) of the first map (as
     /// [`SlamRun::trajectory`]), by time.
     pub fn keyframe_trajectory(&self) -> Trajectory {
-        let first = self
-            .records
-            .iter()
-            .find_map(|r| self.map.map_of(r.reference));
+        let first = self.first_map();
         let mut poses: Vec<StampedPose> = self
             .map
             .keyframes()
@@ -374,6 +384,8 @@ impl Slam {
 
     fn start(mut tracker: Tracker, map: Map, params: Params) -> Result<Self, SlamError> {
         tracker.set_history(params.history);
+        tracker.set_telemetry_aid(params.telemetry_aid.clone());
+        tracker.set_new_maps_need_placement(params.priors.is_some());
         let camera = map.camera;
         let map = Arc::new(Mutex::new(map));
         let bounds = crate::matching::Bounds::of(&camera);
@@ -637,11 +649,12 @@ impl Slam {
 }
 
 /// The tracking parameters as the SLAM uses them: with telemetry priors
-/// no new map is started after a loss (a new map would have to start in
-/// local NED from GNSS, which is not done yet): tracking relocalises.
+/// and without the telemetry's aid no new map is started after a loss (a
+/// new map has to start in local NED, which only the aid's placement does,
+/// [`aided::place_new_map`]): tracking relocalises.
 fn tracking_params(params: &Params) -> TrackingParams {
     let mut t = params.tracking.clone();
-    if params.priors.is_some() {
+    if params.priors.is_some() && params.telemetry_aid.is_none() {
         t.new_map_after_lost_frames = None;
     }
     t

@@ -20,6 +20,7 @@ use nalgebra::{Isometry3, Matrix3, Point2, Point3, Translation3, Vector3};
 use crate::camera::Camera;
 use crate::geometry::{self, GeometryError, PnpParams, TwoViewParams, TwoViewResult};
 
+use super::aided::RelativeMotion;
 use super::params::TrackingParams;
 
 /// One motion hypothesis of a planar pair with its triangulation.
@@ -310,10 +311,59 @@ pub enum PlanarFailure {
     },
 }
 
+/// How far a two-view motion (`cam2 ← cam1`, translation up to scale) is
+/// from the telemetry's, in the telemetry's sigmas: the larger of the
+/// rotation's and (when known) the direction of travel's.
+pub fn telemetry_distance(cam2_from_cam1: &Isometry3<f64>, m: &RelativeMotion) -> f64 {
+    let rot = cam2_from_cam1.rotation.angle_to(&m.rotation) / m.rotation_sigma.max(1e-9);
+    let dir = m.direction.map_or(0.0, |d| {
+        // Camera 2's centre in camera 1's axes.
+        let c = -(cam2_from_cam1.rotation.inverse() * cam2_from_cam1.translation.vector);
+        c.angle(&d) / m.direction_sigma.max(1e-9)
+    });
+    rot.max(dir)
+}
+
+/// Which of a planar pair's two reconstructions the telemetry's relative
+/// motion supports (0: `a`, 1: `b`): the one within
+/// [`TELEMETRY_AGREE_SIGMAS`] of it when the other is beyond
+/// [`TELEMETRY_REFUTE_SIGMAS`]; `None` when the motion cannot tell (both
+/// agree, as over a short baseline, or neither does).
+pub fn telemetry_choice(
+    a: &PlanarHypothesis,
+    b: &PlanarHypothesis,
+    motion: &RelativeMotion,
+) -> Option<usize> {
+    let (da, db) = (
+        telemetry_distance(&a.cam2_from_cam1, motion),
+        telemetry_distance(&b.cam2_from_cam1, motion),
+    );
+    tracing::debug!(
+        sigmas_a = da,
+        sigmas_b = db,
+        "planar reconstructions against the telemetry"
+    );
+    if da <= TELEMETRY_AGREE_SIGMAS && db >= TELEMETRY_REFUTE_SIGMAS {
+        Some(0)
+    } else if db <= TELEMETRY_AGREE_SIGMAS && da >= TELEMETRY_REFUTE_SIGMAS {
+        Some(1)
+    } else {
+        None
+    }
+}
+
+/// A reconstruction agrees with the telemetry within this many sigmas.
+pub const TELEMETRY_AGREE_SIGMAS: f64 = 3.0;
+
+/// The other is refuted beyond this many.
+pub const TELEMETRY_REFUTE_SIGMAS: f64 = 6.0;
+
 /// A planar pair both of whose reconstructions hold: decide between them
-/// with the frames seen in between (`third_views`, from the attempt that
-/// started at frame `first_index`). `attempt` seeds the relaxed two-view
-/// solve as the refused one was seeded.
+/// by the telemetry's relative motion between the two frames when it can
+/// tell ([`telemetry_choice`]), else with the frames seen in between
+/// (`third_views`, from the attempt that started at frame `first_index`).
+/// `attempt` seeds the relaxed two-view solve as the refused one was
+/// seeded.
 #[allow(clippy::too_many_arguments)]
 pub fn choose_reconstruction(
     camera: &Camera,
@@ -324,6 +374,7 @@ pub fn choose_reconstruction(
     first_index: u64,
     third_views: &[ThirdView],
     attempt: u64,
+    telemetry: Option<&RelativeMotion>,
 ) -> Result<TwoViewResult, PlanarFailure> {
     let mut relaxed = params.two_view.clone();
     relaxed.h_second_fraction = f64::INFINITY;
@@ -340,6 +391,10 @@ pub fn choose_reconstruction(
     }
     let [a, b] = twin_hypotheses(camera, kp1, kp2, matches, &tv, &params.two_view)
         .ok_or(PlanarFailure::NoTwin)?;
+    if let Some(pick) = telemetry.and_then(|m| telemetry_choice(&a, &b, m)) {
+        let (win, lose) = if pick == 0 { (&a, &b) } else { (&b, &a) };
+        return accept_choice(params, &tv, win, lose);
+    }
     let (first, last) = (first_index, third_views.last().map_or(0, |v| v.index));
     if third_views.is_empty() || last <= first {
         return Err(PlanarFailure::NoThirdView);
@@ -395,6 +450,17 @@ pub fn choose_reconstruction(
             other_cost: cl,
         });
     }
+    accept_choice(params, &tv, win, lose)
+}
+
+/// The chosen reconstruction, when it has the parallax and the good points
+/// an initialisation needs.
+fn accept_choice(
+    params: &TrackingParams,
+    tv: &TwoViewResult,
+    win: &PlanarHypothesis,
+    lose: &PlanarHypothesis,
+) -> Result<TwoViewResult, PlanarFailure> {
     if win.parallax_deg < params.two_view.min_parallax_deg {
         return Err(PlanarFailure::NotEnoughParallax {
             parallax_deg: win.parallax_deg,
@@ -411,7 +477,7 @@ pub fn choose_reconstruction(
             needed,
         });
     }
-    Ok(as_result(&tv, win, lose.n_good))
+    Ok(as_result(tv, win, lose.n_good))
 }
 
 #[cfg(test)]
@@ -529,5 +595,57 @@ mod tests {
         let result = as_result(&tv, truth, twin.n_good);
         assert_eq!(result.cam2_from_cam1, truth.cam2_from_cam1);
         assert_eq!(result.n_second, twin.n_good);
+
+        // The telemetry's motion tells them apart without a third view: a
+        // turn known to 0.3 degrees and a direction of travel to 3.
+        let truth_index = if std::ptr::eq(truth, &a) { 0 } else { 1 };
+        let motion = RelativeMotion {
+            rotation: cam2.rotation,
+            rotation_sigma: 0.3f64.to_radians(),
+            direction: Some(cam2.inverse().translation.vector.normalize()),
+            direction_sigma: 3f64.to_radians(),
+        };
+        assert_eq!(telemetry_choice(&a, &b, &motion), Some(truth_index));
+        // A motion that says nothing sharp decides nothing.
+        let vague = RelativeMotion {
+            rotation_sigma: 20f64.to_radians(),
+            direction: None,
+            ..motion
+        };
+        assert_eq!(telemetry_choice(&a, &b, &vague), None);
+        // The initialisation takes the reconstruction the telemetry
+        // supports, with no third view at all.
+        let chosen = choose_reconstruction(
+            &camera,
+            &TrackingParams::default(),
+            &kp1,
+            &kp2,
+            &matches,
+            0,
+            &[],
+            1,
+            Some(&motion),
+        )
+        .unwrap();
+        assert!(
+            chosen
+                .cam2_from_cam1
+                .rotation
+                .angle_to(&cam2.rotation)
+                .to_degrees()
+                < 0.5
+        );
+        let no_view = choose_reconstruction(
+            &camera,
+            &TrackingParams::default(),
+            &kp1,
+            &kp2,
+            &matches,
+            0,
+            &[],
+            1,
+            None,
+        );
+        assert_eq!(no_view.unwrap_err(), PlanarFailure::NoThirdView);
     }
 }

@@ -29,7 +29,7 @@
 use std::path::Path;
 use std::sync::{Arc, Mutex, RwLock};
 
-use nalgebra::{Matrix3, Point3, Vector3};
+use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 
 use crate::geo::align::{AlignParams, Pair, fit_pairs};
 use crate::lie::Sim3;
@@ -53,6 +53,11 @@ pub struct TelemetrySample {
     pub v_acc: f64,
     /// Barometric altitude above home, m (up).
     pub baro_alt: Option<f64>,
+    /// The camera's reported attitude, `ned ← cam` (the autopilot's
+    /// attitude and the gimbal's angles; `None`: not reported). Tracking
+    /// takes the turn between two frames from it when vision cannot
+    /// ([`super::aided`]).
+    pub ned_from_cam: Option<UnitQuaternion<f64>>,
 }
 
 impl TelemetrySample {
@@ -93,7 +98,38 @@ impl TelemetrySample {
             h_acc: acc.map_or(0.0, |a| a.0),
             v_acc: acc.map_or(0.0, |a| a.1),
             baro_alt: None,
+            ned_from_cam: None,
         }
+    }
+
+    /// The camera's attitude from a telemetry line's body attitude
+    /// (`roll pitch yaw`) and gimbal angles (`pitch yaw` relative to the
+    /// body), radians, on a stabilised gimbal mount
+    /// ([`crate::geo::ned_from_cam`]).
+    pub fn camera_attitude(
+        roll: f64,
+        pitch: f64,
+        yaw: f64,
+        gimbal_pitch: f64,
+        gimbal_yaw: f64,
+    ) -> UnitQuaternion<f64> {
+        let state = crate::geo::VehicleState {
+            time: 0.0,
+            p_ned: Vector3::zeros(),
+            v_ned: Vector3::zeros(),
+            ned_from_body: UnitQuaternion::from_euler_angles(roll, pitch, yaw),
+            gimbal: crate::geo::GimbalAngles {
+                pitch: gimbal_pitch,
+                yaw: gimbal_yaw,
+            },
+        };
+        let mount = crate::geo::MountParams {
+            stabilised: true,
+            pitch_offset_deg: 0.0,
+            yaw_offset_deg: 0.0,
+            ..crate::geo::MountParams::default()
+        };
+        crate::geo::ned_from_cam(&state, &mount).rotation
     }
 }
 
@@ -142,7 +178,10 @@ impl TelemetryLog {
     }
 
     /// Reads `telemetry.txt` (`#` lines are comments): `timestamp fix
-    /// gps_n gps_e gps_d h_acc v_acc baro_alt` and more columns, ignored.
+    /// gps_n gps_e gps_d h_acc v_acc baro_alt`, then optionally `roll_deg
+    /// pitch_deg yaw_deg gimbal_pitch_deg gimbal_yaw_deg` (the camera's
+    /// attitude, [`TelemetrySample::camera_attitude`]); more columns are
+    /// ignored.
     pub fn read(path: &Path) -> Result<Self, TelemetryError> {
         let text = std::fs::read_to_string(path).map_err(|source| TelemetryError::Io {
             path: path.display().to_string(),
@@ -166,7 +205,7 @@ impl TelemetryLog {
             };
             let v: Vec<f64> = line
                 .split_whitespace()
-                .take(8)
+                .take(13)
                 .map(|x| x.parse::<f64>())
                 .collect::<Result<_, _>>()
                 .map_err(|e| err(format!("not a number: {e}")))?;
@@ -186,6 +225,25 @@ impl TelemetryLog {
                 h_acc: v[5],
                 v_acc: v[6],
                 baro_alt: Some(v[7]),
+                // The attitude columns: all five or none.
+                ned_from_cam: match v.get(8..13) {
+                    Some(&[roll, pitch, yaw, g_pitch, g_yaw]) => {
+                        Some(TelemetrySample::camera_attitude(
+                            roll.to_radians(),
+                            pitch.to_radians(),
+                            yaw.to_radians(),
+                            g_pitch.to_radians(),
+                            g_yaw.to_radians(),
+                        ))
+                    }
+                    _ if v.len() > 8 => {
+                        return Err(err(format!(
+                            "{} columns: 8, or 13 with the attitude",
+                            v.len()
+                        )));
+                    }
+                    _ => None,
+                },
             });
         }
         Ok(Self::new(samples))
@@ -272,6 +330,10 @@ impl TelemetryLog {
                 (Some(x), Some(y)) => Some(x + (y - x) * f),
                 _ => None,
             },
+            ned_from_cam: match (a.ned_from_cam, b.ned_from_cam) {
+                (Some(x), Some(y)) => Some(x.slerp(&y, f)),
+                _ => None,
+            },
         })
     }
 }
@@ -330,6 +392,16 @@ impl TelemetryFeed {
     /// The newest sample.
     pub fn newest(&self) -> Option<TelemetrySample> {
         self.read().samples().last().copied()
+    }
+
+    /// The sample at `t` (see [`TelemetryLog::sample_at`]).
+    pub fn sample_at(
+        &self,
+        t: f64,
+        max_dt: f64,
+        interpolate_gap: Option<f64>,
+    ) -> Option<TelemetrySample> {
+        self.read().sample_at(t, max_dt, interpolate_gap)
     }
 
     fn read(&self) -> std::sync::RwLockReadGuard<'_, TelemetryLog> {
@@ -718,8 +790,34 @@ mod tests {
         assert!(s.fix);
         assert!(!log.at(0.19, 0.05).unwrap().fix);
         assert!(log.at(0.5, 0.05).is_none());
+        // The attitude columns: heading 90 (east), gimbal 45 down. The
+        // camera looks east and down, its image's right is south.
+        let q = log.samples()[0].ned_from_cam.unwrap();
+        let forward = q * Vector3::z();
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        assert!(
+            (forward - Vector3::new(0.0, h, h)).norm() < 1e-9,
+            "{forward}"
+        );
+        assert!((q * Vector3::x() - Vector3::new(-1.0, 0.0, 0.0)).norm() < 1e-9);
+        assert!(log.samples()[1].ned_from_cam.is_none(), "8 columns: none");
+        // Interpolated half-way between two attitudes: half the turn.
+        let turned = TelemetryLog::parse(
+            "0 1 0 0 -30 1 1 30 0 0 0 -90 0\n1 1 0 0 -30 1 1 30 0 0 20 -90 0\n",
+            "t",
+        )
+        .unwrap();
+        let mid = turned.sample_at(0.5, 0.05, Some(2.0)).unwrap();
+        let a = turned.samples()[0].ned_from_cam.unwrap();
+        let turn = (a.inverse() * mid.ned_from_cam.unwrap()).angle();
+        assert!(
+            (turn.to_degrees() - 10.0).abs() < 1e-9,
+            "{}",
+            turn.to_degrees()
+        );
         for (bad, what) in [
             ("0.0 1 1.0 2.0\n", "columns"),
+            ("0.0 1 1 2 3 1 1 1 0 0 90\n", "13 with the attitude"),
             ("0.0 1 x 2.0 3 1 1 1\n", "not a number"),
             ("0.0 1 1 2 3 -1 1 1\n", "negative"),
             ("0.0 1 1 2 inf 1 1 1\n", "non-finite"),
@@ -790,6 +888,7 @@ mod tests {
                 h_acc: 1.3,
                 v_acc: 0.8,
                 baro_alt: Some(-c.z),
+                ned_from_cam: None,
             });
         }
         (map, TelemetryLog::new(samples), map_from_ned, truth)
@@ -825,6 +924,7 @@ mod tests {
             h_acc: 0.5,
             v_acc: 0.8,
             baro_alt: None,
+            ned_from_cam: None,
         }
     }
 

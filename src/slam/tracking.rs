@@ -25,15 +25,17 @@ use crate::lie::renormalized;
 use crate::matching::FeatureGrid;
 
 use super::SlamError;
+use super::aided::{self, Anchor, PoseSource, TelemetryAid};
 use super::cpu_time::Stopwatch;
 use super::frame::{Context, Frame, LastFrame, Marks, PoseFit};
 pub use super::frame::{KeypointState, TrackedKeypoint};
 use super::initializer::{InitFailure, InitialMap, Initializer};
 use super::keyframe_decision::{KeyFrameCandidate, need_new_keyframe};
 use super::local_map::LocalMapTracker;
-use super::map::{KeyFrameId, Map, MapId, ScaleInfo, lock, lock_timed};
+use super::map::{KeyFrameId, Map, MapId, MapMode, ScaleInfo, lock, lock_timed};
 use super::matcher;
 use super::params::bound_history;
+use super::priors::TelemetrySample;
 use super::relocalizer::relocalize;
 
 pub use super::params::TrackingParams;
@@ -116,6 +118,8 @@ pub struct FrameRecord {
     pub reference: KeyFrameId,
     /// cam_from_world of the frame = `cam_from_ref` * ref.cam_from_world.
     pub cam_from_ref: Isometry3<f64>,
+    /// How the pose was found.
+    pub source: PoseSource,
 }
 
 /// A new map started after a tracking loss (see
@@ -134,6 +138,9 @@ pub struct MapStart {
     /// The frame that relocalised into an old map before the new one was
     /// initialised (the new map abandoned).
     pub relocalized_at: Option<u64>,
+    /// The new map was put into the old one by the telemetry as soon as it
+    /// initialised ([`super::aided::place_new_map`]).
+    pub placed_by_telemetry: bool,
 }
 
 /// What tracking did with one frame.
@@ -143,6 +150,8 @@ pub struct FrameOutcome {
     pub state: TrackState,
     /// The frame's pose when tracked.
     pub cam_from_world: Option<Isometry3<f64>>,
+    /// How the pose was found (`None`: not posed).
+    pub source: Option<PoseSource>,
     /// Matched map points (inliers).
     pub inliers: usize,
     /// Keyframe created from this frame, to hand to mapping.
@@ -175,6 +184,19 @@ struct Tracked {
     inliers: usize,
     /// The keyframe made from it.
     new_keyframe: Option<KeyFrameId>,
+    /// How the pose was found.
+    source: PoseSource,
+}
+
+/// A frame's pose as one of tracking's ways found it, before
+/// [`Tracker::accept`] takes it.
+struct Accepted {
+    cam_from_world: Isometry3<f64>,
+    inliers: usize,
+    source: PoseSource,
+    recently_relocalized: bool,
+    /// The frame's telemetry sample (with an attitude), if any.
+    sample: Option<TelemetrySample>,
 }
 
 /// The tracker: owns the extractors and the motion state; works on the map
@@ -214,6 +236,15 @@ pub struct Tracker {
     map_starts: Vec<MapStart>,
     /// Share of the current frame's pixels masked (0: none).
     masked_share: f64,
+    /// Telemetry-aided tracking (`None`: vision only).
+    aid: Option<TelemetryAid>,
+    /// The last frame vision posed, with its telemetry (for the aid).
+    anchor: Option<Anchor>,
+    /// The first frame of the current run posed by the telemetry alone.
+    telemetry_since: Option<u64>,
+    /// New maps must be put into the old one by the telemetry (the map is
+    /// in local NED with telemetry priors): none is started otherwise.
+    new_maps_need_placement: bool,
 }
 
 impl Tracker {
@@ -253,7 +284,26 @@ impl Tracker {
             new_map_pending: false,
             map_starts: Vec::new(),
             masked_share: 0.0,
+            aid: None,
+            anchor: None,
+            telemetry_since: None,
+            new_maps_need_placement: false,
         })
+    }
+
+    /// Aid tracking with telemetry (see [`super::aided`]; `None`: vision
+    /// only).
+    pub fn set_telemetry_aid(&mut self, aid: Option<TelemetryAid>) {
+        self.initializer.set_aid(aid.clone());
+        self.aid = aid;
+        self.anchor = None;
+    }
+
+    /// Start new maps after a loss only where the telemetry can put them
+    /// into the old map at once (a map with telemetry priors is in local
+    /// NED, and a map beside it in its own frame would break the priors).
+    pub fn set_new_maps_need_placement(&mut self, need: bool) {
+        self.new_maps_need_placement = need;
     }
 
     /// Go on with an existing map (a loaded map file): the tracker starts
@@ -331,6 +381,11 @@ impl Tracker {
             {
                 v.translation.vector *= k;
             }
+            if let Some(a) = &mut self.anchor
+                && moved.contains(&a.record.reference)
+            {
+                a.scale(k);
+            }
             for r in &mut self.records {
                 if moved.contains(&r.reference) {
                     r.cam_from_ref.translation.vector *= k;
@@ -403,10 +458,12 @@ impl Tracker {
             image,
             bow: None,
             rejected: vec![false; n],
+            prior: None,
         };
         let mut out = FrameOutcome {
             state: self.state,
             cam_from_world: None,
+            source: None,
             inliers: 0,
             new_keyframe: None,
             initialized: false,
@@ -458,18 +515,30 @@ impl Tracker {
             Ok(Some(tracked)) => {
                 self.state = TrackState::Tracking;
                 self.lost_since = None;
+                if tracked.source == PoseSource::Telemetry {
+                    self.telemetry_since.get_or_insert(index);
+                    self.maybe_start_new_map(map, index);
+                } else {
+                    self.telemetry_since = None;
+                }
                 out.cam_from_world = Some(tracked.cam_from_world);
+                out.source = Some(tracked.source);
                 out.inliers = tracked.inliers;
                 out.new_keyframe = tracked.new_keyframe;
             }
             Ok(None) => {}
             Err(failure) => {
-                if !initializing {
+                // A frame the telemetry can no longer pose while a new map
+                // is started is lost as any other.
+                let lost_while_starting =
+                    self.new_map_pending && self.state == TrackState::Tracking;
+                if !initializing || lost_while_starting {
                     if self.state == TrackState::Tracking {
                         self.lost_since = Some(index);
                     }
                     self.state = TrackState::Lost;
                     self.velocity = None;
+                    self.telemetry_since = None;
                     self.maybe_start_new_map(map, index);
                 }
                 out.reason = Some(failure.clone());
@@ -487,15 +556,28 @@ impl Tracker {
     /// next frames; the old maps are kept and relocalisation into them is
     /// still tried).
     fn maybe_start_new_map(&mut self, map: &Mutex<Map>, index: u64) {
-        let (Some(after), Some(lost_at)) =
-            (self.ctx.params.new_map_after_lost_frames, self.lost_since)
-        else {
+        let (Some(after), Some(lost_at)) = (
+            self.ctx.params.new_map_after_lost_frames,
+            self.lost_since.or(self.telemetry_since),
+        ) else {
             return;
         };
         if self.new_map_pending || index < lost_at + after {
             return;
         }
-        let id = lock(map).start_map();
+        if self.new_maps_need_placement && self.aid.is_none() {
+            // Only a map the telemetry can put into this one (see
+            // `track_or_start_new_map`).
+            return;
+        }
+        let mut m = lock(map);
+        let in_ned = m.mode() == MapMode::GpsAided;
+        let id = m.start_map();
+        drop(m);
+        // A map the telemetry is to put into this one waits for a GNSS
+        // baseline that fixes its scale.
+        self.initializer
+            .set_need_gnss_baseline(self.aid.is_some() && self.anchor.is_some() && in_ned);
         self.initializer.reset();
         self.new_map_pending = true;
         tracing::info!(
@@ -510,12 +592,16 @@ impl Tracker {
             map: id,
             initialized_at: None,
             relocalized_at: None,
+            placed_by_telemetry: false,
         });
     }
 
     /// A frame while a new map is being initialised: relocalisation into
     /// the old maps first (success abandons the new map), else the
-    /// initializer.
+    /// initializer. With the telemetry's aid, the old map keeps the frames
+    /// the telemetry poses meanwhile (the initializer sees them too), and
+    /// a new map that initialises is put into the old one at once
+    /// ([`aided::place_new_map`]).
     fn track_or_start_new_map(
         &mut self,
         map: &Mutex<Map>,
@@ -529,24 +615,36 @@ impl Tracker {
         {
             start.started_at = index;
         }
+        let old_map = self.anchor_map(map);
         let relocalised = {
             let mut m = lock_timed(map, &mut out.lock_wait_ms);
+            if let Some(old) = old_map {
+                // A keyframe of a frame tracked again goes to the old map.
+                m.set_active_map(old);
+            }
             self.track_frame(&mut m, &mut frame, mapping_idle)
         };
-        if let Ok(tracked) = relocalised {
-            out.keypoints = frame.keypoint_states();
-            self.new_map_pending = false;
-            self.initializer.reset();
-            if let Some(start) = self.map_starts.last_mut() {
-                start.relocalized_at = Some(index);
+        let by_telemetry = match relocalised {
+            Ok(tracked) if tracked.source != PoseSource::Telemetry => {
+                out.keypoints = frame.keypoint_states();
+                self.new_map_pending = false;
+                self.initializer.reset();
+                self.initializer.set_need_gnss_baseline(false);
+                if let Some(start) = self.map_starts.last_mut() {
+                    start.relocalized_at = Some(index);
+                }
+                tracing::info!(
+                    frame = index,
+                    source = tracked.source.name(),
+                    "tracked again in an old map: the new map is abandoned"
+                );
+                return Ok(Some(tracked));
             }
-            tracing::info!(
-                frame = index,
-                "relocalised in an old map: the new map is abandoned"
-            );
-            return Ok(Some(tracked));
-        }
+            Ok(tracked) => Some(tracked),
+            Err(_) => None,
+        };
         frame.clear_matches();
+        frame.prior = None;
         out.keypoints = frame.keypoint_states();
         if let Some(start) = self.map_starts.last() {
             // A relocalisation that then failed on the local map may have
@@ -555,16 +653,127 @@ impl Tracker {
         }
         match self.initializer.step(&self.ctx, map, frame) {
             Ok(Some(initial)) => {
+                let placed = self.place_by_telemetry(map, &initial);
+                let in_ned = lock(map).mode() == MapMode::GpsAided;
+                if placed.is_none() && self.new_maps_need_placement && !in_ned {
+                    // The old maps never reached local NED (the priors
+                    // fit a map only once its fixes span a baseline): they
+                    // give way to the new one, whose frame the priors
+                    // will fit.
+                    let mut m = lock(map);
+                    let new = m.active_map();
+                    let old: Vec<MapId> = m
+                        .maps()
+                        .into_iter()
+                        .map(|(id, _)| id)
+                        .filter(|id| *id != new)
+                        .collect();
+                    for id in &old {
+                        m.discard_map(*id);
+                    }
+                    tracing::info!(
+                        frame = initial.second.index,
+                        dropped = old.len(),
+                        "the old map never reached local NED: dropped for the new one"
+                    );
+                }
+                if placed.is_none() && self.new_maps_need_placement && in_ned {
+                    // A map in local NED cannot hold a map beside it in
+                    // its own frame: this one is dropped and started again.
+                    let mut m = lock(map);
+                    let active = m.active_map();
+                    m.discard_map(active);
+                    let id = m.start_map();
+                    if let Some(start) = self.map_starts.last_mut() {
+                        start.map = id;
+                    }
+                    self.initializer.reset();
+                    return match by_telemetry {
+                        Some(t) => Ok(Some(t)),
+                        None => Err(TrackFailure::RelocalizationFailed),
+                    };
+                }
                 out.initialized = true;
                 self.new_map_pending = false;
                 if let Some(start) = self.map_starts.last_mut() {
                     start.initialized_at = Some(initial.second.index);
+                    start.placed_by_telemetry = placed.is_some();
+                }
+                // The telemetry's records of the two frames give way to
+                // the map's.
+                let (a, b) = (initial.first.index, initial.second.index);
+                self.records.retain(|r| r.index != a && r.index != b);
+                let mut initial = initial;
+                if let Some(pose) = placed {
+                    initial.cam_from_world = pose;
                 }
                 Ok(Some(self.start_tracking(initial)))
             }
+            Ok(None) | Err(_) if by_telemetry.is_some() => Ok(by_telemetry),
             Ok(None) => Err(TrackFailure::RelocalizationFailed),
             Err(failure) => Err(TrackFailure::Init(failure)),
         }
+    }
+
+    /// The map of the telemetry's anchor (the old map a new one is put
+    /// into).
+    fn anchor_map(&self, map: &Mutex<Map>) -> Option<MapId> {
+        let a = self.anchor.as_ref()?;
+        lock(map).map_of(a.record.reference)
+    }
+
+    /// Put a new map that just initialised into the anchor's map by the
+    /// telemetry ([`aided::place_new_map`]); the second frame's pose in
+    /// the merged map when done.
+    fn place_by_telemetry(
+        &mut self,
+        map: &Mutex<Map>,
+        initial: &InitialMap,
+    ) -> Option<Isometry3<f64>> {
+        let (aid, anchor) = (self.aid.as_ref()?, self.anchor.as_ref()?);
+        let mut m = lock(map);
+        let into = m.map_of(anchor.record.reference)?;
+        let from = m.map_of(initial.second.keyframe)?;
+        let poses = (
+            m.keyframe_pose(initial.first.keyframe)?,
+            m.keyframe_pose(initial.second.keyframe)?,
+        );
+        let placed = aided::place_new_map(
+            aid,
+            &m,
+            anchor,
+            (initial.first.timestamp, &poses.0),
+            (initial.second.timestamp, &poses.1),
+        );
+        let sim = match placed {
+            Ok(s) => s,
+            Err(why) => {
+                tracing::info!(
+                    frame = initial.second.index,
+                    why,
+                    "new map not put into the old one by the telemetry"
+                );
+                return None;
+            }
+        };
+        if !m.merge_maps(
+            from,
+            into,
+            &sim,
+            initial.second.keyframe,
+            anchor.record.reference,
+        ) {
+            return None;
+        }
+        tracing::info!(
+            frame = initial.second.index,
+            from = from.0,
+            into = into.0,
+            scale = sim.scale,
+            gap_s = initial.second.timestamp - anchor.sample.t,
+            "new map put into the old one by the telemetry"
+        );
+        m.keyframe_pose(initial.second.keyframe)
     }
 
     /// Start tracking on a new initial map: both frames are recorded at
@@ -575,12 +784,14 @@ impl Tracker {
         }
         self.state = TrackState::Tracking;
         self.last_reason = None;
+        self.initializer.set_need_gnss_baseline(false);
         for f in [initial.first, initial.second] {
             self.records.push(FrameRecord {
                 index: f.index,
                 timestamp: f.timestamp,
                 reference: f.keyframe,
                 cam_from_ref: Isometry3::identity(),
+                source: PoseSource::Vision,
             });
         }
         let inliers = initial.matches.len();
@@ -592,10 +803,12 @@ impl Tracker {
         self.velocity = None;
         self.reference_kf = Some(initial.second.keyframe);
         self.last_kf_frame = initial.second.index;
+        self.anchor = None;
         Tracked {
             cam_from_world: initial.cam_from_world,
             inliers,
             new_keyframe: Some(initial.second.keyframe),
+            source: PoseSource::Vision,
         }
     }
 
@@ -617,12 +830,55 @@ impl Tracker {
             if let Some(v) = &mut self.velocity {
                 v.translation.vector *= k;
             }
+            if let Some(a) = &mut self.anchor {
+                a.scale(k);
+            }
         }
         self.follow_merges(map);
         if map.corrections() != self.corrections_seen {
             self.corrections_seen = map.corrections();
             self.follow_correction(map);
         }
+        // The telemetry's prediction of this frame, when vision may need it.
+        let sample = self.aid.as_ref().and_then(|a| a.sample(frame.timestamp));
+        let prediction = match (&self.aid, &self.anchor, &sample) {
+            (Some(aid), Some(anchor), Some(now)) if self.state == TrackState::Tracking => {
+                aided::predict(&aid.params, map, anchor, now)
+            }
+            _ => None,
+        };
+        match self.track_vision(map, frame, prediction.is_none()) {
+            Ok((cam_from_world, inliers, recently_relocalized)) => Ok(self.accept(
+                map,
+                frame,
+                Accepted {
+                    cam_from_world,
+                    inliers,
+                    source: PoseSource::Vision,
+                    recently_relocalized,
+                    sample,
+                },
+                mapping_idle,
+            )),
+            Err(failure) => {
+                let Some(prediction) = prediction else {
+                    return Err(failure);
+                };
+                Ok(self.track_aided(map, frame, prediction, sample, mapping_idle))
+            }
+        }
+    }
+
+    /// Vision alone: the motion model, the reference keyframe, then (when
+    /// `relocalise`, or not tracking) relocalisation, then the local map.
+    /// The pose, its inliers and whether the frame is soon after a
+    /// relocalisation.
+    fn track_vision(
+        &mut self,
+        map: &mut Map,
+        frame: &mut Frame,
+        relocalise: bool,
+    ) -> Result<(Isometry3<f64>, usize, bool), TrackFailure> {
         let mut cam_from_world: Option<Isometry3<f64>> = None;
         if self.state == TrackState::Tracking {
             if let (Some(v), Some(last)) = (self.velocity, self.last.as_ref()) {
@@ -633,7 +889,7 @@ impl Tracker {
                 cam_from_world = self.track_reference_keyframe(map, frame);
             }
         }
-        if cam_from_world.is_none() {
+        if cam_from_world.is_none() && (relocalise || self.state != TrackState::Tracking) {
             cam_from_world =
                 relocalize(&self.ctx, &mut self.marks, map, frame).map(|fit| fit.cam_from_world);
             if cam_from_world.is_some() {
@@ -664,13 +920,19 @@ impl Tracker {
         let just_relocalized = self
             .last_reloc_frame
             .is_some_and(|r| frame.index < r + JUST_RELOCALIZED_FRAMES);
+        let radius = if just_relocalized {
+            p.local_map_radius_after_reloc
+        } else {
+            p.local_map_radius
+        };
         let local = self.local_map.track(
             &self.ctx,
             &mut self.marks,
             map,
             frame,
             cam_from_world,
-            just_relocalized,
+            radius,
+            None,
         );
         if let Some(best) = local.reference {
             self.reference_kf = Some(best);
@@ -691,12 +953,126 @@ impl Tracker {
                 needed,
             });
         }
+        Ok((cam_from_world, inliers, recently_relocalized))
+    }
+
+    /// Vision failed and the telemetry predicts the frame: the local map
+    /// searched around the prediction, the pose optimised with it as a
+    /// prior (vision + telemetry), or the prediction itself when vision
+    /// finds too little (telemetry).
+    fn track_aided(
+        &mut self,
+        map: &mut Map,
+        frame: &mut Frame,
+        prediction: aided::Prediction,
+        sample: Option<TelemetrySample>,
+        mapping_idle: bool,
+    ) -> Tracked {
+        let params = self
+            .aid
+            .as_ref()
+            .map(|a| a.params.clone())
+            .unwrap_or_default();
+        frame.clear_matches();
+        frame.prior = Some(prediction.prior);
+        let predicted = prediction.prior.cam_from_world;
+        let local = self.local_map.track(
+            &self.ctx,
+            &mut self.marks,
+            map,
+            frame,
+            predicted,
+            params.search_radius,
+            self.reference_kf,
+        );
+        let fit = local.fit.filter(|f| f.inliers >= params.min_inliers);
+        if fit.is_some()
+            && let Some(best) = local.reference
+        {
+            self.reference_kf = Some(best);
+        }
+        let accepted = match fit {
+            Some(fit) => Accepted {
+                cam_from_world: fit.cam_from_world,
+                inliers: fit.inliers,
+                source: PoseSource::VisionTelemetry,
+                recently_relocalized: false,
+                sample,
+            },
+            None => {
+                frame.clear_matches();
+                Accepted {
+                    cam_from_world: predicted,
+                    inliers: 0,
+                    source: PoseSource::Telemetry,
+                    recently_relocalized: false,
+                    sample,
+                }
+            }
+        };
+        // How far the telemetry's prediction is from the constant-velocity
+        // model's (for the logs).
+        let (turn_deg, moved) = match (&self.velocity, &self.last) {
+            (Some(v), Some(l)) => {
+                let cv = v * l.cam_from_world;
+                (
+                    (cv.rotation.inverse() * predicted.rotation)
+                        .angle()
+                        .to_degrees(),
+                    (cv.inverse().translation.vector - predicted.inverse().translation.vector)
+                        .norm(),
+                )
+            }
+            _ => (f64::NAN, f64::NAN),
+        };
+        tracing::debug!(
+            frame = frame.index,
+            source = accepted.source.name(),
+            inliers = accepted.inliers,
+            local_inliers = local.fit.map_or(0, |f| f.inliers),
+            gnss = prediction.from_gnss,
+            turn_from_velocity_deg = turn_deg,
+            anchor = self.anchor.as_ref().map_or(0, |a| a.record.index),
+            turn_from_anchor_deg = self
+                .anchor
+                .as_ref()
+                .and_then(|a| a.cam_from_world(map))
+                .map_or(f64::NAN, |a| (a.rotation.inverse() * predicted.rotation)
+                    .angle()
+                    .to_degrees()),
+            velocity_turn_deg = self
+                .velocity
+                .map_or(f64::NAN, |v| v.rotation.angle().to_degrees()),
+            off_velocity = moved,
+            "frame posed with the telemetry's help"
+        );
+        self.accept(map, frame, accepted, mapping_idle)
+    }
+
+    /// A frame posed: the motion model, the keyframe decision (only for a
+    /// frame vision supports), its record, the last frame, and (for one
+    /// vision posed) the telemetry's anchor.
+    fn accept(
+        &mut self,
+        map: &mut Map,
+        frame: &mut Frame,
+        a: Accepted,
+        mapping_idle: bool,
+    ) -> Tracked {
+        let Accepted {
+            cam_from_world,
+            inliers,
+            source,
+            recently_relocalized,
+            sample,
+        } = a;
         // Motion model.
         if let Some(last) = &self.last {
             self.velocity = Some(renormalized(cam_from_world * last.cam_from_world.inverse()));
         }
         let reference = self.reference_kf.unwrap_or(KeyFrameId(0));
         let mut new_keyframe = None;
+        let p = &self.ctx.params;
         let candidate = KeyFrameCandidate {
             frame_index: frame.index,
             last_keyframe_frame: self.last_kf_frame,
@@ -705,7 +1081,11 @@ impl Tracker {
             recently_relocalized,
             reference: self.reference_kf,
         };
-        if self.masked_share <= p.max_masked_share && need_new_keyframe(p, map, &candidate) {
+        let supported = source == PoseSource::Vision || inliers >= p.min_tracked_inliers;
+        if supported
+            && self.masked_share <= p.max_masked_share
+            && need_new_keyframe(p, map, &candidate)
+        {
             let id = self.insert_keyframe(map, frame, cam_from_world);
             self.reference_kf = Some(id);
             self.last_kf_frame = frame.index;
@@ -715,22 +1095,50 @@ impl Tracker {
         let ref_from_world = map
             .keyframe(reference)
             .map_or(cam_from_world, |k| k.cam_from_world);
-        self.records.push(FrameRecord {
+        let record = FrameRecord {
             index: frame.index,
             timestamp: frame.timestamp,
             reference,
             cam_from_ref: cam_from_world * ref_from_world.inverse(),
-        });
+            source,
+        };
+        self.records.push(record);
+        if source == PoseSource::Telemetry {
+            frame.clear_matches();
+        } else {
+            self.anchor = sample.map(|sample| {
+                let velocity_cam = self.anchor.as_ref().and_then(|old| {
+                    let dt = frame.timestamp - old.record.timestamp;
+                    let before = old.cam_from_world(map)?;
+                    let moved = cam_from_world.inverse().translation.vector
+                        - before.inverse().translation.vector;
+                    (dt > 0.0).then(|| cam_from_world.rotation * (moved / dt))
+                });
+                Anchor {
+                    record,
+                    sample,
+                    velocity_cam,
+                }
+            });
+        }
+        tracing::trace!(
+            frame = frame.index,
+            source = source.name(),
+            inliers,
+            keyframe = new_keyframe.map(|k| k.0),
+            "frame posed"
+        );
         self.last = Some(LastFrame {
             keypoints: frame.keypoints.clone(),
             matches: frame.matches(),
             cam_from_world,
         });
-        Ok(Tracked {
+        Tracked {
             cam_from_world,
             inliers,
             new_keyframe,
-        })
+            source,
+        }
     }
 
     /// A loop correction moved the keyframes: the last frame follows its

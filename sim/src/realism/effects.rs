@@ -232,6 +232,24 @@ pub struct GpsError {
     pub fusion_tau_s: f64,
 }
 
+/// The attitude the autopilot's estimator (AHRS) and the gimbal report
+/// against the camera's true one: a slow error (Gauss-Markov per axis:
+/// roll and pitch of `tilt_sigma_deg`, heading of `yaw_sigma_deg`, which
+/// the magnetometer leaves larger) plus fast noise. It touches only what
+/// is reported (a rendered dataset's `telemetry.txt`), never the pose the
+/// images are rendered from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AhrsError {
+    /// Slow roll and pitch error, degrees sigma per axis.
+    pub tilt_sigma_deg: f64,
+    /// Slow heading error, degrees sigma.
+    pub yaw_sigma_deg: f64,
+    /// Correlation time of the slow errors, s.
+    pub tau_s: f64,
+    /// Fast noise, degrees sigma per axis (correlation time 0.5 s).
+    pub noise_deg: f64,
+}
+
 /// Losses of the GNSS fix: they start as a Poisson process, last an
 /// exponentially distributed time, and while the fix is lost the position
 /// estimate drifts as a random walk (GPS_RAW_INT reports no fix and
@@ -291,6 +309,8 @@ pub struct VehicleRealism {
     pub gps_dropouts: Option<GpsDropouts>,
     /// `baro`.
     pub baro: Option<BaroDrift>,
+    /// `ahrs`.
+    pub ahrs: Option<AhrsError>,
     /// `telemetry`.
     pub telemetry: Option<Telemetry>,
     /// `video_latency`.

@@ -37,6 +37,7 @@
 //! | `gps` | GNSS error: a slow bias (Gauss-Markov, through the estimator's fusion) and fast noise | sigmas, correlation times, fusion time constant |
 //! | `gps_dropouts` | occasional losses of the GNSS fix | mean interval and duration, drift while lost |
 //! | `baro` | barometric altitude drift | drift rate |
+//! | `ahrs` | the reported attitude's error (autopilot estimator and gimbal): slow per axis plus fast noise; the rendered pose is untouched | tilt and heading sigmas, correlation time, noise |
 //! | `telemetry` | telemetry at a real autopilot's stream rates over a lossy radio | PX4 stream rates; drop probability, latency, baud |
 //! | `video_latency` | a video latency that varies | mean, deviation, correlation time |
 //!
@@ -100,6 +101,11 @@
 //!   a fix lost for 3 s every 10 minutes on average.
 //! - Barometer: drift of the pressure altitude with the weather, 1 hPa in
 //!   about 3 hours (8 m), about 0.05 m per minute.
+//! - Attitude report (AHRS and gimbal): roll and pitch 0.3 degrees, heading
+//!   1.5 degrees (a magnetometer-aided heading in a calm field), slow
+//!   errors with a 60 s correlation time, plus 0.05 degrees of noise
+//!   (ArduPilot's and PX4's EKF attitude accuracy on a small multicopter
+//!   is quoted at 0.1-0.5 degrees in tilt and 1-3 degrees in heading).
 //! - Telemetry: PX4's default stream rates on a telemetry radio
 //!   (MAVLINK_MODE_NORMAL in `src/modules/mavlink/mavlink_main.cpp`:
 //!   ATTITUDE 15 Hz, GLOBAL_POSITION_INT 5 Hz, GPS_RAW_INT 1 Hz,
@@ -115,7 +121,8 @@
 //! digital link such as OpenIPC / wfb-ng lowers its encoder's bitrate at
 //! the edge of its range); rolling-shutter readout 33 ms; gimbal jitter 0.05 and
 //! error 0.3 degrees; a u-blox M8-class 2.5 m CEP GNSS losing its fix for
-//! 5 s every 2 minutes; barometer drift 0.2 m per minute; the radio
+//! 5 s every 2 minutes; barometer drift 0.2 m per minute; attitude report
+//! errors 0.6 degrees in tilt and 3 degrees in heading, 0.1 of noise; the radio
 //! losing 10 % with 50 ms latency; video latency 300 ± 80 ms.
 //!
 //! # Files
@@ -131,9 +138,9 @@ mod sun;
 mod validate;
 
 pub use effects::{
-    AutoExposure, BaroDrift, CameraRealism, Compression, GimbalError, GpsDropouts, GpsError,
-    LightingRealism, MotionBlur, PX4_NORMAL_STREAMS, Photometry, RollingShutter, SensorNoise,
-    SunTime, Telemetry, VehicleRealism, VideoLatency, Vignetting, Wind,
+    AhrsError, AutoExposure, BaroDrift, CameraRealism, Compression, GimbalError, GpsDropouts,
+    GpsError, LightingRealism, MotionBlur, PX4_NORMAL_STREAMS, Photometry, RollingShutter,
+    SensorNoise, SunTime, Telemetry, VehicleRealism, VideoLatency, Vignetting, Wind,
 };
 pub use sun::{clear_sky_illuminance_lux, sun_position};
 
@@ -178,7 +185,7 @@ pub enum RealismError {
 pub const PRESETS: [&str; 3] = ["ideal", "field", "harsh"];
 
 /// Every effect's short name, in documentation order.
-pub const EFFECTS: [&str; 15] = [
+pub const EFFECTS: [&str; 16] = [
     "blur",
     "rolling_shutter",
     "auto_exposure",
@@ -192,6 +199,7 @@ pub const EFFECTS: [&str; 15] = [
     "gps",
     "gps_dropouts",
     "baro",
+    "ahrs",
     "telemetry",
     "video_latency",
 ];
@@ -289,6 +297,7 @@ impl Realism {
             "gps" => self.vehicle.gps = src.vehicle.gps,
             "gps_dropouts" => self.vehicle.gps_dropouts = src.vehicle.gps_dropouts,
             "baro" => self.vehicle.baro = src.vehicle.baro,
+            "ahrs" => self.vehicle.ahrs = src.vehicle.ahrs,
             "telemetry" => self.vehicle.telemetry = src.vehicle.telemetry.clone(),
             "video_latency" => self.vehicle.video_latency = src.vehicle.video_latency,
             other => {
@@ -331,6 +340,7 @@ impl Realism {
             v.gps.is_some(),
             v.gps_dropouts.is_some(),
             v.baro.is_some(),
+            v.ahrs.is_some(),
             v.telemetry.is_some(),
             v.video_latency.is_some(),
         ];

@@ -2,9 +2,9 @@
 
 use super::Realism;
 use super::effects::{
-    AutoExposure, BaroDrift, CameraRealism, Compression, GimbalError, GpsDropouts, GpsError,
-    LightingRealism, MotionBlur, PX4_NORMAL_STREAMS, Photometry, RollingShutter, SensorNoise,
-    SunTime, Telemetry, VehicleRealism, VideoLatency, Vignetting, Wind,
+    AhrsError, AutoExposure, BaroDrift, CameraRealism, Compression, GimbalError, GpsDropouts,
+    GpsError, LightingRealism, MotionBlur, PX4_NORMAL_STREAMS, Photometry, RollingShutter,
+    SensorNoise, SunTime, Telemetry, VehicleRealism, VideoLatency, Vignetting, Wind,
 };
 use crate::render::CloudShadows;
 
@@ -32,6 +32,7 @@ impl Realism {
                 gps: None,
                 gps_dropouts: None,
                 baro: None,
+                ahrs: None,
                 telemetry: None,
                 video_latency: None,
             },
@@ -112,6 +113,12 @@ impl Realism {
                 baro: Some(BaroDrift {
                     rate_m_per_min: 0.05,
                 }),
+                ahrs: Some(AhrsError {
+                    tilt_sigma_deg: 0.3,
+                    yaw_sigma_deg: 1.5,
+                    tau_s: 60.0,
+                    noise_deg: 0.05,
+                }),
                 telemetry: Some(Telemetry {
                     stream_intervals: PX4_NORMAL_STREAMS.to_vec(),
                     drop: 0.02,
@@ -178,6 +185,12 @@ impl Realism {
         });
         v.baro = Some(BaroDrift {
             rate_m_per_min: 0.2,
+        });
+        v.ahrs = Some(AhrsError {
+            tilt_sigma_deg: 0.6,
+            yaw_sigma_deg: 3.0,
+            tau_s: 60.0,
+            noise_deg: 0.1,
         });
         v.telemetry = Some(Telemetry {
             stream_intervals: PX4_NORMAL_STREAMS.to_vec(),

@@ -203,6 +203,20 @@ impl Realism {
                 "positive interval and duration",
             );
         }
+        if let Some(a) = &v.ahrs {
+            for (name, x) in [
+                ("ahrs.tilt_sigma_deg", a.tilt_sigma_deg),
+                ("ahrs.yaw_sigma_deg", a.yaw_sigma_deg),
+                ("ahrs.noise_deg", a.noise_deg),
+            ] {
+                if !(0.0..=20.0).contains(&x) {
+                    return bad(name, x, "[0, 20] degrees");
+                }
+            }
+            if !(a.tau_s > 0.0 && a.tau_s.is_finite()) {
+                return bad("ahrs.tau_s", a.tau_s, "> 0 s");
+            }
+        }
         if let Some(t) = &v.telemetry {
             if !(0.0..=1.0).contains(&t.drop) {
                 return bad("telemetry.drop", t.drop, "[0, 1]");

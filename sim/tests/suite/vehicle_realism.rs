@@ -1,14 +1,15 @@
 //! The vehicle and telemetry effects of realism, each measured: the wind's
 //! position-hold error, the gimbal's pointing error, GNSS noise and fix
 //! losses, barometric drift, and the autopilot's telemetry at PX4's rates
-//! with the fix losses visible in GPS_RAW_INT and GLOBAL_POSITION_INT.
+//! with the fix losses visible in GPS_RAW_INT and GLOBAL_POSITION_INT, and
+//! the reported attitude's error.
 
 use mavlink::Message;
 use mavlink::dialects::common::{GpsFixType, MavMessage};
 use nalgebra::Vector3;
 use shotpilot_sim::autopilot::{Autopilot, AutopilotParams};
 use shotpilot_sim::realism::{BaroDrift, GpsDropouts, Realism};
-use shotpilot_sim::vehicle::{Setpoint, Vehicle, VehicleDisturbances, VehicleParams};
+use shotpilot_sim::vehicle::{SensorErrors, Setpoint, Vehicle, VehicleDisturbances, VehicleParams};
 
 const DT: f64 = 0.02;
 
@@ -282,4 +283,44 @@ fn telemetry_runs_at_px4_rates_and_reports_fix_losses() {
             assert_eq!(d.fix_type, expected);
         }
     }
+}
+
+/// The reported attitude's error (`ahrs`): none in `ideal`; in `field` a
+/// slow heading error of about its 1.5 degrees and a tilt error of about
+/// its 0.3 over ten minutes, moving under 0.1 degrees between two frames (what the
+/// SLAM's telemetry aid relies on: the turn between frames is reported far
+/// better than the attitude itself).
+#[test]
+fn the_reported_attitude_errs_slowly_by_its_sigmas() {
+    let ideal = SensorErrors::new(&VehicleDisturbances::from_realism(
+        &Realism::parse("ideal").unwrap(),
+        7,
+    ));
+    assert_eq!(ideal.attitude_error_deg(), Vector3::zeros());
+    let field = Realism::parse("field").unwrap();
+    let mut yaw = Vec::new();
+    let mut tilt = Vec::new();
+    let mut step_yaw = Vec::new();
+    for seed in 0..4 {
+        let mut s = SensorErrors::new(&VehicleDisturbances::from_realism(&field, seed));
+        let dt = 1.0 / 15.0;
+        let mut last = s.attitude_error_deg();
+        for k in 1..=(600.0 / dt) as usize {
+            s.step(k as f64 * dt, dt);
+            let e = s.attitude_error_deg();
+            if k as f64 * dt > 120.0 {
+                yaw.push(e.z);
+                tilt.push(e.x);
+                tilt.push(e.y);
+                step_yaw.push(e.z - last.z);
+            }
+            last = e;
+        }
+    }
+    let (y, t, d) = (rms(&yaw), rms(&tilt), rms(&step_yaw));
+    println!("heading error rms {y:.2} deg, tilt {t:.2} deg, frame to frame {d:.3} deg");
+    assert!((0.8..2.4).contains(&y), "heading {y}");
+    assert!((0.15..0.5).contains(&t), "tilt {t}");
+    // The slow error walks 1.5 * sqrt(2 dt / 60 s) = 0.07 degrees a frame.
+    assert!(d < 0.1, "frame to frame {d}");
 }

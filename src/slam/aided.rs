@@ -1,0 +1,642 @@
+//! Telemetry-aided tracking (issue 35, point 2): when vision cannot pose a
+//! frame on its own (ground with little texture: grass, water), the
+//! telemetry predicts it from the last frame vision posed, the *anchor*:
+//!
+//! - the turn from the camera's reported attitude, relative between the
+//!   anchor and the frame (`ned_from_cam` of both), so the attitude's slow
+//!   error (a heading off by degrees) cancels and only its change over the
+//!   gap counts;
+//! - the move from the GNSS displacement between the two when the map is in
+//!   local NED ([`MapMode::GpsAided`]), again relative (the receiver's bias
+//!   is common to both), else from the camera's velocity over the last
+//!   vision frames.
+//!
+//! The local map is then searched around that prediction, and the pose
+//! optimised on what vision found with the prediction as a prior
+//! ([`crate::optimize::PosePrior`], its sigmas growing with the gap).
+//! With enough inliers the frame is posed by *vision + telemetry*, else by
+//! *telemetry* alone (the prediction). Keyframes are only made from frames
+//! vision supports ([`super::TrackingParams::min_tracked_inliers`]), and a
+//! gap longer than [`AidParams::max_gap_s`] is a loss as before. Each frame
+//! says which it was ([`PoseSource`]).
+//!
+//! The same relative motion decides what vision alone cannot over flat
+//! ground: which of a planar pair's two reconstructions is the real one
+//! ([`RelativeMotion`], [`super::planar::telemetry_choice`]).
+
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+use crate::optimize::PosePrior;
+
+use super::map::{Map, MapMode};
+use super::priors::{TelemetryFeed, TelemetrySample};
+use super::tracking::FrameRecord;
+
+/// How a frame's pose was found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseSource {
+    /// By vision alone (the motion model, the reference keyframe or
+    /// relocalisation, then the local map).
+    Vision,
+    /// By the local map searched around the telemetry's prediction, with
+    /// the prediction as a prior.
+    VisionTelemetry,
+    /// By the telemetry's prediction alone (vision found too little).
+    Telemetry,
+}
+
+impl PoseSource {
+    /// Its name in logs and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            PoseSource::Vision => "vision",
+            PoseSource::VisionTelemetry => "vision+telemetry",
+            PoseSource::Telemetry => "telemetry",
+        }
+    }
+}
+
+/// Tunables of telemetry-aided tracking.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AidParams {
+    /// A frame takes the telemetry sample nearest its time within this, s.
+    pub max_dt_s: f64,
+    /// Else the two samples around it when at most this far apart, s
+    /// (telemetry slower than the video).
+    pub interpolate_gap_s: Option<f64>,
+    /// Longest time since the anchor the telemetry may pose frames for, s;
+    /// beyond it tracking is lost as without the aid.
+    pub max_gap_s: f64,
+    /// Standard deviation of the reported attitude's change between two
+    /// samples close in time, degrees (its noise).
+    pub rotation_sigma_deg: f64,
+    /// Growth of that deviation with the time since the anchor, degrees
+    /// per square root of a second (the slow error's walk).
+    pub rotation_walk_deg_per_sqrt_s: f64,
+    /// Standard deviation of the reported attitude itself, degrees (the
+    /// heading's, mostly): the direction of travel in the camera's axes
+    /// carries it.
+    pub attitude_sigma_deg: f64,
+    /// Standard deviation of the GNSS displacement between two fixes close
+    /// in time, m (the receiver's noise).
+    pub position_sigma_m: f64,
+    /// Its growth with the time since the anchor, m per square root of a
+    /// second (the bias's walk, and the velocity's error without a fix).
+    pub position_walk_m_per_sqrt_s: f64,
+    /// Longest the telemetry may pose frames without the GNSS (a map not in
+    /// local NED, or no fix), s: the camera's velocity then carries the
+    /// move, and its error grows with the square of the gap.
+    pub max_gap_without_gnss_s: f64,
+    /// A new map started after vision was lost is put into the old one at
+    /// once by the telemetry (the map in local NED) when the old map's last
+    /// vision pose is at most this old, s.
+    pub max_place_gap_s: f64,
+    /// A new map is put into the old one only over a GNSS baseline (between
+    /// its two initialisation frames) of this many of the displacement's
+    /// sigmas: the scale's error is about one over it.
+    pub min_place_baseline_sigmas: f64,
+    /// Vision inliers a frame needs to be posed by vision + telemetry
+    /// rather than by the telemetry alone.
+    pub min_inliers: usize,
+    /// Search radius of the local map's points around the prediction,
+    /// pixels at level 0.
+    pub search_radius: f64,
+}
+
+impl Default for AidParams {
+    fn default() -> Self {
+        AidParams {
+            max_dt_s: 0.05,
+            interpolate_gap_s: Some(0.5),
+            max_gap_s: 10.0,
+            max_gap_without_gnss_s: 1.0,
+            max_place_gap_s: 60.0,
+            min_place_baseline_sigmas: 20.0,
+            rotation_sigma_deg: 0.1,
+            rotation_walk_deg_per_sqrt_s: 0.3,
+            attitude_sigma_deg: 2.0,
+            position_sigma_m: 0.05,
+            position_walk_m_per_sqrt_s: 0.1,
+            min_inliers: 12,
+            search_radius: 15.0,
+        }
+    }
+}
+
+impl AidParams {
+    /// Checks the numbers; the error names the first bad one.
+    pub fn check(&self) -> Result<(), String> {
+        let positive = [
+            ("max_dt_s", self.max_dt_s),
+            ("max_gap_s", self.max_gap_s),
+            ("max_gap_without_gnss_s", self.max_gap_without_gnss_s),
+            ("max_place_gap_s", self.max_place_gap_s),
+            ("min_place_baseline_sigmas", self.min_place_baseline_sigmas),
+            ("search_radius", self.search_radius),
+        ];
+        for (name, v) in positive {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(format!("{name} must be positive, not {v}"));
+            }
+        }
+        let non_negative = [
+            ("rotation_sigma_deg", self.rotation_sigma_deg),
+            (
+                "rotation_walk_deg_per_sqrt_s",
+                self.rotation_walk_deg_per_sqrt_s,
+            ),
+            ("attitude_sigma_deg", self.attitude_sigma_deg),
+            ("position_sigma_m", self.position_sigma_m),
+            (
+                "position_walk_m_per_sqrt_s",
+                self.position_walk_m_per_sqrt_s,
+            ),
+        ];
+        for (name, v) in non_negative {
+            if !(v >= 0.0 && v.is_finite()) {
+                return Err(format!("{name} must be zero or more, not {v}"));
+            }
+        }
+        if let Some(g) = self.interpolate_gap_s
+            && !(g > 0.0 && g.is_finite())
+        {
+            return Err(format!("interpolate_gap_s must be positive, not {g}"));
+        }
+        if self.min_inliers < 3 {
+            return Err(format!(
+                "min_inliers must be at least 3, not {}",
+                self.min_inliers
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The telemetry tracking is aided by, and its tunables.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TelemetryAid {
+    /// Tunables.
+    pub params: AidParams,
+    /// The telemetry (a dataset's log, or the daemon's live feed).
+    pub feed: TelemetryFeed,
+}
+
+impl TelemetryAid {
+    /// Aid from `feed` with the default tunables.
+    pub fn new(feed: TelemetryFeed) -> Self {
+        TelemetryAid {
+            params: AidParams::default(),
+            feed,
+        }
+    }
+
+    /// The sample at `t` with an attitude, if any.
+    pub(super) fn sample(&self, t: f64) -> Option<TelemetrySample> {
+        self.feed
+            .sample_at(t, self.params.max_dt_s, self.params.interpolate_gap_s)
+            .filter(|s| s.ned_from_cam.is_some())
+    }
+}
+
+/// The motion between two frames as the telemetry reports it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RelativeMotion {
+    /// `cam2 ← cam1` from the two reported attitudes.
+    pub rotation: UnitQuaternion<f64>,
+    /// Its standard deviation, radians.
+    pub rotation_sigma: f64,
+    /// The direction of camera 2's centre in camera 1's axes, from the
+    /// GNSS displacement (`None`: no fix at one of them, or a displacement
+    /// within the receiver's noise).
+    pub direction: Option<Vector3<f64>>,
+    /// Standard deviation of the direction, radians.
+    pub direction_sigma: f64,
+}
+
+impl TelemetryAid {
+    /// Standard deviation of the GNSS displacement over `dt` seconds, m.
+    fn displacement_sigma(&self, dt: f64) -> f64 {
+        let p = &self.params;
+        (2.0 * p.position_sigma_m.powi(2) + p.position_walk_m_per_sqrt_s.powi(2) * dt.abs()).sqrt()
+    }
+
+    /// The GNSS baseline a new map needs between two frames `dt` apart to
+    /// be put into the old one, m ([`AidParams::min_place_baseline_sigmas`]).
+    pub fn place_baseline_m(&self, dt: f64) -> f64 {
+        self.params.min_place_baseline_sigmas * self.displacement_sigma(dt)
+    }
+
+    /// The GNSS displacement between times `t1` and `t2`, m (`None`: no
+    /// fix at one of them).
+    pub fn gnss_displacement(&self, t1: f64, t2: f64) -> Option<f64> {
+        let (a, b) = (self.sample(t1)?, self.sample(t2)?);
+        (a.fix && b.fix).then(|| (b.gps_ned - a.gps_ned).norm())
+    }
+
+    /// The reported motion from time `t1` to `t2`, when both have an
+    /// attitude.
+    pub fn relative_motion(&self, t1: f64, t2: f64) -> Option<RelativeMotion> {
+        let (a, b) = (self.sample(t1)?, self.sample(t2)?);
+        let (qa, qb) = (a.ned_from_cam?, b.ned_from_cam?);
+        let p = &self.params;
+        let dt = (t2 - t1).abs();
+        let rotation_sigma = (p.rotation_sigma_deg.powi(2)
+            + p.rotation_walk_deg_per_sqrt_s.powi(2) * dt)
+            .sqrt()
+            .to_radians();
+        let pos_sigma = self.displacement_sigma(dt);
+        let d = b.gps_ned - a.gps_ned;
+        let known = a.fix && b.fix && d.norm() > DIRECTION_MIN_SIGMAS * pos_sigma;
+        Some(RelativeMotion {
+            rotation: qb.inverse() * qa,
+            rotation_sigma,
+            direction: known.then(|| (qa.inverse() * d).normalize()),
+            direction_sigma: (pos_sigma / d.norm().max(1e-9))
+                .atan()
+                .hypot(p.attitude_sigma_deg.to_radians()),
+        })
+    }
+}
+
+/// A GNSS displacement gives a direction once it is this many of its
+/// sigmas long.
+const DIRECTION_MIN_SIGMAS: f64 = 4.0;
+
+/// The last frame vision posed, which predictions start from.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Anchor {
+    /// Its record (the pose relative to its reference keyframe, so it
+    /// follows what mapping and loop closing do to the keyframe).
+    pub record: FrameRecord,
+    /// Its telemetry sample (with an attitude).
+    pub sample: TelemetrySample,
+    /// The camera's velocity over the last vision frames, in the anchor's
+    /// camera axes, map units per second (`None`: not known yet).
+    pub velocity_cam: Option<Vector3<f64>>,
+}
+
+impl Anchor {
+    /// Scale what is in map units by `k` (the map was scaled).
+    pub fn scale(&mut self, k: f64) {
+        self.record.cam_from_ref.translation.vector *= k;
+        if let Some(v) = &mut self.velocity_cam {
+            *v *= k;
+        }
+    }
+
+    /// The anchor's `cam_from_world` in the map as it stands.
+    pub fn cam_from_world(&self, map: &Map) -> Option<Isometry3<f64>> {
+        map.keyframe_pose(self.record.reference)
+            .map(|ref_pose| self.record.cam_from_ref * ref_pose)
+    }
+}
+
+/// A frame's pose as the telemetry predicts it.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Prediction {
+    /// The predicted `cam_from_world` with its uncertainty.
+    pub prior: PosePrior,
+    /// Whether the move came from the GNSS (else from the velocity).
+    pub from_gnss: bool,
+}
+
+/// Predict the frame at `now` from `anchor` (see the module
+/// documentation); `None` when the gap is too long, the anchor's keyframe
+/// is gone, or neither the GNSS nor a velocity gives the move.
+pub(super) fn predict(
+    params: &AidParams,
+    map: &Map,
+    anchor: &Anchor,
+    now: &TelemetrySample,
+) -> Option<Prediction> {
+    let dt = now.t - anchor.sample.t;
+    if !(dt >= 0.0 && dt <= params.max_gap_s) {
+        return None;
+    }
+    let anchor_pose = anchor.cam_from_world(map)?;
+    let (q_now, q_anchor) = (now.ned_from_cam?, anchor.sample.ned_from_cam?);
+    // cam_now ← cam_anchor from the two reported attitudes.
+    let turn = q_now.inverse() * q_anchor;
+    let rotation = turn * anchor_pose.rotation;
+    let world_from_anchor = anchor_pose.inverse();
+    let centre_anchor = world_from_anchor.translation.vector;
+    let in_ned = map.mode() == MapMode::GpsAided;
+    let (centre, from_gnss) = if in_ned && now.fix && anchor.sample.fix {
+        (centre_anchor + (now.gps_ned - anchor.sample.gps_ned), true)
+    } else if dt <= params.max_gap_without_gnss_s {
+        let v = anchor.velocity_cam?;
+        (centre_anchor + world_from_anchor.rotation * (v * dt), false)
+    } else {
+        return None;
+    };
+    let cam_from_world = Isometry3::from_parts(Translation3::from(-(rotation * centre)), rotation);
+    let rot_sigma = (params.rotation_sigma_deg.powi(2)
+        + params.rotation_walk_deg_per_sqrt_s.powi(2) * dt)
+        .sqrt()
+        .to_radians();
+    // A position prior only in metres: in a vision-only map the velocity's
+    // scale is the map's own and its error unknown.
+    let pos_sigma = in_ned.then(|| {
+        (params.position_sigma_m.powi(2) + params.position_walk_m_per_sqrt_s.powi(2) * dt).sqrt()
+    });
+    Some(Prediction {
+        prior: PosePrior::isotropic(cam_from_world, pos_sigma, rot_sigma),
+        from_gnss,
+    })
+}
+
+/// The similarity (old map's world ← new map's world) that puts a new map,
+/// initialised from frames at `t1` (its first keyframe, pose `new1`) and
+/// `t2` (`new2`), where the telemetry says those frames were relative to
+/// the old map's `anchor`: the turn from the reported attitudes, the
+/// moves and the scale from the GNSS displacements. Only for a map in
+/// local NED (the GNSS displacement is then in map units), an anchor at
+/// most [`AidParams::max_place_gap_s`] old, fixes at all three, and a
+/// baseline between the two frames long enough for the scale
+/// ([`DIRECTION_MIN_SIGMAS`] of its noise). The reason when not.
+pub(super) fn place_new_map(
+    aid: &TelemetryAid,
+    map: &Map,
+    anchor: &Anchor,
+    (t1, new1): (f64, &Isometry3<f64>),
+    (t2, new2): (f64, &Isometry3<f64>),
+) -> Result<crate::lie::Sim3, &'static str> {
+    let p = &aid.params;
+    if map.mode() != MapMode::GpsAided {
+        return Err("the map is not in local NED yet");
+    }
+    let age = t2 - anchor.sample.t;
+    if !(age >= 0.0 && age <= p.max_place_gap_s) {
+        return Err("the last vision pose of the old map is too old");
+    }
+    let old = anchor
+        .cam_from_world(map)
+        .ok_or("the anchor's keyframe is gone")?;
+    let (s1, s2) = (
+        aid.sample(t1).ok_or("no attitude at the first frame")?,
+        aid.sample(t2).ok_or("no attitude at the second frame")?,
+    );
+    if !(s1.fix && s2.fix && anchor.sample.fix) {
+        return Err("no GNSS fix");
+    }
+    let q_anchor = anchor
+        .sample
+        .ned_from_cam
+        .ok_or("no attitude at the anchor")?;
+    let centre_old = old.inverse().translation.vector;
+    // Where the old map's world has each frame: turned and moved from the
+    // anchor by the telemetry.
+    let place = |s: &TelemetrySample| -> Option<(UnitQuaternion<f64>, Vector3<f64>)> {
+        let turn = s.ned_from_cam?.inverse() * q_anchor;
+        let cam_from_world = turn * old.rotation;
+        Some((
+            cam_from_world.inverse(),
+            centre_old + (s.gps_ned - anchor.sample.gps_ned),
+        ))
+    };
+    let ((w1, c1), (w2, c2)) = (
+        place(&s1).ok_or("no attitude")?,
+        place(&s2).ok_or("no attitude")?,
+    );
+    let baseline_old = (c2 - c1).norm();
+    let (n1, n2) = (new1.inverse(), new2.inverse());
+    let baseline_new = (n2.translation.vector - n1.translation.vector).norm();
+    if baseline_old < aid.place_baseline_m(t2 - t1) || baseline_new <= 0.0 {
+        return Err("the GNSS baseline between the two frames is too short for the scale");
+    }
+    let scale = baseline_old / baseline_new;
+    // old ← new rotation from each frame, halfway between the two.
+    let r1 = w1 * new1.rotation;
+    let r2 = w2 * new2.rotation;
+    let rotation = r1.slerp(&r2, 0.5);
+    let mid_new = (n1.translation.vector + n2.translation.vector) / 2.0;
+    let mid_old = (c1 + c2) / 2.0;
+    let translation = mid_old - rotation * (mid_new * scale);
+    Ok(crate::lie::Sim3::new(rotation, translation, scale))
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    use super::*;
+    use crate::slam::map::testing::map_with;
+    use crate::slam::map::{KeyFrameId, MapMode};
+    use crate::slam::priors::{TelemetryFeed, TelemetryLog};
+
+    /// `ned ← cam` looking down and ahead (pitch `pitch_deg`) on heading
+    /// `yaw_deg`, at `centre`.
+    fn camera(yaw_deg: f64, pitch_deg: f64, centre: Vector3<f64>) -> Isometry3<f64> {
+        let q = TelemetrySample::camera_attitude(
+            0.0,
+            0.0,
+            yaw_deg.to_radians(),
+            pitch_deg.to_radians(),
+            0.0,
+        );
+        Isometry3::from_parts(Translation3::from(centre), q)
+    }
+
+    /// The sample the telemetry reports for a camera at `ned_from_cam`,
+    /// with a slow error common to every sample: 2 degrees of heading and
+    /// a GNSS bias of 1.5 m.
+    fn reported(t: f64, ned_from_cam: &Isometry3<f64>, fix: bool) -> TelemetrySample {
+        let heading_error = UnitQuaternion::from_euler_angles(0.0, 0.0, 2f64.to_radians());
+        TelemetrySample {
+            t,
+            fix,
+            gps_ned: ned_from_cam.translation.vector + Vector3::new(1.5, -1.0, 0.5),
+            h_acc: 1.3,
+            v_acc: 0.8,
+            baro_alt: None,
+            ned_from_cam: Some(heading_error * ned_from_cam.rotation),
+        }
+    }
+
+    fn aid(samples: Vec<TelemetrySample>) -> TelemetryAid {
+        TelemetryAid::new(TelemetryFeed::fixed(TelemetryLog::new(samples)))
+    }
+
+    /// An anchor on keyframe 1 of a small map in local NED, the camera
+    /// truly at `ned_from_cam`.
+    fn anchor_at(map: &Map, ned_from_cam: &Isometry3<f64>, sample: TelemetrySample) -> Anchor {
+        let kf_pose = map.keyframe_pose(KeyFrameId(1)).unwrap();
+        Anchor {
+            record: FrameRecord {
+                index: 10,
+                timestamp: sample.t,
+                reference: KeyFrameId(1),
+                cam_from_ref: ned_from_cam.inverse() * kf_pose.inverse(),
+                source: PoseSource::Vision,
+            },
+            sample,
+            velocity_cam: None,
+        }
+    }
+
+    /// In a map in local NED the prediction is the camera's true pose: the
+    /// heading error and the GNSS bias common to the anchor and the frame
+    /// cancel; its prior's sigmas grow with the gap; beyond the longest gap
+    /// there is none.
+    #[test]
+    fn the_telemetry_predicts_a_frame_from_its_anchor_whatever_its_slow_errors() {
+        let mut map = map_with(2, 5);
+        map.set_mode(MapMode::GpsAided);
+        let at_anchor = camera(30.0, -60.0, Vector3::new(10.0, 5.0, -30.0));
+        let now = camera(41.0, -57.0, Vector3::new(14.0, 9.0, -31.0));
+        let anchor = anchor_at(&map, &at_anchor, reported(20.0, &at_anchor, true));
+        let params = AidParams::default();
+        let p = predict(&params, &map, &anchor, &reported(22.0, &now, true)).unwrap();
+        assert!(p.from_gnss);
+        let predicted = p.prior.cam_from_world.inverse();
+        assert!((predicted.translation.vector - now.translation.vector).norm() < 1e-9);
+        assert!(predicted.rotation.angle_to(&now.rotation) < 1e-9);
+        // Sigmas: sqrt(0.1² + 0.3²·2) degrees, sqrt(0.05² + 0.1²·2) m.
+        let w = p.prior.information;
+        let rot_sigma = (1.0 / w[(3, 3)]).sqrt().to_degrees();
+        assert!((rot_sigma - (0.01f64 + 0.09 * 2.0).sqrt()).abs() < 1e-9);
+        let pos_sigma = (1.0 / w[(0, 0)]).sqrt();
+        assert!((pos_sigma - (0.0025f64 + 0.01 * 2.0).sqrt()).abs() < 1e-9);
+        // Past the longest gap: no prediction.
+        assert!(predict(&params, &map, &anchor, &reported(30.5, &now, true)).is_none());
+        // No fix: the velocity carries the move, and only briefly.
+        let no_fix = reported(22.0, &now, false);
+        assert!(
+            predict(&params, &map, &anchor, &no_fix).is_none(),
+            "no velocity yet"
+        );
+        let mut moving = anchor;
+        // 2 m/s along the anchor camera's forward axis.
+        moving.velocity_cam = Some(Vector3::new(0.0, 0.0, 2.0));
+        let soon = reported(20.5, &now, false);
+        let p = predict(&params, &map, &moving, &soon).unwrap();
+        assert!(!p.from_gnss);
+        let moved =
+            p.prior.cam_from_world.inverse().translation.vector - at_anchor.translation.vector;
+        let expected = at_anchor.rotation * Vector3::new(0.0, 0.0, 1.0);
+        assert!((moved - expected).norm() < 1e-9, "{moved}");
+        let late = reported(21.5, &now, false);
+        assert!(predict(&params, &map, &moving, &late).is_none());
+    }
+
+    /// A map not in local NED gets no position prior (its scale is its
+    /// own): only the turn is held.
+    #[test]
+    fn a_vision_only_map_gets_a_turn_prior_and_no_position_prior() {
+        let map = map_with(2, 5);
+        let at_anchor = camera(30.0, -60.0, Vector3::new(10.0, 5.0, -30.0));
+        let now = camera(35.0, -60.0, Vector3::new(10.5, 5.3, -30.0));
+        let mut anchor = anchor_at(&map, &at_anchor, reported(20.0, &at_anchor, true));
+        anchor.velocity_cam = Some(Vector3::zeros());
+        let p = predict(
+            &AidParams::default(),
+            &map,
+            &anchor,
+            &reported(20.2, &now, true),
+        )
+        .unwrap();
+        assert!(!p.from_gnss);
+        let w = p.prior.information;
+        assert_eq!(w.fixed_view::<3, 3>(0, 0).norm(), 0.0);
+        assert!(w[(3, 3)] > 0.0);
+        let predicted = p.prior.cam_from_world.inverse();
+        assert!(predicted.rotation.angle_to(&now.rotation) < 1e-9);
+    }
+
+    /// The reported motion between two frames: the turn exactly (the slow
+    /// error cancels), the direction of travel in the first camera's axes
+    /// once the displacement is beyond the receiver's noise.
+    #[test]
+    fn relative_motion_gives_the_turn_and_the_direction_beyond_the_noise() {
+        let a = camera(10.0, -70.0, Vector3::new(0.0, 0.0, -30.0));
+        let b = camera(13.0, -69.0, Vector3::new(2.0, 1.0, -30.0));
+        let near = camera(13.0, -69.0, Vector3::new(0.1, 0.05, -30.0));
+        let aid = aid(vec![
+            reported(0.0, &a, true),
+            reported(1.0, &b, true),
+            reported(2.0, &near, true),
+        ]);
+        let m = aid.relative_motion(0.0, 1.0).unwrap();
+        let truth = b.inverse() * a;
+        assert!(m.rotation.angle_to(&truth.rotation) < 1e-9);
+        // The direction is turned into the camera's axes by the reported
+        // attitude: off by its heading error (2 degrees), within its sigma.
+        let dir = m.direction.unwrap();
+        let true_dir = (a.inverse() * b).translation.vector.normalize();
+        let off = dir.angle(&true_dir);
+        assert!(
+            off.to_degrees() < 2.0 + 1e-9 && off < m.direction_sigma,
+            "{off}"
+        );
+        assert!((aid.gnss_displacement(0.0, 1.0).unwrap() - 5f64.sqrt()).abs() < 1e-9);
+        // 0.11 m in 2 s: within 4 sigmas of the displacement's noise.
+        assert!(aid.relative_motion(0.0, 2.0).unwrap().direction.is_none());
+    }
+
+    /// A new map, in its own frame and scale, is put where the telemetry
+    /// says its two frames were: the similarity recovered exactly with
+    /// exact relative telemetry; refused before the map is in NED, over a
+    /// short baseline, or long after the anchor.
+    #[test]
+    fn a_new_map_is_put_where_the_telemetry_says_its_frames_were() {
+        let mut map = map_with(2, 5);
+        map.set_mode(MapMode::GpsAided);
+        let at_anchor = camera(30.0, -60.0, Vector3::new(10.0, 5.0, -30.0));
+        let f1 = camera(50.0, -55.0, Vector3::new(30.0, 20.0, -32.0));
+        let f2 = camera(52.0, -54.0, Vector3::new(32.5, 21.5, -32.2));
+        let aid = aid(vec![
+            reported(10.0, &at_anchor, true),
+            reported(20.0, &f1, true),
+            reported(20.6, &f2, true),
+        ]);
+        let anchor = anchor_at(&map, &at_anchor, aid.sample(10.0).unwrap());
+        // The new map's frame: f1 at the origin, lengths in units of 7 m.
+        let new_from_ned = |p: &Isometry3<f64>| {
+            let rel = f1.inverse() * p;
+            let mut r = rel;
+            r.translation.vector /= 7.0;
+            r.inverse()
+        };
+        let (n1, n2) = (new_from_ned(&f1), new_from_ned(&f2));
+        let s = place_new_map(&aid, &map, &anchor, (20.0, &n1), (20.6, &n2)).unwrap();
+        assert!((s.scale - 7.0).abs() < 1e-9, "{}", s.scale);
+        for (truth, new) in [(&f1, &n1), (&f2, &n2)] {
+            let placed = s.transform_pose(&new.inverse());
+            assert!((placed.translation.vector - truth.translation.vector).norm() < 1e-9);
+            assert!(placed.rotation.angle_to(&truth.rotation) < 1e-9);
+        }
+        // Refusals.
+        let mut vision_only = map.clone();
+        vision_only.set_mode(MapMode::VisionOnly);
+        assert!(place_new_map(&aid, &vision_only, &anchor, (20.0, &n1), (20.6, &n2)).is_err());
+        let short = aid.place_baseline_m(0.6) * 0.9;
+        let f2_short = camera(52.0, -54.0, Vector3::new(30.0 + short, 20.0, -32.0));
+        let aid_short = super::tests::aid(vec![
+            reported(10.0, &at_anchor, true),
+            reported(20.0, &f1, true),
+            reported(20.6, &f2_short, true),
+        ]);
+        let why = place_new_map(&aid_short, &map, &anchor, (20.0, &n1), (20.6, &n2)).unwrap_err();
+        assert!(why.contains("baseline"), "{why}");
+        let mut old = anchor;
+        old.sample.t = 20.6 - 61.0;
+        let why = place_new_map(&aid, &map, &old, (20.0, &n1), (20.6, &n2)).unwrap_err();
+        assert!(why.contains("too old"), "{why}");
+    }
+
+    #[test]
+    fn aid_params_check_names_the_bad_number() {
+        assert!(AidParams::default().check().is_ok());
+        let bad = AidParams {
+            max_gap_s: -1.0,
+            ..AidParams::default()
+        };
+        assert!(bad.check().unwrap_err().contains("max_gap_s"));
+        let bad = AidParams {
+            min_inliers: 2,
+            ..AidParams::default()
+        };
+        assert!(bad.check().unwrap_err().contains("min_inliers"));
+    }
+}
