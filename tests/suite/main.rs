@@ -75,6 +75,7 @@ mod shot_cli;
 mod shot_photos;
 mod shot_sim;
 mod shot_teddy;
+mod slam_aided;
 mod slam_loop;
 mod slam_merge;
 mod slam_real;
