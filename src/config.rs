@@ -190,6 +190,15 @@ pub struct SlamConfig {
     /// after-the-fact fit is the behaviour every daemon test and figure so
     /// far was measured with.
     pub priors: bool,
+    /// Telemetry-aided tracking (`slam::aided`): a frame vision cannot pose
+    /// is predicted from the last one it did by the link's attitude and
+    /// gimbal reports (and the GNSS once the map is in local NED), the
+    /// local map searched around it, or the prediction kept for up to 10 s;
+    /// a flat field's two reconstructions are told apart by the reported
+    /// turn; with `priors` a new map after a loss is put into the old one
+    /// as it initialises. The status counts the frames each way posed
+    /// (`slam.posed_by_*`). Off by default.
+    pub aid: bool,
 }
 
 impl Default for SlamConfig {
@@ -202,6 +211,7 @@ impl Default for SlamConfig {
             artificial_delay_ms: 0,
             loop_closing: true,
             priors: false,
+            aid: false,
         }
     }
 }

@@ -49,8 +49,12 @@ function showStatus(s) {
     const pct = ve.battery.remaining_pct;
     badge('b-battery', pct > 30 ? 'ok' : pct > 15 ? 'warn' : 'bad', `battery ${pct.toFixed(0)} %`);
   }
-  const slamLevel = sl.state === 'tracking' ? 'ok' : (sl.state === 'initializing' ? 'warn' : 'bad');
-  badge('b-slam', slamLevel, `SLAM ${sl.state || '?'} · ${sl.keyframes ?? 0} kf · ${sl.points ?? 0} pts`);
+  // A frame the telemetry posed (vision found too little) is tracking on
+  // borrowed time: shown as a warning with how it was posed.
+  const aided = sl.state === 'tracking' && sl.last_source && sl.last_source !== 'vision';
+  const slamLevel = sl.state === 'tracking' && !aided ? 'ok' : (sl.state === 'initializing' || aided ? 'warn' : 'bad');
+  const slamState = aided ? `${sl.state} (posed by ${sl.last_source})` : (sl.state || '?');
+  badge('b-slam', slamLevel, `SLAM ${slamState} · ${sl.keyframes ?? 0} kf · ${sl.points ?? 0} pts`);
   const nl = sl.loops_closed ?? 0, nm = sl.merges_made ?? 0;
   badge('b-loops', nl || nm ? 'ok' : 'none', `${nl} loop${nl === 1 ? '' : 's'} closed${nm ? ` · ${nm} map${nm === 1 ? '' : 's'} merged` : ''}`);
   $('b-loops').title = [

@@ -27,6 +27,17 @@ pub struct SlamStatus {
     pub frames: u64,
     /// Frames tracked.
     pub tracked: u64,
+    /// Of the frames tracked, those posed by vision alone.
+    pub posed_by_vision: u64,
+    /// Those posed by the local map searched around the telemetry's
+    /// prediction, with it as a prior (`[slam] aid`).
+    pub posed_by_vision_telemetry: u64,
+    /// Those posed by the telemetry's prediction alone (`[slam] aid`:
+    /// vision found too little; no keyframe is made from them).
+    pub posed_by_telemetry: u64,
+    /// How the last frame was posed: `vision`, `vision+telemetry` or
+    /// `telemetry` (None: not posed).
+    pub last_source: Option<String>,
     /// Keyframes in the map.
     pub keyframes: usize,
     /// Map points.

@@ -49,6 +49,11 @@ const SYNC_PERIOD: Duration = Duration::from_millis(500);
 /// sample (the message comes at 1 Hz by default).
 pub const GPS_RAW_MAX_AGE: Duration = Duration::from_secs(3);
 
+/// A prior sample carries the camera's attitude only with a gimbal report
+/// at most this old, s (PX4 streams GIMBAL_DEVICE_ATTITUDE_STATUS at 1 Hz
+/// by default; an older one may miss a pitch the gimbal was commanded to).
+pub const GIMBAL_MAX_AGE_S: f64 = 2.5;
+
 struct State {
     live: LiveGeoreference,
     /// The latest GPS_RAW_INT and when it came.
@@ -96,20 +101,33 @@ impl GeoService {
 
     /// The priors' sample of a position at `t` (local NED `p_vehicle`):
     /// the camera's position, a fix and its accuracy from a recent
-    /// GPS_RAW_INT. None before any attitude (the lever arm needs it).
+    /// GPS_RAW_INT, and the camera's attitude (the latest ATTITUDE and a
+    /// gimbal report at most [`GIMBAL_MAX_AGE_S`] old; the telemetry aid
+    /// of tracking reads it). None before any attitude (the lever arm
+    /// needs it).
     fn prior_sample(&self, st: &State, t: f64, p_vehicle: Vector3<f64>) -> Option<TelemetrySample> {
         let q = st.live.last_attitude()?;
         let raw = st
             .gps_raw
             .filter(|(at, _)| crate::clock::since(*at) <= GPS_RAW_MAX_AGE)
             .and_then(|(_, r)| r.fix_accuracy());
-        Some(TelemetrySample::from_position_report(
-            t,
-            p_vehicle,
-            q,
-            &self.params.mount,
-            raw,
-        ))
+        let mut sample =
+            TelemetrySample::from_position_report(t, p_vehicle, q, &self.params.mount, raw);
+        sample.ned_from_cam = st
+            .live
+            .last_gimbal()
+            .filter(|(tg, _)| (t - tg).abs() <= GIMBAL_MAX_AGE_S)
+            .map(|(_, gimbal)| {
+                let state = crate::geo::VehicleState {
+                    time: t,
+                    p_ned: p_vehicle,
+                    v_ned: Vector3::zeros(),
+                    ned_from_body: q,
+                    gimbal,
+                };
+                crate::geo::ned_from_cam(&state, &self.params.mount).rotation
+            });
+        Some(sample)
     }
 
     /// Takes the georeference saved by the previous run (see
@@ -455,7 +473,8 @@ mod tests {
     }
 
     /// With priors, every position becomes a sample of the feed: the
-    /// camera's NED position (lever arm included), a fix with the
+    /// camera's NED position (lever arm included) and attitude (the
+    /// attitude with the latest gimbal report), a fix with the
     /// accuracy of a recent GPS_RAW_INT, none without one or with a
     /// GPS_RAW_INT reporting no fix. The link's messages and the SLAM's
     /// keyframes reach the georeference: home, the boot clock, and a
@@ -476,6 +495,14 @@ mod tests {
         let expect = path(T_END) + Vector3::new(arm[0], arm[1], arm[2]);
         assert!((s.gps_ned - expect).norm() < 1e-3, "{:?}", s.gps_ned);
         assert!((s.t - (T_END + offset)).abs() < 1e-6);
+        // The camera's attitude, for the tracking aid: facing north, the
+        // gimbal 30 degrees down (its report 0.1 s older than the sample).
+        let forward = s
+            .ned_from_cam
+            .expect("an attitude with a recent gimbal report")
+            * Vector3::z();
+        let down30 = Vector3::new(30f64.to_radians().cos(), 0.0, 30f64.to_radians().sin());
+        assert!((forward - down30).norm() < 1e-9, "{forward}");
         let st = serde_json::to_value(geo.status()).unwrap();
         assert_eq!(st["counts"]["prior_samples"], feed.len(), "{st}");
         assert_eq!(st["counts"]["prior_samples_without_fix"], feed.len());

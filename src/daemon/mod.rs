@@ -269,9 +269,10 @@ pub async fn run_on(
     let camera = crate::video::source::decimated_camera(&camera, cfg.video.downscale);
 
     // SLAM thread.
-    // Telemetry priors: the georeference worker pushes the link's GNSS
-    // samples into this feed, the SLAM's mapping reads them.
-    let prior_feed = (cfg.slam.enabled && cfg.slam.priors)
+    // Telemetry priors and the telemetry aid of tracking: the georeference
+    // worker pushes the link's GNSS and attitude samples into this feed,
+    // the SLAM's mapping and tracking read them.
+    let prior_feed = (cfg.slam.enabled && (cfg.slam.priors || cfg.slam.aid))
         .then(|| crate::slam::priors::TelemetryFeed::live(cfg.geo.history.max_age_s));
     let geo =
         Arc::new(geo_service::GeoService::new(cfg.geo.clone()).with_prior_feed(prior_feed.clone()));

@@ -23,6 +23,8 @@ pub struct ProcessOutcome {
     pub state: String,
     /// The frame's pose was estimated.
     pub tracked: bool,
+    /// How (`None`: not posed).
+    pub source: Option<crate::slam::PoseSource>,
     /// Inliers of the pose.
     pub inliers: usize,
     /// Keyframes in the map after the frame.
@@ -268,6 +270,13 @@ impl SlamShared {
         s.last_inliers = outcome.inliers;
         s.keyframes = outcome.keyframes;
         s.points = outcome.points;
+        s.last_source = outcome.source.map(|p| p.name().to_string());
+        match outcome.source {
+            Some(crate::slam::PoseSource::Vision) => s.posed_by_vision += 1,
+            Some(crate::slam::PoseSource::VisionTelemetry) => s.posed_by_vision_telemetry += 1,
+            Some(crate::slam::PoseSource::Telemetry) => s.posed_by_telemetry += 1,
+            None => {}
+        }
         if outcome.tracked {
             s.tracked += 1;
             let latency = (unix_now() - frame.timestamp()) * 1e3;

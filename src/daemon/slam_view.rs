@@ -89,6 +89,7 @@ pub fn make_processor(
     // In lockstep the simulator waits for the frame's whole work: mapping
     // and loop closing run inline after tracking.
     params.sequential = cfg.sim.lockstep_on();
+    let feed_for_aid = feed.clone();
     let priors = match (cfg.slam.priors, feed) {
         (true, Some(feed)) => Some(Priors::with_feed(feed, prior_params(cfg))),
         (true, None) => {
@@ -98,6 +99,14 @@ pub fn make_processor(
         (false, _) => None,
     };
     params.priors = priors.clone();
+    params.telemetry_aid = match (cfg.slam.aid, feed_for_aid) {
+        (true, Some(feed)) => Some(slam::TelemetryAid::new(feed)),
+        (true, None) => {
+            tracing::warn!("[slam] aid = true but no telemetry feed: tracking is vision-only");
+            None
+        }
+        (false, _) => None,
+    };
     let vocabulary = match crate::bow::Vocabulary::builtin() {
         Ok(v) => Arc::new(v),
         Err(e) => {
@@ -383,7 +392,10 @@ impl FrameProcessor for SlamProcessor {
             (m.keyframe_count(), m.point_count(), mode, reason)
         };
         self.shared.set_map_mode(mode, &reason);
-        if out.cam_from_world.is_some()
+        // Only a frame vision posed stands for where the camera is: one the
+        // telemetry helped to pose holds the telemetry's own errors, which
+        // the georeference and the shot's refinement measure against.
+        if out.source == Some(slam::PoseSource::Vision)
             && let Some(r) = self.slam.last_record()
             && r.index == frame.seq
         {
@@ -446,6 +458,7 @@ impl FrameProcessor for SlamProcessor {
         ProcessOutcome {
             state: state_name(out.state).into(),
             tracked: out.cam_from_world.is_some(),
+            source: out.source,
             inliers: out.inliers,
             keyframes,
             points,

@@ -115,6 +115,8 @@ pub struct LiveGeoreference {
     force_fit: bool,
     /// The latest attitude (NED ← body).
     last_attitude: Option<UnitQuaternion<f64>>,
+    /// The latest gimbal angles and their time (the frames' clock).
+    last_gimbal: Option<(f64, GimbalAngles)>,
     /// The SLAM's map is in local NED (gps-aided): the georeference
     /// follows from it.
     map_aided: bool,
@@ -148,6 +150,7 @@ impl LiveGeoreference {
             check: None,
             force_fit: false,
             last_attitude: None,
+            last_gimbal: None,
             map_aided: false,
             params,
         }
@@ -353,6 +356,12 @@ impl LiveGeoreference {
         self.last_attitude
     }
 
+    /// The latest gimbal angles (relative to the body) and their time (the
+    /// frames' clock), once one came.
+    pub fn last_gimbal(&self) -> Option<(f64, GimbalAngles)> {
+        self.last_gimbal
+    }
+
     /// Gimbal attitude: pitch and yaw in degrees, the yaw relative to the
     /// body or, with `yaw_absolute`, to north (made relative with the
     /// latest heading; refused before one).
@@ -375,6 +384,7 @@ impl LiveGeoreference {
             pitch: pitch_deg.to_radians(),
             yaw: wrap_pi(yaw),
         };
+        self.last_gimbal = Some((t, angles));
         match self.geo.history_mut().push_gimbal(t, angles) {
             Ok(()) => self.counts.gimbals += 1,
             Err(_) => self.counts.rejected_samples += 1,

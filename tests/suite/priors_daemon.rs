@@ -3,7 +3,7 @@
 //! GNSS (realism `gps`: a u-blox-class 1.3 m per axis Gauss-Markov bias,
 //! 0.8 m vertical, 5 cm noise; `gps_dropouts@harsh`: the fix lost for about
 //! 5 s every 2 minutes; `baro`: barometric drift), reads the link's
-//! telemetry like any vehicle's and, with `[slam] priors = true`, feeds it
+//! telemetry like any vehicle's and, with `[slam] priors = true` (and `aid`), feeds it
 //! to the SLAM as priors. The judge is the simulator's truth (its camera
 //! poses at the video frames' times, as `geo_daemon` reads them).
 //!
@@ -80,6 +80,9 @@ fn fly(priors: bool, flight_s: f64) -> Flight {
     cfg.sim.truth_dir = Some("truth".into());
     cfg.sim.realism = "ideal+gps+gps_dropouts@harsh+baro".into();
     cfg.slam.priors = priors;
+    // And the telemetry's aid of tracking (the link's attitude and gimbal
+    // reports in the same feed).
+    cfg.slam.aid = priors;
     // The simulator's camera mount: the lever arm turns with the heading.
     cfg.geo.mount.lever_arm_frame = shotpilot::geo::LeverArmFrame::Heading;
     // The after-the-fact fit with the priors' inlier bound: the GNSS bias
@@ -187,6 +190,28 @@ fn priors_put_the_daemon_map_in_ned_and_vision_only_stays_without() {
                 .unwrap_or_default()
         );
     }
+
+    // The aid on: every tracked frame says how it was posed; over the
+    // town vision poses them.
+    let sl = &on.status["slam"];
+    let by = |k: &str| sl[k].as_u64().unwrap_or_else(|| panic!("{k} in {sl}"));
+    eprintln!(
+        "priors on: posed by vision {}, vision + telemetry {}, telemetry {} of {} tracked",
+        by("posed_by_vision"),
+        by("posed_by_vision_telemetry"),
+        by("posed_by_telemetry"),
+        by("tracked")
+    );
+    assert_eq!(
+        by("posed_by_vision") + by("posed_by_vision_telemetry") + by("posed_by_telemetry"),
+        by("tracked"),
+        "{sl}"
+    );
+    assert!(
+        by("posed_by_vision") as f64 >= 0.95 * by("tracked") as f64,
+        "{sl}"
+    );
+    assert_eq!(off.status["slam"]["posed_by_telemetry"], 0);
 
     // Priors on: in NED, the georeference from the map.
     assert_eq!(
