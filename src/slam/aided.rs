@@ -82,8 +82,12 @@ pub struct AidParams {
     /// in time, m (the receiver's noise).
     pub position_sigma_m: f64,
     /// Its growth with the time since the anchor, m per square root of a
-    /// second (the bias's walk, and the velocity's error without a fix).
+    /// second, at least (the bias's walk): a receiver reporting an
+    /// accuracy `h_acc` walks `h_acc * sqrt(2 / gnss_bias_tau_s)` (a
+    /// Gauss-Markov bias of that sigma), when that is more.
     pub position_walk_m_per_sqrt_s: f64,
+    /// Correlation time of the receiver's bias, s.
+    pub gnss_bias_tau_s: f64,
     /// Longest the telemetry may pose frames without the GNSS (a map not in
     /// local NED, or no fix), s: the camera's velocity then carries the
     /// move, and its error grows with the square of the gap.
@@ -96,6 +100,13 @@ pub struct AidParams {
     /// its two initialisation frames) of this many of the displacement's
     /// sigmas: the scale's error is about one over it.
     pub min_place_baseline_sigmas: f64,
+    /// A relocalisation in a map in local NED is refused when it puts the
+    /// camera further from its GNSS position than this many of the
+    /// receiver's reported accuracies (at least
+    /// [`AidParams::min_reloc_distance_m`]).
+    pub max_reloc_gnss_sigmas: f64,
+    /// The least of that distance, m.
+    pub min_reloc_distance_m: f64,
     /// Vision inliers a frame needs to be posed by vision + telemetry
     /// rather than by the telemetry alone.
     pub min_inliers: usize,
@@ -113,11 +124,14 @@ impl Default for AidParams {
             max_gap_without_gnss_s: 1.0,
             max_place_gap_s: 60.0,
             min_place_baseline_sigmas: 20.0,
+            max_reloc_gnss_sigmas: 5.0,
+            min_reloc_distance_m: 5.0,
             rotation_sigma_deg: 0.1,
             rotation_walk_deg_per_sqrt_s: 0.3,
             attitude_sigma_deg: 2.0,
             position_sigma_m: 0.05,
             position_walk_m_per_sqrt_s: 0.1,
+            gnss_bias_tau_s: 120.0,
             min_inliers: 12,
             search_radius: 15.0,
         }
@@ -125,14 +139,29 @@ impl Default for AidParams {
 }
 
 impl AidParams {
+    /// The GNSS displacement's walk, m per square root of a second, for a
+    /// receiver reporting `h_acc` (see
+    /// [`AidParams::position_walk_m_per_sqrt_s`]).
+    pub fn walk(&self, h_acc: f64) -> f64 {
+        let from_receiver = if h_acc.is_finite() && self.gnss_bias_tau_s > 0.0 {
+            h_acc * (2.0 / self.gnss_bias_tau_s).sqrt()
+        } else {
+            0.0
+        };
+        self.position_walk_m_per_sqrt_s.max(from_receiver)
+    }
+
     /// Checks the numbers; the error names the first bad one.
     pub fn check(&self) -> Result<(), String> {
         let positive = [
             ("max_dt_s", self.max_dt_s),
             ("max_gap_s", self.max_gap_s),
+            ("gnss_bias_tau_s", self.gnss_bias_tau_s),
             ("max_gap_without_gnss_s", self.max_gap_without_gnss_s),
             ("max_place_gap_s", self.max_place_gap_s),
             ("min_place_baseline_sigmas", self.min_place_baseline_sigmas),
+            ("max_reloc_gnss_sigmas", self.max_reloc_gnss_sigmas),
+            ("min_reloc_distance_m", self.min_reloc_distance_m),
             ("search_radius", self.search_radius),
         ];
         for (name, v) in positive {
@@ -216,15 +245,22 @@ pub struct RelativeMotion {
 
 impl TelemetryAid {
     /// Standard deviation of the GNSS displacement over `dt` seconds, m.
-    fn displacement_sigma(&self, dt: f64) -> f64 {
+    fn displacement_sigma(&self, dt: f64, h_acc: f64) -> f64 {
         let p = &self.params;
-        (2.0 * p.position_sigma_m.powi(2) + p.position_walk_m_per_sqrt_s.powi(2) * dt.abs()).sqrt()
+        (2.0 * p.position_sigma_m.powi(2) + p.walk(h_acc).powi(2) * dt.abs()).sqrt()
     }
 
-    /// The GNSS baseline a new map needs between two frames `dt` apart to
-    /// be put into the old one, m ([`AidParams::min_place_baseline_sigmas`]).
-    pub fn place_baseline_m(&self, dt: f64) -> f64 {
-        self.params.min_place_baseline_sigmas * self.displacement_sigma(dt)
+    /// The GNSS baseline a new map needs between frames at `t1` and `t2`
+    /// to be put into the old one, m
+    /// ([`AidParams::min_place_baseline_sigmas`] of the displacement's
+    /// sigma with the receiver's reported accuracy then).
+    pub fn place_baseline_m(&self, t1: f64, t2: f64) -> f64 {
+        let h_acc = [t1, t2]
+            .iter()
+            .filter_map(|t| self.sample(*t))
+            .map(|s| s.h_acc)
+            .fold(0.0, f64::max);
+        self.params.min_place_baseline_sigmas * self.displacement_sigma(t2 - t1, h_acc)
     }
 
     /// The GNSS displacement between times `t1` and `t2`, m (`None`: no
@@ -245,7 +281,7 @@ impl TelemetryAid {
             + p.rotation_walk_deg_per_sqrt_s.powi(2) * dt)
             .sqrt()
             .to_radians();
-        let pos_sigma = self.displacement_sigma(dt);
+        let pos_sigma = self.displacement_sigma(dt, a.h_acc.max(b.h_acc));
         let d = b.gps_ned - a.gps_ned;
         let known = a.fix && b.fix && d.norm() > DIRECTION_MIN_SIGMAS * pos_sigma;
         Some(RelativeMotion {
@@ -338,12 +374,32 @@ pub(super) fn predict(
     // A position prior only in metres: in a vision-only map the velocity's
     // scale is the map's own and its error unknown.
     let pos_sigma = in_ned.then(|| {
-        (params.position_sigma_m.powi(2) + params.position_walk_m_per_sqrt_s.powi(2) * dt).sqrt()
+        let walk = params.walk(now.h_acc.max(anchor.sample.h_acc));
+        (params.position_sigma_m.powi(2) + walk.powi(2) * dt).sqrt()
     });
     Some(Prediction {
         prior: PosePrior::isotropic(cam_from_world, pos_sigma, rot_sigma),
         from_gnss,
     })
+}
+
+/// How far beyond the allowed distance a pose in a map in local NED puts
+/// the camera from the GNSS position of `sample` (`None`: within it, or no
+/// fix): [`AidParams::max_reloc_gnss_sigmas`] of the reported accuracy, at
+/// least [`AidParams::min_reloc_distance_m`].
+pub(super) fn gnss_disagreement(
+    params: &AidParams,
+    cam_from_world: &Isometry3<f64>,
+    sample: &TelemetrySample,
+) -> Option<f64> {
+    if !sample.fix {
+        return None;
+    }
+    let centre = cam_from_world.inverse().translation.vector;
+    let off = (centre - sample.gps_ned).norm();
+    let allowed = (params.max_reloc_gnss_sigmas * sample.h_acc.max(sample.v_acc))
+        .max(params.min_reloc_distance_m);
+    (off > allowed).then_some(off)
 }
 
 /// The similarity (old map's world ← new map's world) that puts a new map,
@@ -402,7 +458,7 @@ pub(super) fn place_new_map(
     let baseline_old = (c2 - c1).norm();
     let (n1, n2) = (new1.inverse(), new2.inverse());
     let baseline_new = (n2.translation.vector - n1.translation.vector).norm();
-    if baseline_old < aid.place_baseline_m(t2 - t1) || baseline_new <= 0.0 {
+    if baseline_old < aid.place_baseline_m(t1, t2) || baseline_new <= 0.0 {
         return Err("the GNSS baseline between the two frames is too short for the scale");
     }
     let scale = baseline_old / baseline_new;
@@ -492,12 +548,15 @@ mod tests {
         let predicted = p.prior.cam_from_world.inverse();
         assert!((predicted.translation.vector - now.translation.vector).norm() < 1e-9);
         assert!(predicted.rotation.angle_to(&now.rotation) < 1e-9);
-        // Sigmas: sqrt(0.1² + 0.3²·2) degrees, sqrt(0.05² + 0.1²·2) m.
+        // Sigmas 2 s after the anchor: sqrt(0.1² + 0.3²·2) degrees; the
+        // receiver reports 1.3 m, so its bias walks 1.3·sqrt(2/120 s) per
+        // root second: sqrt(0.05² + 1.3²·(2/120)·2) m.
         let w = p.prior.information;
         let rot_sigma = (1.0 / w[(3, 3)]).sqrt().to_degrees();
         assert!((rot_sigma - (0.01f64 + 0.09 * 2.0).sqrt()).abs() < 1e-9);
         let pos_sigma = (1.0 / w[(0, 0)]).sqrt();
-        assert!((pos_sigma - (0.0025f64 + 0.01 * 2.0).sqrt()).abs() < 1e-9);
+        let expected = (0.0025f64 + 1.69 * (2.0 / 120.0) * 2.0).sqrt();
+        assert!((pos_sigma - expected).abs() < 1e-9, "{pos_sigma}");
         // Past the longest gap: no prediction.
         assert!(predict(&params, &map, &anchor, &reported(30.5, &now, true)).is_none());
         // No fix: the velocity carries the move, and only briefly.
@@ -584,7 +643,7 @@ mod tests {
         map.set_mode(MapMode::GpsAided);
         let at_anchor = camera(30.0, -60.0, Vector3::new(10.0, 5.0, -30.0));
         let f1 = camera(50.0, -55.0, Vector3::new(30.0, 20.0, -32.0));
-        let f2 = camera(52.0, -54.0, Vector3::new(32.5, 21.5, -32.2));
+        let f2 = camera(52.0, -54.0, Vector3::new(33.5, 22.0, -32.2));
         let aid = aid(vec![
             reported(10.0, &at_anchor, true),
             reported(20.0, &f1, true),
@@ -610,7 +669,7 @@ mod tests {
         let mut vision_only = map.clone();
         vision_only.set_mode(MapMode::VisionOnly);
         assert!(place_new_map(&aid, &vision_only, &anchor, (20.0, &n1), (20.6, &n2)).is_err());
-        let short = aid.place_baseline_m(0.6) * 0.9;
+        let short = aid.place_baseline_m(20.0, 20.6) * 0.9;
         let f2_short = camera(52.0, -54.0, Vector3::new(30.0 + short, 20.0, -32.0));
         let aid_short = super::tests::aid(vec![
             reported(10.0, &at_anchor, true),
@@ -623,6 +682,22 @@ mod tests {
         old.sample.t = 20.6 - 61.0;
         let why = place_new_map(&aid, &map, &old, (20.0, &n1), (20.6, &n2)).unwrap_err();
         assert!(why.contains("too old"), "{why}");
+    }
+
+    /// A pose 48 m from where the GNSS puts the camera (a look-alike place)
+    /// disagrees; one within five reported sigmas does not.
+    #[test]
+    fn a_pose_far_from_the_gnss_disagrees() {
+        let truth = camera(30.0, -60.0, Vector3::new(10.0, 5.0, -30.0));
+        let s = reported(0.0, &truth, true);
+        let params = AidParams::default();
+        assert!(gnss_disagreement(&params, &truth.inverse(), &s).is_none());
+        let far = camera(30.0, -60.0, Vector3::new(44.0, 39.0, -30.0));
+        let off = gnss_disagreement(&params, &far.inverse(), &s).unwrap();
+        let expected = Vector3::new(32.5f64, 35.0, -0.5).norm();
+        assert!((off - expected).abs() < 1e-9, "{off}");
+        let no_fix = reported(0.0, &truth, false);
+        assert!(gnss_disagreement(&params, &far.inverse(), &no_fix).is_none());
     }
 
     #[test]

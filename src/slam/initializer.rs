@@ -246,7 +246,7 @@ impl Initializer {
         if self.need_gnss_baseline
             && let Some(aid) = &self.aid
         {
-            let needed_m = aid.place_baseline_m(frame.timestamp - init.frame.timestamp);
+            let needed_m = aid.place_baseline_m(init.frame.timestamp, frame.timestamp);
             let baseline_m = aid
                 .gnss_displacement(init.frame.timestamp, frame.timestamp)
                 .unwrap_or(0.0);

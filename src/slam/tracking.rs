@@ -847,7 +847,7 @@ impl Tracker {
             }
             _ => None,
         };
-        match self.track_vision(map, frame, prediction.is_none()) {
+        match self.track_vision(map, frame, prediction.is_none(), sample.as_ref()) {
             Ok((cam_from_world, inliers, recently_relocalized)) => Ok(self.accept(
                 map,
                 frame,
@@ -878,6 +878,7 @@ impl Tracker {
         map: &mut Map,
         frame: &mut Frame,
         relocalise: bool,
+        sample: Option<&TelemetrySample>,
     ) -> Result<(Isometry3<f64>, usize, bool), TrackFailure> {
         let mut cam_from_world: Option<Isometry3<f64>> = None;
         if self.state == TrackState::Tracking {
@@ -892,6 +893,21 @@ impl Tracker {
         if cam_from_world.is_none() && (relocalise || self.state != TrackState::Tracking) {
             cam_from_world =
                 relocalize(&self.ctx, &mut self.marks, map, frame).map(|fit| fit.cam_from_world);
+            // In a map in local NED a relocalisation far from where the
+            // GNSS puts the camera is a place that looks alike (rows of
+            // trees, a lawn's stripes): refused.
+            if let (Some(pose), Some(aid), Some(s)) = (cam_from_world, &self.aid, sample)
+                && map.mode() == MapMode::GpsAided
+                && let Some(off) = aided::gnss_disagreement(&aid.params, &pose, s)
+            {
+                tracing::info!(
+                    frame = frame.index,
+                    off_m = off,
+                    "relocalisation refused: too far from the GNSS position"
+                );
+                frame.clear_matches();
+                cam_from_world = None;
+            }
             if cam_from_world.is_some() {
                 self.last_reloc_frame = Some(frame.index);
                 // Relocalised into whichever map it found: that one is
