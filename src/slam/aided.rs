@@ -28,34 +28,10 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 use crate::optimize::PosePrior;
 
+use super::frame::FrameRecord;
+pub use super::frame::PoseSource;
 use super::map::{Map, MapMode};
 use super::priors::{TelemetryFeed, TelemetrySample};
-use super::tracking::FrameRecord;
-
-/// How a frame's pose was found.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum PoseSource {
-    /// By vision alone (the motion model, the reference keyframe or
-    /// relocalisation, then the local map).
-    Vision,
-    /// By the local map searched around the telemetry's prediction, with
-    /// the prediction as a prior.
-    VisionTelemetry,
-    /// By the telemetry's prediction alone (vision found too little).
-    Telemetry,
-}
-
-impl PoseSource {
-    /// Its name in logs and reports.
-    pub fn name(self) -> &'static str {
-        match self {
-            PoseSource::Vision => "vision",
-            PoseSource::VisionTelemetry => "vision+telemetry",
-            PoseSource::Telemetry => "telemetry",
-        }
-    }
-}
 
 /// Tunables of telemetry-aided tracking.
 #[derive(Debug, Clone, PartialEq)]
@@ -100,6 +76,9 @@ pub struct AidParams {
     /// its two initialisation frames) of this many of the displacement's
     /// sigmas: the scale's error is about one over it.
     pub min_place_baseline_sigmas: f64,
+    /// A placed map's scale and place are refit once its keyframes with a
+    /// fix span this GNSS baseline, m ([`refit_placement`]).
+    pub refit_baseline_m: f64,
     /// A relocalisation in a map in local NED is refused when it puts the
     /// camera further from its GNSS position than this many of the
     /// receiver's reported accuracies (at least
@@ -123,7 +102,8 @@ impl Default for AidParams {
             max_gap_s: 10.0,
             max_gap_without_gnss_s: 1.0,
             max_place_gap_s: 60.0,
-            min_place_baseline_sigmas: 20.0,
+            min_place_baseline_sigmas: 10.0,
+            refit_baseline_m: 20.0,
             max_reloc_gnss_sigmas: 5.0,
             min_reloc_distance_m: 5.0,
             rotation_sigma_deg: 0.1,
@@ -160,6 +140,7 @@ impl AidParams {
             ("max_gap_without_gnss_s", self.max_gap_without_gnss_s),
             ("max_place_gap_s", self.max_place_gap_s),
             ("min_place_baseline_sigmas", self.min_place_baseline_sigmas),
+            ("refit_baseline_m", self.refit_baseline_m),
             ("max_reloc_gnss_sigmas", self.max_reloc_gnss_sigmas),
             ("min_reloc_distance_m", self.min_reloc_distance_m),
             ("search_radius", self.search_radius),
@@ -381,6 +362,110 @@ pub(super) fn predict(
         prior: PosePrior::isotropic(cam_from_world, pos_sigma, rot_sigma),
         from_gnss,
     })
+}
+
+/// A new map put into an old one by the telemetry ([`place_new_map`]):
+/// its scale came from the short GNSS baseline of its two initialisation
+/// frames, so it is refit once its keyframes span a long one
+/// ([`refit_placement`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Placement {
+    /// The new map's first keyframe: it and every later keyframe of the
+    /// map are the placed part (ids grow with time).
+    pub first_kf: super::map::KeyFrameId,
+}
+
+/// Refit a placed part's scale about its first keyframe (its place and
+/// rotation kept: the telemetry's placement fixed them, and a straight
+/// flight would leave a rotation about its line free) to the GNSS
+/// displacements of its keyframes from the first, once those with a fix
+/// span
+/// [`AidParams::refit_baseline_m`]: the part's keyframes and the points
+/// only they observe move by the fitted similarity (counts as a
+/// correction). `Ok(None)`: not yet (too short a baseline); `Err`: the
+/// part cannot be refit (its reason; the placement is then left as it is).
+pub(super) fn refit_placement(
+    aid: &TelemetryAid,
+    map: &mut Map,
+    placement: &Placement,
+) -> Result<Option<crate::lie::Sim3>, &'static str> {
+    let into = map
+        .map_of(placement.first_kf)
+        .ok_or("the placed map's first keyframe is gone")?;
+    let part: Vec<super::map::KeyFrameId> = map
+        .keyframes()
+        .filter(|k| k.id >= placement.first_kf && map.map_of(k.id) == Some(into))
+        .map(|k| k.id)
+        .collect();
+    // (centre in the map, GNSS position) of the part's keyframes with a
+    // fix; the first is the placed first keyframe's.
+    let mut pairs: Vec<(Vector3<f64>, Vector3<f64>)> = Vec::new();
+    for id in &part {
+        let Some(k) = map.keyframe(*id) else { continue };
+        let Some(s) = aid.sample(k.timestamp).filter(|s| s.fix) else {
+            if *id == placement.first_kf {
+                return Err("no GNSS fix at the placed map's first keyframe");
+            }
+            continue;
+        };
+        pairs.push((k.cam_from_world.inverse().translation.vector, s.gps_ned));
+    }
+    let spread = pairs
+        .iter()
+        .flat_map(|a| pairs.iter().map(move |b| (a.1 - b.1).norm()))
+        .fold(0.0, f64::max);
+    if pairs.len() < 4 || spread < aid.params.refit_baseline_m {
+        return Ok(None);
+    }
+    // The scale about the first keyframe (where the placement put it):
+    // the GNSS displacements from it against the map's.
+    let (c0, g0) = pairs[0];
+    let (num, den) = pairs.iter().fold((0.0, 0.0), |(num, den), (c, g)| {
+        let d = c - c0;
+        (num + d.dot(&(g - g0)), den + d.norm_squared())
+    });
+    if den <= 0.0 {
+        return Err("the placed keyframes do not move");
+    }
+    let scale = num / den;
+    if !(0.5..=2.0).contains(&scale) {
+        return Err("the fitted scale is off by more than a factor of two");
+    }
+    let sim = crate::lie::Sim3::new(UnitQuaternion::identity(), c0 - c0 * scale, scale);
+    let in_part: std::collections::HashSet<super::map::KeyFrameId> = part.iter().copied().collect();
+    let (mut points, mut shared) = (Vec::new(), 0usize);
+    for p in map.points() {
+        let seen_in_part = p.observations.iter().any(|(k, _)| in_part.contains(k));
+        if !seen_in_part {
+            continue;
+        }
+        if p.observations.iter().all(|(k, _)| in_part.contains(k)) {
+            points.push(p.id);
+        } else {
+            shared += 1;
+        }
+    }
+    // Vision joined the part to the old map again (points seen from
+    // both): it holds the two together better than the GNSS would.
+    if shared * 10 > points.len() + shared {
+        return Err("the placed keyframes see the old map's points again");
+    }
+    for id in &part {
+        if let Some(k) = map.keyframe_mut(*id) {
+            let world_from_cam = sim.transform_pose(&k.cam_from_world.inverse());
+            k.cam_from_world = crate::lie::renormalized(world_from_cam.inverse());
+        }
+    }
+    for pid in &points {
+        if let Some(p) = map.point_mut(*pid) {
+            p.position = sim.transform_point(&p.position);
+        }
+    }
+    for pid in points {
+        map.update_point_normal_and_depth(pid);
+    }
+    map.note_correction();
+    Ok(Some(sim))
 }
 
 /// How far beyond the allowed distance a pose in a map in local NED puts
@@ -682,6 +767,61 @@ mod tests {
         old.sample.t = 20.6 - 61.0;
         let why = place_new_map(&aid, &map, &old, (20.0, &n1), (20.6, &n2)).unwrap_err();
         assert!(why.contains("too old"), "{why}");
+    }
+
+    /// A placed part whose keyframes are 20 m apart where the GNSS says 22
+    /// (a 10 % scale error from a short initial baseline) is scaled by 1.1
+    /// about its first keyframe, its points with it; not before its
+    /// keyframes span the baseline, and not when vision already joined it
+    /// to the old map (points seen from both).
+    #[test]
+    fn a_placed_map_is_rescaled_to_the_gnss_over_a_long_baseline() {
+        let mut map = map_with(6, 5);
+        // Keyframes 20 m apart along north (timestamps 0, 0.1, ... 0.5).
+        map.apply_sim3(&crate::lie::Sim3::new(
+            UnitQuaternion::identity(),
+            Vector3::zeros(),
+            200.0,
+        ));
+        map.set_mode(MapMode::GpsAided);
+        let samples = (0..6)
+            .map(|i| {
+                let at = camera(0.0, -90.0, Vector3::new(22.0 * i as f64, 0.0, -30.0));
+                reported(i as f64 * 0.1, &at, true)
+            })
+            .collect();
+        let aid = aid(samples);
+        let point = map.points().next().unwrap().id;
+        let before = map.point(point).unwrap().position;
+        let whole = Placement {
+            first_kf: KeyFrameId(0),
+        };
+        let long = TelemetryAid {
+            params: AidParams {
+                refit_baseline_m: 200.0,
+                ..AidParams::default()
+            },
+            ..aid.clone()
+        };
+        assert_eq!(refit_placement(&long, &mut map.clone(), &whole), Ok(None));
+        let shared = Placement {
+            first_kf: KeyFrameId(2),
+        };
+        let why = refit_placement(&aid, &mut map.clone(), &shared).unwrap_err();
+        assert!(why.contains("old map"), "{why}");
+        let corrections = map.corrections();
+        let sim = refit_placement(&aid, &mut map, &whole).unwrap().unwrap();
+        assert!((sim.scale - 1.1).abs() < 1e-9, "{}", sim.scale);
+        for (i, k) in map.keyframes().enumerate() {
+            let c = k.center();
+            assert!(
+                (c - Vector3::new(22.0 * i as f64, 0.0, 0.0)).norm() < 1e-6,
+                "{c}"
+            );
+        }
+        let after = map.point(point).unwrap().position;
+        assert!((after.coords - before.coords * 1.1).norm() < 1e-9);
+        assert_eq!(map.corrections(), corrections + 1);
     }
 
     /// A pose 48 m from where the GNSS puts the camera (a look-alike place)

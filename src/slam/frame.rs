@@ -1,7 +1,9 @@
 //! What every stage of tracking works on: the frame being tracked, the
 //! previous tracked frame, the tracker's fixed [`Context`] (tunables,
 //! camera, scale levels, vocabulary), per-pass [`Marks`], and motion-only
-//! bundle adjustment of a frame's pose on its matches.
+//! bundle adjustment of a frame's pose on its matches (with the telemetry's
+//! prior when tracking is aided), and the record of a posed frame with how
+//! it was posed ([`PoseSource`]).
 
 use std::sync::Arc;
 
@@ -39,6 +41,47 @@ pub struct TrackedKeypoint {
     pub y: f32,
     /// What tracking made of it.
     pub state: KeypointState,
+}
+
+/// How a frame's pose was found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseSource {
+    /// By vision alone (the motion model, the reference keyframe or
+    /// relocalisation, then the local map).
+    Vision,
+    /// By the local map searched around the telemetry's prediction, with
+    /// the prediction as a prior.
+    VisionTelemetry,
+    /// By the telemetry's prediction alone (vision found too little).
+    Telemetry,
+}
+
+impl PoseSource {
+    /// Its name in logs and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            PoseSource::Vision => "vision",
+            PoseSource::VisionTelemetry => "vision+telemetry",
+            PoseSource::Telemetry => "telemetry",
+        }
+    }
+}
+
+/// The pose record of one frame, relative to its reference keyframe (so it
+/// follows the keyframe when mapping moves it).
+#[derive(Debug, Clone, Copy)]
+pub struct FrameRecord {
+    /// Frame index in the input.
+    pub index: u64,
+    /// Capture time, seconds.
+    pub timestamp: f64,
+    /// The reference keyframe.
+    pub reference: KeyFrameId,
+    /// cam_from_world of the frame = `cam_from_ref` * ref.cam_from_world.
+    pub cam_from_ref: Isometry3<f64>,
+    /// How the pose was found.
+    pub source: PoseSource,
 }
 
 /// A frame being tracked.

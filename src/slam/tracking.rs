@@ -28,7 +28,7 @@ use super::SlamError;
 use super::aided::{self, Anchor, PoseSource, TelemetryAid};
 use super::cpu_time::Stopwatch;
 use super::frame::{Context, Frame, LastFrame, Marks, PoseFit};
-pub use super::frame::{KeypointState, TrackedKeypoint};
+pub use super::frame::{FrameRecord, KeypointState, TrackedKeypoint};
 use super::initializer::{InitFailure, InitialMap, Initializer};
 use super::keyframe_decision::{KeyFrameCandidate, need_new_keyframe};
 use super::local_map::LocalMapTracker;
@@ -104,22 +104,6 @@ pub enum TrackState {
     Tracking,
     /// The last frame could not be tracked.
     Lost,
-}
-
-/// The pose record of one frame, relative to its reference keyframe (so it
-/// follows the keyframe when mapping moves it).
-#[derive(Debug, Clone, Copy)]
-pub struct FrameRecord {
-    /// Frame index in the input.
-    pub index: u64,
-    /// Capture time, seconds.
-    pub timestamp: f64,
-    /// The reference keyframe.
-    pub reference: KeyFrameId,
-    /// cam_from_world of the frame = `cam_from_ref` * ref.cam_from_world.
-    pub cam_from_ref: Isometry3<f64>,
-    /// How the pose was found.
-    pub source: PoseSource,
 }
 
 /// A new map started after a tracking loss (see
@@ -245,6 +229,8 @@ pub struct Tracker {
     /// New maps must be put into the old one by the telemetry (the map is
     /// in local NED with telemetry priors): none is started otherwise.
     new_maps_need_placement: bool,
+    /// The last new map put into the old one, until its scale is refit.
+    placement: Option<aided::Placement>,
 }
 
 impl Tracker {
@@ -288,6 +274,7 @@ impl Tracker {
             anchor: None,
             telemetry_since: None,
             new_maps_need_placement: false,
+            placement: None,
         })
     }
 
@@ -773,6 +760,9 @@ impl Tracker {
             gap_s = initial.second.timestamp - anchor.sample.t,
             "new map put into the old one by the telemetry"
         );
+        self.placement = Some(aided::Placement {
+            first_kf: initial.first.keyframe,
+        });
         m.keyframe_pose(initial.second.keyframe)
     }
 
@@ -847,6 +837,50 @@ impl Tracker {
             }
             _ => None,
         };
+        let tracked = self.track_posed(map, frame, prediction, sample, mapping_idle);
+        if let Ok(t) = &tracked
+            && t.new_keyframe.is_some()
+        {
+            self.refit_placement(map);
+        }
+        tracked
+    }
+
+    /// Refit the scale and place of the last map the telemetry put into
+    /// the old one, once its keyframes span a long enough GNSS baseline
+    /// ([`aided::refit_placement`]).
+    fn refit_placement(&mut self, map: &mut Map) {
+        let (Some(aid), Some(placement)) = (self.aid.as_ref(), self.placement.as_ref()) else {
+            return;
+        };
+        match aided::refit_placement(aid, map, placement) {
+            Ok(None) => return,
+            Ok(Some(sim)) => {
+                tracing::info!(
+                    first_kf = placement.first_kf.0,
+                    scale = sim.scale,
+                    moved_m = sim.translation.norm(),
+                    "placed map refit to the GNSS over a longer baseline"
+                );
+                // The last frame follows its (moved) reference keyframe.
+                self.corrections_seen = map.corrections();
+                self.follow_correction(map);
+            }
+            Err(why) => tracing::info!(why, "placed map not refit"),
+        }
+        self.placement = None;
+    }
+
+    /// [`Tracker::track_frame`] after the follow-ups: vision, else the
+    /// telemetry's prediction.
+    fn track_posed(
+        &mut self,
+        map: &mut Map,
+        frame: &mut Frame,
+        prediction: Option<aided::Prediction>,
+        sample: Option<TelemetrySample>,
+        mapping_idle: bool,
+    ) -> Result<Tracked, TrackFailure> {
         match self.track_vision(map, frame, prediction.is_none(), sample.as_ref()) {
             Ok((cam_from_world, inliers, recently_relocalized)) => Ok(self.accept(
                 map,
