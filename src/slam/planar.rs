@@ -615,18 +615,20 @@ mod tests {
         assert_eq!(telemetry_choice(&a, &b, &vague), None);
         // The initialisation takes the reconstruction the telemetry
         // supports, with no third view at all.
-        let chosen = choose_reconstruction(
-            &camera,
-            &TrackingParams::default(),
-            &kp1,
-            &kp2,
-            &matches,
-            0,
-            &[],
-            1,
-            Some(&motion),
-        )
-        .unwrap();
+        let without_views = |m: Option<&RelativeMotion>| {
+            choose_reconstruction(
+                &camera,
+                &TrackingParams::default(),
+                &kp1,
+                &kp2,
+                &matches,
+                0,
+                &[],
+                1,
+                m,
+            )
+        };
+        let chosen = without_views(Some(&motion)).unwrap();
         assert!(
             chosen
                 .cam2_from_cam1
@@ -635,17 +637,6 @@ mod tests {
                 .to_degrees()
                 < 0.5
         );
-        let no_view = choose_reconstruction(
-            &camera,
-            &TrackingParams::default(),
-            &kp1,
-            &kp2,
-            &matches,
-            0,
-            &[],
-            1,
-            None,
-        );
-        assert_eq!(no_view.unwrap_err(), PlanarFailure::NoThirdView);
+        assert_eq!(without_views(None).unwrap_err(), PlanarFailure::NoThirdView);
     }
 }

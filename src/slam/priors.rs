@@ -557,7 +557,6 @@ impl Priors {
     /// The sample at a keyframe's time (nearest or interpolated).
     fn sample_at(&self, t: f64) -> Option<TelemetrySample> {
         self.log
-            .read()
             .sample_at(t, self.params.max_dt_s, self.params.interpolate_gap_s)
     }
 
