@@ -75,7 +75,7 @@ function showStatus(s) {
     (src.kind ? `${src.kind} ${src.url || ''} ${src.codec || ''}${src.transport ? '/' + src.transport : ''} · ` : '') +
     `${(v.decoded_fps || 0).toFixed(1)} fps · ${(v.bitrate_kbps || 0).toFixed(0)} kbit/s · ` +
     (v.link && v.link.frames ? `usable ${(v.link.usable_share * 100).toFixed(0)} % · ` : '') +
-    `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · late ${c.late || 0} · skipped ${c.skipped || 0} · damaged ${c.damaged || 0} (masked ${((c.masked_share || 0) * 100).toFixed(1)} %) · lost pkts ${c.lost_packets || 0} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
+    `received ${c.received} · decoded ${c.decoded} · dropped ${c.dropped} · late ${c.late || 0} · skipped ${c.skipped || 0} · damaged ${c.damaged || 0} (masked ${((c.masked_share || 0) * 100).toFixed(1)} %) · lost pkts ${c.lost_packets || 0}${c.retransmit_asked ? ` (NACK ${c.retransmit_recovered}/${c.retransmit_asked})` : ""} · bad ${c.bad} · reconnects ${Math.max(0, (c.connects || 1) - 1)}` +
     (v.width ? ` · ${v.width}x${v.height}` : '') +
     (src.last_error ? ` · ${src.last_error}` : '');
   if ((sl.keyframes ?? 0) !== state.keyframes.length) refreshKeyframes();

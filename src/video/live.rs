@@ -275,8 +275,17 @@ pub struct Counters {
     pub masked_rows: AtomicU64,
     /// Rows summed over the decoded H.264 frames.
     pub rows: AtomicU64,
-    /// RTP packets lost (sequence-number gaps).
+    /// RTP packets lost (sequence-number gaps, after retransmissions).
     pub lost_packets: AtomicU64,
+    /// RTP packets asked for again by NACK (RTP over UDP).
+    pub retransmit_asked: AtomicU64,
+    /// Of those, packets whose retransmission arrived in time.
+    pub retransmit_recovered: AtomicU64,
+    /// Time from noticing a gap to its retransmission's arrival, summed
+    /// over the recovered packets, microseconds.
+    pub retransmit_wait_us: AtomicU64,
+    /// Key frames asked for (PLI) after a packet was lost for good.
+    pub key_frame_requests: AtomicU64,
     /// H.264 access units dropped because the decoder fell behind the
     /// stream (the decoder then resumes at the next sync point).
     pub late: AtomicU64,
@@ -321,6 +330,15 @@ pub struct CountersSnapshot {
     pub masked_share: f64,
     /// See [`Counters::lost_packets`].
     pub lost_packets: u64,
+    /// See [`Counters::retransmit_asked`].
+    pub retransmit_asked: u64,
+    /// See [`Counters::retransmit_recovered`].
+    pub retransmit_recovered: u64,
+    /// Mean time from noticing a gap to its retransmission, ms (0 when
+    /// none was recovered).
+    pub retransmit_wait_ms: f64,
+    /// See [`Counters::key_frame_requests`].
+    pub key_frame_requests: u64,
     /// See [`Counters::late`].
     pub late: u64,
     /// See [`Counters::refused`].
@@ -354,6 +372,13 @@ impl Counters {
                 rows => l(&self.masked_rows) as f64 / rows as f64,
             },
             lost_packets: l(&self.lost_packets),
+            retransmit_asked: l(&self.retransmit_asked),
+            retransmit_recovered: l(&self.retransmit_recovered),
+            retransmit_wait_ms: match l(&self.retransmit_recovered) {
+                0 => 0.0,
+                n => l(&self.retransmit_wait_us) as f64 / n as f64 / 1000.0,
+            },
+            key_frame_requests: l(&self.key_frame_requests),
             late: l(&self.late),
             refused: l(&self.refused),
             sender_reports: l(&self.sender_reports),

@@ -75,6 +75,14 @@ pub struct VideoConfig {
     /// H.264, following motion: how far damage reaches beyond the measured
     /// motion range per predicted picture, pixels.
     pub damage_motion_margin_px: u32,
+    /// RTP over UDP: after a lost packet, hold the packets behind it this
+    /// long while a NACK asks the sender to retransmit it (RFC 4585/4588;
+    /// a sender that never answers is noticed and costs no more waiting),
+    /// ms; 0: no NACK.
+    pub nack_wait_ms: u64,
+    /// RTP over UDP: after a packet is lost for good, ask the sender for a
+    /// key frame (RTCP PLI) at most this often, ms; 0: never.
+    pub key_frame_request_ms: u64,
     /// Decimate the picture by this integer factor before SLAM (1: full
     /// resolution; any source); the camera intrinsics are scaled to match.
     pub downscale: u32,
@@ -108,6 +116,10 @@ impl Default for VideoConfig {
             damage_mv_px: crate::video::damage::DamageParams::default().mv_px,
             damage_follow_motion: crate::video::damage::DamageParams::default().follow_motion,
             damage_motion_margin_px: crate::video::damage::DamageParams::default().motion_margin_px,
+            nack_wait_ms: crate::video::rtp::feedback::NackParams::default()
+                .wait
+                .as_millis() as u64,
+            key_frame_request_ms: 1000,
             downscale: 1,
             snapshot_hz: 5.0,
             connect_timeout_ms: p.connect_timeout_ms,
@@ -153,6 +165,14 @@ impl VideoConfig {
                     ..Default::default()
                 },
                 ..Default::default()
+            },
+            feedback: crate::video::stream::FeedbackParams {
+                nack: crate::video::rtp::feedback::NackParams {
+                    wait: std::time::Duration::from_millis(self.nack_wait_ms),
+                    ..Default::default()
+                },
+                key_frame_interval: (self.key_frame_request_ms > 0)
+                    .then(|| std::time::Duration::from_millis(self.key_frame_request_ms)),
             },
         }
     }

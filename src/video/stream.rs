@@ -95,6 +95,19 @@ pub struct H264Params {
     pub reconnect_max_ms: u64,
     /// The decode thread's tunables.
     pub decode: DecodeParams,
+    /// RTP over UDP: what is asked of the sender after a loss.
+    pub feedback: FeedbackParams,
+}
+
+/// RTP over UDP: NACK for retransmissions and key frame requests
+/// (`[video] nack_wait_ms`, `key_frame_request_ms`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct FeedbackParams {
+    /// The resequencer's tunables (a zero wait: no NACK).
+    pub nack: crate::video::rtp::feedback::NackParams,
+    /// After a lost packet is given up, ask for a key frame (PLI), at most
+    /// this often; `None`: never.
+    pub key_frame_interval: Option<Duration>,
 }
 
 impl Default for H264Params {
@@ -108,6 +121,10 @@ impl Default for H264Params {
             reconnect_min_ms: 250,
             reconnect_max_ms: 2_000,
             decode: DecodeParams::default(),
+            feedback: FeedbackParams {
+                key_frame_interval: Some(Duration::from_millis(1000)),
+                ..Default::default()
+            },
         }
     }
 }

@@ -7,6 +7,7 @@
 //! [`crate::video::rtsp`]); both hand Annex B access units to
 //! [`crate::video::h264`].
 
+pub mod feedback;
 pub mod sdp;
 
 use std::collections::VecDeque;

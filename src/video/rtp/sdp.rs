@@ -33,6 +33,10 @@ pub struct SdpVideo {
     pub clock_rate: u32,
     /// Decoded `sprop-parameter-sets` (SPS, PPS).
     pub param_sets: Vec<Vec<u8>>,
+    /// The payload type of the stream's retransmissions (RFC 4588: an
+    /// `rtx` rtpmap whose `apt` names the video's payload type), when the
+    /// sender offers them.
+    pub rtx_payload_type: Option<u8>,
 }
 
 /// Decode standard base64 (padding optional, as SDP writers differ);
@@ -54,6 +58,9 @@ pub fn parse(text: &str) -> Result<SdpVideo, SdpError> {
     let mut video: Option<SdpVideo> = None;
     let mut session_addr: Option<String> = None;
     let mut in_video = false;
+    // The video section's `rtx` payload types and the `apt` each names.
+    let mut rtx: Vec<u8> = Vec::new();
+    let mut apt: Vec<(u8, u8)> = Vec::new();
     for (i, raw) in text.lines().enumerate() {
         let line = raw.trim();
         let bad = |reason: &str| SdpError::BadLine {
@@ -85,6 +92,7 @@ pub fn parse(text: &str) -> Result<SdpVideo, SdpError> {
                     codec: String::new(),
                     clock_rate: 90_000,
                     param_sets: Vec::new(),
+                    rtx_payload_type: None,
                 });
             }
             continue;
@@ -107,6 +115,15 @@ pub fn parse(text: &str) -> Result<SdpVideo, SdpError> {
         if let Some(rest) = line.strip_prefix("a=rtpmap:") {
             let mut it = rest.splitn(2, ' ');
             let pt: Option<u8> = it.next().and_then(|p| p.parse().ok());
+            if let Some(p) = pt
+                && it
+                    .clone()
+                    .next()
+                    .is_some_and(|e| e.trim().to_ascii_lowercase().starts_with("rtx/"))
+            {
+                rtx.push(p);
+                continue;
+            }
             if pt != Some(v.payload_type) {
                 continue;
             }
@@ -120,6 +137,16 @@ pub fn parse(text: &str) -> Result<SdpVideo, SdpError> {
             let mut it = rest.splitn(2, ' ');
             let pt: Option<u8> = it.next().and_then(|p| p.parse().ok());
             if pt != Some(v.payload_type) {
+                if let Some(p) = pt {
+                    for kv in it.next().unwrap_or("").split(';') {
+                        let mut kv = kv.trim().splitn(2, '=');
+                        if kv.next().map(str::trim) == Some("apt")
+                            && let Some(a) = kv.next().and_then(|a| a.trim().parse().ok())
+                        {
+                            apt.push((p, a));
+                        }
+                    }
+                }
                 continue;
             }
             for kv in it.next().unwrap_or("").split(';') {
@@ -137,6 +164,9 @@ pub fn parse(text: &str) -> Result<SdpVideo, SdpError> {
         }
     }
     let mut v = video.ok_or(SdpError::NoVideo)?;
+    v.rtx_payload_type = rtx
+        .into_iter()
+        .find(|p| apt.contains(&(*p, v.payload_type)));
     if v.address.is_none() {
         v.address = session_addr;
     }
@@ -176,6 +206,21 @@ mod tests {
         assert_eq!(v.param_sets.len(), 2);
         assert_eq!(v.param_sets[0][0] & 0x1f, 7);
         assert_eq!(v.param_sets[1][0] & 0x1f, 8);
+        assert_eq!(v.rtx_payload_type, None);
+    }
+
+    #[test]
+    fn finds_the_retransmission_payload_type() {
+        let sdp = "m=video 5600 RTP/AVPF 96 97 99
+a=rtpmap:96 H264/90000
+                   a=rtpmap:99 rtx/90000
+a=fmtp:99 apt=100
+                   a=rtpmap:97 rtx/90000
+a=fmtp:97 apt=96;rtx-time=500
+";
+        let v = parse(sdp).unwrap();
+        assert_eq!((v.payload_type, v.codec.as_str()), (96, "H264"));
+        assert_eq!(v.rtx_payload_type, Some(97), "the rtx whose apt is 96");
     }
 
     #[test]
