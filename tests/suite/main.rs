@@ -26,6 +26,7 @@ mod http_support;
 mod link_support;
 mod mjpeg_support;
 mod sim_support;
+mod video_support;
 
 mod api_http;
 mod api_photo_shots;
@@ -83,6 +84,7 @@ mod slam_sim;
 mod soak;
 mod stop_sim;
 mod video_720p;
+mod video_feedback;
 mod video_h264;
 mod video_loss;
 mod video_mjpeg;

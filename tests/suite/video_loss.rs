@@ -23,55 +23,12 @@ use std::time::{Duration, Instant};
 
 use rand::{Rng, SeedableRng};
 use shotpilot::config::VideoConfig;
-use shotpilot::video::live::{CountersSnapshot, Ingest, LinkQuality};
+use shotpilot::video::live::{CountersSnapshot, LinkQuality};
 use shotpilot::video::udp::RtpSockets;
-use tokio_util::sync::CancellationToken;
 
-/// How the proxy drops packets.
-#[derive(Debug, Clone, Copy)]
-enum Loss {
-    /// Each packet independently with this probability.
-    Random(f64),
-    /// Gilbert-Elliott: a bad state dropping every packet, entered so the
-    /// mean loss is `rate`, left with probability 1 / `burst` per packet.
-    Bursts { rate: f64, burst: f64 },
-}
-
-impl Loss {
-    fn rate(self) -> f64 {
-        match self {
-            Loss::Random(p) | Loss::Bursts { rate: p, .. } => p,
-        }
-    }
-
-    fn name(self) -> String {
-        match self {
-            Loss::Random(p) => format!("{:.0} % random", p * 100.0),
-            Loss::Bursts { rate, burst } => {
-                format!("{:.0} % bursts of {burst:.0}", rate * 100.0)
-            }
-        }
-    }
-
-    fn dropper(self, seed: u64) -> impl FnMut() -> bool {
-        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-        let mut bad = false;
-        move || match self {
-            Loss::Random(p) => rng.random::<f64>() < p,
-            Loss::Bursts { rate, burst } => {
-                let leave = 1.0 / burst;
-                // Stationary bad share = enter / (enter + leave) = rate.
-                let enter = rate * leave / (1.0 - rate);
-                bad = if bad {
-                    rng.random::<f64>() >= leave
-                } else {
-                    rng.random::<f64>() < enter
-                };
-                bad
-            }
-        }
-    }
-}
+use crate::video_support::{
+    LiveSource, Loss, RowHashes, against_clean, explore_flight, row_hashes,
+};
 
 /// A proxy on two sockets bound here (RTP and RTCP beside it) sending each
 /// packet on to every destination (and RTCP to its next port), dropping RTP
@@ -187,37 +144,6 @@ struct Outcome {
     frames: Vec<RowHashes>,
 }
 
-#[derive(Debug)]
-struct RowHashes {
-    capture_time: f64,
-    rows: Vec<u64>,
-    damaged: Vec<bool>,
-}
-
-fn row_hashes(f: &shotpilot::video::live::Frame) -> RowHashes {
-    use std::hash::{Hash, Hasher};
-    let w = f.image.width() as usize;
-    let rows = f
-        .image
-        .as_raw()
-        .chunks(w)
-        .map(|r| {
-            let mut h = std::collections::hash_map::DefaultHasher::new();
-            r.hash(&mut h);
-            h.finish()
-        })
-        .collect::<Vec<_>>();
-    let damaged = match &f.damage {
-        Some(d) => d.rows().to_vec(),
-        None => vec![false; rows.len()],
-    };
-    RowHashes {
-        capture_time: f.timestamp(),
-        rows,
-        damaged,
-    }
-}
-
 /// Each group of cases with one stream shape: one ffmpeg, one proxy, one
 /// daemon `udp://` source per case.
 fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Outcome> {
@@ -229,11 +155,7 @@ fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Out
     }
     struct Running {
         case: usize,
-        ingest: Arc<Ingest>,
-        cancel: CancellationToken,
-        task: tokio::task::JoinHandle<Result<(), shotpilot::video::source::SourceError>>,
-        seen: Arc<std::sync::Mutex<Vec<RowHashes>>>,
-        watcher: tokio::task::JoinHandle<()>,
+        source: LiveSource<RowHashes>,
     }
     let mut groups = Vec::new();
     for (g, &(slice_bytes, gop)) in shapes.iter().enumerate() {
@@ -243,48 +165,15 @@ fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Out
             if (c.slice_bytes, c.gop) != (slice_bytes, gop) {
                 continue;
             }
-            let ingest = Arc::new(Ingest::new());
-            let cancel = CancellationToken::new();
-            let sockets = RtpSockets::bind_pair("127.0.0.1".parse().unwrap()).unwrap();
-            let to = sockets.rtp_addr().unwrap();
-            let mut cfg = VideoConfig {
-                url: format!("udp://{to}"),
-                ..Default::default()
-            };
+            let mut cfg = VideoConfig::default();
             if let Some(px) = c.mv_px {
                 cfg.damage_mv_px = px;
             }
             cfg.damage_follow_motion = !c.bound;
-            let task = rt.spawn(shotpilot::video::source::run_configured_on(
-                cfg,
-                ingest.clone(),
-                cancel.clone(),
-                None,
-                Some(sockets),
-            ));
             // Every frame published, as it comes.
-            let seen: Arc<std::sync::Mutex<Vec<RowHashes>>> = Arc::default();
-            let watcher = {
-                let mut rx = ingest.subscribe();
-                let seen = seen.clone();
-                rt.spawn(async move {
-                    while rx.changed().await.is_ok() {
-                        let f = rx.borrow_and_update().clone();
-                        if let Some(f) = f {
-                            seen.lock().unwrap().push(row_hashes(&f));
-                        }
-                    }
-                })
-            };
+            let (to, source) = LiveSource::start(rt, cfg, row_hashes);
             dests.push((to, c.loss));
-            running.push(Running {
-                case: k,
-                ingest,
-                cancel,
-                task,
-                seen,
-                watcher,
-            });
+            running.push(Running { case: k, source });
         }
         let proxy = Proxy::start(&dests, 1000 + 100 * g as u64);
         let mut x264 = format!("keyint={gop}:min-keyint={gop}:scenecut=0");
@@ -335,11 +224,16 @@ fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Out
     for (mut child, proxy, running) in groups {
         let status = child.wait().unwrap();
         assert!(status.success(), "ffmpeg failed: {status}");
-        let links: Vec<LinkQuality> = running.iter().map(|r| r.ingest.link.report()).collect();
+        let links: Vec<LinkQuality> = running
+            .iter()
+            .map(|r| r.source.ingest.link.report())
+            .collect();
         // The decoders drain what is queued (a bound, not a figure).
         let t = Instant::now();
         let snap = |r: &Vec<Running>| -> Vec<_> {
-            r.iter().map(|x| x.ingest.counters.snapshot()).collect()
+            r.iter()
+                .map(|x| x.source.ingest.counters.snapshot())
+                .collect()
         };
         let mut last = snap(&running);
         loop {
@@ -352,13 +246,7 @@ fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Out
         }
         let counts = proxy.finish();
         for ((r, (forwarded, dropped)), link) in running.into_iter().zip(counts).zip(links) {
-            r.cancel.cancel();
-            rt.block_on(r.task).unwrap().unwrap();
-            let counters = r.ingest.counters.snapshot();
-            r.ingest.close();
-            drop(r.ingest);
-            rt.block_on(r.watcher).unwrap();
-            let frames = std::mem::take(&mut *r.seen.lock().unwrap());
+            let (counters, frames) = r.source.stop(rt);
             out[r.case] = Some(Outcome {
                 counters,
                 link,
@@ -373,29 +261,6 @@ fn run_cases(rt: &tokio::runtime::Runtime, cases: &[Case], secs: u32) -> Vec<Out
         .collect()
 }
 
-/// Against the lossless copy (frames matched by capture time): rows marked
-/// damaged, rows that really differ, and rows that differ without being
-/// marked (must be none), over the frames both copies have.
-fn against_clean(lossy: &Outcome, clean: &Outcome) -> (usize, usize, usize, usize) {
-    let (mut rows, mut marked, mut differ, mut unmarked_differ) = (0, 0, 0, 0);
-    for f in &lossy.frames {
-        let Some(c) = clean
-            .frames
-            .iter()
-            .find(|c| (c.capture_time - f.capture_time).abs() < 1e-4)
-        else {
-            continue;
-        };
-        for ((a, b), d) in f.rows.iter().zip(&c.rows).zip(&f.damaged) {
-            rows += 1;
-            marked += usize::from(*d);
-            differ += usize::from(a != b);
-            unmarked_differ += usize::from(a != b && !*d);
-        }
-    }
-    (rows, marked, differ, unmarked_differ)
-}
-
 fn figures(cases: &[Case], outcomes: &[Outcome]) {
     eprintln!(
         "FIGURES loss | slices | gop | damage model | packets sent/dropped | pictures received | decoded (given to SLAM) | damaged | fully damaged | masked rows | skipped | rows really differing | differing unmasked | usable, last 10 s (status) | unreliable"
@@ -407,7 +272,8 @@ fn figures(cases: &[Case], outcomes: &[Outcome]) {
             .zip(outcomes)
             .find(|(d, _)| d.loss.rate() == 0.0 && d.slice_bytes == c.slice_bytes && d.gop == c.gop)
             .map(|(_, o)| o);
-        let (rows, _, differ, unmarked) = clean.map_or((0, 0, 0, 0), |cl| against_clean(o, cl));
+        let (rows, _, differ, unmarked) =
+            clean.map_or((0, 0, 0, 0), |cl| against_clean(&o.frames, &cl.frames));
         eprintln!(
             "FIGURES {} | {} | {} | {} | {}/{} | {} | {} ({:.1} %) | {} | {} | {:.1} % | {} | {:.1} % | {} | {:.1} % of {} | {}",
             c.loss.name(),
@@ -440,11 +306,7 @@ fn figures(cases: &[Case], outcomes: &[Outcome]) {
 #[test]
 #[ignore = "needs ffmpeg (Debian's ffmpeg with libx264)"]
 fn x264_through_a_lossy_link_reaches_slam_with_its_damage_masked() {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = crate::video_support::runtime();
     let mut cases = Vec::new();
     for slice_bytes in [None, Some(1200)] {
         for loss in [0.0, 0.01, 0.02, 0.05, 0.10] {
@@ -535,7 +397,7 @@ fn x264_through_a_lossy_link_reaches_slam_with_its_damage_masked() {
             .find(|(d, _)| d.loss.rate() == 0.0 && (d.slice_bytes, d.gop) == (c.slice_bytes, c.gop))
             .map(|(_, o)| o)
             .unwrap();
-        let (rows, _, _, unmarked) = against_clean(o, clean);
+        let (rows, _, _, unmarked) = against_clean(&o.frames, &clean.frames);
         assert!(rows > 50 * 480, "{name}: {rows} rows compared");
         // Rows that differ from the lossless copy (by any grey level; the
         // SLAM test below counts the visible ones) without a mark: the bound
@@ -744,28 +606,17 @@ fn slam_through_loss(
 fn slam_keeps_tracking_through_a_lossy_link() {
     use shotpilot::video::decode_loop::DecodeParams;
     use shotpilot::video::h264::GrayEncoder;
-    use shotpilot_sim::paths::{CameraPath, Params as PathParams};
-    use shotpilot_sim::render::{RenderParams, Renderer};
-    let world = Arc::new(shotpilot_sim::world::World::generate(5));
-    let path = CameraPath::explore(&world, PathParams::default());
-    let sim = shotpilot_sim::camera::SimCamera::default();
-    let renderer = Renderer::new(world, sim, RenderParams::default());
     let n = 450;
-    let gt: Vec<(f64, nalgebra::Isometry3<f64>)> = (0..n)
-        .map(|i| {
-            let t = i as f64 / 15.0;
-            (1.7e9 + t, path.world_from_cam(path.start() + t))
-        })
-        .collect();
+    let flight = explore_flight(n);
+    let (sim, gt, cam) = (flight.sim, flight.gt, flight.cam);
     let mut enc =
         GrayEncoder::with_slices(sim.width, sim.height, 15.0, 1_500_000, 30, Some(1200)).unwrap();
-    let aus: Vec<Vec<u8>> = gt
+    let aus: Vec<Vec<u8>> = flight
+        .pictures
         .iter()
-        .enumerate()
-        .map(|(i, (_, p))| enc.encode(&renderer.render_noisy(p, i as u64)).unwrap())
+        .map(|p| enc.encode(p).unwrap())
         .collect();
     let clean = lossless_pictures(&aus);
-    let cam = shotpilot::simulator::camera_from_sim(&sim).unwrap();
     let skip = DecodeParams {
         conceal: false,
         ..Default::default()

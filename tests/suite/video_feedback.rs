@@ -1,0 +1,662 @@
+//! Asking a real sender for what a lossy link lost: GStreamer's `rtpbin`
+//! with `rtprtxsend` (`tests/peers/rtp_rtx_sender.py`: x264, 640x480,
+//! 15 fps, 1.5 Mbit/s, slices capped at 1200 bytes, an IDR picture every
+//! 2 s) sends RTP through a UDP proxy bound here to two of the daemon's
+//! `udp://` sources: one behind a lossy link (RTP and retransmissions
+//! dropped on the way in, feedback on the way back, by a seeded drop
+//! model), one lossless (the reference its frames are compared with, row
+//! by row, matched by capture time). The lossy source NACKs what it misses
+//! and asks for a key frame when a packet is lost for good; the same
+//! stream from a sender without feedback (`--no-feedback`: plain RTCP)
+//! shows what that buys. Each case prints a FIGURES row.
+//!
+//! Needs Debian's GStreamer (tools, plugins base/good/bad/ugly) and
+//! python3-gi; `.ci/run` installs them.
+
+use std::net::SocketAddr;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use shotpilot::config::VideoConfig;
+use shotpilot::video::live::{CountersSnapshot, Frame, LinkQuality};
+use shotpilot::video::udp::RtpSockets;
+
+use crate::video_support::{Flight, LiveSource, Loss, against_clean, explore_flight, row_hashes};
+
+/// What the proxy counted for the lossy destination.
+#[derive(Debug, Default)]
+struct ProxyCounts {
+    /// RTP packets (media and retransmissions) forwarded and dropped.
+    forwarded: AtomicU64,
+    dropped: AtomicU64,
+    /// Retransmissions (payload type 97) that reached the proxy.
+    retransmissions: AtomicU64,
+    /// Feedback packets from the lossy source forwarded to the sender, and
+    /// dropped on the way.
+    feedback: AtomicU64,
+    feedback_dropped: AtomicU64,
+    /// With `SHOTPILOT_FEEDBACK_TRACE` set: what passed, by time since the
+    /// proxy started (drops, NACKs, PLIs, retransmissions, IDR pictures).
+    trace: Mutex<Vec<(f64, String)>>,
+}
+
+impl ProxyCounts {
+    fn note(&self, t0: Instant, what: impl FnOnce() -> String) {
+        if std::env::var_os("SHOTPILOT_FEEDBACK_TRACE").is_some() {
+            self.trace
+                .lock()
+                .unwrap()
+                .push((t0.elapsed().as_secs_f64(), what()));
+        }
+    }
+}
+
+/// A proxy on an RTP socket and its RTCP socket beside it. RTP from the
+/// sender goes on to the lossy destination (dropped as `loss` says) and to
+/// the clean one, from the RTP socket; the sender's RTCP goes to both
+/// destinations' RTCP ports, from the RTCP socket; RTCP from the lossy
+/// destination (its feedback) goes back to where the sender's RTCP came
+/// from (dropped as `loss` says too); the clean destination's is dropped.
+struct Proxy {
+    rtp_port: u16,
+    stop: Arc<AtomicBool>,
+    counts: Arc<ProxyCounts>,
+    threads: Vec<std::thread::JoinHandle<()>>,
+}
+
+impl Proxy {
+    fn start(lossy: SocketAddr, clean: SocketAddr, loss: Loss, feedback: bool, seed: u64) -> Proxy {
+        let pair = RtpSockets::bind_pair("127.0.0.1".parse().unwrap()).unwrap();
+        let rtp_port = pair.rtp_addr().unwrap().port();
+        let stop = Arc::new(AtomicBool::new(false));
+        let counts = Arc::new(ProxyCounts::default());
+        let rtcp_of = |a: SocketAddr| SocketAddr::new(a.ip(), a.port() + 1);
+        let mut threads = Vec::new();
+        {
+            let (stop, counts) = (stop.clone(), counts.clone());
+            let sock = pair.rtp;
+            let mut drop_now = loss.dropper(seed);
+            threads.push(std::thread::spawn(move || {
+                sock.set_read_timeout(Some(Duration::from_millis(100)))
+                    .unwrap();
+                let mut buf = vec![0u8; 65_536];
+                let t0 = Instant::now();
+                while !stop.load(Ordering::Relaxed) {
+                    let Ok(n) = sock.recv(&mut buf) else { continue };
+                    let seq = || u16::from_be_bytes([buf[2], buf[3]]);
+                    if n > 14 && buf[1] & 0x7f == 97 {
+                        counts.retransmissions.fetch_add(1, Ordering::Relaxed);
+                        counts.note(t0, || {
+                            format!("rtx {}", u16::from_be_bytes([buf[12], buf[13]]))
+                        });
+                    } else if n > 13 {
+                        let nal = buf[12] & 0x1f;
+                        let idr_start = nal == 5 || (nal == 28 && buf[13] & 0x9f == 0x85);
+                        if idr_start {
+                            counts.note(t0, || format!("IDR starts at {}", seq()));
+                        }
+                    }
+                    let _ = sock.send_to(&buf[..n], clean);
+                    if drop_now() {
+                        counts.note(t0, || format!("drop {}", seq()));
+                        counts.dropped.fetch_add(1, Ordering::Relaxed);
+                    } else {
+                        counts.forwarded.fetch_add(1, Ordering::Relaxed);
+                        let _ = sock.send_to(&buf[..n], lossy);
+                    }
+                }
+            }));
+        }
+        {
+            let (stop, counts) = (stop.clone(), counts.clone());
+            let sock = pair.rtcp.expect("an RTCP socket");
+            let mut drop_back = loss.dropper(seed + 7);
+            let (lossy_rtcp, clean_rtcp) = (rtcp_of(lossy), rtcp_of(clean));
+            threads.push(std::thread::spawn(move || {
+                sock.set_read_timeout(Some(Duration::from_millis(100)))
+                    .unwrap();
+                let mut sender: Option<SocketAddr> = None;
+                let mut buf = vec![0u8; 65_536];
+                let t0 = Instant::now();
+                while !stop.load(Ordering::Relaxed) {
+                    let Ok((n, from)) = sock.recv_from(&mut buf) else {
+                        continue;
+                    };
+                    if from == lossy_rtcp {
+                        counts.note(t0, || {
+                            format!(
+                                "feedback {:?} (sender known: {})",
+                                shotpilot::video::rtp::feedback::parse_feedback(&buf[..n]),
+                                sender.is_some()
+                            )
+                        });
+                        if !feedback || drop_back() {
+                            counts.feedback_dropped.fetch_add(1, Ordering::Relaxed);
+                        } else if let Some(to) = sender {
+                            counts.feedback.fetch_add(1, Ordering::Relaxed);
+                            let _ = sock.send_to(&buf[..n], to);
+                        }
+                    } else if from != clean_rtcp {
+                        if sender.is_none() {
+                            counts.note(t0, || "the sender's first RTCP".into());
+                        }
+                        sender = Some(from);
+                        let _ = sock.send_to(&buf[..n], lossy_rtcp);
+                        let _ = sock.send_to(&buf[..n], clean_rtcp);
+                    }
+                }
+            }));
+        }
+        Proxy {
+            rtp_port,
+            stop,
+            counts,
+            threads,
+        }
+    }
+
+    fn finish(self) -> Arc<ProxyCounts> {
+        self.stop.store(true, Ordering::Relaxed);
+        for t in self.threads {
+            t.join().unwrap();
+        }
+        self.counts
+    }
+}
+
+/// What the sender does with the lossy source's feedback.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Answer {
+    /// Retransmits what a NACK asks for, makes a key frame for a PLI.
+    NackPli,
+    /// Makes a key frame for a PLI; NACKs go unanswered (no rtprtxsend).
+    PliOnly,
+    /// Hears nothing: the proxy drops the feedback (as a sender without
+    /// RTCP, ffmpeg's RTP muxer, would ignore it).
+    Nothing,
+}
+
+impl Answer {
+    fn name(self) -> &'static str {
+        match self {
+            Answer::NackPli => "NACK + PLI",
+            Answer::PliOnly => "PLI only",
+            Answer::Nothing => "none",
+        }
+    }
+}
+
+/// One case: a sender, its proxy, a lossy and a clean source.
+#[derive(Debug, Clone, Copy)]
+struct Case {
+    loss: Loss,
+    answer: Answer,
+}
+
+#[derive(Debug)]
+struct Outcome {
+    lossy: CountersSnapshot,
+    clean: CountersSnapshot,
+    link: LinkQuality,
+    proxy: Arc<ProxyCounts>,
+    /// Rows compared, marked, differing, differing unmarked (lossy against
+    /// clean).
+    rows: (usize, usize, usize, usize),
+}
+
+/// The GStreamer sender to the proxy at `rtp_port`: its test pattern for
+/// `secs`, or the numbered PNG frames of `frames` (a printf pattern).
+fn sender(rtp_port: u16, secs: u32, retransmits: bool, frames: Option<&std::path::Path>) -> Child {
+    let script =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/rtp_rtx_sender.py");
+    let mut cmd = Command::new("/usr/bin/python3");
+    cmd.arg(script)
+        .args(["--rtp-port", &rtp_port.to_string()])
+        .args(["--rtcp-port", &(rtp_port + 1).to_string()])
+        .args(["--secs", &secs.to_string()]);
+    if !retransmits {
+        cmd.arg("--no-retransmission");
+    }
+    if let Some(f) = frames {
+        cmd.arg("--frames").arg(f);
+    }
+    cmd.stdout(Stdio::null())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("/usr/bin/python3 with gi (python3-gi) and GStreamer")
+}
+
+/// What one case's two sources published, and the proxy's counts.
+struct Ran<T> {
+    lossy: CountersSnapshot,
+    clean: CountersSnapshot,
+    link: LinkQuality,
+    proxy: Arc<ProxyCounts>,
+    lossy_frames: Vec<T>,
+    clean_frames: Vec<T>,
+}
+
+/// Run every case at once: the sender's test pattern for `secs`, or the
+/// PNG frames of `frames`; `keep` takes what is kept of each frame.
+fn run_cases<T: Send + 'static>(
+    rt: &tokio::runtime::Runtime,
+    cases: &[Case],
+    secs: u32,
+    frames: Option<&std::path::Path>,
+    keep: fn(&Frame) -> T,
+) -> Vec<Ran<T>> {
+    let mut running = Vec::new();
+    for (k, c) in cases.iter().enumerate() {
+        let (lossy_at, lossy) = LiveSource::start(rt, VideoConfig::default(), keep);
+        let (clean_at, clean) = LiveSource::start(rt, VideoConfig::default(), keep);
+        let proxy = Proxy::start(
+            lossy_at,
+            clean_at,
+            c.loss,
+            c.answer != Answer::Nothing,
+            4000 + 10 * k as u64,
+        );
+        let child = sender(proxy.rtp_port, secs, c.answer == Answer::NackPli, frames);
+        running.push((child, proxy, lossy, clean));
+    }
+    let mut out = Vec::new();
+    for (mut child, proxy, lossy, clean) in running {
+        let status = child.wait().unwrap();
+        assert!(status.success(), "the GStreamer sender failed: {status}");
+        let link = lossy.ingest.link.report();
+        // The decoders drain what is queued (a bound, not a figure).
+        let t = Instant::now();
+        let mut last = lossy.ingest.counters.snapshot();
+        loop {
+            std::thread::sleep(Duration::from_millis(200));
+            let now = lossy.ingest.counters.snapshot();
+            if now == last || t.elapsed() > Duration::from_secs(10) {
+                break;
+            }
+            last = now;
+        }
+        let counts = proxy.finish();
+        let (lossy, lossy_frames) = lossy.stop(rt);
+        let (clean, clean_frames) = clean.stop(rt);
+        out.push(Ran {
+            lossy,
+            clean,
+            link,
+            proxy: counts,
+            lossy_frames,
+            clean_frames,
+        });
+    }
+    out
+}
+
+/// The proxies' traces, with `SHOTPILOT_FEEDBACK_TRACE` set: their first
+/// `SHOTPILOT_FEEDBACK_TRACE` seconds.
+fn print_traces(cases: &[Case], proxies: &[&ProxyCounts]) {
+    let Some(secs) = std::env::var("SHOTPILOT_FEEDBACK_TRACE")
+        .ok()
+        .and_then(|s| s.parse::<f64>().ok())
+    else {
+        return;
+    };
+    for (c, p) in cases.iter().zip(proxies) {
+        for (t, what) in p.trace.lock().unwrap().iter().filter(|e| e.0 <= secs) {
+            eprintln!(
+                "TRACE {} / {}: {t:.3} s {what}",
+                c.loss.name(),
+                c.answer.name()
+            );
+        }
+    }
+}
+
+fn figures(cases: &[Case], outcomes: &[Outcome]) {
+    eprintln!(
+        "FIGURES loss | the sender answers | packets dropped/sent | pictures received | decoded | damaged | masked rows | usable, last 10 s | unreliable | asked (NACK) | recovered | mean wait ms | key frames asked | lost after retransmission | rows differing | differing unmasked | retransmissions sent | feedback packets back/dropped"
+    );
+    for (c, o) in cases.iter().zip(outcomes) {
+        let k = &o.lossy;
+        let p = &o.proxy;
+        let dropped = p.dropped.load(Ordering::Relaxed);
+        let (rows, _, differ, unmarked) = o.rows;
+        eprintln!(
+            "FIGURES {} | {} | {}/{} | {} | {} | {} | {:.1} % | {:.1} % of {} | {} | {} | {} | {:.1} | {} | {} | {:.2} % | {} | {} | {}/{}",
+            c.loss.name(),
+            c.answer.name(),
+            dropped,
+            dropped + p.forwarded.load(Ordering::Relaxed),
+            k.received,
+            k.decoded,
+            k.damaged,
+            100.0 * k.masked_share,
+            100.0 * o.link.usable_share,
+            o.link.frames,
+            o.link.unreliable,
+            k.retransmit_asked,
+            k.retransmit_recovered,
+            k.retransmit_wait_ms,
+            k.key_frame_requests,
+            k.lost_packets,
+            100.0 * differ as f64 / rows.max(1) as f64,
+            unmarked,
+            p.retransmissions.load(Ordering::Relaxed),
+            p.feedback.load(Ordering::Relaxed),
+            p.feedback_dropped.load(Ordering::Relaxed),
+        );
+    }
+}
+
+#[test]
+#[ignore = "needs GStreamer (gst rtpbin, rtprtxsend, x264enc) and python3-gi"]
+fn a_sender_that_retransmits_keeps_the_frames_whole_over_a_lossy_link() {
+    let rt = crate::video_support::runtime();
+    let mut cases = Vec::new();
+    for loss in [
+        Loss::Random(0.01),
+        Loss::Random(0.05),
+        Loss::Bursts {
+            rate: 0.05,
+            burst: 5.0,
+        },
+    ] {
+        for answer in [Answer::NackPli, Answer::Nothing] {
+            cases.push(Case { loss, answer });
+        }
+    }
+    cases.push(Case {
+        loss: Loss::Random(0.01),
+        answer: Answer::PliOnly,
+    });
+    let outcomes: Vec<Outcome> = run_cases(&rt, &cases, 20, None, row_hashes)
+        .into_iter()
+        .map(|r| Outcome {
+            rows: against_clean(&r.lossy_frames, &r.clean_frames),
+            lossy: r.lossy,
+            clean: r.clean,
+            link: r.link,
+            proxy: r.proxy,
+        })
+        .collect();
+    figures(&cases, &outcomes);
+    print_traces(
+        &cases,
+        &outcomes.iter().map(|o| &*o.proxy).collect::<Vec<_>>(),
+    );
+    for (c, o) in cases.iter().zip(&outcomes) {
+        let name = format!("{} (the sender answers {})", c.loss.name(), c.answer.name());
+        let k = &o.lossy;
+        assert!(k.received >= 250, "{name}: {k:?}");
+        assert_eq!(o.clean.damaged, 0, "{name}: the clean copy: {:?}", o.clean);
+        assert!(o.proxy.dropped.load(Ordering::Relaxed) > 0, "{name}");
+        let (rows, _, _, unmarked) = o.rows;
+        assert!(rows > 200 * 480, "{name}: {rows} rows compared");
+        // Retransmitted packets are the originals: nothing the lossy copy
+        // does not mark differs from the lossless one (the measured-motion
+        // damage model's own allowance, as in `video_loss`).
+        assert!(
+            unmarked as f64 <= 0.005 * rows as f64,
+            "{name}: {unmarked} of {rows} rows differ without a mark"
+        );
+        if c.answer == Answer::NackPli {
+            assert!(k.retransmit_asked > 0, "{name}: {k:?}");
+            // A request or its retransmission is lost at the link's rate
+            // (twice over with two tries), and a burst can take both.
+            let floor = match c.loss {
+                Loss::Random(_) => 0.9,
+                Loss::Bursts { .. } => 0.7,
+            };
+            assert!(
+                k.retransmit_recovered as f64 >= floor * k.retransmit_asked as f64,
+                "{name}: {k:?}"
+            );
+        } else {
+            // A sender that does not retransmit is noticed: after the
+            // first 16 requests only one gap in 10 s is asked for again.
+            assert_eq!(k.retransmit_recovered, 0, "{name}: {k:?}");
+            assert!(k.retransmit_asked <= 16 + 3 * 8, "{name}: {k:?}");
+        }
+    }
+    // What it buys: at each loss, the frames SLAM can use with feedback
+    // against without.
+    for pair in outcomes[..6].chunks(2) {
+        let (with, without) = (&pair[0], &pair[1]);
+        assert!(
+            with.lossy.masked_share < 0.5 * without.lossy.masked_share,
+            "masked share {:.3} with feedback against {:.3} without",
+            with.lossy.masked_share,
+            without.lossy.masked_share
+        );
+    }
+    // At 1 % random loss, the goal of issue 40: at least 90 % of the
+    // frames reach SLAM usable.
+    assert!(
+        outcomes[0].link.usable_share >= 0.9 && !outcomes[0].link.unreliable,
+        "{:?}",
+        outcomes[0].link
+    );
+}
+
+/// Which rendered picture a received frame is: the one in `window` whose
+/// content its undamaged rows match best (mean absolute difference over a
+/// grid of every 4th pixel), when that is clearly a match; else the best
+/// candidate and its difference (`Err`), or `Err(None)` when too little
+/// of the frame is undamaged to tell.
+fn picture_index(
+    f: &Frame,
+    pictures: &[image::GrayImage],
+    window: std::ops::Range<usize>,
+) -> Result<usize, Option<(usize, f64)>> {
+    let (w, h) = f.image.dimensions();
+    let damaged = |y: u32| {
+        f.damage
+            .as_ref()
+            .is_some_and(|d| d.rows().get(y as usize).copied().unwrap_or(true))
+    };
+    let mut best: Option<(usize, f64)> = None;
+    for k in window {
+        let Some(p) = pictures.get(k) else { break };
+        let (mut sum, mut n) = (0u64, 0u64);
+        for y in (0..h).step_by(4).filter(|&y| !damaged(y)) {
+            for x in (0..w).step_by(4) {
+                sum += u64::from(f.image.get_pixel(x, y)[0].abs_diff(p.get_pixel(x, y)[0]));
+                n += 1;
+            }
+        }
+        if n < 1000 {
+            return Err(None);
+        }
+        let mad = sum as f64 / n as f64;
+        if best.is_none_or(|b| mad < b.1) {
+            best = Some((k, mad));
+        }
+    }
+    // The encoder's error is a few grey levels; the flight's neighbouring
+    // picture differs by more.
+    match best {
+        Some((k, mad)) if mad < 6.0 => Ok(k),
+        other => Err(other),
+    }
+}
+
+/// SLAM on the frames one source published, each put at its rendered
+/// picture's time.
+#[derive(Debug)]
+struct SlamOutcome {
+    /// Frames published; of those, frames too damaged to tell which
+    /// picture they are (under 1,000 grid points unmasked), and frames
+    /// unmasked enough that match no picture near where they should be.
+    given: usize,
+    unknown: usize,
+    unmatched: usize,
+    /// Frames with some row unmasked.
+    usable: usize,
+    /// Frames SLAM posed.
+    tracked: usize,
+    /// Mean masked share of the frames published.
+    masked_share: f64,
+    /// ATE against the truth, m.
+    ate_m: f64,
+}
+
+fn slam_on(frames: &[Frame], flight: &Flight) -> SlamOutcome {
+    let mut slam = shotpilot::slam::Slam::new(
+        flight.cam,
+        shotpilot::slam::Params {
+            sequential: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let (mut next, mut unknown, mut unmatched, mut usable, mut masked) = (0usize, 0, 0, 0, 0.0);
+    let mut misses = 0usize;
+    for f in frames {
+        // Search from the picture after the last one matched, further after
+        // frames that were not (lost, or too damaged to tell).
+        let window = next..(next + 10 + 10 * misses).min(flight.pictures.len());
+        let k = match picture_index(f, &flight.pictures, window) {
+            Ok(k) => k,
+            Err(None) => {
+                masked += f.masked_share();
+                unknown += 1;
+                misses += 1;
+                continue;
+            }
+            Err(Some(best)) => {
+                masked += f.masked_share();
+                if unmatched < 3 {
+                    eprintln!(
+                        "frame {} (masked {:.2}): no picture from {next} matches (best {best:?})",
+                        f.seq,
+                        f.masked_share()
+                    );
+                }
+                unmatched += 1;
+                misses += 1;
+                continue;
+            }
+        };
+        misses = 0;
+        next = k + 1;
+        let share = f.masked_share();
+        usable += usize::from(share < 1.0);
+        masked += share;
+        let mask = f.reliable_mask();
+        slam.process_masked(k as u64, flight.gt[k].0, f.image.clone(), mask.as_ref());
+    }
+    let r = slam.finish();
+    let gt = shotpilot::eval::Trajectory {
+        poses: flight
+            .gt
+            .iter()
+            .map(|(t, p)| shotpilot::eval::StampedPose {
+                t: *t,
+                world_from_cam: *p,
+            })
+            .collect(),
+    };
+    let ate = shotpilot::eval::evaluate(&gt, &r.trajectory(), &shotpilot::eval::Params::default())
+        .map_or(f64::NAN, |e| e.ate.rmse);
+    SlamOutcome {
+        given: frames.len(),
+        unknown,
+        unmatched,
+        usable,
+        tracked: r.records.len(),
+        masked_share: masked / frames.len().max(1) as f64,
+        ate_m: ate,
+    }
+}
+
+#[test]
+#[ignore = "needs GStreamer (rtpbin, rtprtxsend, x264enc, pngdec) and python3-gi; renders 450 frames, runs SLAM eight times"]
+fn slam_through_a_real_sender_over_a_lossy_link_with_and_without_feedback() {
+    let rt = crate::video_support::runtime();
+    let n = 450;
+    let flight = explore_flight(n);
+    let dir = tempfile::tempdir().unwrap();
+    for (i, p) in flight.pictures.iter().enumerate() {
+        p.save(dir.path().join(format!("{i:06}.png"))).unwrap();
+    }
+    let mut cases = Vec::new();
+    for loss in [0.01, 0.05] {
+        for answer in [Answer::NackPli, Answer::PliOnly, Answer::Nothing] {
+            cases.push(Case {
+                loss: Loss::Random(loss),
+                answer,
+            });
+        }
+    }
+    let ran = run_cases(
+        &rt,
+        &cases,
+        0,
+        Some(&dir.path().join("%06d.png")),
+        Frame::clone,
+    );
+    print_traces(&cases, &ran.iter().map(|r| &*r.proxy).collect::<Vec<_>>());
+    eprintln!(
+        "FIGURES SLAM loss | the sender answers | copy | published | too damaged to tell | usable | masked rows (mean) | usable, last 10 s | asked / recovered (NACK) | key frames asked | tracked | ATE m | ATE / lossless"
+    );
+    let mut results = Vec::new();
+    for (c, r) in cases.iter().zip(&ran) {
+        let lossy = slam_on(&r.lossy_frames, &flight);
+        let clean = slam_on(&r.clean_frames, &flight);
+        for (copy, o) in [("lossless", &clean), ("lossy", &lossy)] {
+            eprintln!(
+                "FIGURES SLAM {} | {} | {copy} | {} | {} | {} | {:.1} % | {:.1} % | {} / {} | {} | {} ({:.1} %) | {:.3} | {:.2}x",
+                c.loss.name(),
+                c.answer.name(),
+                o.given,
+                o.unknown,
+                o.usable,
+                100.0 * o.masked_share,
+                if copy == "lossy" {
+                    100.0 * r.link.usable_share
+                } else {
+                    100.0
+                },
+                r.lossy.retransmit_asked,
+                r.lossy.retransmit_recovered,
+                r.lossy.key_frame_requests,
+                o.tracked,
+                100.0 * o.tracked as f64 / n as f64,
+                o.ate_m,
+                o.ate_m / clean.ate_m,
+            );
+        }
+        results.push((lossy, clean));
+    }
+    for ((c, r), (lossy, clean)) in cases.iter().zip(&ran).zip(&results) {
+        let name = format!("{} (the sender answers {})", c.loss.name(), c.answer.name());
+        // Every picture reaches both copies, but for a few a loaded machine's
+        // decoder or watcher drops; each is the picture it is said to be.
+        assert!(clean.given >= n * 9 / 10, "{name}: {clean:?}");
+        assert!(clean.unmatched + clean.unknown <= 2, "{name}: {clean:?}");
+        assert!(lossy.unmatched <= 2, "{name}: {lossy:?}");
+        assert!(clean.tracked >= n * 8 / 10, "{name}: {clean:?}");
+        if c.answer == Answer::NackPli {
+            // Issue 40's goals, with a sender that answers: at 1 % loss at
+            // least 90 % of the frames reach SLAM usable (over the last
+            // 10 s of the stream, past the first second, whose losses
+            // come before the sender's first report says where to ask),
+            // the track holds and its ATE stays within 1.2x of the
+            // lossless copy's (or 2 cm, where both are a few cm); at 5 %,
+            // at least 70 % usable and the track holds.
+            let (usable, tracked) = match c.loss.rate() {
+                r if r <= 0.01 => (0.9, 0.95),
+                _ => (0.7, 0.8),
+            };
+            assert!(r.link.usable_share >= usable, "{name}: {:?}", r.link);
+            assert!(
+                lossy.tracked as f64 >= tracked * clean.tracked as f64,
+                "{name}: {lossy:?} against {clean:?}"
+            );
+            assert!(
+                lossy.ate_m <= (1.2 * clean.ate_m).max(clean.ate_m + 0.02),
+                "{name}: {lossy:?} against {clean:?}"
+            );
+        }
+    }
+}
