@@ -233,13 +233,16 @@ impl Feedback {
     /// Whether `pkt`, on another SSRC and payload type than the stream's
     /// (a retransmission stream, RFC 4588 SSRC multiplexing), is a
     /// retransmission: the SDP's rtx payload type, or without one a
-    /// dynamic payload type naming a packet still waited for.
+    /// dynamic payload type naming a packet still waited for, with a
+    /// timestamp between its neighbours' (so a FEC or other stream whose
+    /// first bytes happen to match is not taken for one).
     fn is_retransmission(&self, pkt: &RtpPacket<'_>) -> bool {
         match self.rtx_pt {
             Some(pt) => pkt.payload_type == pt,
             None => {
                 pkt.payload_type >= 96
-                    && retransmitted_sequence(pkt).is_some_and(|s| self.reseq.wants(s))
+                    && retransmitted_sequence(pkt)
+                        .is_some_and(|s| self.reseq.wants_at(s, pkt.timestamp))
             }
         }
     }
@@ -473,8 +476,10 @@ async fn send_feedback(
     sink: &H264Sink,
     now: Instant,
 ) {
-    let Some(media) = stream else { return };
+    // Due NACKs are taken even when they cannot be sent, so that their
+    // deadline moves on.
     let nacks = fb.reseq.due_nacks(now);
+    let Some(media) = stream else { return };
     let stats = fb.reseq.stats();
     let given_up = stats.given_up > fb.given_up;
     fb.given_up = stats.given_up;

@@ -164,6 +164,8 @@ pub struct Resequencer {
     stats: ResequencerStats,
     unanswered: u32,
     last_probe: Option<Instant>,
+    /// The RTP timestamp of the last packet released.
+    last_released_ts: Option<u32>,
 }
 
 impl Resequencer {
@@ -178,6 +180,7 @@ impl Resequencer {
             stats: ResequencerStats::default(),
             unanswered: 0,
             last_probe: None,
+            last_released_ts: None,
         }
     }
 
@@ -206,6 +209,33 @@ impl Resequencer {
         self.next.is_some() && self.missing.contains_key(&self.extend(seq))
     }
 
+    /// Whether `seq` is missing and still waited for, and `timestamp` fits
+    /// its place: not before the packet before it, not after the packet
+    /// after it (a video stream's timestamps do not go back in sequence
+    /// order). Without a payload type saying which stream retransmits,
+    /// this tells a retransmission from another stream whose first two
+    /// bytes happen to name a missing packet.
+    pub fn wants_at(&self, seq: u16, timestamp: u32) -> bool {
+        if self.next.is_none() {
+            return false;
+        }
+        let ext = self.extend(seq);
+        if !self.missing.contains_key(&ext) {
+            return false;
+        }
+        // `b` is not before `a` (RTP timestamps wrap).
+        let not_before = |a: u32, b: u32| b.wrapping_sub(a) as i32 >= 0;
+        let before = self
+            .held
+            .range(..ext)
+            .next_back()
+            .map(|(_, p)| p.timestamp)
+            .or(self.last_released_ts);
+        let after = self.held.range(ext + 1..).next().map(|(_, p)| p.timestamp);
+        before.is_none_or(|b| not_before(b, timestamp))
+            && after.is_none_or(|a| not_before(timestamp, a))
+    }
+
     /// The extended sequence number of `seq`: the one nearest the highest
     /// seen.
     fn extend(&self, seq: u16) -> u64 {
@@ -230,6 +260,7 @@ impl Resequencer {
             let ext = (1u64 << 32) | u64::from(pkt.sequence);
             self.next = Some(ext + 1);
             self.highest = ext;
+            self.last_released_ts = Some(pkt.timestamp);
             out.push(pkt);
             return;
         };
@@ -246,6 +277,7 @@ impl Resequencer {
                 self.stats.given_up += gap;
                 self.next = Some(ext + 1);
                 self.highest = ext;
+                self.last_released_ts = Some(pkt.timestamp);
                 out.push(pkt);
                 return;
             }
@@ -360,6 +392,7 @@ impl Resequencer {
         let Some(mut next) = self.next else { return };
         while next <= self.highest {
             if let Some(p) = self.held.remove(&next) {
+                self.last_released_ts = Some(p.timestamp);
                 out.push(p);
                 next += 1;
                 continue;
@@ -388,7 +421,11 @@ impl Resequencer {
     fn flush(&mut self, out: &mut Vec<OwnedRtp>) {
         self.stats.given_up += self.missing.len() as u64;
         self.missing.clear();
-        out.extend(std::mem::take(&mut self.held).into_values());
+        let held = std::mem::take(&mut self.held);
+        if let Some(p) = held.values().next_back() {
+            self.last_released_ts = Some(p.timestamp);
+        }
+        out.extend(held.into_values());
     }
 }
 
@@ -630,6 +667,30 @@ mod tests {
         r.retransmitted(pkt(101), ms(t0, 130), &mut out);
         assert_eq!(seqs(&out), vec![100, 102], "too late: not released");
         assert_eq!(r.stats().late, 1);
+    }
+
+    #[test]
+    fn a_retransmission_must_fit_between_its_neighbours_timestamps() {
+        let t0 = Instant::now();
+        let mut r = Resequencer::new(params());
+        let mut out = Vec::new();
+        // pkt(s) has timestamp 100 s: 1 -> 100, 3 -> 300.
+        r.push(pkt(1), t0, &mut out);
+        r.push(pkt(3), t0, &mut out);
+        assert!(r.wants_at(2, 200) && r.wants_at(2, 100) && r.wants_at(2, 300));
+        assert!(!r.wants_at(2, 301), "after the packet after it");
+        assert!(!r.wants_at(2, 99), "before the packet before it");
+        assert!(!r.wants_at(4, 400), "not missing");
+        // Across the timestamp's wrap.
+        let mut w = Resequencer::new(params());
+        let at = |seq: u16, ts: u32| OwnedRtp {
+            timestamp: ts,
+            ..pkt(seq)
+        };
+        w.push(at(1, u32::MAX - 10), t0, &mut out);
+        w.push(at(3, 20), t0, &mut out);
+        assert!(w.wants_at(2, 5) && w.wants_at(2, u32::MAX));
+        assert!(!w.wants_at(2, 100));
     }
 
     #[test]
