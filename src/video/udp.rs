@@ -195,7 +195,7 @@ struct Feedback {
     /// source's next port) before the sender's RTCP showed where it
     /// listens: it is sent again there once known.
     key_frame_request_unconfirmed: bool,
-    given_up: u64,
+    /// The resequencer's statistics as last added to the counters.
     sent: ResequencerStats,
     out: Vec<OwnedRtp>,
 }
@@ -215,7 +215,6 @@ impl Feedback {
             key_frame_interval: params.key_frame_interval,
             last_key_frame_request: None,
             key_frame_request_unconfirmed: false,
-            given_up: 0,
             sent: ResequencerStats::default(),
             out: Vec::new(),
         }
@@ -481,9 +480,11 @@ async fn send_feedback(
     let nacks = fb.reseq.due_nacks(now);
     let Some(media) = stream else { return };
     let stats = fb.reseq.stats();
-    let given_up = stats.given_up > fb.given_up;
-    fb.given_up = stats.given_up;
-    let pli = given_up
+    // Most packets change nothing: no request, no counter.
+    if nacks.is_empty() && stats == fb.sent {
+        return;
+    }
+    let pli = stats.given_up > fb.sent.given_up
         && fb.key_frame_interval.is_some_and(|every| {
             fb.last_key_frame_request
                 .is_none_or(|t| now.saturating_duration_since(t) >= every)

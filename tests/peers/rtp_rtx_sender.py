@@ -71,12 +71,6 @@ def main() -> int:
     rtpbin.set_property("rtp-profile", PROFILE_AVP if a.no_retransmission else PROFILE_AVPF)
     pipe.add(rtpbin)
 
-    def internal_session(_bin, _id):
-        sess = rtpbin.emit("get-internal-session", 0)
-        # Sender reports every half second, so the receiver learns where
-        # to send feedback early.
-        sess.set_property("rtcp-min-interval", 500_000_000)
-
     def aux_sender(_bin, _session):
         rtx = Gst.ElementFactory.make("rtprtxsend")
         rtx.set_property(
@@ -94,7 +88,9 @@ def main() -> int:
         rtpbin.connect("request-aux-sender", aux_sender)
 
     rtp_sink = rtpbin.request_pad_simple("send_rtp_sink_0")
-    internal_session(None, 0)
+    # Sender reports every half second, so the receiver learns early where
+    # to send feedback (the first one still comes 0.3-1 s in).
+    rtpbin.emit("get-internal-session", 0).set_property("rtcp-min-interval", 500_000_000)
     src.get_static_pad("src").link(rtp_sink)
 
     udp_rtp = Gst.ElementFactory.make("udpsink", "rtp_out")

@@ -18,7 +18,7 @@
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use super::RtpPacket;
+use super::{RtpPacket, rtcp_packets};
 
 /// An RTP packet with its payload owned, as the resequencer holds it.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -55,11 +55,10 @@ impl OwnedRtp {
     /// stream's payload type and SSRC. `None` when the payload is shorter
     /// than the sequence number.
     pub fn from_retransmission(p: &RtpPacket<'_>, payload_type: u8, ssrc: u32) -> Option<Self> {
-        let osn = p.payload.get(..2)?;
         Some(Self {
             marker: p.marker,
             payload_type,
-            sequence: u16::from_be_bytes([osn[0], osn[1]]),
+            sequence: retransmitted_sequence(p)?,
             timestamp: p.timestamp,
             ssrc,
             payload: p.payload[2..].to_vec(),
@@ -203,12 +202,6 @@ impl Resequencer {
         self.unanswered < self.params.unanswered_limit
     }
 
-    /// Whether `seq` is missing and still waited for: a retransmission of
-    /// it would be used.
-    pub fn wants(&self, seq: u16) -> bool {
-        self.next.is_some() && self.missing.contains_key(&self.extend(seq))
-    }
-
     /// Whether `seq` is missing and still waited for, and `timestamp` fits
     /// its place: not before the packet before it, not after the packet
     /// after it (a video stream's timestamps do not go back in sequence
@@ -342,11 +335,16 @@ impl Resequencer {
         self.release(now, out);
     }
 
+    /// NACKs per missing packet, and the time between them.
+    fn tries_and_spacing(&self) -> (u32, Duration) {
+        let tries = self.params.tries.max(1);
+        (tries, self.params.wait / tries)
+    }
+
     /// The sequence numbers to NACK now (first requests and the repeats
     /// that are due), in order.
     pub fn due_nacks(&mut self, now: Instant) -> Vec<u16> {
-        let tries = self.params.tries.max(1);
-        let spacing = self.params.wait / tries;
+        let (tries, spacing) = self.tries_and_spacing();
         let mut due = Vec::new();
         for (&ext, m) in self.missing.iter_mut() {
             if !m.hold || m.sent >= tries {
@@ -370,8 +368,7 @@ impl Resequencer {
 
     /// When [`Self::poll`] or [`Self::due_nacks`] next has something to do.
     pub fn deadline(&self) -> Option<Instant> {
-        let tries = self.params.tries.max(1);
-        let spacing = self.params.wait / tries;
+        let (tries, spacing) = self.tries_and_spacing();
         self.missing
             .values()
             .filter(|m| m.hold)
@@ -525,39 +522,26 @@ pub enum Feedback {
 /// skipped; parsing stops at the first malformed one).
 pub fn parse_feedback(buf: &[u8]) -> Vec<Feedback> {
     let mut found = Vec::new();
-    let mut off = 0;
-    while off + 4 <= buf.len() {
-        if buf[off] >> 6 != 2 {
-            break;
-        }
-        let fmt = buf[off] & 0x1f;
-        let pt = buf[off + 1];
-        let len = (usize::from(u16::from_be_bytes([buf[off + 2], buf[off + 3]])) + 1) * 4;
-        let Some(pkt) = buf.get(off..off + len) else {
-            break;
-        };
-        if len >= 12 {
-            let media_ssrc = u32::from_be_bytes([pkt[8], pkt[9], pkt[10], pkt[11]]);
-            match (pt, fmt) {
-                (RTCP_RTPFB, FMT_NACK) => {
-                    let mut lost = Vec::new();
-                    for e in pkt[12..].chunks_exact(4) {
-                        let pid = u16::from_be_bytes([e[0], e[1]]);
-                        let blp = u16::from_be_bytes([e[2], e[3]]);
-                        lost.push(pid);
-                        for i in 0..16u16 {
-                            if blp & (1 << i) != 0 {
-                                lost.push(pid.wrapping_add(i + 1));
-                            }
+    for pkt in rtcp_packets(buf).filter(|p| p.len() >= 12) {
+        let media_ssrc = u32::from_be_bytes([pkt[8], pkt[9], pkt[10], pkt[11]]);
+        match (pkt[1], pkt[0] & 0x1f) {
+            (RTCP_RTPFB, FMT_NACK) => {
+                let mut lost = Vec::new();
+                for e in pkt[12..].chunks_exact(4) {
+                    let pid = u16::from_be_bytes([e[0], e[1]]);
+                    let blp = u16::from_be_bytes([e[2], e[3]]);
+                    lost.push(pid);
+                    for i in 0..16u16 {
+                        if blp & (1 << i) != 0 {
+                            lost.push(pid.wrapping_add(i + 1));
                         }
                     }
-                    found.push(Feedback::Nack { media_ssrc, lost });
                 }
-                (RTCP_PSFB, FMT_PLI) => found.push(Feedback::Pli { media_ssrc }),
-                _ => {}
+                found.push(Feedback::Nack { media_ssrc, lost });
             }
+            (RTCP_PSFB, FMT_PLI) => found.push(Feedback::Pli { media_ssrc }),
+            _ => {}
         }
-        off += len;
     }
     found
 }
@@ -621,7 +605,7 @@ mod tests {
         r.push(pkt(13), ms(t0, 1), &mut out);
         r.push(pkt(14), ms(t0, 2), &mut out);
         assert_eq!(seqs(&out), vec![10], "13 and 14 wait behind the gap");
-        assert!(r.wants(11) && r.wants(12) && !r.wants(13));
+        assert!(r.wants_at(11, 1100) && r.wants_at(12, 1200) && !r.wants_at(13, 1300));
         assert_eq!(
             r.deadline(),
             Some(ms(t0, 1)),

@@ -574,23 +574,30 @@ impl RtpClock {
 /// Parse an RTCP compound packet for a sender report: (ssrc, NTP
 /// timestamp, RTP timestamp).
 pub fn parse_sender_report(buf: &[u8]) -> Option<(u32, u64, u32)> {
+    rtcp_packets(buf)
+        .find(|p| p[1] == 200 && p.len() >= 28)
+        .map(|p| {
+            let ssrc = u32::from_be_bytes([p[4], p[5], p[6], p[7]]);
+            let ntp = u64::from_be_bytes([p[8], p[9], p[10], p[11], p[12], p[13], p[14], p[15]]);
+            let rtp = u32::from_be_bytes([p[16], p[17], p[18], p[19]]);
+            (ssrc, ntp, rtp)
+        })
+}
+
+/// The packets of a compound RTCP packet (RFC 3550 section 6.1), each
+/// with its header, in order; the walk ends at the first one that is not
+/// version 2 or runs past the buffer.
+pub fn rtcp_packets(buf: &[u8]) -> impl Iterator<Item = &[u8]> {
     let mut rest = buf;
-    while rest.len() >= 4 {
-        let len = (usize::from(u16::from_be_bytes([rest[2], rest[3]])) + 1) * 4;
-        if rest[0] >> 6 != 2 || len > rest.len() {
+    std::iter::from_fn(move || {
+        if rest.len() < 4 || rest[0] >> 6 != 2 {
             return None;
         }
-        if rest[1] == 200 && len >= 28 {
-            let ssrc = u32::from_be_bytes([rest[4], rest[5], rest[6], rest[7]]);
-            let ntp = u64::from_be_bytes([
-                rest[8], rest[9], rest[10], rest[11], rest[12], rest[13], rest[14], rest[15],
-            ]);
-            let rtp = u32::from_be_bytes([rest[16], rest[17], rest[18], rest[19]]);
-            return Some((ssrc, ntp, rtp));
-        }
+        let len = (usize::from(u16::from_be_bytes([rest[2], rest[3]])) + 1) * 4;
+        let p = rest.get(..len)?;
         rest = &rest[len..];
-    }
-    None
+        Some(p)
+    })
 }
 
 /// Packetise one Annex B access unit as RFC 6184 mode 1 RTP packets of at
