@@ -25,8 +25,14 @@
 //! rows it uncovers there unmasked). An IDR picture, or a
 //! picture whose slices are all intra, starts clean; a reference picture
 //! that went missing altogether (a jump in `frame_num`) damages every row
-//! of the pictures that follow, up to the next IDR picture or until an SEI
-//! recovery point's count has passed with no new loss.
+//! of the pictures that follow, up to the next IDR picture or the end of an
+//! SEI recovery point's window. A recovery point (periodic intra refresh
+//! sends one as each refresh cycle starts) says the pictures from its count
+//! on are correct whatever the references before it held, so at the end of
+//! its window only the damage of losses inside the window is left: that is
+//! followed on a chain of its own from the SEI picture on, and replaces the
+//! whole chain's when the count has passed. The next recovery point that
+//! meets damage opens the next window.
 //!
 //! Streams with one slice per picture (x264's default) lose the whole
 //! picture to any lost packet; streams sent for lossy links cap their slices
@@ -441,12 +447,28 @@ pub struct DamageTracker {
     refs: std::collections::VecDeque<RowDamage>,
     /// `frame_num` of the last reference picture.
     prev_ref_frame_num: Option<u32>,
-    /// An SEI recovery point's target `frame_num` and whether a loss
-    /// happened since it.
-    recovery: Option<(u32, bool)>,
+    /// The recovery window opened by the last SEI recovery point that met
+    /// damage, until its count has passed.
+    recovery: Option<Recovery>,
     /// The content's vertical motion expected for the next picture, coded
     /// rows ([`DamageTracker::set_motion`]).
     motion: Option<VerticalMotion>,
+}
+
+/// An open recovery window: from the picture carrying an SEI recovery point
+/// to the picture its `recovery_frame_cnt` names. Pictures from the target on
+/// are correct whatever the references before the SEI held, so only the
+/// damage of losses inside the window (its own reference chain, `fresh`)
+/// outlives it.
+#[derive(Debug)]
+struct Recovery {
+    /// `frame_num` of the picture carrying the SEI.
+    start: u32,
+    /// Its `recovery_frame_cnt`.
+    count: u32,
+    /// The reference window's damage counting only losses since `start`,
+    /// newest first.
+    fresh: std::collections::VecDeque<RowDamage>,
 }
 
 /// Whether packets were lost in an access unit, and where among its NAL
@@ -518,12 +540,67 @@ impl DamageTracker {
     /// The last picture could not be decoded at all: every reference in the
     /// window counts as damaged until the chain is reset.
     pub fn picture_lost(&mut self) {
-        for r in &mut self.refs {
+        let fresh = self.recovery.iter_mut().flat_map(|w| w.fresh.iter_mut());
+        for r in self.refs.iter_mut().chain(fresh) {
             *r = RowDamage::full(r.rows().len());
         }
         if self.refs.is_empty() {
             self.prev_ref_frame_num = None;
         }
+    }
+
+    /// One reference chain carried to the next picture: the references'
+    /// damage as it reaches the picture (kept so: an older reference's moves
+    /// add up picture by picture; a missing reference adds a fully damaged
+    /// one), the picture's mask (its own damage `own`, what it inherits when
+    /// it predicts, and the filters' reach), and what the chain keeps of it
+    /// when it is a reference.
+    ///
+    /// The filters' reach beside the damage is carried down the chain with
+    /// the bound, put only on this picture's mask with a measured motion: a
+    /// row the 6-tap filter or the deblocking filter reaches takes a
+    /// fraction of its neighbour's error (the outer taps weigh 1/32), so
+    /// that fraction does not travel on as the damage's core does.
+    fn carried(
+        &self,
+        refs: std::collections::VecDeque<RowDamage>,
+        own: &RowDamage,
+        missing_ref: bool,
+        inter: bool,
+        idr: bool,
+    ) -> (std::collections::VecDeque<RowDamage>, RowDamage, RowDamage) {
+        let h = own.rows().len();
+        let mut refs: std::collections::VecDeque<RowDamage> = refs
+            .iter()
+            .map(|r| {
+                if r.rows().len() == h {
+                    self.reach(r)
+                } else {
+                    RowDamage::full(h)
+                }
+            })
+            .collect();
+        if missing_ref {
+            refs.push_front(RowDamage::full(h));
+        }
+        let mut core = own.clone();
+        if inter {
+            for r in &refs {
+                core.or(r);
+            }
+        }
+        let followed = !idr && self.followed().is_some();
+        let coded = if followed {
+            core.dilated((INTERP_PX + self.params.deblock_px) as usize)
+        } else {
+            core.dilated(self.params.deblock_px as usize)
+        };
+        let kept = if followed && coded.any() {
+            core
+        } else {
+            coded.clone()
+        };
+        (refs, coded, kept)
     }
 
     fn sps_of_pps(&self, pps_id: u32) -> Option<(SpsInfo, bool)> {
@@ -622,86 +699,52 @@ impl DamageTracker {
 
         // The reference chain.
         let max = 1u32 << sps.log2_max_frame_num;
-        let mut missing_ref = false;
+        let missing_ref = !idr
+            && match (self.prev_ref_frame_num, frame_num) {
+                (Some(p), Some(f)) => f != (p + 1) % max && (loss || !sps.frame_num_gaps_allowed),
+                (None, _) | (_, None) => true,
+            };
+        let inter = !idr && slices.iter().any(|s| !s.1.is_intra());
         if idr {
             self.refs.clear();
             self.recovery = None;
-        } else {
-            missing_ref = match (self.prev_ref_frame_num, frame_num) {
-                (Some(p), Some(f)) => f != (p + 1) % max && (loss || !sps.frame_num_gaps_allowed),
-                (None, _) => true,
-                (_, None) => true,
-            };
-            // The references' damage as it reaches this picture; kept so,
-            // an older reference's moves add up picture by picture.
-            let moved: Vec<RowDamage> = self
-                .refs
-                .iter()
-                .map(|r| {
-                    if r.rows().len() == coded_h {
-                        self.reach(r)
-                    } else {
-                        RowDamage::full(coded_h)
-                    }
-                })
-                .collect();
-            self.refs = moved.into();
-            if missing_ref {
-                self.refs.push_front(RowDamage::full(coded_h));
-            }
-            let inter = slices.iter().any(|s| !s.1.is_intra());
-            if inter {
-                for r in &self.refs {
-                    coded.or(r);
-                }
-            }
         }
-        // The filters' reach beside the damage: carried down the chain with
-        // the bound, only on this picture's mask with a measured motion.
-        // A row the 6-tap filter or the deblocking filter reaches takes a
-        // fraction of its neighbour's error (the outer taps weigh 1/32), so
-        // that fraction does not travel on as the damage's core does.
-        let core = coded.clone();
-        let followed = !idr && self.followed().is_some();
-        coded = if followed {
-            coded.dilated((INTERP_PX + self.params.deblock_px) as usize)
-        } else {
-            coded.dilated(self.params.deblock_px as usize)
-        };
-        // An SEI recovery point: pictures from its count on are correct if
-        // no packet is lost on the way.
-        if let Some(f) = frame_num {
-            if let Some((target, spoiled)) = self.recovery {
-                let spoiled = spoiled || own_mb_rows > 0 || missing_ref;
-                if f == target && !spoiled {
-                    self.refs.clear();
-                    coded = RowDamage::clean(coded_h);
-                    self.recovery = None;
-                } else {
-                    self.recovery = Some((target, spoiled));
+        let own = coded;
+        let refs = std::mem::take(&mut self.refs);
+        let (refs, mut coded, mut kept) = self.carried(refs, &own, missing_ref, inter, idr);
+        self.refs = refs;
+        // An SEI recovery point: pictures from its count on are correct
+        // whatever came before it, so at the end of its window only the
+        // damage of losses inside the window is left (followed on a chain
+        // of its own, which starts from the SEI picture's own losses).
+        let mut from_sei = (missing_ref, inter);
+        if let (Some(count), Some(start), None) = (recovery_cnt, frame_num, &self.recovery)
+            && coded.any()
+        {
+            let fresh = std::collections::VecDeque::new();
+            self.recovery = Some(Recovery {
+                start,
+                count,
+                fresh,
+            });
+            from_sei = (false, false);
+        }
+        if let Some(mut w) = self.recovery.take() {
+            let (fresh, fresh_coded, fresh_kept) =
+                self.carried(w.fresh, &own, from_sei.0, from_sei.1, idr);
+            let passed = frame_num.is_some_and(|f| (f + max - w.start) % max >= w.count);
+            if passed {
+                (self.refs, coded, kept) = (fresh, fresh_coded, fresh_kept);
+            } else {
+                w.fresh = fresh;
+                if is_ref {
+                    push_ref(&mut w.fresh, fresh_kept, sps.max_num_ref_frames);
                 }
-            }
-            if let Some(n) = recovery_cnt
-                && self.recovery.is_none()
-                && coded.any()
-            {
-                let target = (f + n) % max;
-                if n == 0 && own_mb_rows == 0 {
-                    self.refs.clear();
-                    coded = RowDamage::clean(coded_h);
-                } else {
-                    self.recovery = Some((target, own_mb_rows > 0));
-                }
+                self.recovery = Some(w);
             }
         }
         if is_ref {
-            let kept = if followed && coded.any() {
-                core
-            } else {
-                coded.clone()
-            };
-            self.refs.push_front(kept);
-            self.refs.truncate(sps.max_num_ref_frames.max(1) as usize);
+            push_ref(&mut self.refs, kept, sps.max_num_ref_frames);
             self.prev_ref_frame_num = frame_num;
         }
         Some(PictureDamage {
@@ -710,6 +753,13 @@ impl DamageTracker {
             own_mb_rows,
         })
     }
+}
+
+/// Put a reference picture's damage at the front of a chain of at most
+/// `max_refs` (the SPS's `max_num_ref_frames`, at least 1).
+fn push_ref(refs: &mut std::collections::VecDeque<RowDamage>, d: RowDamage, max_refs: u32) {
+    refs.push_front(d);
+    refs.truncate(max_refs.max(1) as usize);
 }
 
 /// The `recovery_frame_cnt` of an SEI NAL unit's recovery point message.
@@ -997,6 +1047,93 @@ mod tests {
         // A loss whose position is unknown (RTSP) damages the whole picture.
         let d = run(&mut t, &[slice(false, 0, 5, 1)], 1, &[]);
         assert_eq!(d.coded.count(), d.coded.rows().len());
+    }
+
+    /// An SEI NAL unit holding one recovery point message.
+    fn sei_recovery(count: u32) -> Vec<u8> {
+        let mut payload = W::new();
+        payload.ue(count).u(1, 1).u(1, 0).u(2, 0);
+        while !payload.bits.len().is_multiple_of(8) {
+            payload.bits.push(0);
+        }
+        let size = (payload.bits.len() / 8) as u32;
+        let mut w = W::new();
+        w.u(8, 6).u(8, size);
+        w.bits.extend_from_slice(&payload.bits);
+        w.nal(0x06)
+    }
+
+    #[test]
+    fn intra_refresh_clears_at_each_recovery_point_and_keeps_only_the_windows_own_losses() {
+        // x264's periodic intra refresh: one IDR picture, then P pictures
+        // with a recovery point SEI every 6 pictures (count 5); 20x30
+        // macroblocks in two slices (macroblock rows 0-14 and 15-29).
+        let mut t = DamageTracker::new(DamageParams::default());
+        // Picture `n`'s NAL units without the slice `lost` (0: top, 1:
+        // bottom), and where the loss was among them.
+        let picture = |n: u32, lost: Option<usize>| {
+            let fnum = n % 16;
+            let mut nals = Vec::new();
+            if n.is_multiple_of(6) {
+                nals.push(sei_recovery(5));
+            }
+            let mut gaps = Vec::new();
+            for (k, first_mb) in [0, 300].into_iter().enumerate() {
+                if lost == Some(k) {
+                    gaps.push(nals.len() as u32);
+                } else {
+                    nals.push(slice(false, first_mb, 5, fnum));
+                }
+            }
+            (nals, gaps)
+        };
+        let idr = vec![
+            sps(20, 30),
+            pps(),
+            slice(true, 0, 7, 0),
+            slice(true, 300, 7, 0),
+        ];
+        assert!(!run(&mut t, &idr, 0, &[]).coded.any());
+        let mut damaged = Vec::new();
+        // Pictures 1-40; the top slice is lost at 2 (before a window), 10
+        // (inside the window opened at 6), 20 (before the window opened at
+        // 24) and 26 (inside it).
+        for n in 1..=40u32 {
+            let lost = [2, 10, 20, 26].contains(&n).then_some(0);
+            let (nals, gaps) = picture(n, lost);
+            let d = run(&mut t, &nals, gaps.len() as u32, &gaps);
+            damaged.push((n, mb_rows(&d)));
+        }
+        let rows = |n: u32| damaged[(n - 1) as usize].1.clone();
+        assert!(rows(1).is_empty());
+        assert_eq!(
+            rows(2),
+            (0..16).collect::<Vec<_>>(),
+            "top slice and deblocking"
+        );
+        assert!(
+            rows(10).len() > 24,
+            "the first loss has spread: {:?}",
+            rows(10)
+        );
+        // Window 6..11: the loss before it is gone at 11; the loss at 10 is
+        // left, as it was one picture after the first loss.
+        assert_eq!(rows(11), rows(3));
+        assert_eq!(rows(11), (0..17).collect::<Vec<_>>());
+        // The window at 12..17 had no loss: clean from 17 to the loss at 20.
+        assert!(!rows(16).is_empty());
+        for n in 17..20 {
+            assert!(rows(n).is_empty(), "picture {n}: {:?}", rows(n));
+        }
+        // Window 24..29 with a loss at 26 (and one at 20 before it): at 29
+        // only the loss at 26 is left, spread by three pictures' bound.
+        assert!(rows(28).len() > rows(29).len());
+        assert_eq!(rows(29), rows(5), "as three pictures after the first loss");
+        // The window 30..35 opens on the damage 29 left, and clears it.
+        assert!(!rows(34).is_empty());
+        for n in 35..=40 {
+            assert!(rows(n).is_empty(), "picture {n}: {:?}", rows(n));
+        }
     }
 
     #[test]
