@@ -86,7 +86,7 @@ function showStatus(s) {
 // The video link's loss when it leaves SLAM too few usable frames.
 function linkText(l) {
   if (!l || !l.unreliable) return '';
-  return ` | video link: ${(l.usable_share * 100).toFixed(0)} % of frames usable (${(l.masked_share * 100).toFixed(0)} % of rows masked) over the last ${l.window_s.toFixed(0)} s: shots are unreliable; shorter key-frame intervals or intra refresh on the camera, or a stronger link, would help`;
+  return ` | video link: ${(l.usable_share * 100).toFixed(0)} % of frames usable (${(l.masked_share * 100).toFixed(0)} % of rows masked) over the last ${l.window_s.toFixed(0)} s: shots are unreliable; a sender that retransmits (RTP with NACK), shorter key-frame intervals on the camera, or a stronger link, would help`;
 }
 function errorsText(errors) {
   if (!errors || !errors.length) return '';

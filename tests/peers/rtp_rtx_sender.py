@@ -35,6 +35,12 @@ def main() -> int:
     ap.add_argument("--secs", type=int, default=20)
     ap.add_argument("--fps", type=int, default=15)
     ap.add_argument("--gop", type=int, default=30, help="pictures between IDR pictures")
+    ap.add_argument(
+        "--intra-refresh",
+        action="store_true",
+        help="periodic intra refresh instead of IDR pictures (x264's moving "
+        "intra column, a recovery point SEI every --gop pictures)",
+    )
     ap.add_argument("--bitrate-kbps", type=int, default=1500)
     ap.add_argument("--slice-bytes", type=int, default=1200)
     ap.add_argument("--no-retransmission", action="store_true")
@@ -61,7 +67,8 @@ def main() -> int:
     src = Gst.parse_bin_from_description(
         raw + "! videoconvert ! video/x-raw,format=I420 "
         f"! x264enc tune=zerolatency speed-preset=veryfast threads=1 bitrate={a.bitrate_kbps} "
-        f"key-int-max={a.gop} option-string=slice-max-size={a.slice_bytes}:scenecut=0 "
+        f"key-int-max={a.gop} intra-refresh={'true' if a.intra_refresh else 'false'} "
+        f"option-string=slice-max-size={a.slice_bytes}:scenecut=0 "
         "! video/x-h264,profile=constrained-baseline "
         "! rtph264pay pt=96 mtu=1400 config-interval=-1",
         True,
