@@ -731,13 +731,22 @@ fn slam_through_a_real_sender_over_a_lossy_link_with_and_without_feedback() {
     for (i, p) in flight.pictures.iter().enumerate() {
         p.save(dir.path().join(format!("{i:06}.png"))).unwrap();
     }
+    // The stream shape: an IDR picture every 2 s, or for their figures
+    // `SHOTPILOT_FEEDBACK_SHAPE=idr1` (every 1 s) or `intra` (intra
+    // refresh over 2 s).
+    let shape = match std::env::var("SHOTPILOT_FEEDBACK_SHAPE").as_deref() {
+        Err(_) | Ok("idr2") => Shape::IDR_2S,
+        Ok("idr1") => Shape::Idr(15),
+        Ok("intra") => Shape::IntraRefresh(30),
+        Ok(other) => panic!("SHOTPILOT_FEEDBACK_SHAPE={other}: idr2, idr1 or intra"),
+    };
     let mut cases = Vec::new();
     for loss in [0.01, 0.05] {
         for answer in [Answer::NackPli, Answer::PliOnly, Answer::Nothing] {
             cases.push(Case {
                 loss: Loss::Random(loss),
                 answer,
-                shape: Shape::IDR_2S,
+                shape,
             });
         }
     }
@@ -750,7 +759,7 @@ fn slam_through_a_real_sender_over_a_lossy_link_with_and_without_feedback() {
     );
     print_traces(&cases, &ran.iter().map(|r| &*r.proxy).collect::<Vec<_>>());
     eprintln!(
-        "FIGURES SLAM loss | the sender answers | copy | published | too damaged to tell | usable | masked rows (mean) | usable, last 10 s | asked / recovered (NACK) | key frames asked | tracked | ATE m | ATE / lossless"
+        "FIGURES SLAM loss | stream | the sender answers | copy | published | too damaged to tell | usable | masked rows (mean) | usable, last 10 s | asked / recovered (NACK) | key frames asked | tracked | ATE m | ATE / lossless"
     );
     let mut results = Vec::new();
     for (c, r) in cases.iter().zip(&ran) {
@@ -758,8 +767,9 @@ fn slam_through_a_real_sender_over_a_lossy_link_with_and_without_feedback() {
         let clean = slam_on(&r.clean_frames, &flight);
         for (copy, o) in [("lossless", &clean), ("lossy", &lossy)] {
             eprintln!(
-                "FIGURES SLAM {} | {} | {copy} | {} | {} | {} | {:.1} % | {:.1} % | {} / {} | {} | {} ({:.1} %) | {:.3} | {:.2}x",
+                "FIGURES SLAM {} | {} | {} | {copy} | {} | {} | {} | {:.1} % | {:.1} % | {} / {} | {} | {} ({:.1} %) | {:.3} | {:.2}x",
                 c.loss.name(),
+                c.shape.name(),
                 c.answer.name(),
                 o.given,
                 o.unknown,
@@ -789,7 +799,10 @@ fn slam_through_a_real_sender_over_a_lossy_link_with_and_without_feedback() {
         assert!(clean.unmatched + clean.unknown <= 2, "{name}: {clean:?}");
         assert!(lossy.unmatched <= 2, "{name}: {lossy:?}");
         assert!(clean.tracked >= n * 8 / 10, "{name}: {clean:?}");
-        if c.answer == Answer::NackPli {
+        // The other shapes' runs are for their figures (docs/FIGURES.md:
+        // intra refresh tracks 85 % of the lossless copy's frames, an IDR
+        // picture every 1 s measured 2.0x the ATE of its copy at 5 %).
+        if c.answer == Answer::NackPli && c.shape == Shape::IDR_2S {
             // Issue 40's goals, with a sender that answers: at 1 % loss at
             // least 90 % of the frames reach SLAM usable (over the last
             // 10 s of the stream, past the first second, whose losses
