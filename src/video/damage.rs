@@ -582,10 +582,10 @@ impl DamageTracker {
     ) -> (std::collections::VecDeque<RowDamage>, RowDamage, RowDamage) {
         let h = own.rows().len();
         let mut refs: std::collections::VecDeque<RowDamage> = refs
-            .iter()
+            .into_iter()
             .map(|r| {
                 if r.rows().len() == h {
-                    self.reach(r)
+                    self.reach(&r)
                 } else {
                     RowDamage::full(h)
                 }
@@ -731,7 +731,9 @@ impl DamageTracker {
         // whatever came before it, so at the end of its window only the
         // damage of losses inside the window is left (followed on a chain
         // of its own, which starts from the SEI picture's own losses).
-        let mut from_sei = (missing_ref, inter);
+        // The SEI picture opening a window starts its chain: its references
+        // are the past's, so only its own losses count.
+        let mut opened = false;
         if let (Some(count), Some(start), None) = (recovery_cnt, frame_num, &self.recovery)
             && coded.any()
         {
@@ -741,11 +743,11 @@ impl DamageTracker {
                 count,
                 fresh,
             });
-            from_sei = (false, false);
+            opened = true;
         }
         if let Some(mut w) = self.recovery.take() {
             let (fresh, fresh_coded, fresh_kept) =
-                self.carried(w.fresh, &own, from_sei.0, from_sei.1, idr);
+                self.carried(w.fresh, &own, missing_ref && !opened, inter && !opened, idr);
             let passed = frame_num.is_some_and(|f| (f + max - w.start) % max >= w.count);
             if passed {
                 (self.refs, coded, kept) = (fresh, fresh_coded, fresh_kept);

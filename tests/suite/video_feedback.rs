@@ -445,9 +445,9 @@ fn pattern_outcomes(rt: &tokio::runtime::Runtime, cases: &[Case]) -> Vec<Outcome
 
 /// What holds on the test pattern whatever the case: the stream arrives,
 /// the lossless copy is whole, and no row the lossy copy leaves unmarked
-/// differs from the lossless one (beyond the measured-motion damage
-/// model's own allowance, as in `video_loss`): SLAM is never given a
-/// damaged row as a good one.
+/// differs from the lossless one beyond the motion bound's allowance (as in
+/// `video_loss`: 0.05 %; measured 0 in all 33 stream-shape cases): SLAM is
+/// never given a damaged row as a good one.
 fn check_pattern(c: &Case, o: &Outcome) {
     let name = c.name();
     let k = &o.lossy;
@@ -461,7 +461,7 @@ fn check_pattern(c: &Case, o: &Outcome) {
     let (rows, _, _, unmarked) = o.rows;
     assert!(rows > 200 * 480, "{name}: {rows} rows compared");
     assert!(
-        unmarked as f64 <= 0.005 * rows as f64,
+        unmarked as f64 <= 0.0005 * rows as f64,
         "{name}: {unmarked} of {rows} rows differ without a mark"
     );
 }
@@ -550,7 +550,7 @@ fn every_stream_shape_at_every_loss_keeps_damage_out_of_slam() {
     let rt = crate::video_support::runtime();
     let only = std::env::var("SHOTPILOT_FEEDBACK_ONLY").ok();
     let mut cases = Vec::new();
-    for shape in [Shape::Idr(30), Shape::Idr(15), Shape::IntraRefresh(30)] {
+    for shape in [Shape::IDR_2S, Shape::Idr(15), Shape::IntraRefresh(30)] {
         for loss in [
             Loss::Random(0.0),
             Loss::Random(0.01),
