@@ -1,7 +1,7 @@
 //! The subcommands: each file holds one command's arguments and its body
-//! (`slam_timing` and `slam_memory` are `slam`'s frame-time and memory
-//! reports). `scenario` needs the
-//! simulator: only with the `sim` feature.
+//! (`slam` is split: `slam_args` its arguments, `slam_report` its report,
+//! `slam_timing` and `slam_memory` the frame-time and memory parts of it).
+//! `scenario` needs the simulator: only with the `sim` feature.
 
 pub mod eval;
 pub mod features;
@@ -11,6 +11,8 @@ pub mod run;
 pub mod scenario;
 pub mod shot;
 pub mod slam;
+mod slam_args;
 mod slam_memory;
+mod slam_report;
 pub mod slam_timing;
 pub mod vocab;

@@ -5,14 +5,13 @@
 //! with `evo_ape tum GT EST -as` (translation part, Sim(3) alignment).
 
 pub mod plot;
-pub mod trajectory;
 
 use nalgebra::{Point3, Vector3};
 
 use crate::geometry::GeometryError;
 use serde::Serialize;
 
-pub use trajectory::{StampedPose, Trajectory, TrajectoryError, associate};
+pub use crate::trajectory::{StampedPose, Trajectory, TrajectoryError, associate};
 
 /// Errors of the evaluation.
 #[derive(Debug, thiserror::Error)]

@@ -80,7 +80,7 @@ pub fn observation(target: &Target, frame: &FrameTiming, reports: &Reports) -> O
         o.position_age_s = Some(p.age_s);
     }
     if let Some(yaw) = reports.yaw_deg {
-        o.yaw_error_deg = Some((yaw - target.yaw_deg + 180.0).rem_euclid(360.0) - 180.0);
+        o.yaw_error_deg = Some(crate::angle::wrap180(yaw - target.yaw_deg));
     }
     if let Some(pitch) = reports.gimbal_pitch_deg {
         o.gimbal_pitch_error_deg = Some(pitch - target.gimbal_pitch_deg);

@@ -71,8 +71,8 @@ use image::GrayImage;
 use nalgebra::Isometry3;
 
 use crate::camera::Camera;
-use crate::eval::{StampedPose, Trajectory};
 use crate::optimize::BaParams;
+use crate::trajectory::{StampedPose, Trajectory};
 
 pub use aided::{AidParams, PoseSource, TelemetryAid};
 pub use initializer::InitFailure;

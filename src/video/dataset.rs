@@ -22,7 +22,7 @@ use image::GrayImage;
 use nalgebra::{Isometry3, Matrix3, Matrix4, Quaternion, Rotation3, Translation3, UnitQuaternion};
 
 use crate::camera::{Camera, CameraError, Distortion};
-use crate::eval::trajectory::{StampedPose, Trajectory, TrajectoryError};
+use crate::trajectory::{StampedPose, Trajectory, TrajectoryError};
 
 /// Errors of the dataset readers.
 #[derive(Debug, thiserror::Error)]

@@ -8,10 +8,10 @@
 use std::collections::{HashMap, HashSet};
 use std::time::Instant;
 
-use crate::eval::Trajectory;
 use crate::lie::Sim3;
 use crate::matching::Bounds;
 use crate::slam::map::{KeyFrameId, Map, PointId};
+use crate::trajectory::Trajectory;
 
 use super::fuse::fuse_and_link;
 use super::graph::EssentialGraph;

@@ -8,8 +8,8 @@
 use std::sync::Mutex;
 use std::time::Instant;
 
-use crate::eval::{StampedPose, Trajectory};
 use crate::slam::map::{KeyFrameId, Map, MapId};
+use crate::trajectory::{StampedPose, Trajectory};
 
 /// A loop closed: the two keyframes, the evidence, the correction, and the
 /// keyframe trajectory just before and just after it.

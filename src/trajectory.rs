@@ -1,5 +1,7 @@
-//! The TUM trajectory format: lines `timestamp tx ty tz qx qy qz qw`, each the
-//! camera's pose in the world (world_from_cam), quaternion scalar last.
+//! A camera trajectory: timestamped poses, as SLAM produces it and the
+//! evaluation compares it, and the TUM format: lines `timestamp tx ty tz
+//! qx qy qz qw`, each the camera's pose in the world (world_from_cam),
+//! quaternion scalar last.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
