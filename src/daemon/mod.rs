@@ -1,23 +1,44 @@
-//! The daemon: wires the video ingest, the SLAM thread, the MAVLink link
-//! actor, the shot service and the HTTP API under one shutdown token, and
-//! (by default) runs the bundled simulator in-process. A build without
-//! the `sim` feature has no simulator and refuses `[sim] enabled = true`
+//! The daemon: wires the video source, the SLAM (tracking, local mapping
+//! and loop closing on three threads), the MAVLink link actor, the
+//! georeference worker, the shot service, the refinement task and the HTTP
+//! API with its event stream under one shutdown token, and (by default)
+//! runs the bundled simulator in-process. A build without the `sim`
+//! feature has no simulator and refuses `[sim] enabled = true`
 //! ([`DaemonError::NoSimulator`]).
 //!
 //! ```text
-//!  sim (in-process) --MJPEG/HTTP--> video reader task -> raw slot -> decode thread
-//!                                                                 -> frame slot
-//!  frame slot --newest frame--> SLAM thread (FrameProcessor) -> SlamShared (status, keyframes)
-//!  sim autopilot <--MAVLink/UDP--> link actor (LinkHandle)
-//!  link telemetry + SLAM keyframes --> geo worker (GeoService: map -> NED -> WGS84)
-//!  geo worker --GNSS samples (TelemetryFeed, with [slam] priors)--> SLAM mapping (priors)
-//!  HTTP API reads Ingest, SlamShared, LinkHandle, GeoService; writes shots to data_dir
+//!  [video] url (video::source), one reader task:
+//!   http://  MJPEG or snapshots -> raw slot -> JPEG decode thread ---------+
+//!   rtsp://  H.264 (RTSP) ----------+                                       |
+//!   udp://   RTP H.264, or an .sdp -+-> access-unit queue                   |
+//!            (NACK/PLI feedback)         -> H.264 decode thread ------------+-> frame slot
+//!   auto     the URL the vehicle's camera announces over MAVLink, then one of the above
+//!   bundled simulator (in-process): MJPEG over HTTP; H.264 over RTP/UDP with [sim] rtp_out
+//!
+//!  frame slot --newest frame--> "slam" thread: tracking (FrameProcessor)
+//!     --keyframes--> local mapping thread --mapped keyframes--> loop closing thread
+//!     (inline after tracking in lockstep with the simulator)
+//!     -> SlamShared (status, map, keyframes) -> map file (checkpoints, shutdown)
+//!  autopilot (Pixhawk, SITL, simulator) <--MAVLink--> link actor (LinkHandle)
+//!  link telemetry + SLAM keyframes and frames --> geo worker
+//!     (GeoService: live georeference map -> NED -> WGS84, saved beside the map)
+//!  geo worker --GNSS, attitude (TelemetryFeed, [slam] priors / aid)--> SLAM
+//!  shot's mission started --> refinement task: arrival, re-targeting on the
+//!     approach, rounds (each corrected target uploaded as a mission) and,
+//!     with [refine] servo, servoing (guided setpoints); ShotEvents, rounds
+//!     recorded on the shot
+//!  link --> reconciler (each shot's mission state from the vehicle's), photo recorder
+//!  HTTP API (/api/v1) reads Ingest, SlamShared, the vehicle view, GeoService;
+//!     shots through the shot service into the store (data_dir);
+//!     /events streams the status and the ShotEvents
 //! ```
 //!
 //! Shutdown: the token is cancelled (Ctrl-C / SIGTERM in `main`); the
-//! reader and the server stop, the ingest slots are closed, the SLAM thread
-//! takes no further frame, finishes (mapping, map file) and is joined; the
-//! simulator stops last.
+//! server stops, then the refinement task, the checkpoints and the memory
+//! trimmer; the video reader stops, the ingest slots are closed, the decode
+//! thread is joined and the SLAM thread takes no further frame, finishes
+//! (mapping, map file) and is joined; the georeference is saved beside the
+//! map, the link's tasks and the link actor stop; the simulator stops last.
 
 pub mod geo_service;
 pub mod memory;
