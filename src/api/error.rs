@@ -5,7 +5,8 @@ use axum::Json;
 use axum::extract::rejection::BytesRejection;
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use serde_json::{Value, json};
+use serde::Serialize;
+use serde_json::Value;
 
 use super::views::VehicleError;
 use crate::shot::request::ShotRequestError;
@@ -171,19 +172,40 @@ impl ApiError {
     }
 }
 
+/// The body of every error reply: `{"error": {...}}`.
+#[derive(Debug, Serialize)]
+struct ErrorBody {
+    error: ErrorObject,
+}
+
+/// An error: its stable code, a message for people, and the details the
+/// error has (e.g. `limit_bytes`, an anchor refusal's `reason` and
+/// `anchor`) beside them.
+#[derive(Debug, Serialize)]
+struct ErrorObject {
+    code: &'static str,
+    message: String,
+    #[serde(flatten)]
+    detail: serde_json::Map<String, Value>,
+}
+
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let status = self.status();
         if status.is_server_error() {
             tracing::warn!(code = self.code(), "request failed: {self}");
         }
-        let mut error = serde_json::Map::new();
-        error.insert("code".into(), self.code().into());
-        error.insert("message".into(), self.to_string().into());
-        for (k, v) in self.detail() {
-            error.entry(k).or_insert(v);
-        }
-        let mut r = (status, Json(json!({ "error": error }))).into_response();
+        let mut detail = self.detail();
+        detail.remove("code");
+        detail.remove("message");
+        let body = ErrorBody {
+            error: ErrorObject {
+                code: self.code(),
+                message: self.to_string(),
+                detail,
+            },
+        };
+        let mut r = (status, Json(body)).into_response();
         if status == StatusCode::UNAUTHORIZED {
             r.headers_mut()
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));

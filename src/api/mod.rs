@@ -680,17 +680,7 @@ async fn stop_vehicle(State(st): State<AppState>) -> Result<Json<StopView>, ApiE
                     )
                 {
                     m.state = MissionState::Stopped;
-                    if !m.details.is_object() {
-                        let previous = std::mem::take(&mut m.details);
-                        m.details = if previous.is_null() {
-                            json!({})
-                        } else {
-                            json!({ "previous": previous })
-                        };
-                    }
-                    if let Some(d) = m.details.as_object_mut() {
-                        d.insert("stop".into(), ack);
-                    }
+                    m.set_detail("stop", ack);
                     changed = true;
                 }
             })?;

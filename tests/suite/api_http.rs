@@ -11,9 +11,9 @@ use std::time::Duration;
 use image::{GrayImage, Luma};
 use serde_json::{Value, json};
 use shotpilot::api::{
-    self, ApiParams, AppState, BoxFuture, KeyframeInfo, LoopInfo, MapView, MergeInfo,
-    MissionProgressView, SlamStatus, SlamView, StopOutcome, TrackedFeatures, VehicleError,
-    VehicleMissionView, VehicleStatus, VehicleView,
+    self, AlignmentView, ApiParams, AppState, BoxFuture, KeyframeInfo, LoopInfo, MapView,
+    MergeInfo, MissionProgressView, ShotTarget, SlamStatus, SlamView, StopOutcome, TargetView,
+    TrackedFeatures, VehicleError, VehicleMissionView, VehicleStatus, VehicleView,
 };
 use shotpilot::shot::record::{
     Localisation, MissionRecord, MissionState, PhotoIntrinsics, PoseJson, Shot,
@@ -263,6 +263,34 @@ impl VehicleView for FakeVehicle {
                 refinement_cancelled: flying.clone(),
                 flying,
             })
+        })
+    }
+    fn shot_target(&self, shot: &Shot) -> Result<ShotTarget, VehicleError> {
+        Ok(ShotTarget {
+            shot: shot.id.clone(),
+            target: TargetView {
+                lat_deg: 47.3977,
+                lon_deg: 8.5456,
+                alt_above_home_m: 15.0,
+                alt_m: 503.0,
+                yaw_deg: 90.0,
+                gimbal_pitch_deg: -30.0,
+                residual_roll_deg: 0.4,
+                axis_error_deg: 0.1,
+                p_ned_vehicle: [3.0, 4.0, -15.0],
+                camera_ned: PoseJson {
+                    translation: [3.0, 4.0, -15.0],
+                    rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+                },
+            },
+            georeference: AlignmentView {
+                scale: 2.5,
+                rms_m: 0.3,
+                keyframes_used: 12,
+                pairs: 14,
+                time_offset_s: None,
+            },
+            position_sigma_m: Some(0.2),
         })
     }
     fn progress(&self) -> Option<MissionProgressView> {
@@ -1074,6 +1102,14 @@ fn check_schema(doc: &Value, schema: &Value, v: &Value, at: &str) -> Result<(), 
                     check_schema(doc, sub, x, &format!("{at}.{key}"))?;
                 }
             }
+            // A closed object: every field the reply has is documented.
+            if schema["additionalProperties"] == false
+                && let Some(k) = o.keys().find(|k| !props.contains_key(*k))
+            {
+                return Err(format!(
+                    "{at}: the reply has {k:?}, which is not documented"
+                ));
+            }
         }
     }
     if let Some(a) = v.as_array() {
@@ -1155,9 +1191,11 @@ fn shot_events(addr: SocketAddr, enough: impl Fn(&[Value]) -> bool) -> Vec<Value
 }
 
 /// The document served at /openapi.json has every route the router
-/// serves and no other, and real replies (status, keyframes, shots list
-/// and one shot, the vehicle's mission, a shot created, uploaded and
-/// started) have the fields and types its schemas say.
+/// serves and no other, and real replies (status, keyframes, the map,
+/// shots list and one shot, a shot's target and progress, the vehicle's
+/// mission, a shot created from anchors or a photo, uploaded, started,
+/// and the vehicle stopped) have the fields and types its schemas say,
+/// and no field a closed schema does not name.
 #[test]
 fn the_openapi_document_matches_the_router_and_the_replies() {
     let dir = tempfile::tempdir().unwrap();
@@ -1208,6 +1246,20 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
     assert_eq!(other.0, 201);
     assert_eq!(json_of(&other.2)["status"], "not_localised");
     check("post", "/shots", "201", &json_of(&other.2));
+    // A photo shot's reply is a shot too.
+    let mut png = Vec::new();
+    kf_image()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    let photo = http(
+        a,
+        "POST",
+        "/api/v1/shots/photo",
+        &[AUTH, ("Content-Type", "image/png")],
+        &png,
+    );
+    assert_eq!(photo.0, 201, "{}", String::from_utf8_lossy(&photo.2));
+    check("post", "/shots/photo", "201", &json_of(&photo.2));
     for (path, doc_path) in [
         ("/api/v1/status".to_owned(), "/status"),
         ("/api/v1/keyframes".to_owned(), "/keyframes"),
@@ -1215,6 +1267,12 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
         (format!("/api/v1/shots/{id}"), "/shots/{id}"),
         ("/api/v1/vehicle/mission".to_owned(), "/vehicle/mission"),
         ("/api/v1/features".to_owned(), "/features"),
+        ("/api/v1/map?max_points=2".to_owned(), "/map"),
+        (format!("/api/v1/shots/{id}/target"), "/shots/{id}/target"),
+        (
+            format!("/api/v1/shots/{id}/progress"),
+            "/shots/{id}/progress",
+        ),
     ] {
         let r = http(a, "GET", &path, &[], b"");
         assert_eq!(r.0, 200, "{path}: {}", String::from_utf8_lossy(&r.2));
@@ -1234,8 +1292,26 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
 
     // The shot events on /events: each as its schema says, this shot's
     // in the order they happened (history replayed to a late client).
+    // After the upload the progress has the mission record too.
+    let r = http(a, "GET", &format!("/api/v1/shots/{id}/progress"), &[], b"");
+    let progress = json_of(&r.2);
+    assert!(progress["mission"].is_object(), "{progress}");
+    check("get", "/shots/{id}/progress", "200", &progress);
     let r = http(a, "POST", "/api/v1/vehicle/stop", &[AUTH], b"");
     assert_eq!(r.0, 200, "{}", String::from_utf8_lossy(&r.2));
+    check("post", "/vehicle/stop", "200", &json_of(&r.2));
+    // A field the document does not name fails a closed schema.
+    let mut undocumented = json_of(&r.2);
+    undocumented["extra"] = json!(1);
+    assert!(
+        check_schema(
+            &doc,
+            &reply_schema("post", "/vehicle/stop", "200"),
+            &undocumented,
+            "$"
+        )
+        .is_err()
+    );
     let events = shot_events(a, |evs| {
         evs.iter()
             .any(|e| e["kind"] == "stopped" && e["shot"] == id.as_str())
