@@ -43,7 +43,7 @@
 pub mod geo_service;
 pub mod memory;
 pub mod persist;
-pub mod reconcile;
+
 mod refinement_arrival;
 mod refinement_deps;
 mod refinement_servo;
@@ -220,7 +220,7 @@ pub async fn run_on(
     // A refinement loop still running in the record: the last session
     // ended without stopping it (killed or crashed).
     for shot in store.list() {
-        if let Some(s) = reconcile::interrupt_refinement(
+        if let Some(s) = crate::shot::reconcile::interrupt_refinement(
             &shot,
             "the daemon ended while the loop ran (killed or crashed); start the shot's mission to refine again",
         ) {

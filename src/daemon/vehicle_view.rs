@@ -5,12 +5,11 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use serde_json::{Value, json};
+use serde_json::json;
 
 use tokio_util::sync::CancellationToken;
 
 use super::geo_service::GeoService;
-use super::reconcile::{VehicleMission, reconcile};
 use crate::api::{
     AlignmentView, BoxFuture, GimbalManagerView, MissionProgressView, ShotTarget, StopOutcome,
     TargetView, VehicleError, VehicleGimbal, VehicleMissionView, VehiclePosition, VehicleStatus,
@@ -19,6 +18,7 @@ use crate::api::{
 use crate::geo::{GeoAlignment, GeoError, GeoTarget};
 use crate::mission::MissionItem;
 use crate::mission::plan::{Flavour, Home, plan};
+use crate::shot::reconcile::{VehicleMission, reconcile};
 use crate::shot::record::{MissionRecord, MissionState, PoseJson, Shot};
 use crate::shot::store::ShotStore;
 use crate::vehicle::{LinkError, LinkHandle};
@@ -128,29 +128,6 @@ impl LinkVehicle {
         })
     }
 
-    /// The target a shot's mission flies now: its refinement loop's
-    /// latest correction, else the target of its upload.
-    fn flown_target(shot: &Shot) -> Option<crate::mission::plan::Target> {
-        let d = &shot.mission.as_ref()?.details;
-        if let Some(t) = d
-            .get("refinement")
-            .and_then(|r| r.get("target"))
-            .and_then(|t| serde_json::from_value(t.clone()).ok())
-        {
-            return Some(t);
-        }
-        let t = d.get("target")?;
-        let f = |k: &str| t.get(k).and_then(Value::as_f64);
-        Some(crate::mission::plan::Target {
-            lat_deg: f("lat_deg")?,
-            lon_deg: f("lon_deg")?,
-            alt_m: f("alt_above_home_m")?,
-            yaw_deg: f("yaw_deg")?,
-            gimbal_pitch_deg: f("gimbal_pitch_deg")?,
-            photo: true,
-        })
-    }
-
     /// Reads the vehicle's mission (three tries) and the progress reported
     /// since `since`, waiting up to two seconds for a fresh one.
     async fn read_vehicle_mission(
@@ -214,7 +191,11 @@ impl LinkVehicle {
         });
         let flavour = self.link.telemetry.vehicle.borrow().flavour;
         let replanned = |s: &Shot| -> Vec<Vec<MissionItem>> {
-            match (Self::flown_target(s), home, flavour) {
+            match (
+                s.mission.as_ref().and_then(MissionRecord::flown_target),
+                home,
+                flavour,
+            ) {
                 (Some(t), Some(h), Some(f)) => {
                     plan(&t, &h, f, &self.plan).ok().into_iter().collect()
                 }
@@ -255,7 +236,7 @@ impl LinkVehicle {
         }
         if let Some(id) = owner
             && let Some(shot) = store.get(&id)
-            && let Some(t) = Self::flown_target(&shot)
+            && let Some(t) = shot.mission.as_ref().and_then(MissionRecord::flown_target)
             && let Ok(mut last) = self.last_uploaded.lock()
             && last.as_ref().is_none_or(|(s, _)| s.id != id)
         {
@@ -330,35 +311,6 @@ pub async fn run_reconciler(
     }
 }
 
-/// Photos kept in a shot's record (`details.photos`), newest last.
-const PHOTOS_KEPT: usize = 50;
-
-/// Adds a picture the vehicle's camera reported to a shot's mission record
-/// (`details.photos`, at most [`PHOTOS_KEPT`], newest last): its index,
-/// the position and attitude the camera gave, where it stored it.
-pub fn record_photo(shot: &mut Shot, photo: &crate::vehicle::ImageCaptured) {
-    let Some(m) = shot.mission.as_mut() else {
-        return;
-    };
-    let mut photos = m
-        .details
-        .get("photos")
-        .and_then(|p| p.as_array().cloned())
-        .unwrap_or_default();
-    let entry = serde_json::to_value(photo).unwrap_or_default();
-    if photos
-        .iter()
-        .any(|p| p["component_id"] == entry["component_id"] && p["index"] == entry["index"])
-    {
-        return;
-    }
-    photos.push(entry);
-    if photos.len() > PHOTOS_KEPT {
-        photos.remove(0);
-    }
-    m.set_detail("photos", serde_json::Value::Array(photos));
-}
-
 /// Stores every picture the vehicle's camera reports (CAMERA_IMAGE_CAPTURED)
 /// with the shot whose mission the vehicle holds (the one uploaded last, or
 /// the one the last reconciliation found there), until `cancel`.
@@ -393,7 +345,11 @@ pub async fn run_photo_recorder(
             match &owner {
                 Some(id) => {
                     tracing::info!(shot = %id, index = photo.index, ok = photo.ok, url = %photo.file_url, "photo stored with the shot");
-                    if let Err(e) = store.update(id, |s| record_photo(s, &photo)) {
+                    if let Err(e) = store.update(id, |s| {
+                        if let Some(m) = s.mission.as_mut() {
+                            m.record_photo(&photo);
+                        }
+                    }) {
                         tracing::warn!(shot = %id, "storing the photo: {e}");
                     }
                 }
@@ -635,55 +591,6 @@ mod tests {
     use super::*;
     use crate::mission::plan::Target;
     use crate::shot::record::{ShotSource, ShotStatus};
-
-    #[test]
-    fn photos_are_stored_with_the_shot_once_each_and_bounded() {
-        let photo = |index: i32| crate::vehicle::ImageCaptured {
-            component_id: 100,
-            index,
-            time_utc_us: 1_700_000_000_000_000,
-            lat_deg: 47.397_742,
-            lon_deg: 8.545_594,
-            alt_amsl_m: 508.0,
-            relative_alt_m: 20.0,
-            q: [1.0, 0.0, 0.0, 0.0],
-            ok: true,
-            file_url: format!("file:///captures/{index}.jpg"),
-        };
-        let mut s = shot("shot-1");
-        record_photo(&mut s, &photo(0));
-        assert!(
-            s.mission.is_none(),
-            "a shot without a mission keeps no photo"
-        );
-        s.mission = Some(crate::shot::record::MissionRecord {
-            state: crate::shot::record::MissionState::Started,
-            items: 5,
-            uploaded_unix: 0.0,
-            started_unix: None,
-            target_lat_lon_alt: None,
-            details: serde_json::json!({"planned_items": []}),
-        });
-        record_photo(&mut s, &photo(0));
-        record_photo(&mut s, &photo(0));
-        record_photo(&mut s, &photo(1));
-        let details = &s.mission.as_ref().unwrap().details;
-        let photos = details["photos"].as_array().unwrap();
-        assert_eq!(photos.len(), 2, "one entry per picture");
-        assert_eq!(photos[1]["index"], 1);
-        assert_eq!(photos[1]["lat_deg"], 47.397_742);
-        assert_eq!(photos[1]["file_url"], "file:///captures/1.jpg");
-        assert!(details.get("planned_items").is_some(), "other details kept");
-        for i in 2..80 {
-            record_photo(&mut s, &photo(i));
-        }
-        let photos = s.mission.as_ref().unwrap().details["photos"]
-            .as_array()
-            .unwrap()
-            .clone();
-        assert_eq!(photos.len(), PHOTOS_KEPT);
-        assert_eq!(photos.last().unwrap()["index"], 79);
-    }
 
     fn shot(id: &str) -> Shot {
         Shot {

@@ -10,10 +10,13 @@
 //!   covisible keyframes' points), PnP RANSAC + motion-only refinement gives
 //!   `world_from_cam`, and a reliability gate refuses doubtful answers with a
 //!   typed reason.
+//! * [`reconcile`]: each shot's mission state from the mission the vehicle
+//!   holds (read back at start and whenever the link returns).
 
 pub mod anchors;
 pub mod localize;
 pub mod photo;
+pub mod reconcile;
 pub mod record;
 pub mod request;
 pub mod store;

@@ -208,7 +208,58 @@ impl MissionRecord {
             obj.insert(key.into(), value);
         }
     }
+
+    /// The target this mission flies now: its refinement loop's latest
+    /// correction (`details.refinement.target`), else the target of its
+    /// upload (`details.target`); None when the details hold neither.
+    pub fn flown_target(&self) -> Option<crate::mission::plan::Target> {
+        let d = &self.details;
+        if let Some(t) = d
+            .get("refinement")
+            .and_then(|r| r.get("target"))
+            .and_then(|t| serde_json::from_value(t.clone()).ok())
+        {
+            return Some(t);
+        }
+        let t = d.get("target")?;
+        let f = |k: &str| t.get(k).and_then(serde_json::Value::as_f64);
+        Some(crate::mission::plan::Target {
+            lat_deg: f("lat_deg")?,
+            lon_deg: f("lon_deg")?,
+            alt_m: f("alt_above_home_m")?,
+            yaw_deg: f("yaw_deg")?,
+            gimbal_pitch_deg: f("gimbal_pitch_deg")?,
+            photo: true,
+        })
+    }
+
+    /// Adds a picture the vehicle's camera reported (`details.photos`, at
+    /// most [`PHOTOS_KEPT`], newest last; a picture already there, by
+    /// camera and index, is not added again): its index, the position and
+    /// attitude the camera gave, where it stored it.
+    pub fn record_photo(&mut self, photo: &crate::vehicle::ImageCaptured) {
+        let mut photos = self
+            .details
+            .get("photos")
+            .and_then(|p| p.as_array().cloned())
+            .unwrap_or_default();
+        let entry = serde_json::to_value(photo).unwrap_or_default();
+        if photos
+            .iter()
+            .any(|p| p["component_id"] == entry["component_id"] && p["index"] == entry["index"])
+        {
+            return;
+        }
+        photos.push(entry);
+        if photos.len() > PHOTOS_KEPT {
+            photos.remove(0);
+        }
+        self.set_detail("photos", serde_json::Value::Array(photos));
+    }
 }
+
+/// Photos kept in a mission record (`details.photos`), newest last.
+pub const PHOTOS_KEPT: usize = 50;
 
 /// One desired shot and what became of it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -308,6 +359,77 @@ impl PhotoIntrinsics {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A started mission's record with these details.
+    fn started(details: serde_json::Value) -> MissionRecord {
+        MissionRecord {
+            state: MissionState::Started,
+            items: 5,
+            uploaded_unix: 0.0,
+            started_unix: None,
+            target_lat_lon_alt: None,
+            details,
+        }
+    }
+
+    #[test]
+    fn photos_are_kept_once_each_and_bounded() {
+        let photo = |index: i32| crate::vehicle::ImageCaptured {
+            component_id: 100,
+            index,
+            time_utc_us: 1_700_000_000_000_000,
+            lat_deg: 47.397_742,
+            lon_deg: 8.545_594,
+            alt_amsl_m: 508.0,
+            relative_alt_m: 20.0,
+            q: [1.0, 0.0, 0.0, 0.0],
+            ok: true,
+            file_url: format!("file:///captures/{index}.jpg"),
+        };
+        let mut m = started(serde_json::json!({"planned_items": []}));
+        m.record_photo(&photo(0));
+        m.record_photo(&photo(0));
+        m.record_photo(&photo(1));
+        let photos = m.details["photos"].as_array().unwrap();
+        assert_eq!(photos.len(), 2, "one entry per picture");
+        assert_eq!(photos[1]["index"], 1);
+        assert_eq!(photos[1]["lat_deg"], 47.397_742);
+        assert_eq!(photos[1]["file_url"], "file:///captures/1.jpg");
+        assert!(
+            m.details.get("planned_items").is_some(),
+            "other details kept"
+        );
+        for i in 2..80 {
+            m.record_photo(&photo(i));
+        }
+        let photos = m.details["photos"].as_array().unwrap();
+        assert_eq!(photos.len(), PHOTOS_KEPT);
+        assert_eq!(photos.last().unwrap()["index"], 79);
+    }
+
+    /// The refinement's latest correction wins over the uploaded target;
+    /// without either there is none.
+    #[test]
+    fn the_flown_target_is_the_latest_correction_else_the_upload() {
+        let mut m = started(serde_json::json!({}));
+        assert!(m.flown_target().is_none());
+        m.set_detail(
+            "target",
+            serde_json::json!({"lat_deg": 47.1, "lon_deg": 8.5, "alt_above_home_m": 20.0,
+                "alt_m": 520.0, "yaw_deg": 90.0, "gimbal_pitch_deg": -30.0}),
+        );
+        let t = m.flown_target().unwrap();
+        assert_eq!(
+            (t.lat_deg, t.alt_m, t.yaw_deg, t.photo),
+            (47.1, 20.0, 90.0, true)
+        );
+        let corrected = crate::mission::plan::Target { lat_deg: 47.2, ..t };
+        m.set_detail(
+            "refinement",
+            serde_json::json!({"target": serde_json::to_value(corrected).unwrap()}),
+        );
+        assert_eq!(m.flown_target().unwrap().lat_deg, 47.2);
+    }
 
     /// The API and the page read these names; shot files written before
     /// the enums carry them too.

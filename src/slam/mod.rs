@@ -413,7 +413,7 @@ impl Slam {
                 Some(mut c) => {
                     c.set_pause(pause.clone());
                     let (tx, rx) = sync_channel::<KeyFrameId>(LOOP_QUEUE);
-                    let handle = spawn_closer(c, rx, map.clone())?;
+                    let handle = c.spawn(rx, map.clone()).map_err(SlamError::Thread)?;
                     (Closing::Thread(tx), Some(handle))
                 }
                 None => (Closing::Off, None),
@@ -686,28 +686,6 @@ fn spawn_mapper(
                 mappers.hand_over(kf);
             }
             mappers
-        })
-        .map_err(SlamError::Thread)
-}
-
-/// The loop closer's thread: each keyframe local mapping finished, in
-/// order, at a lower priority than tracking and mapping
-/// ([`pause::LOOP_THREAD_NICENESS`]).
-fn spawn_closer(
-    mut closer: LoopCloser,
-    rx: Receiver<KeyFrameId>,
-    map: Arc<Mutex<Map>>,
-) -> Result<JoinHandle<LoopCloser>, SlamError> {
-    std::thread::Builder::new()
-        .name("slam-loop".into())
-        .spawn(move || {
-            if !pause::lower_this_thread_priority(pause::LOOP_THREAD_NICENESS) {
-                tracing::debug!("loop closing runs at the process's priority");
-            }
-            while let Ok(kf) = rx.recv() {
-                closer.process_keyframe(&map, kf);
-            }
-            closer
         })
         .map_err(SlamError::Thread)
 }

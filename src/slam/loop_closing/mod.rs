@@ -125,7 +125,7 @@ use crate::matching::Bounds;
 
 use super::map::{KeyFrameId, Map, MapId, lock};
 use super::params::bound_history;
-use super::pause::MappingPause;
+use super::pause::{self, MappingPause};
 
 pub use self::log::{
     HoldKind, LockHold, LoopEvent, LoopLog, LoopRefusal, LoopReject, LoopSummary, MergeEvent,
@@ -223,6 +223,28 @@ impl LoopCloser {
     /// The summaries of the merges, shared: it fills as maps merge.
     pub fn merge_log(&self) -> MergeLog {
         self.merge_log.clone()
+    }
+
+    /// The loop closer's thread: each keyframe local mapping finished
+    /// (`rx`), in order, at a lower priority than tracking and mapping
+    /// ([`pause::LOOP_THREAD_NICENESS`]); gives the closer back when `rx`
+    /// closes.
+    pub(crate) fn spawn(
+        mut self,
+        rx: std::sync::mpsc::Receiver<KeyFrameId>,
+        map: Arc<Mutex<Map>>,
+    ) -> std::io::Result<std::thread::JoinHandle<LoopCloser>> {
+        std::thread::Builder::new()
+            .name("slam-loop".into())
+            .spawn(move || {
+                if !pause::lower_this_thread_priority(pause::LOOP_THREAD_NICENESS) {
+                    tracing::debug!("loop closing runs at the process's priority");
+                }
+                while let Ok(kf) = rx.recv() {
+                    self.process_keyframe(&map, kf);
+                }
+                self
+            })
     }
 
     /// Look for a place of another map at keyframe `kf` (mapped already)
