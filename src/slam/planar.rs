@@ -110,13 +110,7 @@ fn check_motion(
         }
     }
     let n_good = cos_list.len();
-    let parallax_deg = if cos_list.is_empty() {
-        0.0
-    } else {
-        cos_list.sort_by(f64::total_cmp);
-        let c = cos_list[params.parallax_rank.min(cos_list.len() - 1)];
-        c.clamp(-1.0, 1.0).acos().to_degrees()
-    };
+    let parallax_deg = geometry::two_view::ranked_parallax_deg(&mut cos_list, params.parallax_rank);
     PlanarHypothesis {
         cam2_from_cam1: *cam2_from_cam1,
         points,

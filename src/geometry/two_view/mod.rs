@@ -58,6 +58,7 @@ use nalgebra::{Isometry3, Point3};
 
 pub use homography::{HomographyFit, HomographyParams, decompose_h, find_homography};
 pub use initialize::initialize_two_view;
+pub use reconstruct::ranked_parallax_deg;
 
 /// Tunables of [`initialize_two_view`]. Defaults are ORB-SLAM's.
 #[derive(Debug, Clone, PartialEq)]

@@ -35,6 +35,21 @@ struct CheckCtx<'a> {
     parallax_rank: usize,
 }
 
+/// The `rank`-th largest parallax (0: the largest), degrees, of the
+/// triangulated points whose parallax cosines are `cos` (reordered); the
+/// smallest when there are fewer points, 0 without any. ORB-SLAM's
+/// two-view check takes the 50th largest, so that a few wide-angle points
+/// do not pass a reconstruction whose bulk has none.
+pub fn ranked_parallax_deg(cos: &mut [f64], rank: usize) -> f64 {
+    if cos.is_empty() {
+        return 0.0;
+    }
+    // Ascending cosine = descending parallax.
+    let idx = rank.min(cos.len() - 1);
+    let (_, c, _) = cos.select_nth_unstable_by(idx, |a, b| a.total_cmp(b));
+    c.clamp(-1.0, 1.0).acos().to_degrees()
+}
+
 #[inline]
 fn project(k: &Matrix3<f64>, p: &Vector3<f64>) -> (f64, f64) {
     let iz = 1.0 / p.z;
@@ -98,14 +113,7 @@ fn check_rt(
             *slot = Some(p);
         }
     }
-    let parallax_deg = if cos_buf.is_empty() {
-        0.0
-    } else {
-        // Ascending cosine = descending parallax; take the rank-th largest.
-        let idx = ctx.parallax_rank.min(cos_buf.len() - 1);
-        let (_, c, _) = cos_buf.select_nth_unstable_by(idx, |a, b| a.total_cmp(b));
-        c.clamp(-1.0, 1.0).acos().to_degrees()
-    };
+    let parallax_deg = ranked_parallax_deg(cos_buf, ctx.parallax_rank);
     Hypothesis {
         r,
         t,
