@@ -161,7 +161,6 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let mut extract_cpu = Vec::with_capacity(n);
     let mut track_cpu = Vec::with_capacity(n);
     let mut track_only_cpu = Vec::with_capacity(n);
-    let mut tracked = 0usize;
     let mut tracked_frames = std::collections::HashSet::new();
     let mut by_source: std::collections::BTreeMap<&'static str, usize> = Default::default();
     let mut lost_frames = 0usize;
@@ -199,11 +198,10 @@ pub fn run(args: SlamArgs) -> Result<()> {
         if let Some(s) = out.source {
             *by_source.entry(s.name()).or_default() += 1;
         }
-        if out.state == TrackState::Tracking {
-            tracked_frames.insert(frame.index as u64);
-        }
         match out.state {
-            TrackState::Tracking => tracked += 1,
+            TrackState::Tracking => {
+                tracked_frames.insert(frame.index as u64);
+            }
             TrackState::Lost => lost_frames += 1,
             TrackState::NotInitialized => {}
         }
@@ -232,7 +230,6 @@ pub fn run(args: SlamArgs) -> Result<()> {
             extract_cpu,
             track_cpu,
             track_only_cpu,
-            tracked,
             tracked_frames,
             by_source,
             lost_frames,

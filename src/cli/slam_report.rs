@@ -35,8 +35,8 @@ pub(super) struct FrameStats {
     pub(super) extract_cpu: Vec<f64>,
     pub(super) track_cpu: Vec<f64>,
     pub(super) track_only_cpu: Vec<f64>,
-    /// Frames tracked when they came, and their indices.
-    pub(super) tracked: usize,
+    /// The indices of the frames tracked when they came (every lap's
+    /// frame has its own).
     pub(super) tracked_frames: HashSet<u64>,
     /// Frames per pose source.
     pub(super) by_source: BTreeMap<&'static str, usize>,
@@ -87,9 +87,8 @@ struct Figures {
     times: Times,
     /// Why the run never initialised.
     reason: Option<String>,
-    /// The ground truth's path length, when there is one.
+    /// The ground truth's path length; None without a ground truth.
     gt_path_length: Option<f64>,
-    has_gt: bool,
 }
 
 /// Evaluates the run (`gt`: the ground truth; `telemetry`: the dataset's,
@@ -382,7 +381,6 @@ pub(super) fn report(
         times,
         reason,
         gt_path_length: gt.map(|g| g.path_length()),
-        has_gt: gt.is_some(),
     };
     if args.json {
         print_json(args, run, stats, &fig);
@@ -398,7 +396,6 @@ fn print_json(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
         timing,
         rss,
         posed,
-        keyframes_posed: _,
         initialized,
         mode,
         ned_from_map,
@@ -416,13 +413,11 @@ fn print_json(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
         times,
         reason,
         gt_path_length,
-        has_gt,
+        ..
     } = fig;
     let FrameStats {
         frames: n,
         wall_s,
-        tracked: _,
-        tracked_frames: _,
         by_source,
         lost_frames,
         memory,
@@ -465,7 +460,7 @@ fn print_json(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
         "loop_closing": !args.no_loop_closing,
 
         "loops": loops,
-        "loop_refusals": refusals.iter().map(|(r, (n, far))| json!({"reason": r, "count": n, "gt_farther_than_10m": has_gt.then_some(far)})).collect::<Vec<_>>(),
+        "loop_refusals": refusals.iter().map(|(r, (n, far))| json!({"reason": r, "count": n, "gt_farther_than_10m": gt_path_length.is_some().then_some(far)})).collect::<Vec<_>>(),
         "revisit_t": revisit.map(|r| r.0),
         "revisit_gt_gap_m": revisit.map(|r| r.1),
         "revisit_drift_m": revisit.map(|r| r.2),
@@ -491,7 +486,7 @@ fn print_json(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
         "merging": !args.no_merging && !args.no_loop_closing,
         "map_starts": map_starts,
         "merges": merges,
-        "merge_refusals": merge_refusals.iter().map(|(r, (n, far))| json!({"reason": r, "count": n, "gt_farther_than_10m": has_gt.then_some(far)})).collect::<Vec<_>>(),
+        "merge_refusals": merge_refusals.iter().map(|(r, (n, far))| json!({"reason": r, "count": n, "gt_farther_than_10m": gt_path_length.is_some().then_some(far)})).collect::<Vec<_>>(),
         "maps_at_end": maps_at_end,
     });
     if let (Some(o), serde_json::Value::Object(n)) = (out.as_object_mut(), atlas) {
@@ -525,26 +520,26 @@ fn print_text(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
         ate_by_source,
         loops,
         merges,
-        map_starts: _,
         maps_at_end,
         refusals,
         merge_refusals,
         revisit,
         times,
         reason,
-        gt_path_length: _,
-        has_gt,
+        gt_path_length,
+        ..
     } = fig;
     let FrameStats {
         frames: n,
         wall_s,
-        tracked,
         tracked_frames,
         by_source,
         lost_frames,
         memory,
         ..
     } = stats;
+    let has_gt = gt_path_length.is_some();
+    let tracked = tracked_frames.len();
     if !initialized {
         println!(
             "not initialised after {n} frames: {}",
@@ -645,7 +640,7 @@ fn print_text(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
             "ATE (Sim(3)) all frames rmse {:.4} m max {:.4} m ({} of the {posed} posed frames matched the ground truth within {} s) | keyframes rmse {:.4} m ({} of the {} keyframes matched)",
             a.ate.rmse, a.ate.max, a.matched, args.max_dt, k.ate.rmse, k.matched, keyframes_posed
         ),
-        _ if *has_gt => println!("ATE: too few poses matched the ground truth"),
+        _ if has_gt => println!("ATE: too few poses matched the ground truth"),
         _ => {}
     }
     if by_source.keys().any(|k| *k != "vision") {
@@ -686,7 +681,7 @@ fn print_text(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
     let rejects: Vec<String> = refusals
         .iter()
         .map(|(r, (n, far))| {
-            if *has_gt {
+            if has_gt {
                 format!("{r} {n} ({far} more than 10 m apart in the ground truth)")
             } else {
                 format!("{r} {n}")

@@ -29,6 +29,15 @@ fn kf_image() -> GrayImage {
     })
 }
 
+/// [`kf_image`] as a PNG file's bytes (a photo upload's body).
+fn kf_png() -> Vec<u8> {
+    let mut png = Vec::new();
+    kf_image()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    png
+}
+
 struct FakeSlam {
     img: Arc<GrayImage>,
 }
@@ -748,10 +757,7 @@ fn endpoints_and_bad_input() {
         .unwrap()
         .to_owned();
     assert!(message.contains("truncated"), "{message}");
-    let mut png = Vec::new();
-    kf_image()
-        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-        .unwrap();
+    let png = kf_png();
     let r = http(
         a,
         "POST",
@@ -1247,10 +1253,7 @@ fn the_openapi_document_matches_the_router_and_the_replies() {
     assert_eq!(json_of(&other.2)["status"], "not_localised");
     check("post", "/shots", "201", &json_of(&other.2));
     // A photo shot's reply is a shot too.
-    let mut png = Vec::new();
-    kf_image()
-        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-        .unwrap();
+    let png = kf_png();
     let photo = http(
         a,
         "POST",
