@@ -585,7 +585,31 @@ fn every_stream_shape_at_every_loss_keeps_damage_out_of_slam() {
             assert_eq!(o.lossy.damaged, 0, "{name}: {:?}", o.lossy);
             assert!(o.link.usable_share >= 0.99, "{name}: {:?}", o.link);
         } else if c.answer == Answer::NackPli && matches!(c.loss, Loss::Random(r) if r <= 0.02) {
-            assert!(o.link.usable_share >= 0.9, "{name}: {:?}", o.link);
+            // A packet lost for good (its request or its retransmission
+            // lost too, or late) damages an IDR stream until the key
+            // frame its PLI asks for, but an intra-refresh stream until
+            // the refresh has passed over it: up to its period of frames
+            // each (seen: 1 %, 2 packets lost for good, 82.5 % usable;
+            // 2 %, 4, 100 %).
+            let k = &o.lossy;
+            let allowance = match c.shape {
+                Shape::IntraRefresh(n) => {
+                    k.lost_packets as f64 * f64::from(n) / o.link.frames.max(1) as f64
+                }
+                _ => 0.0,
+            };
+            // Recovered: 0.93-1.0 of those asked over these cases; a
+            // sender that does not answer recovers none.
+            assert!(
+                k.retransmit_recovered as f64 >= 0.85 * k.retransmit_asked as f64,
+                "{name}: {k:?}"
+            );
+            assert!(
+                o.link.usable_share >= 0.9 - allowance,
+                "{name}: {:?} ({} packets lost for good)",
+                o.link,
+                k.lost_packets
+            );
         }
     }
 }
