@@ -306,10 +306,18 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
             .fold(f64::INFINITY, f64::min);
         // A first flight only just over the at_floor margin is corrected,
         // but no correction can then gain what the loop counts as a gain
-        // (the margin) beyond the measurement's noise: one that measures
-        // within it stops at_floor (seen: 3.37 % against a floor of
-        // 3.05 %, the correction measured 3.42 %).
-        let just_over = stop == "at_floor" && first <= floor + margin + noise + 1e-9;
+        // (the margin) beyond the noise of a look: one that measures
+        // within it stops at_floor. That noise is more than one round's
+        // spread over its frames (0.06-0.11 %): the GNSS bias moves the
+        // holding vehicle between two looks, and in 13 runs the second
+        // look differed from the first by -0.49 to +0.19 % (0.2 % RMS)
+        // after corrections of about 0.6 m that left the framing as it
+        // was (first flights 2.94-3.51 % against floors 2.60-3.05 %; seen
+        // failing before this allowance: 3.37 -> 3.42 % against 3.05 %,
+        // 3.00 -> 3.08 % against 2.64 %).
+        const LOOK_TO_LOOK_PCT: f64 = 0.2;
+        let just_over = stop == "at_floor"
+            && first <= floor + margin + noise.hypot(2.0 * LOOK_TO_LOOK_PCT) + 1e-9;
         assert!(
             best < first || just_over,
             "no correction improved on the first flight's {first} % (floor {floor} %, noise {noise} %): {rf}"
