@@ -130,7 +130,7 @@ pub(super) fn refine_candidate(
     )?;
     let estimated =
         params.focal_unknown || params.camera_uncertainty != IntrinsicsUncertainty::default();
-    if !estimated || params.rematch_rounds == 0 {
+    if !estimated {
         return Some(cand);
     }
     let fitted = Fitted {
@@ -185,15 +185,7 @@ fn rematch_with_estimated_camera(
     let radius = params.projection_radius_px.last().copied().unwrap_or(2.5);
     for _ in 0..params.rematch_rounds {
         let cand = &fitted.cand;
-        // The chosen camera's inliers.
-        let mut slots: Vec<Option<PointId>> = vec![None; feats.len()];
-        for (k, &i) in fitted.obs_slot.iter().enumerate() {
-            if cand.obs_inliers.get(k).copied().unwrap_or(false)
-                && let (Some(slot), Some(p)) = (slots.get_mut(i), fitted.matched.get(i))
-            {
-                *slot = *p;
-            }
-        }
+        let mut slots = fitted.chosen_slots();
         let est_view = ShotView {
             correction: cand.correction,
             distance_factor: view.distance_factor / cand.correction.focal_scale.max(1e-6),
@@ -239,7 +231,31 @@ fn rematch_with_estimated_camera(
             matched,
         };
     }
-    fitted.cand
+    fitted.into_candidate()
+}
+
+impl Fitted {
+    /// Keypoint -> map point of the chosen camera's inliers (the nominal
+    /// camera's refit dropped from the candidate's slots the pairs only
+    /// the estimated camera explains).
+    fn chosen_slots(&self) -> Vec<Option<PointId>> {
+        let mut slots: Vec<Option<PointId>> = vec![None; self.cand.slots.len()];
+        for (k, &i) in self.obs_slot.iter().enumerate() {
+            if self.cand.obs_inliers.get(k).copied().unwrap_or(false)
+                && let (Some(slot), Some(p)) = (slots.get_mut(i), self.matched.get(i))
+            {
+                *slot = *p;
+            }
+        }
+        slots
+    }
+
+    /// The candidate with the chosen camera's inliers as its slots, as its
+    /// pose and inlier count are.
+    fn into_candidate(self) -> CandidatePose {
+        let slots = self.chosen_slots();
+        CandidatePose { slots, ..self.cand }
+    }
 }
 
 /// What [`refit_on_slots`] returns: the report, the observations, the
