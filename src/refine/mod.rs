@@ -60,7 +60,9 @@ pub use error::{
 pub use measure::{LiveFrame, MeasureParams};
 pub use reachable::{Reachable, reachable_from_anchors};
 pub use servo::{Servo, ServoFrame, ServoParams, ServoSample, ServoStep, ServoStop};
-pub use session::{Context, Observation, OffsetRecord, RoundRecord, Session, Step, Stop, World};
+pub use session::{
+    Context, Observation, OffsetRecord, RoundRecord, Session, Step, Stop, World, median_noise_pct,
+};
 
 /// Every tunable number of the refinement.
 #[derive(Debug, Clone, Default, PartialEq)]

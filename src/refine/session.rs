@@ -466,7 +466,7 @@ impl Session {
         // against 27).
         let near_floor = match (self.reachable.as_ref(), pct) {
             (Some(r), Some(e)) => {
-                let noise = spread.map_or(0.0, |s| 2.0 * 1.25 * s / (pcts.len() as f64).sqrt());
+                let noise = median_noise_pct(spread, pcts.len());
                 let margin = self.params.controller.at_floor_margin_pct.max(noise);
                 (e - r.floor_pct <= margin).then(|| {
                     format!(
@@ -905,6 +905,13 @@ fn central_pose(poses: &[(Isometry3<f64>, Option<Vector3<f64>>)]) -> Option<Isom
         .copied()
 }
 
+/// The noise of a round's shot error (the median of `frames` frames'
+/// errors whose spread is `spread`, % of the diagonal): twice the median's
+/// standard error (1.25 sigma / sqrt(n)); 0 without a spread. A change
+/// within it is one the measurement cannot tell.
+pub fn median_noise_pct(spread: Option<f64>, frames: usize) -> f64 {
+    spread.map_or(0.0, |s| 2.0 * 1.25 * s / (frames.max(1) as f64).sqrt())
+}
 #[cfg(test)]
 mod tests {
     use super::*;

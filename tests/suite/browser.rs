@@ -277,12 +277,10 @@ fn check_whole_shot(addr: std::net::SocketAddr, seen: &Value) {
     // correction and gained 0.09-0.39 %.
     let r0 = &rounds[0];
     let floor = r0["floor_pct"].as_f64().unwrap_or(f64::NAN);
-    let noise = 2.0 * 1.25 * r0["shot_error_spread_pct"].as_f64().unwrap_or(0.0)
-        / r0["frames_with_error"]
-            .as_f64()
-            .unwrap_or(1.0)
-            .max(1.0)
-            .sqrt();
+    let noise = shotpilot::refine::median_noise_pct(
+        r0["shot_error_spread_pct"].as_f64(),
+        r0["frames_with_error"].as_u64().unwrap_or(1) as usize,
+    );
     if rounds.len() == 1 {
         let threshold = shotpilot::refine::ControllerParams::default().threshold_pct;
         let framing = r0["pose_framing_pct"].as_f64();
