@@ -255,6 +255,87 @@ impl<'a> BaLs<'a> {
     }
 }
 
+impl BaLs<'_> {
+    /// The reduced camera system at damping `lambda`: `S` (both triangles,
+    /// in `self.s`) and its right-hand side (`self.rhs`), the points
+    /// eliminated (their `C⁻¹` kept in `self.c_inv`). None when a point's
+    /// block cannot be inverted.
+    fn fill_schur(&mut self, lambda: f64) -> Option<()> {
+        let dim = 6 * self.n_free;
+        // Upper block triangle of S, row-major, in a plain buffer (no
+        // bounds-checked faer indexing in the hot loop).
+        let sbuf = &mut self.sbuf;
+        sbuf.clear();
+        sbuf.resize(dim * dim, 0.0);
+        self.rhs.fill(0.0);
+        // Camera diagonal blocks, damped.
+        for (fi, a) in self.a_blocks.iter().enumerate() {
+            for r in 0..6 {
+                let row = (6 * fi + r) * dim + 6 * fi;
+                for c in 0..6 {
+                    sbuf[row + c] = a[(r, c)];
+                }
+                sbuf[row + r] += lambda * a[(r, r)].clamp(1e-6, 1e32);
+                self.rhs[6 * fi + r] = -self.g_c[fi][r];
+            }
+        }
+        // Eliminate the points.
+        for j in 0..self.problem.points.len() {
+            let mut c = self.c_blocks[j];
+            let mut any = false;
+            for i in 0..3 {
+                c[(i, i)] += lambda * c[(i, i)].clamp(1e-6, 1e32);
+                any |= self.c_blocks[j][(i, i)] > 0.0;
+            }
+            if !any {
+                self.c_inv[j] = Matrix3::zeros();
+                continue;
+            }
+            let cinv = inverse_spd3(&c)?;
+            self.c_inv[j] = cinv;
+            let obs_j = &self.by_point[self.by_point_start[j]..self.by_point_start[j + 1]];
+            let gpj = self.g_p[j];
+            for &ka in obs_j {
+                let la = &self.lin[ka];
+                let fa = la.free_pose;
+                if !la.live || fa == usize::MAX {
+                    continue;
+                }
+                let y = la.wblock * cinv;
+                // rhs_a -= Y·(-g_p), i.e. rhs_a += Y·g_p
+                let yg = y * gpj;
+                for r in 0..6 {
+                    self.rhs[6 * fa + r] += yg[r];
+                }
+                for &kb in obs_j {
+                    let lb = &self.lin[kb];
+                    let fb = lb.free_pose;
+                    if !lb.live || fb == usize::MAX || fb < fa {
+                        continue;
+                    }
+                    let blk = y * lb.wblock.transpose();
+                    for r in 0..6 {
+                        let row = (6 * fa + r) * dim + 6 * fb;
+                        let dst = &mut sbuf[row..row + 6];
+                        for (c2, d) in dst.iter_mut().enumerate() {
+                            *d -= blk[(r, c2)];
+                        }
+                    }
+                }
+            }
+        }
+        let sbuf = &self.sbuf;
+        self.s = Mat::from_fn(dim, dim, |r, c| {
+            if r <= c {
+                sbuf[r * dim + c]
+            } else {
+                sbuf[c * dim + r]
+            }
+        });
+        Some(())
+    }
+}
+
 impl LeastSquares for BaLs<'_> {
     fn linearize(&mut self) -> (f64, f64) {
         for a in &mut self.a_blocks {
@@ -347,76 +428,7 @@ impl LeastSquares for BaLs<'_> {
     fn solve_damped(&mut self, lambda: f64) -> Option<(f64, f64)> {
         let nf = self.n_free;
         let dim = 6 * nf;
-        // Upper block triangle of S, row-major, in a plain buffer (no
-        // bounds-checked faer indexing in the hot loop).
-        let sbuf = &mut self.sbuf;
-        sbuf.clear();
-        sbuf.resize(dim * dim, 0.0);
-        self.rhs.fill(0.0);
-        // Camera diagonal blocks, damped.
-        for (fi, a) in self.a_blocks.iter().enumerate() {
-            for r in 0..6 {
-                let row = (6 * fi + r) * dim + 6 * fi;
-                for c in 0..6 {
-                    sbuf[row + c] = a[(r, c)];
-                }
-                sbuf[row + r] += lambda * a[(r, r)].clamp(1e-6, 1e32);
-                self.rhs[6 * fi + r] = -self.g_c[fi][r];
-            }
-        }
-        // Eliminate the points.
-        for j in 0..self.problem.points.len() {
-            let mut c = self.c_blocks[j];
-            let mut any = false;
-            for i in 0..3 {
-                c[(i, i)] += lambda * c[(i, i)].clamp(1e-6, 1e32);
-                any |= self.c_blocks[j][(i, i)] > 0.0;
-            }
-            if !any {
-                self.c_inv[j] = Matrix3::zeros();
-                continue;
-            }
-            let cinv = inverse_spd3(&c)?;
-            self.c_inv[j] = cinv;
-            let obs_j = &self.by_point[self.by_point_start[j]..self.by_point_start[j + 1]];
-            let gpj = self.g_p[j];
-            for &ka in obs_j {
-                let la = &self.lin[ka];
-                let fa = la.free_pose;
-                if !la.live || fa == usize::MAX {
-                    continue;
-                }
-                let y = la.wblock * cinv;
-                // rhs_a -= Y·(-g_p), i.e. rhs_a += Y·g_p
-                let yg = y * gpj;
-                for r in 0..6 {
-                    self.rhs[6 * fa + r] += yg[r];
-                }
-                for &kb in obs_j {
-                    let lb = &self.lin[kb];
-                    let fb = lb.free_pose;
-                    if !lb.live || fb == usize::MAX || fb < fa {
-                        continue;
-                    }
-                    let blk = y * lb.wblock.transpose();
-                    for r in 0..6 {
-                        let row = (6 * fa + r) * dim + 6 * fb;
-                        let dst = &mut sbuf[row..row + 6];
-                        for (c2, d) in dst.iter_mut().enumerate() {
-                            *d -= blk[(r, c2)];
-                        }
-                    }
-                }
-            }
-        }
-        let sbuf = &self.sbuf;
-        self.s = Mat::from_fn(dim, dim, |r, c| {
-            if r <= c {
-                sbuf[r * dim + c]
-            } else {
-                sbuf[c * dim + r]
-            }
-        });
+        self.fill_schur(lambda)?;
         if dim > 0 {
             let llt = self.s.llt(Side::Lower).ok()?;
             llt.solve_in_place(self.rhs.as_mut());
@@ -715,6 +727,120 @@ pub fn local_bundle_adjustment(
     })
 }
 
+/// The free poses' camera-centre covariances after a similarity alignment
+/// of those centres (what an absolute trajectory error against the truth
+/// measures, after its Sim(3) fit), for observations whose pixel error is
+/// `noise_px` at the keypoints' octave-0 scale: the bundle adjustment's
+/// Gauss-Newton information at the current solution (observations with
+/// chi2 above [`BaParams::outlier_chi2`] or behind the camera left out),
+/// the points eliminated (the reduced camera system `S`), its
+/// pseudo-inverse over the directions the data fix (the 7 smallest
+/// eigenvalues, a monocular map's similarity gauge, left out when no pose
+/// is fixed), taken to the centres (`δc = -Rᵀ·δt`) and projected off the
+/// centres' own similarity motions (translation, rotation about and scale
+/// from their mean). One 3×3 block per free pose, in problem order. None
+/// without a free pose, with fewer than three, or when a point's block or
+/// the eigendecomposition fails.
+pub fn aligned_centre_covariances(
+    problem: &mut BaProblem,
+    noise_px: f64,
+) -> Option<Vec<Matrix3<f64>>> {
+    validate(problem).ok()?;
+    let params = BaParams::default();
+    let active: Vec<bool> = problem
+        .observations
+        .iter()
+        .map(|o| obs_chi2(problem, o, params.min_depth).is_some_and(|c| c <= params.outlier_chi2))
+        .collect();
+    let any_fixed = problem.poses.iter().any(|p| p.fixed);
+    let mut ls = BaLs::new(problem, active, RobustKernel::None, params.min_depth);
+    let n = ls.n_free;
+    if n < 3 {
+        return None;
+    }
+    // A point seen once (or from one place) has no depth: its
+    // observations say nothing of the cameras and leave its block
+    // singular; they are left out.
+    ls.linearize();
+    let singular: Vec<usize> = (0..ls.problem.points.len())
+        .filter(|&j| {
+            let e = ls.c_blocks[j].symmetric_eigenvalues();
+            let conditioned = e.min() > 1e-9 * e.max();
+            !conditioned
+        })
+        .collect();
+    if !singular.is_empty() {
+        for &j in &singular {
+            for &k in &ls.by_point[ls.by_point_start[j]..ls.by_point_start[j + 1]] {
+                ls.active[k] = false;
+            }
+        }
+        ls.linearize();
+    }
+    ls.fill_schur(0.0)?;
+    let evd = ls.s.self_adjoint_eigen(Side::Lower).ok()?;
+    let (u, lambdas) = (evd.U(), evd.S().column_vector());
+    let dim = 6 * n;
+    let top = (0..dim).map(|k| lambdas[k]).fold(0.0_f64, f64::max);
+    let skip = if any_fixed { 0 } else { 7 };
+    // The centres' rows of U, turned into the world frame: M = J_c·U.
+    let free_rots: Vec<Matrix3<f64>> = ls
+        .problem
+        .poses
+        .iter()
+        .filter(|p| !p.fixed)
+        .map(|p| p.cam_from_world.rotation.to_rotation_matrix().into_inner())
+        .collect();
+    let centres: Vec<Vector3<f64>> = ls
+        .problem
+        .poses
+        .iter()
+        .filter(|p| !p.fixed)
+        .map(|p| p.cam_from_world.inverse().translation.vector)
+        .collect();
+    let mut m = nalgebra::DMatrix::<f64>::zeros(3 * n, dim);
+    let mut kept = 0;
+    for k in skip..dim {
+        let l = lambdas[k];
+        let kept_direction = l > top * 1e-12;
+        if !kept_direction {
+            continue;
+        }
+        let w = (noise_px * noise_px / l).sqrt();
+        for (i, r) in free_rots.iter().enumerate() {
+            let t = Vector3::new(u[(6 * i, k)], u[(6 * i + 1, k)], u[(6 * i + 2, k)]);
+            let c = -(r.transpose() * t) * w;
+            for a in 0..3 {
+                m[(3 * i + a, kept)] = c[a];
+            }
+        }
+        kept += 1;
+    }
+    let m = m.columns(0, kept).into_owned();
+    // The centres' similarity motions, G (3n × 7), and Q = I - G·G⁺.
+    let mean = centres.iter().sum::<Vector3<f64>>() / n as f64;
+    let mut g = nalgebra::DMatrix::<f64>::zeros(3 * n, 7);
+    for (i, c) in centres.iter().enumerate() {
+        let d = c - mean;
+        let rot = -skew(&d);
+        for a in 0..3 {
+            g[(3 * i + a, a)] = 1.0;
+            for b in 0..3 {
+                g[(3 * i + a, 3 + b)] = rot[(a, b)];
+            }
+            g[(3 * i + a, 6)] = d[a];
+        }
+    }
+    let pinv = g.clone().pseudo_inverse(1e-12).ok()?;
+    let qm = &m - &g * (&pinv * &m);
+    let cov = &qm * qm.transpose();
+    Some(
+        (0..n)
+            .map(|i| cov.fixed_view::<3, 3>(3 * i, 3 * i).into_owned())
+            .collect(),
+    )
+}
+
 /// Runs plain LM (no outlier passes) with the given kernel until a stopping
 /// rule fires; returns the summary. Useful for batch refinement and tests.
 pub fn bundle_adjust_lm(
@@ -810,6 +936,70 @@ mod tests {
             priors: Vec::new(),
         };
         (problem, centres)
+    }
+
+    /// The centres' covariance a solved strip reports is what its error
+    /// against the truth is after a Sim(3) fit, over many draws of the
+    /// pixel noise (Monte Carlo; all poses free, so the gauge is the
+    /// similarity the fit removes).
+    #[test]
+    fn aligned_centre_covariances_predict_the_aligned_error() {
+        use rand::{Rng, SeedableRng, rngs::SmallRng};
+        let (truth, centres) = survey_strip();
+        let sigma_px = 1.0;
+        let mut rng = SmallRng::seed_from_u64(7);
+        let mut gauss = move || {
+            let (u, v): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let trials = 40;
+        let (mut err2, mut n) = (0.0, 0usize);
+        let mut predicted = Vec::new();
+        for _ in 0..trials {
+            let mut p = truth.clone();
+            for pose in p.poses.iter_mut() {
+                pose.fixed = false;
+            }
+            for o in p.observations.iter_mut() {
+                let pc = p.poses[o.pose]
+                    .cam_from_world
+                    .transform_point(&p.points[o.point]);
+                let uv = p.intrinsics.project(&pc.coords);
+                o.uv = Point2::new(uv.x + sigma_px * gauss(), uv.y + sigma_px * gauss());
+            }
+            bundle_adjust_lm(
+                &mut p,
+                RobustKernel::None,
+                &LmParams {
+                    max_iterations: 30,
+                    ..LmParams::default()
+                },
+            )
+            .unwrap();
+            let est: Vec<Point3<f64>> = p.poses.iter().map(|q| Point3::from(centre(q))).collect();
+            let tru: Vec<Point3<f64>> = centres.iter().map(|c| Point3::from(*c)).collect();
+            let sim = crate::geometry::umeyama(&est, &tru, true).unwrap();
+            for (e, t) in est.iter().zip(&tru) {
+                // In the estimate's units, as the covariance is.
+                err2 += ((sim.transform_point(e) - t) / sim.scale).norm_squared();
+                n += 1;
+            }
+            let covs = aligned_centre_covariances(&mut p, sigma_px).unwrap();
+            assert_eq!(covs.len(), 10);
+            predicted.push(covs.iter().map(|c| c.trace()).sum::<f64>() / covs.len() as f64);
+        }
+        let measured = (err2 / n as f64).sqrt();
+        let predicted = (predicted.iter().sum::<f64>() / trials as f64).sqrt();
+        let ratio = predicted / measured;
+        assert!(
+            (0.8..1.25).contains(&ratio),
+            "predicted {predicted} measured {measured}"
+        );
+        // A fixed pose holds the gauge: the same noise, the other poses'
+        // error about the same once aligned.
+        let mut p = truth.clone();
+        let fixed = aligned_centre_covariances(&mut p, sigma_px).unwrap();
+        assert_eq!(fixed.len(), 9);
     }
 
     fn centre(p: &BaPose) -> Vector3<f64> {

@@ -32,7 +32,8 @@ pub mod pose;
 pub mod sim3;
 
 pub use ba::{
-    BaParams, BaPose, BaProblem, BaReport, Observation, PositionPrior, local_bundle_adjustment,
+    BaParams, BaPose, BaProblem, BaReport, Observation, PositionPrior, aligned_centre_covariances,
+    local_bundle_adjustment,
 };
 pub use essential_graph::{PoseGraph, PoseGraphParams, Sim3Edge, optimize_pose_graph};
 pub use lm::{LmParams, LmSummary, Termination};

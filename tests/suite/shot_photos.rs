@@ -150,6 +150,26 @@ fn build(world: Arc<World>) -> anyhow::Result<Mapped> {
         "map: reprojection noise {:.3} px",
         map.reprojection_noise_px().unwrap_or(f64::NAN)
     );
+    // The keyframes' error against the truth after a Sim(3) of their
+    // centres, and what the map's own bundle adjustment says it is.
+    let truth_rms = (src
+        .iter()
+        .zip(&dst)
+        .take(kfs.len())
+        .map(|(e, t)| (coarse.transform_point(e) - t).norm_squared())
+        .sum::<f64>()
+        / kfs.len() as f64)
+        .sqrt();
+    let ids: Vec<_> = map.keyframes().map(|k| k.id).collect();
+    let own_rms = shotpilot::slam::bundle::keyframe_position_sigmas(&map, &ids)
+        .map_or(f64::NAN, |v| {
+            (v.iter().map(|(_, s)| s * s).sum::<f64>() / v.len().max(1) as f64).sqrt()
+        });
+    println!(
+        "map: keyframes against the truth RMS {:.3} m; the map's own bundle adjustment says {:.3} m",
+        truth_rms,
+        own_rms * coarse.scale
+    );
     let points_world = map
         .points()
         .map(|p| sim.transform_point(&p.position))

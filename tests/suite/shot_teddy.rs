@@ -1446,6 +1446,16 @@ fn held_out_photos_by_angle_band() -> anyhow::Result<()> {
             sim.scale,
             floor_m * 100.0,
         );
+        let kf_ids: Vec<_> = map.keyframes().map(|k| k.id).collect();
+        let own = shotpilot::slam::bundle::keyframe_position_sigmas(&map, &kf_ids);
+        let own_rms = own.as_ref().map_or(f64::NAN, |v| {
+            (v.iter().map(|(_, s)| s * s).sum::<f64>() / v.len().max(1) as f64).sqrt()
+        });
+        println!(
+            "split map {split}: the map's own BA says its keyframes are RMS {:.2} cm off (truth {:.2} cm)",
+            own_rms * sim.scale * 100.0,
+            floor_m * 100.0
+        );
         println!("  frame  angle_deg  outcome");
         let mut rows = Vec::new();
         for i in (0..ds.len()).filter(|i| !in_map(*i)) {
