@@ -147,8 +147,9 @@ fn build(world: Arc<World>) -> anyhow::Result<Mapped> {
         sim.scale
     );
     println!(
-        "map: reprojection noise {:.3} px",
-        map.reprojection_noise_px().unwrap_or(f64::NAN)
+        "map: reprojection noise {:.3} px (RMS {:.3} px)",
+        map.reprojection_noise_px().unwrap_or(f64::NAN),
+        map.reprojection_rms_px().unwrap_or(f64::NAN)
     );
     // The keyframes' error against the truth after a Sim(3) of their
     // centres, and what the map's own bundle adjustment says it is.

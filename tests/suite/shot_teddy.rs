@@ -1452,9 +1452,10 @@ fn held_out_photos_by_angle_band() -> anyhow::Result<()> {
             (v.iter().map(|(_, s)| s * s).sum::<f64>() / v.len().max(1) as f64).sqrt()
         });
         println!(
-            "split map {split}: the map's own BA says its keyframes are RMS {:.2} cm off (truth {:.2} cm)",
+            "split map {split}: the map's own BA says its keyframes are RMS {:.2} cm off (truth {:.2} cm); reprojection RMS {:.3} px",
             own_rms * sim.scale * 100.0,
-            floor_m * 100.0
+            floor_m * 100.0,
+            map.reprojection_rms_px().unwrap_or(f64::NAN)
         );
         println!("  frame  angle_deg  outcome");
         let mut rows = Vec::new();

@@ -277,6 +277,29 @@ impl Map {
     /// few outlier observations a map keeps do not set it. None with fewer
     /// than 20 observations in front of their cameras.
     pub fn reprojection_noise_px(&self) -> Option<f64> {
+        let r2 = self.scaled_squared_residuals();
+        if r2.len() < 20 {
+            return None;
+        }
+        let median = crate::stats::quantile(&r2, 0.5)?;
+        Some((median / (2.0 * std::f64::consts::LN_2)).sqrt())
+    }
+
+    /// The same residuals' plain per-axis RMS, level-0 pixels: with
+    /// [`Self::reprojection_noise_px`], how heavy the residuals' tail is
+    /// (a Gaussian's RMS equals its robust sigma). None with fewer than 20.
+    pub fn reprojection_rms_px(&self) -> Option<f64> {
+        let r2 = self.scaled_squared_residuals();
+        if r2.len() < 20 {
+            return None;
+        }
+        Some((r2.iter().sum::<f64>() / (2.0 * r2.len() as f64)).sqrt())
+    }
+
+    /// Every observation's squared reprojection residual over its
+    /// keypoint's pyramid scale squared (level-0 pixels²), in front of its
+    /// camera.
+    fn scaled_squared_residuals(&self) -> Vec<f64> {
         let mut r2 = Vec::new();
         for mp in self.points() {
             for &(kf_id, idx) in &mp.observations {
@@ -302,11 +325,7 @@ impl Map {
                 r2.push(d2 * inv_s2);
             }
         }
-        if r2.len() < 20 {
-            return None;
-        }
-        let median = crate::stats::quantile(&r2, 0.5)?;
-        Some((median / (2.0 * std::f64::consts::LN_2)).sqrt())
+        r2
     }
 }
 
@@ -371,6 +390,13 @@ mod tests {
         // 5 % of the observations 15 px off move it by little.
         let got = noisy_map(0.5, 5, 0).reprojection_noise_px().unwrap();
         assert!((got / 0.5 - 1.0).abs() < 0.2, "with outliers: {got}");
+        // The plain RMS: the noise alone without outliers; 5 % of
+        // residuals of 15 px (a 2-D shift, so 15/√2 per axis) raise it to
+        // about √(0.25 + 0.05·112.5) = 2.4 px.
+        let rms = noisy_map(0.5, 0, 0).reprojection_rms_px().unwrap();
+        assert!((rms / 0.5 - 1.0).abs() < 0.2, "without outliers: {rms}");
+        let rms = noisy_map(0.5, 5, 0).reprojection_rms_px().unwrap();
+        assert!((1.8..3.0).contains(&rms), "with outliers: {rms}");
         // Too few observations: none.
         assert_eq!(map_with(1, 10).reprojection_noise_px(), None);
     }
