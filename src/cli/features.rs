@@ -43,6 +43,16 @@ pub struct FeaturesArgs {
     /// With `--pairs`: also print one line per pair.
     #[arg(long, requires = "pairs")]
     pub per_pair: bool,
+    /// With `--pairs` and ground truth: search only the candidates within
+    /// this many pixels (times the level's scale) of the epipolar line of
+    /// the true motion, as a search from the telemetry's predicted motion
+    /// would (this is its best case: the prediction without its error).
+    #[arg(long, requires = "pairs", value_name = "PX")]
+    pub guided_band: Option<f64>,
+    /// With `--pairs`: the largest descriptor distance of a match, bits
+    /// (default: the SLAM's `th_low`, 50).
+    #[arg(long, requires = "pairs", value_name = "BITS")]
+    pub th_low: Option<u32>,
 }
 
 /// The extractor's FAST thresholds, for trying others than the SLAM's
@@ -199,6 +209,7 @@ mod pairs {
         d1.max(d2) * cam.fx
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn funnel(
         a: &Features,
         b: &Features,
@@ -207,8 +218,21 @@ mod pairs {
         e: Option<&Matrix3<f64>>,
         cam: &Camera,
         scale_factor: f64,
+        guided_band: Option<f64>,
     ) -> ([usize; 3], Option<[usize; 3]>) {
         let base = tracking.matcher;
+        let level_px = |px: f64, i: usize, j: usize| {
+            px * scale_factor.powi(i32::from(a.keypoints[i].octave.max(b.keypoints[j].octave)))
+        };
+        // The guided search: candidates near the true motion's epipolar
+        // line (all of them without truth or without a band).
+        let accept = |i: usize, j: usize| match (guided_band, e) {
+            (Some(band), Some(e)) => {
+                let (k1, k2) = (&a.keypoints[i], &b.keypoints[j]);
+                epipolar_px(e, cam, (k1.ux, k1.uy), (k2.ux, k2.uy)) <= level_px(band, i, j)
+            }
+            _ => true,
+        };
         // The ratio test off (a tie still fails it) and one rotation bin
         // (nothing rejected), then the ratio on, then the rotation check.
         let settings = [
@@ -241,14 +265,14 @@ mod pairs {
                 tracking.init_window,
                 tracking.init_max_octave,
                 m,
+                accept,
             );
             for (i, j) in m12.iter().enumerate() {
                 let Some(j) = *j else { continue };
                 matches[s] += 1;
                 if let Some(e) = e {
                     let (k1, k2) = (&a.keypoints[i], &b.keypoints[j]);
-                    let tol = 2.0 * scale_factor.powi(i32::from(k1.octave.max(k2.octave)));
-                    if epipolar_px(e, cam, (k1.ux, k1.uy), (k2.ux, k2.uy)) <= tol {
+                    if epipolar_px(e, cam, (k1.ux, k1.uy), (k2.ux, k2.uy)) <= level_px(2.0, i, j) {
                         agree[s] += 1;
                     }
                 }
@@ -270,7 +294,15 @@ mod pairs {
         frames: &[image::GrayImage],
         ex: &mut OrbExtractor,
     ) -> Result<()> {
-        let tracking = TrackingParams::default();
+        let mut tracking = TrackingParams::default();
+        if let Some(t) = args.th_low {
+            tracking.matcher.th_low = t;
+        }
+        if args.guided_band.is_some() && ds.groundtruth.is_none() {
+            anyhow::bail!(
+                "--guided-band needs the dataset's ground truth (its motion guides the search)"
+            );
+        }
         let cam = ds.camera;
         let bounds = Bounds::of(&cam);
         let scale_factor = f64::from(ex.params().scale_factor);
@@ -285,8 +317,16 @@ mod pairs {
                     let w2 = truth_at(gt, *times.get(k)?)?;
                     essential(&w1, &w2)
                 });
-                let (matches, agree) =
-                    funnel(&a, &f, &grid, &tracking, e.as_ref(), &cam, scale_factor);
+                let (matches, agree) = funnel(
+                    &a,
+                    &f,
+                    &grid,
+                    &tracking,
+                    e.as_ref(),
+                    &cam,
+                    scale_factor,
+                    args.guided_band,
+                );
                 let p = Pair {
                     index: k - 1,
                     keypoints: (a.len(), f.len()),

@@ -215,6 +215,7 @@ impl Initializer {
             p.init_window,
             p.init_max_octave,
             &p.matcher,
+            |_, _| true,
         );
         let matches: Vec<(usize, usize)> = m12
             .iter()

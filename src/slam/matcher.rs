@@ -115,8 +115,11 @@ pub fn rotation_outliers(rot: &[(usize, f32)], bins: usize) -> Vec<usize> {
 /// Matches between two frames for initialisation: every keypoint of the
 /// first up to level `max_octave` is searched for within `window` pixels of
 /// `prev` (its position in the frame matched last) in the second, among
-/// keypoints one level up or down (only level 0 when `max_octave` is 0). Returns, per keypoint of the
-/// first frame, the matched keypoint of the second.
+/// keypoints one level up or down (only level 0 when `max_octave` is 0),
+/// among the pairs `(i1, i2)` that `accept` lets through (all of them, or
+/// for a search guided by a predicted motion those near the epipolar line
+/// it gives). Returns, per keypoint of the first frame, the matched
+/// keypoint of the second.
 #[allow(clippy::too_many_arguments)]
 pub fn search_for_initialization(
     kps1: &[KeyPoint],
@@ -128,6 +131,7 @@ pub fn search_for_initialization(
     window: f64,
     max_octave: i32,
     params: &MatcherParams,
+    accept: impl Fn(usize, usize) -> bool,
 ) -> Vec<Option<usize>> {
     let mut m12: Vec<Option<usize>> = vec![None; kps1.len()];
     let mut m21_dist: Vec<(Option<usize>, u32)> = vec![(None, u32::MAX); kps2.len()];
@@ -146,6 +150,9 @@ pub fn search_for_initialization(
         grid2.features_in_area(kps2, p.x, p.y, window, lo, hi, &mut cand);
         let (mut best, mut best2, mut best_i) = (u32::MAX, u32::MAX, usize::MAX);
         for &i2 in &cand {
+            if !accept(i1, i2) {
+                continue;
+            }
             let d = hamming(&desc1[i1], &desc2[i2]);
             if m21_dist[i2].1 <= d {
                 continue;
