@@ -400,10 +400,19 @@ mod pairs {
                 "agreeing_lost_to_rotation": lost(2),
                 "pairs_under_init_min_matches": weak,
                 "init_min_matches": tracking.init_min_matches,
+                "th_low": tracking.matcher.th_low,
+                "guided_band_px": args.guided_band,
                 "per_pair": if args.per_pair { serde_json::Value::from(per) } else { serde_json::Value::Null },
             });
             println!("{o}");
         } else {
+            println!(
+                "descriptors within {} bits{}",
+                tracking.matcher.th_low,
+                args.guided_band.map_or(String::new(), |b| format!(
+                    ", candidates within {b} px of the true motion's epipolar line"
+                ))
+            );
             println!(
                 "{} pairs ({} with ground truth): median keypoints {med_kp:.0}; median matches: descriptor {:.0}, after the ratio test {:.0}, after the rotation check {:.0}",
                 out.len(),

@@ -141,26 +141,17 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
 /// adjustment implies ([`optimize::aligned_centre_covariances`]: its
 /// information at the current solution, the map's reprojection noise
 /// [`Map::reprojection_noise_px`], after a similarity alignment of their
-/// centres, as an error against the truth is measured): per keyframe the
-/// RMS of its centre's error (the square root of its covariance's trace,
-/// map units). Keyframes outside `kfs` seeing their points hold still.
-/// None for fewer than three keyframes, a map without a noise estimate, or
-/// a degenerate problem.
-pub fn keyframe_position_sigmas(map: &Map, kfs: &[KeyFrameId]) -> Option<Vec<(KeyFrameId, f64)>> {
+/// centres, as an error against the truth is measured): the RMS over the
+/// keyframes of their centres' error, map units (comparable with an ATE's
+/// RMS over the keyframes). Keyframes outside `kfs` seeing their points
+/// hold still. None for fewer than three keyframes, a map without a noise
+/// estimate, or a degenerate problem.
+pub fn keyframe_position_rms(map: &Map, kfs: &[KeyFrameId]) -> Option<f64> {
     let noise = map.reprojection_noise_px()?;
     let mut setup = build_ba_problem(map, kfs, &[])?;
     let covs = optimize::aligned_centre_covariances(&mut setup.problem, noise)?;
-    let free = setup
-        .keyframes
-        .iter()
-        .zip(&setup.problem.poses)
-        .filter(|(_, p)| !p.fixed)
-        .map(|(k, _)| *k);
-    Some(
-        free.zip(covs)
-            .map(|(k, c)| (k, c.trace().max(0.0).sqrt()))
-            .collect(),
-    )
+    let mean_trace = covs.iter().map(|c| c.trace()).sum::<f64>() / covs.len().max(1) as f64;
+    Some(mean_trace.max(0.0).sqrt())
 }
 
 /// Write a solved bundle adjustment back: free poses, points, and erase the

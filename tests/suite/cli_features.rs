@@ -89,6 +89,8 @@ fn the_match_funnel_follows_the_true_motion_and_shows_where_grass_loses_its_matc
     // 91.6 -> 93.1 %). Unguided, the looser descriptors' share falls.
     let guided = pairs(grass_dir.path(), &["--guided-band", "4", "--th-low", "70"]);
     eprintln!("grass, guided: {guided}");
+    assert_eq!(guided["th_low"], 70, "{guided}");
+    assert_eq!(guided["guided_band_px"], 4.0, "{guided}");
     assert!(
         f(&guided, "median_matches", 2) >= 1.1 * f(&grass, "median_matches", 2),
         "{guided}"

@@ -162,10 +162,7 @@ fn build(world: Arc<World>) -> anyhow::Result<Mapped> {
         / kfs.len() as f64)
         .sqrt();
     let ids: Vec<_> = map.keyframes().map(|k| k.id).collect();
-    let own_rms = shotpilot::slam::bundle::keyframe_position_sigmas(&map, &ids)
-        .map_or(f64::NAN, |v| {
-            (v.iter().map(|(_, s)| s * s).sum::<f64>() / v.len().max(1) as f64).sqrt()
-        });
+    let own_rms = shotpilot::slam::bundle::keyframe_position_rms(&map, &ids).unwrap_or(f64::NAN);
     println!(
         "map: keyframes against the truth RMS {:.3} m; the map's own bundle adjustment says {:.3} m",
         truth_rms,

@@ -1447,10 +1447,8 @@ fn held_out_photos_by_angle_band() -> anyhow::Result<()> {
             floor_m * 100.0,
         );
         let kf_ids: Vec<_> = map.keyframes().map(|k| k.id).collect();
-        let own = shotpilot::slam::bundle::keyframe_position_sigmas(&map, &kf_ids);
-        let own_rms = own.as_ref().map_or(f64::NAN, |v| {
-            (v.iter().map(|(_, s)| s * s).sum::<f64>() / v.len().max(1) as f64).sqrt()
-        });
+        let own_rms =
+            shotpilot::slam::bundle::keyframe_position_rms(&map, &kf_ids).unwrap_or(f64::NAN);
         println!(
             "split map {split}: the map's own BA says its keyframes are RMS {:.2} cm off (truth {:.2} cm); reprojection RMS {:.3} px",
             own_rms * sim.scale * 100.0,
