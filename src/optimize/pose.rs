@@ -431,6 +431,26 @@ impl PoseCovariance {
         out
     }
 
+    /// The covariance had the residuals' noise been `noise_scale2`
+    /// (squared, in units of the observations' sigma) instead of the
+    /// scale they showed: for a fit whose residuals are a systematic misfit
+    /// rather than noise, the noise its inputs carry is known elsewhere.
+    /// Unchanged for a non-positive or non-finite scale either side.
+    pub fn with_noise_scale2(&self, noise_scale2: f64) -> PoseCovariance {
+        let f = noise_scale2 / self.noise_scale2;
+        if !(f.is_finite() && f > 0.0) {
+            return *self;
+        }
+        let mut out = *self;
+        out.cam_from_world *= f;
+        out.center *= f;
+        out.intrinsics *= f;
+        out.pose_focal *= f;
+        out.center_focal *= f;
+        out.noise_scale2 = noise_scale2;
+        out
+    }
+
     /// RMS of the camera centre's error, `√trace(Σ_c)` (map units).
     pub fn position_sigma(&self) -> f64 {
         self.center.trace().max(0.0).sqrt()

@@ -1042,6 +1042,9 @@ fn dragged_anchors_get_a_pose_from_the_keyframe_geometry() -> anyhow::Result<()>
         (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let mut refused = Vec::new();
     let mut better_than_staying = 0;
+    let (mut jumps, mut jump_pct, mut jump_deg) = (0, Vec::new(), Vec::new());
+    // Its own generator, so the drags stay those of the seed above.
+    let mut cut = StdRng::seed_from_u64(35);
     for trial in 0..50 {
         let (t, id) = chosen[trial % 10];
         let d = random_drag(&mut rng, &camera, &DragParams::default());
@@ -1116,6 +1119,43 @@ fn dragged_anchors_get_a_pose_from_the_keyframe_geometry() -> anyhow::Result<()>
                     p.reprojection_rmse_px,
                     p.sigma.position_depth_fraction * 100.0
                 );
+                // The same drawing on the map a little changed (5 % of
+                // the keyframe's points gone, as a shutdown's culling and
+                // adjustment leave it): the desired camera should stay
+                // where it was, not jump to another explanation.
+                for _ in 0..2 {
+                    let mut changed = m.map.clone();
+                    let pts: Vec<_> = changed
+                        .keyframe(id)
+                        .map(|k| k.points.iter().flatten().copied().collect())
+                        .unwrap_or_default();
+                    for pid in pts {
+                        if cut.random_bool(0.05) {
+                            changed.erase_point(pid);
+                        }
+                    }
+                    match shot::localize_anchors(&changed, id, &shot.shot_to_source, &params) {
+                        Localization::Localized(c) => {
+                            let est_c = m.sim.transform_pose(&c.world_from_cam);
+                            let jp = (est_c.translation.vector - est.translation.vector).norm()
+                                / dist
+                                * 100.0;
+                            let jr = est_c.rotation.angle_to(&est.rotation).to_degrees();
+                            if jp > 1.0 || jr > 1.0 {
+                                println!(
+                                    "{drawn}: the changed map moved it {jp:.2} % / {jr:.2} deg"
+                                );
+                                jumps += 1;
+                            }
+                            jump_pct.push(jp);
+                            jump_deg.push(jr);
+                        }
+                        Localization::NotLocalized { reason } => {
+                            println!("{drawn}: refused on the changed map: {reason}");
+                            jumps += 1;
+                        }
+                    }
+                }
                 pos_err.push(e);
                 rot_err.push(r);
                 framing.push(f);
@@ -1159,9 +1199,22 @@ fn dragged_anchors_get_a_pose_from_the_keyframe_geometry() -> anyhow::Result<()>
     println!(
         "the pose frames the picture better than the keyframe's own camera in {better_than_staying}/50"
     );
+    println!(
+        "on a map with 5 % of the keyframe's points gone: {jumps}/100 moved over 1 % or 1 deg; moved median {:.3} % / {:.3} deg, p90 {:.3} % / {:.3} deg, max {:.3} % / {:.3} deg",
+        q(&mut jump_pct, 0.5),
+        q(&mut jump_deg, 0.5),
+        q(&mut jump_pct, 0.9),
+        q(&mut jump_deg, 0.9),
+        q(&mut jump_pct, 1.0),
+        q(&mut jump_deg, 1.0)
+    );
     assert!(refused.is_empty(), "drags refused: {refused:?}");
     assert_eq!(same_after_reload, 50);
-    assert!(q(&mut over, 0.5) < 3.0, "{over:?}");
+    // At the best true camera's floor (0.19 % above it, median; a chosen
+    // consensus framed it 2.2 % above), and steady: 3 of 100 moved (a
+    // consensus: 62).
+    assert!(q(&mut over, 0.5) < 1.0, "{over:?}");
+    assert!(jumps <= 10, "{jumps} of 100 moved over 1 % or 1 deg");
     assert!(better_than_staying >= 45, "{better_than_staying}");
     Ok(())
 }

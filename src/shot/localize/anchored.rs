@@ -5,35 +5,40 @@
 //! homography `H` (shot pixel → keyframe pixel) moves each of those
 //! observations to where it lies in the desired picture, so the desired
 //! picture's 2D-3D pairs are known without matching anything: the
-//! desired camera is their PnP (RANSAC, then motion-only BA, the map
-//! camera's intrinsics). Nothing is re-found in the map by matching a
-//! warped picture, whose features a zoom or a rotation resamples.
+//! desired camera is the one that reproduces them best (least squares
+//! over every pair from the keyframe's pose, then Huber; the map camera's
+//! intrinsics). Nothing is re-found in the map by matching a warped
+//! picture, whose features a zoom or a rotation resamples.
 //!
 //! A homography of a keyframe is not always a view a camera can take: a
 //! drawn zoom of a scene with depth asks near and far content to grow
 //! alike, which no camera position does. That part is the fit's residual:
 //! the shot's floor, which the refinement loop measures
 //! ([`crate::refine::Reachable`]) and the operator sees, not a reason to
-//! refuse. The sigma is the fit's covariance (its residual taken as the
-//! noise) with the map's own error, as for any other shot.
+//! refuse. No consensus is chosen among the pairs: which depth band most
+//! of them agree on is decided by a few points, so the camera would jump
+//! between bands as the map changes (docs/FIGURES.md, "Anchors shots").
+//! The sigma is the pose's sensitivity to the map points' own noise (the
+//! misfit is systematic, not noise) with the map's own error, as for any
+//! other shot.
 //!
 //! A drawing is refused only for what the operator can change: too few of
 //! the keyframe's mapped points inside the drawn frame (draw it over more
 //! of the mapped scene or choose another keyframe).
 
-use nalgebra::{Matrix3, Point2, Point3};
+use nalgebra::{Isometry3, Matrix3, Point2, Point3};
 
 use super::covariance::{MapError, beyond_views, reported_sigma};
 use super::outcome::Localization;
-use super::outcome::{NotLocalizedReason, ShotPose, not};
+use super::outcome::{NotLocalizedReason, PoseSigma, ShotPose, not};
 use super::params::LocalizeParams;
 use super::pose_refinement::evaluate_candidate;
 use super::projection::{ShotView, frustum_near_depth};
 use crate::geometry::homography4::apply_homography;
-use crate::geometry::solve_pnp_ransac;
 use crate::matching::Bounds;
 use crate::optimize::{
-    Intrinsics, IntrinsicsCorrection, PoseObservation, observation_chi2, optimize_pose,
+    Intrinsics, IntrinsicsCorrection, IntrinsicsUncertainty, PoseObservation, PoseParams,
+    observation_chi2, optimize_pose, pose_covariance,
 };
 use crate::slam::{KeyFrameId, Map};
 
@@ -123,45 +128,28 @@ pub fn localize_anchors(
     if obs.len() < a.min_points.max(4) {
         return few(obs.len());
     }
-    // PnP RANSAC keeps the pairs one camera explains (a drawn zoom of a
-    // scene with depth fits its dominant layer, and the keyframe's few
-    // wrong points drop out); motion-only BA refines on those alone, as
-    // content that would stand close to the desired camera pulls a
-    // robust fit over all pairs off the layer. Without a consensus (a
-    // deep scene's residuals all past RANSAC's threshold), from the
-    // keyframe's own pose over all pairs.
-    let (start, fit_on): (_, Vec<PoseObservation>) = match solve_pnp_ransac(
-        &pw,
-        &xn,
-        intr.fx,
-        &params.pnp,
-        params.seed ^ u64::from(keyframe.0),
-    ) {
-        Ok(r) => (
-            r.cam_from_world,
-            obs.iter()
-                .zip(&r.inliers)
-                .filter(|(_, i)| **i)
-                .map(|(o, _)| *o)
-                .collect(),
-        ),
-        Err(_) => (kf.cam_from_world, obs.clone()),
+    // The camera that reproduces the drawing best over the whole drawn
+    // frame, from the keyframe's own pose: least squares over every pair,
+    // then Huber at the misfit's own scale so a few wrong map points do
+    // not pull it. No consensus is chosen: a drawn zoom of a scene with
+    // depth has no camera that fits, and choosing the depth band most
+    // pairs agree on made the desired camera jump when a few map points
+    // changed (62 of 100 drawings on a 5 %-culled map moved over 1 % or
+    // 1 deg, against 3 of 100 for this fit) and framed the picture 2.2 %
+    // above the best true camera's floor (median; this fit: at it).
+    let Some(cam_from_world) = fit_drawing(kf.cam_from_world, &obs, &intr, params) else {
+        return few(obs.len());
     };
-    let Ok(report) = optimize_pose(start, &fit_on, &intr, &params.pose) else {
-        return few(fit_on.len());
-    };
-    // Every pair classified by the refined camera.
+    // The pairs in front of the camera are the drawing it takes: their
+    // misfit is the shot's floor, shown as its RMSE.
     let inliers: Vec<bool> = obs
         .iter()
-        .map(|o| {
-            observation_chi2(&report.cam_from_world, &intr, o, params.pose.min_depth)
-                .is_some_and(|c| c <= params.pose.chi2_threshold)
-        })
+        .map(|o| observation_chi2(&cam_from_world, &intr, o, params.pose.min_depth).is_some())
         .collect();
     let map_error = MapError::of(map, &params.map_sigma);
     let Some(fit) = evaluate_candidate(
         keyframe,
-        report.cam_from_world,
+        cam_from_world,
         &obs,
         &inliers,
         Vec::new(),
@@ -171,7 +159,25 @@ pub fn localize_anchors(
     ) else {
         return few(0);
     };
-    let Some(pose_sigma) = fit.sigma else {
+    // The misfit is systematic (the drawing is not a view), not noise: the
+    // pose's own error is what the map points' noise does to the fit.
+    let noise = map_error.noise_px.unwrap_or(1.0);
+    let Some(pose_sigma) = pose_covariance(
+        &fit.cam_from_world,
+        &obs,
+        &inliers,
+        &intr,
+        f64::INFINITY,
+        None,
+        &IntrinsicsUncertainty::default(),
+        &IntrinsicsCorrection::default(),
+    )
+    .map(|c| c.with_noise_scale2(noise * noise))
+    .map(|c| PoseSigma {
+        position: c.position_sigma(),
+        position_depth_fraction: c.position_sigma() / fit.near_depth,
+        rotation_deg: c.rotation_sigma().to_degrees(),
+    }) else {
         return not(NotLocalizedReason::NoCovariance);
     };
     let view = ShotView {
@@ -220,6 +226,43 @@ pub fn localize_anchors(
         beyond_views_deg: beyond,
         sigma,
     })
+}
+
+/// The camera that takes the drawing `obs` (its 2D-3D pairs) best, from
+/// `start`: least squares over every pair, then a Huber fit with the
+/// threshold at 1.345 times the misfit's scale (the textbook 95 %
+/// efficiency point; the scale from the median residual, a 2-D
+/// Gaussian's being 1.177 sigma). Both are convex in the residuals, so
+/// the camera moves continuously with the map's points, unlike a chosen
+/// consensus. None when the optimiser refuses the pairs.
+fn fit_drawing(
+    start: Isometry3<f64>,
+    obs: &[PoseObservation],
+    intr: &Intrinsics,
+    params: &LocalizeParams,
+) -> Option<Isometry3<f64>> {
+    let least_squares = PoseParams {
+        rounds: 1,
+        robust_rounds: 0,
+        chi2_threshold: f64::INFINITY,
+        ..params.pose.clone()
+    };
+    let l2 = optimize_pose(start, obs, intr, &least_squares).ok()?;
+    let residuals: Vec<f64> = obs
+        .iter()
+        .filter_map(|o| observation_chi2(&l2.cam_from_world, intr, o, params.pose.min_depth))
+        .map(f64::sqrt)
+        .collect();
+    let scale = crate::stats::quantile(&residuals, 0.5).map_or(1.0, |m| m / 1.177);
+    let huber = PoseParams {
+        robust_rounds: 1,
+        huber_delta: 1.345 * scale.max(1.0),
+        ..least_squares
+    };
+    Some(
+        optimize_pose(l2.cam_from_world, obs, intr, &huber)
+            .map_or(l2.cam_from_world, |r| r.cam_from_world),
+    )
 }
 
 #[cfg(test)]
@@ -337,12 +380,37 @@ mod tests {
         assert!(angle < 1e-3, "{angle} deg");
     }
 
+    /// The RMS pixel misfit over the points a centred zoom `1/a` keeps in
+    /// the frame, of the camera `z` ahead of the keyframe (same turn).
+    fn misfit_at(map: &Map, a: f64, z: f64) -> f64 {
+        let (mut sq, mut n) = (0.0, 0);
+        for p in map.points() {
+            let x = p.position;
+            let at_kf = Point2::new(F * x.x / x.z + 319.5, F * x.y / x.z + 239.5);
+            let want = Point2::new(319.5 + (at_kf.x - 319.5) / a, 239.5 + (at_kf.y - 239.5) / a);
+            if !(0.0..640.0).contains(&want.x) || !(0.0..480.0).contains(&want.y) {
+                continue;
+            }
+            let d = x.z - z;
+            if d <= 0.0 {
+                continue;
+            }
+            let seen = Point2::new(F * x.x / d + 319.5, F * x.y / d + 239.5);
+            sq += (seen - want).norm_squared();
+            n += 1;
+        }
+        (sq / f64::from(n)).sqrt()
+    }
+
     #[test]
-    fn a_zoom_of_a_deep_scene_is_placed_on_its_dominant_layer() {
+    fn a_zoom_of_a_deep_scene_fits_the_whole_frame_and_shows_its_floor() {
         // Near content (6 away) on the left quarter, far (18) elsewhere:
-        // no camera sees a centred 1.4x zoom of both, so the camera is the
-        // one that takes the far layer, most of the drawn frame, exactly;
-        // the near layer's misfit is left as outliers, not a refusal.
+        // no camera sees a centred 1.4x zoom of both (the far layer's
+        // camera is 5.1 closer, which would put the near content 0.9 away
+        // and fill the picture with it; the near layer's 1.7). The camera
+        // is the one that reproduces the whole drawn frame best, between
+        // the two; the misfit is the floor it reports, not a refusal, and
+        // not a noise that would make the pose look uncertain.
         let (map, kf) = map_seeing(|x, _| if x < -0.25 { 6.0 } else { 18.0 });
         let a = 1.0 / 1.4;
         let p = localized(localize_anchors(
@@ -352,12 +420,58 @@ mod tests {
             &LocalizeParams::default(),
         ));
         let t = p.world_from_cam.translation.vector;
+        let (near, far) = (6.0 * (1.0 - a), 18.0 * (1.0 - a));
+        assert!(t.z > near && t.z < far, "{t}");
+        // Better than either layer's own camera, which leaves the other's
+        // content far off (33 px here against 39 for the better layer).
+        let best_layer = misfit_at(&map, a, near).min(misfit_at(&map, a, far));
         assert!(
-            (t - Vector3::new(0.0, 0.0, 18.0 * (1.0 - a))).norm() < 1e-3,
-            "{t}"
+            p.reprojection_rmse_px < 0.9 * best_layer,
+            "{} px against {best_layer} px",
+            p.reprojection_rmse_px
         );
-        assert!((0.6..0.9).contains(&p.inlier_ratio), "{}", p.inlier_ratio);
-        assert!(p.reprojection_rmse_px < 0.01, "{}", p.reprojection_rmse_px);
+        assert!(p.reprojection_rmse_px > 1.0, "{}", p.reprojection_rmse_px);
+        assert!(p.inlier_ratio > 0.9, "{}", p.inlier_ratio);
+        // Exact points: the sigma is the map's own error (its floor, 5 %
+        // of the near content's distance here), not the 33 px misfit taken
+        // as noise.
+        assert!(
+            p.sigma.position_depth_fraction < 0.1,
+            "{}",
+            p.sigma.position_depth_fraction
+        );
+    }
+
+    #[test]
+    fn a_zoom_of_two_equal_layers_does_not_jump_when_a_few_points_go() {
+        // Near content (6 away) on the left half, far (18) on the right: a
+        // 1.25x zoom is one camera 1.2 closer for the near layer, 3.6 for
+        // the far one, with equal support. Every 12th point culled from
+        // one layer or from the other must not throw the camera from one
+        // to the other (a consensus choice moved it 2.4).
+        let (map, kf) = map_seeing(|x, _| if x < 0.0 { 6.0 } else { 18.0 });
+        let a = 1.0 / 1.25;
+        let params = LocalizeParams::default();
+        let centre_without = |near: bool| {
+            let mut m = map.clone();
+            let gone: Vec<_> = m
+                .points()
+                .filter(|p| (p.position.z < 10.0) == near)
+                .map(|p| p.id)
+                .step_by(12)
+                .collect();
+            for id in gone {
+                m.erase_point(id);
+            }
+            localized(localize_anchors(&m, kf, &zoom(a), &params))
+                .world_from_cam
+                .translation
+                .vector
+        };
+        let (c_near, c_far) = (centre_without(true), centre_without(false));
+        let moved = (c_near - c_far).norm();
+        assert!(moved < 0.25, "{c_near} against {c_far}: {moved}");
+        assert!((1.2..3.6).contains(&c_near.z), "{c_near}");
     }
 
     #[test]

@@ -23,6 +23,9 @@ pub(super) struct MapError {
     /// The factor `sigma` was scaled by: the map's reprojection noise over
     /// [`MapSigma::reference_noise_px`], at least 1.
     pub(super) noise_factor: f64,
+    /// The map's reprojection noise ([`Map::reprojection_noise_px`]),
+    /// level-0 pixels; None for a map with too few observations.
+    pub(super) noise_px: Option<f64>,
 }
 
 impl MapError {
@@ -54,6 +57,7 @@ impl MapError {
             sigma: scaled,
             absolute: scaled.map_depth_fraction * depth,
             noise_factor: factor,
+            noise_px: noise,
         }
     }
 

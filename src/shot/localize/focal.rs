@@ -229,6 +229,7 @@ mod tests {
             sigma: params.map_sigma,
             absolute: 0.0,
             noise_factor: 1.0,
+            noise_px: None,
         };
         let start = Isometry3::translation(0.05, -0.03, 0.1);
         let r = optimize_pose(start, obs, intr, &params.pose).unwrap_or_else(|e| panic!("{e}"));
