@@ -987,6 +987,21 @@ mod tests {
         assert!((g_fd - p.g).norm() < 1e-5 * p.g.norm().max(1.0));
     }
 
+    /// A camera a little off the origin, turned a little.
+    fn off_origin() -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::new(0.1, -0.2, 0.3),
+            UnitQuaternion::from_euler_angles(0.02, -0.05, 0.1),
+        )
+    }
+
+    /// A standard normal draw (Box-Muller).
+    fn standard_normal(rng: &mut SmallRng) -> f64 {
+        let u1: f64 = rng.random_range(1e-12..1.0);
+        let u2: f64 = rng.random_range(0.0..1.0);
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+
     /// The prior's share of the linearisation is its chi2's gradient and
     /// curvature: against central differences of the cost along each left
     /// step, within 2 % (the residual's Jacobian is taken as identity,
@@ -1102,16 +1117,7 @@ mod tests {
     fn covariance_brackets_the_error() {
         let k = intr();
         let mut rng = SmallRng::seed_from_u64(11);
-        let truth = Isometry3::from_parts(
-            Translation3::new(0.1, -0.2, 0.3),
-            UnitQuaternion::from_euler_angles(0.02, -0.05, 0.1),
-        );
-        let normal = |rng: &mut SmallRng| {
-            // Box-Muller.
-            let u1: f64 = rng.random_range(1e-12..1.0);
-            let u2: f64 = rng.random_range(0.0..1.0);
-            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-        };
+        let truth = off_origin();
         let (mut in1, mut in2, mut rot_in2) = (0, 0, 0);
         let (mut sq_err, mut sq_sigma) = (0.0, 0.0);
         let runs = 200;
@@ -1126,8 +1132,8 @@ mod tests {
                 // The noise (1.5 px) is larger than the declared sigma
                 // (1.2 px): the scale read from the residuals must see it.
                 let mut uv = k.project(&pc);
-                uv.x += 1.5 * normal(&mut rng);
-                uv.y += 1.5 * normal(&mut rng);
+                uv.x += 1.5 * standard_normal(&mut rng);
+                uv.y += 1.5 * standard_normal(&mut rng);
                 obs.push(PoseObservation {
                     p_world: truth.inverse_transform_point(&Point3::from(pc)),
                     uv,
@@ -1171,6 +1177,84 @@ mod tests {
             (0.75..=1.25).contains(&ratio),
             "RMS error / RMS sigma {ratio}"
         );
+    }
+
+    /// A fit whose residuals are mostly a fixed misfit (8 px, the same
+    /// every draw: a picture no camera takes exactly) plus 1.5 px of
+    /// noise: the pose scatters with the noise alone, which the
+    /// covariance rescaled to the known noise predicts (RMS within 25 %);
+    /// the residuals' own scale, the misfit taken as noise, would put it
+    /// several times too wide.
+    #[test]
+    fn a_known_noise_scale_predicts_the_scatter_under_a_fixed_misfit() {
+        let k = intr();
+        let mut rng = SmallRng::seed_from_u64(12);
+        let truth = off_origin();
+        let base: Vec<PoseObservation> = (0..60)
+            .map(|_| {
+                let pc = Vector3::new(
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(-1.5..1.5),
+                    rng.random_range(3.0..8.0),
+                );
+                let turn: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+                let uv = k.project(&pc) + 8.0 * Vector2::new(turn.cos(), turn.sin());
+                PoseObservation {
+                    p_world: truth.inverse_transform_point(&Point3::from(pc)),
+                    uv,
+                    inv_sigma2: 1.0,
+                }
+            })
+            .collect();
+        let least_squares = PoseParams {
+            rounds: 1,
+            robust_rounds: 0,
+            chi2_threshold: f64::INFINITY,
+            ..PoseParams::default()
+        };
+        let centre = |o: &[PoseObservation]| {
+            let fit = optimize_pose(truth, o, &k, &least_squares).unwrap();
+            (
+                fit.cam_from_world,
+                fit.cam_from_world.inverse().translation.vector,
+            )
+        };
+        let (_, mean) = centre(&base);
+        let (mut sq_err, mut sq_known, mut sq_misfit) = (0.0, 0.0, 0.0);
+        let runs = 200;
+        for _ in 0..runs {
+            let obs: Vec<PoseObservation> = base
+                .iter()
+                .map(|o| PoseObservation {
+                    uv: o.uv
+                        + 1.5 * Vector2::new(standard_normal(&mut rng), standard_normal(&mut rng)),
+                    ..*o
+                })
+                .collect();
+            let (pose, c) = centre(&obs);
+            let cov = pose_covariance(
+                &pose,
+                &obs,
+                &vec![true; obs.len()],
+                &k,
+                f64::INFINITY,
+                None,
+                &IntrinsicsUncertainty::default(),
+                &IntrinsicsCorrection::default(),
+            )
+            .unwrap();
+            sq_err += (c - mean).norm_squared();
+            sq_known += cov.with_noise_scale2(1.5 * 1.5).position_sigma().powi(2);
+            sq_misfit += cov.position_sigma().powi(2);
+        }
+        let known = (sq_err / sq_known).sqrt();
+        let misfit = (sq_err / sq_misfit).sqrt();
+        println!("RMS error / RMS sigma: known noise {known}, misfit as noise {misfit}");
+        assert!(
+            (0.75..=1.25).contains(&known),
+            "RMS error / RMS sigma {known}"
+        );
+        assert!(misfit < 0.4, "with the misfit as noise {misfit}");
     }
 
     /// A camera whose focal length is 3 % longer than believed and whose

@@ -220,6 +220,27 @@ impl Stop {
     }
 }
 
+/// A flight back to an earlier round's view.
+struct Back {
+    /// The round.
+    round: usize,
+    /// Its live camera pose (map frame).
+    view: Isometry3<f64>,
+    /// Why the loop flies back.
+    note: String,
+    /// How the loop ends there.
+    stop: Stop,
+}
+
+/// The decision recorded with a loop ending `stop` after a return.
+fn stop_decision(stop: &Stop) -> Decision {
+    if *stop == Stop::MaxRounds {
+        Decision::MaxRounds
+    } else {
+        Decision::AtFloor
+    }
+}
+
 /// The loop stalled near its floor ([`Session::stalled_near_floor`]).
 enum Stalled {
     /// This view is the best measured: stop here (the note says why).
@@ -250,12 +271,11 @@ pub struct Session {
     params: Params,
     reachable: Option<Reachable>,
     offset: Option<OffsetEstimate>,
-    /// Flying back to the best round's view (its round number): the next
-    /// arrival ends the loop.
-    returning_to: Option<usize>,
-    /// How that return ends the loop: `at_floor` (stalled near the floor)
-    /// or `max_rounds` (the budget spent on a view worse than the best).
-    returning_stop: Option<Stop>,
+    /// Flying back to the best round's view (its round number) and how
+    /// the next arrival ends the loop there: `at_floor` (stalled near the
+    /// floor) or `max_rounds` (the budget spent on a view worse than the
+    /// best).
+    returning: Option<(usize, Stop)>,
     /// Each round's live camera pose (map frame), where its frames were
     /// localised: the view a return to that round flies back to.
     views: BTreeMap<usize, Isometry3<f64>>,
@@ -283,8 +303,7 @@ impl Session {
             params,
             reachable: None,
             offset: None,
-            returning_to: None,
-            returning_stop: None,
+            returning: None,
             views: BTreeMap::new(),
             retargets: Vec::new(),
         }
@@ -529,23 +548,17 @@ impl Session {
             rec.note = Some(note);
             return self.end(rec, Stop::AtFloor);
         }
-        if let Some(best) = self.returning_to {
-            return match self.returning_stop.take() {
-                Some(Stop::MaxRounds) => {
-                    rec.decision = Decision::MaxRounds;
-                    rec.note = Some(format!(
-                        "back at round {best}'s view, the best measured, with the rounds spent"
-                    ));
-                    self.end(rec, Stop::MaxRounds)
-                }
-                _ => {
-                    rec.decision = Decision::AtFloor;
-                    rec.note = Some(format!(
-                        "back at round {best}'s view, the best measured near the floor"
-                    ));
-                    self.end(rec, Stop::AtFloor)
-                }
+        if let Some((best, stop)) = self.returning.take() {
+            let why = if stop == Stop::MaxRounds {
+                "with the rounds spent"
+            } else {
+                "near the floor"
             };
+            rec.decision = stop_decision(&stop);
+            rec.note = Some(format!(
+                "back at round {best}'s view, the best measured {why}"
+            ));
+            return self.end(rec, stop);
         }
         if let Some(stall) = self.stalled_near_floor(pct) {
             match stall {
@@ -555,33 +568,13 @@ impl Session {
                     return self.end(rec, Stop::AtFloor);
                 }
                 Stalled::BackTo(best, goal, note) => {
-                    // The best round's view, not its target: the GNSS
-                    // bias has drifted since, so the same target puts the
-                    // camera elsewhere; the correction toward that view
-                    // goes through the offset measured now.
-                    match self.correct_toward(&goal, &localised, t_s, round, ctx) {
-                        Ok((c, offset)) if !offset.gated.iter().all(|&g| g) => {
-                            rec.decision = Decision::ReturnToBest;
-                            rec.note = Some(note);
-                            rec.offset = Some(offset);
-                            self.target = c.target;
-                            rec.correction = Some(c);
-                            self.rounds.push(rec);
-                            self.returning_to = Some(best);
-                            return Step::Upload(self.target);
-                        }
-                        other => {
-                            let why = match other {
-                                Ok(_) => {
-                                    "the way back is within the measurement's noise".to_string()
-                                }
-                                Err(e) => format!("no way back: {e}"),
-                            };
-                            rec.decision = Decision::AtFloor;
-                            rec.note = Some(format!("{note}; {why}: stopped here"));
-                            return self.end(rec, Stop::AtFloor);
-                        }
-                    }
+                    let back = Back {
+                        round: best,
+                        view: goal,
+                        note,
+                        stop: Stop::AtFloor,
+                    };
+                    return self.back_to(rec, back, &localised, t_s, round, ctx);
                 }
             }
         }
@@ -594,27 +587,14 @@ impl Session {
             // drag flew 14.8, 14.7, 16.8, 17.5 and ended at 19.5 %).
             let noise = median_noise_pct(spread, pcts.len());
             let margin = self.params.controller.at_floor_margin_pct.max(noise);
-            if let Some((best, goal, note)) = self.worse_than_best(pct, margin) {
-                match self.correct_toward(&goal, &localised, t_s, round, ctx) {
-                    Ok((c, offset)) if !offset.gated.iter().all(|&g| g) => {
-                        rec.decision = Decision::ReturnToBest;
-                        rec.note = Some(note);
-                        rec.offset = Some(offset);
-                        self.target = c.target;
-                        rec.correction = Some(c);
-                        self.rounds.push(rec);
-                        self.returning_to = Some(best);
-                        self.returning_stop = Some(Stop::MaxRounds);
-                        return Step::Upload(self.target);
-                    }
-                    other => {
-                        let why = match other {
-                            Ok(_) => "the way back is within the measurement's noise".to_string(),
-                            Err(e) => format!("no way back: {e}"),
-                        };
-                        rec.note = Some(format!("{note}; {why}: stopped here"));
-                    }
-                }
+            if let Some((best, view, note)) = self.worse_than_best(pct, margin) {
+                let back = Back {
+                    round: best,
+                    view,
+                    note,
+                    stop: Stop::MaxRounds,
+                };
+                return self.back_to(rec, back, &localised, t_s, round, ctx);
             }
             return self.end(rec, Stop::MaxRounds);
         }
@@ -891,6 +871,44 @@ impl Session {
         }
     }
 
+    /// Fly back to `back`'s round's view: its view, not its target (the
+    /// GNSS bias has drifted since, so the same target puts the camera
+    /// elsewhere), through the offset measured now; the loop ends
+    /// `back.stop` on arriving there. Without a way back (the live frames
+    /// not localised, or the way within the measurement's noise) it ends
+    /// `back.stop` here and says why.
+    fn back_to(
+        &mut self,
+        mut rec: RoundRecord,
+        back: Back,
+        localised: &[(Isometry3<f64>, Option<Vector3<f64>>)],
+        t_s: f64,
+        round: usize,
+        ctx: &Context<'_>,
+    ) -> Step {
+        match self.correct_toward(&back.view, localised, t_s, round, ctx) {
+            Ok((c, offset)) if !offset.gated.iter().all(|&g| g) => {
+                rec.decision = Decision::ReturnToBest;
+                rec.note = Some(back.note);
+                rec.offset = Some(offset);
+                self.target = c.target;
+                rec.correction = Some(c);
+                self.rounds.push(rec);
+                self.returning = Some((back.round, back.stop));
+                Step::Upload(self.target)
+            }
+            other => {
+                let why = match other {
+                    Ok(_) => "the way back is within the measurement's noise".to_string(),
+                    Err(e) => format!("no way back: {e}"),
+                };
+                rec.decision = stop_decision(&back.stop);
+                rec.note = Some(format!("{}; {why}: stopped here", back.note));
+                self.end(rec, back.stop)
+            }
+        }
+    }
+
     /// The best measured round whose view is known, with that view and a
     /// note, when `pct` measures worse than it by more than `margin`.
     fn worse_than_best(
@@ -1068,13 +1086,7 @@ mod tests {
             },
             ..Params::default()
         };
-        let mut s = Session::new(
-            f.desired.clone(),
-            None,
-            Isometry3::identity(),
-            f.target,
-            params,
-        );
+        let mut s = new_session(f, params);
         let ctx = Context {
             map: &f.map,
             alignment: &f.alignment,
@@ -1165,13 +1177,7 @@ mod tests {
             s.rounds()[0].note.as_deref(),
             Some(format!("{own}; kept the last alignment").as_str())
         );
-        let mut empty = Session::new(
-            f.desired.clone(),
-            None,
-            Isometry3::identity(),
-            f.target,
-            Params::default(),
-        );
+        let mut empty = new_session(&f, Params::default());
         empty.annotate("nothing to add it to");
         assert!(empty.rounds().is_empty());
     }
@@ -1371,6 +1377,38 @@ mod tests {
         (measured, e, live)
     }
 
+    /// A fresh loop for the fixture's desired shot, its target being flown.
+    fn new_session(f: &Fixture, params: Params) -> Session {
+        Session::new(
+            f.desired.clone(),
+            None,
+            Isometry3::identity(),
+            f.target,
+            params,
+        )
+    }
+
+    /// A session whose round 0 measured `earlier` (the turned view's
+    /// record, its live camera localised at the identity).
+    fn after_round_0(f: &Fixture, measured: &Session, earlier: f64, params: Params) -> Session {
+        let mut s = new_session(f, params);
+        let mut r0 = measured.rounds()[0].clone();
+        r0.round = 0;
+        r0.shot_error_pct = Some(earlier);
+        r0.decision = Decision::Correct;
+        s.rounds.push(r0);
+        s.views.insert(0, Isometry3::identity());
+        s
+    }
+
+    /// The last round's note ("" without one).
+    fn last_note(s: &Session) -> String {
+        s.rounds()
+            .last()
+            .and_then(|r| r.note.clone())
+            .unwrap_or_default()
+    }
+
     /// Near its floor or under it the loop stops `at_floor` instead of
     /// flying a round that cannot gain more than the measurement tells;
     /// farther above it, it goes on.
@@ -1384,13 +1422,7 @@ mod tests {
         );
         let ctx = ctx_of(&f, &mount, &fence, &localize);
         let (_, e, live) = turned_view(&f);
-        let near = Session::new(
-            f.desired.clone(),
-            None,
-            Isometry3::identity(),
-            f.target,
-            Params::default(),
-        );
+        let near = new_session(&f, Params::default());
         let mut near = near.with_reachable(reachable_with_floor(e - 0.2));
         assert_eq!(
             near.on_arrival(&live, 0.0, None, &ctx),
@@ -1406,13 +1438,7 @@ mod tests {
         // 1 % above the floor: a correction can still gain, so the loop
         // goes on (and here, with an empty map, cannot localise the live
         // frame and says so).
-        let far = Session::new(
-            f.desired.clone(),
-            None,
-            Isometry3::identity(),
-            f.target,
-            Params::default(),
-        );
+        let far = new_session(&f, Params::default());
         let mut far = far.with_reachable(reachable_with_floor(e - 1.0));
         assert!(matches!(
             far.on_arrival(&live, 0.0, None, &ctx),
@@ -1420,14 +1446,8 @@ mod tests {
         ));
         // Under the floor, however far: the view is already better than a
         // camera at the shot's pose gives; it stops.
-        let mut under = Session::new(
-            f.desired.clone(),
-            None,
-            Isometry3::identity(),
-            f.target,
-            Params::default(),
-        )
-        .with_reachable(reachable_with_floor(e + 1.0));
+        let mut under =
+            new_session(&f, Params::default()).with_reachable(reachable_with_floor(e + 1.0));
         assert_eq!(
             under.on_arrival(&live, 0.0, None, &ctx),
             Step::Done(Stop::AtFloor)
@@ -1452,27 +1472,8 @@ mod tests {
         // A session whose round 0 measured `earlier` (its live camera
         // localised), now arriving with the error `e`.
         let after = |earlier: f64, floor: f64| {
-            let mut s = Session::new(
-                f.desired.clone(),
-                None,
-                Isometry3::identity(),
-                f.target,
-                Params::default(),
-            )
-            .with_reachable(reachable_with_floor(floor));
-            let mut r0 = measured.rounds()[0].clone();
-            r0.round = 0;
-            r0.shot_error_pct = Some(earlier);
-            r0.decision = Decision::Correct;
-            s.rounds.push(r0);
-            s.views.insert(0, Isometry3::identity());
-            s
-        };
-        let note = |s: &Session| {
-            s.rounds()
-                .last()
-                .and_then(|r| r.note.clone())
-                .unwrap_or_default()
+            after_round_0(&f, &measured, earlier, Params::default())
+                .with_reachable(reachable_with_floor(floor))
         };
         // 0.8 % over the floor, 0.1 % better than round 0: stop here.
         let mut here = after(e + 0.1, e - 0.8);
@@ -1480,14 +1481,22 @@ mod tests {
             here.on_arrival(&live, 1.0, None, &ctx),
             Step::Done(Stop::AtFloor)
         );
-        assert!(note(&here).contains("gained less"), "{}", note(&here));
+        assert!(
+            last_note(&here).contains("gained less"),
+            "{}",
+            last_note(&here)
+        );
         // 0.2 % worse than round 0, within the margin: stop here too.
         let mut level = after(e - 0.2, e - 0.8);
         assert_eq!(
             level.on_arrival(&live, 1.0, None, &ctx),
             Step::Done(Stop::AtFloor)
         );
-        assert!(note(&level).contains("gained less"), "{}", note(&level));
+        assert!(
+            last_note(&level).contains("gained less"),
+            "{}",
+            last_note(&level)
+        );
         // 0.5 % worse: back to round 0's view, which needs the live
         // camera; unlocalised, the loop stops here and says why.
         let mut back = after(e - 0.5, e - 0.8);
@@ -1495,7 +1504,7 @@ mod tests {
             back.on_arrival(&live, 1.0, None, &ctx),
             Step::Done(Stop::AtFloor)
         );
-        let n = note(&back);
+        let n = last_note(&back);
         assert!(
             n.contains("back to that round's view") && n.contains("no way back"),
             "{n}"
@@ -1507,7 +1516,11 @@ mod tests {
             gaining.on_arrival(&live, 1.0, None, &ctx),
             Step::Done(Stop::AtFloor)
         );
-        assert!(note(&gaining).contains("gained 0.50"), "{}", note(&gaining));
+        assert!(
+            last_note(&gaining).contains("gained 0.50"),
+            "{}",
+            last_note(&gaining)
+        );
         // 1.5 % over the floor: not near it; the loop goes on.
         let mut far = after(e - 0.2, e - 1.5);
         assert!(matches!(
@@ -1539,33 +1552,14 @@ mod tests {
                 },
                 ..Params::default()
             };
-            let mut s = Session::new(
-                f.desired.clone(),
-                None,
-                Isometry3::identity(),
-                f.target,
-                params,
-            );
-            let mut r0 = measured.rounds()[0].clone();
-            r0.round = 0;
-            r0.shot_error_pct = Some(earlier);
-            r0.decision = Decision::Correct;
-            s.rounds.push(r0);
-            s.views.insert(0, Isometry3::identity());
-            s
-        };
-        let note = |s: &Session| {
-            s.rounds()
-                .last()
-                .and_then(|r| r.note.clone())
-                .unwrap_or_default()
+            after_round_0(&f, &measured, earlier, params)
         };
         let mut worse = spent(e - 1.0);
         assert_eq!(
             worse.on_arrival(&live, 1.0, None, &ctx),
             Step::Done(Stop::MaxRounds)
         );
-        let n = note(&worse);
+        let n = last_note(&worse);
         assert!(
             n.contains("worse than round 0") && n.contains("no way back"),
             "{n}"
@@ -1575,6 +1569,6 @@ mod tests {
             best.on_arrival(&live, 1.0, None, &ctx),
             Step::Done(Stop::MaxRounds)
         );
-        assert!(!note(&best).contains("back"), "{}", note(&best));
+        assert!(!last_note(&best).contains("back"), "{}", last_note(&best));
     }
 }

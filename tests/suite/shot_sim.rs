@@ -38,7 +38,9 @@ use shotpilot_sim::paths::{CameraPath, Params as PathParams, camera_from_yaw_pit
 use shotpilot_sim::render::{RenderParams, Renderer};
 use shotpilot_sim::world::{World, WorldParams};
 
-use crate::sim_support::{distance_to_scene, random_unit, visible_point_indices};
+use crate::sim_support::{
+    distance_to_scene, pose_moved, random_unit, visible_point_indices, with_points_culled,
+};
 
 /// One configuration of the experiment.
 #[derive(Debug, Clone, Copy)]
@@ -1124,23 +1126,11 @@ fn dragged_anchors_get_a_pose_from_the_keyframe_geometry() -> anyhow::Result<()>
                 // adjustment leave it): the desired camera should stay
                 // where it was, not jump to another explanation.
                 for _ in 0..2 {
-                    let mut changed = m.map.clone();
-                    let pts: Vec<_> = changed
-                        .keyframe(id)
-                        .map(|k| k.points.iter().flatten().copied().collect())
-                        .unwrap_or_default();
-                    for pid in pts {
-                        if cut.random_bool(0.05) {
-                            changed.erase_point(pid);
-                        }
-                    }
+                    let changed = with_points_culled(&m.map, id, 0.05, &mut cut);
                     match shot::localize_anchors(&changed, id, &shot.shot_to_source, &params) {
                         Localization::Localized(c) => {
                             let est_c = m.sim.transform_pose(&c.world_from_cam);
-                            let jp = (est_c.translation.vector - est.translation.vector).norm()
-                                / dist
-                                * 100.0;
-                            let jr = est_c.rotation.angle_to(&est.rotation).to_degrees();
+                            let (jp, jr) = pose_moved(&est, &est_c, dist);
                             if jp > 1.0 || jr > 1.0 {
                                 println!(
                                     "{drawn}: the changed map moved it {jp:.2} % / {jr:.2} deg"

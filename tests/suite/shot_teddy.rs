@@ -82,6 +82,23 @@ fn random_rotation(rng: &mut StdRng, max_deg: f64) -> UnitQuaternion<f64> {
     }
 }
 
+/// The anchors that draw the keyframe's view turned by `r` (`kf ← shot`):
+/// where the shot's frame corners' rays, turned, meet the keyframe.
+fn turn_anchors(
+    cam: &shotpilot::camera::Camera,
+    r: &UnitQuaternion<f64>,
+) -> anyhow::Result<[Point2<f64>; 4]> {
+    let corners = frame_corners(cam.width, cam.height);
+    let mut anchors = [Point2::origin(); 4];
+    for (a, c) in anchors.iter_mut().zip(&corners) {
+        let ray = cam.unproject(*c).into_inner();
+        *a = cam
+            .project(&(r * ray))
+            .ok_or_else(|| anyhow::anyhow!("anchor behind the camera"))?;
+    }
+    Ok(anchors)
+}
+
 #[test]
 fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()> {
     let Some(dir) = data_dir() else {
@@ -118,15 +135,7 @@ fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()
             };
             let r = random_rotation(&mut rng, 15.0);
             // kf_from_shot = R: the shot's ray d is R·d in the keyframe.
-            let corners = frame_corners(cam.width, cam.height);
-            let mut anchors = [Point2::origin(); 4];
-            for (a, c) in anchors.iter_mut().zip(&corners) {
-                let ray = cam.unproject(*c).into_inner();
-                let Some(px) = cam.project(&(r * ray)) else {
-                    anyhow::bail!("anchor behind the camera");
-                };
-                *a = px;
-            }
+            let anchors = turn_anchors(&cam, &r)?;
             let desired = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)?;
             let t0 = std::time::Instant::now();
             let out = shot::localize(
@@ -201,6 +210,7 @@ fn pure_rotation_anchors_localise_to_the_rotated_keyframe() -> anyhow::Result<()
 /// and 1 deg in at least 90 % of the cases), as after a restart.
 #[test]
 fn anchors_on_the_real_map_are_exact_for_a_turn_and_steady_for_a_drag() -> anyhow::Result<()> {
+    use crate::sim_support::{pose_moved, with_points_culled};
     use shotpilot::simulator::drag::{DragParams, random_drag};
     let Some(dir) = data_dir() else {
         return Ok(());
@@ -231,15 +241,7 @@ fn anchors_on_the_real_map_are_exact_for_a_turn_and_steady_for_a_drag() -> anyho
         let depth = map.median_depth(kf_id).unwrap_or(f64::NAN);
         // A turn of the keyframe's camera.
         let r = random_rotation(&mut rng, 15.0);
-        let corners = frame_corners(cam.width, cam.height);
-        let mut anchors = [Point2::origin(); 4];
-        for (a, c) in anchors.iter_mut().zip(&corners) {
-            let ray = cam.unproject(*c).into_inner();
-            *a = cam
-                .project(&(r * ray))
-                .ok_or_else(|| anyhow::anyhow!("anchor behind the camera"))?;
-        }
-        let turn = shot::desired_shot_from_anchors(img, &anchors, &params.anchors)?;
+        let turn = shot::desired_shot_from_anchors(img, &turn_anchors(&cam, &r)?, &params.anchors)?;
         let expected = kf.world_from_cam() * Isometry3::from_parts(Translation3::identity(), r);
         match shot::localize_anchors(map, kf_id, &turn.shot_to_source, &params.localize) {
             Localization::Localized(p) => {
@@ -268,26 +270,11 @@ fn anchors_on_the_real_map_are_exact_for_a_turn_and_steady_for_a_drag() -> anyho
             anyhow::bail!("drag {trial} on keyframe {} refused", kf_id.0);
         };
         for _ in 0..2 {
-            let mut changed = map.clone();
-            let pts: Vec<_> = kf.points.iter().flatten().copied().collect();
-            for pid in pts {
-                if cut.random_bool(0.05) {
-                    changed.erase_point(pid);
-                }
-            }
+            let changed = with_points_culled(map, kf_id, 0.05, &mut cut);
             tries += 1;
             match shot::localize_anchors(&changed, kf_id, &drag.shot_to_source, &params.localize) {
                 Localization::Localized(c) => {
-                    let pct = (c.world_from_cam.translation.vector
-                        - p.world_from_cam.translation.vector)
-                        .norm()
-                        / depth
-                        * 100.0;
-                    let deg = c
-                        .world_from_cam
-                        .rotation
-                        .angle_to(&p.world_from_cam.rotation)
-                        .to_degrees();
+                    let (pct, deg) = pose_moved(&p.world_from_cam, &c.world_from_cam, depth);
                     if pct > 1.0 || deg > 1.0 {
                         println!(
                             "drag {trial} (zoom {:.2}) on keyframe {}: moved {pct:.2} % / {deg:.2} deg on the culled map",

@@ -209,3 +209,34 @@ pub fn gate_from_env() -> anyhow::Result<shotpilot::shot::GateParams> {
     }
     Ok(g)
 }
+
+/// `map` with each map point keyframe `kf` observes erased with
+/// probability `share` (roughly what a shutdown's culling and adjustment
+/// do): for checking that a result does not hang on a few points.
+pub fn with_points_culled(
+    map: &shotpilot::slam::Map,
+    kf: shotpilot::slam::KeyFrameId,
+    share: f64,
+    rng: &mut StdRng,
+) -> shotpilot::slam::Map {
+    let mut changed = map.clone();
+    let points: Vec<_> = map
+        .keyframe(kf)
+        .map(|k| k.points.iter().flatten().copied().collect())
+        .unwrap_or_default();
+    for p in points {
+        if rng.random_bool(share) {
+            changed.erase_point(p);
+        }
+    }
+    changed
+}
+
+/// How far camera `b` stands from camera `a`: the centres' distance as a
+/// percentage of `scale`, and the angle between them, degrees.
+pub fn pose_moved(a: &Isometry3<f64>, b: &Isometry3<f64>, scale: f64) -> (f64, f64) {
+    (
+        (b.translation.vector - a.translation.vector).norm() / scale * 100.0,
+        b.rotation.angle_to(&a.rotation).to_degrees(),
+    )
+}
