@@ -147,6 +147,12 @@ pub struct Camera {
     /// Lens distortion.
     #[serde(default)]
     pub distortion: Distortion,
+    /// Rolling-shutter readout: seconds from the first row's exposure to
+    /// the last's (0: a global shutter). A frame's time is its centre
+    /// row's; the SLAM sees each row from its own pose
+    /// ([`crate::optimize::RowMotion`]).
+    #[serde(default)]
+    pub readout_s: f64,
 }
 
 impl Camera {
@@ -165,6 +171,7 @@ impl Camera {
             cx,
             cy,
             distortion,
+            readout_s: 0.0,
         };
         cam.validate()?;
         Ok(cam)
@@ -179,6 +186,14 @@ impl Camera {
         if all.iter().any(|v| !v.is_finite()) {
             return Err(CameraError::Invalid {
                 reason: "a coefficient is not a finite number".into(),
+            });
+        }
+        if !(self.readout_s.is_finite() && (0.0..=1.0).contains(&self.readout_s)) {
+            return Err(CameraError::Invalid {
+                reason: format!(
+                    "rolling-shutter readout {} s is not in [0, 1] s",
+                    self.readout_s
+                ),
             });
         }
         if self.width == 0 || self.height == 0 {

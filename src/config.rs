@@ -569,6 +569,9 @@ pub struct CameraConfig {
     pub p2: f64,
     /// Radial distortion r^6.
     pub k3: f64,
+    /// Rolling-shutter readout, ms (first row to last; 0: a global
+    /// shutter). Unset: the bundled simulator's own when it runs, else 0.
+    pub readout_ms: Option<f64>,
 }
 
 impl Default for CameraConfig {
@@ -587,6 +590,7 @@ impl Default for CameraConfig {
             p1: 0.0,
             p2: 0.0,
             k3: 0.0,
+            readout_ms: None,
         }
     }
 }
@@ -595,6 +599,14 @@ impl CameraConfig {
     /// The camera this section describes (reading `calib_file` when set,
     /// relative to `base_dir`).
     pub fn camera(&self, base_dir: &Path) -> Result<Camera, CameraError> {
+        let mut camera = self.intrinsics(base_dir)?;
+        camera.readout_s = self.readout_ms.unwrap_or(0.0) / 1000.0;
+        camera.validate()?;
+        Ok(camera)
+    }
+
+    /// The camera's intrinsics and distortion (`calib_file`, else the keys).
+    fn intrinsics(&self, base_dir: &Path) -> Result<Camera, CameraError> {
         if let Some(file) = &self.calib_file {
             return Camera::from_calib_file(&base_dir.join(file), self.width, self.height);
         }
@@ -640,7 +652,7 @@ impl Config {
             c.camera(Path::new(".")).map_err(|e| ConfigError::Invalid {
                 path: path.to_owned(),
                 section: "camera",
-                key: "fx/fy/width/height",
+                key: "fx/fy/width/height/readout_ms",
                 reason: e.to_string(),
             })?;
         }

@@ -91,7 +91,23 @@ pub fn run(args: SlamArgs) -> Result<()> {
             ),
         }
     }
-    let mut system = Slam::new(ds.camera, params).context("starting the SLAM")?;
+    let mut camera = ds.camera;
+    if let Some(ms) = args.readout_ms {
+        camera.readout_s = ms / 1000.0;
+        camera
+            .validate()
+            .with_context(|| format!("--readout-ms {ms}"))?;
+    }
+    tracing::info!(
+        readout_ms = camera.readout_s * 1000.0,
+        "rolling shutter {}",
+        if camera.readout_s > 0.0 {
+            "modelled"
+        } else {
+            "off (a global shutter)"
+        }
+    );
+    let mut system = Slam::new(camera, params).context("starting the SLAM")?;
 
     // Decode frames ahead on a reader thread (decoding is not tracking).
     // With --laps the dataset's n frames are flown again and again, every
@@ -216,6 +232,16 @@ pub fn run(args: SlamArgs) -> Result<()> {
     let wall_s = start.elapsed().as_secs_f64();
     memory.push(memory_sample(&system, n));
     let run = system.finish();
+    let readout_estimate = if args.estimate_readout {
+        let grid: Vec<f64> = (0..=10).map(|i| 0.005 * f64::from(i)).collect();
+        let e = slam::shutter::estimate_readout(&run.map, &grid, &BaParams::default());
+        if e.is_none() {
+            tracing::warn!("--estimate-readout: the map has nothing to adjust");
+        }
+        e
+    } else {
+        None
+    };
     slam_report::report(
         &args,
         gt.as_ref(),
@@ -235,6 +261,8 @@ pub fn run(args: SlamArgs) -> Result<()> {
             lost_frames,
             spans,
             memory,
+            readout_s: camera.readout_s,
+            readout_estimate,
         },
     )
 }

@@ -35,6 +35,20 @@ pub struct SlamArgs {
     /// Other FAST thresholds than the defaults.
     #[command(flatten)]
     pub fast: super::features::FastThresholds,
+    /// The camera's rolling-shutter readout, ms (first row to last; 0: a
+    /// global shutter). Tracking and bundle adjustment then see each row
+    /// from its own pose, moved by the camera's velocity. Default: the
+    /// dataset's `exposures.txt` (the simulator's render writes it), else 0.
+    #[arg(long, value_name = "MS")]
+    pub readout_ms: Option<f64>,
+    /// After the run, estimate the rolling-shutter readout from the final
+    /// map: its whole bundle adjustment run again under readouts of 0 to
+    /// 50 ms in 5 ms steps; the best fit, refined between its neighbours,
+    /// is reported (text and JSON) with every readout's reprojection RMSE.
+    /// Takes one whole-map adjustment per readout (seconds on a few hundred
+    /// keyframes).
+    #[arg(long)]
+    pub estimate_readout: bool,
     /// Use only the first N frames.
     #[arg(long, value_name = "N")]
     pub max_frames: Option<usize>,

@@ -46,6 +46,11 @@ pub(super) struct FrameStats {
     pub(super) spans: Vec<slam_timing::FrameSpan>,
     /// The memory samples taken.
     pub(super) memory: Vec<MemorySample>,
+    /// The rolling-shutter readout the run modelled, seconds (0: a global
+    /// shutter).
+    pub(super) readout_s: f64,
+    /// The readout estimated from the final map (`--estimate-readout`).
+    pub(super) readout_estimate: Option<shotpilot::slam::shutter::ReadoutEstimate>,
 }
 
 /// Median and 95th percentile of each per-frame and per-keyframe time, ms.
@@ -492,6 +497,20 @@ fn print_json(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
     if let (Some(o), serde_json::Value::Object(n)) = (out.as_object_mut(), atlas) {
         o.extend(n);
     }
+    let shutter = json!({
+        "readout_ms": 1000.0 * stats.readout_s,
+        "readout_estimate": stats.readout_estimate.as_ref().map(|e| json!({
+            "readout_ms": 1000.0 * e.readout_s,
+            "trials": e.trials.iter().map(|t| json!({
+                "readout_ms": 1000.0 * t.readout_s,
+                "cost": t.cost,
+                "rmse_px": t.rmse_px,
+            })).collect::<Vec<_>>(),
+        })),
+    });
+    if let (Some(o), serde_json::Value::Object(n)) = (out.as_object_mut(), shutter) {
+        o.extend(n);
+    }
     let perf = json!({
         "frame_time": timing,
         "rss_mib": rss.map(|r| r.0),
@@ -632,6 +651,7 @@ fn print_text(args: &SlamArgs, run: &SlamRun, stats: &FrameStats, fig: &Figures)
         "per keyframe mapping median {med_map:.2} ms p95 {p95_map:.2} ms | local BA median {med_ba:.2} ms p95 {p95_ba:.2} ms"
     );
     print_timing(timing);
+    print_shutter(stats);
     if let Some(last) = memory.last() {
         slam_memory::print_memory(memory, last, *rss);
     }
@@ -830,6 +850,30 @@ fn med_p95(v: &[f64]) -> (f64, f64) {
 }
 
 /// The frame-time report's lines.
+/// The rolling shutter modelled, and the readout estimated from the map.
+fn print_shutter(stats: &FrameStats) {
+    if stats.readout_s > 0.0 {
+        println!(
+            "rolling shutter modelled: readout {:.1} ms",
+            1000.0 * stats.readout_s
+        );
+    } else {
+        println!("global shutter (readout 0; --readout-ms sets one)");
+    }
+    if let Some(e) = &stats.readout_estimate {
+        let trials: Vec<String> = e
+            .trials
+            .iter()
+            .map(|t| format!("{:.0} ms {:.4}", 1000.0 * t.readout_s, t.rmse_px))
+            .collect();
+        println!(
+            "readout estimated from the map: {:.1} ms (least adjusted cost; reprojection RMSE px per readout: {})",
+            1000.0 * e.readout_s,
+            trials.join(", ")
+        );
+    }
+}
+
 fn print_timing(t: &slam_timing::TimingReport) {
     println!(
         "tracking thread per frame (wall): {} | waiting for the map lock: {}, {} frames waited",

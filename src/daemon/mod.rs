@@ -230,7 +230,8 @@ pub async fn run_on(
             }
         }
     }
-    let camera = cfg.camera.camera(base_dir)?;
+    #[cfg_attr(not(feature = "sim"), allow(unused_mut))]
+    let mut camera = cfg.camera.camera(base_dir)?;
 
     // The simulator, first, so the video and the link find it.
     #[cfg(feature = "sim")]
@@ -246,6 +247,14 @@ pub async fn run_on(
     let sim_task = if cfg.sim.enabled {
         let mut sc = crate::simulator::sim_config(&cfg, &data_dir)?;
         sc.lockstep = lockstep.clone();
+        if cfg.camera.readout_ms.is_none() {
+            // The simulator's camera is the one the SLAM sees.
+            camera.readout_s = sc
+                .realism
+                .camera
+                .rolling_shutter
+                .map_or(0.0, |r| r.readout_s);
+        }
         let c = sim_cancel.clone();
         tracing::info!(video = %cfg.sim.video_listen, mavlink = %cfg.sim.mavlink, "starting the simulator in-process");
         let (video, mavlink) = (sockets.sim_video, sockets.sim_mavlink);
@@ -288,6 +297,17 @@ pub async fn run_on(
         .jpeg_downscale
         .store(cfg.video.downscale, std::sync::atomic::Ordering::Relaxed);
     let camera = crate::video::source::decimated_camera(&camera, cfg.video.downscale);
+    tracing::info!(
+        readout_ms = camera.readout_s * 1000.0,
+        "camera {}x{}, {}",
+        camera.width,
+        camera.height,
+        if camera.readout_s > 0.0 {
+            "rolling shutter modelled"
+        } else {
+            "global shutter"
+        }
+    );
 
     // SLAM thread.
     // Telemetry priors and the telemetry aid of tracking: the georeference

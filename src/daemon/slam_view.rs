@@ -278,8 +278,14 @@ fn continue_on(
     params: &slam::Params,
     vocabulary: &Arc<crate::bow::Vocabulary>,
 ) -> Result<(Slam, slam::mapfile::KeyframeImages), ContinueError> {
-    let (map, images) = slam::mapfile::load_with_images(path)?;
-    if map.camera != *camera {
+    let (mut map, images) = slam::mapfile::load_with_images(path)?;
+    // The file does not store the rolling-shutter readout: `[camera]`'s is
+    // the camera's.
+    let stored = Camera {
+        readout_s: camera.readout_s,
+        ..map.camera
+    };
+    if stored != *camera {
         return Err(ContinueError::OtherCamera {
             map_width: map.camera.width,
             map_height: map.camera.height,
@@ -289,6 +295,7 @@ fn continue_on(
             fx: camera.fx,
         });
     }
+    map.camera = stored;
     if map.keyframe_count() < 2 {
         return Err(ContinueError::TooFewKeyframes {
             keyframes: map.keyframe_count(),

@@ -6,6 +6,8 @@
 //! * [`ba`]: local bundle adjustment over keyframes and points, points
 //!   eliminated by the Schur complement, the reduced camera system solved by
 //!   faer's dense Cholesky, fixed keyframes as the gauge;
+//! * [`shutter`]: a rolling shutter's row times in the reprojection error
+//!   of both ([`RowMotion`]);
 //! * [`sim3`]: the Sim(3) between two keyframes from their matched points;
 //! * [`essential_graph`]: the Sim(3) pose graph of loop closing (keyframe
 //!   poses only), its block-sparse normal equations solved by faer's sparse
@@ -29,6 +31,7 @@ pub mod ba;
 pub mod essential_graph;
 pub mod lm;
 pub mod pose;
+pub mod shutter;
 pub mod sim3;
 
 pub use ba::{
@@ -42,6 +45,7 @@ pub use pose::{
     PosePrior, PoseReport, observation_chi2, optimize_pose, optimize_pose_with_prior,
     pose_covariance, refine_pose_and_intrinsics, refine_pose_and_intrinsics_from,
 };
+pub use shutter::RowMotion;
 pub use sim3::{Sim3Match, Sim3Params, Sim3Report, optimize_sim3};
 
 use nalgebra::{Matrix2x3, Point2, Vector3};

@@ -11,6 +11,7 @@
 use nalgebra::{Isometry3, Matrix6, Point2, Point3, Vector6};
 
 use super::lm::{LeastSquares, LmParams, LmSummary, levenberg_marquardt, solve_damped_dense};
+use super::shutter::{RowMotion, camera_point};
 use super::{Intrinsics, OptimizeError, RobustKernel, valid_obs};
 use crate::lie::{se3_exp, skew};
 
@@ -81,7 +82,21 @@ pub fn observation_chi2(
     obs: &PoseObservation,
     min_depth: f64,
 ) -> Option<f64> {
+    shutter_chi2(cam_from_world, intr, obs, min_depth, None)
+}
+
+/// [`observation_chi2`] with the observation seen at its row's exposure
+/// (a rolling shutter's `shutter`; `None`: a global shutter).
+#[inline]
+fn shutter_chi2(
+    cam_from_world: &Isometry3<f64>,
+    intr: &Intrinsics,
+    obs: &PoseObservation,
+    min_depth: f64,
+    shutter: Option<&RowMotion>,
+) -> Option<f64> {
     let pc = cam_from_world.transform_point(&obs.p_world).coords;
+    let pc = camera_point(shutter, obs.uv.y, pc);
     if pc.z <= min_depth {
         return None;
     }
@@ -158,6 +173,9 @@ pub(crate) struct PoseProblem<'a> {
     pub cam_from_world: Isometry3<f64>,
     /// A prior on the pose (none: vision alone).
     pub prior: Option<PosePrior>,
+    /// The camera's motion over a rolling shutter's readout (none: a
+    /// global shutter).
+    pub shutter: Option<RowMotion>,
     old: Isometry3<f64>,
     h: Matrix6<f64>,
     g: Vector6<f64>,
@@ -182,6 +200,7 @@ impl<'a> PoseProblem<'a> {
             behind_chi2: 1e4,
             cam_from_world,
             prior: None,
+            shutter: None,
             old: cam_from_world,
             h: Matrix6::zeros(),
             g: Vector6::zeros(),
@@ -197,19 +216,24 @@ impl LeastSquares for PoseProblem<'_> {
         let mut cost = 0.0;
         let rot = self.cam_from_world.rotation.to_rotation_matrix();
         let t = self.cam_from_world.translation.vector;
+        let shutter = self.shutter.as_ref();
         for (o, _) in self.obs.iter().zip(self.active).filter(|(_, a)| **a) {
             let pc = rot * o.p_world.coords + t;
-            if pc.z <= self.min_depth {
+            let prow = camera_point(shutter, o.uv.y, pc);
+            if prow.z <= self.min_depth {
                 cost += 0.5 * self.kernel.eval(self.behind_chi2).0;
                 continue;
             }
-            let r = self.intr.project(&pc) - o.uv;
+            let r = self.intr.project(&prow) - o.uv;
             let s = r.norm_squared() * o.inv_sigma2;
             let (rho, drho) = self.kernel.eval(s);
             cost += 0.5 * rho;
             let w = drho * o.inv_sigma2;
-            let jp = self.intr.project_jacobian(&pc);
-            // ∂pc/∂δ = [I | -[pc]ₓ]
+            let mut jp = self.intr.project_jacobian(&prow);
+            if let Some(m) = shutter {
+                jp *= m.jacobian(o.uv.y);
+            }
+            // ∂pc/∂δ = [I | -[pc]ₓ] (then through the row's motion)
             let jr = -(jp * skew(&pc));
             let mut j = nalgebra::Matrix2x6::zeros();
             j.fixed_view_mut::<2, 3>(0, 0).copy_from(&jp);
@@ -248,8 +272,14 @@ impl LeastSquares for PoseProblem<'_> {
     fn cost(&mut self) -> f64 {
         let mut cost = 0.0;
         for (o, _) in self.obs.iter().zip(self.active).filter(|(_, a)| **a) {
-            let s = observation_chi2(&self.cam_from_world, &self.intr, o, self.min_depth)
-                .unwrap_or(self.behind_chi2);
+            let s = shutter_chi2(
+                &self.cam_from_world,
+                &self.intr,
+                o,
+                self.min_depth,
+                self.shutter.as_ref(),
+            )
+            .unwrap_or(self.behind_chi2);
             cost += 0.5 * self.kernel.eval(s).0;
         }
         if let Some(p) = &self.prior {
@@ -291,18 +321,22 @@ pub fn optimize_pose(
     intr: &Intrinsics,
     params: &PoseParams,
 ) -> Result<PoseReport, OptimizeError> {
-    optimize_pose_with_prior(cam_from_world, obs, intr, params, None)
+    optimize_pose_with_prior(cam_from_world, obs, intr, params, None, None)
 }
 
 /// [`optimize_pose`] with a prior on the pose in every round (the
-/// telemetry's prediction when vision has few matches): the outlier
-/// classification stays on the observations alone.
+/// telemetry's prediction when vision has few matches; the outlier
+/// classification stays on the observations alone) and, for a rolling
+/// shutter, the camera's motion over the readout (each observation seen
+/// from its row's pose, [`super::shutter`]; the pose is the frame's, its
+/// centre row's).
 pub fn optimize_pose_with_prior(
     cam_from_world: Isometry3<f64>,
     obs: &[PoseObservation],
     intr: &Intrinsics,
     params: &PoseParams,
     prior: Option<&PosePrior>,
+    shutter: Option<&RowMotion>,
 ) -> Result<PoseReport, OptimizeError> {
     if obs.len() < 3 {
         return Err(OptimizeError::NotEnoughObservations {
@@ -344,13 +378,14 @@ pub fn optimize_pose_with_prior(
         };
         let mut problem = PoseProblem::new(pose, obs, &active, *intr, kernel, params.min_depth);
         problem.prior = prior.copied();
+        problem.shutter = shutter.copied();
         let s = levenberg_marquardt(&mut problem, &params.lm);
         pose = problem.cam_from_world;
         iterations += s.iterations;
         last = Some(s);
         let mut n_in = 0;
         for (o, a) in obs.iter().zip(active.iter_mut()) {
-            let ok = observation_chi2(&pose, intr, o, params.min_depth)
+            let ok = shutter_chi2(&pose, intr, o, params.min_depth, shutter)
                 .is_some_and(|c| c <= params.chi2_threshold);
             *a = ok;
             n_in += usize::from(ok);
@@ -987,6 +1022,142 @@ mod tests {
         assert!((g_fd - p.g).norm() < 1e-5 * p.g.norm().max(1.0));
     }
 
+    /// A camera moving during a 30 ms readout of 480 rows: 6 m/s across
+    /// and forward, turning at 0.5 rad/s mostly about its vertical axis.
+    fn moving() -> RowMotion {
+        RowMotion::new(
+            0.030,
+            480,
+            Vector3::new(-6.0, 1.0, 2.0),
+            Vector3::new(0.1, 0.5, -0.2),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn rolling_shutter_pose_jacobian_matches_finite_differences() {
+        let obs = [PoseObservation {
+            p_world: Point3::new(0.4, -0.3, 4.0),
+            uv: Point2::new(300.0, 60.0),
+            inv_sigma2: 1.0,
+        }];
+        let active = [true];
+        let pose = off_origin();
+        let m = moving();
+        let mut p = PoseProblem::new(pose, &obs, &active, intr(), RobustKernel::None, 1e-6);
+        p.shutter = Some(m);
+        p.linearize();
+        let res = |t: &Isometry3<f64>| {
+            let pc = t.transform_point(&obs[0].p_world).coords;
+            intr().project(&m.at_row(obs[0].uv.y, &pc)) - obs[0].uv
+        };
+        let r0 = res(&pose);
+        let mut jfd = nalgebra::Matrix2x6::zeros();
+        for k in 0..6 {
+            let mut d = Vector6::zeros();
+            d[k] = 1e-7;
+            jfd.set_column(
+                k,
+                &((res(&(se3_exp(&d) * pose)) - res(&(se3_exp(&(-d)) * pose))) / 2e-7),
+            );
+        }
+        let h_fd = jfd.transpose() * jfd;
+        assert!((h_fd - p.h).norm() < 1e-5 * p.h.norm(), "{h_fd} vs {}", p.h);
+        assert!((jfd.transpose() * r0 - p.g).norm() < 1e-5 * p.g.norm().max(1.0));
+    }
+
+    /// Observations a rolling-shutter camera makes while moving: each point
+    /// seen from the exact pose `Exp(τ·ξ)·T` at the row it lands on (the
+    /// row found by fixed-point iteration), with `noise_px` of pixel noise.
+    fn rolling_observations(
+        truth: &Isometry3<f64>,
+        m: &RowMotion,
+        noise_px: f64,
+        rng: &mut SmallRng,
+    ) -> Vec<PoseObservation> {
+        let mut obs = Vec::new();
+        while obs.len() < 300 {
+            let u = rng.random_range(10.0..630.0);
+            let v = rng.random_range(10.0..470.0);
+            let z = rng.random_range(8.0..40.0);
+            let k = intr();
+            let pc = Vector3::new((u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z);
+            let p_world = truth.inverse_transform_point(&Point3::from(pc));
+            let mut row = v;
+            let mut uv = Point2::new(u, v);
+            for _ in 0..8 {
+                let tau = m.time_of_row(row);
+                let mut xi = Vector6::zeros();
+                xi.fixed_rows_mut::<3>(0).copy_from(&(m.linear * tau));
+                xi.fixed_rows_mut::<3>(3).copy_from(&(m.angular * tau));
+                let seen = (se3_exp(&xi) * truth).transform_point(&p_world).coords;
+                uv = k.project(&seen);
+                row = uv.y;
+            }
+            if !(0.0..480.0).contains(&uv.y) || !(0.0..640.0).contains(&uv.x) {
+                continue;
+            }
+            let n = Vector2::new(standard_normal(rng), standard_normal(rng)) * noise_px;
+            obs.push(PoseObservation {
+                p_world,
+                uv: uv + n,
+                inv_sigma2: 1.0,
+            });
+        }
+        obs
+    }
+
+    /// What the rolling-shutter model is for: a camera moving at 6 m/s and
+    /// 0.5 rad/s through a 30 ms readout, posed from 300 points 8-40 m away
+    /// with 0.5 px noise. With its row motion the pose is the truth within
+    /// 1 cm and 0.02 deg (measured 3 mm, 0.010 deg, 300 inliers); taken as
+    /// a global shutter it is turned over 0.08 deg and 5 times as far
+    /// (0.11 deg) and at least 10 true observations fail the chi2 test
+    /// (26).
+    #[test]
+    fn a_moving_rolling_shutter_camera_is_posed_at_its_centre_row() {
+        let mut rng = SmallRng::seed_from_u64(35);
+        let truth = Isometry3::from_parts(
+            Translation3::new(2.0, -1.0, 5.0),
+            UnitQuaternion::from_euler_angles(0.3, -0.2, 0.9),
+        );
+        let m = moving();
+        let obs = rolling_observations(&truth, &m, 0.5, &mut rng);
+        let start = se3_exp(&Vector6::new(0.2, -0.1, 0.3, 0.01, -0.02, 0.01)) * truth;
+        let params = PoseParams::default();
+        let err = |r: &PoseReport| {
+            let d = r.cam_from_world * truth.inverse();
+            let centre = (r.cam_from_world.inverse().translation.vector
+                - truth.inverse().translation.vector)
+                .norm();
+            (centre, d.rotation.angle().to_degrees())
+        };
+        let with = optimize_pose_with_prior(start, &obs, &intr(), &params, None, Some(&m)).unwrap();
+        let without = optimize_pose(start, &obs, &intr(), &params).unwrap();
+        let (pw, aw) = err(&with);
+        let (pg, ag) = err(&without);
+        eprintln!(
+            "rolling shutter: with its row motion {pw:.4} m {aw:.4} deg {} inliers; \
+             as a global shutter {pg:.4} m {ag:.4} deg {} inliers",
+            with.n_inliers, without.n_inliers
+        );
+        assert!(
+            pw < 0.01 && aw < 0.02,
+            "with the row motion: {pw} m, {aw} deg"
+        );
+        assert!(
+            ag > 0.08 && ag > 5.0 * aw,
+            "as a global shutter: {pg} m, {ag} deg"
+        );
+        assert!(with.n_inliers >= 290, "with: {} of 300", with.n_inliers);
+        assert!(
+            without.n_inliers + 10 <= with.n_inliers,
+            "{} vs {}",
+            without.n_inliers,
+            with.n_inliers
+        );
+    }
+
     /// A camera a little off the origin, turned a little.
     fn off_origin() -> Isometry3<f64> {
         Isometry3::from_parts(
@@ -1063,7 +1234,7 @@ mod tests {
         let start = se3_exp(&Vector6::new(0.03, -0.02, 0.04, 0.01, -0.008, 0.006)) * truth;
         let prior = PosePrior::isotropic(truth, Some(0.05), 0.3f64.to_radians());
         let params = PoseParams::default();
-        let with = optimize_pose_with_prior(start, &obs, &k, &params, Some(&prior)).unwrap();
+        let with = optimize_pose_with_prior(start, &obs, &k, &params, Some(&prior), None).unwrap();
         let centre = |t: &Isometry3<f64>| t.inverse().translation.vector;
         let turn = (with.cam_from_world.rotation * truth.rotation.inverse()).angle();
         assert!(turn.to_degrees() < 0.3, "{} degrees", turn.to_degrees());
@@ -1071,7 +1242,7 @@ mod tests {
         let none = PosePrior::isotropic(truth, None, 0.0);
         assert_eq!(none.information, Matrix6::zeros());
         let plain = optimize_pose(start, &obs, &k, &params).unwrap();
-        let zero = optimize_pose_with_prior(start, &obs, &k, &params, Some(&none)).unwrap();
+        let zero = optimize_pose_with_prior(start, &obs, &k, &params, Some(&none), None).unwrap();
         assert_eq!(plain.cam_from_world, zero.cam_from_world);
     }
 

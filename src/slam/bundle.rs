@@ -3,13 +3,16 @@
 //! observing those points into a [`BaProblem`], and write the solution
 //! back (poses, points, outlier observations erased). Initialisation,
 //! local mapping and the final optimisation of a run all go through it.
+//! Under a rolling shutter each keyframe's motion over its readout follows
+//! the keyframes just before and after it ([`attach_shutters`]).
 
 use std::collections::HashMap;
 
-use nalgebra::Point2;
+use nalgebra::{Point2, Vector3};
 
 use crate::lie::renormalized;
-use crate::optimize::{self, BaParams, BaPose, BaProblem, Intrinsics, Observation};
+use crate::optimize::shutter::PoseShutter;
+use crate::optimize::{self, BaParams, BaPose, BaProblem, Intrinsics, Observation, RowMotion};
 
 use super::map::{KeyFrameId, Map, PointId};
 
@@ -69,6 +72,7 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
         poses.push(BaPose {
             cam_from_world: k.cam_from_world,
             fixed: fixed.contains(&kf),
+            shutter: None,
         });
         pose_ids.push(kf);
     }
@@ -99,6 +103,7 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
                     poses.push(BaPose {
                         cam_from_world: k.cam_from_world,
                         fixed: true,
+                        shutter: None,
                     });
                     pose_ids.push(*kf);
                     poses.len() - 1
@@ -119,7 +124,7 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
         return None;
     }
     let cam = &map.camera;
-    Some(BaSetup {
+    let mut setup = BaSetup {
         problem: BaProblem {
             poses,
             points,
@@ -134,7 +139,101 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
         },
         keyframes: pose_ids,
         points: point_ids,
-    })
+    };
+    attach_shutters(map, &mut setup, cam.readout_s);
+    Some(setup)
+}
+
+/// Keyframes further apart in time than this do not give each other's
+/// velocity (a drone's motion changes within a second or two).
+const MAX_NEIGHBOUR_GAP_S: f64 = 1.5;
+
+/// A keyframe and its time, seconds.
+type TimedKeyFrame = (f64, KeyFrameId);
+
+/// The keyframes taken just before and just after `kf` (each with its
+/// time), among its covisible and spanning-tree neighbours within
+/// [`MAX_NEIGHBOUR_GAP_S`].
+fn time_neighbours(map: &Map, kf: KeyFrameId) -> (Option<TimedKeyFrame>, Option<TimedKeyFrame>) {
+    let Some(k) = map.keyframe(kf) else {
+        return (None, None);
+    };
+    let t = k.timestamp;
+    let mut before: Option<TimedKeyFrame> = None;
+    let mut after: Option<TimedKeyFrame> = None;
+    let neighbours = k
+        .covisible
+        .iter()
+        .map(|c| c.0)
+        .chain(k.parent)
+        .chain(k.children.iter().copied());
+    for n in neighbours {
+        let Some(nk) = map.keyframe(n) else { continue };
+        let dt = nk.timestamp - t;
+        if !dt.is_finite() || dt == 0.0 || dt.abs() > MAX_NEIGHBOUR_GAP_S {
+            continue;
+        }
+        let slot = if dt < 0.0 { &mut before } else { &mut after };
+        if slot.is_none_or(|(best, _)| dt.abs() < (best - t).abs()) {
+            *slot = Some((nk.timestamp, n));
+        }
+    }
+    (before, after)
+}
+
+/// Gives every pose of `setup` a rolling shutter of `readout_s` (none when
+/// it is 0): its motion over the readout taken between the keyframes just
+/// before and just after it (a central difference; one-sided at the newest
+/// or oldest; [`crate::optimize::shutter::PoseShutter::between`]), so it
+/// follows the poses as the adjustment moves them. A neighbour not in the
+/// problem joins it, held fixed. A keyframe with no neighbour in time gets
+/// no motion.
+pub fn attach_shutters(map: &Map, setup: &mut BaSetup, readout_s: f64) {
+    let mut index: HashMap<KeyFrameId, usize> = setup
+        .keyframes
+        .iter()
+        .enumerate()
+        .map(|(i, k)| (*k, i))
+        .collect();
+    let n = setup.keyframes.len();
+    for i in 0..n {
+        let kf = setup.keyframes[i];
+        let Some(motion) = RowMotion::new(
+            readout_s,
+            map.camera.height,
+            Vector3::zeros(),
+            Vector3::zeros(),
+        ) else {
+            setup.problem.poses[i].shutter = None;
+            continue;
+        };
+        let Some(t) = map.keyframe(kf).map(|k| k.timestamp) else {
+            continue;
+        };
+        let (before, after) = time_neighbours(map, kf);
+        let mut place = |found: Option<TimedKeyFrame>| -> (f64, usize) {
+            let Some((tn, id)) = found else { return (t, i) };
+            let Some(k) = map.keyframe(id) else {
+                return (t, i);
+            };
+            let at = *index.entry(id).or_insert_with(|| {
+                setup.problem.poses.push(BaPose {
+                    cam_from_world: k.cam_from_world,
+                    fixed: true,
+                    shutter: None,
+                });
+                setup.keyframes.push(id);
+                setup.problem.poses.len() - 1
+            });
+            (tn, at)
+        };
+        let (t0, a) = place(before);
+        let (t1, b) = place(after);
+        setup.problem.poses[i].shutter = (t1 > t0).then_some(PoseShutter {
+            motion,
+            between: Some((a, b, t1 - t0)),
+        });
+    }
 }
 
 /// The position error of the keyframes `kfs` that the map's own bundle

@@ -109,6 +109,10 @@ pub(super) struct Frame {
     /// A prior on the frame's pose in its optimisations (the telemetry's
     /// prediction when tracking is aided; `None`: vision alone).
     pub prior: Option<optimize::PosePrior>,
+    /// The camera's motion over a rolling shutter's readout, from the
+    /// constant-velocity model (`None`: a global shutter, or no motion
+    /// model yet).
+    pub shutter: Option<optimize::RowMotion>,
 }
 
 impl Frame {
@@ -207,6 +211,10 @@ impl Frame {
 
 /// The previous tracked frame.
 pub(super) struct LastFrame {
+    /// Its capture time, seconds.
+    pub timestamp: f64,
+    /// Vision posed it (not the telemetry's prediction).
+    pub by_vision: bool,
     /// Its keypoints.
     pub keypoints: Vec<KeyPoint>,
     /// Its (keypoint, point) matches.
@@ -297,6 +305,7 @@ impl Context {
             &self.intrinsics,
             &self.params.pose,
             frame.prior.as_ref(),
+            frame.shutter.as_ref(),
         )
         .ok()?;
         for (k, &i) in idx.iter().enumerate() {

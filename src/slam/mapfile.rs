@@ -43,6 +43,9 @@
 //! frame (and the daemon's georeference keeps following from it). Files of
 //! versions 1 to 4 load vision-only; any other mode byte is refused.
 //!
+//! The camera's rolling-shutter readout is not stored: a map loads as a
+//! global shutter's, and the daemon continuing it gives it `[camera]`'s.
+//!
 //! Loading checks the magic, the version, the length and the checksum, every
 //! index, and the map's invariants; any failure is a typed error.
 

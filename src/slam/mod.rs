@@ -32,13 +32,14 @@
 //! | `relocalizer` | BoW candidates, PnP RANSAC, search by projection for a lost frame |
 //! | `local_map` | local keyframes, search of their points by projection, pose on all matches |
 //! | `keyframe_decision` | whether a tracked frame becomes a keyframe |
-//! | `frame` | the frame being tracked, the tracker's context, motion-only BA of a frame |
+//! | `frame` | the frame being tracked (with its rolling-shutter motion from the motion model), the tracker's context, motion-only BA of a frame |
 //! | [`params`] | [`TrackingParams`], the tunables of all of the above |
 //! | [`mapping`] | the [`LocalMapper`]: triangulation, fusion, local BA, keyframe culling |
 //! | [`priors`] | telemetry priors (a log read whole or a live feed): the map put in local NED, GNSS and altitude priors in BA |
 //! | [`loop_closing`] | the [`LoopCloser`]: loop detection, Sim(3) check, correction, essential graph |
 //! | [`pause`] | holding local mapping while the loop closer writes a correction back; the closer's priority |
 //! | [`bundle`] | the map ↔ [`crate::optimize`] glue of every bundle adjustment |
+//! | [`shutter`] | a rolling shutter's readout estimated from a map (each keyframe's motion over its readout is [`bundle`]'s) |
 //! | [`matcher`] | descriptor matching for each of the stages |
 //! | [`map`] | keyframes and points in arenas, covisibility, spanning tree, place index |
 //! | [`mapfile`] | the versioned binary map file |
@@ -60,6 +61,7 @@ pub mod pause;
 pub mod planar;
 pub mod priors;
 mod relocalizer;
+pub mod shutter;
 pub mod tracking;
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};

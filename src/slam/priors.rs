@@ -1059,6 +1059,7 @@ mod tests {
                     .map(|&k| crate::optimize::BaPose {
                         cam_from_world: map.keyframe(k).unwrap().cam_from_world,
                         fixed: k.0 == 0,
+                        shutter: None,
                     })
                     .collect(),
                 points: Vec::new(),

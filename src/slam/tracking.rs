@@ -18,6 +18,8 @@ use std::sync::{Arc, Mutex};
 use image::GrayImage;
 use nalgebra::Isometry3;
 
+use crate::optimize;
+
 use crate::bow::Vocabulary;
 use crate::camera::Camera;
 use crate::features::OrbExtractor;
@@ -199,6 +201,9 @@ pub struct Tracker {
     /// `cam_from_world` of this frame times `world_from_cam` of the last
     /// (the constant-velocity model).
     velocity: Option<Isometry3<f64>>,
+    /// Seconds between the two frames of `velocity` when vision posed both
+    /// (0 otherwise: no rolling-shutter motion from it).
+    velocity_dt: f64,
     reference_kf: Option<KeyFrameId>,
     last_kf_frame: u64,
     last_reloc_frame: Option<u64>,
@@ -258,6 +263,7 @@ impl Tracker {
             local_map: LocalMapTracker::default(),
             last: None,
             velocity: None,
+            velocity_dt: 0.0,
             reference_kf: None,
             last_kf_frame: 0,
             last_reloc_frame: None,
@@ -449,6 +455,7 @@ impl Tracker {
             bow: None,
             rejected: vec![false; n],
             prior: None,
+            shutter: None,
         };
         let mut out = FrameOutcome {
             state: self.state,
@@ -562,6 +569,8 @@ impl Tracker {
         }
         let inliers = initial.matches.len();
         self.last = Some(LastFrame {
+            timestamp: initial.second.timestamp,
+            by_vision: true,
             keypoints: initial.keypoints,
             matches: initial.matches,
             cam_from_world: initial.cam_from_world,
@@ -576,6 +585,24 @@ impl Tracker {
             new_keyframe: Some(initial.second.keyframe),
             source: PoseSource::Vision,
         }
+    }
+
+    /// The camera's motion over the next frame's rolling-shutter readout:
+    /// the constant-velocity model per second (`None` for a global
+    /// shutter or without a motion model).
+    fn row_motion(&self) -> Option<optimize::RowMotion> {
+        let v = self.velocity?;
+        let dt = self.velocity_dt;
+        if dt.is_nan() || dt <= 0.0 {
+            return None;
+        }
+        let cam = &self.ctx.camera;
+        optimize::RowMotion::new(
+            cam.readout_s,
+            cam.height,
+            v.translation.vector / dt,
+            v.rotation.scaled_axis() / dt,
+        )
     }
 
     /// Track an ordinary frame against the map.
@@ -605,6 +632,7 @@ impl Tracker {
             self.corrections_seen = map.corrections();
             self.follow_correction(map);
         }
+        frame.shutter = self.row_motion();
         // The telemetry's prediction of this frame, when vision may need it.
         let sample = self.aid.as_ref().and_then(|a| a.sample(frame.timestamp));
         let prediction = match (&self.aid, &self.anchor, &sample) {
@@ -777,6 +805,14 @@ impl Tracker {
         // Motion model.
         if let Some(last) = &self.last {
             self.velocity = Some(renormalized(cam_from_world * last.cam_from_world.inverse()));
+            // The rolling shutter takes the motion only between two frames
+            // vision posed: a telemetry-helped pose's error would be read
+            // as the camera's velocity.
+            self.velocity_dt = if source == PoseSource::Vision && last.by_vision {
+                frame.timestamp - last.timestamp
+            } else {
+                0.0
+            };
         }
         let reference = self.reference_kf.unwrap_or(KeyFrameId(0));
         let mut new_keyframe = None;
@@ -837,6 +873,8 @@ impl Tracker {
             "frame posed"
         );
         self.last = Some(LastFrame {
+            timestamp: frame.timestamp,
+            by_vision: source == PoseSource::Vision,
             keypoints: frame.keypoints.clone(),
             matches: frame.matches(),
             cam_from_world,

@@ -187,7 +187,11 @@ impl Dataset {
             });
         }
         let (w, h) = image_size(&entries[0].1)?;
-        let camera = Camera::from_calib_file(&calib, w, h)?;
+        let mut camera = Camera::from_calib_file(&calib, w, h)?;
+        if let Some(readout_s) = read_readout(&root.join("exposures.txt"))? {
+            camera.readout_s = readout_s;
+            camera.validate()?;
+        }
         let gt_path = root.join("groundtruth.txt");
         let groundtruth = if gt_path.is_file() {
             Some(Trajectory::read_tum(&gt_path)?)
@@ -322,6 +326,37 @@ fn image_size(path: &Path) -> Result<(u32, u32), DatasetError> {
             reason: other.to_string(),
         },
     })
+}
+
+/// The rolling-shutter readout of a dataset's `exposures.txt` (what
+/// `shotpilot-sim render` writes: `timestamp exposure_s gain readout_s ...`
+/// per frame), the median over its frames; `None` without the file.
+fn read_readout(path: &Path) -> Result<Option<f64>, DatasetError> {
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text = read_text(path)?;
+    let mut readouts = Vec::new();
+    for (i, raw) in text.lines().enumerate() {
+        let line = strip_comment(raw);
+        if line.is_empty() {
+            continue;
+        }
+        let r = line
+            .split_whitespace()
+            .nth(3)
+            .and_then(|v| v.parse::<f64>().ok())
+            .filter(|r| r.is_finite() && *r >= 0.0)
+            .ok_or_else(|| {
+                parse_err(
+                    path,
+                    i + 1,
+                    "expected `timestamp exposure_s gain readout_s ...` with a readout >= 0",
+                )
+            })?;
+        readouts.push(r);
+    }
+    Ok(crate::stats::median(&readouts))
 }
 
 fn read_text(path: &Path) -> Result<String, DatasetError> {

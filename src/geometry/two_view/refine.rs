@@ -34,10 +34,12 @@ pub(super) fn refine_two_view(
             BaPose {
                 cam_from_world: Isometry3::identity(),
                 fixed: true,
+                shutter: None,
             },
             BaPose {
                 cam_from_world: *cam2_from_cam1,
                 fixed: false,
+                shutter: None,
             },
         ],
         points: Vec::new(),

@@ -42,7 +42,13 @@ pub(super) struct Explored {
 
 pub(super) fn explore(sim: &mut Sim, params: &ScenarioParams) -> Result<Explored, ScenarioError> {
     let wall = Instant::now();
-    let camera = camera_of(sim.renderer.camera())?;
+    let mut camera = camera_of(sim.renderer.camera())?;
+    // The realistic camera's rolling shutter, which the SLAM models.
+    camera.readout_s = sim
+        .imager
+        .as_ref()
+        .and_then(|i| i.camera().rolling_shutter)
+        .map_or(0.0, |r| r.readout_s);
     let mut slam_params = params.slam.clone();
     if params.priors {
         let feed = TelemetryFeed::live(params.geo.history.max_age_s);

@@ -60,6 +60,7 @@ pub fn ba_scene(
             BaPose {
                 cam_from_world: Isometry3::from_parts(Translation3::from(-(rot * centre)), rot),
                 fixed: i < 2,
+                shutter: None,
             }
         })
         .collect();
