@@ -85,14 +85,6 @@ impl RowMotion {
     pub fn jacobian(&self, row: f64) -> Matrix3<f64> {
         Matrix3::identity() + skew(&self.angular) * self.time_of_row(row)
     }
-
-    /// The same motion in a map scaled by `s` (the translation scales).
-    pub fn scaled(&self, s: f64) -> RowMotion {
-        RowMotion {
-            linear: self.linear * s,
-            ..*self
-        }
-    }
 }
 
 /// A bundle-adjustment pose's rolling shutter: its row motion, and where
