@@ -55,7 +55,9 @@ pub struct BaPose {
 }
 
 /// Takes every pose's rolling-shutter motion again from the poses it
-/// follows ([`PoseShutter::between`]), as they stand.
+/// follows ([`PoseShutter::between`]), as they stand: when a problem is
+/// set up for solving and wherever a step moves the poses (taken or
+/// reverted), so the motions always match the poses the cost is read at.
 fn follow_shutters(problem: &mut BaProblem) {
     for i in 0..problem.poses.len() {
         let Some(PoseShutter {
@@ -242,6 +244,7 @@ impl<'a> BaLs<'a> {
         kernel: RobustKernel,
         min_depth: f64,
     ) -> Self {
+        follow_shutters(problem);
         let mut free = vec![None; problem.poses.len()];
         let mut n_free = 0;
         for (f, p) in free.iter_mut().zip(&problem.poses) {
@@ -383,7 +386,6 @@ impl BaLs<'_> {
 
 impl LeastSquares for BaLs<'_> {
     fn linearize(&mut self) -> (f64, f64) {
-        follow_shutters(self.problem);
         for a in &mut self.a_blocks {
             *a = Matrix6::zeros();
         }
@@ -539,6 +541,7 @@ impl LeastSquares for BaLs<'_> {
             self.old_points[j] = *p;
             *p += self.step_p[j];
         }
+        follow_shutters(self.problem);
     }
 
     fn revert_step(&mut self) {
@@ -550,7 +553,6 @@ impl LeastSquares for BaLs<'_> {
     }
 
     fn cost(&mut self) -> f64 {
-        follow_shutters(self.problem);
         let mut cost = 0.0;
         for (k, o) in self.problem.observations.iter().enumerate() {
             if !self.active[k] {
@@ -743,19 +745,19 @@ pub fn local_bundle_adjustment(
     params: &BaParams,
 ) -> Result<BaReport, OptimizeError> {
     validate(problem)?;
-    follow_shutters(problem);
-    let initial_rmse_px = reprojection_rmse(problem, None);
     let nobs = problem.observations.len();
-    let first_pass = {
+    let (initial_rmse_px, first_pass) = {
         let mut ls = BaLs::new(problem, vec![true; nobs], params.kernel, params.min_depth);
+        let initial = reprojection_rmse(ls.problem, None);
         ls.prior_kernel = params.prior_kernel;
-        levenberg_marquardt(
+        let summary = levenberg_marquardt(
             &mut ls,
             &LmParams {
                 max_iterations: params.first_pass_iterations,
                 ..params.lm.clone()
             },
-        )
+        );
+        (initial, summary)
     };
     let classify = |problem: &BaProblem| -> Vec<bool> {
         problem
@@ -1193,7 +1195,10 @@ mod tests {
             Vector3::new(-4.0, 0.5, 1.5),
             Vector3::new(0.2, 0.6, -0.3),
         );
-        schur_solve_check(Some(PoseShutter::fixed(m.unwrap())));
+        schur_solve_check(Some(PoseShutter {
+            motion: m.unwrap(),
+            between: None,
+        }));
     }
 
     /// A strip of 6 keyframes 0.1 s apart, moving 5 units a second and

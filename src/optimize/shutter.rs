@@ -66,6 +66,27 @@ impl RowMotion {
         })
     }
 
+    /// The motion of a camera that moved by `velocity` (`cam_from_world`
+    /// of one frame times `world_from_cam` of the frame `dt` seconds
+    /// before: a constant-velocity model) per second; `None` as
+    /// [`RowMotion::new`], or for a `dt` that is not positive.
+    pub fn from_velocity(
+        readout_s: f64,
+        height: u32,
+        velocity: &Isometry3<f64>,
+        dt: f64,
+    ) -> Option<RowMotion> {
+        if dt.is_nan() || dt <= 0.0 {
+            return None;
+        }
+        RowMotion::new(
+            readout_s,
+            height,
+            velocity.translation.vector / dt,
+            velocity.rotation.scaled_axis() / dt,
+        )
+    }
+
     /// Seconds from the frame's time to the exposure of `row`.
     #[inline]
     pub fn time_of_row(&self, row: f64) -> f64 {
@@ -99,16 +120,6 @@ pub struct PoseShutter {
     /// itself) and the seconds between them. `None`: `motion` held as
     /// given.
     pub between: Option<(usize, usize, f64)>,
-}
-
-impl PoseShutter {
-    /// A motion held fixed.
-    pub fn fixed(motion: RowMotion) -> PoseShutter {
-        PoseShutter {
-            motion,
-            between: None,
-        }
-    }
 }
 
 /// The left twist that carries `first` to `second` in `dt` seconds, as the

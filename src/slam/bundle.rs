@@ -148,6 +148,22 @@ pub fn build_ba_problem(map: &Map, kfs: &[KeyFrameId], fixed: &[KeyFrameId]) -> 
 /// velocity (a drone's motion changes within a second or two).
 const MAX_NEIGHBOUR_GAP_S: f64 = 1.5;
 
+/// The keyframes a bundle adjustment of the whole map `kfs` holds fixed as
+/// the gauge without priors: each map's first keyframe (maps never merged
+/// are separate problems in one), else the first of `kfs`.
+pub fn whole_map_gauge(map: &Map, kfs: &[KeyFrameId]) -> Vec<KeyFrameId> {
+    let roots: Vec<KeyFrameId> = map
+        .maps()
+        .iter()
+        .filter_map(|(id, _)| map.root_of(*id))
+        .collect();
+    if roots.is_empty() {
+        kfs.first().copied().into_iter().collect()
+    } else {
+        roots
+    }
+}
+
 /// A keyframe and its time, seconds.
 type TimedKeyFrame = (f64, KeyFrameId);
 

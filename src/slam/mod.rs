@@ -605,16 +605,7 @@ impl Slam {
                 let fixed = if aided.is_some() {
                     Vec::new()
                 } else {
-                    let roots: Vec<KeyFrameId> = map
-                        .maps()
-                        .iter()
-                        .filter_map(|(id, _)| map.root_of(*id))
-                        .collect();
-                    if roots.is_empty() {
-                        vec![kfs[0]]
-                    } else {
-                        roots
-                    }
+                    bundle::whole_map_gauge(&map, &kfs)
                 };
                 let solved =
                     bundle::run_bundle_adjustment_with(&mut map, &kfs, &fixed, ba, |m, s| {

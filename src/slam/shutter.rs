@@ -20,7 +20,7 @@
 
 use crate::optimize::{self, BaParams};
 
-use super::bundle::{attach_shutters, build_ba_problem};
+use super::bundle::{attach_shutters, build_ba_problem, whole_map_gauge};
 use super::map::{KeyFrameId, Map};
 
 /// LM iterations of each of [`estimate_readout`]'s adjustments, at least.
@@ -60,16 +60,7 @@ pub fn estimate_readout(map: &Map, grid_s: &[f64], params: &BaParams) -> Option<
         return None;
     }
     let kfs: Vec<KeyFrameId> = map.keyframes().map(|k| k.id).collect();
-    let roots: Vec<KeyFrameId> = map
-        .maps()
-        .iter()
-        .filter_map(|(id, _)| map.root_of(*id))
-        .collect();
-    let fixed = if roots.is_empty() {
-        kfs.first().copied().into_iter().collect()
-    } else {
-        roots
-    };
+    let fixed = whole_map_gauge(map, &kfs);
     let setup = build_ba_problem(map, &kfs, &fixed)?;
     // Each run to convergence (or near it), so the costs compare minima.
     let params = BaParams {

@@ -587,24 +587,6 @@ impl Tracker {
         }
     }
 
-    /// The camera's motion over the next frame's rolling-shutter readout:
-    /// the constant-velocity model per second (`None` for a global
-    /// shutter or without a motion model).
-    fn row_motion(&self) -> Option<optimize::RowMotion> {
-        let v = self.velocity?;
-        let dt = self.velocity_dt;
-        if dt.is_nan() || dt <= 0.0 {
-            return None;
-        }
-        let cam = &self.ctx.camera;
-        optimize::RowMotion::new(
-            cam.readout_s,
-            cam.height,
-            v.translation.vector / dt,
-            v.rotation.scaled_axis() / dt,
-        )
-    }
-
     /// Track an ordinary frame against the map.
     fn track_frame(
         &mut self,
@@ -632,7 +614,12 @@ impl Tracker {
             self.corrections_seen = map.corrections();
             self.follow_correction(map);
         }
-        frame.shutter = self.row_motion();
+        // The camera's motion over this frame's readout: the
+        // constant-velocity model per second (none for a global shutter).
+        frame.shutter = self.velocity.and_then(|v| {
+            let cam = &self.ctx.camera;
+            optimize::RowMotion::from_velocity(cam.readout_s, cam.height, &v, self.velocity_dt)
+        });
         // The telemetry's prediction of this frame, when vision may need it.
         let sample = self.aid.as_ref().and_then(|a| a.sample(frame.timestamp));
         let prediction = match (&self.aid, &self.anchor, &sample) {
